@@ -1,0 +1,8 @@
+"""mapkit: drive logs to maps, image databases, triplet patches and place-recognition indexes.
+
+The library is layered as in evo: ``mapkit.geometry`` and ``mapkit.types`` are pure numpy/scipy,
+``mapkit.geodesy`` wraps pyproj, ``mapkit.io`` holds every reader and writer, and ``mapkit.cli``
+only parses arguments and calls the library.
+"""
+
+__version__ = "0.1.0"
