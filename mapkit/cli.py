@@ -1,0 +1,164 @@
+"""The ``mapkit`` command line. It only parses arguments and calls the library.
+
+A ``MapkitError`` (bad input, bad config) becomes one line on stderr and exit code 2; anything
+else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from . import __version__
+from .errors import InputWarning, MapkitError
+
+app = typer.Typer(
+    name="mapkit",
+    help="Drive logs to semi-dense maps, georeferenced image databases, triplet patches and localization indexes.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+index_app = typer.Typer(help="Build, extend and export deployable indexes.", no_args_is_help=True)
+eval_app = typer.Typer(help="Evaluate maps, indexes and localizers against ground truth.", no_args_is_help=True)
+app.add_typer(index_app, name="index")
+app.add_typer(eval_app, name="eval")
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"mapkit {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """mapkit: dataset building and mapping for visual localization."""
+
+
+def _not_yet(command: str, issue: str) -> None:
+    raise MapkitError(f"`mapkit {command}` is not available in mapkit {__version__} yet ({issue})")
+
+
+@app.command()
+def info(
+    log: Path = typer.Argument(..., help="An MCAP file or a KITTI / RobotCar / generic folder."),
+    format: Optional[str] = typer.Option(None, "--format", "-f", help="Reader name; guessed from the path if omitted."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the summary as JSON here."),
+) -> None:
+    """Per stream: topic, type, count, rate, time span; for GPS the distance covered and fix quality."""
+    from .info import format_summary, summarize
+    from .runio import write_json
+
+    summary = summarize(log, format=format, progress=sys.stderr.isatty())
+    typer.echo(format_summary(summary))
+    if json_out is not None:
+        write_json(json_out, summary)
+    if summary["messages_read"] == 0:
+        raise MapkitError(f"{log}: no usable message could be read")
+
+
+@app.command()
+def synth(
+    preset: str = typer.Option("tiny", help="tiny (tests), demo, or benchmark."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder for the world and session logs."),
+    seed: Optional[int] = typer.Option(None, help="Seed of the town and sessions (the preset's if omitted)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding the preset."),
+    trajectory: Optional[Path] = typer.Option(None, help="Drive one session along this TUM / KITTI / RobotCar INS file."),
+    overwrite: bool = typer.Option(False, help="Regenerate outputs that already exist."),
+) -> None:
+    """Generate the synthetic town: georeferenced multi-session drive logs with ground truth."""
+    from .synth import synthesize
+
+    path = synthesize(preset=preset, out=out, seed=seed, config=config, trajectory=trajectory, overwrite=overwrite)
+    typer.echo(f"synthetic town written to {path}")
+
+
+@app.command()
+def build(
+    logs: List[Path] = typer.Argument(..., help="One or more drive logs; each becomes a session."),
+    out: Path = typer.Option(..., "--out", "-o", help="Workspace folder."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+) -> None:
+    """Build georeferenced session maps (trajectory, GPS alignment, semi-dense map, image database)."""
+    _not_yet("build", "map construction")
+
+
+@app.command()
+def align(workspace: Path = typer.Argument(...), config: Optional[Path] = typer.Option(None, "--config", "-c")) -> None:
+    """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""
+    _not_yet("align", "multi-session maps")
+
+
+@app.command()
+def triplets(workspace: Path = typer.Argument(...), config: Optional[Path] = typer.Option(None, "--config", "-c")) -> None:
+    """Export a triplet dataset of voxelised 3D patches."""
+    _not_yet("triplets", "triplet export")
+
+
+@app.command()
+def localize(bundle: Path = typer.Argument(...), log: Path = typer.Argument(...)) -> None:
+    """Run the Monte Carlo visual localizer on a drive log against a VLAD bundle."""
+    _not_yet("localize", "Monte Carlo visual localizer")
+
+
+@app.command()
+def demo(out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o")) -> None:
+    """Synthetic town to deployable bundles and an HTML report, in one command."""
+    _not_yet("demo", "the one-command demo")
+
+
+@index_app.command("vlad")
+def index_vlad(workspace: Path = typer.Argument(...)) -> None:
+    """Dense SIFT, RootSIFT, VLAD and PCA-whitening image retrieval index."""
+    _not_yet("index vlad", "image retrieval index")
+
+
+@index_app.command("structure")
+def index_structure(workspace: Path = typer.Argument(...)) -> None:
+    """NBLD / M2DP / CNN patch descriptor index with keypoint-to-frame voting."""
+    _not_yet("index structure", "structural place recognition")
+
+
+@eval_app.command("places")
+def eval_places(workspace: Path = typer.Argument(...)) -> None:
+    """Place recognition precision/recall and AUC."""
+    _not_yet("eval places", "structural place recognition")
+
+
+@eval_app.command("localize")
+def eval_localize(workspace: Path = typer.Argument(...)) -> None:
+    """Localization errors of retrieval alone and of the particle filter."""
+    _not_yet("eval localize", "Monte Carlo visual localizer")
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    """Entry point of the ``mapkit`` script."""
+    original = warnings.formatwarning
+
+    def fmt(message, category, filename, lineno, line=None):
+        if issubclass(category, InputWarning):
+            return f"warning: {message}\n"
+        return original(message, category, filename, lineno, line)
+
+    warnings.formatwarning = fmt
+    try:
+        app(args=argv, prog_name="mapkit")
+    except SystemExit as exc:  # click's standalone mode ends every run with SystemExit
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    except MapkitError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        return 2
+    finally:
+        warnings.formatwarning = original
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""Readers and writers. ``open_log`` picks a reader from an explicit name or from the path.
+
+Readers are imported lazily from an explicit name-to-class map, so a missing optional
+dependency of one reader never breaks the others.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from ..errors import InputError
+from .base import DriveLog
+
+#: reader name -> "module:Class"; each class has ``detect(path) -> bool``
+READERS: dict[str, str] = {
+    "mcap": "mapkit.io.mcap_log:McapLog",
+    "kitti-odometry": "mapkit.io.kitti:KittiOdometry",
+    "kitti-raw": "mapkit.io.kitti:KittiRaw",
+    "robotcar": "mapkit.io.robotcar:RobotCar",
+    "folder": "mapkit.io.folder:FolderLog",
+}
+
+
+def reader_class(name: str) -> type[DriveLog]:
+    if name not in READERS:
+        raise InputError(None, f"unknown log format {name!r}; known: {', '.join(READERS)}", field="format")
+    module, cls = READERS[name].split(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def guess_format(path: str | Path) -> str:
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file or folder")
+    if path.is_file():
+        from .mcap_log import is_mcap
+
+        if is_mcap(path):
+            return "mcap"
+        raise InputError(path, "is a file but not an MCAP log (folders are read as KITTI, RobotCar or generic layouts)")
+    for name in ("kitti-odometry", "kitti-raw", "robotcar", "folder"):
+        try:
+            cls = reader_class(name)
+        except (ImportError, AttributeError):
+            continue
+        if cls.detect(path):
+            return name
+    raise InputError(path, "folder layout not recognised as KITTI odometry, KITTI raw, Oxford RobotCar or a generic image folder")
+
+
+def open_log(path: str | Path, format: str | None = None, **kwargs) -> DriveLog:
+    """Open a drive log with the named reader, or the one whose layout matches ``path``."""
+    name = format or guess_format(path)
+    return reader_class(name)(path, **kwargs)
+
+
+__all__ = ["DriveLog", "READERS", "open_log", "guess_format", "reader_class"]

@@ -1,0 +1,79 @@
+"""Trajectory files: TUM (``t x y z qx qy qz qw``) and KITTI (12 numbers, 3x4 row-major) poses.
+
+A trajectory is ``(stamps_ns (N,) int64, world_from_body (N, 4, 4))``. Malformed rows raise an
+``InputError`` naming the file and line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from ..runio import atomic_write_text
+
+
+def _rows(path: Path, ncols: tuple[int, ...]) -> list[tuple[int, list[float]]]:
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    rows = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        if len(parts) not in ncols:
+            raise InputError(path, f"line {lineno} has {len(parts)} values, expected {' or '.join(map(str, ncols))}", field=f"line {lineno}")
+        try:
+            vals = [float(p) for p in parts]
+        except ValueError:
+            raise InputError(path, f"line {lineno} has a value that is not a number: {s[:80]!r}", field=f"line {lineno}") from None
+        if not np.all(np.isfinite(vals)):
+            raise InputError(path, f"line {lineno} has a non-finite value", field=f"line {lineno}")
+        rows.append((lineno, vals))
+    if not rows:
+        raise InputError(path, "holds no poses")
+    return rows
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    path = Path(path)
+    rows = _rows(path, (8,))
+    arr = np.array([v for _, v in rows])
+    stamps = np.round(arr[:, 0] * 1e9).astype(np.int64)
+    q_wxyz = arr[:, [7, 4, 5, 6]]
+    norms = np.linalg.norm(q_wxyz, axis=1)
+    bad = np.nonzero(np.abs(norms - 1.0) > 1e-3)[0]
+    if len(bad):
+        raise InputError(path, f"line {rows[bad[0]][0]} has a quaternion of norm {norms[bad[0]]:.4f}", field=f"line {rows[bad[0]][0]}")
+    if np.any(np.diff(stamps) <= 0):
+        i = int(np.nonzero(np.diff(stamps) <= 0)[0][0]) + 1
+        raise InputError(path, f"line {rows[i][0]}: timestamps do not increase", field=f"line {rows[i][0]}")
+    return stamps, make_pose(quat_wxyz_to_matrix(q_wxyz / norms[:, None]), arr[:, 1:4])
+
+
+def write_tum(path: str | Path, stamps_ns: np.ndarray, world_from_body: np.ndarray) -> Path:
+    q = matrix_to_quat_wxyz(world_from_body[:, :3, :3])
+    t = world_from_body[:, :3, 3]
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for s, ti, qi in zip(np.asarray(stamps_ns, np.int64), t, q):
+        lines.append(f"{s // 1_000_000_000}.{s % 1_000_000_000:09d} {ti[0]:.6f} {ti[1]:.6f} {ti[2]:.6f} {qi[1]:.9f} {qi[2]:.9f} {qi[3]:.9f} {qi[0]:.9f}")
+    return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    """(N, 4, 4) poses of a KITTI ``poses.txt``; stamps come from ``times.txt`` when there is one."""
+    path = Path(path)
+    rows = _rows(path, (12,))
+    P = np.array([v for _, v in rows]).reshape(-1, 3, 4)
+    T = np.zeros((len(P), 4, 4))
+    T[:, :3, :] = P
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def write_kitti_poses(path: str | Path, world_from_body: np.ndarray) -> Path:
+    lines = [" ".join(f"{x:.9e}" for x in T[:3, :].ravel()) for T in np.asarray(world_from_body)]
+    return atomic_write_text(path, "\n".join(lines) + "\n")
