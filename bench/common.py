@@ -1,0 +1,61 @@
+"""Benchmark plumbing: time a callable, measure peak memory in a fresh process, print ratios.
+
+Every benchmark compares against its baseline in the same run and prints the ratio; none of them
+is part of the test suite's pass/fail.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import subprocess
+import sys
+import time
+from typing import Callable
+
+
+def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
+    """Best wall time of ``repeat`` calls, in seconds (the least disturbed by other load)."""
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def peak_rss_mb_of(code: str) -> float:
+    """Peak resident memory (MiB) of running ``code`` in a fresh Python process."""
+    wrapper = (
+        code
+        + "\nimport resource, json, sys\n"
+        + "print('PEAK_RSS_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", wrapper], capture_output=True, text=True, check=True)
+    for line in proc.stderr.splitlines():
+        if line.startswith("PEAK_RSS_KB"):
+            return int(line.split()[1]) / 1024.0
+    raise RuntimeError(f"no peak memory reported:\n{proc.stderr}")
+
+
+def self_peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def report(name: str, rows: list[dict], ratio_note: str = "") -> None:
+    """Print a Markdown table of rows (dicts with the same keys) and a JSON line for machines."""
+    keys = list(rows[0])
+    print(f"\n## {name}\n")
+    print("| " + " | ".join(keys) + " |")
+    print("|" + "---|" * len(keys))
+    for r in rows:
+        print("| " + " | ".join(_fmt(r[k]) for k in keys) + " |")
+    if ratio_note:
+        print(f"\n{ratio_note}")
+    print("BENCH_JSON " + json.dumps({"bench": name, "rows": rows}))
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
