@@ -64,6 +64,20 @@ def info(
         raise MapkitError(f"{log}: no usable message could be read")
 
 
+config_app = typer.Typer(help="Show configuration defaults.", no_args_is_help=True)
+app.add_typer(config_app, name="config")
+
+
+@config_app.command("defaults")
+def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topics.")) -> None:
+    """Print the defaults of a configuration as commented YAML."""
+    from .config import CONFIGS, defaults_yaml
+
+    if name not in CONFIGS:
+        raise MapkitError(f"no configuration named {name!r}; known: {', '.join(sorted(CONFIGS))}")
+    typer.echo(defaults_yaml(CONFIGS[name]), nl=False)
+
+
 @app.command()
 def synth(
     preset: str = typer.Option("tiny", help="tiny (tests), demo, or benchmark."),
@@ -87,7 +101,11 @@ def build(
     config: Optional[Path] = typer.Option(None, "--config", "-c"),
 ) -> None:
     """Build georeferenced session maps (trajectory, GPS alignment, semi-dense map, image database)."""
-    _not_yet("build", "map construction")
+    from .build import build as run_build
+    from .build import format_build_summary
+
+    ws = run_build(logs, out, config, progress=sys.stderr.isatty())
+    typer.echo(format_build_summary(ws))
 
 
 @app.command()

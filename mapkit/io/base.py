@@ -62,6 +62,15 @@ class DriveLog(ABC):
             yield msg
         self._warn_suppressed()
 
+    def stamps(self, topics: Optional[set[str]] = None) -> Iterator[tuple[str, int]]:
+        """(topic, stamp_ns) of every message, in read order, duplicates and disorder included.
+
+        Readers that can read stamps without decoding payloads override this; ``mapkit info``
+        uses it to count and time streams.
+        """
+        for msg in self._iter_messages(topics):
+            yield msg.topic, msg.stamp_ns
+
     def records(self, kind: StreamKind | str, topic: Optional[str] = None) -> Iterator:
         """The records of one kind (optionally one topic), in time order."""
         for msg in self.messages(kinds=[kind], topics=None if topic is None else [topic]):

@@ -1,0 +1,17 @@
+# mapkit on a pinned Debian/Python base. Mirrors the README: scripts/setup.sh, then the tests.
+# Build: docker build -t mapkit .   Run the tests: docker run --rm mapkit
+# Mount the real data to also run the real-data tests: -v /path/to/shared:/shared:ro -e MAPKIT_SHARED_DATA=/shared/data
+FROM python:3.11.7-slim-bookworm
+
+# libusb-1.0-0 for open3d (also installed by scripts/setup.sh); libgomp1 and libgl1 for open3d's
+# OpenMP kernels and its library load on a slim image
+RUN apt-get update \
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libgl1 libglib2.0-0 \
+ && rm -rf /var/lib/apt/lists/*
+
+WORKDIR /src
+COPY . /src
+RUN bash scripts/setup.sh
+
+# the README's test command
+CMD ["bash", "-c", "bash scripts/setup.sh && python3 -m pytest -q"]
