@@ -15,6 +15,21 @@ from ..geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from ..runio import atomic_write_text
 
 
+def seconds_text_to_ns(text: str) -> int:
+    """Exact integer nanoseconds of a decimal seconds string (float64 would lose them at epoch times)."""
+    t = text.strip()
+    neg = t.startswith("-")
+    if neg or t.startswith("+"):
+        t = t[1:]
+    if "e" in t.lower():
+        return int(round(float(text) * 1e9))
+    whole, _, frac = t.partition(".")
+    if not (whole or frac) or not (whole or "0").isdigit() or (frac and not frac.isdigit()):
+        raise ValueError(f"not a timestamp: {text!r}")
+    ns = int(whole or 0) * 1_000_000_000 + int((frac + "000000000")[:9])
+    return -ns if neg else ns
+
+
 def _rows(path: Path, ncols: tuple[int, ...]) -> list[tuple[int, list[float]]]:
     if not path.is_file():
         raise InputError(path, "no such file")
@@ -42,7 +57,8 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     rows = _rows(path, (8,))
     arr = np.array([v for _, v in rows])
-    stamps = np.round(arr[:, 0] * 1e9).astype(np.int64)
+    lines = path.read_text().splitlines()
+    stamps = np.array([seconds_text_to_ns(lines[i - 1].replace(",", " ").split()[0]) for i, _ in rows], dtype=np.int64)
     q_wxyz = arr[:, [7, 4, 5, 6]]
     norms = np.linalg.norm(q_wxyz, axis=1)
     bad = np.nonzero(np.abs(norms - 1.0) > 1e-3)[0]

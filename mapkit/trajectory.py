@@ -1,0 +1,199 @@
+"""Stage 1 of map construction: the vehicle trajectory of one session.
+
+Sources, chosen by ``TrajectoryConfig.source``:
+- ``lidar``: kiss-icp (the library, with its own deskewing from per-point times) on the LiDAR
+  stream; poses are of the base frame, in the frame of the base at the first scan.
+- ``poses``: a pose stream of the log (INS, or ground truth when the log has nothing better).
+- ``camera``: pycolmap incremental mapping with the log's intrinsics (scale and orientation are
+  arbitrary until GPS alignment, which then must estimate a full Sim3).
+``auto`` takes LiDAR when the log has it, else a pose stream, else the camera.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Literal, Optional
+
+import numpy as np
+from pydantic import Field
+
+from .config import MapkitConfig, TopicConfig, resolve_topics
+from .errors import InputError, InputWarning
+from .frames import FrameTree
+from .geometry import invert_pose
+from .io.base import DriveLog
+from .io.trajectory import read_tum, write_kitti_poses, write_tum
+from .runio import atomic_path, atomic_write_text
+from .types import StreamKind
+
+
+class KissIcpOptions(MapkitConfig):
+    max_range_m: float = Field(100.0, description="kiss-icp data.max_range; its voxel size is max_range/100 unless set.")
+    min_range_m: float = Field(2.0, description="kiss-icp data.min_range: drops returns from the vehicle body.")
+    deskew: bool = Field(True, description="Motion compensation from per-point times (kiss-icp's own).")
+    voxel_size_m: Optional[float] = Field(None, description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).")
+    max_threads: int = Field(0, description="kiss-icp registration.max_num_threads; 0 = all cores.")
+
+
+class TrajectoryConfig(MapkitConfig):
+    source: Literal["auto", "lidar", "poses", "camera"] = Field(
+        "auto", description="Where the trajectory comes from; auto = lidar, else a pose stream, else camera."
+    )
+    base_frame: str = Field("base_link", description="The vehicle frame whose poses the trajectory holds.")
+    kiss_icp: KissIcpOptions = KissIcpOptions()
+
+
+@dataclass
+class Trajectory:
+    """Poses of the vehicle base frame: ``world_from_base[i]`` at ``stamps_ns[i]``."""
+
+    stamps_ns: np.ndarray
+    world_from_base: np.ndarray
+    source: str
+    frame: str = "odom"
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    def save(self, folder: str | Path) -> Path:
+        """TUM and KITTI (+ times.txt) files and an exact npz (int64 stamps, float64 poses)."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_tum(folder / "poses_tum.txt", self.stamps_ns, self.world_from_base)
+        write_kitti_poses(folder / "poses_kitti.txt", self.world_from_base)
+        t0 = int(self.stamps_ns[0])
+        atomic_write_text(folder / "times.txt", "".join(f"{(s - t0) * 1e-9:.9f}\n" for s in self.stamps_ns))
+        with atomic_path(folder / "trajectory.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, stamps_ns=self.stamps_ns, world_from_base=self.world_from_base, source=self.source, frame=self.frame)
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path) -> "Trajectory":
+        folder = Path(folder)
+        npz = folder / "trajectory.npz"
+        if npz.is_file():
+            d = np.load(npz)
+            return cls(d["stamps_ns"], d["world_from_base"], str(d["source"]), str(d["frame"]))
+        stamps, poses = read_tum(folder / "poses_tum.txt")
+        return cls(stamps, poses, "tum")
+
+
+def _tree(log: DriveLog) -> FrameTree:
+    return FrameTree(log.transforms())
+
+
+def _base_from(tree: FrameTree, base: str, frame: str, log: DriveLog, what: str) -> np.ndarray:
+    if frame in ("", base):
+        return np.eye(4)
+    try:
+        return tree.lookup(base, frame)
+    except InputError:
+        warnings.warn(
+            f"{log.path}: no extrinsic between {base!r} and the {what} frame {frame!r}; taking them as the same frame",
+            InputWarning,
+            stacklevel=3,
+        )
+        return np.eye(4)
+
+
+def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str) -> Trajectory:
+    """A pose stream as the trajectory; a stream of another body frame is moved to the base."""
+    stamps, poses = [], []
+    child = None
+    for p in log.records(StreamKind.POSE, topic=topic):
+        stamps.append(p.stamp_ns)
+        poses.append(p.parent_from_child)
+        child = p.child_frame
+    if len(stamps) < 2:
+        raise InputError(log.path, f"pose topic {topic} has {len(stamps)} poses; a trajectory needs at least 2", field=topic)
+    child_from_base = invert_pose(_base_from(_tree(log), base_frame, child or base_frame, log, "pose"))
+    world_from_base = np.stack(poses) @ child_from_base
+    return Trajectory(np.asarray(stamps, np.int64), world_from_base, source=f"poses:{topic}", frame="world")
+
+
+def _scans(log: DriveLog, topic: str) -> Iterator:
+    yield from log.records(StreamKind.LIDAR, topic=topic)
+
+
+def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False) -> Trajectory:
+    """kiss-icp odometry on one LiDAR stream, reported for the base frame.
+
+    kiss-icp deskews each sweep to the time of its last point (``exp((t_norm - 1) * omega)``),
+    so the pose it returns belongs to the stamp of that point, not to the header stamp.
+    """
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.kiss_icp import KissICP
+
+    o = cfg.kiss_icp
+    kcfg = KISSConfig()
+    kcfg.data.max_range = o.max_range_m
+    kcfg.data.min_range = o.min_range_m
+    kcfg.data.deskew = o.deskew
+    kcfg.mapping.voxel_size = o.voxel_size_m if o.voxel_size_m is not None else o.max_range_m / 100.0
+    kcfg.registration.max_num_threads = o.max_threads
+    odometry = KissICP(kcfg)
+    stamps, lidar0_from_lidar = [], []
+    lidar_frame = None
+    bar = _progress(log, topic, progress)
+    for scan in _scans(log, topic):
+        lidar_frame = scan.frame_id
+        pts = np.asarray(scan.points_xyz, np.float64)
+        if scan.point_time_s is not None and o.deskew:
+            t = np.asarray(scan.point_time_s, np.float64)
+            end_ns = scan.stamp_ns + int(round(float(t.max()) * 1e9)) if len(t) else scan.stamp_ns
+        else:
+            t = np.zeros(0)
+            end_ns = scan.stamp_ns
+        if len(pts) < 100:
+            warnings.warn(f"{log.path}: {topic} scan at {scan.stamp_ns} has {len(pts)} points; skipped", InputWarning, stacklevel=2)
+            continue
+        odometry.register_frame(pts, t)
+        stamps.append(end_ns)
+        lidar0_from_lidar.append(odometry.last_pose.copy())
+        bar.update(1)
+    bar.close()
+    if len(stamps) < 2:
+        raise InputError(log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic)
+    base_from_lidar = _base_from(_tree(log), cfg.base_frame, lidar_frame or "", log, "LiDAR")
+    # world := the base frame at the first scan
+    world_from_base = base_from_lidar @ np.stack(lidar0_from_lidar) @ invert_pose(base_from_lidar)
+    order = np.argsort(stamps, kind="stable")
+    return Trajectory(np.asarray(stamps, np.int64)[order], world_from_base[order], source=f"lidar:{topic}", frame="odom")
+
+
+def _progress(log: DriveLog, topic: str, enabled: bool):
+    from tqdm import tqdm
+
+    total = next((s.count for s in log.streams() if s.topic == topic), None)
+    return tqdm(total=total, unit="scan", desc="kiss-icp", leave=False, disable=not enabled)
+
+
+def choose_source(log: DriveLog, cfg: TrajectoryConfig, topics: dict[StreamKind, list[str]]) -> str:
+    if cfg.source != "auto":
+        return cfg.source
+    if topics.get(StreamKind.LIDAR):
+        return "lidar"
+    if topics.get(StreamKind.POSE):
+        return "poses"
+    if topics.get(StreamKind.IMAGE):
+        return "camera"
+    raise InputError(log.path, "has no LiDAR, pose or image stream to make a trajectory from", field="topics")
+
+
+def estimate_trajectory(
+    log: DriveLog, cfg: TrajectoryConfig, topic_cfg: TopicConfig | None = None, progress: bool = False
+) -> Trajectory:
+    topics = resolve_topics(log, topic_cfg or TopicConfig())
+    source = choose_source(log, cfg, topics)
+    if source == "lidar":
+        if not topics.get(StreamKind.LIDAR):
+            raise InputError(log.path, "trajectory.source is lidar but the log has no LiDAR stream", field="trajectory.source")
+        return trajectory_from_lidar(log, topics[StreamKind.LIDAR][0], cfg, progress)
+    if source == "poses":
+        if not topics.get(StreamKind.POSE):
+            raise InputError(log.path, "trajectory.source is poses but the log has no pose stream", field="trajectory.source")
+        return trajectory_from_poses(log, topics[StreamKind.POSE][0], cfg.base_frame)
+    raise InputError(log.path, "camera-only trajectories (pycolmap) are not available yet; use a log with LiDAR or poses", field="trajectory.source")
