@@ -1,0 +1,63 @@
+"""The image database round-trips through COLMAP's format and carries exact georeferencing."""
+
+import numpy as np
+import pycolmap
+import pytest
+
+from mapkit.geodesy import LocalFrame
+from mapkit.geometry import invert_pose, make_pose, yaw_rotation
+from mapkit.imagedb import ImageDbConfig, ImageDbWriter, read_images_csv, scaled_info, select_by_spacing
+from mapkit.types import CameraInfo
+
+K = np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]])
+# camera optical frame (x right, y down, z forward) looking along the map's +x
+WORLD_FROM_OPTICAL = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)
+
+
+def _poses(n=5):
+    return [make_pose(yaw_rotation(0.1 * i) @ WORLD_FROM_OPTICAL, [2.0 * i, 0.5 * i, 1.5]) for i in range(n)]
+
+
+def test_colmap_and_csv_round_trip(tmp_path, rng):
+    info = CameraInfo("cam", 640, 480, K)
+    w = ImageDbWriter(tmp_path / "db", ImageDbConfig(image_format="png"), {"cam": info})
+    poses = _poses()
+    imgs = [rng.integers(0, 255, (480, 640), dtype=np.uint8) for _ in poses]
+    for i, (T, img) in enumerate(zip(poses, imgs)):
+        w.add(1_000 + i, "cam", img, T)
+    # a point 10 m ahead of the first camera, seen by images 1 and 2
+    p = np.array([[10.0, 0.0, 1.5]])
+    frame = LocalFrame(49.0, 8.4, 100.0)
+    w.close(frame, p, (np.array([0, 2]), np.array([1, 2])))
+    rec = pycolmap.Reconstruction(str(tmp_path / "db" / "colmap"))
+    assert rec.num_images() == 5 and rec.num_points3D() == 1
+    for im in rec.images.values():
+        cam_from_world = im.cam_from_world().matrix()
+        np.testing.assert_allclose(cam_from_world, invert_pose(poses[im.image_id - 1])[:3, :], atol=1e-9)
+    (pt,) = rec.points3D.values()
+    assert sorted(e.image_id for e in pt.track.elements) == [1, 2]
+    # the keypoint of image 1 is the projection of the point: the principal point (it is dead ahead)
+    kp = rec.image(1).points2D[0].xy
+    np.testing.assert_allclose(kp, [319.5, 239.5], atol=1e-6)
+    table = read_images_csv(tmp_path / "db" / "images.csv")
+    np.testing.assert_array_equal(table["stamp_ns"], 1_000 + np.arange(5))
+    lat, lon, alt = frame.enu_to_geodetic(np.array([T[:3, 3] for T in poses]))
+    np.testing.assert_allclose(table["lat_deg"], lat, atol=1e-9)
+    np.testing.assert_allclose(table["lon_deg"], lon, atol=1e-9)
+    assert set(table["utm_epsg"].tolist()) == {32632}
+    import cv2
+
+    back = cv2.imread(str(tmp_path / "db" / table["image"][3]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(back, imgs[3])  # png: stored exactly
+
+
+def test_downscaled_intrinsics_keep_pixel_centres():
+    info = scaled_info(CameraInfo("cam", 640, 480, K), 2)
+    assert (info.width, info.height) == (320, 240)
+    # the image centre stays the image centre
+    assert info.cx == pytest.approx(159.5) and info.cy == pytest.approx(119.5) and info.fx == pytest.approx(200.0)
+
+
+def test_select_by_spacing():
+    x = np.array([[0.0, 0, 0], [0.2, 0, 0], [0.6, 0, 0], [0.7, 0, 0], [1.3, 0, 0]])
+    assert select_by_spacing(x, 0.5).tolist() == [0, 2, 4]
