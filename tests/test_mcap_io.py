@@ -302,6 +302,15 @@ def test_undecodable_message_is_skipped_with_its_index(tmp_path):
     assert len(frames) == 1 and frames[0].image.tolist() == [[1, 2], [3, 4]]
 
 
+def test_records_of_one_topic_keep_to_that_topic(tmp_path):
+    path = _write(tmp_path / "two.mcap", [("/gps/a", GpsFix(T0, 1.0, 2.0, 3.0), {}), ("/gps/b", GpsFix(T0, 4.0, 5.0, 6.0), {})])
+    with McapLog(path) as log:
+        assert [f.lat_deg for f in log.records(StreamKind.GPS, topic="/gps/b")] == [4.0]
+        assert sorted(f.lat_deg for f in log.records(StreamKind.GPS)) == [1.0, 4.0]
+        with pytest.raises(InputError, match="carries gps, not lidar"):
+            list(log.records(StreamKind.LIDAR, topic="/gps/a"))
+
+
 def test_missing_topic_is_named(tmp_path):
     path = _write(tmp_path / "g.mcap", [("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0), {})])
     with McapLog(path) as log:

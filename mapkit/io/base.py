@@ -72,8 +72,15 @@ class DriveLog(ABC):
             yield msg.topic, msg.stamp_ns
 
     def records(self, kind: StreamKind | str, topic: Optional[str] = None) -> Iterator:
-        """The records of one kind (optionally one topic), in time order."""
-        for msg in self.messages(kinds=[kind], topics=None if topic is None else [topic]):
+        """The records of one kind (optionally of one topic of that kind), in time order."""
+        kind = StreamKind(kind)
+        if topic is not None:
+            stream = next((s for s in self.streams() if s.topic == topic), None)
+            if stream is not None and stream.kind != kind:
+                from ..errors import InputError
+
+                raise InputError(self.path, f"topic {topic!r} carries {stream.kind.value}, not {kind.value}", field="topic")
+        for msg in self.messages(kinds=None if topic is not None else [kind], topics=None if topic is None else [topic]):
             yield msg.record
 
     def camera_infos(self) -> dict[str, CameraInfo]:

@@ -6,6 +6,7 @@ A trajectory is ``(stamps_ns (N,) int64, world_from_body (N, 4, 4))``. Malformed
 
 from __future__ import annotations
 
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
@@ -14,20 +15,18 @@ from ..errors import InputError
 from ..geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from ..runio import atomic_write_text
 
+_NS_PER_S = Decimal(1_000_000_000)
 
-def seconds_text_to_ns(text: str) -> int:
-    """Exact integer nanoseconds of a decimal seconds string (float64 would lose them at epoch times)."""
-    t = text.strip()
-    neg = t.startswith("-")
-    if neg or t.startswith("+"):
-        t = t[1:]
-    if "e" in t.lower():
-        return int(round(float(text) * 1e9))
-    whole, _, frac = t.partition(".")
-    if not (whole or frac) or not (whole or "0").isdigit() or (frac and not frac.isdigit()):
-        raise ValueError(f"not a timestamp: {text!r}")
-    ns = int(whole or 0) * 1_000_000_000 + int((frac + "000000000")[:9])
-    return -ns if neg else ns
+
+def seconds_to_ns(text: str) -> int:
+    """Decimal seconds (``12.5``, ``1.036224e-01``) to integer nanoseconds, exactly (no float)."""
+    try:
+        value = Decimal(text.strip())
+    except InvalidOperation:
+        raise ValueError(f"{text!r} is not a number of seconds") from None
+    if not value.is_finite():
+        raise ValueError(f"{text!r} is not a finite number of seconds")
+    return int((value * _NS_PER_S).to_integral_value(rounding=ROUND_HALF_EVEN))
 
 
 def _rows(path: Path, ncols: tuple[int, ...]) -> list[tuple[int, list[float]]]:
@@ -58,7 +57,7 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     rows = _rows(path, (8,))
     arr = np.array([v for _, v in rows])
     lines = path.read_text().splitlines()
-    stamps = np.array([seconds_text_to_ns(lines[i - 1].replace(",", " ").split()[0]) for i, _ in rows], dtype=np.int64)
+    stamps = np.array([seconds_to_ns(lines[i - 1].replace(",", " ").split()[0]) for i, _ in rows], dtype=np.int64)
     q_wxyz = arr[:, [7, 4, 5, 6]]
     norms = np.linalg.norm(q_wxyz, axis=1)
     bad = np.nonzero(np.abs(norms - 1.0) > 1e-3)[0]

@@ -1,0 +1,428 @@
+"""KITTI odometry and raw readers: synthetic folders with known content read back, and the real clip."""
+
+from __future__ import annotations
+
+import warnings
+from datetime import datetime, timezone
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mapkit.errors import InputError, InputWarning
+from mapkit.io import guess_format, open_log
+from mapkit.io.kitti import KittiOdometry, KittiRaw
+from mapkit.types import StreamKind
+
+FX, FY, CX, CY = 700.0, 710.0, 320.5, 240.25
+BASELINE_M = 0.54
+# camera 2 of the real KITTI rig: its P holds small y and z offsets as well as the baseline
+P2_KITTI = np.array([[7.188560e02, 0.0, 6.071928e02, 4.538225e01],
+                     [0.0, 7.188560e02, 1.852157e02, -1.130887e-01],
+                     [0.0, 0.0, 1.0, 3.779761e-03]])
+
+
+def _records(log, topic: str) -> list:
+    """Records of one topic (``DriveLog.records(kind, topic)`` returns every topic of ``kind``)."""
+    return [m.record for m in log.messages(topics=[topic])]
+
+
+def _K(fx=FX, fy=FY, cx=CX, cy=CY) -> np.ndarray:
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _line(values) -> str:
+    return " ".join(f"{v:.12e}" for v in np.ravel(values))
+
+
+def _gray(i: int, shape=(6, 8)) -> np.ndarray:
+    img = (np.arange(shape[0] * shape[1]).reshape(shape) * 3 + 17 * i) % 256
+    return img.astype(np.uint8)
+
+
+def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.normal(scale=0.3, size=(n, 3))).as_matrix()
+    T[:, :3, 3] = rng.normal(scale=5.0, size=(n, 3))
+    return T
+
+
+def make_odometry(
+    root: Path,
+    rng: np.random.Generator,
+    n: int = 4,
+    *,
+    times: list[str] | None = None,
+    poses: bool = True,
+    velodyne: np.ndarray | None = None,
+    second_camera: bool = True,
+) -> dict:
+    """An odometry sequence folder; returns what was written."""
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "image_0").mkdir()
+    if second_camera:
+        (root / "image_1").mkdir()
+    for i in range(n):
+        cv2.imwrite(str(root / "image_0" / f"{i:06d}.png"), _gray(i))
+        if second_camera:
+            cv2.imwrite(str(root / "image_1" / f"{i:06d}.png"), _gray(i + 100))
+    P0 = np.hstack([_K(), np.zeros((3, 1))])
+    P1 = np.hstack([_K(), np.array([[-FX * BASELINE_M], [0.0], [0.0]])])  # right camera, KITTI's convention
+    Tr = np.hstack([Rotation.from_euler("xyz", [0.1, -0.2, 0.3]).as_matrix(), np.array([[0.27], [-0.08], [-0.06]])])
+    (root / "calib.txt").write_text(
+        f"P0: {_line(P0)}\nP1: {_line(P1)}\nP2: {_line(P2_KITTI)}\nP3: {_line(P2_KITTI)}\nTr: {_line(Tr)}\n"
+    )
+    T = _random_poses(rng, n)
+    if poses:
+        (root / "poses.txt").write_text("".join(_line(Ti[:3, :]) + "\n" for Ti in T))
+    if times is not None:
+        (root / "times.txt").write_text("\n".join(times) + "\n")
+    if velodyne is not None:
+        (root / "velodyne").mkdir()
+        for i in range(n):
+            (velodyne + i).astype("<f4").tofile(root / "velodyne" / f"{i:06d}.bin")
+    return {"poses": T, "Tr": Tr}
+
+
+TIMES = ["0.000000e+00", "1.036224e-01", "2.072449e-01", "3.108673e-01"]
+TIMES_NS = [0, 103_622_400, 207_244_900, 310_867_300]  # the decimal strings read exactly
+
+
+# --- odometry ---------------------------------------------------------------------------------------
+
+def test_odometry_reads_back_stamps_pixels_poses_and_intrinsics(tmp_path, rng):
+    written = make_odometry(tmp_path / "seq", rng, times=TIMES)
+    log = KittiOdometry(tmp_path / "seq")
+
+    frames = _records(log, "/kitti/camera_0/image")
+    assert [f.stamp_ns for f in frames] == TIMES_NS
+    assert all(isinstance(f.stamp_ns, int) for f in frames)
+    assert not frames[2].is_loaded  # decoding waits for the first access
+    for i, f in enumerate(frames):
+        assert f.encoding == "mono8"
+        np.testing.assert_array_equal(f.image, _gray(i))
+    right = _records(log, "/kitti/camera_1/image")
+    np.testing.assert_array_equal(right[3].image, _gray(103))
+
+    gt = _records(log, "/kitti/ground_truth")
+    assert [p.stamp_ns for p in gt] == TIMES_NS
+    assert {(p.parent_frame, p.child_frame, p.source) for p in gt} == {("world", "camera_0", "ground_truth")}
+    np.testing.assert_allclose(np.stack([p.parent_from_child for p in gt]), written["poses"], atol=1e-9)
+
+    infos = log.camera_infos()
+    assert set(infos) == {"camera_0", "camera_1"}
+    np.testing.assert_allclose(infos["camera_0"].K, _K())
+    assert (infos["camera_0"].width, infos["camera_0"].height) == (8, 6)
+
+
+def test_odometry_extrinsics_follow_the_projection_matrices(tmp_path, rng):
+    written = make_odometry(tmp_path / "seq", rng, times=TIMES)
+    (tmp_path / "seq" / "image_2").mkdir()
+    for i in range(4):
+        cv2.imwrite(str(tmp_path / "seq" / "image_2" / f"{i:06d}.png"), np.dstack([_gray(i)] * 3))
+    log = KittiOdometry(tmp_path / "seq")
+    tf = {(t.parent_frame, t.child_frame): t.parent_from_child for t in log.transforms()}
+
+    # the right camera sits one baseline along +x (right) of the left one
+    camera_0_from_camera_1 = np.eye(4)
+    camera_0_from_camera_1[0, 3] = BASELINE_M
+    np.testing.assert_allclose(tf[("camera_0", "camera_1")], camera_0_from_camera_1, atol=1e-12)
+    # projecting a camera-0 point with P2 must equal moving it into camera 2 and applying K2
+    X0 = np.array([1.5, -0.7, 12.0, 1.0])
+    camera_2_from_camera_0 = np.linalg.inv(tf[("camera_0", "camera_2")])
+    uvw_p = P2_KITTI @ X0
+    uvw_k = P2_KITTI[:, :3] @ (camera_2_from_camera_0 @ X0)[:3]
+    np.testing.assert_allclose(uvw_k[:2] / uvw_k[2], uvw_p[:2] / uvw_p[2], atol=1e-9)
+    Tr = written["Tr"]
+    np.testing.assert_allclose(tf[("camera_0", "velodyne")][:3, :], Tr, atol=1e-12)
+    assert log.camera_infos()["camera_2"].fx == pytest.approx(P2_KITTI[0, 0])
+
+
+def test_odometry_without_times_uses_10hz_and_warns_once(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng)
+    with pytest.warns(InputWarning, match="times.txt") as record:
+        log = KittiOdometry(tmp_path / "seq")
+    assert len([w for w in record if issubclass(w.category, InputWarning)]) == 1
+    stamps = [f.stamp_ns for f in _records(log, "/kitti/camera_0/image")]
+    assert stamps == [0, 100_000_000, 200_000_000, 300_000_000]
+
+
+def test_odometry_velodyne_points_and_sweep_times(tmp_path, rng):
+    # front, left, right and rear-left points; reflectance in the 4th column
+    pts = np.array([[10.0, 0.0, 0.5, 0.1], [0.0, 10.0, 0.5, 0.2], [0.0, -10.0, 0.5, 0.3], [-10.0, 1e-6, 0.5, 0.4]])
+    make_odometry(tmp_path / "seq", rng, times=TIMES, velodyne=pts)
+    log = KittiOdometry(tmp_path / "seq")
+    scans = list(log.records(StreamKind.LIDAR))
+    assert [s.stamp_ns for s in scans] == TIMES_NS
+    np.testing.assert_allclose(scans[2].points_xyz, (pts + 2)[:, :3].astype(np.float32))
+    np.testing.assert_allclose(scans[2].intensity, (pts + 2)[:, 3].astype(np.float32))
+    s0 = scans[0]
+    # the scanner turns clockwise seen from above (rear, left, front, right, rear) and faces
+    # forward at the frame stamp: left points come 1/4 sweep early, right ones 1/4 sweep late
+    np.testing.assert_allclose(s0.point_time_s, [0.0, -0.025, 0.025, -0.05], atol=1e-6)
+
+
+def test_odometry_unlabelled_calib_lines_are_p0_p1_in_order(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    P0 = np.hstack([_K(fx=500.0), np.zeros((3, 1))])
+    P1 = np.hstack([_K(fx=500.0), np.array([[-500.0 * 0.3], [0.0], [0.0]])])
+    (tmp_path / "seq" / "calib.txt").write_text(f"{_line(P0)}\n{_line(P1)}")  # no labels, no final newline
+    log = KittiOdometry(tmp_path / "seq")
+    assert log.camera_infos()["camera_0"].fx == 500.0
+    tf = {(t.parent_frame, t.child_frame): t.parent_from_child for t in log.transforms()}
+    np.testing.assert_allclose(tf[("camera_0", "camera_1")][:3, 3], [0.3, 0.0, 0.0], atol=1e-12)
+
+
+def test_odometry_missing_calib_is_named(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    (tmp_path / "seq" / "calib.txt").unlink()
+    with pytest.raises(InputError, match="missing calibration") as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == tmp_path / "seq" / "calib.txt"
+
+
+def test_odometry_malformed_calib_line_names_file_and_line(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    calib = tmp_path / "seq" / "calib.txt"
+    lines = calib.read_text().splitlines()
+    lines[1] = "P1: " + " ".join(lines[1].split()[1:12])  # 11 numbers
+    calib.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="line 2") as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == calib and "11" in str(exc.value)
+
+
+def test_odometry_pose_count_mismatch_names_poses_and_counts(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    poses = tmp_path / "seq" / "poses.txt"
+    poses.write_text("".join(poses.read_text().splitlines(keepends=True)[:3]))
+    with pytest.raises(InputError) as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == poses
+    assert "3 poses" in str(exc.value) and "4 images" in str(exc.value)
+
+
+def test_odometry_malformed_pose_line_names_line(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    poses = tmp_path / "seq" / "poses.txt"
+    lines = poses.read_text().splitlines()
+    lines[2] = lines[2].replace(lines[2].split()[5], "x1.0", 1)
+    poses.write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="line 3") as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == poses
+
+
+def test_odometry_camera_folders_must_agree(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    (tmp_path / "seq" / "image_1" / "000003.png").unlink()
+    with pytest.raises(InputError, match="3 images") as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == tmp_path / "seq" / "image_1"
+
+
+def test_odometry_malformed_times_line_is_named(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=["0.0", "0.1", "zero point two", "0.3"])
+    with pytest.raises(InputError, match="line 3") as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == tmp_path / "seq" / "times.txt"
+
+
+# --- the real clip -----------------------------------------------------------------------------------
+
+@pytest.mark.realdata
+def test_real_kitti_clip(kitti_clip):
+    assert guess_format(kitti_clip) == "kitti-odometry"
+    with pytest.warns(InputWarning, match="times.txt"):  # the clip keeps no times.txt
+        log = open_log(kitti_clip)
+    assert isinstance(log, KittiOdometry)
+    info = log.camera_infos()["camera_0"]
+    assert (info.width, info.height) == (1226, 370)
+    assert info.fx == pytest.approx(707.0912)
+    assert info.cx == pytest.approx(601.8873)
+    frames = list(log.records(StreamKind.IMAGE))
+    assert len(frames) == 51
+    img = frames[-1].image
+    assert img.shape == (370, 1226) and img.dtype == np.uint8 and img.std() > 10
+    gt = [p.parent_from_child for p in _records(log, "/kitti/ground_truth")]
+    assert len(gt) == 51
+    np.testing.assert_allclose(gt[0], np.eye(4), atol=1e-6)
+    forward_m = gt[-1][2, 3] - gt[0][2, 3]  # camera z is forward
+    assert 55.0 < forward_m < 65.0
+    assert abs(gt[-1][0, 3]) < 0.1 * forward_m  # mostly straight
+
+
+# --- raw ----------------------------------------------------------------------------------------------
+
+# fractions stay within (0.05, 0.95) so that the sweep start/end below need no carry
+STAMP_TEXT = ["2011-09-26 13:02:25.164389445", "2011-09-26 13:02:25.268554659", "2011-09-26 13:02:25.372719873"]
+
+
+def _expected_ns(text: str) -> int:
+    whole, frac = text.split(".")
+    epoch = datetime.strptime(whole, "%Y-%m-%d %H:%M:%S").replace(tzinfo=timezone.utc).timestamp()
+    return int(epoch) * 10**9 + int(frac)
+
+
+def _oxts_values(i: int) -> list[float]:
+    v = [49.0 + 1e-5 * i, 8.4 + 2e-5 * i, 115.0 + i] + [0.02, -0.03, 1.2 + 0.1 * i] + [float(k) for k in range(5)]
+    v += [0.1, 0.2, 9.8] + [0.11, 0.21, 9.81] + [0.01, 0.02, 0.03] + [0.011, 0.021, 0.031]
+    v += [0.05 + 0.01 * i, 0.02, 4, 9, 5, 5, 6]
+    assert len(v) == 30
+    return v
+
+
+R_IMU_TO_VELO = Rotation.from_euler("z", 0.02).as_matrix()
+T_IMU_TO_VELO = np.array([-0.81, 0.32, -0.8])
+R_VELO_TO_CAM = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+T_VELO_TO_CAM = np.array([-0.004, -0.076, -0.27])
+R_RECT_00 = Rotation.from_euler("xyz", [0.01, -0.005, 0.002]).as_matrix()
+
+
+def make_raw(root: Path, n: int = 3, *, oxts_override: dict | None = None) -> Path:
+    """A date folder with calibration and one _sync drive; returns the drive folder."""
+    drive = root / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    for sub in ("image_02/data", "oxts/data", "velodyne_points/data"):
+        (drive / sub).mkdir(parents=True)
+    stamps = STAMP_TEXT[:n]
+    for i in range(n):
+        colour = np.dstack([_gray(i), _gray(i + 1), _gray(i + 2)])
+        cv2.imwrite(str(drive / "image_02" / "data" / f"{i:010d}.png"), colour)
+        values = (oxts_override or {}).get(i) or " ".join(repr(v) for v in _oxts_values(i))
+        (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(values + "\n")
+        pts = np.array([[10.0, 0.0, 0.0, 0.5], [-10.0, 1e-6, 0.0, 0.5], [0.0, -10.0, 0.0, 0.5]], "<f4")
+        pts.tofile(drive / "velodyne_points" / "data" / f"{i:010d}.bin")
+    for sub in ("image_02", "oxts", "velodyne_points"):
+        (drive / sub / "timestamps.txt").write_text("\n".join(stamps) + "\n")
+    # sweeps start 50 ms before the camera trigger and end 50 ms after
+    starts = [s[:-9] + f"{int(s[-9:]) - 50_000_000:09d}" for s in stamps]
+    ends = [s[:-9] + f"{int(s[-9:]) + 50_000_000:09d}" for s in stamps]
+    (drive / "velodyne_points" / "timestamps_start.txt").write_text("\n".join(starts) + "\n")
+    (drive / "velodyne_points" / "timestamps_end.txt").write_text("\n".join(ends) + "\n")
+    date = drive.parent
+    P_rect_00 = np.hstack([_K(), np.zeros((3, 1))])
+    (date / "calib_cam_to_cam.txt").write_text(
+        "calib_time: 09-Jan-2012 13:57:47\ncorner_dist: 9.950000e-02\n"
+        f"R_rect_00: {_line(R_RECT_00)}\nP_rect_00: {_line(P_rect_00)}\n"
+        f"S_rect_02: 8.0 6.0\nR_rect_02: {_line(np.eye(3))}\nP_rect_02: {_line(P2_KITTI)}\n"
+    )
+    (date / "calib_velo_to_cam.txt").write_text(
+        f"calib_time: 15-Mar-2012 11:37:16\nR: {_line(R_VELO_TO_CAM)}\nT: {_line(T_VELO_TO_CAM)}\ndelta_f: 0 0\n"
+    )
+    (date / "calib_imu_to_velo.txt").write_text(f"calib_time: 25-May-2012 16:47:16\nR: {_line(R_IMU_TO_VELO)}\nT: {_line(T_IMU_TO_VELO)}\n")
+    return drive
+
+
+def test_raw_reads_exact_stamps_and_colour_pixels(tmp_path):
+    drive = make_raw(tmp_path)
+    log = KittiRaw(drive)
+    frames = _records(log, "/kitti/camera_2/image")
+    expected = [_expected_ns(s) for s in STAMP_TEXT]
+    assert [f.stamp_ns for f in frames] == expected
+    # premise: going through float64 seconds would lose these nanoseconds
+    assert round(float(expected[0] / 10**9) * 1e9) != expected[0]
+    assert frames[1].encoding == "bgr8"
+    np.testing.assert_array_equal(frames[1].image, np.dstack([_gray(1), _gray(2), _gray(3)]))
+    info = log.camera_infos()["camera_2"]
+    np.testing.assert_allclose(info.K, P2_KITTI[:, :3])
+    assert (info.width, info.height) == (8, 6)
+
+
+def test_raw_oxts_gps_and_imu(tmp_path):
+    drive = make_raw(tmp_path)
+    log = KittiRaw(drive)
+    fixes = list(log.records(StreamKind.GPS))
+    v = _oxts_values(2)
+    assert fixes[2].stamp_ns == _expected_ns(STAMP_TEXT[2])
+    assert (fixes[2].lat_deg, fixes[2].lon_deg, fixes[2].alt_m) == (v[0], v[1], v[2])
+    np.testing.assert_allclose(fixes[2].covariance_enu_m2, np.eye(3) * v[23] ** 2)
+
+    imu = list(log.records(StreamKind.IMU))[2]
+    assert imu.frame_id == "imu"
+    np.testing.assert_array_equal(imu.angular_velocity_rad_s, v[17:20])  # wx wy wz
+    np.testing.assert_array_equal(imu.linear_acceleration_m_s2, v[11:14])  # ax ay az
+    level = list(KittiRaw(drive, imu_axes="level").records(StreamKind.IMU))[2]
+    np.testing.assert_array_equal(level.angular_velocity_rad_s, v[20:23])  # wf wl wu
+    np.testing.assert_array_equal(level.linear_acceleration_m_s2, v[14:17])  # af al au
+
+
+@pytest.mark.parametrize(
+    "roll, pitch, yaw, axis, expected",
+    [
+        (0.0, 0.0, np.pi / 2, 0, [0.0, 1.0, 0.0]),  # yaw 0 = east, counter-clockwise: pi/2 faces north
+        (0.0, 0.3, 0.0, 0, [np.cos(0.3), 0.0, -np.sin(0.3)]),  # pitch positive = front down
+        (0.2, 0.0, 0.0, 1, [0.0, np.cos(0.2), np.sin(0.2)]),  # roll positive = left side up
+    ],
+)
+def test_raw_imu_orientation_follows_the_oxts_angle_conventions(tmp_path, roll, pitch, yaw, axis, expected):
+    values = _oxts_values(0)
+    values[3:6] = [roll, pitch, yaw]
+    drive = make_raw(tmp_path, n=1, oxts_override={0: " ".join(map(repr, values))})
+    imu = next(KittiRaw(drive).records(StreamKind.IMU))
+    enu_from_imu = Rotation.from_quat(np.roll(imu.orientation_quat_wxyz, -1)).as_matrix()
+    np.testing.assert_allclose(enu_from_imu[:, axis], expected, atol=1e-12)
+
+
+def test_raw_velodyne_point_times_span_the_sweep(tmp_path):
+    drive = make_raw(tmp_path)
+    scan = list(KittiRaw(drive).records(StreamKind.LIDAR))[1]
+    assert scan.stamp_ns == _expected_ns(STAMP_TEXT[1])
+    # front = at the trigger (midway), rear just left of +pi = sweep start, right = 3/4 of the sweep
+    np.testing.assert_allclose(scan.point_time_s, [0.0, -0.05, 0.025], atol=1e-6)
+
+
+def test_raw_extrinsics_tree(tmp_path):
+    drive = make_raw(tmp_path)
+    tf = {(t.parent_frame, t.child_frame): t.parent_from_child for t in KittiRaw(drive).transforms()}
+    assert set(tf) == {("imu", "velodyne"), ("velodyne", "camera_0"), ("camera_0", "camera_2")}
+    p_imu = np.array([1.0, 2.0, 3.0])
+    p_velo = R_IMU_TO_VELO @ p_imu + T_IMU_TO_VELO  # what calib_imu_to_velo.txt means
+    np.testing.assert_allclose((tf[("imu", "velodyne")] @ np.append(p_velo, 1))[:3], p_imu, atol=1e-12)
+    p_rect_cam0 = R_RECT_00 @ (R_VELO_TO_CAM @ p_velo + T_VELO_TO_CAM)  # KITTI devkit: R_rect * Tr_velo_to_cam
+    np.testing.assert_allclose((tf[("velodyne", "camera_0")] @ np.append(p_rect_cam0, 1))[:3], p_velo, atol=1e-12)
+    uvw = P2_KITTI @ np.append(p_rect_cam0, 1)
+    p_cam2 = (np.linalg.inv(tf[("camera_0", "camera_2")]) @ np.append(p_rect_cam0, 1))[:3]
+    uvw_k = P2_KITTI[:, :3] @ p_cam2
+    np.testing.assert_allclose(uvw_k[:2] / uvw_k[2], uvw[:2] / uvw[2], atol=1e-9)
+
+
+def test_raw_malformed_oxts_row_names_file_and_line(tmp_path):
+    drive = make_raw(tmp_path, oxts_override={1: " ".join(["1.0"] * 29)})
+    log = KittiRaw(drive)
+    with pytest.raises(InputError, match="line 1") as exc:
+        list(log.records(StreamKind.GPS))
+    assert exc.value.path == drive / "oxts" / "data" / "0000000001.txt"
+    assert "29 values" in str(exc.value)
+
+
+def test_raw_timestamp_count_must_match_files(tmp_path):
+    drive = make_raw(tmp_path)
+    (drive / "oxts" / "timestamps.txt").write_text("\n".join(STAMP_TEXT[:2]) + "\n")
+    with pytest.raises(InputError) as exc:
+        KittiRaw(drive)
+    assert exc.value.path == drive / "oxts" / "timestamps.txt"
+    assert "2 timestamps" in str(exc.value) and "3 .txt files" in str(exc.value)
+
+
+def test_raw_malformed_timestamp_names_line(tmp_path):
+    drive = make_raw(tmp_path)
+    (drive / "image_02" / "timestamps.txt").write_text(f"{STAMP_TEXT[0]}\n2011-09-26 13:02:26,068554659\n{STAMP_TEXT[2]}\n")
+    with pytest.raises(InputError, match="line 2"):
+        KittiRaw(drive)
+
+
+def test_messages_come_in_time_order_across_streams(tmp_path):
+    stamps = [m.stamp_ns for m in KittiRaw(make_raw(tmp_path)).messages()]
+    assert stamps == sorted(stamps) and len(stamps) > 10
+
+
+def test_guess_format_picks_the_kitti_readers(tmp_path, rng):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    drive = make_raw(tmp_path / "raw")
+    assert guess_format(tmp_path / "seq") == "kitti-odometry"
+    assert guess_format(drive) == "kitti-raw"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a complete raw drive reads without warnings
+        assert isinstance(open_log(drive), KittiRaw)
