@@ -35,17 +35,25 @@ def trajectory_errors(
 
 
 def distances_to_mesh(points: np.ndarray, mesh) -> np.ndarray:
-    """Unsigned distance of every point to a triangle mesh (open3d legacy or tensor mesh)."""
+    """Unsigned distance of every point to a triangle mesh.
+
+    ``mesh`` is an open3d legacy mesh or a (vertices (V, 3), triangles (T, 3)) pair. open3d works
+    in float32, so everything is moved next to the mesh's centroid first (UTM-sized coordinates
+    would otherwise lose centimetres).
+    """
     import open3d as o3d
 
     if isinstance(mesh, o3d.geometry.TriangleMesh):
-        mesh = o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+        V, F = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles)
+    else:
+        V, F = np.asarray(mesh[0], np.float64), np.asarray(mesh[1])
+    origin = V.mean(axis=0) if len(V) else np.zeros(3)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(mesh)
-    out = np.empty(len(points), np.float32)
+    scene.add_triangles(o3d.core.Tensor((V - origin).astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    out = np.empty(len(points), np.float64)
     step = 1_000_000
     for i in range(0, len(points), step):
-        q = o3d.core.Tensor(np.asarray(points[i : i + step], np.float32))
+        q = o3d.core.Tensor((np.asarray(points[i : i + step], np.float64) - origin).astype(np.float32))
         out[i : i + step] = scene.compute_distance(q).numpy()
     return out
 
@@ -58,7 +66,7 @@ def map_accuracy(points: np.ndarray, mesh, road_length_m: float | None = None) -
         "median_distance_m": float(np.median(d)) if len(d) else None,
         "fraction_within_0.5m": float(np.mean(d < 0.5)) if len(d) else None,
         "fraction_within_0.15m": float(np.mean(d < 0.15)) if len(d) else None,
-        "p90_distance_m": float(np.percentile(d, 90)) if len(d) else None,
+        "p50_p90_p99_m": [float(x) for x in np.percentile(d, [50, 90, 99])] if len(d) else None,
     }
     if road_length_m:
         out["points_per_100m"] = float(len(points) / road_length_m * 100.0)
