@@ -144,6 +144,18 @@ def index_structure(workspace: Path = typer.Argument(...)) -> None:
     _not_yet("index structure", "structural place recognition")
 
 
+@eval_app.command("build")
+def eval_build(
+    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build`."),
+    truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
+) -> None:
+    """Trajectory error after GPS alignment and map accuracy against the synthetic truth."""
+    from .evaluate import evaluate_build, format_eval
+
+    typer.echo(format_eval(evaluate_build(workspace, truth)), nl=False)
+    typer.echo(f"written to {workspace}/eval_build.json and eval_build.md")
+
+
 @eval_app.command("places")
 def eval_places(workspace: Path = typer.Argument(...)) -> None:
     """Place recognition precision/recall and AUC."""

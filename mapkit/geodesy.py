@@ -136,6 +136,14 @@ class LocalFrame:
         lat, lon = self.utm.inverse(utm_enh[..., 0], utm_enh[..., 1])
         return self.geodetic_to_enu(lat, lon, utm_enh[..., 2])
 
+    def to_frame(self, other: "LocalFrame") -> np.ndarray:
+        """``other_from_self``: the exact rigid transform between two ENU tangent frames (via ECEF)."""
+        R = other.ecef_from_enu_rotation.T @ self.ecef_from_enu_rotation
+        t = other.ecef_from_enu_rotation.T @ (self._ecef0 - other._ecef0)
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, t
+        return T
+
     def to_dict(self) -> dict:
         """What a georeferenced output records: CRS and origin."""
         return {

@@ -53,6 +53,7 @@ class Trajectory:
     world_from_base: np.ndarray
     source: str
     frame: str = "odom"
+    body_frame: str = "base_link"  # whose poses these are: the base, or the sensor a pose stream gives
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
@@ -67,7 +68,8 @@ class Trajectory:
         atomic_write_text(folder / "times.txt", "".join(f"{(s - t0) * 1e-9:.9f}\n" for s in self.stamps_ns))
         with atomic_path(folder / "trajectory.npz") as tmp:
             with open(tmp, "wb") as f:
-                np.savez(f, stamps_ns=self.stamps_ns, world_from_base=self.world_from_base, source=self.source, frame=self.frame)
+                np.savez(f, stamps_ns=self.stamps_ns, world_from_base=self.world_from_base, source=self.source,
+                         frame=self.frame, body_frame=self.body_frame)
         return folder
 
     @classmethod
@@ -76,7 +78,8 @@ class Trajectory:
         npz = folder / "trajectory.npz"
         if npz.is_file():
             d = np.load(npz)
-            return cls(d["stamps_ns"], d["world_from_base"], str(d["source"]), str(d["frame"]))
+            body = str(d["body_frame"]) if "body_frame" in d else "base_link"
+            return cls(d["stamps_ns"], d["world_from_base"], str(d["source"]), str(d["frame"]), body)
         stamps, poses = read_tum(folder / "poses_tum.txt")
         return cls(stamps, poses, "tum")
 
@@ -109,9 +112,16 @@ def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str) -> Traject
         child = p.child_frame
     if len(stamps) < 2:
         raise InputError(log.path, f"pose topic {topic} has {len(stamps)} poses; a trajectory needs at least 2", field=topic)
-    child_from_base = invert_pose(_base_from(_tree(log), base_frame, child or base_frame, log, "pose"))
-    world_from_base = np.stack(poses) @ child_from_base
-    return Trajectory(np.asarray(stamps, np.int64), world_from_base, source=f"poses:{topic}", frame="world")
+    child = child or base_frame
+    tree = _tree(log)
+    if child == base_frame or (base_frame in tree.frames and child in tree.frames):
+        world_from_base = np.stack(poses) @ invert_pose(_base_from(tree, base_frame, child, log, "pose"))
+        body = base_frame
+    else:
+        # no calibration ties the pose's frame to the base (KITTI odometry: poses are camera_0's);
+        # the trajectory is then of that frame, and later lookups start from it
+        world_from_base, body = np.stack(poses), child
+    return Trajectory(np.asarray(stamps, np.int64), world_from_base, source=f"poses:{topic}", frame="world", body_frame=body)
 
 
 def _scans(log: DriveLog, topic: str) -> Iterator:

@@ -76,3 +76,13 @@ def test_local_frame_dict_round_trip():
     again = LocalFrame.from_dict(frame.to_dict())
     assert again == frame
     assert frame.to_dict()["utm_crs_epsg"] == 32632
+
+
+def test_transform_between_local_frames_is_exact(rng):
+    a = LocalFrame(49.0, 8.4, 110.0)
+    b = LocalFrame(49.004, 8.41, 95.0)
+    pts_a = rng.uniform(-1500, 1500, size=(50, 3))
+    T = a.to_frame(b)
+    lat, lon, alt = a.enu_to_geodetic(pts_a)
+    np.testing.assert_allclose(pts_a @ T[:3, :3].T + T[:3, 3], b.geodetic_to_enu(lat, lon, alt), atol=1e-6)
+    np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)

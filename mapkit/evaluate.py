@@ -1,0 +1,119 @@
+"""``mapkit eval build``: a built workspace against the synthetic town's ground truth.
+
+Per session: the absolute trajectory error of the GPS-aligned trajectory (no further alignment:
+what a map user gets), the GPS fixes' own error for comparison, and the semi-dense map's distance
+to the true surfaces (the town's mesh plus that session's parked cars), with points per 100 m.
+The truth lives in the town's ENU frame; it is moved exactly (through ECEF) into the workspace's.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .geodesy import LocalFrame
+from .metrics import map_accuracy, trajectory_errors
+from .runio import atomic_write_text, write_json
+from .trajectory import Trajectory
+
+
+def _session_truth(truth: Path, name: str):
+    from .synth import gt_poses
+
+    return gt_poses(truth, name)
+
+
+def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
+    import open3d as o3d
+
+    workspace, truth = Path(workspace), Path(truth)
+    origin = workspace / "origin.json"
+    if not origin.is_file():
+        raise InputError(origin, "the workspace is not georeferenced (no origin.json): nothing to compare with truth")
+    ws_frame = LocalFrame.from_dict(json.loads(origin.read_text()))
+    town_frame = LocalFrame.from_dict(json.loads((truth / "world" / "origin.json").read_text()))
+    ws_from_town = town_frame.to_frame(ws_frame)
+    mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))
+    if not mesh.has_triangles():
+        raise InputError(truth / "world" / "mesh.ply", "holds no triangles")
+    mesh.transform(ws_from_town)
+    results: dict = {"workspace": str(workspace), "truth": str(truth), "sessions": {}}
+    for sdir in sorted((workspace / "sessions").iterdir()):
+        name = sdir.name
+        try:
+            gt_stamps, gt_world_from_base = _session_truth(truth, name)
+        except (FileNotFoundError, InputError):
+            continue
+        gt_ws = ws_from_town @ gt_world_from_base
+        r: dict = {}
+        traj_dir = sdir / "georef" / "trajectory_enu"
+        if traj_dir.is_dir():
+            est = Trajectory.load(traj_dir)
+            te = trajectory_errors(est.stamps_ns, est.world_from_base, gt_stamps, gt_ws)
+            te.pop("per_pose_translation_m")
+            r["trajectory"] = te
+            r["gps_alone"] = _gps_error(workspace, sdir, gt_stamps, gt_ws, ws_frame)
+        map_dir = sdir / "map"
+        if (map_dir / ".done").is_file():
+            from .semidense import SemiDenseMap
+
+            smap = SemiDenseMap.load(map_dir)
+            session_mesh = o3d.geometry.TriangleMesh(mesh)
+            cars = truth / "sessions" / f"{name}.parked_cars.ply"
+            if cars.is_file():
+                car_mesh = o3d.io.read_triangle_mesh(str(cars))
+                car_mesh.transform(ws_from_town)
+                session_mesh += car_mesh
+            length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
+            r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
+            r["map"]["driven_m"] = length
+        results["sessions"][name] = r
+    write_json(workspace / "eval_build.json", results)
+    atomic_write_text(workspace / "eval_build.md", format_eval(results))
+    return results
+
+
+def _gps_error(workspace: Path, sdir: Path, gt_stamps, gt_ws, frame: LocalFrame) -> dict:
+    """RMS horizontal error of the raw GPS fixes against the true antenna-ish position (base)."""
+    from .build import BuildConfig, SessionBuilder
+    from .config import load_config
+    from .types import StreamKind
+
+    cfg_path = sdir / "config.yaml"
+    cfg = load_config(BuildConfig, cfg_path if cfg_path.is_file() else None)
+    meta = json.loads((sdir.parent.parent / "metrics.json").read_text()) if (sdir.parent.parent / "metrics.json").is_file() else {}
+    log_path = meta.get("sessions", {}).get(sdir.name, {}).get("log")
+    if not log_path or not Path(log_path).is_file():
+        return {}
+    b = SessionBuilder(Path(log_path), workspace, cfg, progress=False)
+    fixes = [f for f in b.log.records(StreamKind.GPS) if f.has_fix]
+    b.close()
+    if not fixes:
+        return {}
+    stamps = np.array([f.stamp_ns for f in fixes], np.int64)
+    enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
+    from .geometry import interpolate_poses
+
+    gt, ok = interpolate_poses(gt_stamps, gt_ws, stamps)
+    d = np.linalg.norm(enu[ok, :2] - gt[:, :2, 3], axis=1)
+    return {"fixes": int(ok.sum()), "horizontal_rmse_m": float(np.sqrt(np.mean(d**2))), "horizontal_median_m": float(np.median(d))}
+
+
+def format_eval(results: dict) -> str:
+    lines = [
+        "| session | ATE RMSE m | median m | rot median deg | GPS alone RMSE m | map points | median to mesh m | within 0.5 m | points / 100 m |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731
+    for name, r in results["sessions"].items():
+        t, g, m = r.get("trajectory", {}), r.get("gps_alone", {}), r.get("map", {})
+        lines.append(
+            f"| {name} | {f(t.get('ate_rmse_m'))} | {f(t.get('translation_median_m'))} | {f(t.get('rotation_median_deg'))} | "
+            f"{f(g.get('horizontal_rmse_m'))} | {m.get('points', '')} | {f(m.get('median_distance_m'), 3)} | "
+            f"{f(m.get('fraction_within_0.5m'), 3)} | {f(m.get('points_per_100m'), 0)} |"
+        )
+    return "\n".join(lines) + "\n"
+
