@@ -137,8 +137,10 @@ class SessionBuilder:
                 traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(self.cfg.georef.max_pose_gap_s * 1e9)
             )
             g = self.cfg.georef
+            # structure from motion has no gravity: only a full Sim3 can place it
+            mode = "sim3" if traj.source.startswith("camera") else g.mode
             al = align_to_gps(
-                antenna, gps_enu[ok], sigma[ok], stamps[ok], mode=g.mode, inlier_sigmas=g.inlier_sigmas,
+                antenna, gps_enu[ok], sigma[ok], stamps[ok], mode=mode, inlier_sigmas=g.inlier_sigmas,
                 vertical_sigma_factor=g.vertical_sigma_factor, min_inlier_threshold_m=g.min_inlier_threshold_m,
                 strict=g.strict, source=str(self.log_path),
             )

@@ -37,12 +37,26 @@ class KissIcpOptions(MapkitConfig):
     max_threads: int = Field(0, description="kiss-icp registration.max_num_threads; 0 = all cores.")
 
 
+class CameraSfmOptions(MapkitConfig):
+    max_images: int = Field(400, description="Images given to pycolmap (evenly sub-sampled in time beyond this).")
+    max_image_size: int = Field(1024, description="pycolmap SIFT extraction's max_image_size (px).")
+    sequential_overlap: int = Field(10, description="pycolmap sequential matching: each image is matched with this many next ones.")
+    max_threads: int = Field(-1, description="pycolmap threads; -1 = all cores.")
+    init_min_tri_angle_deg: float = Field(
+        4.0, description="Initial pair's triangulation angle (COLMAP's 16 suits photo collections; a forward-moving car sees less)."
+    )
+    init_max_forward_motion: float = Field(
+        1.0, description="COLMAP rejects initial pairs moving along the view axis above this (0.95): a front camera only does that."
+    )
+
+
 class TrajectoryConfig(MapkitConfig):
     source: Literal["auto", "lidar", "poses", "camera"] = Field(
         "auto", description="Where the trajectory comes from; auto = lidar, else a pose stream, else camera."
     )
     base_frame: str = Field("base_link", description="The vehicle frame whose poses the trajectory holds.")
     kiss_icp: KissIcpOptions = KissIcpOptions()
+    camera: CameraSfmOptions = CameraSfmOptions()
 
 
 @dataclass
@@ -206,4 +220,73 @@ def estimate_trajectory(
         if not topics.get(StreamKind.POSE):
             raise InputError(log.path, "trajectory.source is poses but the log has no pose stream", field="trajectory.source")
         return trajectory_from_poses(log, topics[StreamKind.POSE][0], cfg.base_frame)
-    raise InputError(log.path, "camera-only trajectories (pycolmap) are not available yet; use a log with LiDAR or poses", field="trajectory.source")
+    if not topics.get(StreamKind.IMAGE):
+        raise InputError(log.path, "trajectory.source is camera but the log has no image stream", field="trajectory.source")
+    return trajectory_from_camera(log, topics[StreamKind.IMAGE][0], cfg, progress)
+
+
+def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False) -> Trajectory:
+    """pycolmap structure from motion (SIFT, sequential matching, incremental mapping) with the
+    log's intrinsics fixed. The result has an arbitrary orientation and scale: GPS alignment must
+    then estimate a full Sim3 (``georef.mode: sim3``).
+    """
+    import tempfile
+
+    import cv2
+    import pycolmap
+
+    infos = log.camera_infos()
+    o = cfg.camera
+    counts = next((s.count for s in log.streams() if s.topic == topic), None)
+    step = max(1, -(-counts // o.max_images)) if counts else 1
+    with tempfile.TemporaryDirectory(prefix="mapkit-sfm-") as tmp:
+        tmp = Path(tmp)
+        (tmp / "images").mkdir()
+        stamps: dict[str, int] = {}
+        camera = None
+        for i, frame in enumerate(log.records(StreamKind.IMAGE, topic=topic)):
+            if i % step:
+                continue
+            camera = camera or frame.camera
+            if frame.camera != camera:
+                continue
+            name = f"{frame.stamp_ns}.png"
+            cv2.imwrite(str(tmp / "images" / name), frame.gray())
+            stamps[name] = frame.stamp_ns
+        if camera not in infos:
+            raise InputError(log.path, f"camera {camera!r} has no intrinsics; camera-only trajectories need them", field="camera_info")
+        info = infos[camera]
+        if len(stamps) < 3:
+            raise InputError(log.path, f"{len(stamps)} images on {topic}: too few for structure from motion", field=topic)
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = f"{info.fx},{info.fy},{info.cx},{info.cy}"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = o.max_image_size
+        extraction.num_threads = o.max_threads
+        db = tmp / "database.db"
+        pycolmap.extract_features(db, tmp / "images", camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = o.sequential_overlap
+        pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        options.num_threads = o.max_threads
+        options.mapper.init_min_tri_angle = o.init_min_tri_angle_deg
+        options.mapper.init_max_forward_motion = o.init_max_forward_motion
+        (tmp / "sparse").mkdir()
+        recs = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", options=options)
+    if not recs:
+        raise InputError(log.path, f"pycolmap could not reconstruct the camera path from {topic}", field=topic)
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    regs = sorted((stamps[im.name], np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]])))
+                  for im in rec.images.values() if im.has_pose)
+    if len(regs) < 0.5 * len(stamps):
+        warnings.warn(f"{log.path}: pycolmap registered {len(regs)} of {len(stamps)} images; the trajectory has gaps",
+                      InputWarning, stacklevel=2)
+    world_from_cam = np.stack([T for _, T in regs])
+    return Trajectory(np.array([s for s, _ in regs], np.int64), world_from_cam, source=f"camera:{topic}",
+                      frame="sfm", body_frame=camera)

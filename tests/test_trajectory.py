@@ -136,3 +136,26 @@ def test_no_source_is_a_clear_error(tmp_path):
             estimate_trajectory(log, TrajectoryConfig())
         with pytest.raises(InputError, match="no LiDAR stream"):
             estimate_trajectory(log, TrajectoryConfig(source="lidar"))
+
+
+@pytest.mark.realdata
+def test_camera_only_trajectory_of_the_real_clip_matches_truth_up_to_similarity(kitti_clip):
+    """pycolmap on 20 real frames: after a Sim3 fit the path lies on KITTI's ground truth."""
+    from mapkit.geometry import transform_points, umeyama
+    from mapkit.io.kitti import KittiOdometry
+    from mapkit.trajectory import trajectory_from_camera
+
+    cfg = TrajectoryConfig(source="camera")
+    cfg.camera.max_images = 20
+    with pytest.warns(Warning):  # the clip has no times.txt: nominal 10 Hz stamps
+        log = KittiOdometry(kitti_clip)
+    with log:
+        traj = trajectory_from_camera(log, "/kitti/camera_0/image", cfg)
+        gt = {p.stamp_ns: p.parent_from_child for p in log.records("pose")}
+    assert len(traj) >= 15
+    truth = np.stack([gt[int(s)][:3, 3] for s in traj.stamps_ns])
+    est = traj.world_from_base[:, :3, 3]
+    S = umeyama(est, truth, with_scale=True)
+    err = np.linalg.norm(transform_points(S, est) - truth, axis=1)
+    travelled = np.linalg.norm(np.diff(truth, axis=0), axis=1).sum()
+    assert err.max() < 0.01 * travelled, f"max error {err.max():.2f} m over {travelled:.0f} m"
