@@ -26,10 +26,12 @@ def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
 
 def peak_rss_mb_of(code: str) -> float:
     """Peak resident memory (MiB) of running ``code`` in a fresh Python process."""
+    # VmHWM, not ru_maxrss: Linux carries the parent's ru_maxrss into a forked child
     wrapper = (
         code
-        + "\nimport resource, json, sys\n"
-        + "print('PEAK_RSS_KB', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)\n"
+        + "\nimport sys\n"
+        + "hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM:')][0].split()[1]\n"
+        + "print('PEAK_RSS_KB', hwm, file=sys.stderr)\n"
     )
     proc = subprocess.run([sys.executable, "-c", wrapper], capture_output=True, text=True, check=True)
     for line in proc.stderr.splitlines():
@@ -39,6 +41,11 @@ def peak_rss_mb_of(code: str) -> float:
 
 
 def self_peak_rss_mb() -> float:
+    """This process's own peak resident memory (MiB)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 

@@ -53,8 +53,11 @@ class McapLog(DriveLog):
 
     format_name = "mcap"
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, validate_crcs: bool = True):
+        """``validate_crcs`` checks every chunk's CRC (on by default: zstd and lz4 chunks carry no
+        checksum of their own, so without it a corrupt chunk could decode into wrong values)."""
         super().__init__(path)
+        self.validate_crcs = validate_crcs
         if not self.path.is_file():
             raise InputError(self.path, "no such file")
         if not is_mcap(self.path):
@@ -113,7 +116,7 @@ class McapLog(DriveLog):
     def _raw(self, topics: Optional[set[str]]) -> Iterator[tuple[Any, Any, Any]]:
         if self._indexed:
             self._file.seek(0)
-            reader = SeekingReader(self._file, validate_crcs=True)
+            reader = SeekingReader(self._file, validate_crcs=self.validate_crcs)
             try:
                 yield from reader.iter_messages(topics=None if topics is None else sorted(topics), log_time_order=True)
             except (McapError, EOFError, ValueError, OSError) as exc:
@@ -125,7 +128,7 @@ class McapLog(DriveLog):
         """Records in file order, stopping (with a warning) where the file is damaged."""
         self._file.seek(0)
         self._linear_schemas: dict[int, Any] = {}
-        reader = NonSeekingReader(self._file, validate_crcs=True)
+        reader = NonSeekingReader(self._file, validate_crcs=self.validate_crcs)
         it = reader.iter_messages(topics=None if topics is None else sorted(topics), log_time_order=False)
         try:
             for schema, channel, message in it:

@@ -396,9 +396,12 @@ def lidar_from_msg(msg: Any, source: str) -> LidarScan:
     else:
         buf = msg.data
     arr = np.frombuffer(buf, dtype=dt, count=n)
-    xyz = np.stack([arr["x"], arr["y"], arr["z"]], axis=-1).astype(np.float32, copy=False)
-    valid = np.isfinite(xyz).all(axis=1)
-    all_valid = bool(valid.all())
+    xyz = _xyz_of(arr, dt, buf, n)
+    # isfinite(xyz).all(axis=1) reduces over a length-3 axis (~1.4 ms per 100k points); the
+    # whole-array all() is ~50x faster and settles dense clouds, the usual case
+    finite = np.isfinite(xyz)
+    all_valid = bool(finite.all())
+    valid = None if all_valid else finite[:, 0] & finite[:, 1] & finite[:, 2]
 
     def take(a: np.ndarray) -> np.ndarray:
         return a if all_valid else a[valid]
@@ -413,6 +416,17 @@ def lidar_from_msg(msg: Any, source: str) -> LidarScan:
     return LidarScan(stamp, msg.header.frame_id, take(xyz), intensity=intensity, point_time_s=point_time_s, ring=ring)
 
 
+def _xyz_of(arr: np.ndarray, dt: np.dtype, buf, n: int) -> np.ndarray:
+    """(N, 3) float32 copy of x, y, z: one block copy per point when they are adjacent (the usual layout)."""
+    (tx, ox), (ty, oy), (tz, oz) = (dt.fields[c][:2] for c in "xyz")
+    if tx == ty == tz and tx.shape == () and oy == ox + tx.itemsize and oz == oy + tx.itemsize:
+        # an opaque 3*itemsize block per point copies 2x faster than numpy's strided (N, 3) loop
+        block = np.dtype({"names": ["xyz"], "formats": [f"V{3 * tx.itemsize}"], "offsets": [ox], "itemsize": dt.itemsize})
+        xyz = np.frombuffer(buf, dtype=block, count=n)["xyz"].copy().view(tx).reshape(n, 3)
+        return xyz.astype(np.float32, copy=False)
+    return np.stack([arr["x"], arr["y"], arr["z"]], axis=-1).astype(np.float32, copy=False)
+
+
 def _relative_time_s(t: np.ndarray, name: str, stamp_ns: int) -> np.ndarray:
     """Per-point times in seconds relative to the header stamp, whatever the driver's convention."""
     if t.dtype.kind in "ui" and t.dtype.itemsize >= 4:
@@ -421,10 +435,9 @@ def _relative_time_s(t: np.ndarray, name: str, stamp_ns: int) -> np.ndarray:
         if t64.size and t64.max() > 10**15:
             t64 = t64 - stamp_ns
         return (t64 * 1e-9).astype(np.float32)
-    tf = t.astype(np.float64)
-    if tf.size and np.nanmax(np.abs(tf)) > 1e6:  # absolute seconds since the epoch
-        tf = tf - stamp_ns * 1e-9
-    return tf.astype(np.float32)
+    if t.size and np.nanmax(np.abs(t)) > 1e6:  # absolute seconds since the epoch: subtract in float64
+        return (t.astype(np.float64) - stamp_ns * 1e-9).astype(np.float32)
+    return t.astype(np.float32)  # relative seconds already (Velodyne ``time``): one native copy
 
 
 # --- IMU, poses, transforms -----------------------------------------------------------------------
