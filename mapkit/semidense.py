@@ -803,7 +803,8 @@ class _Fuser:
         fid = np.concatenate([o["obs_fid"], obs_fid])
         order = np.lexsort((fid, pt))  # unique (point, frame) pairs, sorted
         pt, fid = pt[order], fid[order]
-        first = np.r_[True, (pt[1:] != pt[:-1]) | (fid[1:] != fid[:-1])]
+        first = np.ones(len(pt), bool)  # also right when nothing is open and nothing came in
+        first[1:] = (pt[1:] != pt[:-1]) | (fid[1:] != fid[:-1])
         pairs = np.column_stack([pt[first], fid[first]])
         merged = {
             "xyz": xyz_all[keep], "sigma": sigma_all[keep],

@@ -400,3 +400,13 @@ def test_accuracy_against_a_mesh_matches_the_known_box(room_map):
     assert acc["fraction_within_0.5m"] == pytest.approx(np.mean(d <= 0.5), abs=1e-3)
     assert acc["points_per_100m"] == pytest.approx(len(sd) / 3.0 * 100)
     assert acc["median_distance_m"] < 0.15 and acc["fraction_within_0.5m"] > 0.8  # the town goals, on the room
+
+
+def test_blank_frames_give_an_empty_map_not_a_crash():
+    """Sky, fog or a lens cap: keyframes without a single candidate must pass through fusion."""
+    K = np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]])
+    blank = np.full((240, 320), 128, np.uint8)
+    frames = [(i, i * 10**8, blank, make_pose(np.eye(3), [0.0, 0.0, 1.2 * i])) for i in range(8)]
+    sd = build_semidense_map(frames, K, SemiDenseConfig(), progress=False)
+    assert len(sd) == 0 and len(sd.keyframe_ids) >= 5
+    assert sd.obs_indptr.tolist() == [0]
