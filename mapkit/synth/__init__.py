@@ -1,13 +1,372 @@
-"""Synthetic town generator (placeholder until the synthetic-town work lands)."""
+"""Synthetic town: georeferenced multi-session drive logs with exact ground truth (``mapkit synth``).
+
+A procedural town (road graph with 3- to 5-way junctions, curves, straight avenues and dead ends;
+buildings with textured facades in repeated styles; trees, lamps, signs, fences, parked cars) is
+generated from a seed at a WGS84 origin, and vehicles drive routes through it under different
+times of day and weathers. Camera images are ray cast on the CPU with open3d's RaycastingScene
+and shaded from what the rays hit; a spinning LiDAR, GPS with a realistic error process and an
+IMU are simulated alongside. Presets: ``tiny`` (tests, seconds), ``demo`` (minutes), ``benchmark``
+(MCVL Table I scale); see ``configs/synth/*.yaml``.
+
+Public API::
+
+    synthesize(preset="tiny", out=..., seed=None, config=None, trajectory=None, overwrite=False) -> Path
+    load_world(out) -> World           # mesh (open3d), road graph, LocalFrame, manifest, config
+    gt_poses(out, session) -> (stamps_ns (N,), world_from_base (N, 4, 4))
+    camera_poses(out, session) -> (stamps_ns (M,), world_from_camera (M, 4, 4))   # optical frame
+    load_config(preset, config, seed) -> SynthConfig
+    GpsErrorModel(cfg.gps).simulate(n, rng); extrinsics(cfg); intrinsics(cfg.camera)
+    World.renderer(session) -> Renderer  # re-render any pose; returns image, range and depth
+
+Output layout (``out``)::
+
+    world/mesh.ply            static surfaces (world ENU, metres; binary PLY, per-face material and object id)
+    world/roads.json          road graph: nodes (ENU xy, degree), edges (polylines, widths), the anchor place
+    world/origin.json         LocalFrame.to_dict(): WGS84 origin and UTM EPSG code
+    world/manifest.json       format version, seed, preset, config hash, sessions (route, time, weather, rates, GPS noise)
+    world/config.yaml         the resolved configuration
+    sessions/<name>.mcap      ROS 2 messages: /camera/front/image (+ camera_info), /lidar/points, /gps/fix,
+                              /imu/data, /tf_static, /ground_truth/odom
+    sessions/<name>.gt.tum    ground-truth base_link poses in the world frame (GT rate)
+    sessions/<name>.camera.tum  ground-truth camera (optical frame) poses at the image stamps
+    sessions/<name>.parked_cars.ply  this session's parked cars (not in world/mesh.ply: they move)
+    metrics.json              world statistics, per-session counts, render times and rates
+    pictures/map.png          bird's-eye map of roads, buildings and routes
+    pictures/contact_sheet.png  the anchor place seen by every session
+
+Frames: ``world`` is ENU at the origin (x east, y north, z up; the road surface is z = 0);
+``base_link`` is x forward, y left, z up (REP-103) on the road surface under the centre of the
+rear axle; ``camera_front`` is an optical frame (x right, y down, z forward); ``lidar``, ``gps`` and
+``imu`` are x forward, y left, z up. Stamps are integer nanoseconds since the Unix epoch, on the
+scenario's date at the session's local time of day. A LiDAR point's ``time`` is seconds after its
+message stamp (the start of the sweep); points are in the sensor frame at their own firing time.
+
+Finished outputs are marked with ``runio.mark_done``; re-running skips finished sessions (the
+markers live in ``sessions/.markers/<name>/``) unless ``overwrite``; files are written atomically.
+"""
 
 from __future__ import annotations
 
+import json
+import time
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Optional
 
-from ..errors import MapkitError
+import numpy as np
+
+from ..errors import ConfigError, MapkitError
+from ..geodesy import LocalFrame
+from ..io.trajectory import read_tum
+from ..runio import atomic_write_text, config_hash, is_done, mark_done, write_json
+from .config import FORMAT_VERSION, PRESETS, SynthConfig, dump_yaml, load_config
+from .sensors import GpsErrorModel, extrinsics, intrinsics
+from .world import RoadGraph, read_ply, read_roads
+
+__all__ = [
+    "synthesize", "load_world", "gt_poses", "camera_poses", "World", "load_config", "SynthConfig", "PRESETS",
+    "GpsErrorModel", "extrinsics", "intrinsics",
+]
 
 
-def synthesize(preset: str, out: Path, seed: Optional[int] = None, config: Optional[Path] = None,
-               trajectory: Optional[Path] = None, overwrite: bool = False) -> Path:
-    raise MapkitError("`mapkit synth` is not available yet (synthetic town)")
+def _world_hash(cfg: SynthConfig, trajectory_digest: Optional[str]) -> str:
+    return config_hash({"format_version": FORMAT_VERSION, "seed": cfg.seed, "origin": cfg.origin, "town": cfg.town,
+                        "trajectory": trajectory_digest})
+
+
+def _session_hash(cfg: SynthConfig, world_hash: str, index: int, session) -> str:
+    return config_hash({"world": world_hash, "index": index, "session": session, "camera": cfg.camera, "lidar": cfg.lidar,
+                        "gps": cfg.gps, "imu": cfg.imu, "motion": cfg.motion})
+
+
+def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[int] = None, config: Optional[Path] = None,
+               trajectory: Optional[Path] = None, overwrite: bool = False, *, progress: Optional[bool] = None,
+               overrides: Optional[dict] = None) -> Path:
+    """Generate a town and its sessions into ``out``; returns ``out``.
+
+    ``trajectory`` (TUM, KITTI poses or RobotCar INS CSV) makes the first session follow it, with
+    the town generated around it; RobotCar files with latitude/longitude also move the origin there.
+    ``overrides`` is a mapping merged over the preset and ``config`` (as a YAML file would be).
+    """
+    from ..runio import sha256_file
+    from .sessions import plan_sessions, read_external_trajectory, write_session
+    from .world import build_town, write_ply, write_roads
+    from ._threads import single_thread_blas
+
+    t_start = time.perf_counter()
+    cfg = load_config(preset, config, seed, overrides)
+    external = None
+    digest = None
+    if trajectory is not None:
+        external = read_external_trajectory(Path(trajectory))
+        digest = sha256_file(trajectory)
+        if not cfg.sessions:
+            raise ConfigError(f"--trajectory needs at least one session in `sessions` to drive it (preset {preset!r} has none)")
+        if external.origin_latlon is not None:
+            lat, lon = external.origin_latlon
+            cfg = cfg.model_copy(update={"origin": cfg.origin.model_copy(update={"lat_deg": lat, "lon_deg": lon})})
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    full_hash = config_hash({"config": cfg, "trajectory": digest})
+    w_hash = _world_hash(cfg, digest)
+    timing: dict[str, float] = {}
+    with single_thread_blas():
+        t = time.perf_counter()
+        town = build_town(cfg, None if external is None else _external_xy(external))
+        timing["world_generation_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        plans = plan_sessions(cfg, town, external)
+        timing["session_planning_s"] = time.perf_counter() - t
+        world_dir = out / "world"
+        manifest = {
+            "format_version": FORMAT_VERSION, "generator": "mapkit.synth", "preset": cfg.preset, "seed": cfg.seed,
+            "config_hash": full_hash, "world_hash": w_hash, "frame": "world = ENU at the origin (origin.json)",
+            "base_link": "x forward, y left, z up; on the road surface under the rear axle centre",
+            "anchor": town.anchor, "world": town.summary(),
+            "sessions": [p.manifest_entry(cfg) for p in plans],
+        }
+        if external is not None:
+            manifest["sessions"][0]["trajectory_file"] = str(trajectory)
+        if overwrite or not is_done(world_dir, full_hash):
+            t = time.perf_counter()
+            world_dir.mkdir(parents=True, exist_ok=True)
+            write_ply(world_dir / "mesh.ply", town.geometry)
+            write_roads(world_dir / "roads.json", town.roads, town.anchor)
+            write_json(world_dir / "origin.json", town.frame.to_dict())
+            atomic_write_text(world_dir / "config.yaml", dump_yaml(cfg))
+            write_json(world_dir / "manifest.json", manifest)
+            mark_done(world_dir, full_hash, world_hash=w_hash)
+            timing["world_write_s"] = time.perf_counter() - t
+        session_metrics = []
+        todo = []
+        for p in plans:
+            h = _session_hash(cfg, w_hash, p.index, p.config)
+            marker = out / "sessions" / ".markers" / p.name
+            if not overwrite and is_done(marker, h):
+                session_metrics.append(json.loads((marker / ".done").read_text()).get("metrics", {}) | {"skipped": True})
+            else:
+                todo.append((p, h, marker))
+        t = time.perf_counter()
+        workers = min(cfg.workers, len(todo))
+        if workers <= 1:
+            for p, h, marker in todo:
+                m = write_session(town, p, cfg, out, progress)
+                mark_done(marker, h, metrics=m)
+                session_metrics.append(m)
+        else:
+            session_metrics += _render_parallel(cfg, trajectory, out, todo, workers, progress)
+        timing["render_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        _pictures(out, town, plans)
+        timing["pictures_s"] = time.perf_counter() - t
+    timing["total_s"] = time.perf_counter() - t_start
+    rendered = [m for m in session_metrics if not m.get("skipped")]
+    cam = sum(m["camera_frames"] for m in rendered)
+    lid = sum(m["lidar_scans"] for m in rendered)
+    cam_s = sum(m["camera_render_s"] for m in rendered)
+    lid_s = sum(m["lidar_render_s"] for m in rendered)
+    order = {p.name: k for k, p in enumerate(plans)}
+    metrics = {
+        "format_version": FORMAT_VERSION, "preset": cfg.preset, "seed": cfg.seed, "config_hash": full_hash,
+        "world": town.summary(),
+        "timing_s": {k: round(v, 3) for k, v in timing.items()},
+        "rendered": {
+            "sessions": len(rendered), "camera_frames": cam, "lidar_scans": lid,
+            "camera_frames_per_s": round(cam / cam_s, 3) if cam_s else None,
+            "lidar_scans_per_s": round(lid / lid_s, 3) if lid_s else None,
+            "image_size": [cfg.camera.width, cfg.camera.height], "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
+        },
+        "sessions": sorted(session_metrics, key=lambda m: order.get(m.get("name"), 0)),
+    }
+    write_json(out / "metrics.json", metrics)
+    mark_done(out, full_hash)
+    return out
+
+
+_WORKER: dict = {}
+
+
+def _worker_init(cfg_json: str, trajectory: Optional[str], progress: Optional[bool], nthreads: int) -> None:
+    from .sessions import plan_sessions, read_external_trajectory
+    from .world import build_town
+
+    cfg = SynthConfig.model_validate_json(cfg_json)
+    ext = read_external_trajectory(Path(trajectory)) if trajectory else None
+    town = build_town(cfg, None if ext is None else _external_xy(ext))
+    _WORKER.update(cfg=cfg, town=town, plans=plan_sessions(cfg, town, ext), progress=progress, nthreads=nthreads)
+
+
+def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
+    from ._threads import single_thread_blas
+    from .sessions import write_session
+
+    with single_thread_blas():
+        m = write_session(_WORKER["town"], _WORKER["plans"][index], _WORKER["cfg"], Path(out), _WORKER["progress"],
+                          nthreads=_WORKER["nthreads"])
+    mark_done(Path(marker), cfg_hash, metrics=m)
+    return m
+
+
+def _render_parallel(cfg: SynthConfig, trajectory, out: Path, todo: list, workers: int, progress) -> list[dict]:
+    """Sessions rendered by ``workers`` spawned processes (each regenerates the same town once)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from .render import available_cores
+
+    nthreads = max(1, available_cores() // workers)
+    ctx = mp.get_context("spawn")
+    # longest sessions first, so that the pool finishes together
+    todo = sorted(todo, key=lambda x: -x[0].drive.duration_s)
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                             initargs=(cfg.model_dump_json(), None if trajectory is None else str(trajectory), progress, nthreads)) as ex:
+        futures = [ex.submit(_worker_render, p.index, str(out), h, str(marker)) for p, h, marker in todo]
+        return [f.result() for f in futures]
+
+
+def _external_xy(ext) -> np.ndarray:
+    """The external path's planar positions, decimated to about a metre apart."""
+    xy = ext.xy
+    step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    keep = np.concatenate([[True], np.cumsum(step) // 1.0 != np.concatenate([[0], np.cumsum(step)[:-1]]) // 1.0])
+    keep[-1] = True
+    return xy[keep]
+
+
+def _pictures(out: Path, town, plans) -> None:
+    import cv2
+
+    from .pictures import draw_contact_sheet, draw_map
+
+    routes = [{"name": p.name, "role": p.config.role, "condition": p.conditions.label, "time": p.local_start.strftime("%H:%M"),
+               "xy": p.drive.world_from_base[::10, :2, 3]} for p in plans]
+    draw_map(town, routes, out / "pictures" / "map.png")
+    frames = []
+    for p in plans:
+        f = out / "pictures" / "frames" / f"{p.name}.png"
+        if f.is_file():
+            img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            if img is not None:
+                caption = f"{p.name} ({p.config.role}) {p.local_start:%Y-%m-%d %H:%M}\n{p.conditions.label}, {p.conditions.season}"
+                frames.append((caption, img[..., ::-1]))
+    if frames:
+        draw_contact_sheet(frames, out / "pictures" / "contact_sheet.png",
+                           f"The same place (star on the map) seen by {len(frames)} sessions")
+
+
+# --- reading back ----------------------------------------------------------------------------------
+
+@dataclass
+class World:
+    """A synthesized town read back from its folder."""
+
+    path: Path
+    frame: LocalFrame
+    roads: RoadGraph
+    manifest: dict
+    config: SynthConfig
+
+    @cached_property
+    def mesh_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices, triangles, material, object_id) of world/mesh.ply."""
+        return read_ply(self.path / "world" / "mesh.ply")
+
+    @cached_property
+    def mesh(self):
+        """world/mesh.ply as an open3d legacy TriangleMesh."""
+        import open3d as o3d
+
+        V, T, _, _ = self.mesh_arrays
+        return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
+
+    @property
+    def sessions(self) -> list[dict]:
+        return self.manifest["sessions"]
+
+    def session(self, name: str) -> dict:
+        for s in self.sessions:
+            if s["name"] == name:
+                return s
+        raise MapkitError(f"{self.path}: no session {name!r} (sessions: {', '.join(s['name'] for s in self.sessions)})")
+
+    def session_mesh_arrays(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Vertices and triangles of the static world plus this session's parked cars."""
+        V, T, _, _ = self.mesh_arrays
+        Vc, Tc, _, _ = read_ply(self.path / self.session(name)["parked_cars"])
+        return np.concatenate([V, Vc]), np.concatenate([T, Tc + len(V)]).astype(np.int32)
+
+    def session_mesh(self, name: str):
+        import open3d as o3d
+
+        V, T = self.session_mesh_arrays(name)
+        return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(V), o3d.utility.Vector3iVector(T))
+
+    def town(self):
+        """The generator's Town (with texture attributes), regenerated from the config and checked."""
+        from .sessions import read_external_trajectory
+        from .world import build_town
+
+        ext_xy = None
+        src = self.sessions[0]["trajectory_source"] if self.sessions else "route"
+        if src != "route" and self.sessions[0].get("trajectory_file"):
+            ext_xy = _external_xy(read_external_trajectory(Path(self.sessions[0]["trajectory_file"])))
+        town = build_town(self.config, ext_xy)
+        if town.geometry.n_triangles != len(self.mesh_arrays[1]):
+            raise MapkitError(f"{self.path}: regenerating the town gave {town.geometry.n_triangles} triangles, "
+                              f"mesh.ply has {len(self.mesh_arrays[1])} (another mapkit version?)")
+        return town
+
+    def renderer(self, session: str, town=None):
+        """A Renderer of this world with ``session``'s parked cars (to re-render any pose)."""
+        from .render import Renderer
+        from .sessions import session_parked_cars
+
+        town = town or self.town()
+        parked = session_parked_cars(town, int(self.session(session)["seed"]))
+        return Renderer(town, parked, self.config.camera, self.config.lidar)
+
+    def conditions(self, session: str):
+        """The session's appearance conditions (sun, weather, exposure...)."""
+        import datetime as dt
+
+        from .appearance import make_conditions
+
+        s = self.session(session)
+        sc = next(x for x in self.config.sessions if x.name == session) if any(x.name == session for x in self.config.sessions) else None
+        local = dt.datetime.fromisoformat(s["start_time_local"])
+        return make_conditions(s["weather"], local, self.frame.lat0_deg, self.frame.lon0_deg, exposure_ev=s["exposure_ev"],
+                               white_balance_k=s["white_balance_k"], season=sc.season if sc else None, seed=int(s["seed"]))
+
+
+def load_world(path: str | Path) -> World:
+    """Read a synthesized town's world folder (raises MapkitError when it is incomplete)."""
+    from .config import validate
+
+    import yaml
+
+    path = Path(path)
+    world = path / "world"
+    for f in ("mesh.ply", "roads.json", "origin.json", "manifest.json", "config.yaml"):
+        if not (world / f).is_file():
+            raise MapkitError(f"{path}: not a synthesized town (missing world/{f})")
+    frame = LocalFrame.from_dict(json.loads((world / "origin.json").read_text()))
+    manifest = json.loads((world / "manifest.json").read_text())
+    cfg = validate(yaml.safe_load((world / "config.yaml").read_text()), str(world / "config.yaml"))
+    return World(path, frame, read_roads(world / "roads.json"), manifest, cfg)
+
+
+def gt_poses(path: str | Path, session: str) -> tuple[np.ndarray, np.ndarray]:
+    """Ground truth of a session: (stamps_ns (N,) int64, world_from_base (N, 4, 4))."""
+    f = Path(path) / "sessions" / f"{session}.gt.tum"
+    if not f.is_file():
+        raise MapkitError(f"{path}: no ground truth for session {session!r} ({f} missing)")
+    return read_tum(f)
+
+
+def camera_poses(path: str | Path, session: str) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth camera poses at the image stamps: (stamps_ns, world_from_camera (optical frame))."""
+    f = Path(path) / "sessions" / f"{session}.camera.tum"
+    if not f.is_file():
+        raise MapkitError(f"{path}: no camera ground truth for session {session!r} ({f} missing)")
+    return read_tum(f)
