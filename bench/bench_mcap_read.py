@@ -318,13 +318,13 @@ def read_mcap_decoded_crc(path: str) -> tuple[int, int]:
     return read_mcap_decoded(path, validate_crcs=True)
 
 
-def read_mapkit(path: str) -> tuple[int, int]:
+def read_mapkit(path: str, validate_crcs: bool = True) -> tuple[int, int]:
     """(c) ``McapLog.messages()``: records with their arrays materialised (lazy decoding can't cheat)."""
     from mapkit.io.mcap_log import McapLog
     from mapkit.types import CameraFrame, LidarScan
 
     n = nbytes = 0
-    with McapLog(path) as log:
+    with McapLog(path, validate_crcs=validate_crcs) as log:
         for msg in log.messages():
             n += 1
             rec = msg.record
@@ -337,19 +337,7 @@ def read_mapkit(path: str) -> tuple[int, int]:
 
 def read_mapkit_nocrc(path: str) -> tuple[int, int]:
     """(c') as (c) without chunk CRC checks: like for like with (a), which checks none."""
-    from mapkit.io.mcap_log import McapLog
-    from mapkit.types import CameraFrame, LidarScan
-
-    n = nbytes = 0
-    with McapLog(path, validate_crcs=False) as log:
-        for msg in log.messages():
-            n += 1
-            rec = msg.record
-            if isinstance(rec, CameraFrame):
-                nbytes += rec.image.shape[0] * rec.image.strides[0]
-            elif isinstance(rec, LidarScan):
-                nbytes += rec.points_xyz.shape[0] * rec.points_xyz.strides[0]
-    return n, nbytes
+    return read_mapkit(path, validate_crcs=False)
 
 
 def open_mcap(path: str) -> None:
