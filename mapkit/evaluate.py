@@ -15,7 +15,8 @@ import numpy as np
 
 from .errors import InputError
 from .geodesy import LocalFrame
-from .geometry import interpolate_poses, transform_points, umeyama
+from .geometry import interpolate_poses, transform_points
+from .gps_align import fit_transform
 from .metrics import map_accuracy, trajectory_errors
 from .runio import atomic_write_text, write_json
 from .trajectory import Trajectory
@@ -72,10 +73,11 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
             r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
             r["map"]["driven_m"] = length
             if traj_dir.is_dir():
-                # the map's own quality: the georeferencing offset removed by the rigid fit of the
-                # trajectory to truth (as SLAM evaluations align before measuring)
+                # the map's own quality: the georeferencing offset removed by a rigid fit of the
+                # trajectory to truth, as SLAM evaluations align before measuring; yaw-only, since
+                # gravity is known and a nearly straight drive leaves roll about it unobservable
                 gt_i, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
-                fix = umeyama(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], with_scale=False)
+                fix = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw")
                 r["map_local"] = map_accuracy(transform_points(fix, smap.points_world), session_mesh, road_length_m=length)
                 r["trajectory_local"] = {k: v for k, v in trajectory_errors(
                     est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws).items() if k != "per_pose_translation_m"}

@@ -86,8 +86,9 @@ def associate_fixes(
     return antenna, ok
 
 
-def _fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, mode: Mode) -> np.ndarray:
-    """Weighted least-squares ``dst_from_src`` for one model."""
+def fit_transform(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None, mode: Mode = "yaw_scale") -> np.ndarray:
+    """Weighted least-squares ``dst_from_src``: ``sim3``, or gravity-aware ``yaw_scale`` / ``yaw`` (rigid, 4 DoF)."""
+    w = np.ones(len(src)) if w is None else np.asarray(w, np.float64)
     if mode == "sim3":
         return umeyama(src, dst, with_scale=True, weights=w)
     # gravity-aware: 2D Procrustes (Umeyama in the plane) for yaw and scale, z by the weighted mean
@@ -185,7 +186,7 @@ def align_to_gps(
         if np.linalg.norm(p_map[idx[-1], :2] - p_map[idx[0], :2]) < 0.1 * extent:
             continue
         try:
-            T = _fit(p_map[idx], p_enu[idx], np.ones(k), mode)
+            T = fit_transform(p_map[idx], p_enu[idx], np.ones(k), mode)
         except (np.linalg.LinAlgError, ValueError):
             continue
         u = normalised(T)
@@ -198,14 +199,14 @@ def align_to_gps(
 
     # IRLS on the inliers with Cauchy weights on the normalised residual, then re-classify
     inl = best_inl
-    T = _fit(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, mode)
+    T = fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, mode)
     for _ in range(10):
         u = normalised(T)
         inl_new = u < inlier_sigmas
         if inl_new.sum() < k:
             break
         w = 1.0 / (1.0 + u[inl_new] ** 2) / sig_h[inl_new] ** 2
-        T_new = _fit(p_map[inl_new], p_enu[inl_new], w, mode)
+        T_new = fit_transform(p_map[inl_new], p_enu[inl_new], w, mode)
         converged = np.array_equal(inl_new, inl) and np.allclose(T_new, T, atol=1e-9)
         T, inl = T_new, inl_new
         if converged:
