@@ -27,7 +27,7 @@ from .config import MapkitConfig, TopicConfig, dump_config, load_config, resolve
 from .errors import InputError, InputWarning
 from .frames import FrameTree
 from .geodesy import LocalFrame
-from .geometry import interpolate_poses, sim3_scale
+from .geometry import interpolate_poses, sim3_scale, transform_points
 from .gps_align import align_to_gps, associate_fixes
 from .imagedb import ImageDbConfig, ImageDbWriter
 from .io import open_log
@@ -111,59 +111,69 @@ class SessionBuilder:
         t0 = time.perf_counter()
         reset_stage(out)
         traj = Trajectory.load(self.trajectory())
+        result: dict = {"session": self.name, "georeferenced": False}
+        al, frame = self._align(traj, out, result)
+        enu_from_map = np.eye(4) if al is None else al.enu_from_map
+        result["enu_from_map"] = enu_from_map
+        # the aligned trajectory: rigid poses in ENU (the similarity's scale goes into positions)
+        R = enu_from_map[:3, :3] / sim3_scale(enu_from_map)
+        enu_traj = traj.world_from_base.copy()
+        enu_traj[:, :3, :3] = R @ traj.world_from_base[:, :3, :3]
+        enu_traj[:, :3, 3] = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
+        Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if al is not None else traj.frame,
+                   body_frame=traj.body_frame).save(out / "trajectory_enu")
+        result["seconds"] = time.perf_counter() - t0
+        write_json(out / "gps_alignment.json", result)
+        mark_done(out, h)
+        return out
+
+    def _align(self, traj: Trajectory, out: Path, result: dict):
+        """(alignment, workspace frame), or (None, None) with the reason in ``result`` and a warning.
+
+        No GPS, or GPS that cannot fix the transform (a short or stationary drive): the session is
+        still mapped, in its own frame, and says why it is not georeferenced. ``georef.strict``
+        makes the second case an error instead.
+        """
         topics = resolve_topics(self.log, self.cfg.topics)
         gps_topics = topics.get(StreamKind.GPS, [])
         fixes = [] if not gps_topics else [f for f in self.log.records(StreamKind.GPS, topic=gps_topics[0]) if f.has_fix]
-        result: dict = {"session": self.name, "georeferenced": False}
         if len(fixes) < 3:
-            warnings.warn(
-                f"{self.log_path}: {'no GPS stream' if not gps_topics else f'{len(fixes)} valid GPS fixes'}; "
-                "the map is built in the trajectory's local frame and is NOT georeferenced",
-                InputWarning, stacklevel=2,
-            )
-            enu_from_map = np.eye(4)
-            frame = None
-        else:
-            frame = self._workspace_frame(fixes[0])
-            stamps = np.array([f.stamp_ns for f in fixes], np.int64)
-            gps_enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
-            sigma = np.array([f.horizontal_sigma_m for f in fixes])
-            tree = FrameTree(self.log.transforms())
-            try:
-                base_from_gps = tree.lookup(traj.body_frame, fixes[0].frame_id)
-            except InputError:
-                base_from_gps = np.eye(4)
-            antenna, ok = associate_fixes(
-                traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(self.cfg.georef.max_pose_gap_s * 1e9)
-            )
-            g = self.cfg.georef
-            # structure from motion has no gravity: only a full Sim3 can place it
-            mode = "sim3" if traj.source.startswith("camera") else g.mode
+            result["reason"] = "no GPS stream" if not gps_topics else f"{len(fixes)} valid GPS fixes"
+            warnings.warn(f"{self.log_path}: {result['reason']}; the map is built in the trajectory's local frame "
+                          "and is NOT georeferenced", InputWarning, stacklevel=3)
+            return None, None
+        frame = self._workspace_frame(fixes[0])
+        stamps = np.array([f.stamp_ns for f in fixes], np.int64)
+        gps_enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
+        sigma = np.array([f.horizontal_sigma_m for f in fixes])
+        try:
+            base_from_gps = FrameTree(self.log.transforms()).lookup(traj.body_frame, fixes[0].frame_id)
+        except InputError:
+            base_from_gps = np.eye(4)
+        g = self.cfg.georef
+        antenna, ok = associate_fixes(traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(g.max_pose_gap_s * 1e9))
+        # structure from motion has no gravity: only a full Sim3 can place it
+        mode = "sim3" if traj.source.startswith("camera") else g.mode
+        try:
             al = align_to_gps(
                 antenna, gps_enu[ok], sigma[ok], stamps[ok], mode=mode, inlier_sigmas=g.inlier_sigmas,
                 vertical_sigma_factor=g.vertical_sigma_factor, min_inlier_threshold_m=g.min_inlier_threshold_m,
                 strict=g.strict, source=str(self.log_path),
             )
-            enu_from_map = al.enu_from_map
-            result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
-                          fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
-            from .plots import trajectory_over_gps
+        except InputError as exc:
+            if g.strict:
+                raise
+            result["reason"] = exc.what
+            warnings.warn(f"{exc}; the map is NOT georeferenced", InputWarning, stacklevel=3)
+            return None, None
+        result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
+                      fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
+        from .plots import trajectory_over_gps
 
-            traj_enu = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
-            trajectory_over_gps(out / "trajectory_over_gps.png", traj_enu, gps_enu[ok], al.inliers,
-                                f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)")
-        result["enu_from_map"] = enu_from_map
-        # the aligned trajectory: rigid poses in ENU (the similarity's scale goes into positions)
-        s = sim3_scale(enu_from_map)
-        R = enu_from_map[:3, :3] / s
-        enu_traj = traj.world_from_base.copy()
-        enu_traj[:, :3, :3] = R @ traj.world_from_base[:, :3, :3]
-        enu_traj[:, :3, 3] = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
-        Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if frame else traj.frame, body_frame=traj.body_frame).save(out / "trajectory_enu")
-        result["seconds"] = time.perf_counter() - t0
-        write_json(out / "gps_alignment.json", result)
-        mark_done(out, h)
-        return out
+        traj_enu = transform_points(al.enu_from_map, traj.world_from_base[:, :3, 3])
+        trajectory_over_gps(out / "trajectory_over_gps.png", traj_enu, gps_enu[ok], al.inliers,
+                            f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)")
+        return al, frame
 
     def _workspace_frame(self, first_fix) -> LocalFrame:
         path = self.workspace / "origin.json"

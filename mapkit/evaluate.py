@@ -50,13 +50,24 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
         except (FileNotFoundError, InputError):
             continue
         gt_ws = ws_from_town @ gt_world_from_base
-        r: dict = {}
+        ga_path = sdir / "georef" / "gps_alignment.json"
+        georeferenced = ga_path.is_file() and json.loads(ga_path.read_text()).get("georeferenced", False)
+        r: dict = {"georeferenced": bool(georeferenced)}
         traj_dir = sdir / "georef" / "trajectory_enu"
-        if traj_dir.is_dir():
-            est = Trajectory.load(traj_dir)
-            te = trajectory_errors(est.stamps_ns, est.world_from_base, gt_stamps, gt_ws)
-            te.pop("per_pose_translation_m")
-            r["trajectory"] = te
+        est = Trajectory.load(traj_dir) if traj_dir.is_dir() else None
+        fix = None
+        if est is not None:
+            gt_i, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
+            # the offset removed by a rigid fit of the trajectory to truth, as SLAM evaluations align
+            # before measuring; yaw-only, since gravity is known and a nearly straight drive leaves
+            # roll about it unobservable
+            fix = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw")
+            r["trajectory_local"] = _errors(est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws)
+            if georeferenced:  # absolute figures only mean something in the georeferenced frame
+                r["trajectory"] = _errors(est.stamps_ns, est.world_from_base, gt_stamps, gt_ws)
+                err = est.world_from_base[ok, :3, 3] - gt_i[:, :3, 3]
+                r["trajectory"]["mean_offset_enu_m"] = [float(x) for x in err.mean(axis=0)]
+                r["trajectory"]["horizontal_rmse_m"] = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
             r["gps_alone"] = _gps_error(workspace, sdir, gt_stamps, gt_ws, ws_frame)
         map_dir = sdir / "map"
         if (map_dir / ".done").is_file():
@@ -70,24 +81,19 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
                 car_mesh.transform(ws_from_town)
                 session_mesh += car_mesh
             length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
-            r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
-            r["map"]["driven_m"] = length
-            if traj_dir.is_dir():
-                # the map's own quality: the georeferencing offset removed by a rigid fit of the
-                # trajectory to truth, as SLAM evaluations align before measuring; yaw-only, since
-                # gravity is known and a nearly straight drive leaves roll about it unobservable
-                gt_i, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
-                fix = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw")
+            if georeferenced:
+                r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
+            if fix is not None:
                 r["map_local"] = map_accuracy(transform_points(fix, smap.points_world), session_mesh, road_length_m=length)
-                r["trajectory_local"] = {k: v for k, v in trajectory_errors(
-                    est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws).items() if k != "per_pose_translation_m"}
-                err = est.world_from_base[ok, :3, 3] - gt_i[:, :3, 3]
-                r["trajectory"]["mean_offset_enu_m"] = [float(x) for x in err.mean(axis=0)]
-                r["trajectory"]["horizontal_rmse_m"] = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
+                r["map_local"]["driven_m"] = length
         results["sessions"][name] = r
     write_json(workspace / "eval_build.json", results)
     atomic_write_text(workspace / "eval_build.md", format_eval(results))
     return results
+
+
+def _errors(stamps, poses, gt_stamps, gt_poses) -> dict:
+    return {k: v for k, v in trajectory_errors(stamps, poses, gt_stamps, gt_poses).items() if k != "per_pose_translation_m"}
 
 
 def _gps_error(workspace: Path, sdir: Path, gt_stamps, gt_ws, frame: LocalFrame) -> dict:
@@ -116,19 +122,19 @@ def _gps_error(workspace: Path, sdir: Path, gt_stamps, gt_ws, frame: LocalFrame)
 
 def format_eval(results: dict) -> str:
     lines = [
-        "| session | ATE RMSE m | horizontal RMSE m | mean offset ENU m | GPS alone horiz. RMSE m | rot median deg "
+        "| session | georef. | ATE RMSE m | horizontal RMSE m | mean offset ENU m | GPS alone horiz. RMSE m | rot median deg "
         "| map points | to mesh, as georeferenced: median m / within 0.5 m | to mesh, offset removed: median m / within 0.5 m | points / 100 m |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731
     for name, r in results["sessions"].items():
         t, g, m, ml = r.get("trajectory", {}), r.get("gps_alone", {}), r.get("map", {}), r.get("map_local", {})
         off = t.get("mean_offset_enu_m")
         lines.append(
-            f"| {name} | {f(t.get('ate_rmse_m'))} | {f(t.get('horizontal_rmse_m'))} | "
+            f"| {name} | {'yes' if r.get('georeferenced') else 'NO'} | {f(t.get('ate_rmse_m'))} | {f(t.get('horizontal_rmse_m'))} | "
             f"{'' if off is None else ', '.join(f'{x:.1f}' for x in off)} | {f(g.get('horizontal_rmse_m'))} | "
-            f"{f(t.get('rotation_median_deg'))} | {m.get('points', '')} | "
+            f"{f((t or r.get('trajectory_local', {})).get('rotation_median_deg'))} | {ml.get('points', '')} | "
             f"{f(m.get('median_distance_m'), 3)} / {f(m.get('fraction_within_0.5m'), 3)} | "
-            f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | {f(m.get('points_per_100m'), 0)} |"
+            f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | {f(ml.get('points_per_100m'), 0)} |"
         )
     return "\n".join(lines) + "\n"

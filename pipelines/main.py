@@ -1,29 +1,43 @@
-"""The README's main job on the embedded default: the synthetic town, generated and inspected.
+"""The README's main job on the embedded default: the synthetic town, mapped and measured.
 
-Each stage returns its output path and is skipped when its output is already complete, so running
-this again resumes. Later stages (map construction, alignment, indexes, localization) join this
-chain as they land; ``mapkit demo`` will be its one-command form.
+1. ``mapkit synth``: the town and its sessions (multi-session ROS 2 logs with exact truth)
+2. ``mapkit build``: every session to a georeferenced semi-dense map and image database
+3. ``mapkit eval build``: trajectories and maps against the town's ground truth
+
+Each stage returns its output path and skips what is already complete, so running this again
+resumes. Later stages (multi-session alignment, triplets, indexes, localization) join this chain
+as they land; ``mapkit demo`` will be its one-command form.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
-from mapkit.info import format_summary, summarize
+from mapkit.build import build, format_build_summary
+from mapkit.evaluate import evaluate_build, format_eval
 from mapkit.runio import write_json
 from mapkit.synth import synthesize
 
 
-def run(preset: str, out: Path, seed: int | None = None) -> Path:
+def run(preset: str, out: Path, seed: int | None = None, build_config: Path | None = None) -> Path:
+    t0 = time.perf_counter()
+    timings = {}
     town = synthesize(preset=preset, out=out / "town", seed=seed)
-    summaries = {}
-    for log in sorted((town / "sessions").glob("*.mcap")):
-        s = summarize(log)
-        summaries[log.stem] = s
-        print(format_summary(s), flush=True)
-    write_json(out / "sessions_info.json", summaries)
+    timings["synth_s"] = time.perf_counter() - t0
+    logs = sorted((town / "sessions").glob("*.mcap"))
+    t1 = time.perf_counter()
+    workspace = build(logs, out / "workspace", config=build_config, progress=sys.stderr.isatty())
+    timings["build_s"] = time.perf_counter() - t1
+    print(format_build_summary(workspace), flush=True)
+    t2 = time.perf_counter()
+    results = evaluate_build(workspace, town)
+    timings["eval_s"] = time.perf_counter() - t2
+    timings["total_s"] = time.perf_counter() - t0
+    print(format_eval(results), flush=True)
+    write_json(out / "metrics.json", {"preset": preset, "timings": timings, "eval_build": results})
     return out
 
 
@@ -32,9 +46,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="demo", help="synthetic town preset: tiny, demo or benchmark (default demo)")
     ap.add_argument("--out", type=Path, default=Path("runs/main"), help="output folder (default runs/main)")
     ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--build-config", type=Path, default=None, help="YAML for mapkit build")
     args = ap.parse_args(argv)
-    out = run(args.preset, args.out, args.seed)
-    print(f"outputs in {out}")
+    out = run(args.preset, args.out, args.seed, args.build_config)
+    print(f"outputs in {out}: town/ (logs, truth, pictures), workspace/ (maps, image databases, eval_build.md)")
     return 0
 
 
