@@ -582,9 +582,12 @@ class _Searcher:
         C[:, 0, 2 * P :] = b[2]
         C[:, 1, 2 * P :] = ap[..., 2]
         Hm = np.matmul(R1, C)  # (m, n, 3P): x-numerator, y-numerator, denominator
-        inv = np.reciprocal(Hm[..., 2 * P :])
-        x = np.multiply(Hm[..., :P], inv).reshape(m, n * P)
-        y = np.multiply(Hm[..., P : 2 * P], inv, out=inv).reshape(m, n * P)
+        # a sample on the neighbour's focal plane projects to infinity: it lands outside the image,
+        # remap returns NaN there and the cost rejects it, so the division warning is noise
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = np.reciprocal(Hm[..., 2 * P :])
+            x = np.multiply(Hm[..., :P], inv).reshape(m, n * P)
+            y = np.multiply(Hm[..., P : 2 * P], inv, out=inv).reshape(m, n * P)
         vals = cv2.remap(target.atlas, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).reshape(m, n, P)
         # ZNCC; the keyframe pattern is zero-mean and unit-norm, so only the target's sums are needed
         Wt = np.empty((m, P, 2), f32)

@@ -16,10 +16,12 @@ import sys
 import time
 from pathlib import Path
 
-from mapkit.build import build, format_build_summary
-from mapkit.evaluate import evaluate_build, format_eval
-from mapkit.runio import write_json
-from mapkit.synth import synthesize
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's mapkit, whatever is installed
+
+from mapkit.build import build, format_build_summary  # noqa: E402
+from mapkit.evaluate import evaluate_build, format_eval  # noqa: E402
+from mapkit.runio import write_json  # noqa: E402
+from mapkit.synth import synthesize  # noqa: E402
 
 
 def run(preset: str, out: Path, seed: int | None = None, build_config: Path | None = None) -> Path:

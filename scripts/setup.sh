@@ -16,8 +16,9 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
 fi
 
 # the package (editable, so that the checkout is what runs) and the test runner
-if ! "$PY" -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, pyproj, faiss, pytest" >/dev/null 2>&1 \
-   || [ "$("$PY" -c 'import mapkit, pathlib; print(pathlib.Path(mapkit.__file__).resolve().parents[1])' 2>/dev/null)" != "$(pwd -P)" ]; then
+# -I (isolated): the installed mapkit, not ./mapkit of the current folder, must be this checkout
+if ! "$PY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, pyproj, faiss, pytest" >/dev/null 2>&1 \
+   || [ "$("$PY" -I -c 'import mapkit, pathlib; print(pathlib.Path(mapkit.__file__).resolve().parents[1])' 2>/dev/null)" != "$(pwd -P)" ]; then
   echo "[setup] installing mapkit and its dependencies with pip" >&2
   "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test]"
 fi
