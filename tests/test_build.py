@@ -93,3 +93,21 @@ def test_build_cli_errors_are_one_line(tmp_path, capsys):
     assert main(["build", str(tmp_path), "--out", str(tmp_path / "ws"), "--config", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "imagedb.min_spacing" in err and "Traceback" not in err
+
+
+def test_missing_intrinsics_is_one_clear_error_and_keeps_finished_stages(tmp_path, rng, capsys):
+    """A generic folder with poses but no intrinsics: the trajectory is built, the map refuses."""
+    import cv2
+
+    d = tmp_path / "drive"
+    (d / "images").mkdir(parents=True)
+    rows = ["timestamp_ns,image,x,y,z,qw,qx,qy,qz"]
+    for i in range(6):
+        cv2.imwrite(str(d / "images" / f"{i}.png"), rng.integers(0, 255, (48, 64), dtype=np.uint8))
+        rows.append(f"{1000 + i * 100_000_000},{i}.png,0,0,{i * 0.5},1,0,0,0")
+    (d / "frames.csv").write_text("\n".join(rows) + "\n")
+    assert main(["build", str(d), "--out", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err
+    assert "no camera intrinsics" in err and str(d) in err and "Traceback" not in err
+    s = tmp_path / "ws" / "sessions" / "drive"
+    assert is_done(s / "trajectory") and not is_done(s / "map")
