@@ -20,6 +20,19 @@ def _figure(size=(8, 8)):
     return plt, fig, ax
 
 
+def _frame_equal(ax, xy: np.ndarray, min_ratio: float = 0.4, pad: float = 0.05) -> None:
+    """Equal axes around ``xy``, the short side padded to at least ``min_ratio`` of the long one,
+    so a straight drive is not drawn as a hairline strip."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    span = np.maximum(hi - lo, 1e-3)
+    long = span.max() * (1 + 2 * pad)
+    half = np.maximum(span * (1 + 2 * pad), min_ratio * long) / 2
+    c = (lo + hi) / 2
+    ax.set_xlim(c[0] - half[0], c[0] + half[0])
+    ax.set_ylim(c[1] - half[1], c[1] + half[1])
+    ax.set_aspect("equal", adjustable="box")
+
+
 def _save(plt, fig, path: Path) -> Path:
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -43,11 +56,11 @@ def trajectory_over_gps(
     ax.scatter(gps_enu[inliers, 0], gps_enu[inliers, 1], s=6, c="g", label=f"GPS used ({int(inliers.sum())})")
     if (~inliers).any():
         ax.scatter(gps_enu[~inliers, 0], gps_enu[~inliers, 1], s=18, c="r", marker="x", label=f"GPS rejected ({int((~inliers).sum())})")
-    ax.set_aspect("equal")
+    _frame_equal(ax, np.vstack([traj_enu[:, :2], gps_enu[:, :2]]))
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
     ax.set_title(title)
-    ax.legend(loc="best", fontsize=8)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=4, fontsize=8, frameon=False)
     ax.grid(True, alpha=0.3)
     return _save(plt, fig, path)
 
@@ -64,7 +77,9 @@ def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray],
     if traj_enu is not None and len(traj_enu):
         ax.plot(traj_enu[:, 0], traj_enu[:, 1], "r-", lw=0.8, label="trajectory")
         ax.legend(loc="best", fontsize=8)
-    ax.set_aspect("equal")
+    extent = [a for a in (points[:, :2] if len(points) else None, None if traj_enu is None else traj_enu[:, :2]) if a is not None and len(a)]
+    if extent:
+        _frame_equal(ax, np.vstack(extent))
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
     ax.set_title(title)
