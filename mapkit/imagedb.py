@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import io
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
@@ -157,36 +158,34 @@ class ImageDbWriter:
             cam_ids[name] = i
         keypoints: dict[int, list[np.ndarray]] = {im.image_id: [] for im in self.images}
         tracks: list[list[tuple[int, int]]] = []
+        track_points = np.zeros(0, np.int64)
         if points_world is not None and observers is not None and len(points_world):
-            keypoints, tracks = self._tracks(points_world, observers)
-        by_id = {im.image_id: im for im in self.images}
+            keypoints, tracks, track_points = self._tracks(points_world, observers)
         for im in self.images:
             kp = np.asarray(keypoints.get(im.image_id, []), np.float64).reshape(-1, 2)
             img = pycolmap.Image(name=im.relpath, keypoints=kp, camera_id=cam_ids[im.camera], image_id=im.image_id)
             rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(invert_pose(im.world_from_cam)[:3, :]))
-        for pid, track_elems in enumerate(tracks):
+        for point, track_elems in zip(track_points, tracks):
             track = pycolmap.Track()
             for image_id, kp_idx in track_elems:
                 track.add_element(image_id, kp_idx)
-            color = np.zeros(3, np.uint8) if colors is None else np.asarray(colors[pid], np.uint8)
-            rec.add_point3D(points_world[self._track_point[pid]], track, color)
-        del by_id
+            color = np.zeros(3, np.uint8) if colors is None else np.asarray(colors[point], np.uint8)
+            rec.add_point3D(points_world[point], track, color)
         out = self.folder / "colmap"
         tmp = self.folder / "colmap.partial"
         if tmp.exists():
-            import shutil
-
             shutil.rmtree(tmp)
         tmp.mkdir(parents=True)
         rec.write(str(tmp))
         if out.exists():
-            import shutil
-
             shutil.rmtree(out)
         tmp.rename(out)
 
     def _tracks(self, points_world: np.ndarray, observers: tuple[np.ndarray, np.ndarray]):
-        """Project each point into the database images that observed it: the 2D keypoints of its track."""
+        """Project each point into the database images that observed it: the 2D keypoints of its track.
+
+        Returns (keypoints by image id, tracks, index into ``points_world`` of each track's point).
+        """
         indptr, obs_ids = observers
         n = min(len(points_world), self.cfg.max_track_points)
         by_id = {im.image_id: im for im in self.images}
@@ -213,8 +212,7 @@ class ImageDbWriter:
                 tracks[p].append((int(image_id), counts[int(image_id)]))
                 counts[int(image_id)] += 1
         keep = [i for i, t in enumerate(tracks) if len(t) >= 1]
-        self._track_point = np.asarray(keep, dtype=np.int64)
-        return keypoints, [tracks[i] for i in keep]
+        return keypoints, [tracks[i] for i in keep], np.asarray(keep, dtype=np.int64)
 
 
 def read_images_csv(path: str | Path) -> dict[str, np.ndarray]:
