@@ -15,6 +15,7 @@ set by the first session with GPS), so maps of different sessions are in one fra
 
 from __future__ import annotations
 
+import json
 import time
 import warnings
 from pathlib import Path
@@ -178,16 +179,12 @@ class SessionBuilder:
     def _workspace_frame(self, first_fix) -> LocalFrame:
         path = self.workspace / "origin.json"
         if path.is_file():
-            import json
-
             return LocalFrame.from_dict(json.loads(path.read_text()))
         frame = LocalFrame(first_fix.lat_deg, first_fix.lon_deg, first_fix.alt_m)
         write_json(path, frame.to_dict())
         return frame
 
     def frame(self) -> Optional[LocalFrame]:
-        import json
-
         d = json.loads((self.georef() / "gps_alignment.json").read_text())
         return LocalFrame.from_dict(d) if d.get("georeferenced") else None
 
@@ -292,8 +289,6 @@ class SessionBuilder:
             s0 = time.perf_counter()
             folder = stage()
             m_path = folder / "metrics.json"
-            import json
-
             stage_metrics = json.loads(m_path.read_text()) if m_path.is_file() else {}
             if (folder / "gps_alignment.json").is_file():
                 ga = json.loads((folder / "gps_alignment.json").read_text())
@@ -322,8 +317,6 @@ def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, prog
 
 def format_build_summary(workspace: Path) -> str:
     """A table of every session of a workspace: trajectory, georeferencing, map and database."""
-    import json
-
     m = json.loads((Path(workspace) / "metrics.json").read_text())
     rows = [f"workspace {workspace}",
             f"  {'session':<24} {'traj src':<22} {'length m':>9} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} {'points':>9} {'images':>7} {'time s':>7}"]

@@ -97,20 +97,20 @@ def _errors(stamps, poses, gt_stamps, gt_poses) -> dict:
 
 
 def _gps_error(workspace: Path, sdir: Path, gt_stamps, gt_ws, frame: LocalFrame) -> dict:
-    """RMS horizontal error of the raw GPS fixes against the true antenna-ish position (base)."""
-    from .build import BuildConfig, SessionBuilder
-    from .config import load_config
+    """Horizontal error of the session's raw GPS fixes against the true base position.
+
+    The antenna's lever arm is not applied: on the synthetic car it is 0.3 m along the heading.
+    """
+    from .io import open_log
     from .types import StreamKind
 
-    cfg_path = sdir / "config.yaml"
-    cfg = load_config(BuildConfig, cfg_path if cfg_path.is_file() else None)
-    meta = json.loads((sdir.parent.parent / "metrics.json").read_text()) if (sdir.parent.parent / "metrics.json").is_file() else {}
+    meta_path = workspace / "metrics.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     log_path = meta.get("sessions", {}).get(sdir.name, {}).get("log")
     if not log_path or not Path(log_path).is_file():
         return {}
-    b = SessionBuilder(Path(log_path), workspace, cfg, progress=False)
-    fixes = [f for f in b.log.records(StreamKind.GPS) if f.has_fix]
-    b.close()
+    with open_log(log_path) as log:
+        fixes = [f for f in log.records(StreamKind.GPS) if f.has_fix]
     if not fixes:
         return {}
     stamps = np.array([f.stamp_ns for f in fixes], np.int64)
