@@ -1,0 +1,134 @@
+"""RootSIFT, VLAD, PCA-whitening and the VLAD encoder on hand-computed cases and synthetic places."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import cv2
+import numpy as np
+import pytest
+
+from mapkit.dsift import DsiftConfig, dense_sift
+from mapkit.errors import InputError, InputWarning
+from mapkit.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad
+
+from test_dsift import textured_image
+
+SMALL = dict(dsift=DsiftConfig(region_widths=[16, 24]), num_words=16, kmeans_max_descriptors=20_000, kmeans_iterations=10)
+
+
+def test_rootsift_rows_are_unit_and_give_the_hellinger_kernel(rng):
+    a = rng.random((20, 128)).astype(np.float32)
+    b = rng.random((20, 128)).astype(np.float32)
+    a[3] = 0
+    ra, rb = rootsift(a), rootsift(b)
+    norms = np.linalg.norm(ra, axis=1)
+    np.testing.assert_allclose(np.delete(norms, 3), 1.0, atol=1e-6)
+    assert np.all(ra[3] == 0)
+    a_l1 = a / np.maximum(a.sum(1, keepdims=True), 1e-30)
+    b_l1 = b / b.sum(1, keepdims=True)
+    hellinger = np.sqrt(a_l1 * b_l1).sum(1)
+    np.testing.assert_allclose((ra * rb).sum(1), hellinger, atol=1e-6)
+
+
+def test_vlad_of_a_hand_built_case():
+    centroids = np.array([[0, 0, 0], [2, 0, 0]], np.float32)
+    desc = np.array([[0, 1, 0], [0, 0, 2], [2, 1, 0], [3, 0, 0]], np.float32)
+    # words: 0, 0, 1, 1; residual sums: (0, 1, 2) and (1, 1, 0)
+    np.testing.assert_array_equal(assign_nearest(desc, centroids), [0, 0, 1, 1])
+    expected_sum = np.array([0, 1, 2, 1, 1, 0]) / np.sqrt(7)
+    np.testing.assert_allclose(vlad(desc, centroids, "sum"), expected_sum, atol=1e-6)
+    expected_intra = np.concatenate([np.array([0, 1, 2]) / np.sqrt(5), np.array([1, 1, 0]) / np.sqrt(2)]) / np.sqrt(2)
+    np.testing.assert_allclose(vlad(desc, centroids, "intra"), expected_intra, atol=1e-6)
+    assert vlad(desc, centroids).dtype == np.float32
+
+
+def test_assignment_is_the_nearest_centroid(rng):
+    desc = rng.random((6000, 128)).astype(np.float32)  # more than one assignment block
+    centroids = rng.random((32, 128)).astype(np.float32)
+    d2 = (desc.astype(np.float64) ** 2).sum(1)[:, None] - 2 * desc.astype(np.float64) @ centroids.T.astype(np.float64) + (centroids.astype(np.float64) ** 2).sum(1)
+    best = d2.argmin(1)
+    got = assign_nearest(desc, centroids)
+    # float32 ties aside, the chosen word is as near as the best one
+    np.testing.assert_allclose(d2[np.arange(len(desc)), got], d2[np.arange(len(desc)), best], rtol=1e-5)
+
+
+@pytest.mark.parametrize("n, dim_in, dim", [(60, 300, 20), (400, 40, 25)])  # Gram trick (n < D), covariance (n > D)
+def test_whitened_training_vectors_have_identity_covariance(rng, n, dim_in, dim):
+    mixing = rng.standard_normal((dim_in, dim_in)) * np.linspace(3, 0.1, dim_in)
+    x = (rng.standard_normal((n, dim_in)) @ mixing.T + 5).astype(np.float32)
+    pca = PcaWhitening.fit(x, dim)
+    y = pca.project(x)
+    assert y.shape == (n, dim)
+    np.testing.assert_allclose(np.cov(y, rowvar=False), np.eye(dim), atol=2e-3)
+    np.testing.assert_allclose(y.mean(0), 0, atol=1e-3)
+    assert np.all(np.diff(pca.variances) <= 0)
+    np.testing.assert_allclose(np.linalg.norm(pca.transform(x), axis=1), 1.0, atol=1e-5)
+    # unwhitened: orthonormal directions keeping the variances
+    plain = PcaWhitening.fit(x, dim, whiten=False)
+    np.testing.assert_allclose(plain.projection @ plain.projection.T, np.eye(dim), atol=1e-4)
+    np.testing.assert_allclose(np.var(plain.project(x), axis=0, ddof=1), plain.variances, rtol=1e-3)
+
+
+def test_pca_dimension_is_capped_by_the_training_set(rng):
+    x = rng.standard_normal((10, 50)).astype(np.float32)
+    with pytest.warns(InputWarning, match="capped from 32 to 9"):
+        pca = PcaWhitening.fit(x, 32)
+    assert pca.dim == 9
+    with pytest.raises(InputError):
+        PcaWhitening.fit(x[:1], 4)
+
+
+def shifted_and_brighter(img: np.ndarray, dx: int = 3, dy: int = 2, gain: float = 1.1, offset: float = 15) -> np.ndarray:
+    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    moved = cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), borderMode=cv2.BORDER_REFLECT)
+    return np.clip(moved.astype(np.float32) * gain + offset, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def fitted() -> VladEncoder:
+    train = [textured_image(100 + i) for i in range(12)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # 12 images, 8 dims: nothing is capped
+        return VladEncoder(VladConfig(pca_dim=8, **SMALL)).fit(train)
+
+
+def test_encoder_retrieves_the_same_place_among_distractors(fitted):
+    database = [textured_image(i) for i in range(8)]
+    db = np.stack([fitted.encode(im) for im in database])
+    assert db.shape == (8, 8) and db.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(db, axis=1), 1.0, atol=1e-5)
+    for place in (2, 5):
+        q = fitted.encode(shifted_and_brighter(database[place]))
+        dist = np.linalg.norm(db - q, axis=1)
+        assert dist.argmin() == place, dist
+
+
+@pytest.mark.parametrize("pooling", ["sum", "intra"])
+def test_fused_encoder_equals_the_composition_of_its_steps(fitted, pooling):
+    enc = VladEncoder(fitted.cfg.model_copy(update={"pooling": pooling}), fitted.vocabulary, fitted.pca)
+    img = textured_image(7)
+    _, _, desc = dense_sift(img, enc.cfg.dsift)
+    expected = vlad(rootsift(desc), enc.vocabulary, pooling)
+    got = enc.encode_raw(img)
+    assert got.shape == (16 * 128,) and got.dtype == np.float32
+    np.testing.assert_allclose(got, expected, atol=2e-5)
+
+
+def test_save_load_round_trip_encodes_identically(fitted, tmp_path):
+    fitted.save(tmp_path / "enc")
+    loaded = VladEncoder.load(tmp_path / "enc")
+    assert loaded.cfg == fitted.cfg
+    assert json.loads((tmp_path / "enc" / "config.json").read_text())["pooling"] == "sum"
+    img = textured_image(9)
+    np.testing.assert_array_equal(loaded.encode(img), fitted.encode(img))
+
+
+def test_encoder_errors_are_reported(fitted, tmp_path):
+    with pytest.raises(TypeError):
+        VladEncoder(VladConfig(**SMALL)).fit(iter([textured_image(0)]))
+    with pytest.raises(InputError):
+        VladEncoder.load(tmp_path / "nothing-here")
+    with pytest.raises(InputError):
+        fitted.encode(np.zeros((12, 12), np.uint8))  # no 4x4-bin frame of either scale fits
