@@ -71,11 +71,9 @@ app.add_typer(config_app, name="config")
 @config_app.command("defaults")
 def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topics.")) -> None:
     """Print the defaults of a configuration as commented YAML."""
-    from .config import CONFIGS, defaults_yaml
+    from .config import config_model, defaults_yaml
 
-    if name not in CONFIGS:
-        raise MapkitError(f"no configuration named {name!r}; known: {', '.join(sorted(CONFIGS))}")
-    typer.echo(defaults_yaml(CONFIGS[name]), nl=False)
+    typer.echo(defaults_yaml(config_model(name)), nl=False)
 
 
 @app.command()
@@ -109,9 +107,16 @@ def build(
 
 
 @app.command()
-def align(workspace: Path = typer.Argument(...), config: Optional[Path] = typer.Option(None, "--config", "-c")) -> None:
+def align(
+    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (two or more georeferenced sessions)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."),
+) -> None:
     """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""
-    _not_yet("align", "multi-session maps")
+    from .align import align_workspace
+
+    out = align_workspace(workspace, config, progress=sys.stderr.isatty())
+    typer.echo((out / "qa.md").read_text(), nl=False)
+    typer.echo(f"written to {out}: refined sessions, tiles/, pairs.json, qa.md, pictures")
 
 
 @app.command()
@@ -154,6 +159,19 @@ def eval_build(
 
     typer.echo(format_eval(evaluate_build(workspace, truth)), nl=False)
     typer.echo(f"written to {workspace}/eval_build.json and eval_build.md")
+
+
+@eval_app.command("align")
+def eval_align(
+    workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
+    truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
+) -> None:
+    """Inter-session misalignment of the same true surface, after GPS alone and after alignment."""
+    from .align import format_align_truth
+    from .evaluate import evaluate_align
+
+    typer.echo(format_align_truth(evaluate_align(workspace, truth)))
+    typer.echo(f"written to {workspace}/align/eval_align.json and eval_align.md")
 
 
 @eval_app.command("places")

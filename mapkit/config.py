@@ -34,8 +34,26 @@ class TopicConfig(MapkitConfig):
     poses: Optional[str] = Field(None, description="Ground-truth/INS pose topic; the only pose stream if unset.")
 
 
-#: name -> model, for ``mapkit config defaults``
-CONFIGS: dict[str, type[MapkitConfig]] = {"topics": TopicConfig}
+#: name -> "module:Model" of every stage's config, for ``mapkit config defaults NAME``; resolved
+#: lazily so that listing them imports no stage
+CONFIGS: dict[str, str] = {
+    "topics": "mapkit.config:TopicConfig",
+    "build": "mapkit.build:BuildConfig",
+    "semidense": "mapkit.semidense:SemiDenseConfig",
+    "align": "mapkit.align:AlignConfig",
+    "mcl": "mapkit.mcl:MclConfig",
+    "vlad": "mapkit.vlad:VladConfig",
+}
+
+
+def config_model(name: str) -> type[MapkitConfig]:
+    """The config model registered as ``name``."""
+    import importlib
+
+    if name not in CONFIGS:
+        raise ConfigError(f"no configuration named {name!r}; known: {', '.join(sorted(CONFIGS))}")
+    module, model = CONFIGS[name].split(":")
+    return getattr(importlib.import_module(module), model)
 
 
 def load_config(model: type[M], path: str | Path | None = None, overrides: Optional[dict[str, Any]] = None) -> M:

@@ -138,3 +138,102 @@ def format_eval(results: dict) -> str:
             f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | {f(ml.get('points_per_100m'), 0)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _error_transforms(est_stamps, est_poses, gt_stamps, gt_ws) -> tuple[np.ndarray, np.ndarray]:
+    """Per estimated pose (inside the truth's time span): position and E = T_est T_gt^-1, the
+    transform that takes a true point to where this session's map puts it."""
+    gt, ok = interpolate_poses(gt_stamps, gt_ws, est_stamps)
+    est = est_poses[ok]
+    E = est @ np.linalg.inv(gt)
+    return est[:, :3, 3], E
+
+
+def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0) -> dict:
+    """Inter-session misalignment of the same true surface, after GPS alone and after ``mapkit align``.
+
+    A session's map puts a true point x at E(x) x, with E = T_est T_gt^-1 of the session's pose
+    nearest to x. For two sessions that both drove within ``overlap_m`` of a map point, their
+    misalignment there is |E_A x - E_B x|: medians per session pair, before (GPS alone: the
+    ``georef`` trajectories) and after (the ``align`` trajectories). Also the true error of every
+    accepted ICP registration, at its support points.
+    """
+    from scipy.spatial import cKDTree
+
+    from .align import PairResult, _support_points
+
+    workspace, truth = Path(workspace), Path(truth)
+    ws_frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
+    ws_from_town = LocalFrame.from_dict(json.loads((truth / "world" / "origin.json").read_text())).to_frame(ws_frame)
+    al = workspace / "align"
+    if not (al / ".done").is_file():
+        raise InputError(al, "multi-session alignment has not finished (run mapkit align first)")
+    names = json.loads((al / ".done").read_text())["sessions"]
+    rng = np.random.default_rng(0)
+    sess = {}
+    for name in names:
+        gt_stamps, gt = _session_truth(truth, name)
+        gt_ws = ws_from_town @ gt
+        before = Trajectory.load(workspace / "sessions" / name / "georef" / "trajectory_enu")
+        after = Trajectory.load(al / "sessions" / name / "trajectory")
+        pb, Eb = _error_transforms(before.stamps_ns, before.world_from_base, gt_stamps, gt_ws)
+        pa, Ea = _error_transforms(after.stamps_ns, after.world_from_base, gt_stamps, gt_ws)
+        from .semidense import SemiDenseMap
+
+        pts = SemiDenseMap.load(al / "sessions" / name / "map").points_world
+        sess[name] = {"tree": cKDTree(pb[:, :2]), "Eb": Eb, "Ea": Ea, "points": pts}
+    out: dict = {"pairs": {}}
+    all_b, all_a = [], []
+    for i, na in enumerate(names):
+        for nb in names[i + 1 :]:
+            A, B = sess[na], sess[nb]
+            pts = A["points"]
+            if len(pts) > max_points_per_pair * 4:
+                pts = pts[rng.choice(len(pts), max_points_per_pair * 4, replace=False)]
+            dB, kB = B["tree"].query(pts[:, :2])
+            near = dB < overlap_m
+            if near.sum() < 50:
+                continue
+            pts, kB = pts[near], kB[near]
+            if len(pts) > max_points_per_pair:
+                sel = rng.choice(len(pts), max_points_per_pair, replace=False)
+                pts, kB = pts[sel], kB[sel]
+            _, kA = A["tree"].query(pts[:, :2])
+            res = {}
+            for when in ("Eb", "Ea"):
+                xa = np.einsum("nij,nj->ni", A[when][kA][:, :3, :3], pts) + A[when][kA][:, :3, 3]
+                xb = np.einsum("nij,nj->ni", B[when][kB][:, :3, :3], pts) + B[when][kB][:, :3, 3]
+                res[when] = np.linalg.norm(xa - xb, axis=1)
+            all_b.append(res["Eb"])
+            all_a.append(res["Ea"])
+            out["pairs"][f"{na} / {nb}"] = {"points": int(len(pts)), "before_median_m": float(np.median(res["Eb"])),
+                                            "after_median_m": float(np.median(res["Ea"])),
+                                            "after_p90_m": float(np.percentile(res["Ea"], 90))}
+    per_pair_after = [v["after_median_m"] for v in out["pairs"].values()]
+    out["before_median_m"] = float(np.median(np.concatenate(all_b))) if all_b else None
+    out["after_median_m"] = float(np.median(np.concatenate(all_a))) if all_a else None
+    out["pairs_after_median_below_0.2m"] = int(sum(v < 0.2 for v in per_pair_after))
+    out["pairs_evaluated"] = len(per_pair_after)
+    # true error of the accepted registrations (measured on the maps as built: the "before" frames)
+    reg = json.loads((al / "pairs.json").read_text())["pairs"]
+    errs = []
+    for r in (PairResult.from_dict(v) for v in reg):
+        if not r.accepted or r.source[0] not in sess or r.target[0] not in sess:
+            continue
+        A, B = sess[r.source[0]], sess[r.target[0]]
+        _, kA = A["tree"].query(r.centre[:2])
+        _, kB = B["tree"].query(r.centre[:2])
+        T_true = B["Eb"][kB] @ np.linalg.inv(A["Eb"][kA])
+        P = _support_points(r.centre, np.array([1.0, 0.0, 0.0]), 10.0)
+        d = (P @ r.target_from_source[:3, :3].T + r.target_from_source[:3, 3]) - (P @ T_true[:3, :3].T + T_true[:3, 3])
+        errs.append(float(np.linalg.norm(d, axis=1).max()))
+    errs_a = np.asarray(errs)
+    out["accepted_pairs"] = int(len(errs_a))
+    out["accepted_pair_true_error_median_m"] = float(np.median(errs_a)) if len(errs_a) else None
+    out["accepted_pair_true_error_max_m"] = float(errs_a.max()) if len(errs_a) else 0.0
+    out["accepted_pairs_true_error_above_1m"] = int((errs_a > 1.0).sum())
+    write_json(al / "eval_align.json", out)
+    from .align import format_align_truth
+
+    atomic_write_text(al / "eval_align.md", "# Multi-session alignment against the synthetic truth\n\n" + format_align_truth(out) + "\n")
+    return out

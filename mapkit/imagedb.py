@@ -118,31 +118,9 @@ class ImageDbWriter:
         return self.folder
 
     def _write_csv(self, frame: Optional[LocalFrame]) -> None:
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(CSV_COLUMNS)
-        if not self.images:
-            atomic_write_text(self.folder / "images.csv", buf.getvalue())
-            return
-        T = np.stack([im.world_from_cam for im in self.images])
-        xyz = T[:, :3, 3]
-        q = matrix_to_quat_wxyz(T[:, :3, :3])
-        if frame is not None:
-            lat, lon, alt = frame.enu_to_geodetic(xyz)
-            utm = frame.enu_to_utm(xyz)
-            epsg = frame.utm_epsg
-        else:
-            lat = lon = alt = np.full(len(xyz), np.nan)
-            utm = np.full((len(xyz), 3), np.nan)
-            epsg = ""
-        for i, im in enumerate(self.images):
-            w.writerow([
-                im.image_id, im.stamp_ns, im.camera, im.relpath,
-                f"{lat[i]:.9f}", f"{lon[i]:.9f}", f"{alt[i]:.4f}", f"{utm[i, 0]:.4f}", f"{utm[i, 1]:.4f}", f"{utm[i, 2]:.4f}",
-                f"{xyz[i, 0]:.4f}", f"{xyz[i, 1]:.4f}", f"{xyz[i, 2]:.4f}",
-                f"{q[i, 0]:.9f}", f"{q[i, 1]:.9f}", f"{q[i, 2]:.9f}", f"{q[i, 3]:.9f}", epsg,
-            ])
-        atomic_write_text(self.folder / "images.csv", buf.getvalue())
+        T = np.stack([im.world_from_cam for im in self.images]) if self.images else np.zeros((0, 4, 4))
+        write_images_csv(self.folder / "images.csv", [im.image_id for im in self.images], [im.stamp_ns for im in self.images],
+                         [im.camera for im in self.images], [im.relpath for im in self.images], T, frame)
 
     def _write_colmap(self, points_world, observers, colors) -> None:
         import pycolmap
@@ -213,6 +191,42 @@ class ImageDbWriter:
                 counts[int(image_id)] += 1
         keep = [i for i, t in enumerate(tracks) if len(t) >= 1]
         return keypoints, [tracks[i] for i in keep], np.asarray(keep, dtype=np.int64)
+
+
+def write_images_csv(path: str | Path, image_ids, stamps_ns, cameras, relpaths, world_from_cam: np.ndarray,
+                     frame: Optional[LocalFrame]) -> Path:
+    """The database table (``CSV_COLUMNS``), atomically: local ENU pose, WGS84 and UTM position."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    T = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
+    xyz = T[:, :3, 3]
+    q = matrix_to_quat_wxyz(T[:, :3, :3]) if len(T) else np.zeros((0, 4))
+    if frame is not None and len(T):
+        lat, lon, alt = frame.enu_to_geodetic(xyz)
+        utm = frame.enu_to_utm(xyz)
+        epsg = frame.utm_epsg
+    else:
+        lat = lon = alt = np.full(len(xyz), np.nan)
+        utm = np.full((len(xyz), 3), np.nan)
+        epsg = ""
+    for i in range(len(T)):
+        w.writerow([
+            int(image_ids[i]), int(stamps_ns[i]), cameras[i], relpaths[i],
+            f"{lat[i]:.9f}", f"{lon[i]:.9f}", f"{alt[i]:.4f}", f"{utm[i, 0]:.4f}", f"{utm[i, 1]:.4f}", f"{utm[i, 2]:.4f}",
+            f"{xyz[i, 0]:.4f}", f"{xyz[i, 1]:.4f}", f"{xyz[i, 2]:.4f}",
+            f"{q[i, 0]:.9f}", f"{q[i, 1]:.9f}", f"{q[i, 2]:.9f}", f"{q[i, 3]:.9f}", epsg,
+        ])
+    return atomic_write_text(path, buf.getvalue())
+
+
+def images_world_from_cam(table: dict[str, np.ndarray]) -> np.ndarray:
+    """(N, 4, 4) camera poses in the local ENU frame from a table read by ``read_images_csv``."""
+    from .geometry import pose_from_quat_wxyz
+
+    q = np.stack([table["qw"], table["qx"], table["qy"], table["qz"]], axis=1)
+    t = np.stack([table["x_m"], table["y_m"], table["z_m"]], axis=1)
+    return np.stack([pose_from_quat_wxyz(t[i], q[i]) for i in range(len(t))]) if len(t) else np.zeros((0, 4, 4))
 
 
 def read_images_csv(path: str | Path) -> dict[str, np.ndarray]:

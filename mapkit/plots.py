@@ -84,3 +84,58 @@ def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray],
     ax.set_ylabel("north [m]")
     ax.set_title(title)
     return _save(plt, fig, path)
+
+
+def align_pairs_map(path: Path, sessions, pairs, max_points: int = 200_000) -> Path:
+    """Top view of the aligned sessions with every registered submap pair: accepted in green,
+    rejected in red (the QA picture of ``mapkit align``)."""
+    plt, fig, ax = _figure((10, 10))
+    allxy = []
+    rng = np.random.default_rng(0)
+    per = max(1, max_points // max(1, len(sessions)))
+    for s in sessions:
+        pts = s.points if len(s.points) <= per else s.points[rng.choice(len(s.points), per, replace=False)]
+        ax.scatter(pts[:, 0], pts[:, 1], s=0.1, c="0.75", linewidths=0)
+        ax.plot(s.poses[:, 0, 3], s.poses[:, 1, 3], lw=0.8, label=s.name)
+        allxy.append(s.poses[:, :2, 3])
+    n_acc = n_rej = 0
+    for r in pairs:
+        c = np.asarray(r.centre)
+        if r.accepted:
+            n_acc += 1
+            ax.plot(c[0], c[1], "o", ms=4, mfc="none", mec="g")
+        else:
+            n_rej += 1
+            ax.plot(c[0], c[1], "x", ms=5, c="r")
+    ax.plot([], [], "o", mfc="none", mec="g", label=f"accepted pairs ({n_acc})")
+    ax.plot([], [], "x", c="r", label=f"rejected pairs ({n_rej})")
+    if allxy:
+        _frame_equal(ax, np.vstack(allxy))
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title("multi-session alignment: submap pairs")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=4, fontsize=7, frameon=False)
+    return _save(plt, fig, path)
+
+
+def align_histograms(path: Path, pairs, lambda_icp_m: float, min_fitness: float) -> Path:
+    """ICP RMSE and fitness of every registered pair, with the acceptance thresholds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
+    rmse = np.array([r.rmse_m for r in pairs], np.float64)
+    fit = np.array([r.fitness for r in pairs], np.float64)
+    acc = np.array([r.accepted for r in pairs], bool)
+    for ax, v, thr, label in ((a1, rmse, lambda_icp_m, "RMSE after ICP [m]"), (a2, fit, min_fitness, "fitness")):
+        ok = np.isfinite(v)
+        bins = np.linspace(0, max(float(np.nanmax(v[ok])) if ok.any() else 1.0, thr * 1.5), 40)
+        ax.hist([v[ok & acc], v[ok & ~acc]], bins=bins, stacked=True, color=["tab:green", "tab:red"], label=["accepted", "rejected"])
+        ax.axvline(thr, color="k", ls="--", lw=1, label=f"threshold {thr:g}")
+        ax.set_xlabel(label)
+        ax.set_ylabel("pairs")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"ICP between sessions' submaps: {int(acc.sum())} accepted, {int((~acc).sum())} rejected")
+    return _save(plt, fig, path)

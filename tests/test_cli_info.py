@@ -79,8 +79,14 @@ def test_user_errors_are_one_line_without_traceback(tmp_path):
 
 
 def test_unfinished_commands_say_so(capsys):
-    assert main(["align", "ws"]) == 2
+    assert main(["triplets", "ws"]) == 2
     assert "not available" in capsys.readouterr().err
+
+
+def test_align_on_a_workspace_without_sessions_is_one_line(tmp_path, capsys):
+    assert main(["align", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "origin.json" in err
 
 
 @pytest.mark.realdata
