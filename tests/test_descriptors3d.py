@@ -1,0 +1,184 @@
+"""NBLD and M2DP against known answers and slow references; the chain's yaw invariance; PCA."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mapkit import descriptors3d as d3
+from mapkit.errors import InputError
+from mapkit.geometry import yaw_rotation
+
+
+def _cell_centres(cfg, counts):
+    """Points at the centres of NBLD cells, ``counts[i, j, k]`` of them in ring i, sector j, layer k."""
+    R, H = cfg.domain.radius, cfg.domain.height
+    out = []
+    for (i, j, k), c in np.ndenumerate(counts):
+        r = (i + 0.5) * R / cfg.n_radial
+        a = (j + 0.5) * 2 * math.pi / cfg.n_azimuth
+        z = -H / 2 + (k + 0.5) * H / cfg.n_vertical
+        out += [[r * math.cos(a), r * math.sin(a), z]] * int(c)
+    return np.array(out, np.float64).reshape(-1, 3)
+
+
+def test_nbld_density_step_gives_expected_bits():
+    cfg = d3.NBLDConfig()
+    nr, na, nz = cfg.n_radial, cfg.n_azimuth, cfg.n_vertical
+    # equal-width rings: cell volumes grow as 1 : 3 : 5, so counts 20, 6, 5 are densities
+    # 20, 2, 1 (in units of 1 / inner cell volume): dense inside, sparse outside
+    counts = np.zeros((nr, na, nz), int)
+    counts[0], counts[1], counts[2] = 20, 6, 5
+    desc = d3.nbld_patches(_cell_centres(cfg, counts), np.array([0, counts.sum()]), cfg)
+    assert desc.shape == (1, 3 * nr * na * nz) and desc.dtype == np.float32
+    bits = desc.reshape(3, nr, na, nz)
+    assert np.all(bits[0] == 1)  # radial: each ring denser than the next; the outer one than 0
+    assert np.all(bits[1] == 0)  # azimuthal: equal neighbours
+    assert np.all(bits[2][:, :, :-1] == 0) and np.all(bits[2][:, :, -1] == 1)  # vertical: only the top layer (> 0)
+
+    # sector 0 made denser in every ring: its azimuthal bit is 1, the sector before it (which
+    # wraps around to sector 0) stays 0, every other azimuthal bit stays 0
+    counts[:, 0] += 1
+    bits = d3.nbld_patches(_cell_centres(cfg, counts), np.array([0, counts.sum()]), cfg).reshape(3, nr, na, nz)
+    assert np.all(bits[1][:, 0] == 1) and np.all(bits[1][:, 1:] == 0)
+    assert np.all(bits[0] == 1)
+    packed = d3.nbld_patches(_cell_centres(cfg, counts), np.array([0, counts.sum()]), cfg, packed=True)
+    np.testing.assert_array_equal(packed[0], np.packbits(bits.ravel().astype(np.uint8)))
+
+
+def test_nbld_counts_cells_and_leaves_out_the_outside():
+    cfg = d3.NBLDConfig()
+    pts = np.array([
+        [-0.0, -0.0, 0.0],  # the keypoint (signed zeros): ring 0, sector 0, layer 2
+        [1.0, 0.1, 0.1],  # ring 0, sector 0, layer 2
+        [-0.1, 9.0, -9.0],  # ring 2, sector 2 (90-135 deg), layer 0
+        [10.0, 0.0, 10.0],  # on the outer boundary: last ring and layer
+        [10.5, 0.0, 0.0],  # outside the radius
+        [0.0, 1.0, 10.5],  # above the top
+    ])
+    c = d3.nbld_counts(pts, np.array([0, 6]), cfg)[0]
+    assert c.sum() == 4
+    assert c[0, 0, 2] == 2 and c[2, 2, 0] == 1 and c[2, 0, 3] == 1
+
+
+def _m2dp_loop(points, cfg):
+    """M2DP written out point by point and plane by plane (float64, math.atan2)."""
+    R, L, T = cfg.domain.radius, cfg.n_radial, cfg.n_angular
+    A = np.zeros((cfg.n_planes, L * T))
+    row = 0
+    for az in np.linspace(-math.pi / 2, math.pi / 2, cfg.n_plane_azimuths):
+        for el in np.linspace(0, math.pi / 2, cfg.n_plane_elevations):
+            n = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            px = np.array([1.0, 0, 0]) - n[0] * n
+            px /= np.linalg.norm(px)
+            py = np.cross(n, px)
+            for p in points:
+                X, Y = p @ px, p @ py
+                rho = math.hypot(X, Y)
+                if rho >= R:
+                    continue
+                theta = math.atan2(Y, X) if np.any(p != 0) else 0.0  # the keypoint: theta = 0
+                sector = min(int((theta + math.pi) / (2 * math.pi) * T), T - 1)
+                ring = int(L * math.sqrt(rho / R))  # radii R (i / L)^2
+                A[row, ring * T + sector] += 1
+            row += 1
+    if not A.any():
+        return np.zeros(cfg.dim)
+    U, _, Vt = np.linalg.svd(A)
+    u, v = U[:, 0], Vt[0]
+    return np.concatenate([u, v]) * (1.0 if v.sum() >= 0 else -1.0)
+
+
+def test_m2dp_equals_loop_reference(rng):
+    cfg = d3.M2DPConfig()
+    p1 = np.column_stack([rng.uniform(-10, 10, (400, 2)), rng.normal(0, 4, 400)])
+    p1 = np.vstack([np.zeros(3), p1[np.hypot(p1[:, 0], p1[:, 1]) <= 10]])  # with the keypoint itself
+    p2 = np.vstack([rng.normal([3, -2, 0], [0.3, 3, 2], (150, 3)), [[0.7, 0.4, 40.0]]])  # one point far above: outside on most planes
+    patches = [p1, np.zeros((0, 3)), p2]
+    indptr = np.cumsum([0] + [len(p) for p in patches])
+    desc = d3.m2dp_patches(np.vstack(patches), indptr, cfg)
+    assert desc.shape == (3, 192) and desc.dtype == np.float32
+    for k, p in enumerate(patches):
+        np.testing.assert_allclose(desc[k], _m2dp_loop(p, cfg), atol=2e-5)
+    assert np.all(desc[1] == 0)
+    assert np.all(desc[[0, 2]] >= -1e-6)  # non-negative counts: sign fixed to the non-negative pair
+    # an outlier 500 m up (the rings are clipped instead of extended) changes nothing here
+    p3 = np.vstack([p2, [[0.5, 0.2, 500.0]]])
+    np.testing.assert_allclose(d3.m2dp_patches(p3, np.array([0, len(p3)]), cfg)[0], _m2dp_loop(p3, cfg), atol=2e-5)
+
+
+def test_leading_singular_vectors_match_svd_and_fallback(rng):
+    A = rng.random((20, 12, 30)).astype(np.float32) ** 3
+    U, _, Vt = np.linalg.svd(A.astype(np.float64))
+    ref_u, ref_v = U[:, :, 0], Vt[:, 0, :]
+    flip = np.where(ref_v.sum(axis=1) < 0, -1.0, 1.0)[:, None]
+    for max_iter in (64, 0):  # 0: everything goes through the exact fallback
+        u, v = d3.leading_singular_vectors(A, max_iter=max_iter)
+        np.testing.assert_allclose(u, ref_u * flip, atol=1e-5)
+        np.testing.assert_allclose(v, ref_v * flip, atol=1e-5)
+
+
+def _street(rng):
+    """A 60 m street: two facades with window edges, road markings, poles; +z up."""
+    parts = []
+    for side in (-9.0, 9.0):
+        x = rng.uniform(0, 60, 6000)
+        z = rng.uniform(0, 12, 6000)
+        on_edge = (np.mod(x, 4.0) < 0.3) | (np.mod(z, 3.0) < 0.3)
+        parts.append(np.column_stack([x, side + 0.5 * np.sin(x / 7) + rng.normal(0, 0.03, 6000), z])[on_edge])
+    for y0 in (-3.5, 0.0, 3.5):
+        x = rng.uniform(0, 60, 1500)
+        parts.append(np.column_stack([x, y0 + rng.normal(0, 0.05, 1500), rng.normal(0, 0.02, 1500)]))
+    for x0 in range(5, 60, 12):
+        parts.append(np.column_stack([np.full(200, x0 + 0.0), np.full(200, 6.5), rng.uniform(0, 6, 200)]))
+    return np.vstack(parts)
+
+
+@pytest.mark.parametrize("kind", ["nbld", "m2dp"])
+def test_chain_invariant_to_rotation_of_the_map_about_z(rng, kind):
+    points = _street(rng)
+    kp_idx = rng.choice(len(points), 40, replace=False)
+    keypoints = points[kp_idx]
+    observers = np.column_stack([keypoints[:, 0] - 8.0, np.zeros(40), np.full(40, 1.5)])  # camera driving along +x
+    desc = d3.describe(kind, points, keypoints, observers - keypoints)
+    Rz = yaw_rotation(2.2)
+    shift = np.array([120.0, -40.0, 3.0])
+    moved = points @ Rz.T + shift
+    desc_r = d3.describe(kind, moved, keypoints @ Rz.T + shift, (observers - keypoints) @ Rz.T)
+    assert desc.shape == (40, 288 if kind == "nbld" else 192) and desc.dtype == np.float32
+    if kind == "nbld":
+        assert set(np.unique(desc)) <= {0.0, 1.0} and desc.mean() > 0.05
+        assert np.mean(desc != desc_r) < 0.002  # exact in practice; a point on a cell edge may flip
+    else:
+        np.testing.assert_allclose(desc_r, desc, atol=1e-4)
+    # a different direction of the first observer changes the descriptors
+    desc_flip = d3.describe(kind, points, keypoints, keypoints - observers)
+    assert np.abs(desc_flip - desc).mean() > 0.01
+
+
+def test_describe_rejects_unknown_kind():
+    with pytest.raises(InputError):
+        d3.describe("shot", np.zeros((3, 3)), np.zeros((1, 3)), np.ones((1, 2)))
+
+
+def test_pca_round_trip_and_dims(rng, tmp_path):
+    basis = np.linalg.qr(rng.normal(size=(50, 5)))[0].T  # 5 orthonormal directions in 50-D
+    coeff = rng.normal(size=(400, 5)) * [5, 4, 3, 2, 1]
+    X = coeff @ basis + 7.0
+    pca = d3.DescriptorPCA.fit(X, dim=5)
+    Y = pca.transform(X)
+    assert Y.shape == (400, 5) and Y.dtype == np.float32 and pca.dim == 5
+    np.testing.assert_allclose(pca.inverse_transform(Y), X, atol=1e-4)
+    assert np.all(np.diff(pca.explained_variance) < 0)
+    np.testing.assert_allclose(pca.components @ pca.components.T, np.eye(5), atol=1e-10)
+    loaded = d3.DescriptorPCA.load(pca.save(tmp_path / "pca.npz"))
+    np.testing.assert_array_equal(loaded.transform(X), Y)
+    # the default: 25 dimensions
+    assert d3.DescriptorPCA.fit(rng.normal(size=(100, 40))).dim == 25
+    with pytest.raises(InputError):
+        d3.DescriptorPCA.fit(X, dim=51)
+    with pytest.raises(InputError):
+        pca.transform(X[:, :10])
+    np.savez(tmp_path / "bad.npz", mean=np.zeros(3))
+    with pytest.raises(InputError):
+        d3.DescriptorPCA.load(tmp_path / "bad.npz")
