@@ -227,35 +227,43 @@ def _cloud(points: np.ndarray, origin: np.ndarray):
     return pc
 
 
-def register_clouds(source: np.ndarray, target: np.ndarray, centre: np.ndarray, cfg: IcpConfig) -> dict:
+def register_clouds(source: np.ndarray, target: np.ndarray, centre: np.ndarray, cfg: IcpConfig, structure: bool = True) -> dict:
     """Coarse-to-fine point-to-plane ICP of ``source`` onto ``target`` (both ENU, N x 3).
 
     Works next to ``centre`` (float32 inside open3d). Returns ``target_from_source`` (4x4, ENU),
-    and the fitness and inlier RMSE at ``cfg.eval_distance_m``.
+    and the fitness and point-to-plane RMSE at ``cfg.eval_distance_m`` (see
+    :func:`evaluate_alignment`; ``structure=False`` skips the structure-only figures).
     """
     import open3d as o3d
 
     reg = o3d.pipelines.registration
     src0, tgt0 = _cloud(source, centre), _cloud(target, centre)
     T = np.eye(4)
+    src = tgt = None
     for voxel, max_d in zip(cfg.voxel_sizes_m, cfg.max_correspondence_m):
         src = src0.voxel_down_sample(voxel)
         tgt = tgt0.voxel_down_sample(voxel)
         if len(src.points) < 10 or len(tgt.points) < 10:
+            src = tgt = None
             break
         tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_factor * voxel, max_nn=cfg.normal_max_nn))
         res = reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(),
                                    reg.ICPConvergenceCriteria(max_iteration=cfg.max_iterations))
         T = np.asarray(res.transformation)
     fine = cfg.voxel_sizes_m[-1]
-    src_f, tgt_f = src0.voxel_down_sample(fine), tgt0.voxel_down_sample(fine)
-    ev = evaluate_alignment(np.asarray(src_f.points), np.asarray(tgt_f.points), T, fine, cfg)
+    if tgt is None:  # stopped early: evaluate at the fine level from scratch
+        src, tgt = src0.voxel_down_sample(fine), tgt0.voxel_down_sample(fine)
+        target_normals = None
+    else:  # the last level is the fine one: its target normals are already there
+        target_normals = np.asarray(tgt.normals)
+    ev = evaluate_alignment(np.asarray(src.points), np.asarray(tgt.points), T, fine, cfg, target_normals, structure)
     C = np.eye(4)  # back to ENU from centre-relative coordinates x' = x - c
     C[:3, 3] = centre
     return {"target_from_source": C @ T @ np.linalg.inv(C), **ev}
 
 
-def evaluate_alignment(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: float, cfg: IcpConfig) -> dict:
+def evaluate_alignment(source: np.ndarray, target: np.ndarray, T: np.ndarray, voxel: float, cfg: IcpConfig,
+                       target_normals: Optional[np.ndarray] = None, structure: bool = True) -> dict:
     """Fitness and point-to-plane RMSE of ``T @ source`` against ``target``, overall and for the
     structure alone.
 
@@ -270,16 +278,20 @@ def evaluate_alignment(source: np.ndarray, target: np.ndarray, T: np.ndarray, vo
         pc.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_factor * voxel, max_nn=cfg.normal_max_nn))
         return np.asarray(pc.normals)
 
+    rms = lambda v: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")  # noqa: E731
+    if len(source) == 0 or len(target) == 0:
+        return {"fitness": 0.0, "rmse_m": float("nan"), "structure_fitness": 0.0, "structure_rmse_m": float("nan"), "structure_points": 0}
     moved = source @ T[:3, :3].T + T[:3, 3]
     d, k = cKDTree(target).query(moved, distance_upper_bound=cfg.eval_distance_m)
     inlier = np.isfinite(d)
-    n_t = normals(target)
+    n_t = normals(target) if target_normals is None else target_normals
     r = np.abs(np.einsum("ij,ij->i", moved[inlier] - target[k[inlier]], n_t[k[inlier]]))
+    out = {"fitness": float(inlier.mean()), "rmse_m": rms(r)}
+    if not structure:
+        return {**out, "structure_fitness": out["fitness"], "structure_rmse_m": out["rmse_m"], "structure_points": 0}
     upright = np.abs(normals(source) @ T[:3, :3].T[:, 2]) < cfg.structure_max_normal_z
     r_s = np.abs(np.einsum("ij,ij->i", moved[inlier & upright] - target[k[inlier & upright]], n_t[k[inlier & upright]]))
-    rms = lambda v: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")  # noqa: E731
-    return {"fitness": float(inlier.mean()) if len(inlier) else 0.0, "rmse_m": rms(r),
-            "structure_fitness": float((inlier & upright).sum() / max(1, upright.sum())), "structure_rmse_m": rms(r_s),
+    return {**out, "structure_fitness": float((inlier & upright).sum() / max(1, upright.sum())), "structure_rmse_m": rms(r_s),
             "structure_points": int(upright.sum())}
 
 

@@ -120,9 +120,22 @@ def align(
 
 
 @app.command()
-def triplets(workspace: Path = typer.Argument(...), config: Optional[Path] = typer.Option(None, "--config", "-c")) -> None:
-    """Export a triplet dataset of voxelised 3D patches."""
-    _not_yet("triplets", "triplet export")
+def triplets(
+    workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults triplets`."),
+    truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: also measure the positives' true offsets."),
+) -> None:
+    """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
+    import json
+
+    from .triplets import evaluate_triplets, export_triplets
+
+    folder = export_triplets(workspace, out, config, progress=sys.stderr.isatty())
+    typer.echo((folder / "metrics.json").read_text(), nl=False)
+    if truth is not None:
+        typer.echo(json.dumps(evaluate_triplets(folder, workspace, truth), indent=2))
+    typer.echo(f"written to {folder}: patches-*.npz, patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png")
 
 
 @app.command()

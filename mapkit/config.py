@@ -43,6 +43,7 @@ CONFIGS: dict[str, str] = {
     "align": "mapkit.align:AlignConfig",
     "mcl": "mapkit.mcl:MclConfig",
     "vlad": "mapkit.vlad:VladConfig",
+    "triplets": "mapkit.triplets:TripletConfig",
 }
 
 

@@ -139,3 +139,32 @@ def align_histograms(path: Path, pairs, lambda_icp_m: float, min_fitness: float)
         ax.legend(fontsize=8)
     fig.suptitle(f"ICP between sessions' submaps: {int(acc.sum())} accepted, {int((~acc).sum())} rejected")
     return _save(plt, fig, path)
+
+
+def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
+    """A few triplets side by side, each grid drawn as its occupancy seen from above (count of
+    occupied voxels per column): anchor, positive (same place, other session), negative."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for split in ("train", "test"):
+        t = dataset.triplets(split)
+        if len(t):
+            rows.extend((split, r) for r in t[np.random.default_rng(seed).choice(len(t), min(n, len(t)), replace=False)])
+    rows = rows[:n]
+    fig, axes = plt.subplots(len(rows), 3, figsize=(7.5, 2.6 * len(rows)), dpi=100, squeeze=False)
+    names = dataset.manifest["sessions"]
+    for r, (split, ids) in enumerate(rows):
+        grids = dataset.grids(ids, "occupancy")
+        for c, (label, g) in enumerate(zip(("anchor", "positive", "negative"), grids)):
+            ax = axes[r, c]
+            ax.imshow(g.sum(axis=2).T, origin="lower", cmap="magma")
+            sess = names[int(dataset.table["session"][ids[c]])]
+            ax.set_title(f"{label} ({split})\n{sess}, patch {int(ids[c])}", fontsize=8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("triplets: occupancy seen from above (x to the first observer)", fontsize=9)
+    return _save(plt, fig, path)
