@@ -151,9 +151,17 @@ def demo(out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o")) -> None:
 
 
 @index_app.command("vlad")
-def index_vlad(workspace: Path = typer.Argument(...)) -> None:
-    """Dense SIFT, RootSIFT, VLAD and PCA-whitening image retrieval index."""
-    _not_yet("index vlad", "image retrieval index")
+def index_vlad(
+    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (aligned poses are used when `mapkit align` ran)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/vlad)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults index_vlad`."),
+) -> None:
+    """Dense SIFT, RootSIFT, VLAD and PCA-whitening image retrieval index, as a deployable bundle."""
+    from .index_vlad import build_vlad_index
+
+    bundle = build_vlad_index(workspace, out, config, progress=sys.stderr.isatty())
+    typer.echo((bundle / "metrics.json").read_text(), nl=False)
+    typer.echo(f"bundle written to {bundle}")
 
 
 @index_app.command("structure")
@@ -185,6 +193,20 @@ def eval_align(
 
     typer.echo(format_align_truth(evaluate_align(workspace, truth)))
     typer.echo(f"written to {workspace}/align/eval_align.json and eval_align.md")
+
+
+@eval_app.command("retrieval")
+def eval_retrieval(
+    workspace: Path = typer.Argument(..., help="The workspace the bundle was built from."),
+    bundle: Path = typer.Argument(..., help="A VLAD bundle (`mapkit index vlad`)."),
+    query: List[str] = typer.Option(..., "--query", "-q", help="Query session (not in the bundle); repeat for several."),
+    truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: true positions and appearance conditions."),
+) -> None:
+    """Recall@1/5/20 within 25 m per query session and the error of the mean-shift measurement."""
+    from .eval_retrieval import evaluate_retrieval, format_retrieval
+
+    typer.echo(format_retrieval(evaluate_retrieval(workspace, bundle, query, truth, progress=sys.stderr.isatty())))
+    typer.echo(f"written to {bundle}/eval_retrieval.json, .md and .png")
 
 
 @eval_app.command("places")

@@ -44,6 +44,7 @@ CONFIGS: dict[str, str] = {
     "mcl": "mapkit.mcl:MclConfig",
     "vlad": "mapkit.vlad:VladConfig",
     "triplets": "mapkit.triplets:TripletConfig",
+    "index_vlad": "mapkit.index_vlad:VladIndexConfig",
 }
 
 

@@ -1,0 +1,288 @@
+"""The VLAD index bundle: build on a tiny synthetic workspace, load, query, round trips, growth, resuming;
+and retrieval on the real KITTI clip."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from mapkit.dsift import DsiftConfig
+from mapkit.errors import InputError
+from mapkit.eval_retrieval import self_retrieval_kitti
+from mapkit.geodesy import LocalFrame
+from mapkit.geometry import make_pose, yaw_rotation
+from mapkit.imagedb import write_images_csv
+from mapkit.index_vlad import (DATABASE_COLUMNS, FORMAT_VERSION, VladIndex, VladIndexConfig, build_vlad_index, encode_images,
+                               read_database_csv)
+from mapkit.vlad import VladConfig
+
+from test_dsift import textured_image
+from test_vlad import shifted_and_brighter
+
+SMALL_VLAD = VladConfig(dsift=DsiftConfig(region_widths=[16, 24]), num_words=8, pca_dim=12, kmeans_max_descriptors=20_000,
+                        kmeans_iterations=10)
+PLACES = 8
+SPACING_M = 40.0  # places further apart than the 25 m of a retrieval hit
+FRAME = LocalFrame(51.7534, -1.2586, 59.0)
+# session -> (offset of its camera positions from the place (m), appearance change of its images)
+SESSIONS = {
+    "train-a": ((0.0, 0.0, 0.0), dict(dx=0, dy=0, gain=1.0, offset=0)),
+    "train-b": ((1.0, 0.5, 0.0), dict(dx=1, dy=0, gain=0.95, offset=5)),
+    "test-c": ((0.5, -0.5, 0.0), dict(dx=-1, dy=1, gain=1.1, offset=-5)),
+    "extra-d": ((-0.5, 0.5, 0.0), dict(dx=0, dy=-1, gain=1.05, offset=3)),
+}
+
+
+def place_pose(place: int, offset=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Camera at (40 p, 0, 1.5) + offset, looking along +x: optical z forward, x right, y down."""
+    R_world_from_cam = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float) @ np.eye(3)
+    R = yaw_rotation(0.1 * place) @ R_world_from_cam
+    return make_pose(R, np.array([SPACING_M * place, 0.0, 1.5]) + np.asarray(offset))
+
+
+def place_image(place: int, change: dict) -> np.ndarray:
+    return shifted_and_brighter(textured_image(place), **change) if change["gain"] != 1.0 else textured_image(place)
+
+
+def write_session(ws: Path, name: str) -> None:
+    offset, change = SESSIONS[name]
+    folder = ws / "sessions" / name / "imagedb"
+    (folder / "images" / "cam").mkdir(parents=True, exist_ok=True)
+    rel = []
+    for p in range(PLACES):
+        rel.append(f"images/cam/{p:03d}.png")
+        cv2.imwrite(str(folder / rel[-1]), place_image(p, change))
+    poses = np.stack([place_pose(p, offset) for p in range(PLACES)])
+    write_images_csv(folder / "images.csv", np.arange(1, PLACES + 1), 1_000_000_000 * (np.arange(PLACES) + 1), ["cam"] * PLACES, rel,
+                     poses, FRAME)
+
+
+def make_workspace(root: Path, names=("train-a", "train-b", "test-c", "extra-d")) -> Path:
+    ws = root / "ws"
+    ws.mkdir(parents=True, exist_ok=True)
+    (ws / "origin.json").write_text(json.dumps(FRAME.to_dict()))
+    for n in names:
+        write_session(ws, n)
+    return ws
+
+
+def small_config(**kw) -> VladIndexConfig:
+    base = dict(vlad=SMALL_VLAD, database_sessions=["train-a", "train-b"], top_k=4)
+    base.update(kw)
+    return VladIndexConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory) -> tuple[Path, Path]:
+    ws = make_workspace(tmp_path_factory.mktemp("vlad"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # 16 training images, 12 dimensions: nothing is capped
+        out = build_vlad_index(ws, config=small_config(), progress=False)
+    return ws, out
+
+
+def copy_bundle(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_build_load_query_returns_the_place_and_its_pose(built):
+    ws, out = built
+    assert out == ws / "indexes" / "vlad"
+    idx = VladIndex.load(out)
+    assert len(idx) == 2 * PLACES and idx.dim == 12
+    db = read_database_csv(out / "database.csv")
+    assert list(db) == DATABASE_COLUMNS
+    assert list(db["session"][:PLACES]) == ["train-a"] * PLACES
+    assert db["image"][0] == "sessions/train-a/imagedb/images/cam/000.png"  # relative to the workspace
+    assert (ws / db["image"][0]).is_file()
+    lat, lon, _ = FRAME.enu_to_geodetic(place_pose(3)[None, :3, 3])
+    np.testing.assert_allclose([db["lat_deg"][3], db["lon_deg"][3]], [lat[0], lon[0]], atol=1e-8)
+    assert db["utm_epsg"][3] == FRAME.utm_epsg
+
+    offset, change = SESSIONS["test-c"]
+    for place in (2, 5):
+        query = place_image(place, change)  # a third appearance, not in the database
+        hits = idx.query(query)
+        assert len(hits) == 4
+        assert set(hits.sessions[:2]) == {"train-a", "train-b"}
+        np.testing.assert_allclose(hits.translations[:2, 0], SPACING_M * place, atol=1.5)
+        # the pose of the first hit is that database image's pose, exactly as written
+        np.testing.assert_allclose(hits.world_from_cam[0], place_pose(place, SESSIONS[hits.sessions[0]][0]), atol=1e-4)
+        assert np.all(np.diff(hits.distances) >= 0)
+        z = idx.measurement(query)
+        assert z.cluster_size == 2  # the two database images of the place, 1.1 m apart (< 5 m)
+        np.testing.assert_allclose(z.translation, [SPACING_M * place + 0.5, 0.25, 1.5], atol=1e-3)
+        assert np.degrees(np.arccos(np.clip((np.trace(z.rotation.T @ place_pose(place)[:3, :3]) - 1) / 2, -1, 1))) < 0.1
+        # a vector query gives the same answer as the image
+        v = idx.encode(query)
+        np.testing.assert_array_equal(idx.query(v).ids, hits.ids)
+
+
+def test_manifest_records_sessions_frame_and_every_file(built):
+    ws, out = built
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["format_version"] == FORMAT_VERSION
+    assert m["database_sessions"] == ["train-a", "train-b"] and m["train_sessions"] == ["train-a", "train-b"]
+    assert m["sessions"]["train-a"] | {"images_csv_sha256": None} == {
+        "images": PLACES, "training_images": PLACES, "database": True, "training": True, "pose_source": "imagedb",
+        "images_csv": "sessions/train-a/imagedb/images.csv", "images_csv_sha256": None}
+    assert "test-c" not in m["sessions"]
+    assert m["frame"]["utm_crs_epsg"] == FRAME.utm_epsg
+    assert m["index"] == {"kind": "flat", "faiss": "IndexFlatL2", "dim": 12, "metric": "squared L2", "ntotal": 16}
+    listed = set(m["files"])
+    on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()} - {"manifest.json"}
+    assert listed == on_disk
+    assert {"index.faiss", "database.csv", "config.yaml", "metrics.json", "encoder/vlad_encoder.npz"} <= listed
+    assert "vectors.npy" not in listed  # a flat index holds the exact vectors itself
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["images_encoded"] == 16 and metrics["database_images_reused_from_training"] == 16
+    assert metrics["images_encoded_per_s"] > 0
+
+
+def test_training_uses_only_training_sessions(tmp_path, built):
+    ws, _ = built
+    out = build_vlad_index(ws, tmp_path / "b", small_config(train_sessions=["train-a"]), progress=False)
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["sessions"]["train-b"]["training"] is False and m["sessions"]["train-b"]["training_images"] == 0
+    assert m["vlad"]["training_images"] == PLACES
+    # the PCA saw 8 images: 12 dimensions capped at 7 (a warning at build time)
+    assert VladIndex.load(out).dim == PLACES - 1
+
+
+def test_corrupt_file_and_unknown_version_are_named(tmp_path, built):
+    _, out = built
+    b = copy_bundle(out, tmp_path / "b1")
+    VladIndex.load(b)  # intact copy loads
+    with open(b / "database.csv", "a") as f:
+        f.write("\n")
+    with pytest.raises(InputError) as e:
+        VladIndex.load(b)
+    assert e.value.path == b / "database.csv" and e.value.field == "sha256"
+
+    b = copy_bundle(out, tmp_path / "b2")
+    m = json.loads((b / "manifest.json").read_text())
+    m["format_version"] = 99
+    (b / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(InputError) as e:
+        VladIndex.load(b)
+    assert e.value.path == b / "manifest.json" and e.value.field == "format_version"
+    assert "99" in str(e.value)
+
+    b = copy_bundle(out, tmp_path / "b3")
+    (b / "encoder" / "vlad_encoder.npz").unlink()
+    with pytest.raises(InputError) as e:
+        VladIndex.load(b)
+    assert e.value.path == b / "encoder" / "vlad_encoder.npz"
+
+
+def test_add_session_appends_without_relearning(tmp_path, built):
+    ws, out = built
+    b = copy_bundle(out, tmp_path / "grow")
+    idx = VladIndex.load(b)
+    vocab_before = (b / "encoder" / "vlad_encoder.npz").read_bytes()
+    idx.add_session(ws, "extra-d")
+    assert len(idx) == 3 * PLACES
+    again = VladIndex.load(b)  # written to disk, checksums updated
+    assert len(again) == 3 * PLACES and again.database_sessions == ["train-a", "train-b", "extra-d"]
+    assert (b / "encoder" / "vlad_encoder.npz").read_bytes() == vocab_before
+    assert list(again.database["entry_id"]) == list(range(3 * PLACES))
+    # the new images are retrievable at their own poses
+    hits = again.query(place_image(6, SESSIONS["test-c"][1]), k=3)
+    assert set(hits.sessions) == {"train-a", "train-b", "extra-d"}
+    np.testing.assert_allclose(hits.translations[:, 0], SPACING_M * 6, atol=1.5)
+    # the added vectors are what the encoder gives for those files
+    rows = again.database["session"] == "extra-d"
+    paths = [ws / p for p in again.database["image"][rows]]
+    np.testing.assert_allclose(again.vectors()[rows], encode_images(again.encoder, paths), atol=1e-6)
+    with pytest.raises(InputError, match="already in the index") as e:
+        again.add_session(ws, "extra-d")
+    assert e.value.field == "sessions"
+    with pytest.raises(InputError):
+        again.add_session(ws, "train-a")
+    assert len(VladIndex.load(b)) == 3 * PLACES
+    assert not list(tmp_path.glob(".grow.*"))  # no partial folder left behind
+
+
+def test_rerun_skips_and_interrupted_build_is_not_finished(tmp_path, built):
+    ws, _ = built
+    cfg = small_config(top_k=3)
+    out = tmp_path / "idx"
+    # an interrupted build: a partial folder of a process that is gone, holding a plausible manifest
+    stale = tmp_path / ".idx.partial-999999999-deadbeef"
+    stale.mkdir()
+    (stale / "manifest.json").write_text(json.dumps({"format_version": FORMAT_VERSION}))
+    build_vlad_index(ws, out, cfg, progress=False)
+    assert not stale.exists()  # cleared by the next build
+    VladIndex.load(out)
+    t_manifest = (out / "manifest.json").stat().st_mtime_ns
+    t_index = (out / "index.faiss").stat().st_mtime_ns
+    assert build_vlad_index(ws, out, cfg, progress=False) == out
+    assert (out / "manifest.json").stat().st_mtime_ns == t_manifest and (out / "index.faiss").stat().st_mtime_ns == t_index
+    # a bundle that lost a file is not finished: the build runs again
+    (out / "index.faiss").unlink()
+    build_vlad_index(ws, out, cfg, progress=False)
+    assert len(VladIndex.load(out)) == 2 * PLACES
+    # a query-time setting is rewritten without encoding again; another encoder setting rebuilds
+    t_index = (out / "index.faiss").stat().st_mtime_ns
+    build_vlad_index(ws, out, cfg, overrides={"top_k": 5, "workers": 2}, progress=False)
+    assert VladIndex.load(out).cfg.top_k == 5 and (out / "index.faiss").stat().st_mtime_ns == t_index
+    build_vlad_index(ws, out, cfg, overrides={"vlad": {"num_words": 6}}, progress=False)
+    assert VladIndex.load(out).encoder.vocabulary.shape == (6, 128) and (out / "index.faiss").stat().st_mtime_ns != t_index
+    # a folder that is not a bundle is never replaced
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    with pytest.raises(InputError, match="not a VLAD index bundle"):
+        build_vlad_index(ws, other, cfg, progress=False)
+    assert (other / "notes.txt").read_text() == "keep me"
+
+
+def test_ivf_bundle_keeps_vectors_and_answers_like_flat(tmp_path, built):
+    ws, out = built
+    flat = VladIndex.load(out)
+    with pytest.warns(Warning, match="nlist capped"):
+        b = build_vlad_index(ws, tmp_path / "ivf", small_config(index="ivf", ivf={"nlist": 4}), progress=False)
+    ivf = VladIndex.load(b)
+    m = ivf.manifest["index"]
+    assert m["faiss"] == "IndexIVFFlat" and m["nlist"] == 1 and (b / "vectors.npy").is_file()
+    np.testing.assert_array_equal(ivf.vectors(), flat.vectors())  # same training, same encoding
+    q = flat.encode(place_image(4, SESSIONS["test-c"][1]))
+    np.testing.assert_array_equal(ivf.query(q).ids, flat.query(q).ids)
+
+
+def test_unknown_sessions_are_input_errors(tmp_path, built):
+    ws, _ = built
+    with pytest.raises(InputError) as e:
+        build_vlad_index(ws, tmp_path / "x", small_config(database_sessions=["train-a", "nope"]), progress=False)
+    assert e.value.field == "database_sessions" and "nope" in str(e.value)
+
+
+def test_parallel_encoding_equals_serial(tmp_path, built):
+    ws, out = built
+    idx = VladIndex.load(out)
+    paths = [ws / p for p in idx.database["image"][:4]]
+    serial = encode_images(idx.encoder, paths, workers=1)
+    parallel = encode_images(idx.encoder, paths, workers=2)
+    np.testing.assert_allclose(parallel, serial, atol=1e-6)
+    np.testing.assert_allclose(serial, idx.vectors()[:4], atol=1e-6)
+
+
+def test_real_kitti_clip_neighbours_are_adjacent_frames(kitti_clip):
+    # whiten=False: whitening learned on the same 51 frames it ranks equalises their distances
+    # (measured here: whitened to 16-D, median gap 19 frames; unwhitened, 3)
+    cfg = VladConfig(dsift=DsiftConfig(half_resolution=True), num_words=16, pca_dim=16, whiten=False, kmeans_max_descriptors=30_000,
+                     kmeans_iterations=10)
+    res = self_retrieval_kitti(kitti_clip, config=cfg, exclude=2)
+    gaps = np.asarray(res["gaps"])
+    assert res["frames"] == 51 and len(gaps) == 51
+    assert gaps.min() >= 3  # itself and +-2 excluded
+    assert np.median(gaps) <= 5, res["histogram"]
+    assert np.mean(gaps <= 10) >= 0.8, res["histogram"]
+    assert res["median_distance_m"] < 8.0
