@@ -139,9 +139,18 @@ def triplets(
 
 
 @app.command()
-def localize(bundle: Path = typer.Argument(...), log: Path = typer.Argument(...)) -> None:
+def localize(
+    bundle: Path = typer.Argument(..., help="A VLAD bundle (`mapkit index vlad`)."),
+    log: Path = typer.Argument(..., help="A drive log with camera images."),
+    out: Path = typer.Option(Path("localize"), "--out", "-o", help="Output folder (TUM trajectories, metrics)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize`."),
+    camera: Optional[str] = typer.Option(None, "--camera", help="Camera to use when the log has several."),
+) -> None:
     """Run the Monte Carlo visual localizer on a drive log against a VLAD bundle."""
-    _not_yet("localize", "Monte Carlo visual localizer")
+    from .localize import localize_log
+
+    folder = localize_log(bundle, log, out, config, camera, progress=sys.stderr.isatty())
+    typer.echo(f"camera poses written to {folder}/poses_tum.txt (filter) and retrieval_tum.txt")
 
 
 @app.command()
@@ -216,9 +225,18 @@ def eval_places(workspace: Path = typer.Argument(...)) -> None:
 
 
 @eval_app.command("localize")
-def eval_localize(workspace: Path = typer.Argument(...)) -> None:
-    """Localization errors of retrieval alone and of the particle filter."""
-    _not_yet("eval localize", "Monte Carlo visual localizer")
+def eval_localize(
+    workspace: Path = typer.Argument(..., help="A built (and ideally aligned) workspace of a synthetic town."),
+    truth: Path = typer.Option(..., "--truth", help="The synthetic town: session roles and true poses."),
+    bundle: Optional[Path] = typer.Option(None, "--bundle", help="A VLAD bundle; built from the training sessions if omitted."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize`."),
+) -> None:
+    """MCVL's protocol: training sessions build the index, test sessions are localized (Table II, Fig. 5)."""
+    from .localize import evaluate_localization, format_localization
+
+    r = evaluate_localization(workspace, truth, bundle, config=config, progress=sys.stderr.isatty())
+    typer.echo(format_localization(r), nl=False)
+    typer.echo(f"written to {workspace}/localize: eval_localize.json, .md and one PNG per sequence")
 
 
 def main(argv: Optional[list[str]] = None) -> int:

@@ -45,6 +45,7 @@ CONFIGS: dict[str, str] = {
     "vlad": "mapkit.vlad:VladConfig",
     "triplets": "mapkit.triplets:TripletConfig",
     "index_vlad": "mapkit.index_vlad:VladIndexConfig",
+    "localize": "mapkit.localize:LocalizeConfig",
 }
 
 

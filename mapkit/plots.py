@@ -168,3 +168,19 @@ def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
             ax.set_yticks([])
     fig.suptitle("triplets: occupancy seen from above (x to the first observer)", fontsize=9)
     return _save(plt, fig, path)
+
+
+def localization_track(path: Path, truth_xyz: np.ndarray, retrieval_xyz: np.ndarray, filter_xyz: np.ndarray, title: str) -> Path:
+    """Estimated against true trajectory of one query sequence (MCVL's Fig. 5): retrieval alone
+    as points, the particle filter as a line."""
+    plt, fig, ax = _figure((8, 8))
+    ax.plot(truth_xyz[:, 0], truth_xyz[:, 1], color="0.5", lw=3, label="ground truth")
+    ax.scatter(retrieval_xyz[:, 0], retrieval_xyz[:, 1], s=8, c="tab:orange", label="retrieval alone (mean shift)")
+    ax.plot(filter_xyz[:, 0], filter_xyz[:, 1], "b-", lw=1.2, label="MCVL particle filter")
+    _frame_equal(ax, np.vstack([truth_xyz[:, :2], filter_xyz[np.isfinite(filter_xyz[:, 0]), :2]]))
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3, fontsize=8, frameon=False)
+    ax.grid(True, alpha=0.3)
+    return _save(plt, fig, path)

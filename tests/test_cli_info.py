@@ -79,7 +79,7 @@ def test_user_errors_are_one_line_without_traceback(tmp_path):
 
 
 def test_unfinished_commands_say_so(capsys):
-    assert main(["localize", "bundle", "log.mcap"]) == 2
+    assert main(["demo"]) == 2
     assert "not available" in capsys.readouterr().err
 
 
