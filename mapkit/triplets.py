@@ -165,15 +165,25 @@ def _first_known_frame(point_idx: np.ndarray, smap) -> np.ndarray:
 
 
 def tile_split(utm_xy: np.ndarray, tile_m: float, test_fraction: float, seed: int) -> dict[tuple[int, int], str]:
-    """Every tile touched by ``utm_xy`` labelled train or test, at random but reproducibly; at
-    least one tile of each when there are two or more."""
-    keys = sorted({(int(a), int(b)) for a, b in np.floor(utm_xy / tile_m).astype(np.int64)})
+    """Every tile touched by ``utm_xy`` labelled train or test, at random but reproducibly: tiles
+    are taken in random order into the test split until it holds ``test_fraction`` of the points
+    (so the test split gets its share of the mapped places, not of empty tiles); at least one
+    tile stays in each split when there are two or more."""
+    keys, counts = np.unique(np.floor(utm_xy / tile_m).astype(np.int64), axis=0, return_counts=True)
+    keys = [tuple(int(v) for v in k) for k in keys]
     rng = np.random.default_rng(seed)
-    n_test = int(round(test_fraction * len(keys)))
-    if len(keys) >= 2:
-        n_test = min(max(n_test, 1), len(keys) - 1)
-    test = set(rng.choice(len(keys), n_test, replace=False).tolist()) if n_test else set()
-    return {k: ("test" if i in test else "train") for i, k in enumerate(keys)}
+    labels = {k: "train" for k in keys}
+    if len(keys) < 2:
+        return labels
+    total, taken = counts.sum(), 0
+    for i in rng.permutation(len(keys)):
+        if taken >= test_fraction * total or sum(v == "test" for v in labels.values()) == len(keys) - 1:
+            break
+        if taken and taken + counts[i] > 1.5 * test_fraction * total:
+            continue  # a tile that would overshoot by far: try a smaller one
+        labels[keys[i]] = "test"
+        taken += counts[i]
+    return labels
 
 
 def split_of(utm_xy: np.ndarray, tiles: dict[tuple[int, int], str], tile_m: float, buffer_m: float) -> np.ndarray:
@@ -367,12 +377,10 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
     n_sets = rejected_members = tried = n_done = n_icp = 0
     icp_cache: dict[tuple, dict] = {}
     crop = cfg.domain.patch_radius + 2.0
-    for j in order:
-        if n_done >= cfg.n_triplets:
-            break
-        split = kp_split[j]
-        if split not in pools:
-            continue
+
+    def _one_place(j: int, split: str) -> int:
+        """Patches and triplets of the place at keypoint ``j``; returns the triplets made."""
+        nonlocal n_sets, rejected_members, tried, n_icp
         tried += 1
         a = sessions[kp_session[j]]
         p = a.points[kp_index[j]]
@@ -384,7 +392,7 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
             if np.isfinite(d):
                 members.append((si, nearest))
         if len(members) < 2:
-            continue
+            return 0
         members = members[: cfg.max_members]
         clouds, centres, obs, sess, frames, rmses, Ts = [], [], [], [], [], [], []
         for si, pi in members:
@@ -418,11 +426,11 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
             rmses.append(rmse)
             Ts.append(T)
         if len(clouds) < 2 or sess[0] != kp_session[j]:
-            continue
+            return 0
         occ, dcg, yaw, npts = make_patches(clouds, np.array(centres), np.array(obs), cfg)
         ok = npts >= cfg.min_patch_points
         if ok.sum() < 2:
-            continue
+            return 0
         ids = shards.add(occ[ok], dcg[ok])
         set_rmse = float(max(np.array(rmses)[ok]))
         record(ids, n_sets, split, "positive", np.array(sess)[ok], np.array(frames)[ok], np.array(centres)[ok], yaw[ok], npts[ok],
@@ -430,15 +438,35 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
         pool_ids, pool_pos = pools[split]
         far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
         if len(far) == 0:
-            continue
+            return 0
         ii, jj = np.triu_indices(len(ids), 1)
         ii, jj = ii[: cfg.n_triplets - n_done], jj[: cfg.n_triplets - n_done]
         neg = pool_ids[rng.choice(far, len(ii))]
         triplets[split].append(np.stack([ids[ii], ids[jj], neg], axis=1))
         n_sets += 1
-        n_done += len(ii)
         if progress:
-            print(f"\r[triplets] {n_done}/{cfg.n_triplets} triplets from {n_sets} places", end="", file=sys.stderr, flush=True)
+            print(f"\r[triplets] {n_done + len(ii)}/{cfg.n_triplets} triplets from {n_sets} places", end="", file=sys.stderr, flush=True)
+        return len(ii)
+
+    # each split gets its share (test_fraction of the triplets to test); what a split cannot fill
+    # (too few places seen by two sessions) goes to the other in a second pass
+    quota = {"test": int(round(cfg.test_fraction * cfg.n_triplets))}
+    quota["train"] = cfg.n_triplets - quota["test"]
+    made = {"train": 0, "test": 0}
+    used = np.zeros(len(order), bool)
+    for pass_no in (0, 1):
+        for pos, j in enumerate(order):
+            if n_done >= cfg.n_triplets:
+                break
+            if used[pos]:
+                continue
+            split = kp_split[j]
+            if split not in pools or (pass_no == 0 and made[split] >= quota[split]):
+                continue
+            used[pos] = True
+            n_new = _one_place(j, split)
+            made[split] += n_new
+            n_done += n_new
     if progress:
         print(file=sys.stderr)
     shards.flush()
@@ -472,7 +500,7 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
         "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
     }
     write_json(out / "manifest.json", manifest)
-    metrics = {"triplets": counts, "patches": int(shards.n), "places": n_sets, "places_tried": tried,
+    metrics = {"triplets": counts, "quota": quota, "patches": int(shards.n), "places": n_sets, "places_tried": tried,
                "members_rejected_by_icp": rejected_members, "icp_registrations": n_icp, "seconds": seconds,
                "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
     write_json(out / "metrics.json", metrics)
