@@ -174,9 +174,18 @@ def index_vlad(
 
 
 @index_app.command("structure")
-def index_structure(workspace: Path = typer.Argument(...)) -> None:
-    """NBLD / M2DP / CNN patch descriptor index with keypoint-to-frame voting."""
-    _not_yet("index structure", "structural place recognition")
+def index_structure(
+    workspace: Path = typer.Argument(..., help="A workspace (its aligned maps are used when `mapkit align` ran)."),
+    kind: str = typer.Option("nbld", "--kind", "-k", help="Descriptor: nbld or m2dp (cnn once the learning extra registers it)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/structure-KIND)."),
+    session: Optional[List[str]] = typer.Option(None, "--session", "-s", help="Database session; repeat for several (default: all)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."),
+) -> None:
+    """NBLD / M2DP patch descriptor index with keypoint-to-frame voting, as a deployable bundle."""
+    from .index_structure import build_structure_index
+
+    bundle = build_structure_index(workspace, kind, out, session or None, config, progress=sys.stderr.isatty())
+    typer.echo(f"bundle written to {bundle}")
 
 
 @eval_app.command("build")
@@ -219,9 +228,26 @@ def eval_retrieval(
 
 
 @eval_app.command("places")
-def eval_places(workspace: Path = typer.Argument(...)) -> None:
-    """Place recognition precision/recall and AUC."""
-    _not_yet("eval places", "structural place recognition")
+def eval_places(
+    workspace: Path = typer.Argument(..., help="An aligned workspace."),
+    pair: List[str] = typer.Option(..., "--pair", "-p", help="DATABASE:QUERY session pair; repeat for several."),
+    method: List[str] = typer.Option(["nbld", "m2dp", "vlad"], "--method", "-m", help="nbld, m2dp, vlad; repeat for several."),
+    truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: true positions (else the aligned poses)."),
+    vlad_bundle: Optional[Path] = typer.Option(None, "--vlad-bundle", help="VLAD bundle for the image baseline."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."),
+) -> None:
+    """Place recognition precision/recall and AUC per session pair (the semi-dense paper's Table 2)."""
+    from .errors import ConfigError
+    from .eval_places import evaluate_places, format_places
+
+    pairs = []
+    for p in pair:
+        if p.count(":") != 1:
+            raise ConfigError(f"--pair {p!r}: expected DATABASE:QUERY")
+        pairs.append(tuple(p.split(":")))
+    r = evaluate_places(workspace, pairs, method, out, truth, vlad_bundle, config, progress=sys.stderr.isatty())
+    typer.echo(format_places(r))
 
 
 @eval_app.command("localize")

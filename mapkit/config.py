@@ -46,6 +46,8 @@ CONFIGS: dict[str, str] = {
     "triplets": "mapkit.triplets:TripletConfig",
     "index_vlad": "mapkit.index_vlad:VladIndexConfig",
     "localize": "mapkit.localize:LocalizeConfig",
+    "structure_index": "mapkit.index_structure:StructureIndexConfig",
+    "places": "mapkit.eval_places:PlacesEvalConfig",
 }
 
 
