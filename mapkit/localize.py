@@ -128,13 +128,11 @@ def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str 
         stamps = imgs.table["stamp_ns"][ok]
         odo = None
         if cfg.odometry:
-            from .trajectory import Trajectory
-
-            tr = Trajectory.load(ws / "sessions" / name / "trajectory")
+            # the query session's own relative camera motion between queries: its image table's
+            # poses come from its odometry, placed rigidly (georef) or smoothly (align) in the
+            # map, and relative motion does not see that placement
             cams = imgs.world_from_cam[ok]
-            bases, ok_b = interpolate_poses(tr.stamps_ns, tr.world_from_base, stamps)
-            base_from_cam = invert_pose(bases[0]) @ cams[0] if ok_b[0] else np.eye(4)
-            odo = odometry_between(stamps, tr.stamps_ns, tr.world_from_base, base_from_cam)
+            odo = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
         t0 = time.perf_counter()
         r = run_localizer(index, paths, cfg, odo, progress=progress)
         wall = time.perf_counter() - t0
