@@ -709,6 +709,17 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     return out
 
 
+def aligned_sessions(workspace: str | Path) -> list[str]:
+    """Sessions that a finished ``mapkit align`` holds (listed in ``WORKSPACE/align/.done``)."""
+    done = Path(workspace) / "align" / ".done"
+    if not done.is_file():
+        return []
+    try:
+        return list(json.loads(done.read_text()).get("sessions", []))
+    except (json.JSONDecodeError, AttributeError):
+        return []
+
+
 def _previous_corrections(out: Path, data: list[SessionData], cfg: AlignConfig) -> dict[str, np.ndarray]:
     """Corrections of sessions aligned by an earlier run with the same config and maps."""
     prev: dict[str, np.ndarray] = {}

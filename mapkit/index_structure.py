@@ -38,31 +38,27 @@ place last; re-running with the same config and the same maps (by checksum) retu
 
 from __future__ import annotations
 
-import json
 import os
-import shutil
-import sys
 import time
-import uuid
 import zlib
-from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable, Iterator, Literal, Optional, Sequence
+from typing import Callable, Literal, Optional, Sequence
 
 import numpy as np
 from pydantic import Field
 
 from . import __version__
+from .align import aligned_sessions
+from .bundle import MANIFEST, building, is_finished, read_manifest, write_manifest
 from .config import _deep_merge, dump_config, load_config
 from .descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
 from .errors import ConfigError, InputError
 from .patches import first_observer_positions, select_keypoints, xy_tree
-from .runio import atomic_write_text, config_hash, sha256_file, write_json
+from .runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json
 
 FORMAT_VERSION = 1
-MANIFEST = "manifest.json"
 INDEX_FILE = "index.faiss"
 PCA_FILE = "pca.npz"
 ENTRIES_FILE = "entries.npz"
@@ -214,20 +210,12 @@ def session_names(workspace: str | Path) -> list[str]:
     return sorted(names)
 
 
-def _aligned_sessions(ws: Path) -> list[str]:
-    done = ws / "align" / ".done"
-    try:
-        return list(json.loads(done.read_text()).get("sessions", [])) if done.is_file() else []
-    except (json.JSONDecodeError, AttributeError):
-        return []
-
-
 def session_map_dir(workspace: str | Path, name: str, prefer_aligned: bool = True) -> tuple[Path, str]:
     """(map folder, source) of a session: ``align`` (WORKSPACE/align/sessions/<name>/map, one
     common frame for all sessions) when mapkit align finished it, else ``build``."""
     ws = Path(workspace)
     aligned = ws / "align" / "sessions" / name / "map"
-    if prefer_aligned and name in _aligned_sessions(ws) and (aligned / "observations.npz").is_file():
+    if prefer_aligned and name in aligned_sessions(ws) and (aligned / "observations.npz").is_file():
         return aligned, "align"
     own = ws / "sessions" / name / "map"
     if (own / "observations.npz").is_file():
@@ -264,7 +252,7 @@ def session_descriptors(
     tree = xy_tree(pts)
     dirs = kps.observer_positions - kps.positions
     parts = []
-    bar = _progress(len(kps), progress, f"{kind} {name}", "patch")
+    bar = progress_bar(len(kps), progress, f"{kind} {name}", "patch")
     for k0 in range(0, max(len(kps), 1), _DESCRIBE_CHUNK):  # chunks only to show progress; describe() blocks by memory itself
         k1 = min(k0 + _DESCRIBE_CHUNK, len(kps))
         parts.append(_describe(kind, pts, kps.positions[k0:k1], dirs[k0:k1], cfg, tree))
@@ -329,7 +317,7 @@ def build_structure_index(
     shas = {n: map_checksum(d) for n, (d, _) in dirs.items()}
     build_hash = config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
                               "sessions": names, "maps": {n: [dirs[n][1], shas[n]] for n in names}})
-    if _is_finished(out, build_hash):
+    if is_finished(out, build_hash, FORMAT_VERSION):
         return out
     if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
         raise InputError(out, "exists and is not a structure index bundle (no manifest.json): refusing to replace it")
@@ -398,7 +386,7 @@ def build_structure_index(
                    "raw_dim": int(raw_all.shape[1]), "dim": int(pca.dim)},
         "index": {"faiss": "IndexFlatL2", "metric": "squared L2", "dim": int(pca.dim), "ntotal": int(index.ntotal)},
     }
-    with _bundle_dir(out) as tmp:
+    with building(out) as tmp:
         import faiss
 
         faiss.write_index(index, str(tmp / INDEX_FILE))
@@ -407,7 +395,7 @@ def build_structure_index(
         _savez(tmp / FRAMES_FILE, frames)
         atomic_write_text(tmp / "config.yaml", dump_config(cfg))
         write_json(tmp / "metrics.json", metrics)
-        _write_manifest(tmp, manifest)  # last: it checksums every other file
+        write_manifest(tmp, manifest)  # last: it checksums every other file
     return out
 
 
@@ -422,75 +410,6 @@ def _flat_index(vectors: np.ndarray):
 def _savez(path: Path, arrays: dict) -> None:
     with open(path, "wb") as f:
         np.savez(f, **arrays)
-
-
-def _write_manifest(folder: Path, manifest: dict) -> None:
-    manifest["files"] = {p.relative_to(folder).as_posix(): {"sha256": sha256_file(p), "bytes": p.stat().st_size}
-                         for p in sorted(folder.rglob("*")) if p.is_file() and p.name != MANIFEST}
-    write_json(folder / MANIFEST, manifest)
-
-
-def _is_finished(out: Path, build_hash: str) -> bool:
-    try:
-        m = json.loads((out / MANIFEST).read_text())
-    except (OSError, json.JSONDecodeError):
-        return False
-    if m.get("format_version") != FORMAT_VERSION or m.get("build_hash") != build_hash:
-        return False
-    return all((out / f).is_file() and (out / f).stat().st_size == i.get("bytes") for f, i in (m.get("files") or {}).items())
-
-
-@contextmanager
-def _bundle_dir(out: Path) -> Iterator[Path]:
-    """A temporary folder beside ``out`` that replaces it in one rename when the block succeeds.
-
-    (The same protocol as mapkit.index_vlad's bundles: a folder at ``out`` is always finished.)
-    """
-    out.parent.mkdir(parents=True, exist_ok=True)
-    for stale in out.parent.glob(f".{out.name}.partial-*"):  # left by builds whose process is gone
-        pid = stale.name.rsplit(".partial-", 1)[1].split("-")[0]
-        if pid.isdigit() and not _pid_alive(int(pid)):
-            shutil.rmtree(stale, ignore_errors=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
-        yield tmp
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-            os.rename(out, old)
-            os.rename(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, OverflowError):
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-class _NullBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(total: int, enabled: bool, desc: str, unit: str):
-    if not enabled:
-        return _NullBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- voting
@@ -589,28 +508,7 @@ class StructureIndex:
 
         path = Path(path)
         mpath = path / MANIFEST
-        if not mpath.is_file():
-            raise InputError(path, f"not a structure index bundle (no {MANIFEST})")
-        try:
-            manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(mpath, f"not valid JSON ({exc})") from None
-        version = manifest.get("format_version") if isinstance(manifest, dict) else None
-        if version != FORMAT_VERSION:
-            raise InputError(mpath, f"unknown bundle format version {version!r}; this mapkit {__version__} reads version {FORMAT_VERSION}",
-                             field="format_version")
-        files = manifest.get("files")
-        if not isinstance(files, dict):
-            raise InputError(mpath, "no file list", field="files")
-        for rel in (INDEX_FILE, PCA_FILE, ENTRIES_FILE, FRAMES_FILE):
-            if rel not in files:
-                raise InputError(mpath, f"the file list lacks {rel}", field="files")
-        for rel, info in files.items():
-            p = path / rel
-            if not p.is_file():
-                raise InputError(p, "missing from the bundle (listed in its manifest)")
-            if verify and sha256_file(p) != info.get("sha256"):
-                raise InputError(p, "checksum mismatch: the file changed since the bundle was written", field="sha256")
+        manifest = read_manifest(path, "structure index", FORMAT_VERSION, (INDEX_FILE, PCA_FILE, ENTRIES_FILE, FRAMES_FILE), verify)
         try:
             cfg = StructureIndexConfig.model_validate(manifest["config"])
         except Exception as exc:  # noqa: BLE001 - pydantic's error, reported against the manifest

@@ -53,9 +53,7 @@ import io
 import json
 import math
 import os
-import shutil
 import time
-import uuid
 import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -72,12 +70,13 @@ from .errors import ConfigError, InputError, InputWarning, MapkitError
 from .geodesy import LocalFrame
 from .imagedb import images_world_from_cam, read_images_csv
 from .geometry import matrix_to_quat_wxyz
+from .align import aligned_sessions
+from .bundle import MANIFEST, building, is_finished, link_or_copy, read_manifest, write_manifest
 from .measurement import Measurement, mean_shift_measurement
-from .runio import atomic_write_text, config_hash, sha256_file, write_json
+from .runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json
 from .vlad import VladConfig, VladEncoder, kmeans
 
 FORMAT_VERSION = 1
-MANIFEST = "manifest.json"
 DATABASE_CSV = "database.csv"
 INDEX_FILE = "index.faiss"
 VECTORS_FILE = "vectors.npy"
@@ -179,17 +178,6 @@ def workspace_sessions(workspace: str | Path) -> list[str]:
     return sorted(p.name for p in sdir.iterdir() if (p / "imagedb" / "images.csv").is_file())
 
 
-def aligned_sessions(workspace: str | Path) -> list[str]:
-    """Sessions that ``mapkit align`` finished (listed in ``WORKSPACE/align/.done``)."""
-    done = Path(workspace) / "align" / ".done"
-    if not done.is_file():
-        return []
-    try:
-        return list(json.loads(done.read_text()).get("sessions", []))
-    except (json.JSONDecodeError, AttributeError):
-        return []
-
-
 def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool = True) -> SessionImages:
     """A session's image table: the aligned one (``align/sessions/<name>/images.csv``) when the
     alignment finished and holds the session, else ``sessions/<name>/imagedb/images.csv``."""
@@ -288,7 +276,7 @@ def _map(fn, items: Sequence, cfg: VladConfig, vocabulary: Optional[np.ndarray],
     """
     from .synth._threads import single_thread_blas
 
-    bar = _progress(len(items), progress and len(items) > 0, desc)
+    bar = progress_bar(len(items), progress and len(items) > 0, desc, "img")
     with contextlib.ExitStack() as stack:
         stack.callback(bar.close)
         if workers <= 1 or len(items) < 2:
@@ -345,22 +333,6 @@ def _batched(raws: Iterator[np.ndarray], size: int) -> Iterator[tuple[slice, np.
             buf = []
     if buf:
         yield slice(start, start + len(buf)), np.stack(buf)
-
-
-class _NullBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(total: int, enabled: bool, desc: str):
-    if not enabled:
-        return _NullBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=desc, unit="img")
 
 
 # --------------------------------------------------------------------------- building
@@ -420,26 +392,18 @@ def build_vlad_index(
     build_hash = config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
                               "database": db_names, "train": train_names, "tables": inputs,
                               "frame": None if frame is None else frame.to_dict()})
-    if _is_finished(out, build_hash):
+    if is_finished(out, build_hash, FORMAT_VERSION):
         if json.loads((out / MANIFEST).read_text())["config"] != cfg.model_dump(mode="json"):
             _rewrite_config(out, cfg)  # only query-time settings differ: nothing to encode again
         return out
     if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
         raise InputError(out, "exists and is not a VLAD index bundle (no manifest.json): refusing to replace it")
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    _remove_stale_partials(out)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    with building(out) as tmp:
         metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress)
         metrics["seconds_total"] = time.perf_counter() - t_start
         write_json(tmp / "metrics.json", metrics)
-        _write_manifest(tmp, manifest)  # last: it checksums every other file
-        _replace_dir(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        write_manifest(tmp, manifest)  # last: it checksums every other file
     return out
 
 
@@ -676,91 +640,18 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
-def _write_manifest(folder: Path, manifest: dict) -> None:
-    """Checksum every file of the bundle but the manifest, then write the manifest."""
-    files = {}
-    for p in sorted(folder.rglob("*")):
-        if p.is_file() and p.name != MANIFEST and not p.name.endswith(".partial"):
-            rel = p.relative_to(folder).as_posix()
-            files[rel] = {"sha256": sha256_file(p), "bytes": p.stat().st_size}
-    manifest["files"] = files
-    write_json(folder / MANIFEST, manifest)
-
-
-def _is_finished(out: Path, build_hash: str) -> bool:
-    """A bundle at ``out`` built from the same inputs, whose files are all present at their sizes."""
-    try:
-        m = json.loads((out / MANIFEST).read_text())
-    except (OSError, json.JSONDecodeError):
-        return False
-    if m.get("format_version") != FORMAT_VERSION or m.get("build_hash") != build_hash:
-        return False
-    files = m.get("files") or {}
-    return all((out / f).is_file() and (out / f).stat().st_size == info.get("bytes") for f, info in files.items())
-
-
 def _rewrite_config(out: Path, cfg: VladIndexConfig) -> None:
     """A copy of the bundle (hard links) with a new config.yaml and manifest config, swapped in."""
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
+    with building(out) as tmp:
         for p in out.rglob("*"):
             rel = p.relative_to(out)
             if p.is_file() and rel.as_posix() not in (MANIFEST, "config.yaml"):
-                _link_or_copy(p, tmp / rel)
+                link_or_copy(p, tmp / rel)
         atomic_write_text(tmp / "config.yaml", dump_config(cfg))
         manifest = json.loads((out / MANIFEST).read_text())
         manifest["config"] = cfg.model_dump(mode="json")
         manifest["modified"] = _now()
-        _write_manifest(tmp, manifest)
-        _replace_dir(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except (ProcessLookupError, OverflowError):
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-def _remove_stale_partials(out: Path) -> None:
-    """Remove the partial folders of interrupted builds (their process is gone) beside ``out``."""
-    for p in out.parent.glob(f".{out.name}.partial-*"):
-        try:
-            pid = int(p.name.rsplit(".partial-", 1)[1].split("-")[0])
-        except ValueError:
-            continue
-        if p.is_dir() and (pid == os.getpid() or not _pid_alive(pid)):
-            shutil.rmtree(p, ignore_errors=True)
-    for p in out.parent.glob(f".{out.name}.old-*"):
-        shutil.rmtree(p, ignore_errors=True)
-
-
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished bundle ``tmp`` to ``out``, replacing any bundle there."""
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        os.rename(out, old)
-        os.rename(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.rename(tmp, out)
-
-
-def _link_or_copy(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
+        write_manifest(tmp, manifest)
 
 
 # --------------------------------------------------------------------------- the loaded index
@@ -816,28 +707,8 @@ class VladIndex:
 
         path = Path(path)
         mpath = path / MANIFEST
-        if not mpath.is_file():
-            raise InputError(path, f"not a VLAD index bundle (no {MANIFEST})")
-        try:
-            manifest = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise InputError(mpath, f"not valid JSON ({exc})") from None
-        version = manifest.get("format_version") if isinstance(manifest, dict) else None
-        if version != FORMAT_VERSION:
-            raise InputError(mpath, f"unknown bundle format version {version!r}; this mapkit {__version__} reads version {FORMAT_VERSION}",
-                             field="format_version")
-        files = manifest.get("files")
-        if not isinstance(files, dict):
-            raise InputError(mpath, "no file list", field="files")
-        for rel in (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"):
-            if rel not in files:
-                raise InputError(mpath, f"the file list lacks {rel}", field="files")
-        for rel, info in files.items():
-            p = path / rel
-            if not p.is_file():
-                raise InputError(p, "missing from the bundle (listed in its manifest)")
-            if verify and sha256_file(p) != info.get("sha256"):
-                raise InputError(p, "checksum mismatch: the file changed since the bundle was written", field="sha256")
+        manifest = read_manifest(path, "VLAD index", FORMAT_VERSION,
+                                 (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"), verify)
         try:
             cfg = VladIndexConfig.model_validate(manifest["config"])
         except Exception as exc:  # noqa: BLE001 - pydantic's error, reported against the manifest
@@ -961,14 +832,12 @@ class VladIndex:
 
         index = faiss.clone_index(self.index)
         index.add(new)
-        tmp = self.path.parent / f".{self.path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        tmp.mkdir()
-        try:
+        with building(self.path) as tmp:
             rewritten = {MANIFEST, INDEX_FILE, VECTORS_FILE, DATABASE_CSV, "metrics.json"}
             for p in self.path.rglob("*"):
                 rel = p.relative_to(self.path)
                 if p.is_file() and rel.as_posix() not in rewritten:
-                    _link_or_copy(p, tmp / rel)
+                    link_or_copy(p, tmp / rel)
             vectors = np.concatenate([np.load(self.path / VECTORS_FILE), new]) if (self.path / VECTORS_FILE).is_file() else None
             _write_index(tmp, index, vectors)
             _write_database_csv(tmp / DATABASE_CSV, database)
@@ -987,11 +856,7 @@ class VladIndex:
             manifest["entries"] = int(index.ntotal)
             manifest["index"]["ntotal"] = int(index.ntotal)
             manifest["modified"] = _now()
-            _write_manifest(tmp, manifest)
-            _replace_dir(tmp, self.path)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+            write_manifest(tmp, manifest)
         self.manifest, self.index, self.database = manifest, index, database
         self.world_from_cam = images_world_from_cam(database)
         return self

@@ -14,6 +14,7 @@ import numpy as np
 
 from .geodesy import LocalFrame, path_length_m
 from .io import open_log
+from .runio import progress_bar
 from .types import GpsFix, GpsStatus, StreamKind
 
 
@@ -120,17 +121,5 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-class _NullBar:
-    def update(self, n: int) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def _bar(total: Optional[int], enabled: bool):
-    if not enabled:
-        return _NullBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="msg", desc="scanning", leave=False)
+    return progress_bar(total, enabled, "scanning", "msg", leave=False)
