@@ -24,7 +24,7 @@ from .config import MapkitConfig
 from .errors import InputError
 from .geodesy import LocalFrame
 from .geometry import invert_pose, matrix_to_quat_wxyz
-from .runio import atomic_path, atomic_write_bytes, atomic_write_text
+from .runio import atomic_write_bytes, atomic_write_text
 from .types import CameraInfo
 
 CSV_COLUMNS = [

@@ -125,7 +125,6 @@ def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str 
         imgs = read_session_images(ws, name)
         gt, ok = _truth_camera_poses(truth, name, ws_frame, imgs.table["stamp_ns"])
         paths = [p for p, good in zip(imgs.image_paths, ok) if good]
-        stamps = imgs.table["stamp_ns"][ok]
         odo = None
         if cfg.odometry:
             # the query session's own relative camera motion between queries: its image table's

@@ -886,7 +886,6 @@ def build_semidense_map(
     last_kf: Optional[np.ndarray] = None
     image_shape: Optional[tuple[int, int]] = None
     total = len(frames) if hasattr(frames, "__len__") else None  # type: ignore[arg-type]
-    n_since = 0  # frames received after the pending keyframe position
 
     def process(center: int) -> None:
         kf = window[center]

@@ -8,7 +8,7 @@ import open3d as o3d
 import pycolmap
 import pytest
 
-from mapkit.build import BuildConfig, SessionBuilder, build
+from mapkit.build import build
 from mapkit.cli import main
 from mapkit.imagedb import read_images_csv
 from mapkit.runio import is_done

@@ -7,7 +7,6 @@ up to the damage, with a warning saying at which byte it stopped and how many me
 
 from __future__ import annotations
 
-import io
 import os
 import warnings
 from collections import Counter
@@ -16,7 +15,6 @@ from typing import Any, Iterator, Optional
 
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer

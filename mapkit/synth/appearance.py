@@ -236,7 +236,6 @@ class NoiseTexture:
     @property
     def _flat(self) -> np.ndarray:
         if not hasattr(self, "_padded"):
-            n = self.N
             self._padded = np.pad(self.tex, ((0, 1), (0, 1)), mode="wrap").ravel()  # (n+1)^2, no wrap at +1
         return self._padded
 

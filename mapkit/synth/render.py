@@ -21,7 +21,7 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from .appearance import F32, Conditions, Hits, TriangleTable, dot3, f32, sky_radiance, smoothstep, surface, to_srgb8
+from .appearance import F32, Conditions, Hits, TriangleTable, dot3, f32, sky_radiance, surface, to_srgb8
 from .config import CameraConfig, LidarConfig
 from .sensors import intrinsics, pixel_rays_camera
 from .world import Geometry, Mat, Town
