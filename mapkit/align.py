@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from .config import MapkitConfig, dump_config, load_config
 from .errors import InputError, InputWarning
 from .geodesy import LocalFrame
-from .runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+from .runio import atomic_path, atomic_write_ply, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
 from .trajectory import Trajectory
 
 ALIGN_FORMAT_VERSION = 1
@@ -833,8 +833,6 @@ def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, po
     """The merged map as UTM tiles: ``E{easting}_N{northing}.ply`` (points in the workspace ENU
     frame) + ``.npz`` (session and point index of every point, so observations stay reachable),
     and ``tiles.json`` with each tile's UTM bounds, count and checksums."""
-    import open3d as o3d
-
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("E*_N*.*"):
         old.unlink()
@@ -853,16 +851,7 @@ def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, po
         sel = order[s0:s1]
         e, n = (int(v) for v in key_sorted[s0])
         stem = f"E{e * int(tile_m)}_N{n * int(tile_m)}"
-        pc = o3d.geometry.PointCloud()
-        pc.points = o3d.utility.Vector3dVector(points_enu[sel])
-        with atomic_path(folder / f"{stem}.ply") as tmp:
-            tmp_ply = tmp.with_name(tmp.name + ".ply")
-            try:
-                if not o3d.io.write_point_cloud(str(tmp_ply), pc, write_ascii=False):
-                    raise OSError(f"open3d could not write {folder / (stem + '.ply')}")
-                tmp_ply.replace(tmp)
-            finally:
-                tmp_ply.unlink(missing_ok=True)
+        atomic_write_ply(folder / f"{stem}.ply", points_enu[sel])
         with atomic_path(folder / f"{stem}.npz") as tmp:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, session_id=session_id[sel], point_index=point_index[sel])

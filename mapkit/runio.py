@@ -49,6 +49,27 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     return Path(path)
 
 
+def atomic_write_ply(path: str | Path, points: np.ndarray, colors: Optional[np.ndarray] = None) -> Path:
+    """A binary PLY point cloud (float64 xyz, optional RGB in [0, 1]) written by open3d, atomically."""
+    import open3d as o3d
+
+    path = Path(path)
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64))
+    if colors is not None:
+        pc.colors = o3d.utility.Vector3dVector(np.asarray(colors, np.float64))
+    with atomic_path(path) as tmp:
+        # open3d picks the format from the file name, so write a *.ply beside the temporary
+        tmp_ply = tmp.with_name(tmp.name + ".ply")
+        try:
+            if not o3d.io.write_point_cloud(str(tmp_ply), pc, write_ascii=False):
+                raise OSError(f"open3d could not write {path}")
+            os.replace(tmp_ply, tmp)
+        finally:
+            tmp_ply.unlink(missing_ok=True)
+    return path
+
+
 def atomic_write_text(path: str | Path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode())
 

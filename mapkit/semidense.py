@@ -40,7 +40,6 @@ the world; ``K`` is the 3x3 pinhole matrix of the (undistorted) images; inverse 
 from __future__ import annotations
 
 import math
-import os
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,7 +54,7 @@ from scipy.spatial import cKDTree
 from .config import MapkitConfig, dump_config
 from .errors import InputError
 from .geometry import invert_pose, rotation_angle_rad, transform_points
-from .runio import atomic_path, atomic_write_text
+from .runio import atomic_path, atomic_write_ply, atomic_write_text
 
 #: DSO's residual pattern (``PATTERNP = staticPattern[8]`` in DSO's settings): 8 pixels around
 #: the candidate, a diamond of radius 2, offsets (du, dv) in pixels.
@@ -201,23 +200,10 @@ class SemiDenseMap:
     def save(self, folder: str | Path) -> Path:
         """Write ``points.ply`` (binary, float64 xyz, grey colour), ``observations.npz`` and
         ``config.yaml`` into ``folder``, each file atomically. Returns ``folder``."""
-        import open3d as o3d
-
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
-        pc = o3d.geometry.PointCloud()
-        pc.points = o3d.utility.Vector3dVector(np.asarray(self.points_world, np.float64))
         grey = np.repeat(self.intensity.astype(np.float64)[:, None] / 255.0, 3, axis=1)
-        pc.colors = o3d.utility.Vector3dVector(grey)
-        with atomic_path(folder / "points.ply") as tmp:
-            # open3d picks the format from the file name, so write a *.ply beside the temporary
-            tmp_ply = tmp.with_name(tmp.name + ".ply")
-            try:
-                if not o3d.io.write_point_cloud(str(tmp_ply), pc, write_ascii=False):
-                    raise OSError(f"open3d could not write {folder / 'points.ply'}")
-                os.replace(tmp_ply, tmp)
-            finally:
-                tmp_ply.unlink(missing_ok=True)
+        atomic_write_ply(folder / "points.ply", self.points_world, grey)
         with atomic_path(folder / "observations.npz") as tmp:
             with open(tmp, "wb") as f:
                 np.savez(
