@@ -290,26 +290,20 @@ def _yaw_block(pts: np.ndarray, indptr: np.ndarray, obs: np.ndarray, min_horizon
     return yaw
 
 
-def first_observer_positions(
-    point_indices: np.ndarray, obs_indptr: np.ndarray, obs_frame_ids: np.ndarray, frame_ids: np.ndarray, frame_positions: np.ndarray
-) -> np.ndarray:
-    """(K, 3) position of the first frame that observed each of ``point_indices``.
+def first_observer_frames(point_indices: np.ndarray, obs_indptr: np.ndarray, obs_frame_ids: np.ndarray, frame_ids: np.ndarray) -> np.ndarray:
+    """(K,) id of the first frame with a known position that observed each of ``point_indices``.
 
     ``obs_indptr``/``obs_frame_ids`` are the observation CSR of a
-    :class:`~mapkit.semidense.SemiDenseMap`; ``frame_ids`` (F,) with ``frame_positions`` (F, 3)
-    are the frames whose positions are known (``keyframe_ids`` and
-    ``keyframe_world_from_cam[:, :3, 3]``). Frame ids grow with time, so the first observer is
-    the smallest id among a point's observers whose position is known (a semi-dense point also
-    lists the non-key neighbour frames that confirmed it, and those have no stored pose). A point
-    with no such observer is an error.
+    :class:`~mapkit.semidense.SemiDenseMap`; ``frame_ids`` (F,) the frames whose positions are
+    known (``keyframe_ids``). Frame ids grow with time, so the first observer is the smallest id
+    among a point's observers whose position is known (a semi-dense point also lists the non-key
+    neighbour frames that confirmed it, and those have no stored pose). A point with no such
+    observer is an error.
     """
     pidx = np.asarray(point_indices, np.int64)
     obs_indptr = np.asarray(obs_indptr, np.int64)
     obs_frame_ids = np.asarray(obs_frame_ids, np.int64)
-    frame_ids = np.asarray(frame_ids, np.int64)
-    frame_positions = np.asarray(frame_positions, np.float64).reshape(len(frame_ids), 3)
-    order = np.argsort(frame_ids, kind="stable")
-    sorted_ids = frame_ids[order]
+    sorted_ids = np.sort(np.asarray(frame_ids, np.int64))
     starts, stops = obs_indptr[pidx], obs_indptr[pidx + 1]
     counts = stops - starts
     # flat entries of the selected points' observation lists
@@ -328,7 +322,19 @@ def first_observer_positions(
     if np.any(first == big):
         bad = int(pidx[np.argmax(first == big)])
         raise InputError(None, f"map point {bad} has no observing frame with a known position", field="obs_frame_ids")
-    return frame_positions[order[np.searchsorted(sorted_ids, first)]]
+    return first
+
+
+def first_observer_positions(
+    point_indices: np.ndarray, obs_indptr: np.ndarray, obs_frame_ids: np.ndarray, frame_ids: np.ndarray, frame_positions: np.ndarray
+) -> np.ndarray:
+    """(K, 3) position of the first frame that observed each of ``point_indices`` (see
+    :func:`first_observer_frames`); ``frame_positions`` (F, 3) go with ``frame_ids`` (F,)."""
+    frame_ids = np.asarray(frame_ids, np.int64)
+    frame_positions = np.asarray(frame_positions, np.float64).reshape(len(frame_ids), 3)
+    first = first_observer_frames(point_indices, obs_indptr, obs_frame_ids, frame_ids)
+    order = np.argsort(frame_ids, kind="stable")
+    return frame_positions[order[np.searchsorted(frame_ids[order], first)]]
 
 
 # --- voxel grids ----------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ from .geodesy import LocalFrame
 from .patches import (
     CNN_DOMAIN,
     PatchDomain,
-    first_observer_positions,
+    first_observer_frames,
     gather_local,
     unpack_bits,
     voxelise_patches,
@@ -133,8 +133,9 @@ def load_aligned_sessions(workspace: Path, names: Optional[list[str]] = None) ->
         if len(keep) == 0:
             continue
         smap = SemiDenseMap.load(al / "sessions" / name / "map")
-        pos = first_observer_positions(keep, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids, smap.keyframe_world_from_cam[:, :3, 3])
-        first = _first_known_frame(keep, smap)
+        first = first_observer_frames(keep, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids)
+        order = np.argsort(smap.keyframe_ids, kind="stable")
+        pos = smap.keyframe_world_from_cam[order[np.searchsorted(smap.keyframe_ids[order], first)], :3, 3]
         out.append(SessionPoints(name, smap.points_world[keep], pos, first))
     if names is not None:
         missing = sorted(set(names) - {s.name for s in out})
@@ -143,22 +144,6 @@ def load_aligned_sessions(workspace: Path, names: Optional[list[str]] = None) ->
     if len(out) < 2:
         raise InputError(al, f"{len(out)} session(s) with merged points; triplets need two or more")
     return out, frame
-
-
-def _first_known_frame(point_idx: np.ndarray, smap) -> np.ndarray:
-    """Id of the first keyframe (smallest id with a stored pose) that observed each point."""
-    counts = np.diff(smap.obs_indptr)[point_idx]
-    entry = np.repeat(smap.obs_indptr[point_idx] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts) + np.arange(int(counts.sum()))
-    fid = smap.obs_frame_ids[entry]
-    big = np.iinfo(np.int64).max
-    key = np.where(np.isin(fid, smap.keyframe_ids), fid, big)
-    out = np.full(len(point_idx), -1, np.int64)
-    has = counts > 0
-    if has.any():
-        seg = np.concatenate([[0], np.cumsum(counts)])[:-1][has]
-        first = np.minimum.reduceat(key, seg)
-        out[has] = np.where(first == big, -1, first)
-    return out
 
 
 # --- the spatial split ------------------------------------------------------------------------------
