@@ -72,7 +72,7 @@ class GraphConfig(MapkitConfig):
     odometry_sigma_m: float = Field(0.10, gt=0, description="How much two consecutive submaps of a session may disagree at their boundary (m).")
     icp_sigma_m: float = Field(0.10, gt=0, description="Uncertainty of an accepted ICP registration at its support points (m).")
     lever_m: float = Field(10.0, gt=0, description="Support points of an edge lie this far from its centre, so rotations are constrained too (m).")
-    robust_scale: float = Field(3.0, gt=0, description="Cauchy loss scale, in sigmas, for ICP edges.")
+    robust_scale: float = Field(3.0, gt=0, description="Cauchy loss scale, in sigmas, of the robust solve (applied to every whitened residual).")
     reject_sigmas: float = Field(6.0, gt=0, description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and the graph solved again.")
     max_rounds: int = Field(3, ge=1, description="Solve / reject rounds.")
 
@@ -409,22 +409,31 @@ class PoseGraph:
     def add(self, edge: Edge) -> None:
         self.edges.append(edge)
 
-    def _residuals(self, x_free: np.ndarray, edges: list[Edge]) -> np.ndarray:
+    @staticmethod
+    def _stack(edges: list[Edge]) -> Optional[tuple]:
+        """Node indices, support points in both frames and sigmas of ``edges``, as arrays (built
+        once per solve, not at every evaluation of the residuals)."""
+        if not edges:
+            return None
+        a = np.array([e.a for e in edges])
+        b = np.array([e.b for e in edges])
+        P = np.stack([e.support for e in edges])  # (E, P, 3), in a's current frame
+        Tab = np.stack([e.target_from_source for e in edges])
+        Pb = np.einsum("eij,epj->epi", Tab[:, :3, :3], P) + Tab[:, None, :3, 3]  # the same points in b's frame
+        return a, b, P, Pb, np.array([e.sigma_m for e in edges])
+
+    def _edge_displacements(self, x: np.ndarray, stacked: tuple) -> np.ndarray:
+        """(E, P, 3) disagreement T_a(p) - T_b(T_ab p) at every support point, in metres."""
+        a, b, P, Pb, _ = stacked
+        return _apply_node(x, self.centres, a, P) - _apply_node(x, self.centres, b, Pb)
+
+    def _residuals(self, x_free: np.ndarray, stacked: Optional[tuple]) -> np.ndarray:
         x = self.x0.copy()
         x[~self.fixed] = x_free.reshape(-1, 6)
-        out = []
-        sig = np.asarray(self.cfg.prior_sigma_m)
         free = np.flatnonzero(~self.fixed)
-        out.append((x[free, 3:] / sig).ravel())
-        out.append((x[free, :3] / np.radians(self.cfg.prior_sigma_deg)).ravel())
-        if edges:
-            a = np.array([e.a for e in edges])
-            b = np.array([e.b for e in edges])
-            P = np.stack([e.support for e in edges])  # (E, P, 3)
-            Tab = np.stack([e.target_from_source for e in edges])
-            Pb = np.einsum("eij,epj->epi", Tab[:, :3, :3], P) + Tab[:, None, :3, 3]
-            r = (_apply_node(x, self.centres, a, P) - _apply_node(x, self.centres, b, Pb)) / np.array([e.sigma_m for e in edges])[:, None, None]
-            out.append(r.ravel())
+        out = [(x[free, 3:] / np.asarray(self.cfg.prior_sigma_m)).ravel(), (x[free, :3] / np.radians(self.cfg.prior_sigma_deg)).ravel()]
+        if stacked is not None:
+            out.append((self._edge_displacements(x, stacked) / stacked[4][:, None, None]).ravel())
         return np.concatenate(out)
 
     def solve(self, edges: Optional[list[Edge]] = None) -> np.ndarray:
@@ -438,7 +447,8 @@ class PoseGraph:
             return self.x0.copy()
         col = -np.ones(len(self.centres), np.int64)
         col[free] = np.arange(len(free))
-        n_res = len(self._residuals(self.x0[free].ravel(), edges))
+        stacked = self._stack(edges)
+        n_res = len(self._residuals(self.x0[free].ravel(), stacked))
         S = lil_matrix((n_res, 6 * len(free)), dtype=np.int8)
         row = 0
         for k in range(len(free)):  # translation priors, then rotation priors
@@ -453,9 +463,9 @@ class PoseGraph:
                 if col[node] >= 0:
                     S[row : row + m, 6 * col[node] : 6 * col[node] + 6] = 1
             row += m
-        # robust only where outliers live: the prior and odometry rows are whitened Gaussians,
-        # ICP rows go through a Cauchy loss (scaled so inliers stay quadratic)
-        res = least_squares(self._residuals, self.x0[free].ravel(), jac_sparsity=S.tocsr(), args=(edges,),
+        # one Cauchy loss on every whitened row (scipy applies it to all residuals): rows within
+        # a few sigmas stay nearly quadratic, a wrong ICP edge far out loses its pull
+        res = least_squares(self._residuals, self.x0[free].ravel(), jac_sparsity=S.tocsr(), args=(stacked,),
                             loss="cauchy", f_scale=self.cfg.robust_scale, method="trf", x_scale="jac", max_nfev=200)
         x = self.x0.copy()
         x[free] = res.x.reshape(-1, 6)
@@ -463,15 +473,11 @@ class PoseGraph:
 
     def edge_rms_sigmas(self, x: np.ndarray, edges: list[Edge]) -> np.ndarray:
         """RMS residual of each edge, in its sigmas."""
-        if not edges:
+        stacked = self._stack(edges)
+        if stacked is None:
             return np.zeros(0)
-        a = np.array([e.a for e in edges])
-        b = np.array([e.b for e in edges])
-        P = np.stack([e.support for e in edges])
-        Tab = np.stack([e.target_from_source for e in edges])
-        Pb = np.einsum("eij,epj->epi", Tab[:, :3, :3], P) + Tab[:, None, :3, 3]
-        d = np.linalg.norm(_apply_node(x, self.centres, a, P) - _apply_node(x, self.centres, b, Pb), axis=2)
-        return np.sqrt(np.mean(d**2, axis=1)) / np.array([e.sigma_m for e in edges])
+        d = np.linalg.norm(self._edge_displacements(x, stacked), axis=2)
+        return np.sqrt(np.mean(d**2, axis=1)) / stacked[4]
 
 
 # --- applying corrections ----------------------------------------------------------------------------
@@ -667,11 +673,12 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
             sup = _support_points(s.boundaries[k], s.directions[k], cfg.graph.lever_m)
             graph.add(Edge("odometry", a, b, sup, np.eye(4), cfg.graph.odometry_sigma_m))
     icp_edges = []
+    session_index = {s.name: si for si, s in enumerate(data)}
     for pi, r in enumerate(results):
         if not r.accepted:
             continue
         a, b = node_of[tuple(r.source)], node_of[tuple(r.target)]
-        direction = data[[s.name for s in data].index(r.source[0])].directions[r.source[1]]
+        direction = data[session_index[r.source[0]]].directions[r.source[1]]
         icp_edges.append(Edge("icp", a, b, _support_points(r.centre, direction, cfg.graph.lever_m), r.target_from_source, cfg.graph.icp_sigma_m, pi))
     odo_edges = list(graph.edges)
     active = list(icp_edges)
