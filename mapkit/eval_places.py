@@ -201,17 +201,11 @@ class _Truth:
         aligned_pos = np.asarray(aligned_pos, np.float64).reshape(-1, 3)
         if self.truth is None:
             return aligned_pos
+        from .evaluate import truth_camera_poses
         from .geometry import interpolate_poses
-        from .synth import camera_poses
 
         if session not in self._cache:
-            t, T = camera_poses(self.truth, session)
-            if self.ws_frame is not None:
-                from .geodesy import LocalFrame
-
-                town = LocalFrame.from_dict(json.loads((self.truth / "world" / "origin.json").read_text()))
-                T = town.to_frame(self.ws_frame) @ T
-            self._cache[session] = (np.asarray(t, np.int64), T)
+            self._cache[session] = truth_camera_poses(self.truth, session, self.ws_frame)
         t, T = self._cache[session]
         stamps = np.asarray(stamps_ns, np.int64)
         out = np.full((len(stamps), 3), np.nan)
@@ -223,13 +217,10 @@ class _Truth:
 
 
 def _conditions(truth: Optional[Path]) -> dict[str, dict]:
-    if truth is None:
-        return {}
-    p = truth / "world" / "manifest.json"
-    if not p.is_file():
-        return {}
+    from .evaluate import town_sessions
+
     keys = ("condition", "season", "weather", "date", "time_of_day", "exposure_ev", "role")
-    return {s["name"]: {k: s.get(k) for k in keys} for s in json.loads(p.read_text()).get("sessions", [])}
+    return {name: {k: s.get(k) for k in keys} for name, s in town_sessions(truth).items()}
 
 
 # --------------------------------------------------------------------------- the VLAD baseline

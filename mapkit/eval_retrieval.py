@@ -26,6 +26,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from .errors import InputError
+from .evaluate import town_sessions, truth_camera_poses
 from .geodesy import LocalFrame
 from .index_vlad import VladIndex, _faiss_threads, _same_frame, encode_images, read_session_images
 from .runio import atomic_path, atomic_write_text, write_json
@@ -175,22 +176,8 @@ def self_retrieval_kitti(frames, encoder=None, exclude: int = 2, config=None, vo
 def _truth_camera_poses(truth: Path, name: str, ws_frame: Optional[LocalFrame], stamps_ns: np.ndarray):
     """True camera poses (world_from_camera, workspace ENU) at ``stamps_ns`` and their validity mask."""
     from .geometry import interpolate_poses
-    from .synth import camera_poses
 
-    t_stamps, world_from_cam = camera_poses(truth, name)
-    if ws_frame is not None:
-        town = LocalFrame.from_dict(json.loads((truth / "world" / "origin.json").read_text()))
-        world_from_cam = town.to_frame(ws_frame) @ world_from_cam
-    return interpolate_poses(t_stamps, world_from_cam, stamps_ns)
-
-
-def _town_sessions(truth: Optional[Path]) -> dict[str, dict]:
-    if truth is None:
-        return {}
-    p = truth / "world" / "manifest.json"
-    if not p.is_file():
-        return {}
-    return {s["name"]: s for s in json.loads(p.read_text()).get("sessions", [])}
+    return interpolate_poses(*truth_camera_poses(truth, name, ws_frame), stamps_ns)
 
 
 def _stats(trans_err: np.ndarray, rot_err: np.ndarray) -> dict:
@@ -240,7 +227,7 @@ def evaluate_retrieval(
         ws_frame = LocalFrame.from_dict(json.loads((ws / "origin.json").read_text()))
     if idx.frame is not None and ws_frame is not None and not _same_frame(idx.frame, ws_frame):
         raise InputError(ws / "origin.json", "the workspace's local frame differs from the bundle's", field="frame")
-    town = _town_sessions(truth)
+    town = town_sessions(truth)
     K = max(max(ks), idx.cfg.top_k)
     db_pos = idx.world_from_cam[:, :3, 3]
     workers = idx.cfg.workers if workers is None else workers

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -20,6 +21,32 @@ from .gps_align import fit_transform
 from .metrics import map_accuracy, trajectory_errors
 from .runio import atomic_write_text, write_json
 from .trajectory import Trajectory
+
+
+def ws_from_town(truth: Path, ws_frame: LocalFrame) -> np.ndarray:
+    """The exact rigid transform from a synthetic town's ENU frame to a workspace's (via ECEF)."""
+    return LocalFrame.from_dict(json.loads((Path(truth) / "world" / "origin.json").read_text())).to_frame(ws_frame)
+
+
+def town_sessions(truth: Optional[Path]) -> dict[str, dict]:
+    """The town manifest's entry of every session (role, condition, ...), by name; {} without one."""
+    if truth is None:
+        return {}
+    p = Path(truth) / "world" / "manifest.json"
+    if not p.is_file():
+        return {}
+    return {s["name"]: s for s in json.loads(p.read_text()).get("sessions", [])}
+
+
+def truth_camera_poses(truth: Path, name: str, ws_frame: Optional[LocalFrame]) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps_ns, world_from_camera) of a town session's true camera, in the workspace's frame
+    (the town's own when ``ws_frame`` is None)."""
+    from .synth import camera_poses
+
+    stamps, world_from_cam = camera_poses(truth, name)
+    if ws_frame is not None:
+        world_from_cam = ws_from_town(truth, ws_frame) @ world_from_cam
+    return np.asarray(stamps, np.int64), world_from_cam
 
 
 def _session_truth(truth: Path, name: str):
@@ -36,12 +63,11 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
     if not origin.is_file():
         raise InputError(origin, "the workspace is not georeferenced (no origin.json): nothing to compare with truth")
     ws_frame = LocalFrame.from_dict(json.loads(origin.read_text()))
-    town_frame = LocalFrame.from_dict(json.loads((truth / "world" / "origin.json").read_text()))
-    ws_from_town = town_frame.to_frame(ws_frame)
+    town_to_ws = ws_from_town(truth, ws_frame)
     mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))
     if not mesh.has_triangles():
         raise InputError(truth / "world" / "mesh.ply", "holds no triangles")
-    mesh.transform(ws_from_town)
+    mesh.transform(town_to_ws)
     results: dict = {"workspace": str(workspace), "truth": str(truth), "sessions": {}}
     for sdir in sorted((workspace / "sessions").iterdir()):
         name = sdir.name
@@ -49,7 +75,7 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
             gt_stamps, gt_world_from_base = _session_truth(truth, name)
         except (FileNotFoundError, InputError):
             continue
-        gt_ws = ws_from_town @ gt_world_from_base
+        gt_ws = town_to_ws @ gt_world_from_base
         ga_path = sdir / "georef" / "gps_alignment.json"
         georeferenced = ga_path.is_file() and json.loads(ga_path.read_text()).get("georeferenced", False)
         r: dict = {"georeferenced": bool(georeferenced)}
@@ -78,7 +104,7 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
             cars = truth / "sessions" / f"{name}.parked_cars.ply"
             if cars.is_file():
                 car_mesh = o3d.io.read_triangle_mesh(str(cars))
-                car_mesh.transform(ws_from_town)
+                car_mesh.transform(town_to_ws)
                 session_mesh += car_mesh
             length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
             if georeferenced:
@@ -161,10 +187,11 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
     from scipy.spatial import cKDTree
 
     from .align import PairResult, _support_points
+    from .semidense import SemiDenseMap
 
     workspace, truth = Path(workspace), Path(truth)
     ws_frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
-    ws_from_town = LocalFrame.from_dict(json.loads((truth / "world" / "origin.json").read_text())).to_frame(ws_frame)
+    town_to_ws = ws_from_town(truth, ws_frame)
     al = workspace / "align"
     if not (al / ".done").is_file():
         raise InputError(al, "multi-session alignment has not finished (run mapkit align first)")
@@ -173,13 +200,11 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
     sess = {}
     for name in names:
         gt_stamps, gt = _session_truth(truth, name)
-        gt_ws = ws_from_town @ gt
+        gt_ws = town_to_ws @ gt
         before = Trajectory.load(workspace / "sessions" / name / "georef" / "trajectory_enu")
         after = Trajectory.load(al / "sessions" / name / "trajectory")
         pb, Eb = _error_transforms(before.stamps_ns, before.world_from_base, gt_stamps, gt_ws)
         pa, Ea = _error_transforms(after.stamps_ns, after.world_from_base, gt_stamps, gt_ws)
-        from .semidense import SemiDenseMap
-
         pts = SemiDenseMap.load(al / "sessions" / name / "map").points_world
         sess[name] = {"tree": cKDTree(pb[:, :2]), "Eb": Eb, "Ea": Ea, "points": pts}
     out: dict = {"pairs": {}}

@@ -98,7 +98,8 @@ def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str 
     into ``WORKSPACE/indexes/vlad`` from the town's training sessions if not given), test sessions
     are queries. Writes ``eval_localize.json``, ``.md`` and one PNG per sequence into ``out``
     (default ``WORKSPACE/localize``)."""
-    from .eval_retrieval import _town_sessions, _truth_camera_poses
+    from .eval_retrieval import _truth_camera_poses
+    from .evaluate import town_sessions
     from .geodesy import LocalFrame
     from .index_vlad import VladIndex, build_vlad_index, read_session_images
 
@@ -107,7 +108,7 @@ def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str 
     out = Path(out) if out is not None else ws / "localize"
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
-    town = _town_sessions(truth)
+    town = town_sessions(truth)
     if not town:
         raise InputError(truth / "world" / "manifest.json", "no sessions listed: not a synthetic town folder?", field="sessions")
     built = sorted(p.name for p in (ws / "sessions").iterdir() if (p / "imagedb" / ".done").is_file())

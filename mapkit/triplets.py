@@ -605,19 +605,19 @@ def evaluate_triplets(dataset: str | Path, workspace: str | Path, truth: str | P
     patch centre p (E_s = T_est T_gt^-1 of the aligned session's pose nearest to p); the offset
     of a positive pair is the distance between the two true points.
     """
-    from .evaluate import _error_transforms, _session_truth
+    from .evaluate import _error_transforms, _session_truth, ws_from_town
     from .trajectory import Trajectory
 
     ds = TripletDataset(dataset)
     workspace, truth = Path(workspace), Path(truth)
     ws_frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
-    ws_from_town = LocalFrame.from_dict(json.loads((truth / "world" / "origin.json").read_text())).to_frame(ws_frame)
+    town_to_ws = ws_from_town(truth, ws_frame)
     names = ds.manifest["sessions"]
     err = {}
     for k, n in enumerate(names):
         st, gt = _session_truth(truth, n)
         tr = Trajectory.load(workspace / "align" / "sessions" / n / "trajectory")
-        pos, E = _error_transforms(tr.stamps_ns, tr.world_from_base, st, ws_from_town @ gt)
+        pos, E = _error_transforms(tr.stamps_ns, tr.world_from_base, st, town_to_ws @ gt)
         err[k] = (cKDTree(pos[:, :2]), np.linalg.inv(E))
     t = ds.table
     true_pt = np.zeros((len(t["patch_id"]), 3))
