@@ -55,24 +55,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import report  # noqa: E402
+from bench.common import best_wall_and_cpu, report  # noqa: E402
 from mapkit import descriptors3d as d3  # noqa: E402
 from mapkit import patches as pa  # noqa: E402
 
 GOAL_PATCHES_PER_S = 2000.0
 OBSERVER_BEHIND_M = 8.0
-
-
-def best_times(fn, repeat: int = 3) -> tuple[float, float]:
-    """Best wall time and best CPU time of ``repeat`` calls (s). ``bench.common.best_of`` gives
-    the first; the second is the time this process spent on its one core without the time it
-    waited for it, the steadier figure on a machine shared with other work."""
-    wall = cpu = math.inf
-    for _ in range(repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
-    return wall, cpu
 
 
 # --- the synthetic street ---------------------------------------------------------------------------
@@ -190,14 +178,14 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
     for kind, sub, fast, loop in (("NBLD", cfg.nbld, d3.nbld_patches, nbld_loop), ("M2DP", cfg.m2dp, d3.m2dp_patches, m2dp_loop)):
         indptr, normalised = prepare(points, keypoints, observer_dirs, sub.domain, tree)
         sizes = np.diff(indptr)
-        t_desc, c_desc = best_times(lambda: fast(normalised, indptr, sub), args.repeat)
+        t_desc, c_desc = best_wall_and_cpu(lambda: fast(normalised, indptr, sub), args.repeat)
         desc = fast(normalised, indptr, sub)
         nb = min(args.baseline, m)
         patches = [normalised[indptr[k] : indptr[k + 1]] for k in range(nb)]
-        t_loop = best_times(lambda: loop(patches, sub), 1)[1] / nb * m
+        t_loop = best_wall_and_cpu(lambda: loop(patches, sub), 1)[1] / nb * m
         ref = loop(patches, sub)
         agree = float(np.mean(ref != desc[:nb])) if kind == "NBLD" else float(np.abs(ref - desc[:nb]).max())
-        t_chain, c_chain = best_times(lambda: d3.describe(kind.lower(), points, keypoints, observer_dirs, cfg, tree=tree), args.repeat)
+        t_chain, c_chain = best_wall_and_cpu(lambda: d3.describe(kind.lower(), points, keypoints, observer_dirs, cfg, tree=tree), args.repeat)
         rows.append({
             "map": label, "what": f"{kind} descriptor", "patches": m,
             "points/patch": f"{np.percentile(sizes, 5):.0f}/{np.median(sizes):.0f}/{np.percentile(sizes, 95):.0f}",
@@ -212,7 +200,7 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
         })
     # CNN voxel grids: extraction, yaw normalisation and voxelisation per patch, the stages
     # timed separately over the same blocks of keypoints as voxel_grids() uses
-    t_grids, c_grids = best_times(lambda: pa.voxel_grids(points, keypoints, observer_dirs, pa.CNN_DOMAIN, tree=tree), args.repeat)
+    t_grids, c_grids = best_wall_and_cpu(lambda: pa.voxel_grids(points, keypoints, observer_dirs, pa.CNN_DOMAIN, tree=tree), args.repeat)
     stages = {"extract": 0.0, "yaw": 0.0, "voxelise": 0.0}
     sizes = []
     for k0 in range(0, m, 128):

@@ -37,7 +37,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECL
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import Counter  # noqa: E402
@@ -49,7 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import report  # noqa: E402
+from bench.common import best_wall_and_cpu, report  # noqa: E402
 from mapkit import descriptors3d as d3  # noqa: E402
 from mapkit import patches as pa  # noqa: E402
 from mapkit.index_structure import (  # noqa: E402
@@ -60,16 +59,6 @@ from mapkit.index_structure import (  # noqa: E402
     StructureIndexConfig,
     session_keypoints,
 )
-
-
-def best_times(fn, repeat: int) -> tuple[float, float]:
-    """Best wall and best CPU time (s) of ``repeat`` calls."""
-    wall = cpu = math.inf
-    for _ in range(repeat):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        wall, cpu = min(wall, time.perf_counter() - t0), min(cpu, time.process_time() - c0)
-    return wall, cpu
 
 
 # --- 1. describe() ------------------------------------------------------------------------------------
@@ -113,7 +102,7 @@ def bench_describe(args) -> list[dict]:
         cfg = d3.StructureDescriptorConfig()
         sub = cfg.nbld if kind == "nbld" else cfg.m2dp
         ptr, _ = pa.extract_patches(points, kp, sub.domain, tree)
-        wall, cpu = best_times(lambda: d3.describe(kind, points, kp, dirs, cfg, tree=tree), args.repeat)
+        wall, cpu = best_wall_and_cpu(lambda: d3.describe(kind, points, kp, dirs, cfg, tree=tree), args.repeat)
         rows.append({"descriptor": kind.upper(), "data": label, "patches": len(kp), "points_per_patch_median": float(np.median(np.diff(ptr))),
                      "patches_per_s_cpu": len(kp) / cpu, "patches_per_s_wall": len(kp) / wall})
     return rows
@@ -186,11 +175,11 @@ def bench_query(args) -> list[dict]:
         return idx.votes(e)
 
     n_timed = min(args.timed_frames, n_frames_q)
-    wall_f, cpu_f = best_times(lambda: [faiss_frame(Q[i]) for i in range(n_timed)], args.repeat)
+    wall_f, cpu_f = best_wall_and_cpu(lambda: [faiss_frame(Q[i]) for i in range(n_timed)], args.repeat)
     # match alone and vote alone
     ents = [idx.nearest(Q[i])[0] for i in range(n_timed)]
-    wall_vote, cpu_vote = best_times(lambda: [idx.votes(e) for e in ents], args.repeat)
-    wall_loop, cpu_loop = best_times(lambda: [loop_votes(e, ptr, ref, idx.n_frames) for e in ents], 1)
+    wall_vote, cpu_vote = best_wall_and_cpu(lambda: [idx.votes(e) for e in ents], args.repeat)
+    wall_loop, cpu_loop = best_wall_and_cpu(lambda: [loop_votes(e, ptr, ref, idx.n_frames) for e in ents], 1)
     same_votes = all(np.array_equal(idx.votes(e), loop_votes(e, ptr, ref, idx.n_frames)) for e in ents[:5])
 
     # batched: all frames of a session at once (one faiss call, vote_many)
@@ -201,7 +190,7 @@ def bench_query(args) -> list[dict]:
         e, d = idx.nearest(Q.reshape(-1, dim))
         return idx.vote_frames(QueryKeypoints(kp, Q.reshape(-1, dim), e, d), np.arange(n_frames_q))
 
-    wall_b, cpu_b = best_times(batch, args.repeat)
+    wall_b, cpu_b = best_wall_and_cpu(batch, args.repeat)
     res_b = batch()
     single = [int(np.argmax(faiss_frame(Q[i]))) for i in range(min(3, n_frames_q))]
     same_batch = single == res_b.best_frame[: len(single)].tolist()
@@ -210,7 +199,7 @@ def bench_query(args) -> list[dict]:
     tree = cKDTree(idx.X)
     t_tree_build = time.perf_counter() - t0
     n_tree = min(args.tree_frames, n_timed)
-    wall_t, cpu_t = best_times(lambda: [tree.query(Q[i], k=1) for i in range(n_tree)], 1)
+    wall_t, cpu_t = best_wall_and_cpu(lambda: [tree.query(Q[i], k=1) for i in range(n_tree)], 1)
     agree = float(np.mean([np.mean(tree.query(Q[i], k=1)[1] == ents[i]) for i in range(n_tree)]))
 
     rows = [
