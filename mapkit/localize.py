@@ -24,7 +24,7 @@ from pydantic import Field
 
 from .config import MapkitConfig, dump_config, load_config
 from .errors import InputError
-from .geometry import interpolate_poses, invert_pose
+from .geometry import invert_pose
 from .mcl import MclConfig, MonteCarloLocalizer, pose_errors
 from .runio import atomic_write_text, write_json
 
@@ -74,21 +74,6 @@ def _measure(hits, bandwidth_m: float):
     from .measurement import mean_shift_measurement
 
     return mean_shift_measurement(hits.translations, hits.world_from_cam[:, :3, :3], bandwidth=bandwidth_m)
-
-
-def odometry_between(stamps_ns: np.ndarray, traj_stamps_ns: np.ndarray, world_from_base: np.ndarray,
-                     base_from_cam: np.ndarray = np.eye(4)) -> list:
-    """Relative camera motion ``cam_{t-1} <- cam_t`` between consecutive query stamps from a
-    session's own trajectory (None where a stamp lies outside it)."""
-    poses, ok = interpolate_poses(traj_stamps_ns, world_from_base, stamps_ns)
-    full = [None] * len(stamps_ns)
-    for i, k in zip(np.flatnonzero(ok), range(len(poses))):
-        full[i] = poses[k] @ base_from_cam
-    out: list = [None]
-    for t in range(1, len(stamps_ns)):
-        a, b = full[t - 1], full[t]
-        out.append(None if a is None or b is None else invert_pose(a) @ b)
-    return out
 
 
 def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str | Path | None = None,

@@ -1,5 +1,5 @@
 """The localizer chain on a real (tiny) VLAD bundle: retrieval gives z_t, the particle filter
-follows it; and the odometry between query stamps is the known relative motion."""
+follows it, driven by the query session's relative motion."""
 
 from __future__ import annotations
 
@@ -7,22 +7,11 @@ import warnings
 
 import numpy as np
 
-from mapkit.geometry import invert_pose, make_pose, yaw_rotation
+from mapkit.geometry import invert_pose
 from mapkit.index_vlad import VladIndex, build_vlad_index, read_session_images
-from mapkit.localize import LocalizeConfig, odometry_between, run_localizer
+from mapkit.localize import LocalizeConfig, run_localizer
 
 from test_index_vlad import PLACES, make_workspace, place_pose, small_config
-
-
-def test_odometry_between_is_the_relative_motion():
-    stamps = np.arange(0, 10) * 1_000_000_000
-    poses = np.stack([make_pose(yaw_rotation(0.1 * k), [2.0 * k, 0.5 * k, 0]) for k in range(10)])
-    cam = make_pose(np.eye(3), [1.0, 0.0, 1.5])
-    q = np.array([1, 3, 4, 12]) * 1_000_000_000  # the last lies outside the trajectory
-    odo = odometry_between(q, stamps, poses, cam)
-    assert odo[0] is None and odo[3] is None
-    expected = invert_pose(poses[1] @ cam) @ poses[3] @ cam
-    assert np.allclose(odo[1], expected) and np.allclose(odo[2], invert_pose(poses[3] @ cam) @ poses[4] @ cam)
 
 
 def test_filter_follows_retrieval_on_a_bundle(tmp_path):
