@@ -25,6 +25,7 @@ import numpy as np
 from pydantic import Field
 from scipy.spatial import cKDTree
 
+from .bundle import building
 from .config import MapkitConfig, dump_config, load_config
 from .errors import InputError
 from .geodesy import LocalFrame
@@ -37,7 +38,7 @@ from .patches import (
     voxelise_patches,
     yaw_normalise_patches,
 )
-from .runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, reset_stage, sha256_file, write_json
+from .runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
 
 TRIPLETS_FORMAT_VERSION = 1
 SPLITS = ("train", "test")
@@ -299,203 +300,204 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
         return out
     t0 = time.perf_counter()
     sessions, frame = load_aligned_sessions(workspace, cfg.sessions)
-    reset_stage(out)
-    atomic_write_text(out / "config.yaml", dump_config(cfg))
-    rng = np.random.default_rng(cfg.seed)
-    icp = IcpConfig(voxel_sizes_m=cfg.icp_voxel_sizes_m, max_correspondence_m=cfg.icp_max_correspondence_m, max_iterations=20,
-                    lambda_icp_m=cfg.lambda_icp_m, min_fitness=cfg.min_fitness, min_structure_fitness=0.0)
+    final = out
+    with building(final) as out:  # a partial folder, renamed into place last: an earlier dataset survives a failure
+        atomic_write_text(out / "config.yaml", dump_config(cfg))
+        rng = np.random.default_rng(cfg.seed)
+        icp = IcpConfig(voxel_sizes_m=cfg.icp_voxel_sizes_m, max_correspondence_m=cfg.icp_max_correspondence_m, max_iterations=20,
+                        lambda_icp_m=cfg.lambda_icp_m, min_fitness=cfg.min_fitness, min_structure_fitness=0.0)
 
-    # keypoints per session, with their split
-    all_utm = np.concatenate([frame.enu_to_utm(s.points[:: max(1, len(s.points) // 20000)])[:, :2] for s in sessions])
-    tiles = tile_split(all_utm, cfg.tile_size_m, cfg.test_fraction, cfg.seed)
-    kp_session, kp_index, kp_split = [], [], []
-    for si, s in enumerate(sessions):
-        k = np.sort(rng.choice(len(s.points), max(1, int(round(cfg.keypoint_fraction * len(s.points)))), replace=False))
-        sp = split_of(frame.enu_to_utm(s.points[k])[:, :2], tiles, cfg.tile_size_m, cfg.buffer_m)
-        kp_session.append(np.full(len(k), si))
-        kp_index.append(k)
-        kp_split.append(sp)
-    kp_session, kp_index, kp_split = np.concatenate(kp_session), np.concatenate(kp_index), np.concatenate(kp_split)
-
-    shards = ShardWriter(out, cfg.shard_patches)
-    table: dict[str, list] = {k: [] for k in ("patch_id", "set_id", "split", "role", "session", "frame", "enu", "yaw", "points", "icp_rmse_m", "transform")}
-
-    def record(ids, set_id, split, role, sess, frames, enu, yaw, npts, rmse, T):
-        table["patch_id"].append(ids)
-        table["set_id"].append(np.full(len(ids), set_id))
-        table["split"].append(np.full(len(ids), split, dtype=object))
-        table["role"].append(np.full(len(ids), role, dtype=object))
-        table["session"].append(np.asarray(sess))
-        table["frame"].append(np.asarray(frames))
-        table["enu"].append(np.asarray(enu))
-        table["yaw"].append(np.asarray(yaw))
-        table["points"].append(np.asarray(npts))
-        table["icp_rmse_m"].append(np.asarray(rmse))
-        table["transform"].append(np.asarray(T))
-
-    # negative pools: random keypoints of each split, patches as mapped (no ICP needed)
-    pools = {}
-    for split in SPLITS:
-        cand = np.flatnonzero(kp_split == split)
-        if len(cand) == 0:
-            continue
-        pick = rng.choice(cand, min(cfg.negative_pool, len(cand)), replace=False)
-        clouds, centres, obs, sess, frames = [], [], [], [], []
-        for j in pick:
-            s = sessions[kp_session[j]]
-            p = s.points[kp_index[j]]
-            clouds.append(s.around(p, cfg.domain.patch_radius))
-            centres.append(p)
-            obs.append(s.observer_pos[kp_index[j]])
-            sess.append(kp_session[j])
-            frames.append(s.observer_frame[kp_index[j]])
-        occ, dcg, yaw, npts = make_patches(clouds, np.array(centres), np.array(obs), cfg)
-        ok = npts >= cfg.min_patch_points
-        ids = shards.add(occ[ok], dcg[ok])
-        record(ids, -1, split, "negative", np.array(sess)[ok], np.array(frames)[ok], np.array(centres)[ok], yaw[ok], npts[ok],
-               np.zeros(ok.sum()), np.repeat(np.eye(4)[None], ok.sum(), axis=0))
-        pools[split] = (ids, np.array(centres)[ok])
-
-    # correspondence sets
-    triplets: dict[str, list] = {s: [] for s in SPLITS}
-    order = places_by_cell(kp_session, kp_index, kp_split, sessions, cfg, rng)
-    n_sets = rejected_members = tried = n_done = n_icp = 0
-    icp_cache: dict[tuple, dict] = {}
-    crop = cfg.domain.patch_radius + 2.0
-
-    def _one_place(j: int, split: str) -> int:
-        """Patches and triplets of the place at keypoint ``j``; returns the triplets made."""
-        nonlocal n_sets, rejected_members, tried, n_icp
-        tried += 1
-        a = sessions[kp_session[j]]
-        p = a.points[kp_index[j]]
-        members = [(kp_session[j], kp_index[j])]
+        # keypoints per session, with their split
+        all_utm = np.concatenate([frame.enu_to_utm(s.points[:: max(1, len(s.points) // 20000)])[:, :2] for s in sessions])
+        tiles = tile_split(all_utm, cfg.tile_size_m, cfg.test_fraction, cfg.seed)
+        kp_session, kp_index, kp_split = [], [], []
         for si, s in enumerate(sessions):
-            if si == kp_session[j]:
+            k = np.sort(rng.choice(len(s.points), max(1, int(round(cfg.keypoint_fraction * len(s.points)))), replace=False))
+            sp = split_of(frame.enu_to_utm(s.points[k])[:, :2], tiles, cfg.tile_size_m, cfg.buffer_m)
+            kp_session.append(np.full(len(k), si))
+            kp_index.append(k)
+            kp_split.append(sp)
+        kp_session, kp_index, kp_split = np.concatenate(kp_session), np.concatenate(kp_index), np.concatenate(kp_split)
+
+        shards = ShardWriter(out, cfg.shard_patches)
+        table: dict[str, list] = {k: [] for k in ("patch_id", "set_id", "split", "role", "session", "frame", "enu", "yaw", "points", "icp_rmse_m", "transform")}
+
+        def record(ids, set_id, split, role, sess, frames, enu, yaw, npts, rmse, T):
+            table["patch_id"].append(ids)
+            table["set_id"].append(np.full(len(ids), set_id))
+            table["split"].append(np.full(len(ids), split, dtype=object))
+            table["role"].append(np.full(len(ids), role, dtype=object))
+            table["session"].append(np.asarray(sess))
+            table["frame"].append(np.asarray(frames))
+            table["enu"].append(np.asarray(enu))
+            table["yaw"].append(np.asarray(yaw))
+            table["points"].append(np.asarray(npts))
+            table["icp_rmse_m"].append(np.asarray(rmse))
+            table["transform"].append(np.asarray(T))
+
+        # negative pools: random keypoints of each split, patches as mapped (no ICP needed)
+        pools = {}
+        for split in SPLITS:
+            cand = np.flatnonzero(kp_split == split)
+            if len(cand) == 0:
                 continue
-            d, nearest = s.tree3.query(p, distance_upper_bound=cfg.seen_radius_m)
-            if np.isfinite(d):
-                members.append((si, nearest))
-        if len(members) < 2:
-            return 0
-        members = members[: cfg.max_members]
-        clouds, centres, obs, sess, frames, rmses, Ts = [], [], [], [], [], [], []
-        for si, pi in members:
-            s = sessions[si]
-            cloud = s.around(p, crop)
-            if len(cloud) < cfg.min_patch_points:
-                continue
-            if si == kp_session[j]:
-                T, rmse = np.eye(4), 0.0
-            else:
-                key = (si, int(kp_session[j]), *np.floor(p[:2] / cfg.icp_cell_m).astype(int).tolist())
-                r = icp_cache.get(key)
-                if r is None:
-                    c = (np.floor(p[:2] / cfg.icp_cell_m) + 0.5) * cfg.icp_cell_m
-                    centre = np.array([c[0], c[1], p[2]])
-                    reach = crop + 0.71 * cfg.icp_cell_m
-                    src = s.around(centre, reach)
-                    tgt = a.around(centre, reach)
-                    r = register_clouds(src, tgt, centre, icp, structure=False) if min(len(src), len(tgt)) >= cfg.min_patch_points else {"fitness": 0.0, "rmse_m": float("nan")}
-                    icp_cache[key] = r
-                    n_icp += 1
-                if r["fitness"] < cfg.min_fitness or not r["rmse_m"] <= cfg.lambda_icp_m:
-                    rejected_members += 1
+            pick = rng.choice(cand, min(cfg.negative_pool, len(cand)), replace=False)
+            clouds, centres, obs, sess, frames = [], [], [], [], []
+            for j in pick:
+                s = sessions[kp_session[j]]
+                p = s.points[kp_index[j]]
+                clouds.append(s.around(p, cfg.domain.patch_radius))
+                centres.append(p)
+                obs.append(s.observer_pos[kp_index[j]])
+                sess.append(kp_session[j])
+                frames.append(s.observer_frame[kp_index[j]])
+            occ, dcg, yaw, npts = make_patches(clouds, np.array(centres), np.array(obs), cfg)
+            ok = npts >= cfg.min_patch_points
+            ids = shards.add(occ[ok], dcg[ok])
+            record(ids, -1, split, "negative", np.array(sess)[ok], np.array(frames)[ok], np.array(centres)[ok], yaw[ok], npts[ok],
+                   np.zeros(ok.sum()), np.repeat(np.eye(4)[None], ok.sum(), axis=0))
+            pools[split] = (ids, np.array(centres)[ok])
+
+        # correspondence sets
+        triplets: dict[str, list] = {s: [] for s in SPLITS}
+        order = places_by_cell(kp_session, kp_index, kp_split, sessions, cfg, rng)
+        n_sets = rejected_members = tried = n_done = n_icp = 0
+        icp_cache: dict[tuple, dict] = {}
+        crop = cfg.domain.patch_radius + 2.0
+
+        def _one_place(j: int, split: str) -> int:
+            """Patches and triplets of the place at keypoint ``j``; returns the triplets made."""
+            nonlocal n_sets, rejected_members, tried, n_icp
+            tried += 1
+            a = sessions[kp_session[j]]
+            p = a.points[kp_index[j]]
+            members = [(kp_session[j], kp_index[j])]
+            for si, s in enumerate(sessions):
+                if si == kp_session[j]:
                     continue
-                T, rmse = r["target_from_source"], r["rmse_m"]
-            clouds.append(cloud @ T[:3, :3].T + T[:3, 3])
-            centres.append(p)
-            obs.append(T[:3, :3] @ s.observer_pos[pi] + T[:3, 3])
-            sess.append(si)
-            frames.append(s.observer_frame[pi])
-            rmses.append(rmse)
-            Ts.append(T)
-        if len(clouds) < 2 or sess[0] != kp_session[j]:
-            return 0
-        occ, dcg, yaw, npts = make_patches(clouds, np.array(centres), np.array(obs), cfg)
-        ok = npts >= cfg.min_patch_points
-        if ok.sum() < 2:
-            return 0
-        ids = shards.add(occ[ok], dcg[ok])
-        set_rmse = float(max(np.array(rmses)[ok]))
-        record(ids, n_sets, split, "positive", np.array(sess)[ok], np.array(frames)[ok], np.array(centres)[ok], yaw[ok], npts[ok],
-               np.full(ok.sum(), set_rmse), np.array(Ts)[ok])
-        pool_ids, pool_pos = pools[split]
-        far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
-        if len(far) == 0:
-            return 0
-        ii, jj = np.triu_indices(len(ids), 1)
-        ii, jj = ii[: cfg.n_triplets - n_done], jj[: cfg.n_triplets - n_done]
-        neg = pool_ids[rng.choice(far, len(ii))]
-        triplets[split].append(np.stack([ids[ii], ids[jj], neg], axis=1))
-        n_sets += 1
+                d, nearest = s.tree3.query(p, distance_upper_bound=cfg.seen_radius_m)
+                if np.isfinite(d):
+                    members.append((si, nearest))
+            if len(members) < 2:
+                return 0
+            members = members[: cfg.max_members]
+            clouds, centres, obs, sess, frames, rmses, Ts = [], [], [], [], [], [], []
+            for si, pi in members:
+                s = sessions[si]
+                cloud = s.around(p, crop)
+                if len(cloud) < cfg.min_patch_points:
+                    continue
+                if si == kp_session[j]:
+                    T, rmse = np.eye(4), 0.0
+                else:
+                    key = (si, int(kp_session[j]), *np.floor(p[:2] / cfg.icp_cell_m).astype(int).tolist())
+                    r = icp_cache.get(key)
+                    if r is None:
+                        c = (np.floor(p[:2] / cfg.icp_cell_m) + 0.5) * cfg.icp_cell_m
+                        centre = np.array([c[0], c[1], p[2]])
+                        reach = crop + 0.71 * cfg.icp_cell_m
+                        src = s.around(centre, reach)
+                        tgt = a.around(centre, reach)
+                        r = register_clouds(src, tgt, centre, icp, structure=False) if min(len(src), len(tgt)) >= cfg.min_patch_points else {"fitness": 0.0, "rmse_m": float("nan")}
+                        icp_cache[key] = r
+                        n_icp += 1
+                    if r["fitness"] < cfg.min_fitness or not r["rmse_m"] <= cfg.lambda_icp_m:
+                        rejected_members += 1
+                        continue
+                    T, rmse = r["target_from_source"], r["rmse_m"]
+                clouds.append(cloud @ T[:3, :3].T + T[:3, 3])
+                centres.append(p)
+                obs.append(T[:3, :3] @ s.observer_pos[pi] + T[:3, 3])
+                sess.append(si)
+                frames.append(s.observer_frame[pi])
+                rmses.append(rmse)
+                Ts.append(T)
+            if len(clouds) < 2 or sess[0] != kp_session[j]:
+                return 0
+            occ, dcg, yaw, npts = make_patches(clouds, np.array(centres), np.array(obs), cfg)
+            ok = npts >= cfg.min_patch_points
+            if ok.sum() < 2:
+                return 0
+            ids = shards.add(occ[ok], dcg[ok])
+            set_rmse = float(max(np.array(rmses)[ok]))
+            record(ids, n_sets, split, "positive", np.array(sess)[ok], np.array(frames)[ok], np.array(centres)[ok], yaw[ok], npts[ok],
+                   np.full(ok.sum(), set_rmse), np.array(Ts)[ok])
+            pool_ids, pool_pos = pools[split]
+            far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
+            if len(far) == 0:
+                return 0
+            ii, jj = np.triu_indices(len(ids), 1)
+            ii, jj = ii[: cfg.n_triplets - n_done], jj[: cfg.n_triplets - n_done]
+            neg = pool_ids[rng.choice(far, len(ii))]
+            triplets[split].append(np.stack([ids[ii], ids[jj], neg], axis=1))
+            n_sets += 1
+            if progress:
+                print(f"\r[triplets] {n_done + len(ii)}/{cfg.n_triplets} triplets from {n_sets} places", end="", file=sys.stderr, flush=True)
+            return len(ii)
+
+        # each split gets its share (test_fraction of the triplets to test); what a split cannot fill
+        # (too few places seen by two sessions) goes to the other in a second pass
+        quota = {"test": int(round(cfg.test_fraction * cfg.n_triplets))}
+        quota["train"] = cfg.n_triplets - quota["test"]
+        made = {"train": 0, "test": 0}
+        used = np.zeros(len(order), bool)
+        for pass_no in (0, 1):
+            for pos, j in enumerate(order):
+                if n_done >= cfg.n_triplets:
+                    break
+                if used[pos]:
+                    continue
+                split = kp_split[j]
+                if split not in pools or (pass_no == 0 and made[split] >= quota[split]):
+                    continue
+                used[pos] = True
+                n_new = _one_place(j, split)
+                made[split] += n_new
+                n_done += n_new
         if progress:
-            print(f"\r[triplets] {n_done + len(ii)}/{cfg.n_triplets} triplets from {n_sets} places", end="", file=sys.stderr, flush=True)
-        return len(ii)
+            print(file=sys.stderr)
+        shards.flush()
 
-    # each split gets its share (test_fraction of the triplets to test); what a split cannot fill
-    # (too few places seen by two sessions) goes to the other in a second pass
-    quota = {"test": int(round(cfg.test_fraction * cfg.n_triplets))}
-    quota["train"] = cfg.n_triplets - quota["test"]
-    made = {"train": 0, "test": 0}
-    used = np.zeros(len(order), bool)
-    for pass_no in (0, 1):
-        for pos, j in enumerate(order):
-            if n_done >= cfg.n_triplets:
-                break
-            if used[pos]:
-                continue
-            split = kp_split[j]
-            if split not in pools or (pass_no == 0 and made[split] >= quota[split]):
-                continue
-            used[pos] = True
-            n_new = _one_place(j, split)
-            made[split] += n_new
-            n_done += n_new
-    if progress:
-        print(file=sys.stderr)
-    shards.flush()
-
-    tab = {k: np.concatenate(v) if v else np.zeros(0) for k, v in table.items()}
-    order_ids = np.argsort(tab["patch_id"])
-    tab = {k: v[order_ids] for k, v in tab.items()}
-    utm = frame.enu_to_utm(tab["enu"]) if len(tab["enu"]) else np.zeros((0, 3))
-    names = [s.name for s in sessions]
-    with atomic_path(out / "patches.npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, patch_id=tab["patch_id"], set_id=tab["set_id"], split=tab["split"].astype(str),
-                                role=tab["role"].astype(str), session=tab["session"], frame=tab["frame"], enu=tab["enu"], utm=utm,
-                                yaw=tab["yaw"], points=tab["points"], icp_rmse_m=tab["icp_rmse_m"], transform=tab["transform"])
-    _write_patches_csv(out / "patches.csv", tab, utm, names, cfg)
-    counts = {}
-    for split in SPLITS:
-        t = np.concatenate(triplets[split]) if triplets[split] else np.zeros((0, 3), np.int64)
-        with atomic_path(out / f"triplets_{split}.npy") as tmp:
+        tab = {k: np.concatenate(v) if v else np.zeros(0) for k, v in table.items()}
+        order_ids = np.argsort(tab["patch_id"])
+        tab = {k: v[order_ids] for k, v in tab.items()}
+        utm = frame.enu_to_utm(tab["enu"]) if len(tab["enu"]) else np.zeros((0, 3))
+        names = [s.name for s in sessions]
+        with atomic_path(out / "patches.npz") as tmp:
             with open(tmp, "wb") as f:
-                np.save(f, t.astype(np.int64))
-        counts[split] = int(len(t))
-    seconds = time.perf_counter() - t0
-    manifest = {
-        "format_version": TRIPLETS_FORMAT_VERSION, "workspace": str(workspace), "sessions": names, "seed": cfg.seed,
-        "config_hash": h, "frame": frame.to_dict(), "domain": cfg.domain.model_dump(), "grid": cfg.grid,
-        "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
-                  "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
-        "tiles": [{"utm_min": [k[0] * cfg.tile_size_m, k[1] * cfg.tile_size_m], "split": v} for k, v in sorted(tiles.items())],
-        "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
-        "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
-    }
-    write_json(out / "manifest.json", manifest)
-    metrics = {"triplets": counts, "quota": quota, "patches": int(shards.n), "places": n_sets, "places_tried": tried,
-               "members_rejected_by_icp": rejected_members, "icp_registrations": n_icp, "seconds": seconds,
-               "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
-    write_json(out / "metrics.json", metrics)
-    from .plots import triplet_examples
+                np.savez_compressed(f, patch_id=tab["patch_id"], set_id=tab["set_id"], split=tab["split"].astype(str),
+                                    role=tab["role"].astype(str), session=tab["session"], frame=tab["frame"], enu=tab["enu"], utm=utm,
+                                    yaw=tab["yaw"], points=tab["points"], icp_rmse_m=tab["icp_rmse_m"], transform=tab["transform"])
+        _write_patches_csv(out / "patches.csv", tab, utm, names, cfg)
+        counts = {}
+        for split in SPLITS:
+            t = np.concatenate(triplets[split]) if triplets[split] else np.zeros((0, 3), np.int64)
+            with atomic_path(out / f"triplets_{split}.npy") as tmp:
+                with open(tmp, "wb") as f:
+                    np.save(f, t.astype(np.int64))
+            counts[split] = int(len(t))
+        seconds = time.perf_counter() - t0
+        manifest = {
+            "format_version": TRIPLETS_FORMAT_VERSION, "workspace": str(workspace), "sessions": names, "seed": cfg.seed,
+            "config_hash": h, "frame": frame.to_dict(), "domain": cfg.domain.model_dump(), "grid": cfg.grid,
+            "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
+                      "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
+            "tiles": [{"utm_min": [k[0] * cfg.tile_size_m, k[1] * cfg.tile_size_m], "split": v} for k, v in sorted(tiles.items())],
+            "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
+            "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
+        }
+        write_json(out / "manifest.json", manifest)
+        metrics = {"triplets": counts, "quota": quota, "patches": int(shards.n), "places": n_sets, "places_tried": tried,
+                   "members_rejected_by_icp": rejected_members, "icp_registrations": n_icp, "seconds": seconds,
+                   "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
+        write_json(out / "metrics.json", metrics)
+        from .plots import triplet_examples
 
-    ds = TripletDataset(out)
-    if counts["train"] or counts["test"]:
-        triplet_examples(out / "examples.png", ds, n=4, seed=cfg.seed)
-    mark_done(out, h)
-    return out
+        ds = TripletDataset(out)
+        if counts["train"] or counts["test"]:
+            triplet_examples(out / "examples.png", ds, n=4, seed=cfg.seed)
+        mark_done(out, h)
+    return final
 
 
 def _write_patches_csv(path: Path, tab: dict, utm: np.ndarray, names: list[str], cfg: TripletConfig) -> None:

@@ -101,3 +101,20 @@ def test_export_needs_an_alignment(tmp_path):
     (tmp_path / "ws").mkdir()
     with pytest.raises(InputError, match="mapkit align"):
         export_triplets(tmp_path / "ws", progress=False)
+
+
+def test_a_failed_export_keeps_the_earlier_dataset(aligned, tmp_path, monkeypatch):
+    import mapkit.triplets as tr
+
+    out = export_triplets(aligned, out=tmp_path / "t", overrides=CFG, progress=False)
+    before = (out / "manifest.json").read_text()
+
+    def crash(*args, **kwargs):
+        raise RuntimeError("killed half-way")
+
+    monkeypatch.setattr(tr, "make_patches", crash)
+    with pytest.raises(RuntimeError, match="half-way"):
+        export_triplets(aligned, out=out, overrides=dict(CFG, n_triplets=40), progress=False)
+    assert (out / "manifest.json").read_text() == before
+    TripletDataset(out, verify=True)  # every file as the manifest lists it
+    assert not list(tmp_path.glob(".t.partial-*"))
