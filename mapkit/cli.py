@@ -154,9 +154,40 @@ def localize(
 
 
 @app.command()
-def demo(out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o")) -> None:
+def demo(
+    out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o", help="Output folder (town, workspace, bundles, report.html)."),
+    preset: str = typer.Option("demo", help="Synthetic town preset: demo (default), tiny (seconds, stops before alignment) or benchmark."),
+    seed: Optional[int] = typer.Option(None, help="Seed of the town (the preset's if omitted)."),
+    workers: int = typer.Option(2, help="Processes for image encoding."),
+    train_cnn: bool = typer.Option(False, "--train-cnn", help="Also train the 3D CNN descriptor (learning extra; adds up to 30 min)."),
+) -> None:
     """Synthetic town to deployable bundles and an HTML report, in one command."""
-    _not_yet("demo", "the one-command demo")
+    from .demo import run_demo
+
+    m = run_demo(out, preset=preset, seed=seed, workers=workers, train_cnn=train_cnn, progress=sys.stderr.isatty())
+    typer.echo((out / "timings.md").read_text(), nl=False)
+    typer.echo(f"report: {m['report']}")
+    if "bundles" in m:
+        typer.echo(f"deployable bundle: {m['bundles']['path']} (indexes: {', '.join(m['bundles']['indexes'])})")
+    failed = [n for n, s in m["stages"].items() if s["status"] in ("failed", "crashed")]
+    if failed:
+        raise MapkitError(f"demo stage(s) failed: {', '.join(failed)} (see {m['report']})")
+
+
+@index_app.command("export")
+def index_export(
+    workspace: Path = typer.Argument(..., help="A workspace with finished indexes under WORKSPACE/indexes."),
+    out: Path = typer.Option(..., "--out", "-o", help="Bundle folder to write (replaced atomically)."),
+    name: Optional[List[str]] = typer.Option(None, "--index", "-i", help="Index folder name (vlad, structure-nbld, ...); repeat; default all."),
+) -> None:
+    """One deployable folder: every index with its manifest (format version, parameters, CRS, sessions, checksums)."""
+    from .export import export_bundles, load_bundle
+
+    path = export_bundles(workspace, out, name or None)
+    b = load_bundle(path)
+    for n, e in b.manifest["indexes"].items():
+        typer.echo(f"{n}: {e['descriptor']}, {e['entries']} entries, sessions {', '.join(e['source_sessions'])}")
+    typer.echo(f"bundle written to {path} and verified")
 
 
 @index_app.command("vlad")

@@ -78,9 +78,11 @@ def test_user_errors_are_one_line_without_traceback(tmp_path):
     assert proc.stderr.strip().count("\n") == 0 and "missing.mcap" in proc.stderr and "Traceback" not in proc.stderr
 
 
-def test_unfinished_commands_say_so(capsys):
-    assert main(["demo"]) == 2
-    assert "not available" in capsys.readouterr().err
+def test_index_export_without_indexes_is_one_line(tmp_path, capsys):
+    assert main(["index", "export", str(tmp_path), "--out", str(tmp_path / "bundle")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no finished index" in err
+    assert not (tmp_path / "bundle").exists()
 
 
 def test_align_on_a_workspace_without_sessions_is_one_line(tmp_path, capsys):

@@ -1,0 +1,117 @@
+"""`mapkit demo` on the tiny town, the deployment bundle it exports, and the HTML report."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+
+import pytest
+
+from mapkit.cli import main
+from mapkit.demo import places_pairs, run_demo
+from mapkit.errors import InputError
+from mapkit.export import export_bundles, load_bundle
+from mapkit.index_vlad import VladIndex
+from mapkit.report import Section, markdown_to_html, render
+
+
+@pytest.fixture(scope="module")
+def tiny_demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "run"
+    metrics = run_demo(out, preset="tiny", workers=1, log=lambda s: None)
+    return out, metrics
+
+
+def test_demo_runs_what_the_tiny_town_allows_and_says_why_it_skips_the_rest(tiny_demo):
+    out, m = tiny_demo
+    status = {n: s["status"] for n, s in m["stages"].items()}
+    for n in ("synth", "build", "index_vlad", "localize", "export"):
+        assert status[n] == "ok", (n, m["stages"][n])
+    # the tiny drives are too short to georeference: alignment and what needs it are skipped, with the reason
+    assert status["align"] == "skipped" and "georeference" in m["stages"]["align"]["reason"]
+    assert status["triplets"] == "skipped" and "align" in m["stages"]["triplets"]["reason"]
+    assert json.loads((out / "metrics.json").read_text())["stages"] == m["stages"]
+    assert m["seconds_total"] >= sum(s["seconds"] for s in m["stages"].values()) - 1.0
+
+
+def test_report_is_one_self_contained_page_with_every_stage(tiny_demo):
+    out, m = tiny_demo
+    page = (out / "report.html").read_text()
+    titles = re.findall(r"<h2 id=\"[^\"]+\">([^<]+)", page)
+    assert len(titles) == len(m["stages"])
+    assert page.count("data:image/png;base64,") >= 3  # town map, contact sheet, trajectories...
+    assert not re.search(r"(src|href)=\"https?:", page)  # nothing fetched from a network
+    assert "Whole run" in page and "eval_build" not in page.split("<body>")[0]
+
+
+def test_exported_bundle_loads_and_finds_a_database_image(tiny_demo):
+    out, m = tiny_demo
+    bundle = load_bundle(out / "bundles")
+    vlad = bundle["vlad"]
+    assert isinstance(vlad, VladIndex) and len(vlad) > 0
+    top = bundle.manifest["indexes"]["vlad"]
+    assert top["source_sessions"] == vlad.database_sessions and top["entries"] == len(vlad)
+    origin = json.loads((out / "workspace" / "origin.json").read_text())
+    assert top["crs"]["utm_crs_epsg"] == origin["utm_crs_epsg"] == 32630  # Oxford: UTM zone 30N
+    assert top["crs"]["origin_wgs84"] == origin["origin_wgs84"]
+
+
+def test_bundle_loader_refuses_a_changed_file_and_an_unknown_version(tiny_demo, tmp_path):
+    out, _ = tiny_demo
+    copy = tmp_path / "bundle"
+    shutil.copytree(out / "bundles", copy)  # a real copy: the fixture's files stay intact
+    victim = copy / "vlad" / "database.csv"
+    victim.write_text(victim.read_text() + "\n")
+    with pytest.raises(InputError, match="checksum mismatch") as e:
+        load_bundle(copy)
+    assert "database.csv" in str(e.value)
+
+    shutil.rmtree(copy)
+    shutil.copytree(out / "bundles", copy)
+    man = json.loads((copy / "manifest.json").read_text())
+    man["format_version"] = 99
+    (copy / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(InputError, match="unknown bundle format version 99") as e:
+        load_bundle(copy)
+    assert "manifest.json" in str(e.value) and "format_version" in str(e.value)
+
+
+def test_export_of_one_named_index_and_of_a_missing_one(tiny_demo, tmp_path, capsys):
+    out, _ = tiny_demo
+    ws = out / "workspace"
+    path = export_bundles(ws, tmp_path / "b", names=["vlad"])
+    assert sorted(json.loads((path / "manifest.json").read_text())["indexes"]) == ["vlad"]
+    with pytest.raises(InputError, match="no finished index named"):
+        export_bundles(ws, tmp_path / "c", names=["structure-cnn"])
+    assert not (tmp_path / "c").exists()
+    assert main(["index", "export", str(ws), "--out", str(tmp_path / "d")]) == 0
+    assert "verified" in capsys.readouterr().out
+
+
+def test_rerun_resumes_without_rebuilding(tiny_demo):
+    out, _ = tiny_demo
+    before = json.loads((out / "workspace" / "indexes" / "vlad" / "manifest.json").read_text())["created"]
+    again = run_demo(out, preset="tiny", workers=1, log=lambda s: None)
+    assert json.loads((out / "workspace" / "indexes" / "vlad" / "manifest.json").read_text())["created"] == before
+    assert {n: s["status"] for n, s in again["stages"].items()}["export"] == "ok"
+
+
+def test_places_pairs_mix_conditions_and_skip_empty_maps():
+    roles = {"a": {"role": "train"}, "b": {"role": "train"}, "c": {"role": "train"}, "x": {"role": "test"}, "y": {"role": "test"}}
+    pts = {"a": 10, "b": 30, "c": 20, "x": 5, "y": 0}
+    # the two fullest training maps (b, c) against each test session with a map, then test to test
+    assert places_pairs(roles, pts) == [("b", "x"), ("c", "x")]
+    pts["y"] = 7
+    assert places_pairs(roles, pts) == [("b", "x"), ("c", "x"), ("b", "y"), ("c", "y"), ("x", "y")]
+
+
+def test_markdown_subset_to_html():
+    md = "# Title\n\nSome **bold** and `code` <tag>.\n\n| a | b |\n|---|---|\n| 1 | 2 |\n| 3 | 4 |\n\n- one\n- two\n"
+    h = markdown_to_html(md)
+    assert "<h3>Title</h3>" in h
+    assert "<b>bold</b>" in h and "<code>code</code>" in h and "&lt;tag&gt;" in h
+    assert h.count("<tr>") == 3 and "<th>a</th>" in h and "<td>4</td>" in h and "---" not in h
+    assert "<ul><li>one</li><li>two</li></ul>" in h
+    page = render("T", "intro", [Section("A stage", ["x"], seconds=12.3)])
+    assert 'id="a-stage"' in page and "12 s" in page and 'href="#a-stage"' in page
