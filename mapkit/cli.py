@@ -154,6 +154,20 @@ def localize(
 
 
 @app.command()
+def train(
+    dataset: Path = typer.Argument(..., help="A triplet dataset (`mapkit triplets`)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Model folder: checkpoints, model.pt, model.onnx, manifest, curve."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults train`."),
+) -> None:
+    """Train the 3D CNN patch descriptor with the triplet loss and hard-negative cycling (learning extra)."""
+    from .train import train_cnn
+
+    folder = train_cnn(dataset, out, config, progress=sys.stderr.isatty())
+    typer.echo((folder / "metrics.json").read_text()[:2000], nl=False)
+    typer.echo(f"\nmodel written to {folder} (model.onnx loads without torch: `mapkit index structure --kind cnn`)")
+
+
+@app.command()
 def demo(
     out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o", help="Output folder (town, workspace, bundles, report.html)."),
     preset: str = typer.Option("demo", help="Synthetic town preset: demo (default), tiny (seconds, stops before alignment) or benchmark."),
