@@ -28,9 +28,10 @@ import json
 import sys
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import numpy as np
 from pydantic import Field
@@ -39,6 +40,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .config import MapkitConfig, dump_config, load_config
 from .errors import InputError, InputWarning
+from .executor import Executor, get_executor
 from .geodesy import LocalFrame
 from .runio import atomic_path, atomic_write_ply, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
 from .trajectory import Trajectory
@@ -341,7 +343,7 @@ def _submap_points(s: SessionData, idx: int, neighbours: int = 0) -> np.ndarray:
     return s.points[(s.submap_of_point >= lo) & (s.submap_of_point <= hi)]
 
 
-def register_pair(a: SessionData, i: int, b: SessionData, j: int, cfg: AlignConfig) -> PairResult:
+def register_pair(a: SessionData | _SubmapClouds, i: int, b: SessionData | _SubmapClouds, j: int, cfg: AlignConfig) -> PairResult:
     t0 = time.perf_counter()
     centre = 0.5 * (a.centres[i] + b.centres[j])
     src = _submap_points(a, i)
@@ -358,6 +360,42 @@ def register_pair(a: SessionData, i: int, b: SessionData, j: int, cfg: AlignConf
     return PairResult(**base, target_from_source=r["target_from_source"], accepted=ok, reason=reason, fitness=r["fitness"],
                       rmse_m=r["rmse_m"], correction_m=moved, seconds=time.perf_counter() - t0, structure_fitness=r["structure_fitness"],
                       structure_rmse_m=r["structure_rmse_m"])
+
+
+@dataclass
+class _SubmapClouds:
+    """What registering a session's submaps needs (``register_pair`` reads these fields only):
+    shipped to workers once, without the rest of the session."""
+
+    name: str
+    points: np.ndarray
+    submap_of_point: np.ndarray
+    centres: np.ndarray
+
+
+@contextmanager
+def _open3d_one_thread() -> Iterator[None]:
+    """open3d (TBB) on one thread for a while: its ICP reduces over threads in a varying order, so
+    with more than one thread two runs of the same pair differ in the last bits (measured, 0.20)."""
+    import open3d as o3d
+
+    util = o3d.utility
+    if not hasattr(util, "set_max_threads"):  # open3d < 0.20: no control; workers still run one per core
+        yield
+        return
+    before = util.get_max_threads()
+    util.set_max_threads(1)
+    try:
+        yield
+    finally:
+        util.set_max_threads(before)
+
+
+def _register_task(shared: tuple[list[_SubmapClouds], "AlignConfig"], pair: tuple[int, int, int, int]) -> PairResult:
+    clouds, cfg = shared
+    ia, i, ib, j = pair
+    with _open3d_one_thread():
+        return register_pair(clouds[ia], i, clouds[ib], j, cfg)
 
 
 # --- pose graph ------------------------------------------------------------------------------------
@@ -588,8 +626,13 @@ def _save_pair_cache(path: Path, cache: dict[str, PairResult]) -> None:
 
 
 def align_workspace(workspace: str | Path, config: str | Path | None = None, overrides: Optional[dict] = None,
-                    progress: bool = True, sessions: Optional[list[str]] = None) -> Path:
-    """Align every built session of ``workspace``; returns ``WORKSPACE/align``."""
+                    progress: bool = True, sessions: Optional[list[str]] = None, executor: Optional[Executor] = None) -> Path:
+    """Align every built session of ``workspace``; returns ``WORKSPACE/align``.
+
+    Submap pairs are registered on ``executor`` (default: :func:`mapkit.executor.get_executor`),
+    each with open3d on one thread, so that the registrations are the same bit for bit on any
+    executor (open3d's multi-threaded ICP sums in a varying order).
+    """
     workspace = Path(workspace)
     cfg = load_config(AlignConfig, config, overrides)
     origin = workspace / "origin.json"
@@ -617,23 +660,33 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     cache_path = out / "registrations.json"
     cache = _load_pair_cache(cache_path)
     cands = candidate_pairs(data, cfg.overlap_radius_m)
-    results: list[PairResult] = []
-    fresh = 0
-    t_reg = 0.0
-    for n, (ia, i, ib, j) in enumerate(cands):
-        a, b = data[ia], data[ib]
-        key = _pair_key(a, i, b, j, cfg)
+    keys = [_pair_key(data[ia], i, data[ib], j, cfg) for ia, i, ib, j in cands]
+    cached: list[Optional[PairResult]] = []
+    for key in keys:
         r = cache.get(key)
         if r is not None and r.reason == "not registered" and min(r.source_points, r.target_points) >= cfg.min_points:
             r = None  # skipped under a stricter min_points than today's
-        if r is None:
-            r = register_pair(a, i, b, j, cfg)
-            r.key = key
-            cache[key] = r
-            fresh += 1
-            t_reg += r.seconds
-            if fresh % 25 == 0:
-                _save_pair_cache(cache_path, cache)  # an interrupted run keeps what it registered
+        cached.append(r)
+    todo = [n for n, r in enumerate(cached) if r is None]
+    fresh = 0
+    t_reg = 0.0
+    clouds = [_SubmapClouds(s.name, s.points, s.submap_of_point, s.centres) for s in data]
+    registered = (executor or get_executor()).map(
+        _register_task, [cands[n] for n in todo], shared=(clouds, cfg), desc="ICP of submap pairs",
+        label=lambda c: f"{data[c[0]].name} submap {c[1]} onto {data[c[2]].name} submap {c[3]}")
+    for n, r in zip(todo, registered):  # in candidate order, whichever executor ran them
+        r.key = keys[n]
+        cache[keys[n]] = cached[n] = r
+        fresh += 1
+        t_reg += r.seconds
+        if fresh % 25 == 0:
+            _save_pair_cache(cache_path, cache)  # an interrupted run keeps what it registered
+        if progress:
+            print(f"\r[align] registered {fresh}/{len(todo)} new submap pairs ({len(cands)} in all)", end="", file=sys.stderr, flush=True)
+    if progress and todo:
+        print(file=sys.stderr)
+    results: list[PairResult] = []
+    for r in cached:
         r = copy.deepcopy(r)  # the graph may reject it below; the cache keeps the registration
         if r.source_points >= cfg.min_points and r.target_points >= cfg.min_points and r.reason != "not registered":
             r.accepted, r.reason, _ = _decide(r.metrics(), cfg.icp, r.centre)
@@ -641,10 +694,6 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
             r.accepted = False
             r.reason = f"too few points ({r.source_points} source, {r.target_points} target; need {cfg.min_points})"
         results.append(r)
-        if progress:
-            print(f"\r[align] registered {n + 1}/{len(cands)} submap pairs ({fresh} new)", end="", file=sys.stderr, flush=True)
-    if progress and cands:
-        print(file=sys.stderr)
     _save_pair_cache(cache_path, cache)
 
     # 2. pose graph

@@ -39,10 +39,11 @@ in nearly as many dimensions as images flattens the differences between the trai
 (which are usually the database): on the 8-session demo (684 training images, 683-D) recall@1/5/20
 within 25 m was 0.38/0.62/0.83 whitened, against 0.46/0.69/0.88 with ``vlad.pca_dim: 256``.
 
-Encoding is the expensive part (~0.27 s per 640x480 image and core). With ``workers > 1`` it runs
-in spawned processes that compute the raw VLAD (16384-D; only the small vocabulary is shipped to
-them), while the parent applies the PCA in batches; the result does not depend on the number of
-workers.
+Encoding is the expensive part (~0.27 s per 640x480 image and core). It runs on an executor
+(:mod:`mapkit.executor`: this process, ``workers`` spawned processes, or Ray) whose workers compute
+the raw VLAD (16384-D; only the config and the small vocabulary are shipped to them, once per
+worker), while the parent applies the PCA in batches, in input order; the vectors are the same bit
+for bit whichever executor ran.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ import warnings
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Literal, Optional, Sequence
+from typing import Any, Iterator, Literal, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -66,14 +67,15 @@ from pydantic import Field
 
 from . import __version__
 from .config import MapkitConfig, _deep_merge, dump_config, load_config
-from .errors import ConfigError, InputError, InputWarning, MapkitError
+from .errors import ConfigError, InputError, InputWarning
+from .executor import Executor, TaskError, get_executor
 from .geodesy import LocalFrame
 from .imagedb import images_world_from_cam, read_images_csv
 from .geometry import matrix_to_quat_wxyz
 from .align import aligned_sessions
 from .bundle import MANIFEST, building, is_finished, link_or_copy, read_manifest, write_manifest
 from .measurement import Measurement, mean_shift_measurement
-from .runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json
+from .runio import atomic_write_text, config_hash, sha256_file, write_json
 from .vlad import VladConfig, VladEncoder, kmeans
 
 FORMAT_VERSION = 1
@@ -208,8 +210,6 @@ def _workspace_frame(workspace: Path) -> Optional[LocalFrame]:
 
 # --------------------------------------------------------------------------- encoding (parallel)
 
-_WORKER: dict[str, Any] = {}
-
 
 def read_image(path: str | Path) -> np.ndarray:
     """An image as stored (grey or BGR uint8), as the encoder takes it."""
@@ -221,81 +221,40 @@ def read_image(path: str | Path) -> np.ndarray:
     return img
 
 
-def _init_worker(cfg_json: str, vocabulary: Optional[np.ndarray], single_thread: bool) -> None:
-    if single_thread:
-        cv2.setNumThreads(1)
-    _WORKER["encoder"] = VladEncoder(VladConfig.model_validate_json(cfg_json), vocabulary)
+def _raw_task(encoder: VladEncoder, path: str) -> np.ndarray:
+    """(K * 128,) raw VLAD of an image file: what workers compute (the PCA stays in the parent)."""
+    return encoder.encode_raw(read_image(path))
 
 
-def _raw_task(path: str) -> tuple[bool, Any]:
-    # errors travel as values: InputError's signature does not survive pickling
-    try:
-        return True, _WORKER["encoder"].encode_raw(read_image(path))
-    except MapkitError as exc:
-        return False, (path, str(getattr(exc, "what", exc)))
-
-
-def _sample_task(args: tuple[str, int, int, int]) -> tuple[bool, Any]:
+def _sample_task(encoder: VladEncoder, args: tuple[str, int, int, int]) -> np.ndarray:
+    """A uniform sample of ``size`` RootSIFT descriptors of one image, seeded by ``(seed, index)``."""
     from .dsift import iter_histogram_blocks, prepare_image
     from .vlad import _rootsift_from_histograms, _UniformSample  # the encoder's own sampling, per image
 
     path, size, seed, index = args
-    try:
-        cfg = _WORKER["encoder"].cfg
-        sample = _UniformSample(size, np.random.default_rng([seed, index]))
-        gray, _, _ = prepare_image(read_image(path), cfg.dsift)
-        for blk in iter_histogram_blocks(gray, cfg.dsift):
-            sample.add(_rootsift_from_histograms(blk.histograms, cfg.dsift.clamp))
-        return True, sample.result()
-    except MapkitError as exc:
-        return False, (path, str(getattr(exc, "what", exc)))
+    cfg = encoder.cfg
+    sample = _UniformSample(size, np.random.default_rng([seed, index]))
+    gray, _, _ = prepare_image(read_image(path), cfg.dsift)
+    for blk in iter_histogram_blocks(gray, cfg.dsift):
+        sample.add(_rootsift_from_histograms(blk.histograms, cfg.dsift.clamp))
+    return sample.result()
 
 
-@contextlib.contextmanager
-def _one_thread_env() -> Iterator[None]:
-    """Spawned workers inherit the environment: one BLAS/OpenMP thread each (set before they import numpy)."""
-    names = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    saved = {n: os.environ.get(n) for n in names}
-    os.environ.update({n: "1" for n in names})
-    try:
-        yield
-    finally:
-        for n, v in saved.items():
-            if v is None:
-                os.environ.pop(n, None)
-            else:
-                os.environ[n] = v
+def _map(fn, items: Sequence, encoder: VladEncoder, executor: Executor, progress: bool, desc: str) -> Iterator:
+    """``fn(encoder, item)`` over ``items`` in order on ``executor``; only the encoder's config and
+    vocabulary travel to workers (never the PCA, up to 256 MiB at 4096-D).
 
-
-def _map(fn, items: Sequence, cfg: VladConfig, vocabulary: Optional[np.ndarray], workers: int, progress: bool, desc: str) -> Iterator:
-    """``fn`` over ``items`` in order, in this process or in ``workers`` spawned ones; raises the first error.
-
-    In this process OpenBLAS is held to one thread while the generator runs: the encoder's products
-    are small, and on this loaded 2-core machine BLAS threads spinning against other work made it
-    4.6x slower (0.41 vs 0.09 s per half-resolution KITTI frame, measured).
+    An input error of one image (unreadable, too small) is raised as that image's InputError: it
+    names the file already.
     """
-    from .synth._threads import single_thread_blas
-
-    bar = progress_bar(len(items), progress and len(items) > 0, desc, "img")
-    with contextlib.ExitStack() as stack:
-        stack.callback(bar.close)
-        if workers <= 1 or len(items) < 2:
-            stack.enter_context(single_thread_blas())
-            _init_worker(cfg.model_dump_json(), vocabulary, single_thread=False)
-            results: Iterable = map(fn, items)
-        else:
-            import multiprocessing as mp
-
-            with _one_thread_env():
-                pool = mp.get_context("spawn").Pool(min(workers, len(items)), _init_worker, (cfg.model_dump_json(), vocabulary, True))
-            stack.callback(pool.join)
-            stack.callback(pool.terminate)
-            results = pool.imap(fn, items, chunksize=1)
-        for ok, value in results:
-            if not ok:
-                raise InputError(value[0], value[1])
-            bar.update(1)
-            yield value
+    shared = VladEncoder(encoder.cfg, encoder.vocabulary)
+    try:
+        yield from executor.map(fn, items, shared=shared, progress=progress and len(items) > 0, desc=desc, unit="img",
+                                label=lambda item: str(item[0] if isinstance(item, tuple) else item))
+    except TaskError as exc:
+        if isinstance(exc.cause, InputError) and exc.cause.path is not None:
+            raise exc.cause from None
+        raise
 
 
 @contextlib.contextmanager
@@ -313,11 +272,17 @@ def _faiss_threads(n: int) -> Iterator[None]:
 
 
 def encode_images(
-    encoder: VladEncoder, paths: Sequence[str | Path], workers: int = 1, progress: bool = False, desc: str = "encode"
+    encoder: VladEncoder, paths: Sequence[str | Path], workers: int = 1, progress: bool = False, desc: str = "encode",
+    executor: Optional[Executor] = None,
 ) -> np.ndarray:
-    """(n, D) float32 encodings of image files (dense RootSIFT, VLAD, PCA-whitening, L2)."""
+    """(n, D) float32 encodings of image files (dense RootSIFT, VLAD, PCA-whitening, L2).
+
+    Runs on ``executor``, else on the process-wide default (:func:`mapkit.executor.get_executor`),
+    else in ``workers`` local processes; the result is the same bit for bit on any of them.
+    """
+    executor = executor or get_executor(workers)
     out = np.zeros((len(paths), encoder.pca.dim), np.float32)
-    for rows, raw in _batched(_map(_raw_task, [str(p) for p in paths], encoder.cfg, encoder.vocabulary, workers, progress, desc), _PCA_BATCH):
+    for rows, raw in _batched(_map(_raw_task, [str(p) for p in paths], encoder, executor, progress, desc), _PCA_BATCH):
         out[rows] = encoder.pca.transform(raw)
     return out
 
@@ -359,8 +324,13 @@ def build_vlad_index(
     config: VladIndexConfig | str | Path | None = None,
     overrides: Optional[dict] = None,
     progress: bool = True,
+    executor: Optional[Executor] = None,
 ) -> Path:
     """Build the VLAD index bundle of ``workspace``; returns its folder (default ``WORKSPACE/indexes/vlad``).
+
+    Images are encoded on ``executor``, else on the process-wide default executor, else in
+    ``workers`` local processes (:func:`mapkit.executor.get_executor`); the bundle's vectors do not
+    depend on which.
 
     The vocabulary and PCA learn from training-session images only; every database image is
     encoded once (the training subsample's raw VLADs are kept for the PCA and reused). Skips when
@@ -400,7 +370,8 @@ def build_vlad_index(
         raise InputError(out, "exists and is not a VLAD index bundle (no manifest.json): refusing to replace it")
 
     with building(out) as tmp:
-        metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress)
+        metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress,
+                                        executor or get_executor(cfg.workers))
         metrics["seconds_total"] = time.perf_counter() - t_start
         write_json(tmp / "metrics.json", metrics)
         write_manifest(tmp, manifest)  # last: it checksums every other file
@@ -408,7 +379,8 @@ def build_vlad_index(
 
 
 def _build_into(tmp: Path, ws: Path, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str],
-                train_names: list[str], frame: Optional[LocalFrame], build_hash: str, progress: bool) -> tuple[dict, dict]:
+                train_names: list[str], frame: Optional[LocalFrame], build_hash: str, progress: bool,
+                executor: Executor) -> tuple[dict, dict]:
     """Learn, encode and write everything but metrics.json and the manifest into ``tmp``; returns both."""
     timings: dict[str, float] = {}
     # training images: every image of the training sessions, uniformly subsampled
@@ -423,7 +395,7 @@ def _build_into(tmp: Path, ws: Path, cfg: VladIndexConfig, sessions: dict[str, S
     t0 = time.perf_counter()
     per_image = math.ceil(cfg.vlad.kmeans_max_descriptors / len(vocab_sel))
     tasks = [(path_of(r), per_image, cfg.vlad.seed, k) for k, r in enumerate(vocab_sel)]
-    sample = np.concatenate(list(_map(_sample_task, tasks, cfg.vlad, None, cfg.workers, progress, "descriptors")))
+    sample = np.concatenate(list(_map(_sample_task, tasks, VladEncoder(cfg.vlad), executor, progress, "descriptors")))
     with _faiss_threads(1):
         vocabulary = kmeans(sample, cfg.vlad.num_words, cfg.vlad.kmeans_iterations, cfg.vlad.seed)
     timings["vocabulary_s"] = time.perf_counter() - t0
@@ -434,7 +406,7 @@ def _build_into(tmp: Path, ws: Path, cfg: VladIndexConfig, sessions: dict[str, S
     t0 = time.perf_counter()
     encoder = VladEncoder(cfg.vlad, vocabulary)
     raw_train = np.zeros((len(train_sel), encoder.raw_dim), np.float32)
-    for i, r in enumerate(_map(_raw_task, [path_of(r) for r in train_sel], cfg.vlad, vocabulary, cfg.workers, progress, "train VLAD")):
+    for i, r in enumerate(_map(_raw_task, [path_of(r) for r in train_sel], encoder, executor, progress, "train VLAD")):
         raw_train[i] = r
     timings["encode_training_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -454,7 +426,7 @@ def _build_into(tmp: Path, ws: Path, cfg: VladIndexConfig, sessions: dict[str, S
         vectors[js] = encoder.pca.transform(raw_train[[row_of_train[db_refs[j]] for j in js]])
     del raw_train
     todo = [j for j, r in enumerate(db_refs) if r not in row_of_train]
-    vectors[todo] = encode_images(encoder, [path_of(db_refs[j]) for j in todo], cfg.workers, progress, "database")
+    vectors[todo] = encode_images(encoder, [path_of(db_refs[j]) for j in todo], progress=progress, desc="database", executor=executor)
     timings["encode_database_s"] = time.perf_counter() - t0
     n_encoded = len(train_sel) + len(todo)
 
@@ -478,7 +450,8 @@ def _build_into(tmp: Path, ws: Path, cfg: VladIndexConfig, sessions: dict[str, S
         "training_images": len(train_sel),
         "vocabulary_images": len(vocab_sel),
         "vocabulary_descriptors": n_descriptors,
-        "workers": cfg.workers,
+        "executor": executor.kind,
+        "workers": executor.workers,
         **timings,
     }
     train_count = {n: sum(1 for r in train_sel if r[0] == n) for n in train_names}
@@ -808,7 +781,7 @@ class VladIndex:
 
     # ---- growing
 
-    def add_session(self, workspace: str | Path, name: str, progress: bool = False) -> "VladIndex":
+    def add_session(self, workspace: str | Path, name: str, progress: bool = False, executor: Optional[Executor] = None) -> "VladIndex":
         """Append a session's images (encoded with this bundle's vocabulary and PCA, not relearned).
 
         The grown bundle is written beside this one and renamed into place; ``self`` then holds it.
@@ -823,7 +796,7 @@ class VladIndex:
             raise InputError(ws / "origin.json", "the workspace's local frame differs from the bundle's: its poses would not match", field="frame")
         s = read_session_images(ws, name, self.cfg.prefer_aligned_poses)
         t0 = time.perf_counter()
-        new = encode_images(self.encoder, [str(p) for p in s.image_paths], self.cfg.workers, progress, f"add {name}")
+        new = encode_images(self.encoder, [str(p) for p in s.image_paths], self.cfg.workers, progress, f"add {name}", executor)
         encode_s = time.perf_counter() - t0
         table = _database_table([name], {name: s}, frame, first_id=len(self))
         database = _concat_tables(self.database, table)

@@ -43,7 +43,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -53,6 +53,7 @@ from scipy.spatial import cKDTree
 
 from .config import MapkitConfig, dump_config
 from .errors import InputError
+from .executor import Executor, get_executor
 from .geometry import invert_pose, rotation_angle_rad, transform_points
 from .runio import atomic_path, atomic_write_ply, atomic_write_text
 
@@ -847,12 +848,34 @@ class _Buffered:
     pyramid: Optional[_Pyramid] = None
 
 
+@dataclass
+class _KeyframeTask:
+    """One keyframe's work: its image and pose, its neighbours', and (in this process) their pyramids."""
+
+    frame_id: int
+    stamp_ns: int
+    image: np.ndarray
+    world_from_cam: np.ndarray
+    neighbours: list[tuple[np.ndarray, np.ndarray]]
+    neighbour_ids: list[int]
+    pyramid: Optional[_Pyramid] = None
+    neighbour_pyramids: Optional[list[_Pyramid]] = None
+
+
+def _map_keyframe_task(shared: tuple[np.ndarray, SemiDenseConfig], t: _KeyframeTask) -> tuple[int, int, np.ndarray, KeyframePoints]:
+    K, cfg = shared
+    pts = map_keyframe(t.image, t.world_from_cam, t.neighbours, K, cfg, frame_id=t.frame_id, neighbour_ids=t.neighbour_ids,
+                       ref_pyramid=t.pyramid, neighbour_pyramids=t.neighbour_pyramids)
+    return t.frame_id, t.stamp_ns, t.world_from_cam, pts
+
+
 def build_semidense_map(
     frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]],
     K: np.ndarray,
     cfg: Optional[SemiDenseConfig] = None,
     progress: bool = True,
     on_keyframe: Optional[Callable[[int, np.ndarray, KeyframePoints], None]] = None,
+    executor: Optional[Executor] = None,
 ) -> SemiDenseMap:
     """Semi-dense map of a drive from ``(frame_id, stamp_ns, gray (H, W), world_from_cam 4x4)``.
 
@@ -860,73 +883,87 @@ def build_semidense_map(
     (chosen by motion) is mapped once the frames after it have arrived, against the frames up to
     ``neighbour_window_frames`` before and after it. ``on_keyframe(frame_id, world_from_cam,
     points)`` is called with each keyframe's own accepted depths (e.g. for ``consistency``).
+
+    Keyframes are mapped on ``executor`` (default: :func:`mapkit.executor.get_executor`), a few
+    per worker at a time, and fused here in keyframe order, so the map is the same bit for bit on
+    any executor. In this process the image pyramids are shared between neighbouring keyframes;
+    workers elsewhere receive the images and build their own.
     """
     from tqdm import tqdm
 
     cfg = cfg or SemiDenseConfig()
     K = np.asarray(K, np.float64)
+    executor = executor or get_executor()
     W = cfg.neighbour_window_frames
-    window: deque[_Buffered] = deque()
     fuser = _Fuser(cfg.fusion_radius_m, cfg.fusion_window_keyframes)
     kf_ids, kf_stamps, kf_poses = [], [], []
-    last_kf: Optional[np.ndarray] = None
     image_shape: Optional[tuple[int, int]] = None
     total = len(frames) if hasattr(frames, "__len__") else None  # type: ignore[arg-type]
-
-    def process(center: int) -> None:
-        kf = window[center]
-        if kf.pyramid is None:
-            kf.pyramid = _Pyramid(kf.image, cfg.pyramid_levels)
-        nbs = [f for k, f in enumerate(window) if k != center and abs(k - center) <= W]
-        for f in nbs:
-            if f.pyramid is None:
-                f.pyramid = _Pyramid(f.image, cfg.pyramid_levels)
-        pts = map_keyframe(
-            kf.image, kf.world_from_cam, [(f.image, f.world_from_cam) for f in nbs], K, cfg,
-            frame_id=kf.frame_id, neighbour_ids=[f.frame_id for f in nbs],
-            ref_pyramid=kf.pyramid, neighbour_pyramids=[f.pyramid for f in nbs],
-        )
-        if on_keyframe is not None:
-            on_keyframe(kf.frame_id, kf.world_from_cam, pts)
-        kf_ids.append(kf.frame_id)
-        kf_stamps.append(kf.stamp_ns)
-        kf_poses.append(kf.world_from_cam)
-        obs_pt = np.concatenate([np.arange(len(pts)), np.nonzero(pts.agreed)[0]])
-        obs_fid = np.concatenate([np.full(len(pts), kf.frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]])
-        fuser.add(pts.points_world(K, kf.world_from_cam), pts.sigma_depth, pts.intensity, kf.frame_id, obs_pt, obs_fid)
-
     bar = tqdm(frames, total=total, disable=not progress, desc="semi-dense", unit="frame")
-    for frame_id, stamp_ns, gray, world_from_cam in bar:
-        gray = np.asarray(gray)
-        T = np.asarray(world_from_cam, np.float64)
-        if gray.ndim != 2:
-            raise InputError(None, f"frame {frame_id}: expected a (H, W) grey image, got shape {gray.shape}")
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise InputError(None, f"frame {frame_id}: world_from_cam must be a finite 4x4 matrix")
-        if image_shape is None:
-            image_shape = gray.shape
-        elif gray.shape != image_shape:
-            raise InputError(None, f"frame {frame_id}: image shape {gray.shape} differs from the first frame's {image_shape}")
-        is_kf = last_kf is None
-        if not is_kf:
-            rel = invert_pose(last_kf) @ T
-            angle_deg = float(np.degrees(rotation_angle_rad(rel[:3, :3])))
-            is_kf = np.linalg.norm(rel[:3, 3]) >= cfg.keyframe_spacing_m or angle_deg >= cfg.keyframe_rotation_deg
-        if is_kf:
-            last_kf = T
-        window.append(_Buffered(int(frame_id), int(stamp_ns), gray, T, bool(is_kf)))
-        # the frame W places back now has all its neighbours
-        if len(window) > W and window[-1 - W].is_keyframe:
-            process(len(window) - 1 - W)
-        while len(window) > 2 * W + 1:
-            window.popleft()
-        if progress:
-            bar.set_postfix(keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done))
-    # keyframes among the last W frames: map with the frames that exist
-    for k in range(max(len(window) - W, 0), len(window)):
-        if window[k].is_keyframe:
-            process(k)
-    bar.close()
+
+    def task(window: deque[_Buffered], center: int) -> _KeyframeTask:
+        kf = window[center]
+        nbs = [f for k, f in enumerate(window) if k != center and abs(k - center) <= W]
+        t = _KeyframeTask(kf.frame_id, kf.stamp_ns, kf.image, kf.world_from_cam, [(f.image, f.world_from_cam) for f in nbs],
+                          [f.frame_id for f in nbs])
+        if executor.in_process:  # a frame's pyramid serves every keyframe whose window holds it
+            for f in (kf, *nbs):
+                if f.pyramid is None:
+                    f.pyramid = _Pyramid(f.image, cfg.pyramid_levels)
+            t.pyramid, t.neighbour_pyramids = kf.pyramid, [f.pyramid for f in nbs]
+        return t
+
+    def keyframe_tasks() -> Iterator[_KeyframeTask]:
+        nonlocal image_shape
+        window: deque[_Buffered] = deque()
+        last_kf: Optional[np.ndarray] = None
+        for frame_id, stamp_ns, gray, world_from_cam in bar:
+            gray = np.asarray(gray)
+            T = np.asarray(world_from_cam, np.float64)
+            if gray.ndim != 2:
+                raise InputError(None, f"frame {frame_id}: expected a (H, W) grey image, got shape {gray.shape}")
+            if T.shape != (4, 4) or not np.isfinite(T).all():
+                raise InputError(None, f"frame {frame_id}: world_from_cam must be a finite 4x4 matrix")
+            if image_shape is None:
+                image_shape = gray.shape
+            elif gray.shape != image_shape:
+                raise InputError(None, f"frame {frame_id}: image shape {gray.shape} differs from the first frame's {image_shape}")
+            is_kf = last_kf is None
+            if not is_kf:
+                rel = invert_pose(last_kf) @ T
+                angle_deg = float(np.degrees(rotation_angle_rad(rel[:3, :3])))
+                is_kf = np.linalg.norm(rel[:3, 3]) >= cfg.keyframe_spacing_m or angle_deg >= cfg.keyframe_rotation_deg
+            if is_kf:
+                last_kf = T
+            window.append(_Buffered(int(frame_id), int(stamp_ns), gray, T, bool(is_kf)))
+            del gray
+            # the frame W places back now has all its neighbours
+            if len(window) > W and window[-1 - W].is_keyframe:
+                yield task(window, len(window) - 1 - W)
+            while len(window) > 2 * W + 1:
+                window.popleft()
+        # keyframes among the last W frames: map with the frames that exist
+        for k in range(max(len(window) - W, 0), len(window)):
+            if window[k].is_keyframe:
+                yield task(window, k)
+
+    results = executor.map(_map_keyframe_task, keyframe_tasks(), shared=(K, cfg), desc="semi-dense keyframes",
+                           label=lambda t: f"keyframe {t.frame_id}")
+    try:
+        for frame_id, stamp_ns, world_from_cam, pts in results:
+            if on_keyframe is not None:
+                on_keyframe(frame_id, world_from_cam, pts)
+            kf_ids.append(frame_id)
+            kf_stamps.append(stamp_ns)
+            kf_poses.append(world_from_cam)
+            obs_pt = np.concatenate([np.arange(len(pts)), np.nonzero(pts.agreed)[0]])
+            obs_fid = np.concatenate([np.full(len(pts), frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]])
+            fuser.add(pts.points_world(K, world_from_cam), pts.sigma_depth, pts.intensity, frame_id, obs_pt, obs_fid)
+            if progress:
+                bar.set_postfix(keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done))
+    finally:
+        results.close()
+        bar.close()
 
     out = fuser.finish()
     h, w = image_shape if image_shape is not None else (0, 0)

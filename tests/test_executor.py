@@ -1,0 +1,276 @@
+"""The executor interface: order, errors naming their item, shared state shipped once per worker,
+lazy consumption; serial == process pool on real mapkit work (semi-dense keyframes, ICP of submap
+pairs); and the issue's test: the VLAD index of the synthetic ``tiny`` town built in this process
+and on a local Ray instance holds the same vectors, bit for bit."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapkit.align import AlignConfig, _register_task, _SubmapClouds
+from mapkit.errors import ConfigError, InputError, InputWarning, MapkitError
+from mapkit.executor import (SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor)
+from mapkit.index_vlad import read_image
+from mapkit.semidense import build_semidense_map
+
+from test_align import street
+from test_semidense import K_SYN, ROOM_CFG, room  # noqa: F401 - the rendered room, a module fixture used below
+
+# --------------------------------------------------------------------------- task functions (importable by workers)
+
+
+def slow_square(x: int) -> int:
+    time.sleep(0.03 * (x % 3 == 0))  # every third item is slower: workers finish out of order
+    return x * x
+
+
+def inverse(x: float) -> float:
+    return 1.0 / x
+
+
+_UNPICKLED = 0  # per process: how many times a CountedShared arrived here
+
+
+class CountedShared:
+    """Shared state that counts its arrivals in a process."""
+
+    def __init__(self, values: np.ndarray):
+        self.values = values
+
+    def __setstate__(self, state: dict) -> None:
+        global _UNPICKLED
+        _UNPICKLED += 1
+        self.__dict__.update(state)
+
+
+def lookup(shared: CountedShared, i: int) -> tuple[float, int, int]:
+    return float(shared.values[i]), os.getpid(), _UNPICKLED
+
+
+def producer(n: int, fail_at: int | None = None, pulled: list | None = None):
+    for i in range(n):
+        if i == fail_at:
+            raise InputError("frames.csv", f"row {i} is broken", field="row")
+        if pulled is not None:
+            pulled.append(i)
+        yield i
+
+
+EXECUTORS = {"serial": lambda: SERIAL, "process": lambda: ProcessExecutor(2)}
+
+
+# --------------------------------------------------------------------------- the contract, local executors
+
+
+@pytest.mark.parametrize("kind", EXECUTORS)
+def test_results_come_back_in_input_order(kind):
+    items = list(range(12))
+    assert list(EXECUTORS[kind]().map(slow_square, iter(items), chunksize=5)) == [x * x for x in items]  # a generator, in chunks
+    assert list(EXECUTORS[kind]().map(slow_square, [])) == []
+
+
+@pytest.mark.parametrize("kind", EXECUTORS)
+def test_first_failure_names_its_item_after_the_results_before_it(kind):
+    got = []
+    with pytest.raises(TaskError) as e:
+        for r in EXECUTORS[kind]().map(inverse, [1.0, 2.0, 0.0, 4.0, 0.0], desc="inverse"):
+            got.append(r)
+    assert got == [1.0, 0.5]
+    assert e.value.index == 2 and e.value.item == "0.0"
+    assert "inverse failed on item 2 (0.0)" in str(e.value) and "ZeroDivisionError" in str(e.value)
+    assert isinstance(e.value.cause, ZeroDivisionError) and isinstance(e.value, MapkitError)
+
+
+@pytest.mark.parametrize("kind", EXECUTORS)
+def test_a_mapkit_error_comes_back_whole_with_a_label(kind, tmp_path):
+    missing = tmp_path / "no-such.png"
+    with pytest.raises(TaskError) as e:
+        list(EXECUTORS[kind]().map(read_image, [str(missing)], label=lambda p: Path(p).name))
+    # InputError's __init__ differs from its args: the worker's error is rebuilt, not re-constructed
+    assert isinstance(e.value.cause, InputError) and e.value.cause.path == missing and e.value.cause.what == "cannot read this image"
+    assert "(no-such.png)" in str(e.value)
+    if kind == "process":
+        assert "read_image" in e.value.remote_traceback
+
+
+@pytest.mark.parametrize("kind", EXECUTORS)
+def test_producer_errors_pass_through_after_the_results_before_them(kind):
+    got = []
+    with pytest.raises(InputError, match="row 3 is broken"):
+        for r in EXECUTORS[kind]().map(slow_square, producer(6, fail_at=3)):
+            got.append(r)
+    assert got == [0, 1, 4]
+
+
+@pytest.mark.parametrize("kind", EXECUTORS)
+def test_items_are_consumed_lazily(kind):
+    pulled: list[int] = []
+    results = EXECUTORS[kind]().map(slow_square, producer(1000, pulled=pulled))
+    assert next(results) == 0
+    bound = 1 if kind == "serial" else 2 * 2  # two chunks (of one item) in flight per worker
+    assert len(pulled) <= bound
+    results.close()
+
+
+@pytest.mark.parametrize("kind", EXECUTORS)
+def test_shared_state_is_shipped_once_per_worker(kind):
+    values = np.arange(20, dtype=np.float64) * 1.5
+    out = list(EXECUTORS[kind]().map(lookup, range(20), shared=CountedShared(values)))
+    assert [v for v, _, _ in out] == list(values)
+    arrivals = {pid: n for _, pid, n in out}
+    if kind == "serial":
+        assert arrivals == {os.getpid(): _UNPICKLED}  # never pickled in this process
+    else:
+        assert os.getpid() not in arrivals and set(arrivals.values()) == {1}
+
+
+def test_a_lambda_is_refused_by_processes_with_a_clear_error():
+    with pytest.raises(ConfigError, match="module-level function"):
+        list(ProcessExecutor(2).map(lambda x: x, [1, 2]))
+
+
+def test_make_get_and_use_executor():
+    assert make_executor("local", 1) is SERIAL and get_executor() is SERIAL and get_executor(1) is SERIAL
+    ex = make_executor("local", 3)
+    assert isinstance(ex, ProcessExecutor) and ex.workers == 3
+    assert isinstance(get_executor(4), ProcessExecutor) and get_executor(4).workers == 4  # a stage's workers setting
+    mine = SerialExecutor(single_thread_blas=False)
+    with use_executor(mine):
+        assert get_executor(4) is mine  # the run's executor wins over a stage's workers setting
+        with use_executor("local", workers=2) as inner:
+            assert get_executor() is inner and inner.workers == 2
+        assert get_executor() is mine
+    assert get_executor() is SERIAL
+    with pytest.raises(ConfigError, match="kind"):
+        make_executor("dask")
+    with pytest.raises(ConfigError, match="Ray"):
+        make_executor("local", 2, address="10.0.0.1:6379")
+
+
+def test_ray_missing_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    with pytest.raises(MapkitError, match=r'pip install -e "\.\[distributed\]"'):
+        make_executor("ray", 2)
+
+
+# --------------------------------------------------------------------------- real mapkit work: serial == process pool
+
+
+def test_semidense_keyframes_serial_equals_process_pool(room):  # noqa: F811
+    poses, images = room
+    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    maps = {kind: build_semidense_map(iter(frames), K_SYN, ROOM_CFG, progress=False, executor=EXECUTORS[kind]()) for kind in EXECUTORS}
+    a, b = maps["serial"], maps["process"]
+    assert len(a) > 1000
+    for field in ("points_world", "sigma_depth", "intensity", "source_keyframe", "obs_indptr", "obs_frame_ids", "keyframe_ids",
+                  "keyframe_world_from_cam"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+
+
+def test_icp_of_submap_pairs_serial_equals_process_pool():
+    world = street(np.random.default_rng(3))
+    rng = np.random.default_rng(5)
+    clouds = []
+    for k, shift in enumerate([(0.0, 0.0, 0.0), (0.6, -0.4, 0.1), (-0.5, 0.3, 0.0)]):
+        pts = world[rng.random(len(world)) < 0.15]
+        pts = pts + rng.normal(0, 0.03, pts.shape) + np.asarray(shift)
+        clouds.append(_SubmapClouds(f"s{k}", pts, np.zeros(len(pts), np.int64), np.array([[60.0, -2.0, 0.0]])))
+    pairs = [(0, 0, 1, 0), (1, 0, 2, 0)]
+    shared = (clouds, AlignConfig())
+    got = {kind: list(EXECUTORS[kind]().map(_register_task, pairs, shared=shared)) for kind in EXECUTORS}
+    for a, b in zip(got["serial"], got["process"]):
+        np.testing.assert_array_equal(a.target_from_source, b.target_from_source)
+        assert (a.fitness, a.rmse_m, a.structure_rmse_m, a.accepted) == (b.fitness, b.rmse_m, b.structure_rmse_m, b.accepted)
+    # and the registrations are right: s1 is s0 moved by (0.6, -0.4, 0.1)
+    np.testing.assert_allclose(got["serial"][0].target_from_source[:3, 3], [0.6, -0.4, 0.1], atol=0.1)
+    assert got["serial"][0].accepted
+
+
+# --------------------------------------------------------------------------- Ray
+
+
+@pytest.fixture(scope="module")
+def ray_executor():
+    pytest.importorskip("ray", reason='Ray is not installed (pip install -e ".[distributed]")')
+    import ray
+
+    if ray.is_initialized():
+        pytest.skip("a Ray instance is already running in this process")
+    ex = make_executor("ray", workers=2)
+    yield ex
+    ex.close()
+
+
+def test_ray_keeps_the_contract(ray_executor):
+    ex = ray_executor
+    assert ex.kind == "ray" and ex.workers == 2 and not ex.in_process
+    assert list(ex.map(slow_square, range(12))) == [x * x for x in range(12)]
+    got = []
+    with pytest.raises(TaskError) as e:
+        for r in ex.map(inverse, [1.0, 2.0, 0.0, 4.0], desc="inverse"):
+            got.append(r)
+    assert got == [1.0, 0.5] and e.value.index == 2 and isinstance(e.value.cause, ZeroDivisionError)
+    values = np.arange(40, dtype=np.float64)
+    out = list(ex.map(lookup, range(40), shared=CountedShared(values), chunksize=2))
+    assert [v for v, _, _ in out] == list(values)
+    assert set(n for _, _, n in out) == {1}  # 20 tasks, one arrival of the shared state per worker process
+
+
+# the tiny preset's two training drives (configs/synth/tiny.yaml); its test drive is not indexed by the demo
+TINY_TRAIN = {"sessions": [
+    {"name": "tiny-sunny", "role": "train", "date": "2014-06-26", "time": "09:24", "weather": "sunny", "length_m": 24.0,
+     "speed_mps": 9.0, "lane_offset_m": 0.0},
+    {"name": "tiny-rainy", "role": "train", "date": "2014-10-30", "time": "11:11", "weather": "rainy", "length_m": 24.0,
+     "speed_mps": 8.0, "lane_offset_m": 0.4},
+]}
+
+
+@pytest.fixture(scope="module")
+def tiny_workspace(tmp_path_factory) -> Path:
+    """The synthetic ``tiny`` town's training drives, built (mapkit build: maps and image databases)."""
+    from mapkit.build import build
+    from mapkit.synth import synthesize
+
+    root = tmp_path_factory.mktemp("tiny")
+    town = synthesize(preset="tiny", out=root / "town", overrides=TINY_TRAIN, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # tiny's drives are too short to georeference
+        return build(sorted((town / "sessions").glob("*.mcap")), root / "ws", progress=False)
+
+
+def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, tmp_path):
+    from mapkit.index_vlad import VladIndex, build_vlad_index
+
+    from test_index_vlad import SMALL_VLAD
+
+    ws = tiny_workspace
+    # the demo's index build (its training sessions train and are indexed) with test_index_vlad's small encoder
+    overrides = {"vlad": SMALL_VLAD.model_dump(), "train_sessions": ["tiny-rainy", "tiny-sunny"],
+                 "database_sessions": ["tiny-rainy", "tiny-sunny"]}
+    serial = build_vlad_index(ws, tmp_path / "serial", overrides=overrides, progress=False, executor=SERIAL)
+    on_ray = build_vlad_index(ws, tmp_path / "ray", overrides=overrides, progress=False, executor=ray_executor)
+    a, b = VladIndex.load(serial), VladIndex.load(on_ray)
+    assert len(a) > 20
+    np.testing.assert_array_equal(a.vectors(), b.vectors())
+    for f in ("index.faiss", "database.csv", "encoder/vlad_encoder.npz"):
+        assert (serial / f).read_bytes() == (on_ray / f).read_bytes(), f
+
+
+def test_vlad_encoding_reports_an_unreadable_image_as_its_input_error(tmp_path):
+    from mapkit.index_vlad import _map, _raw_task
+    from mapkit.vlad import VladEncoder
+
+    from test_index_vlad import SMALL_VLAD
+
+    vocabulary = np.random.default_rng(0).random((SMALL_VLAD.num_words, 128), dtype=np.float32)
+    missing = tmp_path / "gone.png"
+    with pytest.raises(InputError, match="cannot read this image") as e:
+        list(_map(_raw_task, [str(missing)], VladEncoder(SMALL_VLAD, vocabulary), ProcessExecutor(2), False, "encode"))
+    assert e.value.path == missing
