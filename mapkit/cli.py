@@ -38,12 +38,17 @@ def _version(value: bool) -> None:
 @app.callback()
 def _root(
     version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
+    executor: str = typer.Option("local", "--executor", help="Where per-frame, per-patch and per-pair work runs: local (processes) or ray."),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Local processes or CPUs of a local Ray instance (default: one, or the stage's own setting)."),
+    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="A running Ray cluster ('auto' or HOST:PORT); default: start a local instance."),
 ) -> None:
     """mapkit: dataset building and mapping for visual localization."""
+    if executor not in ("local", "ray"):
+        raise MapkitError(f"--executor {executor!r}: expected local or ray")
+    if executor == "ray" or workers is not None or ray_address is not None:
+        from .executor import set_default_executor
 
-
-def _not_yet(command: str, issue: str) -> None:
-    raise MapkitError(f"`mapkit {command}` is not available in mapkit {__version__} yet ({issue})")
+        set_default_executor(executor, workers, ray_address)
 
 
 @app.command()

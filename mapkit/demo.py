@@ -25,7 +25,7 @@ import json
 import sys
 import time
 import traceback
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Callable, Iterator, Optional
 
@@ -305,16 +305,21 @@ def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Option
              train_cnn: bool = False, progress: bool = False, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
     the paths of the report and the bundle."""
+    from .executor import default_executor, use_executor
+
     d = Demo(Path(out), preset, seed, workers, train_cnn, progress, log)
     d.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    for stage in STAGES:
-        try:
-            stage(d)
-        except Exception:  # a bug in one stage: keep its traceback in the report, stop the chain
-            d.metrics.setdefault("stages", {})[stage.__name__.strip("_")] = {"status": "crashed", "traceback": traceback.format_exc()}
-            _finish(d, time.perf_counter() - t0)
-            raise
+    ex = default_executor()  # `mapkit --executor ray demo` set one; else a local pool of `workers`
+    with (nullcontext(ex) if ex is not None else use_executor("local", workers=workers)) as ex:
+        d.metrics["executor"] = {"kind": ex.kind, "workers": ex.workers}
+        for stage in STAGES:
+            try:
+                stage(d)
+            except Exception:  # a bug in one stage: keep its traceback in the report, stop the chain
+                d.metrics.setdefault("stages", {})[stage.__name__.strip("_")] = {"status": "crashed", "traceback": traceback.format_exc()}
+                _finish(d, time.perf_counter() - t0)
+                raise
     return _finish(d, time.perf_counter() - t0)
 
 
@@ -324,7 +329,9 @@ def _finish(d: Demo, seconds: float) -> dict:
     rows = ["| stage | status | seconds |", "|---|---|---|"]
     rows += [f"| {n} | {s['status']}{' (' + s['reason'] + ')' if s.get('reason') else ''} | {s.get('seconds', '')} |"
              for n, s in d.metrics["stages"].items()]
-    intro = (f"mapkit {__version__}, synthetic town preset `{d.preset}`, {d.workers} worker(s). "
+    ex = d.metrics.get("executor", {})
+    intro = (f"mapkit {__version__}, synthetic town preset `{d.preset}`, executor {ex.get('kind', 'local')} with "
+             f"{ex.get('workers', d.workers)} worker(s). "
              f"Whole run: **{seconds / 60:.1f} min** wall time.\n\n" + "\n".join(rows))
     write_report(d.out / "report.html", f"mapkit demo: {d.preset} town", intro, d.sections)
     atomic_write_text(d.out / "timings.md", "\n".join(rows) + "\n")
