@@ -9,10 +9,17 @@ estimated against the true trajectory (Fig. 5).
 
 Camera poses: the filter's state is the camera pose ``world_from_camera`` in the workspace's ENU
 frame, as the database's poses are.
+
+Beyond the paper (presets in ``configs/localize/``): the query session's relative motion as
+odometry, and the multi-hypothesis measurement model of :mod:`mapkit.mcl`, which weighs the
+particles by all top-k retrieved poses. Retrieval (encoding each image with dense SIFT, the
+expensive part) can be cached per test session (:func:`cached_query_all`), so that runs with
+other filter settings reuse the hits of the same bundle.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import sys
 import time
@@ -26,7 +33,8 @@ from .config import MapkitConfig, dump_config, load_config
 from .errors import InputError
 from .geometry import invert_pose
 from .mcl import MclConfig, MonteCarloLocalizer, pose_errors
-from .runio import atomic_write_text, write_json
+from .measurement import PoseHypotheses
+from .runio import atomic_write_bytes, atomic_write_text, write_json
 
 
 class LocalizeConfig(MapkitConfig):
@@ -38,28 +46,37 @@ class LocalizeConfig(MapkitConfig):
     seed: int = Field(0, description="Seed of the particle filter.")
 
 
-def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] = None, progress: bool = False) -> dict:
+def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] = None, progress: bool = False,
+                  hits: Optional[tuple[np.ndarray, np.ndarray]] = None) -> dict:
     """Retrieval alone and the filter over a sequence of images (arrays or files).
 
-    Returns per query: the measurement's pose (retrieval alone), the filter's pose, and the
-    measurement's cluster size.
+    ``hits`` = ``(ids, distances)`` (n, top_k) already retrieved for the images (e.g. from
+    :func:`cached_query_all`) skips encoding them. Returns per query: the measurement's pose
+    (retrieval alone), the filter's pose, the measurement's cluster size, and the retrieved ids.
     """
     mcl_cfg = cfg.mcl.model_copy(update={"odometry": cfg.mcl.odometry.model_copy(update={"enabled": cfg.odometry})})
+    mh = mcl_cfg.multi_hypothesis
     loc = MonteCarloLocalizer(mcl_cfg, seed=cfg.seed)
     n = len(images)
+    if hits is not None and (hits[0].shape[0] != n or hits[0].shape[1] < 1):
+        raise ValueError(f"hits for {hits[0].shape[0]} queries given with {n} images")
     z_pos, z_rot = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
     f_pos, f_rot = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
     sizes = np.zeros(n, np.int64)
+    all_ids = np.full((n, cfg.top_k), -1, np.int64)
     seconds = {"retrieval": 0.0, "filter": 0.0}
     for t, im in enumerate(images):
         t0 = time.perf_counter()
-        hits = index.query(im, cfg.top_k)
-        z = index.measurement_from_hits(hits) if cfg.bandwidth_m == index.cfg.mean_shift_bandwidth_m else _measure(hits, cfg.bandwidth_m)
+        h = index.query(im, cfg.top_k) if hits is None else index.hits(hits[0][t, :cfg.top_k], hits[1][t, :cfg.top_k])
+        z = index.measurement_from_hits(h) if cfg.bandwidth_m == index.cfg.mean_shift_bandwidth_m else _measure(h, cfg.bandwidth_m)
         t1 = time.perf_counter()
-        est = loc.step(z, None if odometry is None or not loc.initialized else odometry[t])
+        hyp = (PoseHypotheses.from_retrieval(h.translations, h.world_from_cam[:, :3, :3], h.distances, mh.hit_weighting, mh.hit_weight_scale)
+               if mh.enabled else None)
+        est = loc.step(z, None if odometry is None or not loc.initialized else odometry[t], hyp)
         seconds["retrieval"] += t1 - t0
         seconds["filter"] += time.perf_counter() - t1
         z_pos[t], z_rot[t], sizes[t] = z.translation, z.rotation, z.cluster_size
+        all_ids[t, :len(h)] = h.ids
         if est is not None:
             f_pos[t], f_rot[t] = est.position, est.rotation
         if progress:
@@ -67,7 +84,7 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
     if progress:
         print(file=sys.stderr)
     return {"retrieval_position": z_pos, "retrieval_rotation": z_rot, "filter_position": f_pos, "filter_rotation": f_rot,
-            "cluster_size": sizes, "seconds": seconds}
+            "cluster_size": sizes, "ids": all_ids, "seconds": seconds}
 
 
 def _measure(hits, bandwidth_m: float):
@@ -76,13 +93,108 @@ def _measure(hits, bandwidth_m: float):
     return mean_shift_measurement(hits.translations, hits.world_from_cam[:, :3, :3], bandwidth=bandwidth_m)
 
 
+# --- per-session query hits, cached ----------------------------------------------------------------
+
+#: version of the hits cache files; bump when their content changes meaning
+HITS_CACHE_VERSION = 1
+
+
+def bundle_fingerprint(index) -> str:
+    """What identifies a bundle's answers to queries: its build hash and the sha256 of its manifest.
+
+    The build hash alone is not enough: :meth:`VladIndex.add_session` grows a bundle in place and
+    keeps its build hash, and query-time settings (e.g. ``nprobe``) change the hits without a
+    rebuild; the manifest lists every file's sha256 and the resolved config, so its digest
+    changes with either.
+    """
+    digest = hashlib.sha256((Path(index.path) / "manifest.json").read_bytes()).hexdigest()[:16]
+    return f"{index.manifest.get('build_hash', 'nohash')}-{digest}"
+
+
+def _images_digest(images: list) -> str:
+    """Digest of the query images' paths, sizes and modification times (files only)."""
+    h = hashlib.sha256()
+    for p in images:
+        st = Path(p).stat()
+        h.update(f"{Path(p).resolve()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()[:16]
+
+
+def query_all(index, images, top_k: int, progress: bool = False, label: str = "query") -> tuple[np.ndarray, np.ndarray]:
+    """Retrieved ids (n, top_k; -1 pads when the index is smaller) and squared L2 distances of every image."""
+    n = len(images)
+    ids, dist = np.full((n, top_k), -1, np.int64), np.full((n, top_k), np.inf, np.float32)
+    for t, im in enumerate(images):
+        d, i = index.search(index._as_vector(im)[None], top_k)
+        ids[t], dist[t] = i[0], d[0]
+        if progress:
+            print(f"\r[{label}] {t + 1}/{n} queries", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    return ids, dist
+
+
+def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | None, session: str,
+                     progress: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`query_all` through a cache file ``hits-<session>-k<top_k>-<bundle fingerprint>.npz``.
+
+    A cached file is used only if it names the same bundle fingerprint, session, top_k and query
+    images (paths, sizes, mtimes); otherwise the images are encoded again and the file replaced.
+    Returns ``(ids, distances, from_cache)``.
+    """
+    if cache_dir is None:
+        return (*query_all(index, images, top_k, progress, session), False)
+    fp = bundle_fingerprint(index)
+    path = Path(cache_dir) / f"hits-{session}-k{top_k}-{fp}.npz"
+    img_digest = _images_digest(images)
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                ok = (int(f["version"]) == HITS_CACHE_VERSION and str(f["bundle"]) == fp and str(f["session"]) == session
+                      and int(f["top_k"]) == top_k and str(f["images"]) == img_digest and f["ids"].shape == (len(images), top_k))
+                if ok:
+                    return f["ids"].astype(np.int64), f["distances"].astype(np.float32), True
+        except (OSError, KeyError, ValueError):
+            pass  # unreadable or from another version: recompute below
+    ids, dist = query_all(index, images, top_k, progress, session)
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, version=HITS_CACHE_VERSION, bundle=fp, bundle_path=str(Path(index.path).resolve()), session=session,
+             top_k=top_k, images=img_digest, ids=ids, distances=dist)
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buf.getvalue())
+    return ids, dist, False
+
+
+#: radius (m) within which a retrieved image counts as the right place in the recall diagnostics
+RECALL_RADIUS_M = 25.0
+
+
+def hit_recall(index, ids: np.ndarray, gt_positions: np.ndarray, radius_m: float = RECALL_RADIUS_M) -> dict:
+    """Share of queries whose top-1, and whose best of the top-k, retrieved image lies within
+    ``radius_m`` of the query's true position."""
+    valid = ids >= 0
+    pos = index.world_from_cam[np.where(valid, ids, 0), :3, 3]
+    d = np.where(valid, np.linalg.norm(pos - gt_positions[:, None, :], axis=-1), np.inf)
+    return {"recall_at_1": float(np.mean(d[:, 0] <= radius_m)), f"recall_at_{ids.shape[1]}": float(np.mean(d.min(axis=1) <= radius_m)),
+            "recall_radius_m": radius_m}
+
+
 def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str | Path | None = None,
                           test_sessions: Optional[list[str]] = None, config: str | Path | None = None,
-                          overrides: Optional[dict] = None, out: str | Path | None = None, progress: bool = True) -> dict:
+                          overrides: Optional[dict] = None, out: str | Path | None = None, progress: bool = True,
+                          cache_dir: str | Path | None = None) -> dict:
     """MCVL's protocol on a synthetic town: training sessions build the index (``bundle``, built
     into ``WORKSPACE/indexes/vlad`` from the town's training sessions if not given), test sessions
     are queries. Writes ``eval_localize.json``, ``.md`` and one PNG per sequence into ``out``
-    (default ``WORKSPACE/localize``)."""
+    (default ``WORKSPACE/localize``).
+
+    ``cache_dir``: keep each test session's retrieved ids and distances there
+    (:func:`cached_query_all`), so that runs with other filter settings do not encode the images
+    again; hits are reused only for the same bundle (fingerprint), session, top_k and images.
+    Besides Table II, each session reports how often the top-1 and any of the top-k hits lie
+    within ``RECALL_RADIUS_M`` of the truth (what any measurement model can work with)."""
     from .eval_retrieval import _truth_camera_poses
     from .evaluate import town_sessions
     from .geodesy import LocalFrame
@@ -119,14 +231,18 @@ def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str 
             cams = imgs.world_from_cam[ok]
             odo = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
         t0 = time.perf_counter()
-        r = run_localizer(index, paths, cfg, odo, progress=progress)
+        ids, dist, cached = cached_query_all(index, paths, cfg.top_k, cache_dir, name, progress=progress)
+        t_retrieve = time.perf_counter() - t0
+        r = run_localizer(index, paths, cfg, odo, progress=False, hits=(ids, dist))
         wall = time.perf_counter() - t0
         e_ret = pose_errors(r["retrieval_position"], r["retrieval_rotation"], gt[:, :3, 3], gt[:, :3, :3])
         e_fil = pose_errors(r["filter_position"], r["filter_rotation"], gt[:, :3, 3], gt[:, :3, :3])
         results["sessions"][name] = {
             "condition": town.get(name, {}).get("condition") or town.get(name, {}).get("weather"),
-            "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(), "seconds": wall,
-            "seconds_per_query": wall / max(1, len(paths)), "filter_ms_per_step": 1000 * r["seconds"]["filter"] / max(1, len(paths)),
+            "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(),
+            **hit_recall(index, ids, gt[:, :3, 3]), "seconds": wall, "hits_from_cache": cached,
+            "seconds_per_query": wall / max(1, len(paths)), "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
+            "filter_ms_per_step": 1000 * r["seconds"]["filter"] / max(1, len(paths)),
         }
         from .plots import localization_track
 
@@ -176,13 +292,15 @@ def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: s
 
 def format_localization(results: dict) -> str:
     """Table II of the MCVL paper: per test sequence, mean and median errors of retrieval alone
-    and of the filter."""
-    lines = ["| sequence | condition | queries | retrieval mean m / deg | retrieval median m / deg | MCVL mean m / deg | MCVL median m / deg |",
-             "|---|---|---|---|---|---|---|"]
+    and of the filter; then how often the top-1 and the top-k hold the right place."""
+    lines = ["| sequence | condition | queries | retrieval mean m / deg | retrieval median m / deg | MCVL mean m / deg | MCVL median m / deg | recall@1 / @k |",
+             "|---|---|---|---|---|---|---|---|"]
     f = lambda s, k: "" if s.get(k) is None else f"{s[k]:.2f}"  # noqa: E731
     for name, r in results["sessions"].items():
         a, b = r["retrieval"], r["filter"]
+        at_k = next((v for k, v in r.items() if k.startswith("recall_at_") and k != "recall_at_1"), None)
+        recall = "" if at_k is None else f"{r['recall_at_1']:.2f} / {at_k:.2f}"
         lines.append(f"| {name} | {r.get('condition') or ''} | {r['queries']} | {f(a, 'mean_translation_m')} / {f(a, 'mean_rotation_deg')} | "
                      f"{f(a, 'median_translation_m')} / {f(a, 'median_rotation_deg')} | {f(b, 'mean_translation_m')} / {f(b, 'mean_rotation_deg')} | "
-                     f"{f(b, 'median_translation_m')} / {f(b, 'median_rotation_deg')} |")
+                     f"{f(b, 'median_translation_m')} / {f(b, 'median_rotation_deg')} | {recall} |")
     return "\n".join(lines) + "\n"

@@ -19,6 +19,7 @@ is the heading, which is why the initial covariance of section IV-A is large on 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -207,3 +208,77 @@ def _merge_and_assign(X: np.ndarray, w: np.ndarray, modes: np.ndarray, bandwidth
             suppressed |= close[i]
     centres = modes[kept]
     return np.argmin(np.sum((X[:, None, :] - centres[None, :, :]) ** 2, axis=-1), axis=1)
+
+
+# --- BEYOND THE PAPER: the retrieved poses as a mixture of hypotheses ---------------------------------
+
+HitWeighting = Literal["uniform", "rank", "distance"]
+
+
+def hit_weights(distances: np.ndarray, weighting: HitWeighting = "uniform", scale: float = 1.0) -> np.ndarray:
+    """Prior weights (k,) of the retrieved images, summing to 1, best-ranked first.
+
+    ``uniform``: 1/k each. ``rank``: ``exp(-j / scale)`` for rank ``j = 0, 1, ...`` (``scale`` in
+    ranks). ``distance``: ``exp(-(d_j - d_0) / scale)`` for the descriptor distances ``d`` (squared
+    L2 between unit vectors, 0 to 4; ``scale`` in the same unit). Non-finite distances (padding)
+    get weight 0.
+    """
+    d = np.asarray(distances, dtype=np.float64).reshape(-1)
+    if len(d) == 0:
+        raise ValueError("no retrieved images")
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    ok = np.isfinite(d)
+    if not ok.any():
+        raise ValueError("no retrieved image has a finite distance")
+    if weighting == "uniform":
+        w = ok.astype(np.float64)
+    elif weighting == "rank":
+        w = np.where(ok, np.exp(-np.arange(len(d)) / scale), 0.0)
+    elif weighting == "distance":
+        w = np.where(ok, np.exp(-(np.where(ok, d, 0.0) - d[ok].min()) / scale), 0.0)
+    else:
+        raise ValueError(f"unknown hit weighting {weighting!r}")
+    return w / w.sum()
+
+
+@dataclass(frozen=True, eq=False)
+class PoseHypotheses:
+    """BEYOND THE PAPER: the top-k retrieved poses kept as k hypotheses instead of one cluster mean.
+
+    ``translations`` (k, 3) m and ``rotations`` (k, 3, 3) ``world_from_body``, best-ranked first;
+    ``weights`` (k,) prior weights summing to 1 (:func:`hit_weights`). The particle filter
+    weighs particles by the mixture of one kernel per hypothesis (:func:`mapkit.mcl.mixture_likelihood`).
+    """
+
+    translations: np.ndarray
+    rotations: np.ndarray
+    weights: np.ndarray
+
+    def __post_init__(self):
+        k = len(self.translations)
+        if k == 0 or self.translations.shape != (k, 3) or self.rotations.shape != (k, 3, 3) or self.weights.shape != (k,):
+            raise ValueError(f"hypotheses need (k, 3) translations, (k, 3, 3) rotations and (k,) weights with k >= 1, got "
+                             f"{self.translations.shape}, {self.rotations.shape}, {self.weights.shape}")
+
+    def __len__(self) -> int:
+        return len(self.translations)
+
+    @classmethod
+    def from_retrieval(cls, translations: np.ndarray, rotations: np.ndarray, distances: np.ndarray | None = None,
+                       weighting: HitWeighting = "uniform", scale: float = 1.0) -> "PoseHypotheses":
+        """From retrieved poses in rank order; rotations as matrices or ``wxyz`` quaternions.
+        Hypotheses of weight 0 (padding, non-finite distance) are dropped."""
+        X = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
+        n = len(X)
+        d = np.arange(n, dtype=np.float64) if distances is None else np.asarray(distances, dtype=np.float64)
+        if distances is None and weighting == "distance":
+            raise ValueError("distance weighting needs the descriptor distances")
+        w = hit_weights(d, weighting, scale)
+        keep = w > 0
+        return cls(X[keep], _as_matrices(rotations, n)[keep], w[keep] / w[keep].sum())
+
+    @classmethod
+    def from_measurement(cls, measurement: Measurement) -> "PoseHypotheses":
+        """One hypothesis: the measurement's pose."""
+        return cls(measurement.translation[None].copy(), measurement.rotation[None].copy(), np.ones(1))

@@ -4,8 +4,10 @@ follows it, driven by the query session's relative motion."""
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mapkit.geometry import invert_pose
 from mapkit.index_vlad import VladIndex, build_vlad_index, read_session_images
@@ -32,3 +34,120 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     assert np.median(fil_err) < 5.0 and np.all(np.isfinite(fil_err))
     R = r["filter_rotation"]
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-6) and np.allclose(np.linalg.det(R), 1.0)
+
+    # beyond the paper: the multi-hypothesis preset on hits retrieved once and cached
+    from mapkit.config import load_config
+    from mapkit.localize import cached_query_all
+
+    paths = list(imgs.image_paths)
+    ids, dist, cached = cached_query_all(index, paths, 4, tmp_path / "cache", "test-c")
+    assert not cached and ids.shape == (PLACES, 4)
+    ids2, dist2, cached = cached_query_all(VladIndex.load(bundle), paths, 4, tmp_path / "cache", "test-c")
+    assert cached
+    np.testing.assert_array_equal(ids2, ids)
+    mh = load_config(LocalizeConfig, PRESETS / "odometry-multihypothesis.yaml", {"top_k": 4})
+    r_mh = run_localizer(index, paths, mh, odo, hits=(ids, dist))
+    np.testing.assert_allclose(r_mh["retrieval_position"], r["retrieval_position"])  # same hits, same retrieval figure
+    np.testing.assert_array_equal(r_mh["ids"], ids)
+    mh_err = np.linalg.norm(r_mh["filter_position"] - truth[:, :3, 3], axis=1)
+    assert np.median(mh_err) < 5.0 and np.all(np.isfinite(mh_err))
+
+
+PRESETS = Path(__file__).resolve().parents[1] / "configs" / "localize"
+
+
+def test_presets_load_and_paper_is_the_default():
+    from mapkit.config import load_config
+
+    assert load_config(LocalizeConfig, PRESETS / "paper.yaml") == LocalizeConfig()
+    odo = load_config(LocalizeConfig, PRESETS / "odometry.yaml")
+    assert odo.odometry and not odo.mcl.multi_hypothesis.enabled and odo.mcl == LocalizeConfig().mcl.model_copy(
+        update={"odometry": odo.mcl.odometry})
+    mh = load_config(LocalizeConfig, PRESETS / "odometry-multihypothesis.yaml")
+    assert mh.odometry and mh.mcl.multi_hypothesis.enabled and mh.mcl.estimate == "mode"
+    assert mh.mcl.multi_hypothesis.reinject_below > 0 and mh.top_k == 20
+    for name in ("paper", "odometry", "odometry-multihypothesis"):  # every value names its source
+        lines = [ln for ln in (PRESETS / f"{name}.yaml").read_text().splitlines() if ":" in ln and not ln.lstrip().startswith("#")]
+        leaves = [ln for ln in lines if not ln.rstrip().endswith(":") and "#" not in ln.split(":", 1)[0]]
+        assert all("#" in ln for ln in leaves), [ln for ln in leaves if "#" not in ln]
+
+
+class _CountingIndex:
+    """Stands in for a VladIndex in the cache tests: a bundle folder with a manifest, a search
+    that counts its calls, and camera positions for the recall diagnostics."""
+
+    def __init__(self, folder, build_hash="abc"):
+        self.path = folder
+        self.manifest = {"build_hash": build_hash}
+        (folder / "manifest.json").write_text('{"build_hash": "%s", "files": {}}' % build_hash)
+        self.calls = 0
+        self.world_from_cam = np.tile(np.eye(4), (30, 1, 1))
+        self.world_from_cam[:, 0, 3] = 10.0 * np.arange(30)
+
+    def _as_vector(self, image):
+        self.calls += 1
+        return np.full(4, float(Path(image).stat().st_size), np.float32)
+
+    def search(self, q, k):
+        v = int(q[0, 0])
+        return np.arange(k, dtype=np.float32)[None] + v, (np.arange(k)[None] + v) % 30
+
+
+def test_hits_cache_serves_only_the_same_bundle_session_top_k_and_images(tmp_path):
+    from mapkit.localize import cached_query_all
+
+    (tmp_path / "bundle").mkdir()
+    index = _CountingIndex(tmp_path / "bundle")
+    images = []
+    for i in range(5):
+        p = tmp_path / f"im{i}.png"
+        p.write_bytes(b"x" * (i + 1))
+        images.append(p)
+    cache = tmp_path / "cache"
+    ids, dist, cached = cached_query_all(index, images, 3, cache, "s1")
+    assert not cached and index.calls == 5 and ids.shape == (5, 3)
+    np.testing.assert_array_equal(ids[:, 0], [1, 2, 3, 4, 5])
+    ids2, dist2, cached = cached_query_all(index, images, 3, cache, "s1")
+    assert cached and index.calls == 5  # nothing encoded again
+    np.testing.assert_array_equal(ids2, ids)
+    np.testing.assert_array_equal(dist2, dist)
+    assert cached_query_all(index, images, 4, cache, "s1")[2] is False  # another top_k
+    assert cached_query_all(index, images, 3, cache, "s2")[2] is False  # another session
+    assert cached_query_all(index, images[:4], 3, cache, "s1")[2] is False  # other images
+    images[0].write_bytes(b"yy")  # the same path, another image
+    assert cached_query_all(index, images, 3, cache, "s1")[2] is False
+    calls = index.calls
+    # a bundle grown in place keeps its build hash; its manifest changes, and so does the key
+    (tmp_path / "bundle" / "manifest.json").write_text('{"build_hash": "abc", "files": {"more": 1}}')
+    assert cached_query_all(index, images, 3, cache, "s1")[2] is False and index.calls == calls + 5
+    # another bundle at the same place with the same build hash but other files
+    other = _CountingIndex(tmp_path / "bundle", build_hash="def")
+    assert cached_query_all(other, images, 3, cache, "s1")[2] is False
+    # without a cache folder, nothing is written
+    assert cached_query_all(index, images, 3, None, "s1")[2] is False
+
+
+def test_cache_file_from_another_bundle_is_never_read(tmp_path):
+    # a cache file copied (or renamed) under the key of another bundle: its content names its bundle
+    from mapkit.localize import bundle_fingerprint, cached_query_all
+
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+    a, b = _CountingIndex(tmp_path / "a", "h1"), _CountingIndex(tmp_path / "b", "h2")
+    img = tmp_path / "im.png"
+    img.write_bytes(b"abc")
+    cache = tmp_path / "cache"
+    cached_query_all(a, [img], 2, cache, "s")
+    src = cache / f"hits-s-k2-{bundle_fingerprint(a)}.npz"
+    src.rename(cache / f"hits-s-k2-{bundle_fingerprint(b)}.npz")
+    assert cached_query_all(b, [img], 2, cache, "s")[2] is False and b.calls == 1
+
+
+def test_hit_recall_known_answer(tmp_path):
+    from mapkit.localize import hit_recall
+
+    index = _CountingIndex(tmp_path)  # database image i at x = 10 i
+    ids = np.array([[0, 5, 9], [20, 21, 3], [7, -1, -1]])
+    gt = np.array([[0.0, 0, 0], [30.0, 0, 0], [500.0, 0, 0]])
+    r = hit_recall(index, ids, gt, radius_m=5.0)
+    assert r["recall_at_1"] == pytest.approx(1 / 3) and r["recall_at_3"] == pytest.approx(2 / 3)

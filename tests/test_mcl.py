@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 from mapkit.config import defaults_yaml, load_config
 from mapkit.errors import ConfigError
 from mapkit.geometry import average_rotations, is_rotation, make_pose, yaw_rotation
-from mapkit.measurement import Measurement, matrix_from_euler
+from mapkit.measurement import Measurement, PoseHypotheses, matrix_from_euler, mean_shift_measurement
 from mapkit.mcl import (
     MclConfig,
     MonteCarloLocalizer,
@@ -233,3 +233,166 @@ def test_pose_errors_known_answers():
     # relative: gt at 30 deg yaw, estimate at 75 deg
     e2 = pose_errors(np.zeros((1, 3)), yaw_rotation(np.radians(75.0))[None], np.zeros((1, 3)), yaw_rotation(np.radians(30.0))[None])
     assert e2.rotation_deg[0] == pytest.approx(45.0)
+
+
+# --- beyond the paper: the multi-hypothesis measurement model -----------------------------------------
+
+def _mh_config(**mh) -> MclConfig:
+    return MclConfig(odometry={"enabled": True}, multi_hypothesis={"enabled": True, **mh}, estimate="mode")
+
+
+def test_mixture_likelihood_hand_built_case():
+    from mapkit.mcl import mixture_likelihood
+
+    cfg = _mh_config(floor=0.1)  # kernel: Sigma_o's position part (5 m^2), rotation std sqrt(1e-3) rad
+    hyp = PoseHypotheses(np.array([[0.0, 0, 0], [500.0, 0, 0]]), yaw_rotation(np.array([0.0, 1.0])), np.array([0.75, 0.25]))
+    theta = 0.02
+    p = Particles.from_rotations(
+        np.array([[0.0, 0, 0], [1.0, 2.0, 0], [0.0, 0, 0], [500.0, 0, 0], [250.0, 0, 0]]),
+        yaw_rotation(np.array([0.0, 0.0, theta, 1.0, 0.5])),
+    )
+    L = mixture_likelihood(p, hyp, cfg)
+    k_pos = np.exp(-0.5 * (1.0 + 4.0) / 5.0)
+    k_rot = np.exp(-(1.0 - np.cos(theta)) / 1e-3)  # 3 - tr = 2 (1 - cos theta), over 2 sigma^2
+    np.testing.assert_allclose(L, [0.1 + 0.9 * 0.75, 0.1 + 0.9 * 0.75 * k_pos, 0.1 + 0.9 * 0.75 * k_rot, 0.1 + 0.9 * 0.25, 0.1], rtol=1e-9)
+    assert k_rot == pytest.approx(np.exp(-0.5 * theta**2 / 1e-3), rel=1e-4)  # a Gaussian in the angle to second order
+    # a particle on the right place but facing the other way is as unlikely as one far away
+    q = Particles.from_rotations(np.zeros((1, 3)), yaw_rotation(np.array([np.pi])))
+    assert mixture_likelihood(q, hyp, cfg)[0] == pytest.approx(0.1)
+
+
+def test_kernel_matrix_matches_a_direct_computation(rng):
+    from mapkit.geometry import rotation_angle_rad
+    from mapkit.mcl import kernel_matrix
+
+    p = Particles.from_rotations(1e3 + rng.normal(scale=3.0, size=(50, 3)), Rotation.from_rotvec(rng.normal(scale=0.05, size=(50, 3))).as_matrix())
+    H = Rotation.from_rotvec(rng.normal(scale=0.05, size=(7, 3))).as_matrix()
+    hyp = PoseHypotheses(1e3 + rng.normal(scale=3.0, size=(7, 3)), H, np.full(7, 1 / 7))
+    var = np.array([4.0, 9.0, 1.0])
+    K = kernel_matrix(p, hyp, var, 0.01)
+    for i in range(50):
+        for j in range(7):
+            d = p.positions[i] - hyp.translations[j]
+            a = rotation_angle_rad(p.rotations[i].T @ H[j])
+            assert K[i, j] == pytest.approx(np.exp(-0.5 * d @ (d / var) - (1 - np.cos(a)) / 0.01), rel=1e-9)
+
+
+def test_sampling_from_hypotheses_follows_their_weights():
+    from mapkit.mcl import sample_hypotheses
+
+    cfg = _mh_config()
+    hyp = PoseHypotheses(np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 100.0, 0]]), yaw_rotation(np.array([0.0, 1.0, 2.0])), np.array([0.5, 0.3, 0.2]))
+    p = sample_hypotheses(hyp, cfg, np.random.default_rng(0), n=1000)
+    j = np.argmin(np.linalg.norm(p.positions[:, None] - hyp.translations[None], axis=-1), axis=1)
+    np.testing.assert_array_equal(np.bincount(j, minlength=3), [500, 300, 200])  # SUS: exact here
+    np.testing.assert_allclose(np.std(p.positions[j == 0], axis=0), np.sqrt(5.0), rtol=0.15)
+    yaw_err = np.abs(wrap_angle(p.euler[:, 2] - np.array([0.0, 1.0, 2.0])[j]))
+    assert np.sqrt(np.mean(yaw_err**2)) < 2 * np.sqrt(1e-3)
+
+
+def test_mode_estimate_picks_the_heavier_mode():
+    from mapkit.mcl import mode_estimate
+
+    rng = np.random.default_rng(0)
+    pos = np.concatenate([rng.normal(scale=1.0, size=(700, 3)) + [0.0, 0, 0], rng.normal(scale=1.0, size=(300, 3)) + [200.0, 0, 0]])
+    p = Particles.from_rotations(pos, np.concatenate([np.broadcast_to(np.eye(3), (700, 3, 3)), np.broadcast_to(yaw_rotation(2.0), (300, 3, 3))]))
+    mode = mode_estimate(p, None, 10.0)
+    mean = estimate(p)
+    assert np.linalg.norm(mode.position) < 0.3 and np.allclose(mode.rotation, np.eye(3), atol=1e-9)
+    assert mean.position[0] == pytest.approx(60.0, abs=1.0)  # the mean lies between the modes
+    w = np.where(np.arange(1000) < 700, 0.2, 2.0)  # weights shift the balance to the other mode
+    assert mode_estimate(p, w, 10.0).position[0] == pytest.approx(200.0, abs=0.3)
+
+
+def test_paper_path_is_unchanged_by_the_new_options():
+    # Algorithm 1 written out with the functional core: the localizer must draw the same numbers
+    rng_track = np.random.default_rng(4)
+    _, _, meas = _straight_track(20, rng_track)
+    cfg = MclConfig(n_particles=300)
+    rng = np.random.default_rng(9)
+    p = init_particles(meas[0], cfg, rng)
+    expected = []
+    for z in meas[1:]:
+        p = predict(p, cfg, rng)
+        w = weigh(p, z, cfg)
+        expected.append(estimate(p, w).position)
+        p = p.take(sus_resample(w, rng))
+    track = run_filter(meas, cfg, seed=9)
+    np.testing.assert_allclose(track.positions[1:], np.array(expected), atol=1e-12)
+
+
+def test_weights_carry_over_when_resampling_is_adaptive():
+    cfg = MclConfig(n_particles=200, resample_min_ess_fraction=0.5)
+    loc = MonteCarloLocalizer(cfg, seed=0)
+    loc.step(Measurement.from_pose(ZERO3, np.eye(3)))
+    np.testing.assert_allclose(loc.weights, 1 / 200)
+    e = loc.step(Measurement.from_pose([1.0, 0, 0], np.eye(3)))
+    if e.n_eff > 100:  # not resampled: the weights are the step's
+        assert not np.allclose(loc.weights, 1 / 200)
+    e = loc.step(Measurement.from_pose([300.0, 0, 0], np.eye(3)))  # degenerate: must resample
+    assert e.n_eff < 100
+    np.testing.assert_allclose(loc.weights, 1 / 200)
+
+
+def test_hypotheses_need_the_multi_hypothesis_model():
+    loc = MonteCarloLocalizer(MclConfig(n_particles=20), seed=0)
+    hyp = PoseHypotheses.from_measurement(Measurement.from_pose(ZERO3, np.eye(3)))
+    with pytest.raises(ConfigError):
+        loc.step(None, hypotheses=hyp)
+
+
+def _preset_mcl(name: str) -> MclConfig:
+    """The filter settings of configs/localize/NAME.yaml (the preset's odometry flag applied)."""
+    from pathlib import Path
+
+    from mapkit.localize import LocalizeConfig
+
+    cfg = load_config(LocalizeConfig, Path(__file__).resolve().parents[1] / "configs" / "localize" / f"{name}.yaml")
+    return cfg.mcl.model_copy(update={"odometry": cfg.mcl.odometry.model_copy(update={"enabled": cfg.odometry})})
+
+
+def _aliased_retrieval(T: int, k: int, p_in: float, p_top: float, seed: int):
+    """A circle of radius 80 m at 5 m/step with exact odometry; at each step k retrieved poses,
+    mostly wrong: they fall around 4 random places of a 600 m square (aliased places, so that
+    wrong hits form clusters too) with random headings. With probability ``p_in`` one of them
+    is the true pose (1.5 m, 0.02 rad noise), and with ``p_top`` it is the top-1."""
+    rng = np.random.default_rng(seed)
+    yaw = np.arange(T) * 5.0 / 80.0
+    gt_pos = np.stack([80.0 * np.sin(yaw), 80.0 * (1 - np.cos(yaw)), np.zeros(T)], axis=1)
+    gt_rot = yaw_rotation(yaw)
+    odo = [None] + [make_pose(gt_rot[t - 1].T @ gt_rot[t], gt_rot[t - 1].T @ (gt_pos[t] - gt_pos[t - 1])) for t in range(1, T)]
+    hyps, present, at_top = [], np.zeros(T, bool), np.zeros(T, bool)
+    for t in range(T):
+        centres = rng.uniform(-300, 300, size=(4, 3)) * [1, 1, 0]
+        X = centres[rng.integers(0, 4, k)] + rng.normal(scale=2.0, size=(k, 3)) * [1, 1, 0.1]
+        R = yaw_rotation(rng.uniform(-np.pi, np.pi, k))
+        u = rng.random()
+        if u < p_in:
+            j = 0 if u < p_top else int(rng.integers(1, k))
+            X[j] = gt_pos[t] + rng.normal(scale=1.5, size=3) * [1, 1, 0.1]
+            R[j] = gt_rot[t] @ yaw_rotation(rng.normal(scale=0.02))
+            present[t], at_top[t] = True, j == 0
+        hyps.append(PoseHypotheses.from_retrieval(X, R))
+    return gt_pos, gt_rot, odo, hyps, present, at_top
+
+
+def test_multi_hypothesis_filter_finds_the_consistent_place_among_mostly_wrong_hits():
+    T = 120
+    gt_pos, gt_rot, odo, hyps, present, at_top = _aliased_retrieval(T, k=10, p_in=0.6, p_top=0.2, seed=3)
+    assert 0.5 < present.mean() < 0.7 and 0.12 < at_top.mean() < 0.28  # the scenario is as stated
+    top1 = np.stack([h.translations[0] for h in hyps])
+    mean_shift = np.stack([mean_shift_measurement(h.translations, h.rotations).translation for h in hyps])
+    for cfg in (_mh_config(reinject_below=0.05), _preset_mcl("odometry-multihypothesis")):
+        track = run_filter([None] * T, cfg, seed=0, odometry=odo, hypotheses=hyps)
+        err = pose_errors(track.positions, track.rotations, gt_pos, gt_rot).summary()
+        assert err["median_translation_m"] < 3.0 and err["median_rotation_deg"] < 3.0
+    # without re-injection the cloud, started on the first step's (wrong) hits, never finds the place
+    assert not present[0]
+    stuck = run_filter([None] * T, _mh_config(), seed=0, odometry=odo, hypotheses=hyps)
+    assert np.median(np.linalg.norm(stuck.positions - gt_pos, axis=1)) > 30.0
+    assert np.median(np.linalg.norm(top1 - gt_pos, axis=1)) > 100.0
+    assert np.median(np.linalg.norm(mean_shift - gt_pos, axis=1)) > 100.0
+    # the paper's measurement (largest mean-shift cluster), with the same odometry, cannot do it
+    meas = [Measurement.from_pose(m, np.eye(3)) for m in mean_shift]
+    single = run_filter(meas, MclConfig(odometry={"enabled": True}), seed=0, odometry=odo)
+    assert np.median(np.linalg.norm(single.positions - gt_pos, axis=1)) > 30.0

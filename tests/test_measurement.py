@@ -123,3 +123,37 @@ def test_single_retrieval_and_from_pose():
 def test_bad_input_is_refused(X, R, kw):
     with pytest.raises(ValueError):
         mean_shift_measurement(X, R, **kw)
+
+
+# --- beyond the paper: the retrieved poses as hypotheses ----------------------------------------------
+
+def test_hit_weights_known_values():
+    from mapkit.measurement import hit_weights
+
+    d = np.array([0.5, 0.6, 0.9, np.inf])  # the last one is padding (index smaller than k)
+    np.testing.assert_allclose(hit_weights(d, "uniform"), [1 / 3, 1 / 3, 1 / 3, 0])
+    r = np.exp(-np.arange(3) / 2.0)
+    np.testing.assert_allclose(hit_weights(d, "rank", 2.0), np.append(r / r.sum(), 0))
+    e = np.exp(-np.array([0.0, 0.1, 0.4]) / 0.1)
+    np.testing.assert_allclose(hit_weights(d, "distance", 0.1), np.append(e / e.sum(), 0))
+    with pytest.raises(ValueError):
+        hit_weights(d, "rank", 0.0)
+    with pytest.raises(ValueError):
+        hit_weights(np.full(3, np.inf))
+
+
+def test_pose_hypotheses_from_retrieval_drop_padding_and_read_quaternions():
+    from mapkit.measurement import PoseHypotheses
+
+    X = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0]])
+    R = yaw_rotation(np.array([0.0, 0.5, 1.0]))
+    h = PoseHypotheses.from_retrieval(X, matrix_to_quat_wxyz(R), np.array([0.1, 0.2, np.inf]))
+    assert len(h) == 2 and h.weights.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(h.translations, X[:2])
+    np.testing.assert_allclose(h.rotations, R[:2], atol=1e-12)
+    one = PoseHypotheses.from_measurement(Measurement.from_pose([1.0, 2, 3], R[1]))
+    assert len(one) == 1 and one.weights[0] == 1.0
+    with pytest.raises(ValueError):
+        PoseHypotheses.from_retrieval(X, R, weighting="distance")  # needs distances
+    with pytest.raises(ValueError):
+        PoseHypotheses(X, R[:2], np.ones(3) / 3)
