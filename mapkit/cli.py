@@ -305,14 +305,16 @@ def eval_localize(
     workspace: Path = typer.Argument(..., help="A built (and ideally aligned) workspace of a synthetic town."),
     truth: Path = typer.Option(..., "--truth", help="The synthetic town: session roles and true poses."),
     bundle: Optional[Path] = typer.Option(None, "--bundle", help="A VLAD bundle; built from the training sessions if omitted."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize`."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/localize)."),
+    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."),
 ) -> None:
     """MCVL's protocol: training sessions build the index, test sessions are localized (Table II, Fig. 5)."""
     from .localize import evaluate_localization, format_localization
 
-    r = evaluate_localization(workspace, truth, bundle, config=config, progress=sys.stderr.isatty())
+    r = evaluate_localization(workspace, truth, bundle, config=config, out=out, cache_dir=cache_dir, progress=sys.stderr.isatty())
     typer.echo(format_localization(r), nl=False)
-    typer.echo(f"written to {workspace}/localize: eval_localize.json, .md and one PNG per sequence")
+    typer.echo(f"written to {out or workspace / 'localize'}: eval_localize.json, .md and one PNG per sequence")
 
 
 def main(argv: Optional[list[str]] = None) -> int:
