@@ -11,7 +11,7 @@ import resource
 import subprocess
 import sys
 import time
-from typing import Callable
+from typing import Callable, Optional
 
 
 def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
@@ -60,8 +60,14 @@ def self_peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def report(name: str, rows: list[dict], ratio_note: str = "") -> None:
-    """Print a Markdown table of rows (dicts with the same keys) and a JSON line for machines."""
+def report(name: str, rows: list[dict], ratio_note: str = "", headline: Optional[dict] = None) -> None:
+    """Print a Markdown table of rows (dicts with the same keys) and a JSON line for machines.
+
+    The JSON line (prefix ``BENCH_JSON``) holds the table's name, rows and note, and the
+    benchmark's ``headline`` when given: a dict with ``mapkit`` (its figure, with units),
+    ``baseline`` (the baseline's figure, same run) and ``ratio``, as strings, which
+    ``bench/run_all.py`` puts into its summary table as they are.
+    """
     keys = list(rows[0])
     print(f"\n## {name}\n")
     print("| " + " | ".join(keys) + " |")
@@ -70,7 +76,18 @@ def report(name: str, rows: list[dict], ratio_note: str = "") -> None:
         print("| " + " | ".join(_fmt(r[k]) for k in keys) + " |")
     if ratio_note:
         print(f"\n{ratio_note}")
-    print("BENCH_JSON " + json.dumps({"bench": name, "rows": rows}))
+    record = {"bench": name, "rows": rows, "note": ratio_note}
+    if headline is not None:
+        record["headline"] = {k: str(v) for k, v in headline.items()}
+    print("BENCH_JSON " + json.dumps(record, default=_json_default), flush=True)
+
+
+def _json_default(v):
+    """numpy scalars as Python numbers; anything else json cannot take as its text."""
+    try:
+        return v.item()
+    except (AttributeError, TypeError, ValueError):
+        return str(v)
 
 
 def _fmt(v) -> str:

@@ -14,9 +14,10 @@ surface normals (semi-dense clouds are too thin for them):
   singular vectors.
 
 Both work on many patches at once: the points of all patches (CSR, as in ``mapkit.patches``)
-are binned with ``np.bincount`` (one call per block of patches for NBLD, one per patch for
-M2DP's ~60 planes x 136 bins), and M2DP's leading singular pairs come from one batched power
-iteration over a few hundred patches. ``describe`` chains extraction, yaw normalisation and a
+are binned in a few vectorised passes and counted with one call per block of patches for NBLD
+(``np.bincount``) and one per patch for M2DP (``cv2.calcHist`` over ~60 planes x 162 bins, on
+bin ids made by OpenCV's SIMD passes), and M2DP's leading singular pairs come from one batched
+power iteration over a few hundred patches. ``describe`` chains extraction, yaw normalisation and a
 descriptor; ``DescriptorPCA`` projects descriptors to 25 dimensions before matching ("all of the
 above descriptors are projected down to a 25-dimensional space via PCA", Sec. 5.2).
 
@@ -34,6 +35,7 @@ import math
 from pathlib import Path
 from typing import Literal, Optional
 
+import cv2
 import numpy as np
 from pydantic import Field, model_validator
 from scipy.spatial import cKDTree
@@ -44,7 +46,7 @@ from .patches import M2DP_DOMAIN, NBLD_DOMAIN, PatchDomain, extract_patches, gat
 
 _NBLD_CHUNK_POINTS = 1 << 16  # patch points per block (NBLD works on ~10 arrays of this length)
 _NBLD_CHUNK_PATCHES = 1 << 14  # ... and patches per block (bounds the bincount output)
-_M2DP_CHUNK_POINTS = 1 << 12  # patch points per block; x 61 planes: float32 work arrays of ~1 MiB
+_M2DP_CHUNK_POINTS = 1 << 12  # patch points per block; x 61 planes: float32 work arrays of ~1 MiB (larger blocks: no faster)
 _M2DP_CHUNK_PATCHES = 256  # ... and patches per block and per batched singular-vector solve
 
 
@@ -232,98 +234,122 @@ def m2dp_signature_matrices(points_normalised: np.ndarray, indptr: np.ndarray, c
     the number of points as in the original code: the singular vectors do not depend on scale.
     """
     cfg = cfg or M2DPConfig()
-    out = np.empty((len(indptr) - 1, cfg.n_planes, cfg.n_radial * cfg.n_angular), np.float32)
-    for k0, k1, A in _m2dp_signature_blocks(points_normalised, indptr, cfg):
-        out[k0:k1] = A
-    return out
+    out = np.empty((len(indptr) - 1, cfg.n_planes, cfg.n_radial, cfg.n_angular), np.float32)
+    plane_of = _m2dp_unique_planes(cfg)[1]
+    for k0, k1, counts in _m2dp_signature_blocks(points_normalised, indptr, cfg):
+        np.take(counts, plane_of, axis=1, out=out[k0:k1], mode="clip")
+    return out.reshape(len(out), cfg.n_planes, -1)
+
+
+def _m2dp_unique_planes(cfg: M2DPConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the distinct planes among :func:`m2dp_planes` (by in-plane axes) and, for each
+    plane, the index of its distinct plane (at elevation pi/2 every azimuth gives the same one)."""
+    _, ax, ay = m2dp_planes(cfg)
+    _, first, plane_of = np.unique(np.round(np.hstack([ax, ay]), 12), axis=0, return_index=True, return_inverse=True)
+    return first, plane_of.ravel()
 
 
 def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cfg: M2DPConfig):
-    """Yields ``(k0, k1, A)`` with the signature matrices A (k1 - k0, p q, l t) of a block.
+    """Yields ``(k0, k1, counts)``: the counts (k1 - k0, distinct planes, l, t) of a block of
+    patches on the distinct planes of :func:`_m2dp_unique_planes` (a view, valid until the next
+    block).
 
-    Every (point, plane) pair of a block of patches is binned with a few float32 and int16
-    passes, then counted with one ``np.bincount`` per patch. Nothing is clipped (``np.minimum``
-    is among numpy's slowest element-wise loops): the rings go on past ring l - 1 as far as the
-    block's farthest point reaches (its 3-D distance bounds its distance on every plane), those
-    extra rings are counted and dropped (only for points ~140 m away, where the int16 bins would
-    overflow, are the rings clipped); sector t only receives theta = pi exactly and is folded
-    into sector t - 1. Planes that coincide (at elevation pi/2 every azimuth gives the
-    horizontal plane) are binned once.
+    Every (point, plane) pair of a block of patches gets a bin id (plane, ring, sector) in a few
+    float32 / uint8 passes (ring and sector combined in one byte when a plane has at most 256
+    bins, as with the defaults; else in uint16), and the ids of each patch are counted at once. The element-wise passes are OpenCV's where numpy is slow or has no such
+    operation (``cv2.magnitude``, ``cv2.sqrt``, ``cv2.convertScaleAbs`` that scales, offsets and
+    rounds to uint8 in one pass, ``cv2.min``), and the counting is ``cv2.calcHist`` (twice as
+    fast as ``np.bincount``, and float32 counts directly). Rounding stands in for flooring:
+    ``round(v + 1/2) = floor(v + 1)`` except on a bin edge exactly. Sectors are counted in t + 2
+    columns, ``floor((theta + pi) t / 2 pi) + 1``: column 0 only receives theta = -pi (the float32
+    -pi lies a hair below -pi) and column t + 1 only theta = pi; they are folded into sectors 0
+    and t - 1. Rings are clipped at ring l, which collects the points outside the grid and is
+    dropped. Planes that coincide (at elevation pi/2 every azimuth gives the horizontal plane)
+    are binned once.
     """
     pts = _as_points(points_normalised)
     indptr = np.asarray(indptr, np.int64)
     P, L, T = cfg.n_planes, cfg.n_radial, cfg.n_angular
     R = float(cfg.domain.radius)
     _, ax, ay = m2dp_planes(cfg)
-    _, first, plane_of = np.unique(np.round(np.hstack([ax, ay]), 12), axis=0, return_index=True, return_inverse=True)
+    first = _m2dp_unique_planes(cfg)[0]
     Pu = len(first)
-    # in-plane axes scaled by l^2 / r: then x^2 + y^2 = rho^2 l^4 / r^2, whose fourth root is
-    # l sqrt(rho / r), the ring (atan2 does not mind the common scale)
+    cols = T + 2
+    per_plane = (L + 1) * cols  # rings 0 .. l (outside), sector columns 0 .. t + 1
+    n_bins = Pu * per_plane
+    if L + 1 > 255 or cols > 255 or n_bins > 1 << 16:  # rings and sectors are uint8, bin ids uint16
+        raise InputError(None, f"M2DP grid of {P} planes x {L} rings x {T} sectors is too fine (at most 254 rings and 253 sectors, "
+                         "65,536 bins over the distinct planes)", field="m2dp")
+    one_byte = per_plane <= 256
+    # in-plane axes scaled by l^2 / r: the in-plane radius is then rho l^2 / r, whose square root
+    # l sqrt(rho / r) is the ring coordinate (atan2 does not mind the common scale)
     wx = np.ascontiguousarray(ax[first].T * (L**2 / R), np.float32)
     wy = np.ascontiguousarray(ay[first].T * (L**2 / R), np.float32)
     cap = max(_M2DP_CHUNK_POINTS, int(np.diff(indptr).max(initial=0)))
     bx = np.empty((cap, Pu), np.float32)
     by = np.empty((cap, Pu), np.float32)
-    bt = np.empty((cap, Pu), np.float32)
-    bi = np.empty((cap, Pu), np.int16)
-    bs = np.empty((cap, Pu), np.int16)
-    sector_scale = np.float32(T / (2 * math.pi))
+    b_theta = np.empty((cap, Pu), np.float32)
+    b_ring = np.empty((cap, Pu), np.uint8)
+    b_sector = np.empty((cap, Pu), np.uint8)
+    b_ids = np.empty((cap, Pu), np.uint16)
+    plane_off = np.empty((cap, Pu), np.uint16)
+    plane_off[:] = np.arange(Pu, dtype=np.uint16) * per_plane
     dist2 = np.einsum("ij,ij->i", pts, pts)
+    if not np.all(dist2 < 1e60):  # NaN, inf, or beyond float32's range once projected
+        raise InputError(None, "M2DP patch points must be finite (and within 1e30 m of their keypoint)", field="points_normalised")
+    at_keypoint = np.flatnonzero(dist2 == 0)
     for k0, k1 in patch_blocks(indptr, _M2DP_CHUNK_POINTS, _M2DP_CHUNK_PATCHES):
         a, b = indptr[k0], indptr[k1]
         n = int(b - a)
         p = pts[a:b].astype(np.float32)
-        far = math.sqrt(float(dist2[a:b].max(initial=0.0)))
-        if not math.isfinite(far):
-            raise InputError(None, "M2DP patch points must be finite", field="points_normalised")
-        rings = max(L, int(L * math.sqrt(far / R)) + 1) + 1  # rings 0 .. the farthest, plus one
-        clip = Pu * rings * (T + 1) >= 1 << 15  # points > ~140 m away: clip the rings instead
-        if clip:
-            rings = L + 1
-        per_plane = rings * (T + 1)
-        plane_off = (np.arange(Pu, dtype=np.int16) * per_plane)[None, :]
-        x, y, th, ir, sec = bx[:n], by[:n], bt[:n], bi[:n], bs[:n]
+        x, y, theta, ring, sector, ids = bx[:n], by[:n], b_theta[:n], b_ring[:n], b_sector[:n], b_ids[:n]
         np.matmul(p, wx, out=x)
         np.matmul(p, wy, out=y)
-        np.arctan2(y, x, out=th)
-        th += np.float32(math.pi)
-        th *= sector_scale
-        np.copyto(sec, th, casting="unsafe")  # truncation = floor for the non-negative angles
-        np.multiply(x, x, out=x)
-        np.multiply(y, y, out=y)
-        x += y
-        np.sqrt(x, out=x)
-        np.sqrt(x, out=x)
-        if clip:
-            np.minimum(x, np.float32(L), out=x)
-        np.copyto(ir, x, casting="unsafe")
-        ir *= T + 1
-        ir += sec
-        ir += plane_off
+        # sector column round(theta t / 2 pi + t / 2 + 1/2) = floor((theta + pi) t / 2 pi) + 1
+        np.arctan2(y, x, out=theta)
+        cv2.convertScaleAbs(theta, sector, T / (2 * math.pi), T / 2 + 0.5)
+        cv2.magnitude(x, y, x)
+        cv2.sqrt(x, x)
+        cv2.convertScaleAbs(x, ring, 1.0, -0.5)  # |l sqrt(rho / r) - 1/2| rounded: the ring (saturates at 255)
+        cv2.min(ring, L, ring)
+        if one_byte:
+            ring *= cols
+            ring += sector
+            np.copyto(ids, ring)  # then same-type adds: numpy's mixed uint8 + uint16 add is slower
+        else:
+            np.copyto(ids, ring)
+            ids *= cols
+            ids += sector
+        ids += plane_off[:n]
         # a point at the keypoint itself is (+-0, +-0) on every plane, and atan2 of signed
         # zeros is any of 0, pi, -0, -pi: it is put where theta = 0 puts it (the original's
         # atan2(0, 0) = 0), on the innermost ring
-        at_keypoint = np.flatnonzero(dist2[a:b] == 0)
-        if len(at_keypoint):
-            ir[at_keypoint] = plane_off + T // 2
-        A = np.empty((k1 - k0, Pu, L, T), np.float32)
+        i0, i1 = np.searchsorted(at_keypoint, (a, b))
+        if i1 > i0:
+            ids[at_keypoint[i0:i1] - a] = plane_off[0] + T // 2 + 1
+        H = np.empty((k1 - k0, n_bins, 1), np.float32)
         for k in range(k0, k1):
-            rows = ir[indptr[k] - a : indptr[k + 1] - a]
-            h = np.bincount(rows.ravel(), minlength=Pu * per_plane).reshape(Pu, rings, T + 1)[:, :L]
-            h[:, :, T - 1] += h[:, :, T]
-            A[k - k0] = h[:, :, :T]
-        yield k0, k1, A[:, plane_of].reshape(k1 - k0, P, L * T)
+            rows = ids[indptr[k] - a : indptr[k + 1] - a]
+            if len(rows):
+                cv2.calcHist([rows], [0], None, [n_bins], [0, n_bins], hist=H[k - k0])
+            else:
+                H[k - k0] = 0.0
+        h = H.reshape(k1 - k0, Pu, L + 1, cols)[:, :, :L]
+        h[..., 1] += h[..., 0]
+        h[..., T] += h[..., T + 1]
+        yield k0, k1, h[..., 1 : T + 1]
 
 
 def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 64) -> tuple[np.ndarray, np.ndarray]:
     """First left and right singular vectors (M, m) and (M, n) of a stack of matrices (M, m, n).
 
     Power iteration u <- A A^T u in float32, batched over the stack (each step multiplies the
-    error by (s2 / s1)^2; for M2DP's count matrices s2 / s1 is typically ~0.1, so a handful of
+    error by (s2 / s1)^2; for M2DP's count matrices s2 / s1 is typically ~0.4, so ten or so
     steps reach float32 precision), started from A's row sums, which for a non-negative matrix
-    are already close to the Perron vector. Matrices not converged to ``tol`` within
-    ``max_iter`` steps (nearly equal first two singular values) are finished with an exact
-    float64 SVD. Signs are fixed so that each right singular vector sums to >= 0 (for a
+    are already close to the Perron vector. The batched products are ``np.einsum``'s (three
+    times as fast as ``np.matmul`` on stacks of vectors). Matrices not converged to ``tol``
+    within ``max_iter`` steps (nearly equal first two singular values) are finished with an
+    exact float64 SVD. Signs are fixed so that each right singular vector sums to >= 0 (for a
     non-negative A both vectors are then non-negative); an all-zero matrix gives zero vectors.
     """
     A = np.asarray(A, np.float32)
@@ -340,8 +366,7 @@ def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 6
         ua = u[active]
         for _ in range(4):
             prev = ua
-            va = np.matmul(ua[:, None, :], Aa)[:, 0, :]
-            ua = np.matmul(Aa, va[:, :, None])[:, :, 0]
+            ua = np.einsum("kij,kj->ki", Aa, np.einsum("ki,kij->kj", ua, Aa))
             ua /= np.linalg.norm(ua, axis=1, keepdims=True)
         steps += 4
         u[active] = ua
@@ -349,7 +374,7 @@ def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 6
     if len(active):
         U = np.linalg.svd(A[active].astype(np.float64))[0]
         u[active] = U[:, :, 0]
-    v = np.matmul(u[:, None, :], A)[:, 0, :]
+    v = np.einsum("ki,kij->kj", u, A)
     s = np.linalg.norm(v, axis=1, keepdims=True)
     v = np.divide(v, s, out=np.zeros_like(v), where=s > 0)
     u[zero] = 0.0
@@ -360,24 +385,20 @@ def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 6
 def m2dp_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[M2DPConfig] = None) -> np.ndarray:
     """M2DP of many yaw-normalised patches: (M, p q + l t) float32, [u1, v1] as in the original."""
     cfg = cfg or M2DPConfig()
+    P, L, T = cfg.n_planes, cfg.n_radial, cfg.n_angular
     out = np.empty((len(indptr) - 1, cfg.dim), np.float32)
-    pending: list[np.ndarray] = []
+    plane_of = _m2dp_unique_planes(cfg)[1]
+    # the singular vectors of a few hundred patches at a time: one batched iteration for all;
+    # a block holds at most _M2DP_CHUNK_PATCHES patches, so the buffer never overflows
+    buf = np.empty((2 * _M2DP_CHUNK_PATCHES, P, L, T), np.float32)
     start = 0
-
-    def flush(stop: int) -> None:
-        u, v = leading_singular_vectors(np.concatenate(pending))
-        out[start:stop, : cfg.n_planes] = u
-        out[start:stop, cfg.n_planes :] = v
-        pending.clear()
-
-    # the singular vectors of a few hundred patches at a time: one batched iteration for all
-    for k0, k1, A in _m2dp_signature_blocks(points_normalised, indptr, cfg):
-        pending.append(A)
-        if k1 - start >= _M2DP_CHUNK_PATCHES:
-            flush(k1)
+    for k0, k1, counts in _m2dp_signature_blocks(points_normalised, indptr, cfg):
+        np.take(counts, plane_of, axis=1, out=buf[k0 - start : k1 - start], mode="clip")
+        if k1 - start >= _M2DP_CHUNK_PATCHES or k1 == len(out):
+            u, v = leading_singular_vectors(buf[: k1 - start].reshape(k1 - start, P, L * T))
+            out[start:k1, :P] = u
+            out[start:k1, P:] = v
             start = k1
-    if pending:
-        flush(len(out))
     return out
 
 

@@ -89,11 +89,27 @@ def _m2dp_loop(points, cfg):
     return np.concatenate([u, v]) * (1.0 if v.sum() >= 0 else -1.0)
 
 
+def _off_bin_edges(points, cfg, eps=1e-5):
+    """The points that lie farther than ``eps`` (in ring or sector units) from every M2DP bin
+    edge on every plane: the library bins in float32, so a point within float32 precision of an
+    edge may fall on either side (module docstring); the reference must not depend on it."""
+    _, ax, ay = d3.m2dp_planes(cfg)
+    x, y = points @ ax.T, points @ ay.T
+    ring = cfg.n_radial * np.sqrt(np.hypot(x, y) / cfg.domain.radius)
+    sector = (np.arctan2(y, x) + math.pi) / (2 * math.pi) * cfg.n_angular
+    inside = ring < cfg.n_radial + eps  # edges beyond the grid have the outside on both sides
+    near = inside & ((np.abs(ring - np.round(ring)) < eps) | (np.abs(sector - np.round(sector)) < eps))
+    return points[~near.any(axis=1)]
+
+
 def test_m2dp_equals_loop_reference(rng):
     cfg = d3.M2DPConfig()
     p1 = np.column_stack([rng.uniform(-10, 10, (400, 2)), rng.normal(0, 4, 400)])
-    p1 = np.vstack([np.zeros(3), p1[np.hypot(p1[:, 0], p1[:, 1]) <= 10]])  # with the keypoint itself
-    p2 = np.vstack([rng.normal([3, -2, 0], [0.3, 3, 2], (150, 3)), [[0.7, 0.4, 40.0]]])  # one point far above: outside on most planes
+    p1 = _off_bin_edges(p1[np.hypot(p1[:, 0], p1[:, 1]) <= 10], cfg)
+    assert len(p1) > 300  # edge points are rare: a few in a thousand at most
+    p1 = np.vstack([np.zeros(3), p1])  # with the keypoint itself
+    p2 = _off_bin_edges(np.vstack([rng.normal([3, -2, 0], [0.3, 3, 2], (150, 3)), [[0.7, 0.4, 40.0]]]), cfg)  # one point far above: outside on most planes
+    assert p2[-1, 2] == 40.0
     patches = [p1, np.zeros((0, 3)), p2]
     indptr = np.cumsum([0] + [len(p) for p in patches])
     desc = d3.m2dp_patches(np.vstack(patches), indptr, cfg)
@@ -102,9 +118,15 @@ def test_m2dp_equals_loop_reference(rng):
         np.testing.assert_allclose(desc[k], _m2dp_loop(p, cfg), atol=2e-5)
     assert np.all(desc[1] == 0)
     assert np.all(desc[[0, 2]] >= -1e-6)  # non-negative counts: sign fixed to the non-negative pair
-    # an outlier 500 m up (the rings are clipped instead of extended) changes nothing here
+    # an outlier 500 m up (outside on every plane but the vertical ones) changes nothing here
     p3 = np.vstack([p2, [[0.5, 0.2, 500.0]]])
     np.testing.assert_allclose(d3.m2dp_patches(p3, np.array([0, len(p3)]), cfg)[0], _m2dp_loop(p3, cfg), atol=2e-5)
+    # a finer grid than one byte per plane holds (9 rings x 34 sector columns): two-byte bin ids
+    fine = d3.M2DPConfig(n_angular=32, n_plane_elevations=5)
+    p4 = np.vstack([np.zeros(3), _off_bin_edges(p1[1:], fine)])
+    np.testing.assert_allclose(d3.m2dp_patches(p4, np.array([0, len(p4)]), fine)[0], _m2dp_loop(p4, fine), atol=2e-5)
+    with pytest.raises(InputError):
+        d3.m2dp_patches(p4, np.array([0, len(p4)]), d3.M2DPConfig(n_radial=300))
 
 
 def test_leading_singular_vectors_match_svd_and_fallback(rng):
