@@ -48,6 +48,7 @@ CONFIGS: dict[str, str] = {
     "localize": "mapkit.localize:LocalizeConfig",
     "structure_index": "mapkit.index_structure:StructureIndexConfig",
     "places": "mapkit.eval_places:PlacesEvalConfig",
+    "train": "mapkit.train:TrainConfig",
 }
 
 

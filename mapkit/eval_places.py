@@ -20,7 +20,7 @@ no place matched to q      some d' of D within r_e of p_q               0   0   
 A method gives each query its best place and a score; the match is accepted when the score
 passes a threshold, and sweeping the threshold traces the precision-recall curve. Methods:
 
-- ``nbld``, ``m2dp`` (and ``cnn`` once registered): the structure voting index of
+- ``nbld``, ``m2dp``, ``cnn`` (the trained model of ``structure.cnn_model``): the structure voting index of
   :mod:`mapkit.index_structure`, built on the database session alone; the score is the vote count
   v(d), the threshold lambda_v (Sec. 3.4).
 - ``vlad``: the appearance baseline (the paper's is NetVLAD; mapkit's image index is dense-SIFT
@@ -371,6 +371,12 @@ def evaluate_places(
     unknown = [m for m in methods if m not in STRUCTURE_METHODS and m != "vlad"]
     if unknown:
         raise InputError(None, f"unknown method(s) {unknown}; known: nbld, m2dp, cnn, vlad", field="methods")
+    if "cnn" in methods and cfg.structure.cnn_model is None:
+        from .index_structure import _DESCRIBERS
+
+        if "cnn" not in _DESCRIBERS:
+            raise InputError(None, "method cnn needs a trained model: set structure.cnn_model to a mapkit train output folder",
+                             field="structure.cnn_model")
     gt = _Truth(ws, truth)
     cond = _conditions(truth)
 
@@ -398,6 +404,10 @@ def evaluate_places(
         "vlad_bundle": None if vlad is None else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
         "vlad_note": vlad_note, "pairs": [],
     }
+    if "cnn" in methods and cfg.structure.cnn_model is not None:
+        from .cnn import model_fingerprint
+
+        results["cnn_model"] = model_fingerprint(cfg.structure.cnn_model)
     rows: list[list] = []
     for db, query in pairs:
         qmap, _, qsrc = session_map(query)
@@ -560,7 +570,9 @@ def format_places(results: dict) -> str:
         "",
         f"Protocol of the semi-dense place-recognition paper (Sec. 5.2, Table 1): r_e = {results['radius_m']:g} m, "
         f"one keyframe in {results['query_stride']} of the query session is a query; ground truth: {results['ground_truth']}. "
-        f"Structure (NBLD, M2DP): {100 * sc['keypoint_fraction']:g} % keypoints, PCA to {sc['pca_dim']}, voting; lambda_v swept. "
+        f"Structure ({', '.join(METHOD_LABELS[m] for m in methods if m in STRUCTURE_METHODS) or 'none'}"
+        + (f"; CNN model {results['cnn_model']['path']}" if results.get("cnn_model") else "")
+        + f"): {100 * sc['keypoint_fraction']:g} % keypoints, PCA to {sc['pca_dim']}, voting; lambda_v swept. "
         "VLAD: top-1 database image of the database session; minus its squared distance swept.",
         "",
         "| " + " | ".join(head) + " |",

@@ -2,7 +2,8 @@
 
 Sec. 3.2-3.4 of the semi-dense place-recognition paper. For every database session: a random
 5 % of the map points are keypoints; their patches are cut, yaw-normalised towards each
-keypoint's first observer and described (NBLD or M2DP, ``mapkit.descriptors3d``); PCA learned on
+keypoint's first observer and described (NBLD or M2DP, ``mapkit.descriptors3d``; or the CNN of
+Sec. 3.3.2 run from its ONNX export, ``mapkit.cnn``, with ``cnn_model``); PCA learned on
 the database descriptors keeps 25 dimensions (Sec. 5.2); an exact L2 index (faiss
 ``IndexFlatL2``) holds them, and every entry refers to EVERY frame that observed its keypoint.
 A query frame describes the keypoints it observed in the query session's map, matches each to
@@ -20,8 +21,9 @@ outside the keyframe range keeps its votes but has no pose and is never returned
 Bundle layout (``WORKSPACE/indexes/structure-<kind>`` by default)::
 
     manifest.json   format_version, kind, build hash, resolved config, source workspace, the
-                    sessions (map source and checksum, keypoints, frames), counts, and the
-                    sha256 and size of every other file
+                    sessions (map source and checksum, keypoints, frames), counts, the CNN
+                    model (kind cnn: folder, ONNX sha256, form, domain), and the sha256 and size
+                    of every other file
     config.yaml     the resolved StructureIndexConfig
     pca.npz         DescriptorPCA (raw descriptors -> pca_dim)
     index.faiss     faiss IndexFlatL2 over the PCA'd database descriptors; row i = entry i
@@ -82,7 +84,11 @@ class StructureIndexConfig(StructureDescriptorConfig):
     Sec. 5.2) and the NBLD / M2DP parameters from ``StructureDescriptorConfig``."""
 
     kind: Kind = Field(
-        "nbld", description="Descriptor: nbld or m2dp (Sec. 3.3.1); cnn once a describer is registered with register_describer (Sec. 3.3.2)."
+        "nbld", description="Descriptor: nbld or m2dp (Sec. 3.3.1); cnn (Sec. 3.3.2) with cnn_model set, or a describer registered "
+        "with register_describer."
+    )
+    cnn_model: Optional[str] = Field(
+        None, description="kind cnn: a trained model folder (mapkit train); its model.onnx is run with onnxruntime (no torch needed)."
     )
     database_sessions: Optional[list[str]] = Field(None, description="Sessions indexed. None = every session of the workspace with a map.")
     prefer_aligned_maps: bool = Field(
@@ -110,10 +116,20 @@ def register_describer(kind: str, fn: Callable) -> None:
     _DESCRIBERS[kind] = fn
 
 
+def _describer(kind: str, cfg: StructureIndexConfig) -> Optional[Callable]:
+    """The describer of a kind beyond nbld/m2dp: the ONNX model of ``cfg.cnn_model`` for cnn when
+    set (mapkit.cnn, imported only then), else a registered one."""
+    if kind == "cnn" and cfg.cnn_model is not None:
+        from .cnn import describe_cnn
+
+        return describe_cnn
+    return _DESCRIBERS.get(kind)
+
+
 def _describe(kind: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.ndarray, cfg: StructureIndexConfig, tree) -> np.ndarray:
     if kind in ("nbld", "m2dp"):
         return describe(kind, points, keypoints, observer_dirs, cfg, tree=tree)
-    fn = _DESCRIBERS.get(kind)
+    fn = _describer(kind, cfg)
     if fn is None:
         raise ConfigError(f"structure descriptor {kind!r} is not available: no describer registered (register_describer)")
     return np.asarray(fn(points, keypoints, observer_dirs, cfg, tree), np.float32)
@@ -122,8 +138,17 @@ def _describe(kind: str, points: np.ndarray, keypoints: np.ndarray, observer_dir
 def _descriptor_params(cfg: StructureIndexConfig, kind: str) -> dict:
     """What a session's raw descriptors depend on (besides the map)."""
     sub = {"nbld": cfg.nbld, "m2dp": cfg.m2dp}.get(kind)
-    return {"kind": kind, "keypoint_fraction": cfg.keypoint_fraction, "seed": cfg.seed,
-            "descriptor": None if sub is None else sub.model_dump(mode="json")}
+    params = {"kind": kind, "keypoint_fraction": cfg.keypoint_fraction, "seed": cfg.seed,
+              "descriptor": None if sub is None else sub.model_dump(mode="json")}
+    if kind == "cnn" and cfg.cnn_model is not None:
+        params["cnn_onnx_sha256"] = _cnn_model_info(cfg)["onnx_sha256"]  # a retrained model invalidates cached descriptors
+    return params
+
+
+def _cnn_model_info(cfg: StructureIndexConfig) -> dict:
+    from .cnn import model_fingerprint
+
+    return model_fingerprint(cfg.cnn_model)
 
 
 # --------------------------------------------------------------------------- sessions: keypoints and frames
@@ -311,12 +336,18 @@ def build_structure_index(
     missing = [n for n in names if n not in available]
     if missing:
         raise InputError(ws, f"no semi-dense map for session(s) {missing}; the workspace has {available}", field="database_sessions")
-    if cfg.kind not in ("nbld", "m2dp") and cfg.kind not in _DESCRIBERS:
-        raise ConfigError(f"structure descriptor {cfg.kind!r} is not available: no describer registered (register_describer)")
+    if cfg.kind not in ("nbld", "m2dp") and _describer(cfg.kind, cfg) is None:
+        raise ConfigError(f"structure descriptor {cfg.kind!r} is not available: "
+                          + ("set cnn_model to a trained model folder (mapkit train) or " if cfg.kind == "cnn" else "")
+                          + "register a describer (register_describer)")
+    cnn_info = _cnn_model_info(cfg) if cfg.kind == "cnn" and cfg.cnn_model is not None else None
     dirs = {n: session_map_dir(ws, n, cfg.prefer_aligned_maps) for n in names}
     shas = {n: map_checksum(d) for n, (d, _) in dirs.items()}
-    build_hash = config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
-                              "sessions": names, "maps": {n: [dirs[n][1], shas[n]] for n in names}})
+    # cnn_model only enters the hash of a cnn index: nbld / m2dp bundles of earlier versions stay valid
+    hashed = cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS | (set() if cfg.kind == "cnn" else {"cnn_model"}))
+    build_hash = config_hash({"format_version": FORMAT_VERSION, "config": hashed,
+                              "sessions": names, "maps": {n: [dirs[n][1], shas[n]] for n in names},
+                              **({"cnn_onnx_sha256": cnn_info["onnx_sha256"]} if cnn_info else {})})
     if is_finished(out, build_hash, FORMAT_VERSION):
         return out
     if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
@@ -379,6 +410,7 @@ def build_structure_index(
         "build_hash": build_hash,
         "config": cfg.model_dump(mode="json"),
         "descriptor": cfg.kind,
+        **({"cnn_model": cnn_info} if cnn_info else {}),
         "source_workspace": str(ws.resolve()),
         "session_names": names,
         "sessions": info,
@@ -527,6 +559,10 @@ class StructureIndex:
             raise InputError(path / ENTRIES_FILE, f"frame references outside the frame table of {F} rows", field="ref_frame")
         if index.d != pca.dim:
             raise InputError(path / INDEX_FILE, f"index dimension {index.d} differs from the PCA's {pca.dim}", field="dim")
+        if cfg.kind == "cnn" and cfg.cnn_model is not None and "cnn_model" in manifest:
+            now = _cnn_model_info(cfg)["onnx_sha256"]  # queries run the model at cnn_model: it must be the one indexed
+            if now != manifest["cnn_model"]["onnx_sha256"]:
+                raise InputError(Path(cfg.cnn_model) / "model.onnx", "differs from the model this index was built with", field="cnn_model")
         return cls(path, manifest, cfg, pca, index, entries, frames)
 
     # ---- facts

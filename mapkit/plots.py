@@ -184,3 +184,32 @@ def localization_track(path: Path, truth_xyz: np.ndarray, retrieval_xyz: np.ndar
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3, fontsize=8, frameon=False)
     ax.grid(True, alpha=0.3)
     return _save(plt, fig, path)
+
+
+def training_curve(path: Path, history: list[dict], title: str = "CNN descriptor training") -> Path:
+    """Loss (train, and test when scored) and test triplet accuracy per epoch (``mapkit train``)."""
+    plt, fig, ax = _figure((7, 4.2))
+    ep = np.array([r["epoch"] for r in history])
+    ax.plot(ep, [r["loss"] for r in history], "o-", color="C0", label="train loss")
+    if any("test_loss" in r for r in history):
+        ax.plot(ep, [r.get("test_loss", np.nan) for r in history], "s--", color="C1", label="test loss")
+    hard = [r["epoch"] for r in history if r.get("hard_triplets")]
+    for k, e in enumerate(hard):
+        ax.axvline(e - 0.5, color="0.6", lw=0.8, ls=":", label="hard triplets swapped in" if k == 0 else None)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("triplet loss, Eq. (1)")
+    ax.grid(alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    if any("test_accuracy" in r for r in history):
+        ax2 = ax.twinx()
+        ax2.plot(ep, [r.get("test_accuracy", np.nan) for r in history], "^-", color="C2", label="test triplet accuracy")
+        ax2.set_ylabel("test accuracy (d(X1,X2) < d(X1,X3))")
+        ax2.set_ylim(0, 1)
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    ax.legend(handles, labels, loc="center right", fontsize=8)
+    ax.set_title(title, fontsize=10)
+    return _save(plt, fig, path)
