@@ -15,7 +15,19 @@ from test_align import gps_error, make_workspace, street  # noqa: E402
 
 from mapkit.align import align_workspace  # noqa: E402
 from mapkit.errors import InputError  # noqa: E402
-from mapkit.triplets import GridIndex, TripletDataset, export_triplets, split_of, tile_split  # noqa: E402
+from mapkit.triplets import (  # noqa: E402
+    ChunkSets,
+    GridIndex,
+    TripletConfig,
+    TripletDataset,
+    export_triplets,
+    load_aligned_sessions,
+    make_patches,
+    mapped_patches,
+    place_chunks,
+    split_of,
+    tile_split,
+)
 
 CFG = {"n_triplets": 150, "tile_size_m": 40.0, "buffer_m": 8.0, "test_fraction": 0.3, "negative_min_distance_m": 40.0,
        "negative_pool": 60, "shard_patches": 64, "places_per_cell": 4, "keypoint_fraction": 0.02}
@@ -50,10 +62,66 @@ def test_grid_index_finds_what_a_kd_tree_finds():
     rng = np.random.default_rng(1)
     xy = rng.uniform(-50, 50, (5000, 2))
     g = GridIndex(xy, 5.0)
-    for c in rng.uniform(-40, 40, (20, 2)):
+    centres = rng.uniform(-40, 40, (20, 2))
+    indptr, indices = g.candidates_many(centres, 7.0)
+    for k, c in enumerate(centres):
         cand = g.candidates(c, 7.0)
         inside = np.flatnonzero(np.hypot(*(xy - c).T) <= 7.0)
         assert set(inside) <= set(cand.tolist())
+        assert np.array_equal(indices[indptr[k] : indptr[k + 1]], cand)  # the batched query, in the same order
+
+
+def test_batched_patches_are_the_per_place_patches(aligned):
+    """The export cuts a chunk's patches from each session's cell cloud in one batch, and the
+    negatives' patches per session: the grids are those of the per-place procedure
+    (make_patches on each member's local cloud moved by its transform)."""
+    cfg = TripletConfig(**CFG)
+    sessions, _ = load_aligned_sessions(aligned)
+    rng = np.random.default_rng(0)
+    kp_session = np.concatenate([np.full(len(s.points) // 50, si) for si, s in enumerate(sessions)])
+    kp_index = np.concatenate([rng.choice(len(s.points), len(s.points) // 50, replace=False) for s in sessions])
+    order, chunk = place_chunks(kp_session, kp_index, np.full(len(kp_session), "train", dtype=object), sessions, cfg, rng)
+    # negatives: patches as mapped
+    pick = order[:30]
+    centres = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in pick])
+    obs = np.array([sessions[kp_session[j]].observer_pos[kp_index[j]] for j in pick])
+    pts, indptr = mapped_patches(sessions, kp_session[pick], centres, cfg.domain)
+    clouds = [sessions[kp_session[j]].around(c, cfg.domain.patch_radius) for j, c in zip(pick, centres)]
+    ref = make_patches(clouds, centres, obs, cfg)
+    assert np.array_equal(np.diff(indptr), ref[3]) and ref[3].min() > 0
+    from mapkit.triplets import make_patches_csr
+
+    got = make_patches_csr(pts, indptr, centres, obs, cfg)
+    assert all(np.array_equal(a, b) for a, b in zip(got, ref))
+    # correspondence sets: a chunk's members, moved by known transforms
+    shift = {si: np.eye(4) for si in range(len(sessions))}
+    for si in shift:
+        shift[si][:3, 3] = [0.05 * si, -0.03 * si, 0.0]
+    icp_of = lambda si, a, centre, reach, n_src, n_tgt: {"fitness": 1.0, "rmse_m": 0.1,  # noqa: E731
+                                                         "target_from_source": shift[si] @ np.linalg.inv(shift[a])}
+    n_sets = 0
+    for c in np.unique(chunk)[:6]:
+        places = order[chunk == c]
+        sets = ChunkSets(places, sessions, kp_session, kp_index, cfg, icp_of)
+        for j in places:
+            res, rejected = sets.get(j)
+            assert rejected == 0
+            if res is None:
+                continue
+            n_sets += 1
+            p = sessions[kp_session[j]].points[kp_index[j]]
+            clouds, obs = [], []
+            for si, T, f in zip(res["session"], res["transform"], res["frame"]):
+                s = sessions[si]
+                clouds.append(s.around(p, cfg.domain.patch_radius + 2.0) @ T[:3, :3].T + T[:3, 3])
+                pi = kp_index[j] if si == kp_session[j] else s.tree3.query(p)[1]
+                assert s.observer_frame[pi] == f
+                obs.append(T[:3, :3] @ s.observer_pos[pi] + T[:3, 3])
+            occ, dcg, yaw, npts = make_patches(clouds, np.repeat(p[None], len(clouds), axis=0), np.array(obs), cfg)
+            assert res["session"][0] == kp_session[j] and len(res["session"]) >= 2
+            assert np.array_equal(npts, res["points"]) and np.allclose(yaw, res["yaw"])
+            assert np.array_equal(occ, res["occ"]) and np.array_equal(dcg, res["dcg"])
+    assert n_sets > 0
 
 
 def test_export_positives_negatives_split_and_loader(aligned, tmp_path):
@@ -112,7 +180,7 @@ def test_a_failed_export_keeps_the_earlier_dataset(aligned, tmp_path, monkeypatc
     def crash(*args, **kwargs):
         raise RuntimeError("killed half-way")
 
-    monkeypatch.setattr(tr, "make_patches", crash)
+    monkeypatch.setattr(tr, "make_patches_csr", crash)
     with pytest.raises(RuntimeError, match="half-way"):
         export_triplets(aligned, out=out, overrides=dict(CFG, n_triplets=40), progress=False)
     assert (out / "manifest.json").read_text() == before
