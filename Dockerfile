@@ -9,9 +9,12 @@ RUN apt-get update \
  && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libgl1 libglib2.0-0 \
  && rm -rf /var/lib/apt/lists/*
 
+# torch's CPU build (the learning extra) from PyTorch's CPU index: no CUDA packages in the image
+ENV TORCH_INDEX=https://download.pytorch.org/whl/cpu
+
 WORKDIR /src
 COPY . /src
 RUN bash scripts/setup.sh
 
-# the README's test command
+# the README's test command (the main job: docker run --rm mapkit python3 pipelines/main.py --out /tmp/run)
 CMD ["bash", "-c", "bash scripts/setup.sh && python3 -m pytest -q"]

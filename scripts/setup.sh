@@ -15,11 +15,19 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
 fi
 
-# the package (editable, so that the checkout is what runs) and the test runner
+# torch for the 3D CNN (the `learning` extra): its CPU build, pinned, so that no CUDA packages are
+# pulled. On this kind of machine `pip install torch==2.13.0` takes the CPU wheel from the local
+# wheel folder; elsewhere set TORCH_INDEX=https://download.pytorch.org/whl/cpu (the Dockerfile does).
+if ! "$PY" -I -c "import torch" >/dev/null 2>&1; then
+  echo "[setup] installing torch==2.13.0 (CPU build)" >&2
+  "$PY" -m pip install --quiet --disable-pip-version-check torch==2.13.0 ${TORCH_INDEX:+--index-url "$TORCH_INDEX"}
+fi
+
+# the package (editable, so that the checkout is what runs), its optional extras and the test runner
 # -I (isolated): the installed mapkit, not ./mapkit of the current folder, must be this checkout
-if ! "$PY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, pyproj, faiss, pytest" >/dev/null 2>&1 \
+if ! "$PY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, pyproj, faiss, pytest, torch, onnxruntime, ray" >/dev/null 2>&1 \
    || [ "$("$PY" -I -c 'import mapkit, pathlib; print(pathlib.Path(mapkit.__file__).resolve().parents[1])' 2>/dev/null)" != "$(pwd -P)" ]; then
-  echo "[setup] installing mapkit and its dependencies with pip" >&2
-  "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test]"
+  echo "[setup] installing mapkit, its extras (learning, distributed) and its dependencies with pip" >&2
+  "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test,learning,distributed]"
 fi
 "$PY" -c "import open3d, mapkit; print(f'[setup] ok: mapkit {mapkit.__version__}, open3d {open3d.__version__}')" >&2
