@@ -130,17 +130,20 @@ def triplets(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults triplets`."),
     truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: also measure the positives' true offsets."),
+    pointnetvlad: bool = typer.Option(False, "--pointnetvlad", help="Also write the PointNetVLAD tuple layout (DATASET/pointnetvlad)."),
 ) -> None:
     """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
     import json
 
     from .triplets import evaluate_triplets, export_triplets
 
-    folder = export_triplets(workspace, out, config, progress=sys.stderr.isatty())
+    overrides = {"pointnetvlad": {"enabled": True}} if pointnetvlad else None
+    folder = export_triplets(workspace, out, config, overrides=overrides, progress=sys.stderr.isatty())
     typer.echo((folder / "metrics.json").read_text(), nl=False)
     if truth is not None:
         typer.echo(json.dumps(evaluate_triplets(folder, workspace, truth), indent=2))
-    typer.echo(f"written to {folder}: patches-*.npz, patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png")
+    typer.echo(f"written to {folder}: patches-*.npz, patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png"
+               + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else ""))
 
 
 @app.command()
@@ -226,7 +229,8 @@ def index_vlad(
 @index_app.command("structure")
 def index_structure(
     workspace: Path = typer.Argument(..., help="A workspace (its aligned maps are used when `mapkit align` ran)."),
-    kind: str = typer.Option("nbld", "--kind", "-k", help="Descriptor: nbld or m2dp (cnn once the learning extra registers it)."),
+    kind: str = typer.Option("nbld", "--kind", "-k", help="Descriptor: nbld, m2dp, or cnn (with --model)."),
+    model: Optional[Path] = typer.Option(None, "--model", help="A trained CNN folder (`mapkit train`), for --kind cnn; runs its ONNX export."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/structure-KIND)."),
     session: Optional[List[str]] = typer.Option(None, "--session", "-s", help="Database session; repeat for several (default: all)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."),
@@ -234,7 +238,8 @@ def index_structure(
     """NBLD / M2DP patch descriptor index with keypoint-to-frame voting, as a deployable bundle."""
     from .index_structure import build_structure_index
 
-    bundle = build_structure_index(workspace, kind, out, session or None, config, progress=sys.stderr.isatty())
+    overrides = {"cnn_model": str(model)} if model is not None else None
+    bundle = build_structure_index(workspace, kind, out, session or None, config, overrides=overrides, progress=sys.stderr.isatty())
     typer.echo(f"bundle written to {bundle}")
 
 
@@ -281,7 +286,8 @@ def eval_retrieval(
 def eval_places(
     workspace: Path = typer.Argument(..., help="An aligned workspace."),
     pair: List[str] = typer.Option(..., "--pair", "-p", help="DATABASE:QUERY session pair; repeat for several."),
-    method: List[str] = typer.Option(["nbld", "m2dp", "vlad"], "--method", "-m", help="nbld, m2dp, vlad; repeat for several."),
+    method: List[str] = typer.Option(["nbld", "m2dp", "vlad"], "--method", "-m", help="nbld, m2dp, cnn (with --cnn-model), vlad; repeat for several."),
+    cnn_model: Optional[Path] = typer.Option(None, "--cnn-model", help="A trained CNN folder (`mapkit train`) for the cnn method."),
     truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: true positions (else the aligned poses)."),
     vlad_bundle: Optional[Path] = typer.Option(None, "--vlad-bundle", help="VLAD bundle for the image baseline."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places)."),
@@ -296,7 +302,8 @@ def eval_places(
         if p.count(":") != 1:
             raise ConfigError(f"--pair {p!r}: expected DATABASE:QUERY")
         pairs.append(tuple(p.split(":")))
-    r = evaluate_places(workspace, pairs, method, out, truth, vlad_bundle, config, progress=sys.stderr.isatty())
+    overrides = {"structure": {"cnn_model": str(cnn_model)}} if cnn_model is not None else None
+    r = evaluate_places(workspace, pairs, method, out, truth, vlad_bundle, config, overrides=overrides, progress=sys.stderr.isatty())
     typer.echo(format_places(r))
 
 

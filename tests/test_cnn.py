@@ -270,3 +270,21 @@ def test_cnn_as_a_method_of_the_places_evaluation(tiny_model, tmp_path):
     assert cnn["available"] and 0.0 <= cnn["auc"] <= 1.0 and cnn["reachable"] == res["pairs"][0]["queries"] == len(maps["b"].keyframe_ids[::3])
     assert res["cnn_model"]["onnx_sha256"] == json.loads((tiny_model / "manifest.json").read_text())["files"]["model.onnx"]["sha256"]
     assert "| NBLD | CNN |" in (tmp_path / "eval" / "places.md").read_text()
+
+
+def test_cli_train_then_cnn_index_from_the_command_line(tiny_ds, tiny_model, tmp_path, capsys):
+    """`mapkit train DATASET -o MODEL -c YAML` gives the same model as the API; `mapkit index
+    structure --kind cnn --model` refuses a folder that is not a trained model, in one line."""
+    import yaml
+
+    from mapkit.cli import main
+
+    cfg = tmp_path / "train.yaml"
+    cfg.write_text(yaml.safe_dump(TINY_TRAIN))
+    assert main(["train", str(tiny_ds), "--out", str(tmp_path / "m"), "-c", str(cfg)]) == 0
+    assert "model.onnx loads without torch" in capsys.readouterr().out
+    a, b = _weights(tiny_model), _weights(tmp_path / "m")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert main(["index", "structure", str(tmp_path), "--kind", "cnn", "--model", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "error:" in err
