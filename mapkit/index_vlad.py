@@ -757,6 +757,10 @@ class VladIndex:
             stamps_ns=db["stamp_ns"][ids],
         )
 
+    def encode_files(self, paths: Sequence[str | Path], progress: bool = False, desc: str = "encode") -> np.ndarray:
+        """(n, D) encodings of image files, on the run's executor (see :func:`encode_images`)."""
+        return encode_images(self.encoder, paths, self.cfg.workers, progress, desc)
+
     def query(self, image_or_vector, k: Optional[int] = None) -> Hits:
         """The top ``k`` (default ``top_k`` = 20) database images of an image, image file or encoded vector."""
         dist, ids = self.search(self._as_vector(image_or_vector)[None], k)

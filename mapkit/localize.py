@@ -124,6 +124,11 @@ def query_all(index, images, top_k: int, progress: bool = False, label: str = "q
     """Retrieved ids (n, top_k; -1 pads when the index is smaller) and squared L2 distances of every image."""
     n = len(images)
     ids, dist = np.full((n, top_k), -1, np.int64), np.full((n, top_k), np.inf, np.float32)
+    if n and all(isinstance(im, (str, Path)) for im in images):
+        # image files: encoded on the run's executor (a process pool or Ray), then one batched search
+        d, i = index.search(index.encode_files(images, progress=progress, desc=label), top_k)
+        ids[:, : i.shape[1]], dist[:, : d.shape[1]] = i, d
+        return ids, dist
     for t, im in enumerate(images):
         d, i = index.search(index._as_vector(im)[None], top_k)
         ids[t], dist[t] = i[0], d[0]

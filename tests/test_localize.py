@@ -88,8 +88,11 @@ class _CountingIndex:
         self.calls += 1
         return np.full(4, float(Path(image).stat().st_size), np.float32)
 
+    def encode_files(self, paths, progress=False, desc=""):
+        return np.stack([self._as_vector(p) for p in paths])
+
     def search(self, q, k):
-        v = int(q[0, 0])
+        v = q[:, :1].astype(int)
         return np.arange(k, dtype=np.float32)[None] + v, (np.arange(k)[None] + v) % 30
 
 
