@@ -32,13 +32,12 @@ def write_manifest(folder: Path, manifest: dict) -> None:
     write_json(folder / MANIFEST, manifest)
 
 
-def read_manifest(path: Path, what: str, format_version: int, required: Iterable[str], verify: bool = True) -> dict:
-    """The manifest of the bundle at ``path``, after checking its format version, that it lists
-    ``required`` files, that every listed file is there and (``verify``) has its sha256.
-    Each failure is one ``InputError`` naming the file and field."""
+def load_manifest(path: Path, what: str, format_version: int) -> dict:
+    """The manifest of the bundle at ``path`` after checking that it is JSON of ``format_version``
+    (one ``InputError`` naming the file and field otherwise); no file is checked."""
     mpath = path / MANIFEST
     if not mpath.is_file():
-        raise InputError(path, f"not a {what} bundle (no {MANIFEST})")
+        raise InputError(path, f"not a {what} (no {MANIFEST})")
     try:
         manifest = json.loads(mpath.read_text())
     except json.JSONDecodeError as exc:
@@ -47,6 +46,15 @@ def read_manifest(path: Path, what: str, format_version: int, required: Iterable
     if version != format_version:
         raise InputError(mpath, f"unknown bundle format version {version!r}; this mapkit {__version__} reads version {format_version}",
                          field="format_version")
+    return manifest
+
+
+def read_manifest(path: Path, what: str, format_version: int, required: Iterable[str], verify: bool = True) -> dict:
+    """The manifest of the bundle at ``path``, after checking its format version, that it lists
+    ``required`` files, that every listed file is there and (``verify``) has its sha256.
+    Each failure is one ``InputError`` naming the file and field."""
+    mpath = path / MANIFEST
+    manifest = load_manifest(path, f"{what} bundle", format_version)
     files = manifest.get("files")
     if not isinstance(files, dict):
         raise InputError(mpath, "no file list", field="files")

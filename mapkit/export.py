@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 from . import __version__
-from .bundle import MANIFEST, building, link_or_copy
+from .bundle import MANIFEST, building, link_or_copy, load_manifest
 from .errors import InputError
 from .runio import sha256_file, write_json
 
@@ -147,17 +147,9 @@ def load_bundle(path: str | Path, verify: bool = True) -> Bundle:
     index's manifest is the one the export lists (sha256), and (``verify``) every file's checksum."""
     path = Path(path)
     mpath = path / MANIFEST
-    if not mpath.is_file():
-        raise InputError(path, f"not a {KIND} (no {MANIFEST})")
-    try:
-        top = json.loads(mpath.read_text())
-    except json.JSONDecodeError as exc:
-        raise InputError(mpath, f"not valid JSON ({exc})") from None
-    if not isinstance(top, dict) or top.get("kind") != KIND:
+    top = load_manifest(path, KIND, FORMAT_VERSION)
+    if top.get("kind") != KIND:
         raise InputError(mpath, f"not a {KIND}", field="kind")
-    if top.get("format_version") != FORMAT_VERSION:
-        raise InputError(mpath, f"unknown bundle format version {top.get('format_version')!r}; this mapkit {__version__} reads "
-                         f"version {FORMAT_VERSION}", field="format_version")
     indexes = {}
     for name, e in (top.get("indexes") or {}).items():
         sub = path / e.get("path", name)
