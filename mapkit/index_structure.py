@@ -57,6 +57,7 @@ from .bundle import MANIFEST, building, is_finished, read_manifest, write_manife
 from .config import _deep_merge, dump_config, load_config
 from .descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
 from .errors import ConfigError, InputError
+from .executor import SERIAL, get_executor
 from .patches import first_observer_positions, select_keypoints, xy_tree
 from .runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json
 
@@ -133,6 +134,30 @@ def _describe(kind: str, points: np.ndarray, keypoints: np.ndarray, observer_dir
     if fn is None:
         raise ConfigError(f"structure descriptor {kind!r} is not available: no describer registered (register_describer)")
     return np.asarray(fn(points, keypoints, observer_dirs, cfg, tree), np.float32)
+
+
+class _DescribeShared:
+    """What every chunk of a session's keypoints needs: the map and the config, shipped once per
+    worker; the kd-tree is rebuilt where it is used (cheaper than pickling it)."""
+
+    def __init__(self, kind: str, points: np.ndarray, cfg: StructureIndexConfig):
+        self.kind, self.points, self.cfg = kind, points, cfg
+        self._tree = None
+
+    @property
+    def tree(self):
+        if self._tree is None:
+            self._tree = xy_tree(self.points)
+        return self._tree
+
+    def __getstate__(self) -> dict:
+        return {"kind": self.kind, "points": self.points, "cfg": self.cfg, "_tree": None}
+
+
+def _describe_task(shared: _DescribeShared, chunk: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Raw descriptors of one chunk of keypoints (positions, observer directions)."""
+    positions, dirs = chunk
+    return _describe(shared.kind, shared.points, positions, dirs, shared.cfg, shared.tree)
 
 
 def _descriptor_params(cfg: StructureIndexConfig, kind: str) -> dict:
@@ -273,15 +298,17 @@ def session_descriptors(
             if raw.shape[0] == len(kps):
                 return kps, raw, 0.0
     t0 = time.perf_counter()
-    pts = np.asarray(smap.points_world, np.float64)
-    tree = xy_tree(pts)
+    shared = _DescribeShared(kind, np.asarray(smap.points_world, np.float64), cfg)
     dirs = kps.observer_positions - kps.positions
+    chunks = [(kps.positions[k0:k0 + _DESCRIBE_CHUNK], dirs[k0:k0 + _DESCRIBE_CHUNK]) for k0 in range(0, max(len(kps), 1), _DESCRIBE_CHUNK)]
+    # a describer registered at run time exists in this process only: it cannot run in workers
+    executor = get_executor() if kind in ("nbld", "m2dp") or (kind == "cnn" and cfg.cnn_model is not None) else SERIAL
     parts = []
     bar = progress_bar(len(kps), progress, f"{kind} {name}", "patch")
-    for k0 in range(0, max(len(kps), 1), _DESCRIBE_CHUNK):  # chunks only to show progress; describe() blocks by memory itself
-        k1 = min(k0 + _DESCRIBE_CHUNK, len(kps))
-        parts.append(_describe(kind, pts, kps.positions[k0:k1], dirs[k0:k1], cfg, tree))
-        bar.update(k1 - k0)
+    for part in executor.map(_describe_task, chunks, shared=shared, desc=f"describe {kind} {name}",
+                             label=lambda c: f"{len(c[0])} keypoints from {c[0][:1].round(1).tolist()}"):
+        parts.append(part)
+        bar.update(len(part))
     bar.close()
     raw = np.concatenate(parts)
     seconds = time.perf_counter() - t0

@@ -255,3 +255,20 @@ def test_unknown_session_is_an_input_error(street_ws, tmp_path):
         build_structure_index(ws, "nbld", out=tmp_path / "x", sessions=["nope"])
     assert e.value.field == "database_sessions"
     assert StructureIndexConfig().pca_dim == 25 and StructureIndexConfig().keypoint_fraction == 0.05
+
+
+@pytest.mark.parametrize("kind", ["nbld", "m2dp"])
+def test_descriptors_are_identical_on_a_process_pool(street_ws, kind, monkeypatch):
+    """Patch description goes through the run's executor: two spawned workers give the serial bits."""
+    import mapkit.index_structure as ix
+    from mapkit.executor import ProcessExecutor, use_executor
+
+    monkeypatch.setattr(ix, "_DESCRIBE_CHUNK", 100)  # several chunks, so that their order matters
+    _, maps = street_ws
+    cfg = ix.StructureIndexConfig(**FAST)
+    kps, serial, _ = ix.session_descriptors(maps["a"], "a", kind, cfg)
+    assert len(kps) > 4 * 100 and serial.shape[0] == len(kps)
+    with use_executor(ProcessExecutor(2)):
+        kps2, pooled, _ = ix.session_descriptors(maps["a"], "a", kind, cfg)
+    np.testing.assert_array_equal(kps2.positions, kps.positions)
+    np.testing.assert_array_equal(pooled, serial)
