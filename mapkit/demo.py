@@ -97,8 +97,11 @@ class Demo:
     def structure_overrides(self, kind: str) -> Optional[dict]:
         return {"cnn_model": str(self.cnn_model)} if kind == "cnn" else None
 
-    def places_overrides(self) -> Optional[dict]:
-        return {"structure": {"cnn_model": str(self.cnn_model)}} if self.cnn_model is not None else None
+    def places_overrides(self) -> dict:
+        ov: dict = {"vlad_encodings_dir": str(self.ws / "localize" / "cache")}  # the localization stage's encodings
+        if self.cnn_model is not None:
+            ov["structure"] = {"cnn_model": str(self.cnn_model)}
+        return ov
 
     @property
     def train_sessions(self) -> list[str]:
@@ -228,7 +231,7 @@ def _localize(d: Demo) -> None:
         d.need("index_vlad")
         if not d.test_sessions:
             raise _Skip("the town has no test session")
-        cache = d.ws / "localize" / "cache"  # test images are encoded once for both runs
+        cache = d.ws / "localize" / "cache"  # test images are encoded once, for both runs and for places
         runs = {"paper": None, "odometry-multihypothesis": CONFIGS_DIR / "localize" / "odometry-multihypothesis.yaml"}
         d.metrics["localize"] = {}
         for name, cfg in runs.items():

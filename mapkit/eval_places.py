@@ -71,6 +71,9 @@ class PlacesEvalConfig(MapkitConfig):
         description="VLAD: a query keyframe whose nearest image is farther than this in time has no image query (counted as no match).",
     )
     vlad_workers: int = Field(1, ge=1, description="Processes encoding VLAD query images.")
+    vlad_encodings_dir: Optional[str] = Field(
+        None, description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize --cache-dir`): "
+        "images already encoded there with the same bundle are not encoded again.")
     bootstrap: int = Field(
         500, ge=0,
         description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = none). "
@@ -236,12 +239,14 @@ class VladBaseline:
 
     name = "vlad"
 
-    def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False):
+    def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False,
+                 encodings_dir: Optional[Path] = None):
         from .index_vlad import VladIndex
 
         self.index = VladIndex.load(bundle)
         self.ws = Path(workspace)
         self.cache_dir = cache_dir
+        self.encodings_dir = encodings_dir
         self.workers = workers
         self.progress = progress
         self._images: dict = {}
@@ -276,7 +281,11 @@ class VladBaseline:
                 have = dict(zip(z["image_id"].tolist(), z["vectors"]))
         todo = [int(r) for r in np.unique(rows) if int(ids[r]) not in have]
         if todo:
-            vec = encode_images(self.index.encoder, [s.image_paths[r] for r in todo], self.workers, self.progress, f"vlad {session}")
+            paths = [s.image_paths[r] for r in todo]
+            if self.encodings_dir is not None:
+                vec = self.index.encode_files(paths, self.progress, f"vlad {session}", cache_dir=self.encodings_dir)
+            else:
+                vec = encode_images(self.index.encoder, paths, self.workers, self.progress, f"vlad {session}")
             have.update({int(ids[r]): v for r, v in zip(todo, vec)})
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
@@ -385,7 +394,7 @@ def evaluate_places(
     if "vlad" in methods and vlad is None:
         bundle = Path(vlad_bundle) if vlad_bundle is not None else ws / "indexes" / "vlad"
         if (bundle / "manifest.json").is_file():
-            vlad = VladBaseline(bundle, ws, cache, cfg.vlad_workers, progress)
+            vlad = VladBaseline(bundle, ws, cache, cfg.vlad_workers, progress, cfg.vlad_encodings_dir)
         else:
             vlad_note = f"no VLAD bundle at {bundle} (build it with mapkit index vlad)"
             warnings.warn(f"vlad: {vlad_note}; the VLAD column is left empty", InputWarning, stacklevel=2)

@@ -75,7 +75,7 @@ from .geometry import matrix_to_quat_wxyz
 from .align import aligned_sessions
 from .bundle import MANIFEST, building, is_finished, link_or_copy, read_manifest, write_manifest
 from .measurement import Measurement, mean_shift_measurement
-from .runio import atomic_write_text, config_hash, sha256_file, write_json
+from .runio import atomic_write_bytes, atomic_write_text, config_hash, sha256_file, write_json
 from .vlad import VladConfig, VladEncoder, kmeans
 
 FORMAT_VERSION = 1
@@ -269,6 +269,12 @@ def _faiss_threads(n: int) -> Iterator[None]:
         yield
     finally:
         faiss.omp_set_num_threads(before)
+
+
+def _file_key(path: str | Path) -> str:
+    p = Path(path).resolve()
+    st = p.stat()
+    return f"{p}|{st.st_size}|{st.st_mtime_ns}"
 
 
 def encode_images(
@@ -757,9 +763,40 @@ class VladIndex:
             stamps_ns=db["stamp_ns"][ids],
         )
 
-    def encode_files(self, paths: Sequence[str | Path], progress: bool = False, desc: str = "encode") -> np.ndarray:
-        """(n, D) encodings of image files, on the run's executor (see :func:`encode_images`)."""
-        return encode_images(self.encoder, paths, self.cfg.workers, progress, desc)
+    def encode_files(self, paths: Sequence[str | Path], progress: bool = False, desc: str = "encode",
+                     cache_dir: str | Path | None = None) -> np.ndarray:
+        """(n, D) encodings of image files, on the run's executor (see :func:`encode_images`).
+
+        With ``cache_dir``, encodings are kept in ``encodings-<build hash>.npz`` there, keyed by
+        each file's resolved path, size and mtime, and only the files not found are encoded: two
+        evaluations of the same images (localization and place recognition) encode them once.
+        """
+        if cache_dir is None:
+            return encode_images(self.encoder, paths, self.cfg.workers, progress, desc)
+        cache = Path(cache_dir) / f"encodings-{self.manifest.get('build_hash', 'x')}.npz"
+        keys = [_file_key(p) for p in paths]
+        have: dict[str, np.ndarray] = {}
+        if cache.is_file():
+            try:
+                with np.load(cache, allow_pickle=False) as z:
+                    if z["vectors"].shape[1:] == (self.dim,):
+                        have = dict(zip(z["keys"].tolist(), z["vectors"]))
+            except (OSError, KeyError, ValueError):
+                have = {}  # unreadable: encode again, the file is replaced below
+        todo = sorted({k: i for i, k in enumerate(keys) if k not in have}.values())
+        if todo:
+            vec = encode_images(self.encoder, [paths[i] for i in todo], self.cfg.workers, progress, desc)
+            have.update({keys[i]: v for i, v in zip(todo, vec)})
+            import io
+
+            buf = io.BytesIO()
+            np.savez(buf, keys=np.array(list(have)), vectors=np.stack(list(have.values())).astype(np.float32))
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_bytes(cache, buf.getvalue())
+        out = np.zeros((len(paths), self.dim), np.float32)
+        for i, k in enumerate(keys):
+            out[i] = have[k]
+        return out
 
     def query(self, image_or_vector, k: Optional[int] = None) -> Hits:
         """The top ``k`` (default ``top_k`` = 20) database images of an image, image file or encoded vector."""

@@ -120,13 +120,14 @@ def _images_digest(images: list) -> str:
     return h.hexdigest()[:16]
 
 
-def query_all(index, images, top_k: int, progress: bool = False, label: str = "query") -> tuple[np.ndarray, np.ndarray]:
+def query_all(index, images, top_k: int, progress: bool = False, label: str = "query",
+              vector_cache: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Retrieved ids (n, top_k; -1 pads when the index is smaller) and squared L2 distances of every image."""
     n = len(images)
     ids, dist = np.full((n, top_k), -1, np.int64), np.full((n, top_k), np.inf, np.float32)
     if n and all(isinstance(im, (str, Path)) for im in images):
         # image files: encoded on the run's executor (a process pool or Ray), then one batched search
-        d, i = index.search(index.encode_files(images, progress=progress, desc=label), top_k)
+        d, i = index.search(index.encode_files(images, progress=progress, desc=label, cache_dir=vector_cache), top_k)
         ids[:, : i.shape[1]], dist[:, : d.shape[1]] = i, d
         return ids, dist
     for t, im in enumerate(images):
@@ -161,7 +162,7 @@ def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | No
                     return f["ids"].astype(np.int64), f["distances"].astype(np.float32), True
         except (OSError, KeyError, ValueError):
             pass  # unreadable or from another version: recompute below
-    ids, dist = query_all(index, images, top_k, progress, session)
+    ids, dist = query_all(index, images, top_k, progress, session, vector_cache=cache_dir)
     import io
 
     buf = io.BytesIO()

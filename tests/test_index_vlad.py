@@ -274,6 +274,28 @@ def test_parallel_encoding_equals_serial(tmp_path, built):
     np.testing.assert_allclose(serial, idx.vectors()[:4], atol=1e-6)
 
 
+def test_encodings_cache_encodes_each_file_once_and_notices_a_changed_file(tmp_path, built, monkeypatch):
+    import mapkit.index_vlad as iv
+
+    ws, out = built
+    idx = VladIndex.load(out)
+    src = [ws / p for p in idx.database["image"][:4]]
+    paths = [shutil.copy(p, tmp_path / f"{i}{p.suffix}") for i, p in enumerate(src)]
+    plain = idx.encode_files(paths[:3])
+    encoded = []
+    real = iv.encode_images
+    monkeypatch.setattr(iv, "encode_images", lambda enc, ps, *a, **k: (encoded.append(len(ps)), real(enc, ps, *a, **k))[1])
+    first = idx.encode_files(paths[:3], cache_dir=tmp_path / "c")
+    np.testing.assert_array_equal(first, plain)
+    both = idx.encode_files(paths, cache_dir=tmp_path / "c")  # only the fourth is new
+    assert encoded == [3, 1]
+    np.testing.assert_array_equal(both[:3], plain)
+    shutil.copy(src[0], paths[1])  # file 1 now holds image 0: a new size/mtime, encoded again
+    again = idx.encode_files(paths[:2], cache_dir=tmp_path / "c")
+    assert encoded == [3, 1, 1]
+    np.testing.assert_allclose(again[1], again[0], atol=1e-6)
+
+
 def test_real_kitti_clip_neighbours_are_adjacent_frames(kitti_clip):
     # whiten=False: whitening learned on the same 51 frames it ranks equalises their distances
     # (measured here: whitened to 16-D, median gap 19 frames; unwhitened, 3)

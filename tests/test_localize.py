@@ -88,7 +88,7 @@ class _CountingIndex:
         self.calls += 1
         return np.full(4, float(Path(image).stat().st_size), np.float32)
 
-    def encode_files(self, paths, progress=False, desc=""):
+    def encode_files(self, paths, progress=False, desc="", cache_dir=None):
         return np.stack([self._as_vector(p) for p in paths])
 
     def search(self, q, k):
