@@ -28,20 +28,21 @@ from .runio import sha256_file, write_json
 FORMAT_VERSION = 1
 KIND = "mapkit deployment bundle"
 
-#: index kind (as its manifest says) -> (loader, its format version)
+#: the index kinds an export holds, as their manifests name them
 _VLAD, _STRUCTURE = "mapkit VLAD index", "mapkit structure index"
 
 
 def _loader(kind: str):
+    """The ``load(path, verify)`` of an index kind (it checks the kind's own format version), or None."""
     if kind == _VLAD:
-        from .index_vlad import FORMAT_VERSION as V, VladIndex
+        from .index_vlad import VladIndex
 
-        return VladIndex.load, V
+        return VladIndex.load
     if kind == _STRUCTURE:
-        from .index_structure import FORMAT_VERSION as V, StructureIndex
+        from .index_structure import StructureIndex
 
-        return StructureIndex.load, V
-    return None, None
+        return StructureIndex.load
+    return None
 
 
 def find_indexes(workspace: str | Path) -> dict[str, Path]:
@@ -58,7 +59,7 @@ def find_indexes(workspace: str | Path) -> dict[str, Path]:
 def _index_entry(name: str, src: Path, origin: Optional[dict]) -> dict:
     m = json.loads((src / MANIFEST).read_text())
     kind = m.get("kind")
-    load, version = _loader(kind)
+    load = _loader(kind)
     if load is None:
         raise InputError(src / MANIFEST, f"unknown index kind {kind!r}", field="kind")
     load(src, verify=True)  # a broken or unknown-version index is not exported
@@ -157,7 +158,7 @@ def load_bundle(path: str | Path, verify: bool = True) -> Bundle:
             raise InputError(sub, f"index {name!r} listed in {mpath} is missing")
         if sha256_file(sub / MANIFEST) != e.get("manifest_sha256"):
             raise InputError(sub / MANIFEST, f"index {name!r} differs from the one the export lists", field="manifest_sha256")
-        load, _ = _loader(e.get("kind"))
+        load = _loader(e.get("kind"))
         if load is None:
             raise InputError(mpath, f"index {name!r} has unknown kind {e.get('kind')!r}", field="kind")
         indexes[name] = load(sub, verify=verify)
