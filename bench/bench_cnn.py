@@ -16,7 +16,7 @@ exceed the wall time):
    ONNX) on a synthetic street, patches per second, and the share of it spent in voxel grids.
 
 Grids are the real demo triplet dataset's when ``--dataset`` exists (default
-``/tmp/ws-demo/triplets``), else random 32^3 grids of the same fill (~5 %). Run from the
+``runs/main/workspace/triplets``, what the README's main job writes), else random 32^3 grids of the same fill (~5 %). Run from the
 repository root (keep other load low)::
 
     python3 bench/bench_cnn.py
@@ -159,7 +159,7 @@ def bench_index_describer(torch, form: str, n_kp: int, repeat: int) -> list[dict
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dataset", type=Path, default=Path("/tmp/ws-demo/triplets"), help="triplet dataset for real grids")
+    ap.add_argument("--dataset", type=Path, default=Path("runs/main/workspace/triplets"), help="triplet dataset for real grids")
     ap.add_argument("--form", choices=("occupancy", "density_comparison"), default="occupancy")
     ap.add_argument("--threads", type=int, default=2, help="torch and onnxruntime threads")
     ap.add_argument("--steps", type=int, default=8, help="batches of 25 triplets timed")

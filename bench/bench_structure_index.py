@@ -3,7 +3,7 @@
 1. ``describe()``: patches described per second for NBLD and M2DP through the whole chain
    (patch extraction, yaw normalisation towards the first observer, descriptor), on real patches
    of the demo workspace (keypoints drawn as the index draws them from the densest aligned map of
-   ``--workspace``, default /tmp/ws-demo) or, without it, on the synthetic street of
+   ``--workspace``, default runs/main/workspace, the main job's) or, without it, on the synthetic street of
    bench_descriptors3d. CPU time of this process and wall time, best of ``--repeat``.
 2. Query time per frame of the voting index on a database of ``--db-size`` (default 1,000,000)
    descriptors: PCA'd 25-D descriptors drawn from a Gaussian with the variance spectrum of a real
@@ -225,7 +225,7 @@ def bench_query(args) -> list[dict]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workspace", default="/tmp/ws-demo", help="Aligned workspace for real patches (synthetic street if absent).")
+    ap.add_argument("--workspace", default="runs/main/workspace", help="Aligned workspace for real patches (synthetic street if absent).")
     ap.add_argument("--patches-nbld", type=int, default=1000)
     ap.add_argument("--patches-m2dp", type=int, default=200)
     ap.add_argument("--db-size", type=int, default=1_000_000)

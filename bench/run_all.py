@@ -8,7 +8,7 @@ test suite's pass/fail; this runner always exits 0 once the report is written.
 Quick mode (``--quick``): a benchmark with its own ``--quick`` flag gets it; the others get the
 small-run flags of ``QUICK_ARGS`` below (their own options: fewer patches, repeats, frames); a
 benchmark in neither runs in full. A benchmark with a positional ``workspace`` argument gets
-``--workspace`` (an aligned workspace, default /tmp/ws-demo) and is skipped when it is absent.
+``--workspace`` (an aligned workspace, default runs/main/workspace: the main job's) and is skipped when it is absent.
 
 The table, one row per benchmark:
 
@@ -47,7 +47,7 @@ from typing import Callable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_DIR = Path(__file__).resolve().parent
-DEFAULT_WORKSPACE = Path("/tmp/ws-demo")
+DEFAULT_WORKSPACE = ROOT / "runs" / "main" / "workspace"  # what the README's main job writes
 JSON_PREFIX = "BENCH_JSON "
 TAIL_LINES = 40  # lines of stdout / stderr kept in the JSON
 
