@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_align import gps_error, make_workspace, street  # noqa: E402
+from test_triplets import make_aligned_street  # noqa: E402
 
-from mapkit.align import align_workspace  # noqa: E402
 from mapkit.patches import CNN_DOMAIN  # noqa: E402
 from mapkit.pointnetvlad import PointNetVladConfig, export_pointnetvlad, query_dict  # noqa: E402
 from mapkit.triplets import TripletDataset, export_triplets  # noqa: E402
@@ -26,10 +25,7 @@ PNV = {"enabled": True, "positive_distance_m": 10.0, "negative_distance_m": 30.0
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    ws = tmp_path_factory.mktemp("pnv") / "ws"
-    make_workspace(ws, street(np.random.default_rng(3)), {"s0": gps_error(1.0, -1.0, 0.2), "s1": gps_error(-1.0, 1.5, -0.2),
-                                                          "s2": gps_error(0.5, 0.5, 0.0)})
-    align_workspace(ws, progress=False)
+    ws = make_aligned_street(tmp_path_factory.mktemp("pnv") / "ws")
     out = export_triplets(ws, out=ws.parent / "t", overrides=dict(CFG, pointnetvlad=PNV), progress=False)
     return ws, out
 

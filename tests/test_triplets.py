@@ -33,13 +33,17 @@ CFG = {"n_triplets": 150, "tile_size_m": 40.0, "buffer_m": 8.0, "test_fraction":
        "negative_pool": 60, "shard_patches": 64, "places_per_cell": 4, "keypoint_fraction": 0.02}
 
 
-@pytest.fixture(scope="module")
-def aligned(tmp_path_factory):
-    ws = tmp_path_factory.mktemp("trip") / "ws"
+def make_aligned_street(ws: Path) -> Path:
+    """Three sessions of the test street, a few decimetres to metres apart by GPS, then aligned."""
     make_workspace(ws, street(np.random.default_rng(3)), {"s0": gps_error(1.0, -1.0, 0.2), "s1": gps_error(-1.0, 1.5, -0.2),
                                                           "s2": gps_error(0.5, 0.5, 0.0)})
     align_workspace(ws, progress=False)
     return ws
+
+
+@pytest.fixture(scope="module")
+def aligned(tmp_path_factory):
+    return make_aligned_street(tmp_path_factory.mktemp("trip") / "ws")
 
 
 def test_tiles_and_buffer_keep_train_and_test_apart():
