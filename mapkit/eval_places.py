@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 from .config import MapkitConfig, _deep_merge, dump_config, load_config
 from .errors import InputError, InputWarning
 from .index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors, session_map_dir
-from .runio import atomic_path, atomic_write_text, write_json
+from .runio import atomic_write_text, write_json
 
 STRUCTURE_METHODS = ("nbld", "m2dp", "cnn")
 METHOD_LABELS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
@@ -234,7 +234,7 @@ class VladBaseline:
 
     Database vectors of a session come from the bundle when it indexes that session, else the
     session's images are encoded with the bundle's encoder; query images are encoded with it too.
-    Encodings are cached in ``cache_dir`` (per bundle build and session).
+    Encodings are cached per bundle build in ``encodings_dir`` (shared) or ``cache_dir``.
     """
 
     name = "vlad"
@@ -263,36 +263,15 @@ class VladBaseline:
             self._images[session] = read_session_images(self.ws, session, self.index.cfg.prefer_aligned_poses)
         return self._images[session]
 
-    def _cache_path(self, session: str) -> Optional[Path]:
-        if self.cache_dir is None:
-            return None
-        return self.cache_dir / f"vlad-{self.index.manifest.get('build_hash', 'x')}-{session}.npz"
-
     def encode(self, session: str, rows: np.ndarray) -> np.ndarray:
-        """(len(rows), D) encodings of rows ``rows`` of the session's image table (cached)."""
-        from .index_vlad import encode_images
-
+        """(len(rows), D) encodings of rows ``rows`` of the session's image table, through the
+        bundle's encodings cache (``encodings_dir`` when shared with other evaluations, else
+        ``cache_dir``): an image is encoded once per bundle."""
         s = self.images(session)
-        ids = s.table["image_id"]
-        path = self._cache_path(session)
-        have: dict[int, np.ndarray] = {}
-        if path is not None and path.is_file():
-            with np.load(path) as z:
-                have = dict(zip(z["image_id"].tolist(), z["vectors"]))
-        todo = [int(r) for r in np.unique(rows) if int(ids[r]) not in have]
-        if todo:
-            paths = [s.image_paths[r] for r in todo]
-            if self.encodings_dir is not None:
-                vec = self.index.encode_files(paths, self.progress, f"vlad {session}", cache_dir=self.encodings_dir)
-            else:
-                vec = encode_images(self.index.encoder, paths, self.workers, self.progress, f"vlad {session}")
-            have.update({int(ids[r]): v for r, v in zip(todo, vec)})
-            if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                with atomic_path(path) as tmp:
-                    with open(tmp, "wb") as f:
-                        np.savez(f, image_id=np.array(list(have), np.int64), vectors=np.stack(list(have.values())))
-        return np.stack([have[int(ids[r])] for r in rows]) if len(rows) else np.zeros((0, self.index.dim), np.float32)
+        if not len(rows):
+            return np.zeros((0, self.index.dim), np.float32)
+        return self.index.encode_files([s.image_paths[r] for r in rows], self.progress, f"vlad {session}",
+                                       cache_dir=self.encodings_dir or self.cache_dir, workers=self.workers)
 
     def database(self, session: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vectors (n, D), stamps_ns (n,), positions (n, 3)) of the session's database images."""

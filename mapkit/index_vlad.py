@@ -764,15 +764,17 @@ class VladIndex:
         )
 
     def encode_files(self, paths: Sequence[str | Path], progress: bool = False, desc: str = "encode",
-                     cache_dir: str | Path | None = None) -> np.ndarray:
+                     cache_dir: str | Path | None = None, workers: Optional[int] = None) -> np.ndarray:
         """(n, D) encodings of image files, on the run's executor (see :func:`encode_images`).
 
         With ``cache_dir``, encodings are kept in ``encodings-<build hash>.npz`` there, keyed by
         each file's resolved path, size and mtime, and only the files not found are encoded: two
         evaluations of the same images (localization and place recognition) encode them once.
+        ``workers`` (default: the bundle's setting) applies when no run-wide executor is set.
         """
+        workers = self.cfg.workers if workers is None else workers
         if cache_dir is None:
-            return encode_images(self.encoder, paths, self.cfg.workers, progress, desc)
+            return encode_images(self.encoder, paths, workers, progress, desc)
         cache = Path(cache_dir) / f"encodings-{self.manifest.get('build_hash', 'x')}.npz"
         keys = [_file_key(p) for p in paths]
         have: dict[str, np.ndarray] = {}
@@ -785,7 +787,7 @@ class VladIndex:
                 have = {}  # unreadable: encode again, the file is replaced below
         todo = sorted({k: i for i, k in enumerate(keys) if k not in have}.values())
         if todo:
-            vec = encode_images(self.encoder, [paths[i] for i in todo], self.cfg.workers, progress, desc)
+            vec = encode_images(self.encoder, [paths[i] for i in todo], workers, progress, desc)
             have.update({keys[i]: v for i, v in zip(todo, vec)})
             import io
 
