@@ -19,6 +19,7 @@ import json
 import time
 import warnings
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Iterator, Literal, Optional
 
 import numpy as np
@@ -39,9 +40,12 @@ from .types import StreamKind
 
 
 class GeorefConfig(MapkitConfig):
-    mode: Literal["yaw_scale", "sim3", "yaw"] = Field(
-        "yaw_scale", description="Gravity-aware yaw + translation + scale (default), full Sim3, or yaw + translation only."
+    mode: Literal["yaw_scale", "sim3", "yaw", "given"] = Field(
+        "yaw_scale", description="Gravity-aware yaw + translation + scale (default), full Sim3, or yaw + translation only; "
+        "'given': the trajectory (a pose stream) is already in the ENU frame at `origin`, GPS is not used.",
     )
+    origin: Optional[tuple[float, float, float]] = Field(
+        None, description="(lat deg, lon deg, alt m) of the pose stream's ENU frame; only with mode 'given'.")
     inlier_sigmas: float = Field(3.37, description="Gate on the sigma-normalised residual (chi-square 3 dof, 99%).")
     vertical_sigma_factor: float = Field(2.0, description="GPS height sigma as a multiple of its horizontal sigma.")
     min_inlier_threshold_m: float = Field(2.0, description="The horizontal gate is never tighter than this.")
@@ -55,6 +59,8 @@ class BuildConfig(MapkitConfig):
     georef: GeorefConfig = GeorefConfig()
     imagedb: ImageDbConfig = ImageDbConfig()
     semidense: dict = Field(default_factory=dict, description="Overrides of mapkit.semidense.SemiDenseConfig.")
+    map: bool = Field(True, description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
+                      "database without triangulated points, all that image retrieval and MCVL need.")
     camera: Optional[str] = Field(None, description="Camera (frame id) to map with; the first one if unset.")
 
 
@@ -135,6 +141,8 @@ class SessionBuilder:
         still mapped, in its own frame, and says why it is not georeferenced. ``georef.strict``
         makes the second case an error instead.
         """
+        if self.cfg.georef.mode == "given":
+            return self._given(traj, result)
         topics = resolve_topics(self.log, self.cfg.topics)
         gps_topics = topics.get(StreamKind.GPS, [])
         fixes = [] if not gps_topics else [f for f in self.log.records(StreamKind.GPS, topic=gps_topics[0]) if f.has_fix]
@@ -176,11 +184,28 @@ class SessionBuilder:
                             f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)")
         return al, frame
 
+    def _given(self, traj: Trajectory, result: dict):
+        """Georeferencing that the pose stream already carries (an INS, or a simulator's truth):
+        its frame is ENU at ``georef.origin``; placed exactly (through ECEF) in the workspace frame."""
+        g = self.cfg.georef
+        if g.origin is None:
+            raise InputError(self.workspace / "build_config.yaml", "georef mode 'given' needs the pose stream's ENU origin",
+                             field="georef.origin")
+        if not traj.source.startswith("poses"):
+            raise InputError(self.log_path, f"georef mode 'given' needs a pose-stream trajectory, not {traj.source!r}",
+                             field="trajectory.source")
+        given = LocalFrame(*g.origin)
+        frame = self._workspace_frame(given)
+        al = SimpleNamespace(enu_from_map=given.to_frame(frame))
+        result.update(georeferenced=True, **frame.to_dict(), alignment={"mode": "given", "origin": list(g.origin)},
+                      rejected_fixes=[], fixes_total=0, fixes_outside_trajectory=0)
+        return al, frame
+
     def _workspace_frame(self, first_fix) -> LocalFrame:
         path = self.workspace / "origin.json"
         if path.is_file():
             return LocalFrame.from_dict(json.loads(path.read_text()))
-        frame = LocalFrame(first_fix.lat_deg, first_fix.lon_deg, first_fix.alt_m)
+        frame = first_fix if isinstance(first_fix, LocalFrame) else LocalFrame(first_fix.lat_deg, first_fix.lon_deg, first_fix.alt_m)
         write_json(path, frame.to_dict())
         return frame
 
@@ -254,7 +279,7 @@ class SessionBuilder:
         from . import semidense as sd
 
         out = self.dir / "imagedb"
-        h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera", "imagedb")
+        h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera", "imagedb", "map")
         if is_done(out, h):
             return out
         t0 = time.perf_counter()
@@ -269,6 +294,11 @@ class SessionBuilder:
             last = T[:3, 3]
             im = writer.add(frame.stamp_ns, name, frame.image, T, frame.encoding)
             db_id_of_frame[i] = im.image_id
+        if not self.cfg.map:
+            writer.close(self.frame())
+            write_json(out / "metrics.json", {"images": len(writer.images), "seconds": time.perf_counter() - t0, "map": False})
+            mark_done(out, h)
+            return out
         smap = sd.SemiDenseMap.load(self.semidense())
         # observations by map frame index -> by database image id (frames not kept are dropped)
         point_of = np.repeat(np.arange(len(smap.points_world)), np.diff(smap.obs_indptr))
@@ -285,7 +315,8 @@ class SessionBuilder:
         t0 = time.perf_counter()
         self.dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.dir / "config.yaml", dump_config(self.cfg))
-        for stage in (self.trajectory, self.georef, self.semidense, self.imagedb):
+        stages = (self.trajectory, self.georef, self.semidense, self.imagedb) if self.cfg.map else (self.trajectory, self.georef, self.imagedb)
+        for stage in stages:
             s0 = time.perf_counter()
             folder = stage()
             m_path = folder / "metrics.json"

@@ -91,6 +91,7 @@ class CameraConfig(_Model):
 
 
 class LidarConfig(_Model):
+    enabled: bool = True  # off: camera, GPS, IMU and ground truth only (MCVL needs no LiDAR; a tenth of the bytes)
     beams: int = Field(32, ge=1, le=256)
     vertical_fov_deg: tuple[float, float] = (-30.67, 10.67)
     azimuth_steps: int = Field(1024, ge=16)

@@ -38,7 +38,9 @@ def extrinsics(cfg: SynthConfig) -> dict[str, np.ndarray]:
     """``base_from_<frame>`` of every sensor frame (the camera's is its optical frame)."""
     cam = mount_pose(cfg.camera.mount)
     cam[:3, :3] = cam[:3, :3] @ BODY_FROM_OPTICAL
-    out = {FRAME_CAMERA: cam, FRAME_LIDAR: mount_pose(cfg.lidar.mount), FRAME_GPS: mount_pose(cfg.gps.mount)}
+    out = {FRAME_CAMERA: cam, FRAME_GPS: mount_pose(cfg.gps.mount)}
+    if cfg.lidar.enabled:
+        out[FRAME_LIDAR] = mount_pose(cfg.lidar.mount)
     if cfg.imu.enabled:
         out[FRAME_IMU] = mount_pose(cfg.imu.mount)
     return out

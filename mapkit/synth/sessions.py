@@ -407,7 +407,7 @@ class SessionPlan:
             "speed_mps": sc.speed_mps,
             "lane_offset_m": sc.lane_offset_m,
             "camera_rate_hz": self.camera_rate_hz,
-            "lidar_rate_hz": cfg.lidar.rate_hz,
+            "lidar_rate_hz": cfg.lidar.rate_hz if cfg.lidar.enabled else None,
             "gps_rate_hz": g.rate_hz,
             "imu_rate_hz": cfg.imu.rate_hz if cfg.imu.enabled else None,
             "ground_truth_rate_hz": cfg.motion.ground_truth_rate_hz,
@@ -534,7 +534,7 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     start, end = int(drive.stamps_ns[0]), int(drive.stamps_ns[-1])
     lidar_period_ns = int(round(1e9 / cfg.lidar.rate_hz))
     cam_ns = _stamps(start, end, plan.camera_rate_hz)
-    lidar_ns = _stamps(start, end, cfg.lidar.rate_hz, margin_ns=lidar_period_ns)
+    lidar_ns = _stamps(start, end, cfg.lidar.rate_hz, margin_ns=lidar_period_ns) if cfg.lidar.enabled else np.zeros(0, np.int64)
     gps_ns = _stamps(start, end, cfg.gps.rate_hz)
     imu_ns = _stamps(start, end, cfg.imu.rate_hz) if cfg.imu.enabled else np.zeros(0, np.int64)
     world_from_cam = drive.poses_at(cam_ns) @ ex[FRAME_CAMERA] if len(cam_ns) else np.zeros((0, 4, 4))
