@@ -19,7 +19,10 @@ is taken 8 m before it along the street. Keypoints are a random 5 % of the point
    within a count or two of points that lie on a bin edge to float32 precision (the library
    bins in float32, the loop in float64), i.e. up to ~1e-3 on a coefficient.
 2. ``describe()``: the whole chain (extraction, yaw normalisation, descriptor) per patch.
-3. ``CNN grids``: ``voxel_grids()`` per patch, i.e. extract_patches + yaw normalisation +
+3. ``M2DP ..., max_points=N``: M2DP on patches thinned to about ``--max-points`` points
+   (``M2DPConfig.max_points``, off by default), descriptor alone and whole chain, with the cosine
+   of its u1 and v1 to the exact descriptor's.
+4. ``CNN grids``: ``voxel_grids()`` per patch, i.e. extract_patches + yaw normalisation +
    voxelise (occupancy and density-comparison grids, 32^3, packed) for the 20 m cube, with the
    time of each stage.
 
@@ -162,12 +165,15 @@ def m2dp_loop(patches: list[np.ndarray], cfg: d3.M2DPConfig) -> np.ndarray:
 
 # --- runs ----------------------------------------------------------------------------------------------
 
-def prepare(points, keypoints, observer_dirs, domain, tree):
-    """Extracted, yaw-normalised patches (CSR) of all keypoints, built in blocks."""
+def prepare(points, keypoints, observer_dirs, domain, tree, max_points=None):
+    """Extracted, yaw-normalised patches (CSR) of all keypoints, built in blocks (thinned to
+    about ``max_points`` each when given, as describe() does for M2DP's max_points)."""
     counts, parts = [], []
     for k0 in range(0, len(keypoints), 128):
         kp = keypoints[k0 : k0 + 128]
         indptr, indices = pa.extract_patches(points, kp, domain, tree)
+        if max_points is not None:
+            indptr, indices = d3.thin_patches(indptr, indices, max_points)
         parts.append(pa.yaw_normalise_patches(pa.gather_local(points, kp, indptr, indices), indptr, observer_dirs[k0 : k0 + 128])[1])
         counts.append(np.diff(indptr))
     indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
@@ -201,6 +207,26 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
             "map": label, "what": f"{kind} describe() chain", "patches": m, "points/patch": rows[-1]["points/patch"],
             "us/patch (cpu)": c_chain / m * 1e6, "patches/s (cpu)": m / c_chain, "patches/s (wall)": m / t_chain,
             "loop patches/s (cpu)": "", "speed-up (cpu)": "", "loop vs fast": "",
+        })
+    # M2DP on thinned patches (max_points): speed, and how far the descriptor moves from the exact one
+    sub = cfg.m2dp.model_copy(update={"max_points": args.max_points})
+    thin_cfg = cfg.model_copy(update={"m2dp": sub})
+    indptr, normalised = prepare(points, keypoints, observer_dirs, sub.domain, tree, args.max_points)
+    t_desc, c_desc = best_wall_and_cpu(lambda: d3.m2dp_patches(normalised, indptr, sub), args.repeat)
+    thin = d3.m2dp_patches(normalised, indptr, sub)
+    exact = d3.describe("m2dp", points, keypoints, observer_dirs, cfg, tree=tree)
+    P = sub.n_planes
+    cos = np.minimum(np.einsum("ij,ij->i", thin[:, :P], exact[:, :P]), np.einsum("ij,ij->i", thin[:, P:], exact[:, P:]))
+    t_chain, c_chain = best_wall_and_cpu(lambda: d3.describe("m2dp", points, keypoints, observer_dirs, thin_cfg, tree=tree), args.repeat)
+    sizes = np.diff(indptr)
+    for what, c, t in ((f"M2DP descriptor, max_points={args.max_points}", c_desc, t_desc),
+                       (f"M2DP describe() chain, max_points={args.max_points}", c_chain, t_chain)):
+        rows.append({
+            "map": label, "what": what, "patches": m,
+            "points/patch": f"{np.percentile(sizes, 5):.0f}/{np.median(sizes):.0f}/{np.percentile(sizes, 95):.0f}",
+            "us/patch (cpu)": c / m * 1e6, "patches/s (cpu)": m / c, "patches/s (wall)": m / t,
+            "loop patches/s (cpu)": "", "speed-up (cpu)": "",
+            "loop vs fast": f"vs exact: cosine of u1, v1 median {np.median(cos):.4f}, 5th pct {np.percentile(cos, 5):.4f}",
         })
     # CNN voxel grids: extraction, yaw normalisation and voxelisation per patch, the stages
     # timed separately over the same blocks of keypoints as voxel_grids() uses
@@ -266,6 +292,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--map", type=Path, help="also run on this saved SemiDenseMap folder")
     ap.add_argument("--up", default="z", help="the map axis pointing up: x, y, z, -x, -y or -z")
+    ap.add_argument("--max-points", type=int, default=1024, help="M2DP's max_points for the thinned rows (default 1024)")
     ap.add_argument("--quick", action="store_true", help="smoke run: 400 patches, 20 in the loops, best of two")
     args = ap.parse_args()
     if args.quick:

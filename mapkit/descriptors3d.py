@@ -79,6 +79,10 @@ class M2DPConfig(MapkitConfig):
     n_plane_elevations: int = Field(16, ge=1, description="q: plane-normal elevations, linearly spaced over [0, pi/2] (M2DP default 16).")
     n_radial: int = Field(8, ge=1, description="l: rings per plane, outer radii r * (i / l)^2 as in the original (M2DP default 8).")
     n_angular: int = Field(16, ge=1, description="t: sectors per plane over [-pi, pi) (M2DP default 16).")
+    max_points: Optional[int] = Field(
+        None, ge=16, description="Thin each patch to about this many points before describing it (thin_patches: a fixed "
+        "pseudo-random choice of map points); None = every point, as M2DP and the semi-dense paper do (default). M2DP's cost "
+        "is linear in the points; the singular vectors barely move when a dense patch is thinned.")
 
     @model_validator(mode="after")
     def _check(self) -> "M2DPConfig":
@@ -402,6 +406,25 @@ def m2dp_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optiona
     return out
 
 
+def thin_patches(indptr: np.ndarray, indices: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR patches (``indptr``, map point ``indices``) thinned to about ``max_points`` points each.
+
+    A patch of n > ``max_points`` points keeps each point with probability ``max_points / n``,
+    decided by a fixed pseudo-random number of the map point (Knuth's multiplicative hash of its
+    index): no random state, the same choice in any block or process, and of two overlapping
+    patches the one thinned more keeps a subset of the common points the other keeps. The hash of
+    consecutive indices is evenly spread, so the count kept is within a few points of ``max_points``.
+    """
+    indptr = np.asarray(indptr, np.int64)
+    counts = np.diff(indptr)
+    if not np.any(counts > max_points):
+        return indptr, indices
+    u = ((np.asarray(indices, np.uint64) * np.uint64(2654435761)) & np.uint64(0xFFFFFFFF)).astype(np.float64) * 2.0**-32
+    keep = u < np.repeat(np.minimum(1.0, max_points / np.maximum(counts, 1)), counts)
+    kept = np.bincount(np.repeat(np.arange(len(counts)), counts)[keep], minlength=len(counts))
+    return np.concatenate([[0], np.cumsum(kept)]), np.asarray(indices)[keep]
+
+
 # --- the whole chain ----------------------------------------------------------------------------------
 
 def describe(
@@ -436,6 +459,8 @@ def describe(
     out = np.empty((len(keypoints), sub.dim), np.float32)
     for k0, k1 in keypoint_blocks(tree, keypoints, sub.domain):
         indptr, indices = extract_patches(points, keypoints[k0:k1], sub.domain, tree)
+        if kind == "m2dp" and cfg.m2dp.max_points is not None:
+            indptr, indices = thin_patches(indptr, indices, cfg.m2dp.max_points)
         local = gather_local(points, keypoints[k0:k1], indptr, indices)
         _, normalised = yaw_normalise_patches(local, indptr, observer_dirs[k0:k1, :2])
         out[k0:k1] = nbld_patches(normalised, indptr, sub) if kind == "nbld" else m2dp_patches(normalised, indptr, sub)

@@ -178,6 +178,45 @@ def test_chain_invariant_to_rotation_of_the_map_about_z(rng, kind):
     assert np.abs(desc_flip - desc).mean() > 0.01
 
 
+def test_thin_patches_keeps_about_max_points_the_same_way_everywhere():
+    counts = np.array([5000, 100, 6900, 1024])
+    indices = np.concatenate([np.arange(5000), np.arange(100), np.arange(3000, 9900), np.arange(7, 1031)])
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    ip, idx = d3.thin_patches(indptr, indices, 1024)
+    kept = np.diff(ip)
+    assert np.all(np.abs(kept[[0, 2]] - 1024) <= 10) and kept[1] == 100 and kept[3] == 1024
+    patch = [idx[ip[k]:ip[k + 1]] for k in range(4)]
+    assert np.array_equal(patch[1], np.arange(100)) and np.array_equal(patch[3], np.arange(7, 1031))
+    # the more thinned patch keeps a subset of what the other keeps where they overlap (3000..4999)
+    common = patch[2][patch[2] < 5000]
+    assert len(common) > 100 and np.isin(common, patch[0]).all()
+    # the same choice block by block: the last two patches alone give the same points
+    ip2, idx2 = d3.thin_patches(indptr[2:] - indptr[2], indices[indptr[2]:], 1024)
+    assert np.array_equal(idx2, idx[ip[2]:])
+
+
+def test_m2dp_of_a_thinned_dense_patch_stays_close(rng):
+    points = np.vstack([_street(rng) for _ in range(8)])  # eight times denser: ~15k points per patch
+    keypoints = points[rng.choice(len(points), 20, replace=False)]
+    dirs = np.tile([[-1.0, 0.0]], (20, 1))
+    full = d3.describe("m2dp", points, keypoints, dirs)
+    cfg = d3.StructureDescriptorConfig(m2dp=d3.M2DPConfig(max_points=2000))
+    thin = d3.describe("m2dp", points, keypoints, dirs, cfg)
+    tree = d3.xy_tree(points)
+    sizes = np.diff(d3.extract_patches(points, keypoints, cfg.m2dp.domain, tree)[0])
+    assert np.median(sizes) > 6000
+    # [u1, v1]: two unit vectors. Thinning to 2,000 points barely moves u1 (over the planes); v1
+    # (over the polar bins) stays within a few degrees for most patches, but where the first two
+    # singular values of a patch are nearly equal its leading pair is unstable and thinning, like
+    # any noise, can turn it (measured here: 70-90% of patches above cosine 0.9)
+    P = cfg.m2dp.n_planes
+    cos_u = np.einsum("ij,ij->i", full[:, :P], thin[:, :P])
+    cos_v = np.einsum("ij,ij->i", full[:, P:], thin[:, P:])
+    assert np.min(cos_u) > 0.9 and np.median(cos_u) > 0.99
+    assert np.median(cos_v) > 0.98
+    assert np.abs(full - thin).max() > 1e-4  # it did thin
+
+
 def test_describe_rejects_unknown_kind():
     with pytest.raises(InputError):
         d3.describe("shot", np.zeros((3, 3)), np.zeros((1, 3)), np.ones((1, 2)))
