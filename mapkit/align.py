@@ -973,4 +973,11 @@ def format_align_truth(t: dict) -> str:
     lines.append(f"Overall median: {t['before_median_m']:.3f} m -> {t['after_median_m']:.3f} m. "
                  f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of {t['accepted_pairs']} "
                  f"(max {t['accepted_pair_true_error_max_m']:.2f} m).")
+    if t.get("trajectories"):
+        lines += ["", "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up):", "",
+                  "| session | GPS alignment alone | after mapkit align |", "|---|---|---|"]
+        for name, e in t["trajectories"].items():
+            cells = [f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, ({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
+                     for w in ("gps", "aligned")]
+            lines.append(f"| {name} | {cells[0]} | {cells[1]} |")
     return "\n".join(lines)

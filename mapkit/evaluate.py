@@ -175,6 +175,15 @@ def _error_transforms(est_stamps, est_poses, gt_stamps, gt_ws) -> tuple[np.ndarr
     return est[:, :3, 3], E
 
 
+def _absolute_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.ndarray) -> dict:
+    """ATE (3D and horizontal RMSE) of a trajectory as it stands in the workspace frame, and its mean offset."""
+    g, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
+    err = est.world_from_base[ok, :3, 3] - g[:, :3, 3]
+    return {"ate_rmse_m": float(np.sqrt(np.mean(np.sum(err**2, axis=1)))),
+            "horizontal_rmse_m": float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))),
+            "mean_offset_enu_m": [float(x) for x in err.mean(axis=0)]}
+
+
 def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0) -> dict:
     """Inter-session misalignment of the same true surface, after GPS alone and after ``mapkit align``.
 
@@ -182,7 +191,9 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
     nearest to x. For two sessions that both drove within ``overlap_m`` of a map point, their
     misalignment there is |E_A x - E_B x|: medians per session pair, before (GPS alone: the
     ``georef`` trajectories) and after (the ``align`` trajectories). Also the true error of every
-    accepted ICP registration, at its support points.
+    accepted ICP registration, at its support points, and each session's absolute trajectory
+    error before and after: alignment leaves all sessions with one common offset, the mean of
+    their GPS biases.
     """
     from scipy.spatial import cKDTree
 
@@ -197,7 +208,8 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
         raise InputError(al, "multi-session alignment has not finished (run mapkit align first)")
     names = json.loads((al / ".done").read_text())["sessions"]
     rng = np.random.default_rng(0)
-    sess = {}
+    sess: dict = {}
+    traj: dict = {}
     for name in names:
         gt_stamps, gt = _session_truth(truth, name)
         gt_ws = town_to_ws @ gt
@@ -207,7 +219,8 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
         pa, Ea = _error_transforms(after.stamps_ns, after.world_from_base, gt_stamps, gt_ws)
         pts = SemiDenseMap.load(al / "sessions" / name / "map").points_world
         sess[name] = {"tree": cKDTree(pb[:, :2]), "Eb": Eb, "Ea": Ea, "points": pts}
-    out: dict = {"pairs": {}}
+        traj[name] = {when: _absolute_errors(t, gt_stamps, gt_ws) for when, t in (("gps", before), ("aligned", after))}
+    out: dict = {"pairs": {}, "trajectories": traj}
     all_b, all_a = [], []
     for i, na in enumerate(names):
         for nb in names[i + 1 :]:
