@@ -49,6 +49,7 @@ CONFIGS: dict[str, str] = {
     "structure_index": "mapkit.index_structure:StructureIndexConfig",
     "places": "mapkit.eval_places:PlacesEvalConfig",
     "train": "mapkit.train:TrainConfig",
+    "executor": "mapkit.executor:ExecutorConfig",
 }
 
 

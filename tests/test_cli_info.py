@@ -97,3 +97,15 @@ def test_info_on_the_real_kitti_clip(kitti_clip):
     images = [r for r in s["streams"] if r["kind"] == "image"]
     assert images and images[0]["count"] == 51
     assert images[0]["rate_hz"] == pytest.approx(10.0, rel=0.05)
+
+
+def test_unknown_executor_is_one_line_and_exit_2(tmp_path, capsys):
+    assert main(["--executor", "bogus", "info", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--executor" in err[0] and "bogus" in err[0]
+
+
+def test_executor_config_prints_its_defaults(capsys):
+    assert main(["config", "defaults", "executor"]) == 0
+    out = capsys.readouterr().out
+    assert "kind: local" in out and "workers: null" in out
