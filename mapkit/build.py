@@ -353,11 +353,17 @@ def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, prog
     (kiss-icp's registration is mostly sequential). The workspace frame is then fixed before
     they start, from the first log's first GPS fix (or its given origin), which is where a serial
     build puts it too."""
+    logs = [Path(p) for p in logs]
+    names: dict[str, Path] = {}
+    for log in logs:
+        name = log.stem.split(".")[0]
+        if name in names:
+            raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
+        names[name] = log
     cfg = load_config(BuildConfig, config)
     workspace = Path(workspace)
     workspace.mkdir(parents=True, exist_ok=True)
     atomic_write_text(workspace / "build_config.yaml", dump_config(cfg))
-    logs = [Path(p) for p in logs]
     ex = executor or get_executor()
     summary: dict = {}
     if ex.workers > 1 and len(logs) > 1:

@@ -10,6 +10,7 @@ import pytest
 
 from mapkit.build import build
 from mapkit.cli import main
+from mapkit.errors import InputError
 from mapkit.imagedb import read_images_csv
 from mapkit.runio import is_done
 
@@ -111,3 +112,12 @@ def test_missing_intrinsics_is_one_clear_error_and_keeps_finished_stages(tmp_pat
     assert "no camera intrinsics" in err and str(d) in err and "Traceback" not in err
     s = tmp_path / "ws" / "sessions" / "drive"
     assert is_done(s / "trajectory") and not is_done(s / "map")
+
+
+def test_two_logs_with_one_session_name_are_refused_before_anything_is_written(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    logs = [tmp_path / "a" / "drive.mcap", tmp_path / "b" / "drive.mcap"]
+    with pytest.raises(InputError, match="same session name 'drive'"):
+        build(logs, tmp_path / "ws", progress=False)
+    assert not (tmp_path / "ws").exists()
