@@ -371,8 +371,8 @@ def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, prog
         order = sorted(range(len(logs)), key=lambda i: -logs[i].stat().st_size if logs[i].is_file() else 0)
         done: dict[int, dict] = {}
         try:
-            for i, m in zip(order, ex.map(_build_task, [logs[i] for i in order], shared=(workspace, cfg), desc="build",
-                                          label=lambda p: str(p))):
+            for m, i in zip(ex.map(_build_task, [logs[i] for i in order], shared=(workspace, cfg), desc="build",
+                                   label=lambda p: str(p)), order):
                 done[i] = m
                 if progress:
                     print(f"built {m['session']}: {m.get('wall_s_this_run', 0):.1f} s", file=sys.stderr, flush=True)

@@ -295,7 +295,9 @@ class _ChunkedExecutor(Executor):
                 del head, results
             failed = False
         finally:
-            self._stop(state, pending, failed)
+            # a consumer that stops right after the last result (zip with a list of the same
+            # length) leaves nothing in flight: the workers are let go, not terminated
+            self._stop(state, pending, failed and not (exhausted and not pending))
             bar.close()
         if produce_error is not None:
             raise produce_error

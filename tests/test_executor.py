@@ -131,6 +131,22 @@ def test_shared_state_is_shipped_once_per_worker(kind):
         assert os.getpid() not in arrivals and set(arrivals.values()) == {1}
 
 
+def test_a_consumer_done_after_the_last_result_lets_the_pool_close(monkeypatch):
+    """zip(items, ex.map(...)) never asks the map for the end: the workers are still let go
+    (close), not killed (terminate: SIGTERM, and pycolmap's handler prints a stack trace)."""
+    stops: list[bool] = []
+    original = ProcessExecutor._stop
+    monkeypatch.setattr(ProcessExecutor, "_stop", lambda self, pool, pending, failed: (stops.append(failed), original(self, pool, pending, failed))[1])
+    items = list(range(6))
+    g = ProcessExecutor(2).map(slow_square, items)
+    assert [r for _, r in zip(items, g)] == [x * x for x in items]
+    g.close()
+    g = ProcessExecutor(2).map(slow_square, items)  # abandoned half-way: what is in flight is killed
+    next(g)
+    g.close()
+    assert stops == [False, True]
+
+
 def test_a_lambda_is_refused_by_processes_with_a_clear_error():
     with pytest.raises(ConfigError, match="module-level function"):
         list(ProcessExecutor(2).map(lambda x: x, [1, 2]))
