@@ -71,6 +71,11 @@ def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     return config_hash({p: d.get(p) for p in parts})
 
 
+def session_name(log_path: str | Path) -> str:
+    """The session a log builds: its file or folder name up to the first dot."""
+    return Path(log_path).stem.split(".")[0]
+
+
 class SessionBuilder:
     """Runs the stages of one session; each stage method returns its output folder."""
 
@@ -79,7 +84,7 @@ class SessionBuilder:
         self.workspace = Path(workspace)
         self.cfg = cfg
         self.progress = progress
-        self.name = name or self.log_path.stem.split(".")[0]
+        self.name = name or session_name(self.log_path)
         self.dir = self.workspace / "sessions" / self.name
         self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
         self._log: Optional[DriveLog] = None
@@ -153,7 +158,7 @@ class SessionBuilder:
             warnings.warn(f"{self.log_path}: {result['reason']}; the map is built in the trajectory's local frame "
                           "and is NOT georeferenced", InputWarning, stacklevel=3)
             return None, None
-        frame = self._workspace_frame(fixes[0])
+        frame = self._workspace_frame(LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m))
         stamps = np.array([f.stamp_ns for f in fixes], np.int64)
         gps_enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
         sigma = np.array([f.horizontal_sigma_m for f in fixes])
@@ -212,13 +217,13 @@ class SessionBuilder:
         fix = next((f for f in self.log.records(StreamKind.GPS, topic=gps[0]) if f.has_fix), None) if gps else None
         return None if fix is None else LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
 
-    def _workspace_frame(self, first_fix) -> LocalFrame:
+    def _workspace_frame(self, proposed: LocalFrame) -> LocalFrame:
+        """The workspace's frame: the one already set, else ``proposed``, which becomes it."""
         path = self.workspace / "origin.json"
         if path.is_file():
             return LocalFrame.from_dict(json.loads(path.read_text()))
-        frame = first_fix if isinstance(first_fix, LocalFrame) else LocalFrame(first_fix.lat_deg, first_fix.lon_deg, first_fix.alt_m)
-        write_json(path, frame.to_dict())
-        return frame
+        write_json(path, proposed.to_dict())
+        return proposed
 
     def frame(self) -> Optional[LocalFrame]:
         d = json.loads((self.georef() / "gps_alignment.json").read_text())
@@ -356,7 +361,7 @@ def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, prog
     logs = [Path(p) for p in logs]
     names: dict[str, Path] = {}
     for log in logs:
-        name = log.stem.split(".")[0]
+        name = session_name(log)
         if name in names:
             raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
         names[name] = log
