@@ -234,19 +234,17 @@ class VladBaseline:
 
     Database vectors of a session come from the bundle when it indexes that session, else the
     session's images are encoded with the bundle's encoder; query images are encoded with it too.
-    Encodings are cached per bundle build in ``encodings_dir`` (shared) or ``cache_dir``.
+    Encodings are cached per bundle build in ``cache_dir`` (see ``VladIndex.encode_files``).
     """
 
     name = "vlad"
 
-    def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False,
-                 encodings_dir: Optional[Path] = None):
+    def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False):
         from .index_vlad import VladIndex
 
         self.index = VladIndex.load(bundle)
         self.ws = Path(workspace)
         self.cache_dir = cache_dir
-        self.encodings_dir = encodings_dir
         self.workers = workers
         self.progress = progress
         self._images: dict = {}
@@ -265,13 +263,12 @@ class VladBaseline:
 
     def encode(self, session: str, rows: np.ndarray) -> np.ndarray:
         """(len(rows), D) encodings of rows ``rows`` of the session's image table, through the
-        bundle's encodings cache (``encodings_dir`` when shared with other evaluations, else
-        ``cache_dir``): an image is encoded once per bundle."""
+        bundle's encodings cache in ``cache_dir``: an image is encoded once per bundle."""
         s = self.images(session)
         if not len(rows):
             return np.zeros((0, self.index.dim), np.float32)
         return self.index.encode_files([s.image_paths[r] for r in rows], self.progress, f"vlad {session}",
-                                       cache_dir=self.encodings_dir or self.cache_dir, workers=self.workers)
+                                       cache_dir=self.cache_dir, workers=self.workers)
 
     def database(self, session: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vectors (n, D), stamps_ns (n,), positions (n, 3)) of the session's database images."""
@@ -373,7 +370,9 @@ def evaluate_places(
     if "vlad" in methods and vlad is None:
         bundle = Path(vlad_bundle) if vlad_bundle is not None else ws / "indexes" / "vlad"
         if (bundle / "manifest.json").is_file():
-            vlad = VladBaseline(bundle, ws, cache, cfg.vlad_workers, progress, cfg.vlad_encodings_dir)
+            # encodings shared with other evaluations (eval localize --cache-dir), else this run's cache
+            encodings = Path(cfg.vlad_encodings_dir) if cfg.vlad_encodings_dir else cache
+            vlad = VladBaseline(bundle, ws, encodings, cfg.vlad_workers, progress)
         else:
             vlad_note = f"no VLAD bundle at {bundle} (build it with mapkit index vlad)"
             warnings.warn(f"vlad: {vlad_note}; the VLAD column is left empty", InputWarning, stacklevel=2)
