@@ -75,7 +75,7 @@ from .geometry import matrix_to_quat_wxyz
 from .align import aligned_sessions
 from .bundle import MANIFEST, building, is_finished, link_or_copy, read_manifest, write_manifest
 from .measurement import Measurement, mean_shift_measurement
-from .runio import atomic_write_bytes, atomic_write_text, config_hash, sha256_file, write_json
+from .runio import atomic_path, atomic_write_text, config_hash, sha256_file, write_json
 from .vlad import VladConfig, VladEncoder, kmeans
 
 FORMAT_VERSION = 1
@@ -789,12 +789,8 @@ class VladIndex:
         if todo:
             vec = encode_images(self.encoder, [paths[i] for i in todo], workers, progress, desc)
             have.update({keys[i]: v for i, v in zip(todo, vec)})
-            import io
-
-            buf = io.BytesIO()
-            np.savez(buf, keys=np.array(list(have)), vectors=np.stack(list(have.values())).astype(np.float32))
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_bytes(cache, buf.getvalue())
+            with atomic_path(cache) as tmp, open(tmp, "wb") as f:
+                np.savez(f, keys=np.array(list(have)), vectors=np.stack(list(have.values())).astype(np.float32))
         out = np.zeros((len(paths), self.dim), np.float32)
         for i, k in enumerate(keys):
             out[i] = have[k]

@@ -34,7 +34,7 @@ from .errors import InputError
 from .geometry import invert_pose
 from .mcl import MclConfig, MonteCarloLocalizer, pose_errors
 from .measurement import PoseHypotheses
-from .runio import atomic_write_bytes, atomic_write_text, write_json
+from .runio import atomic_path, atomic_write_text, write_json
 
 
 class LocalizeConfig(MapkitConfig):
@@ -163,13 +163,9 @@ def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | No
         except (OSError, KeyError, ValueError):
             pass  # unreadable or from another version: recompute below
     ids, dist = query_all(index, images, top_k, progress, session, vector_cache=cache_dir)
-    import io
-
-    buf = io.BytesIO()
-    np.savez(buf, version=HITS_CACHE_VERSION, bundle=fp, bundle_path=str(Path(index.path).resolve()), session=session,
-             top_k=top_k, images=img_digest, ids=ids, distances=dist)
-    Path(cache_dir).mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(path, buf.getvalue())
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, version=HITS_CACHE_VERSION, bundle=fp, bundle_path=str(Path(index.path).resolve()), session=session,
+                 top_k=top_k, images=img_digest, ids=ids, distances=dist)
     return ids, dist, False
 
 
