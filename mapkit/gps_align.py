@@ -5,7 +5,9 @@ extrapolated), then a robust estimate is made in two steps: RANSAC on minimal sa
 multipath jumps and outliers, and iteratively reweighted least squares (Cauchy weights scaled by
 each fix's reported sigma) refines on the inliers. The default model is gravity-aware: yaw about
 the vertical, translation and scale (5 parameters), for trajectories whose z axis is already
-vertical (LiDAR odometry started level, INS). ``sim3`` estimates all 7 parameters (camera-only
+vertical (LiDAR odometry started level, INS); ``yaw`` keeps the trajectory's own metric scale
+(4 parameters), which is what a build does with LiDAR or INS poses (see ``mapkit.build``), and
+still reports the scale GPS would have chosen. ``sim3`` estimates all 7 parameters (camera-only
 reconstructions have an arbitrary orientation); when the drive is too straight for the rotation
 about its direction of travel to be observable, it falls back to the gravity-aware model with a
 warning, or raises if asked to be strict.
@@ -36,6 +38,7 @@ class GpsAlignment:
     stamps_ns: np.ndarray  # (N,) stamps of the associated fixes
     rejected: list[dict] = field(default_factory=list)  # index, stamp, reason, residual
     notes: list[str] = field(default_factory=list)
+    free_scale: Optional[float] = None  # in ``yaw`` mode: the scale a ``yaw_scale`` fit of the inliers gives
 
     @property
     def scale(self) -> float:
@@ -58,6 +61,7 @@ class GpsAlignment:
             "residual_p95_m": float(np.percentile(r, 95)) if len(r) else None,
             "scale": self.scale,
             "yaw_deg": float(np.degrees(self.yaw_rad)),
+            "scale_if_estimated": self.free_scale,
             "notes": list(self.notes),
         }
 
@@ -218,4 +222,7 @@ def align_to_gps(
          "reason": "residual above threshold (outlier or multipath jump)"}
         for i in np.nonzero(~inl)[0]
     ]
-    return GpsAlignment(T, mode, inl, res, stamps, rejected, notes)
+    free_scale = None
+    if mode == "yaw":  # a check on the odometry's scale, not applied
+        free_scale = sim3_scale(fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, "yaw_scale"))
+    return GpsAlignment(T, mode, inl, res, stamps, rejected, notes, free_scale)

@@ -34,8 +34,9 @@ def test_session_is_georeferenced_in_the_declared_utm_zone(built):
     town, ws, _ = built
     ga = json.loads((ws / "sessions" / "drive" / "georef" / "gps_alignment.json").read_text())
     assert ga["georeferenced"] and ga["utm_crs_epsg"] == 32630  # Oxford
-    assert ga["alignment"]["mode"] == "yaw_scale"
-    assert abs(ga["alignment"]["scale"] - 1.0) < 0.02  # LiDAR odometry is metric
+    assert ga["alignment"]["mode"] == "yaw"  # 'auto': LiDAR odometry is metric and keeps its scale
+    assert ga["alignment"]["scale"] == pytest.approx(1.0, abs=1e-12)
+    assert abs(ga["alignment"]["scale_if_estimated"] - 1.0) < 0.02  # GPS agrees, roughly
 
 
 def test_gps_alignment_beats_gps_alone(built):

@@ -40,6 +40,21 @@ def test_recovers_known_transform_despite_multipath(rng, mode):
     assert res.stats()["fixes_used"] == int(res.inliers.sum())
 
 
+def test_yaw_mode_keeps_the_trajectory_scale_and_reports_the_free_one(rng):
+    """A metric trajectory under a rigid 4-DoF transform: ``yaw`` recovers it with scale exactly 1,
+    and the scale a free fit would have chosen is reported, not applied."""
+    rigid = make_sim3(1.0, yaw_rotation(np.radians(-52.0)), [40.0, 310.0, -2.0])
+    p_map = _curvy_drive()
+    p_enu = transform_points(rigid, p_map) + rng.normal(scale=[1.5, 1.5, 3.0], size=p_map.shape)
+    p_enu[:, :2] += 2.0 * np.sin(np.linspace(0, 1.5, len(p_map)))[:, None]  # a slowly drifting bias
+    res = align_to_gps(p_map, p_enu, sigma_m=np.full(len(p_map), 1.5), mode="yaw")
+    assert res.scale == 1.0 and res.mode == "yaw"
+    assert np.degrees(res.yaw_rad) == pytest.approx(-52.0, abs=0.5)
+    s = res.stats()["scale_if_estimated"]
+    assert s != 1.0 and s == pytest.approx(1.0, abs=0.01)
+    assert align_to_gps(p_map, p_enu, mode="yaw_scale").stats()["scale_if_estimated"] is None
+
+
 def test_straight_drive_falls_back_from_sim3_or_errors_when_strict(rng):
     s = np.linspace(0, 500, 200)
     p_map = np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
