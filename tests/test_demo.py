@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 
@@ -33,6 +34,10 @@ def test_demo_runs_what_the_tiny_town_allows_and_says_why_it_skips_the_rest(tiny
     assert status["triplets"] == "skipped" and "align" in m["stages"]["triplets"]["reason"]
     assert json.loads((out / "metrics.json").read_text())["stages"] == m["stages"]
     assert m["seconds_total"] >= sum(s["seconds"] for s in m["stages"].values()) - 1.0
+    # how many cores each stage kept busy, read from the machine's counters (Linux)
+    busy = [s["cores_busy"] for s in m["stages"].values() if "cores_busy" in s]
+    assert busy and all(0.0 <= b <= os.cpu_count() + 0.05 for b in busy), busy
+    assert f"cores busy (of {os.cpu_count()})" in (out / "timings.md").read_text()
 
 
 def test_report_is_one_self_contained_page_with_every_stage(tiny_demo):
@@ -50,6 +55,7 @@ def test_exported_bundle_loads_and_finds_a_database_image(tiny_demo):
     bundle = load_bundle(out / "bundles")
     vlad = bundle["vlad"]
     assert isinstance(vlad, VladIndex) and len(vlad) > 0
+    assert vlad.encoder.cfg.dsift.half_resolution  # the demo's encoder: the MCVL authors' code's practice
     top = bundle.manifest["indexes"]["vlad"]
     assert top["source_sessions"] == vlad.database_sessions and top["entries"] == len(vlad)
     origin = json.loads((out / "workspace" / "origin.json").read_text())
