@@ -1,0 +1,137 @@
+"""Where a session map's error comes from: the semi-dense mapper on true and estimated poses.
+
+Rebuilds one demo session's semi-dense map (stage 3 of ``mapkit build``, the same code and config)
+in a scratch workspace, once per pose variant, and measures every map against the town's true
+mesh (with that session's parked cars), as ``mapkit eval build`` does:
+
+* ``estimated``: the session's georeferenced trajectory after a yaw-only rigid fit to truth (the
+  GPS bias removed; what ``eval build`` calls "offset removed");
+* ``truth``: the true poses: the mapper's own accuracy;
+* ``true_rotation``: estimated positions, true orientations;
+* ``true_position``: true positions, estimated orientations;
+* ``true_roll_pitch``: estimated positions and heading, true roll and pitch (what leveling by
+  gravity, from an IMU, could at best give).
+
+The baseline of the comparison is the ``estimated`` row; the ratio printed is each variant's median
+distance over it. Run on a built demo workspace (a few minutes per variant on one core)::
+
+    python3 bench/map_error_budget.py --workspace runs/main/workspace --town runs/main/town --session test-clear
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+VARIANTS = ("estimated", "truth", "true_rotation", "true_position", "true_roll_pitch")
+
+
+def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    q = est.copy()
+    if variant == "truth":
+        q = gt.copy()
+    elif variant == "true_rotation":
+        q[:, :3, :3] = gt[:, :3, :3]
+    elif variant == "true_position":
+        q[:, :3, 3] = gt[:, :3, 3]
+    elif variant == "true_roll_pitch":
+        e = Rotation.from_matrix(q[:, :3, :3]).as_euler("ZYX")
+        e[:, 1:] = Rotation.from_matrix(gt[:, :3, :3]).as_euler("ZYX")[:, 1:]
+        q[:, :3, :3] = Rotation.from_euler("ZYX", e).as_matrix()
+    elif variant != "estimated":
+        raise ValueError(f"unknown variant {variant!r}; one of {VARIANTS}")
+    return q
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workspace", type=Path, required=True, help="a workspace built by `mapkit build` from the town's logs")
+    ap.add_argument("--town", type=Path, required=True, help="the synthetic town (logs and truth)")
+    ap.add_argument("--session", default="test-clear")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    a = ap.parse_args(argv)
+
+    import open3d as o3d
+
+    from mapkit.build import BuildConfig, SessionBuilder
+    from mapkit.evaluate import ws_from_town
+    from mapkit.geodesy import LocalFrame
+    from mapkit.geometry import interpolate_poses
+    from mapkit.gps_align import fit_transform
+    from mapkit.metrics import map_accuracy
+    from mapkit.config import load_config
+    from mapkit.semidense import SemiDenseMap
+    from mapkit.synth import gt_poses
+    from mapkit.trajectory import Trajectory
+
+    ws, town, name = a.workspace, a.town, a.session
+    sdir = ws / "sessions" / name
+    frame = LocalFrame.from_dict(json.loads((ws / "origin.json").read_text()))
+    town_to_ws = ws_from_town(town, frame)
+    mesh = o3d.io.read_triangle_mesh(str(town / "world" / "mesh.ply"))
+    mesh.transform(town_to_ws)
+    cars = town / "sessions" / f"{name}.parked_cars.ply"
+    if cars.is_file():
+        car_mesh = o3d.io.read_triangle_mesh(str(cars))
+        car_mesh.transform(town_to_ws)
+        mesh += car_mesh
+    gt_stamps, gt = gt_poses(town, name)
+    gt = town_to_ws @ gt
+    est = Trajectory.load(sdir / "georef" / "trajectory_enu")
+    gt_i, ok = interpolate_poses(gt_stamps, gt, est.stamps_ns)
+    est_fit = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw") @ est.world_from_base[ok]
+    cfg_path = ws / "build_config.yaml"
+    cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
+    log = town / "sessions" / f"{name}.mcap"  # the workspace's metrics hold the path as the build was given it
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="map-error-budget-") as tmp:
+        for v in a.variants:
+            poses = _variant_poses(v, est_fit, gt_i)
+            scratch = Path(tmp) / v
+            (scratch / "sessions" / name).mkdir(parents=True)
+            shutil.copy(ws / "origin.json", scratch / "origin.json")
+            for stage in ("trajectory", "georef"):  # finished stages: the builder goes straight to the map
+                shutil.copytree(sdir / stage, scratch / "sessions" / name / stage)
+            Trajectory(est.stamps_ns[ok], poses, est.source, frame=est.frame, body_frame=est.body_frame).save(
+                scratch / "sessions" / name / "georef" / "trajectory_enu")
+            builder = SessionBuilder(log, scratch, cfg, progress=False, name=name)
+            t0 = time.perf_counter()
+            try:
+                out = builder.semidense()
+            finally:
+                builder.close()
+            pts = SemiDenseMap.load(out).points_world
+            r = map_accuracy(pts, mesh)
+            err = np.linalg.norm(poses[:, :3, 3] - gt_i[:, :3, 3], axis=1)
+            rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
+                         "seconds": time.perf_counter() - t0})
+            print(f"{v:16s} pose RMSE {rows[-1]['position_rmse_m']:.3f} m  points {r['points']:7d}  median "
+                  f"{r['median_distance_m']:.3f} m  within 0.5 m {r['fraction_within_0.5m']:.3f}  "
+                  f"within 0.15 m {r['fraction_within_0.15m']:.3f}", flush=True)
+    base = next((r for r in rows if r["variant"] == "estimated"), None)
+    print(f"\n| {name}: poses | position RMSE m | map points | median to mesh m | within 0.5 m | ratio of median to estimated |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        ratio = f"{r['median_distance_m'] / base['median_distance_m']:.2f}" if base else ""
+        print(f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {r['median_distance_m']:.3f} | "
+              f"{r['fraction_within_0.5m']:.3f} | {ratio} |")
+    if a.json:
+        a.json.write_text(json.dumps({"session": name, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
