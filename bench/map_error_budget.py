@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
 
     from mapkit.build import BuildConfig, SessionBuilder
-    from mapkit.evaluate import ws_from_town
+    from mapkit.evaluate import session_truth_mesh, ws_from_town
     from mapkit.geodesy import LocalFrame
     from mapkit.geometry import interpolate_poses
     from mapkit.gps_align import fit_transform
@@ -82,11 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     town_to_ws = ws_from_town(town, frame)
     mesh = o3d.io.read_triangle_mesh(str(town / "world" / "mesh.ply"))
     mesh.transform(town_to_ws)
-    cars = town / "sessions" / f"{name}.parked_cars.ply"
-    if cars.is_file():
-        car_mesh = o3d.io.read_triangle_mesh(str(cars))
-        car_mesh.transform(town_to_ws)
-        mesh += car_mesh
+    mesh = session_truth_mesh(mesh, town, name, town_to_ws)
     gt_stamps, gt = gt_poses(town, name)
     gt = town_to_ws @ gt
     est = Trajectory.load(sdir / "georef" / "trajectory_enu")

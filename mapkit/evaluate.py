@@ -97,12 +97,7 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
             from .semidense import SemiDenseMap
 
             smap = SemiDenseMap.load(map_dir)
-            session_mesh = o3d.geometry.TriangleMesh(mesh)
-            cars = truth / "sessions" / f"{name}.parked_cars.ply"
-            if cars.is_file():
-                car_mesh = o3d.io.read_triangle_mesh(str(cars))
-                car_mesh.transform(town_to_ws)
-                session_mesh += car_mesh
+            session_mesh = session_truth_mesh(mesh, truth, name, town_to_ws)
             length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
             if georeferenced:
                 r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
@@ -113,6 +108,20 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
     write_json(workspace / "eval_build.json", results)
     atomic_write_text(workspace / "eval_build.md", format_eval(results))
     return results
+
+
+def session_truth_mesh(town_mesh, truth: Path, name: str, town_to_ws: np.ndarray):
+    """The surfaces session ``name`` saw: a copy of the town's mesh (already in the workspace frame)
+    with the cars parked during that session, if the town has them."""
+    import open3d as o3d
+
+    mesh = o3d.geometry.TriangleMesh(town_mesh)
+    cars = Path(truth) / "sessions" / f"{name}.parked_cars.ply"
+    if cars.is_file():
+        car_mesh = o3d.io.read_triangle_mesh(str(cars))
+        car_mesh.transform(town_to_ws)
+        mesh += car_mesh
+    return mesh
 
 
 def _errors(stamps, poses, gt_stamps, gt_poses) -> dict:
