@@ -212,7 +212,7 @@ def _figures(*groups: tuple[str, dict]) -> str:
 
 #: the demo's VLAD encoder: dense SIFT on the image halved first, the MCVL authors' released code's
 #: practice, where the paper's text (the library default) extracts at full resolution. A quarter of
-#: the descriptors: on the demo town, the index build and the localization stage take 38 s each
+#: the descriptors: on the demo town, the index build and the localization stage take 33 s and 32 s
 #: instead of 124 s and 117 s (both cores); retrieval medians move by -25 to +26 m, and the
 #: multi-hypothesis filter still beats retrieval alone on every test session.
 DEMO_VLAD = {"dsift": {"half_resolution": True}}
