@@ -39,7 +39,9 @@ def _make_town(out: Path, length_m: float = 150.0) -> Path:
     return synthesize(preset="tiny", out=out, overrides=overrides, progress=True)
 
 
-def bare_kiss_icp(scans: list[tuple[np.ndarray, np.ndarray]], cfg) -> float:
+def bare_kiss_icp(scans: list[tuple[np.ndarray, np.ndarray]], cfg, threads: int | None = None) -> tuple[float, np.ndarray]:
+    """Seconds of kiss-icp alone over ``scans`` and the poses it gave (``threads``: its
+    registration.max_num_threads, 0 = all cores; None = mapkit's config)."""
     from kiss_icp.config import KISSConfig
     from kiss_icp.kiss_icp import KissICP
 
@@ -47,11 +49,14 @@ def bare_kiss_icp(scans: list[tuple[np.ndarray, np.ndarray]], cfg) -> float:
     o = cfg.kiss_icp
     k.data.max_range, k.data.min_range, k.data.deskew = o.max_range_m, o.min_range_m, o.deskew
     k.mapping.voxel_size = o.voxel_size_m or o.max_range_m / 100.0
+    k.registration.max_num_threads = o.max_threads if threads is None else threads
     odom = KissICP(k)
+    poses = []
     t0 = time.perf_counter()
     for pts, t in scans:
         odom.register_frame(pts, t)
-    return time.perf_counter() - t0
+        poses.append(odom.last_pose.copy())
+    return time.perf_counter() - t0, np.stack(poses)
 
 
 def bare_mcap_decode(path: Path, topic: str) -> float:
@@ -86,7 +91,13 @@ def main(argv=None) -> int:
             topic = log.topics_of("lidar")[0]
             scans = [(s.points_xyz.astype(np.float64), s.point_time_s.astype(np.float64)) for s in log.records("lidar")]
             duration_s = (max(s for _, s in log.stamps()) - min(s for _, s in log.stamps())) * 1e-9
-        t_bare_icp = min(bare_kiss_icp(scans, cfg.trajectory) for _ in range(2))
+        bare = [bare_kiss_icp(scans, cfg.trajectory) for _ in range(2)]
+        t_bare_icp = min(t for t, _ in bare)
+        # two identical runs: kiss-icp is not bitwise repeatable (its parallel reductions sum in a
+        # varying order); and one registration thread against all of them
+        repeat_diff = float(np.abs(bare[0][1][:, :3, 3] - bare[1][1][:, :3, 3]).max())
+        t_one_thread = min(bare_kiss_icp(scans, cfg.trajectory, threads=1)[0] for _ in range(2))
+        t_all_threads = min(bare_kiss_icp(scans, cfg.trajectory, threads=0)[0] for _ in range(2))
         t_bare_read = min(bare_mcap_decode(log_path, topic) for _ in range(2))
         t_mapkit = []
         for _ in range(2):
@@ -110,6 +121,10 @@ def main(argv=None) -> int:
     report("kiss-icp inside mapkit", rows,
            f"Goal: mapkit <= 1.10x kiss-icp by itself. Including reading, {t_mapkit / t_bare_icp:.3f}x of kiss-icp on "
            f"in-memory scans; {t_mapkit / (t_bare_icp + t_bare_read):.3f}x of kiss-icp plus bare mcap decoding.")
+    report("kiss-icp threads and repeatability", [
+        {"what": "registration threads: 1", "ms_per_sweep": 1e3 * t_one_thread / len(scans), "ratio": 1.0},
+        {"what": "registration threads: all", "ms_per_sweep": 1e3 * t_all_threads / len(scans), "ratio": t_all_threads / t_one_thread},
+    ], f"Two identical kiss-icp runs over these {len(scans)} sweeps differ by up to {repeat_diff:.3g} m in position.")
     rows2 = [{"stage": k, "seconds": v.get("wall_s_this_run", float("nan"))} for k, v in stages.items()]
     rows2.append({"stage": "build (all)", "seconds": t_build})
     report("build real-time factor", rows2,
