@@ -974,10 +974,14 @@ def format_align_truth(t: dict) -> str:
                  f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of {t['accepted_pairs']} "
                  f"(max {t['accepted_pair_true_error_max_m']:.2f} m).")
     if t.get("trajectories"):
-        lines += ["", "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up):", "",
-                  "| session | GPS alignment alone | after mapkit align |", "|---|---|---|"]
+        lines += ["", "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up), "
+                  "and with that offset removed by a rigid yaw-only fit to truth (3D / horizontal / vertical RMSE):", "",
+                  "| session | GPS alignment alone | after mapkit align | offset removed, GPS alone | offset removed, after align |",
+                  "|---|---|---|---|---|"]
         for name, e in t["trajectories"].items():
             cells = [f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, ({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
                      for w in ("gps", "aligned")]
-            lines.append(f"| {name} | {cells[0]} | {cells[1]} |")
+            cells += [f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m"
+                      for o in (e[w].get("offset_removed") for w in ("gps", "aligned")) if o]
+            lines.append("| " + " | ".join([name, *cells]) + " |")
     return "\n".join(lines)

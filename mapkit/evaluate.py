@@ -83,12 +83,7 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
         est = Trajectory.load(traj_dir) if traj_dir.is_dir() else None
         fix = None
         if est is not None:
-            gt_i, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
-            # the offset removed by a rigid fit of the trajectory to truth, as SLAM evaluations align
-            # before measuring; yaw-only, since gravity is known and a nearly straight drive leaves
-            # roll about it unobservable
-            fix = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw")
-            r["trajectory_local"] = _errors(est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws)
+            r["trajectory_local"], fix = _offset_removed_errors(est, gt_stamps, gt_ws)
             if georeferenced:  # absolute figures only mean something in the georeferenced frame
                 r["trajectory"] = _absolute_errors(est, gt_stamps, gt_ws)
             r["gps_alone"] = _gps_error(workspace, sdir, gt_stamps, gt_ws, ws_frame)
@@ -184,14 +179,22 @@ def _error_transforms(est_stamps, est_poses, gt_stamps, gt_ws) -> tuple[np.ndarr
 
 
 def _absolute_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.ndarray) -> dict:
-    """``_errors`` of a trajectory as it stands in the workspace frame, with its horizontal RMSE
-    and its mean offset (east, north, up): a georeferencing bias shows as the offset."""
+    """``_errors`` of a trajectory as it stands in the workspace frame, with its mean offset (east,
+    north, up): a georeferencing bias shows as the offset."""
     r = _errors(est.stamps_ns, est.world_from_base, gt_stamps, gt_ws)
     g, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
-    err = est.world_from_base[ok, :3, 3] - g[:, :3, 3]
-    r["mean_offset_enu_m"] = [float(x) for x in err.mean(axis=0)]
-    r["horizontal_rmse_m"] = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
+    r["mean_offset_enu_m"] = [float(x) for x in (est.world_from_base[ok, :3, 3] - g[:, :3, 3]).mean(axis=0)]
     return r
+
+
+def _offset_removed_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.ndarray) -> tuple[dict, np.ndarray]:
+    """``_errors`` after the offset is removed by a rigid fit of the trajectory to truth, as SLAM
+    evaluations align before measuring (what is left is the trajectory's shape: odometry drift),
+    and that fit. Yaw-only, since gravity is known and a nearly straight drive leaves roll about
+    it unobservable."""
+    gt_i, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
+    fix = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw")
+    return _errors(est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws), fix
 
 
 def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0) -> dict:
@@ -230,6 +233,8 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
         pts = SemiDenseMap.load(al / "sessions" / name / "map").points_world
         sess[name] = {"tree": cKDTree(pb[:, :2]), "Eb": Eb, "Ea": Ea, "points": pts}
         traj[name] = {when: _absolute_errors(t, gt_stamps, gt_ws) for when, t in (("gps", before), ("aligned", after))}
+        for when, t in (("gps", before), ("aligned", after)):
+            traj[name][when]["offset_removed"] = _offset_removed_errors(t, gt_stamps, gt_ws)[0]
     out: dict = {"pairs": {}, "trajectories": traj}
     all_b, all_a = [], []
     for i, na in enumerate(names):

@@ -21,11 +21,14 @@ def trajectory_errors(
     """
     gt, ok = interpolate_poses(gt_stamps_ns, gt_poses, est_stamps_ns)
     est = np.asarray(est_poses)[ok]
-    dt = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+    err = est[:, :3, 3] - gt[:, :3, 3]
+    dt = np.linalg.norm(err, axis=1)
     dr = np.degrees(rotation_angle_rad(np.swapaxes(gt[:, :3, :3], 1, 2) @ est[:, :3, :3]))
     return {
         "poses_compared": int(ok.sum()),
         "ate_rmse_m": float(np.sqrt(np.mean(dt**2))) if len(dt) else None,
+        "horizontal_rmse_m": float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1)))) if len(dt) else None,
+        "vertical_rmse_m": float(np.sqrt(np.mean(err[:, 2] ** 2))) if len(dt) else None,
         "translation_median_m": float(np.median(dt)) if len(dt) else None,
         "translation_max_m": float(dt.max()) if len(dt) else None,
         "rotation_mean_deg": float(dr.mean()) if len(dr) else None,

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from mapkit.align import align_workspace
+from mapkit.align import align_workspace, format_align_truth
 from mapkit.build import build
 from mapkit.errors import InputWarning
 from mapkit.evaluate import evaluate_align
@@ -55,3 +55,11 @@ def test_aligned_sessions_share_one_offset_the_mean_of_their_biases(evaluated):
     for n in t:
         for w in ("gps", "aligned"):
             assert t[n][w]["horizontal_rmse_m"] <= t[n][w]["ate_rmse_m"]
+            # removing the offset by a least-squares rigid fit never makes the error larger, and
+            # what is left splits into horizontal and vertical parts
+            o = t[n][w]["offset_removed"]
+            assert o["ate_rmse_m"] <= t[n][w]["ate_rmse_m"] + 1e-9
+            assert o["horizontal_rmse_m"] ** 2 + o["vertical_rmse_m"] ** 2 == pytest.approx(o["ate_rmse_m"] ** 2)
+    rows = {line.split("|")[1].strip(): line for line in format_align_truth(evaluated).splitlines() if line.startswith("| first")}
+    o = t["first"]["aligned"]["offset_removed"]
+    assert rows["first"].rstrip(" |").endswith(f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m")

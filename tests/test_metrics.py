@@ -31,6 +31,11 @@ def test_trajectory_errors_of_a_known_offset():
     # mid-way poses: compare against interpolated truth (the averaged rotations are close enough)
     assert r["poses_compared"] == 10
     assert r["ate_rmse_m"] == pytest.approx(0.5, abs=1e-6)
+    assert r["horizontal_rmse_m"] == pytest.approx(0.5, abs=1e-6) and r["vertical_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    up = est.copy()
+    up[:, 2, 3] += 1.2  # and 1.2 m up: 1.3 m in all
+    r_up = trajectory_errors(stamps, up, stamps, gt)
+    assert r_up["vertical_rmse_m"] == pytest.approx(1.2) and r_up["ate_rmse_m"] == pytest.approx(1.3)
     assert r["rotation_median_deg"] == pytest.approx(2.0, abs=0.05)
     # estimates outside the truth's time span are not compared (no extrapolation)
     r2 = trajectory_errors(np.array([-1, 5 * 10**9], np.int64), est[[0, 5]], stamps, gt)
