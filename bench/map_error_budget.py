@@ -10,7 +10,9 @@ mesh (with that session's parked cars), as ``mapkit eval build`` does:
 * ``true_rotation``: estimated positions, true orientations;
 * ``true_position``: true positions, estimated orientations;
 * ``true_roll_pitch``: estimated positions and heading, true roll and pitch (what leveling by
-  gravity, from an IMU, could at best give).
+  gravity, from an IMU, could at best give);
+* ``aligned``: not rebuilt: the session's map as ``mapkit align`` left it, after the same yaw-only
+  fit of its refined trajectory (only when the workspace was aligned).
 
 The baseline of the comparison is the ``estimated`` row; the ratio printed is each variant's median
 distance over it. Run on a built demo workspace (a few minutes per variant on one core)::
@@ -32,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-VARIANTS = ("estimated", "truth", "true_rotation", "true_position", "true_roll_pitch")
+VARIANTS = ("estimated", "truth", "true_rotation", "true_position", "true_roll_pitch", "aligned")
 
 
 def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -54,12 +56,19 @@ def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return q
 
 
+def _print_row(r: dict) -> None:
+    print(f"{r['variant']:16s} pose RMSE {r['position_rmse_m']:.3f} m  points {r['points']:7d}  median "
+          f"{r['median_distance_m']:.3f} m  within 0.5 m {r['fraction_within_0.5m']:.3f}  "
+          f"within 0.15 m {r['fraction_within_0.15m']:.3f}", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workspace", type=Path, required=True, help="a workspace built by `mapkit build` from the town's logs")
     ap.add_argument("--town", type=Path, required=True, help="the synthetic town (logs and truth)")
     ap.add_argument("--session", default="test-clear")
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    ap.add_argument("--variants", nargs="+", default=None, choices=VARIANTS,
+                    help="default: all, 'aligned' only when WORKSPACE/align holds the session")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     a = ap.parse_args(argv)
 
@@ -68,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     from mapkit.build import BuildConfig, SessionBuilder
     from mapkit.evaluate import session_truth_mesh, ws_from_town
     from mapkit.geodesy import LocalFrame
-    from mapkit.geometry import interpolate_poses
+    from mapkit.geometry import interpolate_poses, transform_points
     from mapkit.gps_align import fit_transform
     from mapkit.metrics import map_accuracy
     from mapkit.config import load_config
@@ -88,13 +97,26 @@ def main(argv: list[str] | None = None) -> int:
     est = Trajectory.load(sdir / "georef" / "trajectory_enu")
     gt_i, ok = interpolate_poses(gt_stamps, gt, est.stamps_ns)
     est_fit = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw") @ est.world_from_base[ok]
+    aligned_dir = ws / "align" / "sessions" / name
+    variants = a.variants or [v for v in VARIANTS if v != "aligned" or (aligned_dir / "map").is_dir()]
     cfg_path = ws / "build_config.yaml"
     cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
     log = town / "sessions" / f"{name}.mcap"  # the workspace's metrics hold the path as the build was given it
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="map-error-budget-") as tmp:
-        for v in a.variants:
+        for v in variants:
+            t0 = time.perf_counter()
+            if v == "aligned":
+                al = Trajectory.load(aligned_dir / "trajectory")
+                al_gt, al_ok = interpolate_poses(gt_stamps, gt, al.stamps_ns)
+                fix = fit_transform(al.world_from_base[al_ok, :3, 3], al_gt[:, :3, 3], mode="yaw")
+                r = map_accuracy(transform_points(fix, SemiDenseMap.load(aligned_dir / "map").points_world), mesh)
+                err = np.linalg.norm(transform_points(fix, al.world_from_base[al_ok, :3, 3]) - al_gt[:, :3, 3], axis=1)
+                rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
+                             "seconds": time.perf_counter() - t0})
+                _print_row(rows[-1])
+                continue
             poses = _variant_poses(v, est_fit, gt_i)
             scratch = Path(tmp) / v
             (scratch / "sessions" / name).mkdir(parents=True)
@@ -104,7 +126,6 @@ def main(argv: list[str] | None = None) -> int:
             Trajectory(est.stamps_ns[ok], poses, est.source, frame=est.frame, body_frame=est.body_frame).save(
                 scratch / "sessions" / name / "georef" / "trajectory_enu")
             builder = SessionBuilder(log, scratch, cfg, progress=False, name=name)
-            t0 = time.perf_counter()
             try:
                 out = builder.semidense()
             finally:
@@ -114,9 +135,7 @@ def main(argv: list[str] | None = None) -> int:
             err = np.linalg.norm(poses[:, :3, 3] - gt_i[:, :3, 3], axis=1)
             rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
                          "seconds": time.perf_counter() - t0})
-            print(f"{v:16s} pose RMSE {rows[-1]['position_rmse_m']:.3f} m  points {r['points']:7d}  median "
-                  f"{r['median_distance_m']:.3f} m  within 0.5 m {r['fraction_within_0.5m']:.3f}  "
-                  f"within 0.15 m {r['fraction_within_0.15m']:.3f}", flush=True)
+            _print_row(rows[-1])
     base = next((r for r in rows if r["variant"] == "estimated"), None)
     print(f"\n| {name}: poses | position RMSE m | map points | median to mesh m | within 0.5 m | ratio of median to estimated |")
     print("|---|---|---|---|---|---|")
