@@ -16,7 +16,7 @@ import numpy as np
 
 from .errors import InputError
 from .geodesy import LocalFrame
-from .geometry import interpolate_poses, transform_points
+from .geometry import interpolate_poses, sim3_scale, transform_points
 from .gps_align import fit_transform
 from .metrics import map_accuracy, trajectory_errors
 from .runio import atomic_write_text, write_json
@@ -194,7 +194,10 @@ def _offset_removed_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.nda
     it unobservable."""
     gt_i, ok = interpolate_poses(gt_stamps, gt_ws, est.stamps_ns)
     fix = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw")
-    return _errors(est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws), fix
+    r = _errors(est.stamps_ns, fix @ est.world_from_base, gt_stamps, gt_ws)
+    # the trajectory's scale error: what a fit that may also scale finds (not applied)
+    r["scale_vs_truth"] = sim3_scale(fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw_scale"))
+    return r, fix
 
 
 def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0) -> dict:

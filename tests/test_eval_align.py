@@ -60,6 +60,7 @@ def test_aligned_sessions_share_one_offset_the_mean_of_their_biases(evaluated):
             o = t[n][w]["offset_removed"]
             assert o["ate_rmse_m"] <= t[n][w]["ate_rmse_m"] + 1e-9
             assert o["horizontal_rmse_m"] ** 2 + o["vertical_rmse_m"] ** 2 == pytest.approx(o["ate_rmse_m"] ** 2)
+            assert abs(o["scale_vs_truth"] - 1.0) < 0.02  # LiDAR odometry is metric: about 1% over these 90 m drives
     rows = {line.split("|")[1].strip(): line for line in format_align_truth(evaluated).splitlines() if line.startswith("| first")}
     o = t["first"]["aligned"]["offset_removed"]
     assert rows["first"].rstrip(" |").endswith(f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m")
