@@ -14,7 +14,9 @@ ENV TORCH_INDEX=https://download.pytorch.org/whl/cpu
 
 WORKDIR /src
 COPY . /src
+# the environment scripts/setup.sh makes (/src/.venv), first on PATH so that `mapkit` and `python` are its
 RUN bash scripts/setup.sh
+ENV PATH=/src/.venv/bin:$PATH
 
-# the README's test command (the main job: docker run --rm mapkit python3 pipelines/main.py --out /tmp/run)
-CMD ["bash", "-c", "bash scripts/setup.sh && python3 -m pytest -q"]
+# the README's test command (the main job: docker run --rm mapkit .venv/bin/python pipelines/main.py --out /tmp/run)
+CMD ["bash", "-c", "bash scripts/setup.sh && .venv/bin/python -m pytest -q"]

@@ -1,33 +1,69 @@
 #!/usr/bin/env bash
-# One-time set-up of a fresh Debian machine with Python >= 3.10: system library, package, test tools.
-# Idempotent: a machine that already has everything is checked in a few seconds and left as it is.
+# Set-up of a fresh Debian machine with Python >= 3.10: one system library, then mapkit and every
+# extra in a virtual environment of its own (no system site packages, so that nothing installed by
+# hand elsewhere on the machine can make a run pass).
+#
+#   .venv/              the environment, in the checkout (git ignores it); enter it with
+#                       `source .venv/bin/activate`, or call `.venv/bin/python` / `.venv/bin/mapkit`
+#   MAPKIT_VENV=DIR     put the environment at DIR instead; .venv becomes a link to it (CI does this,
+#                       with a new DIR outside the clone on every run)
+#   PYTHON=python3.X    the interpreter the environment is made from (default python3)
+#
+# Idempotent: an environment made from the same pyproject.toml is checked in a few seconds and kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PY=${PYTHON:-python3}
 SUDO=""
 if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO=sudo; fi
+say() { echo "[setup] $*" >&2; }
+
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 10))' 2>/dev/null; then
+  say "error: $PY is missing or older than Python 3.10 (set PYTHON=python3.X)"; exit 2
+fi
 
 # open3d links against libusb-1.0 (Debian package libusb-1.0-0), absent on bare machines
 if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
-  echo "[setup] installing libusb-1.0-0 (needed by open3d)" >&2
+  say "installing libusb-1.0-0 (needed by open3d)"
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
 fi
 
-# torch for the 3D CNN (the `learning` extra): its CPU build, pinned, so that no CUDA packages are
-# pulled. On this kind of machine `pip install torch==2.13.0` takes the CPU wheel from the local
-# wheel folder; elsewhere set TORCH_INDEX=https://download.pytorch.org/whl/cpu (the Dockerfile does).
-if ! "$PY" -I -c "import torch" >/dev/null 2>&1; then
-  echo "[setup] installing torch==2.13.0 (CPU build)" >&2
-  "$PY" -m pip install --quiet --disable-pip-version-check torch==2.13.0 ${TORCH_INDEX:+--index-url "$TORCH_INDEX"}
+# where the environment lives
+VENV=.venv
+if [ -n "${MAPKIT_VENV:-}" ]; then
+  mkdir -p "$(dirname "$MAPKIT_VENV")"
+  if [ -e .venv ] && [ ! -L .venv ]; then
+    say "error: MAPKIT_VENV is set but .venv is a real folder here; remove it or unset MAPKIT_VENV"; exit 2
+  fi
+  ln -sfn "$MAPKIT_VENV" .venv
+  VENV=$MAPKIT_VENV
 fi
+if [ ! -x "$VENV/bin/python" ]; then
+  say "creating the virtual environment $VENV (from $("$PY" --version 2>&1))"
+  "$PY" -m venv "$VENV"
+fi
+VPY="$VENV/bin/python"
+pip_install() { "$VPY" -m pip install --quiet --disable-pip-version-check "$@"; }
 
-# the package (editable, so that the checkout is what runs), its optional extras and the test runner
-# -I (isolated): the installed mapkit, not ./mapkit of the current folder, must be this checkout
-if ! "$PY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, pyproj, faiss, pytest, torch, onnxruntime, ray" >/dev/null 2>&1 \
-   || [ "$("$PY" -I -c 'import mapkit, pathlib; print(pathlib.Path(mapkit.__file__).resolve().parents[1])' 2>/dev/null)" != "$(pwd -P)" ]; then
-  echo "[setup] installing mapkit, its extras (learning, distributed) and its dependencies with pip" >&2
-  "$PY" -m pip install --quiet --disable-pip-version-check -e ".[test,learning,distributed]"
+# The environment is (re)filled when the project's dependencies changed since it was filled, or
+# when a module is missing, or when the installed mapkit is not this checkout.
+STAMP="$VENV/.mapkit-setup"
+WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) $(pwd -P)"
+if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
+   || ! "$VPY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, rosbags, pyproj, faiss, h5py, pytest, torch, onnx, onnxruntime, ray" >/dev/null 2>&1 \
+   || [ "$("$VPY" -I -c 'import mapkit, pathlib; print(pathlib.Path(mapkit.__file__).resolve().parents[1])' 2>/dev/null)" != "$(pwd -P)" ]; then
+  t0=$(date +%s)
+  # torch's CPU build first, pinned, so that the learning extra pulls no CUDA packages. On this kind
+  # of machine `pip install torch==2.13.0` finds the CPU wheel on disk; elsewhere set
+  # TORCH_INDEX=https://download.pytorch.org/whl/cpu (the Dockerfile does).
+  if ! "$VPY" -I -c "import torch" >/dev/null 2>&1; then
+    say "installing torch==2.13.0 (CPU build)"
+    pip_install torch==2.13.0 ${TORCH_INDEX:+--index-url "$TORCH_INDEX"}
+  fi
+  say "installing mapkit (editable) with its extras learning, distributed and test"
+  pip_install -e ".[test,learning,distributed]"
+  echo "$WANT" > "$STAMP"
+  say "installed in $(( $(date +%s) - t0 )) s"
 fi
-"$PY" -c "import open3d, mapkit; print(f'[setup] ok: mapkit {mapkit.__version__}, open3d {open3d.__version__}')" >&2
+"$VPY" -c "import open3d, mapkit; print(f'[setup] ok: mapkit {mapkit.__version__}, open3d {open3d.__version__}, in $VENV')" >&2
