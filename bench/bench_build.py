@@ -60,13 +60,18 @@ def bare_kiss_icp(scans: list[tuple[np.ndarray, np.ndarray]], cfg, threads: int 
 
 
 def bare_mcap_decode(path: Path, topic: str) -> float:
+    """Seconds of bare ``mcap`` decoding of one topic of a log (a .mcap file or a rosbag2 folder's files)."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
+    from mapkit.io.mcap_log import rosbag2_mcap_files
+
+    files = rosbag2_mcap_files(path) if path.is_dir() else [path]
     t0 = time.perf_counter()
-    with open(path, "rb") as f:
-        for _ in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=[topic]):
-            pass
+    for file in files:
+        with open(file, "rb") as f:
+            for _ in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=[topic]):
+                pass
     return time.perf_counter() - t0
 
 
@@ -79,12 +84,13 @@ def main(argv=None) -> int:
 
     from mapkit.build import BuildConfig, build
     from mapkit.io.mcap_log import McapLog
+    from mapkit.synth import session_logs
     from mapkit.trajectory import trajectory_from_lidar
 
     with tempfile.TemporaryDirectory(prefix="mapkit-bench-build-") as tmp:
         tmp = Path(tmp)
         town = args.town or _make_town(tmp / "town", 48.0 if args.quick else 150.0)
-        logs = sorted((town / "sessions").glob("*.mcap"))
+        logs = session_logs(town)
         log_path = next(p for p in logs if args.session is None or p.stem == args.session)
         cfg = BuildConfig()
         with McapLog(log_path) as log:

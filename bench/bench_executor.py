@@ -36,12 +36,12 @@ def tiny_workspace(cache: Path) -> Path:
     """The ``tiny`` town built into ``cache/ws`` (once: ~30 s)."""
     from mapkit.build import build
     from mapkit.errors import InputWarning
-    from mapkit.synth import synthesize
+    from mapkit.synth import session_logs, synthesize
 
     town = synthesize(preset="tiny", out=cache / "town", progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # tiny's drives are too short to georeference
-        return build(sorted((town / "sessions").glob("*.mcap")), cache / "ws", progress=False)
+        return build(session_logs(town), cache / "ws", progress=False)
 
 
 def image_paths(ws: Path, limit: int) -> list[Path]:

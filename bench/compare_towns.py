@@ -24,6 +24,7 @@ def _digest(path: Path) -> str:
 
 def compare(a: Path, b: Path, step: int) -> list[str]:
     from mapkit.io.mcap_log import McapLog
+    from mapkit.synth import session_log, session_logs
 
     diffs = []
     ha, hb = (json.loads((t / "world" / "manifest.json").read_text())["config_hash"] for t in (a, b))
@@ -33,8 +34,8 @@ def compare(a: Path, b: Path, step: int) -> list[str]:
     for rel in files:
         if not (b / rel).is_file() or _digest(a / rel) != _digest(b / rel):
             diffs.append(f"{rel} differs")
-    for log_a in sorted((a / "sessions").glob("*.mcap")):
-        with McapLog(log_a) as la, McapLog(b / "sessions" / log_a.name) as lb:
+    for log_a in session_logs(a):
+        with McapLog(log_a) as la, McapLog(session_log(b, log_a.name.split(".")[0])) as lb:
             fa = list(la.records("image"))[::step]
             fb = list(lb.records("image"))[::step]
             same = len(fa) == len(fb) and all(x.stamp_ns == y.stamp_ns and np.array_equal(x.image, y.image) for x, y in zip(fa, fb))

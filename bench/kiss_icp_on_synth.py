@@ -1,18 +1,19 @@
 """An outside tool reads the synthetic logs: kiss-icp's own command line on a session's LiDAR topic.
 
-Runs kiss-icp's command line (``kiss_icp.tools.cmd:run``, the ``kiss_icp_pipeline`` entry point) on
-``<session>.mcap``: its MCAP dataloader picks the only PointCloud2 topic, ``/lidar/points``, and
-deskews each scan with the per-point ``time`` field to the time of the scan's last point. The
-script reads the poses it writes and compares them with the ground truth of the LiDAR frame at
+Runs kiss-icp's command line (``kiss_icp_pipeline``) on a session's log, the rosbag2 folder
+``sessions/<session>/``: its rosbag dataloader (the ``rosbags`` library) reads ``/lidar/points``, and
+kiss-icp deskews each scan with the per-point ``time`` field to the time of the scan's last point.
+The script reads the poses it writes and compares them with the ground truth of the LiDAR frame at
 the same instants: ATE (RMSE of positions) after a rigid alignment (Umeyama, no scale) and without
 one (anchored at the first scan), and the drift in percent of the distance driven.
 
-kiss-icp 1.3.0 cannot read a PointCloud2 decoded by mcap-ros2-support (0.5 and 0.6 alike): its
-``get_datatype_name`` looks for the PointField constants in ``vars(field)``, which is empty for
-mcap_ros2's slotted message classes ("Unknown datatype code 7"; upstream PR PRBonn/kiss-icp#498 is
-open). So the command line runs with that one function replaced by a lookup of the datatype code
-as the PointField message defines it (``--no-patch`` shows the unpatched failure); nothing else of
-kiss-icp is changed.
+Given a bare ``.mcap`` (a town written before logs were rosbag2 folders), kiss-icp uses its MCAP
+dataloader instead, and kiss-icp 1.3.0 cannot read a PointCloud2 decoded by mcap-ros2-support (0.5
+and 0.6 alike): its ``get_datatype_name`` looks for the PointField constants in ``vars(field)``,
+which is empty for mcap_ros2's slotted message classes ("Unknown datatype code 7"; upstream PR
+PRBonn/kiss-icp#498 is open). So for a bare ``.mcap`` the command line runs with that one function
+replaced by a lookup of the datatype code as the PointField message defines it (``--no-patch``
+shows the unpatched failure); nothing else of kiss-icp is changed. Folders need no patch.
 
     python bench/kiss_icp_on_synth.py [--dir DIR] [--preset tiny] [--session NAME]
 """
@@ -64,8 +65,10 @@ run()
 
 
 def run_kiss_icp(mcap: Path, work: Path, patch: bool = True) -> tuple[np.ndarray, float]:
+    """kiss-icp's command line on a log (a rosbag2 folder, or a bare .mcap patched unless ``patch`` is False)."""
     env = dict(os.environ, kiss_icp_out_dir=str(work))
-    cmd = [sys.executable, "-c", _PATCH, str(mcap)] if patch else ["kiss_icp_pipeline", str(mcap)]
+    patch = patch and not Path(mcap).is_dir()  # its rosbag dataloader reads folders unpatched
+    cmd = [sys.executable, "-c", _PATCH, str(mcap)] if patch else ["kiss_icp_pipeline", "--topic", "/lidar/points", str(mcap)]
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -117,7 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dir", type=Path, help="a synthesized town (made with --preset into a temporary folder if omitted)")
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--session", action="append", help="session name (repeatable; default: all)")
-    ap.add_argument("--no-patch", action="store_true", help="run kiss_icp_pipeline unpatched (fails on kiss-icp 1.3.0)")
+    ap.add_argument("--no-patch", action="store_true", help="run kiss_icp_pipeline unpatched on bare .mcap logs (fails on kiss-icp 1.3.0; folders never need the patch)")
     args = ap.parse_args(argv)
     if shutil.which("kiss_icp_pipeline") is None:
         raise SystemExit("kiss_icp_pipeline is not installed (pip install kiss-icp)")
@@ -139,7 +142,7 @@ def main(argv=None) -> int:
         row["condition"] = world.session(name)["condition"]
         row["kiss_icp_wall_s"] = round(wall, 2)
         rows.append(row)
-    report("kiss-icp (its own CLI and MCAP dataloader) on synthetic LiDAR vs ground truth", rows,
+    report("kiss-icp (its own CLI and rosbag dataloader) on synthetic LiDAR vs ground truth", rows,
            "ATE after a rigid (SE3) alignment; anchored = first scan at its true pose, no fit.")
     if tmp is not None:
         tmp.cleanup()

@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     from mapkit.metrics import map_accuracy
     from mapkit.config import load_config
     from mapkit.semidense import SemiDenseMap
-    from mapkit.synth import gt_poses
+    from mapkit.synth import gt_poses, session_log
     from mapkit.trajectory import Trajectory
 
     ws, town, name = a.workspace, a.town, a.session
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     variants = a.variants or [v for v in VARIANTS if v != "aligned" or (aligned_dir / "map").is_dir()]
     cfg_path = ws / "build_config.yaml"
     cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
-    log = town / "sessions" / f"{name}.mcap"  # the workspace's metrics hold the path as the build was given it
+    log = session_log(town, name)  # the workspace's metrics hold the path as the build was given it
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="map-error-budget-") as tmp:

@@ -134,7 +134,7 @@ def _gps_error(workspace: Path, sdir: Path, gt_stamps, gt_ws, frame: LocalFrame)
     meta_path = workspace / "metrics.json"
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     log_path = meta.get("sessions", {}).get(sdir.name, {}).get("log")
-    if not log_path or not Path(log_path).is_file():
+    if not log_path or not Path(log_path).exists():  # a .mcap file or a rosbag2 folder
         return {}
     with open_log(log_path) as log:
         fixes = [f for f in log.records(StreamKind.GPS) if f.has_fix]

@@ -33,7 +33,7 @@ from mapkit.executor import use_executor  # noqa: E402
 from mapkit.index_vlad import build_vlad_index  # noqa: E402
 from mapkit.localize import evaluate_localization  # noqa: E402
 from mapkit.runio import atomic_write_text, write_json  # noqa: E402
-from mapkit.synth import synthesize  # noqa: E402
+from mapkit.synth import session_logs, synthesize  # noqa: E402
 
 CONFIGS = ROOT / "configs"
 RUNS = {"paper": None, "odometry-multihypothesis": CONFIGS / "localize" / "odometry-multihypothesis.yaml"}
@@ -59,7 +59,7 @@ def run(out: Path, workers: int = 2, preset: str = "benchmark", progress: bool =
                                           progress=progress))
         roles = {s["name"]: s["role"] for s in json.loads((town / "world" / "manifest.json").read_text())["sessions"]}
         train = sorted(n for n, r in roles.items() if r == "train")
-        timed("build", lambda: build(sorted((town / "sessions").glob("*.mcap")), ws, CONFIGS / "build" / "mcvl-database.yaml",
+        timed("build", lambda: build(session_logs(town), ws, CONFIGS / "build" / "mcvl-database.yaml",
                                      progress=progress))
         bundle = timed("index_vlad", lambda: build_vlad_index(ws, overrides={"train_sessions": train, "database_sessions": train,
                                                                              "workers": workers}, progress=progress))

@@ -6,7 +6,7 @@ import pytest
 
 from mapkit.build import build
 from mapkit.evaluate import evaluate_build
-from mapkit.synth import synthesize
+from mapkit.synth import session_log, synthesize
 
 # one 80 m drive; GPS with white noise and multipath jumps but no bias, so that what is measured is
 # the alignment itself (a session's bias moves the whole map, see eval_build's mean offset)
@@ -16,7 +16,8 @@ OVERRIDES = {
          "length_m": 80.0, "speed_mps": 8.0, "lane_offset_m": 0.0},
     ],
     # the demo's HDL-64E beam layout: with tiny's HDL-32E, kiss-icp drifts in pitch
-    "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0]},
+    "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0], "azimuth_steps": 512},
+    "motion": {"start_from_rest": False},  # what these figures were measured with (the tiny preset starts from rest)
     "gps": {"rate_hz": 5.0, "bias_sigma_m": 0.0, "white_sigma_m": 1.5, "multipath_rate_hz": 0.1, "multipath_sigma_m": 8.0,
             "dropout_rate_hz": 0.0},
 }
@@ -26,7 +27,7 @@ OVERRIDES = {
 def built(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth-build")
     town = synthesize(preset="tiny", out=root / "town", overrides=OVERRIDES, progress=False)
-    ws = build([town / "sessions" / "drive.mcap"], root / "ws", progress=False)
+    ws = build([session_log(town, "drive")], root / "ws", progress=False)
     return town, ws, evaluate_build(ws, town)["sessions"]["drive"]
 
 

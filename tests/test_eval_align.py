@@ -9,7 +9,7 @@ from mapkit.align import align_workspace, format_align_truth
 from mapkit.build import build
 from mapkit.errors import InputWarning
 from mapkit.evaluate import evaluate_align
-from mapkit.synth import synthesize
+from mapkit.synth import session_logs, synthesize
 
 # two 90 m drives, the second following the first one's route; GPS biased (1 m per axis; the
 # demo's 2 m can put two short drives further apart than alignment's plausibility gate) but
@@ -22,7 +22,8 @@ OVERRIDES = {
         {"name": "second", "role": "train", "date": "2014-06-27", "time": "14:00", "weather": "sunny", "length_m": 90.0,
          "speed_mps": 8.0, "lane_offset_m": 0.3, "follow": "first"},
     ],
-    "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0]},
+    "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0], "azimuth_steps": 512},
+    "motion": {"start_from_rest": False},  # what these figures were measured with (the tiny preset starts from rest)
     "gps": {"rate_hz": 5.0, "bias_sigma_m": 1.0, "white_sigma_m": 0.5, "multipath_rate_hz": 0.0, "dropout_rate_hz": 0.0},
 }
 
@@ -31,7 +32,7 @@ OVERRIDES = {
 def evaluated(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval-align")
     town = synthesize(preset="tiny", out=root / "town", overrides=OVERRIDES, seed=3, progress=False)
-    ws = build(sorted((town / "sessions").glob("*.mcap")), root / "ws", progress=False)
+    ws = build(session_logs(town), root / "ws", progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
         align_workspace(ws, progress=False)

@@ -13,7 +13,7 @@ from mapkit.geodesy import LocalFrame
 from mapkit.imagedb import images_world_from_cam, read_images_csv
 from mapkit.io.mcap_log import McapLog
 from mapkit.io.trajectory import read_tum
-from mapkit.synth import synthesize
+from mapkit.synth import session_log, synthesize
 from mapkit.synth.config import load_config
 from mapkit.types import StreamKind
 
@@ -34,14 +34,14 @@ def test_benchmark_camera_override_turns_off_only_the_lidar():
 
 
 def test_camera_only_log_has_no_lidar_stream_nor_extrinsic(town):
-    log = McapLog(town / "sessions" / "drive.mcap")
+    log = McapLog(session_log(town, "drive"))
     kinds = {s.kind for s in log.streams()}
     assert StreamKind.LIDAR not in kinds and {StreamKind.IMAGE, StreamKind.GPS, StreamKind.POSE} <= kinds
     assert "lidar" not in {t.child_frame for t in log.transforms()}
 
 
 def test_given_georeferencing_puts_database_images_at_their_true_poses(town, tmp_path):
-    ws = build([town / "sessions" / "drive.mcap"], tmp_path / "ws", config=CONFIGS / "build" / "mcvl-database.yaml", progress=False)
+    ws = build([session_log(town, "drive")], tmp_path / "ws", config=CONFIGS / "build" / "mcvl-database.yaml", progress=False)
     session = ws / "sessions" / "drive"
     assert not (session / "map").exists(), "map: false must not build the semi-dense map"
     table = read_images_csv(session / "imagedb" / "images.csv")
@@ -61,4 +61,4 @@ def test_given_georeferencing_without_origin_names_the_field(town, tmp_path):
     cfg = tmp_path / "no-origin.yaml"
     cfg.write_text("topics: {poses: /ground_truth/odom}\ntrajectory: {source: poses}\ngeoref: {mode: given}\nmap: false\n")
     with pytest.raises(InputError, match=r"georef\.origin"):
-        build([town / "sessions" / "drive.mcap"], tmp_path / "ws", config=cfg, progress=False)
+        build([session_log(town, "drive")], tmp_path / "ws", config=cfg, progress=False)

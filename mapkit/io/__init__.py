@@ -14,7 +14,7 @@ from .base import DriveLog
 
 #: reader name -> "module:Class"; each class has ``detect(path) -> bool``
 READERS: dict[str, str] = {
-    "mcap": "mapkit.io.mcap_log:McapLog",
+    "mcap": "mapkit.io.mcap_log:McapLog",  # a .mcap file or a rosbag2 folder with mcap storage
     "kitti-odometry": "mapkit.io.kitti:KittiOdometry",
     "kitti-raw": "mapkit.io.kitti:KittiRaw",
     "robotcar": "mapkit.io.robotcar:RobotCar",
@@ -34,11 +34,15 @@ def guess_format(path: str | Path) -> str:
     if not path.exists():
         raise InputError(path, "no such file or folder")
     if path.is_file():
-        from .mcap_log import is_mcap
+        from .mcap_log import ROSBAG2_METADATA, is_mcap, is_rosbag2
 
-        if is_mcap(path):
+        if is_mcap(path) or (path.name == ROSBAG2_METADATA and is_rosbag2(path.parent)):
             return "mcap"
-        raise InputError(path, "is a file but not an MCAP log (folders are read as KITTI, RobotCar or generic layouts)")
+        raise InputError(path, "is a file but not an MCAP log (folders are read as rosbag2, KITTI, RobotCar or generic layouts)")
+    from .mcap_log import is_rosbag2
+
+    if is_rosbag2(path):
+        return "mcap"  # its storage is checked on opening: mcap is read, other storage is a clear error
     for name in ("kitti-odometry", "kitti-raw", "robotcar", "folder"):
         try:
             cls = reader_class(name)
@@ -46,7 +50,7 @@ def guess_format(path: str | Path) -> str:
             continue
         if cls.detect(path):
             return name
-    raise InputError(path, "folder layout not recognised as KITTI odometry, KITTI raw, Oxford RobotCar or a generic image folder")
+    raise InputError(path, "folder layout not recognised as a rosbag2 bag (metadata.yaml), KITTI odometry, KITTI raw, Oxford RobotCar or a generic image folder")
 
 
 def open_log(path: str | Path, format: str | None = None, **kwargs) -> DriveLog:

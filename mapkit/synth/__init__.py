@@ -15,6 +15,7 @@ Public API::
     gt_poses(out, session) -> (stamps_ns (N,), world_from_base (N, 4, 4))
     camera_poses(out, session) -> (stamps_ns (M,), world_from_camera (M, 4, 4))   # optical frame
     load_config(preset, config, seed) -> SynthConfig
+    session_log(out, session) -> Path; session_logs(out) -> [Path]   # the sessions' logs (rosbag2 folders)
     GpsErrorModel(cfg.gps).simulate(n, rng); extrinsics(cfg); intrinsics(cfg.camera)
     World.renderer(session) -> Renderer  # re-render any pose; returns image, range and depth
 
@@ -25,8 +26,10 @@ Output layout (``out``)::
     world/origin.json         LocalFrame.to_dict(): WGS84 origin and UTM EPSG code
     world/manifest.json       format version, seed, preset, config hash, sessions (route, time, weather, rates, GPS noise)
     world/config.yaml         the resolved configuration
-    sessions/<name>.mcap      ROS 2 messages: /camera/front/image (+ camera_info), /lidar/points, /gps/fix,
-                              /imu/data, /tf_static, /ground_truth/odom
+    sessions/<name>/          the session's log, a rosbag2 folder as ``ros2 bag record -s mcap`` writes it:
+                              metadata.yaml and <name>_0.mcap with ROS 2 messages: /camera/front/image
+                              (+ camera_info), /lidar/points, /gps/fix, /imu/data, /tf_static, /ground_truth/odom
+                              (``session_log(out, name)``, ``session_logs(out)``; mapkit reads the folder or the .mcap)
     sessions/<name>.gt.tum    ground-truth base_link poses in the world frame (GT rate)
     sessions/<name>.camera.tum  ground-truth camera (optical frame) poses at the image stamps
     sessions/<name>.parked_cars.ply  this session's parked cars (not in world/mesh.ply: they move)
@@ -48,6 +51,7 @@ markers live in ``sessions/.markers/<name>/``) unless ``overwrite``; files are w
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -57,6 +61,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import ConfigError, MapkitError
+from ..io.mcap_log import ROSBAG2_METADATA, is_rosbag2
 from ..geodesy import LocalFrame
 from ..io.trajectory import read_tum
 from ..runio import atomic_write_text, config_hash, is_done, mark_done, write_json
@@ -66,8 +71,45 @@ from .world import RoadGraph, read_ply, read_roads
 
 __all__ = [
     "synthesize", "load_world", "gt_poses", "camera_poses", "World", "load_config", "SynthConfig", "PRESETS",
-    "GpsErrorModel", "extrinsics", "intrinsics",
+    "GpsErrorModel", "extrinsics", "intrinsics", "session_log", "session_logs",
 ]
+
+#: how a session's log is written; part of the output hashes, so that a town written with bare
+#: ``sessions/<name>.mcap`` logs is rewritten with rosbag2 folders (and a manifest naming them)
+SESSION_LOG_LAYOUT = "rosbag2-mcap"
+
+
+def session_log_relpath(session: str) -> str:
+    """Where a session's log is written, relative to the town: the rosbag2 folder ``sessions/<name>``."""
+    return f"sessions/{session}"
+
+
+def session_log(path: str | Path, session: str) -> Path:
+    """A session's log: its rosbag2 folder ``sessions/<name>/`` (``metadata.yaml``, ``<name>_0.mcap``),
+    or the bare ``sessions/<name>.mcap`` of a town written before logs were rosbag2 folders."""
+    folder = Path(path) / session_log_relpath(session)
+    if is_rosbag2(folder):
+        return folder
+    bare = Path(path) / "sessions" / f"{session}.mcap"
+    if bare.is_file():
+        return bare
+    raise MapkitError(f"{path}: no log for session {session!r} ({folder}{os.sep}{ROSBAG2_METADATA} missing)")
+
+
+def session_logs(path: str | Path) -> list[Path]:
+    """Every finished session log of a town, by session name (what ``mapkit build`` takes)."""
+    sdir = Path(path) / "sessions"
+    if not sdir.is_dir():
+        raise MapkitError(f"{path}: not a synthesized town (no sessions/ folder)")
+    found: dict[str, Path] = {}
+    for p in sdir.iterdir():
+        if p.name.startswith("."):
+            continue  # .markers, and .<name>.partial folders of a run still writing (or killed)
+        if p.is_dir() and is_rosbag2(p):
+            found[p.name] = p
+        elif p.is_file() and p.suffix == ".mcap" and "." not in p.stem:
+            found.setdefault(p.stem, p)  # an older town's bare log; its folder wins when both exist
+    return [found[k] for k in sorted(found)]
 
 
 def _world_hash(cfg: SynthConfig, trajectory_digest: Optional[str]) -> str:
@@ -77,7 +119,7 @@ def _world_hash(cfg: SynthConfig, trajectory_digest: Optional[str]) -> str:
 
 def _session_hash(cfg: SynthConfig, world_hash: str, index: int, session) -> str:
     return config_hash({"world": world_hash, "index": index, "session": session, "camera": cfg.camera, "lidar": cfg.lidar,
-                        "gps": cfg.gps, "imu": cfg.imu, "motion": cfg.motion})
+                        "gps": cfg.gps, "imu": cfg.imu, "motion": cfg.motion, "log": SESSION_LOG_LAYOUT})
 
 
 def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[int] = None, config: Optional[Path] = None,
@@ -108,7 +150,7 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
             cfg = cfg.model_copy(update={"origin": cfg.origin.model_copy(update={"lat_deg": lat, "lon_deg": lon})})
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    full_hash = config_hash({"config": cfg, "trajectory": digest})
+    full_hash = config_hash({"config": cfg, "trajectory": digest, "log": SESSION_LOG_LAYOUT})
     w_hash = _world_hash(cfg, digest)
     timing: dict[str, float] = {}
     with single_thread_blas():

@@ -28,9 +28,10 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import ConfigError, InputError
 from ..geometry import interpolate_poses, make_pose
-from ..io.mcap_log import McapWriter
+from ..io.mcap_log import Rosbag2Writer
 from ..io.trajectory import read_kitti_poses, read_tum, write_tum
 from ..types import CameraFrame, CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, PoseSample
+from . import session_log_relpath
 from .appearance import Conditions, make_conditions
 from .config import SessionConfig, SynthConfig
 from .sensors import (
@@ -382,7 +383,7 @@ class SessionPlan:
         g = cfg.gps
         return {
             "name": sc.name,
-            "file": f"sessions/{sc.name}.mcap",
+            "file": session_log_relpath(sc.name),  # a rosbag2 folder (metadata.yaml, <name>_0.mcap)
             "ground_truth": f"sessions/{sc.name}.gt.tum",
             "camera_ground_truth": f"sessions/{sc.name}.camera.tum",
             "parked_cars": f"sessions/{sc.name}.parked_cars.ply",
@@ -514,7 +515,8 @@ def session_parked_cars(town: Town, seed: int):
 
 def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path, progress: Optional[bool] = None,
                   nthreads: Optional[int] = None) -> dict:
-    """Render and write one session: its MCAP, ground-truth files, parked cars and anchor picture."""
+    """Render and write one session: its log (a rosbag2 folder with MCAP storage), ground-truth files,
+    parked cars and anchor picture."""
     import cv2
     from tqdm import tqdm
 
@@ -563,7 +565,8 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     render_s = {"camera": 0.0, "lidar": 0.0}
     bar = tqdm(total=len(cam_ns) + len(lidar_ns), desc=f"{name} ({plan.conditions.label})", unit="frame",
                file=sys.stderr, disable=(not sys.stderr.isatty()) if progress is None else not progress, leave=False)
-    with McapWriter(sess_dir / f"{name}.mcap") as w:
+    log_dir = out_dir / session_log_relpath(name)
+    with Rosbag2Writer(log_dir) as w:
         w.add_metadata("mapkit.synth", {"session": name, "condition": plan.conditions.label, "weather": plan.config.weather,
                                          "start_time_local": plan.local_start.isoformat(), "seed": plan.seed,
                                          "world_frame": "ENU at the origin in world/origin.json"})
@@ -604,6 +607,7 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
                         tmp.write_bytes(buf.tobytes())
                 bar.update(1)
     bar.close()
+    (sess_dir / f"{name}.mcap").unlink(missing_ok=True)  # the bare log of a town written before rosbag2 folders
     wall = time.perf_counter() - t0
     return {
         "name": name, "camera_frames": int(len(cam_ns)), "lidar_scans": int(len(lidar_ns)), "gps_fixes": int(len(gps_ns)),
@@ -612,7 +616,7 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
         "parked_cars": int(len(np.unique(parked.object_id[parked.material == Mat.CAR_BODY]))),
         "anchor_frame": keep_frame, "wall_s": round(wall, 3), "camera_render_s": round(render_s["camera"], 3),
         "lidar_render_s": round(render_s["lidar"], 3),
-        "mcap_bytes": int((sess_dir / f"{name}.mcap").stat().st_size),
+        "mcap_bytes": int(sum(f.stat().st_size for f in log_dir.glob("*.mcap"))),
     }
 
 
