@@ -35,6 +35,7 @@ from __future__ import annotations
 import atexit
 import contextlib
 import itertools
+import logging
 import os
 import pickle
 import traceback
@@ -52,6 +53,9 @@ _ONE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM
 _IN_FLIGHT_PER_WORKER = 2  # chunks queued per worker: one running, one ready to start
 _RAY_CHUNKS_PER_WORKER = 4  # a Ray map is cut into about this many chunks per CPU (load balance vs. per-task overhead)
 _RAY_MAX_CHUNK = 64
+_LOOPBACK = "127.0.0.1"
+
+_log = logging.getLogger(__name__)
 
 
 class ExecutorConfig(MapkitConfig):
@@ -64,7 +68,8 @@ class ExecutorConfig(MapkitConfig):
         "ignored when joining a running Ray cluster, whose size is its own.",
     )
     address: Optional[str] = Field(
-        None, description="Ray only: a running cluster ('auto' or 'HOST:PORT'); None = start a local instance for this run.",
+        None, description="Ray only: a running cluster ('auto' or 'HOST:PORT'); None = start a local instance for this run "
+        "(on 127.0.0.1, whatever RAY_ADDRESS says).",
     )
 
 
@@ -402,10 +407,14 @@ def _ray_chunk(fn: Callable, items: list, token: Optional[str], shared_box: Opti
 class RayExecutor(_ChunkedExecutor):
     """Ray tasks: a running cluster (``address``) or a local instance of ``workers`` CPUs.
 
-    Ray is imported and started at construction. Items travel in chunks (about four per CPU,
-    at most 64 items each) so that the per-task overhead (a few ms) is amortised; ``shared`` is
-    put into the object store once per ``map``. A local instance started here is shut down by
-    ``close``; a cluster that was already running is only disconnected from.
+    Ray is imported and started at construction. Without ``address`` a fresh instance is always
+    started (``ray.init(address="local")``): neither ``RAY_ADDRESS`` nor the cluster a ``ray start``
+    left recorded in Ray's temp folder is joined, and the instance is bound to the loopback
+    interface (GCS, raylet, object manager, workers and agents listen on 127.0.0.1 only; no
+    dashboard). Items travel in chunks (about four per CPU, at most 64 items each) so that the
+    per-task overhead (a few ms) is amortised; ``shared`` is put into the object store once per
+    ``map``. A local instance started here is shut down by ``close``; a cluster that was already
+    running is only disconnected from.
     """
 
     kind = "ray"
@@ -426,7 +435,9 @@ class RayExecutor(_ChunkedExecutor):
             else:
                 # the driver's import path, so that workers find what it finds (a checkout, tests)
                 env = dict(runtime_env["env_vars"], PYTHONPATH=os.pathsep.join(p for p in _import_path() if p))
-                ray.init(num_cpus=workers, **dict(kwargs, runtime_env={"env_vars": env}))
+                with _ray_loopback_only():
+                    ray.init(address="local", num_cpus=workers, _node_ip_address=_LOOPBACK,
+                             **dict(kwargs, runtime_env={"env_vars": env}))
             self._owns = True
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self._workers = max(1, cpus)
@@ -467,6 +478,40 @@ class RayExecutor(_ChunkedExecutor):
         if self._owns and self._ray.is_initialized():
             self._ray.shutdown()
         self._owns = False
+
+
+@contextlib.contextmanager
+def _ray_loopback_only() -> Iterator[None]:
+    """While a local Ray instance starts: nothing it launches joins ``RAY_ADDRESS``, and it binds to 127.0.0.1.
+
+    Ray's servers listen on the node's IP, but on Linux Ray turns a loopback node IP into the machine's
+    routable address unless its cluster support is off (``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``, the
+    default on Windows and macOS). It is switched off in this process (Ray reads the flag from
+    ``ray._private.ray_constants`` when it resolves the address) and in the environment the Ray
+    processes inherit, then restored.
+    """
+    from ray._private import ray_constants
+
+    saved_env = {k: os.environ.get(k) for k in ("RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")}
+    if saved_env["RAY_ADDRESS"]:
+        _log.warning("RAY_ADDRESS=%s is ignored: the local Ray executor starts its own instance "
+                     "(pass --ray-address to join a running cluster)", saved_env["RAY_ADDRESS"])
+    saved_flag = getattr(ray_constants, "ENABLE_RAY_CLUSTER", None)
+    os.environ.pop("RAY_ADDRESS", None)
+    os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        if saved_flag is None:
+            del ray_constants.ENABLE_RAY_CLUSTER
+        else:
+            ray_constants.ENABLE_RAY_CLUSTER = saved_flag
+        for k, v in saved_env.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def _import_path() -> list[str]:

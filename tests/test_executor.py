@@ -5,8 +5,16 @@ and on a local Ray instance holds the same vectors, bit for bit."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
+import secrets
+import shutil
+import signal
+import socket
+import subprocess
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -19,6 +27,7 @@ from mapkit.errors import ConfigError, InputError, InputWarning, MapkitError
 from mapkit.executor import (SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor)
 from mapkit.index_vlad import read_image
 from mapkit.semidense import build_semidense_map
+from mapkit.synth import session_logs
 
 from test_align import street
 from test_semidense import K_SYN, ROOM_CFG, room  # noqa: F401 - the rendered room, a module fixture used below
@@ -239,7 +248,168 @@ def test_ray_keeps_the_contract(ray_executor):
     assert set(n for _, _, n in out) == {1}  # 20 tasks, one arrival of the shared state per worker process
 
 
-# the tiny preset's two training drives (configs/synth/tiny.yaml); its test drive is not indexed by the demo
+
+# A local Ray instance must not join whatever cluster the machine advertises, and must not listen beyond
+# loopback. Each case runs its driver in a subprocess (a fresh Ray per process) with its own Ray temp folder
+# (RAY_TMPDIR: where Ray keeps ray_current_cluster and the sessions) and its own auth token (RAY_AUTH_TOKEN:
+# ~/.ray is not touched); every process it leaves is found by that RAY_TMPDIR in its environment.
+
+RAY_DRIVER = r"""
+import json, os, socket, sys
+from mapkit.executor import make_executor
+
+def listening():  # inode -> (address, port) of the sockets in LISTEN state
+    out = {}
+    for name, fam in (("/proc/net/tcp", socket.AF_INET), ("/proc/net/tcp6", socket.AF_INET6)):
+        for line in open(name).read().splitlines()[1:]:
+            f = line.split()
+            if f[3] != "0A":
+                continue
+            ip, port = f[1].split(":")
+            raw = bytes.fromhex(ip)
+            raw = b"".join(raw[i:i + 4][::-1] for i in range(0, len(raw), 4))  # little-endian words
+            out[f[9]] = (socket.inet_ntop(fam, raw), int(port, 16))
+    return out
+
+def descendants(root):
+    children = {}
+    for d in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            ppid = int(open(f"/proc/{d}/stat").read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError):
+            continue
+        children.setdefault(ppid, []).append(int(d))
+    found, todo = [], [root]
+    while todo:
+        pid = todo.pop()
+        found.append(pid)
+        todo += children.get(pid, [])
+    return found
+
+def sockets_of(pids):
+    table, out = listening(), []
+    for pid in pids:
+        try:
+            name = open(f"/proc/{pid}/comm").read().strip()
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+            except OSError:
+                continue
+            if link.startswith("socket:[") and link[8:-1] in table:
+                out.append([name, *table[link[8:-1]]])
+    return out
+
+ex = make_executor("ray", workers=2, address=sys.argv[1] or None)
+values = list(ex.map(abs, [-3, -2, -1, 0, 1, 2, 3]))
+import ray
+report = {"workers": ex.workers, "results": values, "nodes": [n["NodeManagerAddress"] for n in ray.nodes()],
+          "gcs": ray.get_runtime_context().gcs_address, "sockets": sockets_of(descendants(os.getpid()))}
+ex.close()
+print("REPORT " + json.dumps(report))
+"""
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _processes_of(ray_tmp: Path) -> list[int]:
+    """Processes whose environment names this Ray temp folder: the driver, GCS, raylet, agents, workers."""
+    mark = f"RAY_TMPDIR={ray_tmp}".encode()
+    pids = []
+    for d in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            if mark in open(f"/proc/{d}/environ", "rb").read().split(b"\0"):
+                pids.append(int(d))
+        except OSError:
+            continue
+    return pids
+
+
+@pytest.fixture
+def ray_env():
+    """A private Ray temp folder and token, and a check that no Ray process of it outlives the test."""
+    pytest.importorskip("ray", reason='Ray is not installed (pip install -e ".[distributed]")')
+    ray_tmp = Path(tempfile.mkdtemp(prefix="mkray"))  # short: Ray's unix sockets live below it (108-byte limit)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    env.update(RAY_TMPDIR=str(ray_tmp), RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(32),
+               RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S="0", RAY_USAGE_STATS_ENABLED="0")
+    yield ray_tmp, env
+    deadline = time.monotonic() + 15
+    while (left := _processes_of(ray_tmp)) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for pid in left:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+    shutil.rmtree(ray_tmp, ignore_errors=True)
+    assert not left, f"Ray processes left behind: {left}"
+
+
+def _run_driver(env: dict, address: str = "") -> dict:
+    r = subprocess.run([sys.executable, "-c", RAY_DRIVER, address], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    line = next(x for x in r.stdout.splitlines() if x.startswith("REPORT "))
+    return dict(json.loads(line[len("REPORT "):]), stderr=r.stderr)
+
+
+def _loopback(host: str) -> bool:
+    return host in ("127.0.0.1", "::1", "::ffff:127.0.0.1") or host.startswith("127.")
+
+
+def test_local_ray_ignores_a_stale_cluster_and_ray_address_and_listens_on_loopback_only(ray_env):
+    ray_tmp, env = ray_env
+    dead = f"127.0.0.1:{_free_port()}"  # nothing listens there
+    (ray_tmp / "ray").mkdir()
+    (ray_tmp / "ray" / "ray_current_cluster").write_text(dead)  # what a crashed `ray start` leaves in /tmp/ray
+    env["RAY_ADDRESS"] = dead
+    got = _run_driver(env)
+    assert got["workers"] == 2 and got["results"] == [3, 2, 1, 0, 1, 2, 3]
+    assert "RAY_ADDRESS" in got["stderr"] and "ignored" in got["stderr"]
+    assert got["nodes"] == ["127.0.0.1"] and got["gcs"].startswith("127.0.0.1:") and got["gcs"] != dead
+    names = {name for name, _, _ in got["sockets"]}
+    assert {"gcs_server", "raylet"} <= names, got["sockets"]  # the Ray processes were found
+    wide = [s for s in got["sockets"] if not _loopback(s[1])]
+    assert not wide, f"Ray listens beyond loopback: {wide}"
+    assert (ray_tmp / "ray" / "ray_current_cluster").read_text() == dead  # left as it was
+
+
+def test_an_explicit_address_joins_a_running_cluster(ray_env, tmp_path):
+    ray_tmp, env = ray_env
+    env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # keep 127.0.0.1 as the node IP (Ray otherwise swaps in a routable one)
+    port = _free_port()
+    with open(tmp_path / "head.log", "w") as log:
+        head = subprocess.Popen([sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block",
+                                 "--node-ip-address", "127.0.0.1", "--port", str(port), "--include-dashboard=false",
+                                 "--num-cpus", "1", "--disable-usage-stats"],
+                                env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert head.poll() is None, (tmp_path / "head.log").read_text()[-3000:]
+            with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                break
+            assert time.monotonic() < deadline, "the Ray head did not start within 60 s"
+            time.sleep(0.3)
+        got = _run_driver(env, f"127.0.0.1:{port}")
+        assert got["workers"] == 1  # the cluster's one CPU, not the 2 asked for: it joined
+        assert got["results"] == [3, 2, 1, 0, 1, 2, 3] and got["gcs"] == f"127.0.0.1:{port}"
+    finally:  # `ray stop` would stop every Ray on the machine: stop this head (it stops what it started)
+        head.terminate()
+        try:
+            head.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+
+
+# the tiny preset's two training drives (configs/synth/tiny.yaml) cut to 24 m: enough images for these
+# executor checks, in a few seconds (the preset's own 250 m drives are for the demo's every stage)
 TINY_TRAIN = {"sessions": [
     {"name": "tiny-sunny", "role": "train", "date": "2014-06-26", "time": "09:24", "weather": "sunny", "length_m": 24.0,
      "speed_mps": 9.0, "lane_offset_m": 0.0},
@@ -258,7 +428,7 @@ def tiny_workspace(tmp_path_factory) -> Path:
     town = synthesize(preset="tiny", out=root / "town", overrides=TINY_TRAIN, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # tiny's drives are too short to georeference
-        return build(sorted((town / "sessions").glob("*.mcap")), root / "ws", progress=False)
+        return build(session_logs(town), root / "ws", progress=False)
 
 
 def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, tmp_path):
@@ -303,7 +473,7 @@ def test_sessions_built_in_parallel_equal_a_serial_build(tiny_workspace, tmp_pat
 
     from mapkit.build import build
 
-    logs = sorted((tiny_workspace.parent / "town" / "sessions").glob("*.mcap"))
+    logs = session_logs(tiny_workspace.parent / "town")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
         parallel = build(logs, tmp_path / "ws", progress=False, executor=ProcessExecutor(2))
@@ -331,7 +501,7 @@ def test_parallel_build_fixes_the_workspace_frame_first(tiny_workspace, tmp_path
     """Given-origin georeferencing (a pose stream in ENU): every session in one frame, the one a serial build sets."""
     from mapkit.build import build
 
-    logs = sorted((tiny_workspace.parent / "town" / "sessions").glob("*.mcap"))
+    logs = session_logs(tiny_workspace.parent / "town")
     cfg = Path(__file__).resolve().parents[1] / "configs" / "build" / "mcvl-database.yaml"
     serial = build(logs, tmp_path / "serial", cfg, progress=False, executor=SERIAL)
     parallel = build(logs, tmp_path / "parallel", cfg, progress=False, executor=ProcessExecutor(2))
