@@ -1,10 +1,11 @@
 """Typed configuration of the synthetic town: pydantic models, presets and YAML overrides.
 
-The presets live in ``configs/synth/<name>.yaml`` beside the package; each of their values carries
-a comment naming its source (an MCVL or semi-dense paper section, a sensor datasheet, or a mapkit
-choice with its reason). A user YAML is merged over the preset (mappings key by key, lists
-replaced whole) and the result validated here; an unknown or ill-typed field raises a
-``ConfigError`` naming it. The resolved config is written beside every output.
+The presets live in ``configs/synth/<name>.yaml`` of the source tree, installed with the package
+(:mod:`mapkit.presets`); each of their values carries a comment naming its source (an MCVL or
+semi-dense paper section, a sensor datasheet, or a mapkit choice with its reason). A user YAML is
+merged over the preset (mappings key by key, lists replaced whole) and the result validated here;
+an unknown or ill-typed field raises a ``ConfigError`` naming it. The resolved config is written
+beside every output.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..errors import ConfigError
+from ..presets import configs_dir, preset_path
 
 FORMAT_VERSION = 1
 PRESETS = ("tiny", "demo", "benchmark")
@@ -209,8 +211,8 @@ class SynthConfig(_Model):
 # --- loading --------------------------------------------------------------------------------------
 
 def presets_dir() -> Path:
-    """``configs/synth`` of the source tree this package belongs to."""
-    return Path(__file__).resolve().parents[2] / "configs" / "synth"
+    """The folder of the synth presets: ``configs/synth`` of the source tree, installed with the package."""
+    return configs_dir() / "synth"
 
 
 def _read_yaml(path: Path, what: str) -> dict:
@@ -248,7 +250,7 @@ def validate(data: dict, source: str) -> SynthConfig:
 def preset_dict(name: str) -> dict:
     if name not in PRESETS:
         raise ConfigError(f"unknown synth preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return _read_yaml(presets_dir() / f"{name}.yaml", f"preset {name!r}:")
+    return _read_yaml(preset_path("synth", name), f"preset {name!r}:")
 
 
 def load_config(preset: str = "tiny", config: Optional[Path] = None, seed: Optional[int] = None,
