@@ -753,6 +753,14 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
             n_cand[node_of[tuple(end)]] += 1
             n_acc[node_of[tuple(end)]] += r.accepted
     status = np.where(n_cand == 0, "no overlap", np.where(n_acc > 0, "verified", "unverified"))
+    if not any(r.accepted for r in results):  # nothing ties the sessions together: fail before any output or marker
+        from collections import Counter
+
+        why = Counter(r.reason.split(" (")[0] for r in results)
+        raise InputError(workspace, f"0 of {len(results)} candidate submap pairs verified by ICP"
+                         + (f" ({', '.join(f'{k}: {v}' for k, v in sorted(why.items()))})" if why else "")
+                         + "; the sessions share no mapped surface that registers: drive the same streets in at least two "
+                         "sessions (more overlap, longer drives), or relax the icp gates of the align config")
 
     # 4. outputs
     qa = _write_outputs(out, data, x, offsets, status, n_cand, n_acc, results, cfg, ws_frame)
@@ -815,7 +823,7 @@ def _write_outputs(out: Path, data: list[SessionData], x: np.ndarray, offsets: n
         kf[:, :3, :3] = R @ kf[:, :3, :3]
         kf[:, :3, 3] = np.einsum("mij,mj->mi", R, kf[:, :3, 3] - c) + c + t
         smap.keyframe_world_from_cam = kf
-        smap.save(sdir / "map")
+        smap.save(sdir / "map", frame=ws_frame)
         _write_refined_images(s, poses, sdir, ws_frame)
         move = np.linalg.norm(poses[:, :3, 3] - s.poses[:, :3, 3], axis=1)
         submaps = []
@@ -886,14 +894,18 @@ def _write_refined_images(s: SessionData, refined_poses: np.ndarray, sdir: Path,
 
 def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, point_index: np.ndarray, names: list[str],
                 frame: LocalFrame, tile_m: float) -> dict:
-    """The merged map as UTM tiles: ``E{easting}_N{northing}.ply`` (points in the workspace ENU
-    frame) + ``.npz`` (session and point index of every point, so observations stay reachable),
-    and ``tiles.json`` with each tile's UTM bounds, count and checksums."""
+    """The merged map as UTM tiles: ``E{easting}_N{northing}.ply`` holding UTM coordinates of the
+    workspace's zone (float64 easting, northing, WGS84 ellipsoidal height; the EPSG code and the
+    workspace origin in the PLY header), ``.npz`` (session and point index of every point, so
+    observations stay reachable), and ``tiles.json`` with each tile's UTM bounds, count and
+    checksums, and ``points_crs_epsg``: the CRS of the tiles' points."""
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("E*_N*.*"):
         old.unlink()
+    manifest = {"format_version": ALIGN_FORMAT_VERSION, "tile_size_m": tile_m, "utm_crs_epsg": frame.utm_epsg,
+                "frame": frame.to_dict(), "points_frame": "utm", "points_crs_epsg": int(frame.utm_epsg),
+                "points_z": "WGS84 ellipsoidal height (m)", "sessions": names, "tiles": []}
     if len(points_enu) == 0:
-        manifest = {"tile_size_m": tile_m, "utm_crs_epsg": frame.utm_epsg, "tiles": []}
         write_json(folder / "tiles.json", manifest)
         return {"tiles": 0, "points": 0}
     utm = frame.enu_to_utm(points_enu)
@@ -907,21 +919,23 @@ def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, po
         sel = order[s0:s1]
         e, n = (int(v) for v in key_sorted[s0])
         stem = f"E{e * int(tile_m)}_N{n * int(tile_m)}"
-        atomic_write_ply(folder / f"{stem}.ply", points_enu[sel])
+        atomic_write_ply(folder / f"{stem}.ply", utm[sel], frame=frame, crs_epsg=int(frame.utm_epsg))
         with atomic_path(folder / f"{stem}.npz") as tmp:
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, session_id=session_id[sel], point_index=point_index[sel])
         tiles.append({"name": stem, "utm_min": [e * tile_m, n * tile_m], "utm_max": [(e + 1) * tile_m, (n + 1) * tile_m],
                       "points": int(len(sel)), "ply_sha256": sha256_file(folder / f"{stem}.ply"),
                       "npz_sha256": sha256_file(folder / f"{stem}.npz")})
-    write_json(folder / "tiles.json", {"format_version": ALIGN_FORMAT_VERSION, "tile_size_m": tile_m, "utm_crs_epsg": frame.utm_epsg,
-                                       "frame": frame.to_dict(), "points_frame": "workspace ENU", "sessions": names, "tiles": tiles})
+    manifest["tiles"] = tiles
+    write_json(folder / "tiles.json", manifest)
     return {"tiles": len(tiles), "points": int(len(points_enu))}
 
 
 def load_tiles(folder: str | Path, bounds_utm: Optional[tuple[float, float, float, float]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """Points (ENU), session ids, point indices and session names of the merged map, optionally
-    only of the tiles meeting ``bounds_utm`` = (e_min, n_min, e_max, n_max)."""
+    """Points (workspace ENU), session ids, point indices and session names of the merged map,
+    optionally only of the tiles meeting ``bounds_utm`` = (e_min, n_min, e_max, n_max). Tiles in
+    UTM (``points_crs_epsg`` in tiles.json) are converted back to ENU; tiles written before mapkit
+    stored UTM in them (``points_frame`` "workspace ENU") are read as they are."""
     import open3d as o3d
 
     folder = Path(folder)
@@ -931,6 +945,9 @@ def load_tiles(folder: str | Path, bounds_utm: Optional[tuple[float, float, floa
     m = json.loads(manifest_path.read_text())
     if m.get("format_version") != ALIGN_FORMAT_VERSION:
         raise InputError(manifest_path, f"format version {m.get('format_version')!r}; this mapkit reads {ALIGN_FORMAT_VERSION}", field="format_version")
+    crs = m.get("points_crs_epsg")
+    if crs is not None and "frame" not in m:
+        raise InputError(manifest_path, f"tiles in EPSG:{crs} but no workspace frame to bring them back to ENU", field="frame")
     pts, sid, idx = [], [], []
     for t in m["tiles"]:
         if bounds_utm is not None:
@@ -942,8 +959,11 @@ def load_tiles(folder: str | Path, bounds_utm: Optional[tuple[float, float, floa
             sid.append(z["session_id"])
             idx.append(z["point_index"])
     if not pts:
-        return np.zeros((0, 3)), np.zeros(0, np.int16), np.zeros(0, np.int64), m["sessions"]
-    return np.concatenate(pts), np.concatenate(sid), np.concatenate(idx), m["sessions"]
+        return np.zeros((0, 3)), np.zeros(0, np.int16), np.zeros(0, np.int64), m.get("sessions", [])
+    xyz = np.concatenate(pts)
+    if crs is not None:
+        xyz = LocalFrame.from_dict(m["frame"]).crs_to_enu(xyz, int(crs))
+    return xyz, np.concatenate(sid), np.concatenate(idx), m["sessions"]
 
 
 def format_align_qa(qa: dict) -> str:

@@ -285,8 +285,8 @@ class SessionBuilder:
         _, _, info = self._camera()
         frames = ((i, f.stamp_ns, f.gray(), T) for i, f, T in self.posed_frames())
         smap = sd.build_semidense_map(frames, info.K, sd_cfg, progress=self.progress)
-        smap.save(out)
         frame = self.frame()
+        smap.save(out, frame=frame)
         traj = Trajectory.load(self.georef() / "trajectory_enu")
         from .plots import map_top_view
 
@@ -356,6 +356,13 @@ class SessionBuilder:
         return self.metrics
 
 
+def _log_bytes(log: Path) -> int:
+    """Size of a log: a file's, or the sum of the files in a log folder (rosbag2, KITTI)."""
+    if log.is_file():
+        return log.stat().st_size
+    return sum(p.stat().st_size for p in log.rglob("*") if p.is_file()) if log.is_dir() else 0
+
+
 def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, progress: bool = True,
           executor: Optional[Executor] = None) -> Path:
     """Build every log into a session of ``workspace``; returns the workspace.
@@ -381,7 +388,7 @@ def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, prog
     summary: dict = {}
     if ex.workers > 1 and len(logs) > 1:
         _fix_workspace_frame(logs, workspace, cfg)
-        order = sorted(range(len(logs)), key=lambda i: -logs[i].stat().st_size if logs[i].is_file() else 0)
+        order = sorted(range(len(logs)), key=lambda i: -_log_bytes(logs[i]))  # the largest log first
         done: dict[int, dict] = {}
         try:
             for m, i in zip(ex.map(_build_task, [logs[i] for i in order], shared=(workspace, cfg), desc="build",

@@ -14,9 +14,12 @@ import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator, Optional
+from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .geodesy import LocalFrame
 
 DONE_MARKER = ".done"
 _UMASK = os.umask(0)
@@ -49,24 +52,56 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     return Path(path)
 
 
-def atomic_write_ply(path: str | Path, points: np.ndarray, colors: Optional[np.ndarray] = None) -> Path:
-    """A binary PLY point cloud (float64 xyz, optional RGB in [0, 1]) written by open3d, atomically."""
-    import open3d as o3d
+def atomic_write_ply(path: str | Path, points: np.ndarray, colors: Optional[np.ndarray] = None,
+                     frame: Optional["LocalFrame"] = None, crs_epsg: Optional[int] = None, comments: Sequence[str] = ()) -> Path:
+    """A binary little-endian PLY point cloud (float64 x, y, z; optional RGB in [0, 1], stored as
+    uchar), written atomically: the file only appears, under its name, complete.
+
+    The header states the frame of the coordinates (:func:`mapkit.geodesy.ply_crs_comments`):
+    ``frame`` is the workspace's :class:`~mapkit.geodesy.LocalFrame` (or None: unspecified) and
+    ``crs_epsg`` the EPSG code the points are in, or None for the local ENU frame of ``frame``.
+    ``comments`` are extra header comment lines. Coordinates are float64 without an offset, so
+    UTM or ECEF coordinates keep sub-micrometre precision and every PLY reader (open3d, PDAL,
+    CloudCompare, which offers its own global shift on import) gets them as they are.
+    """
+    from .geodesy import ply_crs_comments
 
     path = Path(path)
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(np.asarray(points, np.float64))
+    pts = np.asarray(points, np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        pts = pts.reshape(-1, 3)
+    n = len(pts)
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if colors is not None:
-        pc.colors = o3d.utility.Vector3dVector(np.asarray(colors, np.float64))
+        col = np.asarray(colors, np.float64)
+        if col.shape != (n, 3):
+            raise ValueError(f"{path}: colors of shape {col.shape} for {n} points")
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rec = np.empty(n, np.dtype(fields))
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    if colors is not None:
+        c8 = np.clip(np.rint(col * 255.0), 0, 255).astype(np.uint8)
+        rec["red"], rec["green"], rec["blue"] = c8[:, 0], c8[:, 1], c8[:, 2]
+    lines = ["ply", "format binary_little_endian 1.0", "comment generator mapkit"]
+    for c in [*ply_crs_comments(frame, crs_epsg), *comments]:
+        if "\n" in c or "\r" in c:
+            raise ValueError(f"{path}: a PLY header comment cannot span lines: {c!r}")
+        lines.append(f"comment {c}")
+    lines.append(f"element vertex {n}")
+    lines += [f"property {'double' if t == '<f8' else 'uchar'} {name}" for name, t in fields]
+    lines.append("end_header")
+    header = ("\n".join(lines) + "\n").encode("ascii")
+    body = rec.tobytes()
+    expected = len(header) + n * rec.dtype.itemsize
     with atomic_path(path) as tmp:
-        # open3d picks the format from the file name, so write a *.ply beside the temporary
-        tmp_ply = tmp.with_name(tmp.name + ".ply")
-        try:
-            if not o3d.io.write_point_cloud(str(tmp_ply), pc, write_ascii=False):
-                raise OSError(f"open3d could not write {path}")
-            os.replace(tmp_ply, tmp)
-        finally:
-            tmp_ply.unlink(missing_ok=True)
+        with open(tmp, "wb") as f:
+            f.write(header)
+            f.write(body)
+            f.flush()
+            os.fsync(f.fileno())
+            size = os.fstat(f.fileno()).st_size
+        if size != expected:
+            raise OSError(f"{path}: wrote {size} bytes, expected {expected} ({n} points); not renamed into place")
     return path
 
 

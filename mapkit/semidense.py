@@ -198,13 +198,14 @@ class SemiDenseMap:
             "sigma_depth_median_m": float(np.median(self.sigma_depth)) if len(c) else None,
         }
 
-    def save(self, folder: str | Path) -> Path:
+    def save(self, folder: str | Path, frame=None) -> Path:
         """Write ``points.ply`` (binary, float64 xyz, grey colour), ``observations.npz`` and
-        ``config.yaml`` into ``folder``, each file atomically. Returns ``folder``."""
+        ``config.yaml`` into ``folder``, each file atomically. Returns ``folder``. ``frame``: the
+        :class:`~mapkit.geodesy.LocalFrame` whose ENU the points are in, stated in the PLY header."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         grey = np.repeat(self.intensity.astype(np.float64)[:, None] / 255.0, 3, axis=1)
-        atomic_write_ply(folder / "points.ply", self.points_world, grey)
+        atomic_write_ply(folder / "points.ply", self.points_world, grey, frame=frame)
         with atomic_path(folder / "observations.npz") as tmp:
             with open(tmp, "wb") as f:
                 np.savez(
