@@ -9,9 +9,13 @@ farther than ``negative_min_distance_m`` from the anchor, from the same split.
 
 Train and test places come from disjoint UTM tiles, with a buffer strip: no keypoint (anchor or
 negative) lies within ``buffer_m`` of a tile of the other split, so no test place has a training
-patch nearby. Output: compressed NumPy shards (bits packed), a per-patch table, the triplets, a
-manifest with seed, config hash and checksums, and a picture of a few triplets; optionally the
-same patches in PointNetVLAD's training layout (:mod:`mapkit.pointnetvlad`).
+patch nearby. Output: shards of the patches' grids (bits packed; HDF5 by default, see
+:func:`write_shard_hdf5`, or compressed NumPy; :func:`read_shard` and :class:`TripletDataset`
+read both), a per-patch table, the triplets, a manifest with seed, config hash, shard format and
+the shards' sizes and checksums, and a picture of a few triplets. An export that would make no
+triplet raises :class:`NoTripletsError` (saying why) and writes nothing. The same patches in
+PointNetVLAD's training layout are a later stage (:mod:`mapkit.pointnetvlad`, which imports this
+module and not the reverse).
 
 Where the time goes (20k triplets of the demo town): ICP, then cutting, normalising and
 voxelising ~16k patches of ~5k points. Each session is downsampled and its normals estimated once
@@ -43,11 +47,19 @@ from .patches import (
     voxelise_patches,
     yaw_normalise_patches,
 )
-from .pointnetvlad import PointNetVladConfig, export_pointnetvlad
+from .pointnetvlad_config import PointNetVladConfig
 from .runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
 
-TRIPLETS_FORMAT_VERSION = 1
+TRIPLETS_FORMAT_VERSION = 2  # 2: shards in HDF5 (or npz, as the manifest's shard_format says); 1: npz shards only
+READABLE_FORMAT_VERSIONS = (1, 2)
+SHARD_FORMATS = ("hdf5", "npz")
+SHARD_SUFFIX = {"hdf5": ".h5", "npz": ".npz"}
+SHARD_CHUNK_PATCHES = 16  # patches per HDF5 chunk: 64 KB of packed 32^3 occupancy, 192 KB of density comparison
 SPLITS = ("train", "test")
+
+
+class NoTripletsError(InputError):
+    """A triplet (or PointNetVLAD) export that would produce nothing: says why and what to change."""
 
 
 class TripletConfig(MapkitConfig):
@@ -75,12 +87,16 @@ class TripletConfig(MapkitConfig):
     test_fraction: float = Field(0.25, gt=0, lt=1, description="Fraction of tiles held out for testing.")
     buffer_m: float = Field(30.0, ge=0, description="No keypoint within this distance of a tile of the other split (> a patch's reach, 14 m).")
     shard_patches: int = Field(4096, ge=16, description="Patches per shard file.")
+    shard_format: Literal["hdf5", "npz"] = Field("hdf5", description="Shard files: HDF5 (patches-NNNNN.h5: datasets occupancy and "
+                                                 "density_comparison, chunked by 16 whole grids, gzip level 1, metadata in attributes) "
+                                                 "or compressed NumPy (patches-NNNNN.npz, the format of mapkit's first datasets).")
     icp_relative_change: float = Field(1e-4, gt=0, description="ICP stops when its fitness and RMSE change by less than this "
                                        "fraction between iterations. open3d's default is 1e-6; measured on the demo town's cells, "
                                        "1e-4 saves a third of the ICP time and moves no registration by more than 0.16 m at 16 m "
                                        "from the cell centre (99% by less than 0.10 m) nor changes any acceptance decision.")
     pointnetvlad: PointNetVladConfig = Field(PointNetVladConfig(), description="Also export the dataset in PointNetVLAD's "
-                                             "training layout (mapkit.pointnetvlad), from the same patches, positions and split.")
+                                             "training layout (mapkit.pointnetvlad), from the same patches, positions and split; "
+                                             "a stage of its own after the dataset (not part of its config hash).")
     seed: int = Field(0, description="Seed of every random choice: the same seed and inputs give the same dataset.")
     sessions: Optional[list[str]] = Field(None, description="Sessions to use; all merged sessions of the alignment if unset.")
 
@@ -131,14 +147,29 @@ class GridIndex:
 class SessionPoints:
     """One aligned session: its merged map points, their first observers, and spatial indexes."""
 
-    def __init__(self, name: str, points: np.ndarray, observer_pos: np.ndarray, observer_frame: np.ndarray):
+    def __init__(self, name: str, points: np.ndarray, observer_pos: np.ndarray, observer_frame: np.ndarray,
+                 keyframe_ids: Optional[np.ndarray] = None, keyframe_stamps_ns: Optional[np.ndarray] = None):
         self.name = name
         self.points = points
         self.observer_pos = observer_pos
         self.observer_frame = observer_frame
+        self.keyframe_ids = keyframe_ids  # with keyframe_stamps_ns: the time of each observer frame (PointNetVLAD's file names)
+        self.keyframe_stamps_ns = keyframe_stamps_ns
         self.grid = GridIndex(points[:, :2], 5.0)
         self.tree3 = cKDTree(points)
         self._icp_levels: dict[tuple, tuple[np.ndarray, np.ndarray, GridIndex]] = {}
+
+    def frame_stamps_ns(self, frames: np.ndarray) -> np.ndarray:
+        """Time stamps (ns) of keyframes ``frames`` (ids, as ``observer_frame`` holds them)."""
+        if self.keyframe_ids is None or self.keyframe_stamps_ns is None:
+            raise InputError(None, f"session {self.name}: no keyframe time stamps loaded")
+        frames = np.asarray(frames, np.int64)
+        order = np.argsort(self.keyframe_ids, kind="stable")
+        pos = np.minimum(np.searchsorted(self.keyframe_ids[order], frames), max(len(order) - 1, 0))
+        if len(frames) and (len(order) == 0 or np.any(self.keyframe_ids[order][pos] != frames)):
+            raise InputError(None, f"session {self.name}: frames {sorted(set(frames.tolist()) - set(self.keyframe_ids.tolist()))[:5]} "
+                             "are not keyframes of its map")
+        return np.asarray(self.keyframe_stamps_ns, np.int64)[order][pos]
 
     def around_indices(self, centre: np.ndarray, r: float) -> np.ndarray:
         """Indices of the points within horizontal distance ``r`` of ``centre``, in grid order."""
@@ -190,7 +221,7 @@ def load_aligned_sessions(workspace: Path, names: Optional[list[str]] = None) ->
         first = first_observer_frames(keep, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids)
         order = np.argsort(smap.keyframe_ids, kind="stable")
         pos = smap.keyframe_world_from_cam[order[np.searchsorted(smap.keyframe_ids[order], first)], :3, 3]
-        out.append(SessionPoints(name, smap.points_world[keep], pos, first))
+        out.append(SessionPoints(name, smap.points_world[keep], pos, first, smap.keyframe_ids, smap.keyframe_stamps_ns))
     if names is not None:
         missing = sorted(set(names) - {s.name for s in out})
         if missing:
@@ -492,10 +523,14 @@ def mapped_patches(sessions: list[SessionPoints], sess: np.ndarray, centres: np.
 
 
 class ShardWriter:
-    """Patches go to ``patches-NNNNN.npz`` files of ``size`` patches (compressed, bits packed)."""
+    """Patches go to ``patches-NNNNN.h5`` (or ``.npz``) files of ``size`` patches (bits packed,
+    compressed); :attr:`shards` lists them as the manifest does (file, first id, patches, bytes,
+    sha256)."""
 
-    def __init__(self, folder: Path, size: int):
-        self.folder, self.size = folder, size
+    def __init__(self, folder: Path, size: int, fmt: str = "hdf5", grid: Optional[int] = None):
+        if fmt not in SHARD_FORMATS:
+            raise ValueError(f"shard format {fmt!r}: expected one of {SHARD_FORMATS}")
+        self.folder, self.size, self.format, self.grid = folder, size, fmt, grid
         self.buf_occ: list[np.ndarray] = []
         self.buf_dcg: list[np.ndarray] = []
         self.n = self.buffered = 0
@@ -518,12 +553,58 @@ class ShardWriter:
         first = self.n - len(occ)
         while len(occ):
             take = min(self.size, len(occ))
-            name = f"patches-{len(self.shards):05d}.npz"
+            name = f"patches-{len(self.shards):05d}{SHARD_SUFFIX[self.format]}"
             with atomic_path(self.folder / name) as tmp:
-                _savez_fast(tmp, occupancy=occ[:take], density_comparison=dcg[:take], first_id=np.int64(first))
-            self.shards.append({"file": name, "first_id": int(first), "patches": int(take), "sha256": sha256_file(self.folder / name)})
+                if self.format == "hdf5":
+                    write_shard_hdf5(tmp, occ[:take], dcg[:take], first, self.grid if self.grid is not None else occ.shape[1])
+                else:
+                    _savez_fast(tmp, occupancy=occ[:take], density_comparison=dcg[:take], first_id=np.int64(first))
+            path = self.folder / name
+            self.shards.append({"file": name, "first_id": int(first), "patches": int(take), "bytes": path.stat().st_size,
+                                "sha256": sha256_file(path)})
             occ, dcg, first = occ[take:], dcg[take:], first + take
         self.buf_occ, self.buf_dcg, self.buffered = [], [], 0
+
+
+def write_shard_hdf5(path: Path, occ: np.ndarray, dcg: np.ndarray, first_id: int, grid: int) -> None:
+    """One HDF5 shard: datasets ``occupancy`` (n, g, g, ceil(g/8)) and ``density_comparison``
+    (n, 3, g, g, ceil(g/8)), uint8 with the bits of the last axis packed (``np.packbits``, big
+    bit order), chunked by whole grids (16 patches a chunk, so reading one patch inflates at most
+    64 KB / 192 KB) and deflated at level 1 (gzip: any HDF5 reader has it; the packed grids
+    compress about as well as at level 9, several times faster). Attributes name the layout."""
+    import h5py
+
+    n = len(occ)
+    with h5py.File(path, "w", track_order=True) as f:
+        f.attrs.update({"format": "mapkit triplet patches", "format_version": TRIPLETS_FORMAT_VERSION, "first_id": int(first_id),
+                        "patches": int(n), "grid": int(grid), "packing": "bits of the last axis packed, np.packbits (big bit order)",
+                        "ids": "patch id = first_id + row"})
+        for name, a, what in (("occupancy", occ, "(n, g, g, ceil(g/8)) occupancy grids"),
+                              ("density_comparison", dcg, "(n, 3, g, g, ceil(g/8)); channel a = density above the +a neighbour's")):
+            a = np.ascontiguousarray(a, np.uint8)
+            chunks = (max(1, min(SHARD_CHUNK_PATCHES, n)),) + a.shape[1:] if n else None
+            ds = f.create_dataset(name, data=a, chunks=chunks, compression="gzip" if n else None,
+                                  compression_opts=1 if n else None)
+            ds.attrs.update({"layout": what, "grid": int(grid), "unpack": "np.unpackbits(x, axis=-1, count=grid)"})
+
+
+def read_shard(path: str | Path, fmt: Optional[str] = None) -> dict[str, np.ndarray]:
+    """The packed grids of one shard, HDF5 or npz (``fmt``, else by the file's suffix):
+    ``{"occupancy", "density_comparison", "first_id"}``. Training code reading a dataset goes
+    through :class:`TripletDataset` (or this) and so reads either format."""
+    path = Path(path)
+    fmt = fmt or ("npz" if path.suffix == ".npz" else "hdf5")
+    try:
+        if fmt == "hdf5":
+            import h5py
+
+            with h5py.File(path, "r") as f:
+                return {"occupancy": f["occupancy"][()], "density_comparison": f["density_comparison"][()],
+                        "first_id": np.int64(f.attrs["first_id"])}
+        with np.load(path, allow_pickle=False) as z:
+            return {"occupancy": z["occupancy"], "density_comparison": z["density_comparison"], "first_id": np.int64(z["first_id"])}
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(path, f"unreadable {fmt} shard ({type(exc).__name__}: {exc})") from None
 
 
 def _savez_fast(path: Path, **arrays: np.ndarray) -> None:
@@ -543,14 +624,18 @@ def _savez_fast(path: Path, **arrays: np.ndarray) -> None:
 def export_triplets(workspace: str | Path, out: str | Path | None = None, config: str | Path | None = None,
                     overrides: Optional[dict] = None, progress: bool = True) -> Path:
     """Export a triplet dataset from an aligned workspace; returns its folder (default
-    ``WORKSPACE/triplets``). Re-running with the same config and inputs does nothing."""
+    ``WORKSPACE/triplets``). Re-running with the same config and inputs does nothing. An export
+    that would make no triplet raises :class:`NoTripletsError` and leaves any earlier dataset in
+    place. The config's ``pointnetvlad`` section is not acted on here: ``mapkit triplets`` runs
+    :func:`mapkit.pointnetvlad.export_triplets_pointnetvlad`, which calls this and then the export."""
     from .align import IcpConfig
 
     workspace = Path(workspace)
     cfg = load_config(TripletConfig, config, overrides)
     out = Path(out) if out is not None else workspace / "triplets"
     align_done = json.loads((workspace / "align" / ".done").read_text()) if (workspace / "align" / ".done").is_file() else {}
-    h = config_hash({"cfg": cfg, "align": align_done.get("config_hash")})
+    # the PointNetVLAD layout is a stage of its own (mapkit.pointnetvlad): its settings do not change the dataset
+    h = config_hash({"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": align_done.get("config_hash")})
     if is_done(out, h):
         return out
     t0 = time.perf_counter()
@@ -574,7 +659,7 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
             kp_split.append(sp)
         kp_session, kp_index, kp_split = np.concatenate(kp_session), np.concatenate(kp_index), np.concatenate(kp_split)
 
-        shards = ShardWriter(out, cfg.shard_patches)
+        shards = ShardWriter(out, cfg.shard_patches, cfg.shard_format, cfg.grid)
         table: dict[str, list] = {k: [] for k in ("patch_id", "set_id", "split", "role", "session", "frame", "enu", "yaw", "points", "icp_rmse_m", "transform")}
 
         def record(ids, set_id, split, role, sess, frames, enu, yaw, npts, rmse, T):
@@ -608,10 +693,14 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
                    np.zeros(ok.sum()), np.repeat(np.eye(4)[None], ok.sum(), axis=0))
             pools[split] = (ids, centres[ok])
 
+        if not any(len(ids) for ids, _ in pools.values()):  # no negatives: no place could give a triplet
+            raise NoTripletsError(workspace / "align", _no_triplets_reason(cfg, kp_split, pools, 0, {}, 0))
+
         # correspondence sets, made a chunk (one cell's places of a round) at a time
         triplets: dict[str, list] = {s: [] for s in SPLITS}
         order, chunk_of = place_chunks(kp_session, kp_index, kp_split, sessions, cfg, rng)
         n_sets = rejected_members = tried = n_done = n_icp = 0
+        why = {"no_set": 0, "small_patches": 0, "no_far_negative": 0}  # places that gave no triplet, by reason
         icp_cache: dict[tuple, dict] = {}
         relative_change = cfg.icp_relative_change
 
@@ -642,19 +731,22 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
             res, rejected = current["sets"].get(j)
             rejected_members += rejected
             if res is None:
+                why["no_set"] += 1
                 return 0
             ok = res["points"] >= cfg.min_patch_points
             if ok.sum() < 2:
+                why["small_patches"] += 1
+                return 0
+            pool_ids, pool_pos = pools[split]
+            p = res["centre"][0]
+            far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
+            if len(far) == 0:  # before recording the set's patches, which would otherwise share the next set's id
+                why["no_far_negative"] += 1
                 return 0
             ids = shards.add(res["occ"][ok], res["dcg"][ok])
             set_rmse = float(max(res["rmse"][ok]))
             record(ids, n_sets, split, "positive", res["session"][ok], res["frame"][ok], res["centre"][ok], res["yaw"][ok],
                    res["points"][ok], np.full(ok.sum(), set_rmse), res["transform"][ok])
-            pool_ids, pool_pos = pools[split]
-            p = res["centre"][0]
-            far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
-            if len(far) == 0:
-                return 0
             ii, jj = np.triu_indices(len(ids), 1)
             ii, jj = ii[: cfg.n_triplets - n_done], jj[: cfg.n_triplets - n_done]
             neg = pool_ids[rng.choice(far, len(ii))]
@@ -684,6 +776,8 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
                 n_done += n_new
         if progress:
             print(file=sys.stderr)
+        if n_done == 0:  # raised inside the partial folder: nothing is renamed into place or marked done
+            raise NoTripletsError(workspace / "align", _no_triplets_reason(cfg, kp_split, pools, tried, why, rejected_members))
         shards.flush()
 
         tab = {k: np.concatenate(v) if v else np.zeros(0) for k, v in table.items()}
@@ -711,7 +805,7 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
             "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
                       "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
             "tiles": [{"utm_min": [k[0] * cfg.tile_size_m, k[1] * cfg.tile_size_m], "split": v} for k, v in sorted(tiles.items())],
-            "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
+            "shard_format": cfg.shard_format, "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
             "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
         }
         write_json(out / "manifest.json", manifest)
@@ -724,10 +818,32 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
         ds = TripletDataset(out)
         if counts["train"] or counts["test"]:
             triplet_examples(out / "examples.png", ds, n=4, seed=cfg.seed)
-        if cfg.pointnetvlad.enabled:
-            export_pointnetvlad(out, workspace, out / cfg.pointnetvlad.folder, cfg.pointnetvlad, seed=cfg.seed)
         mark_done(out, h)
     return final
+
+
+def _no_triplets_reason(cfg: TripletConfig, kp_split: np.ndarray, pools: dict, tried: int, why: dict, rejected: int) -> str:
+    """One line: why an export made no triplet, and which setting to change."""
+    head = f"no triplets made ({tried} places tried"
+    if not np.any(kp_split != ""):
+        return (f"{head}): every keypoint lies within buffer_m={cfg.buffer_m:g} of a tile of the other split; "
+                f"lower buffer_m or raise tile_size_m ({cfg.tile_size_m:g})")
+    if not any(len(ids) for ids, _ in pools.values()):
+        return (f"{head}): no negative patch holds min_patch_points={cfg.min_patch_points} points; lower min_patch_points "
+                "or map more densely")
+    reasons = (f"{head}: {why['no_set']} seen by fewer than two sessions agreeing by ICP ({rejected} members rejected), "
+               f"{why['small_patches']} with fewer than two patches of min_patch_points={cfg.min_patch_points} points, "
+               f"{why['no_far_negative']} without a negative farther than negative_min_distance_m={cfg.negative_min_distance_m:g})")
+    worst = max(why, key=why.get) if tried else "no_set"
+    advice = {
+        "no_set": f"too few overlapping places between sessions: drive the same streets in two sessions, raise seen_radius_m "
+                  f"({cfg.seen_radius_m:g}) or lambda_icp_m ({cfg.lambda_icp_m:g}), or lower min_fitness ({cfg.min_fitness:g})",
+        "small_patches": f"lower min_patch_points ({cfg.min_patch_points}) or map more densely (the patch radius is "
+                         f"{cfg.domain.patch_radius:g} m)",
+        "no_far_negative": f"lower negative_min_distance_m ({cfg.negative_min_distance_m:g}) below the extent of each split's map, "
+                           f"or raise tile_size_m ({cfg.tile_size_m:g})",
+    }[worst]
+    return f"{reasons}; {advice}"
 
 
 def _write_patches_csv(path: Path, tab: dict, utm: np.ndarray, names: list[str], cfg: TripletConfig) -> None:
@@ -758,9 +874,13 @@ class TripletDataset:
         if not mpath.is_file():
             raise InputError(mpath, "no such file (not a triplet dataset folder?)")
         self.manifest = json.loads(mpath.read_text())
-        if self.manifest.get("format_version") != TRIPLETS_FORMAT_VERSION:
-            raise InputError(mpath, f"format version {self.manifest.get('format_version')!r}; this mapkit reads {TRIPLETS_FORMAT_VERSION}",
-                             field="format_version")
+        if self.manifest.get("format_version") not in READABLE_FORMAT_VERSIONS:
+            raise InputError(mpath, f"format version {self.manifest.get('format_version')!r}; this mapkit reads "
+                             f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}", field="format_version")
+        # version 1 datasets have npz shards and no shard_format
+        self.shard_format = self.manifest.get("shard_format", "npz")
+        if self.shard_format not in SHARD_FORMATS:
+            raise InputError(mpath, f"shard format {self.shard_format!r}; this mapkit reads {', '.join(SHARD_FORMATS)}", field="shard_format")
         if verify:
             for s in self.manifest["shards"]:
                 if sha256_file(self.folder / s["file"]) != s["sha256"]:
@@ -780,8 +900,7 @@ class TripletDataset:
         if k not in self._cache:
             if len(self._cache) > 4:
                 self._cache.clear()
-            with np.load(self.folder / self.manifest["shards"][k]["file"]) as z:
-                self._cache[k] = {"occupancy": z["occupancy"], "density_comparison": z["density_comparison"]}
+            self._cache[k] = read_shard(self.folder / self.manifest["shards"][k]["file"], self.shard_format)
         return self._cache[k]
 
     def grids(self, ids: np.ndarray, form: Literal["occupancy", "density_comparison"] = "occupancy") -> np.ndarray:

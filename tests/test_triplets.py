@@ -14,10 +14,12 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_align import gps_error, make_workspace, street  # noqa: E402
 
 from mapkit.align import align_workspace  # noqa: E402
-from mapkit.errors import InputError  # noqa: E402
+from mapkit.errors import InputError, MapkitError  # noqa: E402
+from mapkit.runio import DONE_MARKER, sha256_file  # noqa: E402
 from mapkit.triplets import (  # noqa: E402
     ChunkSets,
     GridIndex,
+    NoTripletsError,
     TripletConfig,
     TripletDataset,
     export_triplets,
@@ -25,8 +27,10 @@ from mapkit.triplets import (  # noqa: E402
     make_patches,
     mapped_patches,
     place_chunks,
+    read_shard,
     split_of,
     tile_split,
+    write_shard_hdf5,
 )
 
 CFG = {"n_triplets": 150, "tile_size_m": 40.0, "buffer_m": 8.0, "test_fraction": 0.3, "negative_min_distance_m": 40.0,
@@ -190,3 +194,83 @@ def test_a_failed_export_keeps_the_earlier_dataset(aligned, tmp_path, monkeypatc
     assert (out / "manifest.json").read_text() == before
     TripletDataset(out, verify=True)  # every file as the manifest lists it
     assert not list(tmp_path.glob(".t.partial-*"))
+
+
+def test_hdf5_shard_round_trip_with_plain_h5py(tmp_path):
+    import h5py
+
+    from mapkit.patches import pack_bits
+
+    rng = np.random.default_rng(0)
+    occ = pack_bits((rng.random((37, 32, 32, 32)) < 0.05).astype(np.uint8))
+    dcg = pack_bits((rng.random((37, 3, 32, 32, 32)) < 0.05).astype(np.uint8))
+    write_shard_hdf5(tmp_path / "s.h5", occ, dcg, first_id=100, grid=32)
+    with h5py.File(tmp_path / "s.h5", "r") as f:
+        assert np.array_equal(f["occupancy"][()], occ) and np.array_equal(f["density_comparison"][()], dcg)
+        assert f["occupancy"].chunks == (16, 32, 32, 4) and f["density_comparison"].chunks == (16, 3, 32, 32, 4)
+        assert f["occupancy"].compression == "gzip" and f.attrs["first_id"] == 100 and f.attrs["grid"] == 32
+        assert f.attrs["patches"] == 37 and "packbits" in f.attrs["packing"]
+        # a plain reader gets the grids back with np.unpackbits
+        assert np.unpackbits(f["occupancy"][3], axis=-1, count=32).shape == (32, 32, 32)
+    got = read_shard(tmp_path / "s.h5")
+    assert np.array_equal(got["occupancy"], occ) and np.array_equal(got["density_comparison"], dcg) and got["first_id"] == 100
+    np.savez(tmp_path / "s.npz", occupancy=occ, density_comparison=dcg, first_id=np.int64(100))
+    old = read_shard(tmp_path / "s.npz")
+    assert all(np.array_equal(old[k], got[k]) for k in got)
+    (tmp_path / "bad.h5").write_bytes(b"not hdf5")
+    with pytest.raises(InputError, match="bad.h5"):
+        read_shard(tmp_path / "bad.h5")
+
+
+def test_loader_reads_hdf5_npz_and_version_1_datasets(aligned, tmp_path):
+    cfg = dict(CFG, n_triplets=40)
+    h5 = export_triplets(aligned, out=tmp_path / "h5", overrides=cfg, progress=False)
+    npz = export_triplets(aligned, out=tmp_path / "npz", overrides=dict(cfg, shard_format="npz"), progress=False)
+    for folder, fmt, suffix in ((h5, "hdf5", ".h5"), (npz, "npz", ".npz")):
+        m = json.loads((folder / "manifest.json").read_text())
+        assert m["shard_format"] == fmt and m["shards"]
+        for s in m["shards"]:
+            assert s["file"].endswith(suffix) and s["bytes"] == (folder / s["file"]).stat().st_size
+            assert s["sha256"] == sha256_file(folder / s["file"])
+    a, b = TripletDataset(h5, verify=True), TripletDataset(npz, verify=True)
+    ids = np.arange(a.manifest["patches"])
+    assert np.array_equal(a.grids(ids), b.grids(ids)) and np.array_equal(a.grids(ids, "density_comparison"), b.grids(ids, "density_comparison"))
+    # a dataset of the first format (version 1: npz shards, no shard_format) still reads
+    m = json.loads((npz / "manifest.json").read_text())
+    m["format_version"] = 1
+    del m["shard_format"]
+    (npz / "manifest.json").write_text(json.dumps(m))
+    old = TripletDataset(npz)
+    assert old.shard_format == "npz" and np.array_equal(old.grids(ids), a.grids(ids))
+    x = next(old.batches(4, split="train" if len(old.triplets("train")) else "test"))
+    assert x[0].shape == (4, 32, 32, 32)
+
+
+def test_no_triplets_is_an_error_and_leaves_nothing_finished(aligned, tmp_path, capsys):
+    out = tmp_path / "t"
+    impossible = dict(CFG, min_patch_points=10**9)
+    with pytest.raises(NoTripletsError) as err:
+        export_triplets(aligned, out=out, overrides=impossible, progress=False)
+    assert isinstance(err.value, MapkitError)
+    msg = str(err.value)
+    assert "no triplets" in msg and "min_patch_points" in msg and "\n" not in msg
+    assert not out.exists() and not list(tmp_path.glob(".t.*"))  # no folder, no done-marker, no partial left
+    # nothing far enough for a negative: the message names the setting
+    with pytest.raises(NoTripletsError, match="negative_min_distance_m"):
+        export_triplets(aligned, out=out, overrides=dict(CFG, negative_min_distance_m=1e5, n_triplets=10), progress=False)
+    # an earlier finished dataset survives a run that makes nothing
+    good = export_triplets(aligned, out=out, overrides=dict(CFG, n_triplets=20), progress=False)
+    done = (good / DONE_MARKER).read_text()
+    with pytest.raises(NoTripletsError):
+        export_triplets(aligned, out=out, overrides=impossible, progress=False)
+    assert (good / DONE_MARKER).read_text() == done
+    TripletDataset(good, verify=True)
+    # the CLI: one line on stderr, non-zero exit
+    from mapkit.cli import main
+
+    (tmp_path / "c.yaml").write_text("".join(f"{k}: {v}\n" for k, v in impossible.items()))
+    capsys.readouterr()
+    code = main(["triplets", str(aligned), "--out", str(tmp_path / "cli"), "--config", str(tmp_path / "c.yaml")])
+    err_text = capsys.readouterr().err.strip()
+    assert code != 0 and err_text.startswith("error:") and "no triplets" in err_text and len(err_text.splitlines()) == 1
+    assert not (tmp_path / "cli").exists()
