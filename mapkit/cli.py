@@ -83,10 +83,10 @@ def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topi
 
 @app.command()
 def synth(
-    preset: str = typer.Option("tiny", help="tiny (tests), demo, or benchmark."),
+    preset: str = typer.Option("tiny", help="tiny (tests), demo, or benchmark: configs/synth/NAME.yaml, installed as mapkit/configs/synth/."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the world and session logs."),
     seed: Optional[int] = typer.Option(None, help="Seed of the town and sessions (the preset's if omitted)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding the preset."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding the preset (e.g. configs/synth/benchmark-camera.yaml)."),
     trajectory: Optional[Path] = typer.Option(None, help="Drive one session along this TUM / KITTI / RobotCar INS file."),
     overwrite: bool = typer.Option(False, help="Regenerate outputs that already exist."),
 ) -> None:
@@ -101,7 +101,7 @@ def synth(
 def build(
     logs: List[Path] = typer.Argument(..., help="One or more drive logs; each becomes a session."),
     out: Path = typer.Option(..., "--out", "-o", help="Workspace folder."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c"),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults build` (e.g. configs/build/mcvl-database.yaml)."),
 ) -> None:
     """Build georeferenced session maps (trajectory, GPS alignment, semi-dense map, image database)."""
     from .build import build as run_build
@@ -124,6 +124,28 @@ def align(
     typer.echo(f"written to {out}: refined sessions, tiles/, pairs.json, qa.md, pictures")
 
 
+@app.command("export-crs")
+def export_crs(
+    workspace: Path = typer.Argument(..., help="A georeferenced workspace (mapkit build, optionally mapkit align)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
+    crs: str = typer.Option("utm", "--crs", help="utm (the workspace's zone), ecef (EPSG:4978), wgs84 (EPSG:4979, trajectories only) or EPSG:<code>."),
+    session: Optional[List[str]] = typer.Option(None, "--session", "-s", help="A session to export (repeatable); default: every georeferenced one."),
+    what: str = typer.Option("trajectory,map", "--what", help="Comma-separated: trajectory, map."),
+    merged: bool = typer.Option(False, "--merged", help="Also write the merged map of `mapkit align` (merged_map.ply)."),
+    source: str = typer.Option("auto", "--source", help="auto (aligned where `mapkit align` holds the session), aligned or built."),
+) -> None:
+    """Write trajectories (TUM, or CSV lat/lon) and maps (PLY) of a workspace in a chosen CRS, for GIS tools, CloudCompare, evo."""
+    from .io.crs_export import export_crs as run_export
+
+    parts = {w.strip() for w in what.split(",") if w.strip()}
+    if not parts <= {"trajectory", "map"} or source not in ("auto", "aligned", "built"):
+        raise MapkitError(f"--what {what!r} (expected trajectory and/or map) / --source {source!r} (expected auto, aligned or built)")
+    m = run_export(workspace, out, crs, sessions=session or None, trajectory="trajectory" in parts, map="map" in parts,
+                   merged=merged, source=source)  # type: ignore[arg-type]
+    typer.echo(f"EPSG:{m['crs_epsg']} ({m['crs_name']}): {len(m['sessions'])} session(s)"
+               f"{', merged map' if 'merged_map' in m else ''} written to {out} (see export.json)")
+
+
 @app.command()
 def triplets(
     workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
@@ -135,14 +157,15 @@ def triplets(
     """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
     import json
 
-    from .triplets import evaluate_triplets, export_triplets
+    from .pointnetvlad import export_triplets_pointnetvlad
+    from .triplets import evaluate_triplets
 
     overrides = {"pointnetvlad": {"enabled": True}} if pointnetvlad else None
-    folder = export_triplets(workspace, out, config, overrides=overrides, progress=sys.stderr.isatty())
+    folder = export_triplets_pointnetvlad(workspace, out, config, overrides=overrides, progress=sys.stderr.isatty())
     typer.echo((folder / "metrics.json").read_text(), nl=False)
     if truth is not None:
         typer.echo(json.dumps(evaluate_triplets(folder, workspace, truth), indent=2))
-    typer.echo(f"written to {folder}: patches-*.npz, patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png"
+    typer.echo(f"written to {folder}: patches-*.h5 (or .npz), patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png"
                + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else ""))
 
 
@@ -312,7 +335,7 @@ def eval_localize(
     workspace: Path = typer.Argument(..., help="A built (and ideally aligned) workspace of a synthetic town."),
     truth: Path = typer.Option(..., "--truth", help="The synthetic town: session roles and true poses."),
     bundle: Optional[Path] = typer.Option(None, "--bundle", help="A VLAD bundle; built from the training sessions if omitted."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/, installed as mapkit/configs/localize/)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/localize)."),
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."),
 ) -> None:

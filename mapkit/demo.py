@@ -14,9 +14,12 @@ it already finished):
 8. ``eval places``: precision/recall and AUC of every index on pairs mixing conditions
 9. ``index export``: the deployable bundle; ``report.html``: every figure and picture above
 
-A stage that cannot run on the chosen town (the tiny preset's drives are too short to
-georeference, so nothing after ``build`` that needs one frame runs) is reported as skipped, with
-the reason. Timings of every stage go into ``metrics.json`` and the report.
+A stage that does not apply to the chosen town (no test session, say) is reported as skipped,
+with the reason; a stage that fails or would produce nothing (no verified pair, no triplet, no
+keypoint, no image: the library raises a ``MapkitError``) is reported as failed, and the stages
+that need it are skipped. Every preset runs every stage: ``tiny`` (configs/synth/tiny.yaml) is
+the demo town scaled down to three drives on the same streets, about a minute on 2 cores.
+Timings of every stage go into ``timings.md``, ``metrics.json`` and the report.
 """
 
 from __future__ import annotations
@@ -157,9 +160,10 @@ def _condition(s: dict) -> str:
 def _build(d: Demo) -> None:
     from .build import build, format_build_summary
     from .evaluate import evaluate_build
+    from .synth import session_logs
 
     with d.stage("build", "Session maps (mapkit build)") as sec:
-        logs = sorted((d.town / "sessions").glob("*.mcap"))
+        logs = session_logs(d.town)
         build(logs, d.ws, progress=d.progress)
         d.log(format_build_summary(d.ws))
         r = evaluate_build(d.ws, d.town)
@@ -180,7 +184,7 @@ def _align(d: Demo) -> None:
         d.need("build")
         if len(d.metrics.get("georeferenced", [])) < 2:
             raise _Skip(f"{len(d.metrics.get('georeferenced', []))} georeferenced session(s); alignment needs two "
-                        "(the tiny preset's drives are too short to georeference)")
+                        "(a drive too short or too straight for GPS to fix its heading is not georeferenced: see eval_build)")
         out = align_workspace(d.ws, progress=d.progress)
         d.metrics["eval_align"] = evaluate_align(d.ws, d.town)
         sec.md_file(out / "qa.md")
@@ -251,23 +255,18 @@ def _index_structure(d: Demo) -> None:
         sec.md(f"Database sessions: {', '.join(train)}.\n\n" + "\n".join(rows))
 
 
-CONFIGS_DIR = Path(__file__).resolve().parents[1] / "configs"
-
-
 def _localize(d: Demo) -> None:
     from .localize import evaluate_localization
+    from .presets import preset_path
 
     with d.stage("localize", "Monte Carlo visual localization (mapkit eval localize)") as sec:
         d.need("index_vlad")
         if not d.test_sessions:
             raise _Skip("the town has no test session")
         cache = d.ws / "localize" / "cache"  # test images are encoded once, for both runs and for places
-        runs = {"paper": None, "odometry-multihypothesis": CONFIGS_DIR / "localize" / "odometry-multihypothesis.yaml"}
+        runs = {"paper": None, "odometry-multihypothesis": preset_path("localize", "odometry-multihypothesis")}
         d.metrics["localize"] = {}
         for name, cfg in runs.items():
-            if cfg is not None and not cfg.is_file():
-                sec.md(f"Preset `{cfg}` not found (it ships with the checkout's configs/): run skipped.")
-                continue
             out = d.ws / "localize" / name
             r = evaluate_localization(d.ws, d.town, bundle=d.ws / "indexes" / "vlad", config=cfg, out=out, cache_dir=cache,
                                       progress=d.progress)

@@ -386,6 +386,9 @@ def build_structure_index(
     raws, kp_list, frame_tables, info, timings = [], [], [], {}, {}
     for n in names:
         smap = SemiDenseMap.load(dirs[n][0])
+        if len(smap.points_world) == 0:  # no keypoint to describe: fail before any bundle is written
+            raise InputError(dirs[n][0], f"session {n!r} has an empty semi-dense map (0 points, 0 keypoints to describe): "
+                             "leave it out of database_sessions, or rebuild it with a longer or textured drive", field="database_sessions")
         kps, raw, secs = session_descriptors(smap, n, cfg.kind, cfg, cache_dir, shas[n], progress)
         frames = session_frames(smap)
         raws.append(raw)
@@ -399,7 +402,8 @@ def build_structure_index(
                    "frames_without_pose": int(np.sum(frames["pose_source"] == POSE_NONE))}
     raw_all = np.concatenate(raws) if raws else np.zeros((0, 0), np.float32)
     if len(raw_all) < 2:
-        raise InputError(ws, f"{len(raw_all)} keypoint(s) in sessions {names}: an index needs at least 2", field="database_sessions")
+        raise InputError(ws, f"{len(raw_all)} keypoint(s) in sessions {names}: an index needs at least 2; add sessions with "
+                         "fuller maps or raise keypoint_fraction", field="database_sessions")
 
     t0 = time.perf_counter()
     pca = DescriptorPCA.fit(raw_all, min(cfg.pca_dim, raw_all.shape[1]))

@@ -364,6 +364,12 @@ def build_vlad_index(
 
     frame = _workspace_frame(ws)
     sessions = {n: read_session_images(ws, n, cfg.prefer_aligned_poses) for n in dict.fromkeys(db_names + train_names)}
+    for field, names, least in (("database_sessions", db_names, 1), ("train_sessions", train_names, 2)):
+        n_images = sum(len(sessions[n]) for n in names)
+        if n_images < least:  # nothing to index or to learn from: fail before any bundle is written
+            raise InputError(ws / "sessions", f"{n_images} image(s) in the image databases of {field} {names} (at least {least} "
+                             "needed): rebuild them with a longer drive or a smaller imagedb.min_spacing_m, or name other sessions",
+                             field=field)
     inputs = {n: [s.pose_source, sha256_file(s.csv_path)] for n, s in sessions.items()}
     build_hash = config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
                               "database": db_names, "train": train_names, "tables": inputs,
