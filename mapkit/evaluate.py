@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError
-from .geodesy import LocalFrame
+from .geodesy import WORKSPACE_ORIGIN, LocalFrame, read_workspace_frame
 from .geometry import interpolate_poses, sim3_scale, transform_points
 from .gps_align import fit_transform
 from .metrics import map_accuracy, trajectory_errors
@@ -59,10 +59,9 @@ def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
     import open3d as o3d
 
     workspace, truth = Path(workspace), Path(truth)
-    origin = workspace / "origin.json"
-    if not origin.is_file():
-        raise InputError(origin, "the workspace is not georeferenced (no origin.json): nothing to compare with truth")
-    ws_frame = LocalFrame.from_dict(json.loads(origin.read_text()))
+    ws_frame = read_workspace_frame(workspace)
+    if ws_frame is None:
+        raise InputError(workspace / WORKSPACE_ORIGIN, "the workspace is not georeferenced (no origin.json): nothing to compare with truth")
     town_to_ws = ws_from_town(truth, ws_frame)
     mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))
     if not mesh.has_triangles():

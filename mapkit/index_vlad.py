@@ -69,7 +69,7 @@ from . import __version__
 from .config import MapkitConfig, _deep_merge, dump_config, load_config
 from .errors import ConfigError, InputError, InputWarning
 from .executor import Executor, TaskError, get_executor
-from .geodesy import LocalFrame
+from .geodesy import LocalFrame, read_workspace_frame
 from .imagedb import images_world_from_cam, read_images_csv
 from .geometry import matrix_to_quat_wxyz
 from .align import aligned_sessions
@@ -196,16 +196,6 @@ def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool =
     paths = [csv_path.parent / p for p in table["image"]]
     rel = [os.path.relpath(p, ws) for p in paths]
     return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table))
-
-
-def _workspace_frame(workspace: Path) -> Optional[LocalFrame]:
-    origin = workspace / "origin.json"
-    if not origin.is_file():
-        return None
-    try:
-        return LocalFrame.from_dict(json.loads(origin.read_text()))
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(origin, f"not a valid frame description ({exc})") from None
 
 
 # --------------------------------------------------------------------------- encoding (parallel)
@@ -362,7 +352,7 @@ def build_vlad_index(
     if not train_names:
         raise ConfigError("train_sessions is empty: the vocabulary and PCA need training images")
 
-    frame = _workspace_frame(ws)
+    frame = read_workspace_frame(ws)
     sessions = {n: read_session_images(ws, n, cfg.prefer_aligned_poses) for n in dict.fromkeys(db_names + train_names)}
     for field, names, least in (("database_sessions", db_names, 1), ("train_sessions", train_names, 2)):
         n_images = sum(len(sessions[n]) for n in names)
@@ -835,7 +825,7 @@ class VladIndex:
         mpath = self.path / MANIFEST
         if name in self.manifest["sessions"] and self.manifest["sessions"][name].get("database"):
             raise InputError(mpath, f"session {name!r} is already in the index", field="sessions")
-        frame = _workspace_frame(ws)
+        frame = read_workspace_frame(ws)
         mine = self.manifest.get("frame")
         if (frame is None) != (mine is None) or (frame is not None and not _same_frame(frame, LocalFrame.from_dict(mine))):
             raise InputError(ws / "origin.json", "the workspace's local frame differs from the bundle's: its poses would not match", field="frame")

@@ -37,7 +37,8 @@ from typing import Literal, Optional, Sequence
 import numpy as np
 
 from ..errors import InputError, InputWarning
-from ..geodesy import EPSG_WGS84_GEODETIC_3D, LocalFrame, crs_info, frame_from_ply_comments, parse_crs, ply_crs_comments
+from ..geodesy import (EPSG_WGS84_GEODETIC_3D, WORKSPACE_ORIGIN, LocalFrame, crs_info, frame_from_ply_comments, parse_crs,
+                       ply_crs_comments, read_workspace_frame)
 from ..geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from ..runio import atomic_write_ply, atomic_write_text, write_json
 from .trajectory import read_tum, seconds_to_ns
@@ -155,14 +156,13 @@ def read_crs_trajectory(path: str | Path, frame: Optional[LocalFrame] = None, ep
 # --- a workspace ----------------------------------------------------------------------------------
 
 
-def _session_sources(ws: Path, name: str, source: Source, aligned: set[str]) -> tuple[str, LocalFrame, Path, Path]:
+def _session_sources(ws: Path, ws_frame: LocalFrame, name: str, source: Source, aligned: set[str]) -> tuple[str, LocalFrame, Path, Path]:
     """(which, session frame, trajectory folder, map PLY) of one session."""
     al = ws / "align" / "sessions" / name
     use_aligned = source == "aligned" or (source == "auto" and name in aligned)
     if use_aligned:
         if name not in aligned or not (al / "trajectory").is_dir():
             raise InputError(al, f"session {name!r} is not in a finished `mapkit align` of this workspace", field="session")
-        ws_frame = LocalFrame.from_dict(json.loads((ws / "origin.json").read_text()))
         return "aligned", ws_frame, al / "trajectory", al / "map" / "points.ply"
     sdir = ws / "sessions" / name
     ga_path = sdir / "georef" / "gps_alignment.json"
@@ -189,10 +189,9 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
     from ..align import aligned_sessions, load_tiles
 
     ws, out = Path(workspace), Path(out)
-    origin = ws / "origin.json"
-    if not origin.is_file():
-        raise InputError(origin, "no such file: the workspace is not georeferenced (run mapkit build with GPS first)")
-    ws_frame = LocalFrame.from_dict(json.loads(origin.read_text()))
+    ws_frame = read_workspace_frame(ws)
+    if ws_frame is None:
+        raise InputError(ws / WORKSPACE_ORIGIN, "no such file: the workspace is not georeferenced (run mapkit build with GPS first)")
     epsg = parse_crs(crs, ws_frame)
     info = crs_info(epsg)
     geographic = info["kind"] == "geographic"
@@ -227,7 +226,7 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
     if maps_skipped:
         manifest["maps_skipped"] = maps_skipped
     for name in chosen:
-        which, frame, traj_dir, map_ply = _session_sources(ws, name, source, aligned)
+        which, frame, traj_dir, map_ply = _session_sources(ws, ws_frame, name, source, aligned)
         entry: dict = {"source": which, "frame": frame.to_dict()}
         if trajectory:
             from ..trajectory import Trajectory
