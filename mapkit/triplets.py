@@ -52,8 +52,8 @@ from .runio import atomic_path, atomic_write_text, config_hash, is_done, mark_do
 
 TRIPLETS_FORMAT_VERSION = 2  # 2: shards in HDF5 (or npz, as the manifest's shard_format says); 1: npz shards only
 READABLE_FORMAT_VERSIONS = (1, 2)
-SHARD_FORMATS = ("hdf5", "npz")
 SHARD_SUFFIX = {"hdf5": ".h5", "npz": ".npz"}
+SHARD_FORMATS = tuple(SHARD_SUFFIX)
 SHARD_CHUNK_PATCHES = 16  # patches per HDF5 chunk: 64 KB of packed 32^3 occupancy, 192 KB of density comparison
 SPLITS = ("train", "test")
 

@@ -39,6 +39,7 @@ from ..types import (
     StreamKind,
 )
 from . import ros2
+from ..runio import atomic_write_text
 from .base import DriveLog
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -370,12 +371,12 @@ class McapWriter:
     """
 
     def __init__(self, path: str | Path, *, compression: str = "zstd", chunk_size: int = 4 << 20):
-        if compression not in _COMPRESSION:
-            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, not {compression!r}")
         self.path = Path(path)
         self._open_file(self.path, compression, chunk_size)
 
     def _open_file(self, target: Path, compression: str, chunk_size: int) -> None:
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, not {compression!r}")
         self._target = target
         target.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = target.with_name(target.name + ".partial")
@@ -503,8 +504,6 @@ class Rosbag2Writer(McapWriter):
 
     def __init__(self, folder: str | Path, *, compression: str = "zstd", chunk_size: int = 4 << 20,
                  ros_distro: str = ROSBAG2_ROS_DISTRO, custom_data: Optional[dict[str, str]] = None):
-        if compression not in _COMPRESSION:
-            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, not {compression!r}")
         self.path = Path(folder)
         if not self.path.name or self.path.name in (".", ".."):
             raise ValueError(f"a rosbag2 folder needs a name, not {str(folder)!r}")
@@ -513,10 +512,9 @@ class Rosbag2Writer(McapWriter):
         self._tmp_folder = self.path.with_name(f".{self.path.name}.partial")
         if self._tmp_folder.exists():  # left by a killed run
             shutil.rmtree(self._tmp_folder)
-        self._tmp_folder.mkdir(parents=True)
         #: the storage file's name inside the folder
         self.file_name = f"{self.path.name}_0.mcap"
-        self._open_file(self._tmp_folder / self.file_name, compression, chunk_size)
+        self._open_file(self._tmp_folder / self.file_name, compression, chunk_size)  # makes the partial folder
 
     def metadata(self) -> dict:
         """The ``metadata.yaml`` document for what has been written so far."""
@@ -559,11 +557,7 @@ class Rosbag2Writer(McapWriter):
         if self._closed:
             return self.path
         self._finish_file()
-        meta = self._tmp_folder / ROSBAG2_METADATA
-        with open(meta, "w") as fh:
-            yaml.safe_dump(self.metadata(), fh, sort_keys=False, default_flow_style=False)
-            fh.flush()
-            os.fsync(fh.fileno())
+        atomic_write_text(self._tmp_folder / ROSBAG2_METADATA, yaml.safe_dump(self.metadata(), sort_keys=False, default_flow_style=False))
         _fsync_dir(self._tmp_folder)
         old = None
         if self.path.exists() or self.path.is_symlink():  # a folder cannot replace a non-empty one: swap
