@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapkit.align import align_workspace  # noqa: E402
+from mapkit.multisession.align import align_workspace  # noqa: E402
 
 
 def run(workspace: Path, counts: list[int]) -> dict:

@@ -82,10 +82,10 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="smoke run: a 48 m town (6 s of driving) when no --town is given")
     args = ap.parse_args(argv)
 
-    from mapkit.build import BuildConfig, build
+    from mapkit.mapping.build import BuildConfig, build
     from mapkit.io.mcap_log import McapLog
     from mapkit.synth import session_logs
-    from mapkit.trajectory import trajectory_from_lidar
+    from mapkit.mapping.trajectory import trajectory_from_lidar
 
     with tempfile.TemporaryDirectory(prefix="mapkit-bench-build-") as tmp:
         tmp = Path(tmp)

@@ -5,14 +5,14 @@ Figures, each the best of ``--repeat`` runs, as wall and CPU time of this proces
 exceed the wall time):
 
 1. Training throughput, triplets per second (forward of X1, X2, X3, Eq. (1), backward, optimiser
-   step) with batches of 25 triplets run as one forward pass of 75 grids (``mapkit.train``),
+   step) with batches of 25 triplets run as one forward pass of 75 grids (``mapkit.learning.train``),
    against a naive loop of one triplet at a time (three forward passes of one grid, one step per
    triplet) timed in the same run; the ratio is printed.
 2. Describe throughput, patches per second, of the exported model in onnxruntime (the
    deployment path of ``mapkit index structure``) against torch eager (no gradients), same
    weights, same grids, same batch; the ratio is printed, and the largest difference between
    the two descriptors.
-3. The whole index describer (``mapkit.cnn.describe_cnn``: extract, yaw-normalise, voxelise,
+3. The whole index describer (``mapkit.places.cnn.describe_cnn``: extract, yaw-normalise, voxelise,
    ONNX) on a synthetic street, patches per second, and the share of it spent in voxel grids.
 
 Grids are the real demo triplet dataset's when ``--dataset`` exists (default
@@ -43,7 +43,7 @@ from bench.common import best_wall_and_cpu, report  # noqa: E402
 def _grids(dataset: Path, n: int, form: str, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     if (dataset / "manifest.json").is_file():
-        from mapkit.triplets import TripletDataset
+        from mapkit.places.triplets import TripletDataset
 
         ds = TripletDataset(dataset)
         ids = np.sort(rng.choice(int(ds.manifest["patches"]), n, replace=False))
@@ -53,7 +53,7 @@ def _grids(dataset: Path, n: int, form: str, seed: int) -> np.ndarray:
 
 
 def bench_training(torch, grids: np.ndarray, form: str, batch: int, steps: int, naive_triplets: int, repeat: int) -> list[dict]:
-    from mapkit.cnn import CnnConfig, build_model, grids_to_input, triplet_loss
+    from mapkit.places.cnn import CnnConfig, build_model, grids_to_input, triplet_loss
 
     cfg = CnnConfig(form=form)
     model = build_model(cfg, seed=0)
@@ -84,7 +84,7 @@ def bench_training(torch, grids: np.ndarray, form: str, batch: int, steps: int, 
     wn, cn = best_wall_and_cpu(naive, repeat)
     nb = steps * batch
     return [
-        {"method": f"batch of {batch} triplets (mapkit.train)", "triplets": nb, "wall_s": wb, "cpu_s": cb,
+        {"method": f"batch of {batch} triplets (mapkit.learning.train)", "triplets": nb, "wall_s": wb, "cpu_s": cb,
          "triplets_per_s_wall": nb / wb, "triplets_per_s_cpu": nb / cb, "speedup_vs_naive_wall": (nb / wb) / (naive_triplets / wn)},
         {"method": "naive: one triplet per step, 3 forwards", "triplets": naive_triplets, "wall_s": wn, "cpu_s": cn,
          "triplets_per_s_wall": naive_triplets / wn, "triplets_per_s_cpu": naive_triplets / cn, "speedup_vs_naive_wall": 1.0},
@@ -94,7 +94,7 @@ def bench_training(torch, grids: np.ndarray, form: str, batch: int, steps: int, 
 def bench_describe(torch, grids: np.ndarray, form: str, batch: int, repeat: int) -> tuple[list[dict], float]:
     import onnxruntime as ort
 
-    from mapkit.cnn import CnnConfig, build_model, export_onnx, grids_to_input, torch_describe
+    from mapkit.places.cnn import CnnConfig, build_model, export_onnx, grids_to_input, torch_describe
 
     cfg = CnnConfig(form=form)
     model = build_model(cfg, seed=0)
@@ -126,10 +126,10 @@ def bench_describe(torch, grids: np.ndarray, form: str, batch: int, repeat: int)
 
 def bench_index_describer(torch, form: str, n_kp: int, repeat: int) -> list[dict]:
     """describe_cnn (the structure index's describer) on a synthetic street."""
-    from mapkit.bundle import write_manifest
-    from mapkit.cnn import CnnConfig, build_model, describe_cnn, export_onnx
-    from mapkit.index_structure import StructureIndexConfig
-    from mapkit.patches import CNN_DOMAIN, voxel_grids, xy_tree
+    from mapkit.core.bundle import write_manifest
+    from mapkit.places.cnn import CnnConfig, build_model, describe_cnn, export_onnx
+    from mapkit.places.index_structure import StructureIndexConfig
+    from mapkit.places.patches import CNN_DOMAIN, voxel_grids, xy_tree
 
     rng = np.random.default_rng(0)
     # a street: two facades (y = +-8 m), ground, poles; ~300k points over 300 m
@@ -168,7 +168,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
 
-    from mapkit.cnn import require_torch
+    from mapkit.places.cnn import require_torch
 
     torch = require_torch()
     torch.set_num_threads(args.threads)

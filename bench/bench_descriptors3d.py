@@ -61,8 +61,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.common import best_wall_and_cpu, report  # noqa: E402
-from mapkit import descriptors3d as d3  # noqa: E402
-from mapkit import patches as pa  # noqa: E402
+from mapkit.places import descriptors3d as d3  # noqa: E402
+from mapkit.places import patches as pa  # noqa: E402
 
 cv2.setNumThreads(1)  # M2DP's binning and counting are OpenCV's
 
@@ -267,7 +267,7 @@ def synthetic_inputs(args):
 
 
 def map_inputs(args):
-    from mapkit.semidense import SemiDenseMap
+    from mapkit.mapping.semidense import SemiDenseMap
 
     smap = SemiDenseMap.load(args.map)
     sign, axis = (-1.0 if args.up.startswith("-") else 1.0), "xyz".index(args.up[-1])

@@ -45,8 +45,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.common import best_of, report, self_peak_rss_mb  # noqa: E402
-from mapkit.dsift import DsiftConfig, StepTimer, dense_sift, opencv_keypoint_size  # noqa: E402
-from mapkit.vlad import PcaWhitening, VladConfig, VladEncoder  # noqa: E402
+from mapkit.retrieval.dsift import DsiftConfig, StepTimer, dense_sift, opencv_keypoint_size  # noqa: E402
+from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder  # noqa: E402
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 SIZE_WH = (640, 480)

@@ -34,8 +34,8 @@ from bench.common import best_of, report  # noqa: E402
 
 def tiny_workspace(cache: Path) -> Path:
     """The ``tiny`` town built into ``cache/ws`` (once: ~30 s)."""
-    from mapkit.build import build
-    from mapkit.errors import InputWarning
+    from mapkit.mapping.build import build
+    from mapkit.core.errors import InputWarning
     from mapkit.synth import session_logs, synthesize
 
     town = synthesize(preset="tiny", out=cache / "town", progress=False)
@@ -45,16 +45,16 @@ def tiny_workspace(cache: Path) -> Path:
 
 
 def image_paths(ws: Path, limit: int) -> list[Path]:
-    from mapkit.index_vlad import read_session_images, workspace_sessions
+    from mapkit.retrieval.index_vlad import read_session_images, workspace_sessions
 
     paths = [p for n in workspace_sessions(ws) for p in read_session_images(ws, n).image_paths]
     return paths[:limit]
 
 
 def make_encoder(paths: list[Path]):
-    from mapkit.executor import SERIAL
-    from mapkit.index_vlad import _map, _raw_task, _sample_task
-    from mapkit.vlad import VladConfig, VladEncoder, kmeans
+    from mapkit.core.executor import SERIAL
+    from mapkit.retrieval.index_vlad import _map, _raw_task, _sample_task
+    from mapkit.retrieval.vlad import VladConfig, VladEncoder, kmeans
 
     cfg = VladConfig()
     train = [str(p) for p in paths[:16]]
@@ -77,8 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="processes of the pool and CPUs of the Ray instance")
     args = ap.parse_args(argv)
 
-    from mapkit.executor import SERIAL, ProcessExecutor, make_executor
-    from mapkit.index_vlad import encode_images
+    from mapkit.core.executor import SERIAL, ProcessExecutor, make_executor
+    from mapkit.retrieval.index_vlad import encode_images
 
     ws = args.workspace or tiny_workspace(args.cache)
     paths = image_paths(ws, args.images)

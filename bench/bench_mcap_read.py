@@ -190,7 +190,7 @@ def write_drive(path: Path, duration_s: float, spec: DriveSpec, compression: str
     from tqdm import tqdm
 
     from mapkit.io.mcap_log import McapWriter
-    from mapkit.types import CameraFrame, GpsFix, ImuSample, LidarScan
+    from mapkit.core.types import CameraFrame, GpsFix, ImuSample, LidarScan
 
     sensors = _SyntheticSensors(spec)
     rng = np.random.default_rng(spec.seed + 1)
@@ -321,7 +321,7 @@ def read_mcap_decoded_crc(path: str) -> tuple[int, int]:
 def read_mapkit(path: str, validate_crcs: bool = True) -> tuple[int, int]:
     """(c) ``McapLog.messages()``: records with their arrays materialised (lazy decoding can't cheat)."""
     from mapkit.io.mcap_log import McapLog
-    from mapkit.types import CameraFrame, LidarScan
+    from mapkit.core.types import CameraFrame, LidarScan
 
     n = nbytes = 0
     with McapLog(path, validate_crcs=validate_crcs) as log:

@@ -3,7 +3,7 @@
 Goal: one step (predict + weigh + estimate + SUS resample) with the paper's 1,000 particles well
 under 1 ms of work (CPU time), single-threaded; wall time is printed beside it. Four figures:
 
-1. ``mapkit``: :meth:`mapkit.mcl.MonteCarloLocalizer.step` with 1,000 particles, vectorised over
+1. ``mapkit``: :meth:`mapkit.localization.mcl.MonteCarloLocalizer.step` with 1,000 particles, vectorised over
    particles, on noisy measurements along a straight track (mean of ``--steps`` steps, best of
    ``--repeat``).
 2. ``per-particle loop``: the same step written as the authors' MATLAB code is (``pf/*.m``): a
@@ -45,11 +45,11 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.common import report  # noqa: E402
-from mapkit.config import load_config  # noqa: E402
-from mapkit.geometry import make_pose, yaw_rotation  # noqa: E402
-from mapkit.localize import LocalizeConfig  # noqa: E402
-from mapkit.measurement import Measurement, PoseHypotheses, euler_from_matrix, matrix_from_euler, mean_shift_measurement  # noqa: E402
-from mapkit.mcl import MclConfig, MonteCarloLocalizer, init_particles  # noqa: E402
+from mapkit.core.config import load_config  # noqa: E402
+from mapkit.core.geometry import make_pose, yaw_rotation  # noqa: E402
+from mapkit.localization.localize import LocalizeConfig  # noqa: E402
+from mapkit.retrieval.measurement import Measurement, PoseHypotheses, euler_from_matrix, matrix_from_euler, mean_shift_measurement  # noqa: E402
+from mapkit.localization.mcl import MclConfig, MonteCarloLocalizer, init_particles  # noqa: E402
 
 GOAL_STEP_MS = 1.0
 #: the multi-hypothesis figure is timed with this preset's filter settings

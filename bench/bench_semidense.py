@@ -38,8 +38,8 @@ if str(ROOT) not in sys.path:
 
 from bench.common import best_of, report  # noqa: E402
 from bench.semidense_kitti_clip import DEFAULT_CLIP, read_clip_geometry  # noqa: E402
-from mapkit.geometry import invert_pose  # noqa: E402
-from mapkit.semidense import PATTERN_DSO8, SemiDenseConfig, build_semidense_map, map_keyframe, select_candidates  # noqa: E402
+from mapkit.core.geometry import invert_pose  # noqa: E402
+from mapkit.mapping.semidense import PATTERN_DSO8, SemiDenseConfig, build_semidense_map, map_keyframe, select_candidates  # noqa: E402
 
 GOAL_KEYFRAMES_PER_S = 2.0
 SIZE_WH = (640, 480)

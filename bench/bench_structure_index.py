@@ -1,4 +1,4 @@
-"""Speed of the structure voting index (mapkit.index_structure), with its baselines in the same run.
+"""Speed of the structure voting index (mapkit.places.index_structure), with its baselines in the same run.
 
 1. ``describe()``: patches described per second for NBLD and M2DP through the whole chain
    (patch extraction, yaw normalisation towards the first observer, descriptor), on real patches
@@ -49,9 +49,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from bench.common import best_wall_and_cpu, report  # noqa: E402
-from mapkit import descriptors3d as d3  # noqa: E402
-from mapkit import patches as pa  # noqa: E402
-from mapkit.index_structure import (  # noqa: E402
+from mapkit.places import descriptors3d as d3  # noqa: E402
+from mapkit.places import patches as pa  # noqa: E402
+from mapkit.places.index_structure import (  # noqa: E402
     POSE_KEYFRAME,
     QueryKeypoints,
     SessionKeypoints,
@@ -66,8 +66,8 @@ from mapkit.index_structure import (  # noqa: E402
 
 def demo_keypoints(workspace: Path, n: int, seed: int):
     """(label, points, keypoints, observer_dirs) from the densest aligned map of the workspace."""
-    from mapkit.index_structure import session_map_dir, session_names
-    from mapkit.semidense import SemiDenseMap
+    from mapkit.places.index_structure import session_map_dir, session_names
+    from mapkit.mapping.semidense import SemiDenseMap
 
     best = None
     for name in session_names(workspace):

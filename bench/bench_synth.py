@@ -35,14 +35,14 @@ def render_speed(frames: int, repeat: int) -> list[dict]:
     import open3d as o3d
 
     from mapkit.io import ros2
-    from mapkit.synth._threads import single_thread_blas
+    from mapkit.core.threads import single_thread_blas
     from mapkit.synth.appearance import F32
     from mapkit.synth.config import load_config
     from mapkit.synth.render import Renderer
     from mapkit.synth.sensors import extrinsics
     from mapkit.synth.sessions import plan_sessions, session_parked_cars
     from mapkit.synth.world import build_town
-    from mapkit.types import LidarScan
+    from mapkit.core.types import LidarScan
 
     cfg = load_config("demo", overrides={"lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 1024}})
     rows = []

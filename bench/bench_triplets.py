@@ -3,7 +3,7 @@
 Baselines, in the same run:
 - the paper's procedure taken literally, one ICP per place (``icp_cell_m`` so small that every
   place has its own cell), with today's code;
-- with ``--reference FILE``, an earlier ``mapkit/triplets.py`` (a saved copy), on the same
+- with ``--reference FILE``, an earlier ``mapkit/places/triplets.py`` (a saved copy), on the same
   workspace: the before/after of a change.
 
 Each export runs in a fresh process; besides the wall-clock rate (the goal's figure) it prints
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def run_one(workspace: Path, n: int, overrides: dict, module_file: Optional[Path] = None) -> dict:
     """Export ``n`` triplets in a fresh process; its metrics, CPU seconds and peak resident memory (VmHWM)."""
     if module_file is None:
-        load = "from mapkit.triplets import export_triplets\n"
+        load = "from mapkit.places.triplets import export_triplets\n"
     else:  # an earlier copy of the module, imported as a sibling of mapkit's modules (its relative imports resolve)
         load = ("import importlib.util\n"
                 f"spec = importlib.util.spec_from_file_location('mapkit._triplets_reference', {str(module_file)!r})\n"
@@ -69,7 +69,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("workspace", type=Path)
     ap.add_argument("--n", type=int, default=2000, help="triplets per run (default 2000)")
-    ap.add_argument("--reference", type=Path, help="an earlier mapkit/triplets.py to compare with (before/after)")
+    ap.add_argument("--reference", type=Path, help="an earlier mapkit/places/triplets.py to compare with (before/after)")
     args = ap.parse_args()
     rows = {}
     rows["per_place_icp"] = run_one(args.workspace, args.n, {"icp_cell_m": 0.001, "places_per_cell": 1})

@@ -34,10 +34,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import report  # noqa: E402
-from mapkit.geometry import interpolate_poses, invert_pose, umeyama  # noqa: E402
+from mapkit.core.geometry import interpolate_poses, invert_pose, umeyama  # noqa: E402
 from mapkit.io.mcap_log import McapLog  # noqa: E402
 from mapkit.synth import gt_poses, load_world, synthesize  # noqa: E402
-from mapkit.types import StreamKind  # noqa: E402
+from mapkit.core.types import StreamKind  # noqa: E402
 
 
 def lidar_times(mcap: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

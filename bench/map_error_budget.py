@@ -74,16 +74,16 @@ def main(argv: list[str] | None = None) -> int:
 
     import open3d as o3d
 
-    from mapkit.build import BuildConfig, SessionBuilder
-    from mapkit.evaluate import session_truth_mesh, ws_from_town
-    from mapkit.geodesy import LocalFrame
-    from mapkit.geometry import interpolate_poses, transform_points
-    from mapkit.gps_align import fit_transform
-    from mapkit.metrics import map_accuracy
-    from mapkit.config import load_config
-    from mapkit.semidense import SemiDenseMap
+    from mapkit.mapping.build import BuildConfig, SessionBuilder
+    from mapkit.evaluation.truth import session_truth_mesh, ws_from_town
+    from mapkit.core.geodesy import LocalFrame
+    from mapkit.core.geometry import interpolate_poses, transform_points
+    from mapkit.mapping.gps_align import fit_transform
+    from mapkit.evaluation.metrics import map_accuracy
+    from mapkit.core.config import load_config
+    from mapkit.mapping.semidense import SemiDenseMap
     from mapkit.synth import gt_poses, session_log
-    from mapkit.trajectory import Trajectory
+    from mapkit.mapping.trajectory import Trajectory
 
     ws, town, name = a.workspace, a.town, a.session
     sdir = ws / "sessions" / name

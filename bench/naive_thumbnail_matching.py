@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bench.common import report  # noqa: E402
 from mapkit.io.mcap_log import McapLog  # noqa: E402
 from mapkit.synth import camera_poses, load_world  # noqa: E402
-from mapkit.types import StreamKind  # noqa: E402
+from mapkit.core.types import StreamKind  # noqa: E402
 
 THUMB = (32, 24)
 RADIUS_M = 25.0

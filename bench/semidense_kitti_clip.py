@@ -1,6 +1,6 @@
 """Semi-dense map of the real KITTI clip with its given poses, and its cross-frame consistency.
 
-Runs ``mapkit.semidense.build_semidense_map`` over the 51-frame KITTI odometry clip beside the
+Runs ``mapkit.mapping.semidense.build_semidense_map`` over the 51-frame KITTI odometry clip beside the
 project (left grey camera, exact poses), then:
 
 - writes the map (``points.ply``, ``observations.npz``, ``config.yaml``) into ``--out``;
@@ -30,9 +30,9 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from mapkit.config import load_config  # noqa: E402
-from mapkit.runio import write_json  # noqa: E402
-from mapkit.semidense import KeyframePoints, SemiDenseConfig, build_semidense_map, consistency  # noqa: E402
+from mapkit.core.config import load_config  # noqa: E402
+from mapkit.core.runio import write_json  # noqa: E402
+from mapkit.mapping.semidense import KeyframePoints, SemiDenseConfig, build_semidense_map, consistency  # noqa: E402
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 FRAME_PERIOD_NS = 100_000_000  # KITTI odometry: 10 Hz

@@ -1,1 +1,1 @@
-"""mapkit's presets and configs, installed as the package ``mapkit.configs``: read them with :mod:`mapkit.presets`."""
+"""mapkit's presets and configs, installed as the package ``mapkit.configs``: read them with :mod:`mapkit.core.presets`."""

@@ -1,7 +1,7 @@
 """mapkit: drive logs to maps, image databases, triplet patches and place-recognition indexes.
 
-The library is layered as in evo: ``mapkit.geometry`` and ``mapkit.types`` are pure numpy/scipy,
-``mapkit.geodesy`` wraps pyproj, ``mapkit.io`` holds every reader and writer, and ``mapkit.cli``
+The library is layered as in evo: ``mapkit.core.geometry`` and ``mapkit.core.types`` are pure numpy/scipy,
+``mapkit.core.geodesy`` wraps pyproj, ``mapkit.io`` holds every reader and writer, and ``mapkit.cli``
 only parses arguments and calls the library.
 """
 

@@ -13,8 +13,8 @@ from typing import List, Optional
 
 import typer
 
-from . import __version__
-from .errors import InputWarning, MapkitError
+from mapkit import __version__
+from mapkit.core.errors import InputWarning, MapkitError
 
 app = typer.Typer(
     name="mapkit",
@@ -46,7 +46,7 @@ def _root(
     if executor not in ("local", "ray"):
         raise MapkitError(f"--executor {executor!r}: expected local or ray")
     if executor == "ray" or workers is not None or ray_address is not None:
-        from .executor import set_default_executor
+        from mapkit.core.executor import set_default_executor
 
         set_default_executor(executor, workers, ray_address)
 
@@ -58,8 +58,8 @@ def info(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the summary as JSON here."),
 ) -> None:
     """Per stream: topic, type, count, rate, time span; for GPS the distance covered and fix quality."""
-    from .info import format_summary, summarize
-    from .runio import write_json
+    from mapkit.io.info import format_summary, summarize
+    from mapkit.core.runio import write_json
 
     summary = summarize(log, format=format, progress=sys.stderr.isatty())
     typer.echo(format_summary(summary))
@@ -76,7 +76,7 @@ app.add_typer(config_app, name="config")
 @config_app.command("defaults")
 def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topics.")) -> None:
     """Print the defaults of a configuration as commented YAML."""
-    from .config import config_model, defaults_yaml
+    from mapkit.core.config import config_model, defaults_yaml
 
     typer.echo(defaults_yaml(config_model(name)), nl=False)
 
@@ -91,7 +91,7 @@ def synth(
     overwrite: bool = typer.Option(False, help="Regenerate outputs that already exist."),
 ) -> None:
     """Generate the synthetic town: georeferenced multi-session drive logs with ground truth."""
-    from .synth import synthesize
+    from mapkit.synth import synthesize
 
     path = synthesize(preset=preset, out=out, seed=seed, config=config, trajectory=trajectory, overwrite=overwrite)
     typer.echo(f"synthetic town written to {path}")
@@ -104,8 +104,8 @@ def build(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults build` (e.g. configs/build/mcvl-database.yaml)."),
 ) -> None:
     """Build georeferenced session maps (trajectory, GPS alignment, semi-dense map, image database)."""
-    from .build import build as run_build
-    from .build import format_build_summary
+    from mapkit.mapping.build import build as run_build
+    from mapkit.mapping.build import format_build_summary
 
     ws = run_build(logs, out, config, progress=sys.stderr.isatty())
     typer.echo(format_build_summary(ws))
@@ -117,7 +117,7 @@ def align(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."),
 ) -> None:
     """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""
-    from .align import align_workspace
+    from mapkit.multisession.align import align_workspace
 
     out = align_workspace(workspace, config, progress=sys.stderr.isatty())
     typer.echo((out / "qa.md").read_text(), nl=False)
@@ -135,7 +135,7 @@ def export_crs(
     source: str = typer.Option("auto", "--source", help="auto (aligned where `mapkit align` holds the session), aligned or built."),
 ) -> None:
     """Write trajectories (TUM, or CSV lat/lon) and maps (PLY) of a workspace in a chosen CRS, for GIS tools, CloudCompare, evo."""
-    from .io.crs_export import export_crs as run_export
+    from mapkit.deploy.crs_export import export_crs as run_export
 
     parts = {w.strip() for w in what.split(",") if w.strip()}
     if not parts <= {"trajectory", "map"} or source not in ("auto", "aligned", "built"):
@@ -157,8 +157,8 @@ def triplets(
     """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
     import json
 
-    from .pointnetvlad import export_triplets_pointnetvlad
-    from .triplets import evaluate_triplets
+    from mapkit.places.pointnetvlad import export_triplets_pointnetvlad
+    from mapkit.evaluation.triplets import evaluate_triplets
 
     overrides = {"pointnetvlad": {"enabled": True}} if pointnetvlad else None
     folder = export_triplets_pointnetvlad(workspace, out, config, overrides=overrides, progress=sys.stderr.isatty())
@@ -178,7 +178,7 @@ def localize(
     camera: Optional[str] = typer.Option(None, "--camera", help="Camera to use when the log has several."),
 ) -> None:
     """Run the Monte Carlo visual localizer on a drive log against a VLAD bundle."""
-    from .localize import localize_log
+    from mapkit.localization.localize import localize_log
 
     folder = localize_log(bundle, log, out, config, camera, progress=sys.stderr.isatty())
     typer.echo(f"camera poses written to {folder}/poses_tum.txt (filter) and retrieval_tum.txt")
@@ -191,7 +191,7 @@ def train(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults train`."),
 ) -> None:
     """Train the 3D CNN patch descriptor with the triplet loss and hard-negative cycling (learning extra)."""
-    from .train import train_cnn
+    from mapkit.learning.train import train_cnn
 
     folder = train_cnn(dataset, out, config, progress=sys.stderr.isatty())
     typer.echo((folder / "metrics.json").read_text()[:2000], nl=False)
@@ -207,7 +207,7 @@ def demo(
     train_cnn: bool = typer.Option(False, "--train-cnn", help="Also train the 3D CNN descriptor (learning extra; adds up to 30 min)."),
 ) -> None:
     """Synthetic town to deployable bundles and an HTML report, in one command."""
-    from .demo import run_demo
+    from mapkit.pipelines.demo import run_demo
 
     m = run_demo(out, preset=preset, seed=seed, workers=workers, train_cnn=train_cnn, progress=sys.stderr.isatty())
     typer.echo((out / "timings.md").read_text(), nl=False)
@@ -226,7 +226,7 @@ def index_export(
     name: Optional[List[str]] = typer.Option(None, "--index", "-i", help="Index folder name (vlad, structure-nbld, ...); repeat; default all."),
 ) -> None:
     """One deployable folder: every index with its manifest (format version, parameters, CRS, sessions, checksums)."""
-    from .export import export_bundles, load_bundle
+    from mapkit.deploy.export import export_bundles, load_bundle
 
     path = export_bundles(workspace, out, name or None)  # checks every file's checksum before it links the file
     b = load_bundle(path, verify=False)
@@ -242,7 +242,7 @@ def index_vlad(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults index_vlad`."),
 ) -> None:
     """Dense SIFT, RootSIFT, VLAD and PCA-whitening image retrieval index, as a deployable bundle."""
-    from .index_vlad import build_vlad_index
+    from mapkit.retrieval.index_vlad import build_vlad_index
 
     bundle = build_vlad_index(workspace, out, config, progress=sys.stderr.isatty())
     typer.echo((bundle / "metrics.json").read_text(), nl=False)
@@ -259,7 +259,7 @@ def index_structure(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."),
 ) -> None:
     """NBLD / M2DP patch descriptor index with keypoint-to-frame voting, as a deployable bundle."""
-    from .index_structure import build_structure_index
+    from mapkit.places.index_structure import build_structure_index
 
     overrides = {"cnn_model": str(model)} if model is not None else None
     bundle = build_structure_index(workspace, kind, out, session or None, config, overrides=overrides, progress=sys.stderr.isatty())
@@ -272,7 +272,7 @@ def eval_build(
     truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
 ) -> None:
     """Trajectory error after GPS alignment and map accuracy against the synthetic truth."""
-    from .evaluate import evaluate_build, format_eval
+    from mapkit.evaluation.evaluate import evaluate_build, format_eval
 
     typer.echo(format_eval(evaluate_build(workspace, truth)), nl=False)
     typer.echo(f"written to {workspace}/eval_build.json and eval_build.md")
@@ -284,8 +284,8 @@ def eval_align(
     truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
 ) -> None:
     """Inter-session misalignment of the same true surface, after GPS alone and after alignment."""
-    from .align import format_align_truth
-    from .evaluate import evaluate_align
+    from mapkit.multisession.align import format_align_truth
+    from mapkit.evaluation.evaluate import evaluate_align
 
     typer.echo(format_align_truth(evaluate_align(workspace, truth)))
     typer.echo(f"written to {workspace}/align/eval_align.json and eval_align.md")
@@ -299,7 +299,7 @@ def eval_retrieval(
     truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: true positions and appearance conditions."),
 ) -> None:
     """Recall@1/5/20 within 25 m per query session and the error of the mean-shift measurement."""
-    from .eval_retrieval import evaluate_retrieval, format_retrieval
+    from mapkit.evaluation.retrieval import evaluate_retrieval, format_retrieval
 
     typer.echo(format_retrieval(evaluate_retrieval(workspace, bundle, query, truth, progress=sys.stderr.isatty())))
     typer.echo(f"written to {bundle}/eval_retrieval.json, .md and .png")
@@ -317,8 +317,8 @@ def eval_places(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."),
 ) -> None:
     """Place recognition precision/recall and AUC per session pair (the semi-dense paper's Table 2)."""
-    from .errors import ConfigError
-    from .eval_places import evaluate_places, format_places
+    from mapkit.core.errors import ConfigError
+    from mapkit.evaluation.places import evaluate_places, format_places
 
     pairs = []
     for p in pair:
@@ -340,7 +340,7 @@ def eval_localize(
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."),
 ) -> None:
     """MCVL's protocol: training sessions build the index, test sessions are localized (Table II, Fig. 5)."""
-    from .localize import evaluate_localization, format_localization
+    from mapkit.evaluation.localization import evaluate_localization, format_localization
 
     r = evaluate_localization(workspace, truth, bundle, config=config, out=out, cache_dir=cache_dir, progress=sys.stderr.isatty())
     typer.echo(format_localization(r), nl=False)

@@ -1,6 +1,6 @@
 """The README's main job: ``mapkit demo`` on the embedded default, the synthetic town.
 
-The recipe is :func:`mapkit.demo.run_demo`; this script is its stand-alone form for a checkout
+The recipe is :func:`mapkit.pipelines.demo.run_demo`; this script is its stand-alone form for a checkout
 (it imports this checkout's mapkit whatever is installed). In order:
 
 1. ``mapkit synth``: the town and its sessions (multi-session ROS 2 logs with exact truth)
@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's mapkit, whatever is installed
 
-from mapkit.demo import run_demo  # noqa: E402
+from mapkit.pipelines.demo import run_demo  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,11 +28,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's mapkit, whatever is installed
 
-from mapkit.build import build  # noqa: E402
-from mapkit.executor import use_executor  # noqa: E402
-from mapkit.index_vlad import build_vlad_index  # noqa: E402
-from mapkit.localize import evaluate_localization  # noqa: E402
-from mapkit.runio import atomic_write_text, write_json  # noqa: E402
+from mapkit.mapping.build import build  # noqa: E402
+from mapkit.core.executor import use_executor  # noqa: E402
+from mapkit.retrieval.index_vlad import build_vlad_index  # noqa: E402
+from mapkit.evaluation.localization import evaluate_localization  # noqa: E402
+from mapkit.core.runio import atomic_write_text, write_json  # noqa: E402
 from mapkit.synth import session_logs, synthesize  # noqa: E402
 
 CONFIGS = ROOT / "configs"

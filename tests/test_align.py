@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.align import (
+from mapkit.multisession.align import (
     AlignConfig,
     Edge,
     PoseGraph,
@@ -20,12 +20,12 @@ from mapkit.align import (
     load_tiles,
     register_clouds,
 )
-from mapkit.geodesy import LocalFrame
-from mapkit.geometry import make_pose, yaw_rotation
-from mapkit.imagedb import images_world_from_cam, read_images_csv, write_images_csv
-from mapkit.runio import mark_done, write_json
-from mapkit.semidense import SemiDenseMap
-from mapkit.trajectory import Trajectory
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
+from mapkit.core.runio import mark_done, write_json
+from mapkit.mapping.semidense import SemiDenseMap
+from mapkit.mapping.trajectory import Trajectory
 
 FRAME = LocalFrame(48.1, 11.5, 520.0)
 STREET_M = 160.0
@@ -234,7 +234,7 @@ def test_a_session_displaced_by_30m_is_not_merged(tmp_path, street_world):
 
 
 def test_align_needs_two_georeferenced_sessions(tmp_path, street_world):
-    from mapkit.errors import InputError
+    from mapkit.core.errors import InputError
 
     ws = tmp_path / "ws"
     make_workspace(ws, street_world, {"only": gps_error(0, 0, 0)})

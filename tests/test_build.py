@@ -8,11 +8,11 @@ import open3d as o3d
 import pycolmap
 import pytest
 
-from mapkit.build import build
+from mapkit.mapping.build import build
 from mapkit.cli import main
-from mapkit.errors import InputError
-from mapkit.imagedb import read_images_csv
-from mapkit.runio import is_done
+from mapkit.core.errors import InputError
+from mapkit.mapping.imagedb import read_images_csv
+from mapkit.core.runio import is_done
 
 N = 12
 
@@ -63,7 +63,7 @@ def test_interrupted_build_resumes_without_redoing_finished_stages(clip12, tmp_p
     def crash(self, *a, **k):
         raise RuntimeError("power cut while writing the image database")
 
-    monkeypatch.setattr("mapkit.imagedb.ImageDbWriter.close", crash)
+    monkeypatch.setattr("mapkit.mapping.imagedb.ImageDbWriter.close", crash)
     with pytest.raises(RuntimeError):
         build([clip12], ws, progress=False)
     s = ws / "sessions" / "clip12"

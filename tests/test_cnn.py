@@ -17,7 +17,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from mapkit.cnn import (  # noqa: E402
+from mapkit.places.cnn import (  # noqa: E402
     CnnConfig,
     OnnxDescriber,
     build_model,
@@ -29,12 +29,12 @@ from mapkit.cnn import (  # noqa: E402
     torch_describe,
     triplet_loss,
 )
-from mapkit.config import config_model, load_config  # noqa: E402
-from mapkit.errors import ConfigError, InputError  # noqa: E402
-from mapkit.patches import CNN_DOMAIN, density_comparison, pack_bits  # noqa: E402
-from mapkit.runio import write_json  # noqa: E402
-from mapkit.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402
-from mapkit.triplets import TripletDataset  # noqa: E402
+from mapkit.core.config import config_model, load_config  # noqa: E402
+from mapkit.core.errors import ConfigError, InputError  # noqa: E402
+from mapkit.places.patches import CNN_DOMAIN, density_comparison, pack_bits  # noqa: E402
+from mapkit.core.runio import write_json  # noqa: E402
+from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402
+from mapkit.places.triplets import TripletDataset  # noqa: E402
 
 TINY = CnnConfig(grid=8, conv1_channels=3, conv1_kernel=3, conv2_channels=4, hidden=16, dim=8)
 TINY_TRAIN = {"model": TINY.model_dump(), "triplet_set": 40, "batch_triplets": 5, "epochs": 3, "hard_every_epochs": 1,
@@ -226,7 +226,7 @@ def test_hard_negative_is_a_true_non_match_among_near_neighbours():
 def test_cnn_kind_through_the_structure_index(tiny_model, tmp_path):
     from test_index_structure import FAST, make_street_workspace
 
-    from mapkit.index_structure import StructureIndex, StructureIndexConfig, build_structure_index
+    from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index
 
     ws = tmp_path / "ws"
     maps = make_street_workspace(ws)
@@ -242,7 +242,7 @@ def test_cnn_kind_through_the_structure_index(tiny_model, tmp_path):
     cfg = StructureIndexConfig(kind="cnn", cnn_model=str(tiny_model))
     raw = describe_cnn(b.points_world, kp, obs - kp, cfg)
     np.testing.assert_allclose(idx.describe(b.points_world, kp, obs), idx.pca.transform(raw), atol=1e-5)
-    from mapkit.patches import voxel_grids
+    from mapkit.places.patches import voxel_grids
 
     occ, _, _ = voxel_grids(b.points_world, kp, obs - kp, CNN_DOMAIN, 8, packed=False)
     model, _ = load_torch_model(tiny_model)
@@ -257,7 +257,7 @@ def test_cnn_kind_through_the_structure_index(tiny_model, tmp_path):
 def test_cnn_as_a_method_of_the_places_evaluation(tiny_model, tmp_path):
     from test_index_structure import make_street_workspace
 
-    from mapkit.eval_places import evaluate_places
+    from mapkit.evaluation.places import evaluate_places
 
     ws = tmp_path / "ws"
     maps = make_street_workspace(ws)

@@ -4,11 +4,11 @@ import json
 
 import pytest
 
-from mapkit.config import TopicConfig, defaults_yaml, dump_config, load_config, resolve_topics
-from mapkit.errors import ConfigError, InputError
+from mapkit.core.config import TopicConfig, defaults_yaml, dump_config, load_config, resolve_topics
+from mapkit.core.errors import ConfigError, InputError
 from mapkit.io.mcap_log import McapLog, McapWriter
-from mapkit.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
-from mapkit.types import GpsFix, StreamKind
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
+from mapkit.core.types import GpsFix, StreamKind
 
 
 def test_yaml_overrides_defaults_and_round_trips(tmp_path):

@@ -10,15 +10,15 @@ import open3d as o3d
 import pytest
 from pyproj import Proj, Transformer
 
-from mapkit.align import load_tiles, write_tiles
+from mapkit.multisession.align import load_tiles, write_tiles
 from mapkit.cli import main
-from mapkit.errors import InputError
-from mapkit.geodesy import LocalFrame, crs_info, frame_from_ply_comments, parse_crs
-from mapkit.geometry import make_pose, yaw_rotation
-from mapkit.io.crs_export import export_crs, ply_georef, read_crs_trajectory, read_ply_header, write_crs_trajectory
+from mapkit.core.errors import InputError
+from mapkit.core.geodesy import LocalFrame, crs_info, frame_from_ply_comments, parse_crs
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.deploy.crs_export import export_crs, ply_georef, read_crs_trajectory, read_ply_header, write_crs_trajectory
 from mapkit.io.trajectory import read_tum
-from mapkit.runio import atomic_write_ply, write_json
-from mapkit.trajectory import Trajectory
+from mapkit.core.runio import atomic_write_ply, write_json
+from mapkit.mapping.trajectory import Trajectory
 
 FRAME = LocalFrame(51.7520209, -1.2577263, 61.25)  # UTM zone 30N, EPSG:32630
 UTM = 32630
@@ -98,7 +98,7 @@ def test_ply_is_written_by_numpy_and_read_by_open3d(tmp_path):
 
 
 def test_ply_write_with_a_short_file_is_not_renamed_into_place(tmp_path, monkeypatch):
-    import mapkit.runio as runio
+    import mapkit.core.runio as runio
 
     real = runio.os.fstat
 

@@ -10,11 +10,11 @@ import shutil
 import pytest
 
 from mapkit.cli import main
-from mapkit.demo import places_pairs, run_demo
-from mapkit.errors import InputError
-from mapkit.export import export_bundles, load_bundle
-from mapkit.index_vlad import VladIndex
-from mapkit.report import Section, markdown_to_html, render
+from mapkit.pipelines.demo import places_pairs, run_demo
+from mapkit.core.errors import InputError
+from mapkit.deploy.export import export_bundles, load_bundle
+from mapkit.retrieval.index_vlad import VladIndex
+from mapkit.report.html import Section, markdown_to_html, render
 
 
 #: the whole tiny main job (every stage on a small town) takes about a minute on 2 idle cores
@@ -26,7 +26,7 @@ def tiny_demo(tmp_path_factory):
 
 
 def test_tiny_main_job_runs_every_stage_with_non_empty_outputs(tiny_demo):
-    from mapkit.align import aligned_sessions
+    from mapkit.multisession.align import aligned_sessions
 
     out, m = tiny_demo
     status = {n: s["status"] for n, s in m["stages"].items()}

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mapkit.dsift import (
+from mapkit.retrieval.dsift import (
     DESCRIPTOR_DIM,
     DsiftConfig,
     dense_sift,
@@ -18,7 +18,7 @@ from mapkit.dsift import (
     scale_grids,
     sift_normalize,
 )
-from mapkit.errors import InputError
+from mapkit.core.errors import InputError
 
 
 def textured_image(seed: int, h: int = 120, w: int = 160) -> np.ndarray:

@@ -8,14 +8,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapkit.align import align_workspace
-from mapkit.demo import Demo, _index_vlad
-from mapkit.errors import InputError, MapkitError
-from mapkit.imagedb import write_images_csv
-from mapkit.index_structure import build_structure_index
-from mapkit.index_vlad import build_vlad_index
-from mapkit.runio import write_json
-from mapkit.semidense import SemiDenseMap
+from mapkit.multisession.align import align_workspace
+from mapkit.pipelines.demo import Demo, _index_vlad
+from mapkit.core.errors import InputError, MapkitError
+from mapkit.mapping.imagedb import write_images_csv
+from mapkit.places.index_structure import build_structure_index
+from mapkit.retrieval.index_vlad import build_vlad_index
+from mapkit.core.runio import write_json
+from mapkit.mapping.semidense import SemiDenseMap
 
 from test_align import FRAME, gps_error, make_workspace, street  # noqa: E402  (the synthetic street of boxes)
 from test_index_structure import street_map  # noqa: E402

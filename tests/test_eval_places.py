@@ -9,8 +9,8 @@ import warnings
 import numpy as np
 import pytest
 
-from mapkit.errors import InputError, InputWarning
-from mapkit.eval_places import (
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.evaluation.places import (
     best_f1,
     evaluate_places,
     nearest_l2,

@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.align import AlignConfig, _register_task, _SubmapClouds
-from mapkit.errors import ConfigError, InputError, InputWarning, MapkitError
-from mapkit.executor import (SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor)
-from mapkit.index_vlad import read_image
-from mapkit.semidense import build_semidense_map
+from mapkit.multisession.align import AlignConfig, _register_task, _SubmapClouds
+from mapkit.core.errors import ConfigError, InputError, InputWarning, MapkitError
+from mapkit.core.executor import (SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor)
+from mapkit.retrieval.index_vlad import read_image
+from mapkit.mapping.semidense import build_semidense_map
 from mapkit.synth import session_logs
 
 from test_align import street
@@ -256,7 +256,7 @@ def test_ray_keeps_the_contract(ray_executor):
 
 RAY_DRIVER = r"""
 import json, os, socket, sys
-from mapkit.executor import make_executor
+from mapkit.core.executor import make_executor
 
 def listening():  # inode -> (address, port) of the sockets in LISTEN state
     out = {}
@@ -421,7 +421,7 @@ TINY_TRAIN = {"sessions": [
 @pytest.fixture(scope="module")
 def tiny_workspace(tmp_path_factory) -> Path:
     """The synthetic ``tiny`` town's training drives, built (mapkit build: maps and image databases)."""
-    from mapkit.build import build
+    from mapkit.mapping.build import build
     from mapkit.synth import synthesize
 
     root = tmp_path_factory.mktemp("tiny")
@@ -432,7 +432,7 @@ def tiny_workspace(tmp_path_factory) -> Path:
 
 
 def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, tmp_path):
-    from mapkit.index_vlad import VladIndex, build_vlad_index
+    from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index
 
     from test_index_vlad import SMALL_VLAD
 
@@ -450,8 +450,8 @@ def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, 
 
 
 def test_vlad_encoding_reports_an_unreadable_image_as_its_input_error(tmp_path):
-    from mapkit.index_vlad import _map, _raw_task
-    from mapkit.vlad import VladEncoder
+    from mapkit.retrieval.index_vlad import _map, _raw_task
+    from mapkit.retrieval.vlad import VladEncoder
 
     from test_index_vlad import SMALL_VLAD
 
@@ -471,7 +471,7 @@ def _session_files(ws: Path) -> dict[str, bytes]:
 def test_sessions_built_in_parallel_equal_a_serial_build(tiny_workspace, tmp_path):
     import open3d as o3d
 
-    from mapkit.build import build
+    from mapkit.mapping.build import build
 
     logs = session_logs(tiny_workspace.parent / "town")
     with warnings.catch_warnings():
@@ -499,7 +499,7 @@ def test_sessions_built_in_parallel_equal_a_serial_build(tiny_workspace, tmp_pat
 
 def test_parallel_build_fixes_the_workspace_frame_first(tiny_workspace, tmp_path):
     """Given-origin georeferencing (a pose stream in ENU): every session in one frame, the one a serial build sets."""
-    from mapkit.build import build
+    from mapkit.mapping.build import build
 
     logs = session_logs(tiny_workspace.parent / "town")
     cfg = Path(__file__).resolve().parents[1] / "configs" / "build" / "mcvl-database.yaml"

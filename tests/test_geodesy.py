@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from pyproj import Geod
 
-from mapkit.errors import InputError
-from mapkit.geodesy import LocalFrame, UtmProjection, utm_epsg_for
+from mapkit.core.errors import InputError
+from mapkit.core.geodesy import LocalFrame, UtmProjection, utm_epsg_for
 
 
 @pytest.mark.parametrize(

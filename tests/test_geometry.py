@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mapkit import geometry as g
+from mapkit.core import geometry as g
 
 
 def _random_pose(rng):

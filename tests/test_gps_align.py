@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from mapkit.errors import InputError, InputWarning
-from mapkit.geometry import make_pose, make_sim3, transform_points, yaw_rotation
-from mapkit.gps_align import align_to_gps, associate_fixes
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geometry import make_pose, make_sim3, transform_points, yaw_rotation
+from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 
 
 def _curvy_drive(n=400):

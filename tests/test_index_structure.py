@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.errors import ConfigError, InputError
-from mapkit.geometry import make_pose, yaw_rotation
-from mapkit.index_structure import (
+from mapkit.core.errors import ConfigError, InputError
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.places.index_structure import (
     POSE_INTERPOLATED,
     POSE_KEYFRAME,
     POSE_NONE,
@@ -27,8 +27,8 @@ from mapkit.index_structure import (
     vote_many,
     _DESCRIBERS,
 )
-from mapkit.runio import write_json
-from mapkit.semidense import SemiDenseMap
+from mapkit.core.runio import write_json
+from mapkit.mapping.semidense import SemiDenseMap
 
 from test_align import STREET_M, street  # noqa: E402  (the street of boxes: fronts, side walls, poles, ground)
 
@@ -260,8 +260,8 @@ def test_unknown_session_is_an_input_error(street_ws, tmp_path):
 @pytest.mark.parametrize("kind", ["nbld", "m2dp"])
 def test_descriptors_are_identical_on_a_process_pool(street_ws, kind, monkeypatch):
     """Patch description goes through the run's executor: two spawned workers give the serial bits."""
-    import mapkit.index_structure as ix
-    from mapkit.executor import ProcessExecutor, use_executor
+    import mapkit.places.index_structure as ix
+    from mapkit.core.executor import ProcessExecutor, use_executor
 
     monkeypatch.setattr(ix, "_DESCRIBE_CHUNK", 100)  # several chunks, so that their order matters
     _, maps = street_ws

@@ -12,15 +12,15 @@ import cv2
 import numpy as np
 import pytest
 
-from mapkit.dsift import DsiftConfig
-from mapkit.errors import InputError
-from mapkit.eval_retrieval import self_retrieval_kitti
-from mapkit.geodesy import LocalFrame
-from mapkit.geometry import make_pose, yaw_rotation
-from mapkit.imagedb import write_images_csv
-from mapkit.index_vlad import (DATABASE_COLUMNS, FORMAT_VERSION, VladIndex, VladIndexConfig, build_vlad_index, encode_images,
+from mapkit.retrieval.dsift import DsiftConfig
+from mapkit.core.errors import InputError
+from mapkit.evaluation.retrieval import self_retrieval_kitti
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.mapping.imagedb import write_images_csv
+from mapkit.retrieval.index_vlad import (DATABASE_COLUMNS, FORMAT_VERSION, VladIndex, VladIndexConfig, build_vlad_index, encode_images,
                                read_database_csv)
-from mapkit.vlad import VladConfig
+from mapkit.retrieval.vlad import VladConfig
 
 from test_dsift import textured_image
 from test_vlad import shifted_and_brighter
@@ -275,7 +275,7 @@ def test_parallel_encoding_equals_serial(tmp_path, built):
 
 
 def test_encodings_cache_encodes_each_file_once_and_notices_a_changed_file(tmp_path, built, monkeypatch):
-    import mapkit.index_vlad as iv
+    import mapkit.retrieval.index_vlad as iv
 
     ws, out = built
     idx = VladIndex.load(out)

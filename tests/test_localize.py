@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.geometry import invert_pose
-from mapkit.index_vlad import VladIndex, build_vlad_index, read_session_images
-from mapkit.localize import LocalizeConfig, run_localizer
+from mapkit.core.geometry import invert_pose
+from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
+from mapkit.localization.localize import LocalizeConfig, run_localizer
 
 from test_index_vlad import PLACES, make_workspace, place_pose, small_config
 
@@ -36,8 +36,8 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-6) and np.allclose(np.linalg.det(R), 1.0)
 
     # beyond the paper: the multi-hypothesis preset on hits retrieved once and cached
-    from mapkit.config import load_config
-    from mapkit.localize import cached_query_all
+    from mapkit.core.config import load_config
+    from mapkit.localization.localize import cached_query_all
 
     paths = list(imgs.image_paths)
     ids, dist, cached = cached_query_all(index, paths, 4, tmp_path / "cache", "test-c")
@@ -57,7 +57,7 @@ PRESETS = Path(__file__).resolve().parents[1] / "configs" / "localize"
 
 
 def test_presets_load_and_paper_is_the_default():
-    from mapkit.config import load_config
+    from mapkit.core.config import load_config
 
     assert load_config(LocalizeConfig, PRESETS / "paper.yaml") == LocalizeConfig()
     odo = load_config(LocalizeConfig, PRESETS / "odometry.yaml")
@@ -97,7 +97,7 @@ class _CountingIndex:
 
 
 def test_hits_cache_serves_only_the_same_bundle_session_top_k_and_images(tmp_path):
-    from mapkit.localize import cached_query_all
+    from mapkit.localization.localize import cached_query_all
 
     (tmp_path / "bundle").mkdir()
     index = _CountingIndex(tmp_path / "bundle")
@@ -132,7 +132,7 @@ def test_hits_cache_serves_only_the_same_bundle_session_top_k_and_images(tmp_pat
 
 def test_cache_file_from_another_bundle_is_never_read(tmp_path):
     # a cache file copied (or renamed) under the key of another bundle: its content names its bundle
-    from mapkit.localize import bundle_fingerprint, cached_query_all
+    from mapkit.localization.localize import bundle_fingerprint, cached_query_all
 
     for name in ("a", "b"):
         (tmp_path / name).mkdir()
@@ -147,7 +147,7 @@ def test_cache_file_from_another_bundle_is_never_read(tmp_path):
 
 
 def test_hit_recall_known_answer(tmp_path):
-    from mapkit.localize import hit_recall
+    from mapkit.evaluation.localization import hit_recall
 
     index = _CountingIndex(tmp_path)  # database image i at x = 10 i
     ids = np.array([[0, 5, 9], [20, 21, 3], [7, -1, -1]])

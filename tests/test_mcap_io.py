@@ -11,12 +11,12 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from mapkit.errors import InputError, InputWarning
-from mapkit.geometry import make_pose, yaw_rotation
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geometry import make_pose, yaw_rotation
 from mapkit.io import open_log
 from mapkit.io import ros2
 from mapkit.io.mcap_log import McapLog, McapWriter
-from mapkit.types import (
+from mapkit.core.types import (
     CameraFrame,
     CameraInfo,
     FrameTransform,

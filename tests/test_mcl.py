@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mapkit.config import defaults_yaml, load_config
-from mapkit.errors import ConfigError
-from mapkit.geometry import average_rotations, is_rotation, make_pose, yaw_rotation
-from mapkit.measurement import Measurement, PoseHypotheses, matrix_from_euler, mean_shift_measurement
-from mapkit.mcl import (
+from mapkit.core.config import defaults_yaml, load_config
+from mapkit.core.errors import ConfigError
+from mapkit.core.geometry import average_rotations, is_rotation, make_pose, yaw_rotation
+from mapkit.retrieval.measurement import Measurement, PoseHypotheses, matrix_from_euler, mean_shift_measurement
+from mapkit.localization.mcl import (
     MclConfig,
     MonteCarloLocalizer,
     Particles,
@@ -242,7 +242,7 @@ def _mh_config(**mh) -> MclConfig:
 
 
 def test_mixture_likelihood_hand_built_case():
-    from mapkit.mcl import mixture_likelihood
+    from mapkit.localization.mcl import mixture_likelihood
 
     cfg = _mh_config(floor=0.1)  # kernel: Sigma_o's position part (5 m^2), rotation std sqrt(1e-3) rad
     hyp = PoseHypotheses(np.array([[0.0, 0, 0], [500.0, 0, 0]]), yaw_rotation(np.array([0.0, 1.0])), np.array([0.75, 0.25]))
@@ -262,8 +262,8 @@ def test_mixture_likelihood_hand_built_case():
 
 
 def test_kernel_matrix_matches_a_direct_computation(rng):
-    from mapkit.geometry import rotation_angle_rad
-    from mapkit.mcl import kernel_matrix
+    from mapkit.core.geometry import rotation_angle_rad
+    from mapkit.localization.mcl import kernel_matrix
 
     p = Particles.from_rotations(1e3 + rng.normal(scale=3.0, size=(50, 3)), Rotation.from_rotvec(rng.normal(scale=0.05, size=(50, 3))).as_matrix())
     H = Rotation.from_rotvec(rng.normal(scale=0.05, size=(7, 3))).as_matrix()
@@ -278,7 +278,7 @@ def test_kernel_matrix_matches_a_direct_computation(rng):
 
 
 def test_sampling_from_hypotheses_follows_their_weights():
-    from mapkit.mcl import sample_hypotheses
+    from mapkit.localization.mcl import sample_hypotheses
 
     cfg = _mh_config()
     hyp = PoseHypotheses(np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 100.0, 0]]), yaw_rotation(np.array([0.0, 1.0, 2.0])), np.array([0.5, 0.3, 0.2]))
@@ -291,7 +291,7 @@ def test_sampling_from_hypotheses_follows_their_weights():
 
 
 def test_mode_estimate_picks_the_heavier_mode():
-    from mapkit.mcl import mode_estimate
+    from mapkit.localization.mcl import mode_estimate
 
     rng = np.random.default_rng(0)
     pos = np.concatenate([rng.normal(scale=1.0, size=(700, 3)) + [0.0, 0, 0], rng.normal(scale=1.0, size=(300, 3)) + [200.0, 0, 0]])
@@ -345,7 +345,7 @@ def _preset_mcl(name: str) -> MclConfig:
     """The filter settings of configs/localize/NAME.yaml (the preset's odometry flag applied)."""
     from pathlib import Path
 
-    from mapkit.localize import LocalizeConfig
+    from mapkit.localization.localize import LocalizeConfig
 
     cfg = load_config(LocalizeConfig, Path(__file__).resolve().parents[1] / "configs" / "localize" / f"{name}.yaml")
     return cfg.mcl.model_copy(update={"odometry": cfg.mcl.odometry.model_copy(update={"enabled": cfg.odometry})})

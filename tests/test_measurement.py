@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mapkit.geometry import is_rotation, matrix_to_quat_wxyz, rotation_angle_rad, yaw_rotation
-from mapkit.measurement import EULER_SEQUENCE, Measurement, euler_from_matrix, matrix_from_euler, mean_shift_measurement
+from mapkit.core.geometry import is_rotation, matrix_to_quat_wxyz, rotation_angle_rad, yaw_rotation
+from mapkit.retrieval.measurement import EULER_SEQUENCE, Measurement, euler_from_matrix, matrix_from_euler, mean_shift_measurement
 
 
 def _blob(rng, centre, n, sigma=1.0):
@@ -128,7 +128,7 @@ def test_bad_input_is_refused(X, R, kw):
 # --- beyond the paper: the retrieved poses as hypotheses ----------------------------------------------
 
 def test_hit_weights_known_values():
-    from mapkit.measurement import hit_weights
+    from mapkit.retrieval.measurement import hit_weights
 
     d = np.array([0.5, 0.6, 0.9, np.inf])  # the last one is padding (index smaller than k)
     np.testing.assert_allclose(hit_weights(d, "uniform"), [1 / 3, 1 / 3, 1 / 3, 0])
@@ -143,7 +143,7 @@ def test_hit_weights_known_values():
 
 
 def test_pose_hypotheses_from_retrieval_drop_padding_and_read_quaternions():
-    from mapkit.measurement import PoseHypotheses
+    from mapkit.retrieval.measurement import PoseHypotheses
 
     X = np.array([[0.0, 0, 0], [10, 0, 0], [20, 0, 0]])
     R = yaw_rotation(np.array([0.0, 0.5, 1.0]))

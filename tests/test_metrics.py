@@ -4,8 +4,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from mapkit.geometry import make_pose, yaw_rotation
-from mapkit.metrics import distances_to_mesh, map_accuracy, trajectory_errors
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.evaluation.metrics import distances_to_mesh, map_accuracy, trajectory_errors
 
 
 def test_distances_to_a_known_box(rng):

@@ -3,7 +3,7 @@
 A wheel is built (offline, from a copy of the sources so that the checkout gets no build/ or
 egg-info) and checked to hold every file of configs/ and every module of mapkit; unzipped, it is
 imported by a Python that cannot see the checkout, which loads every preset and config through
-mapkit.presets and runs `mapkit synth --help`. An editable build must map mapkit.configs to configs/.
+mapkit.core.presets and runs `mapkit synth --help`. An editable build must map mapkit.configs to configs/.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import pytest
 
-from mapkit.errors import ConfigError
-from mapkit.presets import KINDS, preset_names, preset_path
+from mapkit.core.errors import ConfigError
+from mapkit.core.presets import KINDS, preset_names, preset_path
 
 ROOT = Path(__file__).resolve().parents[1]
 SKIP = shutil.ignore_patterns("__pycache__", "*.pyc")
@@ -78,8 +78,8 @@ INSTALLED = r"""
 import json, sys
 from pathlib import Path
 import mapkit
-from mapkit import presets
-from mapkit.config import config_model, load_config
+from mapkit.core import presets
+from mapkit.core.config import config_model, load_config
 from mapkit.synth.config import PRESETS, load_config as load_synth
 
 site = Path(sys.argv[1]).resolve()
@@ -120,7 +120,7 @@ from pathlib import Path
 sys.path.insert(0, sys.argv[1])  # before site-packages, which has the venv's own finder module of that name
 site.addsitedir(sys.argv[1])  # runs the editable wheel's .pth: it installs the wheel's import finder
 import mapkit
-from mapkit.presets import configs_dir, preset_path
+from mapkit.core.presets import configs_dir, preset_path
 src = Path(sys.argv[2]).resolve()
 assert Path(mapkit.__file__).resolve() == src / "mapkit" / "__init__.py", mapkit.__file__
 spec = importlib.util.find_spec("mapkit.configs")

@@ -18,8 +18,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from test_triplets import make_aligned_street  # noqa: E402
 
-from mapkit.patches import PatchDomain  # noqa: E402
-from mapkit.pointnetvlad import (  # noqa: E402
+from mapkit.places.patches import PatchDomain  # noqa: E402
+from mapkit.places.pointnetvlad import (  # noqa: E402
     PointNetVladConfig,
     export_pointnetvlad,
     export_triplets_pointnetvlad,
@@ -28,7 +28,7 @@ from mapkit.pointnetvlad import (  # noqa: E402
     remove_ground,
     unique_stamps,
 )
-from mapkit.triplets import TripletDataset  # noqa: E402
+from mapkit.places.triplets import TripletDataset  # noqa: E402
 
 CFG = {"n_triplets": 120, "tile_size_m": 40.0, "buffer_m": 8.0, "test_fraction": 0.3, "negative_min_distance_m": 40.0,
        "negative_pool": 40, "shard_patches": 64, "places_per_cell": 4, "keypoint_fraction": 0.02}
@@ -165,7 +165,7 @@ def test_their_scripts_find_every_file_and_the_pickles_hold(exported):
 
 
 def test_triplets_does_not_import_pointnetvlad():
-    code = "import sys, mapkit.triplets; assert 'mapkit.pointnetvlad' not in sys.modules; import mapkit.pointnetvlad"
+    code = "import sys, mapkit.places.triplets; assert 'mapkit.places.pointnetvlad' not in sys.modules; import mapkit.places.pointnetvlad"
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

@@ -16,13 +16,13 @@ import pytest
 import yaml
 
 from mapkit.cli import main
-from mapkit.errors import InputError, MapkitError
-from mapkit.geometry import interpolate_poses, invert_pose, make_pose
-from mapkit.info import summarize
+from mapkit.core.errors import InputError, MapkitError
+from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose
+from mapkit.io.info import summarize
 from mapkit.io import guess_format, open_log
 from mapkit.io.mcap_log import McapLog, McapWriter, Rosbag2Writer, rosbag2_mcap_files
 from mapkit.synth import gt_poses, session_log, session_logs, synthesize
-from mapkit.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, ImuSample, LidarScan, PoseSample, StreamKind
+from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, ImuSample, LidarScan, PoseSample, StreamKind
 
 T0 = 1_700_000_000_123_456_789
 
@@ -275,7 +275,7 @@ def _kiss_icp_cli() -> str | None:
 
 
 def test_kiss_icp_command_line_runs_on_the_session_folder(town, tmp_path):
-    from mapkit.trajectory import TrajectoryConfig, trajectory_from_lidar
+    from mapkit.mapping.trajectory import TrajectoryConfig, trajectory_from_lidar
 
     folder = session_log(town, "drive")
     assert _kiss_icp_cli(), "kiss-icp's command line (kiss_icp_pipeline) comes with mapkit's dependencies"

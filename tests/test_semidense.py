@@ -16,10 +16,10 @@ import pytest
 
 from scipy.spatial import cKDTree
 
-from mapkit.errors import InputError
-from mapkit.geometry import invert_pose, make_pose, transform_points
-from mapkit.metrics import map_accuracy
-from mapkit.semidense import (
+from mapkit.core.errors import InputError
+from mapkit.core.geometry import invert_pose, make_pose, transform_points
+from mapkit.evaluation.metrics import map_accuracy
+from mapkit.mapping.semidense import (
     KeyframePoints,
     SemiDenseConfig,
     SemiDenseMap,

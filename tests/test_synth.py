@@ -17,16 +17,16 @@ import cv2
 import numpy as np
 import pytest
 
-from mapkit.errors import ConfigError, MapkitError
-from mapkit.geodesy import LocalFrame
-from mapkit.geometry import interpolate_poses
+from mapkit.core.errors import ConfigError, MapkitError
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import interpolate_poses
 from mapkit.io.mcap_log import McapLog
 from mapkit.synth import (
     GpsErrorModel, camera_poses, extrinsics, gt_poses, load_config, load_world, session_log, session_logs, synthesize,
 )
 from mapkit.synth.config import GpsConfig, presets_dir
 from mapkit.synth.render import ground_truth_mesh_scene
-from mapkit.types import StreamKind
+from mapkit.core.types import StreamKind
 
 TOPICS = {
     "/camera/front/image": "sensor_msgs/CompressedImage",
@@ -158,8 +158,8 @@ def test_road_graph_is_a_town_not_a_grid():
 def test_tiny_drives_can_be_georeferenced_aligned_and_localized():
     """The tiny preset's own sessions (planned, not rendered): two or more training drives and a
     test drive, each long and bent enough for GPS to fix its heading (the extent check of
-    mapkit.gps_align, with margin), all on the same streets (alignment, triplets, localization)."""
-    from mapkit.gps_align import planarity
+    mapkit.mapping.gps_align, with margin), all on the same streets (alignment, triplets, localization)."""
+    from mapkit.mapping.gps_align import planarity
     from mapkit.synth.sessions import plan_sessions
     from mapkit.synth.world import build_town
 
@@ -289,7 +289,7 @@ def test_pixel_rays_hit_the_mesh_at_the_rendered_depth(tiny, world):
     an independent ray through a pixel (from the logged intrinsics) hits the mesh at its depth."""
     import open3d as o3d
 
-    from mapkit.synth._threads import single_thread_blas
+    from mapkit.core.threads import single_thread_blas
     from mapkit.synth.sessions import TOPIC_IMAGE
 
     s = world.sessions[2]  # night: lamps, headlights, noise
@@ -379,7 +379,7 @@ def test_imu_measures_gravity_and_the_turn_rate(tiny, world):
 def test_conditions_change_appearance_but_not_geometry(tiny, world):
     """Same place, sessions under different conditions: images differ strongly; the static scene is
     identical (depth differs at most where parked cars moved)."""
-    from mapkit.synth._threads import single_thread_blas
+    from mapkit.core.threads import single_thread_blas
 
     town = world.town()
     names = [s["name"] for s in world.sessions]
@@ -411,7 +411,7 @@ def _curve(n=60, dt_s=0.1):
 
 def test_external_trajectory_drives_a_session_with_the_town_around_it(tmp_path):
     from mapkit.io.trajectory import write_tum
-    from mapkit.geometry import make_pose, yaw_rotation
+    from mapkit.core.geometry import make_pose, yaw_rotation
 
     t, x, y = _curve()
     yaw = np.arctan2(np.gradient(y), np.gradient(x))

@@ -4,11 +4,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from mapkit.errors import InputError
-from mapkit.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
+from mapkit.core.errors import InputError
+from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
 from mapkit.io.mcap_log import McapLog, McapWriter
-from mapkit.trajectory import Trajectory, TrajectoryConfig, estimate_trajectory, trajectory_from_poses
-from mapkit.types import FrameTransform, LidarScan, PoseSample
+from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, estimate_trajectory, trajectory_from_poses
+from mapkit.core.types import FrameTransform, LidarScan, PoseSample
 
 T0 = 1_700_000_000_000_000_000
 BASE_FROM_LIDAR = make_pose(yaw_rotation(0.05), [0.8, 0.0, 1.9])
@@ -127,7 +127,7 @@ def test_trajectory_files_round_trip(tmp_path):
 
 
 def test_no_source_is_a_clear_error(tmp_path):
-    from mapkit.types import GpsFix
+    from mapkit.core.types import GpsFix
 
     with McapWriter(tmp_path / "g.mcap") as w:
         w.write("/gps", GpsFix(T0, 49.0, 8.4, 100.0))
@@ -141,9 +141,9 @@ def test_no_source_is_a_clear_error(tmp_path):
 @pytest.mark.realdata
 def test_camera_only_trajectory_of_the_real_clip_matches_truth_up_to_similarity(kitti_clip):
     """pycolmap on 20 real frames: after a Sim3 fit the path lies on KITTI's ground truth."""
-    from mapkit.geometry import transform_points, umeyama
+    from mapkit.core.geometry import transform_points, umeyama
     from mapkit.io.kitti import KittiOdometry
-    from mapkit.trajectory import trajectory_from_camera
+    from mapkit.mapping.trajectory import trajectory_from_camera
 
     cfg = TrajectoryConfig(source="camera")
     cfg.camera.max_images = 20

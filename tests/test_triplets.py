@@ -13,10 +13,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from test_align import gps_error, make_workspace, street  # noqa: E402
 
-from mapkit.align import align_workspace  # noqa: E402
-from mapkit.errors import InputError, MapkitError  # noqa: E402
-from mapkit.runio import DONE_MARKER, sha256_file  # noqa: E402
-from mapkit.triplets import (  # noqa: E402
+from mapkit.multisession.align import align_workspace  # noqa: E402
+from mapkit.core.errors import InputError, MapkitError  # noqa: E402
+from mapkit.core.runio import DONE_MARKER, sha256_file  # noqa: E402
+from mapkit.places.triplets import (  # noqa: E402
     ChunkSets,
     GridIndex,
     NoTripletsError,
@@ -97,7 +97,7 @@ def test_batched_patches_are_the_per_place_patches(aligned):
     clouds = [sessions[kp_session[j]].around(c, cfg.domain.patch_radius) for j, c in zip(pick, centres)]
     ref = make_patches(clouds, centres, obs, cfg)
     assert np.array_equal(np.diff(indptr), ref[3]) and ref[3].min() > 0
-    from mapkit.triplets import make_patches_csr
+    from mapkit.places.triplets import make_patches_csr
 
     got = make_patches_csr(pts, indptr, centres, obs, cfg)
     assert all(np.array_equal(a, b) for a, b in zip(got, ref))
@@ -180,7 +180,7 @@ def test_export_needs_an_alignment(tmp_path):
 
 
 def test_a_failed_export_keeps_the_earlier_dataset(aligned, tmp_path, monkeypatch):
-    import mapkit.triplets as tr
+    import mapkit.places.triplets as tr
 
     out = export_triplets(aligned, out=tmp_path / "t", overrides=CFG, progress=False)
     before = (out / "manifest.json").read_text()
@@ -199,7 +199,7 @@ def test_a_failed_export_keeps_the_earlier_dataset(aligned, tmp_path, monkeypatc
 def test_hdf5_shard_round_trip_with_plain_h5py(tmp_path):
     import h5py
 
-    from mapkit.patches import pack_bits
+    from mapkit.places.patches import pack_bits
 
     rng = np.random.default_rng(0)
     occ = pack_bits((rng.random((37, 32, 32, 32)) < 0.05).astype(np.uint8))

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mapkit.dsift import DsiftConfig, dense_sift
-from mapkit.errors import InputError, InputWarning
-from mapkit.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad
+from mapkit.retrieval.dsift import DsiftConfig, dense_sift
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad
 
 from test_dsift import textured_image
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-from ..errors import InputError
-from .base import DriveLog
+from mapkit.core.errors import InputError
+from mapkit.io.base import DriveLog
 
 #: reader name -> "module:Class"; each class has ``detect(path) -> bool``
 READERS: dict[str, str] = {
@@ -34,12 +34,12 @@ def guess_format(path: str | Path) -> str:
     if not path.exists():
         raise InputError(path, "no such file or folder")
     if path.is_file():
-        from .mcap_log import ROSBAG2_METADATA, is_mcap, is_rosbag2
+        from mapkit.io.mcap_log import ROSBAG2_METADATA, is_mcap, is_rosbag2
 
         if is_mcap(path) or (path.name == ROSBAG2_METADATA and is_rosbag2(path.parent)):
             return "mcap"
         raise InputError(path, "is a file but not an MCAP log (folders are read as rosbag2, KITTI, RobotCar or generic layouts)")
-    from .mcap_log import is_rosbag2
+    from mapkit.io.mcap_log import is_rosbag2
 
     if is_rosbag2(path):
         return "mcap"  # its storage is checked on opening: mcap is read, other storage is a clear error

@@ -14,8 +14,8 @@ from collections import Counter
 from pathlib import Path
 from typing import Iterable, Iterator, Optional
 
-from ..errors import InputWarning
-from ..types import CameraInfo, FrameTransform, Message, StreamInfo, StreamKind
+from mapkit.core.errors import InputWarning
+from mapkit.core.types import CameraInfo, FrameTransform, Message, StreamInfo, StreamKind
 
 MAX_WARNINGS_PER_STREAM = 5
 
@@ -77,7 +77,7 @@ class DriveLog(ABC):
         if topic is not None:
             stream = next((s for s in self.streams() if s.topic == topic), None)
             if stream is not None and stream.kind != kind:
-                from ..errors import InputError
+                from mapkit.core.errors import InputError
 
                 raise InputError(self.path, f"topic {topic!r} carries {stream.kind.value}, not {kind.value}", field="topic")
         for msg in self.messages(kinds=None if topic is not None else [kind], topics=None if topic is None else [topic]):
@@ -132,7 +132,7 @@ class DriveLog(ABC):
             known = {s.topic for s in streams}
             for t in topics:
                 if t not in known:
-                    from ..errors import InputError
+                    from mapkit.core.errors import InputError
 
                     raise InputError(self.path, f"no topic {t!r} in this log (topics: {sorted(known)})", field="topic")
                 wanted.add(t)

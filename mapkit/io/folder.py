@@ -46,9 +46,9 @@ from typing import Callable, Iterable, Iterator, Optional, Sequence
 import cv2
 import numpy as np
 
-from ..errors import InputError
-from ..geometry import make_pose, quat_wxyz_to_matrix
-from ..types import (
+from mapkit.core.errors import InputError
+from mapkit.core.geometry import make_pose, quat_wxyz_to_matrix
+from mapkit.core.types import (
     CameraFrame,
     CameraInfo,
     FrameTransform,
@@ -60,8 +60,8 @@ from ..types import (
     StreamInfo,
     StreamKind,
 )
-from .base import DriveLog
-from .trajectory import seconds_to_ns  # noqa: F401  (re-exported: the folder readers parse stamps with it)
+from mapkit.io.base import DriveLog
+from mapkit.io.trajectory import seconds_to_ns  # noqa: F401  (re-exported: the folder readers parse stamps with it)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 

@@ -30,10 +30,10 @@ from typing import Iterator, Optional, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..errors import InputError, InputWarning
-from ..geometry import invert_pose, make_pose, matrix_to_quat_wxyz
-from ..types import CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, Message, PoseSample, StreamKind
-from .folder import (
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geometry import invert_pose, make_pose, matrix_to_quat_wxyz
+from mapkit.core.types import CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, Message, PoseSample, StreamKind
+from mapkit.io.folder import (
     FolderLayoutLog,
     ImageLayout,
     Wanted,
@@ -42,7 +42,7 @@ from .folder import (
     seconds_to_ns,
     stream_info,
 )
-from .trajectory import read_kitti_poses
+from mapkit.io.trajectory import read_kitti_poses
 
 #: KITTI recorded every sensor at 10 Hz (Geiger et al., IJRR 2013, Sec. 2)
 NOMINAL_PERIOD_NS = 100_000_000

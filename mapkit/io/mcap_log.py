@@ -25,8 +25,8 @@ from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
-from ..errors import InputError, InputWarning
-from ..types import (
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.types import (
     CameraFrame,
     CameraInfo,
     FrameTransform,
@@ -38,9 +38,9 @@ from ..types import (
     StreamInfo,
     StreamKind,
 )
-from . import ros2
-from ..runio import atomic_write_text
-from .base import DriveLog
+from mapkit.io import ros2
+from mapkit.core.runio import atomic_write_text
+from mapkit.io.base import DriveLog
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: the metadata file that makes a folder a rosbag2 bag

@@ -56,10 +56,10 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..errors import InputError, InputWarning
-from ..geometry import make_pose, yaw_rotation
-from ..types import GpsFix, GpsStatus, LidarScan, PoseSample, StreamKind
-from .folder import CsvRow, CsvTable, FolderLayoutLog, ImageConvert, probe_image
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.core.types import GpsFix, GpsStatus, LidarScan, PoseSample, StreamKind
+from mapkit.io.folder import CsvRow, CsvTable, FolderLayoutLog, ImageConvert, probe_image
 
 #: name, image folder, timestamps file, OpenCV conversion of its Bayer pattern (SDK image.py)
 CAMERAS: tuple[tuple[str, str, str, int], ...] = (

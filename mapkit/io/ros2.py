@@ -14,9 +14,9 @@ from typing import Any, Optional
 import cv2
 import numpy as np
 
-from ..errors import InputError
-from ..geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
-from ..types import (
+from mapkit.core.errors import InputError
+from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from mapkit.core.types import (
     CameraFrame,
     CameraInfo,
     FrameTransform,

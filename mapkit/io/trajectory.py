@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
-from ..runio import atomic_write_text
+from mapkit.core.errors import InputError
+from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
+from mapkit.core.runio import atomic_write_text
 
 _NS_PER_S = Decimal(1_000_000_000)
 

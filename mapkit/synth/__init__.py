@@ -60,14 +60,14 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import ConfigError, MapkitError
-from ..io.mcap_log import ROSBAG2_METADATA, is_rosbag2
-from ..geodesy import LocalFrame
-from ..io.trajectory import read_tum
-from ..runio import atomic_write_text, config_hash, is_done, mark_done, write_json
-from .config import FORMAT_VERSION, PRESETS, SynthConfig, dump_yaml, load_config
-from .sensors import GpsErrorModel, extrinsics, intrinsics
-from .world import RoadGraph, read_ply, read_roads
+from mapkit.core.errors import ConfigError, MapkitError
+from mapkit.io.mcap_log import ROSBAG2_METADATA, is_rosbag2
+from mapkit.core.geodesy import LocalFrame
+from mapkit.io.trajectory import read_tum
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
+from mapkit.synth.config import FORMAT_VERSION, PRESETS, SynthConfig, dump_yaml, load_config
+from mapkit.synth.sensors import GpsErrorModel, extrinsics, intrinsics
+from mapkit.synth.world import RoadGraph, read_ply, read_roads
 
 __all__ = [
     "synthesize", "load_world", "gt_poses", "camera_poses", "World", "load_config", "SynthConfig", "PRESETS",
@@ -131,10 +131,10 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
     the town generated around it; RobotCar files with latitude/longitude also move the origin there.
     ``overrides`` is a mapping merged over the preset and ``config`` (as a YAML file would be).
     """
-    from ..runio import sha256_file
-    from .sessions import plan_sessions, read_external_trajectory, write_session
-    from .world import build_town, write_ply, write_roads
-    from ._threads import single_thread_blas
+    from mapkit.core.runio import sha256_file
+    from mapkit.synth.sessions import plan_sessions, read_external_trajectory, write_session
+    from mapkit.synth.world import build_town, write_ply, write_roads
+    from mapkit.core.threads import single_thread_blas
 
     t_start = time.perf_counter()
     cfg = load_config(preset, config, seed, overrides)
@@ -230,8 +230,8 @@ _WORKER: dict = {}
 
 
 def _worker_init(cfg_json: str, trajectory: Optional[str], progress: Optional[bool], nthreads: int) -> None:
-    from .sessions import plan_sessions, read_external_trajectory
-    from .world import build_town
+    from mapkit.synth.sessions import plan_sessions, read_external_trajectory
+    from mapkit.synth.world import build_town
 
     cfg = SynthConfig.model_validate_json(cfg_json)
     ext = read_external_trajectory(Path(trajectory)) if trajectory else None
@@ -240,8 +240,8 @@ def _worker_init(cfg_json: str, trajectory: Optional[str], progress: Optional[bo
 
 
 def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
-    from ._threads import single_thread_blas
-    from .sessions import write_session
+    from mapkit.core.threads import single_thread_blas
+    from mapkit.synth.sessions import write_session
 
     with single_thread_blas():
         m = write_session(_WORKER["town"], _WORKER["plans"][index], _WORKER["cfg"], Path(out), _WORKER["progress"],
@@ -255,7 +255,7 @@ def _render_parallel(cfg: SynthConfig, trajectory, out: Path, todo: list, worker
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from .render import available_cores
+    from mapkit.synth.render import available_cores
 
     nthreads = max(1, available_cores() // workers)
     ctx = mp.get_context("spawn")
@@ -282,7 +282,7 @@ def _external_xy(ext) -> np.ndarray:
 def _pictures(out: Path, town, plans) -> None:
     import cv2
 
-    from .pictures import draw_contact_sheet, draw_map
+    from mapkit.synth.pictures import draw_contact_sheet, draw_map
 
     routes = [{"name": p.name, "role": p.config.role, "condition": p.conditions.label, "time": p.local_start.strftime("%H:%M"),
                "xy": p.drive.world_from_base[::10, :2, 3]} for p in plans]
@@ -349,8 +349,8 @@ class World:
 
     def town(self):
         """The generator's Town (with texture attributes), regenerated from the config and checked."""
-        from .sessions import read_external_trajectory
-        from .world import build_town
+        from mapkit.synth.sessions import read_external_trajectory
+        from mapkit.synth.world import build_town
 
         ext_xy = None
         src = self.sessions[0]["trajectory_source"] if self.sessions else "route"
@@ -364,8 +364,8 @@ class World:
 
     def renderer(self, session: str, town=None):
         """A Renderer of this world with ``session``'s parked cars (to re-render any pose)."""
-        from .render import Renderer
-        from .sessions import session_parked_cars
+        from mapkit.synth.render import Renderer
+        from mapkit.synth.sessions import session_parked_cars
 
         town = town or self.town()
         parked = session_parked_cars(town, int(self.session(session)["seed"]))
@@ -375,7 +375,7 @@ class World:
         """The session's appearance conditions (sun, weather, exposure...)."""
         import datetime as dt
 
-        from .appearance import make_conditions
+        from mapkit.synth.appearance import make_conditions
 
         s = self.session(session)
         sc = next(x for x in self.config.sessions if x.name == session) if any(x.name == session for x in self.config.sessions) else None
@@ -386,7 +386,7 @@ class World:
 
 def load_world(path: str | Path) -> World:
     """Read a synthesized town's world folder (raises MapkitError when it is incomplete)."""
-    from .config import validate
+    from mapkit.synth.config import validate
 
     import yaml
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .world import Mat
+from mapkit.synth.world import Mat
 
 F32 = np.float32
 

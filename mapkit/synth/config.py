@@ -1,7 +1,7 @@
 """Typed configuration of the synthetic town: pydantic models, presets and YAML overrides.
 
 The presets live in ``configs/synth/<name>.yaml`` of the source tree, installed with the package
-(:mod:`mapkit.presets`); each of their values carries a comment naming its source (an MCVL or
+(:mod:`mapkit.core.presets`); each of their values carries a comment naming its source (an MCVL or
 semi-dense paper section, a sensor datasheet, or a mapkit choice with its reason). A user YAML is
 merged over the preset (mappings key by key, lists replaced whole) and the result validated here;
 an unknown or ill-typed field raises a ``ConfigError`` naming it. The resolved config is written
@@ -17,8 +17,9 @@ from typing import Any, Literal, Optional
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from ..errors import ConfigError
-from ..presets import configs_dir, preset_path
+from mapkit.core.config import deep_merge
+from mapkit.core.errors import ConfigError
+from mapkit.core.presets import configs_dir, preset_path
 
 FORMAT_VERSION = 1
 PRESETS = ("tiny", "demo", "benchmark")
@@ -229,12 +230,6 @@ def _read_yaml(path: Path, what: str) -> dict:
     return data
 
 
-def deep_merge(base: dict, override: dict) -> dict:
-    """``override`` over ``base``: mappings merge key by key, everything else (lists too) replaces."""
-    out = dict(base)
-    for k, v in override.items():
-        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
 
 
 def validate(data: dict, source: str) -> SynthConfig:

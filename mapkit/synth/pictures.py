@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..runio import atomic_path
-from .world import Mat, Town
+from mapkit.core.runio import atomic_path
+from mapkit.synth.world import Mat, Town
 
 
 def _figure(figsize):

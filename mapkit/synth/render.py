@@ -21,10 +21,10 @@ from typing import Optional
 import cv2
 import numpy as np
 
-from .appearance import F32, Conditions, Hits, TriangleTable, dot3, f32, sky_radiance, surface, to_srgb8
-from .config import CameraConfig, LidarConfig
-from .sensors import intrinsics, pixel_rays_camera
-from .world import Geometry, Mat, Town
+from mapkit.synth.appearance import F32, Conditions, Hits, TriangleTable, dot3, f32, sky_radiance, surface, to_srgb8
+from mapkit.synth.config import CameraConfig, LidarConfig
+from mapkit.synth.sensors import intrinsics, pixel_rays_camera
+from mapkit.synth.world import Geometry, Mat, Town
 
 SHADOW_BIAS_M = 0.02
 LAMP_INTENSITY = 40.0

@@ -14,8 +14,8 @@ import numpy as np
 from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
-from ..geometry import make_pose
-from .config import CameraConfig, GpsConfig, ImuConfig, MountConfig, SynthConfig
+from mapkit.core.geometry import make_pose
+from mapkit.synth.config import CameraConfig, GpsConfig, ImuConfig, MountConfig, SynthConfig
 
 BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 GRAVITY_M_S2 = 9.80665

@@ -7,7 +7,7 @@ slow wander, turns on fillets at junctions, and follows a speed profile limited 
 acceleration in curves. Body roll and pitch follow lateral and longitudinal acceleration.
 
 Ground truth is sampled at ``motion.ground_truth_rate_hz``; every sensor pose is interpolated
-from these samples (linear position, slerp rotation, ``mapkit.geometry.interpolate_poses``), so
+from these samples (linear position, slerp rotation, ``mapkit.core.geometry.interpolate_poses``), so
 that the ``.gt.tum`` file reproduces every sensor pose exactly.
 """
 
@@ -26,19 +26,19 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation
 
-from ..errors import ConfigError, InputError
-from ..geometry import interpolate_poses, make_pose
-from ..io.mcap_log import Rosbag2Writer
-from ..io.trajectory import read_kitti_poses, read_tum, write_tum
-from ..types import CameraFrame, CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, PoseSample
-from . import session_log_relpath
-from .appearance import Conditions, make_conditions
-from .config import SessionConfig, SynthConfig
-from .sensors import (
+from mapkit.core.errors import ConfigError, InputError
+from mapkit.core.geometry import interpolate_poses, make_pose
+from mapkit.io.mcap_log import Rosbag2Writer
+from mapkit.io.trajectory import read_kitti_poses, read_tum, write_tum
+from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, PoseSample
+from mapkit.synth import session_log_relpath
+from mapkit.synth.appearance import Conditions, make_conditions
+from mapkit.synth.config import SessionConfig, SynthConfig
+from mapkit.synth.sensors import (
     FRAME_BASE, FRAME_CAMERA, FRAME_GPS, FRAME_IMU, FRAME_LIDAR, FRAME_WORLD, GpsErrorModel, extrinsics, imu_from_poses,
     intrinsics,
 )
-from .world import DRIVE_LANE_CENTER_M, Mat, RoadGraph, Town, parked_cars, write_ply
+from mapkit.synth.world import DRIVE_LANE_CENTER_M, Mat, RoadGraph, Town, parked_cars, write_ply
 
 TOPIC_IMAGE = "/camera/front/image"
 TOPIC_CAMERA_INFO = "/camera/front/camera_info"
@@ -437,7 +437,7 @@ def auto_sessions(cfg: SynthConfig, rng: np.random.Generator) -> list[SessionCon
         mm = int((hours[k] - hh) * 60)
         date = dates[k % len(dates)]
         lt = _local_datetime(date, f"{hh:02d}:{mm:02d}", cfg.origin.timezone)
-        from .appearance import sun_position
+        from mapkit.synth.appearance import sun_position
         _, el = sun_position(lt.astimezone(dt.timezone.utc), cfg.origin.lat_deg, cfg.origin.lon_deg)
         out.append(SessionConfig(
             name=f"train-{k + 1:03d}", role="train", date=date, time=f"{hh:02d}:{mm:02d}", weather=weathers[k],
@@ -520,7 +520,7 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     import cv2
     from tqdm import tqdm
 
-    from .render import Renderer
+    from mapkit.synth.render import Renderer
 
     sess_dir = out_dir / "sessions"
     sess_dir.mkdir(parents=True, exist_ok=True)
@@ -598,7 +598,7 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
                 w.write(TOPIC_CAMERA_INFO, CameraInfo(info.camera, info.width, info.height, K, info.distortion_model, info.D, stamp))
                 w.write(TOPIC_IMAGE, CameraFrame(stamp, FRAME_CAMERA, frame.rgb, encoding="rgb8"), compress=compress)
                 if i == keep_frame:
-                    from ..runio import atomic_path
+                    from mapkit.core.runio import atomic_path
 
                     pic = out_dir / "pictures" / "frames" / f"{name}.png"
                     pic.parent.mkdir(parents=True, exist_ok=True)

@@ -23,9 +23,9 @@ from typing import Optional
 
 import numpy as np
 
-from ..geodesy import LocalFrame
-from ..runio import atomic_path, atomic_write_text, to_json
-from .config import SynthConfig, TownConfig
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.runio import atomic_path, atomic_write_text, to_json
+from mapkit.synth.config import SynthConfig, TownConfig
 
 ROAD_Z = 0.0
 GROUND_Z = -0.02

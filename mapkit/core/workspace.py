@@ -1,0 +1,296 @@
+"""The workspace: every path of a mapkit project folder, spelled in one place.
+
+A workspace holds one folder per drive (session) and the multi-session stages built on them::
+
+    WORKSPACE/
+      origin.json                 the local ENU frame (geodetic origin) of every map here
+      build_config.yaml           the resolved build config
+      metrics.json                the build's per-session summary
+      eval_build.json, .md        mapkit eval build (synthetic truth)
+      sessions/<name>/            one drive: mapkit build
+        config.yaml, metrics.json
+        trajectory/               odometry (trajectory.npz, TUM, KITTI)
+        georef/                   GPS-aligned trajectory_enu/, gps_alignment.json
+        map/                      semi-dense map: points.ply, observations.npz
+        imagedb/                  images/, images.csv, colmap/
+      align/                      mapkit align; .done lists the sessions it holds
+        sessions/<name>/          trajectory/, map/, images.csv in the common frame
+        tiles/                    merged map in UTM tiles
+        pairs.json, registrations.json, qa.md, eval_align.json, .md
+      triplets/                   mapkit triplets
+      cnn/                        mapkit train
+      indexes/vlad/               mapkit index vlad
+      indexes/structure-<kind>/   mapkit index structure
+      localize/                   mapkit eval localize (cache/ holds retrieved hits)
+      eval/places/                mapkit eval places
+
+Stages take a :class:`Workspace` (or its root) and return the paths they wrote; no other module
+joins workspace paths by hand. A session's folders are a :class:`SessionDirs`, its aligned
+counterpart an :class:`AlignedDirs`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional, Union
+
+from mapkit.core.errors import InputError
+from mapkit.core.geodesy import LocalFrame
+
+#: the workspace's local frame; every map and pose in the workspace is in this ENU frame
+ORIGIN = "origin.json"
+DONE = ".done"
+
+Stage = Literal["trajectory", "georef", "map", "imagedb"]
+MapSource = Literal["align", "build"]
+
+
+@dataclass(frozen=True)
+class SessionDirs:
+    """The folders ``mapkit build`` writes for one session (``WORKSPACE/sessions/<name>``)."""
+
+    root: Path
+
+    @property
+    def name(self) -> str:
+        return self.root.name
+
+    @property
+    def config(self) -> Path:
+        return self.root / "config.yaml"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def trajectory(self) -> Path:
+        return self.root / "trajectory"
+
+    @property
+    def georef(self) -> Path:
+        return self.root / "georef"
+
+    @property
+    def georef_trajectory(self) -> Path:
+        """The GPS-aligned trajectory (workspace ENU), a :class:`~mapkit.mapping.trajectory.Trajectory` folder."""
+        return self.georef / "trajectory_enu"
+
+    @property
+    def gps_alignment(self) -> Path:
+        return self.georef / "gps_alignment.json"
+
+    @property
+    def map(self) -> Path:
+        return self.root / "map"
+
+    @property
+    def imagedb(self) -> Path:
+        return self.root / "imagedb"
+
+    @property
+    def images_csv(self) -> Path:
+        return self.imagedb / "images.csv"
+
+    def stage(self, stage: Stage) -> Path:
+        return getattr(self, stage)
+
+    def has(self, stage: Stage) -> bool:
+        """The stage finished (its ``.done`` marker exists)."""
+        return (self.stage(stage) / DONE).is_file()
+
+
+@dataclass(frozen=True)
+class AlignedDirs:
+    """One session after ``mapkit align`` (``WORKSPACE/align/sessions/<name>``)."""
+
+    root: Path
+
+    @property
+    def name(self) -> str:
+        return self.root.name
+
+    @property
+    def trajectory(self) -> Path:
+        return self.root / "trajectory"
+
+    @property
+    def map(self) -> Path:
+        return self.root / "map"
+
+    @property
+    def images_csv(self) -> Path:
+        return self.root / "images.csv"
+
+    @property
+    def submaps(self) -> Path:
+        return self.root / "submaps.json"
+
+
+class Workspace:
+    """A mapkit workspace folder. Cheap to make: nothing is read until asked for."""
+
+    def __init__(self, root: Union[str, os.PathLike, "Workspace"]):
+        self.root = Path(root.root if isinstance(root, Workspace) else root)
+
+    def __repr__(self) -> str:
+        return f"Workspace({str(self.root)!r})"
+
+    def __fspath__(self) -> str:
+        return str(self.root)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Workspace) and self.root == other.root
+
+    def __hash__(self) -> int:
+        return hash(self.root)
+
+    # ------------------------------------------------------------------ top level
+    @property
+    def origin(self) -> Path:
+        return self.root / ORIGIN
+
+    @property
+    def build_config(self) -> Path:
+        return self.root / "build_config.yaml"
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.json"
+
+    @property
+    def eval_build_json(self) -> Path:
+        return self.root / "eval_build.json"
+
+    @property
+    def eval_build_md(self) -> Path:
+        return self.root / "eval_build.md"
+
+    def frame(self) -> Optional[LocalFrame]:
+        """The workspace's local frame; None while no session is georeferenced."""
+        if not self.origin.is_file():
+            return None
+        try:
+            return LocalFrame.from_dict(json.loads(self.origin.read_text()))
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            raise InputError(self.origin, f"not a valid frame description ({exc})") from None
+
+    def require_frame(self, why: str = "run mapkit build on a log with GPS first") -> LocalFrame:
+        """The workspace's local frame, or one clear error naming ``origin.json``."""
+        frame = self.frame()
+        if frame is None:
+            raise InputError(self.origin, f"no such file: the workspace is not georeferenced ({why})")
+        return frame
+
+    # ------------------------------------------------------------------ sessions
+    @property
+    def sessions_dir(self) -> Path:
+        return self.root / "sessions"
+
+    def session(self, name: str) -> SessionDirs:
+        return SessionDirs(self.sessions_dir / name)
+
+    def session_names(self, stage: Optional[Stage] = None) -> list[str]:
+        """Sessions in the workspace, sorted; with ``stage``, only those whose stage finished."""
+        if not self.sessions_dir.is_dir():
+            return []
+        names = sorted(p.name for p in self.sessions_dir.iterdir() if p.is_dir())
+        return names if stage is None else [n for n in names if self.session(n).has(stage)]
+
+    def sessions_with_images(self) -> list[str]:
+        """Sessions whose image database has a table (``imagedb/images.csv``)."""
+        return [n for n in self.session_names() if self.session(n).images_csv.is_file()]
+
+    # ------------------------------------------------------------------ multi-session alignment
+    @property
+    def align_dir(self) -> Path:
+        return self.root / "align"
+
+    @property
+    def align_done(self) -> Path:
+        return self.align_dir / DONE
+
+    def aligned(self, name: str) -> AlignedDirs:
+        return AlignedDirs(self.align_dir / "sessions" / name)
+
+    @property
+    def tiles_dir(self) -> Path:
+        return self.align_dir / "tiles"
+
+    def align_record(self) -> dict:
+        """The finished alignment's ``.done`` record ({} when align has not finished)."""
+        if not self.align_done.is_file():
+            return {}
+        try:
+            record = json.loads(self.align_done.read_text())
+        except json.JSONDecodeError:
+            return {}
+        return record if isinstance(record, dict) else {}
+
+    def aligned_sessions(self) -> list[str]:
+        """Sessions that a finished ``mapkit align`` holds (listed in ``align/.done``)."""
+        return list(self.align_record().get("sessions", []))
+
+    def session_map(self, name: str, prefer_aligned: bool = True) -> tuple[Path, MapSource]:
+        """(map folder, source) of session ``name``: ``align`` (one common frame for all sessions)
+        when a finished ``mapkit align`` holds it, else ``build``."""
+        aligned = self.aligned(name).map
+        if prefer_aligned and name in self.aligned_sessions() and (aligned / "observations.npz").is_file():
+            return aligned, "align"
+        own = self.session(name).map
+        if (own / "observations.npz").is_file():
+            return own, "build"
+        raise InputError(own, f"session {name!r} has no semi-dense map (run mapkit build / align)", field="sessions")
+
+    def sessions_with_maps(self) -> list[str]:
+        """Sessions with a semi-dense map, built or aligned, sorted."""
+        names = set()
+        for base in (self.align_dir / "sessions", self.sessions_dir):
+            if base.is_dir():
+                names |= {p.name for p in base.iterdir() if (p / "map" / "observations.npz").is_file()}
+        return sorted(names)
+
+    def session_images_csv(self, name: str, prefer_aligned: bool = True) -> Path:
+        """Session ``name``'s image table: the aligned poses when align holds the session, else the built ones."""
+        aligned = self.aligned(name).images_csv
+        if prefer_aligned and name in self.aligned_sessions() and aligned.is_file():
+            return aligned
+        return self.session(name).images_csv
+
+    # ------------------------------------------------------------------ later stages
+    @property
+    def triplets_dir(self) -> Path:
+        return self.root / "triplets"
+
+    @property
+    def cnn_dir(self) -> Path:
+        return self.root / "cnn"
+
+    @property
+    def indexes_dir(self) -> Path:
+        return self.root / "indexes"
+
+    @property
+    def vlad_index(self) -> Path:
+        return self.indexes_dir / "vlad"
+
+    def structure_index(self, kind: str) -> Path:
+        return self.indexes_dir / f"structure-{kind}"
+
+    @property
+    def localize_dir(self) -> Path:
+        return self.root / "localize"
+
+    @property
+    def eval_dir(self) -> Path:
+        return self.root / "eval"
+
+    @property
+    def places_eval_dir(self) -> Path:
+        return self.eval_dir / "places"
+
+
+__all__ = ["AlignedDirs", "DONE", "ORIGIN", "SessionDirs", "Workspace"]

@@ -1,0 +1,1 @@
+"""What leaves the workspace: verified index bundles and maps and trajectories in another CRS."""

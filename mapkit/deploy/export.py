@@ -1,0 +1,168 @@
+"""``mapkit index export``: a workspace's indexes as one deployable folder.
+
+The export holds one self-describing sub-folder per index (VLAD, structure NBLD / M2DP / CNN),
+each the index's own bundle with its own manifest and checksums, and a top-level
+``manifest.json`` that says what is there: the export's format version, per index its kind,
+format version, parameters, the CRS and origin of its poses, its source sessions, and the sha256
+of its manifest (which in turn checksums each of its files). Files are hard-linked where
+possible, so an export costs no space on the workspace's disk.
+
+:func:`load_bundle` is the deployment-side entry point: it refuses an unknown export format
+version, checks every index's manifest against the top-level one, verifies every file's
+checksum, and returns the loaded indexes by name.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+from mapkit import __version__
+from mapkit.core.bundle import MANIFEST, building, link_or_copy, load_manifest
+from mapkit.core.errors import InputError
+from mapkit.core.runio import sha256_file, write_json
+
+FORMAT_VERSION = 1
+KIND = "mapkit deployment bundle"
+
+#: the index kinds an export holds, as their manifests name them
+_VLAD, _STRUCTURE = "mapkit VLAD index", "mapkit structure index"
+
+
+def _loader(kind: str):
+    """The ``load(path, verify)`` of an index kind (it checks the kind's own format version), or None."""
+    if kind == _VLAD:
+        from mapkit.retrieval.index_vlad import VladIndex
+
+        return VladIndex.load
+    if kind == _STRUCTURE:
+        from mapkit.places.index_structure import StructureIndex
+
+        return StructureIndex.load
+    return None
+
+
+def find_indexes(workspace: str | Path) -> dict[str, Path]:
+    """Finished index bundles under ``WORKSPACE/indexes`` (``vlad``, ``structure-nbld``, ...), by folder name."""
+    root = Path(workspace) / "indexes"
+    found = {}
+    if root.is_dir():
+        for p in sorted(root.iterdir()):
+            if p.is_dir() and not p.name.startswith(".") and (p / MANIFEST).is_file():
+                found[p.name] = p
+    return found
+
+
+def _index_entry(name: str, src: Path, origin: Optional[dict]) -> dict:
+    m = json.loads((src / MANIFEST).read_text())
+    kind = m.get("kind")
+    load = _loader(kind)
+    if load is None:
+        raise InputError(src / MANIFEST, f"unknown index kind {kind!r}", field="kind")
+    load(src, verify=True)  # a broken or unknown-version index is not exported
+    cfg = m.get("config", {})
+    if kind == _VLAD:
+        sessions = sorted(n for n, s in (m.get("sessions") or {}).items() if s.get("database"))
+        frame = m.get("frame") or origin
+        params = {"vlad": cfg.get("vlad"), "index": m.get("index")}
+        entries = (m.get("index") or {}).get("ntotal")
+    else:
+        sessions = list(m.get("session_names") or [])
+        frame = origin
+        params = {k: cfg.get(k) for k in ("kind", "keypoint_fraction", "pca_dim", "nbld", "m2dp", "cnn_model") if k in cfg}
+        entries = (m.get("counts") or {}).get("entries")
+    return {
+        "path": name,
+        "kind": kind,
+        "descriptor": "vlad" if kind == _VLAD else m.get("descriptor"),
+        "format_version": m.get("format_version"),
+        "parameters": params,
+        "crs": frame,
+        "source_sessions": sessions,
+        "entries": entries,
+        "manifest_sha256": sha256_file(src / MANIFEST),
+    }
+
+
+def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Sequence[str]] = None) -> Path:
+    """Copy (hard-link) the finished indexes of ``workspace`` into ``out`` with a top-level
+    manifest; returns ``out``. ``names`` selects folders of ``WORKSPACE/indexes`` (default all).
+    The export is built beside ``out`` and renamed into place, so ``out`` is always whole."""
+    ws, out = Path(workspace), Path(out)
+    found = find_indexes(ws)
+    if names:
+        missing = [n for n in names if n not in found]
+        if missing:
+            raise InputError(ws / "indexes", f"no finished index named {missing}; found {sorted(found)}")
+        found = {n: found[n] for n in names}
+    if not found:
+        raise InputError(ws / "indexes", "no finished index to export (run `mapkit index vlad` or `mapkit index structure` first)")
+    origin = json.loads((ws / "origin.json").read_text()) if (ws / "origin.json").is_file() else None
+    entries = {name: _index_entry(name, src, origin) for name, src in found.items()}
+    with building(out) as tmp:
+        for name, src in found.items():
+            for f in sorted(src.rglob("*")):
+                if f.is_file():
+                    link_or_copy(f, tmp / name / f.relative_to(src))
+        manifest = {
+            "format_version": FORMAT_VERSION,
+            "kind": KIND,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "mapkit_version": __version__,
+            "source_workspace": str(ws.resolve()),
+            "crs": origin,
+            "indexes": entries,
+        }
+        (tmp / "README.txt").write_text(_readme(entries))
+        write_json(tmp / MANIFEST, manifest)
+    return out
+
+
+def _readme(entries: dict) -> str:
+    lines = ["mapkit deployment bundle", "", "Load and verify everything in Python:", "",
+             "    from mapkit.deploy.export import load_bundle",
+             "    bundle = load_bundle('THIS_FOLDER')   # bundle['vlad'], bundle['structure-nbld'], ...", "",
+             "Indexes:"]
+    for name, e in entries.items():
+        lines.append(f"  {name}: {e['kind']} ({e['descriptor']}), {e['entries']} entries, sessions {', '.join(e['source_sessions'])}")
+    return "\n".join(lines) + "\n"
+
+
+@dataclass
+class Bundle:
+    """A loaded deployment bundle: its manifest and the indexes by name."""
+
+    path: Path
+    manifest: dict
+    indexes: dict[str, Any]
+
+    def __getitem__(self, name: str):
+        return self.indexes[name]
+
+
+def load_bundle(path: str | Path, verify: bool = True) -> Bundle:
+    """Load every index of an export after checking the export's format version, that each
+    index's manifest is the one the export lists (sha256), and (``verify``) every file's checksum."""
+    path = Path(path)
+    mpath = path / MANIFEST
+    top = load_manifest(path, KIND, FORMAT_VERSION)
+    if top.get("kind") != KIND:
+        raise InputError(mpath, f"not a {KIND}", field="kind")
+    indexes = {}
+    for name, e in (top.get("indexes") or {}).items():
+        sub = path / e.get("path", name)
+        if not (sub / MANIFEST).is_file():
+            raise InputError(sub, f"index {name!r} listed in {mpath} is missing")
+        if sha256_file(sub / MANIFEST) != e.get("manifest_sha256"):
+            raise InputError(sub / MANIFEST, f"index {name!r} differs from the one the export lists", field="manifest_sha256")
+        load = _loader(e.get("kind"))
+        if load is None:
+            raise InputError(mpath, f"index {name!r} has unknown kind {e.get('kind')!r}", field="kind")
+        indexes[name] = load(sub, verify=verify)
+    return Bundle(path, top, indexes)
+
+
+__all__ = ["FORMAT_VERSION", "KIND", "Bundle", "export_bundles", "find_indexes", "load_bundle"]

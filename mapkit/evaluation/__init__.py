@@ -1,0 +1,2 @@
+"""Every evaluation against truth: metrics, the synthetic town's truth, and one module per stage
+evaluated."""

@@ -1,0 +1,643 @@
+"""``mapkit eval places``: place-recognition precision, recall and AUC in the form of Table 2 of
+the semi-dense place-recognition paper (Sec. 5.2).
+
+For each pair of sessions (a database session and a query session) and each method, every
+``query_stride``-th keyframe q of the query session is a query. Its ground-truth position p_q is
+its aligned keyframe position, or the synthetic town's true camera position when ``truth`` is
+given; database places d are the database session's frames with their positions (the same
+source). With r_e = 25 m, Table 1 scores one query:
+
+=========================  =========================================  ==  ==  ==
+                                                                      tp  fp  fn
+=========================  =========================================  ==  ==  ==
+d matched to q             |p_q - p_d| <= r_e                          1   0   0
+                           else, some d' of D within r_e of p_q         0   1   1
+                           otherwise                                    0   1   0
+no place matched to q      some d' of D within r_e of p_q               0   0   1
+                           otherwise                                    0   0   0
+=========================  =========================================  ==  ==  ==
+
+A method gives each query its best place and a score; the match is accepted when the score
+passes a threshold, and sweeping the threshold traces the precision-recall curve. Methods:
+
+- ``nbld``, ``m2dp``, ``cnn`` (the trained model of ``structure.cnn_model``): the structure voting index of
+  :mod:`mapkit.places.index_structure`, built on the database session alone; the score is the vote count
+  v(d), the threshold lambda_v (Sec. 3.4).
+- ``vlad``: the appearance baseline (the paper's is NetVLAD; mapkit's image index is dense-SIFT
+  VLAD, :mod:`mapkit.retrieval.index_vlad`): the query is the image of the query session nearest in time
+  to the keyframe, the match the nearest database image of the database session (top-1 by L2,
+  restricted to that session), the score minus its squared distance.
+
+The area under the PR curve is ``sum_i (R_i - R_{i-1}) P_i`` over the thresholds in decreasing
+order from R_0 = 0 (the step-wise "average precision" form; the paper does not say which
+integration it uses). Recall here cannot reach 1 when wrong matches of reachable queries remain
+at the lowest threshold, as in the paper's curves.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import time
+import warnings
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from mapkit.core.config import MapkitConfig, dump_config, load_config
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors, session_map_dir
+from mapkit.core.runio import atomic_write_text, write_json
+
+STRUCTURE_METHODS = ("nbld", "m2dp", "cnn")
+METHOD_LABELS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
+
+
+class PlacesEvalConfig(MapkitConfig):
+    """The evaluation protocol of Sec. 5.2."""
+
+    radius_m: float = Field(25.0, gt=0, description="r_e: a match within this distance of the query's true position is right (Sec. 5.2: 25 m).")
+    query_stride: int = Field(2, ge=1, description="Every n-th keyframe of the query session is a query (mapkit's choice, for speed).")
+    structure: StructureIndexConfig = Field(
+        default_factory=StructureIndexConfig,
+        description="The structure index (kind and database_sessions are set per method and pair; 5 % keypoints, PCA to 25).",
+    )
+    max_image_gap_s: float = Field(
+        1.0, gt=0,
+        description="VLAD: a query keyframe whose nearest image is farther than this in time has no image query (counted as no match).",
+    )
+    vlad_workers: int = Field(1, ge=1, description="Processes encoding VLAD query images.")
+    vlad_encodings_dir: Optional[str] = Field(
+        None, description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize --cache-dir`): "
+        "images already encoded there with the same bundle are not encoded again.")
+    bootstrap: int = Field(
+        500, ge=0,
+        description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = none). "
+        "Not in the paper; ~100 queries per pair make differences of a few hundredths noise.",
+    )
+
+
+# --------------------------------------------------------------------------- pure computations
+
+
+def table1_counts(accepted: np.ndarray, correct: np.ndarray, reachable: np.ndarray) -> tuple[int, int, int]:
+    """(tp, fp, fn) of Table 1 for boolean arrays over queries: match accepted, matched place
+    within r_e, some database place within r_e."""
+    accepted, correct, reachable = (np.asarray(a, bool) for a in (accepted, correct, reachable))
+    tp = int(np.sum(accepted & correct))
+    fp = int(np.sum(accepted & ~correct))
+    fn = int(np.sum(accepted & ~correct & reachable) + np.sum(~accepted & reachable))
+    return tp, fp, fn
+
+
+def pr_curve(scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray) -> dict:
+    """Precision and recall over every threshold t of the scores (a match is accepted when its
+    score >= t, i.e. > lambda just below t), in decreasing t.
+
+    ``scores`` (n,), -inf (or NaN) for a query without any match; ``correct`` (n,) the matched
+    place lies within r_e; ``reachable`` (n,) some database place does. Returns ``thresholds``,
+    ``precision``, ``recall``, ``tp``, ``fp``, ``fn`` (arrays, one per distinct finite score)
+    and ``reachable`` (count). A correct match of an unreachable query cannot happen and is an error.
+    """
+    s = np.asarray(scores, np.float64)
+    correct, reachable = np.asarray(correct, bool), np.asarray(reachable, bool)
+    if np.any(correct & ~reachable):
+        raise InputError(None, "a query is 'correct' but has no database place within the radius", field="correct")
+    s = np.where(np.isnan(s), -np.inf, s)
+    finite = np.isfinite(s)
+    order = np.argsort(-s[finite], kind="stable")
+    s_sorted = s[finite][order]
+    c_sorted = correct[finite][order]
+    tp_c = np.cumsum(c_sorted)
+    fp_c = np.cumsum(~c_sorted)
+    # one point per distinct threshold: the last query with that score
+    last = np.flatnonzero(np.r_[s_sorted[1:] != s_sorted[:-1], True]) if len(s_sorted) else np.zeros(0, np.int64)
+    tp, fp = tp_c[last], fp_c[last]
+    n_reach = int(reachable.sum())
+    # every reachable query not counted as tp is a fn (accepted-and-wrong or not accepted)
+    fn = n_reach - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
+        recall = tp / n_reach if n_reach else np.zeros(len(tp))
+    return {"thresholds": s_sorted[last], "precision": precision, "recall": recall, "tp": tp, "fp": fp, "fn": fn, "reachable": n_reach}
+
+
+def pr_auc(recall: np.ndarray, precision: np.ndarray) -> float:
+    """Area under a PR curve given in decreasing threshold: sum of (R_i - R_{i-1}) P_i, R_0 = 0."""
+    r = np.asarray(recall, np.float64)
+    p = np.asarray(precision, np.float64)
+    if len(r) == 0:
+        return 0.0
+    return float(np.sum(np.diff(np.r_[0.0, r]) * p))
+
+
+def best_f1(curve: dict) -> dict:
+    """The operating point of highest F1 on a PR curve (threshold, precision, recall, f1)."""
+    p, r = curve["precision"], curve["recall"]
+    if len(p) == 0:
+        return {"f1": 0.0, "precision": None, "recall": 0.0, "threshold": None}
+    f1 = np.where(p + r > 0, 2 * p * r / np.maximum(p + r, 1e-12), 0.0)
+    i = int(np.argmax(f1))
+    return {"f1": float(f1[i]), "precision": float(p[i]), "recall": float(r[i]), "threshold": float(curve["thresholds"][i])}
+
+
+def bootstrap_auc(scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray, n: int = 500, seed: int = 0) -> np.ndarray:
+    """(n,) AUCs of queries resampled with replacement. The resamples depend only on the number
+    of queries and ``seed``, so two methods scored on the same queries are resampled alike
+    (paired comparison)."""
+    s, c, r = np.asarray(scores, np.float64), np.asarray(correct, bool), np.asarray(reachable, bool)
+    if len(s) == 0:
+        return np.zeros(0)
+    idx = np.random.default_rng(seed).integers(0, len(s), (n, len(s)))
+    out = np.empty(n)
+    for i, j in enumerate(idx):
+        cv = pr_curve(s[j], c[j], r[j])
+        out[i] = pr_auc(cv["recall"], cv["precision"])
+    return out
+
+
+def score_queries(query_pos: np.ndarray, matched_pos: np.ndarray, has_match: np.ndarray, db_pos: np.ndarray,
+                  radius_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(correct, reachable, error_m) of queries: matched place within ``radius_m`` of the query's
+    true position; some database place within it; the distance of the match (NaN without one)."""
+    q = np.asarray(query_pos, np.float64).reshape(-1, 3)
+    m = np.asarray(matched_pos, np.float64).reshape(-1, 3)
+    has = np.asarray(has_match, bool) & np.all(np.isfinite(m), axis=1)
+    err = np.where(has, np.linalg.norm(np.where(has[:, None], m, 0.0) - q, axis=1), np.nan)
+    correct = has & (err <= radius_m)
+    db = np.asarray(db_pos, np.float64).reshape(-1, 3)
+    db = db[np.all(np.isfinite(db), axis=1)]
+    if len(db) and len(q):
+        nearest, _ = cKDTree(db).query(q)
+        reachable = nearest <= radius_m
+    else:
+        reachable = np.zeros(len(q), bool)
+    return correct, reachable | correct, err
+
+
+# --------------------------------------------------------------------------- ground truth
+
+
+class _Truth:
+    """Positions of a session's frames at given stamps: aligned (as given) or the synthetic town's."""
+
+    def __init__(self, workspace: Path, truth: Optional[Path]):
+        self.truth = truth
+        self.ws_frame = None
+        if truth is not None and (workspace / "origin.json").is_file():
+            from mapkit.core.geodesy import LocalFrame
+
+            self.ws_frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
+        self._cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    @property
+    def source(self) -> str:
+        return "synthetic town (true camera positions)" if self.truth is not None else "aligned keyframe / image positions"
+
+    def positions(self, session: str, stamps_ns: np.ndarray, aligned_pos: np.ndarray) -> np.ndarray:
+        """(n, 3) positions: ``aligned_pos`` without a town, else the true camera positions
+        interpolated at ``stamps_ns`` (NaN outside the truth's span or for stamps < 0)."""
+        aligned_pos = np.asarray(aligned_pos, np.float64).reshape(-1, 3)
+        if self.truth is None:
+            return aligned_pos
+        from mapkit.evaluation.truth import truth_camera_poses
+        from mapkit.core.geometry import interpolate_poses
+
+        if session not in self._cache:
+            self._cache[session] = truth_camera_poses(self.truth, session, self.ws_frame)
+        t, T = self._cache[session]
+        stamps = np.asarray(stamps_ns, np.int64)
+        out = np.full((len(stamps), 3), np.nan)
+        ok = stamps >= 0
+        poses, inside = interpolate_poses(t, T, stamps[ok])
+        idx = np.flatnonzero(ok)[inside]
+        out[idx] = poses[:, :3, 3]
+        return out
+
+
+def _conditions(truth: Optional[Path]) -> dict[str, dict]:
+    from mapkit.evaluation.truth import town_sessions
+
+    keys = ("condition", "season", "weather", "date", "time_of_day", "exposure_ev", "role")
+    return {name: {k: s.get(k) for k in keys} for name, s in town_sessions(truth).items()}
+
+
+# --------------------------------------------------------------------------- the VLAD baseline
+
+
+class VladBaseline:
+    """The appearance baseline through a VLAD bundle (:mod:`mapkit.retrieval.index_vlad`), same protocol.
+
+    Database vectors of a session come from the bundle when it indexes that session, else the
+    session's images are encoded with the bundle's encoder; query images are encoded with it too.
+    Encodings are cached per bundle build in ``cache_dir`` (see ``VladIndex.encode_files``).
+    """
+
+    name = "vlad"
+
+    def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False):
+        from mapkit.retrieval.index_vlad import VladIndex
+
+        self.index = VladIndex.load(bundle)
+        self.ws = Path(workspace)
+        self.cache_dir = cache_dir
+        self.workers = workers
+        self.progress = progress
+        self._images: dict = {}
+
+    @property
+    def train_sessions(self) -> list[str]:
+        """Sessions whose images learned the vocabulary and the PCA-whitening."""
+        return list(self.index.train_sessions)
+
+    def images(self, session: str):
+        from mapkit.retrieval.index_vlad import read_session_images
+
+        if session not in self._images:
+            self._images[session] = read_session_images(self.ws, session, self.index.cfg.prefer_aligned_poses)
+        return self._images[session]
+
+    def encode(self, session: str, rows: np.ndarray) -> np.ndarray:
+        """(len(rows), D) encodings of rows ``rows`` of the session's image table, through the
+        bundle's encodings cache in ``cache_dir``: an image is encoded once per bundle."""
+        s = self.images(session)
+        if not len(rows):
+            return np.zeros((0, self.index.dim), np.float32)
+        return self.index.encode_files([s.image_paths[r] for r in rows], self.progress, f"vlad {session}",
+                                       cache_dir=self.cache_dir, workers=self.workers)
+
+    def database(self, session: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vectors (n, D), stamps_ns (n,), positions (n, 3)) of the session's database images."""
+        db = self.index.database
+        rows = np.flatnonzero(db["session"] == session)
+        if len(rows):
+            return self.index.vectors()[rows], db["stamp_ns"][rows], self.index.world_from_cam[rows, :3, 3]
+        s = self.images(session)
+        return self.encode(session, np.arange(len(s))), s.table["stamp_ns"], s.world_from_cam[:, :3, 3]
+
+    def query_rows(self, session: str, stamps_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(row of the session's image nearest in time to each stamp, the time gap in s)."""
+        rows, gap_ns = nearest_stamp(self.images(session).table["stamp_ns"], stamps_ns)
+        return rows, gap_ns * 1e-9
+
+
+def nearest_stamp(stamps_ns: np.ndarray, query_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index into ``stamps_ns`` of the stamp nearest to each query, |difference| in ns); -1 and
+    a huge gap when there is no stamp at all. ``stamps_ns`` need not be sorted."""
+    t = np.asarray(stamps_ns, np.int64)
+    q = np.asarray(query_ns, np.int64)
+    if len(t) == 0:
+        return np.full(len(q), -1, np.int64), np.full(len(q), np.iinfo(np.int64).max, np.int64)
+    order = np.argsort(t, kind="stable")
+    ts = t[order]
+    j = np.clip(np.searchsorted(ts, q), 1, len(ts) - 1) if len(ts) > 1 else np.zeros(len(q), np.int64)
+    if len(ts) > 1:
+        j = np.where(np.abs(ts[j - 1] - q) <= np.abs(ts[j] - q), j - 1, j)
+    return order[j].astype(np.int64), np.abs(ts[j] - q)
+
+
+def nearest_l2(queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index (n,), squared L2 (n,)) of the nearest database row of each query (exact)."""
+    q = np.asarray(queries, np.float64)
+    d = np.asarray(database, np.float64)
+    if len(d) == 0 or len(q) == 0:
+        return np.full(len(q), -1, np.int64), np.full(len(q), np.inf)
+    d2 = (q * q).sum(1)[:, None] + (d * d).sum(1)[None, :] - 2.0 * q @ d.T
+    j = np.argmin(d2, axis=1)
+    return j.astype(np.int64), np.maximum(d2[np.arange(len(q)), j], 0.0)
+
+
+# --------------------------------------------------------------------------- the workspace protocol
+
+
+
+
+def evaluate_places(
+    workspace: str | Path,
+    pairs: Sequence[tuple[str, str]],
+    methods: Sequence[str] = ("nbld", "m2dp", "vlad"),
+    out: str | Path | None = None,
+    truth: str | Path | None = None,
+    vlad_bundle: str | Path | None = None,
+    config: PlacesEvalConfig | str | Path | None = None,
+    overrides: Optional[dict] = None,
+    progress: bool = False,
+    appearance=None,
+) -> dict:
+    """Precision/recall and AUC of ``methods`` for each ``(database_session, query_session)`` pair.
+
+    Writes into ``out`` (default ``WORKSPACE/eval/places``): ``places.json`` (everything,
+    including the PR curves), ``places.md`` (the AUC table in the form of the paper's Table 2),
+    ``pr_curves.png``, ``queries.csv`` (one row per pair, method and query), ``config.yaml``;
+    structure indexes under ``indexes/`` and descriptor / VLAD caches under ``cache/`` (re-runs
+    reuse them). ``vlad_bundle`` defaults to ``WORKSPACE/indexes/vlad``; if absent, the VLAD column
+    is reported as not available. ``appearance`` replaces the VLAD bundle by any object with
+    :class:`VladBaseline`'s ``database``, ``query_rows`` and ``encode`` (another
+    image descriptor, e.g. NetVLAD, plugs in there).
+    """
+    from mapkit.mapping.semidense import SemiDenseMap
+
+    ws = Path(workspace)
+    cfg = load_config(PlacesEvalConfig, config, overrides)
+    truth = None if truth is None else Path(truth)
+    out = Path(out) if out is not None else ws / "eval" / "places"
+    cache = out / "cache"
+    pairs = [(str(a), str(b)) for a, b in pairs]
+    if not pairs:
+        raise InputError(ws, "no session pair given", field="pairs")
+    unknown = [m for m in methods if m not in STRUCTURE_METHODS and m != "vlad"]
+    if unknown:
+        raise InputError(None, f"unknown method(s) {unknown}; known: nbld, m2dp, cnn, vlad", field="methods")
+    if "cnn" in methods and cfg.structure.cnn_model is None:
+        from mapkit.places.index_structure import _DESCRIBERS
+
+        if "cnn" not in _DESCRIBERS:
+            raise InputError(None, "method cnn needs a trained model: set structure.cnn_model to a mapkit train output folder",
+                             field="structure.cnn_model")
+    gt = _Truth(ws, truth)
+    cond = _conditions(truth)
+
+    vlad = appearance
+    vlad_note = None
+    if "vlad" in methods and vlad is None:
+        bundle = Path(vlad_bundle) if vlad_bundle is not None else ws / "indexes" / "vlad"
+        if (bundle / "manifest.json").is_file():
+            # encodings shared with other evaluations (eval localize --cache-dir), else this run's cache
+            encodings = Path(cfg.vlad_encodings_dir) if cfg.vlad_encodings_dir else cache
+            vlad = VladBaseline(bundle, ws, encodings, cfg.vlad_workers, progress)
+        else:
+            vlad_note = f"no VLAD bundle at {bundle} (build it with mapkit index vlad)"
+            warnings.warn(f"vlad: {vlad_note}; the VLAD column is left empty", InputWarning, stacklevel=2)
+
+    maps: dict[str, tuple] = {}
+
+    def session_map(name: str):
+        if name not in maps:
+            d, src = session_map_dir(ws, name, cfg.structure.prefer_aligned_maps)
+            maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
+        return maps[name]
+
+    results: dict = {
+        "workspace": str(ws), "truth": None if truth is None else str(truth), "ground_truth": gt.source,
+        "radius_m": cfg.radius_m, "query_stride": cfg.query_stride, "methods": list(methods), "config": cfg.model_dump(mode="json"),
+        "vlad_bundle": None if vlad is None else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
+        "vlad_note": vlad_note, "pairs": [],
+    }
+    if "cnn" in methods and cfg.structure.cnn_model is not None:
+        from mapkit.places.cnn import model_fingerprint
+
+        results["cnn_model"] = model_fingerprint(cfg.structure.cnn_model)
+    rows: list[list] = []
+    for db, query in pairs:
+        qmap, _, qsrc = session_map(query)
+        kf_ids = np.asarray(qmap.keyframe_ids, np.int64)
+        sel = np.arange(0, len(kf_ids), cfg.query_stride)
+        q_ids, q_stamps = kf_ids[sel], np.asarray(qmap.keyframe_stamps_ns, np.int64)[sel]
+        q_pos = gt.positions(query, q_stamps, qmap.keyframe_world_from_cam[sel, :3, 3])
+        has_truth = np.all(np.isfinite(q_pos), axis=1)
+        q_ids, q_stamps, q_pos = q_ids[has_truth], q_stamps[has_truth], q_pos[has_truth]
+        entry = {"database": db, "query": query, "conditions": {"database": cond.get(db), "query": cond.get(query)},
+                 "queries": int(len(q_ids)), "queries_without_truth": int((~has_truth).sum()), "query_map_source": qsrc, "methods": {}}
+        for method in methods:
+            t0 = time.perf_counter()
+            if method in STRUCTURE_METHODS:
+                r, per_query = _eval_structure(method, ws, db, query, q_ids, q_pos, cfg, gt, out, cache, session_map, progress)
+            elif vlad is not None and query in (getattr(vlad, "train_sessions", None) or ()):
+                # a whitening learned on n images with n - 1 dimensions maps its training images to
+                # (nearly) orthogonal vectors: two training sessions cannot be compared (measured on
+                # the demo bundle: cosines of -1/683 between all of them)
+                note = f"query session {query!r} trained the VLAD encoder (its vectors are not comparable); no score"
+                warnings.warn(f"vlad: {note}", InputWarning, stacklevel=2)
+                entry["methods"][method] = {"available": False, "note": note}
+                continue
+            elif vlad is not None:
+                r, per_query = _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg, gt)
+            else:
+                entry["methods"][method] = {"available": False, "note": vlad_note}
+                continue
+            r["seconds"] = time.perf_counter() - t0
+            entry["methods"][method] = r
+            for i in range(len(q_ids)):
+                rows.append([db, query, method, int(q_ids[i]), int(q_stamps[i]), *np.round(q_pos[i], 3), *np.round(per_query["matched_pos"][i], 3),
+                             per_query["score"][i], int(per_query["correct"][i]), int(per_query["reachable"][i]),
+                             None if np.isnan(per_query["error_m"][i]) else round(float(per_query["error_m"][i]), 2)])
+        # paired bootstrap (the same resamples of the same queries for every method)
+        boots = {m: r.pop("_boot") for m, r in entry["methods"].items() if "_boot" in r}
+        entry["p_auc_above"] = {f"{a}>{b}": float(np.mean(boots[a] > boots[b])) for a in boots for b in boots
+                                if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])}
+        results["pairs"].append(entry)
+
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.yaml", dump_config(cfg))
+    write_json(out / "places.json", results)
+    atomic_write_text(out / "places.md", format_places(results))
+    _write_queries_csv(out / "queries.csv", rows)
+    plot_pr_curves(out / "pr_curves.png", results)
+    return results
+
+
+def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
+    curve = pr_curve(scores, correct, reachable)
+    matched = np.isfinite(np.where(np.isnan(scores), -np.inf, scores))
+    boot = bootstrap_auc(scores, correct, reachable, n_boot)
+    return {
+        "available": True,
+        "auc": pr_auc(curve["recall"], curve["precision"]),
+        "auc_ci90": [float(np.percentile(boot, 5)), float(np.percentile(boot, 95))] if len(boot) else None,
+        "_boot": boot,
+        "reachable": int(curve["reachable"]),
+        "matched": int(matched.sum()),
+        "top1_correct_of_reachable": float(np.sum(correct & matched) / max(curve["reachable"], 1)),
+        "max_recall": float(curve["recall"][-1]) if len(curve["recall"]) else 0.0,
+        "precision_at_max_recall": float(curve["precision"][-1]) if len(curve["precision"]) else None,
+        "best_f1": best_f1(curve),
+        "median_error_m": float(np.nanmedian(err)) if np.any(np.isfinite(err)) else None,
+        "curve": {k: np.asarray(curve[k]).tolist() for k in ("thresholds", "precision", "recall")},
+    }
+
+
+def _eval_structure(kind, ws, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt: _Truth, out: Path, cache: Path, session_map, progress):
+    scfg = cfg.structure.model_copy(update={"kind": kind, "database_sessions": [db]})
+    bundle = build_structure_index(ws, kind, out / "indexes" / f"{kind}-{db}", [db], scfg, cache_dir=cache, progress=progress)
+    idx = StructureIndex.load(bundle, verify=False)  # just built or verified by its build hash
+    qmap, qsha, _ = session_map(query)
+    t0 = time.perf_counter()
+    _, raw, describe_s = session_descriptors(qmap, query, kind, idx.cfg, cache, qsha, progress)
+    prep = idx.prepare_query(qmap, query, raw)
+    t1 = time.perf_counter()
+    m = idx.vote_frames(prep, q_ids)
+    vote_s = time.perf_counter() - t1
+    rows = idx.frame_rows(db)
+    fr = idx.frames
+    db_pos = gt.positions(db, fr["stamp_ns"][rows], fr["world_from_cam"][rows, :3, 3])
+    db_pos[fr["pose_source"][rows] == 0] = np.nan
+    all_pos = np.full((idx.n_frames, 3), np.nan)
+    all_pos[rows] = db_pos
+    has = m.best_frame >= 0
+    matched_pos = np.where(has[:, None], all_pos[np.maximum(m.best_frame, 0)], np.nan)
+    correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
+    scores = np.where(has, m.best_votes.astype(np.float64), -np.inf)
+    r = _summary(scores, correct, reachable, err, cfg.bootstrap)
+    t = r["best_f1"]["threshold"]
+    r.update({
+        "lambda_v_best_f1": None if t is None else t - 1.0,  # integer votes: v >= t  <=>  v > t - 1
+        "database_entries": len(idx), "database_frames": int(np.sum(fr["pose_source"][rows] > 0)),
+        "query_keypoints": int(len(prep.keypoints)), "keypoints_per_query_median": float(np.median(m.n_keypoints)) if len(m) else 0.0,
+        "votes_median": float(np.median(m.best_votes)) if len(m) else 0.0,
+        "query_describe_s": describe_s, "query_match_and_vote_s": (time.perf_counter() - t0) - describe_s,
+        "vote_ms_per_frame": 1e3 * vote_s / max(len(m), 1), "index": str(bundle),
+    })
+    return r, {"matched_pos": matched_pos, "score": scores, "correct": correct, "reachable": reachable, "error_m": err}
+
+
+def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Truth):
+    t0 = time.perf_counter()
+    db_vec, db_stamps, db_aligned = vlad.database(db)
+    db_pos = gt.positions(db, db_stamps, db_aligned)
+    rows, gap_s = vlad.query_rows(query, q_stamps)
+    ok = (rows >= 0) & (gap_s <= cfg.max_image_gap_s)
+    q_vec = vlad.encode(query, rows[ok])
+    encode_s = time.perf_counter() - t0
+    j, d2 = nearest_l2(q_vec, db_vec)
+    n = len(q_stamps)
+    best = np.full(n, -1, np.int64)
+    best[ok] = j
+    scores = np.full(n, -np.inf)
+    scores[ok] = -d2
+    has = best >= 0
+    matched_pos = np.where(has[:, None], db_pos[np.maximum(best, 0)] if len(db_pos) else np.nan, np.nan)
+    correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
+    r = _summary(scores, correct, reachable, err, cfg.bootstrap)
+    r.update({"database_images": int(len(db_vec)), "queries_without_image": int((~ok).sum()),
+              "image_gap_s_max": float(np.max(gap_s[ok])) if np.any(ok) else None,
+              "encode_and_load_s": encode_s})
+    return r, {"matched_pos": matched_pos, "score": scores, "correct": correct, "reachable": reachable, "error_m": err}
+
+
+_QUERY_COLUMNS = ["database", "query", "method", "query_frame_id", "stamp_ns", "x_m", "y_m", "z_m", "match_x_m", "match_y_m", "match_z_m",
+                  "score", "correct", "reachable", "error_m"]
+
+
+def _write_queries_csv(path: Path, rows: list[list]) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(_QUERY_COLUMNS)
+    w.writerows(rows)
+    atomic_write_text(path, buf.getvalue())
+
+
+# --------------------------------------------------------------------------- reporting
+
+
+def _cond_label(c: Optional[dict]) -> str:
+    if not c:
+        return ""
+    parts = [c.get("condition"), c.get("season")]
+    if c.get("exposure_ev"):
+        parts.append(f"{c['exposure_ev']:+g} EV")
+    return ", ".join(str(p) for p in parts if p)
+
+
+def format_places(results: dict) -> str:
+    """The AUC table in the form of the paper's Table 2 (rows: pairs, columns: methods)."""
+    methods = results["methods"]
+    sc = results["config"]["structure"]
+    head = ["Sequence pair (query to database)", "conditions (query / database)"] + [METHOD_LABELS.get(m, m) for m in methods]
+    head += ["queries", "reachable"]
+    lines = [
+        "# Place recognition: area under the precision-recall curve",
+        "",
+        f"Protocol of the semi-dense place-recognition paper (Sec. 5.2, Table 1): r_e = {results['radius_m']:g} m, "
+        f"one keyframe in {results['query_stride']} of the query session is a query; ground truth: {results['ground_truth']}. "
+        f"Structure ({', '.join(METHOD_LABELS[m] for m in methods if m in STRUCTURE_METHODS) or 'none'}"
+        + (f"; CNN model {results['cnn_model']['path']}" if results.get("cnn_model") else "")
+        + f"): {100 * sc['keypoint_fraction']:g} % keypoints, PCA to {sc['pca_dim']}, voting; lambda_v swept. "
+        "VLAD: top-1 database image of the database session; minus its squared distance swept.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for p in results["pairs"]:
+        aucs = {m: p["methods"].get(m, {}).get("auc") for m in methods}
+        best = max((a for a in aucs.values() if a is not None), default=None)
+        cells = []
+        for m in methods:
+            a = aucs[m]
+            cells.append("n/a" if a is None else (f"**{a:.3f}**" if a == best and sum(x == best for x in aucs.values()) == 1 else f"{a:.3f}"))
+        reach = [v.get("reachable") for v in p["methods"].values() if v.get("available")]
+        cond = f"{_cond_label(p['conditions']['query'])} / {_cond_label(p['conditions']['database'])}" if p["conditions"]["query"] else ""
+        lines.append(f"| {p['query']} to {p['database']} | {cond} | " + " | ".join(cells) + f" | {p['queries']} | {reach[0] if reach else ''} |")
+    lines += ["", "Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
+              "VLAD: minus the squared distance):", "",
+              "| pair | method | F1 | precision | recall | threshold | top-1 right of reachable |", "|---|---|---|---|---|---|---|"]
+    for p in results["pairs"]:
+        for m in methods:
+            r = p["methods"].get(m, {})
+            if not r.get("available"):
+                continue
+            b = r["best_f1"]
+            prec = "" if b["precision"] is None else f"{b['precision']:.2f}"
+            thr = "" if b["threshold"] is None else f"{b['threshold']:.3g}"
+            lines.append(f"| {p['query']} to {p['database']} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | {prec} | {b['recall']:.2f} | "
+                         f"{thr} | {r['top1_correct_of_reachable']:.2f} |")
+    lines += ["", "AUC, 90 % bootstrap interval over the queries, and how often (paired resamples) each structure method's AUC "
+              "is above VLAD's:", "",
+              "| pair | " + " | ".join(METHOD_LABELS.get(m, m) for m in methods) + " | " +
+              " | ".join(f"P({METHOD_LABELS.get(m, m)} > VLAD)" for m in methods if m != "vlad") + " |",
+              "|" + "---|" * (1 + len(methods) + sum(m != "vlad" for m in methods))]
+    for p in results["pairs"]:
+        cells = []
+        for m in methods:
+            ci = p["methods"].get(m, {}).get("auc_ci90")
+            cells.append("n/a" if not ci else f"{p['methods'][m]['auc']:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]")
+        probs = [p.get("p_auc_above", {}).get(f"{m}>vlad") for m in methods if m != "vlad"]
+        cells += ["n/a" if x is None else f"{x:.2f}" for x in probs]
+        lines.append(f"| {p['query']} to {p['database']} | " + " | ".join(cells) + " |")
+    notes = [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
+             for m, r in p["methods"].items() if not r.get("available") and r.get("note")]
+    if notes:
+        lines += ["", "Not evaluated:", ""] + [f"- {n}" for n in dict.fromkeys(notes)]
+    return "\n".join(lines) + "\n"
+
+
+def plot_pr_curves(path: Path, results: dict) -> Path:
+    """One panel per pair: the precision-recall curve of each method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mapkit.io.plots import _save
+
+    n = len(results["pairs"])
+    cols = min(3, max(n, 1))
+    rows_n = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows_n, cols, figsize=(4.6 * cols, 4.2 * rows_n), dpi=100, squeeze=False)
+    for ax, p in zip(axes.ravel(), results["pairs"]):
+        for m in results["methods"]:
+            r = p["methods"].get(m, {})
+            if not r.get("available"):
+                continue
+            c = r["curve"]
+            ax.step(np.r_[0.0, c["recall"]], np.r_[c["precision"][:1] if c["precision"] else [1.0], c["precision"]], where="pre",
+                    label=f"{METHOD_LABELS.get(m, m)} (AUC {r['auc']:.2f})")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("recall")
+        ax.set_ylabel("precision")
+        qc, dc = _cond_label(p["conditions"]["query"]), _cond_label(p["conditions"]["database"])
+        ax.set_title(f"{p['query']} to {p['database']}" + (f"\n{qc} / {dc}" if qc else ""), fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower left", fontsize=8)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.tight_layout()
+    return _save(plt, fig, path)
+
+
+__all__ = ["PlacesEvalConfig", "table1_counts", "pr_curve", "pr_auc", "best_f1", "score_queries", "VladBaseline", "nearest_l2",
+           "nearest_stamp", "bootstrap_auc", "evaluate_places", "format_places", "plot_pr_curves"]

@@ -1,0 +1,215 @@
+"""PNG pictures for people: trajectories over GPS fixes, map top views. matplotlib, Agg backend."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from mapkit.core.runio import atomic_path
+
+
+def _figure(size=(8, 8)):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=size, dpi=110)
+    return plt, fig, ax
+
+
+def _frame_equal(ax, xy: np.ndarray, min_ratio: float = 0.4, pad: float = 0.05) -> None:
+    """Equal axes around ``xy``, the short side padded to at least ``min_ratio`` of the long one,
+    so a straight drive is not drawn as a hairline strip."""
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    span = np.maximum(hi - lo, 1e-3)
+    long = span.max() * (1 + 2 * pad)
+    half = np.maximum(span * (1 + 2 * pad), min_ratio * long) / 2
+    c = (lo + hi) / 2
+    ax.set_xlim(c[0] - half[0], c[0] + half[0])
+    ax.set_ylim(c[1] - half[1], c[1] + half[1])
+    ax.set_aspect("equal", adjustable="box")
+
+
+def _save(plt, fig, path: Path) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def trajectory_over_gps(
+    path: Path,
+    traj_enu: np.ndarray,
+    gps_enu: np.ndarray,
+    inliers: np.ndarray,
+    title: str,
+    truth_enu: Optional[np.ndarray] = None,
+) -> Path:
+    plt, fig, ax = _figure()
+    if truth_enu is not None:
+        ax.plot(truth_enu[:, 0], truth_enu[:, 1], color="0.6", lw=3, label="ground truth")
+    ax.plot(traj_enu[:, 0], traj_enu[:, 1], "b-", lw=1.2, label="trajectory (aligned)")
+    ax.scatter(gps_enu[inliers, 0], gps_enu[inliers, 1], s=6, c="g", label=f"GPS used ({int(inliers.sum())})")
+    if (~inliers).any():
+        ax.scatter(gps_enu[~inliers, 0], gps_enu[~inliers, 1], s=18, c="r", marker="x", label=f"GPS rejected ({int((~inliers).sum())})")
+    _frame_equal(ax, np.vstack([traj_enu[:, :2], gps_enu[:, :2]]))
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title(title)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=4, fontsize=8, frameon=False)
+    ax.grid(True, alpha=0.3)
+    return _save(plt, fig, path)
+
+
+def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray], title: str, max_points: int = 300_000) -> Path:
+    plt, fig, ax = _figure((9, 9))
+    if len(points) > max_points:
+        points = points[np.random.default_rng(0).choice(len(points), max_points, replace=False)]
+    if len(points):
+        z = points[:, 2]
+        lo, hi = np.percentile(z, [2, 98]) if len(z) > 10 else (z.min(), z.max() + 1e-6)
+        sc = ax.scatter(points[:, 0], points[:, 1], s=0.2, c=np.clip(z, lo, hi), cmap="viridis", linewidths=0)
+        fig.colorbar(sc, ax=ax, shrink=0.6, label="height [m]")
+    if traj_enu is not None and len(traj_enu):
+        ax.plot(traj_enu[:, 0], traj_enu[:, 1], "r-", lw=0.8, label="trajectory")
+        ax.legend(loc="best", fontsize=8)
+    extent = [a for a in (points[:, :2] if len(points) else None, None if traj_enu is None else traj_enu[:, :2]) if a is not None and len(a)]
+    if extent:
+        _frame_equal(ax, np.vstack(extent))
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title(title)
+    return _save(plt, fig, path)
+
+
+def align_pairs_map(path: Path, sessions, pairs, max_points: int = 200_000) -> Path:
+    """Top view of the aligned sessions with every registered submap pair: accepted in green,
+    rejected in red (the QA picture of ``mapkit align``)."""
+    plt, fig, ax = _figure((10, 10))
+    allxy = []
+    rng = np.random.default_rng(0)
+    per = max(1, max_points // max(1, len(sessions)))
+    for s in sessions:
+        pts = s.points if len(s.points) <= per else s.points[rng.choice(len(s.points), per, replace=False)]
+        ax.scatter(pts[:, 0], pts[:, 1], s=0.1, c="0.75", linewidths=0)
+        ax.plot(s.poses[:, 0, 3], s.poses[:, 1, 3], lw=0.8, label=s.name)
+        allxy.append(s.poses[:, :2, 3])
+    n_acc = n_rej = 0
+    for r in pairs:
+        c = np.asarray(r.centre)
+        if r.accepted:
+            n_acc += 1
+            ax.plot(c[0], c[1], "o", ms=4, mfc="none", mec="g")
+        else:
+            n_rej += 1
+            ax.plot(c[0], c[1], "x", ms=5, c="r")
+    ax.plot([], [], "o", mfc="none", mec="g", label=f"accepted pairs ({n_acc})")
+    ax.plot([], [], "x", c="r", label=f"rejected pairs ({n_rej})")
+    if allxy:
+        _frame_equal(ax, np.vstack(allxy))
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title("multi-session alignment: submap pairs")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=4, fontsize=7, frameon=False)
+    return _save(plt, fig, path)
+
+
+def align_histograms(path: Path, pairs, lambda_icp_m: float, min_fitness: float) -> Path:
+    """ICP RMSE and fitness of every registered pair, with the acceptance thresholds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4), dpi=110)
+    rmse = np.array([r.rmse_m for r in pairs], np.float64)
+    fit = np.array([r.fitness for r in pairs], np.float64)
+    acc = np.array([r.accepted for r in pairs], bool)
+    for ax, v, thr, label in ((a1, rmse, lambda_icp_m, "RMSE after ICP [m]"), (a2, fit, min_fitness, "fitness")):
+        ok = np.isfinite(v)
+        bins = np.linspace(0, max(float(np.nanmax(v[ok])) if ok.any() else 1.0, thr * 1.5), 40)
+        ax.hist([v[ok & acc], v[ok & ~acc]], bins=bins, stacked=True, color=["tab:green", "tab:red"], label=["accepted", "rejected"])
+        ax.axvline(thr, color="k", ls="--", lw=1, label=f"threshold {thr:g}")
+        ax.set_xlabel(label)
+        ax.set_ylabel("pairs")
+        ax.legend(fontsize=8)
+    fig.suptitle(f"ICP between sessions' submaps: {int(acc.sum())} accepted, {int((~acc).sum())} rejected")
+    return _save(plt, fig, path)
+
+
+def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
+    """A few triplets side by side, each grid drawn as its occupancy seen from above (count of
+    occupied voxels per column): anchor, positive (same place, other session), negative."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for split in ("train", "test"):
+        t = dataset.triplets(split)
+        if len(t):
+            rows.extend((split, r) for r in t[np.random.default_rng(seed).choice(len(t), min(n, len(t)), replace=False)])
+    rows = rows[:n]
+    fig, axes = plt.subplots(len(rows), 3, figsize=(7.5, 2.6 * len(rows)), dpi=100, squeeze=False)
+    names = dataset.manifest["sessions"]
+    for r, (split, ids) in enumerate(rows):
+        grids = dataset.grids(ids, "occupancy")
+        for c, (label, g) in enumerate(zip(("anchor", "positive", "negative"), grids)):
+            ax = axes[r, c]
+            ax.imshow(g.sum(axis=2).T, origin="lower", cmap="magma")
+            sess = names[int(dataset.table["session"][ids[c]])]
+            ax.set_title(f"{label} ({split})\n{sess}, patch {int(ids[c])}", fontsize=8)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.suptitle("triplets: occupancy seen from above (x to the first observer)", fontsize=9)
+    return _save(plt, fig, path)
+
+
+def localization_track(path: Path, truth_xyz: np.ndarray, retrieval_xyz: np.ndarray, filter_xyz: np.ndarray, title: str) -> Path:
+    """Estimated against true trajectory of one query sequence (MCVL's Fig. 5): retrieval alone
+    as points, the particle filter as a line."""
+    plt, fig, ax = _figure((8, 8))
+    ax.plot(truth_xyz[:, 0], truth_xyz[:, 1], color="0.5", lw=3, label="ground truth")
+    ax.scatter(retrieval_xyz[:, 0], retrieval_xyz[:, 1], s=8, c="tab:orange", label="retrieval alone (mean shift)")
+    ax.plot(filter_xyz[:, 0], filter_xyz[:, 1], "b-", lw=1.2, label="MCVL particle filter")
+    _frame_equal(ax, np.vstack([truth_xyz[:, :2], filter_xyz[np.isfinite(filter_xyz[:, 0]), :2]]))
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3, fontsize=8, frameon=False)
+    ax.grid(True, alpha=0.3)
+    return _save(plt, fig, path)
+
+
+def training_curve(path: Path, history: list[dict], title: str = "CNN descriptor training") -> Path:
+    """Loss (train, and test when scored) and test triplet accuracy per epoch (``mapkit train``)."""
+    plt, fig, ax = _figure((7, 4.2))
+    ep = np.array([r["epoch"] for r in history])
+    ax.plot(ep, [r["loss"] for r in history], "o-", color="C0", label="train loss")
+    if any("test_loss" in r for r in history):
+        ax.plot(ep, [r.get("test_loss", np.nan) for r in history], "s--", color="C1", label="test loss")
+    hard = [r["epoch"] for r in history if r.get("hard_triplets")]
+    for k, e in enumerate(hard):
+        ax.axvline(e - 0.5, color="0.6", lw=0.8, ls=":", label="hard triplets swapped in" if k == 0 else None)
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("triplet loss, Eq. (1)")
+    ax.grid(alpha=0.3)
+    handles, labels = ax.get_legend_handles_labels()
+    if any("test_accuracy" in r for r in history):
+        ax2 = ax.twinx()
+        ax2.plot(ep, [r.get("test_accuracy", np.nan) for r in history], "^-", color="C2", label="test triplet accuracy")
+        ax2.set_ylabel("test accuracy (d(X1,X2) < d(X1,X3))")
+        ax2.set_ylim(0, 1)
+        h2, l2 = ax2.get_legend_handles_labels()
+        handles, labels = handles + h2, labels + l2
+    ax.legend(handles, labels, loc="center right", fontsize=8)
+    ax.set_title(title, fontsize=10)
+    return _save(plt, fig, path)

@@ -1,0 +1,210 @@
+"""``mapkit localize`` and ``mapkit eval localize``: the MCVL localizer on a VLAD bundle.
+
+Each query image is encoded once; its top-20 database images give the measurement z_t (mean
+shift, largest cluster); the particle filter of :mod:`mapkit.localization.mcl` runs over the sequence. The
+evaluation follows the MCVL paper's protocol (section IV): training sessions build the index,
+test sessions are queries; per sequence the translation error ||c_est - c_gt|| and the orientation
+error, mean and median, for retrieval alone and for the filter (Table II), and a plot of the
+estimated against the true trajectory (Fig. 5).
+
+Camera poses: the filter's state is the camera pose ``world_from_camera`` in the workspace's ENU
+frame, as the database's poses are.
+
+Beyond the paper (presets in ``configs/localize/``): the query session's relative motion as
+odometry, and the multi-hypothesis measurement model of :mod:`mapkit.localization.mcl`, which weighs the
+particles by all top-k retrieved poses. Retrieval (encoding each image with dense SIFT, the
+expensive part) can be cached per test session (:func:`cached_query_all`), so that runs with
+other filter settings reuse the hits of the same bundle.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+from pydantic import Field
+
+from mapkit.core.config import MapkitConfig, dump_config, load_config
+from mapkit.core.errors import InputError
+from mapkit.localization.mcl import MclConfig, MonteCarloLocalizer
+from mapkit.retrieval.measurement import PoseHypotheses
+from mapkit.core.runio import atomic_path, atomic_write_text, write_json
+
+
+class LocalizeConfig(MapkitConfig):
+    mcl: MclConfig = MclConfig()
+    top_k: int = Field(20, ge=1, description="Retrieved database images per query (MCVL IV-A: R = 20).")
+    bandwidth_m: float = Field(5.0, gt=0, description="Mean-shift bandwidth over the retrieved translations (m; the authors' code).")
+    odometry: bool = Field(False, description="Beyond the paper: drive the motion model by the query session's own trajectory "
+                           "(its relative camera motion between queries) instead of eqs. 1-2. Sets mcl.odometry.enabled.")
+    seed: int = Field(0, description="Seed of the particle filter.")
+
+
+def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] = None, progress: bool = False,
+                  hits: Optional[tuple[np.ndarray, np.ndarray]] = None) -> dict:
+    """Retrieval alone and the filter over a sequence of images (arrays or files).
+
+    ``hits`` = ``(ids, distances)`` (n, top_k) already retrieved for the images (e.g. from
+    :func:`cached_query_all`) skips encoding them. Returns per query: the measurement's pose
+    (retrieval alone), the filter's pose, the measurement's cluster size, and the retrieved ids.
+    """
+    mcl_cfg = cfg.mcl.model_copy(update={"odometry": cfg.mcl.odometry.model_copy(update={"enabled": cfg.odometry})})
+    mh = mcl_cfg.multi_hypothesis
+    loc = MonteCarloLocalizer(mcl_cfg, seed=cfg.seed)
+    n = len(images)
+    if hits is not None and (hits[0].shape[0] != n or hits[0].shape[1] < 1):
+        raise ValueError(f"hits for {hits[0].shape[0]} queries given with {n} images")
+    z_pos, z_rot = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+    f_pos, f_rot = np.full((n, 3), np.nan), np.full((n, 3, 3), np.nan)
+    sizes = np.zeros(n, np.int64)
+    all_ids = np.full((n, cfg.top_k), -1, np.int64)
+    seconds = {"retrieval": 0.0, "filter": 0.0}
+    for t, im in enumerate(images):
+        t0 = time.perf_counter()
+        h = index.query(im, cfg.top_k) if hits is None else index.hits(hits[0][t, :cfg.top_k], hits[1][t, :cfg.top_k])
+        z = index.measurement_from_hits(h) if cfg.bandwidth_m == index.cfg.mean_shift_bandwidth_m else _measure(h, cfg.bandwidth_m)
+        t1 = time.perf_counter()
+        hyp = (PoseHypotheses.from_retrieval(h.translations, h.world_from_cam[:, :3, :3], h.distances, mh.hit_weighting, mh.hit_weight_scale)
+               if mh.enabled else None)
+        est = loc.step(z, None if odometry is None or not loc.initialized else odometry[t], hyp)
+        seconds["retrieval"] += t1 - t0
+        seconds["filter"] += time.perf_counter() - t1
+        z_pos[t], z_rot[t], sizes[t] = z.translation, z.rotation, z.cluster_size
+        all_ids[t, :len(h)] = h.ids
+        if est is not None:
+            f_pos[t], f_rot[t] = est.position, est.rotation
+        if progress:
+            print(f"\r[localize] {t + 1}/{n} queries", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    return {"retrieval_position": z_pos, "retrieval_rotation": z_rot, "filter_position": f_pos, "filter_rotation": f_rot,
+            "cluster_size": sizes, "ids": all_ids, "seconds": seconds}
+
+
+def _measure(hits, bandwidth_m: float):
+    from mapkit.retrieval.measurement import mean_shift_measurement
+
+    return mean_shift_measurement(hits.translations, hits.world_from_cam[:, :3, :3], bandwidth=bandwidth_m)
+
+
+# --- per-session query hits, cached ----------------------------------------------------------------
+
+#: version of the hits cache files; bump when their content changes meaning
+HITS_CACHE_VERSION = 1
+
+
+def bundle_fingerprint(index) -> str:
+    """What identifies a bundle's answers to queries: its build hash and the sha256 of its manifest.
+
+    The build hash alone is not enough: :meth:`VladIndex.add_session` grows a bundle in place and
+    keeps its build hash, and query-time settings (e.g. ``nprobe``) change the hits without a
+    rebuild; the manifest lists every file's sha256 and the resolved config, so its digest
+    changes with either.
+    """
+    digest = hashlib.sha256((Path(index.path) / "manifest.json").read_bytes()).hexdigest()[:16]
+    return f"{index.manifest.get('build_hash', 'nohash')}-{digest}"
+
+
+def _images_digest(images: list) -> str:
+    """Digest of the query images' paths, sizes and modification times (files only)."""
+    h = hashlib.sha256()
+    for p in images:
+        st = Path(p).stat()
+        h.update(f"{Path(p).resolve()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()[:16]
+
+
+def query_all(index, images, top_k: int, progress: bool = False, label: str = "query",
+              vector_cache: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Retrieved ids (n, top_k; -1 pads when the index is smaller) and squared L2 distances of every image."""
+    n = len(images)
+    ids, dist = np.full((n, top_k), -1, np.int64), np.full((n, top_k), np.inf, np.float32)
+    if n and all(isinstance(im, (str, Path)) for im in images):
+        # image files: encoded on the run's executor (a process pool or Ray), then one batched search
+        d, i = index.search(index.encode_files(images, progress=progress, desc=label, cache_dir=vector_cache), top_k)
+        ids[:, : i.shape[1]], dist[:, : d.shape[1]] = i, d
+        return ids, dist
+    for t, im in enumerate(images):
+        d, i = index.search(index._as_vector(im)[None], top_k)
+        ids[t], dist[t] = i[0], d[0]
+        if progress:
+            print(f"\r[{label}] {t + 1}/{n} queries", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+    return ids, dist
+
+
+def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | None, session: str,
+                     progress: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`query_all` through a cache file ``hits-<session>-k<top_k>-<bundle fingerprint>.npz``.
+
+    A cached file is used only if it names the same bundle fingerprint, session, top_k and query
+    images (paths, sizes, mtimes); otherwise the images are encoded again and the file replaced.
+    Returns ``(ids, distances, from_cache)``.
+    """
+    if cache_dir is None:
+        return (*query_all(index, images, top_k, progress, session), False)
+    fp = bundle_fingerprint(index)
+    path = Path(cache_dir) / f"hits-{session}-k{top_k}-{fp}.npz"
+    img_digest = _images_digest(images)
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                ok = (int(f["version"]) == HITS_CACHE_VERSION and str(f["bundle"]) == fp and str(f["session"]) == session
+                      and int(f["top_k"]) == top_k and str(f["images"]) == img_digest and f["ids"].shape == (len(images), top_k))
+                if ok:
+                    return f["ids"].astype(np.int64), f["distances"].astype(np.float32), True
+        except (OSError, KeyError, ValueError):
+            pass  # unreadable or from another version: recompute below
+    ids, dist = query_all(index, images, top_k, progress, session, vector_cache=cache_dir)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, version=HITS_CACHE_VERSION, bundle=fp, bundle_path=str(Path(index.path).resolve()), session=session,
+                 top_k=top_k, images=img_digest, ids=ids, distances=dist)
+    return ids, dist, False
+
+
+
+
+
+
+
+
+def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: str | Path | None = None,
+                 camera: Optional[str] = None, progress: bool = True) -> Path:
+    """Run the localizer on the camera images of a drive log against a VLAD bundle; writes the
+    filter's and retrieval's camera poses as TUM files, the resolved config and metrics."""
+    from mapkit.retrieval.index_vlad import VladIndex
+    from mapkit.io import open_log
+    from mapkit.io.trajectory import write_tum
+    from mapkit.core.types import StreamKind
+
+    cfg = load_config(LocalizeConfig, config)
+    index = VladIndex.load(bundle)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.yaml", dump_config(cfg))
+    with open_log(log) as lg:
+        frames = [f for f in lg.records(StreamKind.IMAGE) if camera is None or f.camera == camera]
+        if not frames:
+            raise InputError(log, "no camera images" + (f" from camera {camera!r}" if camera else ""), field="topics.images")
+        cams = {f.camera for f in frames}
+        if len(cams) > 1:
+            raise InputError(log, f"images of {len(cams)} cameras ({sorted(cams)}): choose one with --camera", field="camera")
+        stamps = np.array([f.stamp_ns for f in frames], np.int64)
+        t0 = time.perf_counter()
+        r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
+    ok = np.isfinite(r["filter_position"][:, 0])
+    for key, name in (("filter", "poses_tum.txt"), ("retrieval", "retrieval_tum.txt")):
+        T = np.tile(np.eye(4), (len(stamps), 1, 1))
+        T[:, :3, :3], T[:, :3, 3] = r[f"{key}_rotation"], r[f"{key}_position"]
+        write_tum(out / name, stamps[ok], T[ok])
+    write_json(out / "metrics.json", {"bundle": str(bundle), "log": str(log), "queries": len(stamps), "seconds": time.perf_counter() - t0,
+                                      "filter_ms_per_step": 1000 * r["seconds"]["filter"] / len(stamps),
+                                      "frame": "workspace ENU of the bundle (world_from_camera)"})
+    return out
+
+

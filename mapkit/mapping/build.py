@@ -1,0 +1,444 @@
+"""``mapkit build``: one drive log to a georeferenced session map, stage by stage.
+
+Stages (each a folder under ``WORKSPACE/sessions/<name>/`` with a ``.done`` marker holding the
+hash of the config that made it; re-running skips finished stages and redoes half-written ones):
+
+1. ``trajectory/``  vehicle poses (kiss-icp, a pose stream, ...), TUM and KITTI files
+2. ``georef/``      GPS alignment: ``enu_from_map``, residuals, rejected fixes, aligned trajectory,
+                    a PNG of the trajectory over the fixes
+3. ``map/``         the semi-dense map in the workspace's local ENU frame (PLY + observations)
+4. ``imagedb/``     the georeferenced image database (COLMAP reconstruction + images.csv)
+
+Every session of a workspace shares one local ENU origin and UTM zone (``WORKSPACE/origin.json``,
+set by the first session with GPS), so maps of different sessions are in one frame from the start.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Iterator, Literal, Optional
+
+import numpy as np
+from pydantic import Field
+
+from mapkit.core.config import MapkitConfig, TopicConfig, dump_config, load_config, resolve_topics
+from mapkit.core.errors import InputError, InputWarning, MapkitError
+from mapkit.core.executor import Executor, TaskError, get_executor
+from mapkit.core.frames import FrameTree
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
+from mapkit.mapping.gps_align import align_to_gps, associate_fixes
+from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
+from mapkit.io import open_log
+from mapkit.io.base import DriveLog
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, reset_stage, write_json
+from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, estimate_trajectory
+from mapkit.core.types import StreamKind
+
+
+class GeorefConfig(MapkitConfig):
+    mode: Literal["auto", "yaw_scale", "sim3", "yaw", "given"] = Field(
+        "auto", description="'auto' (default): 'yaw' for metric trajectories (LiDAR odometry, INS poses), 'sim3' for "
+        "camera-only ones. 'yaw': gravity-aware yaw + translation, the trajectory keeps its own scale. 'yaw_scale': "
+        "also a scale from GPS (the issue's model; on the demo sessions GPS chose scales 0.9961-1.0046 where "
+        "kiss-icp's own is 1.0003-1.0010 against truth). 'sim3': all 7 parameters. 'given': the trajectory (a pose "
+        "stream) is already in the ENU frame at `origin`, GPS is not used.",
+    )
+    origin: Optional[tuple[float, float, float]] = Field(
+        None, description="(lat deg, lon deg, alt m) of the pose stream's ENU frame; only with mode 'given'.")
+    inlier_sigmas: float = Field(3.37, description="Gate on the sigma-normalised residual (chi-square 3 dof, 99%).")
+    vertical_sigma_factor: float = Field(2.0, description="GPS height sigma as a multiple of its horizontal sigma.")
+    min_inlier_threshold_m: float = Field(2.0, description="The horizontal gate is never tighter than this.")
+    max_pose_gap_s: float = Field(1.0, description="A fix between trajectory poses further apart than this is not used.")
+    strict: bool = Field(False, description="Fail instead of falling back when Sim3 rotation is unobservable.")
+
+
+class BuildConfig(MapkitConfig):
+    topics: TopicConfig = TopicConfig()
+    trajectory: TrajectoryConfig = TrajectoryConfig()
+    georef: GeorefConfig = GeorefConfig()
+    imagedb: ImageDbConfig = ImageDbConfig()
+    semidense: dict = Field(default_factory=dict, description="Overrides of mapkit.mapping.semidense.SemiDenseConfig.")
+    map: bool = Field(True, description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
+                      "database without triangulated points, all that image retrieval and MCVL need.")
+    camera: Optional[str] = Field(None, description="Camera (frame id) to map with; the first one if unset.")
+
+
+def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
+    d = cfg.model_dump(mode="json")
+    return config_hash({p: d.get(p) for p in parts})
+
+
+def session_name(log_path: str | Path) -> str:
+    """The session a log builds: its file or folder name up to the first dot."""
+    return Path(log_path).stem.split(".")[0]
+
+
+class SessionBuilder:
+    """Runs the stages of one session; each stage method returns its output folder."""
+
+    def __init__(self, log_path: Path, workspace: Path, cfg: BuildConfig, progress: bool = True, name: Optional[str] = None):
+        self.log_path = Path(log_path)
+        self.workspace = Path(workspace)
+        self.cfg = cfg
+        self.progress = progress
+        self.name = name or session_name(self.log_path)
+        self.dir = self.workspace / "sessions" / self.name
+        self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
+        self._log: Optional[DriveLog] = None
+
+    @property
+    def log(self) -> DriveLog:
+        if self._log is None:
+            self._log = open_log(self.log_path)
+        return self._log
+
+    def close(self) -> None:
+        if self._log is not None:
+            self._log.close()
+
+    # --- stage 1 --------------------------------------------------------------------------------
+    def trajectory(self) -> Path:
+        out = self.dir / "trajectory"
+        h = _stage_hash(self.cfg, "topics", "trajectory")
+        if is_done(out, h):
+            return out
+        t0 = time.perf_counter()
+        reset_stage(out)
+        traj = estimate_trajectory(self.log, self.cfg.trajectory, self.cfg.topics, progress=self.progress)
+        traj.save(out)
+        m = {"source": traj.source, "poses": len(traj), "duration_s": (int(traj.stamps_ns[-1]) - int(traj.stamps_ns[0])) * 1e-9,
+             "length_m": float(np.linalg.norm(np.diff(traj.world_from_base[:, :3, 3], axis=0), axis=1).sum()),
+             "seconds": time.perf_counter() - t0}
+        write_json(out / "metrics.json", m)
+        mark_done(out, h)
+        return out
+
+    # --- stage 2 --------------------------------------------------------------------------------
+    def georef(self) -> Path:
+        out = self.dir / "georef"
+        h = _stage_hash(self.cfg, "topics", "trajectory", "georef")
+        if is_done(out, h):
+            return out
+        t0 = time.perf_counter()
+        reset_stage(out)
+        traj = Trajectory.load(self.trajectory())
+        result: dict = {"session": self.name, "georeferenced": False}
+        al, frame = self._align(traj, out, result)
+        enu_from_map = np.eye(4) if al is None else al.enu_from_map
+        result["enu_from_map"] = enu_from_map
+        # the aligned trajectory: rigid poses in ENU (the similarity's scale goes into positions)
+        R = enu_from_map[:3, :3] / sim3_scale(enu_from_map)
+        enu_traj = traj.world_from_base.copy()
+        enu_traj[:, :3, :3] = R @ traj.world_from_base[:, :3, :3]
+        enu_traj[:, :3, 3] = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
+        Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if al is not None else traj.frame,
+                   body_frame=traj.body_frame).save(out / "trajectory_enu")
+        result["seconds"] = time.perf_counter() - t0
+        write_json(out / "gps_alignment.json", result)
+        mark_done(out, h)
+        return out
+
+    def _align(self, traj: Trajectory, out: Path, result: dict):
+        """(alignment, workspace frame), or (None, None) with the reason in ``result`` and a warning.
+
+        No GPS, or GPS that cannot fix the transform (a short or stationary drive): the session is
+        still mapped, in its own frame, and says why it is not georeferenced. ``georef.strict``
+        makes the second case an error instead.
+        """
+        if self.cfg.georef.mode == "given":
+            return self._given(traj, result)
+        topics = resolve_topics(self.log, self.cfg.topics)
+        gps_topics = topics.get(StreamKind.GPS, [])
+        fixes = [] if not gps_topics else [f for f in self.log.records(StreamKind.GPS, topic=gps_topics[0]) if f.has_fix]
+        if len(fixes) < 3:
+            result["reason"] = "no GPS stream" if not gps_topics else f"{len(fixes)} valid GPS fixes"
+            warnings.warn(f"{self.log_path}: {result['reason']}; the map is built in the trajectory's local frame "
+                          "and is NOT georeferenced", InputWarning, stacklevel=3)
+            return None, None
+        frame = self._workspace_frame(LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m))
+        stamps = np.array([f.stamp_ns for f in fixes], np.int64)
+        gps_enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
+        sigma = np.array([f.horizontal_sigma_m for f in fixes])
+        try:
+            base_from_gps = FrameTree(self.log.transforms()).lookup(traj.body_frame, fixes[0].frame_id)
+        except InputError:
+            base_from_gps = np.eye(4)
+        g = self.cfg.georef
+        antenna, ok = associate_fixes(traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(g.max_pose_gap_s * 1e9))
+        # structure from motion has no gravity and no scale: only a full Sim3 can place it. A metric
+        # trajectory keeps its scale under 'auto': GPS over a drive of a few hundred metres, with a
+        # bias that drifts over minutes, estimates scale worse than LiDAR odometry measures it.
+        if traj.source.startswith("camera"):
+            mode = "sim3"
+        else:
+            mode = "yaw" if g.mode == "auto" else g.mode
+        try:
+            al = align_to_gps(
+                antenna, gps_enu[ok], sigma[ok], stamps[ok], mode=mode, inlier_sigmas=g.inlier_sigmas,
+                vertical_sigma_factor=g.vertical_sigma_factor, min_inlier_threshold_m=g.min_inlier_threshold_m,
+                strict=g.strict, source=str(self.log_path),
+            )
+        except InputError as exc:
+            if g.strict:
+                raise
+            result["reason"] = exc.what
+            warnings.warn(f"{exc}; the map is NOT georeferenced", InputWarning, stacklevel=3)
+            return None, None
+        result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
+                      fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
+        from mapkit.io.plots import trajectory_over_gps
+
+        traj_enu = transform_points(al.enu_from_map, traj.world_from_base[:, :3, 3])
+        trajectory_over_gps(out / "trajectory_over_gps.png", traj_enu, gps_enu[ok], al.inliers,
+                            f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)")
+        return al, frame
+
+    def _given(self, traj: Trajectory, result: dict):
+        """Georeferencing that the pose stream already carries (an INS, or a simulator's truth):
+        its frame is ENU at ``georef.origin``; placed exactly (through ECEF) in the workspace frame."""
+        g = self.cfg.georef
+        if g.origin is None:
+            raise InputError(self.workspace / "build_config.yaml", "georef mode 'given' needs the pose stream's ENU origin",
+                             field="georef.origin")
+        if not traj.source.startswith("poses"):
+            raise InputError(self.log_path, f"georef mode 'given' needs a pose-stream trajectory, not {traj.source!r}",
+                             field="trajectory.source")
+        given = LocalFrame(*g.origin)
+        frame = self._workspace_frame(given)
+        al = SimpleNamespace(enu_from_map=given.to_frame(frame))
+        result.update(georeferenced=True, **frame.to_dict(), alignment={"mode": "given", "origin": list(g.origin)},
+                      rejected_fixes=[], fixes_total=0, fixes_outside_trajectory=0)
+        return al, frame
+
+    def proposed_frame(self) -> Optional[LocalFrame]:
+        """The workspace frame this session would set if it were the first one georeferenced."""
+        g = self.cfg.georef
+        if g.mode == "given":
+            return None if g.origin is None else LocalFrame(*g.origin)
+        gps = resolve_topics(self.log, self.cfg.topics).get(StreamKind.GPS, [])
+        fix = next((f for f in self.log.records(StreamKind.GPS, topic=gps[0]) if f.has_fix), None) if gps else None
+        return None if fix is None else LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
+
+    def _workspace_frame(self, proposed: LocalFrame) -> LocalFrame:
+        """The workspace's frame: the one already set, else ``proposed``, which becomes it."""
+        path = self.workspace / "origin.json"
+        if path.is_file():
+            return LocalFrame.from_dict(json.loads(path.read_text()))
+        write_json(path, proposed.to_dict())
+        return proposed
+
+    def frame(self) -> Optional[LocalFrame]:
+        d = json.loads((self.georef() / "gps_alignment.json").read_text())
+        return LocalFrame.from_dict(d) if d.get("georeferenced") else None
+
+    # --- camera frames with poses ---------------------------------------------------------------
+    def _camera(self) -> tuple[str, str, "object"]:
+        topics = resolve_topics(self.log, self.cfg.topics)
+        infos = self.log.camera_infos()
+        if not topics.get(StreamKind.IMAGE):
+            raise InputError(self.log_path, "has no image stream to map from", field="topics.images")
+        if not infos:
+            raise InputError(self.log_path, "has no camera intrinsics (CameraInfo / calibration); a map cannot be built", field="camera_info")
+        name = self.cfg.camera or sorted(infos)[0]
+        if name not in infos:
+            raise InputError(self.log_path, f"camera {name!r} has no intrinsics; cameras with intrinsics: {sorted(infos)}", field="camera")
+        return name, topics[StreamKind.IMAGE], infos[name]
+
+    def posed_frames(self) -> Iterator[tuple[int, "object", np.ndarray]]:
+        """(frame index, CameraFrame, enu_from_camera) of the mapping camera, inside the trajectory."""
+        name, image_topics, info = self._camera()
+        traj = Trajectory.load(self.georef() / "trajectory_enu")
+        tree = FrameTree(self.log.transforms())
+        if traj.body_frame == name:
+            base_from_cam = np.eye(4)
+        else:
+            try:
+                base_from_cam = tree.lookup(traj.body_frame, name)
+            except InputError as exc:
+                raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {traj.body_frame!r} and camera {name!r}", field="tf") from exc
+        index = 0
+        for frame in self.log.records(StreamKind.IMAGE):
+            if frame.camera != name:
+                continue
+            poses, ok = interpolate_poses(traj.stamps_ns, traj.world_from_base, np.array([frame.stamp_ns], np.int64))
+            if ok[0]:
+                yield index, frame, poses[0] @ base_from_cam
+            index += 1
+
+    # --- stage 3 --------------------------------------------------------------------------------
+    def semidense(self) -> Path:
+        from mapkit.mapping import semidense as sd
+
+        out = self.dir / "map"
+        h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera")
+        if is_done(out, h):
+            return out
+        t0 = time.perf_counter()
+        reset_stage(out)
+        sd_cfg = load_config(sd.SemiDenseConfig, overrides=self.cfg.semidense)
+        _, _, info = self._camera()
+        frames = ((i, f.stamp_ns, f.gray(), T) for i, f, T in self.posed_frames())
+        smap = sd.build_semidense_map(frames, info.K, sd_cfg, progress=self.progress)
+        frame = self.frame()
+        smap.save(out, frame=frame)
+        traj = Trajectory.load(self.georef() / "trajectory_enu")
+        from mapkit.io.plots import map_top_view
+
+        map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3], f"{self.name}: semi-dense map, {len(smap.points_world)} points")
+        m = {"points": int(len(smap.points_world)), "seconds": time.perf_counter() - t0,
+             "crs": None if frame is None else frame.to_dict()}
+        m.update(smap.stats())
+        write_json(out / "metrics.json", m)
+        mark_done(out, h)
+        return out
+
+    # --- stage 4 --------------------------------------------------------------------------------
+    def imagedb(self) -> Path:
+        from mapkit.mapping import semidense as sd
+
+        out = self.dir / "imagedb"
+        h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera", "imagedb", "map")
+        if is_done(out, h):
+            return out
+        t0 = time.perf_counter()
+        reset_stage(out)
+        name, _, info = self._camera()
+        writer = ImageDbWriter(out, self.cfg.imagedb, {name: info})
+        last = None
+        db_id_of_frame: dict[int, int] = {}
+        for i, frame, T in self.posed_frames():
+            if last is not None and np.linalg.norm(T[:3, 3] - last) < self.cfg.imagedb.min_spacing_m:
+                continue
+            last = T[:3, 3]
+            im = writer.add(frame.stamp_ns, name, frame.image, T, frame.encoding)
+            db_id_of_frame[i] = im.image_id
+        if not self.cfg.map:
+            writer.close(self.frame())
+            write_json(out / "metrics.json", {"images": len(writer.images), "seconds": time.perf_counter() - t0, "map": False})
+            mark_done(out, h)
+            return out
+        smap = sd.SemiDenseMap.load(self.semidense())
+        # observations by map frame index -> by database image id (frames not kept are dropped)
+        point_of = np.repeat(np.arange(len(smap.points_world)), np.diff(smap.obs_indptr))
+        ids = np.array([db_id_of_frame.get(int(f), 0) for f in smap.obs_frame_ids], np.int64)
+        keep = ids > 0
+        counts = np.bincount(point_of[keep], minlength=len(smap.points_world))
+        indptr = np.concatenate([[0], np.cumsum(counts)])
+        writer.close(self.frame(), smap.points_world, (indptr, ids[keep]))
+        write_json(out / "metrics.json", {"images": len(writer.images), "seconds": time.perf_counter() - t0})
+        mark_done(out, h)
+        return out
+
+    def run(self) -> dict:
+        t0 = time.perf_counter()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.dir / "config.yaml", dump_config(self.cfg))
+        stages = (self.trajectory, self.georef, self.semidense, self.imagedb) if self.cfg.map else (self.trajectory, self.georef, self.imagedb)
+        for stage in stages:
+            s0 = time.perf_counter()
+            folder = stage()
+            m_path = folder / "metrics.json"
+            stage_metrics = json.loads(m_path.read_text()) if m_path.is_file() else {}
+            if (folder / "gps_alignment.json").is_file():
+                ga = json.loads((folder / "gps_alignment.json").read_text())
+                stage_metrics = {"georeferenced": ga["georeferenced"], **ga.get("alignment", {})}
+            stage_metrics["wall_s_this_run"] = time.perf_counter() - s0
+            self.metrics["stages"][stage.__name__] = stage_metrics
+        self.metrics["wall_s_this_run"] = time.perf_counter() - t0
+        write_json(self.dir / "metrics.json", self.metrics)
+        self.close()
+        return self.metrics
+
+
+def _log_bytes(log: Path) -> int:
+    """Size of a log: a file's, or the sum of the files in a log folder (rosbag2, KITTI)."""
+    if log.is_file():
+        return log.stat().st_size
+    return sum(p.stat().st_size for p in log.rglob("*") if p.is_file()) if log.is_dir() else 0
+
+
+def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, progress: bool = True,
+          executor: Optional[Executor] = None) -> Path:
+    """Build every log into a session of ``workspace``; returns the workspace.
+
+    With an executor of several workers (``executor``, else :func:`mapkit.core.executor.get_executor`)
+    and several logs, whole sessions are built in parallel, the largest logs first, each one
+    serially inside its worker: a session's own stages leave a core idle for a third of the time
+    (kiss-icp's registration is mostly sequential). The workspace frame is then fixed before
+    they start, from the first log's first GPS fix (or its given origin), which is where a serial
+    build puts it too."""
+    logs = [Path(p) for p in logs]
+    names: dict[str, Path] = {}
+    for log in logs:
+        name = session_name(log)
+        if name in names:
+            raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
+        names[name] = log
+    cfg = load_config(BuildConfig, config)
+    workspace = Path(workspace)
+    workspace.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(workspace / "build_config.yaml", dump_config(cfg))
+    ex = executor or get_executor()
+    summary: dict = {}
+    if ex.workers > 1 and len(logs) > 1:
+        _fix_workspace_frame(logs, workspace, cfg)
+        order = sorted(range(len(logs)), key=lambda i: -_log_bytes(logs[i]))  # the largest log first
+        done: dict[int, dict] = {}
+        try:
+            for m, i in zip(ex.map(_build_task, [logs[i] for i in order], shared=(workspace, cfg), desc="build",
+                                   label=lambda p: str(p)), order):
+                done[i] = m
+                if progress:
+                    print(f"built {m['session']}: {m.get('wall_s_this_run', 0):.1f} s", file=sys.stderr, flush=True)
+        except TaskError as exc:
+            raise (exc.cause if isinstance(exc.cause, MapkitError) else exc) from exc
+        summary = {done[i]["session"]: done[i] for i in range(len(logs))}
+    else:
+        for log in logs:
+            b = SessionBuilder(log, workspace, cfg, progress=progress)
+            summary[b.name] = b.run()
+    write_json(workspace / "metrics.json", {"sessions": summary})
+    return workspace
+
+
+def _build_task(shared: tuple[Path, BuildConfig], log: Path) -> dict:
+    workspace, cfg = shared
+    return SessionBuilder(log, workspace, cfg, progress=False).run()
+
+
+def _fix_workspace_frame(logs: list[Path], workspace: Path, cfg: BuildConfig) -> None:
+    """Write ``origin.json`` before sessions are built concurrently (each would otherwise write its own)."""
+    if (workspace / "origin.json").is_file():
+        return
+    for log in logs:
+        b = SessionBuilder(log, workspace, cfg, progress=False)
+        try:
+            frame = b.proposed_frame()
+        finally:
+            b.close()
+        if frame is not None:
+            b._workspace_frame(frame)
+            return
+
+
+def format_build_summary(workspace: Path) -> str:
+    """A table of every session of a workspace: trajectory, georeferencing, map and database."""
+    m = json.loads((Path(workspace) / "metrics.json").read_text())
+    rows = [f"workspace {workspace}",
+            f"  {'session':<24} {'traj src':<22} {'length m':>9} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} {'points':>9} {'images':>7} {'time s':>7}"]
+    for name, s in m["sessions"].items():
+        st = s["stages"]
+        tr, ge, mp, db = st.get("trajectory", {}), st.get("georef", {}), st.get("semidense", {}), st.get("imagedb", {})
+        rmse = ge.get("residual_rmse_m")
+        rows.append(
+            f"  {name:<24} {str(tr.get('source', ''))[:22]:<22} {tr.get('length_m', 0):>9.1f} "
+            f"{'yes' if ge.get('georeferenced') else 'NO':>7} {'' if rmse is None else f'{rmse:.2f}':>10} "
+            f"{ge.get('fixes_rejected', ''):>8} {mp.get('points', 0):>9} {db.get('images', 0):>7} {s.get('wall_s_this_run', 0):>7.1f}"
+        )
+    return "\n".join(rows)

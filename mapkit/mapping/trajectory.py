@@ -1,0 +1,292 @@
+"""Stage 1 of map construction: the vehicle trajectory of one session.
+
+Sources, chosen by ``TrajectoryConfig.source``:
+- ``lidar``: kiss-icp (the library, with its own deskewing from per-point times) on the LiDAR
+  stream; poses are of the base frame, in the frame of the base at the first scan.
+- ``poses``: a pose stream of the log (INS, or ground truth when the log has nothing better).
+- ``camera``: pycolmap incremental mapping with the log's intrinsics (scale and orientation are
+  arbitrary until GPS alignment, which then must estimate a full Sim3).
+``auto`` takes LiDAR when the log has it, else a pose stream, else the camera.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Literal, Optional
+
+import numpy as np
+from pydantic import Field
+
+from mapkit.core.config import MapkitConfig, TopicConfig, resolve_topics
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.frames import FrameTree
+from mapkit.core.geometry import invert_pose
+from mapkit.io.base import DriveLog
+from mapkit.io.trajectory import read_tum, write_kitti_poses, write_tum
+from mapkit.core.runio import atomic_path, atomic_write_text
+from mapkit.core.types import StreamKind
+
+
+class KissIcpOptions(MapkitConfig):
+    max_range_m: float = Field(100.0, description="kiss-icp data.max_range; its voxel size is max_range/100 unless set.")
+    min_range_m: float = Field(2.0, description="kiss-icp data.min_range: drops returns from the vehicle body.")
+    deskew: bool = Field(True, description="Motion compensation from per-point times (kiss-icp's own).")
+    voxel_size_m: Optional[float] = Field(None, description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).")
+    max_threads: int = Field(0, description="kiss-icp registration.max_num_threads; 0 = all cores.")
+
+
+class CameraSfmOptions(MapkitConfig):
+    max_images: int = Field(400, description="Images given to pycolmap (evenly sub-sampled in time beyond this).")
+    max_image_size: int = Field(1024, description="pycolmap SIFT extraction's max_image_size (px).")
+    sequential_overlap: int = Field(10, description="pycolmap sequential matching: each image is matched with this many next ones.")
+    max_threads: int = Field(-1, description="pycolmap threads; -1 = all cores.")
+    init_min_tri_angle_deg: float = Field(
+        4.0, description="Initial pair's triangulation angle (COLMAP's 16 suits photo collections; a forward-moving car sees less)."
+    )
+    init_max_forward_motion: float = Field(
+        1.0, description="COLMAP rejects initial pairs moving along the view axis above this (0.95): a front camera only does that."
+    )
+
+
+class TrajectoryConfig(MapkitConfig):
+    source: Literal["auto", "lidar", "poses", "camera"] = Field(
+        "auto", description="Where the trajectory comes from; auto = lidar, else a pose stream, else camera."
+    )
+    base_frame: str = Field("base_link", description="The vehicle frame whose poses the trajectory holds.")
+    kiss_icp: KissIcpOptions = KissIcpOptions()
+    camera: CameraSfmOptions = CameraSfmOptions()
+
+
+@dataclass
+class Trajectory:
+    """Poses of the vehicle base frame: ``world_from_base[i]`` at ``stamps_ns[i]``."""
+
+    stamps_ns: np.ndarray
+    world_from_base: np.ndarray
+    source: str
+    frame: str = "odom"
+    body_frame: str = "base_link"  # whose poses these are: the base, or the sensor a pose stream gives
+
+    def __len__(self) -> int:
+        return len(self.stamps_ns)
+
+    def save(self, folder: str | Path) -> Path:
+        """TUM and KITTI (+ times.txt) files and an exact npz (int64 stamps, float64 poses)."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_tum(folder / "poses_tum.txt", self.stamps_ns, self.world_from_base)
+        write_kitti_poses(folder / "poses_kitti.txt", self.world_from_base)
+        t0 = int(self.stamps_ns[0])
+        atomic_write_text(folder / "times.txt", "".join(f"{(s - t0) * 1e-9:.9f}\n" for s in self.stamps_ns))
+        with atomic_path(folder / "trajectory.npz") as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, stamps_ns=self.stamps_ns, world_from_base=self.world_from_base, source=self.source,
+                         frame=self.frame, body_frame=self.body_frame)
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path) -> "Trajectory":
+        folder = Path(folder)
+        npz = folder / "trajectory.npz"
+        if npz.is_file():
+            d = np.load(npz)
+            body = str(d["body_frame"]) if "body_frame" in d else "base_link"
+            return cls(d["stamps_ns"], d["world_from_base"], str(d["source"]), str(d["frame"]), body)
+        stamps, poses = read_tum(folder / "poses_tum.txt")
+        return cls(stamps, poses, "tum")
+
+
+def _tree(log: DriveLog) -> FrameTree:
+    return FrameTree(log.transforms())
+
+
+def _base_from(tree: FrameTree, base: str, frame: str, log: DriveLog, what: str) -> np.ndarray:
+    if frame in ("", base):
+        return np.eye(4)
+    try:
+        return tree.lookup(base, frame)
+    except InputError:
+        warnings.warn(
+            f"{log.path}: no extrinsic between {base!r} and the {what} frame {frame!r}; taking them as the same frame",
+            InputWarning,
+            stacklevel=3,
+        )
+        return np.eye(4)
+
+
+def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str) -> Trajectory:
+    """A pose stream as the trajectory; a stream of another body frame is moved to the base."""
+    stamps, poses = [], []
+    child = None
+    for p in log.records(StreamKind.POSE, topic=topic):
+        stamps.append(p.stamp_ns)
+        poses.append(p.parent_from_child)
+        child = p.child_frame
+    if len(stamps) < 2:
+        raise InputError(log.path, f"pose topic {topic} has {len(stamps)} poses; a trajectory needs at least 2", field=topic)
+    child = child or base_frame
+    tree = _tree(log)
+    if child == base_frame or (base_frame in tree.frames and child in tree.frames):
+        world_from_base = np.stack(poses) @ invert_pose(_base_from(tree, base_frame, child, log, "pose"))
+        body = base_frame
+    else:
+        # no calibration ties the pose's frame to the base (KITTI odometry: poses are camera_0's);
+        # the trajectory is then of that frame, and later lookups start from it
+        world_from_base, body = np.stack(poses), child
+    return Trajectory(np.asarray(stamps, np.int64), world_from_base, source=f"poses:{topic}", frame="world", body_frame=body)
+
+
+def _scans(log: DriveLog, topic: str) -> Iterator:
+    yield from log.records(StreamKind.LIDAR, topic=topic)
+
+
+def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False) -> Trajectory:
+    """kiss-icp odometry on one LiDAR stream, reported for the base frame.
+
+    kiss-icp deskews each sweep to the time of its last point (``exp((t_norm - 1) * omega)``),
+    so the pose it returns belongs to the stamp of that point, not to the header stamp.
+    """
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.kiss_icp import KissICP
+
+    o = cfg.kiss_icp
+    kcfg = KISSConfig()
+    kcfg.data.max_range = o.max_range_m
+    kcfg.data.min_range = o.min_range_m
+    kcfg.data.deskew = o.deskew
+    kcfg.mapping.voxel_size = o.voxel_size_m if o.voxel_size_m is not None else o.max_range_m / 100.0
+    kcfg.registration.max_num_threads = o.max_threads
+    odometry = KissICP(kcfg)
+    stamps, lidar0_from_lidar = [], []
+    lidar_frame = None
+    bar = _progress(log, topic, progress)
+    for scan in _scans(log, topic):
+        lidar_frame = scan.frame_id
+        pts = np.asarray(scan.points_xyz, np.float64)
+        if scan.point_time_s is not None and o.deskew:
+            t = np.asarray(scan.point_time_s, np.float64)
+            end_ns = scan.stamp_ns + int(round(float(t.max()) * 1e9)) if len(t) else scan.stamp_ns
+        else:
+            t = np.zeros(0)
+            end_ns = scan.stamp_ns
+        if len(pts) < 100:
+            warnings.warn(f"{log.path}: {topic} scan at {scan.stamp_ns} has {len(pts)} points; skipped", InputWarning, stacklevel=2)
+            continue
+        odometry.register_frame(pts, t)
+        stamps.append(end_ns)
+        lidar0_from_lidar.append(odometry.last_pose.copy())
+        bar.update(1)
+    bar.close()
+    if len(stamps) < 2:
+        raise InputError(log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic)
+    base_from_lidar = _base_from(_tree(log), cfg.base_frame, lidar_frame or "", log, "LiDAR")
+    # world := the base frame at the first scan
+    world_from_base = base_from_lidar @ np.stack(lidar0_from_lidar) @ invert_pose(base_from_lidar)
+    order = np.argsort(stamps, kind="stable")
+    return Trajectory(np.asarray(stamps, np.int64)[order], world_from_base[order], source=f"lidar:{topic}", frame="odom")
+
+
+def _progress(log: DriveLog, topic: str, enabled: bool):
+    from tqdm import tqdm
+
+    total = next((s.count for s in log.streams() if s.topic == topic), None)
+    return tqdm(total=total, unit="scan", desc="kiss-icp", leave=False, disable=not enabled)
+
+
+def choose_source(log: DriveLog, cfg: TrajectoryConfig, topics: dict[StreamKind, list[str]]) -> str:
+    if cfg.source != "auto":
+        return cfg.source
+    if topics.get(StreamKind.LIDAR):
+        return "lidar"
+    if topics.get(StreamKind.POSE):
+        return "poses"
+    if topics.get(StreamKind.IMAGE):
+        return "camera"
+    raise InputError(log.path, "has no LiDAR, pose or image stream to make a trajectory from", field="topics")
+
+
+def estimate_trajectory(
+    log: DriveLog, cfg: TrajectoryConfig, topic_cfg: TopicConfig | None = None, progress: bool = False
+) -> Trajectory:
+    topics = resolve_topics(log, topic_cfg or TopicConfig())
+    source = choose_source(log, cfg, topics)
+    if source == "lidar":
+        if not topics.get(StreamKind.LIDAR):
+            raise InputError(log.path, "trajectory.source is lidar but the log has no LiDAR stream", field="trajectory.source")
+        return trajectory_from_lidar(log, topics[StreamKind.LIDAR][0], cfg, progress)
+    if source == "poses":
+        if not topics.get(StreamKind.POSE):
+            raise InputError(log.path, "trajectory.source is poses but the log has no pose stream", field="trajectory.source")
+        return trajectory_from_poses(log, topics[StreamKind.POSE][0], cfg.base_frame)
+    if not topics.get(StreamKind.IMAGE):
+        raise InputError(log.path, "trajectory.source is camera but the log has no image stream", field="trajectory.source")
+    return trajectory_from_camera(log, topics[StreamKind.IMAGE][0], cfg, progress)
+
+
+def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False) -> Trajectory:
+    """pycolmap structure from motion (SIFT, sequential matching, incremental mapping) with the
+    log's intrinsics fixed. The result has an arbitrary orientation and scale: GPS alignment must
+    then estimate a full Sim3 (``georef.mode: sim3``).
+    """
+    import tempfile
+
+    import cv2
+    import pycolmap
+
+    infos = log.camera_infos()
+    o = cfg.camera
+    counts = next((s.count for s in log.streams() if s.topic == topic), None)
+    step = max(1, -(-counts // o.max_images)) if counts else 1
+    with tempfile.TemporaryDirectory(prefix="mapkit-sfm-") as tmp:
+        tmp = Path(tmp)
+        (tmp / "images").mkdir()
+        stamps: dict[str, int] = {}
+        camera = None
+        for i, frame in enumerate(log.records(StreamKind.IMAGE, topic=topic)):
+            if i % step:
+                continue
+            camera = camera or frame.camera
+            if frame.camera != camera:
+                continue
+            name = f"{frame.stamp_ns}.png"
+            cv2.imwrite(str(tmp / "images" / name), frame.gray())
+            stamps[name] = frame.stamp_ns
+        if camera not in infos:
+            raise InputError(log.path, f"camera {camera!r} has no intrinsics; camera-only trajectories need them", field="camera_info")
+        info = infos[camera]
+        if len(stamps) < 3:
+            raise InputError(log.path, f"{len(stamps)} images on {topic}: too few for structure from motion", field=topic)
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = f"{info.fx},{info.fy},{info.cx},{info.cy}"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.max_image_size = o.max_image_size
+        extraction.num_threads = o.max_threads
+        db = tmp / "database.db"
+        pycolmap.extract_features(db, tmp / "images", camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = o.sequential_overlap
+        pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+        options = pycolmap.IncrementalPipelineOptions()
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        options.num_threads = o.max_threads
+        options.mapper.init_min_tri_angle = o.init_min_tri_angle_deg
+        options.mapper.init_max_forward_motion = o.init_max_forward_motion
+        (tmp / "sparse").mkdir()
+        recs = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sparse", options=options)
+    if not recs:
+        raise InputError(log.path, f"pycolmap could not reconstruct the camera path from {topic}", field=topic)
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    regs = sorted((stamps[im.name], np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]])))
+                  for im in rec.images.values() if im.has_pose)
+    if len(regs) < 0.5 * len(stamps):
+        warnings.warn(f"{log.path}: pycolmap registered {len(regs)} of {len(stamps)} images; the trajectory has gaps",
+                      InputWarning, stacklevel=2)
+    world_from_cam = np.stack([T for _, T in regs])
+    return Trajectory(np.array([s for s, _ in regs], np.int64), world_from_cam, source=f"camera:{topic}",
+                      frame="sfm", body_frame=camera)

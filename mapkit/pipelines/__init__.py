@@ -1,0 +1,1 @@
+"""Recipes that run the stages in order (the demo on the synthetic town)."""

@@ -1,0 +1,1 @@
+"""The HTML report that gathers a run's tables and pictures."""

@@ -1,0 +1,437 @@
+"""MCVL's observation encoder (Sec. III-B): dense RootSIFT, VLAD, PCA-whitening, L2.
+
+Pieces, each usable alone:
+
+- ``rootsift``: L1-normalise each SIFT vector, then take elementwise square roots (Arandjelovic
+  and Zisserman, CVPR 2012), so that Euclidean distances compare descriptors by the Hellinger
+  kernel.
+- ``fit_vocabulary``: K visual words by k-means (faiss) on a uniform sample of descriptors.
+- ``vlad``: every descriptor is assigned to its nearest word and the residuals are summed per
+  word (Jegou et al., CVPR 2010), giving a K x 128 = 16384-D vector. Pooling ``"sum"`` is the
+  paper's text (plain sum pooling, then L2); ``"intra"`` is the authors' released code (each
+  word's block L2-normalised, then the whole vector: Arandjelovic and Zisserman, CVPR 2013).
+- ``PcaWhitening``: PCA learned on training VLADs, whitening and L2 (the paper's [33], Jegou and
+  Chum, ECCV 2012), to 4096 dimensions.
+- ``VladEncoder``: all of the above behind ``fit`` / ``encode`` / ``save`` / ``load``.
+
+The encoder's hot path never holds a whole image's descriptors: dense SIFT is produced in
+blocks of ~2000 frames (``mapkit.retrieval.dsift.iter_histogram_blocks``) and each block is normalised,
+assigned and summed while it is in cache. Everything is float32; there are no per-descriptor
+Python loops.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Literal, Optional
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+from pydantic import Field, ValidationError
+
+from mapkit.core.config import MapkitConfig
+from mapkit.retrieval.dsift import DESCRIPTOR_DIM, DsiftConfig, StepTimer, null_timer, iter_histogram_blocks, prepare_image
+from mapkit.core.errors import ConfigError, InputError, InputWarning
+from mapkit.core.runio import atomic_path, atomic_write_text
+
+Pooling = Literal["sum", "intra"]
+_TINY = np.float32(1e-12)
+_ASSIGN_BLOCK = 4096  # descriptors per assignment block: the (block, K) score matrix stays in cache
+_RANK_TOL = 1e-6  # PCA: variances below this fraction of the largest are numerically zero
+
+
+class VladConfig(MapkitConfig):
+    """Parameters of the VLAD observation encoder; defaults are MCVL's (Sec. III-B, IV-A)."""
+
+    dsift: DsiftConfig = Field(default_factory=DsiftConfig, description="Dense SIFT (see mapkit.retrieval.dsift).")
+    num_words: int = Field(128, ge=1, description="Vocabulary size K (MCVL Sec. IV-A: 128; VLAD is K x 128 = 16384-D).")
+    pooling: Pooling = Field(
+        "sum",
+        description="'sum': residuals summed per word, then L2 (the paper's text, Sec. III-B); 'intra': each word's block "
+        "L2-normalised, then L2 (the authors' released code).",
+    )
+    pca_dim: int = Field(4096, ge=1, description="Output dimension after PCA (MCVL Sec. IV-A: 4096); capped at n_train - 1.")
+    whiten: bool = Field(True, description="Whiten after PCA (MCVL Sec. III-B/IV-A: PCA, whitening, L2).")
+    kmeans_max_descriptors: int = Field(
+        200_000,
+        ge=1,
+        description="k-means trains on a uniform random sample of at most this many RootSIFT descriptors of the training "
+        "images (not in the paper; ~1500 per word).",
+    )
+    kmeans_iterations: int = Field(25, ge=1, description="k-means iterations (faiss's default; not in the paper).")
+    seed: int = Field(0, description="Seed of the descriptor sample and of k-means.")
+
+
+# --------------------------------------------------------------------------- RootSIFT
+
+
+def rootsift(desc: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+    """RootSIFT of rows: L1-normalise, then elementwise square root (zero rows stay zero).
+
+    Rows must be non-negative (SIFT histograms). The result rows have unit L2 norm.
+    """
+    desc = np.asarray(desc, dtype=np.float32)
+    if out is None:
+        out = desc.copy()
+    elif out is not desc:
+        np.copyto(out, desc)
+    l1 = out.sum(axis=1, dtype=np.float32)
+    out /= np.maximum(l1, _TINY)[:, None]
+    np.sqrt(out, out=out)
+    return out
+
+
+def _rootsift_from_histograms(hist: np.ndarray, clamp: float) -> np.ndarray:
+    """``rootsift(sift_normalize(hist, clamp))`` in place, in four passes instead of eight.
+
+    SIFT's L2 / clamp / L2 followed by an L1 normalisation equals clamping at ``clamp * ||h||_2``
+    and one L1 normalisation: the positive scalings in between cancel.
+    """
+    norm = np.sqrt(np.einsum("ij,ij->i", hist, hist))
+    norm *= np.float32(clamp)
+    np.minimum(hist, norm[:, None], out=hist)
+    l1 = hist @ np.ones(hist.shape[1], np.float32)
+    np.sqrt(hist, out=hist)
+    hist *= (1.0 / np.sqrt(np.maximum(l1, _TINY))).astype(np.float32)[:, None]
+    return hist
+
+
+# --------------------------------------------------------------------------- VLAD
+
+
+class VladAccumulator:
+    """Per-word sums of descriptors and counts, fed block by block; ``result`` pools them into VLAD."""
+
+    def __init__(self, centroids: np.ndarray):
+        self.centroids = np.ascontiguousarray(centroids, dtype=np.float32)
+        if self.centroids.ndim != 2:
+            raise InputError(None, f"centroids must be (K, d), got shape {self.centroids.shape}")
+        k, d = self.centroids.shape
+        self._centroids_t = np.ascontiguousarray(self.centroids.T)
+        self._half_sq_norms = (0.5 * np.einsum("ij,ij->i", self.centroids, self.centroids)).astype(np.float32)
+        self.sums = np.zeros((k, d), np.float32)
+        self.counts = np.zeros(k, np.int64)
+
+    def assign(self, desc: np.ndarray) -> np.ndarray:
+        """Index of the nearest word of each row: argmax of x.c - ||c||^2 / 2 (= argmin ||x - c||^2)."""
+        scores = desc @ self._centroids_t
+        scores -= self._half_sq_norms
+        return scores.argmax(axis=1)
+
+    def add(self, desc: np.ndarray, timer=null_timer) -> None:
+        """Accumulate float32 (n, d) rows (a block that fits in cache: ~4k rows)."""
+        n = len(desc)
+        if n == 0:
+            return
+        with timer("assign"):
+            words = self.assign(desc)
+        with timer("aggregate"):
+            # one-hot (K x n) in CSC form, built without sorting: column i holds a 1 at row words[i]
+            onehot = scipy.sparse.csc_matrix((np.ones(n, np.float32), words, np.arange(n + 1)), shape=(len(self.sums), n))
+            self.sums += onehot @ desc
+            self.counts += np.bincount(words, minlength=len(self.counts))
+
+    def add_many(self, desc: np.ndarray, timer=null_timer) -> None:
+        for a in range(0, len(desc), _ASSIGN_BLOCK):
+            self.add(np.ascontiguousarray(desc[a : a + _ASSIGN_BLOCK], dtype=np.float32), timer)
+
+    def result(self, pooling: Pooling = "sum") -> np.ndarray:
+        """The (K * d,) float32 VLAD: residual sums per word, pooled and L2-normalised."""
+        residuals = self.sums - self.counts[:, None].astype(np.float32) * self.centroids
+        if pooling == "intra":
+            residuals /= np.maximum(np.linalg.norm(residuals, axis=1), _TINY)[:, None]
+        elif pooling != "sum":
+            raise ConfigError(f"pooling must be 'sum' or 'intra', got {pooling!r}")
+        v = residuals.ravel()
+        v /= max(np.float32(np.linalg.norm(v)), _TINY)
+        return v
+
+
+def vlad(desc: np.ndarray, centroids: np.ndarray, pooling: Pooling = "sum") -> np.ndarray:
+    """VLAD of descriptors (n, d) on a vocabulary (K, d): a (K * d,) float32 unit vector.
+
+    ``pooling="sum"``: residuals x - c(x) summed per word, then L2 (MCVL's text). ``"intra"``:
+    each word's sum L2-normalised first (the authors' code). No descriptors give the zero vector.
+    """
+    desc = np.asarray(desc, dtype=np.float32)
+    acc = VladAccumulator(centroids)
+    if desc.ndim != 2 or desc.shape[1] != acc.centroids.shape[1]:
+        raise InputError(None, f"descriptors must be (n, {acc.centroids.shape[1]}), got shape {desc.shape}")
+    acc.add_many(desc)
+    return acc.result(pooling)
+
+
+def assign_nearest(desc: np.ndarray, centroids: np.ndarray) -> np.ndarray:
+    """Index of the nearest centroid (L2) of every row of ``desc``."""
+    acc = VladAccumulator(centroids)
+    desc = np.asarray(desc, dtype=np.float32)
+    return np.concatenate([acc.assign(desc[a : a + _ASSIGN_BLOCK]) for a in range(0, len(desc), _ASSIGN_BLOCK)] or [np.zeros(0, np.int64)])
+
+
+# --------------------------------------------------------------------------- vocabulary
+
+
+class _UniformSample:
+    """A uniform sample without replacement of at most ``size`` rows from a stream of blocks.
+
+    Every row gets a uniform random key; the sample is the rows with the ``size`` smallest keys
+    (bottom-k sampling), kept exactly while the stream is read, with at most 2 x size rows held.
+    """
+
+    def __init__(self, size: int, rng: np.random.Generator):
+        self.size = size
+        self.rng = rng
+        self.threshold = 1.0
+        self._keys: list[np.ndarray] = []
+        self._rows: list[np.ndarray] = []
+        self._held = 0
+
+    def add(self, rows: np.ndarray) -> None:
+        keys = self.rng.random(len(rows))
+        keep = keys < self.threshold
+        if keep.any():
+            self._keys.append(keys[keep])
+            self._rows.append(rows[keep])  # a copy: blocks are reused buffers
+            self._held += int(keep.sum())
+            if self._held > 2 * self.size:
+                self._shrink()
+
+    def _shrink(self) -> None:
+        keys = np.concatenate(self._keys)
+        rows = np.concatenate(self._rows)
+        if len(keys) > self.size:
+            best = np.argpartition(keys, self.size - 1)[: self.size]
+            keys, rows = keys[best], rows[best]
+            self.threshold = float(keys.max())
+        self._keys, self._rows, self._held = [keys], [rows], len(keys)
+
+    def result(self) -> np.ndarray:
+        if not self._rows:
+            return np.zeros((0, 0), np.float32)
+        self._shrink()
+        return self._rows[0]
+
+
+def kmeans(samples: np.ndarray, k: int, iterations: int = 25, seed: int = 0) -> np.ndarray:
+    """(k, d) float32 centroids of ``samples`` by faiss k-means, on all the given samples."""
+    import faiss
+
+    samples = np.ascontiguousarray(samples, dtype=np.float32)
+    if len(samples) < k:
+        raise InputError(None, f"k-means needs at least {k} descriptors (one per word), got {len(samples)}")
+    km = faiss.Kmeans(samples.shape[1], k, niter=iterations, seed=seed, verbose=False, max_points_per_centroid=math.ceil(len(samples) / k) + 1)
+    km.train(samples)
+    return np.ascontiguousarray(km.centroids, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------- PCA-whitening
+
+
+@dataclass
+class PcaWhitening:
+    """y = L2( W (x - mean) ): W's rows are principal directions, divided by the standard deviation
+    along them when whitening. Serialisable as plain arrays (``state_dict``)."""
+
+    mean: np.ndarray  # (D,) float32
+    projection: np.ndarray  # (d, D) float32
+    variances: np.ndarray  # (d,) float64, training variance along each direction (descending)
+    whiten: bool
+
+    def __post_init__(self) -> None:
+        self.mean = np.ascontiguousarray(self.mean, dtype=np.float32)
+        self.projection = np.ascontiguousarray(self.projection, dtype=np.float32)
+        self.variances = np.asarray(self.variances, dtype=np.float64)
+        self._bias = (self.projection.astype(np.float64) @ self.mean.astype(np.float64)).astype(np.float32)
+
+    @property
+    def dim(self) -> int:
+        return self.projection.shape[0]
+
+    @classmethod
+    def fit(cls, vectors: np.ndarray, dim: int, whiten: bool = True) -> "PcaWhitening":
+        """Learn from training vectors (n, D). ``dim`` is capped at the rank n - 1 with a warning.
+
+        With n < D the eigenvectors come from the n x n Gram matrix (the D x D covariance of
+        16384-D VLADs would be 1 GiB), else from the covariance.
+        """
+        x = np.asarray(vectors, dtype=np.float32)
+        if x.ndim != 2 or len(x) < 2:
+            raise InputError(None, f"PCA needs at least 2 training vectors (n, D), got shape {x.shape}")
+        n, big_d = x.shape
+        cap = min(dim, n - 1, big_d)
+        if cap < dim:
+            warnings.warn(f"PCA dimension capped from {dim} to {cap}: {n} training vectors of dimension {big_d}", InputWarning, stacklevel=2)
+        mean = x.mean(axis=0, dtype=np.float64).astype(np.float32)
+        xc = x - mean
+        if n <= big_d:
+            gram = (xc @ xc.T).astype(np.float64)
+            evals, evecs = np.linalg.eigh(gram)  # ascending
+            evals, evecs = evals[::-1][:cap], evecs[:, ::-1][:, :cap]
+            keep = evals > _RANK_TOL * max(evals[0], np.finfo(np.float64).tiny)
+            evals, evecs = evals[keep], evecs[:, keep]
+            # direction u = X^T v / sqrt(lambda) for Gram eigenpair (lambda, v); unit norm
+            directions = (xc.T @ (evecs / np.sqrt(evals)).astype(np.float32)).T
+        else:
+            cov = (xc.T @ xc).astype(np.float64)
+            evals, evecs = scipy.linalg.eigh(cov, subset_by_index=[big_d - cap, big_d - 1])
+            evals, evecs = evals[::-1], evecs[:, ::-1]
+            keep = evals > _RANK_TOL * max(evals[0], np.finfo(np.float64).tiny)
+            evals, evecs = evals[keep], evecs[:, keep]
+            directions = evecs.T.astype(np.float32)
+        if len(evals) < cap:
+            warnings.warn(f"PCA dimension capped from {cap} to {len(evals)}: the training vectors span only that many dimensions",
+                          InputWarning, stacklevel=2)
+        # deterministic signs: the largest-magnitude coordinate of each direction is positive
+        flip = np.sign(directions[np.arange(len(directions)), np.abs(directions).argmax(axis=1)])
+        directions *= flip[:, None]
+        variances = evals / (n - 1)
+        projection = directions / np.sqrt(variances)[:, None].astype(np.float32) if whiten else directions
+        return cls(mean, projection, variances, whiten)
+
+    def project(self, x: np.ndarray) -> np.ndarray:
+        """W (x - mean) for one (D,) vector or rows (n, D), without the final L2."""
+        x = np.asarray(x, dtype=np.float32)
+        return x @ self.projection.T - self._bias if x.ndim == 2 else self.projection @ x - self._bias
+
+    def transform(self, x: np.ndarray) -> np.ndarray:
+        """L2-normalised projection of one (D,) vector or rows (n, D)."""
+        y = self.project(x)
+        norm = np.linalg.norm(y, axis=-1, keepdims=True)
+        y /= np.maximum(norm, _TINY)
+        return y
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {"mean": self.mean, "projection": self.projection, "variances": self.variances, "whiten": np.array(self.whiten)}
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, np.ndarray]) -> "PcaWhitening":
+        return cls(state["mean"], state["projection"], state["variances"], bool(state["whiten"]))
+
+
+# --------------------------------------------------------------------------- encoder
+
+
+class VladEncoder:
+    """Image -> MCVL observation vector: dense RootSIFT, VLAD, PCA-whitening, L2.
+
+    ``fit`` learns the vocabulary and then the PCA from training images; ``encode`` maps a uint8
+    grey or BGR image to a unit ``(pca.dim,)`` float32 vector (``cfg.pca_dim`` unless capped by
+    too few training images). ``encode_raw`` stops before the PCA.
+    """
+
+    MODEL_FILE = "vlad_encoder.npz"
+    CONFIG_FILE = "config.json"
+
+    def __init__(self, cfg: Optional[VladConfig] = None, vocabulary: Optional[np.ndarray] = None, pca: Optional[PcaWhitening] = None):
+        self.cfg = cfg or VladConfig()
+        self.vocabulary = None if vocabulary is None else np.ascontiguousarray(vocabulary, dtype=np.float32)
+        self.pca = pca
+        if self.vocabulary is not None and self.vocabulary.shape != (self.cfg.num_words, DESCRIPTOR_DIM):
+            raise ConfigError(f"vocabulary has shape {self.vocabulary.shape}, config wants ({self.cfg.num_words}, {DESCRIPTOR_DIM})")
+
+    @property
+    def raw_dim(self) -> int:
+        return self.cfg.num_words * DESCRIPTOR_DIM
+
+    # ---- training
+
+    def fit(self, images: Iterable[np.ndarray], progress: bool = False) -> "VladEncoder":
+        """Learn the vocabulary, then the PCA-whitening, from ``images`` (read twice: pass a list or
+        another re-iterable collection, not a one-shot iterator)."""
+        if iter(images) is images:
+            raise TypeError("fit reads the images twice: pass a list or another re-iterable collection, not an iterator")
+        self.fit_vocabulary(images, progress=progress)
+        raw = np.stack([self.encode_raw(im) for im in _progress(images, progress, "VLAD")])
+        self.fit_pca(raw)
+        return self
+
+    def fit_vocabulary(self, images: Iterable[np.ndarray], progress: bool = False) -> np.ndarray:
+        """k-means vocabulary on a uniform sample of the RootSIFT descriptors of ``images``."""
+        sample = _UniformSample(self.cfg.kmeans_max_descriptors, np.random.default_rng(self.cfg.seed))
+        for im in _progress(images, progress, "descriptors"):
+            gray, _, _ = prepare_image(im, self.cfg.dsift)
+            for blk in iter_histogram_blocks(gray, self.cfg.dsift):
+                sample.add(_rootsift_from_histograms(blk.histograms, self.cfg.dsift.clamp))
+        self.vocabulary = kmeans(sample.result(), self.cfg.num_words, self.cfg.kmeans_iterations, self.cfg.seed)
+        return self.vocabulary
+
+    def fit_pca(self, raw_vlads: np.ndarray) -> PcaWhitening:
+        """PCA (+ whitening) on training VLADs (n, K * 128) from ``encode_raw``."""
+        self.pca = PcaWhitening.fit(raw_vlads, self.cfg.pca_dim, whiten=self.cfg.whiten)
+        return self.pca
+
+    # ---- encoding
+
+    def encode_raw(self, image: np.ndarray, timer: Optional[StepTimer] = None) -> np.ndarray:
+        """(K * 128,) float32 VLAD of an image, before PCA. ``timer`` collects per-step seconds."""
+        if self.vocabulary is None:
+            raise ConfigError("the encoder has no vocabulary: fit or load it first")
+        timer = timer or null_timer
+        with timer("prepare"):
+            gray, _, _ = prepare_image(image, self.cfg.dsift)
+        acc = VladAccumulator(self.vocabulary)
+        for blk in iter_histogram_blocks(gray, self.cfg.dsift, timer=timer):
+            with timer("rootsift"):
+                desc = _rootsift_from_histograms(blk.histograms, self.cfg.dsift.clamp)
+            acc.add(desc, timer)
+        if acc.counts.sum() == 0:
+            raise InputError(None, f"image of shape {gray.shape} is smaller than the largest descriptor region "
+                             f"({max(self.cfg.dsift.region_widths)} px): no dense SIFT frame fits")
+        with timer("pool"):
+            return acc.result(self.cfg.pooling)
+
+    def encode(self, image: np.ndarray, timer: Optional[StepTimer] = None) -> np.ndarray:
+        """(pca.dim,) float32 unit vector of an image: VLAD, PCA-whitening, L2."""
+        if self.pca is None:
+            raise ConfigError("the encoder has no PCA: fit or load it first")
+        raw = self.encode_raw(image, timer)
+        with (timer or null_timer)("pca"):
+            return self.pca.transform(raw)
+
+    # ---- persistence
+
+    def save(self, folder: str | Path) -> Path:
+        """Write ``vlad_encoder.npz`` (vocabulary, PCA arrays) and ``config.json`` into ``folder``."""
+        if self.vocabulary is None:
+            raise ConfigError("nothing to save: the encoder has no vocabulary")
+        folder = Path(folder)
+        arrays = {"vocabulary": self.vocabulary}
+        if self.pca is not None:
+            arrays.update({f"pca_{k}": v for k, v in self.pca.state_dict().items()})
+        with atomic_path(folder / self.MODEL_FILE) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+        atomic_write_text(folder / self.CONFIG_FILE, self.cfg.model_dump_json(indent=2) + "\n")
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path) -> "VladEncoder":
+        folder = Path(folder)
+        cfg_path, model_path = folder / cls.CONFIG_FILE, folder / cls.MODEL_FILE
+        for p in (cfg_path, model_path):
+            if not p.is_file():
+                raise InputError(p, "missing: not a saved VLAD encoder folder")
+        try:
+            cfg = VladConfig.model_validate(json.loads(cfg_path.read_text()))
+        except (ValidationError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"{cfg_path}: not a valid VLAD config ({exc})") from None
+        with np.load(model_path, allow_pickle=False) as z:
+            if "vocabulary" not in z.files:
+                raise InputError(model_path, "no vocabulary array", field="vocabulary")
+            vocabulary = z["vocabulary"]
+            pca_state = {k[4:]: z[k] for k in z.files if k.startswith("pca_")}
+        pca = PcaWhitening.from_state_dict(pca_state) if pca_state else None
+        return cls(cfg, vocabulary, pca)
+
+
+def _progress(items: Iterable, enabled: bool, desc: str) -> Iterable:
+    if not enabled:
+        return items
+    from tqdm import tqdm
+
+    return tqdm(items, desc=desc, unit="img")
