@@ -8,11 +8,15 @@ import open3d as o3d
 import pycolmap
 import pytest
 
-from mapkit.mapping.build import build
 from mapkit.cli import main
-from mapkit.core.errors import InputError
-from mapkit.mapping.imagedb import read_images_csv
+from mapkit.core.errors import ConfigError, InputError, InputWarning
+from mapkit.core.geometry import make_pose
 from mapkit.core.runio import is_done
+from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, PoseSample
+from mapkit.core.workspace import Workspace
+from mapkit.io.mcap_log import McapWriter
+from mapkit.mapping.build import build
+from mapkit.mapping.imagedb import read_images_csv
 
 N = 12
 
@@ -121,3 +125,53 @@ def test_two_logs_with_one_session_name_are_refused_before_anything_is_written(t
     with pytest.raises(InputError, match="same session name 'drive'"):
         build(logs, tmp_path / "ws", progress=False)
     assert not (tmp_path / "ws").exists()
+
+
+def test_a_misspelt_semidense_key_fails_when_the_config_loads_before_any_stage(tmp_path):
+    """``semidense`` is typed: a typo is refused with the other keys, not after two stages have run."""
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("semidense:\n  max_depht_m: 50.0\n")
+    with pytest.raises(ConfigError, match=r"semidense\.max_depht_m"):
+        build([tmp_path / "drive.mcap"], tmp_path / "ws", config=cfg, progress=False)
+    cfg.write_text("semidense:\n  max_depth_m: 0.5\n")  # a value its own validator refuses (below min_depth_m)
+    with pytest.raises(ConfigError, match="semidense"):
+        build([tmp_path / "drive.mcap"], tmp_path / "ws", config=cfg, progress=False)
+    assert not (tmp_path / "ws").exists()  # nothing ran
+
+
+T0 = 1_700_000_000_000_000_000
+
+
+def _two_camera_log(path, front_grey: int, rear_grey: int):
+    """2 s at 10 Hz: poses of base_link, and two cameras (each with intrinsics, an extrinsic and one
+    image topic) whose frames are flat grey images, one grey level per camera, 20 ms apart."""
+    K = np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]])
+    with McapWriter(path) as w:
+        w.write_transforms("/tf_static", [FrameTransform(0, "base_link", cam, make_pose(np.eye(3), [1.0, 0, 1.5]))
+                                          for cam in ("front", "rear")])
+        for cam in ("front", "rear"):
+            w.write(f"/{cam}/camera_info", CameraInfo(cam, 64, 48, K, stamp_ns=T0))
+        for i in range(20):
+            t = T0 + i * 100_000_000
+            w.write("/odom", PoseSample(t, "map", "base_link", make_pose(np.eye(3), [0.5 * i, 0, 0])))
+            if 0 < i < 19:
+                w.write("/front/image", CameraFrame(t, "front", np.full((48, 64), front_grey, np.uint8)))
+                w.write("/rear/image", CameraFrame(t + 20_000_000, "rear", np.full((48, 64), rear_grey, np.uint8)))
+    return path
+
+
+def test_build_reads_images_from_the_topics_named_in_topics_images(tmp_path):
+    import cv2
+
+    log = _two_camera_log(tmp_path / "two_cams.mcap", front_grey=60, rear_grey=190)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("topics:\n  images: [/rear/image]\ntrajectory:\n  source: poses\nmap: false\n"
+                   "imagedb:\n  min_spacing_m: 0.0\n  image_format: png\n")
+    with pytest.warns(InputWarning, match="no GPS stream"):
+        ws = build([log], tmp_path / "ws", config=cfg, progress=False)
+    db = Workspace(ws).session("two_cams").imagedb
+    table = read_images_csv(db / "images.csv")
+    assert set(table["camera"]) == {"rear"}
+    assert table["stamp_ns"].tolist() == [T0 + i * 100_000_000 + 20_000_000 for i in range(1, 19)]
+    for rel in table["image"]:
+        assert (cv2.imread(str(db / rel), cv2.IMREAD_UNCHANGED) == 190).all()

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from mapkit.mapping.build import build
 from mapkit.evaluation.evaluate import evaluate_build
+from mapkit.mapping.build import build
 from mapkit.synth import session_log, synthesize
 
 # one 80 m drive; GPS with white noise and multipath jumps but no bias, so that what is measured is

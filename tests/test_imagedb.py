@@ -6,8 +6,8 @@ import pytest
 
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import invert_pose, make_pose, yaw_rotation
-from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter, read_images_csv, scaled_info, select_by_spacing
 from mapkit.core.types import CameraInfo
+from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter, read_images_csv, scaled_info, select_by_spacing
 
 K = np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]])
 # camera optical frame (x right, y down, z forward) looking along the map's +x

@@ -13,7 +13,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from scipy.spatial import cKDTree
 
 from mapkit.core.errors import InputError
@@ -293,6 +292,22 @@ def test_greedy_nms_matches_sequential_suppression(rng):
     assert np.all(np.linalg.norm(pts[sup] - pts[target[sup]], axis=1) <= 0.08)
 
 
+def test_map_records_every_frame_stamp_for_pose_interpolation(room_map, room):
+    """Every input frame's id and stamp are kept (not only keyframes'), so that a non-key frame's
+    pose between keyframes is interpolated at its own time: the structure index's frame table
+    then puts each observing frame where the camera was."""
+    from mapkit.places.index_structure import session_frames
+
+    sd, _ = room_map
+    poses, _ = room
+    assert np.array_equal(sd.frame_ids, np.arange(len(poses)))
+    assert np.array_equal(sd.frame_stamps_ns, 1_000_000_000 + np.arange(len(poses)) * 100_000_000)
+    table = session_frames(sd)
+    others = ~np.isin(table["frame_id"], sd.keyframe_ids) & (table["stamp_ns"] >= 0)
+    assert others.any()
+    assert np.array_equal(table["stamp_ns"][others], 1_000_000_000 + table["frame_id"][others] * 100_000_000)
+
+
 def test_save_load_round_trip(room_map, tmp_path):
     sd, _ = room_map
     out = sd.save(tmp_path / "map")
@@ -301,7 +316,8 @@ def test_save_load_round_trip(room_map, tmp_path):
     assert b"binary_little_endian" in header and b"property double x" in header
     back = SemiDenseMap.load(out)
     assert np.array_equal(back.points_world, sd.points_world)  # float64, bit for bit
-    for name in ("intensity", "sigma_depth", "source_keyframe", "obs_indptr", "obs_frame_ids", "keyframe_ids", "keyframe_stamps_ns", "keyframe_world_from_cam", "K"):
+    for name in ("intensity", "sigma_depth", "source_keyframe", "obs_indptr", "obs_frame_ids", "keyframe_ids", "keyframe_stamps_ns", "keyframe_world_from_cam", "K",
+                 "frame_ids", "frame_stamps_ns"):
         assert np.array_equal(getattr(back, name), getattr(sd, name)), name
     assert back.image_size_wh == (W_IMG, H_IMG)
     assert back.config == ROOM_CFG

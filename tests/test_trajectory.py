@@ -6,9 +6,9 @@ import pytest
 
 from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
+from mapkit.core.types import FrameTransform, LidarScan, PoseSample
 from mapkit.io.mcap_log import McapLog, McapWriter
 from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, estimate_trajectory, trajectory_from_poses
-from mapkit.core.types import FrameTransform, LidarScan, PoseSample
 
 T0 = 1_700_000_000_000_000_000
 BASE_FROM_LIDAR = make_pose(yaw_rotation(0.05), [0.8, 0.0, 1.9])

@@ -16,7 +16,7 @@ set by the first session with GPS), so maps of different sessions are in one fra
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import time
 import warnings
 from pathlib import Path
@@ -32,13 +32,17 @@ from mapkit.core.executor import Executor, TaskError, get_executor
 from mapkit.core.frames import FrameTree
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
-from mapkit.mapping.gps_align import align_to_gps, associate_fixes
-from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, reset_stage, write_json
+from mapkit.core.types import CameraFrame, CameraInfo, StreamKind
+from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, reset_stage, write_json
+from mapkit.mapping.gps_align import align_to_gps, associate_fixes
+from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
+from mapkit.mapping.semidense import SemiDenseConfig, SemiDenseMap, build_semidense_map
 from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, estimate_trajectory
-from mapkit.core.types import StreamKind
+
+logger = logging.getLogger(__name__)
 
 
 class GeorefConfig(MapkitConfig):
@@ -63,14 +67,19 @@ class BuildConfig(MapkitConfig):
     trajectory: TrajectoryConfig = TrajectoryConfig()
     georef: GeorefConfig = GeorefConfig()
     imagedb: ImageDbConfig = ImageDbConfig()
-    semidense: dict = Field(default_factory=dict, description="Overrides of mapkit.mapping.semidense.SemiDenseConfig.")
+    semidense: SemiDenseConfig = Field(default_factory=SemiDenseConfig, description="Semi-dense mapping (stage 3), "
+                                       "checked with the rest of the config before any stage runs.")
     map: bool = Field(True, description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
                       "database without triangulated points, all that image retrieval and MCVL need.")
-    camera: Optional[str] = Field(None, description="Camera (frame id) to map with; the first one if unset.")
+    camera: Optional[str] = Field(None, description="Camera (frame id) to map with; if unset, the first one (by name) with "
+                                  "intrinsics, of those on topics.images when that is set.")
 
 
 def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     d = cfg.model_dump(mode="json")
+    # semi-dense hashes as the overrides it was given, as when it was a plain dict of them: stages
+    # finished before it was typed stay finished
+    d["semidense"] = cfg.semidense.model_dump(mode="json", exclude_unset=True)
     return config_hash({p: d.get(p) for p in parts})
 
 
@@ -82,15 +91,19 @@ def session_name(log_path: str | Path) -> str:
 class SessionBuilder:
     """Runs the stages of one session; each stage method returns its output folder."""
 
-    def __init__(self, log_path: Path, workspace: Path, cfg: BuildConfig, progress: bool = True, name: Optional[str] = None):
+    def __init__(self, log_path: str | Path, workspace: str | Path | Workspace, cfg: BuildConfig, progress: bool = True,
+                 name: Optional[str] = None):
         self.log_path = Path(log_path)
-        self.workspace = Path(workspace)
+        self.ws = Workspace(workspace)
+        self.workspace = self.ws.root
         self.cfg = cfg
         self.progress = progress
         self.name = name or session_name(self.log_path)
-        self.dir = self.workspace / "sessions" / self.name
+        self.dirs: SessionDirs = self.ws.session(self.name)
+        self.dir = self.dirs.root
         self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
         self._log: Optional[DriveLog] = None
+        self._camera_choice: Optional[tuple[str, list[str], CameraInfo]] = None
 
     @property
     def log(self) -> DriveLog:
@@ -104,7 +117,7 @@ class SessionBuilder:
 
     # --- stage 1 --------------------------------------------------------------------------------
     def trajectory(self) -> Path:
-        out = self.dir / "trajectory"
+        out = self.dirs.trajectory
         h = _stage_hash(self.cfg, "topics", "trajectory")
         if is_done(out, h):
             return out
@@ -121,7 +134,7 @@ class SessionBuilder:
 
     # --- stage 2 --------------------------------------------------------------------------------
     def georef(self) -> Path:
-        out = self.dir / "georef"
+        out = self.dirs.georef
         h = _stage_hash(self.cfg, "topics", "trajectory", "georef")
         if is_done(out, h):
             return out
@@ -138,9 +151,9 @@ class SessionBuilder:
         enu_traj[:, :3, :3] = R @ traj.world_from_base[:, :3, :3]
         enu_traj[:, :3, 3] = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
         Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if al is not None else traj.frame,
-                   body_frame=traj.body_frame).save(out / "trajectory_enu")
+                   body_frame=traj.body_frame).save(self.dirs.georef_trajectory)
         result["seconds"] = time.perf_counter() - t0
-        write_json(out / "gps_alignment.json", result)
+        write_json(self.dirs.gps_alignment, result)
         mark_done(out, h)
         return out
 
@@ -204,7 +217,7 @@ class SessionBuilder:
         its frame is ENU at ``georef.origin``; placed exactly (through ECEF) in the workspace frame."""
         g = self.cfg.georef
         if g.origin is None:
-            raise InputError(self.workspace / "build_config.yaml", "georef mode 'given' needs the pose stream's ENU origin",
+            raise InputError(self.ws.build_config, "georef mode 'given' needs the pose stream's ENU origin",
                              field="georef.origin")
         if not traj.source.startswith("poses"):
             raise InputError(self.log_path, f"georef mode 'given' needs a pose-stream trajectory, not {traj.source!r}",
@@ -227,33 +240,65 @@ class SessionBuilder:
 
     def _workspace_frame(self, proposed: LocalFrame) -> LocalFrame:
         """The workspace's frame: the one already set, else ``proposed``, which becomes it."""
-        path = self.workspace / "origin.json"
-        if path.is_file():
-            return LocalFrame.from_dict(json.loads(path.read_text()))
-        write_json(path, proposed.to_dict())
+        frame = self.ws.frame()
+        if frame is not None:
+            return frame
+        write_json(self.ws.origin, proposed.to_dict())
         return proposed
 
     def frame(self) -> Optional[LocalFrame]:
-        d = json.loads((self.georef() / "gps_alignment.json").read_text())
+        """The session's local frame (the workspace's), None when it is not georeferenced."""
+        self.georef()
+        d = json.loads(self.dirs.gps_alignment.read_text())
         return LocalFrame.from_dict(d) if d.get("georeferenced") else None
 
+    def enu_trajectory(self) -> Trajectory:
+        """The GPS-aligned trajectory (stage 2's output, the stage run first if need be)."""
+        self.georef()
+        return Trajectory.load(self.dirs.georef_trajectory)
+
     # --- camera frames with poses ---------------------------------------------------------------
-    def _camera(self) -> tuple[str, str, "object"]:
+    def _camera(self) -> tuple[str, list[str], CameraInfo]:
+        """(name, image topics, intrinsics) of the mapping camera and the topics its frames are read
+        from (``topics.images``, every image stream if unset). The camera is ``camera``, else the
+        first one (by name) with intrinsics; with ``topics.images`` set, the first of those that the
+        named topics carry, so that naming a topic is enough to map from it."""
+        if self._camera_choice is not None:
+            return self._camera_choice
         topics = resolve_topics(self.log, self.cfg.topics)
+        image_topics = topics.get(StreamKind.IMAGE, [])
         infos = self.log.camera_infos()
-        if not topics.get(StreamKind.IMAGE):
+        if not image_topics:
             raise InputError(self.log_path, "has no image stream to map from", field="topics.images")
         if not infos:
             raise InputError(self.log_path, "has no camera intrinsics (CameraInfo / calibration); a map cannot be built", field="camera_info")
-        name = self.cfg.camera or sorted(infos)[0]
+        name = self.cfg.camera
+        if name is None:
+            on_topics = self._cameras_on(image_topics) if self.cfg.topics.images is not None else set(infos)
+            name = next((c for c in sorted(infos) if c in on_topics), sorted(infos)[0])
         if name not in infos:
             raise InputError(self.log_path, f"camera {name!r} has no intrinsics; cameras with intrinsics: {sorted(infos)}", field="camera")
-        return name, topics[StreamKind.IMAGE], infos[name]
+        self._camera_choice = (name, image_topics, infos[name])
+        return self._camera_choice
 
-    def posed_frames(self) -> Iterator[tuple[int, "object", np.ndarray]]:
-        """(frame index, CameraFrame, enu_from_camera) of the mapping camera, inside the trajectory."""
+    def _cameras_on(self, image_topics: list[str]) -> set[str]:
+        """The cameras of the first frame of each topic (a frame's pixels are not decoded to read it)."""
+        cameras = set()
+        for topic in image_topics:
+            frames = self.log.records(StreamKind.IMAGE, topic=topic)
+            try:
+                first = next(frames, None)
+            finally:
+                frames.close()
+            if first is not None:
+                cameras.add(first.camera)
+        return cameras
+
+    def posed_frames(self) -> Iterator[tuple[int, CameraFrame, np.ndarray]]:
+        """(frame index, CameraFrame, enu_from_camera) of the mapping camera on the chosen image
+        topics (``topics.images``), inside the trajectory."""
         name, image_topics, info = self._camera()
-        traj = Trajectory.load(self.georef() / "trajectory_enu")
+        traj = self.enu_trajectory()
         tree = FrameTree(self.log.transforms())
         if traj.body_frame == name:
             base_from_cam = np.eye(4)
@@ -263,7 +308,8 @@ class SessionBuilder:
             except InputError as exc:
                 raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {traj.body_frame!r} and camera {name!r}", field="tf") from exc
         index = 0
-        for frame in self.log.records(StreamKind.IMAGE):
+        for msg in self.log.messages(topics=image_topics):
+            frame = msg.record
             if frame.camera != name:
                 continue
             poses, ok = interpolate_poses(traj.stamps_ns, traj.world_from_base, np.array([frame.stamp_ns], np.int64))
@@ -273,21 +319,18 @@ class SessionBuilder:
 
     # --- stage 3 --------------------------------------------------------------------------------
     def semidense(self) -> Path:
-        from mapkit.mapping import semidense as sd
-
-        out = self.dir / "map"
+        out = self.dirs.map
         h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera")
         if is_done(out, h):
             return out
         t0 = time.perf_counter()
         reset_stage(out)
-        sd_cfg = load_config(sd.SemiDenseConfig, overrides=self.cfg.semidense)
         _, _, info = self._camera()
         frames = ((i, f.stamp_ns, f.gray(), T) for i, f, T in self.posed_frames())
-        smap = sd.build_semidense_map(frames, info.K, sd_cfg, progress=self.progress)
+        smap = build_semidense_map(frames, info.K, self.cfg.semidense, progress=self.progress)
         frame = self.frame()
         smap.save(out, frame=frame)
-        traj = Trajectory.load(self.georef() / "trajectory_enu")
+        traj = self.enu_trajectory()
         from mapkit.io.plots import map_top_view
 
         map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3], f"{self.name}: semi-dense map, {len(smap.points_world)} points")
@@ -300,9 +343,7 @@ class SessionBuilder:
 
     # --- stage 4 --------------------------------------------------------------------------------
     def imagedb(self) -> Path:
-        from mapkit.mapping import semidense as sd
-
-        out = self.dir / "imagedb"
+        out = self.dirs.imagedb
         h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera", "imagedb", "map")
         if is_done(out, h):
             return out
@@ -323,7 +364,7 @@ class SessionBuilder:
             write_json(out / "metrics.json", {"images": len(writer.images), "seconds": time.perf_counter() - t0, "map": False})
             mark_done(out, h)
             return out
-        smap = sd.SemiDenseMap.load(self.semidense())
+        smap = SemiDenseMap.load(self.semidense())
         # observations by map frame index -> by database image id (frames not kept are dropped)
         point_of = np.repeat(np.arange(len(smap.points_world)), np.diff(smap.obs_indptr))
         ids = np.array([db_id_of_frame.get(int(f), 0) for f in smap.obs_frame_ids], np.int64)
@@ -338,20 +379,20 @@ class SessionBuilder:
     def run(self) -> dict:
         t0 = time.perf_counter()
         self.dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(self.dir / "config.yaml", dump_config(self.cfg))
+        atomic_write_text(self.dirs.config, dump_config(self.cfg))
         stages = (self.trajectory, self.georef, self.semidense, self.imagedb) if self.cfg.map else (self.trajectory, self.georef, self.imagedb)
         for stage in stages:
             s0 = time.perf_counter()
             folder = stage()
             m_path = folder / "metrics.json"
             stage_metrics = json.loads(m_path.read_text()) if m_path.is_file() else {}
-            if (folder / "gps_alignment.json").is_file():
-                ga = json.loads((folder / "gps_alignment.json").read_text())
+            if folder == self.dirs.georef:
+                ga = json.loads(self.dirs.gps_alignment.read_text())
                 stage_metrics = {"georeferenced": ga["georeferenced"], **ga.get("alignment", {})}
             stage_metrics["wall_s_this_run"] = time.perf_counter() - s0
             self.metrics["stages"][stage.__name__] = stage_metrics
         self.metrics["wall_s_this_run"] = time.perf_counter() - t0
-        write_json(self.dir / "metrics.json", self.metrics)
+        write_json(self.dirs.metrics, self.metrics)
         self.close()
         return self.metrics
 
@@ -363,8 +404,8 @@ def _log_bytes(log: Path) -> int:
     return sum(p.stat().st_size for p in log.rglob("*") if p.is_file()) if log.is_dir() else 0
 
 
-def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, progress: bool = True,
-          executor: Optional[Executor] = None) -> Path:
+def build(logs: list[str | Path], workspace: str | Path | Workspace, config: Optional[str | Path] = None,
+          progress: bool = True, executor: Optional[Executor] = None) -> Path:
     """Build every log into a session of ``workspace``; returns the workspace.
 
     With an executor of several workers (``executor``, else :func:`mapkit.core.executor.get_executor`)
@@ -381,43 +422,48 @@ def build(logs: list[Path], workspace: Path, config: Optional[Path] = None, prog
             raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
         names[name] = log
     cfg = load_config(BuildConfig, config)
-    workspace = Path(workspace)
-    workspace.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(workspace / "build_config.yaml", dump_config(cfg))
+    ws = Workspace(workspace)
+    ws.root.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(ws.build_config, dump_config(cfg))
     ex = executor or get_executor()
-    summary: dict = {}
     if ex.workers > 1 and len(logs) > 1:
-        _fix_workspace_frame(logs, workspace, cfg)
-        order = sorted(range(len(logs)), key=lambda i: -_log_bytes(logs[i]))  # the largest log first
-        done: dict[int, dict] = {}
-        try:
-            for m, i in zip(ex.map(_build_task, [logs[i] for i in order], shared=(workspace, cfg), desc="build",
-                                   label=lambda p: str(p)), order):
-                done[i] = m
-                if progress:
-                    print(f"built {m['session']}: {m.get('wall_s_this_run', 0):.1f} s", file=sys.stderr, flush=True)
-        except TaskError as exc:
-            raise (exc.cause if isinstance(exc.cause, MapkitError) else exc) from exc
-        summary = {done[i]["session"]: done[i] for i in range(len(logs))}
+        summary = _build_parallel(logs, ws, cfg, ex, progress)
     else:
+        summary = {}
         for log in logs:
-            b = SessionBuilder(log, workspace, cfg, progress=progress)
+            b = SessionBuilder(log, ws, cfg, progress=progress)
             summary[b.name] = b.run()
-    write_json(workspace / "metrics.json", {"sessions": summary})
-    return workspace
+    write_json(ws.metrics, {"sessions": summary})
+    return ws.root
 
 
-def _build_task(shared: tuple[Path, BuildConfig], log: Path) -> dict:
-    workspace, cfg = shared
-    return SessionBuilder(log, workspace, cfg, progress=False).run()
+def _build_parallel(logs: list[Path], ws: Workspace, cfg: BuildConfig, ex: Executor, progress: bool) -> dict[str, dict]:
+    """Whole sessions on the executor's workers, the largest logs first; their metrics by session, in ``logs`` order."""
+    _fix_workspace_frame(logs, ws, cfg)
+    order = sorted(range(len(logs)), key=lambda i: -_log_bytes(logs[i]))  # the largest log first
+    done: dict[int, dict] = {}
+    try:
+        for m, i in zip(ex.map(_build_task, [logs[i] for i in order], shared=(ws, cfg), desc="build",
+                               label=lambda p: str(p)), order):
+            done[i] = m
+            if progress:
+                logger.info("built %s: %.1f s", m["session"], m.get("wall_s_this_run", 0))
+    except TaskError as exc:
+        raise (exc.cause if isinstance(exc.cause, MapkitError) else exc) from exc
+    return {done[i]["session"]: done[i] for i in range(len(logs))}
 
 
-def _fix_workspace_frame(logs: list[Path], workspace: Path, cfg: BuildConfig) -> None:
+def _build_task(shared: tuple[Workspace, BuildConfig], log: Path) -> dict:
+    ws, cfg = shared
+    return SessionBuilder(log, ws, cfg, progress=False).run()
+
+
+def _fix_workspace_frame(logs: list[Path], ws: Workspace, cfg: BuildConfig) -> None:
     """Write ``origin.json`` before sessions are built concurrently (each would otherwise write its own)."""
-    if (workspace / "origin.json").is_file():
+    if ws.frame() is not None:
         return
     for log in logs:
-        b = SessionBuilder(log, workspace, cfg, progress=False)
+        b = SessionBuilder(log, ws, cfg, progress=False)
         try:
             frame = b.proposed_frame()
         finally:
@@ -427,10 +473,11 @@ def _fix_workspace_frame(logs: list[Path], workspace: Path, cfg: BuildConfig) ->
             return
 
 
-def format_build_summary(workspace: Path) -> str:
+def format_build_summary(workspace: str | Path | Workspace) -> str:
     """A table of every session of a workspace: trajectory, georeferencing, map and database."""
-    m = json.loads((Path(workspace) / "metrics.json").read_text())
-    rows = [f"workspace {workspace}",
+    ws = Workspace(workspace)
+    m = json.loads(ws.metrics.read_text())
+    rows = [f"workspace {ws.root}",
             f"  {'session':<24} {'traj src':<22} {'length m':>9} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} {'points':>9} {'images':>7} {'time s':>7}"]
     for name, s in m["sessions"].items():
         st = s["stages"]

@@ -55,7 +55,7 @@ from mapkit.core.config import MapkitConfig, dump_config
 from mapkit.core.errors import InputError
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geometry import invert_pose, rotation_angle_rad, transform_points
-from mapkit.core.runio import atomic_path, atomic_write_ply, atomic_write_text
+from mapkit.core.runio import atomic_path, atomic_write_ply, atomic_write_text, progress_bar
 
 #: DSO's residual pattern (``PATTERNP = staticPattern[8]`` in DSO's settings): 8 pixels around
 #: the candidate, a diamond of radius 2, offsets (du, dv) in pixels.
@@ -169,6 +169,10 @@ class SemiDenseMap:
     K: np.ndarray  # (3, 3)
     image_size_wh: tuple[int, int]
     config: Optional[SemiDenseConfig] = None
+    #: every frame the map was built from, keyframe or not: (T,) ids and their stamps, so that a
+    #: frame's pose can be interpolated between keyframes over time (absent in maps saved before)
+    frame_ids: Optional[np.ndarray] = None
+    frame_stamps_ns: Optional[np.ndarray] = None
 
     def __len__(self) -> int:
         return int(len(self.points_world))
@@ -214,6 +218,8 @@ class SemiDenseMap:
                     sigma_depth=self.sigma_depth, intensity=self.intensity, keyframe_ids=self.keyframe_ids,
                     keyframe_stamps_ns=self.keyframe_stamps_ns, keyframe_world_from_cam=self.keyframe_world_from_cam,
                     K=self.K, image_size_wh=np.asarray(self.image_size_wh, np.int64),
+                    **({} if self.frame_ids is None else {"frame_ids": np.asarray(self.frame_ids, np.int64),
+                                                          "frame_stamps_ns": np.asarray(self.frame_stamps_ns, np.int64)}),
                 )
         if self.config is not None:
             atomic_write_text(folder / "config.yaml", dump_config(self.config))
@@ -241,6 +247,7 @@ class SemiDenseMap:
             obs_indptr=d["obs_indptr"], obs_frame_ids=d["obs_frame_ids"], keyframe_ids=d["keyframe_ids"],
             keyframe_stamps_ns=d["keyframe_stamps_ns"], keyframe_world_from_cam=d["keyframe_world_from_cam"],
             K=d["K"], image_size_wh=tuple(int(x) for x in d["image_size_wh"]), config=cfg,
+            frame_ids=d.get("frame_ids"), frame_stamps_ns=d.get("frame_stamps_ns"),
         )
 
 
@@ -424,46 +431,8 @@ class _Searcher:
         u, v = self.u[idx], self.v[idx]
         a = np.column_stack([u, v, np.ones(m)]) @ nb.KRKi.T  # (m, 3)
         b = nb.Kt
-        lo, hi = lo.astype(np.float64).copy(), hi.astype(np.float64).copy()
-
-        # a prior search spans at least +-min_search_half_width_px around its centre
-        if not full_range:
-            mid = 0.5 * (lo + hi)
-            J = self._pixels_per_rho(a, b, mid)
-            half = np.maximum(0.5 * (hi - lo), cfg.min_search_half_width_px / np.maximum(J, 1e-9))
-            lo, hi = np.maximum(mid - half, 1e-6), mid + half
-        # depth in the neighbour >= min_depth: a_z + rho (b_z - zmin) >= 0 (times rho > 0)
-        c1 = b[2] - cfg.min_depth_m
-        if c1 > 0:
-            lo = np.maximum(lo, -a[:, 2] / c1)
-        elif c1 < 0:
-            hi = np.minimum(hi, a[:, 2] / -c1)
-        valid = (hi > lo) & (a[:, 2] + hi * b[2] > 0)
-        p_lo, p_hi = _project(a, b, lo), _project(a, b, hi)
-        # clip the segment to the image (Liang-Barsky), keeping the pattern inside
-        H, W = target.shape
-        d = p_hi - p_lo
-        t0, t1 = np.zeros(m), np.ones(m)
-        mg = _PATTERN_RADIUS + 1.0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for k, lim_lo, lim_hi in ((0, mg, W - 1 - mg), (1, mg, H - 1 - mg)):
-                p, dk = p_lo[:, k], d[:, k]
-                for q, r in ((-dk, p - lim_lo), (dk, lim_hi - p)):
-                    tt = r / q
-                    t0 = np.where(q < 0, np.maximum(t0, tt), t0)
-                    t1 = np.where(q > 0, np.minimum(t1, tt), t1)
-                    valid &= ~((q == 0) & (r < 0))
-        valid &= np.isfinite(p_lo).all(1) & np.isfinite(p_hi).all(1) & (t1 > t0)
-        P0 = p_lo + t0[:, None] * d
-        P1 = p_lo + t1[:, None] * d
-        seg = P1 - P0
-        L = np.linalg.norm(seg, axis=1)
-        valid &= L > 1e-3
-        if full_range:
-            valid &= L >= cfg.min_epipolar_length_px
+        P0, direction, L, valid = self._segment(a, b, lo, hi, target.shape, full_range)
         searched = valid.copy()
-        direction = seg / np.maximum(L, 1e-9)[:, None]
-        P0[~valid], direction[~valid], L[~valid] = 0.0, 1.0, 1.0  # keep the arithmetic finite
 
         # coarse search: S samples, on the pyramid level where a step is <= 1 level-pixel
         step = L / (S - 1)
@@ -482,25 +451,9 @@ class _Searcher:
             second = np.where(interior & far, cost, _BAD_COST).min(axis=1)
             valid &= second >= best_cost + cfg.ambiguity_margin
 
-        # refine: halve the step (and the level) around the best until level 0 and <= 0.5 px
-        centre = s_samples[rows, best]
-        c_minus, c_zero, c_plus = cost[rows, np.maximum(best - 1, 0)], best_cost, cost[rows, np.minimum(best + 1, S - 1)]
-        h = step.copy()
-        todo = valid & ((level > 0) | (step > 0.5))
-        offsets = np.arange(-3, 4, dtype=np.float64)
-        while todo.any():
-            t = np.nonzero(todo)[0]
-            level[t] = np.maximum(level[t] - 1, 0)
-            h[t] *= 0.5
-            s_ref = np.clip(centre[t, None] + h[t, None] * offsets[None, :], 0.0, L[t, None])
-            c = self._costs(idx[t], a[t], b, nb.pattern_da, P0[t], direction[t], s_ref, level[t], target)
-            j = np.argmin(c, axis=1)
-            rt = np.arange(len(t))
-            edge = (j == 0) | (j == len(offsets) - 1)
-            centre[t] = s_ref[rt, j]
-            c_minus[t], c_zero[t], c_plus[t] = c[rt, np.maximum(j - 1, 0)], c[rt, j], c[rt, np.minimum(j + 1, len(offsets) - 1)]
-            valid[t[edge]] = False
-            todo[t] = valid[t] & ((level[t] > 0) | (h[t] > 0.5))
+        centre, h, (c_minus, c_zero, c_plus), valid = self._refine(
+            idx, a, b, nb, target, P0, direction, L, valid, level, step, s_samples[rows, best],
+            (cost[rows, np.maximum(best - 1, 0)], best_cost, cost[rows, np.minimum(best + 1, S - 1)]))
 
         # sub-pixel: parabola through the three costs around the minimum
         curv = c_minus - 2.0 * c_zero + c_plus
@@ -523,6 +476,78 @@ class _Searcher:
         sigma_rho = sigma_px / np.maximum(J, 1e-12)
         valid &= np.isfinite(sigma_rho)
         return _TraceResult(np.where(valid, rho, np.nan), np.where(valid, sigma_rho, np.inf), cost_min, valid, searched)
+
+    def _segment(self, a, b, lo, hi, shape: tuple[int, int], full_range: bool):
+        """The searchable part of each candidate's epipolar line in the target: (start P0, unit
+        direction, length L in px, valid). A line is valid when its inverse-depth range is in front
+        of both cameras, it crosses the image with the pattern inside, and (full range) it is long
+        enough to show parallax; invalid lines get finite placeholders."""
+        cfg = self.cfg
+        m = len(a)
+        lo, hi = lo.astype(np.float64).copy(), hi.astype(np.float64).copy()
+
+        # a prior search spans at least +-min_search_half_width_px around its centre
+        if not full_range:
+            mid = 0.5 * (lo + hi)
+            J = self._pixels_per_rho(a, b, mid)
+            half = np.maximum(0.5 * (hi - lo), cfg.min_search_half_width_px / np.maximum(J, 1e-9))
+            lo, hi = np.maximum(mid - half, 1e-6), mid + half
+        # depth in the neighbour >= min_depth: a_z + rho (b_z - zmin) >= 0 (times rho > 0)
+        c1 = b[2] - cfg.min_depth_m
+        if c1 > 0:
+            lo = np.maximum(lo, -a[:, 2] / c1)
+        elif c1 < 0:
+            hi = np.minimum(hi, a[:, 2] / -c1)
+        valid = (hi > lo) & (a[:, 2] + hi * b[2] > 0)
+        p_lo, p_hi = _project(a, b, lo), _project(a, b, hi)
+        # clip the segment to the image (Liang-Barsky), keeping the pattern inside
+        H, W = shape
+        d = p_hi - p_lo
+        t0, t1 = np.zeros(m), np.ones(m)
+        mg = _PATTERN_RADIUS + 1.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k, lim_lo, lim_hi in ((0, mg, W - 1 - mg), (1, mg, H - 1 - mg)):
+                p, dk = p_lo[:, k], d[:, k]
+                for q, r in ((-dk, p - lim_lo), (dk, lim_hi - p)):
+                    tt = r / q
+                    t0 = np.where(q < 0, np.maximum(t0, tt), t0)
+                    t1 = np.where(q > 0, np.minimum(t1, tt), t1)
+                    valid &= ~((q == 0) & (r < 0))
+        valid &= np.isfinite(p_lo).all(1) & np.isfinite(p_hi).all(1) & (t1 > t0)
+        P0 = p_lo + t0[:, None] * d
+        P1 = p_lo + t1[:, None] * d
+        seg = P1 - P0
+        L = np.linalg.norm(seg, axis=1)
+        valid &= L > 1e-3
+        if full_range:
+            valid &= L >= cfg.min_epipolar_length_px
+        direction = seg / np.maximum(L, 1e-9)[:, None]
+        P0[~valid], direction[~valid], L[~valid] = 0.0, 1.0, 1.0  # keep the arithmetic finite
+        return P0, direction, L, valid
+
+    def _refine(self, idx, a, b, nb: _Neighbour, target: _Pyramid, P0, direction, L, valid, level, step, centre, costs):
+        """Coarse to fine around the coarse minimum ``centre``: halve the step (and the pyramid level)
+        until level 0 and <= 0.5 px. Returns (centre, final step h, the costs at centre - h, centre,
+        centre + h, valid): a minimum that runs off the refined window is not valid."""
+        c_minus, c_zero, c_plus = (c.copy() for c in costs)
+        centre, level, valid = centre.copy(), level.copy(), valid.copy()
+        h = step.copy()
+        todo = valid & ((level > 0) | (step > 0.5))
+        offsets = np.arange(-3, 4, dtype=np.float64)
+        while todo.any():
+            t = np.nonzero(todo)[0]
+            level[t] = np.maximum(level[t] - 1, 0)
+            h[t] *= 0.5
+            s_ref = np.clip(centre[t, None] + h[t, None] * offsets[None, :], 0.0, L[t, None])
+            c = self._costs(idx[t], a[t], b, nb.pattern_da, P0[t], direction[t], s_ref, level[t], target)
+            j = np.argmin(c, axis=1)
+            rt = np.arange(len(t))
+            edge = (j == 0) | (j == len(offsets) - 1)
+            centre[t] = s_ref[rt, j]
+            c_minus[t], c_zero[t], c_plus[t] = c[rt, np.maximum(j - 1, 0)], c[rt, j], c[rt, np.minimum(j + 1, len(offsets) - 1)]
+            valid[t[edge]] = False
+            todo[t] = valid[t] & ((level[t] > 0) | (h[t] > 0.5))
+        return centre, h, (c_minus, c_zero, c_plus), valid
 
     @staticmethod
     def _pixels_per_rho(a: np.ndarray, b: np.ndarray, rho: np.ndarray) -> np.ndarray:
@@ -592,6 +617,38 @@ class _Searcher:
 
 # --- one keyframe ------------------------------------------------------------------------------------------
 
+def _candidate_searcher(ref_image: np.ndarray, ref_pyr: _Pyramid, cfg: SemiDenseConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Searcher]:
+    """The keyframe's candidates (u, v), their gradients (N, 2), and a searcher holding their
+    patterns on every pyramid level (a candidate searches only levels whose pattern is inside)."""
+    u, v = select_candidates(ref_image, cfg)
+    gx, gy = image_gradients(ref_image)
+    g = np.column_stack([gx[v, u], gy[v, u]]).astype(np.float64)
+    levels = np.arange(cfg.pyramid_levels)
+    offs = PATTERN_DSO8[None, :, :] * (2.0**levels)[:, None, None]  # (L, P, 2)
+    px = (u[:, None, None] + offs[None, :, :, 0]).astype(np.float32)
+    py = (v[:, None, None] + offs[None, :, :, 1]).astype(np.float32)
+    ref_vals = ref_pyr.sample(px, py, levels[None, :, None])
+    level_ok = np.isfinite(ref_vals).all(axis=2)
+    max_level = np.where(level_ok.all(axis=1), cfg.pyramid_levels - 1, np.argmin(level_ok, axis=1) - 1).astype(np.int64)
+    ref_norm, norms = _normalise_patterns(np.nan_to_num(ref_vals))
+    ref_std = norms[:, 0] / math.sqrt(PATTERN_DSO8.shape[0])
+    return u, v, g, _Searcher(u, v, ref_norm.astype(np.float32), ref_std, np.maximum(max_level, 0), cfg)
+
+
+def _accepted(rho: np.ndarray, sigma: np.ndarray, agreed: np.ndarray, cfg: SemiDenseConfig) -> np.ndarray:
+    """Candidates whose depth enough frames agree on, inside the depth range and sharp enough."""
+    rho_min, rho_max = 1.0 / cfg.max_depth_m, 1.0 / cfg.min_depth_m
+    n_frames = 1 + agreed.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (
+            np.isfinite(rho)
+            & (n_frames >= cfg.min_agreeing_frames)
+            & (rho >= rho_min) & (rho <= rho_max)
+            & (sigma <= cfg.max_rel_sigma * rho)
+            & (sigma <= cfg.max_sigma_depth_m * rho**2)
+        )
+
+
 def map_keyframe(
     ref_image: np.ndarray,
     ref_world_from_cam: np.ndarray,
@@ -623,21 +680,8 @@ def map_keyframe(
         if pyr.shape != ref_pyr.shape:
             raise ValueError(f"neighbour image shape {pyr.shape} differs from the keyframe's {ref_pyr.shape}")
 
-    u, v = select_candidates(ref_image, cfg)
-    gx, gy = image_gradients(ref_image)
-    g = np.column_stack([gx[v, u], gy[v, u]]).astype(np.float64)
+    u, v, g, searcher = _candidate_searcher(ref_image, ref_pyr, cfg)
     n_cand = len(u)
-    # keyframe patterns on every level; a candidate searches only levels whose pattern is inside
-    levels = np.arange(cfg.pyramid_levels)
-    offs = PATTERN_DSO8[None, :, :] * (2.0**levels)[:, None, None]  # (L, P, 2)
-    px = (u[:, None, None] + offs[None, :, :, 0]).astype(np.float32)
-    py = (v[:, None, None] + offs[None, :, :, 1]).astype(np.float32)
-    ref_vals = ref_pyr.sample(px, py, levels[None, :, None])
-    level_ok = np.isfinite(ref_vals).all(axis=2)
-    max_level = np.where(level_ok.all(axis=1), cfg.pyramid_levels - 1, np.argmin(level_ok, axis=1) - 1).astype(np.int64)
-    ref_norm, norms = _normalise_patterns(np.nan_to_num(ref_vals))
-    ref_std = norms[:, 0] / math.sqrt(PATTERN_DSO8.shape[0])
-    searcher = _Searcher(u, v, ref_norm.astype(np.float32), ref_std, np.maximum(max_level, 0), cfg)
 
     geoms = [_neighbour_geometry(i, ref_world_from_cam, T, K) for i, (_, T) in enumerate(neighbours)]
     geoms = [n for n in geoms if cfg.min_baseline_m <= n.baseline_m <= cfg.max_baseline_m]
@@ -685,15 +729,7 @@ def map_keyframe(
         n_searched += 1
 
     sigma = np.sqrt(var)
-    n_frames = 1 + agreed.sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        keep = (
-            np.isfinite(rho)
-            & (n_frames >= cfg.min_agreeing_frames)
-            & (rho >= rho_min) & (rho <= rho_max)
-            & (sigma <= cfg.max_rel_sigma * rho)
-            & (sigma <= cfg.max_sigma_depth_m * rho**2)
-        )
+    keep = _accepted(rho, sigma, agreed, cfg)
     img = np.asarray(ref_image)
     intensity = np.clip(img[v[keep], u[keep]], 0, 255).astype(np.uint8)
     return KeyframePoints(
@@ -870,6 +906,29 @@ def _map_keyframe_task(shared: tuple[np.ndarray, SemiDenseConfig], t: _KeyframeT
     return t.frame_id, t.stamp_ns, t.world_from_cam, pts
 
 
+def _checked_frame(frame_id: int, gray, world_from_cam, image_shape: Optional[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """(grey image, pose) of one input frame, or an error naming the frame: a (H, W) image of the
+    first frame's shape and a finite 4x4 pose."""
+    gray = np.asarray(gray)
+    T = np.asarray(world_from_cam, np.float64)
+    if gray.ndim != 2:
+        raise InputError(None, f"frame {frame_id}: expected a (H, W) grey image, got shape {gray.shape}")
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InputError(None, f"frame {frame_id}: world_from_cam must be a finite 4x4 matrix")
+    if image_shape is not None and gray.shape != image_shape:
+        raise InputError(None, f"frame {frame_id}: image shape {gray.shape} differs from the first frame's {image_shape}")
+    return gray, T
+
+
+def _is_keyframe(last_kf: Optional[np.ndarray], world_from_cam: np.ndarray, cfg: SemiDenseConfig) -> bool:
+    """The first frame, and a frame that moved or turned enough since the last keyframe."""
+    if last_kf is None:
+        return True
+    rel = invert_pose(last_kf) @ world_from_cam
+    angle_deg = float(np.degrees(rotation_angle_rad(rel[:3, :3])))
+    return bool(np.linalg.norm(rel[:3, 3]) >= cfg.keyframe_spacing_m or angle_deg >= cfg.keyframe_rotation_deg)
+
+
 def build_semidense_map(
     frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]],
     K: np.ndarray,
@@ -890,17 +949,16 @@ def build_semidense_map(
     any executor. In this process the image pyramids are shared between neighbouring keyframes;
     workers elsewhere receive the images and build their own.
     """
-    from tqdm import tqdm
-
     cfg = cfg or SemiDenseConfig()
     K = np.asarray(K, np.float64)
     executor = executor or get_executor()
     W = cfg.neighbour_window_frames
     fuser = _Fuser(cfg.fusion_radius_m, cfg.fusion_window_keyframes)
     kf_ids, kf_stamps, kf_poses = [], [], []
+    all_ids, all_stamps = [], []
     image_shape: Optional[tuple[int, int]] = None
     total = len(frames) if hasattr(frames, "__len__") else None  # type: ignore[arg-type]
-    bar = tqdm(frames, total=total, disable=not progress, desc="semi-dense", unit="frame")
+    bar = progress_bar(total, progress, desc="semi-dense", unit="frame")
 
     def task(window: deque[_Buffered], center: int) -> _KeyframeTask:
         kf = window[center]
@@ -918,25 +976,17 @@ def build_semidense_map(
         nonlocal image_shape
         window: deque[_Buffered] = deque()
         last_kf: Optional[np.ndarray] = None
-        for frame_id, stamp_ns, gray, world_from_cam in bar:
-            gray = np.asarray(gray)
-            T = np.asarray(world_from_cam, np.float64)
-            if gray.ndim != 2:
-                raise InputError(None, f"frame {frame_id}: expected a (H, W) grey image, got shape {gray.shape}")
-            if T.shape != (4, 4) or not np.isfinite(T).all():
-                raise InputError(None, f"frame {frame_id}: world_from_cam must be a finite 4x4 matrix")
+        for frame_id, stamp_ns, gray, world_from_cam in frames:
+            bar.update(1)
+            gray, T = _checked_frame(frame_id, gray, world_from_cam, image_shape)
             if image_shape is None:
                 image_shape = gray.shape
-            elif gray.shape != image_shape:
-                raise InputError(None, f"frame {frame_id}: image shape {gray.shape} differs from the first frame's {image_shape}")
-            is_kf = last_kf is None
-            if not is_kf:
-                rel = invert_pose(last_kf) @ T
-                angle_deg = float(np.degrees(rotation_angle_rad(rel[:3, :3])))
-                is_kf = np.linalg.norm(rel[:3, 3]) >= cfg.keyframe_spacing_m or angle_deg >= cfg.keyframe_rotation_deg
+            is_kf = _is_keyframe(last_kf, T, cfg)
             if is_kf:
                 last_kf = T
             window.append(_Buffered(int(frame_id), int(stamp_ns), gray, T, bool(is_kf)))
+            all_ids.append(int(frame_id))
+            all_stamps.append(int(stamp_ns))
             del gray
             # the frame W places back now has all its neighbours
             if len(window) > W and window[-1 - W].is_keyframe:
@@ -981,6 +1031,8 @@ def build_semidense_map(
         K=K,
         image_size_wh=(int(w), int(h)),
         config=cfg,
+        frame_ids=np.asarray(all_ids, np.int64),
+        frame_stamps_ns=np.asarray(all_stamps, np.int64),
     )
 
 

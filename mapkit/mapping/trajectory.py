@@ -23,10 +23,10 @@ from mapkit.core.config import MapkitConfig, TopicConfig, resolve_topics
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.frames import FrameTree
 from mapkit.core.geometry import invert_pose
+from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar
+from mapkit.core.types import StreamKind
 from mapkit.io.base import DriveLog
 from mapkit.io.trajectory import read_tum, write_kitti_poses, write_tum
-from mapkit.core.runio import atomic_path, atomic_write_text
-from mapkit.core.types import StreamKind
 
 
 class KissIcpOptions(MapkitConfig):
@@ -189,10 +189,8 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
 
 
 def _progress(log: DriveLog, topic: str, enabled: bool):
-    from tqdm import tqdm
-
     total = next((s.count for s in log.streams() if s.topic == topic), None)
-    return tqdm(total=total, unit="scan", desc="kiss-icp", leave=False, disable=not enabled)
+    return progress_bar(total, enabled, desc="kiss-icp", unit="scan", leave=False)
 
 
 def choose_source(log: DriveLog, cfg: TrajectoryConfig, topics: dict[StreamKind, list[str]]) -> str:
