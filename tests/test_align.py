@@ -9,6 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.core.runio import mark_done, write_json
+from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
+from mapkit.mapping.semidense import SemiDenseMap
+from mapkit.mapping.trajectory import Trajectory
 from mapkit.multisession.align import (
     AlignConfig,
     Edge,
@@ -20,12 +26,6 @@ from mapkit.multisession.align import (
     load_tiles,
     register_clouds,
 )
-from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import make_pose, yaw_rotation
-from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
-from mapkit.core.runio import mark_done, write_json
-from mapkit.mapping.semidense import SemiDenseMap
-from mapkit.mapping.trajectory import Trajectory
 
 FRAME = LocalFrame(48.1, 11.5, 520.0)
 STREET_M = 160.0
@@ -131,9 +131,9 @@ def test_register_clouds_recovers_a_known_offset(street_world):
     # the registration undoes the offset: target_from_source ~ true^-1
     P = np.array([[45.0, 0, 0], [55.0, 8, 3], [35.0, -8, 3]])
     moved = P @ true[:3, :3].T + true[:3, 3]
-    back = moved @ r["target_from_source"][:3, :3].T + r["target_from_source"][:3, 3]
+    back = moved @ r.target_from_source[:3, :3].T + r.target_from_source[:3, 3]
     assert np.abs(back - P).max() < 0.1
-    assert r["fitness"] > 0.5 and r["rmse_m"] < 0.2
+    assert r.fitness > 0.5 and r.rmse_m < 0.2
 
 
 def test_candidate_pairs_pairs_only_nearby_submaps_of_different_sessions():

@@ -13,9 +13,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from test_align import gps_error, make_workspace, street  # noqa: E402
 
-from mapkit.multisession.align import align_workspace  # noqa: E402
 from mapkit.core.errors import InputError, MapkitError  # noqa: E402
 from mapkit.core.runio import DONE_MARKER, sha256_file  # noqa: E402
+from mapkit.multisession.align import align_workspace  # noqa: E402
+from mapkit.multisession.registration import Registration  # noqa: E402
 from mapkit.places.triplets import (  # noqa: E402
     ChunkSets,
     GridIndex,
@@ -105,8 +106,7 @@ def test_batched_patches_are_the_per_place_patches(aligned):
     shift = {si: np.eye(4) for si in range(len(sessions))}
     for si in shift:
         shift[si][:3, 3] = [0.05 * si, -0.03 * si, 0.0]
-    icp_of = lambda si, a, centre, reach, n_src, n_tgt: {"fitness": 1.0, "rmse_m": 0.1,  # noqa: E731
-                                                         "target_from_source": shift[si] @ np.linalg.inv(shift[a])}
+    icp_of = lambda si, a, centre, reach, n_src, n_tgt: Registration(shift[si] @ np.linalg.inv(shift[a]), 1.0, 0.1, 1.0, 0.1)  # noqa: E731
     n_sets = 0
     for c in np.unique(chunk)[:6]:
         places = order[chunk == c]

@@ -26,10 +26,11 @@ session's points about the cell, one batch through yaw normalisation and voxelis
 from __future__ import annotations
 
 import json
-import sys
+import logging
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal, Optional
+from typing import Callable, Iterator, Literal, Optional, Union
 
 import numpy as np
 from pydantic import Field
@@ -39,6 +40,9 @@ from mapkit.core.bundle import building
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
+from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, sha256_file, write_json
+from mapkit.core.workspace import Workspace
+from mapkit.multisession.registration import IcpClouds, IcpConfig, Registration, about_centre, icp_coarse_to_fine
 from mapkit.places.patches import (
     CNN_DOMAIN,
     PatchDomain,
@@ -48,7 +52,8 @@ from mapkit.places.patches import (
     yaw_normalise_patches,
 )
 from mapkit.places.pointnetvlad_config import PointNetVladConfig
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+
+log = logging.getLogger(__name__)
 
 TRIPLETS_FORMAT_VERSION = 2  # 2: shards in HDF5 (or npz, as the manifest's shard_format says); 1: npz shards only
 READABLE_FORMAT_VERSIONS = (1, 2)
@@ -143,6 +148,13 @@ class GridIndex:
         np.cumsum(np.bincount(owner, weights=n, minlength=len(centres_xy)).astype(np.int64), out=indptr[1:])
         return indptr, indices
 
+    def disc(self, points: np.ndarray, centre: np.ndarray, r: float) -> np.ndarray:
+        """Indices of ``points`` (the points this grid was built over) within horizontal distance
+        ``r`` of ``centre``, in grid order."""
+        idx = self.candidates(centre[:2], r)
+        d = points[idx, :2] - centre[:2]
+        return idx[np.einsum("ij,ij->i", d, d) <= r * r]
+
 
 class SessionPoints:
     """One aligned session: its merged map points, their first observers, and spatial indexes."""
@@ -173,9 +185,7 @@ class SessionPoints:
 
     def around_indices(self, centre: np.ndarray, r: float) -> np.ndarray:
         """Indices of the points within horizontal distance ``r`` of ``centre``, in grid order."""
-        idx = self.grid.candidates(centre[:2], r)
-        d = self.points[idx, :2] - centre[:2]
-        return idx[np.einsum("ij,ij->i", d, d) <= r * r]
+        return self.grid.disc(self.points, centre, r)
 
     def around(self, centre: np.ndarray, r: float) -> np.ndarray:
         """Points within horizontal distance ``r`` of ``centre``."""
@@ -201,15 +211,16 @@ class SessionPoints:
         return self._icp_levels[key]
 
 
-def load_aligned_sessions(workspace: Path, names: Optional[list[str]] = None) -> tuple[list[SessionPoints], LocalFrame]:
-    from mapkit.multisession.align import load_tiles
+def load_aligned_sessions(workspace: Union[str, Path, Workspace], names: Optional[list[str]] = None) -> tuple[list[SessionPoints], LocalFrame]:
+    """The merged points of every session (or of ``names``) of a finished ``mapkit align``, and the workspace frame."""
     from mapkit.mapping.semidense import SemiDenseMap
+    from mapkit.multisession.tiles import load_tiles
 
-    al = workspace / "align"
-    if not (al / ".done").is_file():
-        raise InputError(al, "no finished multi-session alignment here (run mapkit align first)")
-    frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
-    _, sid, idx, tile_names = load_tiles(al / "tiles")
+    ws = Workspace(workspace)
+    if not ws.align_done.is_file():
+        raise InputError(ws.align_dir, "no finished multi-session alignment here (run mapkit align first)")
+    frame = ws.require_frame()
+    _, sid, idx, tile_names = load_tiles(ws.tiles_dir)
     out = []
     for k, name in enumerate(tile_names):
         if names is not None and name not in names:
@@ -217,7 +228,7 @@ def load_aligned_sessions(workspace: Path, names: Optional[list[str]] = None) ->
         keep = np.sort(idx[sid == k])
         if len(keep) == 0:
             continue
-        smap = SemiDenseMap.load(al / "sessions" / name / "map")
+        smap = SemiDenseMap.load(ws.aligned(name).map)
         first = first_observer_frames(keep, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids)
         order = np.argsort(smap.keyframe_ids, kind="stable")
         pos = smap.keyframe_world_from_cam[order[np.searchsorted(smap.keyframe_ids[order], first)], :3, 3]
@@ -225,9 +236,9 @@ def load_aligned_sessions(workspace: Path, names: Optional[list[str]] = None) ->
     if names is not None:
         missing = sorted(set(names) - {s.name for s in out})
         if missing:
-            raise InputError(al / "tiles" / "tiles.json", f"sessions {missing} have no merged points", field="sessions")
+            raise InputError(ws.tiles_dir / "tiles.json", f"sessions {missing} have no merged points", field="sessions")
     if len(out) < 2:
-        raise InputError(al, f"{len(out)} session(s) with merged points; triplets need two or more")
+        raise InputError(ws.align_dir, f"{len(out)} session(s) with merged points; triplets need two or more")
     return out, frame
 
 
@@ -345,45 +356,38 @@ def make_patches_csr(points: np.ndarray, indptr: np.ndarray, centres: np.ndarray
     return occ, dcg, yaw, counts
 
 
-def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarray, reach: float, icp, relative_change: float) -> dict:
+def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarray, reach: float, icp: IcpConfig,
+                  relative_change: float) -> Registration:
     """Point-to-plane ICP of ``source``'s points within ``reach`` (horizontally) of ``centre`` onto
-    ``target``'s, as :func:`mapkit.multisession.align.register_clouds` does it (same levels, normals,
-    correspondence distances, fitness and point-to-plane RMSE at ``icp.eval_distance_m`` of the
-    fine level), on the sessions' cached downsampled clouds (:meth:`SessionPoints.icp_level`).
-    ``relative_change``: ICP stops when fitness and RMSE change by less than this (open3d's
-    criteria)."""
+    ``target``'s: :func:`mapkit.multisession.registration.icp_coarse_to_fine`, the loop of
+    :func:`~mapkit.multisession.registration.register_clouds` (same levels, normals, correspondence
+    distances), on crops of the sessions' cached downsampled clouds (:meth:`SessionPoints.icp_level`);
+    fitness and point-to-plane RMSE at ``icp.eval_distance_m`` of the fine level (open3d's
+    correspondences; no structure-only figures). ``relative_change``: ICP stops when fitness and
+    RMSE change by less than this (open3d's criteria)."""
     import open3d as o3d
 
-    reg, vec = o3d.pipelines.registration, o3d.utility.Vector3dVector
-    T = np.eye(4)
-    src = tgt = None
-    for voxel, max_d in zip(icp.voxel_sizes_m, icp.max_correspondence_m):
+    def level(voxel: float) -> Optional[IcpClouds]:
         sp, _, sg = source.icp_level(voxel)
         tp, tn, tg = target.icp_level(voxel, icp.normal_radius_factor * voxel, icp.normal_max_nn)
-        si, ti = _disc(sp, sg, centre, reach), _disc(tp, tg, centre, reach)
+        si, ti = sg.disc(sp, centre, reach), tg.disc(tp, centre, reach)
         if len(si) < 10 or len(ti) < 10:
-            return {"fitness": 0.0, "rmse_m": float("nan")}
-        src = o3d.geometry.PointCloud(vec(sp[si] - centre))  # centre-relative: rotations pivot about the cell
-        tgt = o3d.geometry.PointCloud(vec(tp[ti] - centre))
-        tgt.normals = vec(tn[ti])
-        res = reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(),
-                                   reg.ICPConvergenceCriteria(relative_change, relative_change, icp.max_iterations))
-        T = np.asarray(res.transformation)
-    ev = reg.evaluate_registration(src, tgt, icp.eval_distance_m, T)
-    corr = np.asarray(ev.correspondence_set)
+            return None
+        return IcpClouds(sp[si] - centre, tp[ti] - centre, tn[ti])  # centre-relative: rotations pivot about the cell
+
+    T, clouds = icp_coarse_to_fine(level, icp, relative_change)
+    if clouds is None:
+        return Registration.failed()
+    reg, vec = o3d.pipelines.registration, o3d.utility.Vector3dVector
+    src = o3d.geometry.PointCloud(vec(clouds.source))
+    tgt = o3d.geometry.PointCloud(vec(clouds.target))
+    corr = np.asarray(reg.evaluate_registration(src, tgt, icp.eval_distance_m, T).correspondence_set)
     if len(corr) == 0:
-        return {"fitness": 0.0, "rmse_m": float("nan")}
-    moved = np.asarray(src.points)[corr[:, 0]] @ T[:3, :3].T + T[:3, 3]
-    r = np.einsum("ij,ij->i", moved - np.asarray(tgt.points)[corr[:, 1]], np.asarray(tgt.normals)[corr[:, 1]])
-    C = np.eye(4)  # back to ENU from centre-relative coordinates x' = x - c
-    C[:3, 3] = centre
-    return {"target_from_source": C @ T @ np.linalg.inv(C), "fitness": len(corr) / len(src.points), "rmse_m": float(np.sqrt(np.mean(r * r)))}
-
-
-def _disc(points: np.ndarray, grid: GridIndex, centre: np.ndarray, r: float) -> np.ndarray:
-    idx = grid.candidates(centre[:2], r)
-    d = points[idx, :2] - centre[:2]
-    return idx[np.einsum("ij,ij->i", d, d) <= r * r]
+        return Registration.failed()
+    moved = clouds.source[corr[:, 0]] @ T[:3, :3].T + T[:3, 3]
+    r = np.einsum("ij,ij->i", moved - clouds.target[corr[:, 1]], clouds.target_normals[corr[:, 1]])
+    fitness, rmse = len(corr) / len(clouds.source), float(np.sqrt(np.mean(r * r)))
+    return Registration(about_centre(T, centre), fitness, rmse, fitness, rmse)
 
 
 class ChunkSets:
@@ -398,7 +402,7 @@ class ChunkSets:
     """
 
     def __init__(self, places: np.ndarray, sessions: list[SessionPoints], kp_session: np.ndarray, kp_index: np.ndarray,
-                 cfg: TripletConfig, icp_of):
+                 cfg: TripletConfig, icp_of: Callable[..., Registration]):
         d = cfg.domain
         crop = d.patch_radius + 2.0
         P = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in places]).reshape(-1, 3)
@@ -438,10 +442,10 @@ class ChunkSets:
                     T, rmse = np.eye(4), 0.0
                 else:
                     r = icp_of(si, a, centre, reach, len(cloud_idx[si]), len(cloud_idx.get(a, ())))
-                    if r["fitness"] < cfg.min_fitness or not r["rmse_m"] <= cfg.lambda_icp_m:
+                    if r.fitness < cfg.min_fitness or not r.rmse_m <= cfg.lambda_icp_m:
                         rejected += 1
                         continue
-                    T, rmse = r["target_from_source"], r["rmse_m"]
+                    T, rmse = r.target_from_source, r.rmse_m
                 transforms[(si, a)] = T
                 mem.append((si, int(nearest[k, si]), T, rmse))
             self.rejected[int(j)] = rejected
@@ -628,202 +632,263 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
     that would make no triplet raises :class:`NoTripletsError` and leaves any earlier dataset in
     place. The config's ``pointnetvlad`` section is not acted on here: ``mapkit triplets`` runs
     :func:`mapkit.places.pointnetvlad.export_triplets_pointnetvlad`, which calls this and then the export."""
-    from mapkit.multisession.align import IcpConfig
-
-    workspace = Path(workspace)
+    ws = Workspace(workspace)
     cfg = load_config(TripletConfig, config, overrides)
-    out = Path(out) if out is not None else workspace / "triplets"
-    align_done = json.loads((workspace / "align" / ".done").read_text()) if (workspace / "align" / ".done").is_file() else {}
+    out = Path(out) if out is not None else ws.triplets_dir
     # the PointNetVLAD layout is a stage of its own (mapkit.places.pointnetvlad): its settings do not change the dataset
-    h = config_hash({"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": align_done.get("config_hash")})
+    h = config_hash({"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": ws.align_record().get("config_hash")})
     if is_done(out, h):
         return out
     t0 = time.perf_counter()
-    sessions, frame = load_aligned_sessions(workspace, cfg.sessions)
+    sessions, frame = load_aligned_sessions(ws, cfg.sessions)
     final = out
     with building(final) as out:  # a partial folder, renamed into place last: an earlier dataset survives a failure
         atomic_write_text(out / "config.yaml", dump_config(cfg))
-        rng = np.random.default_rng(cfg.seed)
-        icp = IcpConfig(voxel_sizes_m=cfg.icp_voxel_sizes_m, max_correspondence_m=cfg.icp_max_correspondence_m, max_iterations=20,
-                        lambda_icp_m=cfg.lambda_icp_m, min_fitness=cfg.min_fitness, min_structure_fitness=0.0)
+        rng = np.random.default_rng(cfg.seed)  # drawn from in this order: keypoints, negatives, places, each triplet's negative
+        kp = _Keypoints.draw(sessions, frame, cfg, rng)
+        shards = ShardWriter(out, cfg.shard_patches, cfg.shard_format, cfg.grid)
+        table = _PatchTable()
+        pools = _negative_pools(sessions, kp, cfg, rng, shards, table)
+        if not any(len(ids) for ids, _ in pools.values()):  # no negatives: no place could give a triplet
+            raise NoTripletsError(ws.align_dir, _no_triplets_reason(cfg, kp.split, pools, _Counts()))
+        places = _Places(sessions, kp, pools, cfg, rng, shards, table)
+        places.make_triplets(progress)
+        if places.counts.triplets == 0:  # raised inside the partial folder: nothing is renamed into place or marked done
+            raise NoTripletsError(ws.align_dir, _no_triplets_reason(cfg, kp.split, pools, places.counts))
+        shards.flush()
+        log.info("%d triplets from %d places (%d tried, %d ICP registrations)", places.counts.triplets, places.counts.sets,
+                 places.counts.tried, places.counts.icp)
+        _write_dataset(out, ws, h, cfg, sessions, frame, kp.tiles, shards, table, places, t0)
+        mark_done(out, h)
+    return final
 
-        # keypoints per session, with their split
+
+@dataclass
+class _Keypoints:
+    """The drawn keypoints (a random ``keypoint_fraction`` of every session's points) and their split."""
+
+    tiles: dict[tuple[int, int], str]  # UTM tile -> split
+    session: np.ndarray  # (K,) session of each keypoint
+    index: np.ndarray  # (K,) its point in the session
+    split: np.ndarray  # (K,) "train", "test" or "" (in a buffer strip)
+
+    @classmethod
+    def draw(cls, sessions: list[SessionPoints], frame: LocalFrame, cfg: TripletConfig, rng: np.random.Generator) -> "_Keypoints":
         all_utm = np.concatenate([frame.enu_to_utm(s.points[:: max(1, len(s.points) // 20000)])[:, :2] for s in sessions])
         tiles = tile_split(all_utm, cfg.tile_size_m, cfg.test_fraction, cfg.seed)
         kp_session, kp_index, kp_split = [], [], []
         for si, s in enumerate(sessions):
             k = np.sort(rng.choice(len(s.points), max(1, int(round(cfg.keypoint_fraction * len(s.points)))), replace=False))
-            sp = split_of(frame.enu_to_utm(s.points[k])[:, :2], tiles, cfg.tile_size_m, cfg.buffer_m)
             kp_session.append(np.full(len(k), si))
             kp_index.append(k)
-            kp_split.append(sp)
-        kp_session, kp_index, kp_split = np.concatenate(kp_session), np.concatenate(kp_index), np.concatenate(kp_split)
+            kp_split.append(split_of(frame.enu_to_utm(s.points[k])[:, :2], tiles, cfg.tile_size_m, cfg.buffer_m))
+        return cls(tiles, np.concatenate(kp_session), np.concatenate(kp_index), np.concatenate(kp_split))
 
-        shards = ShardWriter(out, cfg.shard_patches, cfg.shard_format, cfg.grid)
-        table: dict[str, list] = {k: [] for k in ("patch_id", "set_id", "split", "role", "session", "frame", "enu", "yaw", "points", "icp_rmse_m", "transform")}
 
-        def record(ids, set_id, split, role, sess, frames, enu, yaw, npts, rmse, T):
-            table["patch_id"].append(ids)
-            table["set_id"].append(np.full(len(ids), set_id))
-            table["split"].append(np.full(len(ids), split, dtype=object))
-            table["role"].append(np.full(len(ids), role, dtype=object))
-            table["session"].append(np.asarray(sess))
-            table["frame"].append(np.asarray(frames))
-            table["enu"].append(np.asarray(enu))
-            table["yaw"].append(np.asarray(yaw))
-            table["points"].append(np.asarray(npts))
-            table["icp_rmse_m"].append(np.asarray(rmse))
-            table["transform"].append(np.asarray(T))
+class _PatchTable:
+    """The per-patch table (patches.npz, patches.csv), filled as patches are made."""
 
-        # negative pools: random keypoints of each split, patches as mapped (no ICP needed)
-        pools = {}
-        for split in SPLITS:
-            cand = np.flatnonzero(kp_split == split)
-            if len(cand) == 0:
-                continue
-            pick = rng.choice(cand, min(cfg.negative_pool, len(cand)), replace=False)
-            centres = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in pick])
-            obs = np.array([sessions[kp_session[j]].observer_pos[kp_index[j]] for j in pick])
-            sess = kp_session[pick]
-            frames = np.array([sessions[kp_session[j]].observer_frame[kp_index[j]] for j in pick])
-            occ, dcg, yaw, npts = make_patches_csr(*mapped_patches(sessions, sess, centres, cfg.domain), centres, obs, cfg)
-            ok = npts >= cfg.min_patch_points
-            ids = shards.add(occ[ok], dcg[ok])
-            record(ids, -1, split, "negative", sess[ok], frames[ok], centres[ok], yaw[ok], npts[ok],
-                   np.zeros(ok.sum()), np.repeat(np.eye(4)[None], ok.sum(), axis=0))
-            pools[split] = (ids, centres[ok])
+    COLUMNS = ("patch_id", "set_id", "split", "role", "session", "frame", "enu", "yaw", "points", "icp_rmse_m", "transform")
 
-        if not any(len(ids) for ids, _ in pools.values()):  # no negatives: no place could give a triplet
-            raise NoTripletsError(workspace / "align", _no_triplets_reason(cfg, kp_split, pools, 0, {}, 0))
+    def __init__(self):
+        self.columns: dict[str, list] = {k: [] for k in self.COLUMNS}
 
-        # correspondence sets, made a chunk (one cell's places of a round) at a time
-        triplets: dict[str, list] = {s: [] for s in SPLITS}
-        order, chunk_of = place_chunks(kp_session, kp_index, kp_split, sessions, cfg, rng)
-        n_sets = rejected_members = tried = n_done = n_icp = 0
-        why = {"no_set": 0, "small_patches": 0, "no_far_negative": 0}  # places that gave no triplet, by reason
-        icp_cache: dict[tuple, dict] = {}
-        relative_change = cfg.icp_relative_change
+    def record(self, ids, set_id, split, role, sess, frames, enu, yaw, npts, rmse, T) -> None:
+        c = self.columns
+        c["patch_id"].append(ids)
+        c["set_id"].append(np.full(len(ids), set_id))
+        c["split"].append(np.full(len(ids), split, dtype=object))
+        c["role"].append(np.full(len(ids), role, dtype=object))
+        c["session"].append(np.asarray(sess))
+        c["frame"].append(np.asarray(frames))
+        c["enu"].append(np.asarray(enu))
+        c["yaw"].append(np.asarray(yaw))
+        c["points"].append(np.asarray(npts))
+        c["icp_rmse_m"].append(np.asarray(rmse))
+        c["transform"].append(np.asarray(T))
 
-        def icp_of(si: int, a: int, centre: np.ndarray, reach: float, n_src: int, n_tgt: int) -> dict:
-            """One ICP per session, anchor session and cell, shared by all the cell's places."""
-            nonlocal n_icp
-            key = (si, a, *np.floor(centre[:2] / cfg.icp_cell_m).astype(int).tolist())
-            if key not in icp_cache:
-                ok = min(n_src, n_tgt) >= cfg.min_patch_points
-                icp_cache[key] = register_cell(sessions[si], sessions[a], centre, reach, icp, relative_change) if ok else {"fitness": 0.0, "rmse_m": float("nan")}
-                n_icp += 1
-            return icp_cache[key]
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Every column as one array, rows in patch id order."""
+        tab = {k: np.concatenate(v) if v else np.zeros(0) for k, v in self.columns.items()}
+        order = np.argsort(tab["patch_id"])
+        return {k: v[order] for k, v in tab.items()}
 
-        current: dict = {"chunk": -1, "sets": None}
-        used = np.zeros(len(order), bool)
 
-        def _one_place(pos: int, split: str) -> int:
-            """Patches and triplets of the place at ``order[pos]``; returns the triplets made."""
-            nonlocal n_sets, rejected_members, tried
-            tried += 1
-            j = order[pos]
-            c = chunk_of[pos]
-            if current["chunk"] != c or int(j) not in current["sets"].result:
-                # the chunk's places not made yet (all of them, unless a quota left some for the second pass)
-                todo = np.flatnonzero((chunk_of == c) & ~used)
-                todo = np.union1d(todo, [pos])
-                current["chunk"], current["sets"] = c, ChunkSets(order[todo], sessions, kp_session, kp_index, cfg, icp_of)
-            res, rejected = current["sets"].get(j)
-            rejected_members += rejected
-            if res is None:
-                why["no_set"] += 1
-                return 0
-            ok = res["points"] >= cfg.min_patch_points
-            if ok.sum() < 2:
-                why["small_patches"] += 1
-                return 0
-            pool_ids, pool_pos = pools[split]
-            p = res["centre"][0]
-            far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
-            if len(far) == 0:  # before recording the set's patches, which would otherwise share the next set's id
-                why["no_far_negative"] += 1
-                return 0
-            ids = shards.add(res["occ"][ok], res["dcg"][ok])
-            set_rmse = float(max(res["rmse"][ok]))
-            record(ids, n_sets, split, "positive", res["session"][ok], res["frame"][ok], res["centre"][ok], res["yaw"][ok],
-                   res["points"][ok], np.full(ok.sum(), set_rmse), res["transform"][ok])
-            ii, jj = np.triu_indices(len(ids), 1)
-            ii, jj = ii[: cfg.n_triplets - n_done], jj[: cfg.n_triplets - n_done]
-            neg = pool_ids[rng.choice(far, len(ii))]
-            triplets[split].append(np.stack([ids[ii], ids[jj], neg], axis=1))
-            n_sets += 1
-            if progress:
-                print(f"\r[triplets] {n_done + len(ii)}/{cfg.n_triplets} triplets from {n_sets} places", end="", file=sys.stderr, flush=True)
-            return len(ii)
+def _negative_pools(sessions: list[SessionPoints], kp: _Keypoints, cfg: TripletConfig, rng: np.random.Generator,
+                    shards: "ShardWriter", table: _PatchTable) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per split, (patch ids, centres) of random keypoints' patches as mapped (no ICP needed), shared by its triplets."""
+    pools = {}
+    for split in SPLITS:
+        cand = np.flatnonzero(kp.split == split)
+        if len(cand) == 0:
+            continue
+        pick = rng.choice(cand, min(cfg.negative_pool, len(cand)), replace=False)
+        centres = np.array([sessions[kp.session[j]].points[kp.index[j]] for j in pick])
+        obs = np.array([sessions[kp.session[j]].observer_pos[kp.index[j]] for j in pick])
+        sess = kp.session[pick]
+        frames = np.array([sessions[kp.session[j]].observer_frame[kp.index[j]] for j in pick])
+        occ, dcg, yaw, npts = make_patches_csr(*mapped_patches(sessions, sess, centres, cfg.domain), centres, obs, cfg)
+        ok = npts >= cfg.min_patch_points
+        ids = shards.add(occ[ok], dcg[ok])
+        table.record(ids, -1, split, "negative", sess[ok], frames[ok], centres[ok], yaw[ok], npts[ok],
+                     np.zeros(ok.sum()), np.repeat(np.eye(4)[None], ok.sum(), axis=0))
+        pools[split] = (ids, centres[ok])
+    return pools
 
+
+@dataclass
+class _Counts:
+    """What the export did: places tried, correspondence sets kept, members ICP rejected, ICPs run,
+    triplets made, and the places that gave no triplet, by reason."""
+
+    tried: int = 0
+    sets: int = 0
+    rejected_members: int = 0
+    icp: int = 0
+    triplets: int = 0
+    why: dict[str, int] = field(default_factory=lambda: {"no_set": 0, "small_patches": 0, "no_far_negative": 0})
+
+
+class _Places:
+    """The places in the order they are drawn (:func:`place_chunks`), their correspondence sets
+    made a chunk (one cell's places of a round) at a time, and the triplets of each."""
+
+    def __init__(self, sessions: list[SessionPoints], kp: _Keypoints, pools: dict, cfg: TripletConfig, rng: np.random.Generator,
+                 shards: "ShardWriter", table: _PatchTable):
+        self.sessions, self.kp, self.pools, self.cfg, self.rng, self.shards, self.table = sessions, kp, pools, cfg, rng, shards, table
+        self.icp = IcpConfig(voxel_sizes_m=cfg.icp_voxel_sizes_m, max_correspondence_m=cfg.icp_max_correspondence_m, max_iterations=20,
+                             lambda_icp_m=cfg.lambda_icp_m, min_fitness=cfg.min_fitness, min_structure_fitness=0.0)
+        self.order, self.chunk_of = place_chunks(kp.session, kp.index, kp.split, sessions, cfg, rng)
+        self.used = np.zeros(len(self.order), bool)
+        self.counts = _Counts()
+        self.triplets: dict[str, list] = {s: [] for s in SPLITS}
         # each split gets its share (test_fraction of the triplets to test); what a split cannot fill
         # (too few places seen by two sessions) goes to the other in a second pass
-        quota = {"test": int(round(cfg.test_fraction * cfg.n_triplets))}
-        quota["train"] = cfg.n_triplets - quota["test"]
-        made = {"train": 0, "test": 0}
-        for pass_no in (0, 1):
-            for pos, j in enumerate(order):
-                if n_done >= cfg.n_triplets:
-                    break
-                if used[pos]:
-                    continue
-                split = kp_split[j]
-                if split not in pools or (pass_no == 0 and made[split] >= quota[split]):
-                    continue
-                used[pos] = True
-                n_new = _one_place(pos, split)
-                made[split] += n_new
-                n_done += n_new
-        if progress:
-            print(file=sys.stderr)
-        if n_done == 0:  # raised inside the partial folder: nothing is renamed into place or marked done
-            raise NoTripletsError(workspace / "align", _no_triplets_reason(cfg, kp_split, pools, tried, why, rejected_members))
-        shards.flush()
+        self.quota = {"test": int(round(cfg.test_fraction * cfg.n_triplets))}
+        self.quota["train"] = cfg.n_triplets - self.quota["test"]
+        self._icp_cache: dict[tuple, Registration] = {}
+        self._chunk, self._sets = -1, None
 
-        tab = {k: np.concatenate(v) if v else np.zeros(0) for k, v in table.items()}
-        order_ids = np.argsort(tab["patch_id"])
-        tab = {k: v[order_ids] for k, v in tab.items()}
-        utm = frame.enu_to_utm(tab["enu"]) if len(tab["enu"]) else np.zeros((0, 3))
-        names = [s.name for s in sessions]
-        with atomic_path(out / "patches.npz") as tmp:
+    def make_triplets(self, progress: bool) -> None:
+        """Places in order until ``n_triplets`` are made: first each split up to its quota, then any."""
+        cfg, made = self.cfg, {"train": 0, "test": 0}
+        bar = progress_bar(cfg.n_triplets, progress, "triplets", "triplet")
+        try:
+            for pass_no in (0, 1):
+                for pos, j in enumerate(self.order):
+                    if self.counts.triplets >= cfg.n_triplets:
+                        break
+                    if self.used[pos]:
+                        continue
+                    split = self.kp.split[j]
+                    if split not in self.pools or (pass_no == 0 and made[split] >= self.quota[split]):
+                        continue
+                    self.used[pos] = True
+                    n_new = self._one_place(pos, split)
+                    made[split] += n_new
+                    self.counts.triplets += n_new
+                    if n_new:
+                        bar.update(n_new)
+                        bar.set_postfix_str(f"{self.counts.sets} places", refresh=False)
+        finally:
+            bar.close()
+
+    def icp_of(self, si: int, a: int, centre: np.ndarray, reach: float, n_src: int, n_tgt: int) -> Registration:
+        """One ICP per session, anchor session and cell, shared by all the cell's places."""
+        cfg = self.cfg
+        key = (si, a, *np.floor(centre[:2] / cfg.icp_cell_m).astype(int).tolist())
+        if key not in self._icp_cache:
+            ok = min(n_src, n_tgt) >= cfg.min_patch_points
+            self._icp_cache[key] = (register_cell(self.sessions[si], self.sessions[a], centre, reach, self.icp, cfg.icp_relative_change)
+                                    if ok else Registration.failed())
+            self.counts.icp += 1
+        return self._icp_cache[key]
+
+    def _sets_of(self, pos: int) -> ChunkSets:
+        """The correspondence sets of the chunk of the place at ``order[pos]``: its places not made
+        yet (all of them, unless a quota left some for the second pass), made together."""
+        c = self.chunk_of[pos]
+        if self._chunk != c or int(self.order[pos]) not in self._sets.result:
+            todo = np.union1d(np.flatnonzero((self.chunk_of == c) & ~self.used), [pos])
+            self._chunk, self._sets = c, ChunkSets(self.order[todo], self.sessions, self.kp.session, self.kp.index, self.cfg, self.icp_of)
+        return self._sets
+
+    def _one_place(self, pos: int, split: str) -> int:
+        """Patches and triplets of the place at ``order[pos]``; returns the triplets made."""
+        cfg, n = self.cfg, self.counts
+        n.tried += 1
+        res, rejected = self._sets_of(pos).get(self.order[pos])
+        n.rejected_members += rejected
+        if res is None:
+            n.why["no_set"] += 1
+            return 0
+        ok = res["points"] >= cfg.min_patch_points
+        if ok.sum() < 2:
+            n.why["small_patches"] += 1
+            return 0
+        pool_ids, pool_pos = self.pools[split]
+        p = res["centre"][0]
+        far = np.flatnonzero(np.linalg.norm(pool_pos[:, :2] - p[:2], axis=1) > cfg.negative_min_distance_m)
+        if len(far) == 0:  # before recording the set's patches, which would otherwise share the next set's id
+            n.why["no_far_negative"] += 1
+            return 0
+        ids = self.shards.add(res["occ"][ok], res["dcg"][ok])
+        set_rmse = float(max(res["rmse"][ok]))
+        self.table.record(ids, n.sets, split, "positive", res["session"][ok], res["frame"][ok], res["centre"][ok], res["yaw"][ok],
+                          res["points"][ok], np.full(ok.sum(), set_rmse), res["transform"][ok])
+        ii, jj = np.triu_indices(len(ids), 1)
+        ii, jj = ii[: cfg.n_triplets - n.triplets], jj[: cfg.n_triplets - n.triplets]
+        neg = pool_ids[self.rng.choice(far, len(ii))]
+        self.triplets[split].append(np.stack([ids[ii], ids[jj], neg], axis=1))
+        n.sets += 1
+        return len(ii)
+
+
+def _write_dataset(out: Path, ws: Workspace, h: str, cfg: TripletConfig, sessions: list[SessionPoints], frame: LocalFrame,
+                   tiles: dict, shards: "ShardWriter", table: _PatchTable, places: _Places, t0: float) -> None:
+    """The patch table, the triplets, the manifest, the metrics and the examples picture (all but the marker)."""
+    tab = table.arrays()
+    utm = frame.enu_to_utm(tab["enu"]) if len(tab["enu"]) else np.zeros((0, 3))
+    names = [s.name for s in sessions]
+    with atomic_path(out / "patches.npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, patch_id=tab["patch_id"], set_id=tab["set_id"], split=tab["split"].astype(str),
+                                role=tab["role"].astype(str), session=tab["session"], frame=tab["frame"], enu=tab["enu"], utm=utm,
+                                yaw=tab["yaw"], points=tab["points"], icp_rmse_m=tab["icp_rmse_m"], transform=tab["transform"])
+    _write_patches_csv(out / "patches.csv", tab, utm, names, cfg)
+    counts = {}
+    for split in SPLITS:
+        t = np.concatenate(places.triplets[split]) if places.triplets[split] else np.zeros((0, 3), np.int64)
+        with atomic_path(out / f"triplets_{split}.npy") as tmp:
             with open(tmp, "wb") as f:
-                np.savez_compressed(f, patch_id=tab["patch_id"], set_id=tab["set_id"], split=tab["split"].astype(str),
-                                    role=tab["role"].astype(str), session=tab["session"], frame=tab["frame"], enu=tab["enu"], utm=utm,
-                                    yaw=tab["yaw"], points=tab["points"], icp_rmse_m=tab["icp_rmse_m"], transform=tab["transform"])
-        _write_patches_csv(out / "patches.csv", tab, utm, names, cfg)
-        counts = {}
-        for split in SPLITS:
-            t = np.concatenate(triplets[split]) if triplets[split] else np.zeros((0, 3), np.int64)
-            with atomic_path(out / f"triplets_{split}.npy") as tmp:
-                with open(tmp, "wb") as f:
-                    np.save(f, t.astype(np.int64))
-            counts[split] = int(len(t))
-        seconds = time.perf_counter() - t0
-        manifest = {
-            "format_version": TRIPLETS_FORMAT_VERSION, "workspace": str(workspace), "sessions": names, "seed": cfg.seed,
-            "config_hash": h, "frame": frame.to_dict(), "domain": cfg.domain.model_dump(), "grid": cfg.grid,
-            "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
-                      "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
-            "tiles": [{"utm_min": [k[0] * cfg.tile_size_m, k[1] * cfg.tile_size_m], "split": v} for k, v in sorted(tiles.items())],
-            "shard_format": cfg.shard_format, "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
-            "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
-        }
-        write_json(out / "manifest.json", manifest)
-        metrics = {"triplets": counts, "quota": quota, "patches": int(shards.n), "places": n_sets, "places_tried": tried,
-                   "members_rejected_by_icp": rejected_members, "icp_registrations": n_icp, "seconds": seconds,
-                   "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
-        write_json(out / "metrics.json", metrics)
-        from mapkit.io.plots import triplet_examples
+                np.save(f, t.astype(np.int64))
+        counts[split] = int(len(t))
+    seconds = time.perf_counter() - t0
+    manifest = {
+        "format_version": TRIPLETS_FORMAT_VERSION, "workspace": str(ws.root), "sessions": names, "seed": cfg.seed,
+        "config_hash": h, "frame": frame.to_dict(), "domain": cfg.domain.model_dump(), "grid": cfg.grid,
+        "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
+                  "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
+        "tiles": [{"utm_min": [k[0] * cfg.tile_size_m, k[1] * cfg.tile_size_m], "split": v} for k, v in sorted(tiles.items())],
+        "shard_format": cfg.shard_format, "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
+        "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
+    }
+    write_json(out / "manifest.json", manifest)
+    n = places.counts
+    metrics = {"triplets": counts, "quota": places.quota, "patches": int(shards.n), "places": n.sets, "places_tried": n.tried,
+               "members_rejected_by_icp": n.rejected_members, "icp_registrations": n.icp, "seconds": seconds,
+               "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
+    write_json(out / "metrics.json", metrics)
+    from mapkit.io.plots import triplet_examples
 
-        ds = TripletDataset(out)
-        if counts["train"] or counts["test"]:
-            triplet_examples(out / "examples.png", ds, n=4, seed=cfg.seed)
-        mark_done(out, h)
-    return final
+    ds = TripletDataset(out)
+    if counts["train"] or counts["test"]:
+        triplet_examples(out / "examples.png", ds, n=4, seed=cfg.seed)
 
 
-def _no_triplets_reason(cfg: TripletConfig, kp_split: np.ndarray, pools: dict, tried: int, why: dict, rejected: int) -> str:
+def _no_triplets_reason(cfg: TripletConfig, kp_split: np.ndarray, pools: dict, n: _Counts) -> str:
     """One line: why an export made no triplet, and which setting to change."""
+    tried, why, rejected = n.tried, n.why, n.rejected_members
     head = f"no triplets made ({tried} places tried"
     if not np.any(kp_split != ""):
         return (f"{head}): every keypoint lies within buffer_m={cfg.buffer_m:g} of a tile of the other split; "
