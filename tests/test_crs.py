@@ -10,15 +10,15 @@ import open3d as o3d
 import pytest
 from pyproj import Proj, Transformer
 
-from mapkit.multisession.align import load_tiles, write_tiles
 from mapkit.cli import main
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame, crs_info, frame_from_ply_comments, parse_crs
 from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.core.runio import atomic_write_ply, write_json
 from mapkit.deploy.crs_export import export_crs, ply_georef, read_crs_trajectory, read_ply_header, write_crs_trajectory
 from mapkit.io.trajectory import read_tum
-from mapkit.core.runio import atomic_write_ply, write_json
 from mapkit.mapping.trajectory import Trajectory
+from mapkit.multisession.align import load_tiles, write_tiles
 
 FRAME = LocalFrame(51.7520209, -1.2577263, 61.25)  # UTM zone 30N, EPSG:32630
 UTM = 32630
@@ -85,8 +85,8 @@ def test_ply_is_written_by_numpy_and_read_by_open3d(tmp_path):
     assert np.array_equal(np.asarray(pc.points), pts)
     assert np.abs(np.asarray(pc.colors) - cols).max() <= 0.5 / 255 + 1e-12
     h = read_ply_header(p)
-    assert h["format"] == "binary_little_endian" and h["elements"] == {"vertex": 500}
-    assert [n for _, n in h["properties"]["vertex"]] == ["x", "y", "z", "red", "green", "blue"]
+    assert h.format == "binary_little_endian" and h.elements == {"vertex": 500}
+    assert [n for _, n in h.properties["vertex"]] == ["x", "y", "z", "red", "green", "blue"]
     assert p.stat().st_size == len(p.read_bytes().split(b"end_header\n")[0]) + len("end_header\n") + 500 * 27
     frame, epsg, kv = ply_georef(p)
     assert frame == FRAME and epsg is None and kv["frame"] == "local_enu" and kv["utm_crs"] == "EPSG:32630"
@@ -122,7 +122,7 @@ def test_utm_ply_gives_back_the_workspace_origin(tmp_path, geodetic):
     assert np.array_equal(back, utm)  # float64: UTM northings exactly
     assert np.abs(frame.crs_to_enu(back, epsg) - enu).max() < 1e-6
     assert Transformer.from_pipeline(kv["enu_pipeline"]).transform(FRAME.lon0_deg, FRAME.lat0_deg, FRAME.alt0_m) == pytest.approx((0, 0, 0), abs=1e-6)
-    assert frame_from_ply_comments([f"comment {c}" for c in read_ply_header(p)["comments"]])[0] == FRAME
+    assert frame_from_ply_comments([f"comment {c}" for c in read_ply_header(p).comments])[0] == FRAME
 
 
 def test_tiles_hold_utm_and_load_back_as_enu(tmp_path):

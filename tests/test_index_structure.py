@@ -11,10 +11,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_align import STREET_M, street  # noqa: E402  (the street of boxes: fronts, side walls, poles, ground)
 
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.core.runio import write_json
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.index_structure import (
+    _DESCRIBERS,
     POSE_INTERPOLATED,
     POSE_KEYFRAME,
     POSE_NONE,
@@ -25,12 +29,7 @@ from mapkit.places.index_structure import (
     session_frames,
     vote_counts,
     vote_many,
-    _DESCRIBERS,
 )
-from mapkit.core.runio import write_json
-from mapkit.mapping.semidense import SemiDenseMap
-
-from test_align import STREET_M, street  # noqa: E402  (the street of boxes: fronts, side walls, poles, ground)
 
 FAST = {"keypoint_fraction": 0.02}  # ~900 keypoints per session of the test street (the paper: 0.05)
 
@@ -128,6 +127,35 @@ def test_session_frames_interpolates_non_key_frames():
     np.testing.assert_allclose(f["world_from_cam"][1, :3, 3], [2.0, 0.0, 0.0])
     assert f["stamp_ns"].tolist() == [1000, 2000, 3000, -1]
     assert np.all(np.isnan(f["world_from_cam"][3]))
+
+
+def test_session_frames_interpolate_over_time_when_frames_are_unevenly_spaced():
+    # keyframes 10 (t = 1000 ns, x = 0) and 14 (t = 2000 ns, x = 4, turned 90 deg); the camera
+    # delivered frames 11-13 at 1100, 1200 and 1900 ns: over time they sit at x = 0.4, 0.8, 3.6
+    # (frame ids would put them at 1, 2, 3). Frame 15 is past the last keyframe; frame 16 is not
+    # in the stamp table.
+    T = np.stack([make_pose(np.eye(3), [0.0, 0.0, 0.0]), make_pose(yaw_rotation(np.pi / 2), [4.0, 0.0, 0.0])])
+    smap = SemiDenseMap(
+        points_world=np.zeros((2, 3)), intensity=np.zeros(2, np.uint8), sigma_depth=np.zeros(2, np.float32),
+        source_keyframe=np.array([10, 14]), obs_indptr=np.array([0, 3, 6]), obs_frame_ids=np.array([10, 11, 12, 13, 14, 15]),
+        keyframe_ids=np.array([10, 14]), keyframe_stamps_ns=np.array([1000, 2000]), keyframe_world_from_cam=T,
+        K=np.eye(3), image_size_wh=(1, 1),
+    )
+    stamps = (np.array([15, 13, 12, 11, 10, 14]), np.array([2500, 1900, 1200, 1100, 1000, 2000]))  # any order
+    f = session_frames(smap, stamps)
+    assert f["frame_id"].tolist() == [10, 11, 12, 13, 14, 15]
+    assert f["pose_source"].tolist() == [POSE_KEYFRAME, POSE_INTERPOLATED, POSE_INTERPOLATED, POSE_INTERPOLATED, POSE_KEYFRAME, POSE_NONE]
+    assert f["stamp_ns"].tolist() == [1000, 1100, 1200, 1900, 2000, -1]
+    np.testing.assert_allclose(f["world_from_cam"][1:4, :3, 3], [[0.4, 0, 0], [0.8, 0, 0], [3.6, 0, 0]], atol=1e-12)
+    np.testing.assert_allclose(f["world_from_cam"][3, :3, :3], yaw_rotation(0.9 * np.pi / 2), atol=1e-12)  # slerp, 90 % of the turn
+    assert np.all(np.isnan(f["world_from_cam"][5]))
+    # without the stamp table: over frame ids, as a constant camera rate would have it
+    g = session_frames(smap)
+    np.testing.assert_allclose(g["world_from_cam"][1:4, :3, 3], [[1, 0, 0], [2, 0, 0], [3, 0, 0]], atol=1e-12)
+    assert g["stamp_ns"].tolist() == [1000, 1250, 1500, 1750, 2000, -1]
+    # a table that lacks a frame: that frame falls back to its frame id
+    h = session_frames(smap, (np.array([11]), np.array([1100])))
+    np.testing.assert_allclose(h["world_from_cam"][1:4, :3, 3], [[0.4, 0, 0], [2, 0, 0], [3, 0, 0]], atol=1e-12)
 
 
 # --------------------------------------------------------------------------- the chain on the street

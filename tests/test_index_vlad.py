@@ -11,19 +11,25 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
-from mapkit.retrieval.dsift import DsiftConfig
-from mapkit.core.errors import InputError
-from mapkit.evaluation.retrieval import self_retrieval_kitti
-from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import make_pose, yaw_rotation
-from mapkit.mapping.imagedb import write_images_csv
-from mapkit.retrieval.index_vlad import (DATABASE_COLUMNS, FORMAT_VERSION, VladIndex, VladIndexConfig, build_vlad_index, encode_images,
-                               read_database_csv)
-from mapkit.retrieval.vlad import VladConfig
-
 from test_dsift import textured_image
 from test_vlad import shifted_and_brighter
+
+from mapkit.core.errors import InputError
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.evaluation.retrieval import self_retrieval_kitti
+from mapkit.mapping.imagedb import write_images_csv
+from mapkit.retrieval.dsift import DsiftConfig
+from mapkit.retrieval.index_vlad import (
+    DATABASE_COLUMNS,
+    FORMAT_VERSION,
+    VladIndex,
+    VladIndexConfig,
+    build_vlad_index,
+    encode_images,
+    read_database_csv,
+)
+from mapkit.retrieval.vlad import VladConfig
 
 SMALL_VLAD = VladConfig(dsift=DsiftConfig(region_widths=[16, 24]), num_words=8, pca_dim=12, kmeans_max_descriptors=20_000,
                         kmeans_iterations=10)
@@ -275,7 +281,7 @@ def test_parallel_encoding_equals_serial(tmp_path, built):
 
 
 def test_encodings_cache_encodes_each_file_once_and_notices_a_changed_file(tmp_path, built, monkeypatch):
-    import mapkit.retrieval.index_vlad as iv
+    import mapkit.retrieval.vlad_index as iv  # encode_files calls encode_images there
 
     ws, out = built
     idx = VladIndex.load(out)

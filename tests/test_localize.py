@@ -8,12 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_index_vlad import PLACES, make_workspace, place_pose, small_config
 
 from mapkit.core.geometry import invert_pose
-from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 from mapkit.localization.localize import LocalizeConfig, run_localizer
-
-from test_index_vlad import PLACES, make_workspace, place_pose, small_config
+from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 
 
 def test_filter_follows_retrieval_on_a_bundle(tmp_path):

@@ -31,16 +31,17 @@ from __future__ import annotations
 
 import json
 import warnings
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional, Sequence
 
 import numpy as np
 
 from mapkit.core.errors import InputError, InputWarning
-from mapkit.core.geodesy import (EPSG_WGS84_GEODETIC_3D, WORKSPACE_ORIGIN, LocalFrame, crs_info, frame_from_ply_comments, parse_crs,
-                       ply_crs_comments, read_workspace_frame)
+from mapkit.core.geodesy import EPSG_WGS84_GEODETIC_3D, LocalFrame, crs_info, frame_from_ply_comments, parse_crs, ply_crs_comments
 from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from mapkit.core.runio import atomic_write_ply, atomic_write_text, write_json
+from mapkit.core.workspace import Workspace
 from mapkit.io.trajectory import read_tum, seconds_to_ns
 
 Source = Literal["auto", "aligned", "built"]
@@ -50,13 +51,23 @@ CSV_COLUMNS = ("stamp_s", "lat_deg", "lon_deg", "height_m", "qx", "qy", "qz", "q
 # --- PLY headers ----------------------------------------------------------------------------------
 
 
-def read_ply_header(path: str | Path) -> dict:
-    """``format``, ``comments`` (without ``comment ``), ``elements`` ({name: count}) and
-    ``properties`` ({element: [(type, name)]}) of a PLY file's header."""
+@dataclass
+class PlyHeader:
+    """A PLY file's header: ``format`` (e.g. ``binary_little_endian``), ``comments`` (without
+    ``comment ``), ``elements`` ({name: count}) and ``properties`` ({element: [(type, name)]})."""
+
+    format: Optional[str] = None
+    comments: list[str] = field(default_factory=list)
+    elements: dict[str, int] = field(default_factory=dict)
+    properties: dict[str, list[tuple[str, str]]] = field(default_factory=dict)
+
+
+def read_ply_header(path: str | Path) -> PlyHeader:
+    """The header of a PLY file (:class:`PlyHeader`)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such file")
-    out: dict = {"format": None, "comments": [], "elements": {}, "properties": {}}
+    out = PlyHeader()
     current = None
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
@@ -67,23 +78,23 @@ def read_ply_header(path: str | Path) -> dict:
                 return out
             key, _, rest = line.partition(" ")
             if key == "format":
-                out["format"] = rest.split()[0]
+                out.format = rest.split()[0]
             elif key == "comment":
-                out["comments"].append(rest)
+                out.comments.append(rest)
             elif key == "element":
                 name, count = rest.split()
-                out["elements"][name] = int(count)
-                out["properties"][name] = []
+                out.elements[name] = int(count)
+                out.properties[name] = []
                 current = name
             elif key == "property" and current is not None:
                 parts = rest.split()
-                out["properties"][current].append((" ".join(parts[:-1]), parts[-1]))
+                out.properties[current].append((" ".join(parts[:-1]), parts[-1]))
     raise InputError(path, "PLY header has no end_header line")
 
 
 def ply_georef(path: str | Path) -> tuple[Optional[LocalFrame], Optional[int], dict[str, str]]:
     """(workspace frame, EPSG code of x, y, z or None for local ENU, all header key-values)."""
-    return frame_from_ply_comments(read_ply_header(path)["comments"])
+    return frame_from_ply_comments(read_ply_header(path).comments)
 
 
 # --- trajectories ---------------------------------------------------------------------------------
@@ -156,22 +167,22 @@ def read_crs_trajectory(path: str | Path, frame: Optional[LocalFrame] = None, ep
 # --- a workspace ----------------------------------------------------------------------------------
 
 
-def _session_sources(ws: Path, ws_frame: LocalFrame, name: str, source: Source, aligned: set[str]) -> tuple[str, LocalFrame, Path, Path]:
+def _session_sources(ws: Workspace, ws_frame: LocalFrame, name: str, source: Source, aligned: set[str]) -> tuple[str, LocalFrame, Path, Path]:
     """(which, session frame, trajectory folder, map PLY) of one session."""
-    al = ws / "align" / "sessions" / name
+    al = ws.aligned(name)
     use_aligned = source == "aligned" or (source == "auto" and name in aligned)
     if use_aligned:
-        if name not in aligned or not (al / "trajectory").is_dir():
-            raise InputError(al, f"session {name!r} is not in a finished `mapkit align` of this workspace", field="session")
-        return "aligned", ws_frame, al / "trajectory", al / "map" / "points.ply"
-    sdir = ws / "sessions" / name
-    ga_path = sdir / "georef" / "gps_alignment.json"
+        if name not in aligned or not al.trajectory.is_dir():
+            raise InputError(al.root, f"session {name!r} is not in a finished `mapkit align` of this workspace", field="session")
+        return "aligned", ws_frame, al.trajectory, al.map / "points.ply"
+    sdir = ws.session(name)
+    ga_path = sdir.gps_alignment
     if not ga_path.is_file():
-        raise InputError(sdir, f"session {name!r} has no georef stage (run mapkit build)", field="session")
+        raise InputError(sdir.root, f"session {name!r} has no georef stage (run mapkit build)", field="session")
     ga = json.loads(ga_path.read_text())
     if not ga.get("georeferenced"):
         raise InputError(ga_path, f"session {name!r} is not georeferenced ({ga.get('reason', 'no reason given')}): it has no CRS", field="session")
-    return "built", LocalFrame.from_dict(ga), sdir / "georef" / "trajectory_enu", sdir / "map" / "points.ply"
+    return "built", LocalFrame.from_dict(ga), sdir.georef_trajectory, sdir.map / "points.ply"
 
 
 def _read_points(path: Path) -> np.ndarray:
@@ -186,12 +197,10 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
     (``utm``, ``ecef``, ``wgs84``, ``EPSG:<code>``) under ``out``; returns the manifest, also
     written to ``out/export.json``. ``sessions``: default all georeferenced ones; ``source``:
     ``aligned`` / ``built`` / ``auto`` (aligned where ``mapkit align`` holds the session)."""
-    from mapkit.multisession.align import aligned_sessions, load_tiles
+    from mapkit.multisession.align import load_tiles
 
-    ws, out = Path(workspace), Path(out)
-    ws_frame = read_workspace_frame(ws)
-    if ws_frame is None:
-        raise InputError(ws / WORKSPACE_ORIGIN, "no such file: the workspace is not georeferenced (run mapkit build with GPS first)")
+    ws, out = Workspace(workspace), Path(out)
+    ws_frame = ws.require_frame("run mapkit build with GPS first")
     epsg = parse_crs(crs, ws_frame)
     info = crs_info(epsg)
     geographic = info["kind"] == "geographic"
@@ -202,10 +211,10 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
                              "(utm, ecef or a projected EPSG code)", field="crs")
         maps_skipped = f"EPSG:{epsg} is geographic: maps are written in a metric CRS only"
         map = merged = False
-    aligned = set(aligned_sessions(ws))
+    aligned = set(ws.aligned_sessions())
 
     def georeferenced(n: str) -> bool:
-        ga = ws / "sessions" / n / "georef" / "gps_alignment.json"
+        ga = ws.session(n).gps_alignment
         return ga.is_file() and bool(json.loads(ga.read_text()).get("georeferenced"))
 
     if not (trajectory or map):
@@ -213,8 +222,7 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
     elif sessions is not None:
         chosen = list(sessions)
     else:
-        sdir = ws / "sessions"
-        names = sorted(p.name for p in sdir.iterdir() if p.is_dir()) if sdir.is_dir() else []
+        names = ws.session_names()
         if source == "aligned":
             chosen = [n for n in names if n in aligned]
         elif source == "built":
@@ -234,24 +242,24 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
             traj = Trajectory.load(traj_dir)
             path = out / name / ("trajectory.csv" if geographic else "trajectory.tum")
             write_crs_trajectory(path, traj.stamps_ns, traj.world_from_base, frame, epsg)
-            entry["trajectory"] = {"file": path.relative_to(out).as_posix(), "from": traj_dir.relative_to(ws).as_posix(), "poses": len(traj)}
+            entry["trajectory"] = {"file": path.relative_to(out).as_posix(), "from": traj_dir.relative_to(ws.root).as_posix(), "poses": len(traj)}
         if map:
             if map_ply.is_file():
                 pts = _read_points(map_ply)
                 path = out / name / "map.ply"
                 atomic_write_ply(path, frame.enu_to_crs(pts, epsg), frame=frame, crs_epsg=epsg)
-                entry["map"] = {"file": path.relative_to(out).as_posix(), "from": map_ply.relative_to(ws).as_posix(), "points": len(pts)}
+                entry["map"] = {"file": path.relative_to(out).as_posix(), "from": map_ply.relative_to(ws.root).as_posix(), "points": len(pts)}
             else:
                 warnings.warn(f"{map_ply}: no such file (session {name!r} built without a map?); its map is not exported",
                               InputWarning, stacklevel=2)
                 entry["map"] = None
         manifest["sessions"][name] = entry
     if merged:
-        tiles = ws / "align" / "tiles"
+        tiles = ws.tiles_dir
         pts, _, _, _ = load_tiles(tiles)
         atomic_write_ply(out / "merged_map.ply", ws_frame.enu_to_crs(pts, epsg), frame=ws_frame, crs_epsg=epsg)
-        manifest["merged_map"] = {"file": "merged_map.ply", "from": tiles.relative_to(ws).as_posix(), "points": len(pts)}
+        manifest["merged_map"] = {"file": "merged_map.ply", "from": tiles.relative_to(ws.root).as_posix(), "points": len(pts)}
     if not manifest["sessions"] and "merged_map" not in manifest:
-        raise InputError(ws, "nothing to export: no georeferenced session chosen", field="sessions")
+        raise InputError(ws.root, "nothing to export: no georeferenced session chosen", field="sessions")
     write_json(out / "export.json", manifest)
     return manifest

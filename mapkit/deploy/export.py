@@ -24,6 +24,7 @@ from mapkit import __version__
 from mapkit.core.bundle import MANIFEST, building, link_or_copy, load_manifest
 from mapkit.core.errors import InputError
 from mapkit.core.runio import sha256_file, write_json
+from mapkit.core.workspace import Workspace
 
 FORMAT_VERSION = 1
 KIND = "mapkit deployment bundle"
@@ -47,7 +48,7 @@ def _loader(kind: str):
 
 def find_indexes(workspace: str | Path) -> dict[str, Path]:
     """Finished index bundles under ``WORKSPACE/indexes`` (``vlad``, ``structure-nbld``, ...), by folder name."""
-    root = Path(workspace) / "indexes"
+    root = Workspace(workspace).indexes_dir
     found = {}
     if root.is_dir():
         for p in sorted(root.iterdir()):
@@ -91,16 +92,16 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
     """Copy (hard-link) the finished indexes of ``workspace`` into ``out`` with a top-level
     manifest; returns ``out``. ``names`` selects folders of ``WORKSPACE/indexes`` (default all).
     The export is built beside ``out`` and renamed into place, so ``out`` is always whole."""
-    ws, out = Path(workspace), Path(out)
+    ws, out = Workspace(workspace), Path(out)
     found = find_indexes(ws)
     if names:
         missing = [n for n in names if n not in found]
         if missing:
-            raise InputError(ws / "indexes", f"no finished index named {missing}; found {sorted(found)}")
+            raise InputError(ws.indexes_dir, f"no finished index named {missing}; found {sorted(found)}")
         found = {n: found[n] for n in names}
     if not found:
-        raise InputError(ws / "indexes", "no finished index to export (run `mapkit index vlad` or `mapkit index structure` first)")
-    origin = json.loads((ws / "origin.json").read_text()) if (ws / "origin.json").is_file() else None
+        raise InputError(ws.indexes_dir, "no finished index to export (run `mapkit index vlad` or `mapkit index structure` first)")
+    origin = json.loads(ws.origin.read_text()) if ws.origin.is_file() else None  # as written: the export states it verbatim
     entries = {name: _index_entry(name, src, origin) for name, src in found.items()}
     with building(out) as tmp:
         for name, src in found.items():
@@ -112,7 +113,7 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
             "kind": KIND,
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "mapkit_version": __version__,
-            "source_workspace": str(ws.resolve()),
+            "source_workspace": str(ws.root.resolve()),
             "crs": origin,
             "indexes": entries,
         }

@@ -28,8 +28,8 @@ the hard-triplet draw of epoch e from ``(seed, e)``, so a resumed run equals an 
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -40,11 +40,24 @@ from pydantic import Field
 
 from mapkit import __version__
 from mapkit.core.bundle import write_manifest
-from mapkit.places.cnn import MODEL_FORMAT_VERSION, ONNX_FILE, TORCH_FILE, CnnConfig, build_model, export_onnx, grids_to_input, require_torch, torch_describe, triplet_loss
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.places.patches import pack_bits, unpack_bits
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, write_json
+from mapkit.places.cnn import (
+    MODEL_FORMAT_VERSION,
+    ONNX_FILE,
+    TORCH_FILE,
+    CnnConfig,
+    build_model,
+    export_onnx,
+    grids_to_input,
+    require_torch,
+    torch_describe,
+    triplet_loss,
+)
+from mapkit.places.patches import pack_bits, unpack_bits
+
+log = logging.getLogger(__name__)
 
 CHECKPOINTS = "checkpoints"
 #: settings that change neither the weights nor the order of training: a new value resumes
@@ -314,8 +327,8 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
         row["wall_s"] = (history[-1]["wall_s"] if history else 0.0) + time.perf_counter() - t0 + row.get("hard_mining_s", 0.0)
         history.append(row)
         if progress:
-            print(f"[train] epoch {epoch}: loss {row['loss']:.4f}, test accuracy {row.get('test_accuracy', float('nan')):.3f}, "
-                  f"{row['triplets_per_s']:.1f} triplets/s", file=sys.stderr, flush=True)
+            log.info("epoch %d: loss %.4f, test accuracy %.3f, %.1f triplets/s", epoch, row["loss"], row.get("test_accuracy", float("nan")),
+                     row["triplets_per_s"])
         _save_checkpoint(torch, out, epoch, {"epoch": epoch, "resume_hash": resume_hash, "model": model.state_dict(),
                                              "optimizer": opt.state_dict(), "triplet_set": tset, "history": history}, cfg.keep_checkpoints)
 

@@ -20,7 +20,6 @@ other filter settings reuse the hits of the same bundle.
 from __future__ import annotations
 
 import hashlib
-import sys
 import time
 from pathlib import Path
 from typing import Optional
@@ -30,9 +29,9 @@ from pydantic import Field
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
+from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, write_json
 from mapkit.localization.mcl import MclConfig, MonteCarloLocalizer
 from mapkit.retrieval.measurement import PoseHypotheses
-from mapkit.core.runio import atomic_path, atomic_write_text, write_json
 
 
 class LocalizeConfig(MapkitConfig):
@@ -63,6 +62,7 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
     sizes = np.zeros(n, np.int64)
     all_ids = np.full((n, cfg.top_k), -1, np.int64)
     seconds = {"retrieval": 0.0, "filter": 0.0}
+    bar = progress_bar(n, progress, "localize", "query")
     for t, im in enumerate(images):
         t0 = time.perf_counter()
         h = index.query(im, cfg.top_k) if hits is None else index.hits(hits[0][t, :cfg.top_k], hits[1][t, :cfg.top_k])
@@ -77,10 +77,8 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
         all_ids[t, :len(h)] = h.ids
         if est is not None:
             f_pos[t], f_rot[t] = est.position, est.rotation
-        if progress:
-            print(f"\r[localize] {t + 1}/{n} queries", end="", file=sys.stderr, flush=True)
-    if progress:
-        print(file=sys.stderr)
+        bar.update(1)
+    bar.close()
     return {"retrieval_position": z_pos, "retrieval_rotation": z_rot, "filter_position": f_pos, "filter_rotation": f_rot,
             "cluster_size": sizes, "ids": all_ids, "seconds": seconds}
 
@@ -128,13 +126,12 @@ def query_all(index, images, top_k: int, progress: bool = False, label: str = "q
         d, i = index.search(index.encode_files(images, progress=progress, desc=label, cache_dir=vector_cache), top_k)
         ids[:, : i.shape[1]], dist[:, : d.shape[1]] = i, d
         return ids, dist
+    bar = progress_bar(n, progress, label, "query")
     for t, im in enumerate(images):
         d, i = index.search(index._as_vector(im)[None], top_k)
         ids[t], dist[t] = i[0], d[0]
-        if progress:
-            print(f"\r[{label}] {t + 1}/{n} queries", end="", file=sys.stderr, flush=True)
-    if progress:
-        print(file=sys.stderr)
+        bar.update(1)
+    bar.close()
     return ids, dist
 
 
@@ -167,20 +164,14 @@ def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | No
     return ids, dist, False
 
 
-
-
-
-
-
-
 def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: str | Path | None = None,
                  camera: Optional[str] = None, progress: bool = True) -> Path:
     """Run the localizer on the camera images of a drive log against a VLAD bundle; writes the
     filter's and retrieval's camera poses as TUM files, the resolved config and metrics."""
-    from mapkit.retrieval.index_vlad import VladIndex
+    from mapkit.core.types import StreamKind
     from mapkit.io import open_log
     from mapkit.io.trajectory import write_tum
-    from mapkit.core.types import StreamKind
+    from mapkit.retrieval.index_vlad import VladIndex
 
     cfg = load_config(LocalizeConfig, config)
     index = VladIndex.load(bundle)

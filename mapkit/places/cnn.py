@@ -32,8 +32,8 @@ from pydantic import Field, model_validator
 
 from mapkit.core.config import MapkitConfig
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.places.patches import CNN_DOMAIN, PatchDomain, unpack_bits, voxel_grids, xy_tree
 from mapkit.core.runio import atomic_path, sha256_file
+from mapkit.places.patches import CNN_DOMAIN, PatchDomain, unpack_bits, voxel_grids, xy_tree
 
 MODEL_FORMAT_VERSION = 1
 ONNX_FILE = "model.onnx"

@@ -42,7 +42,17 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.config import MapkitConfig
 from mapkit.core.errors import InputError
-from mapkit.places.patches import M2DP_DOMAIN, NBLD_DOMAIN, PatchDomain, extract_patches, gather_local, keypoint_blocks, patch_blocks, xy_tree, yaw_normalise_patches
+from mapkit.places.patches import (
+    M2DP_DOMAIN,
+    NBLD_DOMAIN,
+    PatchDomain,
+    extract_patches,
+    gather_local,
+    keypoint_blocks,
+    patch_blocks,
+    xy_tree,
+    yaw_normalise_patches,
+)
 
 _NBLD_CHUNK_POINTS = 1 << 16  # patch points per block (NBLD works on ~10 arrays of this length)
 _NBLD_CHUNK_PATCHES = 1 << 14  # ... and patches per block (bounds the bincount output)

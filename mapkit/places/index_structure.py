@@ -13,10 +13,12 @@ match, accepted when v(d) > lambda_v (Sec. 3.4).
 
 Places are frames: ``(session, frame id)`` of the semi-dense maps. A map's observation lists
 hold its keyframes (posed) and the non-key neighbour frames that confirmed a point (not posed in
-the map). Frame ids count the camera frames of a session, so a non-key frame between two
-keyframes gets its pose by interpolating the keyframes' poses over the frame id (translation
-linearly, rotation by slerp; the camera runs at a constant rate) and its stamp likewise; a frame
-outside the keyframe range keeps its votes but has no pose and is never returned as the match.
+the map). A non-key frame between two keyframes gets its pose by interpolating the keyframes'
+poses over time (translation linearly, rotation by slerp) at its stamp; the map records keyframe
+stamps only, so without the session's frame stamps (``session_frames``) a frame's stamp is
+interpolated over its frame id (frame ids count the camera frames: a constant rate between two
+keyframes). A frame outside the keyframe range keeps its votes but has no pose and is never
+returned as the match.
 
 Bundle layout (``WORKSPACE/indexes/structure-<kind>`` by default)::
 
@@ -52,14 +54,14 @@ import numpy as np
 from pydantic import Field
 
 from mapkit import __version__
-from mapkit.multisession.align import aligned_sessions
 from mapkit.core.bundle import MANIFEST, building, is_finished, read_manifest, write_manifest
 from mapkit.core.config import dump_config, load_config
-from mapkit.places.descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.executor import SERIAL, get_executor
-from mapkit.places.patches import first_observer_positions, select_keypoints, xy_tree
 from mapkit.core.runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json
+from mapkit.core.workspace import Workspace
+from mapkit.places.descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
+from mapkit.places.patches import first_observer_positions, select_keypoints, xy_tree
 
 FORMAT_VERSION = 1
 INDEX_FILE = "index.faiss"
@@ -217,15 +219,22 @@ def session_keypoints(smap, name: str, fraction: float = 0.05, seed: int = 0) ->
     return SessionKeypoints(name, idx, np.asarray(smap.points_world, np.float64)[idx], obs_pos, ptr, fids)
 
 
-def session_frames(smap) -> dict[str, np.ndarray]:
+def session_frames(smap, frame_stamps: Optional[tuple[np.ndarray, np.ndarray]] = None) -> dict[str, np.ndarray]:
     """The frame table of a map: every frame id in its observation lists or its keyframes, sorted.
 
-    Keyframes keep their pose and stamp; frames between two keyframes get both interpolated over
-    the frame id (constant camera rate); frames outside the keyframe range get no pose (NaN,
-    stamp -1, pose_source 0).
+    Keyframes keep their pose and stamp. A frame between two keyframes is posed by interpolating
+    them over time (translation linearly, rotation by slerp) at its own stamp, taken from
+    ``frame_stamps`` = ``(frame ids, stamps_ns)`` of the session's camera frames where they list
+    it (by default the map's own table of the frames it was built from). A frame not listed (maps
+    saved before that table existed record only keyframe stamps) gets its stamp and
+    pose interpolated over the frame id between its keyframes (a constant camera rate between
+    them; where frames are evenly spaced in time both ways agree). Frames outside the keyframe
+    range get no pose (NaN, stamp -1, pose_source 0).
     """
     from mapkit.core.geometry import interpolate_poses
 
+    if frame_stamps is None and getattr(smap, "frame_stamps_ns", None) is not None:
+        frame_stamps = (smap.frame_ids, smap.frame_stamps_ns)
     kf_ids = np.asarray(smap.keyframe_ids, np.int64)
     order = np.argsort(kf_ids, kind="stable")
     kf_ids = kf_ids[order]
@@ -240,10 +249,23 @@ def session_frames(smap) -> dict[str, np.ndarray]:
     pos = np.searchsorted(kf_ids, ids[is_kf])
     T[is_kf], stamps[is_kf], source[is_kf] = kf_T[pos], kf_stamps[pos], POSE_KEYFRAME
     other = np.flatnonzero(~is_kf)
-    if len(other) and len(kf_ids) >= 2:
-        # frame ids stand in for time: interpolate_poses takes any increasing integers
-        poses, ok = interpolate_poses(kf_ids, kf_T, ids[other])
-        inside = other[ok]
+    if len(other) == 0 or len(kf_ids) < 2:
+        return {"frame_id": ids, "stamp_ns": stamps, "world_from_cam": T, "pose_source": source}
+    own_stamp = np.full(len(other), -1, np.int64)
+    timed = np.zeros(len(other), bool)
+    if frame_stamps is not None:
+        f_ids, f_stamps = (np.asarray(a, np.int64) for a in frame_stamps)
+        f_order = np.argsort(f_ids, kind="stable")
+        at = np.minimum(np.searchsorted(f_ids[f_order], ids[other]), max(len(f_ids) - 1, 0))
+        listed = (f_ids[f_order][at] == ids[other]) if len(f_ids) else np.zeros(len(other), bool)
+        own_stamp[listed], timed = f_stamps[f_order][at[listed]], listed
+    if timed.any():  # over time, at the frame's own stamp
+        poses, ok = interpolate_poses(kf_stamps, kf_T, own_stamp[timed])
+        inside = other[timed][ok]
+        T[inside], stamps[inside], source[inside] = poses, own_stamp[timed][ok], POSE_INTERPOLATED
+    if not timed.all():  # over the frame id: interpolate_poses takes any increasing integers
+        poses, ok = interpolate_poses(kf_ids, kf_T, ids[other[~timed]])
+        inside = other[~timed][ok]
         T[inside] = poses
         stamps[inside] = np.round(np.interp(ids[inside], kf_ids, kf_stamps.astype(np.float64))).astype(np.int64)
         source[inside] = POSE_INTERPOLATED
@@ -252,25 +274,13 @@ def session_frames(smap) -> dict[str, np.ndarray]:
 
 def session_names(workspace: str | Path) -> list[str]:
     """Sessions of a workspace with a semi-dense map (aligned or not), sorted."""
-    ws = Path(workspace)
-    names = set()
-    for base in (ws / "align" / "sessions", ws / "sessions"):
-        if base.is_dir():
-            names |= {p.name for p in base.iterdir() if (p / "map" / "observations.npz").is_file()}
-    return sorted(names)
+    return Workspace(workspace).sessions_with_maps()
 
 
 def session_map_dir(workspace: str | Path, name: str, prefer_aligned: bool = True) -> tuple[Path, str]:
     """(map folder, source) of a session: ``align`` (WORKSPACE/align/sessions/<name>/map, one
     common frame for all sessions) when mapkit align finished it, else ``build``."""
-    ws = Path(workspace)
-    aligned = ws / "align" / "sessions" / name / "map"
-    if prefer_aligned and name in aligned_sessions(ws) and (aligned / "observations.npz").is_file():
-        return aligned, "align"
-    own = ws / "sessions" / name / "map"
-    if (own / "observations.npz").is_file():
-        return own, "build"
-    raise InputError(own, f"session {name!r} has no semi-dense map (run mapkit build / align)", field="sessions")
+    return Workspace(workspace).session_map(name, prefer_aligned)
 
 
 def map_checksum(folder: Path) -> str:
@@ -323,8 +333,6 @@ def session_descriptors(
 # --------------------------------------------------------------------------- building
 
 
-
-
 def build_structure_index(
     workspace: str | Path,
     kind: Optional[str] = None,
@@ -342,63 +350,29 @@ def build_structure_index(
     descriptors for reuse (e.g. by ``mapkit eval places``). Skips when the bundle at ``out`` was
     built from the same config and the same maps.
     """
-    ws = Path(workspace)
+    ws = Workspace(workspace)
     ov = dict(overrides or {})
     if kind is not None:
         ov["kind"] = kind
     if sessions is not None:
         ov["database_sessions"] = list(sessions)
     cfg = load_config(StructureIndexConfig, config, ov)
-    out = Path(out) if out is not None else ws / "indexes" / f"structure-{cfg.kind}"
-    available = session_names(ws)
-    names = list(cfg.database_sessions) if cfg.database_sessions is not None else available
-    if not names:
-        raise InputError(ws, "no session with a semi-dense map to index", field="database_sessions")
-    if len(set(names)) != len(names):
-        raise ConfigError(f"database_sessions lists a session twice: {names}")
-    missing = [n for n in names if n not in available]
-    if missing:
-        raise InputError(ws, f"no semi-dense map for session(s) {missing}; the workspace has {available}", field="database_sessions")
-    if cfg.kind not in ("nbld", "m2dp") and _describer(cfg.kind, cfg) is None:
-        raise ConfigError(f"structure descriptor {cfg.kind!r} is not available: "
-                          + ("set cnn_model to a trained model folder (mapkit train) or " if cfg.kind == "cnn" else "")
-                          + "register a describer (register_describer)")
+    out = Path(out) if out is not None else ws.structure_index(cfg.kind)
+    names = _database_sessions(ws, cfg)
     cnn_info = _cnn_model_info(cfg) if cfg.kind == "cnn" and cfg.cnn_model is not None else None
-    dirs = {n: session_map_dir(ws, n, cfg.prefer_aligned_maps) for n in names}
+    dirs = {n: ws.session_map(n, cfg.prefer_aligned_maps) for n in names}
     shas = {n: map_checksum(d) for n, (d, _) in dirs.items()}
-    # cnn_model only enters the hash of a cnn index: nbld / m2dp bundles of earlier versions stay valid
-    hashed = cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS | (set() if cfg.kind == "cnn" else {"cnn_model"}))
-    build_hash = config_hash({"format_version": FORMAT_VERSION, "config": hashed,
-                              "sessions": names, "maps": {n: [dirs[n][1], shas[n]] for n in names},
-                              **({"cnn_onnx_sha256": cnn_info["onnx_sha256"]} if cnn_info else {})})
+    build_hash = _build_hash(cfg, names, dirs, shas, cnn_info)
     if is_finished(out, build_hash, FORMAT_VERSION):
         return out
     if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
         raise InputError(out, "exists and is not a structure index bundle (no manifest.json): refusing to replace it")
 
-    from mapkit.mapping.semidense import SemiDenseMap
-
     t_start = time.perf_counter()
-    raws, kp_list, frame_tables, info, timings = [], [], [], {}, {}
-    for n in names:
-        smap = SemiDenseMap.load(dirs[n][0])
-        if len(smap.points_world) == 0:  # no keypoint to describe: fail before any bundle is written
-            raise InputError(dirs[n][0], f"session {n!r} has an empty semi-dense map (0 points, 0 keypoints to describe): "
-                             "leave it out of database_sessions, or rebuild it with a longer or textured drive", field="database_sessions")
-        kps, raw, secs = session_descriptors(smap, n, cfg.kind, cfg, cache_dir, shas[n], progress)
-        frames = session_frames(smap)
-        raws.append(raw)
-        kp_list.append(kps)
-        frame_tables.append(frames)
-        timings[n] = {"patches": len(kps), "describe_s": secs, "patches_per_s": len(kps) / secs if secs > 0 else None, "cached": secs == 0.0}
-        info[n] = {"map": os.path.relpath(dirs[n][0], ws), "map_source": dirs[n][1], "map_checksum": shas[n],
-                   "map_points": int(len(smap.points_world)), "keypoints": int(len(kps)), "frames": int(len(frames["frame_id"])),
-                   "keyframes": int(np.sum(frames["pose_source"] == POSE_KEYFRAME)),
-                   "frames_interpolated": int(np.sum(frames["pose_source"] == POSE_INTERPOLATED)),
-                   "frames_without_pose": int(np.sum(frames["pose_source"] == POSE_NONE))}
-    raw_all = np.concatenate(raws) if raws else np.zeros((0, 0), np.float32)
+    described = _describe_sessions(ws, cfg, names, dirs, shas, cache_dir, progress)
+    raw_all = np.concatenate(described.raws) if described.raws else np.zeros((0, 0), np.float32)
     if len(raw_all) < 2:
-        raise InputError(ws, f"{len(raw_all)} keypoint(s) in sessions {names}: an index needs at least 2; add sessions with "
+        raise InputError(ws.root, f"{len(raw_all)} keypoint(s) in sessions {names}: an index needs at least 2; add sessions with "
                          "fuller maps or raise keypoint_fraction", field="database_sessions")
 
     t0 = time.perf_counter()
@@ -407,7 +381,107 @@ def build_structure_index(
     index = _flat_index(vectors)
     t_index = time.perf_counter() - t0
 
-    # entries and their frame references (global frame rows)
+    entries, frames = _entries_and_frames(described.keypoints, described.frames)
+    metrics = {"sessions": described.timings, "entries": int(len(vectors)), "pca_s_and_index_s": t_index,
+               "seconds_total": time.perf_counter() - t_start,
+               "pca_explained_variance_fraction": float(pca.explained_variance.sum() / max(np.var(raw_all, axis=0, ddof=1).sum(), 1e-12))}
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "kind": "mapkit structure index",
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "mapkit_version": __version__,
+        "build_hash": build_hash,
+        "config": cfg.model_dump(mode="json"),
+        "descriptor": cfg.kind,
+        **({"cnn_model": cnn_info} if cnn_info else {}),
+        "source_workspace": str(ws.root.resolve()),
+        "session_names": names,
+        "sessions": described.info,
+        "counts": {"entries": int(len(vectors)), "frames": int(len(frames["frame_id"])), "references": int(len(entries["ref_frame"])),
+                   "raw_dim": int(raw_all.shape[1]), "dim": int(pca.dim)},
+        "index": {"faiss": "IndexFlatL2", "metric": "squared L2", "dim": int(pca.dim), "ntotal": int(index.ntotal)},
+    }
+    with building(out) as tmp:
+        import faiss
+
+        faiss.write_index(index, str(tmp / INDEX_FILE))
+        pca.save(tmp / PCA_FILE)
+        _savez(tmp / ENTRIES_FILE, entries)
+        _savez(tmp / FRAMES_FILE, frames)
+        atomic_write_text(tmp / "config.yaml", dump_config(cfg))
+        write_json(tmp / "metrics.json", metrics)
+        write_manifest(tmp, manifest)  # last: it checksums every other file
+    return out
+
+
+def _database_sessions(ws: Workspace, cfg: StructureIndexConfig) -> list[str]:
+    """The sessions to index (the config's, else every one with a map), checked, and the descriptor available."""
+    available = ws.sessions_with_maps()
+    names = list(cfg.database_sessions) if cfg.database_sessions is not None else available
+    if not names:
+        raise InputError(ws.root, "no session with a semi-dense map to index", field="database_sessions")
+    if len(set(names)) != len(names):
+        raise ConfigError(f"database_sessions lists a session twice: {names}")
+    missing = [n for n in names if n not in available]
+    if missing:
+        raise InputError(ws.root, f"no semi-dense map for session(s) {missing}; the workspace has {available}", field="database_sessions")
+    if cfg.kind not in ("nbld", "m2dp") and _describer(cfg.kind, cfg) is None:
+        raise ConfigError(f"structure descriptor {cfg.kind!r} is not available: "
+                          + ("set cnn_model to a trained model folder (mapkit train) or " if cfg.kind == "cnn" else "")
+                          + "register a describer (register_describer)")
+    return names
+
+
+def _build_hash(cfg: StructureIndexConfig, names: list[str], dirs: dict[str, tuple[Path, str]], shas: dict[str, str],
+                cnn_info: Optional[dict]) -> str:
+    """What the bundle depends on: the config (not its query-time settings), the maps (source and checksum), the CNN model."""
+    # cnn_model only enters the hash of a cnn index: nbld / m2dp bundles of earlier versions stay valid
+    hashed = cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS | (set() if cfg.kind == "cnn" else {"cnn_model"}))
+    return config_hash({"format_version": FORMAT_VERSION, "config": hashed,
+                        "sessions": names, "maps": {n: [dirs[n][1], shas[n]] for n in names},
+                        **({"cnn_onnx_sha256": cnn_info["onnx_sha256"]} if cnn_info else {})})
+
+
+@dataclass
+class _Described:
+    """Per database session (in order): raw descriptors, keypoints, frame table; and the manifest's and metrics' facts by name."""
+
+    raws: list[np.ndarray]
+    keypoints: list[SessionKeypoints]
+    frames: list[dict[str, np.ndarray]]
+    info: dict[str, dict]
+    timings: dict[str, dict]
+
+
+def _describe_sessions(ws: Workspace, cfg: StructureIndexConfig, names: list[str], dirs: dict[str, tuple[Path, str]],
+                       shas: dict[str, str], cache_dir: str | Path | None, progress: bool) -> _Described:
+    """Each session's keypoints described (or read from ``cache_dir``) and its frame table."""
+    from mapkit.mapping.semidense import SemiDenseMap
+
+    out = _Described([], [], [], {}, {})
+    for n in names:
+        smap = SemiDenseMap.load(dirs[n][0])
+        if len(smap.points_world) == 0:  # no keypoint to describe: fail before any bundle is written
+            raise InputError(dirs[n][0], f"session {n!r} has an empty semi-dense map (0 points, 0 keypoints to describe): "
+                             "leave it out of database_sessions, or rebuild it with a longer or textured drive", field="database_sessions")
+        kps, raw, secs = session_descriptors(smap, n, cfg.kind, cfg, cache_dir, shas[n], progress)
+        frames = session_frames(smap)
+        out.raws.append(raw)
+        out.keypoints.append(kps)
+        out.frames.append(frames)
+        out.timings[n] = {"patches": len(kps), "describe_s": secs, "patches_per_s": len(kps) / secs if secs > 0 else None,
+                          "cached": secs == 0.0}
+        out.info[n] = {"map": os.path.relpath(dirs[n][0], ws.root), "map_source": dirs[n][1], "map_checksum": shas[n],
+                       "map_points": int(len(smap.points_world)), "keypoints": int(len(kps)), "frames": int(len(frames["frame_id"])),
+                       "keyframes": int(np.sum(frames["pose_source"] == POSE_KEYFRAME)),
+                       "frames_interpolated": int(np.sum(frames["pose_source"] == POSE_INTERPOLATED)),
+                       "frames_without_pose": int(np.sum(frames["pose_source"] == POSE_NONE))}
+    return out
+
+
+def _entries_and_frames(kp_list: list[SessionKeypoints], frame_tables: list[dict[str, np.ndarray]]) -> tuple[dict, dict]:
+    """The bundle's entry table (keypoints, with their observers as rows of the frame table) and
+    the frame table: every session's, concatenated in order."""
     sess_of_entry = np.concatenate([np.full(len(k), i, np.int32) for i, k in enumerate(kp_list)])
     frame_offsets = np.cumsum([0] + [len(f["frame_id"]) for f in frame_tables])
     ptrs, refs = [np.zeros(1, np.int64)], []
@@ -425,37 +499,7 @@ def build_structure_index(
         "session": np.concatenate([np.full(len(f["frame_id"]), i, np.int32) for i, f in enumerate(frame_tables)]),
         **{c: np.concatenate([f[c] for f in frame_tables]) for c in ("frame_id", "stamp_ns", "world_from_cam", "pose_source")},
     }
-
-    metrics = {"sessions": timings, "entries": int(len(vectors)), "pca_s_and_index_s": t_index,
-               "seconds_total": time.perf_counter() - t_start,
-               "pca_explained_variance_fraction": float(pca.explained_variance.sum() / max(np.var(raw_all, axis=0, ddof=1).sum(), 1e-12))}
-    manifest = {
-        "format_version": FORMAT_VERSION,
-        "kind": "mapkit structure index",
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "mapkit_version": __version__,
-        "build_hash": build_hash,
-        "config": cfg.model_dump(mode="json"),
-        "descriptor": cfg.kind,
-        **({"cnn_model": cnn_info} if cnn_info else {}),
-        "source_workspace": str(ws.resolve()),
-        "session_names": names,
-        "sessions": info,
-        "counts": {"entries": int(len(vectors)), "frames": int(len(frames["frame_id"])), "references": int(len(entries["ref_frame"])),
-                   "raw_dim": int(raw_all.shape[1]), "dim": int(pca.dim)},
-        "index": {"faiss": "IndexFlatL2", "metric": "squared L2", "dim": int(pca.dim), "ntotal": int(index.ntotal)},
-    }
-    with building(out) as tmp:
-        import faiss
-
-        faiss.write_index(index, str(tmp / INDEX_FILE))
-        pca.save(tmp / PCA_FILE)
-        _savez(tmp / ENTRIES_FILE, entries)
-        _savez(tmp / FRAMES_FILE, frames)
-        atomic_write_text(tmp / "config.yaml", dump_config(cfg))
-        write_json(tmp / "metrics.json", metrics)
-        write_manifest(tmp, manifest)  # last: it checksums every other file
-    return out
+    return entries, frames
 
 
 def _flat_index(vectors: np.ndarray):

@@ -53,8 +53,8 @@ from typing import Optional
 import numpy as np
 
 from mapkit.core.config import dump_config, load_config
-from mapkit.places.pointnetvlad_config import PointNetVladConfig
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+from mapkit.places.pointnetvlad_config import PointNetVladConfig
 from mapkit.places.triplets import SPLITS, NoTripletsError, TripletConfig, TripletDataset, export_triplets, load_aligned_sessions
 
 __all__ = ["PointNetVladConfig", "export_pointnetvlad", "export_triplets_pointnetvlad", "evaluation_sets", "load_cloud",

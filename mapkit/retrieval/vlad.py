@@ -35,9 +35,9 @@ import scipy.sparse
 from pydantic import Field, ValidationError
 
 from mapkit.core.config import MapkitConfig
-from mapkit.retrieval.dsift import DESCRIPTOR_DIM, DsiftConfig, StepTimer, null_timer, iter_histogram_blocks, prepare_image
 from mapkit.core.errors import ConfigError, InputError, InputWarning
 from mapkit.core.runio import atomic_path, atomic_write_text
+from mapkit.retrieval.dsift import DESCRIPTOR_DIM, DsiftConfig, StepTimer, iter_histogram_blocks, null_timer, prepare_image
 
 Pooling = Literal["sum", "intra"]
 _TINY = np.float32(1e-12)

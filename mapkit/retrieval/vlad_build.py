@@ -1,0 +1,344 @@
+"""Building the VLAD bundle of a workspace (``mapkit index vlad``): learn the encoder on the
+training sessions, encode every database image, index the vectors and write the bundle.
+
+The vocabulary's descriptor sample is drawn evenly from up to ``max_vocabulary_images`` training
+images (a uniform sample of each image's RootSIFT descriptors, seeded per image), so it does not
+depend on the number of workers. The PCA learns from up to ``max_training_images`` of them; the
+training images' raw VLADs are kept and reused for those that are also database images, so every
+image is encoded once. The bundle is written into a partial folder and renamed into place
+(:func:`mapkit.core.bundle.building`). See :mod:`mapkit.retrieval.index_vlad` for the layout.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from mapkit import __version__
+from mapkit.core.bundle import MANIFEST, building, is_finished, link_or_copy, write_manifest
+from mapkit.core.config import dump_config, load_config
+from mapkit.core.errors import ConfigError, InputError, InputWarning
+from mapkit.core.executor import Executor, get_executor
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, write_json
+from mapkit.core.workspace import Workspace
+from mapkit.retrieval.vlad import VladEncoder, kmeans
+from mapkit.retrieval.vlad_bundle import (
+    _QUERY_TIME_FIELDS,
+    DATABASE_CSV,
+    ENCODER_DIR,
+    FORMAT_VERSION,
+    SessionImages,
+    VladIndexConfig,
+    _database_table,
+    _now,
+    _write_database_csv,
+    _write_index,
+    read_session_images,
+)
+from mapkit.retrieval.vlad_encoding import _PCA_BATCH, _faiss_threads, _map, _raw_task, _sample_task, encode_images
+
+Ref = tuple[str, int]  # (session, row of its image table)
+
+
+def _uniform_subset(n: int, size: int, seed: int, salt: int) -> np.ndarray:
+    """Sorted indices of a uniform random subset of ``min(n, size)`` of ``range(n)``."""
+    if n <= size:
+        return np.arange(n)
+    return np.sort(np.random.default_rng([seed, salt]).choice(n, size, replace=False))
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def _chosen_sessions(ws: Workspace, cfg: VladIndexConfig) -> tuple[list[str], list[str]]:
+    """(database sessions, training sessions): the config's, checked against the workspace's image databases."""
+    if not ws.sessions_dir.is_dir():
+        raise InputError(ws.sessions_dir, "not a workspace (no sessions/ folder): run mapkit build first")
+    available = ws.sessions_with_images()
+    db_names = list(cfg.database_sessions) if cfg.database_sessions is not None else available
+    train_names = list(cfg.train_sessions) if cfg.train_sessions is not None else db_names
+    for field, names in (("database_sessions", db_names), ("train_sessions", train_names)):
+        missing = [n for n in names if n not in available]
+        if missing:
+            raise InputError(ws.sessions_dir, f"no image database for session(s) {missing}; the workspace has {available}", field=field)
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{field} lists a session twice: {names}")
+    if not db_names:
+        raise InputError(ws.sessions_dir, "no session with an image database to index", field="database_sessions")
+    if not train_names:
+        raise ConfigError("train_sessions is empty: the vocabulary and PCA need training images")
+    return db_names, train_names
+
+
+def _read_sessions(ws: Workspace, cfg: VladIndexConfig, db_names: list[str], train_names: list[str]) -> dict[str, SessionImages]:
+    """The image tables of the database and training sessions; fails before any bundle is written
+    when there is nothing to index or to learn from."""
+    sessions = {n: read_session_images(ws, n, cfg.prefer_aligned_poses) for n in dict.fromkeys(db_names + train_names)}
+    for field, names, least in (("database_sessions", db_names, 1), ("train_sessions", train_names, 2)):
+        n_images = sum(len(sessions[n]) for n in names)
+        if n_images < least:
+            raise InputError(ws.sessions_dir, f"{n_images} image(s) in the image databases of {field} {names} (at least {least} "
+                             "needed): rebuild them with a longer drive or a smaller imagedb.min_spacing_m, or name other sessions",
+                             field=field)
+    return sessions
+
+
+def _build_hash(cfg: VladIndexConfig, db_names: list[str], train_names: list[str], sessions: dict[str, SessionImages],
+                frame: Optional[LocalFrame]) -> str:
+    """What the bundle's vectors and index depend on: the config (not its query-time settings), the
+    sessions and their tables (by checksum), the frame."""
+    inputs = {n: [s.pose_source, sha256_file(s.csv_path)] for n, s in sessions.items()}
+    return config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
+                        "database": db_names, "train": train_names, "tables": inputs,
+                        "frame": None if frame is None else frame.to_dict()})
+
+
+def build_vlad_index(
+    workspace: str | Path,
+    out: str | Path | None = None,
+    config: VladIndexConfig | str | Path | None = None,
+    overrides: Optional[dict] = None,
+    progress: bool = True,
+    executor: Optional[Executor] = None,
+) -> Path:
+    """Build the VLAD index bundle of ``workspace``; returns its folder (default ``WORKSPACE/indexes/vlad``).
+
+    Images are encoded on ``executor``, else on the process-wide default executor, else in
+    ``workers`` local processes (:func:`mapkit.core.executor.get_executor`); the bundle's vectors do not
+    depend on which.
+
+    The vocabulary and PCA learn from training-session images only; every database image is
+    encoded once (the training subsample's raw VLADs are kept for the PCA and reused). Skips when
+    the bundle at ``out`` was built from the same config and session tables.
+    """
+    t_start = time.perf_counter()
+    ws = Workspace(workspace)
+    cfg = load_config(VladIndexConfig, config, overrides)
+    out = Path(out) if out is not None else ws.vlad_index
+    db_names, train_names = _chosen_sessions(ws, cfg)
+    frame = ws.frame()
+    sessions = _read_sessions(ws, cfg, db_names, train_names)
+    build_hash = _build_hash(cfg, db_names, train_names, sessions, frame)
+    if is_finished(out, build_hash, FORMAT_VERSION):
+        if json.loads((out / MANIFEST).read_text())["config"] != cfg.model_dump(mode="json"):
+            _rewrite_config(out, cfg)  # only query-time settings differ: nothing to encode again
+        return out
+    if out.exists() and not (out / MANIFEST).is_file() and any(out.iterdir()):
+        raise InputError(out, "exists and is not a VLAD index bundle (no manifest.json): refusing to replace it")
+
+    with building(out) as tmp:
+        metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress,
+                                        executor or get_executor(cfg.workers))
+        metrics["seconds_total"] = time.perf_counter() - t_start
+        write_json(tmp / "metrics.json", metrics)
+        write_manifest(tmp, manifest)  # last: it checksums every other file
+    return out
+
+
+# --------------------------------------------------------------------------- the steps of a build
+
+
+@dataclass
+class _Learned:
+    """The encoder learned on the training images, with what the database step reuses and the metrics report."""
+
+    encoder: VladEncoder
+    train_sel: list[Ref]  # the PCA's training images
+    raw_train: np.ndarray  # (len(train_sel), raw_dim) float32, their raw VLADs
+    vocab_images: int
+    vocab_descriptors: int
+
+
+def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], train_names: list[str], executor: Executor,
+                   progress: bool, timings: dict[str, float]) -> _Learned:
+    """1. vocabulary (k-means on descriptors drawn evenly from the vocabulary images), 2. PCA-whitening
+    on the raw VLADs of the training images (every image of the training sessions, uniformly subsampled)."""
+    train_refs = [(n, i) for n in train_names for i in range(len(sessions[n]))]
+    if len(train_refs) < 2:
+        raise InputError(sessions[train_names[0]].csv_path, f"{len(train_refs)} training image(s): the PCA needs at least 2", field="train_sessions")
+    train_sel = [train_refs[i] for i in _uniform_subset(len(train_refs), cfg.max_training_images, cfg.seed, 1)]
+    vocab_sel = [train_sel[i] for i in _uniform_subset(len(train_sel), cfg.max_vocabulary_images, cfg.seed, 2)]
+
+    t0 = time.perf_counter()
+    per_image = math.ceil(cfg.vlad.kmeans_max_descriptors / len(vocab_sel))
+    tasks = [(_path_of(sessions, r), per_image, cfg.vlad.seed, k) for k, r in enumerate(vocab_sel)]
+    sample = np.concatenate(list(_map(_sample_task, tasks, VladEncoder(cfg.vlad), executor, progress, "descriptors")))
+    with _faiss_threads(1):
+        vocabulary = kmeans(sample, cfg.vlad.num_words, cfg.vlad.kmeans_iterations, cfg.vlad.seed)
+    timings["vocabulary_s"] = time.perf_counter() - t0
+    n_descriptors = len(sample)
+    del sample
+
+    t0 = time.perf_counter()
+    encoder = VladEncoder(cfg.vlad, vocabulary)
+    raw_train = np.zeros((len(train_sel), encoder.raw_dim), np.float32)
+    paths = [_path_of(sessions, r) for r in train_sel]
+    for i, r in enumerate(_map(_raw_task, paths, encoder, executor, progress, "train VLAD")):
+        raw_train[i] = r
+    timings["encode_training_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    encoder.fit_pca(raw_train)
+    timings["pca_s"] = time.perf_counter() - t0
+    return _Learned(encoder, train_sel, raw_train, len(vocab_sel), n_descriptors)
+
+
+def _encode_database(learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str], executor: Executor,
+                     progress: bool, timings: dict[str, float]) -> tuple[np.ndarray, int, int]:
+    """3. (N, D) vectors of the database images: the training raws projected again, the rest encoded.
+    Returns (vectors, images reused from training, images encoded here)."""
+    t0 = time.perf_counter()
+    encoder = learned.encoder
+    db_refs = [(n, i) for n in db_names for i in range(len(sessions[n]))]
+    if not db_refs:
+        raise InputError(sessions[db_names[0]].csv_path, "the database sessions hold no image", field="database_sessions")
+    vectors = np.zeros((len(db_refs), encoder.pca.dim), np.float32)
+    row_of_train = {r: k for k, r in enumerate(learned.train_sel)}
+    reused = [j for j, r in enumerate(db_refs) if r in row_of_train]
+    for a in range(0, len(reused), _PCA_BATCH):
+        js = reused[a : a + _PCA_BATCH]
+        vectors[js] = encoder.pca.transform(learned.raw_train[[row_of_train[db_refs[j]] for j in js]])
+    learned.raw_train = np.zeros((0, encoder.raw_dim), np.float32)  # up to 64 KiB per training image: freed before encoding more
+    todo = [j for j, r in enumerate(db_refs) if r not in row_of_train]
+    vectors[todo] = encode_images(encoder, [_path_of(sessions, db_refs[j]) for j in todo], progress=progress, desc="database",
+                                  executor=executor)
+    timings["encode_database_s"] = time.perf_counter() - t0
+    return vectors, len(reused), len(todo)
+
+
+def _path_of(sessions: dict[str, SessionImages], ref: Ref) -> str:
+    return str(sessions[ref[0]].image_paths[ref[1]])
+
+
+def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str],
+                train_names: list[str], frame: Optional[LocalFrame], build_hash: str, progress: bool,
+                executor: Executor) -> tuple[dict, dict]:
+    """Learn, encode and write everything but metrics.json and the manifest into ``tmp``; returns both."""
+    timings: dict[str, float] = {}
+    learned = _learn_encoder(cfg, sessions, train_names, executor, progress, timings)
+    vectors, n_reused, n_todo = _encode_database(learned, sessions, db_names, executor, progress, timings)
+
+    # 4. index
+    t0 = time.perf_counter()
+    index, index_info = make_index(vectors, cfg)
+    timings["index_s"] = time.perf_counter() - t0
+
+    # 5. files (the caller writes metrics.json and the manifest last)
+    encoder = learned.encoder
+    encoder.save(tmp / ENCODER_DIR)
+    _write_index(tmp, index, vectors if cfg.index == "ivf" else None)
+    _write_database_csv(tmp / DATABASE_CSV, _database_table(db_names, sessions, frame))
+    atomic_write_text(tmp / "config.yaml", dump_config(cfg))
+    n_train, n_encoded = len(learned.train_sel), len(learned.train_sel) + n_todo
+    encode_s = timings["encode_training_s"] + timings["encode_database_s"]
+    metrics = {
+        "images_encoded": n_encoded,
+        "images_encoded_per_s": n_encoded / encode_s if encode_s > 0 else None,
+        "database_images": len(vectors),
+        "database_images_reused_from_training": n_reused,
+        "training_images": n_train,
+        "vocabulary_images": learned.vocab_images,
+        "vocabulary_descriptors": learned.vocab_descriptors,
+        "executor": executor.kind,
+        "workers": executor.workers,
+        **timings,
+    }
+    return metrics, _manifest(ws, cfg, sessions, db_names, train_names, frame, build_hash, learned, index_info, len(vectors))
+
+
+def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str], train_names: list[str],
+              frame: Optional[LocalFrame], build_hash: str, learned: _Learned, index_info: dict, entries: int) -> dict:
+    """The bundle's manifest, without the file checksums (``write_manifest`` adds them)."""
+    encoder = learned.encoder
+    train_count = {n: sum(1 for r in learned.train_sel if r[0] == n) for n in train_names}
+    return {
+        "format_version": FORMAT_VERSION,
+        "kind": "mapkit VLAD index",
+        "created": _now(),
+        "mapkit_version": __version__,
+        "build_hash": build_hash,
+        "config": cfg.model_dump(mode="json"),
+        "source_workspace": str(ws.root.resolve()),
+        "frame": None if frame is None else frame.to_dict(),
+        "database_sessions": db_names,
+        "train_sessions": train_names,
+        "sessions": {
+            n: {
+                "images": len(s) if n in db_names else 0,
+                "training_images": train_count.get(n, 0),
+                "database": n in db_names,
+                "training": n in train_names,
+                "pose_source": s.pose_source,
+                "images_csv": os.path.relpath(s.csv_path, ws.root),
+                "images_csv_sha256": sha256_file(s.csv_path),
+            }
+            for n, s in sessions.items()
+        },
+        "added_sessions": [],
+        "vlad": {"raw_dim": encoder.raw_dim, "dim": encoder.pca.dim, "pca_dim_requested": cfg.vlad.pca_dim,
+                 "training_images": len(learned.train_sel), "vocabulary_images": learned.vocab_images},
+        "index": index_info,
+        "entries": entries,
+    }
+
+
+# --------------------------------------------------------------------------- the index and the config
+
+
+def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
+    """A faiss index over (N, D) float32 vectors, and its description for the manifest."""
+    import faiss
+
+    n, d = vectors.shape
+    if cfg.index == "flat":
+        index = faiss.IndexFlatL2(d)
+        index.add(vectors)
+        return index, {"kind": "flat", "faiss": "IndexFlatL2", "dim": d, "metric": "squared L2", "ntotal": int(index.ntotal)}
+    ivf = cfg.ivf
+    cap = max(1, n // 39)
+    nlist = min(ivf.nlist or max(1, round(4 * math.sqrt(n))), cap)
+    if ivf.nlist is not None and nlist < ivf.nlist:
+        warnings.warn(f"IVF nlist capped from {ivf.nlist} to {nlist}: {n} database vectors (39 per list)", InputWarning, stacklevel=3)
+    quantizer = faiss.IndexFlatL2(d)
+    if ivf.pq_m is None:
+        index = faiss.IndexIVFFlat(quantizer, d, nlist, faiss.METRIC_L2)
+        kind = "IndexIVFFlat"
+    else:
+        if d % ivf.pq_m:
+            raise ConfigError(f"ivf.pq_m = {ivf.pq_m} does not divide the vector dimension {d}")
+        if n < 2**ivf.pq_bits:
+            raise ConfigError(f"IVF-PQ with {ivf.pq_bits}-bit codes needs at least {2 ** ivf.pq_bits} database vectors, got {n}")
+        index = faiss.IndexIVFPQ(quantizer, d, nlist, ivf.pq_m, ivf.pq_bits)
+        kind = "IndexIVFPQ"
+    train = vectors[_uniform_subset(n, ivf.max_training_vectors, cfg.seed, 3)]
+    index.train(np.ascontiguousarray(train))
+    index.add(vectors)
+    index.nprobe = min(ivf.nprobe, nlist)
+    info = {"kind": "ivf", "faiss": kind, "dim": d, "metric": "squared L2", "ntotal": int(index.ntotal), "nlist": nlist,
+            "nprobe": int(index.nprobe), "pq_m": ivf.pq_m, "pq_bits": ivf.pq_bits if ivf.pq_m else None}
+    return index, info
+
+
+def _rewrite_config(out: Path, cfg: VladIndexConfig) -> None:
+    """A copy of the bundle (hard links) with a new config.yaml and manifest config, swapped in."""
+    with building(out) as tmp:
+        for p in out.rglob("*"):
+            rel = p.relative_to(out)
+            if p.is_file() and rel.as_posix() not in (MANIFEST, "config.yaml"):
+                link_or_copy(p, tmp / rel)
+        atomic_write_text(tmp / "config.yaml", dump_config(cfg))
+        manifest = json.loads((out / MANIFEST).read_text())
+        manifest["config"] = cfg.model_dump(mode="json")
+        manifest["modified"] = _now()
+        write_manifest(tmp, manifest)
+
+
+__all__ = ["build_vlad_index", "make_index"]
