@@ -6,6 +6,7 @@ else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import logging
 import sys
 import warnings
 from pathlib import Path
@@ -58,8 +59,8 @@ def info(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the summary as JSON here."),
 ) -> None:
     """Per stream: topic, type, count, rate, time span; for GPS the distance covered and fix quality."""
-    from mapkit.io.info import format_summary, summarize
     from mapkit.core.runio import write_json
+    from mapkit.io.info import format_summary, summarize
 
     summary = summarize(log, format=format, progress=sys.stderr.isatty())
     typer.echo(format_summary(summary))
@@ -157,8 +158,8 @@ def triplets(
     """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
     import json
 
-    from mapkit.places.pointnetvlad import export_triplets_pointnetvlad
     from mapkit.evaluation.triplets import evaluate_triplets
+    from mapkit.places.pointnetvlad import export_triplets_pointnetvlad
 
     overrides = {"pointnetvlad": {"enabled": True}} if pointnetvlad else None
     folder = export_triplets_pointnetvlad(workspace, out, config, overrides=overrides, progress=sys.stderr.isatty())
@@ -272,10 +273,11 @@ def eval_build(
     truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
 ) -> None:
     """Trajectory error after GPS alignment and map accuracy against the synthetic truth."""
+    from mapkit.core.workspace import Workspace
     from mapkit.evaluation.evaluate import evaluate_build, format_eval
 
     typer.echo(format_eval(evaluate_build(workspace, truth)), nl=False)
-    typer.echo(f"written to {workspace}/eval_build.json and eval_build.md")
+    typer.echo(f"written to {Workspace(workspace).eval_build_json} and eval_build.md")
 
 
 @eval_app.command("align")
@@ -284,11 +286,11 @@ def eval_align(
     truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
 ) -> None:
     """Inter-session misalignment of the same true surface, after GPS alone and after alignment."""
-    from mapkit.multisession.align import format_align_truth
-    from mapkit.evaluation.evaluate import evaluate_align
+    from mapkit.core.workspace import Workspace
+    from mapkit.evaluation.evaluate import evaluate_align, format_align_truth
 
     typer.echo(format_align_truth(evaluate_align(workspace, truth)))
-    typer.echo(f"written to {workspace}/align/eval_align.json and eval_align.md")
+    typer.echo(f"written to {Workspace(workspace).align_dir / 'eval_align.json'} and eval_align.md")
 
 
 @eval_app.command("retrieval")
@@ -340,15 +342,25 @@ def eval_localize(
     cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."),
 ) -> None:
     """MCVL's protocol: training sessions build the index, test sessions are localized (Table II, Fig. 5)."""
+    from mapkit.core.workspace import Workspace
     from mapkit.evaluation.localization import evaluate_localization, format_localization
 
     r = evaluate_localization(workspace, truth, bundle, config=config, out=out, cache_dir=cache_dir, progress=sys.stderr.isatty())
     typer.echo(format_localization(r), nl=False)
-    typer.echo(f"written to {out or workspace / 'localize'}: eval_localize.json, .md and one PNG per sequence")
+    typer.echo(f"written to {out or Workspace(workspace).localize_dir}: eval_localize.json, .md and one PNG per sequence")
+
+
+def configure_logging() -> None:
+    """Show mapkit's INFO messages (a stage's progress lines, ``mapkit demo``'s stage lines) as
+    plain lines on stderr, as its ``print`` calls did; other libraries' only from WARNING up. The
+    handler is not added when the root logger has one already (an embedding application's, pytest's)."""
+    logging.basicConfig(level=logging.WARNING, format="%(message)s", stream=sys.stderr)
+    logging.getLogger("mapkit").setLevel(logging.INFO)
 
 
 def main(argv: Optional[list[str]] = None) -> int:
     """Entry point of the ``mapkit`` script."""
+    configure_logging()
     original = warnings.formatwarning
 
     def fmt(message, category, filename, lineno, line=None):

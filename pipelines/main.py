@@ -18,6 +18,7 @@ Re-running resumes: every stage skips what it already finished.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -34,6 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="processes for image encoding (default 2)")
     ap.add_argument("--train-cnn", action="store_true", help="also train the 3D CNN (learning extra)")
     args = ap.parse_args(argv)
+    # the demo's stage lines ("[demo] build: ok in 12 s") and its stages' progress are mapkit's INFO log records
+    logging.basicConfig(level=logging.WARNING, format="%(message)s", stream=sys.stderr)
+    logging.getLogger("mapkit").setLevel(logging.INFO)
     m = run_demo(args.out, args.preset, args.seed, args.workers, args.train_cnn, progress=sys.stderr.isatty())
     print((args.out / "timings.md").read_text(), end="")
     print(f"report: {m['report']}")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 from pathlib import Path
@@ -33,6 +34,7 @@ from mapkit.core.executor import use_executor  # noqa: E402
 from mapkit.retrieval.index_vlad import build_vlad_index  # noqa: E402
 from mapkit.evaluation.localization import evaluate_localization  # noqa: E402
 from mapkit.core.runio import atomic_write_text, write_json  # noqa: E402
+from mapkit.core.workspace import Workspace  # noqa: E402
 from mapkit.synth import session_logs, synthesize  # noqa: E402
 
 CONFIGS = ROOT / "configs"
@@ -41,7 +43,7 @@ RUNS = {"paper": None, "odometry-multihypothesis": CONFIGS / "localize" / "odome
 
 def run(out: Path, workers: int = 2, preset: str = "benchmark", progress: bool = False, log=lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    town, ws = out / "town", out / "workspace"
+    town, ws = out / "town", Workspace(out / "workspace")
     metrics: dict = {"stages": {}}
     t_all = time.perf_counter()
 
@@ -59,15 +61,15 @@ def run(out: Path, workers: int = 2, preset: str = "benchmark", progress: bool =
                                           progress=progress))
         roles = {s["name"]: s["role"] for s in json.loads((town / "world" / "manifest.json").read_text())["sessions"]}
         train = sorted(n for n, r in roles.items() if r == "train")
-        timed("build", lambda: build(session_logs(town), ws, CONFIGS / "build" / "mcvl-database.yaml",
+        timed("build", lambda: build(session_logs(town), ws.root, CONFIGS / "build" / "mcvl-database.yaml",
                                      progress=progress))
-        bundle = timed("index_vlad", lambda: build_vlad_index(ws, overrides={"train_sessions": train, "database_sessions": train,
+        bundle = timed("index_vlad", lambda: build_vlad_index(ws.root, overrides={"train_sessions": train, "database_sessions": train,
                                                                              "workers": workers}, progress=progress))
         metrics["index_vlad"] = json.loads((bundle / "metrics.json").read_text())
         metrics["localize"] = {}
         for name, cfg in RUNS.items():
             r = timed(f"localize_{name}", lambda cfg=cfg, name=name: evaluate_localization(
-                ws, town, bundle=bundle, config=cfg, out=ws / "localize" / name, cache_dir=ws / "localize" / "cache",
+                ws, town, bundle=bundle, config=cfg, out=ws.localize_dir / name, cache_dir=ws.localize_cache,
                 progress=progress))
             metrics["localize"][name] = {n: {k: v for k, v in s.items() if k in ("queries", "retrieval", "filter", "recall_radius_m") or k.startswith("recall_at_")}
                                          for n, s in r["sessions"].items()}
@@ -77,7 +79,7 @@ def run(out: Path, workers: int = 2, preset: str = "benchmark", progress: bool =
     text = [f"# MCVL benchmark, preset {preset} (Sec. IV-B scale with the benchmark preset): {len(train)} training drives, {len(roles) - len(train)} test sequences",
             "", "\n".join(rows), "", f"Whole run this time: {metrics['seconds_total'] / 60:.1f} min (stages already finished are skipped).", ""]
     for name in RUNS:
-        md = ws / "localize" / name / "eval_localize.md"
+        md = ws.localize_dir / name / "eval_localize.md"
         if md.is_file():
             text += [f"## {name}", "", md.read_text(), ""]
     atomic_write_text(out / "benchmark.md", "\n".join(text))
@@ -90,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--preset", default="benchmark", help="synthetic town preset (default benchmark; tiny for a smoke run)")
     args = ap.parse_args(argv)
+    # the stages' own progress lines (e.g. "built <session>: 12.3 s") are mapkit's INFO log records
+    logging.basicConfig(level=logging.WARNING, format="%(message)s", stream=sys.stderr)
+    logging.getLogger("mapkit").setLevel(logging.INFO)
     run(args.out, args.workers, args.preset, progress=sys.stderr.isatty())
     print((args.out / "benchmark.md").read_text(), end="")
     return 0

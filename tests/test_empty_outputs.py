@@ -7,18 +7,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from mapkit.multisession.align import align_workspace
-from mapkit.pipelines.demo import Demo, _index_vlad
-from mapkit.core.errors import InputError, MapkitError
-from mapkit.mapping.imagedb import write_images_csv
-from mapkit.places.index_structure import build_structure_index
-from mapkit.retrieval.index_vlad import build_vlad_index
-from mapkit.core.runio import write_json
-from mapkit.mapping.semidense import SemiDenseMap
-
 from test_align import FRAME, gps_error, make_workspace, street  # noqa: E402  (the synthetic street of boxes)
 from test_index_structure import street_map  # noqa: E402
+
+from mapkit.core.errors import InputError, MapkitError
+from mapkit.core.runio import write_json
+from mapkit.mapping.imagedb import write_images_csv
+from mapkit.mapping.semidense import SemiDenseMap
+from mapkit.multisession.align import align_workspace
+from mapkit.pipelines.demo import Demo, _index_vlad
+from mapkit.places.index_structure import build_structure_index
+from mapkit.retrieval.index_vlad import build_vlad_index
 
 
 def _one_line(exc: BaseException) -> str:
@@ -79,7 +78,7 @@ def test_vlad_index_with_no_image_fails_without_a_bundle(tmp_path):
 
 def test_demo_reports_a_stage_that_made_nothing_as_failed(tmp_path):
     d = Demo(tmp_path / "run", "tiny", None, 1, False, False, log=lambda s: None)
-    _workspace_without_images(d.ws)
+    _workspace_without_images(d.ws.root)
     d.roles = {"a": {"role": "train"}, "b": {"role": "test"}}
     d.metrics["stages"]["build"] = {"status": "ok"}
     _index_vlad(d)

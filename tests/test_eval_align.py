@@ -5,10 +5,10 @@ import warnings
 import numpy as np
 import pytest
 
-from mapkit.multisession.align import align_workspace, format_align_truth
-from mapkit.mapping.build import build
 from mapkit.core.errors import InputWarning
-from mapkit.evaluation.evaluate import evaluate_align
+from mapkit.evaluation.evaluate import evaluate_align, format_align_truth
+from mapkit.mapping.build import build
+from mapkit.multisession.align import align_workspace
 from mapkit.synth import session_logs, synthesize
 
 # two 90 m drives, the second following the first one's route; GPS biased (1 m per axis; the

@@ -4,100 +4,97 @@ Per session: the absolute trajectory error of the GPS-aligned trajectory (no fur
 what a map user gets), the GPS fixes' own error for comparison, and the semi-dense map's distance
 to the true surfaces (the town's mesh plus that session's parked cars), with points per 100 m.
 The truth lives in the town's ENU frame; it is moved exactly (through ECEF) into the workspace's.
+
+``mapkit eval align``: the inter-session misalignment of the same true surface before and after
+``mapkit align`` (:func:`evaluate_align`, its table :func:`format_align_truth`).
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-
+from typing import Any
 
 import numpy as np
 
 from mapkit.core.errors import InputError
-from mapkit.core.geodesy import WORKSPACE_ORIGIN, LocalFrame, read_workspace_frame
+from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
-from mapkit.mapping.gps_align import fit_transform
+from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.evaluation.metrics import map_accuracy, trajectory_errors
 from mapkit.evaluation.truth import error_transforms, session_truth, session_truth_mesh, ws_from_town
-from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.mapping.gps_align import fit_transform
 from mapkit.mapping.trajectory import Trajectory
 
 
-
-
-
-
-
-
-
-
-def evaluate_build(workspace: str | Path, truth: str | Path) -> dict:
+def evaluate_build(workspace: str | Path | Workspace, truth: str | Path) -> dict:
+    """Every session of the workspace that the town knows, against its truth; writes
+    ``eval_build.json`` and ``eval_build.md`` into the workspace."""
     import open3d as o3d
 
-    workspace, truth = Path(workspace), Path(truth)
-    ws_frame = read_workspace_frame(workspace)
-    if ws_frame is None:
-        raise InputError(workspace / WORKSPACE_ORIGIN, "the workspace is not georeferenced (no origin.json): nothing to compare with truth")
+    ws, truth = Workspace(workspace), Path(truth)
+    ws_frame = ws.require_frame("nothing to compare with truth")
     town_to_ws = ws_from_town(truth, ws_frame)
     mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))
     if not mesh.has_triangles():
         raise InputError(truth / "world" / "mesh.ply", "holds no triangles")
     mesh.transform(town_to_ws)
-    results: dict = {"workspace": str(workspace), "truth": str(truth), "sessions": {}}
-    for sdir in sorted((workspace / "sessions").iterdir()):
-        name = sdir.name
+    results: dict = {"workspace": str(ws.root), "truth": str(truth), "sessions": {}}
+    for name in ws.session_names():
         try:
             gt_stamps, gt_world_from_base = session_truth(truth, name)
         except (FileNotFoundError, InputError):
             continue
-        gt_ws = town_to_ws @ gt_world_from_base
-        ga_path = sdir / "georef" / "gps_alignment.json"
-        georeferenced = ga_path.is_file() and json.loads(ga_path.read_text()).get("georeferenced", False)
-        r: dict = {"georeferenced": bool(georeferenced)}
-        traj_dir = sdir / "georef" / "trajectory_enu"
-        est = Trajectory.load(traj_dir) if traj_dir.is_dir() else None
-        fix = None
-        if est is not None:
-            r["trajectory_local"], fix = _offset_removed_errors(est, gt_stamps, gt_ws)
-            if georeferenced:  # absolute figures only mean something in the georeferenced frame
-                r["trajectory"] = _absolute_errors(est, gt_stamps, gt_ws)
-            r["gps_alone"] = _gps_error(workspace, sdir, gt_stamps, gt_ws, ws_frame)
-        map_dir = sdir / "map"
-        if (map_dir / ".done").is_file():
-            from mapkit.mapping.semidense import SemiDenseMap
-
-            smap = SemiDenseMap.load(map_dir)
-            session_mesh = session_truth_mesh(mesh, truth, name, town_to_ws)
-            length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
-            if georeferenced:
-                r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
-            if fix is not None:
-                r["map_local"] = map_accuracy(transform_points(fix, smap.points_world), session_mesh, road_length_m=length)
-                r["map_local"]["driven_m"] = length
-        results["sessions"][name] = r
-    write_json(workspace / "eval_build.json", results)
-    atomic_write_text(workspace / "eval_build.md", format_eval(results))
+        results["sessions"][name] = _evaluate_session(ws, ws.session(name), truth, mesh, town_to_ws, ws_frame,
+                                                      gt_stamps, town_to_ws @ gt_world_from_base)
+    write_json(ws.eval_build_json, results)
+    atomic_write_text(ws.eval_build_md, format_eval(results))
     return results
 
 
+def _evaluate_session(ws: Workspace, s: SessionDirs, truth: Path, mesh, town_to_ws: np.ndarray, ws_frame: LocalFrame,
+                      gt_stamps: np.ndarray, gt_ws: np.ndarray) -> dict:
+    """One session's entry of ``eval_build.json``: trajectory and map against the truth, absolute
+    figures only when the session is georeferenced (they mean nothing otherwise)."""
+    georeferenced = s.gps_alignment.is_file() and json.loads(s.gps_alignment.read_text()).get("georeferenced", False)
+    r: dict = {"georeferenced": bool(georeferenced)}
+    est = Trajectory.load(s.georef_trajectory) if s.georef_trajectory.is_dir() else None
+    fix = None
+    if est is not None:
+        r["trajectory_local"], fix = _offset_removed_errors(est, gt_stamps, gt_ws)
+        if georeferenced:
+            r["trajectory"] = _absolute_errors(est, gt_stamps, gt_ws)
+        r["gps_alone"] = _gps_error(ws, s.name, gt_stamps, gt_ws, ws_frame)
+    if s.has("map"):
+        from mapkit.mapping.semidense import SemiDenseMap
+
+        smap = SemiDenseMap.load(s.map)
+        session_mesh = session_truth_mesh(mesh, truth, s.name, town_to_ws)
+        length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
+        if georeferenced:
+            r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
+        if fix is not None:
+            r["map_local"] = map_accuracy(transform_points(fix, smap.points_world), session_mesh, road_length_m=length)
+            r["map_local"]["driven_m"] = length
+    return r
 
 
 def _errors(stamps, poses, gt_stamps, gt_poses) -> dict:
     return {k: v for k, v in trajectory_errors(stamps, poses, gt_stamps, gt_poses).items() if k != "per_pose_translation_m"}
 
 
-def _gps_error(workspace: Path, sdir: Path, gt_stamps, gt_ws, frame: LocalFrame) -> dict:
+def _gps_error(ws: Workspace, name: str, gt_stamps, gt_ws, frame: LocalFrame) -> dict:
     """Horizontal error of the session's raw GPS fixes against the true base position.
 
     The antenna's lever arm is not applied: on the synthetic car it is 0.3 m along the heading.
     """
-    from mapkit.io import open_log
     from mapkit.core.types import StreamKind
+    from mapkit.io import open_log
 
-    meta_path = workspace / "metrics.json"
-    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    log_path = meta.get("sessions", {}).get(sdir.name, {}).get("log")
+    meta = json.loads(ws.metrics.read_text()) if ws.metrics.is_file() else {}
+    log_path = meta.get("sessions", {}).get(name, {}).get("log")
     if not log_path or not Path(log_path).exists():  # a .mcap file or a rosbag2 folder
         return {}
     with open_log(log_path) as log:
@@ -133,8 +130,6 @@ def format_eval(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-
-
 def _absolute_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.ndarray) -> dict:
     """``_errors`` of a trajectory as it stands in the workspace frame, with its mean offset (east,
     north, up): a georeferencing bias shows as the offset."""
@@ -157,7 +152,25 @@ def _offset_removed_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.nda
     return r, fix
 
 
-def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0) -> dict:
+# --------------------------------------------------------------------------- mapkit eval align
+
+
+@dataclass
+class _SessionError:
+    """One aligned session's error field: E = T_est T_gt^-1 at each of its poses, before (the
+    ``georef`` trajectory, GPS alone) and after ``mapkit align``, looked up by the nearest pose."""
+
+    tree: Any  # cKDTree of the "before" positions (east, north)
+    before: np.ndarray  # (n, 4, 4)
+    after: np.ndarray  # (n, 4, 4)
+    points: np.ndarray  # (m, 3) the aligned map's points
+
+    def nearest(self, xy: np.ndarray) -> np.ndarray:
+        return self.tree.query(xy)[1]
+
+
+def evaluate_align(workspace: str | Path | Workspace, truth: str | Path, max_points_per_pair: int = 5000,
+                   overlap_m: float = 25.0) -> dict:
     """Inter-session misalignment of the same true surface, after GPS alone and after ``mapkit align``.
 
     A session's map puts a true point x at E(x) x, with E = T_est T_gt^-1 of the session's pose
@@ -166,44 +179,59 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
     ``georef`` trajectories) and after (the ``align`` trajectories). Also the true error of every
     accepted ICP registration, at its support points, and each session's absolute trajectory
     error before and after: alignment leaves all sessions with one common offset, the mean of
-    their GPS biases.
+    their GPS biases. Writes ``eval_align.json`` and ``.md`` into the align folder.
     """
+    ws, truth = Workspace(workspace), Path(truth)
+    town_to_ws = ws_from_town(truth, ws.require_frame())
+    if not ws.align_done.is_file():
+        raise InputError(ws.align_dir, "multi-session alignment has not finished (run mapkit align first)")
+    names = ws.aligned_sessions()
+    sess, traj = _session_errors(ws, truth, names, town_to_ws)
+    out: dict = {"pairs": {}, "trajectories": traj}
+    out.update(_pair_misalignment(sess, names, max_points_per_pair, overlap_m, out["pairs"]))
+    out.update(_registration_errors(ws, sess))
+    write_json(ws.eval_align_json, out)
+    atomic_write_text(ws.eval_align_md,
+                      "# Multi-session alignment against the synthetic truth\n\n" + format_align_truth(out) + "\n")
+    return out
+
+
+def _session_errors(ws: Workspace, truth: Path, names: list[str], town_to_ws: np.ndarray) -> tuple[dict[str, _SessionError], dict]:
+    """Each aligned session's error field, and its absolute trajectory errors (as it stands and
+    with the offset removed) before (``gps``) and after (``aligned``) alignment."""
     from scipy.spatial import cKDTree
 
-    from mapkit.multisession.align import PairResult, _support_points
     from mapkit.mapping.semidense import SemiDenseMap
 
-    workspace, truth = Path(workspace), Path(truth)
-    ws_frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
-    town_to_ws = ws_from_town(truth, ws_frame)
-    al = workspace / "align"
-    if not (al / ".done").is_file():
-        raise InputError(al, "multi-session alignment has not finished (run mapkit align first)")
-    names = json.loads((al / ".done").read_text())["sessions"]
-    rng = np.random.default_rng(0)
-    sess: dict = {}
+    sess: dict[str, _SessionError] = {}
     traj: dict = {}
     for name in names:
         gt_stamps, gt = session_truth(truth, name)
         gt_ws = town_to_ws @ gt
-        before = Trajectory.load(workspace / "sessions" / name / "georef" / "trajectory_enu")
-        after = Trajectory.load(al / "sessions" / name / "trajectory")
+        before = Trajectory.load(ws.session(name).georef_trajectory)
+        after = Trajectory.load(ws.aligned(name).trajectory)
         pb, Eb = error_transforms(before.stamps_ns, before.world_from_base, gt_stamps, gt_ws)
-        pa, Ea = error_transforms(after.stamps_ns, after.world_from_base, gt_stamps, gt_ws)
-        pts = SemiDenseMap.load(al / "sessions" / name / "map").points_world
-        sess[name] = {"tree": cKDTree(pb[:, :2]), "Eb": Eb, "Ea": Ea, "points": pts}
+        _, Ea = error_transforms(after.stamps_ns, after.world_from_base, gt_stamps, gt_ws)
+        sess[name] = _SessionError(cKDTree(pb[:, :2]), Eb, Ea, SemiDenseMap.load(ws.aligned(name).map).points_world)
         traj[name] = {when: _absolute_errors(t, gt_stamps, gt_ws) for when, t in (("gps", before), ("aligned", after))}
         for when, t in (("gps", before), ("aligned", after)):
             traj[name][when]["offset_removed"] = _offset_removed_errors(t, gt_stamps, gt_ws)[0]
-    out: dict = {"pairs": {}, "trajectories": traj}
+    return sess, traj
+
+
+def _pair_misalignment(sess: dict[str, _SessionError], names: list[str], max_points_per_pair: int, overlap_m: float,
+                       pairs: dict) -> dict:
+    """Fills ``pairs`` with the misalignment of every session pair that overlaps (50 points at
+    least), sampled on the first session's map points; returns the pooled figures."""
+    rng = np.random.default_rng(0)
     all_b, all_a = [], []
     for i, na in enumerate(names):
         for nb in names[i + 1 :]:
             A, B = sess[na], sess[nb]
-            pts = A["points"]
+            pts = A.points
             if len(pts) > max_points_per_pair * 4:
                 pts = pts[rng.choice(len(pts), max_points_per_pair * 4, replace=False)]
-            dB, kB = B["tree"].query(pts[:, :2])
+            dB, kB = B.tree.query(pts[:, :2])
             near = dB < overlap_m
             if near.sum() < 50:
                 continue
@@ -211,42 +239,73 @@ def evaluate_align(workspace: str | Path, truth: str | Path, max_points_per_pair
             if len(pts) > max_points_per_pair:
                 sel = rng.choice(len(pts), max_points_per_pair, replace=False)
                 pts, kB = pts[sel], kB[sel]
-            _, kA = A["tree"].query(pts[:, :2])
+            kA = A.nearest(pts[:, :2])
             res = {}
-            for when in ("Eb", "Ea"):
-                xa = np.einsum("nij,nj->ni", A[when][kA][:, :3, :3], pts) + A[when][kA][:, :3, 3]
-                xb = np.einsum("nij,nj->ni", B[when][kB][:, :3, :3], pts) + B[when][kB][:, :3, 3]
+            for when in ("before", "after"):
+                Ta, Tb = getattr(A, when)[kA], getattr(B, when)[kB]
+                xa = np.einsum("nij,nj->ni", Ta[:, :3, :3], pts) + Ta[:, :3, 3]
+                xb = np.einsum("nij,nj->ni", Tb[:, :3, :3], pts) + Tb[:, :3, 3]
                 res[when] = np.linalg.norm(xa - xb, axis=1)
-            all_b.append(res["Eb"])
-            all_a.append(res["Ea"])
-            out["pairs"][f"{na} / {nb}"] = {"points": int(len(pts)), "before_median_m": float(np.median(res["Eb"])),
-                                            "after_median_m": float(np.median(res["Ea"])),
-                                            "after_p90_m": float(np.percentile(res["Ea"], 90))}
-    per_pair_after = [v["after_median_m"] for v in out["pairs"].values()]
-    out["before_median_m"] = float(np.median(np.concatenate(all_b))) if all_b else None
-    out["after_median_m"] = float(np.median(np.concatenate(all_a))) if all_a else None
-    out["pairs_after_median_below_0.2m"] = int(sum(v < 0.2 for v in per_pair_after))
-    out["pairs_evaluated"] = len(per_pair_after)
-    # true error of the accepted registrations (measured on the maps as built: the "before" frames)
-    reg = json.loads((al / "pairs.json").read_text())["pairs"]
+            all_b.append(res["before"])
+            all_a.append(res["after"])
+            pairs[f"{na} / {nb}"] = {"points": int(len(pts)), "before_median_m": float(np.median(res["before"])),
+                                     "after_median_m": float(np.median(res["after"])),
+                                     "after_p90_m": float(np.percentile(res["after"], 90))}
+    per_pair_after = [v["after_median_m"] for v in pairs.values()]
+    return {
+        "before_median_m": float(np.median(np.concatenate(all_b))) if all_b else None,
+        "after_median_m": float(np.median(np.concatenate(all_a))) if all_a else None,
+        "pairs_after_median_below_0.2m": int(sum(v < 0.2 for v in per_pair_after)),
+        "pairs_evaluated": len(per_pair_after),
+    }
+
+
+def _registration_errors(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
+    """The true error of every accepted ICP registration (measured on the maps as built: the
+    "before" frames), the largest displacement of its support points."""
+    from mapkit.multisession.align import PairResult, _support_points
+
+    pairs_json = ws.align_pairs
     errs = []
-    for r in (PairResult.from_dict(v) for v in reg):
+    for r in (PairResult.from_dict(v) for v in json.loads(pairs_json.read_text())["pairs"]):
         if not r.accepted or r.source[0] not in sess or r.target[0] not in sess:
             continue
         A, B = sess[r.source[0]], sess[r.target[0]]
-        _, kA = A["tree"].query(r.centre[:2])
-        _, kB = B["tree"].query(r.centre[:2])
-        T_true = B["Eb"][kB] @ np.linalg.inv(A["Eb"][kA])
+        T_true = B.before[B.nearest(r.centre[:2])] @ np.linalg.inv(A.before[A.nearest(r.centre[:2])])
         P = _support_points(r.centre, np.array([1.0, 0.0, 0.0]), 10.0)
         d = (P @ r.target_from_source[:3, :3].T + r.target_from_source[:3, 3]) - (P @ T_true[:3, :3].T + T_true[:3, 3])
         errs.append(float(np.linalg.norm(d, axis=1).max()))
     errs_a = np.asarray(errs)
-    out["accepted_pairs"] = int(len(errs_a))
-    out["accepted_pair_true_error_median_m"] = float(np.median(errs_a)) if len(errs_a) else None
-    out["accepted_pair_true_error_max_m"] = float(errs_a.max()) if len(errs_a) else 0.0
-    out["accepted_pairs_true_error_above_1m"] = int((errs_a > 1.0).sum())
-    write_json(al / "eval_align.json", out)
-    from mapkit.multisession.align import format_align_truth
+    return {
+        "accepted_pairs": int(len(errs_a)),
+        "accepted_pair_true_error_median_m": float(np.median(errs_a)) if len(errs_a) else None,
+        "accepted_pair_true_error_max_m": float(errs_a.max()) if len(errs_a) else 0.0,
+        "accepted_pairs_true_error_above_1m": int((errs_a > 1.0).sum()),
+    }
 
-    atomic_write_text(al / "eval_align.md", "# Multi-session alignment against the synthetic truth\n\n" + format_align_truth(out) + "\n")
-    return out
+
+def format_align_truth(t: dict) -> str:
+    """The Markdown of :func:`evaluate_align`'s result: misalignment per session pair before and
+    after alignment, the accepted registrations' true errors, each session's trajectory error."""
+    lines = ["| session pair | overlap points | misalignment median m, GPS alone | after refinement |", "|---|---|---|---|"]
+    for k, v in t["pairs"].items():
+        lines.append(f"| {k} | {v['points']} | {v['before_median_m']:.3f} | {v['after_median_m']:.3f} |")
+    lines.append("")
+    lines.append(f"Overall median: {t['before_median_m']:.3f} m -> {t['after_median_m']:.3f} m. "
+                 f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of {t['accepted_pairs']} "
+                 f"(max {t['accepted_pair_true_error_max_m']:.2f} m).")
+    if t.get("trajectories"):
+        lines += ["", "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up), "
+                  "and with that offset removed by a rigid yaw-only fit to truth (3D / horizontal / vertical RMSE):", "",
+                  "| session | GPS alignment alone | after mapkit align | offset removed, GPS alone | offset removed, after align |",
+                  "|---|---|---|---|---|"]
+        for name, e in t["trajectories"].items():
+            cells = [f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, ({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
+                     for w in ("gps", "aligned")]
+            cells += [f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m"
+                      for o in (e[w].get("offset_removed") for w in ("gps", "aligned")) if o]
+            lines.append("| " + " | ".join([name, *cells]) + " |")
+    return "\n".join(lines)
+
+
+__all__ = ["evaluate_align", "evaluate_build", "format_align_truth", "format_eval"]

@@ -7,10 +7,9 @@ Training sessions build the index, test sessions are queries; per sequence the t
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 
@@ -18,8 +17,13 @@ from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.workspace import Workspace
 from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer
 from mapkit.localization.mcl import pose_errors
+
+if TYPE_CHECKING:
+    from mapkit.core.geodesy import LocalFrame
+    from mapkit.retrieval.index_vlad import VladIndex
 
 
 #: radius (m) within which a retrieved image counts as the right place in the recall diagnostics
@@ -36,7 +40,7 @@ def hit_recall(index, ids: np.ndarray, gt_positions: np.ndarray, radius_m: float
             "recall_radius_m": radius_m}
 
 
-def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str | Path | None = None,
+def evaluate_localization(workspace: str | Path | Workspace, truth: str | Path, bundle: str | Path | None = None,
                           test_sessions: Optional[list[str]] = None, config: str | Path | None = None,
                           overrides: Optional[dict] = None, out: str | Path | None = None, progress: bool = True,
                           cache_dir: str | Path | None = None) -> dict:
@@ -50,64 +54,72 @@ def evaluate_localization(workspace: str | Path, truth: str | Path, bundle: str 
     again; hits are reused only for the same bundle (fingerprint), session, top_k and images.
     Besides Table II, each session reports how often the top-1 and any of the top-k hits lie
     within ``RECALL_RADIUS_M`` of the truth (what any measurement model can work with)."""
-    from mapkit.evaluation.truth import truth_camera_poses_at
     from mapkit.evaluation.truth import town_sessions
-    from mapkit.core.geodesy import LocalFrame
-    from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
+    from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index
 
-    ws, truth = Path(workspace), Path(truth)
+    ws, truth = Workspace(workspace), Path(truth)
     cfg = load_config(LocalizeConfig, config, overrides)
-    out = Path(out) if out is not None else ws / "localize"
+    out = Path(out) if out is not None else ws.localize_dir
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
     town = town_sessions(truth)
     if not town:
         raise InputError(truth / "world" / "manifest.json", "no sessions listed: not a synthetic town folder?", field="sessions")
-    built = sorted(p.name for p in (ws / "sessions").iterdir() if (p / "imagedb" / ".done").is_file())
+    built = ws.session_names("imagedb")
     train = [n for n in built if town.get(n, {}).get("role") == "train"]
     tests = test_sessions or [n for n in built if town.get(n, {}).get("role") == "test"]
-    if bundle is None:
-        bundle = build_vlad_index(ws, overrides={"train_sessions": train, "database_sessions": train}, progress=progress)
+    if bundle is None:  # `mapkit eval localize WS --truth TOWN` without --bundle: the town's training sessions
+        bundle = build_vlad_index(ws.root, overrides={"train_sessions": train, "database_sessions": train}, progress=progress)
     index = VladIndex.load(bundle)
     clash = sorted(set(tests) & (set(index.database_sessions) | set(index.train_sessions)))
     if clash:
         raise InputError(Path(bundle) / "manifest.json", f"test session(s) {clash} are in the index: they cannot be queries", field="sessions")
-    ws_frame = LocalFrame.from_dict(json.loads((ws / "origin.json").read_text()))
+    ws_frame = ws.require_frame()
     results: dict = {"bundle": str(bundle), "train_sessions": index.train_sessions, "sessions": {}}
     for name in tests:
-        imgs = read_session_images(ws, name)
-        gt, ok = truth_camera_poses_at(truth, name, ws_frame, imgs.table["stamp_ns"])
-        paths = [p for p, good in zip(imgs.image_paths, ok) if good]
-        odo = None
-        if cfg.odometry:
-            # the query session's own relative camera motion between queries: its image table's
-            # poses come from its odometry, placed rigidly (georef) or smoothly (align) in the
-            # map, and relative motion does not see that placement
-            cams = imgs.world_from_cam[ok]
-            odo = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
-        t0 = time.perf_counter()
-        ids, dist, cached = cached_query_all(index, paths, cfg.top_k, cache_dir, name, progress=progress)
-        t_retrieve = time.perf_counter() - t0
-        r = run_localizer(index, paths, cfg, odo, progress=False, hits=(ids, dist))
-        wall = time.perf_counter() - t0
-        e_ret = pose_errors(r["retrieval_position"], r["retrieval_rotation"], gt[:, :3, 3], gt[:, :3, :3])
-        e_fil = pose_errors(r["filter_position"], r["filter_rotation"], gt[:, :3, 3], gt[:, :3, :3])
-        results["sessions"][name] = {
-            "condition": town.get(name, {}).get("condition") or town.get(name, {}).get("weather"),
-            "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(),
-            **hit_recall(index, ids, gt[:, :3, 3]), "seconds": wall, "hits_from_cache": cached,
-            "seconds_per_query": wall / max(1, len(paths)), "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
-            "filter_ms_per_step": 1000 * r["seconds"]["filter"] / max(1, len(paths)),
-        }
-        from mapkit.io.plots import localization_track
-
-        localization_track(out / f"{name}.png", gt[:, :3, 3], r["retrieval_position"], r["filter_position"],
-                           f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
-                           f"{results['sessions'][name]['retrieval']['median_translation_m']:.1f} m, filter "
-                           f"{results['sessions'][name]['filter']['median_translation_m']:.1f} m)")
+        results["sessions"][name] = _localize_session(ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out, cache_dir, progress)
     write_json(out / "eval_localize.json", results)
     atomic_write_text(out / "eval_localize.md", format_localization(results))
     return results
+
+
+def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, cfg: LocalizeConfig, ws_frame: LocalFrame, town_entry: dict, out: Path,
+                      cache_dir: str | Path | None, progress: bool) -> dict:
+    """One test session through retrieval and the filter: its row of Table II, its recall and
+    timings; draws its track against the truth into ``out/<name>.png``."""
+    from mapkit.evaluation.truth import truth_camera_poses_at
+    from mapkit.io.plots import localization_track
+    from mapkit.retrieval.index_vlad import read_session_images
+
+    imgs = read_session_images(ws.root, name)
+    gt, ok = truth_camera_poses_at(truth, name, ws_frame, imgs.table["stamp_ns"])
+    paths = [p for p, good in zip(imgs.image_paths, ok) if good]
+    odo = None
+    if cfg.odometry:
+        # the query session's own relative camera motion between queries: its image table's
+        # poses come from its odometry, placed rigidly (georef) or smoothly (align) in the
+        # map, and relative motion does not see that placement
+        cams = imgs.world_from_cam[ok]
+        odo = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
+    t0 = time.perf_counter()
+    ids, dist, cached = cached_query_all(index, paths, cfg.top_k, cache_dir, name, progress=progress)
+    t_retrieve = time.perf_counter() - t0
+    r = run_localizer(index, paths, cfg, odo, progress=False, hits=(ids, dist))
+    wall = time.perf_counter() - t0
+    e_ret = pose_errors(r["retrieval_position"], r["retrieval_rotation"], gt[:, :3, 3], gt[:, :3, :3])
+    e_fil = pose_errors(r["filter_position"], r["filter_rotation"], gt[:, :3, 3], gt[:, :3, :3])
+    entry = {
+        "condition": town_entry.get("condition") or town_entry.get("weather"),
+        "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(),
+        **hit_recall(index, ids, gt[:, :3, 3]), "seconds": wall, "hits_from_cache": cached,
+        "seconds_per_query": wall / max(1, len(paths)), "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
+        "filter_ms_per_step": 1000 * r["seconds"]["filter"] / max(1, len(paths)),
+    }
+    localization_track(out / f"{name}.png", gt[:, :3, 3], r["retrieval_position"], r["filter_position"],
+                       f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
+                       f"{entry['retrieval']['median_translation_m']:.1f} m, filter "
+                       f"{entry['filter']['median_translation_m']:.1f} m)")
+    return entry
 
 
 def format_localization(results: dict) -> str:

@@ -38,9 +38,9 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -50,8 +50,9 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, InputWarning
-from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors, session_map_dir
 from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.workspace import Workspace
+from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors
 
 STRUCTURE_METHODS = ("nbld", "m2dp", "cnn")
 METHOD_LABELS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
@@ -185,13 +186,9 @@ def score_queries(query_pos: np.ndarray, matched_pos: np.ndarray, has_match: np.
 class _Truth:
     """Positions of a session's frames at given stamps: aligned (as given) or the synthetic town's."""
 
-    def __init__(self, workspace: Path, truth: Optional[Path]):
+    def __init__(self, workspace: Workspace, truth: Optional[Path]):
         self.truth = truth
-        self.ws_frame = None
-        if truth is not None and (workspace / "origin.json").is_file():
-            from mapkit.core.geodesy import LocalFrame
-
-            self.ws_frame = LocalFrame.from_dict(json.loads((workspace / "origin.json").read_text()))
+        self.ws_frame = Workspace(workspace).frame() if truth is not None else None
         self._cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
@@ -204,8 +201,8 @@ class _Truth:
         aligned_pos = np.asarray(aligned_pos, np.float64).reshape(-1, 3)
         if self.truth is None:
             return aligned_pos
-        from mapkit.evaluation.truth import truth_camera_poses
         from mapkit.core.geometry import interpolate_poses
+        from mapkit.evaluation.truth import truth_camera_poses
 
         if session not in self._cache:
             self._cache[session] = truth_camera_poses(self.truth, session, self.ws_frame)
@@ -314,10 +311,51 @@ def nearest_l2(queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, n
 # --------------------------------------------------------------------------- the workspace protocol
 
 
+@dataclass
+class _Scored:
+    """Every query of one pair and method: its matched place's position (NaN without a match),
+    the match's score (-inf without one), whether it is right, whether it could be, and its error."""
+
+    matched_pos: np.ndarray  # (n, 3)
+    score: np.ndarray  # (n,)
+    correct: np.ndarray  # (n,) bool
+    reachable: np.ndarray  # (n,) bool
+    error_m: np.ndarray  # (n,), NaN without a match
+
+    def summary(self, n_boot: int) -> dict:
+        return _summary(self.score, self.correct, self.reachable, self.error_m, n_boot)
+
+
+@dataclass
+class _Queries:
+    """The queries of a pair: every ``query_stride``-th keyframe of the query session that has a
+    true position."""
+
+    ids: np.ndarray  # (n,) keyframe ids
+    stamps_ns: np.ndarray  # (n,)
+    positions: np.ndarray  # (n, 3) ground truth
+    without_truth: int
+
+
+class _Maps:
+    """The semi-dense maps of the workspace's sessions (aligned when ``mapkit align`` holds them),
+    loaded once: (map, checksum, source)."""
+
+    def __init__(self, ws: Workspace, prefer_aligned: bool):
+        self.ws, self.prefer_aligned = ws, prefer_aligned
+        self._maps: dict[str, tuple] = {}
+
+    def __call__(self, name: str) -> tuple:
+        from mapkit.mapping.semidense import SemiDenseMap
+
+        if name not in self._maps:
+            d, src = self.ws.session_map(name, self.prefer_aligned)
+            self._maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
+        return self._maps[name]
 
 
 def evaluate_places(
-    workspace: str | Path,
+    workspace: str | Path | Workspace,
     pairs: Sequence[tuple[str, str]],
     methods: Sequence[str] = ("nbld", "m2dp", "vlad"),
     out: str | Path | None = None,
@@ -339,50 +377,23 @@ def evaluate_places(
     :class:`VladBaseline`'s ``database``, ``query_rows`` and ``encode`` (another
     image descriptor, e.g. NetVLAD, plugs in there).
     """
-    from mapkit.mapping.semidense import SemiDenseMap
-
-    ws = Path(workspace)
+    ws = Workspace(workspace)
     cfg = load_config(PlacesEvalConfig, config, overrides)
     truth = None if truth is None else Path(truth)
-    out = Path(out) if out is not None else ws / "eval" / "places"
+    out = Path(out) if out is not None else ws.places_eval_dir
     cache = out / "cache"
     pairs = [(str(a), str(b)) for a, b in pairs]
     if not pairs:
-        raise InputError(ws, "no session pair given", field="pairs")
-    unknown = [m for m in methods if m not in STRUCTURE_METHODS and m != "vlad"]
-    if unknown:
-        raise InputError(None, f"unknown method(s) {unknown}; known: nbld, m2dp, cnn, vlad", field="methods")
-    if "cnn" in methods and cfg.structure.cnn_model is None:
-        from mapkit.places.index_structure import _DESCRIBERS
-
-        if "cnn" not in _DESCRIBERS:
-            raise InputError(None, "method cnn needs a trained model: set structure.cnn_model to a mapkit train output folder",
-                             field="structure.cnn_model")
+        raise InputError(ws.root, "no session pair given", field="pairs")
+    _check_methods(methods, cfg)
     gt = _Truth(ws, truth)
     cond = _conditions(truth)
-
-    vlad = appearance
-    vlad_note = None
-    if "vlad" in methods and vlad is None:
-        bundle = Path(vlad_bundle) if vlad_bundle is not None else ws / "indexes" / "vlad"
-        if (bundle / "manifest.json").is_file():
-            # encodings shared with other evaluations (eval localize --cache-dir), else this run's cache
-            encodings = Path(cfg.vlad_encodings_dir) if cfg.vlad_encodings_dir else cache
-            vlad = VladBaseline(bundle, ws, encodings, cfg.vlad_workers, progress)
-        else:
-            vlad_note = f"no VLAD bundle at {bundle} (build it with mapkit index vlad)"
-            warnings.warn(f"vlad: {vlad_note}; the VLAD column is left empty", InputWarning, stacklevel=2)
-
-    maps: dict[str, tuple] = {}
-
-    def session_map(name: str):
-        if name not in maps:
-            d, src = session_map_dir(ws, name, cfg.structure.prefer_aligned_maps)
-            maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
-        return maps[name]
+    vlad, vlad_note = (appearance, None) if appearance is not None or "vlad" not in methods else \
+        _vlad_baseline(ws, vlad_bundle, cfg, cache, progress)
+    maps = _Maps(ws, cfg.structure.prefer_aligned_maps)
 
     results: dict = {
-        "workspace": str(ws), "truth": None if truth is None else str(truth), "ground_truth": gt.source,
+        "workspace": str(ws.root), "truth": None if truth is None else str(truth), "ground_truth": gt.source,
         "radius_m": cfg.radius_m, "query_stride": cfg.query_stride, "methods": list(methods), "config": cfg.model_dump(mode="json"),
         "vlad_bundle": None if vlad is None else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
         "vlad_note": vlad_note, "pairs": [],
@@ -393,43 +404,7 @@ def evaluate_places(
         results["cnn_model"] = model_fingerprint(cfg.structure.cnn_model)
     rows: list[list] = []
     for db, query in pairs:
-        qmap, _, qsrc = session_map(query)
-        kf_ids = np.asarray(qmap.keyframe_ids, np.int64)
-        sel = np.arange(0, len(kf_ids), cfg.query_stride)
-        q_ids, q_stamps = kf_ids[sel], np.asarray(qmap.keyframe_stamps_ns, np.int64)[sel]
-        q_pos = gt.positions(query, q_stamps, qmap.keyframe_world_from_cam[sel, :3, 3])
-        has_truth = np.all(np.isfinite(q_pos), axis=1)
-        q_ids, q_stamps, q_pos = q_ids[has_truth], q_stamps[has_truth], q_pos[has_truth]
-        entry = {"database": db, "query": query, "conditions": {"database": cond.get(db), "query": cond.get(query)},
-                 "queries": int(len(q_ids)), "queries_without_truth": int((~has_truth).sum()), "query_map_source": qsrc, "methods": {}}
-        for method in methods:
-            t0 = time.perf_counter()
-            if method in STRUCTURE_METHODS:
-                r, per_query = _eval_structure(method, ws, db, query, q_ids, q_pos, cfg, gt, out, cache, session_map, progress)
-            elif vlad is not None and query in (getattr(vlad, "train_sessions", None) or ()):
-                # a whitening learned on n images with n - 1 dimensions maps its training images to
-                # (nearly) orthogonal vectors: two training sessions cannot be compared (measured on
-                # the demo bundle: cosines of -1/683 between all of them)
-                note = f"query session {query!r} trained the VLAD encoder (its vectors are not comparable); no score"
-                warnings.warn(f"vlad: {note}", InputWarning, stacklevel=2)
-                entry["methods"][method] = {"available": False, "note": note}
-                continue
-            elif vlad is not None:
-                r, per_query = _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg, gt)
-            else:
-                entry["methods"][method] = {"available": False, "note": vlad_note}
-                continue
-            r["seconds"] = time.perf_counter() - t0
-            entry["methods"][method] = r
-            for i in range(len(q_ids)):
-                rows.append([db, query, method, int(q_ids[i]), int(q_stamps[i]), *np.round(q_pos[i], 3), *np.round(per_query["matched_pos"][i], 3),
-                             per_query["score"][i], int(per_query["correct"][i]), int(per_query["reachable"][i]),
-                             None if np.isnan(per_query["error_m"][i]) else round(float(per_query["error_m"][i]), 2)])
-        # paired bootstrap (the same resamples of the same queries for every method)
-        boots = {m: r.pop("_boot") for m, r in entry["methods"].items() if "_boot" in r}
-        entry["p_auc_above"] = {f"{a}>{b}": float(np.mean(boots[a] > boots[b])) for a in boots for b in boots
-                                if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])}
-        results["pairs"].append(entry)
+        results["pairs"].append(_eval_pair(ws, db, query, methods, cfg, gt, cond, vlad, vlad_note, maps, out, cache, progress, rows))
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
@@ -438,6 +413,84 @@ def evaluate_places(
     _write_queries_csv(out / "queries.csv", rows)
     plot_pr_curves(out / "pr_curves.png", results)
     return results
+
+
+def _check_methods(methods: Sequence[str], cfg: PlacesEvalConfig) -> None:
+    """Refuse an unknown method, and ``cnn`` without a model to run."""
+    unknown = [m for m in methods if m not in STRUCTURE_METHODS and m != "vlad"]
+    if unknown:
+        raise InputError(None, f"unknown method(s) {unknown}; known: nbld, m2dp, cnn, vlad", field="methods")
+    if "cnn" in methods and cfg.structure.cnn_model is None:
+        from mapkit.places.index_structure import _DESCRIBERS
+
+        if "cnn" not in _DESCRIBERS:
+            raise InputError(None, "method cnn needs a trained model: set structure.cnn_model to a mapkit train output folder",
+                             field="structure.cnn_model")
+
+
+def _vlad_baseline(ws: Workspace, vlad_bundle: str | Path | None, cfg: PlacesEvalConfig, cache: Path,
+                   progress: bool) -> tuple[Optional[VladBaseline], Optional[str]]:
+    """(the VLAD baseline, None), or (None, why not) with a warning when there is no bundle."""
+    bundle = Path(vlad_bundle) if vlad_bundle is not None else ws.vlad_index
+    if not (bundle / "manifest.json").is_file():
+        note = f"no VLAD bundle at {bundle} (build it with mapkit index vlad)"
+        warnings.warn(f"vlad: {note}; the VLAD column is left empty", InputWarning, stacklevel=3)
+        return None, note
+    # encodings shared with other evaluations (eval localize --cache-dir), else this run's cache
+    encodings = Path(cfg.vlad_encodings_dir) if cfg.vlad_encodings_dir else cache
+    return VladBaseline(bundle, ws.root, encodings, cfg.vlad_workers, progress), None
+
+
+def _pair_queries(maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth) -> tuple[_Queries, str]:
+    """The pair's queries, and where the query session's map came from (``align`` or ``build``)."""
+    qmap, _, qsrc = maps(query)
+    kf_ids = np.asarray(qmap.keyframe_ids, np.int64)
+    sel = np.arange(0, len(kf_ids), cfg.query_stride)
+    ids, stamps = kf_ids[sel], np.asarray(qmap.keyframe_stamps_ns, np.int64)[sel]
+    pos = gt.positions(query, stamps, qmap.keyframe_world_from_cam[sel, :3, 3])
+    has_truth = np.all(np.isfinite(pos), axis=1)
+    return _Queries(ids[has_truth], stamps[has_truth], pos[has_truth], int((~has_truth).sum())), qsrc
+
+
+def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: PlacesEvalConfig, gt: _Truth, cond: dict,
+               vlad, vlad_note: Optional[str], maps: _Maps, out: Path, cache: Path, progress: bool, rows: list[list]) -> dict:
+    """One pair's entry of ``places.json``: every method on the same queries, then the paired
+    bootstrap comparison of their AUCs; appends the per-query rows of ``queries.csv`` to ``rows``."""
+    q, qsrc = _pair_queries(maps, query, cfg, gt)
+    entry = {"database": db, "query": query, "conditions": {"database": cond.get(db), "query": cond.get(query)},
+             "queries": int(len(q.ids)), "queries_without_truth": q.without_truth, "query_map_source": qsrc, "methods": {}}
+    for method in methods:
+        t0 = time.perf_counter()
+        if method in STRUCTURE_METHODS:
+            r, scored = _eval_structure(method, ws, db, query, q.ids, q.positions, cfg, gt, out, cache, maps, progress)
+        elif vlad is not None and query in (getattr(vlad, "train_sessions", None) or ()):
+            # a whitening learned on n images with n - 1 dimensions maps its training images to
+            # (nearly) orthogonal vectors: two training sessions cannot be compared (measured on
+            # the demo bundle: cosines of -1/683 between all of them)
+            note = f"query session {query!r} trained the VLAD encoder (its vectors are not comparable); no score"
+            warnings.warn(f"vlad: {note}", InputWarning, stacklevel=3)
+            entry["methods"][method] = {"available": False, "note": note}
+            continue
+        elif vlad is not None:
+            r, scored = _eval_vlad(vlad, db, query, q.stamps_ns, q.positions, cfg, gt)
+        else:
+            entry["methods"][method] = {"available": False, "note": vlad_note}
+            continue
+        r["seconds"] = time.perf_counter() - t0
+        entry["methods"][method] = r
+        rows += _query_rows(db, query, method, q, scored)
+    # paired bootstrap (the same resamples of the same queries for every method)
+    boots = {m: r.pop("_boot") for m, r in entry["methods"].items() if "_boot" in r}
+    entry["p_auc_above"] = {f"{a}>{b}": float(np.mean(boots[a] > boots[b])) for a in boots for b in boots
+                            if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])}
+    return entry
+
+
+def _query_rows(db: str, query: str, method: str, q: _Queries, s: _Scored) -> list[list]:
+    """Rows of ``queries.csv`` (:data:`_QUERY_COLUMNS`) of one pair and method."""
+    return [[db, query, method, int(q.ids[i]), int(q.stamps_ns[i]), *np.round(q.positions[i], 3), *np.round(s.matched_pos[i], 3),
+             s.score[i], int(s.correct[i]), int(s.reachable[i]), None if np.isnan(s.error_m[i]) else round(float(s.error_m[i]), 2)]
+            for i in range(len(q.ids))]
 
 
 def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
@@ -460,11 +513,13 @@ def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
     }
 
 
-def _eval_structure(kind, ws, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt: _Truth, out: Path, cache: Path, session_map, progress):
+def _eval_structure(kind, ws: Workspace, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt: _Truth, out: Path, cache: Path,
+                    maps: _Maps, progress) -> tuple[dict, _Scored]:
     scfg = cfg.structure.model_copy(update={"kind": kind, "database_sessions": [db]})
-    bundle = build_structure_index(ws, kind, out / "indexes" / f"{kind}-{db}", [db], scfg, cache_dir=cache, progress=progress)
+    own = out / "indexes" / f"{kind}-{db}"  # own output folder
+    bundle = build_structure_index(ws.root, kind, own, [db], scfg, cache_dir=cache, progress=progress)
     idx = StructureIndex.load(bundle, verify=False)  # just built or verified by its build hash
-    qmap, qsha, _ = session_map(query)
+    qmap, qsha, _ = maps(query)
     t0 = time.perf_counter()
     _, raw, describe_s = session_descriptors(qmap, query, kind, idx.cfg, cache, qsha, progress)
     prep = idx.prepare_query(qmap, query, raw)
@@ -480,8 +535,8 @@ def _eval_structure(kind, ws, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt
     has = m.best_frame >= 0
     matched_pos = np.where(has[:, None], all_pos[np.maximum(m.best_frame, 0)], np.nan)
     correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
-    scores = np.where(has, m.best_votes.astype(np.float64), -np.inf)
-    r = _summary(scores, correct, reachable, err, cfg.bootstrap)
+    scored = _Scored(matched_pos, np.where(has, m.best_votes.astype(np.float64), -np.inf), correct, reachable, err)
+    r = scored.summary(cfg.bootstrap)
     t = r["best_f1"]["threshold"]
     r.update({
         "lambda_v_best_f1": None if t is None else t - 1.0,  # integer votes: v >= t  <=>  v > t - 1
@@ -491,10 +546,10 @@ def _eval_structure(kind, ws, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt
         "query_describe_s": describe_s, "query_match_and_vote_s": (time.perf_counter() - t0) - describe_s,
         "vote_ms_per_frame": 1e3 * vote_s / max(len(m), 1), "index": str(bundle),
     })
-    return r, {"matched_pos": matched_pos, "score": scores, "correct": correct, "reachable": reachable, "error_m": err}
+    return r, scored
 
 
-def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Truth):
+def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Truth) -> tuple[dict, _Scored]:
     t0 = time.perf_counter()
     db_vec, db_stamps, db_aligned = vlad.database(db)
     db_pos = gt.positions(db, db_stamps, db_aligned)
@@ -511,11 +566,12 @@ def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Tru
     has = best >= 0
     matched_pos = np.where(has[:, None], db_pos[np.maximum(best, 0)] if len(db_pos) else np.nan, np.nan)
     correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
-    r = _summary(scores, correct, reachable, err, cfg.bootstrap)
+    scored = _Scored(matched_pos, scores, correct, reachable, err)
+    r = scored.summary(cfg.bootstrap)
     r.update({"database_images": int(len(db_vec)), "queries_without_image": int((~ok).sum()),
               "image_gap_s_max": float(np.max(gap_s[ok])) if np.any(ok) else None,
               "encode_and_load_s": encode_s})
-    return r, {"matched_pos": matched_pos, "score": scores, "correct": correct, "reachable": reachable, "error_m": err}
+    return r, scored
 
 
 _QUERY_COLUMNS = ["database", "query", "method", "query_frame_id", "stamp_ns", "x_m", "y_m", "z_m", "match_x_m", "match_y_m", "match_z_m",
@@ -543,7 +599,18 @@ def _cond_label(c: Optional[dict]) -> str:
 
 
 def format_places(results: dict) -> str:
-    """The AUC table in the form of the paper's Table 2 (rows: pairs, columns: methods)."""
+    """The AUC table in the form of the paper's Table 2 (rows: pairs, columns: methods), then each
+    method's best F1 operating point, the AUCs' bootstrap intervals, and what was not evaluated."""
+    lines = _auc_table(results) + [""] + _best_f1_table(results) + [""] + _bootstrap_table(results)
+    notes = [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
+             for m, r in p["methods"].items() if not r.get("available") and r.get("note")]
+    if notes:
+        lines += ["", "Not evaluated:", ""] + [f"- {n}" for n in dict.fromkeys(notes)]
+    return "\n".join(lines) + "\n"
+
+
+def _auc_table(results: dict) -> list[str]:
+    """Title, protocol and Table 2: the AUC of every method per pair, the best one in bold."""
     methods = results["methods"]
     sc = results["config"]["structure"]
     head = ["Sequence pair (query to database)", "conditions (query / database)"] + [METHOD_LABELS.get(m, m) for m in methods]
@@ -571,11 +638,15 @@ def format_places(results: dict) -> str:
         reach = [v.get("reachable") for v in p["methods"].values() if v.get("available")]
         cond = f"{_cond_label(p['conditions']['query'])} / {_cond_label(p['conditions']['database'])}" if p["conditions"]["query"] else ""
         lines.append(f"| {p['query']} to {p['database']} | {cond} | " + " | ".join(cells) + f" | {p['queries']} | {reach[0] if reach else ''} |")
-    lines += ["", "Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
-              "VLAD: minus the squared distance):", "",
-              "| pair | method | F1 | precision | recall | threshold | top-1 right of reachable |", "|---|---|---|---|---|---|---|"]
+    return lines
+
+
+def _best_f1_table(results: dict) -> list[str]:
+    lines = ["Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
+             "VLAD: minus the squared distance):", "",
+             "| pair | method | F1 | precision | recall | threshold | top-1 right of reachable |", "|---|---|---|---|---|---|---|"]
     for p in results["pairs"]:
-        for m in methods:
+        for m in results["methods"]:
             r = p["methods"].get(m, {})
             if not r.get("available"):
                 continue
@@ -584,11 +655,16 @@ def format_places(results: dict) -> str:
             thr = "" if b["threshold"] is None else f"{b['threshold']:.3g}"
             lines.append(f"| {p['query']} to {p['database']} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | {prec} | {b['recall']:.2f} | "
                          f"{thr} | {r['top1_correct_of_reachable']:.2f} |")
-    lines += ["", "AUC, 90 % bootstrap interval over the queries, and how often (paired resamples) each structure method's AUC "
-              "is above VLAD's:", "",
-              "| pair | " + " | ".join(METHOD_LABELS.get(m, m) for m in methods) + " | " +
-              " | ".join(f"P({METHOD_LABELS.get(m, m)} > VLAD)" for m in methods if m != "vlad") + " |",
-              "|" + "---|" * (1 + len(methods) + sum(m != "vlad" for m in methods))]
+    return lines
+
+
+def _bootstrap_table(results: dict) -> list[str]:
+    methods = results["methods"]
+    lines = ["AUC, 90 % bootstrap interval over the queries, and how often (paired resamples) each structure method's AUC "
+             "is above VLAD's:", "",
+             "| pair | " + " | ".join(METHOD_LABELS.get(m, m) for m in methods) + " | " +
+             " | ".join(f"P({METHOD_LABELS.get(m, m)} > VLAD)" for m in methods if m != "vlad") + " |",
+             "|" + "---|" * (1 + len(methods) + sum(m != "vlad" for m in methods))]
     for p in results["pairs"]:
         cells = []
         for m in methods:
@@ -597,11 +673,7 @@ def format_places(results: dict) -> str:
         probs = [p.get("p_auc_above", {}).get(f"{m}>vlad") for m in methods if m != "vlad"]
         cells += ["n/a" if x is None else f"{x:.2f}" for x in probs]
         lines.append(f"| {p['query']} to {p['database']} | " + " | ".join(cells) + " |")
-    notes = [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
-             for m, r in p["methods"].items() if not r.get("available") and r.get("note")]
-    if notes:
-        lines += ["", "Not evaluated:", ""] + [f"- {n}" for n in dict.fromkeys(notes)]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def plot_pr_curves(path: Path, results: dict) -> Path:

@@ -18,7 +18,6 @@ Two protocols:
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Optional, Sequence
@@ -26,10 +25,11 @@ from typing import Optional, Sequence
 import numpy as np
 
 from mapkit.core.errors import InputError
-from mapkit.evaluation.truth import town_sessions, truth_camera_poses_at
 from mapkit.core.geodesy import LocalFrame
-from mapkit.retrieval.index_vlad import VladIndex, _faiss_threads, _same_frame, encode_images, read_session_images
 from mapkit.core.runio import atomic_path, atomic_write_text, write_json
+from mapkit.core.workspace import Workspace
+from mapkit.evaluation.truth import town_sessions, truth_camera_poses_at
+from mapkit.retrieval.index_vlad import VladIndex, _faiss_threads, _same_frame, encode_images, read_session_images
 
 DEFAULT_KS = (1, 5, 20)
 
@@ -136,8 +136,8 @@ def self_retrieval_kitti(frames, encoder=None, exclude: int = 2, config=None, vo
     so use ``whiten=False`` or few dimensions here. A clip folder's ``poses.txt`` adds the metric
     distance of every match.
     """
-    from mapkit.retrieval.index_vlad import read_image
     from mapkit.core.threads import single_thread_blas
+    from mapkit.retrieval.index_vlad import read_image
     from mapkit.retrieval.vlad import VladConfig, VladEncoder
 
     positions = None
@@ -173,8 +173,6 @@ def self_retrieval_kitti(frames, encoder=None, exclude: int = 2, config=None, vo
 # --------------------------------------------------------------------------- the workspace protocol
 
 
-
-
 def _stats(trans_err: np.ndarray, rot_err: np.ndarray) -> dict:
     if len(trans_err) == 0:
         return {}
@@ -190,7 +188,7 @@ def _stats(trans_err: np.ndarray, rot_err: np.ndarray) -> dict:
 
 
 def evaluate_retrieval(
-    workspace: str | Path,
+    workspace: str | Path | Workspace,
     bundle: str | Path,
     query_sessions: Sequence[str],
     truth: str | Path | None = None,
@@ -205,7 +203,7 @@ def evaluate_retrieval(
 
     The query sessions must be in neither the bundle's database nor its training set.
     """
-    ws, bundle = Path(workspace), Path(bundle)
+    ws, bundle = Workspace(workspace), Path(bundle)
     truth = None if truth is None else Path(truth)
     out = bundle if out is None else Path(out)
     idx = VladIndex.load(bundle)
@@ -216,79 +214,30 @@ def evaluate_retrieval(
         raise InputError(bundle / "manifest.json", f"query session(s) {clash} are in the bundle's database or training set: "
                          "they cannot measure retrieval", field="sessions")
     if not query_sessions:
-        raise InputError(ws, "no query session given", field="query_sessions")
-    ws_frame = None
-    if (ws / "origin.json").is_file():
-        ws_frame = LocalFrame.from_dict(json.loads((ws / "origin.json").read_text()))
+        raise InputError(ws.root, "no query session given", field="query_sessions")
+    ws_frame = ws.frame()
     if idx.frame is not None and ws_frame is not None and not _same_frame(idx.frame, ws_frame):
-        raise InputError(ws / "origin.json", "the workspace's local frame differs from the bundle's", field="frame")
+        raise InputError(ws.origin, "the workspace's local frame differs from the bundle's", field="frame")
     town = town_sessions(truth)
-    K = max(max(ks), idx.cfg.top_k)
     db_pos = idx.world_from_cam[:, :3, 3]
     workers = idx.cfg.workers if workers is None else workers
 
     results: dict = {
-        "bundle": str(bundle), "workspace": str(ws), "truth": None if truth is None else str(truth), "radius_m": radius_m,
+        "bundle": str(bundle), "workspace": str(ws.root), "truth": None if truth is None else str(truth), "radius_m": radius_m,
         "ks": ks, "top_k": idx.cfg.top_k, "mean_shift_bandwidth_m": idx.cfg.mean_shift_bandwidth_m,
         "database_sessions": idx.database_sessions, "database_images": len(idx), "dim": idx.dim, "sessions": {},
     }
     rows: list[list] = []
     per_session: dict[str, dict] = {}
     for name in query_sessions:
-        s = read_session_images(ws, name, idx.cfg.prefer_aligned_poses)
-        if truth is not None:
-            true_T, ok = truth_camera_poses_at(truth, name, ws_frame, s.table["stamp_ns"])
-            truth_source = "synthetic town"
-        else:
-            true_T, ok = s.world_from_cam, np.ones(len(s), bool)
-            truth_source = f"session poses ({s.pose_source})"
-        keep = np.flatnonzero(ok)
-        if len(keep) == 0:
-            raise InputError(s.csv_path, f"no query image of {name!r} has a true pose")
-        t0 = time.perf_counter()
-        vectors = encode_images(idx.encoder, [s.image_paths[i] for i in keep], workers, progress, f"query {name}")
-        encode_s = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        dist, ids = idx.search(vectors, K)
-        search_s = time.perf_counter() - t0
-        q_pos = true_T[:, :3, 3]
-        rec = recall_at_k(q_pos, db_pos, ids, ks, radius_m)
-        t_err, r_err, z_pos = [], [], []
-        for i in range(len(keep)):
-            z = idx.measurement_from_hits(idx.hits(ids[i, : idx.cfg.top_k], dist[i, : idx.cfg.top_k]))
-            t_err.append(float(np.linalg.norm(z.translation - q_pos[i])))
-            r_err.append(float(rotation_error_deg(true_T[i, :3, :3], z.rotation)))
-            z_pos.append(z.translation)
-        t_err, r_err, z_pos = np.asarray(t_err), np.asarray(r_err), np.asarray(z_pos).reshape(-1, 3)
-        info = town.get(name, {})
-        r = {
-            "condition": info.get("condition"), "weather": info.get("weather"), "role": info.get("role"),
-            "queries": int(len(keep)), "images_without_truth": int(len(s) - len(keep)), "pose_source": s.pose_source,
-            "truth_source": truth_source, "reachable": rec["reachable"], "recall": rec["recall"],
-            "recall_curve": [float(x) for x in rec["curve"]],
-            "measurement": _stats(t_err, r_err),
-            "encode_s_per_image": encode_s / len(keep), "search_ms_per_query": 1e3 * search_s / len(keep),
-        }
-        results["sessions"][name] = r
-        per_session[name] = {"q": q_pos, "top1": db_pos[ids[:, 0]], "hit1": rec["first_hit_rank"] == 1, "z": z_pos,
-                             "curve": rec["curve"], "t_err": t_err, "r_err": r_err, "first": rec["first_hit_rank"]}
-        for i, j in enumerate(keep):
-            rows.append([name, int(s.table["image_id"][j]), int(s.table["stamp_ns"][j]), *q_pos[i], int(ids[i, 0]), *db_pos[ids[i, 0]],
-                         float(np.linalg.norm(db_pos[ids[i, 0]] - q_pos[i])), int(rec["first_hit_rank"][i]), *z_pos[i], t_err[i], r_err[i]])
-
+        results["sessions"][name], per_session[name] = _query_session(ws, idx, name, truth, ws_frame, town.get(name, {}), ks,
+                                                                      radius_m, workers, progress, rows)
     # per condition and overall, pooled over queries
-    def pooled(names: list[str]) -> dict:
-        first = np.concatenate([per_session[n]["first"] for n in names])
-        t = np.concatenate([per_session[n]["t_err"] for n in names])
-        rr = np.concatenate([per_session[n]["r_err"] for n in names])
-        return {"sessions": names, "queries": int(len(first)),
-                "recall": {int(k): float(np.mean((first >= 1) & (first <= k))) for k in ks}, "measurement": _stats(t, rr)}
-
     by_cond: dict[str, list[str]] = {}
     for n, r in results["sessions"].items():
         by_cond.setdefault(r["condition"] or "unknown", []).append(n)
-    results["conditions"] = {c: pooled(ns) for c, ns in by_cond.items()}
-    results["all"] = pooled(list(results["sessions"]))
+    results["conditions"] = {c: _pooled(per_session, ns, ks) for c, ns in by_cond.items()}
+    results["all"] = _pooled(per_session, list(results["sessions"]), ks)
 
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "eval_retrieval.json", results)
@@ -296,6 +245,62 @@ def evaluate_retrieval(
     _write_queries_csv(out / "eval_retrieval_queries.csv", rows)
     plot_retrieval(out / "eval_retrieval.png", per_session, results, db_pos)
     return results
+
+
+def _query_session(ws: Workspace, idx: VladIndex, name: str, truth: Optional[Path], ws_frame: Optional[LocalFrame], info: dict,
+                   ks: list[int], radius_m: float, workers: int, progress: bool, rows: list[list]) -> tuple[dict, dict]:
+    """One query session against the bundle: (its entry of ``eval_retrieval.json``, its arrays for
+    pooling and :func:`plot_retrieval`); appends its rows of the queries CSV to ``rows``."""
+    K = max(max(ks), idx.cfg.top_k)
+    db_pos = idx.world_from_cam[:, :3, 3]
+    s = read_session_images(ws.root, name, idx.cfg.prefer_aligned_poses)
+    if truth is not None:
+        true_T, ok = truth_camera_poses_at(truth, name, ws_frame, s.table["stamp_ns"])
+        truth_source = "synthetic town"
+    else:
+        true_T, ok = s.world_from_cam, np.ones(len(s), bool)
+        truth_source = f"session poses ({s.pose_source})"
+    keep = np.flatnonzero(ok)
+    if len(keep) == 0:
+        raise InputError(s.csv_path, f"no query image of {name!r} has a true pose")
+    t0 = time.perf_counter()
+    vectors = encode_images(idx.encoder, [s.image_paths[i] for i in keep], workers, progress, f"query {name}")
+    encode_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    dist, ids = idx.search(vectors, K)
+    search_s = time.perf_counter() - t0
+    q_pos = true_T[:, :3, 3]
+    rec = recall_at_k(q_pos, db_pos, ids, ks, radius_m)
+    t_err, r_err, z_pos = [], [], []
+    for i in range(len(keep)):
+        z = idx.measurement_from_hits(idx.hits(ids[i, : idx.cfg.top_k], dist[i, : idx.cfg.top_k]))
+        t_err.append(float(np.linalg.norm(z.translation - q_pos[i])))
+        r_err.append(float(rotation_error_deg(true_T[i, :3, :3], z.rotation)))
+        z_pos.append(z.translation)
+    t_err, r_err, z_pos = np.asarray(t_err), np.asarray(r_err), np.asarray(z_pos).reshape(-1, 3)
+    r = {
+        "condition": info.get("condition"), "weather": info.get("weather"), "role": info.get("role"),
+        "queries": int(len(keep)), "images_without_truth": int(len(s) - len(keep)), "pose_source": s.pose_source,
+        "truth_source": truth_source, "reachable": rec["reachable"], "recall": rec["recall"],
+        "recall_curve": [float(x) for x in rec["curve"]],
+        "measurement": _stats(t_err, r_err),
+        "encode_s_per_image": encode_s / len(keep), "search_ms_per_query": 1e3 * search_s / len(keep),
+    }
+    arrays = {"q": q_pos, "top1": db_pos[ids[:, 0]], "hit1": rec["first_hit_rank"] == 1, "z": z_pos,
+              "curve": rec["curve"], "t_err": t_err, "r_err": r_err, "first": rec["first_hit_rank"]}
+    for i, j in enumerate(keep):
+        rows.append([name, int(s.table["image_id"][j]), int(s.table["stamp_ns"][j]), *q_pos[i], int(ids[i, 0]), *db_pos[ids[i, 0]],
+                     float(np.linalg.norm(db_pos[ids[i, 0]] - q_pos[i])), int(rec["first_hit_rank"][i]), *z_pos[i], t_err[i], r_err[i]])
+    return r, arrays
+
+
+def _pooled(per_session: dict[str, dict], names: list[str], ks: list[int]) -> dict:
+    """Recall and measurement figures of several query sessions, pooled over their queries."""
+    first = np.concatenate([per_session[n]["first"] for n in names])
+    t = np.concatenate([per_session[n]["t_err"] for n in names])
+    rr = np.concatenate([per_session[n]["r_err"] for n in names])
+    return {"sessions": names, "queries": int(len(first)),
+            "recall": {int(k): float(np.mean((first >= 1) & (first <= k))) for k in ks}, "measurement": _stats(t, rr)}
 
 
 def _write_queries_csv(path: Path, rows: list[list]) -> None:

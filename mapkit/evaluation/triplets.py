@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mapkit.core.geodesy import read_workspace_frame
 from mapkit.core.runio import write_json
+from mapkit.core.workspace import Workspace
 from mapkit.evaluation.truth import error_transforms, session_truth, ws_from_town
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.places.triplets import SPLITS, TripletDataset
@@ -21,16 +21,14 @@ def evaluate_triplets(dataset: str | Path, workspace: str | Path, truth: str | P
     patch centre p (E_s = T_est T_gt^-1 of the aligned session's pose nearest to p); the offset
     of a positive pair is the distance between the two true points.
     """
-
     ds = TripletDataset(dataset)
-    workspace, truth = Path(workspace), Path(truth)
-    ws_frame = read_workspace_frame(workspace)
-    town_to_ws = ws_from_town(truth, ws_frame)
+    ws, truth = Workspace(workspace), Path(truth)
+    town_to_ws = ws_from_town(truth, ws.require_frame())
     names = ds.manifest["sessions"]
     err = {}
     for k, n in enumerate(names):
         st, gt = session_truth(truth, n)
-        tr = Trajectory.load(workspace / "align" / "sessions" / n / "trajectory")
+        tr = Trajectory.load(ws.aligned(n).trajectory)
         pos, E = error_transforms(tr.stamps_ns, tr.world_from_base, st, town_to_ws @ gt)
         err[k] = (cKDTree(pos[:, :2]), np.linalg.inv(E))
     t = ds.table

@@ -18,7 +18,9 @@ from mapkit.core.geometry import interpolate_poses
 
 def ws_from_town(truth: Path, ws_frame: LocalFrame) -> np.ndarray:
     """The exact rigid transform from a synthetic town's ENU frame to a workspace's (via ECEF)."""
-    return LocalFrame.from_dict(json.loads((Path(truth) / "world" / "origin.json").read_text())).to_frame(ws_frame)
+    from mapkit.synth import town_frame
+
+    return town_frame(truth).to_frame(ws_frame)
 
 
 def town_sessions(truth: Optional[Path]) -> dict[str, dict]:
@@ -54,7 +56,9 @@ def session_truth_mesh(town_mesh, truth: Path, name: str, town_to_ws: np.ndarray
     import open3d as o3d
 
     mesh = o3d.geometry.TriangleMesh(town_mesh)
-    cars = Path(truth) / "sessions" / f"{name}.parked_cars.ply"
+    from mapkit.synth import parked_cars_path
+
+    cars = parked_cars_path(truth, name)
     if cars.is_file():
         car_mesh = o3d.io.read_triangle_mesh(str(cars))
         car_mesh.transform(town_to_ws)

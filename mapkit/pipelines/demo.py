@@ -25,8 +25,8 @@ Timings of every stage go into ``timings.md``, ``metrics.json`` and the report.
 from __future__ import annotations
 
 import json
+import logging
 import os
-import sys
 import time
 import traceback
 from contextlib import contextmanager, nullcontext
@@ -35,8 +35,11 @@ from typing import Callable, Iterator, Optional
 
 from mapkit import __version__
 from mapkit.core.errors import MapkitError
-from mapkit.report.html import Section, write_report
 from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.workspace import Workspace
+from mapkit.report.html import Section, write_report
+
+logger = logging.getLogger(__name__)
 
 
 def _cpu_ticks() -> Optional[tuple[int, int]]:
@@ -63,7 +66,7 @@ class Demo:
         self.out, self.preset, self.seed, self.workers = Path(out), preset, seed, workers
         self.train_cnn, self.progress, self.log = train_cnn, progress, log
         self.town = self.out / "town"
-        self.ws = self.out / "workspace"
+        self.ws = Workspace(self.out / "workspace")
         self.bundles = self.out / "bundles"
         self.metrics: dict = {"mapkit_version": __version__, "preset": preset, "seed": seed, "workers": workers, "stages": {}}
         self.sections: list[Section] = []
@@ -109,7 +112,7 @@ class Demo:
     @property
     def cnn_model(self) -> Optional[Path]:
         """The trained CNN (``WORKSPACE/cnn``) when there is one."""
-        p = self.ws / "cnn"
+        p = self.ws.cnn_dir
         return p if (p / "model.onnx").is_file() else None
 
     def structure_kinds(self) -> list[str]:
@@ -119,18 +122,18 @@ class Demo:
         return {"cnn_model": str(self.cnn_model)} if kind == "cnn" else None
 
     def places_overrides(self) -> dict:
-        ov: dict = {"vlad_encodings_dir": str(self.ws / "localize" / "cache")}  # the localization stage's encodings
+        ov: dict = {"vlad_encodings_dir": str(_localize_cache(self.ws))}  # the localization stage's encodings
         if self.cnn_model is not None:
             ov["structure"] = {"cnn_model": str(self.cnn_model)}
         return ov
 
     @property
     def train_sessions(self) -> list[str]:
-        return sorted(n for n, s in self.roles.items() if s.get("role") == "train" and (self.ws / "sessions" / n).is_dir())
+        return sorted(n for n, s in self.roles.items() if s.get("role") == "train" and self.ws.session(n).root.is_dir())
 
     @property
     def test_sessions(self) -> list[str]:
-        return sorted(n for n, s in self.roles.items() if s.get("role") == "test" and (self.ws / "sessions" / n).is_dir())
+        return sorted(n for n, s in self.roles.items() if s.get("role") == "test" and self.ws.session(n).root.is_dir())
 
 
 # --------------------------------------------------------------------------- stages
@@ -158,34 +161,34 @@ def _condition(s: dict) -> str:
 
 
 def _build(d: Demo) -> None:
-    from mapkit.mapping.build import build, format_build_summary
     from mapkit.evaluation.evaluate import evaluate_build
+    from mapkit.mapping.build import build, format_build_summary
     from mapkit.synth import session_logs
 
     with d.stage("build", "Session maps (mapkit build)") as sec:
         logs = session_logs(d.town)
-        build(logs, d.ws, progress=d.progress)
-        d.log(format_build_summary(d.ws))
+        build(logs, d.ws.root, progress=d.progress)
+        d.log(format_build_summary(d.ws.root))
         r = evaluate_build(d.ws, d.town)
         d.metrics["eval_build"] = r
         d.metrics["georeferenced"] = sorted(n for n, s in r["sessions"].items() if s.get("georeferenced"))
-        sec.md_file(d.ws / "eval_build.md")
+        sec.md_file(d.ws.eval_build_md)
         for n in sorted(r["sessions"]):
-            sec.picture(d.ws / "sessions" / n / "georef" / "trajectory_over_gps.png", f"{n}: trajectory over GPS", 380)
+            sec.picture(d.ws.session(n).georef / "trajectory_over_gps.png", f"{n}: trajectory over GPS", 380)
         for n in sorted(r["sessions"]):
-            sec.picture(d.ws / "sessions" / n / "map" / "top_view.png", f"{n}: semi-dense map, top view", 380)
+            sec.picture(d.ws.session(n).map / "top_view.png", f"{n}: semi-dense map, top view", 380)
 
 
 def _align(d: Demo) -> None:
-    from mapkit.multisession.align import align_workspace
     from mapkit.evaluation.evaluate import evaluate_align
+    from mapkit.multisession.align import align_workspace
 
     with d.stage("align", "Multi-session map (mapkit align)") as sec:
         d.need("build")
         if len(d.metrics.get("georeferenced", [])) < 2:
             raise _Skip(f"{len(d.metrics.get('georeferenced', []))} georeferenced session(s); alignment needs two "
                         "(a drive too short or too straight for GPS to fix its heading is not georeferenced: see eval_build)")
-        out = align_workspace(d.ws, progress=d.progress)
+        out = align_workspace(d.ws.root, progress=d.progress)
         d.metrics["eval_align"] = evaluate_align(d.ws, d.town)
         sec.md_file(out / "qa.md")
         sec.md_file(out / "eval_align.md")
@@ -199,7 +202,7 @@ def _triplets(d: Demo) -> None:
 
     with d.stage("triplets", "Triplet patch dataset (mapkit triplets)") as sec:
         d.need("align")
-        folder = export_triplets(d.ws, progress=d.progress)
+        folder = export_triplets(d.ws.root, progress=d.progress)
         m = json.loads((folder / "metrics.json").read_text())
         ev = evaluate_triplets(folder, d.ws, d.town)
         d.metrics["triplets"] = {"export": m, "truth": ev}
@@ -231,7 +234,7 @@ def _index_vlad(d: Demo) -> None:
         train = d.train_sessions
         if not train:
             raise _Skip("the town has no training session")
-        out = build_vlad_index(d.ws, overrides={"train_sessions": train, "database_sessions": train, "workers": d.workers,
+        out = build_vlad_index(d.ws.root, overrides={"train_sessions": train, "database_sessions": train, "workers": d.workers,
                                                 "vlad": DEMO_VLAD}, progress=d.progress)
         m = json.loads((out / "metrics.json").read_text())
         d.metrics["index_vlad"] = m
@@ -249,7 +252,7 @@ def _index_structure(d: Demo) -> None:
         rows = ["| descriptor | entries | frames | dim | seconds |", "|---|---|---|---|---|"]
         for kind in d.structure_kinds():
             t0 = time.perf_counter()
-            out = build_structure_index(d.ws, kind, sessions=train, overrides=d.structure_overrides(kind), progress=d.progress)
+            out = build_structure_index(d.ws.root, kind, sessions=train, overrides=d.structure_overrides(kind), progress=d.progress)
             man = json.loads((out / "manifest.json").read_text())
             c = man["counts"]
             rows.append(f"| {kind} | {c['entries']} | {c['frames']} | {c['dim']} | {time.perf_counter() - t0:.0f} |")
@@ -257,19 +260,19 @@ def _index_structure(d: Demo) -> None:
 
 
 def _localize(d: Demo) -> None:
-    from mapkit.evaluation.localization import evaluate_localization
     from mapkit.core.presets import preset_path
+    from mapkit.evaluation.localization import evaluate_localization
 
     with d.stage("localize", "Monte Carlo visual localization (mapkit eval localize)") as sec:
         d.need("index_vlad")
         if not d.test_sessions:
             raise _Skip("the town has no test session")
-        cache = d.ws / "localize" / "cache"  # test images are encoded once, for both runs and for places
+        cache = _localize_cache(d.ws)  # test images are encoded once, for both runs and for places
         runs = {"paper": None, "odometry-multihypothesis": preset_path("localize", "odometry-multihypothesis")}
         d.metrics["localize"] = {}
         for name, cfg in runs.items():
-            out = d.ws / "localize" / name
-            r = evaluate_localization(d.ws, d.town, bundle=d.ws / "indexes" / "vlad", config=cfg, out=out, cache_dir=cache,
+            out = d.ws.localize_dir / name
+            r = evaluate_localization(d.ws, d.town, bundle=d.ws.vlad_index, config=cfg, out=out, cache_dir=cache,
                                       progress=d.progress)
             d.metrics["localize"][name] = {n: {k: s.get(k) for k in ("retrieval", "filter", "queries")} for n, s in r["sessions"].items()}
             label = "the paper's defaults (MCVL Sec. IV-A)" if cfg is None else f"preset `configs/localize/{cfg.name}` (beyond the paper)"
@@ -300,22 +303,27 @@ def _places(d: Demo) -> None:
         if not pairs:
             raise _Skip("no pair of a training and a test session with maps")
         methods = list(d.structure_kinds()) + ["vlad"]
-        out = d.ws / "eval" / "places"
-        r = evaluate_places(d.ws, pairs, methods, out=out, truth=d.town, vlad_bundle=d.ws / "indexes" / "vlad",
+        out = d.ws.places_eval_dir
+        r = evaluate_places(d.ws, pairs, methods, out=out, truth=d.town, vlad_bundle=d.ws.vlad_index,
                             overrides=d.places_overrides(), progress=d.progress)
         d.metrics["places"] = {f"{p['database']}:{p['query']}": {m: v.get("auc") for m, v in p["methods"].items()} for p in r["pairs"]}
         sec.md_file(out / "places.md")
         sec.picture(out / "pr_curves.png", "precision-recall curves", 1000)
 
 
-def _map_points(ws: Path) -> dict[str, int]:
+def _map_points(ws: Workspace) -> dict[str, int]:
     """Points of each built session's semi-dense map, from its build metrics."""
     points = {}
-    for p in sorted((ws / "sessions").iterdir()) if (ws / "sessions").is_dir() else []:
-        m = p / "metrics.json"
+    for name in ws.session_names():
+        m = ws.session(name).metrics
         if m.is_file():
-            points[p.name] = int((json.loads(m.read_text()).get("stages", {}).get("semidense") or {}).get("points", 0))
+            points[name] = int((json.loads(m.read_text()).get("stages", {}).get("semidense") or {}).get("points", 0))
     return points
+
+
+def _localize_cache(ws: Workspace) -> Path:
+    """Where the demo keeps the localization stage's retrieved hits and encodings (shared with places)."""
+    return ws.localize_cache
 
 
 def _export(d: Demo) -> None:
@@ -323,7 +331,7 @@ def _export(d: Demo) -> None:
 
     with d.stage("export", "Deployable bundle (mapkit index export)") as sec:
         d.need("index_vlad")
-        out = export_bundles(d.ws, d.bundles)
+        out = export_bundles(d.ws.root, d.bundles)
         b = load_bundle(out, verify=False)  # export_bundles checked every file's checksum; this loads every index
         rows = ["| index | kind | entries | source sessions |", "|---|---|---|---|"]
         for name, e in b.manifest["indexes"].items():
@@ -344,7 +352,7 @@ def _train_cnn(d: Demo) -> None:
         d.need("triplets")
         from mapkit.learning.train import train_cnn
 
-        out = train_cnn(d.ws / "triplets", d.ws / "cnn", overrides=CNN_DEMO_BUDGET, progress=d.progress)
+        out = train_cnn(d.ws.triplets_dir, d.ws.cnn_dir, overrides=CNN_DEMO_BUDGET, progress=d.progress)
         sec.picture(out / "training_curve.png", "training curve", 640)
         d.metrics["train_cnn"] = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
 
@@ -353,9 +361,10 @@ STAGES = (_synth, _build, _align, _triplets, _train_cnn, _index_vlad, _index_str
 
 
 def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Optional[int] = None, workers: int = 2,
-             train_cnn: bool = False, progress: bool = False, log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)) -> dict:
+             train_cnn: bool = False, progress: bool = False, log: Callable[[str], None] = logger.info) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
-    the paths of the report and the bundle."""
+    the paths of the report and the bundle. ``log`` takes the stage lines ("[demo] build: ok in
+    12 s"); by default they go to this module's logger at INFO (the CLI shows them on stderr)."""
     from mapkit.core.executor import default_executor, use_executor
 
     d = Demo(Path(out), preset, seed, workers, train_cnn, progress, log)
