@@ -10,9 +10,9 @@ import pytest
 from mapkit import __version__
 from mapkit.cli import main
 from mapkit.core.geodesy import LocalFrame
+from mapkit.core.types import CameraFrame, GpsFix, LidarScan
 from mapkit.io.info import summarize
 from mapkit.io.mcap_log import McapWriter
-from mapkit.core.types import CameraFrame, GpsFix, LidarScan
 
 T0 = 1_700_000_000_000_000_000
 

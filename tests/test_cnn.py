@@ -17,6 +17,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from mapkit.core.config import config_model, load_config  # noqa: E402
+from mapkit.core.errors import ConfigError, InputError  # noqa: E402
+from mapkit.core.runio import write_json  # noqa: E402
+from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402
 from mapkit.places.cnn import (  # noqa: E402
     CnnConfig,
     OnnxDescriber,
@@ -29,11 +33,7 @@ from mapkit.places.cnn import (  # noqa: E402
     torch_describe,
     triplet_loss,
 )
-from mapkit.core.config import config_model, load_config  # noqa: E402
-from mapkit.core.errors import ConfigError, InputError  # noqa: E402
 from mapkit.places.patches import CNN_DOMAIN, density_comparison, pack_bits  # noqa: E402
-from mapkit.core.runio import write_json  # noqa: E402
-from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402
 from mapkit.places.triplets import TripletDataset  # noqa: E402
 
 TINY = CnnConfig(grid=8, conv1_channels=3, conv1_kernel=3, conv2_channels=4, hidden=16, dim=8)

@@ -6,9 +6,9 @@ import pytest
 
 from mapkit.core.config import TopicConfig, defaults_yaml, dump_config, load_config, resolve_topics
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.io.mcap_log import McapLog, McapWriter
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
 from mapkit.core.types import GpsFix, StreamKind
+from mapkit.io.mcap_log import McapLog, McapWriter
 
 
 def test_yaml_overrides_defaults_and_round_trips(tmp_path):

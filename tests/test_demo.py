@@ -10,11 +10,11 @@ import shutil
 import pytest
 
 from mapkit.cli import main
-from mapkit.pipelines.demo import places_pairs, run_demo
 from mapkit.core.errors import InputError
 from mapkit.deploy.export import export_bundles, load_bundle
-from mapkit.retrieval.index_vlad import VladIndex
+from mapkit.pipelines.demo import places_pairs, run_demo
 from mapkit.report.html import Section, markdown_to_html, render
+from mapkit.retrieval.index_vlad import VladIndex
 
 
 #: the whole tiny main job (every stage on a small town) takes about a minute on 2 idle cores

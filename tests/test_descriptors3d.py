@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from mapkit.places import descriptors3d as d3
 from mapkit.core.errors import InputError
 from mapkit.core.geometry import yaw_rotation
+from mapkit.places import descriptors3d as d3
 
 
 def _cell_centres(cfg, counts):

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mapkit.core.errors import InputError
 from mapkit.retrieval.dsift import (
     DESCRIPTOR_DIM,
     DsiftConfig,
@@ -18,7 +19,6 @@ from mapkit.retrieval.dsift import (
     scale_grids,
     sift_normalize,
 )
-from mapkit.core.errors import InputError
 
 
 def textured_image(seed: int, h: int = 120, w: int = 160) -> np.ndarray:

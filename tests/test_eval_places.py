@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+from test_index_structure import make_street_workspace  # noqa: E402
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.evaluation.places import (
@@ -20,8 +21,6 @@ from mapkit.evaluation.places import (
     score_queries,
     table1_counts,
 )
-
-from test_index_structure import make_street_workspace  # noqa: E402
 
 
 def test_table1_rows():

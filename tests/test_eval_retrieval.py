@@ -6,15 +6,14 @@ import json
 
 import numpy as np
 import pytest
+from test_index_vlad import FRAME, PLACES, make_workspace, small_config
 
 from mapkit.core.errors import InputError
-from mapkit.evaluation.retrieval import evaluate_retrieval, recall_at_k, rotation_error_deg, self_retrieval
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import yaw_rotation
+from mapkit.evaluation.retrieval import evaluate_retrieval, recall_at_k, rotation_error_deg, self_retrieval
 from mapkit.io.trajectory import write_tum
 from mapkit.retrieval.index_vlad import build_vlad_index, read_session_images
-
-from test_index_vlad import FRAME, PLACES, make_workspace, small_config
 
 
 def test_recall_at_k_on_a_hand_built_case():

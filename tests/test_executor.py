@@ -21,16 +21,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from mapkit.multisession.align import AlignConfig, _register_task, _SubmapClouds
-from mapkit.core.errors import ConfigError, InputError, InputWarning, MapkitError
-from mapkit.core.executor import (SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor)
-from mapkit.retrieval.index_vlad import read_image
-from mapkit.mapping.semidense import build_semidense_map
-from mapkit.synth import session_logs
-
 from test_align import street
 from test_semidense import K_SYN, ROOM_CFG, room  # noqa: F401 - the rendered room, a module fixture used below
+
+from mapkit.core.errors import ConfigError, InputError, InputWarning, MapkitError
+from mapkit.core.executor import SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor
+from mapkit.mapping.semidense import build_semidense_map
+from mapkit.multisession.align import AlignConfig, _register_task, _SubmapClouds
+from mapkit.retrieval.index_vlad import read_image
+from mapkit.synth import session_logs
 
 # --------------------------------------------------------------------------- task functions (importable by workers)
 
@@ -432,9 +431,9 @@ def tiny_workspace(tmp_path_factory) -> Path:
 
 
 def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, tmp_path):
-    from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index
-
     from test_index_vlad import SMALL_VLAD
+
+    from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index
 
     ws = tiny_workspace
     # the demo's index build (its training sessions train and are indexed) with test_index_vlad's small encoder
@@ -450,10 +449,10 @@ def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, 
 
 
 def test_vlad_encoding_reports_an_unreadable_image_as_its_input_error(tmp_path):
+    from test_index_vlad import SMALL_VLAD
+
     from mapkit.retrieval.index_vlad import _map, _raw_task
     from mapkit.retrieval.vlad import VladEncoder
-
-    from test_index_vlad import SMALL_VLAD
 
     vocabulary = np.random.default_rng(0).random((SMALL_VLAD.num_words, 128), dtype=np.float32)
     missing = tmp_path / "gone.png"

@@ -13,9 +13,6 @@ from mcap_ros2.writer import Writer as Ros2Writer
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import make_pose, yaw_rotation
-from mapkit.io import open_log
-from mapkit.io import ros2
-from mapkit.io.mcap_log import McapLog, McapWriter
 from mapkit.core.types import (
     CameraFrame,
     CameraInfo,
@@ -27,6 +24,8 @@ from mapkit.core.types import (
     PoseSample,
     StreamKind,
 )
+from mapkit.io import open_log, ros2
+from mapkit.io.mcap_log import McapLog, McapWriter
 
 T0 = 1_700_000_000_123_456_789  # an epoch stamp with nanoseconds that float seconds would lose
 

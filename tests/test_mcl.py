@@ -7,7 +7,6 @@ from scipy.spatial.transform import Rotation
 from mapkit.core.config import defaults_yaml, load_config
 from mapkit.core.errors import ConfigError
 from mapkit.core.geometry import average_rotations, is_rotation, make_pose, yaw_rotation
-from mapkit.retrieval.measurement import Measurement, PoseHypotheses, matrix_from_euler, mean_shift_measurement
 from mapkit.localization.mcl import (
     MclConfig,
     MonteCarloLocalizer,
@@ -23,6 +22,7 @@ from mapkit.localization.mcl import (
     weigh,
     wrap_angle,
 )
+from mapkit.retrieval.measurement import Measurement, PoseHypotheses, matrix_from_euler, mean_shift_measurement
 
 ZERO3 = (0.0, 0.0, 0.0)
 

@@ -7,15 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapkit.mapping.build import build
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv
+from mapkit.core.types import StreamKind
 from mapkit.io.mcap_log import McapLog
 from mapkit.io.trajectory import read_tum
+from mapkit.mapping.build import build
+from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv
 from mapkit.synth import session_log, synthesize
 from mapkit.synth.config import load_config
-from mapkit.core.types import StreamKind
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 ONE_DRIVE = {"sessions": [{"name": "drive", "role": "train", "weather": "clear", "length_m": 40.0, "speed_mps": 8.0}]}

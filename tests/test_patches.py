@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from mapkit.places import patches as pa
 from mapkit.core.errors import InputError
 from mapkit.core.geometry import yaw_rotation
+from mapkit.places import patches as pa
 
 
 def _scene(rng, n_wall=1500, n_ground=800, n_pole=150):

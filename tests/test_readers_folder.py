@@ -11,9 +11,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.errors import InputError
+from mapkit.core.types import StreamKind
 from mapkit.io import guess_format, open_log
 from mapkit.io.folder import FolderLog, seconds_to_ns
-from mapkit.core.types import StreamKind
 
 # seconds with nanosecond digits that a float64 cannot hold
 STAMPS_TEXT = ["1700000000.123456789", "1700000000.223456791", "1700000000.323456793"]

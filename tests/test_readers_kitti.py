@@ -12,9 +12,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.types import StreamKind
 from mapkit.io import guess_format, open_log
 from mapkit.io.kitti import KittiOdometry, KittiRaw
-from mapkit.core.types import StreamKind
 
 FX, FY, CX, CY = 700.0, 710.0, 320.5, 240.25
 BASELINE_M = 0.54

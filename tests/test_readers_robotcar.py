@@ -10,9 +10,9 @@ import pytest
 from pyproj import Transformer
 
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.types import StreamKind
 from mapkit.io import guess_format, open_log
 from mapkit.io.robotcar import RobotCar
-from mapkit.core.types import StreamKind
 
 STAMPS_US = [1418381798076682, 1418381798139182, 1418381798201682]
 BGR = (50, 100, 200)

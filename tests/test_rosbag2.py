@@ -18,11 +18,11 @@ import yaml
 from mapkit.cli import main
 from mapkit.core.errors import InputError, MapkitError
 from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose
-from mapkit.io.info import summarize
+from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, ImuSample, LidarScan, PoseSample, StreamKind
 from mapkit.io import guess_format, open_log
+from mapkit.io.info import summarize
 from mapkit.io.mcap_log import McapLog, McapWriter, Rosbag2Writer, rosbag2_mcap_files
 from mapkit.synth import gt_poses, session_log, session_logs, synthesize
-from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, ImuSample, LidarScan, PoseSample, StreamKind
 
 T0 = 1_700_000_000_123_456_789
 

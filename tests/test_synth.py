@@ -20,13 +20,21 @@ import pytest
 from mapkit.core.errors import ConfigError, MapkitError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
+from mapkit.core.types import StreamKind
 from mapkit.io.mcap_log import McapLog
 from mapkit.synth import (
-    GpsErrorModel, camera_poses, extrinsics, gt_poses, load_config, load_world, session_log, session_logs, synthesize,
+    GpsErrorModel,
+    camera_poses,
+    extrinsics,
+    gt_poses,
+    load_config,
+    load_world,
+    session_log,
+    session_logs,
+    synthesize,
 )
 from mapkit.synth.config import GpsConfig, presets_dir
 from mapkit.synth.render import ground_truth_mesh_scene
-from mapkit.core.types import StreamKind
 
 TOPICS = {
     "/camera/front/image": "sensor_msgs/CompressedImage",
@@ -410,8 +418,8 @@ def _curve(n=60, dt_s=0.1):
 
 
 def test_external_trajectory_drives_a_session_with_the_town_around_it(tmp_path):
-    from mapkit.io.trajectory import write_tum
     from mapkit.core.geometry import make_pose, yaw_rotation
+    from mapkit.io.trajectory import write_tum
 
     t, x, y = _curve()
     yaw = np.arctan2(np.gradient(y), np.gradient(x))

@@ -8,12 +8,11 @@ import warnings
 import cv2
 import numpy as np
 import pytest
-
-from mapkit.retrieval.dsift import DsiftConfig, dense_sift
-from mapkit.core.errors import InputError, InputWarning
-from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad
-
 from test_dsift import textured_image
+
+from mapkit.core.errors import InputError, InputWarning
+from mapkit.retrieval.dsift import DsiftConfig, dense_sift
+from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad
 
 SMALL = dict(dsift=DsiftConfig(region_widths=[16, 24]), num_words=16, kmeans_max_descriptors=20_000, kmeans_iterations=10)
 

@@ -35,10 +35,8 @@ rotate and scale it), so no offset could honestly describe one; ``enu_pipeline``
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
@@ -304,21 +302,6 @@ class LocalFrame:
     def from_dict(cls, d: dict) -> "LocalFrame":
         o = d["origin_wgs84"]
         return cls(float(o["lat_deg"]), float(o["lon_deg"]), float(o.get("alt_m", 0.0)), int(d["utm_crs_epsg"]))
-
-
-#: the file of a workspace that holds its local frame (written by the first georeferenced session)
-WORKSPACE_ORIGIN = "origin.json"
-
-
-def read_workspace_frame(workspace: str | Path) -> Optional[LocalFrame]:
-    """The workspace's local frame (``WORKSPACE/origin.json``); None while no session is georeferenced."""
-    origin = Path(workspace) / WORKSPACE_ORIGIN
-    if not origin.is_file():
-        return None
-    try:
-        return LocalFrame.from_dict(json.loads(origin.read_text()))
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(origin, f"not a valid frame description ({exc})") from None
 
 
 PLY_CRS_CONVENTION = 1

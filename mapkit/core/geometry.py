@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-
 # --- quaternions and rotations ------------------------------------------------------------------
 
 def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:

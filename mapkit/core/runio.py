@@ -165,8 +165,15 @@ def sha256_file(path: str | Path, block: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def progress_bar(total: Optional[int], enabled: bool, desc: str, unit: str, leave: bool = True):
-    """A tqdm bar on stderr for long work (``update``/``close``); silent when not ``enabled``."""
+def progress_bar(total: Optional[int], enabled: Optional[bool], desc: str, unit: str, leave: bool = True):
+    """The one progress bar of mapkit: tqdm on stderr for long work (``update``/``close``).
+
+    ``enabled``: shown or silent; None shows it when stderr is a terminal (so logs and CI output
+    stay free of redraws)."""
+    import sys
+
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit=unit, leave=leave, disable=not enabled)
+    if enabled is None:
+        enabled = sys.stderr.isatty()
+    return tqdm(total=total, desc=desc, unit=unit, leave=leave, disable=not enabled, file=sys.stderr)

@@ -220,6 +220,19 @@ class Workspace:
     def tiles_dir(self) -> Path:
         return self.align_dir / "tiles"
 
+    @property
+    def align_pairs(self) -> Path:
+        """Every registered submap pair with its verdict (``mapkit align``)."""
+        return self.align_dir / "pairs.json"
+
+    @property
+    def eval_align_json(self) -> Path:
+        return self.align_dir / "eval_align.json"
+
+    @property
+    def eval_align_md(self) -> Path:
+        return self.align_dir / "eval_align.md"
+
     def align_record(self) -> dict:
         """The finished alignment's ``.done`` record ({} when align has not finished)."""
         if not self.align_done.is_file():
@@ -283,6 +296,11 @@ class Workspace:
     @property
     def localize_dir(self) -> Path:
         return self.root / "localize"
+
+    @property
+    def localize_cache(self) -> Path:
+        """Retrieved hits per test session, reused by localizer runs on the same bundle."""
+        return self.localize_dir / "cache"
 
     @property
     def eval_dir(self) -> Path:

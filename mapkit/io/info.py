@@ -13,9 +13,9 @@ from typing import Any, Optional
 import numpy as np
 
 from mapkit.core.geodesy import LocalFrame, path_length_m
-from mapkit.io import open_log
 from mapkit.core.runio import progress_bar
 from mapkit.core.types import GpsFix, GpsStatus, StreamKind
+from mapkit.io import open_log
 
 
 def summarize(path: str | Path, format: Optional[str] = None, progress: bool = False) -> dict[str, Any]:

@@ -26,6 +26,7 @@ from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
 
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.runio import atomic_write_text
 from mapkit.core.types import (
     CameraFrame,
     CameraInfo,
@@ -39,7 +40,6 @@ from mapkit.core.types import (
     StreamKind,
 )
 from mapkit.io import ros2
-from mapkit.core.runio import atomic_write_text
 from mapkit.io.base import DriveLog
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -61,10 +61,10 @@ from typing import Optional
 import numpy as np
 
 from mapkit.core.errors import ConfigError, MapkitError
-from mapkit.io.mcap_log import ROSBAG2_METADATA, is_rosbag2
 from mapkit.core.geodesy import LocalFrame
-from mapkit.io.trajectory import read_tum
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
+from mapkit.io.mcap_log import ROSBAG2_METADATA, is_rosbag2
+from mapkit.io.trajectory import read_tum
 from mapkit.synth.config import FORMAT_VERSION, PRESETS, SynthConfig, dump_yaml, load_config
 from mapkit.synth.sensors import GpsErrorModel, extrinsics, intrinsics
 from mapkit.synth.world import RoadGraph, read_ply, read_roads
@@ -132,9 +132,9 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
     ``overrides`` is a mapping merged over the preset and ``config`` (as a YAML file would be).
     """
     from mapkit.core.runio import sha256_file
+    from mapkit.core.threads import single_thread_blas
     from mapkit.synth.sessions import plan_sessions, read_external_trajectory, write_session
     from mapkit.synth.world import build_town, write_ply, write_roads
-    from mapkit.core.threads import single_thread_blas
 
     t_start = time.perf_counter()
     cfg = load_config(preset, config, seed, overrides)
@@ -386,9 +386,9 @@ class World:
 
 def load_world(path: str | Path) -> World:
     """Read a synthesized town's world folder (raises MapkitError when it is incomplete)."""
-    from mapkit.synth.config import validate
-
     import yaml
+
+    from mapkit.synth.config import validate
 
     path = Path(path)
     world = path / "world"
@@ -399,6 +399,19 @@ def load_world(path: str | Path) -> World:
     manifest = json.loads((world / "manifest.json").read_text())
     cfg = validate(yaml.safe_load((world / "config.yaml").read_text()), str(world / "config.yaml"))
     return World(path, frame, read_roads(world / "roads.json"), manifest, cfg)
+
+
+def town_frame(path: str | Path) -> LocalFrame:
+    """The town's ENU frame (``world/origin.json``), without reading the rest of the world."""
+    f = Path(path) / "world" / "origin.json"
+    if not f.is_file():
+        raise MapkitError(f"{path}: not a synthesized town (missing world/origin.json)")
+    return LocalFrame.from_dict(json.loads(f.read_text()))
+
+
+def parked_cars_path(path: str | Path, session: str) -> Path:
+    """The mesh of the cars parked during ``session`` (absent in towns made without them)."""
+    return Path(path) / "sessions" / f"{session}.parked_cars.ply"
 
 
 def gt_poses(path: str | Path, session: str) -> tuple[np.ndarray, np.ndarray]:

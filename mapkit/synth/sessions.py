@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import csv
 import datetime as dt
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,14 +27,23 @@ from scipy.spatial.transform import Rotation
 
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import interpolate_poses, make_pose
+from mapkit.core.runio import progress_bar
+from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, PoseSample
 from mapkit.io.mcap_log import Rosbag2Writer
 from mapkit.io.trajectory import read_kitti_poses, read_tum, write_tum
-from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, PoseSample
 from mapkit.synth import session_log_relpath
 from mapkit.synth.appearance import Conditions, make_conditions
 from mapkit.synth.config import SessionConfig, SynthConfig
 from mapkit.synth.sensors import (
-    FRAME_BASE, FRAME_CAMERA, FRAME_GPS, FRAME_IMU, FRAME_LIDAR, FRAME_WORLD, GpsErrorModel, extrinsics, imu_from_poses,
+    FRAME_BASE,
+    FRAME_CAMERA,
+    FRAME_GPS,
+    FRAME_IMU,
+    FRAME_LIDAR,
+    FRAME_WORLD,
+    GpsErrorModel,
+    extrinsics,
+    imu_from_poses,
     intrinsics,
 )
 from mapkit.synth.world import DRIVE_LANE_CENTER_M, Mat, RoadGraph, Town, parked_cars, write_ply
@@ -518,7 +526,6 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     """Render and write one session: its log (a rosbag2 folder with MCAP storage), ground-truth files,
     parked cars and anchor picture."""
     import cv2
-    from tqdm import tqdm
 
     from mapkit.synth.render import Renderer
 
@@ -563,8 +570,7 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     compress = None if cfg.camera.compression == "raw" else cfg.camera.compression
     info = CameraInfo(FRAME_CAMERA, cfg.camera.width, cfg.camera.height, K, "plumb_bob", np.zeros(5))
     render_s = {"camera": 0.0, "lidar": 0.0}
-    bar = tqdm(total=len(cam_ns) + len(lidar_ns), desc=f"{name} ({plan.conditions.label})", unit="frame",
-               file=sys.stderr, disable=(not sys.stderr.isatty()) if progress is None else not progress, leave=False)
+    bar = progress_bar(len(cam_ns) + len(lidar_ns), progress, f"{name} ({plan.conditions.label})", "frame", leave=False)
     log_dir = out_dir / session_log_relpath(name)
     with Rosbag2Writer(log_dir) as w:
         w.add_metadata("mapkit.synth", {"session": name, "condition": plan.conditions.label, "weather": plan.config.weather,
