@@ -1,8 +1,11 @@
 """mapkit: drive logs to maps, image databases, triplet patches and place-recognition indexes.
 
-The library is layered as in evo: ``mapkit.core.geometry`` and ``mapkit.core.types`` are pure numpy/scipy,
-``mapkit.core.geodesy`` wraps pyproj, ``mapkit.io`` holds every reader and writer, and ``mapkit.cli``
-only parses arguments and calls the library.
+One subpackage per stage, in the order the data flows: ``core`` (types, geometry, geodesy, configs,
+run I/O, the ``Workspace``), ``io`` (readers and writers), ``synth`` (the synthetic town),
+``mapping`` (one session: ``mapkit build``), ``multisession`` (``mapkit align``), ``places`` and
+``retrieval`` (descriptors, triplets and the deployable indexes), ``learning``, ``localization``
+and ``deploy``, then ``evaluation``, ``report`` and ``pipelines``; ``mapkit.cli`` only parses
+arguments. Imports point down that list only (docs/architecture.md).
 """
 
 __version__ = "0.1.0"
