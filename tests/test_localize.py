@@ -27,11 +27,11 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     odo = [None] + [invert_pose(imgs.world_from_cam[k - 1]) @ imgs.world_from_cam[k] for k in range(1, PLACES)]
     cfg = LocalizeConfig(top_k=4, odometry=True)
     r = run_localizer(index, list(imgs.image_paths), cfg, odo)
-    ret_err = np.linalg.norm(r["retrieval_position"] - truth[:, :3, 3], axis=1)
-    fil_err = np.linalg.norm(r["filter_position"] - truth[:, :3, 3], axis=1)
+    ret_err = np.linalg.norm(r.retrieval_position - truth[:, :3, 3], axis=1)
+    fil_err = np.linalg.norm(r.filter_position - truth[:, :3, 3], axis=1)
     assert np.median(ret_err) < 5.0  # the right place is retrieved
     assert np.median(fil_err) < 5.0 and np.all(np.isfinite(fil_err))
-    R = r["filter_rotation"]
+    R = r.filter_rotation
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-6) and np.allclose(np.linalg.det(R), 1.0)
 
     # beyond the paper: the multi-hypothesis preset on hits retrieved once and cached
@@ -46,9 +46,9 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     np.testing.assert_array_equal(ids2, ids)
     mh = load_config(LocalizeConfig, PRESETS / "odometry-multihypothesis.yaml", {"top_k": 4})
     r_mh = run_localizer(index, paths, mh, odo, hits=(ids, dist))
-    np.testing.assert_allclose(r_mh["retrieval_position"], r["retrieval_position"])  # same hits, same retrieval figure
-    np.testing.assert_array_equal(r_mh["ids"], ids)
-    mh_err = np.linalg.norm(r_mh["filter_position"] - truth[:, :3, 3], axis=1)
+    np.testing.assert_allclose(r_mh.retrieval_position, r.retrieval_position)  # same hits, same retrieval figure
+    np.testing.assert_array_equal(r_mh.ids, ids)
+    mh_err = np.linalg.norm(r_mh.filter_position - truth[:, :3, 3], axis=1)
     assert np.median(mh_err) < 5.0 and np.all(np.isfinite(mh_err))
 
 

@@ -106,16 +106,16 @@ def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, c
     t_retrieve = time.perf_counter() - t0
     r = run_localizer(index, paths, cfg, odo, progress=False, hits=(ids, dist))
     wall = time.perf_counter() - t0
-    e_ret = pose_errors(r["retrieval_position"], r["retrieval_rotation"], gt[:, :3, 3], gt[:, :3, :3])
-    e_fil = pose_errors(r["filter_position"], r["filter_rotation"], gt[:, :3, 3], gt[:, :3, :3])
+    e_ret = pose_errors(r.retrieval_position, r.retrieval_rotation, gt[:, :3, 3], gt[:, :3, :3])
+    e_fil = pose_errors(r.filter_position, r.filter_rotation, gt[:, :3, 3], gt[:, :3, :3])
     entry = {
         "condition": town_entry.get("condition") or town_entry.get("weather"),
         "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(),
         **hit_recall(index, ids, gt[:, :3, 3]), "seconds": wall, "hits_from_cache": cached,
         "seconds_per_query": wall / max(1, len(paths)), "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
-        "filter_ms_per_step": 1000 * r["seconds"]["filter"] / max(1, len(paths)),
+        "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths)),
     }
-    localization_track(out / f"{name}.png", gt[:, :3, 3], r["retrieval_position"], r["filter_position"],
+    localization_track(out / f"{name}.png", gt[:, :3, 3], r.retrieval_position, r.filter_position,
                        f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
                        f"{entry['retrieval']['median_translation_m']:.1f} m, filter "
                        f"{entry['filter']['median_translation_m']:.1f} m)")

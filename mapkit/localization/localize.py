@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import hashlib
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 from pydantic import Field
@@ -43,8 +44,32 @@ class LocalizeConfig(MapkitConfig):
     seed: int = Field(0, description="Seed of the particle filter.")
 
 
+@dataclass(frozen=True)
+class LocalizationRun:
+    """Per query of a sequence (n queries): retrieval alone (the measurement z_t) and the filter.
+
+    Positions (n, 3) and rotations (n, 3, 3) are the camera's ``world_from_camera`` in the
+    bundle's workspace ENU; NaN where the filter has no estimate yet."""
+
+    retrieval_position: np.ndarray
+    retrieval_rotation: np.ndarray
+    filter_position: np.ndarray
+    filter_rotation: np.ndarray
+    cluster_size: np.ndarray  # (n,) hits in the measurement's mean-shift cluster
+    ids: np.ndarray  # (n, top_k) retrieved database ids, -1 where fewer
+    retrieval_s: float
+    filter_s: float
+
+    def poses(self, which: Literal["retrieval", "filter"]) -> np.ndarray:
+        """(n, 4, 4) world_from_camera of ``which``."""
+        T = np.tile(np.eye(4), (len(self.ids), 1, 1))
+        T[:, :3, :3] = getattr(self, f"{which}_rotation")
+        T[:, :3, 3] = getattr(self, f"{which}_position")
+        return T
+
+
 def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] = None, progress: bool = False,
-                  hits: Optional[tuple[np.ndarray, np.ndarray]] = None) -> dict:
+                  hits: Optional[tuple[np.ndarray, np.ndarray]] = None) -> LocalizationRun:
     """Retrieval alone and the filter over a sequence of images (arrays or files).
 
     ``hits`` = ``(ids, distances)`` (n, top_k) already retrieved for the images (e.g. from
@@ -79,8 +104,7 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
             f_pos[t], f_rot[t] = est.position, est.rotation
         bar.update(1)
     bar.close()
-    return {"retrieval_position": z_pos, "retrieval_rotation": z_rot, "filter_position": f_pos, "filter_rotation": f_rot,
-            "cluster_size": sizes, "ids": all_ids, "seconds": seconds}
+    return LocalizationRun(z_pos, z_rot, f_pos, f_rot, sizes, all_ids, seconds["retrieval"], seconds["filter"])
 
 
 def _measure(hits, bandwidth_m: float):
@@ -188,13 +212,11 @@ def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: s
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         t0 = time.perf_counter()
         r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
-    ok = np.isfinite(r["filter_position"][:, 0])
+    ok = np.isfinite(r.filter_position[:, 0])
     for key, name in (("filter", "poses_tum.txt"), ("retrieval", "retrieval_tum.txt")):
-        T = np.tile(np.eye(4), (len(stamps), 1, 1))
-        T[:, :3, :3], T[:, :3, 3] = r[f"{key}_rotation"], r[f"{key}_position"]
-        write_tum(out / name, stamps[ok], T[ok])
+        write_tum(out / name, stamps[ok], r.poses(key)[ok])
     write_json(out / "metrics.json", {"bundle": str(bundle), "log": str(log), "queries": len(stamps), "seconds": time.perf_counter() - t0,
-                                      "filter_ms_per_step": 1000 * r["seconds"]["filter"] / len(stamps),
+                                      "filter_ms_per_step": 1000 * r.filter_s / len(stamps),
                                       "frame": "workspace ENU of the bundle (world_from_camera)"})
     return out
 
