@@ -153,3 +153,40 @@ def test_hit_recall_known_answer(tmp_path):
     gt = np.array([[0.0, 0, 0], [30.0, 0, 0], [500.0, 0, 0]])
     r = hit_recall(index, ids, gt, radius_m=5.0)
     assert r["recall_at_1"] == pytest.approx(1 / 3) and r["recall_at_3"] == pytest.approx(2 / 3)
+
+
+def test_localize_log_writes_tum_poses_a_reader_takes_back(tmp_path):
+    """``mapkit localize``: the query images in a drive log (MCAP) against a bundle give TUM
+    trajectories, one row per localized image: retrieval near the truth at every place; the filter
+    (the paper's random walk, no odometry in a bare log) starts there, then lags places 40 m apart."""
+    import cv2
+
+    from mapkit.core.types import CameraFrame
+    from mapkit.io.mcap_log import McapWriter
+    from mapkit.io.trajectory import read_tum
+    from mapkit.localization.localize import localize_log
+
+    ws = make_workspace(tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        bundle = build_vlad_index(ws, config=small_config(), progress=False)
+    imgs = read_session_images(ws, "test-c")
+    stamps = 1_000_000_000 + np.arange(PLACES, dtype=np.int64) * 250_000_000
+    log = tmp_path / "query.mcap"
+    with McapWriter(log) as w:
+        for stamp, path in zip(stamps, imgs.image_paths):
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            w.write("/camera/image", CameraFrame(int(stamp), "camera", gray, encoding="mono8"), compress="png")
+    config = tmp_path / "localize.yaml"
+    config.write_text("top_k: 4\n")
+    out = localize_log(bundle, log, tmp_path / "loc", config, progress=False)
+    truth = np.stack([place_pose(p) for p in range(PLACES)])
+    errors = {}
+    for name in ("poses_tum.txt", "retrieval_tum.txt"):
+        got_stamps, got = read_tum(out / name)
+        assert len(got_stamps) >= PLACES - 1 and set(got_stamps.tolist()) <= set(stamps.tolist())
+        k = np.searchsorted(stamps, got_stamps)
+        errors[name] = np.linalg.norm(got[:, :3, 3] - truth[k, :3, 3], axis=1)
+    assert np.median(errors["retrieval_tum.txt"]) < 5.0
+    assert errors["poses_tum.txt"][0] < 5.0
+    assert (out / "metrics.json").is_file() and (out / "config.yaml").is_file()
