@@ -43,6 +43,7 @@ from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_ma
 from mapkit.core.runio import atomic_write_ply, atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.io.trajectory import read_tum, seconds_to_ns
+from mapkit.multisession.align import load_tiles
 
 Source = Literal["auto", "aligned", "built"]
 CSV_COLUMNS = ("stamp_s", "lat_deg", "lon_deg", "height_m", "qx", "qy", "qz", "qw")
@@ -197,7 +198,6 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
     (``utm``, ``ecef``, ``wgs84``, ``EPSG:<code>``) under ``out``; returns the manifest, also
     written to ``out/export.json``. ``sessions``: default all georeferenced ones; ``source``:
     ``aligned`` / ``built`` / ``auto`` (aligned where ``mapkit align`` holds the session)."""
-    from mapkit.multisession.align import load_tiles
 
     ws, out = Workspace(workspace), Path(out)
     ws_frame = ws.require_frame("run mapkit build with GPS first")

@@ -22,11 +22,15 @@ from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
 from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.evaluation.metrics import map_accuracy, trajectory_errors
 from mapkit.evaluation.truth import error_transforms, session_truth, session_truth_mesh, ws_from_town
+from mapkit.io import open_log
 from mapkit.mapping.gps_align import fit_transform
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
+from mapkit.multisession.align import PairResult, _support_points
 
 
 def evaluate_build(workspace: str | Path | Workspace, truth: str | Path) -> dict:
@@ -90,8 +94,6 @@ def _gps_error(ws: Workspace, name: str, gt_stamps, gt_ws, frame: LocalFrame) ->
 
     The antenna's lever arm is not applied: on the synthetic car it is 0.3 m along the heading.
     """
-    from mapkit.core.types import StreamKind
-    from mapkit.io import open_log
 
     meta = json.loads(ws.metrics.read_text()) if ws.metrics.is_file() else {}
     log_path = meta.get("sessions", {}).get(name, {}).get("log")
@@ -201,8 +203,6 @@ def _session_errors(ws: Workspace, truth: Path, names: list[str], town_to_ws: np
     with the offset removed) before (``gps``) and after (``aligned``) alignment."""
     from scipy.spatial import cKDTree
 
-    from mapkit.mapping.semidense import SemiDenseMap
-
     sess: dict[str, _SessionError] = {}
     traj: dict = {}
     for name in names:
@@ -263,7 +263,6 @@ def _pair_misalignment(sess: dict[str, _SessionError], names: list[str], max_poi
 def _registration_errors(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
     """The true error of every accepted ICP registration (measured on the maps as built: the
     "before" frames), the largest displacement of its support points."""
-    from mapkit.multisession.align import PairResult, _support_points
 
     pairs_json = ws.align_pairs
     errs = []

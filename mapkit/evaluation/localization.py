@@ -18,12 +18,13 @@ from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.io.plots import localization_track
 from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer
 from mapkit.localization.mcl import pose_errors
+from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 
 if TYPE_CHECKING:
     from mapkit.core.geodesy import LocalFrame
-    from mapkit.retrieval.index_vlad import VladIndex
 
 
 #: radius (m) within which a retrieved image counts as the right place in the recall diagnostics
@@ -55,7 +56,6 @@ def evaluate_localization(workspace: str | Path | Workspace, truth: str | Path, 
     Besides Table II, each session reports how often the top-1 and any of the top-k hits lie
     within ``RECALL_RADIUS_M`` of the truth (what any measurement model can work with)."""
     from mapkit.evaluation.truth import town_sessions
-    from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index
 
     ws, truth = Workspace(workspace), Path(truth)
     cfg = load_config(LocalizeConfig, config, overrides)
@@ -88,8 +88,6 @@ def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, c
     """One test session through retrieval and the filter: its row of Table II, its recall and
     timings; draws its track against the truth into ``out/<name>.png``."""
     from mapkit.evaluation.truth import truth_camera_poses_at
-    from mapkit.io.plots import localization_track
-    from mapkit.retrieval.index_vlad import read_session_images
 
     imgs = read_session_images(ws.root, name)
     gt, ok = truth_camera_poses_at(truth, name, ws_frame, imgs.table["stamp_ns"])

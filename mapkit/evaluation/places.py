@@ -50,9 +50,13 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.io.plots import _save
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors
+from mapkit.retrieval.index_vlad import VladIndex, read_session_images
 
 STRUCTURE_METHODS = ("nbld", "m2dp", "cnn")
 METHOD_LABELS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
@@ -201,7 +205,6 @@ class _Truth:
         aligned_pos = np.asarray(aligned_pos, np.float64).reshape(-1, 3)
         if self.truth is None:
             return aligned_pos
-        from mapkit.core.geometry import interpolate_poses
         from mapkit.evaluation.truth import truth_camera_poses
 
         if session not in self._cache:
@@ -237,8 +240,6 @@ class VladBaseline:
     name = "vlad"
 
     def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False):
-        from mapkit.retrieval.index_vlad import VladIndex
-
         self.index = VladIndex.load(bundle)
         self.ws = Path(workspace)
         self.cache_dir = cache_dir
@@ -252,8 +253,6 @@ class VladBaseline:
         return list(self.index.train_sessions)
 
     def images(self, session: str):
-        from mapkit.retrieval.index_vlad import read_session_images
-
         if session not in self._images:
             self._images[session] = read_session_images(self.ws, session, self.index.cfg.prefer_aligned_poses)
         return self._images[session]
@@ -346,8 +345,6 @@ class _Maps:
         self._maps: dict[str, tuple] = {}
 
     def __call__(self, name: str) -> tuple:
-        from mapkit.mapping.semidense import SemiDenseMap
-
         if name not in self._maps:
             d, src = self.ws.session_map(name, self.prefer_aligned)
             self._maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
@@ -682,8 +679,6 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from mapkit.io.plots import _save
 
     n = len(results["pairs"])
     cols = min(3, max(n, 1))

@@ -27,9 +27,11 @@ import numpy as np
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import atomic_path, atomic_write_text, write_json
+from mapkit.core.threads import single_thread_blas
 from mapkit.core.workspace import Workspace
 from mapkit.evaluation.truth import town_sessions, truth_camera_poses_at
-from mapkit.retrieval.index_vlad import VladIndex, _faiss_threads, _same_frame, encode_images, read_session_images
+from mapkit.retrieval.index_vlad import VladIndex, _faiss_threads, _same_frame, encode_images, read_image, read_session_images
+from mapkit.retrieval.vlad import VladConfig, VladEncoder
 
 DEFAULT_KS = (1, 5, 20)
 
@@ -136,9 +138,6 @@ def self_retrieval_kitti(frames, encoder=None, exclude: int = 2, config=None, vo
     so use ``whiten=False`` or few dimensions here. A clip folder's ``poses.txt`` adds the metric
     distance of every match.
     """
-    from mapkit.core.threads import single_thread_blas
-    from mapkit.retrieval.index_vlad import read_image
-    from mapkit.retrieval.vlad import VladConfig, VladEncoder
 
     positions = None
     source = None

@@ -14,11 +14,11 @@ import numpy as np
 
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
+from mapkit.synth import camera_poses, gt_poses, parked_cars_path, town_frame
 
 
 def ws_from_town(truth: Path, ws_frame: LocalFrame) -> np.ndarray:
     """The exact rigid transform from a synthetic town's ENU frame to a workspace's (via ECEF)."""
-    from mapkit.synth import town_frame
 
     return town_frame(truth).to_frame(ws_frame)
 
@@ -36,7 +36,6 @@ def town_sessions(truth: Optional[Path]) -> dict[str, dict]:
 def truth_camera_poses(truth: Path, name: str, ws_frame: Optional[LocalFrame]) -> tuple[np.ndarray, np.ndarray]:
     """(stamps_ns, world_from_camera) of a town session's true camera, in the workspace's frame
     (the town's own when ``ws_frame`` is None)."""
-    from mapkit.synth import camera_poses
 
     stamps, world_from_cam = camera_poses(truth, name)
     if ws_frame is not None:
@@ -45,8 +44,6 @@ def truth_camera_poses(truth: Path, name: str, ws_frame: Optional[LocalFrame]) -
 
 
 def session_truth(truth: Path, name: str):
-    from mapkit.synth import gt_poses
-
     return gt_poses(truth, name)
 
 
@@ -56,7 +53,6 @@ def session_truth_mesh(town_mesh, truth: Path, name: str, town_to_ws: np.ndarray
     import open3d as o3d
 
     mesh = o3d.geometry.TriangleMesh(town_mesh)
-    from mapkit.synth import parked_cars_path
 
     cars = parked_cars_path(truth, name)
     if cars.is_file():

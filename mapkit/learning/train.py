@@ -43,6 +43,7 @@ from mapkit.core.bundle import write_manifest
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, write_json
+from mapkit.io.plots import training_curve
 from mapkit.places.cnn import (
     MODEL_FORMAT_VERSION,
     ONNX_FILE,
@@ -56,6 +57,7 @@ from mapkit.places.cnn import (
     triplet_loss,
 )
 from mapkit.places.patches import pack_bits, unpack_bits
+from mapkit.places.triplets import TripletDataset
 
 log = logging.getLogger(__name__)
 
@@ -241,7 +243,6 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
     exactly this configuration.
     """
     torch = require_torch()
-    from mapkit.places.triplets import TripletDataset
 
     ds = dataset if isinstance(dataset, TripletDataset) else TripletDataset(dataset)
     cfg = load_config(TrainConfig, config, overrides)
@@ -346,7 +347,6 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
                "wall_s_training": total_wall, "wall_s_this_call": time.perf_counter() - t_start, "threads": cfg.threads,
                "torch_version": torch.__version__}
     write_json(out / "metrics.json", metrics)
-    from mapkit.io.plots import training_curve
 
     training_curve(out / "training_curve.png", history, title=f"CNN descriptor, {cfg.model.form}, hard negatives "
                    f"{'on' if cfg.hard_negatives else 'off'}")

@@ -31,8 +31,12 @@ from pydantic import Field
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, write_json
+from mapkit.core.types import StreamKind
+from mapkit.io import open_log
+from mapkit.io.trajectory import write_tum
 from mapkit.localization.mcl import MclConfig, MonteCarloLocalizer
-from mapkit.retrieval.measurement import PoseHypotheses
+from mapkit.retrieval.index_vlad import VladIndex
+from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
 
 class LocalizeConfig(MapkitConfig):
@@ -108,8 +112,6 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
 
 
 def _measure(hits, bandwidth_m: float):
-    from mapkit.retrieval.measurement import mean_shift_measurement
-
     return mean_shift_measurement(hits.translations, hits.world_from_cam[:, :3, :3], bandwidth=bandwidth_m)
 
 
@@ -192,10 +194,6 @@ def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: s
                  camera: Optional[str] = None, progress: bool = True) -> Path:
     """Run the localizer on the camera images of a drive log against a VLAD bundle; writes the
     filter's and retrieval's camera poses as TUM files, the resolved config and metrics."""
-    from mapkit.core.types import StreamKind
-    from mapkit.io import open_log
-    from mapkit.io.trajectory import write_tum
-    from mapkit.retrieval.index_vlad import VladIndex
 
     cfg = load_config(LocalizeConfig, config)
     index = VladIndex.load(bundle)

@@ -37,6 +37,7 @@ from mapkit.core.types import CameraFrame, CameraInfo, StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
+from mapkit.io.plots import map_top_view, trajectory_over_gps
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
 from mapkit.mapping.semidense import SemiDenseConfig, SemiDenseMap, build_semidense_map
@@ -205,7 +206,6 @@ class SessionBuilder:
             return None, None
         result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
                       fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
-        from mapkit.io.plots import trajectory_over_gps
 
         traj_enu = transform_points(al.enu_from_map, traj.world_from_base[:, :3, 3])
         trajectory_over_gps(out / "trajectory_over_gps.png", traj_enu, gps_enu[ok], al.inliers,
@@ -331,7 +331,6 @@ class SessionBuilder:
         frame = self.frame()
         smap.save(out, frame=frame)
         traj = self.enu_trajectory()
-        from mapkit.io.plots import map_top_view
 
         map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3], f"{self.name}: semi-dense map, {len(smap.points_world)} points")
         m = {"points": int(len(smap.points_world)), "seconds": time.perf_counter() - t0,

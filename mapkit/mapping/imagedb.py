@@ -23,7 +23,7 @@ from pydantic import Field
 from mapkit.core.config import MapkitConfig
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import invert_pose, matrix_to_quat_wxyz
+from mapkit.core.geometry import invert_pose, matrix_to_quat_wxyz, pose_from_quat_wxyz
 from mapkit.core.runio import atomic_write_bytes, atomic_write_text
 from mapkit.core.types import CameraInfo
 
@@ -222,7 +222,6 @@ def write_images_csv(path: str | Path, image_ids, stamps_ns, cameras, relpaths, 
 
 def images_world_from_cam(table: dict[str, np.ndarray]) -> np.ndarray:
     """(N, 4, 4) camera poses in the local ENU frame from a table read by ``read_images_csv``."""
-    from mapkit.core.geometry import pose_from_quat_wxyz
 
     q = np.stack([table["qw"], table["qx"], table["qy"], table["qz"]], axis=1)
     t = np.stack([table["x_m"], table["y_m"], table["z_m"]], axis=1)

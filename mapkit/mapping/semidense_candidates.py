@@ -20,7 +20,6 @@ from typing import Optional, Protocol
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-
 #: DSO's residual pattern (``PATTERNP = staticPattern[8]`` in DSO's settings): 8 pixels around
 #: the candidate, a diamond of radius 2, offsets (du, dv) in pixels.
 PATTERN_DSO8 = np.array([(0, -2), (-1, -1), (1, -1), (-2, 0), (0, 0), (2, 0), (-1, 1), (0, 2)], np.float64)

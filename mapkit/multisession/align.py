@@ -47,8 +47,11 @@ from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
 from mapkit.core.workspace import AlignedDirs, Workspace
+from mapkit.io.plots import align_histograms, align_pairs_map
+from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.multisession.corrections import apply_correction_points, apply_correction_poses, correction_at
 from mapkit.multisession.posegraph import Edge, GraphConfig, PoseGraph, session_offsets, support_points
@@ -362,7 +365,6 @@ def _write_outputs(ws: Workspace, data: list[SessionData], x: np.ndarray, offset
     write_json(out / "pairs.json", {"format_version": ALIGN_FORMAT_VERSION, "pairs": [r.to_dict() for r in results]})
     qa["tiles"] = write_tiles(ws.tiles_dir, np.concatenate(merged_pts), np.concatenate(merged_sid), np.concatenate(merged_idx),
                               [s.name for s in data], ws_frame, cfg.tile_size_m)
-    from mapkit.io.plots import align_histograms, align_pairs_map
 
     align_pairs_map(out / "pairs_map.png", data, results)
     align_histograms(out / "icp_histograms.png", results, cfg.icp.lambda_icp_m, cfg.icp.min_fitness)
@@ -429,9 +431,6 @@ def _write_refined_images(s: SessionData, refined_poses: np.ndarray, src: Path, 
     """The session's image database table ``src`` with refined camera poses (``images.csv`` of
     ``dirs``, paths relative to it): each image moves with the correction of the trajectory at its stamp."""
     import os
-
-    from mapkit.core.geometry import interpolate_poses
-    from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
 
     if not src.is_file():
         return

@@ -21,6 +21,7 @@ from mapkit.core.errors import InputWarning
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import DONE_MARKER
 from mapkit.core.workspace import SessionDirs
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
 
 
@@ -60,7 +61,6 @@ def position_at_arc(arc: np.ndarray, positions: np.ndarray, s: np.ndarray) -> np
 def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m: float) -> Optional[SessionData]:
     """A built session (its folders, or their root) in the workspace frame, or None (with a
     warning) if it cannot be aligned."""
-    from mapkit.mapping.semidense import SemiDenseMap
 
     dirs = sdir if isinstance(sdir, SessionDirs) else SessionDirs(Path(sdir))
     ga_path = dirs.gps_alignment

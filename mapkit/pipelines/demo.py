@@ -35,9 +35,23 @@ from typing import Callable, Iterator, Optional
 
 from mapkit import __version__
 from mapkit.core.errors import MapkitError
+from mapkit.core.executor import default_executor, use_executor
+from mapkit.core.presets import preset_path
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.deploy.export import export_bundles, load_bundle
+from mapkit.evaluation.evaluate import evaluate_align, evaluate_build
+from mapkit.evaluation.localization import evaluate_localization
+from mapkit.evaluation.places import evaluate_places
+from mapkit.evaluation.triplets import evaluate_triplets
+from mapkit.evaluation.truth import town_sessions
+from mapkit.mapping.build import build, format_build_summary
+from mapkit.multisession.align import align_workspace
+from mapkit.places.index_structure import build_structure_index
+from mapkit.places.triplets import export_triplets
 from mapkit.report.html import Section, write_report
+from mapkit.retrieval.index_vlad import build_vlad_index
+from mapkit.synth import session_logs, synthesize
 
 logger = logging.getLogger(__name__)
 
@@ -140,9 +154,6 @@ class Demo:
 
 
 def _synth(d: Demo) -> None:
-    from mapkit.evaluation.truth import town_sessions
-    from mapkit.synth import synthesize
-
     with d.stage("synth", "Synthetic town") as sec:
         synthesize(preset=d.preset, out=d.town, seed=d.seed)
         d.roles = town_sessions(d.town)
@@ -161,10 +172,6 @@ def _condition(s: dict) -> str:
 
 
 def _build(d: Demo) -> None:
-    from mapkit.evaluation.evaluate import evaluate_build
-    from mapkit.mapping.build import build, format_build_summary
-    from mapkit.synth import session_logs
-
     with d.stage("build", "Session maps (mapkit build)") as sec:
         logs = session_logs(d.town)
         build(logs, d.ws.root, progress=d.progress)
@@ -180,9 +187,6 @@ def _build(d: Demo) -> None:
 
 
 def _align(d: Demo) -> None:
-    from mapkit.evaluation.evaluate import evaluate_align
-    from mapkit.multisession.align import align_workspace
-
     with d.stage("align", "Multi-session map (mapkit align)") as sec:
         d.need("build")
         if len(d.metrics.get("georeferenced", [])) < 2:
@@ -197,9 +201,6 @@ def _align(d: Demo) -> None:
 
 
 def _triplets(d: Demo) -> None:
-    from mapkit.evaluation.triplets import evaluate_triplets
-    from mapkit.places.triplets import export_triplets
-
     with d.stage("triplets", "Triplet patch dataset (mapkit triplets)") as sec:
         d.need("align")
         folder = export_triplets(d.ws.root, progress=d.progress)
@@ -227,8 +228,6 @@ DEMO_VLAD = {"dsift": {"half_resolution": True}}
 
 
 def _index_vlad(d: Demo) -> None:
-    from mapkit.retrieval.index_vlad import build_vlad_index
-
     with d.stage("index_vlad", "Image retrieval index (mapkit index vlad)") as sec:
         d.need("build")
         train = d.train_sessions
@@ -244,8 +243,6 @@ def _index_vlad(d: Demo) -> None:
 
 
 def _index_structure(d: Demo) -> None:
-    from mapkit.places.index_structure import build_structure_index
-
     with d.stage("index_structure", "Structure indexes (mapkit index structure)") as sec:
         d.need("align")
         train = d.train_sessions
@@ -260,9 +257,6 @@ def _index_structure(d: Demo) -> None:
 
 
 def _localize(d: Demo) -> None:
-    from mapkit.core.presets import preset_path
-    from mapkit.evaluation.localization import evaluate_localization
-
     with d.stage("localize", "Monte Carlo visual localization (mapkit eval localize)") as sec:
         d.need("index_vlad")
         if not d.test_sessions:
@@ -295,8 +289,6 @@ def places_pairs(roles: dict[str, dict], map_points: dict[str, int]) -> list[tup
 
 
 def _places(d: Demo) -> None:
-    from mapkit.evaluation.places import evaluate_places
-
     with d.stage("places", "Place recognition (mapkit eval places)") as sec:
         d.need("align", "index_vlad")
         pairs = places_pairs(d.roles, _map_points(d.ws))
@@ -327,8 +319,6 @@ def _localize_cache(ws: Workspace) -> Path:
 
 
 def _export(d: Demo) -> None:
-    from mapkit.deploy.export import export_bundles, load_bundle
-
     with d.stage("export", "Deployable bundle (mapkit index export)") as sec:
         d.need("index_vlad")
         out = export_bundles(d.ws.root, d.bundles)
@@ -365,7 +355,6 @@ def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Option
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
     the paths of the report and the bundle. ``log`` takes the stage lines ("[demo] build: ok in
     12 s"); by default they go to this module's logger at INFO (the CLI shows them on stderr)."""
-    from mapkit.core.executor import default_executor, use_executor
 
     d = Demo(Path(out), preset, seed, workers, train_cnn, progress, log)
     d.out.mkdir(parents=True, exist_ok=True)

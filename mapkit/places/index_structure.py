@@ -58,8 +58,10 @@ from mapkit.core.bundle import MANIFEST, building, is_finished, read_manifest, w
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.executor import SERIAL, get_executor
+from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
 from mapkit.places.patches import first_observer_positions, select_keypoints, xy_tree
 
@@ -231,7 +233,6 @@ def session_frames(smap, frame_stamps: Optional[tuple[np.ndarray, np.ndarray]] =
     them; where frames are evenly spaced in time both ways agree). Frames outside the keyframe
     range get no pose (NaN, stamp -1, pose_source 0).
     """
-    from mapkit.core.geometry import interpolate_poses
 
     if frame_stamps is None and getattr(smap, "frame_stamps_ns", None) is not None:
         frame_stamps = (smap.frame_ids, smap.frame_stamps_ns)
@@ -456,7 +457,6 @@ class _Described:
 def _describe_sessions(ws: Workspace, cfg: StructureIndexConfig, names: list[str], dirs: dict[str, tuple[Path, str]],
                        shas: dict[str, str], cache_dir: str | Path | None, progress: bool) -> _Described:
     """Each session's keypoints described (or read from ``cache_dir``) and its frame table."""
-    from mapkit.mapping.semidense import SemiDenseMap
 
     out = _Described([], [], [], {}, {})
     for n in names:

@@ -52,6 +52,7 @@ from typing import Optional
 
 import numpy as np
 
+from mapkit.core.bundle import building
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
 from mapkit.places.pointnetvlad_config import PointNetVladConfig
@@ -87,7 +88,6 @@ def export_pointnetvlad(dataset: str | Path, workspace: str | Path, out: str | P
     """Write the PointNetVLAD layout of the triplet dataset ``dataset`` (made from ``workspace``);
     returns its folder (default ``DATASET/<config.folder>``). Re-running with the same config and
     dataset does nothing. No cloud to write is a :class:`~mapkit.places.triplets.NoTripletsError`."""
-    from mapkit.core.bundle import building
     from mapkit.places.patches import PatchDomain
 
     cfg = config if isinstance(config, PointNetVladConfig) else load_config(PointNetVladConfig, config, overrides)

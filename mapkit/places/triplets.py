@@ -42,7 +42,10 @@ from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, sha256_file, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.io.plots import triplet_examples
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.multisession.registration import IcpClouds, IcpConfig, Registration, about_centre, icp_coarse_to_fine
+from mapkit.multisession.tiles import load_tiles
 from mapkit.places.patches import (
     CNN_DOMAIN,
     PatchDomain,
@@ -213,8 +216,6 @@ class SessionPoints:
 
 def load_aligned_sessions(workspace: Union[str, Path, Workspace], names: Optional[list[str]] = None) -> tuple[list[SessionPoints], LocalFrame]:
     """The merged points of every session (or of ``names``) of a finished ``mapkit align``, and the workspace frame."""
-    from mapkit.mapping.semidense import SemiDenseMap
-    from mapkit.multisession.tiles import load_tiles
 
     ws = Workspace(workspace)
     if not ws.align_done.is_file():
@@ -879,7 +880,6 @@ def _write_dataset(out: Path, ws: Workspace, h: str, cfg: TripletConfig, session
                "members_rejected_by_icp": n.rejected_members, "icp_registrations": n.icp, "seconds": seconds,
                "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
     write_json(out / "metrics.json", metrics)
-    from mapkit.io.plots import triplet_examples
 
     ds = TripletDataset(out)
     if counts["train"] or counts["test"]:

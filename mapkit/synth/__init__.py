@@ -62,7 +62,8 @@ import numpy as np
 
 from mapkit.core.errors import ConfigError, MapkitError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+from mapkit.core.threads import single_thread_blas
 from mapkit.io.mcap_log import ROSBAG2_METADATA, is_rosbag2
 from mapkit.io.trajectory import read_tum
 from mapkit.synth.config import FORMAT_VERSION, PRESETS, SynthConfig, dump_yaml, load_config
@@ -131,8 +132,6 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
     the town generated around it; RobotCar files with latitude/longitude also move the origin there.
     ``overrides`` is a mapping merged over the preset and ``config`` (as a YAML file would be).
     """
-    from mapkit.core.runio import sha256_file
-    from mapkit.core.threads import single_thread_blas
     from mapkit.synth.sessions import plan_sessions, read_external_trajectory, write_session
     from mapkit.synth.world import build_town, write_ply, write_roads
 
@@ -240,7 +239,6 @@ def _worker_init(cfg_json: str, trajectory: Optional[str], progress: Optional[bo
 
 
 def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
-    from mapkit.core.threads import single_thread_blas
     from mapkit.synth.sessions import write_session
 
     with single_thread_blas():
