@@ -1,8 +1,9 @@
-"""Dense SIFT against OpenCV's SIFT, its frame geometry, and gradients of known direction."""
+"""Dense SIFT against OpenCV's SIFT and VLFeat's ``vl_phow``, its frame geometry, and gradients of known direction."""
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -13,6 +14,7 @@ from mapkit.retrieval.dsift import (
     DESCRIPTOR_DIM,
     DsiftConfig,
     dense_sift,
+    frame_contrast,
     iter_histogram_blocks,
     opencv_keypoint_size,
     prepare_image,
@@ -111,14 +113,113 @@ def test_a_ramp_puts_its_energy_in_the_bins_of_its_direction(theta, bins):
     np.testing.assert_allclose(share, np.broadcast_to(expected, share.shape), atol=1e-3)
 
 
-def test_sift_normalisation_and_blocks_agree():
+@pytest.mark.parametrize("mode", ["mapkit", "phow"])
+def test_sift_normalisation_and_blocks_agree(mode):
     img = textured_image(3)
-    cfg = DsiftConfig()
+    cfg = DsiftConfig(mode=mode)
     _, _, desc = dense_sift(img, cfg)
-    np.testing.assert_allclose(np.linalg.norm(desc, axis=1), 1.0, atol=1e-5)
+    norms = np.linalg.norm(desc, axis=1)
+    kept = norms > 0
+    if mode == "phow":  # vl_phow zeroes the flat parts of the texture, and only those
+        assert 0 < (~kept).sum() < len(desc) // 2
+    else:
+        assert kept.all()
+    np.testing.assert_allclose(norms[kept], 1.0, atol=1e-5)
     gray, _, _ = prepare_image(img, cfg)
     blocks = [sift_normalize(b.histograms) for b in iter_histogram_blocks(gray, cfg, block_descriptors=500)]
     np.testing.assert_allclose(np.concatenate(blocks), desc, atol=1e-6)
+
+
+def test_phow_zeroes_exactly_the_frames_below_the_contrast_threshold():
+    img = textured_image(6)
+    cfg = DsiftConfig(mode="phow")
+    gray, _, _ = prepare_image(img, cfg)
+    unthresholded = cfg.model_copy(update={"phow_contrast_threshold": None})
+    contrast = np.concatenate([frame_contrast(b.histograms, b.grid.bin_size) for b in iter_histogram_blocks(gray, unthresholded)])
+    zeroed = ~dense_sift(img, cfg).descriptors.any(axis=1)
+    near = np.abs(contrast / cfg.phow_contrast_threshold - 1) < 1e-4  # float summation order may tip these
+    assert zeroed.any() and not zeroed.all()
+    np.testing.assert_array_equal(zeroed[~near], (contrast < cfg.phow_contrast_threshold)[~near])
+
+
+def test_phow_window_at_bin_size_1_is_the_bin_centre_window():
+    # a bin of 1 px covers a single offset: its mean window is the window at its centre, so vl_dsift's
+    # fast mode and the sampled window of mode "mapkit" must agree when given the same sigma
+    img = textured_image(5)
+    phow = DsiftConfig(region_widths=[4], mode="phow", phow_window_size=1.5, phow_contrast_threshold=None)
+    sampled = DsiftConfig(region_widths=[4], window_sigma_bins=1.5)
+    np.testing.assert_allclose(dense_sift(img, phow).descriptors, dense_sift(img, sampled).descriptors, atol=1e-6)
+    # at larger bins the mean over the bin is lower than the value at the centre (the peak of a concave Gaussian top)
+    wide_phow = dense_sift(img, phow.model_copy(update={"region_widths": [40]})).descriptors
+    wide_sampled = dense_sift(img, sampled.model_copy(update={"region_widths": [40]})).descriptors
+    assert np.abs(wide_phow - wide_sampled).max() > 1e-3
+
+
+# --- VLFeat vl_phow's output on a real KITTI frame (../shared/data/vlfeat-phow-reference) ------------------
+
+PHOW_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "vlfeat-phow-reference" / "phow_kitti000000_640x480.npz"
+
+
+def vlfeat_layout(desc: np.ndarray) -> np.ndarray:
+    """mapkit descriptors in VLFeat's orientation order: mapkit's bin o is VLFeat's (-o) mod 8 (opposite senses)."""
+    out = np.empty_like(desc)
+    out.reshape(-1, 16, 8)[:, :, [(-o) % 8 for o in range(8)]] = desc.reshape(-1, 16, 8)
+    return out
+
+
+def row_cosines(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return (a * b).sum(1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+
+
+@pytest.fixture(scope="module")
+def phow_reference():
+    """VLFeat's vl_phow on KITTI frame 0 at 640x480 (every 37th frame kept); skipped when absent."""
+    if not PHOW_REFERENCE.is_file():
+        pytest.skip(f"VLFeat reference not found at {PHOW_REFERENCE} (expected ../shared/data beside the project)")
+    with np.load(PHOW_REFERENCE) as z:
+        return {k: z[k] for k in z.files}
+
+
+@pytest.mark.realdata
+def test_phow_mode_reproduces_vlfeat_phow(phow_reference):
+    ref = phow_reference
+    cfg = DsiftConfig(mode="phow")
+    kp, scale, desc = dense_sift(ref["image"], cfg)
+    # the same frames, in the same order (bin size, then rows, then columns)
+    assert np.bincount(scale, minlength=4).tolist() == ref["counts_per_size"].tolist()
+    idx = ref["index"]
+    np.testing.assert_array_equal(kp[idx], ref["frames"][:, :2])
+    np.testing.assert_array_equal(np.asarray(cfg.bin_sizes)[scale[idx]], ref["frames"][:, 3])
+    ours = vlfeat_layout(desc[idx])
+    # the contrast threshold zeroes the same descriptors (~21% of them)
+    zero_ours, zero_ref = ~ours.any(axis=1), ~ref["descriptors"].any(axis=1)
+    assert 0.15 < zero_ref.mean() < 0.3
+    assert (zero_ours == zero_ref).mean() >= 0.999, f"zero masks differ on {(zero_ours != zero_ref).sum()} of {len(idx)} frames"
+    kept = ~zero_ours & ~zero_ref
+    assert np.median(row_cosines(ours[kept], ref["descriptors"][kept])) >= 0.9999
+    # without the threshold every frame agrees, not only the median
+    no_thr = vlfeat_layout(dense_sift(ref["image"], cfg.model_copy(update={"phow_contrast_threshold": None})).descriptors[idx])
+    cos = row_cosines(no_thr, ref["descriptors_no_threshold"])
+    assert np.median(cos) >= 0.9999 and cos.min() >= 0.999, (np.median(cos), cos.min())
+
+
+@pytest.mark.realdata
+def test_phow_contrast_is_vlfeats_frame_norm(phow_reference):
+    ref = phow_reference
+    cfg = DsiftConfig(mode="phow", phow_contrast_threshold=None)
+    gray, _, _ = prepare_image(ref["image"], cfg)
+    contrast = np.concatenate([frame_contrast(b.histograms, b.grid.bin_size) for b in iter_histogram_blocks(gray, cfg)])
+    np.testing.assert_allclose(contrast[ref["index"]], ref["frames"][:, 2], rtol=2e-3, atol=1e-6)
+
+
+@pytest.mark.realdata
+def test_default_mode_differs_from_vlfeat_only_by_its_window(phow_reference):
+    # mode "mapkit" (sigma 2 bins at the bin centres, no threshold) is close to vl_phow but measurably not it
+    ref = phow_reference
+    desc = dense_sift(ref["image"], DsiftConfig()).descriptors[ref["index"]]
+    cos = row_cosines(vlfeat_layout(desc), ref["descriptors_no_threshold"])
+    assert 0.99 <= np.median(cos) < 0.9995, np.median(cos)
+    assert np.all(np.any(desc, axis=1))  # no contrast threshold
 
 
 def test_bgr_input_is_converted_to_grey():
