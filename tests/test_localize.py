@@ -10,8 +10,13 @@ import numpy as np
 import pytest
 from test_index_vlad import PLACES, make_workspace, place_pose, small_config
 
-from mapkit.core.geometry import invert_pose
+from scipy.spatial.transform import Rotation
+
+from mapkit.core.config import load_config
+from mapkit.core.errors import ConfigError
+from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad
 from mapkit.localization.localize import LocalizeConfig, run_localizer
+from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION
 from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 
 
@@ -33,9 +38,16 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     assert np.median(fil_err) < 5.0 and np.all(np.isfinite(fil_err))
     R = r.filter_rotation
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-6) and np.allclose(np.linalg.det(R), 1.0)
+    # the filter runs on base poses; what comes back is the camera's pose (optical z along the road)
+    assert np.median(rotation_angle_deg(R, truth[:, :3, :3])) < 5.0
+    # another mount (pitched 10 deg, 1.5 m ahead, 1.2 m up) changes the tracked base, not the camera poses returned
+    pitched = make_pose(Rotation.from_euler("y", 10.0, degrees=True).as_matrix() @ FORWARD_CAMERA_ROTATION, [1.5, 0.0, 1.2])
+    r_p = run_localizer(index, list(imgs.image_paths), cfg.model_copy(update={"base_from_camera": tuple(map(tuple, pitched))}), odo)
+    np.testing.assert_allclose(r_p.retrieval_position, r.retrieval_position)
+    assert np.median(np.linalg.norm(r_p.filter_position - truth[:, :3, 3], axis=1)) < 5.0
+    assert np.median(rotation_angle_deg(r_p.filter_rotation, truth[:, :3, :3])) < 5.0
 
     # beyond the paper: the multi-hypothesis preset on hits retrieved once and cached
-    from mapkit.core.config import load_config
     from mapkit.localization.localize import cached_query_all
 
     paths = list(imgs.image_paths)
@@ -50,14 +62,17 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     np.testing.assert_array_equal(r_mh.ids, ids)
     mh_err = np.linalg.norm(r_mh.filter_position - truth[:, :3, 3], axis=1)
     assert np.median(mh_err) < 5.0 and np.all(np.isfinite(mh_err))
+    assert np.median(rotation_angle_deg(r_mh.filter_rotation, truth[:, :3, :3])) < 5.0
+
+
+def rotation_angle_deg(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    return np.degrees(rotation_angle_rad(np.swapaxes(R_gt, -1, -2) @ R_est))
 
 
 PRESETS = Path(__file__).resolve().parents[1] / "configs" / "localize"
 
 
 def test_presets_load_and_paper_is_the_default():
-    from mapkit.core.config import load_config
-
     assert load_config(LocalizeConfig, PRESETS / "paper.yaml") == LocalizeConfig()
     odo = load_config(LocalizeConfig, PRESETS / "odometry.yaml")
     assert odo.odometry and not odo.mcl.multi_hypothesis.enabled and odo.mcl == LocalizeConfig().mcl.model_copy(
@@ -69,6 +84,16 @@ def test_presets_load_and_paper_is_the_default():
         lines = [ln for ln in (PRESETS / f"{name}.yaml").read_text().splitlines() if ":" in ln and not ln.lstrip().startswith("#")]
         leaves = [ln for ln in lines if not ln.rstrip().endswith(":") and "#" not in ln.split(":", 1)[0]]
         assert all("#" in ln for ln in leaves), [ln for ln in leaves if "#" not in ln]
+        # every preset states the camera mount the filter's base pose comes from: a forward camera
+        mount = load_config(LocalizeConfig, PRESETS / f"{name}.yaml").camera_mount()
+        np.testing.assert_array_equal(mount.base_from_camera, make_pose(FORWARD_CAMERA_ROTATION, np.zeros(3)))
+
+
+def test_camera_mount_must_be_rigid():
+    with pytest.raises(ConfigError, match="base_from_camera"):
+        load_config(LocalizeConfig, overrides={"base_from_camera": [[0, 0, 2, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]]})
+    with pytest.raises(ConfigError):
+        load_config(LocalizeConfig, overrides={"base_from_camera": [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]})  # 3x3
 
 
 class _CountingIndex:

@@ -3,6 +3,10 @@
 Training sessions build the index, test sessions are queries; per sequence the translation error
 ||c_est - c_gt|| and the orientation error, mean and median, for retrieval alone and for the filter
 (Table II), and a plot of the estimated against the true trajectory (Fig. 5).
+
+Errors are those of camera poses, as Table II's are: the filter runs on the vehicle's base pose
+(:mod:`mapkit.localization.mcl`) and :func:`~mapkit.localization.localize.run_localizer` returns
+its estimates converted back to the camera through ``LocalizeConfig.base_from_camera``.
 """
 
 from __future__ import annotations
@@ -96,7 +100,8 @@ def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, c
     if cfg.odometry:
         # the query session's own relative camera motion between queries: its image table's
         # poses come from its odometry, placed rigidly (georef) or smoothly (align) in the
-        # map, and relative motion does not see that placement
+        # map, and relative motion does not see that placement; run_localizer turns it into the
+        # base's motion through the mount
         cams = imgs.world_from_cam[ok]
         odo = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
     t0 = time.perf_counter()

@@ -7,8 +7,14 @@ test sessions are queries; per sequence the translation error ||c_est - c_gt|| a
 error, mean and median, for retrieval alone and for the filter (Table II), and a plot of the
 estimated against the true trajectory (Fig. 5).
 
-Camera poses: the filter's state is the camera pose ``world_from_camera`` in the workspace's ENU
-frame, as the database's poses are.
+Frames: the database's poses, hence the measurements, are camera poses ``world_from_camera`` in the
+workspace's ENU frame (optical axes: x right, y down, z forward). The filter's state is the
+vehicle's base pose (x forward, y left, z up), whose third Euler angle is the heading, as MCVL's
+covariances (section IV-A) assume; see :mod:`mapkit.localization.mcl` for why the camera pose is
+the wrong state. Every measurement, retrieved hypothesis and odometry step is converted to the
+base through the rig's mount ``LocalizeConfig.base_from_camera`` before the filter sees it, and
+the filter's estimates are converted back, so that everything this module returns or writes is
+a camera pose, as the paper's Table II reports.
 
 Beyond the paper (presets in ``configs/localize/``): the query session's relative motion as
 odometry, and the multi-hypothesis measurement model of :mod:`mapkit.localization.mcl`, which weighs the
@@ -26,7 +32,7 @@ from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
@@ -34,18 +40,49 @@ from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, writ
 from mapkit.core.types import StreamKind
 from mapkit.io import open_log
 from mapkit.io.trajectory import write_tum
-from mapkit.localization.mcl import MclConfig, MonteCarloLocalizer
+from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclConfig, MonteCarloLocalizer
 from mapkit.retrieval.index_vlad import VladIndex
 from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
 
+Row4 = tuple[float, float, float, float]
+
+#: the default ``base_from_camera``: a camera looking straight ahead at the base's origin
+DEFAULT_BASE_FROM_CAMERA: tuple[Row4, Row4, Row4, Row4] = (
+    (*map(float, FORWARD_CAMERA_ROTATION[0]), 0.0),
+    (*map(float, FORWARD_CAMERA_ROTATION[1]), 0.0),
+    (*map(float, FORWARD_CAMERA_ROTATION[2]), 0.0),
+    (0.0, 0.0, 0.0, 1.0),
+)
+
+
 class LocalizeConfig(MapkitConfig):
     mcl: MclConfig = MclConfig()
+    base_from_camera: tuple[Row4, Row4, Row4, Row4] = Field(
+        DEFAULT_BASE_FROM_CAMERA,
+        description="The rig's camera mount, a rigid 4x4 base_from_camera (base: x forward, y left, z up; camera: optical x right, "
+                    "y down, z forward). The filter runs on the base pose, whose third Euler angle is the heading (MCVL Sec. IV-A's "
+                    "covariances assume it); the database's camera poses are converted through this and the estimates back. Default "
+                    "(mapkit choice, as VLAD bundles do not record the mount yet): a camera looking straight ahead at the base origin. "
+                    "A real mount pitched a few degrees or offset from this only tilts or shifts the base the filter tracks (the round trip "
+                    "back to the camera is exact); a camera turned about its optical axis or looking steeply down needs its true mount.",
+    )
     top_k: int = Field(20, ge=1, description="Retrieved database images per query (MCVL IV-A: R = 20).")
     bandwidth_m: float = Field(5.0, gt=0, description="Mean-shift bandwidth over the retrieved translations (m; the authors' code).")
     odometry: bool = Field(False, description="Beyond the paper: drive the motion model by the query session's own trajectory "
-                           "(its relative camera motion between queries) instead of eqs. 1-2. Sets mcl.odometry.enabled.")
+                           "(its relative camera motion between queries, turned into the base's through base_from_camera) instead "
+                           "of eqs. 1-2. Sets mcl.odometry.enabled.")
     seed: int = Field(0, description="Seed of the particle filter.")
+
+    @field_validator("base_from_camera")
+    @classmethod
+    def _rigid_mount(cls, v):
+        CameraMount(np.asarray(v, dtype=np.float64))  # raises ValueError unless a rigid pose
+        return v
+
+    def camera_mount(self) -> CameraMount:
+        """:attr:`base_from_camera` as a :class:`~mapkit.localization.mcl.CameraMount`."""
+        return CameraMount(np.asarray(self.base_from_camera, dtype=np.float64))
 
 
 @dataclass(frozen=True)
@@ -53,7 +90,8 @@ class LocalizationRun:
     """Per query of a sequence (n queries): retrieval alone (the measurement z_t) and the filter.
 
     Positions (n, 3) and rotations (n, 3, 3) are the camera's ``world_from_camera`` in the
-    bundle's workspace ENU; NaN where the filter has no estimate yet."""
+    bundle's workspace ENU (the filter's base estimates converted back through the mount); NaN
+    where the filter has no estimate yet."""
 
     retrieval_position: np.ndarray
     retrieval_rotation: np.ndarray
@@ -77,10 +115,13 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
     """Retrieval alone and the filter over a sequence of images (arrays or files).
 
     ``hits`` = ``(ids, distances)`` (n, top_k) already retrieved for the images (e.g. from
-    :func:`cached_query_all`) skips encoding them. Returns per query: the measurement's pose
-    (retrieval alone), the filter's pose, the measurement's cluster size, and the retrieved ids.
+    :func:`cached_query_all`) skips encoding them. ``odometry[t]`` is the query camera's motion
+    ``cam_{t-1} <- cam_t`` (4, 4) into step t or None. Returns per query: the measurement's camera
+    pose (retrieval alone), the filter's camera pose, the measurement's cluster size, and the
+    retrieved ids. The filter itself runs on base poses (``cfg.base_from_camera``).
     """
     mcl_cfg = cfg.mcl.model_copy(update={"odometry": cfg.mcl.odometry.model_copy(update={"enabled": cfg.odometry})})
+    mount = cfg.camera_mount()
     mh = mcl_cfg.multi_hypothesis
     loc = MonteCarloLocalizer(mcl_cfg, seed=cfg.seed)
     n = len(images)
@@ -97,15 +138,17 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
         h = index.query(im, cfg.top_k) if hits is None else index.hits(hits[0][t, :cfg.top_k], hits[1][t, :cfg.top_k])
         z = index.measurement_from_hits(h) if cfg.bandwidth_m == index.cfg.mean_shift_bandwidth_m else _measure(h, cfg.bandwidth_m)
         t1 = time.perf_counter()
-        hyp = (PoseHypotheses.from_retrieval(h.translations, h.world_from_cam[:, :3, :3], h.distances, mh.hit_weighting, mh.hit_weight_scale)
+        hyp = (mount.hypotheses_to_base(PoseHypotheses.from_retrieval(h.translations, h.world_from_cam[:, :3, :3], h.distances,
+                                                                      mh.hit_weighting, mh.hit_weight_scale))
                if mh.enabled else None)
-        est = loc.step(z, None if odometry is None or not loc.initialized else odometry[t], hyp)
+        odo = None if odometry is None or not loc.initialized or odometry[t] is None else mount.odometry_to_base(odometry[t])
+        est = loc.step(mount.measurement_to_base(z), odo, hyp)
         seconds["retrieval"] += t1 - t0
         seconds["filter"] += time.perf_counter() - t1
         z_pos[t], z_rot[t], sizes[t] = z.translation, z.rotation, z.cluster_size
         all_ids[t, :len(h)] = h.ids
         if est is not None:
-            f_pos[t], f_rot[t] = est.position, est.rotation
+            f_pos[t], f_rot[t] = mount.to_camera(est.position, est.rotation)
         bar.update(1)
     bar.close()
     return LocalizationRun(z_pos, z_rot, f_pos, f_rot, sizes, all_ids, seconds["retrieval"], seconds["filter"])
