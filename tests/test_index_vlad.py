@@ -14,7 +14,7 @@ import pytest
 from test_dsift import textured_image
 from test_vlad import shifted_and_brighter
 
-from mapkit.core.errors import InputError
+from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import make_pose, yaw_rotation
 from mapkit.evaluation.retrieval import self_retrieval_kitti
@@ -150,16 +150,56 @@ def test_manifest_records_sessions_frame_and_every_file(built):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["images_encoded"] == 16 and metrics["database_images_reused_from_training"] == 16
     assert metrics["images_encoded_per_s"] > 0
+    # what the PCA-whitening learned on: 16 images of the two database sessions, 12 of 15 possible dimensions
+    pca = {"dim": 12, "training_vectors": 16, "whitening": "power", "power": 0.5, "shrinkage": 0.0, "dim_requested": 12,
+           "rank_limited": False, "training_sessions": {"train-a": PLACES, "train-b": PLACES}, "training_vectors_in_database": 16}
+    assert m["vlad"]["pca"] == pca and metrics["pca"] == pca
 
 
 def test_training_uses_only_training_sessions(tmp_path, built):
     ws, _ = built
-    out = build_vlad_index(ws, tmp_path / "b", small_config(train_sessions=["train-a"]), progress=False)
+    # the PCA sees 8 images: 12 dimensions capped at 7, said once at build time
+    with pytest.warns(InputWarning, match="capped from 12 to 7") as caught:
+        out = build_vlad_index(ws, tmp_path / "b", small_config(train_sessions=["train-a"]), progress=False)
+    assert len([w for w in caught if "capped" in str(w.message)]) == 1
     m = json.loads((out / "manifest.json").read_text())
     assert m["sessions"]["train-b"]["training"] is False and m["sessions"]["train-b"]["training_images"] == 0
     assert m["vlad"]["training_images"] == PLACES
-    # the PCA saw 8 images: 12 dimensions capped at 7 (a warning at build time)
+    assert m["vlad"]["pca"]["training_sessions"] == {"train-a": PLACES} and m["vlad"]["pca"]["rank_limited"] is True
+    assert m["vlad"]["pca"]["training_vectors_in_database"] == PLACES
     assert VladIndex.load(out).dim == PLACES - 1
+
+
+def pairwise_sq(v: np.ndarray) -> np.ndarray:
+    sq = ((v[:, None].astype(np.float64) - v[None]) ** 2).sum(-1)
+    np.fill_diagonal(sq, np.inf)
+    return sq
+
+
+def test_database_learned_on_is_not_equidistant_and_finds_its_other_visit(tmp_path, built):
+    """Issue #20: a PCA learned on n database images keeps n - 1 dimensions; fully whitened, those
+    images are all at squared distance 2n / (n - 1) from each other (a database image searched
+    against the others returns ties). The default, power-law whitening keeps their structure."""
+    ws, _ = built
+    cfg = small_config(train_sessions=["train-a"], vlad=SMALL_VLAD.model_copy(update={"pca_dim": 64}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # 64 dimensions capped at 7
+        full = VladIndex.load(build_vlad_index(ws, tmp_path / "full", cfg.model_copy(
+            update={"vlad": cfg.vlad.model_copy(update={"whitening": "full"})}), progress=False))
+        default = VladIndex.load(build_vlad_index(ws, tmp_path / "power", cfg, progress=False))
+    assert full.manifest["vlad"]["pca"]["whitening"] == "full" and default.manifest["vlad"]["pca"]["whitening"] == "power"
+    learned_on = slice(0, PLACES)  # train-a: the PCA's 8 training images, rows 0..7 of the database
+    sq_full = pairwise_sq(full.vectors()[learned_on])
+    np.testing.assert_allclose(sq_full[np.isfinite(sq_full)], 2 * PLACES / (PLACES - 1), rtol=1e-4)
+    sq = pairwise_sq(default.vectors()[learned_on])
+    finite = sq[np.isfinite(sq)]
+    assert finite.std() / finite.mean() > 0.05
+    # every database image searched against the others: its nearest is the same place's other visit
+    v = default.vectors()
+    dist, ids = default.search(v, k=2)
+    np.testing.assert_array_equal(ids[:, 0], np.arange(2 * PLACES))  # itself first
+    np.testing.assert_array_equal(ids[:, 1] % PLACES, np.arange(2 * PLACES) % PLACES)
+    np.testing.assert_array_equal(ids[:, 1] // PLACES, 1 - np.arange(2 * PLACES) // PLACES)
 
 
 def test_corrupt_file_and_unknown_version_are_named(tmp_path, built):
@@ -303,10 +343,11 @@ def test_encodings_cache_encodes_each_file_once_and_notices_a_changed_file(tmp_p
 
 
 def test_real_kitti_clip_neighbours_are_adjacent_frames(kitti_clip):
-    # whiten=False: whitening learned on the same 51 frames it ranks equalises their distances
-    # (measured here: whitened to 16-D, median gap 19 frames; unwhitened, 3)
-    cfg = VladConfig(dsift=DsiftConfig(half_resolution=True), num_words=16, pca_dim=16, whiten=False, kmeans_max_descriptors=30_000,
+    # the default power-law whitening, learned on the same 51 frames it ranks (measured here: median
+    # gap 3 frames, 92% within 10; full whitening, which flattens their distances: 17 and 29%)
+    cfg = VladConfig(dsift=DsiftConfig(half_resolution=True), num_words=16, pca_dim=16, kmeans_max_descriptors=30_000,
                      kmeans_iterations=10)
+    assert cfg.whiten and cfg.whitening == "power"
     res = self_retrieval_kitti(kitti_clip, config=cfg, exclude=2)
     gaps = np.asarray(res["gaps"])
     assert res["frames"] == 51 and len(gaps) == 51

@@ -12,7 +12,7 @@ from test_dsift import textured_image
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.retrieval.dsift import DsiftConfig, dense_sift
-from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad
+from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad, whitening_scales
 
 SMALL = dict(dsift=DsiftConfig(region_widths=[16, 24]), num_words=16, kmeans_max_descriptors=20_000, kmeans_iterations=10)
 
@@ -77,6 +77,96 @@ def test_pca_dimension_is_capped_by_the_training_set(rng):
     assert pca.dim == 9
     with pytest.raises(InputError):
         PcaWhitening.fit(x[:1], 4)
+
+
+def test_whitening_scales_of_each_form():
+    lam = np.array([4.0, 1.0])
+    np.testing.assert_allclose(whitening_scales(lam), [0.5, 1.0])  # full: 1 / sqrt(lambda)
+    np.testing.assert_allclose(whitening_scales(lam, power=0.5), [4 ** -0.25, 1.0])
+    np.testing.assert_allclose(whitening_scales(lam, power=0.0), [1.0, 1.0])  # plain PCA
+    np.testing.assert_allclose(whitening_scales(lam, shrinkage=1.0), [6.5 ** -0.5, 3.5 ** -0.5])  # + 1 x mean 2.5
+
+
+@pytest.mark.parametrize("n, dim_in", [(60, 300), (400, 40)])
+def test_power_whitened_training_variances_are_the_eigenvalues_to_one_minus_alpha(rng, n, dim_in):
+    x = (rng.standard_normal((n, dim_in)) * np.linspace(3, 0.1, dim_in) + 2).astype(np.float32)
+    pca = PcaWhitening.fit(x, 20, power=0.5)
+    y = pca.project(x)
+    # directions scaled by lambda^(-1/4): the variance along each becomes lambda^(1/2)
+    np.testing.assert_allclose(np.var(y, axis=0, ddof=1), pca.variances ** 0.5, rtol=2e-3)
+    np.testing.assert_allclose(np.cov(y, rowvar=False), np.diag(pca.variances ** 0.5), atol=2e-3 * pca.variances[0] ** 0.5)
+    assert pca.describe() == {"dim": 20, "training_vectors": n, "whitening": "power", "power": 0.5, "shrinkage": 0.0}
+
+
+def places_with_background(seed: int, places: int = 20, dim: int = 400):
+    """VLAD-like synthetic vectors with known structure, fewer than their dimension: a common mean,
+    4 'background' directions with a random weight per image (the bursty part whitening damps),
+    a place signal, and per-visit noise. Returns (database: 2 visits of every place, stacked by
+    visit; queries: a third, held-out visit)."""
+    rng = np.random.default_rng(seed)
+    background = np.linalg.qr(rng.standard_normal((dim, 4)))[0]
+    place = 0.1 * rng.standard_normal((places, dim))  # norm ~2
+    mean = rng.standard_normal(dim)
+
+    def visit() -> np.ndarray:
+        weights = 0.5 * rng.standard_normal((places, 4))
+        return (mean + weights @ background.T + place + 0.05 * rng.standard_normal((places, dim))).astype(np.float32)
+
+    return np.concatenate([visit(), visit()]), visit()
+
+
+def test_full_whitening_on_its_own_n_vectors_makes_them_equidistant_regularised_does_not():
+    """Issue #20: n vectors whitened in n - 1 dimensions are the corners of a regular simplex, so
+    after L2 every pair is at squared distance 2n / (n - 1) and a database learned on returns
+    only ties (the demo: 684 images, 2.0029). Regularised whitening keeps the structure."""
+    db, _ = places_with_background(0)
+    n, places = len(db), len(db) // 2
+    same_place = np.r_[np.arange(places) + places, np.arange(places)]
+    with pytest.warns(InputWarning, match="capped from 4096 to 39"):
+        full = PcaWhitening.fit(db, 4096)
+    y = full.transform(db)
+    sq = ((y[:, None] - y[None]) ** 2).sum(-1)[~np.eye(n, dtype=bool)]
+    np.testing.assert_allclose(sq, 2 * n / (n - 1), rtol=1e-4)
+    for kw in (dict(power=0.5), dict(shrinkage=1.0)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", InputWarning)
+            pca = PcaWhitening.fit(db, 4096, **kw)
+        y = pca.transform(db)
+        sq = ((y[:, None] - y[None]) ** 2).sum(-1)
+        np.fill_diagonal(sq, np.inf)
+        pairs = sq[np.isfinite(sq)]
+        assert pairs.std() / pairs.mean() > 0.05, kw
+        # every database image searched against the others finds its other visit, not a tie
+        np.testing.assert_array_equal(sq.argmin(axis=1), same_place)
+        second = np.sort(sq, axis=1)[:, 1]
+        assert np.all(second - sq.min(axis=1) > 0.01), kw
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_regularised_whitening_fitted_on_fewer_vectors_than_dimensions_ranks_held_out_queries(seed):
+    db, queries = places_with_background(seed)
+    places = len(queries)
+    for kw in (dict(power=0.5), dict(shrinkage=1.0)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", InputWarning)
+            pca = PcaWhitening.fit(db, 4096, **kw)  # 40 vectors of 400 dimensions: 39 kept
+        assert pca.dim == len(db) - 1
+        d = ((pca.transform(queries)[:, None] - pca.transform(db)[None]) ** 2).sum(-1)
+        np.testing.assert_array_equal(d.argmin(axis=1) % places, np.arange(places))
+
+
+def test_encoder_config_chooses_the_whitening(rng):
+    x = rng.standard_normal((30, 64)).astype(np.float32)
+    for whitening, power, shrinkage in (("full", 1.0, 0.0), ("power", 0.5, 0.0), ("shrinkage", 1.0, 2.0)):
+        enc = VladEncoder(VladConfig(pca_dim=8, whitening=whitening, whitening_shrinkage=2.0, **SMALL))
+        pca = enc.fit_pca(x)
+        assert (pca.power, pca.shrinkage, pca.n_train) == (power, shrinkage, 30)
+        np.testing.assert_allclose(np.linalg.norm(pca.projection, axis=1), whitening_scales(pca.variances, power, shrinkage), rtol=1e-4)
+    assert VladConfig().whitening == "power" and VladConfig().whitening_power == 0.5
+    # an encoder saved before the whitening was recorded loads as fully whitened
+    state = PcaWhitening.fit(x, 8).state_dict()
+    old = {k: state[k] for k in ("mean", "projection", "variances", "whiten")}
+    assert PcaWhitening.from_state_dict(old).describe()["whitening"] == "full"
 
 
 def shifted_and_brighter(img: np.ndarray, dx: int = 3, dy: int = 2, gain: float = 1.1, offset: float = 15) -> np.ndarray:

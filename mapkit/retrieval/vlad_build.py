@@ -5,7 +5,12 @@ The vocabulary's descriptor sample is drawn evenly from up to ``max_vocabulary_i
 images (a uniform sample of each image's RootSIFT descriptors, seeded per image), so it does not
 depend on the number of workers. The PCA learns from up to ``max_training_images`` of them; the
 training images' raw VLADs are kept and reused for those that are also database images, so every
-image is encoded once. The bundle is written into a partial folder and renamed into place
+image is encoded once. By default the training sessions are the database sessions, so the PCA
+learns on the database itself, usually on fewer images than the 4096 dimensions of MCVL Sec. IV-A:
+the dimension is then n - 1 and ``vlad.whitening`` must be regularised (the default, 'power')
+rather than full, which would make the database images equidistant (see :mod:`mapkit.retrieval.vlad`).
+Sessions beyond the database named in ``train_sessions`` give the PCA images the database does not
+hold. The manifest's ``vlad.pca`` (and ``metrics.json``'s ``pca``) records what it learned on. The bundle is written into a partial folder and renamed into place
 (:func:`mapkit.core.bundle.building`). See :mod:`mapkit.retrieval.index_vlad` for the layout.
 """
 
@@ -186,9 +191,26 @@ def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], tra
         raw_train[i] = r
     timings["encode_training_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    encoder.fit_pca(raw_train)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # the cap is reported once, below, with what to do about it
+        encoder.fit_pca(raw_train)
     timings["pca_s"] = time.perf_counter() - t0
+    _warn_small_pca(cfg, encoder, len(train_sel))
     return _Learned(encoder, train_sel, raw_train, len(vocab_sel), n_descriptors)
+
+
+def _warn_small_pca(cfg: VladIndexConfig, encoder: VladEncoder, n_train: int) -> None:
+    """Say when the PCA learned on fewer images than the dimension asked for, and what that does to
+    full whitening (MCVL's [33] learns it on a separate, much larger set)."""
+    dim = encoder.pca.dim
+    if dim >= cfg.vlad.pca_dim:
+        return
+    note = (f"PCA dimension capped from {cfg.vlad.pca_dim} to {dim}: {n_train} training images (name more train_sessions or "
+            "raise max_training_images for more)")
+    if cfg.vlad.whiten and cfg.vlad.whitening == "full" and dim >= n_train - 1:
+        note += ("; full whitening in n - 1 dimensions makes the n training images equidistant (a database learned on returns "
+                 "ties): vlad.whitening 'power' or 'shrinkage' regularises it")
+    warnings.warn(note, InputWarning, stacklevel=5)  # the caller of build_vlad_index
 
 
 def _encode_database(learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str], executor: Executor,
@@ -247,6 +269,7 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
         "training_images": n_train,
         "vocabulary_images": learned.vocab_images,
         "vocabulary_descriptors": learned.vocab_descriptors,
+        "pca": _pca_record(cfg, learned, db_names),
         "executor": executor.kind,
         "workers": executor.workers,
         **timings,
@@ -284,13 +307,28 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
         },
         "added_sessions": [],
         "vlad": {"raw_dim": encoder.raw_dim, "dim": encoder.pca.dim, "pca_dim_requested": cfg.vlad.pca_dim,
-                 "training_images": len(learned.train_sel), "vocabulary_images": learned.vocab_images},
+                 "training_images": len(learned.train_sel), "vocabulary_images": learned.vocab_images,
+                 "pca": _pca_record(cfg, learned, db_names)},
         "index": index_info,
         "entries": entries,
     }
 
 
 # --------------------------------------------------------------------------- the index and the config
+
+
+def _pca_record(cfg: VladIndexConfig, learned: _Learned, db_names: list[str]) -> dict:
+    """What the PCA-whitening learned on and how it scales its directions, for the manifest and metrics:
+    training vectors per session, how many of them are database images, output dimension (asked
+    for and got: at most n - 1), whitening (mode, power, shrinkage)."""
+    pca = learned.encoder.pca
+    per_session: dict[str, int] = {}
+    for name, _ in learned.train_sel:
+        per_session[name] = per_session.get(name, 0) + 1
+    n = len(learned.train_sel)
+    return {**pca.describe(), "training_vectors": n, "dim_requested": cfg.vlad.pca_dim, "rank_limited": pca.dim >= n - 1,
+            "training_sessions": per_session,
+            "training_vectors_in_database": sum(c for name, c in per_session.items() if name in db_names)}
 
 
 def make_index(vectors: np.ndarray, cfg: VladIndexConfig):

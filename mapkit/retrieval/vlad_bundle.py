@@ -74,7 +74,10 @@ class VladIndexConfig(MapkitConfig):
 
     vlad: VladConfig = Field(default_factory=VladConfig, description="The observation encoder (see mapkit.retrieval.vlad).")
     train_sessions: Optional[list[str]] = Field(
-        None, description="Sessions whose images train the vocabulary and PCA. None = the database sessions. Never the query sessions.",
+        None,
+        description="Sessions whose images train the vocabulary and PCA. None = the database sessions (the PCA then learns on the "
+        "database itself, which is why vlad.whitening is regularised by default). Sessions beyond the database give the PCA "
+        "images the database does not hold. Never the query sessions.",
     )
     database_sessions: Optional[list[str]] = Field(None, description="Sessions whose images are indexed. None = every session in the workspace.")
     prefer_aligned_poses: bool = Field(
