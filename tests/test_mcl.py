@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.config import defaults_yaml, load_config
-from mapkit.core.errors import ConfigError
+from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import average_rotations, is_rotation, make_pose, yaw_rotation
 from mapkit.localization.mcl import (
     FORWARD_CAMERA_ROTATION,
@@ -506,3 +506,24 @@ def test_multi_hypothesis_filter_finds_the_consistent_place_among_mostly_wrong_h
     meas = [Measurement.from_pose(m, np.eye(3)) for m in mean_shift]
     single = run_filter(meas, MclConfig(odometry={"enabled": True}), seed=0, odometry=odo)
     assert np.median(np.linalg.norm(single.positions - gt_pos, axis=1)) > 30.0
+
+
+def test_motion_model_estimated_from_training_drives_known_answer():
+    """MCVL's mu_v and Sigma_v from drives (Sec. III-A: "estimated from training data"): a drive
+    east at 4 m/s and one north at 4 m/s, sampled at 4 Hz, step 1 m along x then along y."""
+    from mapkit.localization.localize import LocalizeConfig
+    from mapkit.localization.motion import estimate_motion_model
+
+    t = np.arange(0, 60 * 100 + 1) * 10_000_000  # 60 s at 100 Hz
+    east = np.tile(np.eye(4), (len(t), 1, 1))
+    east[:, 0, 3] = 4.0 * t * 1e-9
+    north = np.tile(np.eye(4), (len(t), 1, 1))
+    north[:, 1, 3] = 4.0 * t * 1e-9
+    est = estimate_motion_model([(t, east), (t, north)], rate_hz=4.0)
+    assert est.drives == 2 and est.steps == 2 * 240
+    np.testing.assert_allclose(est.velocity_mean_m, (0.5, 0.5, 0.0), atol=1e-9)
+    np.testing.assert_allclose(est.velocity_cov_m2, (0.25, 0.25, 1e-4), atol=1e-9)  # height never moves: the floor
+    cfg = load_config(LocalizeConfig, None, est.overrides())
+    assert cfg.mcl.velocity_cov_m2 == pytest.approx((0.25, 0.25, 1e-4))
+    with pytest.raises(InputError):
+        estimate_motion_model([(t[:2], east[:2])], rate_hz=4.0)
