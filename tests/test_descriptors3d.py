@@ -1,6 +1,7 @@
 """NBLD and M2DP against known answers and slow references; the chain's yaw invariance; PCA."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -127,6 +128,141 @@ def test_m2dp_equals_loop_reference(rng):
     np.testing.assert_allclose(d3.m2dp_patches(p4, np.array([0, len(p4)]), fine)[0], _m2dp_loop(p4, fine), atol=2e-5)
     with pytest.raises(InputError):
         d3.m2dp_patches(p4, np.array([0, len(p4)]), d3.M2DPConfig(n_radial=300))
+
+
+# --- M2DP as the authors' M2DP.m computes it ----------------------------------------------------------
+
+M2DP_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "m2dp-reference"
+
+
+def _half_cosines(a: np.ndarray, b: np.ndarray, P: int = 64) -> tuple[float, float]:
+    """|cosine| of the u1 halves and of the v1 halves (each half's SVD sign is arbitrary)."""
+    return tuple(abs(float(x @ y)) / (np.linalg.norm(x) * np.linalg.norm(y)) for x, y in ((a[:P], b[:P]), (a[P:], b[P:])))
+
+
+@pytest.mark.realdata
+def test_m2dp_reference_reproduces_the_authors_m2dp_on_a_kitti_scan():
+    scan, expected = M2DP_REFERENCE / "kitti-000000.bin", M2DP_REFERENCE / "kitti-000000.m2dp.txt"
+    if not (scan.is_file() and expected.is_file()):
+        pytest.skip(f"M2DP reference not found at {M2DP_REFERENCE} (expected ../shared/data/m2dp-reference beside the project)")
+    pts = np.fromfile(scan, np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
+    ref = np.loadtxt(expected).ravel()
+    assert pts.shape == (124668, 3) and ref.shape == (192,)
+    A = d3.m2dp_reference_signature(pts)
+    assert A.shape == (64, 128) and np.all(A.sum(axis=1) == len(pts))  # the farthest-point grid holds every point
+    desc = d3.m2dp_reference(pts)
+    assert min(_half_cosines(desc, ref)) >= 0.9999  # measured: 1 - cos < 1e-15
+    assert desc[64:].sum() >= 0 and np.isclose(np.linalg.norm(desc[:64]), 1) and np.isclose(np.linalg.norm(desc[64:]), 1)
+    # the batched patch descriptor with the authors' settings, on the scan as one patch (float32
+    # binning: ~10 of its 8 M point-plane counts sit on a bin edge to float32 precision)
+    authors = d3.m2dp_patches(pts, np.array([0, len(pts)]), d3.M2DPConfig.authors())[0]
+    assert min(_half_cosines(authors.astype(np.float64), ref)) >= 0.9999  # measured: 1 - cos ~ 5e-12
+    np.testing.assert_allclose(authors, desc, atol=2e-5)
+
+
+def _authors_cfg(**kw):
+    return d3.M2DPConfig.authors(**kw)
+
+
+def _off_authors_bin_edges(points: np.ndarray, cfg, eps: float = 1e-5) -> np.ndarray:
+    """The points of one cloud, less those within ``eps`` (in ring or sector units) of an M2DP
+    bin edge on some plane in the authors' frame and grid (float32 binning in the library: such
+    a point may fall on either side). Dropping points moves the mean, the axes and the farthest
+    point, so this repeats until no point is near an edge (each round finds ~1e-5 x 4 x 64 planes of
+    the points anew: a few in a patch of a thousand, which then may not settle)."""
+    _, ax, ay = d3.m2dp_planes(cfg)
+    for _ in range(50):
+        if len(points) < 2:
+            return points
+        d = d3.m2dp_pca_frame(points, np.array([0, len(points)]))
+        R = np.sqrt(np.max(np.einsum("ij,ij->i", d, d)))
+        x, y = d @ ax.T, d @ ay.T
+        ring = cfg.n_radial * np.sqrt(np.hypot(x, y) / R)
+        sector = (np.arctan2(y, x) + math.pi) / (2 * math.pi) * cfg.n_angular
+        # ring edges 1 .. l - 1 only: nothing lies below 0, and the last ring has no outer edge
+        near_ring = (np.abs(ring - np.round(ring)) < eps) & (np.round(ring) >= 1) & (np.round(ring) <= cfg.n_radial - 1)
+        near = near_ring | (np.abs(sector - np.round(sector)) < eps)
+        keep = ~near.any(axis=1)
+        if keep.all():
+            return points
+        points = points[keep]
+    raise AssertionError("points near M2DP bin edges did not settle")
+
+
+def test_m2dp_patches_with_the_authors_settings_equal_m2dp_reference_on_each_patch(rng):
+    cfg = d3.M2DPConfig.authors()
+    street = _street(rng)
+    patches = [
+        rng.normal(0, [4.0, 2.0, 0.7], (600, 3)) @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + [3.0, -1.0, 2.0],  # tilted ellipsoid, off the origin
+        street[np.hypot(street[:, 0] - 30, street[:, 1]) < 10][::4],  # a street patch about (30, 0): facades, road markings
+        np.zeros((0, 3)),
+        np.array([[1.0, 2.0, 3.0]]),  # one point: at the mean, R = 0
+        # three points at one place, one far above, two aside (not coplanar: in the PCA frame a plane
+        # is z = 0, which puts every point on a sector edge of the vertical M2DP planes)
+        np.array([[0.5, 0.5, 0.5]] * 3 + [[0.5, 0.6, 40.0], [3.0, -1.0, 2.0], [1.0, 2.0, 0.0]]),
+        np.vstack([rng.normal([0, 0, 0], [0.3, 3.0, 1.0], (300, 3)), [[80.0, 1.0, 1.0]]]),  # an outlier sets the radius
+    ]
+    patches = [_off_authors_bin_edges(p, cfg) for p in patches]
+    assert len(patches[1]) > 450 and len(patches[0]) > 550 and len(patches[5]) > 280  # edge points are rare
+    indptr = np.cumsum([0] + [len(p) for p in patches])
+    counts = d3.m2dp_signature_matrices(np.vstack(patches), indptr, cfg)
+    desc = d3.m2dp_patches(np.vstack(patches), indptr, cfg)
+    assert desc.shape == (len(patches), 192) and desc.dtype == np.float32
+    for k, p in enumerate(patches):
+        # the same counts exactly, so the same descriptor up to the singular-vector solver: float64
+        # SVD of the library's counts is the reference to 1e-9; its float32 power iteration to 2e-5
+        A = d3.m2dp_reference_signature(p)
+        np.testing.assert_array_equal(counts[k], A, err_msg=f"patch {k}")
+        ref = d3.m2dp_reference(p)
+        np.testing.assert_allclose(desc[k], ref, atol=2e-5, err_msg=f"patch {k}")
+        if A.any():
+            U, _, Vt = np.linalg.svd(counts[k].astype(np.float64))
+            exact = np.concatenate([U[:, 0], Vt[0]]) * (1.0 if Vt[0].sum() >= 0 else -1.0)
+            np.testing.assert_allclose(exact, ref, atol=1e-9, err_msg=f"patch {k}")
+    assert np.all(desc[2] == 0)
+    assert counts[3].sum() == 64 and np.all(counts[3][:, 7 * 16 + 8] == 1)  # R = 0: the original's last ring, angle 0
+    assert np.all(counts[5].sum(axis=1) == len(patches[5]))  # nothing outside the farthest-point grid
+    # the defaults are not the authors': on the ellipsoid the descriptor is far from the reference
+    default = d3.m2dp_patches(patches[0], np.array([0, len(patches[0])]))[0]
+    assert min(_half_cosines(default.astype(np.float64), d3.m2dp_reference(patches[0]))) < 0.99
+
+
+def test_m2dp_variants_do_what_they_say(rng):
+    p = np.vstack([rng.normal([2.0, 1.0, 0.0], [5.0, 1.5, 2.0], (500, 3)), rng.normal([-4.0, 3.0, 1.0], [0.5, 0.5, 4.0], (200, 3))])
+    ip = np.array([0, len(p)])
+    # unnormalised in-plane axes: length sqrt(1 - n_x^2), orthogonal to the normal, y = n x x
+    n, ax, ay = d3.m2dp_planes(d3.M2DPConfig(normalise_axes=False))
+    np.testing.assert_allclose(np.linalg.norm(ax, axis=1), np.sqrt(1 - n[:, 0] ** 2), atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", ax, n), 0, atol=1e-12)
+    np.testing.assert_allclose(ay, np.cross(n, ax), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(d3.m2dp_planes()[1], axis=1), 1, atol=1e-12)
+    # the PCA frame: centred, uncorrelated, variances decreasing, each axis's largest coefficient
+    # positive (checked against numpy's SVD of each patch), and batched = one patch at a time;
+    # patches of 256 points or more go one by one, smaller ones all at once
+    q = rng.normal(0, [1.0, 3.0, 0.2], (300, 3)) + 7.0
+    r = rng.normal(0, [2.0, 0.5, 1.0], (100, 3)) - 3.0
+    ip3 = np.cumsum([0, len(p), len(q), len(r)])
+    frames = d3.m2dp_pca_frame(np.vstack([p, q, r]), ip3)
+    for k, pts in enumerate((p, q, r)):
+        f = frames[ip3[k] : ip3[k + 1]]
+        np.testing.assert_array_equal(d3.m2dp_pca_frame(pts, np.array([0, len(pts)])), f)
+        c = pts - pts.mean(axis=0)
+        V = np.linalg.svd(c, full_matrices=False)[2].T
+        V *= np.where(V.max(axis=0) < -V.min(axis=0), -1.0, 1.0)
+        np.testing.assert_allclose(f, c @ V, atol=1e-9)
+        cov = f.T @ f
+        assert np.all(np.abs(cov - np.diag(np.diag(cov))) < 1e-8 * cov[0, 0]) and np.all(np.diff(np.diag(cov)) < 0)
+    # each setting on its own changes the descriptor
+    base = d3.m2dp_patches(p, ip)[0]
+    for kw in ({"radius": "farthest"}, {"normalise_axes": False}, {"frame": "pca"}):
+        assert np.abs(d3.m2dp_patches(p, ip, d3.M2DPConfig(**kw))[0] - base).max() > 0.01, kw
+    # the farthest-point radius makes it scale-invariant; the PCA frame, translation-invariant
+    far = d3.M2DPConfig(radius="farthest")
+    np.testing.assert_allclose(d3.m2dp_patches(3.0 * p, ip, far)[0], d3.m2dp_patches(p, ip, far)[0], atol=1e-4)
+    authors = d3.M2DPConfig.authors()
+    np.testing.assert_allclose(d3.m2dp_patches(p + [40.0, -7.0, 3.0], ip, authors)[0], d3.m2dp_patches(p, ip, authors)[0], atol=1e-4)
+    assert authors.dim == 192 and (authors.radius, authors.normalise_axes, authors.frame) == ("farthest", False, "pca")
+    assert (d3.M2DPConfig().radius, d3.M2DPConfig().normalise_axes, d3.M2DPConfig().frame) == ("domain", True, "yaw")
 
 
 def test_leading_singular_vectors_match_svd_and_fallback(rng):

@@ -11,7 +11,10 @@ surface normals (semi-dense clouds are too thin for them):
 - **M2DP**, multiview 2D projection (He, Wang, Zhang, IROS 2016): the points are projected onto
   ``p * q`` planes through the keypoint; on each plane a polar grid of ``l`` rings and ``t``
   sectors counts them; the (p q) x (l t) count matrix is summarised by its first left and right
-  singular vectors.
+  singular vectors. :func:`m2dp_reference` is M2DP of a whole cloud exactly as the authors'
+  ``M2DP.m`` computes it (checked against its output on a KITTI scan); the patch descriptor
+  differs from it in three settings of ``M2DPConfig`` (grid radius, in-plane axes, frame), and
+  with ``M2DPConfig.authors()`` it computes the reference on each patch.
 
 Both work on many patches at once: the points of all patches (CSR, as in ``mapkit.places.patches``)
 are binned in a few vectorised passes and counted with one call per block of patches for NBLD
@@ -24,9 +27,10 @@ above descriptors are projected down to a 25-dimensional space via PCA", Sec. 5.
 Defaults and their sources: NBLD's domain (r = 10 m, h = 20 m) is the semi-dense paper's (Fig. 6
 caption); its subdivisions (8 sectors, 3 rings, 4 layers) are mapkit's choice, the NBLD paper's
 values not being at hand. M2DP's p = 4, q = 16, l = 8, t = 16 (192 dimensions) are those of the
-original paper and its reference code; its radius, 10 m, is mapkit's choice (the semi-dense
-paper does not state it). Points are binned in float32: a point within ~1e-6 rad or ~1e-6 m of
-a bin edge may fall on either side, as it may in any implementation.
+original paper and its reference code; its default radius, the domain's 10 m, is mapkit's
+choice (the semi-dense paper does not state it; the authors' code takes the farthest point).
+Points are binned in float32: a point within ~1e-6 rad or ~1e-6 m of a bin edge may fall on
+either side, as it may in any implementation.
 """
 
 from __future__ import annotations
@@ -58,6 +62,8 @@ _NBLD_CHUNK_POINTS = 1 << 16  # patch points per block (NBLD works on ~10 arrays
 _NBLD_CHUNK_PATCHES = 1 << 14  # ... and patches per block (bounds the bincount output)
 _M2DP_CHUNK_POINTS = 1 << 12  # patch points per block; x 61 planes: float32 work arrays of ~1 MiB (larger blocks: no faster)
 _M2DP_CHUNK_PATCHES = 256  # ... and patches per block and per batched singular-vector solve
+_M2DP_FRAME_POINTS = 1 << 18  # patch points per block put into the PCA frame / scaled at once (float64 temporaries of ~10 MiB)
+_M2DP_PCA_LOOP_POINTS = 256  # patches of at least this many points get their PCA frame one at a time
 
 
 class NBLDConfig(MapkitConfig):
@@ -82,13 +88,44 @@ class NBLDConfig(MapkitConfig):
 
 
 class M2DPConfig(MapkitConfig):
-    """M2DP (He et al. 2016); the counts are those of the original paper and code."""
+    """M2DP (He et al. 2016); the counts are those of the original paper and code.
 
-    domain: PatchDomain = Field(M2DP_DOMAIN, description="Infinite vertical cylinder; r = 10 m (the semi-dense paper leaves r open).")
+    Three settings say how a patch is put onto the planes' polar grids; the authors' ``M2DP.m``
+    (written for a whole scan) and mapkit's patch descriptor differ in each of them:
+
+    - ``radius``: the outer radius of the grid. ``domain`` is the patch domain's radius r, a
+      fixed metric grid for every patch (the semi-dense paper's infinite cylinder of radius r,
+      Sec. 3.3.1); points whose projection lies beyond r are left out. ``farthest`` is the
+      distance of the patch's farthest point from the origin of its frame, as ``M2DP.m`` takes it,
+      so that every point lands on the grid and the grid scales with the patch.
+    - ``normalise_axes``: the in-plane x-axis of each plane is the projection of the frame's
+      x-axis onto the plane; normalised (metric in-plane coordinates), or left at its length
+      sqrt(1 - n_x^2) as ``M2DP.m`` leaves it (its y-axis, normal x x-axis, has the same length).
+    - ``frame``: ``yaw`` describes the patch in its yaw-normalised frame about the keypoint
+      (Sec. 3.2); ``pca`` first centres it on its mean and rotates it onto its principal axes
+      (x the first, y the second; each axis signed so that its largest coefficient is positive,
+      MATLAB's ``pca`` convention), as ``M2DP.m`` does for rotation invariance.
+
+    The defaults are mapkit's patch descriptor as it was (domain radius, normalised axes, yaw
+    frame); :meth:`authors` gives the settings of ``M2DP.m``, with which :func:`m2dp_patches`
+    computes :func:`m2dp_reference` on each patch.
+    """
+
+    domain: PatchDomain = Field(M2DP_DOMAIN, description="Infinite vertical cylinder; r = 10 m (the semi-dense paper leaves r open). "
+                                "It bounds the patch in any case; with radius = domain it is also the grid's radius.")
     n_plane_azimuths: int = Field(4, ge=1, description="p: plane-normal azimuths, linearly spaced over [-pi/2, pi/2] (M2DP default 4).")
     n_plane_elevations: int = Field(16, ge=1, description="q: plane-normal elevations, linearly spaced over [0, pi/2] (M2DP default 16).")
     n_radial: int = Field(8, ge=1, description="l: rings per plane, outer radii r * (i / l)^2 as in the original (M2DP default 8).")
     n_angular: int = Field(16, ge=1, description="t: sectors per plane over [-pi, pi) (M2DP default 16).")
+    radius: Literal["domain", "farthest"] = Field(
+        "domain", description="Grid radius r: the patch domain's radius, points beyond it left out (default; the semi-dense paper's "
+        "domain), or the distance of the patch's farthest point, every point on the grid (M2DP.m).")
+    normalise_axes: bool = Field(
+        True, description="Normalise each plane's in-plane axes (default: metric in-plane coordinates), or leave them at length "
+        "sqrt(1 - n_x^2) as M2DP.m does.")
+    frame: Literal["yaw", "pca"] = Field(
+        "yaw", description="The patch's yaw-normalised frame about its keypoint (default, Sec. 3.2 of the semi-dense paper), or "
+        "centred on its mean and rotated onto its principal axes (M2DP.m).")
     max_points: Optional[int] = Field(
         None, ge=16, description="Thin each patch to about this many points before describing it (thin_patches: a fixed "
         "pseudo-random choice of map points); None = every point, as M2DP and the semi-dense paper do (default). M2DP's cost "
@@ -99,6 +136,12 @@ class M2DPConfig(MapkitConfig):
         if self.domain.kind == "cube":
             raise ValueError("M2DP needs a cylinder domain (its polar grid has the cylinder's radius)")
         return self
+
+    @classmethod
+    def authors(cls, **overrides) -> "M2DPConfig":
+        """The settings of the authors' ``M2DP.m``: farthest-point radius, unnormalised in-plane
+        axes, centred PCA frame (``overrides``: any other field, e.g. the domain)."""
+        return cls(**{"radius": "farthest", "normalise_axes": False, "frame": "pca", **overrides})
 
     @property
     def n_planes(self) -> int:
@@ -210,29 +253,135 @@ def nbld_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optiona
 
 # --- M2DP -------------------------------------------------------------------------------------------
 
-def m2dp_planes(cfg: Optional[M2DPConfig] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normals and in-plane axes (each (p q, 3)) of the M2DP planes, azimuth-major.
-
-    Plane (i, j) has the normal (cos e_j cos a_i, cos e_j sin a_i, sin e_j) with azimuth a_i and
-    elevation e_j (row ``i q + j`` of the signature matrix, the original's loop order). Its
-    in-plane x-axis is the projection of the patch x-axis onto the plane, normalised (the
-    original code leaves it unnormalised, which shrinks the plane's coordinates by
-    sqrt(1 - n_x^2); with a fixed grid radius r the metric projection is the consistent choice);
-    its y-axis is normal x x-axis. Where the patch x-axis is the normal itself (azimuth 0 and
-    elevation 0, absent from the default p = 4) the patch y-axis is projected instead.
-    """
-    cfg = cfg or M2DPConfig()
-    az = np.linspace(-math.pi / 2, math.pi / 2, cfg.n_plane_azimuths)
-    el = np.linspace(0.0, math.pi / 2, cfg.n_plane_elevations)
+def _plane_axes(p: int, q: int, normalise: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals and in-plane x- and y-axes (each (p q, 3)) of the M2DP planes, azimuth-major."""
+    az = np.linspace(-math.pi / 2, math.pi / 2, p)
+    el = np.linspace(0.0, math.pi / 2, q)
     a, e = np.meshgrid(az, el, indexing="ij")
     a, e = a.ravel(), e.ravel()
     normal = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
     ax = np.array([1.0, 0.0, 0.0]) - normal[:, :1] * normal
     short = np.linalg.norm(ax, axis=1) < 1e-9
     ax[short] = np.array([0.0, 1.0, 0.0]) - normal[short, 1:2] * normal[short]
-    ax /= np.linalg.norm(ax, axis=1, keepdims=True)
+    if normalise:
+        ax /= np.linalg.norm(ax, axis=1, keepdims=True)
     ay = np.cross(normal, ax)
     return normal, ax, ay
+
+
+def m2dp_planes(cfg: Optional[M2DPConfig] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normals and in-plane axes (each (p q, 3)) of the M2DP planes, azimuth-major.
+
+    Plane (i, j) has the normal (cos e_j cos a_i, cos e_j sin a_i, sin e_j) with azimuth a_i and
+    elevation e_j (row ``i q + j`` of the signature matrix, the original's loop order). Its
+    in-plane x-axis is the projection of the frame's x-axis onto the plane, x - (x . n) n, of
+    length sqrt(1 - n_x^2); with ``cfg.normalise_axes`` (the default) it is normalised, so that
+    the in-plane coordinates are metric and a fixed grid radius means the same on every plane.
+    The authors' code leaves it unnormalised (``normalise_axes=False``), which shrinks the
+    coordinates on the planes facing x. Its y-axis is normal x x-axis (of the same length). Where
+    the x-axis is the normal itself (azimuth 0 and elevation 0, absent from any even p, as the
+    default p = 4) the frame's y-axis is projected instead (the authors' code would get a zero axis).
+    """
+    cfg = cfg or M2DPConfig()
+    return _plane_axes(cfg.n_plane_azimuths, cfg.n_plane_elevations, cfg.normalise_axes)
+
+
+def m2dp_pca_frame(points: np.ndarray, indptr: np.ndarray) -> np.ndarray:
+    """(n, 3) float64 points of each patch centred on the patch's mean and rotated onto its
+    principal axes: coordinates along the first, second and third principal axis.
+
+    This is the rotation invariance of the authors' ``M2DP.m`` (centre on the mean, then
+    MATLAB's ``pca``), batched over patches: the 3 x 3 scatter matrices' eigenvectors come from
+    one stacked ``np.linalg.eigh``. Each axis is signed so that its coefficient of largest
+    magnitude is positive (MATLAB's and Octave's ``pca`` convention; a tie keeps the sign). The
+    third axis is the third principal axis so signed, not the cross product of the first two, as
+    in ``M2DP.m``: the frame may be a reflection. Patches of at least 256 points are centred,
+    summed and rotated one at a time (BLAS on each; the Python loop costs little per point),
+    smaller ones all at once (``np.bincount``); which way a patch goes depends on its size only,
+    so a patch gets the same frame, to the last bit, alone or among others.
+    """
+    pts = _as_points(points)
+    indptr = np.asarray(indptr, np.int64)
+    counts = np.diff(indptr)
+    m = len(counts)
+    centred = np.empty_like(pts)
+    out = np.empty_like(pts)
+    S = np.zeros((m, 3, 3))
+    big = np.flatnonzero(counts >= _M2DP_PCA_LOOP_POINTS)
+    small = np.flatnonzero((counts > 0) & (counts < _M2DP_PCA_LOOP_POINTS))
+    ones = np.ones(int(counts.max(initial=0)))
+    for k in big:
+        a, b = indptr[k], indptr[k + 1]
+        c = np.subtract(pts[a:b], (ones[: b - a] @ pts[a:b]) / (b - a), out=centred[a:b])  # a dot: ~10x numpy's mean(axis=0) on (n, 3)
+        np.matmul(c.T, c, out=S[k])
+    if len(small):
+        cs = counts[small]
+        sel = np.repeat(counts < _M2DP_PCA_LOOP_POINTS, counts)
+        pid = np.repeat(np.arange(len(small)), cs)
+        c = pts[sel]
+        c -= np.stack([np.bincount(pid, c[:, i], minlength=len(small)) for i in range(3)], axis=1)[pid] / cs[pid, None]
+        for i in range(3):
+            for j in range(i, 3):
+                S[small, i, j] = S[small, j, i] = np.bincount(pid, c[:, i] * c[:, j], minlength=len(small))
+    V = np.linalg.eigh(S)[1][:, :, ::-1]  # columns by decreasing eigenvalue
+    V *= np.where(V.max(axis=1) < -V.min(axis=1), -1.0, 1.0)[:, None, :]
+    for k in big:
+        a, b = indptr[k], indptr[k + 1]
+        np.matmul(centred[a:b], V[k], out=out[a:b])
+    if len(small):
+        out[sel] = np.einsum("ni,nij->nj", c, np.repeat(V[small], cs, axis=0))
+    return out
+
+
+def m2dp_reference_signature(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, t: int = 16) -> np.ndarray:  # noqa: E741
+    """(p q, l t) float64 point counts of one cloud on the M2DP planes, as the authors' ``M2DP.m``.
+
+    The cloud is centred on its mean and rotated onto its principal axes (:func:`m2dp_pca_frame`);
+    the grid radius R is the distance of the farthest point from the mean; each plane's in-plane
+    axes are x - (x . n) n and n x that, unnormalised. The bins are the authors': sector edges
+    ``linspace(-pi, pi, t + 1)``, ring edges ``linspace(0, sqrt(R), l + 1)^2``, a value on an
+    edge going to the bin above it and anything beyond the last edge to the last bin (their
+    ``CountVote2D``). A point projected onto the mean exactly counts as angle 0 (``atan2(0, 0)``;
+    numpy's ``arctan2`` of negative zeros would give +-pi). Counts are not divided by
+    the number of points as in the original (the singular vectors do not depend on scale).
+    Straightforward float64 numpy, one plane at a time: the reference the batched
+    :func:`m2dp_patches` is tested against, not a fast path.
+    """
+    pts = _as_points(points_xyz)
+    A = np.zeros((p * q, l * t))
+    if not len(pts):
+        return A
+    d = m2dp_pca_frame(pts, np.array([0, len(pts)]))
+    R = math.sqrt(float(np.max(np.einsum("ij,ij->i", d, d))))
+    sector_edges = np.linspace(-math.pi, math.pi, t + 1)[1:t]
+    ring_edges = (np.linspace(0.0, math.sqrt(R), l + 1) ** 2)[1:l]
+    _, ax, ay = _plane_axes(p, q, normalise=False)
+    for k in range(p * q):
+        x, y = d @ ax[k], d @ ay[k]
+        theta = np.arctan2(y, x)
+        theta[(x == 0) & (y == 0)] = 0.0
+        sector = np.searchsorted(sector_edges, theta, side="right")
+        ring = np.searchsorted(ring_edges, np.hypot(x, y), side="right")
+        A[k] = np.bincount(ring * t + sector, minlength=l * t)
+    return A
+
+
+def m2dp_reference(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, t: int = 16) -> np.ndarray:  # noqa: E741
+    """M2DP (p q + l t,) float64 of one whole cloud exactly as the authors' ``M2DP.m`` computes it
+    (He, Wang, Zhang, IROS 2016; signature matrix of :func:`m2dp_reference_signature`), [u1, v1]
+    of a float64 SVD.
+
+    The authors' signs are whatever their SVD returns; here, as in :func:`m2dp_patches`, the pair
+    is signed so that v1 sums to >= 0 (both non-negative for a non-negative matrix). An empty
+    cloud gives zeros. ``m2dp_patches`` with ``M2DPConfig.authors()`` computes the same on each
+    patch (in float32).
+    """
+    A = m2dp_reference_signature(points_xyz, p, q, l, t)
+    if not A.any():
+        return np.zeros(p * q + l * t)
+    U, _, Vt = np.linalg.svd(A)
+    u, v = U[:, 0], Vt[0]
+    return np.concatenate([u, v]) * (1.0 if v.sum() >= 0 else -1.0)
 
 
 def m2dp_signature_matrices(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[M2DPConfig] = None) -> np.ndarray:
@@ -241,9 +390,13 @@ def m2dp_signature_matrices(points_normalised: np.ndarray, indptr: np.ndarray, c
     On each plane, the in-plane angle theta in [-pi, pi] falls into sector
     floor((theta + pi) t / 2 pi) (theta = pi into the last one), and the in-plane distance rho
     into ring i when r (i / l)^2 <= rho < r ((i + 1) / l)^2, the original's concentric circles of
-    radii r (i / l)^2. Points with rho >= r lie outside the grid and are not counted (the grid
-    ends at r, Sec. 3.3.1; the original takes r as the farthest point, so it has no such points).
-    A point at the keypoint itself has no angle; it counts as theta = 0 (as atan2(0, 0) = 0).
+    radii r (i / l)^2. With ``cfg.radius == "domain"`` points with rho >= r lie outside the grid
+    and are not counted (the grid ends at r, Sec. 3.3.1); with ``"farthest"`` r is the patch's
+    farthest point, as in the original, and a point at rho >= r (only the farthest one, in a plane
+    that holds it) counts in the last ring, as the original's ``CountVote2D`` counts it.
+    A point at the origin of the frame (the keypoint, or the mean in the ``pca`` frame) has no
+    angle; it counts as theta = 0 (as atan2(0, 0) = 0); in the ``farthest`` case a patch all of
+    whose points are at the origin (R = 0) counts them in the last ring, as the original does.
     Column ``i t + j`` holds ring i, sector j, as in the original. The counts are not divided by
     the number of points as in the original code: the singular vectors do not depend on scale.
     """
@@ -263,12 +416,47 @@ def _m2dp_unique_planes(cfg: M2DPConfig) -> tuple[np.ndarray, np.ndarray]:
     return first, plane_of.ravel()
 
 
+def _m2dp_point_blocks(pts: np.ndarray, indptr: np.ndarray, cfg: M2DPConfig):
+    """Yields ``(k0, k1, p, flat)``: the blocks of patches :func:`_m2dp_signature_blocks` bins at
+    once, ``p`` their float32 points (n, 3) in the frame of ``cfg.frame`` and, with
+    ``cfg.radius == "farthest"``, scaled by l^2 / R of their patch (with a fixed radius the scale
+    is folded into the plane axes instead), and ``flat`` the rows of ``p`` in patches whose R is
+    0 (None with a fixed radius). Frame and scale are computed in float64 over larger blocks
+    (``_M2DP_FRAME_POINTS``), where numpy's per-call costs vanish."""
+    if cfg.frame == "yaw" and cfg.radius == "domain":
+        for k0, k1 in patch_blocks(indptr, _M2DP_CHUNK_POINTS, _M2DP_CHUNK_PATCHES):
+            yield k0, k1, pts[indptr[k0] : indptr[k1]].astype(np.float32), None
+        return
+    for s0, s1 in patch_blocks(indptr, _M2DP_FRAME_POINTS):
+        sp = indptr[s0 : s1 + 1] - indptr[s0]
+        q = pts[indptr[s0] : indptr[s1]]
+        if cfg.frame == "pca":
+            q = m2dp_pca_frame(q, sp)
+        flat = None
+        if cfg.radius == "farthest":
+            counts = np.diff(sp)
+            full = np.flatnonzero(counts)
+            R2 = np.zeros(len(counts))
+            if len(full):
+                R2[full] = np.maximum.reduceat(np.einsum("ij,ij->i", q, q), sp[full])
+            R = np.sqrt(R2)
+            scale = np.divide(float(cfg.n_radial**2), R, out=np.ones_like(R), where=R > 0)
+            q = q * np.repeat(scale, counts)[:, None]
+            flat = np.repeat(R == 0, counts)
+        q = q.astype(np.float32)
+        for k0, k1 in patch_blocks(sp, _M2DP_CHUNK_POINTS, _M2DP_CHUNK_PATCHES):
+            a, b = sp[k0], sp[k1]
+            yield s0 + k0, s0 + k1, q[a:b], None if flat is None else np.flatnonzero(flat[a:b])
+
+
 def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cfg: M2DPConfig):
     """Yields ``(k0, k1, counts)``: the counts (k1 - k0, distinct planes, l, t) of a block of
     patches on the distinct planes of :func:`_m2dp_unique_planes` (a view, valid until the next
     block).
 
-    Every (point, plane) pair of a block of patches gets a bin id (plane, ring, sector) in a few
+    Each block's points are first put into the frame of ``cfg.frame`` and, for the farthest-point
+    radius, scaled to their patch's grid (:func:`_m2dp_point_blocks`). Every (point, plane) pair
+    of a block of patches then gets a bin id (plane, ring, sector) in a few
     float32 / uint8 passes (ring and sector combined in one byte when a plane has at most 256
     bins, as with the defaults; else in uint16), and the ids of each patch are counted at once. The element-wise passes are OpenCV's where numpy is slow or has no such
     operation (``cv2.magnitude``, ``cv2.sqrt``, ``cv2.convertScaleAbs`` that scales, offsets and
@@ -278,13 +466,12 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     columns, ``floor((theta + pi) t / 2 pi) + 1``: column 0 only receives theta = -pi (the float32
     -pi lies a hair below -pi) and column t + 1 only theta = pi; they are folded into sectors 0
     and t - 1. Rings are clipped at ring l, which collects the points outside the grid and is
-    dropped. Planes that coincide (at elevation pi/2 every azimuth gives the horizontal plane)
-    are binned once.
+    dropped (at ring l - 1 for the farthest-point radius, which has no outside). Planes that
+    coincide (at elevation pi/2 every azimuth gives the horizontal plane) are binned once.
     """
     pts = _as_points(points_normalised)
     indptr = np.asarray(indptr, np.int64)
     P, L, T = cfg.n_planes, cfg.n_radial, cfg.n_angular
-    R = float(cfg.domain.radius)
     _, ax, ay = m2dp_planes(cfg)
     first = _m2dp_unique_planes(cfg)[0]
     Pu = len(first)
@@ -295,10 +482,15 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
         raise InputError(None, f"M2DP grid of {P} planes x {L} rings x {T} sectors is too fine (at most 254 rings and 253 sectors, "
                          "65,536 bins over the distinct planes)", field="m2dp")
     one_byte = per_plane <= 256
+    farthest = cfg.radius == "farthest"
     # in-plane axes scaled by l^2 / r: the in-plane radius is then rho l^2 / r, whose square root
-    # l sqrt(rho / r) is the ring coordinate (atan2 does not mind the common scale)
-    wx = np.ascontiguousarray(ax[first].T * (L**2 / R), np.float32)
-    wy = np.ascontiguousarray(ay[first].T * (L**2 / R), np.float32)
+    # l sqrt(rho / r) is the ring coordinate (atan2 does not mind the common scale); with the
+    # farthest-point radius the points carry their patch's scale instead
+    axis_scale = 1.0 if farthest else L**2 / float(cfg.domain.radius)
+    wx = np.ascontiguousarray(ax[first].T * axis_scale, np.float32)
+    wy = np.ascontiguousarray(ay[first].T * axis_scale, np.float32)
+    ring_cap = L - 1 if farthest else L
+    centre_id = T // 2 + 1 + ((L - 1) * cols if farthest else 0)  # ring 0 (or l - 1 when R = 0), theta = 0
     cap = max(_M2DP_CHUNK_POINTS, int(np.diff(indptr).max(initial=0)))
     bx = np.empty((cap, Pu), np.float32)
     by = np.empty((cap, Pu), np.float32)
@@ -311,11 +503,9 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     dist2 = np.einsum("ij,ij->i", pts, pts)
     if not np.all(dist2 < 1e60):  # NaN, inf, or beyond float32's range once projected
         raise InputError(None, "M2DP patch points must be finite (and within 1e30 m of their keypoint)", field="points_normalised")
-    at_keypoint = np.flatnonzero(dist2 == 0)
-    for k0, k1 in patch_blocks(indptr, _M2DP_CHUNK_POINTS, _M2DP_CHUNK_PATCHES):
+    for k0, k1, p, flat in _m2dp_point_blocks(pts, indptr, cfg):
         a, b = indptr[k0], indptr[k1]
         n = int(b - a)
-        p = pts[a:b].astype(np.float32)
         x, y, theta, ring, sector, ids = bx[:n], by[:n], b_theta[:n], b_ring[:n], b_sector[:n], b_ids[:n]
         np.matmul(p, wx, out=x)
         np.matmul(p, wy, out=y)
@@ -325,7 +515,7 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
         cv2.magnitude(x, y, x)
         cv2.sqrt(x, x)
         cv2.convertScaleAbs(x, ring, 1.0, -0.5)  # |l sqrt(rho / r) - 1/2| rounded: the ring (saturates at 255)
-        cv2.min(ring, L, ring)
+        cv2.min(ring, ring_cap, ring)
         if one_byte:
             ring *= cols
             ring += sector
@@ -335,12 +525,16 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
             ids *= cols
             ids += sector
         ids += plane_off[:n]
-        # a point at the keypoint itself is (+-0, +-0) on every plane, and atan2 of signed
+        # a point at the origin of the frame is (+-0, +-0) on every plane, and atan2 of signed
         # zeros is any of 0, pi, -0, -pi: it is put where theta = 0 puts it (the original's
-        # atan2(0, 0) = 0), on the innermost ring
-        i0, i1 = np.searchsorted(at_keypoint, (a, b))
-        if i1 > i0:
-            ids[at_keypoint[i0:i1] - a] = plane_off[0] + T // 2 + 1
+        # atan2(0, 0) = 0), on the innermost ring; where a whole patch is at the origin (R = 0
+        # with the farthest-point radius) the original's ring edges are all 0 and it counts in
+        # the last ring
+        at_origin = np.flatnonzero(~p.any(axis=1))
+        if len(at_origin):
+            ids[at_origin] = plane_off[0] + T // 2 + 1
+        if flat is not None and len(flat):
+            ids[flat] = plane_off[0] + centre_id
         H = np.empty((k1 - k0, n_bins, 1), np.float32)
         for k in range(k0, k1):
             rows = ids[indptr[k] - a : indptr[k + 1] - a]
@@ -397,7 +591,12 @@ def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 6
 
 
 def m2dp_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[M2DPConfig] = None) -> np.ndarray:
-    """M2DP of many yaw-normalised patches: (M, p q + l t) float32, [u1, v1] as in the original."""
+    """M2DP of many yaw-normalised patches: (M, p q + l t) float32, [u1, v1] as in the original.
+
+    Grid radius, in-plane axes and frame as ``cfg`` sets them (:class:`M2DPConfig`); with
+    ``M2DPConfig.authors()`` each row is :func:`m2dp_reference` of its patch, computed in float32
+    (counts equal but for points within float32 precision of a bin edge; singular vectors to ~1e-6).
+    """
     cfg = cfg or M2DPConfig()
     P, L, T = cfg.n_planes, cfg.n_radial, cfg.n_angular
     out = np.empty((len(indptr) - 1, cfg.dim), np.float32)
@@ -450,7 +649,9 @@ def describe(
 
     Extracts each patch on the descriptor's domain (``mapkit.places.patches.extract_patches``),
     normalises its yaw towards ``observer_dirs`` (M, 2 or 3; the horizontal direction from each
-    keypoint towards its first observer, see ``first_observer_positions``) and describes it.
+    keypoint towards its first observer, see ``first_observer_positions``) and describes it
+    (M2DP with ``frame="pca"`` then centres and rotates the yaw-normalised patch; the yaw decides
+    nothing but the signs MATLAB's PCA convention picks).
     ``tree`` is ``mapkit.places.patches.xy_tree(points)``, built here if omitted. Keypoints are
     processed in blocks of ~0.5 M patch points, so memory stays bounded for any number of them
     and any map density.

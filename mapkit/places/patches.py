@@ -103,8 +103,10 @@ class PatchDomain(MapkitConfig):
 #: (caption of Fig. 6).
 NBLD_DOMAIN = PatchDomain(kind="cylinder", radius=10.0, height=20.0)
 #: M2DP: Sec. 3.3.1 of the semi-dense paper sets an infinite cylinder of radius r but does not give
-#: r; 10 m here, the horizontal extent of its NBLD and CNN domains. (The original M2DP, He et al.
-#: IROS 2016, describes a whole scan and takes r from its farthest point.)
+#: r; 10 m here, the horizontal extent of its NBLD and CNN domains. It always bounds the patch;
+#: whether it is also the radius of M2DP's polar grids is ``M2DPConfig.radius``: the original M2DP
+#: (He et al. IROS 2016, ``M2DP.m``) describes a whole scan and takes the grid radius from its
+#: farthest point (``radius="farthest"``), so that no point falls outside the grid.
 M2DP_DOMAIN = PatchDomain(kind="cylinder_inf", radius=10.0)
 #: CNN voxel grids: "input patches of size 20x20x20m3" (caption of Fig. 6).
 CNN_DOMAIN = PatchDomain(kind="cube", half_size=10.0)
