@@ -149,3 +149,21 @@ def test_an_unknown_preset_lists_the_names_there_are():
         preset_path("nope", "tiny")
     assert preset_path("synth", "tiny.yaml") == preset_path("synth", "tiny")
     assert preset_path("synth", "tiny").read_text().startswith("#")
+
+
+def test_a_checkout_reads_its_own_configs_even_with_another_installed(tmp_path):
+    """pipelines/main.py runs a checkout's mapkit whatever is installed: its presets too. A copy of
+    the package and configs elsewhere, first on sys.path, must read the copy's configs/, not the
+    editable install's (which importlib.resources would find)."""
+
+    copy = tmp_path / "checkout"
+    shutil.copytree(ROOT / "mapkit", copy / "mapkit", ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "configs", copy / "configs")
+    (copy / "configs" / "synth" / "probe.yaml").write_text("seed: 1\n")
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); import mapkit; from mapkit.core.presets import configs_dir, preset_path; "
+            "print(mapkit.__file__); print(configs_dir()); print(preset_path('synth', 'probe'))")
+    r = subprocess.run([sys.executable, "-c", code, str(copy)], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    module, configs, probe = r.stdout.split()
+    assert Path(module).resolve().is_relative_to(copy.resolve())
+    assert Path(configs).resolve() == (copy / "configs").resolve() and Path(probe).is_file()

@@ -2,8 +2,8 @@
 
 Their one copy is ``configs/`` of the source tree (each value with a comment naming its source).
 pyproject.toml installs that folder as the package ``mapkit.configs``: a wheel holds it as
-``mapkit/configs/``, an editable install maps the package to ``configs/`` itself, and
-:mod:`importlib.resources` finds it either way. Kinds are the folders of ``configs/``:
+``mapkit/configs/``, an editable install maps the package to ``configs/`` itself; a plain
+checkout on ``sys.path`` has it beside the package. Kinds are the folders of ``configs/``:
 
 - ``synth``: town presets and overlays (``mapkit synth --preset NAME``, ``--config``);
 - ``localize``: filter presets (``mapkit eval localize --config``);
@@ -24,16 +24,23 @@ KINDS = ("synth", "localize", "build")
 
 
 def configs_dir() -> Path:
-    """The folder of the shipped configs (``mapkit/configs`` installed, ``configs/`` of a checkout)."""
+    """The folder of the shipped configs that belong to *this* mapkit.
+
+    Looked up beside the imported package first, so that a checkout run as a script (its
+    ``pipelines/main.py`` puts it first on ``sys.path``) reads its own ``configs/`` even when
+    another checkout is installed in editable mode: ``mapkit/configs`` in a wheel's layout, then
+    ``configs/`` of the source tree that holds this package. :mod:`importlib.resources` is the
+    last resort (an installed layout this code does not know)."""
+    package = Path(__file__).resolve().parents[1]  # .../mapkit
+    for candidate in (package / "configs", package.parent / "configs"):
+        if (candidate / "synth").is_dir():
+            return candidate
     try:
         root = resources.files("mapkit.configs")
-    except ModuleNotFoundError:  # an editable install made before configs/ was package data
+    except ModuleNotFoundError:
         root = None
     if isinstance(root, Path) and root.is_dir():
         return root
-    source = Path(__file__).resolve().parents[1] / "configs"
-    if source.is_dir():
-        return source
     raise ConfigError("mapkit's presets (the package mapkit.configs) are not installed as files: reinstall mapkit")
 
 
