@@ -32,17 +32,32 @@ The area under the PR curve is ``sum_i (R_i - R_{i-1}) P_i`` over the thresholds
 order from R_0 = 0 (the step-wise "average precision" form; the paper does not say which
 integration it uses). Recall here cannot reach 1 when wrong matches of reachable queries remain
 at the lowest threshold, as in the paper's curves.
+
+Held-out places (Sec. 5.1): the paper divides each sequence into geographically non-overlapping
+training and testing parts, trains on the first and scores only the second. Here the places are
+split by the UTM tiles of :mod:`mapkit.places.triplets` (:func:`~mapkit.places.triplets.tile_split`,
+:func:`~mapkit.places.triplets.split_of`): the tiles of the triplet dataset the CNN learned from
+when there is one, so that no held-out query lies in (or within ``buffer_m`` of) a tile whose
+patches trained it; else tiles drawn the way ``mapkit triplets`` would with its defaults. A held-out
+query is a query whose true position lies in a test tile, outside the buffer strip. Every figure
+is reported twice: over held-out queries (the headline, ``pairs[i].methods``) and over all
+queries (``pairs[i].all_places.methods``). The paper matches the testing parts of two sequences
+against each other; mapkit keeps the database session whole, so the places of training tiles
+stay in the database as distractors (a held-out query can only be right in a test tile, since
+the buffer is wider than r_e by default, but it can be wrongly matched anywhere).
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import json
+import logging
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Literal, Optional, Sequence
 
 import numpy as np
 from pydantic import Field
@@ -50,13 +65,17 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import _save
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors
+from mapkit.places.triplets import TripletConfig, load_aligned_sessions, split_of, tile_split
 from mapkit.retrieval.index_vlad import VladIndex, read_session_images
+
+log = logging.getLogger(__name__)
 
 STRUCTURE_METHODS = ("nbld", "m2dp", "cnn")
 METHOD_LABELS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
@@ -84,6 +103,19 @@ class PlacesEvalConfig(MapkitConfig):
         description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = none). "
         "Not in the paper; ~100 queries per pair make differences of a few hundredths noise.",
     )
+    split: Literal["triplets", "tiles", "none"] = Field(
+        "triplets",
+        description="Which queries are held out, i.e. scored in the headline figures (semi-dense paper, Sec. 5.1: each sequence "
+        "is divided into geographically non-overlapping training and testing parts, and only testing places are evaluated). "
+        "'triplets': the UTM tiles of the triplet dataset (triplets_dir, else the CNN model's training dataset, else "
+        "WORKSPACE/triplets), so the CNN is scored on places it never trained on; without a dataset, as 'tiles'. "
+        "'tiles': tiles drawn as mapkit triplets draws them with TripletConfig's defaults (200 m, 25 % test, seed 0, 30 m buffer). "
+        "'none': no split, every query is scored (the all-places figures become the headline). A held-out query lies in a test "
+        "tile, not within the buffer of a training tile. All-places figures are reported as well.",
+    )
+    triplets_dir: Optional[str] = Field(
+        None, description="The triplet dataset (mapkit triplets) whose tiles split the places when split = triplets; default: "
+        "the CNN model's training dataset when it still exists, else WORKSPACE/triplets.")
 
 
 # --------------------------------------------------------------------------- pure computations
@@ -226,6 +258,182 @@ def _conditions(truth: Optional[Path]) -> dict[str, dict]:
     return {name: {k: s.get(k) for k in keys} for name, s in town_sessions(truth).items()}
 
 
+# --------------------------------------------------------------------------- the held-out split (Sec. 5.1)
+
+SPLIT_LABELS = ("test", "train", "buffer")
+
+
+@dataclass
+class PlaceSplit:
+    """The places split into training and test UTM tiles (semi-dense paper, Sec. 5.1), as
+    :mod:`mapkit.places.triplets` splits its patches; ``source`` ``"none"``: no split.
+
+    ``tiles`` maps a tile's integer key ``floor(utm / tile_size_m)`` to ``"train"`` or ``"test"``;
+    a tile missing from it counts as training (as in :func:`~mapkit.places.triplets.split_of`),
+    so a query where the split's map never went is never held out."""
+
+    source: str  # "triplets", "tiles" or "none"
+    tiles: dict = field(default_factory=dict)
+    tile_size_m: Optional[float] = None
+    buffer_m: Optional[float] = None
+    test_fraction: Optional[float] = None
+    seed: Optional[int] = None
+    frame: Optional[LocalFrame] = None
+    dataset: Optional[str] = None  # the triplet dataset folder the tiles come from
+    dataset_config_hash: Optional[str] = None
+    notes: list = field(default_factory=list)  # why this source (fallbacks), what to beware of
+
+    def labels(self, enu: np.ndarray) -> np.ndarray:
+        """Per position (the workspace's local ENU, (n, 3)): "test", "train" or "buffer" (within
+        ``buffer_m`` of a tile of the other split); "" for every position without a split."""
+        enu = np.asarray(enu, np.float64).reshape(-1, 3)
+        if self.source == "none" or len(enu) == 0:
+            return np.full(len(enu), "", object)
+        lab = split_of(self.frame.enu_to_utm(enu)[:, :2], self.tiles, self.tile_size_m, self.buffer_m)
+        return np.where(lab == "", "buffer", lab).astype(object)
+
+    def held_out(self, enu: np.ndarray) -> np.ndarray:
+        """(n,) bool: the position is a held-out place (in a test tile, outside the buffer)."""
+        return self.labels(enu) == "test"
+
+    def to_dict(self) -> dict:
+        """What ``places.json`` records of the split: its source and parameters, and the tiles in
+        the triplet manifest's form (``utm_min`` corner, ``split``)."""
+        n = {s: sum(v == s for v in self.tiles.values()) for s in ("train", "test")}
+        return {"source": self.source, "dataset": self.dataset, "dataset_config_hash": self.dataset_config_hash,
+                "tile_size_m": self.tile_size_m, "buffer_m": self.buffer_m, "test_fraction": self.test_fraction, "seed": self.seed,
+                "utm_crs_epsg": None if self.frame is None else int(self.frame.utm_epsg), "tile_counts": n, "notes": list(self.notes),
+                "tiles": [{"utm_min": [k[0] * self.tile_size_m, k[1] * self.tile_size_m], "split": v}
+                          for k, v in sorted(self.tiles.items())]}
+
+    def describe(self) -> str:
+        """One sentence for ``places.md``: which tiles, from where, with which buffer."""
+        if self.source == "none":
+            return "no geographic split (split = none, or no UTM frame): the headline figures are over all queries"
+        n = {s: sum(v == s for v in self.tiles.values()) for s in ("train", "test")}
+        where = f"the triplet dataset {self.dataset}" if self.source == "triplets" else \
+            f"tiles drawn as mapkit triplets draws them (seed {self.seed}, {100 * self.test_fraction:g} % test)"
+        return (f"held-out queries lie in test tiles of {where}: UTM tiles of {self.tile_size_m:g} m, {n['test']} test and "
+                f"{n['train']} training, and not within {self.buffer_m:g} m of a training tile")
+
+
+def split_from_dataset(folder: str | Path, frame: LocalFrame) -> PlaceSplit:
+    """The split of a triplet dataset: its manifest's tiles and its config's ``tile_size_m`` and
+    ``buffer_m``. ``frame`` is the workspace's; a dataset in another UTM zone is refused."""
+    folder = Path(folder)
+    mpath = folder / "manifest.json"
+    if not mpath.is_file():
+        raise InputError(mpath, "no such file (not a triplet dataset folder?)", field="triplets_dir")
+    man = json.loads(mpath.read_text())
+    tcfg = load_config(TripletConfig, folder / "config.yaml")
+    epsg = (man.get("frame") or {}).get("utm_crs_epsg")
+    if epsg is not None and int(epsg) != int(frame.utm_epsg):
+        raise InputError(mpath, f"the dataset's tiles are in EPSG:{epsg}, the workspace's frame in EPSG:{frame.utm_epsg}",
+                         field="frame")
+    tile = float(tcfg.tile_size_m)
+    tiles = {}
+    for t in man.get("tiles") or []:
+        corner = np.asarray(t["utm_min"], np.float64)
+        key = np.round(corner / tile).astype(np.int64)
+        if np.any(np.abs(key * tile - corner) > 1e-6 * max(tile, 1.0)) or t.get("split") not in ("train", "test"):
+            raise InputError(mpath, f"tile {t} is not a {tile:g} m tile labelled train or test (config.yaml's tile_size_m)",
+                             field="tiles")
+        tiles[(int(key[0]), int(key[1]))] = t["split"]
+    return PlaceSplit("triplets", tiles, tile, float(tcfg.buffer_m), float(tcfg.test_fraction), int(man.get("seed", tcfg.seed)),
+                      frame, str(folder.resolve()), man.get("config_hash"))
+
+
+def split_from_points(utm_xy: np.ndarray, frame: LocalFrame, tcfg: Optional[TripletConfig] = None) -> PlaceSplit:
+    """Tiles drawn over mapped points ``utm_xy`` (n, 2) by :func:`~mapkit.places.triplets.tile_split`
+    with ``tcfg``'s tile size, test fraction, seed and buffer (default: TripletConfig's defaults)."""
+    tcfg = tcfg or TripletConfig()
+    tiles = tile_split(np.asarray(utm_xy, np.float64).reshape(-1, 2), tcfg.tile_size_m, tcfg.test_fraction, tcfg.seed)
+    return PlaceSplit("tiles", tiles, float(tcfg.tile_size_m), float(tcfg.buffer_m), float(tcfg.test_fraction), int(tcfg.seed), frame)
+
+
+def tiles_split_of_workspace(ws: Workspace, frame: LocalFrame, tcfg: Optional[TripletConfig] = None,
+                             fallback_maps: Callable[[], Sequence[SemiDenseMap]] = list) -> PlaceSplit:
+    """The split ``mapkit triplets`` with ``tcfg`` would draw: :func:`split_from_points` over the
+    same sample of points (every session's merged aligned points, at most ~20k of each, see
+    ``_Keypoints.draw`` in :mod:`mapkit.places.triplets`). Without a finished alignment, over
+    ``fallback_maps()`` (the evaluated sessions' maps, loaded only then), said in the split's notes."""
+    try:
+        sessions, _ = load_aligned_sessions(ws, (tcfg or TripletConfig()).sessions)
+        clouds, note = [s.points for s in sessions], None
+    except InputError as exc:
+        clouds = [m.points_world for m in fallback_maps()]
+        note = f"tiles drawn over the evaluated sessions' map points, not the aligned map's ({exc})"
+    if not clouds or not sum(len(c) for c in clouds):
+        raise InputError(ws.root, "no mapped points to draw the UTM tiles over", field="split")
+    utm = np.concatenate([frame.enu_to_utm(c[:: max(1, len(c) // 20000)])[:, :2] for c in clouds if len(c)])
+    split = split_from_points(utm, frame, tcfg)
+    if note:
+        split.notes.append(note)
+    return split
+
+
+def resolve_split(ws: Workspace, cfg: PlacesEvalConfig, fallback_maps: Callable[[], Sequence[SemiDenseMap]] = list) -> PlaceSplit:
+    """The split ``cfg.split`` asks for, with its fallbacks said in ``notes`` (and warned when
+    the CNN's held-out figures could include places it trained on):
+
+    - ``triplets``: ``cfg.triplets_dir`` (must exist), else the dataset the CNN model
+      (``structure.cnn_model``) records, else ``WORKSPACE/triplets``; without any, ``tiles``.
+    - ``tiles``: :func:`tiles_split_of_workspace` with TripletConfig's defaults.
+    - ``none``, or a workspace without a geographic frame (no UTM): no split.
+    """
+    if cfg.split == "none":
+        return PlaceSplit("none")
+    frame = ws.frame()
+    if frame is None:
+        note = "the workspace has no geographic frame (origin.json): no UTM tiles, every query is scored (split none)"
+        warnings.warn(f"places: {note}", InputWarning, stacklevel=3)
+        return PlaceSplit("none", notes=[note])
+    model_ds = _model_dataset(cfg)
+    split, notes = None, []
+    if cfg.split == "triplets":
+        if cfg.triplets_dir is not None:
+            split = split_from_dataset(cfg.triplets_dir, frame)
+        else:
+            candidates = [Path(model_ds["path"])] if model_ds and model_ds.get("path") else []
+            candidates.append(ws.triplets_dir)
+            found = [c for c in candidates if (c / "manifest.json").is_file()]
+            if found:
+                split = split_from_dataset(found[0], frame)
+                if model_ds and model_ds.get("path") and found[0] != Path(model_ds["path"]):
+                    notes.append(f"the CNN model's training dataset {model_ds['path']} is gone; tiles of {found[0]}")
+            else:
+                notes.append(f"no triplet dataset ({', '.join(str(c) for c in candidates)}): tiles drawn with TripletConfig's defaults")
+    if split is None:
+        split = tiles_split_of_workspace(ws, frame, None, fallback_maps)
+    split.notes = notes + split.notes
+    if model_ds is not None and model_ds.get("tiles") is not None:
+        # the model's manifest records its dataset's tiles: they must be the split's, else the
+        # held-out queries may lie where the CNN trained
+        own = {tuple(np.round(np.asarray(t["utm_min"]) / split.tile_size_m).astype(int).tolist()): t["split"]
+               for t in model_ds.get("tiles") or []}
+        if own != split.tiles:
+            note = ("the CNN model was trained on a triplet dataset whose tiles differ from the split's: its held-out figures "
+                    "may include places it trained on (set triplets_dir to the model's dataset)")
+            warnings.warn(f"places: {note}", InputWarning, stacklevel=3)
+            split.notes.append(note)
+    return split
+
+
+def _model_dataset(cfg: PlacesEvalConfig) -> Optional[dict]:
+    """What the CNN model's manifest records of its training dataset (path, config hash, tiles), or None."""
+    if cfg.structure.cnn_model is None:
+        return None
+    from mapkit.places.cnn import read_model_manifest
+
+    return read_model_manifest(cfg.structure.cnn_model).get("dataset") or None
+
+
+def query_split_counts(labels: np.ndarray) -> dict:
+    """How many queries fall in test tiles, training tiles and buffer strips."""
+    labels = np.asarray(labels, object)
+    return {s: int(np.sum(labels == s)) for s in SPLIT_LABELS}
+
+
 # --------------------------------------------------------------------------- the VLAD baseline
 
 
@@ -313,27 +521,54 @@ def nearest_l2(queries: np.ndarray, database: np.ndarray) -> tuple[np.ndarray, n
 @dataclass
 class _Scored:
     """Every query of one pair and method: its matched place's position (NaN without a match),
-    the match's score (-inf without one), whether it is right, whether it could be, and its error."""
+    the match's score (-inf without one), whether it is right, whether it could be, and its error;
+    structure methods add each query's keypoints and best vote count, VLAD whether the query had
+    an image and how far in time it was."""
 
     matched_pos: np.ndarray  # (n, 3)
     score: np.ndarray  # (n,)
     correct: np.ndarray  # (n,) bool
     reachable: np.ndarray  # (n,) bool
     error_m: np.ndarray  # (n,), NaN without a match
+    keypoints: Optional[np.ndarray] = None  # (n,) structure: query keypoints the frame observed
+    votes: Optional[np.ndarray] = None  # (n,) structure: v(d) of the best place
+    has_image: Optional[np.ndarray] = None  # (n,) VLAD: an image within max_image_gap_s
+    image_gap_s: Optional[np.ndarray] = None  # (n,) VLAD: time to the nearest image
 
-    def summary(self, n_boot: int) -> dict:
-        return _summary(self.score, self.correct, self.reachable, self.error_m, n_boot)
+    def summary(self, n_boot: int, mask: Optional[np.ndarray] = None) -> dict:
+        """The figures of the queries in ``mask`` (all by default): :func:`_summary`, then the
+        method's per-query statistics over the same queries."""
+        k = np.ones(len(self.score), bool) if mask is None else np.asarray(mask, bool)
+        r = _summary(self.score[k], self.correct[k], self.reachable[k], self.error_m[k], n_boot)
+        r["queries"] = int(k.sum())
+        if self.keypoints is not None:
+            t = r["best_f1"]["threshold"]
+            kp, v = self.keypoints[k], self.votes[k]
+            r.update({"lambda_v_best_f1": None if t is None else t - 1.0,  # integer votes: v >= t  <=>  v > t - 1
+                      "keypoints_per_query_mean": float(np.mean(kp)) if len(kp) else None,
+                      "keypoints_per_query_median": float(np.median(kp)) if len(kp) else None,
+                      "votes_median": float(np.median(v)) if len(v) else None})
+        if self.has_image is not None:
+            ok = self.has_image[k]
+            r.update({"queries_without_image": int((~ok).sum()),
+                      "image_gap_s_max": float(np.max(self.image_gap_s[k][ok])) if np.any(ok) else None})
+        return r
 
 
 @dataclass
 class _Queries:
     """The queries of a pair: every ``query_stride``-th keyframe of the query session that has a
-    true position."""
+    true position, and where each lies in the split ("test", "train", "buffer"; "" without one)."""
 
     ids: np.ndarray  # (n,) keyframe ids
     stamps_ns: np.ndarray  # (n,)
     positions: np.ndarray  # (n, 3) ground truth
     without_truth: int
+    split: np.ndarray = None  # (n,) object
+
+    @property
+    def held_out(self) -> np.ndarray:
+        return np.asarray(self.split == "test", bool)
 
 
 class _Maps:
@@ -363,16 +598,19 @@ def evaluate_places(
     progress: bool = False,
     appearance=None,
 ) -> dict:
-    """Precision/recall and AUC of ``methods`` for each ``(database_session, query_session)`` pair.
+    """Precision/recall and AUC of ``methods`` for each ``(database_session, query_session)`` pair,
+    over the held-out queries (the headline: ``pairs[i].methods``) and over all queries
+    (``pairs[i].all_places``); the split is ``results["split"]`` (see :func:`resolve_split`).
 
     Writes into ``out`` (default ``WORKSPACE/eval/places``): ``places.json`` (everything,
-    including the PR curves), ``places.md`` (the AUC table in the form of the paper's Table 2),
-    ``pr_curves.png``, ``queries.csv`` (one row per pair, method and query), ``config.yaml``;
-    structure indexes under ``indexes/`` and descriptor / VLAD caches under ``cache/`` (re-runs
-    reuse them). ``vlad_bundle`` defaults to ``WORKSPACE/indexes/vlad``; if absent, the VLAD column
-    is reported as not available. ``appearance`` replaces the VLAD bundle by any object with
-    :class:`VladBaseline`'s ``database``, ``query_rows`` and ``encode`` (another
-    image descriptor, e.g. NetVLAD, plugs in there).
+    including the PR curves), ``places.md`` (the AUC tables in the form of the paper's Table 2,
+    held-out first), ``pr_curves.png``, ``queries.csv`` (one row per pair, method and query, with
+    its split), ``config.yaml``; structure indexes under ``indexes/`` and descriptor / VLAD caches
+    under ``cache/`` (re-runs reuse them). ``vlad_bundle`` defaults to ``WORKSPACE/indexes/vlad``; if
+    absent, the VLAD column is reported as not available. ``appearance`` replaces the VLAD bundle by
+    any object with :class:`VladBaseline`'s ``database``, ``query_rows`` and ``encode`` (another
+    image descriptor, e.g. NetVLAD, plugs in there). A pair without any held-out query has no
+    held-out figures: its methods say so in a note (and a warning), its all-places figures stand.
     """
     ws = Workspace(workspace)
     cfg = load_config(PlacesEvalConfig, config, overrides)
@@ -385,15 +623,17 @@ def evaluate_places(
     _check_methods(methods, cfg)
     gt = _Truth(ws, truth)
     cond = _conditions(truth)
+    maps = _Maps(ws, cfg.structure.prefer_aligned_maps)
+    split = resolve_split(ws, cfg, lambda: [maps(n)[0] for n in sorted({s for p in pairs for s in p})])
     vlad, vlad_note = (appearance, None) if appearance is not None or "vlad" not in methods else \
         _vlad_baseline(ws, vlad_bundle, cfg, cache, progress)
-    maps = _Maps(ws, cfg.structure.prefer_aligned_maps)
 
     results: dict = {
         "workspace": str(ws.root), "truth": None if truth is None else str(truth), "ground_truth": gt.source,
         "radius_m": cfg.radius_m, "query_stride": cfg.query_stride, "methods": list(methods), "config": cfg.model_dump(mode="json"),
         "vlad_bundle": None if vlad is None else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
-        "vlad_note": vlad_note, "pairs": [],
+        "vlad_note": vlad_note, "headline": "all_places" if split.source == "none" else "held_out", "split": split.to_dict(),
+        "split_description": split.describe(), "pairs": [],
     }
     if "cnn" in methods and cfg.structure.cnn_model is not None:
         from mapkit.places.cnn import model_fingerprint
@@ -401,7 +641,8 @@ def evaluate_places(
         results["cnn_model"] = model_fingerprint(cfg.structure.cnn_model)
     rows: list[list] = []
     for db, query in pairs:
-        results["pairs"].append(_eval_pair(ws, db, query, methods, cfg, gt, cond, vlad, vlad_note, maps, out, cache, progress, rows))
+        results["pairs"].append(_eval_pair(ws, db, query, methods, cfg, gt, cond, vlad, vlad_note, maps, split, out, cache,
+                                           progress, rows))
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
@@ -438,7 +679,7 @@ def _vlad_baseline(ws: Workspace, vlad_bundle: str | Path | None, cfg: PlacesEva
     return VladBaseline(bundle, ws.root, encodings, cfg.vlad_workers, progress), None
 
 
-def _pair_queries(maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth) -> tuple[_Queries, str]:
+def _pair_queries(maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth, split: PlaceSplit) -> tuple[_Queries, str]:
     """The pair's queries, and where the query session's map came from (``align`` or ``build``)."""
     qmap, _, qsrc = maps(query)
     kf_ids = np.asarray(qmap.keyframe_ids, np.int64)
@@ -446,57 +687,94 @@ def _pair_queries(maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth) ->
     ids, stamps = kf_ids[sel], np.asarray(qmap.keyframe_stamps_ns, np.int64)[sel]
     pos = gt.positions(query, stamps, qmap.keyframe_world_from_cam[sel, :3, 3])
     has_truth = np.all(np.isfinite(pos), axis=1)
-    return _Queries(ids[has_truth], stamps[has_truth], pos[has_truth], int((~has_truth).sum())), qsrc
+    pos = pos[has_truth]
+    return _Queries(ids[has_truth], stamps[has_truth], pos, int((~has_truth).sum()), split.labels(pos)), qsrc
+
+
+def no_held_out_note(query: str, counts: dict, split: PlaceSplit) -> str:
+    """Why a pair has no held-out figures: where its queries lie instead."""
+    return (f"no held-out query: none of the {sum(counts.values())} queries of {query!r} lies in a test tile outside the "
+            f"{split.buffer_m:g} m buffer ({counts['train']} in training tiles, {counts['buffer']} in buffer strips); "
+            "see the all-places figures")
 
 
 def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: PlacesEvalConfig, gt: _Truth, cond: dict,
-               vlad, vlad_note: Optional[str], maps: _Maps, out: Path, cache: Path, progress: bool, rows: list[list]) -> dict:
-    """One pair's entry of ``places.json``: every method on the same queries, then the paired
-    bootstrap comparison of their AUCs; appends the per-query rows of ``queries.csv`` to ``rows``."""
-    q, qsrc = _pair_queries(maps, query, cfg, gt)
+               vlad, vlad_note: Optional[str], maps: _Maps, split: PlaceSplit, out: Path, cache: Path, progress: bool,
+               rows: list[list]) -> dict:
+    """One pair's entry of ``places.json``: every method on the same queries, scored over the
+    held-out queries (``methods``, the headline; all queries when there is no split) and over all
+    (``all_places``), each with the paired bootstrap comparison of the methods' AUCs; appends the
+    per-query rows of ``queries.csv`` to ``rows``."""
+    q, qsrc = _pair_queries(maps, query, cfg, gt, split)
+    held = q.held_out
+    scoped = split.source != "none"
+    counts = query_split_counts(q.split) if scoped else None
+    note = no_held_out_note(query, counts, split) if scoped and not held.any() else None
+    if note:
+        warnings.warn(f"places {query} to {db}: {note}", InputWarning, stacklevel=3)
     entry = {"database": db, "query": query, "conditions": {"database": cond.get(db), "query": cond.get(query)},
-             "queries": int(len(q.ids)), "queries_without_truth": q.without_truth, "query_map_source": qsrc, "methods": {}}
+             "queries": int(held.sum()) if scoped else int(len(q.ids)), "queries_without_truth": q.without_truth,
+             "query_map_source": qsrc, "scope": "held_out" if scoped else "all_places",
+             "held_out_queries": int(held.sum()) if scoped else None, "query_split": counts, "held_out_note": note,
+             "methods": {}, "all_places": {"queries": int(len(q.ids)), "methods": {}}}
     for method in methods:
         t0 = time.perf_counter()
         if method in STRUCTURE_METHODS:
-            r, scored = _eval_structure(method, ws, db, query, q.ids, q.positions, cfg, gt, out, cache, maps, progress)
+            facts, scored = _eval_structure(method, ws, db, query, q.ids, q.positions, cfg, gt, out, cache, maps, progress)
         elif vlad is not None and query in (getattr(vlad, "train_sessions", None) or ()):
             # a whitening learned on n images with n - 1 dimensions maps its training images to
             # (nearly) orthogonal vectors: two training sessions cannot be compared (measured on
             # the demo bundle: cosines of -1/683 between all of them)
-            note = f"query session {query!r} trained the VLAD encoder (its vectors are not comparable); no score"
-            warnings.warn(f"vlad: {note}", InputWarning, stacklevel=3)
-            entry["methods"][method] = {"available": False, "note": note}
+            why = f"query session {query!r} trained the VLAD encoder (its vectors are not comparable); no score"
+            warnings.warn(f"vlad: {why}", InputWarning, stacklevel=3)
+            entry["methods"][method] = entry["all_places"]["methods"][method] = {"available": False, "note": why}
             continue
         elif vlad is not None:
-            r, scored = _eval_vlad(vlad, db, query, q.stamps_ns, q.positions, cfg, gt)
+            facts, scored = _eval_vlad(vlad, db, query, q.stamps_ns, q.positions, cfg, gt)
         else:
-            entry["methods"][method] = {"available": False, "note": vlad_note}
+            entry["methods"][method] = entry["all_places"]["methods"][method] = {"available": False, "note": vlad_note}
             continue
-        r["seconds"] = time.perf_counter() - t0
-        entry["methods"][method] = r
+        facts["seconds"] = time.perf_counter() - t0
+        everywhere = {**scored.summary(cfg.bootstrap), **facts}
+        entry["all_places"]["methods"][method] = everywhere
+        if not scoped:
+            entry["methods"][method] = everywhere
+        elif note:
+            entry["methods"][method] = {"available": False, "queries": 0, "note": note}
+        else:
+            entry["methods"][method] = {**scored.summary(cfg.bootstrap, held), **facts}
         rows += _query_rows(db, query, method, q, scored)
     # paired bootstrap (the same resamples of the same queries for every method)
-    boots = {m: r.pop("_boot") for m, r in entry["methods"].items() if "_boot" in r}
-    entry["p_auc_above"] = {f"{a}>{b}": float(np.mean(boots[a] > boots[b])) for a in boots for b in boots
-                            if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])}
+    for block in ((entry, entry["all_places"]) if scoped else (entry["all_places"],)):
+        boots = {m: r.pop("_boot") for m, r in block["methods"].items() if "_boot" in r}
+        block["p_auc_above"] = {f"{a}>{b}": float(np.mean(boots[a] > boots[b])) for a in boots for b in boots
+                                if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])}
+    if not scoped:
+        entry["p_auc_above"] = entry["all_places"]["p_auc_above"]
     return entry
 
 
 def _query_rows(db: str, query: str, method: str, q: _Queries, s: _Scored) -> list[list]:
     """Rows of ``queries.csv`` (:data:`_QUERY_COLUMNS`) of one pair and method."""
     return [[db, query, method, int(q.ids[i]), int(q.stamps_ns[i]), *np.round(q.positions[i], 3), *np.round(s.matched_pos[i], 3),
-             s.score[i], int(s.correct[i]), int(s.reachable[i]), None if np.isnan(s.error_m[i]) else round(float(s.error_m[i]), 2)]
+             s.score[i], int(s.correct[i]), int(s.reachable[i]), None if np.isnan(s.error_m[i]) else round(float(s.error_m[i]), 2),
+             q.split[i], int(q.split[i] == "test"), None if s.keypoints is None else int(s.keypoints[i])]
             for i in range(len(q.ids))]
 
 
 def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
+    """The figures of a set of scored queries. Without a reachable query (no database place
+    within r_e of any) recall is 0/0: the AUC is None and ``auc_undefined`` says why, rather
+    than a 0 that reads as a method failing."""
     curve = pr_curve(scores, correct, reachable)
     matched = np.isfinite(np.where(np.isnan(scores), -np.inf, scores))
-    boot = bootstrap_auc(scores, correct, reachable, n_boot)
+    defined = curve["reachable"] > 0
+    boot = bootstrap_auc(scores, correct, reachable, n_boot) if defined else np.zeros(0)
     return {
         "available": True,
-        "auc": pr_auc(curve["recall"], curve["precision"]),
+        "auc": pr_auc(curve["recall"], curve["precision"]) if defined else None,
+        "auc_undefined": None if defined else
+        f"none of the {len(scores)} queries has a database place within r_e: recall and AUC undefined",
         "auc_ci90": [float(np.percentile(boot, 5)), float(np.percentile(boot, 95))] if len(boot) else None,
         "_boot": boot,
         "reachable": int(curve["reachable"]),
@@ -512,6 +790,7 @@ def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
 
 def _eval_structure(kind, ws: Workspace, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt: _Truth, out: Path, cache: Path,
                     maps: _Maps, progress) -> tuple[dict, _Scored]:
+    """(the facts of the method that do not depend on which queries are summarised, every query scored)."""
     scfg = cfg.structure.model_copy(update={"kind": kind, "database_sessions": [db]})
     own = out / "indexes" / f"{kind}-{db}"  # own output folder
     bundle = build_structure_index(ws.root, kind, own, [db], scfg, cache_dir=cache, progress=progress)
@@ -532,21 +811,19 @@ def _eval_structure(kind, ws: Workspace, db, query, q_ids, q_pos, cfg: PlacesEva
     has = m.best_frame >= 0
     matched_pos = np.where(has[:, None], all_pos[np.maximum(m.best_frame, 0)], np.nan)
     correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
-    scored = _Scored(matched_pos, np.where(has, m.best_votes.astype(np.float64), -np.inf), correct, reachable, err)
-    r = scored.summary(cfg.bootstrap)
-    t = r["best_f1"]["threshold"]
-    r.update({
-        "lambda_v_best_f1": None if t is None else t - 1.0,  # integer votes: v >= t  <=>  v > t - 1
+    scored = _Scored(matched_pos, np.where(has, m.best_votes.astype(np.float64), -np.inf), correct, reachable, err,
+                     keypoints=np.asarray(m.n_keypoints, np.int64), votes=np.asarray(m.best_votes, np.int64))
+    facts = {
         "database_entries": len(idx), "database_frames": int(np.sum(fr["pose_source"][rows] > 0)),
-        "query_keypoints": int(len(prep.keypoints)), "keypoints_per_query_median": float(np.median(m.n_keypoints)) if len(m) else 0.0,
-        "votes_median": float(np.median(m.best_votes)) if len(m) else 0.0,
+        "query_keypoints": int(len(prep.keypoints)),
         "query_describe_s": describe_s, "query_match_and_vote_s": (time.perf_counter() - t0) - describe_s,
         "vote_ms_per_frame": 1e3 * vote_s / max(len(m), 1), "index": str(bundle),
-    })
-    return r, scored
+    }
+    return facts, scored
 
 
 def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Truth) -> tuple[dict, _Scored]:
+    """(the facts of the baseline that do not depend on which queries are summarised, every query scored)."""
     t0 = time.perf_counter()
     db_vec, db_stamps, db_aligned = vlad.database(db)
     db_pos = gt.positions(db, db_stamps, db_aligned)
@@ -563,16 +840,12 @@ def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Tru
     has = best >= 0
     matched_pos = np.where(has[:, None], db_pos[np.maximum(best, 0)] if len(db_pos) else np.nan, np.nan)
     correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
-    scored = _Scored(matched_pos, scores, correct, reachable, err)
-    r = scored.summary(cfg.bootstrap)
-    r.update({"database_images": int(len(db_vec)), "queries_without_image": int((~ok).sum()),
-              "image_gap_s_max": float(np.max(gap_s[ok])) if np.any(ok) else None,
-              "encode_and_load_s": encode_s})
-    return r, scored
+    scored = _Scored(matched_pos, scores, correct, reachable, err, has_image=ok, image_gap_s=np.asarray(gap_s, np.float64))
+    return {"database_images": int(len(db_vec)), "encode_and_load_s": encode_s}, scored
 
 
 _QUERY_COLUMNS = ["database", "query", "method", "query_frame_id", "stamp_ns", "x_m", "y_m", "z_m", "match_x_m", "match_y_m", "match_z_m",
-                  "score", "correct", "reachable", "error_m"]
+                  "score", "correct", "reachable", "error_m", "split", "held_out", "keypoints"]
 
 
 def _write_queries_csv(path: Path, rows: list[list]) -> None:
@@ -595,23 +868,57 @@ def _cond_label(c: Optional[dict]) -> str:
     return ", ".join(str(p) for p in parts if p)
 
 
+def _held_out(results: dict) -> bool:
+    """Whether the headline figures are over held-out queries (a split) or all (none); results
+    written before the split existed have no ``headline`` and are all-places."""
+    return results.get("headline") == "held_out"
+
+
+def _scopes(results: dict) -> list[tuple[str, str]]:
+    """The tables to show, headline first: (key, title)."""
+    if _held_out(results):
+        return [("held_out", "Held-out places (the headline)"), ("all_places", "All places (training tiles and buffer strips too)")]
+    return [("all_places", "All places")]
+
+
+def _block(p: dict, scope: str) -> dict:
+    """A pair's figures of one scope: ``{"queries", "methods", "p_auc_above"}``."""
+    if scope == "held_out" or "all_places" not in p:
+        return {"queries": p["queries"], "methods": p["methods"], "p_auc_above": p.get("p_auc_above", {})}
+    return p["all_places"]
+
+
 def format_places(results: dict) -> str:
-    """The AUC table in the form of the paper's Table 2 (rows: pairs, columns: methods), then each
-    method's best F1 operating point, the AUCs' bootstrap intervals, and what was not evaluated."""
-    lines = _auc_table(results) + [""] + _best_f1_table(results) + [""] + _bootstrap_table(results)
-    notes = [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
-             for m, r in p["methods"].items() if not r.get("available") and r.get("note")]
+    """The AUC tables in the form of the paper's Table 2 (rows: pairs, columns: methods), held-out
+    queries first, then over all queries; each method's best F1 operating point, keypoints per
+    query, the AUCs' bootstrap intervals, and what was not evaluated."""
+    lines = _protocol(results)
+    for scope, title in _scopes(results):
+        lines += ["", f"## {title}", ""] + _auc_table(results, scope)
+    lines += ["", "## Operating points and keypoints", ""] + _best_f1_table(results) + [""] + _keypoints_table(results)
+    lines += [""] + _bootstrap_table(results)
+    notes = [f"{p['query']} to {p['database']}: {p['held_out_note']}" for p in results["pairs"] if p.get("held_out_note")]
+    notes += [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
+              for m, r in p["methods"].items() if not r.get("available") and r.get("note") and r["note"] != p.get("held_out_note")]
     if notes:
         lines += ["", "Not evaluated:", ""] + [f"- {n}" for n in dict.fromkeys(notes)]
+    undefined: dict[str, list[str]] = {}  # one line per pair, scope and reason, naming the methods
+    for p in results["pairs"]:
+        for scope, title in _scopes(results):
+            for m, r in _block(p, scope)["methods"].items():
+                if r.get("auc_undefined"):
+                    key = f"{p['query']} to {p['database']}, {title.split(' (')[0].lower()}: {r['auc_undefined']}"
+                    undefined.setdefault(key, []).append(METHOD_LABELS.get(m, m))
+    if undefined:
+        lines += ["", "AUC undefined (n/a in the tables):", ""] + [f"- {k} ({', '.join(v)})" for k, v in undefined.items()]
     return "\n".join(lines) + "\n"
 
 
-def _auc_table(results: dict) -> list[str]:
-    """Title, protocol and Table 2: the AUC of every method per pair, the best one in bold."""
+def _protocol(results: dict) -> list[str]:
+    """Title, the protocol and the split."""
     methods = results["methods"]
     sc = results["config"]["structure"]
-    head = ["Sequence pair (query to database)", "conditions (query / database)"] + [METHOD_LABELS.get(m, m) for m in methods]
-    head += ["queries", "reachable"]
+    split = results.get("split") or {}
     lines = [
         "# Place recognition: area under the precision-recall curve",
         "",
@@ -621,60 +928,97 @@ def _auc_table(results: dict) -> list[str]:
         + (f"; CNN model {results['cnn_model']['path']}" if results.get("cnn_model") else "")
         + f"): {100 * sc['keypoint_fraction']:g} % keypoints, PCA to {sc['pca_dim']}, voting; lambda_v swept. "
         "VLAD: top-1 database image of the database session; minus its squared distance swept.",
-        "",
-        "| " + " | ".join(head) + " |",
-        "|" + "---|" * len(head),
     ]
+    if results.get("split_description"):
+        lines += ["", f"Held-out places (the paper's geographic split, Sec. 5.1): {results['split_description']}. "
+                  "The database is the database session's whole map (places of training tiles stay in it as distractors)."
+                  + "".join(f" Note: {n}." for n in split.get("notes") or [])]
+    return lines
+
+
+def _auc_table(results: dict, scope: str = "held_out") -> list[str]:
+    """Table 2 over one scope's queries: the AUC of every method per pair, the best one in bold."""
+    methods = results["methods"]
+    head = ["Sequence pair (query to database)", "conditions (query / database)"] + [METHOD_LABELS.get(m, m) for m in methods]
+    with_held = scope == "all_places" and _held_out(results)  # the all-places table says how many of its queries are held out
+    head += ["queries", "reachable"] + (["held out"] if with_held else [])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in results["pairs"]:
-        aucs = {m: p["methods"].get(m, {}).get("auc") for m in methods}
+        b = _block(p, scope)
+        aucs = {m: b["methods"].get(m, {}).get("auc") for m in methods}
         best = max((a for a in aucs.values() if a is not None), default=None)
         cells = []
         for m in methods:
             a = aucs[m]
             cells.append("n/a" if a is None else (f"**{a:.3f}**" if a == best and sum(x == best for x in aucs.values()) == 1 else f"{a:.3f}"))
-        reach = [v.get("reachable") for v in p["methods"].values() if v.get("available")]
+        reach = [v.get("reachable") for v in b["methods"].values() if v.get("available")]
         cond = f"{_cond_label(p['conditions']['query'])} / {_cond_label(p['conditions']['database'])}" if p["conditions"]["query"] else ""
-        lines.append(f"| {p['query']} to {p['database']} | {cond} | " + " | ".join(cells) + f" | {p['queries']} | {reach[0] if reach else ''} |")
+        extra = [str(p.get("held_out_queries"))] if with_held else []
+        cells += [str(b["queries"]), str(reach[0] if reach else "")] + extra
+        lines.append(f"| {p['query']} to {p['database']} | {cond} | " + " | ".join(cells) + " |")
     return lines
 
 
 def _best_f1_table(results: dict) -> list[str]:
     lines = ["Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
              "VLAD: minus the squared distance):", "",
-             "| pair | method | F1 | precision | recall | threshold | top-1 right of reachable |", "|---|---|---|---|---|---|---|"]
+             "| pair | places | method | F1 | precision | recall | threshold | top-1 right of reachable |", "|---|---|---|---|---|---|---|---|"]
     for p in results["pairs"]:
-        for m in results["methods"]:
-            r = p["methods"].get(m, {})
-            if not r.get("available"):
-                continue
-            b = r["best_f1"]
-            prec = "" if b["precision"] is None else f"{b['precision']:.2f}"
-            thr = "" if b["threshold"] is None else f"{b['threshold']:.3g}"
-            lines.append(f"| {p['query']} to {p['database']} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | {prec} | {b['recall']:.2f} | "
-                         f"{thr} | {r['top1_correct_of_reachable']:.2f} |")
+        for scope, _ in _scopes(results):
+            for m in results["methods"]:
+                r = _block(p, scope)["methods"].get(m, {})
+                if not r.get("available"):
+                    continue
+                b = r["best_f1"]
+                prec = "" if b["precision"] is None else f"{b['precision']:.2f}"
+                thr = "" if b["threshold"] is None else f"{b['threshold']:.3g}"
+                lines.append(f"| {p['query']} to {p['database']} | {scope.replace('_', '-')} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | "
+                             f"{prec} | {b['recall']:.2f} | {thr} | {r['top1_correct_of_reachable']:.2f} |")
+    return lines
+
+
+def _keypoints_table(results: dict) -> list[str]:
+    """Query keypoints per query frame of the structure methods (the keypoints a frame observed)."""
+    methods = [m for m in results["methods"] if m in STRUCTURE_METHODS]
+    if not methods:
+        return []
+    scopes = _scopes(results)
+    head = ["pair", "method"] + [f"{s.replace('_', '-')} keypoints per query: mean / median" for s, _ in scopes]
+    lines = ["Keypoints per query (structure methods):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in results["pairs"]:
+        for m in methods:
+            cells = []
+            for s, _ in scopes:
+                r = _block(p, s)["methods"].get(m, {})
+                mean, med = r.get("keypoints_per_query_mean"), r.get("keypoints_per_query_median")
+                cells.append("n/a" if mean is None or med is None else f"{mean:.1f} / {med:g}")
+            lines.append(f"| {p['query']} to {p['database']} | {METHOD_LABELS.get(m, m)} | " + " | ".join(cells) + " |")
     return lines
 
 
 def _bootstrap_table(results: dict) -> list[str]:
     methods = results["methods"]
-    lines = ["AUC, 90 % bootstrap interval over the queries, and how often (paired resamples) each structure method's AUC "
-             "is above VLAD's:", "",
+    scope = _scopes(results)[0][0]
+    lines = [f"AUC ({scope.replace('_', '-')} queries), 90 % bootstrap interval over the queries, and how often (paired resamples) "
+             "each structure method's AUC is above VLAD's:", "",
              "| pair | " + " | ".join(METHOD_LABELS.get(m, m) for m in methods) + " | " +
              " | ".join(f"P({METHOD_LABELS.get(m, m)} > VLAD)" for m in methods if m != "vlad") + " |",
              "|" + "---|" * (1 + len(methods) + sum(m != "vlad" for m in methods))]
     for p in results["pairs"]:
+        b = _block(p, scope)
         cells = []
         for m in methods:
-            ci = p["methods"].get(m, {}).get("auc_ci90")
-            cells.append("n/a" if not ci else f"{p['methods'][m]['auc']:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]")
-        probs = [p.get("p_auc_above", {}).get(f"{m}>vlad") for m in methods if m != "vlad"]
+            ci = b["methods"].get(m, {}).get("auc_ci90")
+            cells.append("n/a" if not ci else f"{b['methods'][m]['auc']:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]")
+        probs = [b.get("p_auc_above", {}).get(f"{m}>vlad") for m in methods if m != "vlad"]
         cells += ["n/a" if x is None else f"{x:.2f}" for x in probs]
         lines.append(f"| {p['query']} to {p['database']} | " + " | ".join(cells) + " |")
     return lines
 
 
 def plot_pr_curves(path: Path, results: dict) -> Path:
-    """One panel per pair: the precision-recall curve of each method."""
+    """One panel per pair: the precision-recall curve of each method over the held-out queries
+    (solid) and over all queries (dashed, thin)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -684,22 +1028,29 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
     cols = min(3, max(n, 1))
     rows_n = (n + cols - 1) // cols
     fig, axes = plt.subplots(rows_n, cols, figsize=(4.6 * cols, 4.2 * rows_n), dpi=100, squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, p in zip(axes.ravel(), results["pairs"]):
-        for m in results["methods"]:
-            r = p["methods"].get(m, {})
-            if not r.get("available"):
-                continue
-            c = r["curve"]
-            ax.step(np.r_[0.0, c["recall"]], np.r_[c["precision"][:1] if c["precision"] else [1.0], c["precision"]], where="pre",
-                    label=f"{METHOD_LABELS.get(m, m)} (AUC {r['auc']:.2f})")
+        for k, m in enumerate(results["methods"]):
+            for scope, _ in _scopes(results):
+                r = _block(p, scope)["methods"].get(m, {})
+                if not r.get("available"):
+                    continue
+                c = r["curve"]
+                auc = "n/a" if r.get("auc") is None else f"{r['auc']:.2f}"
+                label = f"{METHOD_LABELS.get(m, m)} (AUC {auc})" if scope == _scopes(results)[0][0] else \
+                    f"{METHOD_LABELS.get(m, m)}, all places ({auc})"
+                ax.step(np.r_[0.0, c["recall"]], np.r_[c["precision"][:1] if c["precision"] else [1.0], c["precision"]], where="pre",
+                        color=colours[k % len(colours)], lw=1.6 if scope == "held_out" or not _held_out(results) else 0.8,
+                        ls="-" if scope == "held_out" or not _held_out(results) else "--", label=label)
         ax.set_xlim(0, 1)
         ax.set_ylim(0, 1.02)
         ax.set_xlabel("recall")
         ax.set_ylabel("precision")
         qc, dc = _cond_label(p["conditions"]["query"]), _cond_label(p["conditions"]["database"])
-        ax.set_title(f"{p['query']} to {p['database']}" + (f"\n{qc} / {dc}" if qc else ""), fontsize=9)
+        held = f", {p['held_out_queries']} held-out queries" if p.get("held_out_queries") is not None else ""
+        ax.set_title(f"{p['query']} to {p['database']}{held}" + (f"\n{qc} / {dc}" if qc else ""), fontsize=9)
         ax.grid(alpha=0.3)
-        ax.legend(loc="lower left", fontsize=8)
+        ax.legend(loc="lower left", fontsize=7)
     for ax in axes.ravel()[n:]:
         ax.axis("off")
     fig.tight_layout()
@@ -707,4 +1058,5 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
 
 
 __all__ = ["PlacesEvalConfig", "table1_counts", "pr_curve", "pr_auc", "best_f1", "score_queries", "VladBaseline", "nearest_l2",
-           "nearest_stamp", "bootstrap_auc", "evaluate_places", "format_places", "plot_pr_curves"]
+           "nearest_stamp", "bootstrap_auc", "evaluate_places", "format_places", "plot_pr_curves", "PlaceSplit", "split_from_dataset",
+           "split_from_points", "tiles_split_of_workspace", "resolve_split", "query_split_counts", "no_held_out_note"]
