@@ -95,7 +95,11 @@ class DsiftConfig(MapkitConfig):
         description="'mapkit': Gaussian window of sigma window_sigma_bins sampled at the bin centres, no contrast threshold "
         "(Lowe 2004, OpenCV). 'phow': VLFeat vl_phow's defaults (Vedaldi and Fulkerson 2008; the extractor of the MCVL "
         "authors): vl_dsift fast mode, each bin weighted by the mean of a Gaussian window of sigma phow_window_size bins "
-        "over the bin, and descriptors of contrast below phow_contrast_threshold zeroed; window_sigma_bins is then unused.",
+        "over the bin, and descriptors of contrast below phow_contrast_threshold zeroed; window_sigma_bins is then unused. "
+        "Default 'mapkit' by measured recall@1 within 25 m (VLAD, power whitening): no consistent gain from 'phow' (demo, "
+        "half resolution: clear 0.90 -> 0.98, night 0.11 -> 0.14, snowy 0.17 -> 0.39; full resolution: night 0.25 -> 0.07, "
+        "snowy 0.40 -> 0.35; tiny town night: half 0.42 -> 0.37, full 0.28 -> 0.36): its contrast threshold zeroes the "
+        "descriptors of under-exposed images.",
     )
     phow_window_size: float = Field(
         1.5, gt=0, description="Mode 'phow': sigma of the Gaussian window, in bins (vl_phow WindowSize 1.5)."
