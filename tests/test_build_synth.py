@@ -60,3 +60,32 @@ def test_map_lies_on_the_true_surfaces(built):
     m = r["map_local"]
     assert m["points"] > 2000
     assert m["median_distance_m"] < 0.25 and m["fraction_within_0.5m"] > 0.65, m
+
+
+def test_image_database_records_the_camera_mount(built):
+    """The build keeps the camera's mount on the vehicle beside its image table, and a VLAD bundle
+    made from it carries it, so that the localizer's filter runs on the vehicle pose as recorded."""
+    import warnings
+
+    import numpy as np
+
+    from mapkit.core.workspace import Workspace
+    from mapkit.localization.localize import LocalizeConfig
+    from mapkit.retrieval.index_vlad import VladIndex, VladIndexConfig, build_vlad_index
+    from mapkit.synth import load_world
+    from mapkit.synth.sensors import FRAME_CAMERA, extrinsics
+
+    town, ws, _ = built
+    rec = json.loads(Workspace(ws).session("drive").camera_mount.read_text())
+    truth = extrinsics(load_world(town).config)[FRAME_CAMERA]
+    assert rec["camera"] == FRAME_CAMERA and rec["base_frame"] == "base_link"
+    np.testing.assert_allclose(rec["base_from_camera"], truth, atol=1e-9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a short drive: the PCA is capped
+        cfg = VladIndexConfig(database_sessions=["drive"], train_sessions=["drive"],
+                              vlad={"num_words": 8, "pca_dim": 12, "kmeans_iterations": 10, "dsift": {"half_resolution": True}})
+        index = VladIndex.load(build_vlad_index(ws, config=cfg, progress=False))
+    np.testing.assert_allclose(index.base_from_camera, truth, atol=1e-9)
+    np.testing.assert_allclose(LocalizeConfig().camera_mount(index).base_from_camera, truth, atol=1e-9)
+    pinned = np.eye(4)[[2, 0, 1, 3]].T  # an explicit mount in the config wins over the bundle's
+    assert not np.allclose(LocalizeConfig(base_from_camera=tuple(map(tuple, pinned))).camera_mount(index).base_from_camera, truth)

@@ -84,9 +84,10 @@ def test_presets_load_and_paper_is_the_default():
         lines = [ln for ln in (PRESETS / f"{name}.yaml").read_text().splitlines() if ":" in ln and not ln.lstrip().startswith("#")]
         leaves = [ln for ln in lines if not ln.rstrip().endswith(":") and "#" not in ln.split(":", 1)[0]]
         assert all("#" in ln for ln in leaves), [ln for ln in leaves if "#" not in ln]
-        # every preset states the camera mount the filter's base pose comes from: a forward camera
-        mount = load_config(LocalizeConfig, PRESETS / f"{name}.yaml").camera_mount()
-        np.testing.assert_array_equal(mount.base_from_camera, make_pose(FORWARD_CAMERA_ROTATION, np.zeros(3)))
+        # no preset pins the camera mount: the bundle's recorded mount, else a forward camera
+        cfg = load_config(LocalizeConfig, PRESETS / f"{name}.yaml")
+        assert cfg.base_from_camera is None
+        np.testing.assert_array_equal(cfg.camera_mount().base_from_camera, make_pose(FORWARD_CAMERA_ROTATION, np.zeros(3)))
 
 
 def test_camera_mount_must_be_rigid():

@@ -12,7 +12,7 @@ A workspace holds one folder per drive (session) and the multi-session stages bu
         trajectory/               odometry (trajectory.npz, TUM, KITTI)
         georef/                   GPS-aligned trajectory_enu/, gps_alignment.json
         map/                      semi-dense map: points.ply, observations.npz
-        imagedb/                  images/, images.csv, colmap/
+        imagedb/                  images/, images.csv, colmap/, camera_mount.json
       align/                      mapkit align; .done lists the sessions it holds
         sessions/<name>/          trajectory/, map/, images.csv in the common frame
         tiles/                    merged map in UTM tiles
@@ -94,6 +94,11 @@ class SessionDirs:
     @property
     def images_csv(self) -> Path:
         return self.imagedb / "images.csv"
+
+    @property
+    def camera_mount(self) -> Path:
+        """The image database's camera and its mount on the vehicle (``base_from_camera``)."""
+        return self.imagedb / "camera_mount.json"
 
     def stage(self, stage: Stage) -> Path:
         return getattr(self, stage)

@@ -58,14 +58,15 @@ DEFAULT_BASE_FROM_CAMERA: tuple[Row4, Row4, Row4, Row4] = (
 
 class LocalizeConfig(MapkitConfig):
     mcl: MclConfig = MclConfig()
-    base_from_camera: tuple[Row4, Row4, Row4, Row4] = Field(
-        DEFAULT_BASE_FROM_CAMERA,
+    base_from_camera: Optional[tuple[Row4, Row4, Row4, Row4]] = Field(
+        None,
         description="The rig's camera mount, a rigid 4x4 base_from_camera (base: x forward, y left, z up; camera: optical x right, "
                     "y down, z forward). The filter runs on the base pose, whose third Euler angle is the heading (MCVL Sec. IV-A's "
-                    "covariances assume it); the database's camera poses are converted through this and the estimates back. Default "
-                    "(mapkit choice, as VLAD bundles do not record the mount yet): a camera looking straight ahead at the base origin. "
-                    "A real mount pitched a few degrees or offset from this only tilts or shifts the base the filter tracks (the round trip "
-                    "back to the camera is exact); a camera turned about its optical axis or looking steeply down needs its true mount.",
+                    "covariances assume it); the database's camera poses are converted through this and the estimates back. None "
+                    "(default): the mount the bundle recorded from its database sessions (mapkit build writes it), else a camera "
+                    "looking straight ahead at the base origin (mapkit choice). A mount pitched a few degrees or offset from the true "
+                    "one only tilts or shifts the base the filter tracks (the round trip back to the camera is exact); a camera turned "
+                    "about its optical axis or looking steeply down needs its true mount.",
     )
     top_k: int = Field(20, ge=1, description="Retrieved database images per query (MCVL IV-A: R = 20).")
     bandwidth_m: float = Field(5.0, gt=0, description="Mean-shift bandwidth over the retrieved translations (m; the authors' code).")
@@ -77,12 +78,19 @@ class LocalizeConfig(MapkitConfig):
     @field_validator("base_from_camera")
     @classmethod
     def _rigid_mount(cls, v):
-        CameraMount(np.asarray(v, dtype=np.float64))  # raises ValueError unless a rigid pose
+        if v is not None:
+            CameraMount(np.asarray(v, dtype=np.float64))  # raises ValueError unless a rigid pose
         return v
 
-    def camera_mount(self) -> CameraMount:
-        """:attr:`base_from_camera` as a :class:`~mapkit.localization.mcl.CameraMount`."""
-        return CameraMount(np.asarray(self.base_from_camera, dtype=np.float64))
+    def camera_mount(self, index=None) -> CameraMount:
+        """The mount the filter uses: :attr:`base_from_camera` when set, else the one ``index`` (a
+        VLAD bundle) recorded, else the forward camera of :data:`DEFAULT_BASE_FROM_CAMERA`."""
+        if self.base_from_camera is not None:
+            return CameraMount(np.asarray(self.base_from_camera, dtype=np.float64))
+        recorded = getattr(index, "base_from_camera", None)
+        if recorded is not None:
+            return CameraMount(np.asarray(recorded, dtype=np.float64))
+        return CameraMount(np.asarray(DEFAULT_BASE_FROM_CAMERA, dtype=np.float64))
 
 
 @dataclass(frozen=True)
@@ -118,10 +126,10 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
     :func:`cached_query_all`) skips encoding them. ``odometry[t]`` is the query camera's motion
     ``cam_{t-1} <- cam_t`` (4, 4) into step t or None. Returns per query: the measurement's camera
     pose (retrieval alone), the filter's camera pose, the measurement's cluster size, and the
-    retrieved ids. The filter itself runs on base poses (``cfg.base_from_camera``).
+    retrieved ids. The filter itself runs on base poses (:meth:`LocalizeConfig.camera_mount`).
     """
     mcl_cfg = cfg.mcl.model_copy(update={"odometry": cfg.mcl.odometry.model_copy(update={"enabled": cfg.odometry})})
-    mount = cfg.camera_mount()
+    mount = cfg.camera_mount(index)
     mh = mcl_cfg.multi_hypothesis
     loc = MonteCarloLocalizer(mcl_cfg, seed=cfg.seed)
     n = len(images)

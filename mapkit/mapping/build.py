@@ -294,19 +294,22 @@ class SessionBuilder:
                 cameras.add(first.camera)
         return cameras
 
+    def base_from_camera(self, body_frame: str) -> np.ndarray:
+        """The mapping camera's mount: the pose of the camera in the trajectory's body frame."""
+        name = self._camera()[0]
+        if body_frame == name:
+            return np.eye(4)
+        try:
+            return FrameTree(self.log.transforms()).lookup(body_frame, name)
+        except InputError as exc:
+            raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {body_frame!r} and camera {name!r}", field="tf") from exc
+
     def posed_frames(self) -> Iterator[tuple[int, CameraFrame, np.ndarray]]:
         """(frame index, CameraFrame, enu_from_camera) of the mapping camera on the chosen image
         topics (``topics.images``), inside the trajectory."""
         name, image_topics, info = self._camera()
         traj = self.enu_trajectory()
-        tree = FrameTree(self.log.transforms())
-        if traj.body_frame == name:
-            base_from_cam = np.eye(4)
-        else:
-            try:
-                base_from_cam = tree.lookup(traj.body_frame, name)
-            except InputError as exc:
-                raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {traj.body_frame!r} and camera {name!r}", field="tf") from exc
+        base_from_cam = self.base_from_camera(traj.body_frame)
         index = 0
         for msg in self.log.messages(topics=image_topics):
             frame = msg.record
@@ -349,6 +352,9 @@ class SessionBuilder:
         t0 = time.perf_counter()
         reset_stage(out)
         name, _, info = self._camera()
+        body = self.enu_trajectory().body_frame
+        write_json(self.dirs.camera_mount, {"camera": name, "base_frame": body,
+                                            "base_from_camera": self.base_from_camera(body).tolist()})
         writer = ImageDbWriter(out, self.cfg.imagedb, {name: info})
         last = None
         db_id_of_frame: dict[int, int] = {}

@@ -293,6 +293,9 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
         "frame": None if frame is None else frame.to_dict(),
         "database_sessions": db_names,
         "train_sessions": train_names,
+        # each database session's camera mount (base_from_camera), so that a localizer can put its
+        # filter on the vehicle pose the way the database was recorded
+        "camera_mounts": {n: sessions[n].base_from_camera.tolist() for n in db_names if sessions[n].base_from_camera is not None},
         "sessions": {
             n: {
                 "images": len(s) if n in db_names else 0,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import os
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -118,6 +119,7 @@ class SessionImages:
     image_paths: list[Path]  # readable paths
     workspace_paths: list[str]  # relative to the workspace, as written to database.csv
     world_from_cam: np.ndarray  # (n, 4, 4) local ENU
+    base_from_camera: Optional[np.ndarray] = None  # (4, 4) the camera's mount, when the build recorded it
 
     def __len__(self) -> int:
         return len(self.image_paths)
@@ -139,7 +141,22 @@ def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool =
     table = read_images_csv(csv_path)
     paths = [csv_path.parent / p for p in table["image"]]
     rel = [os.path.relpath(p, ws.root) for p in paths]
-    return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table))
+    return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table), read_camera_mount(ws, name))
+
+
+def read_camera_mount(workspace: str | Path, name: str) -> Optional[np.ndarray]:
+    """Session ``name``'s camera mount ``base_from_camera`` (4, 4) as ``mapkit build`` recorded it;
+    None for image databases built before it was recorded."""
+    path = Workspace(workspace).session(name).camera_mount
+    if not path.is_file():
+        return None
+    try:
+        T = np.asarray(json.loads(path.read_text())["base_from_camera"], np.float64)
+    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise InputError(path, f"not a camera mount ({exc})", field="base_from_camera") from None
+    if T.shape != (4, 4):
+        raise InputError(path, f"base_from_camera is {T.shape}, not 4x4", field="base_from_camera")
+    return T
 
 
 # --------------------------------------------------------------------------- the database table

@@ -85,6 +85,16 @@ class VladIndex:
         self.world_from_cam = images_world_from_cam(database)
         self.frame = LocalFrame.from_dict(manifest["frame"]) if manifest.get("frame") else None
 
+    @property
+    def base_from_camera(self) -> Optional[np.ndarray]:
+        """The database camera's mount (4, 4) when every database session recorded the same one; else None."""
+        mounts = [np.asarray(m, np.float64) for m in (self.manifest.get("camera_mounts") or {}).values()]
+        if not mounts or len(mounts) < len(self.manifest.get("database_sessions", [])):
+            return None
+        if any(not np.allclose(m, mounts[0], atol=1e-6) for m in mounts[1:]):
+            return None
+        return mounts[0]
+
     # ---- loading
 
     @classmethod
