@@ -10,12 +10,15 @@ import logging
 import sys
 import warnings
 from pathlib import Path
-from typing import List, Optional
+from typing import TYPE_CHECKING, List, Optional
 
 import typer
 
 from mapkit import __version__
-from mapkit.core.errors import InputWarning, MapkitError
+from mapkit.core.errors import ConfigError, InputWarning, MapkitError
+
+if TYPE_CHECKING:
+    from mapkit.core.config import MapkitConfig
 
 app = typer.Typer(
     name="mapkit",
@@ -73,11 +76,39 @@ def info(
 config_app = typer.Typer(help="Show configuration defaults.", no_args_is_help=True)
 app.add_typer(config_app, name="config")
 
+#: name -> "module:Model" of every stage's config, for ``mapkit config defaults NAME``; resolved
+#: lazily so that listing them imports no stage (here, at the top, because it names every rung)
+CONFIGS: dict[str, str] = {
+    "topics": "mapkit.core.config:TopicConfig",
+    "build": "mapkit.mapping.build:BuildConfig",
+    "semidense": "mapkit.mapping.semidense:SemiDenseConfig",
+    "align": "mapkit.multisession.align:AlignConfig",
+    "mcl": "mapkit.localization.mcl:MclConfig",
+    "vlad": "mapkit.retrieval.vlad:VladConfig",
+    "triplets": "mapkit.places.triplets:TripletConfig",
+    "index_vlad": "mapkit.retrieval.index_vlad:VladIndexConfig",
+    "localize": "mapkit.localization.localize:LocalizeConfig",
+    "structure_index": "mapkit.places.index_structure:StructureIndexConfig",
+    "places": "mapkit.evaluation.places:PlacesEvalConfig",
+    "train": "mapkit.learning.train:TrainConfig",
+    "executor": "mapkit.core.executor:ExecutorConfig",
+}
+
+
+def config_model(name: str) -> type[MapkitConfig]:
+    """The config model registered as ``name``."""
+    import importlib
+
+    if name not in CONFIGS:
+        raise ConfigError(f"no configuration named {name!r}; known: {', '.join(sorted(CONFIGS))}")
+    module, model = CONFIGS[name].split(":")
+    return getattr(importlib.import_module(module), model)
+
 
 @config_app.command("defaults")
 def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topics.")) -> None:
     """Print the defaults of a configuration as commented YAML."""
-    from mapkit.core.config import config_model, defaults_yaml
+    from mapkit.core.config import defaults_yaml
 
     typer.echo(defaults_yaml(config_model(name)), nl=False)
 

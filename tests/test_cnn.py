@@ -17,7 +17,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from mapkit.core.config import config_model, load_config  # noqa: E402
+from mapkit.cli import config_model
+from mapkit.core.config import load_config  # noqa: E402
 from mapkit.core.errors import ConfigError, InputError  # noqa: E402
 from mapkit.core.runio import write_json  # noqa: E402
 from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402

@@ -79,7 +79,8 @@ import json, sys
 from pathlib import Path
 import mapkit
 from mapkit.core import presets
-from mapkit.core.config import config_model, load_config
+from mapkit.cli import config_model
+from mapkit.core.config import load_config
 from mapkit.synth.config import PRESETS, load_config as load_synth
 
 site = Path(sys.argv[1]).resolve()

@@ -1,6 +1,6 @@
 """Typed configuration: pydantic models with written-out defaults, loaded from YAML.
 
-Each stage declares its model here or in its own module and registers it in ``CONFIGS`` so that
+Each stage declares its model here or in its own module; ``mapkit.cli.CONFIGS`` names it so that
 ``mapkit config defaults NAME`` prints it. Defaults that come from a paper say so in the field's
 description. Unknown keys are errors (a typo must not silently fall back to a default).
 """
@@ -32,35 +32,6 @@ class TopicConfig(MapkitConfig):
     lidar: Optional[str] = Field(None, description="PointCloud2 topic; the only LiDAR stream if unset.")
     imu: Optional[str] = Field(None, description="Imu topic; the only IMU stream if unset.")
     poses: Optional[str] = Field(None, description="Ground-truth/INS pose topic; the only pose stream if unset.")
-
-
-#: name -> "module:Model" of every stage's config, for ``mapkit config defaults NAME``; resolved
-#: lazily so that listing them imports no stage
-CONFIGS: dict[str, str] = {
-    "topics": "mapkit.core.config:TopicConfig",
-    "build": "mapkit.mapping.build:BuildConfig",
-    "semidense": "mapkit.mapping.semidense:SemiDenseConfig",
-    "align": "mapkit.multisession.align:AlignConfig",
-    "mcl": "mapkit.localization.mcl:MclConfig",
-    "vlad": "mapkit.retrieval.vlad:VladConfig",
-    "triplets": "mapkit.places.triplets:TripletConfig",
-    "index_vlad": "mapkit.retrieval.index_vlad:VladIndexConfig",
-    "localize": "mapkit.localization.localize:LocalizeConfig",
-    "structure_index": "mapkit.places.index_structure:StructureIndexConfig",
-    "places": "mapkit.evaluation.places:PlacesEvalConfig",
-    "train": "mapkit.learning.train:TrainConfig",
-    "executor": "mapkit.core.executor:ExecutorConfig",
-}
-
-
-def config_model(name: str) -> type[MapkitConfig]:
-    """The config model registered as ``name``."""
-    import importlib
-
-    if name not in CONFIGS:
-        raise ConfigError(f"no configuration named {name!r}; known: {', '.join(sorted(CONFIGS))}")
-    module, model = CONFIGS[name].split(":")
-    return getattr(importlib.import_module(module), model)
 
 
 def load_config(model: type[M], path: M | str | Path | None = None, overrides: Optional[dict[str, Any]] = None) -> M:
