@@ -48,7 +48,7 @@ def test_nbld_density_step_gives_expected_bits():
 
 
 def test_nbld_counts_cells_and_leaves_out_the_outside():
-    cfg = d3.NBLDConfig()
+    cfg = d3.NBLDConfig(n_vertical=4)  # 5 m layers: the layers named below
     pts = np.array([
         [-0.0, -0.0, 0.0],  # the keypoint (signed zeros): ring 0, sector 0, layer 2
         [1.0, 0.1, 0.1],  # ring 0, sector 0, layer 2
@@ -303,7 +303,7 @@ def test_chain_invariant_to_rotation_of_the_map_about_z(rng, kind):
     shift = np.array([120.0, -40.0, 3.0])
     moved = points @ Rz.T + shift
     desc_r = d3.describe(kind, moved, keypoints @ Rz.T + shift, (observers - keypoints) @ Rz.T)
-    assert desc.shape == (40, 288 if kind == "nbld" else 192) and desc.dtype == np.float32
+    assert desc.shape == (40, 576 if kind == "nbld" else 192) and desc.dtype == np.float32
     if kind == "nbld":
         assert set(np.unique(desc)) <= {0.0, 1.0} and desc.mean() > 0.05
         assert np.mean(desc != desc_r) < 0.002  # exact in practice; a point on a cell edge may flip

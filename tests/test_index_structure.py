@@ -170,7 +170,7 @@ def test_build_load_query_finds_the_same_place(street_ws, nbld_index):
     ws, maps = street_ws
     idx = StructureIndex.load(nbld_index)
     m = idx.manifest
-    assert m["counts"]["dim"] == 25 and m["counts"]["raw_dim"] == 288 and m["descriptor"] == "nbld"
+    assert m["counts"]["dim"] == 25 and m["counts"]["raw_dim"] == 576 and m["descriptor"] == "nbld"
     assert m["sessions"]["a"]["map_source"] == "align" and m["sessions"]["a"]["frames_interpolated"] > 0
     n_a = len(maps["a"].points_world)
     assert len(idx) == round(0.02 * n_a)

@@ -72,9 +72,12 @@ class NBLDConfig(MapkitConfig):
     domain: PatchDomain = Field(NBLD_DOMAIN, description="Finite vertical cylinder; r = 10 m, h = 20 m from the semi-dense paper (Fig. 6 caption).")
     n_azimuth: int = Field(8, ge=2, description="Azimuthal sectors n_a, from the patch x-axis counter-clockwise (mapkit's choice: 45 deg sectors).")
     n_radial: int = Field(3, ge=1, description="Rings n_r of equal width (mapkit's choice).")
-    # with 8 x 3 x 4 = 96 cells a patch of 500-3000 points has ~5-30 points per cell on
-    # average, enough for a density comparison to mean more than counting noise
-    n_vertical: int = Field(4, ge=1, description="Layers n_z of equal height (mapkit's choice: 5 m layers).")
+    # 8 x 3 x 8 = 192 cells: a patch of 500-3000 points has ~3-15 points per cell on average
+    n_vertical: int = Field(8, ge=1, description="Layers n_z of equal height: 2.5 m layers (mapkit's choice, measured: the paper "
+                            "gives no counts). Chosen on the tiny town's 3 pairs (mean AUC 0.199 against 0.154 with 4 layers; "
+                            "8x2x2 0.125, 8x3x6 0.098, 16x3x8 0.171); on the demo's 8 pairs, not used to choose, held-out mean "
+                            "AUC 0.308 against 0.217 with 4 layers, all places 0.179 against 0.127. Facades and trees differ by "
+                            "height more than by azimuth at this radius.")
 
     @model_validator(mode="after")
     def _check(self) -> "NBLDConfig":
