@@ -105,6 +105,8 @@ class SessionBuilder:
         self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
         self._log: Optional[DriveLog] = None
         self._camera_choice: Optional[tuple[str, list[str], CameraInfo]] = None
+        self._mounts: dict[str, np.ndarray] = {}  # trajectory body frame -> base_from_camera
+        self._enu_trajectory: Optional[Trajectory] = None
 
     @property
     def log(self) -> DriveLog:
@@ -253,9 +255,11 @@ class SessionBuilder:
         return LocalFrame.from_dict(d) if d.get("georeferenced") else None
 
     def enu_trajectory(self) -> Trajectory:
-        """The GPS-aligned trajectory (stage 2's output, the stage run first if need be)."""
-        self.georef()
-        return Trajectory.load(self.dirs.georef_trajectory)
+        """The GPS-aligned trajectory (stage 2's output, the stage run first if need be), read once."""
+        if self._enu_trajectory is None:
+            self.georef()
+            self._enu_trajectory = Trajectory.load(self.dirs.georef_trajectory)
+        return self._enu_trajectory
 
     # --- camera frames with poses ---------------------------------------------------------------
     def _camera(self) -> tuple[str, list[str], CameraInfo]:
@@ -295,14 +299,19 @@ class SessionBuilder:
         return cameras
 
     def base_from_camera(self, body_frame: str) -> np.ndarray:
-        """The mapping camera's mount: the pose of the camera in the trajectory's body frame."""
-        name = self._camera()[0]
-        if body_frame == name:
-            return np.eye(4)
-        try:
-            return FrameTree(self.log.transforms()).lookup(body_frame, name)
-        except InputError as exc:
-            raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {body_frame!r} and camera {name!r}", field="tf") from exc
+        """The mapping camera's mount: the pose of the camera in the trajectory's body frame
+        (looked up in the log's transforms once per body frame)."""
+        if body_frame not in self._mounts:
+            name = self._camera()[0]
+            if body_frame == name:
+                self._mounts[body_frame] = np.eye(4)
+            else:
+                try:
+                    self._mounts[body_frame] = FrameTree(self.log.transforms()).lookup(body_frame, name)
+                except InputError as exc:
+                    raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {body_frame!r} and camera {name!r}",
+                                     field="tf") from exc
+        return self._mounts[body_frame]
 
     def posed_frames(self) -> Iterator[tuple[int, CameraFrame, np.ndarray]]:
         """(frame index, CameraFrame, enu_from_camera) of the mapping camera on the chosen image
