@@ -72,7 +72,7 @@ from mapkit.core.workspace import Workspace
 from mapkit.io.plots import _save
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors
-from mapkit.places.triplets import TripletConfig, load_aligned_sessions, split_of, tile_split
+from mapkit.places.triplets import TripletConfig, load_aligned_sessions, split_of, tile_split, tiles_from_manifest, tiles_to_manifest
 from mapkit.retrieval.index_vlad import VladIndex, read_session_images
 
 log = logging.getLogger(__name__)
@@ -292,6 +292,10 @@ class PlaceSplit:
         lab = split_of(self.frame.enu_to_utm(enu)[:, :2], self.tiles, self.tile_size_m, self.buffer_m)
         return np.where(lab == "", "buffer", lab).astype(object)
 
+    @property
+    def tile_counts(self) -> dict[str, int]:
+        return {s: sum(v == s for v in self.tiles.values()) for s in ("train", "test")}
+
     def held_out(self, enu: np.ndarray) -> np.ndarray:
         """(n,) bool: the position is a held-out place (in a test tile, outside the buffer)."""
         return self.labels(enu) == "test"
@@ -299,18 +303,16 @@ class PlaceSplit:
     def to_dict(self) -> dict:
         """What ``places.json`` records of the split: its source and parameters, and the tiles in
         the triplet manifest's form (``utm_min`` corner, ``split``)."""
-        n = {s: sum(v == s for v in self.tiles.values()) for s in ("train", "test")}
         return {"source": self.source, "dataset": self.dataset, "dataset_config_hash": self.dataset_config_hash,
                 "tile_size_m": self.tile_size_m, "buffer_m": self.buffer_m, "test_fraction": self.test_fraction, "seed": self.seed,
-                "utm_crs_epsg": None if self.frame is None else int(self.frame.utm_epsg), "tile_counts": n, "notes": list(self.notes),
-                "tiles": [{"utm_min": [k[0] * self.tile_size_m, k[1] * self.tile_size_m], "split": v}
-                          for k, v in sorted(self.tiles.items())]}
+                "utm_crs_epsg": None if self.frame is None else int(self.frame.utm_epsg), "tile_counts": self.tile_counts,
+                "notes": list(self.notes), "tiles": tiles_to_manifest(self.tiles, self.tile_size_m) if self.tiles else []}
 
     def describe(self) -> str:
         """One sentence for ``places.md``: which tiles, from where, with which buffer."""
         if self.source == "none":
             return "no geographic split (split = none, or no UTM frame): the headline figures are over all queries"
-        n = {s: sum(v == s for v in self.tiles.values()) for s in ("train", "test")}
+        n = self.tile_counts
         where = f"the triplet dataset {self.dataset}" if self.source == "triplets" else \
             f"tiles drawn as mapkit triplets draws them (seed {self.seed}, {100 * self.test_fraction:g} % test)"
         return (f"held-out queries lie in test tiles of {where}: UTM tiles of {self.tile_size_m:g} m, {n['test']} test and "
@@ -331,14 +333,10 @@ def split_from_dataset(folder: str | Path, frame: LocalFrame) -> PlaceSplit:
         raise InputError(mpath, f"the dataset's tiles are in EPSG:{epsg}, the workspace's frame in EPSG:{frame.utm_epsg}",
                          field="frame")
     tile = float(tcfg.tile_size_m)
-    tiles = {}
-    for t in man.get("tiles") or []:
-        corner = np.asarray(t["utm_min"], np.float64)
-        key = np.round(corner / tile).astype(np.int64)
-        if np.any(np.abs(key * tile - corner) > 1e-6 * max(tile, 1.0)) or t.get("split") not in ("train", "test"):
-            raise InputError(mpath, f"tile {t} is not a {tile:g} m tile labelled train or test (config.yaml's tile_size_m)",
-                             field="tiles")
-        tiles[(int(key[0]), int(key[1]))] = t["split"]
+    try:
+        tiles = tiles_from_manifest(man.get("tiles") or [], tile)
+    except ValueError as exc:
+        raise InputError(mpath, f"{exc} (config.yaml's tile_size_m)", field="tiles") from None
     return PlaceSplit("triplets", tiles, tile, float(tcfg.buffer_m), float(tcfg.test_fraction), int(man.get("seed", tcfg.seed)),
                       frame, str(folder.resolve()), man.get("config_hash"))
 
@@ -409,9 +407,7 @@ def resolve_split(ws: Workspace, cfg: PlacesEvalConfig, fallback_maps: Callable[
     if model_ds is not None and model_ds.get("tiles") is not None:
         # the model's manifest records its dataset's tiles: they must be the split's, else the
         # held-out queries may lie where the CNN trained
-        own = {tuple(np.round(np.asarray(t["utm_min"]) / split.tile_size_m).astype(int).tolist()): t["split"]
-               for t in model_ds.get("tiles") or []}
-        if own != split.tiles:
+        if model_ds["tiles"] != tiles_to_manifest(split.tiles, split.tile_size_m):
             note = ("the CNN model was trained on a triplet dataset whose tiles differ from the split's: its held-out figures "
                     "may include places it trained on (set triplets_dir to the model's dataset)")
             warnings.warn(f"places: {note}", InputWarning, stacklevel=3)

@@ -268,6 +268,24 @@ def tile_split(utm_xy: np.ndarray, tile_m: float, test_fraction: float, seed: in
     return labels
 
 
+def tiles_to_manifest(tiles: dict[tuple[int, int], str], tile_m: float) -> list[dict]:
+    """The tiles as a dataset's manifest lists them: each tile's south-west UTM corner and its split."""
+    return [{"utm_min": [k[0] * tile_m, k[1] * tile_m], "split": v} for k, v in sorted(tiles.items())]
+
+
+def tiles_from_manifest(entries: list[dict], tile_m: float) -> dict[tuple[int, int], str]:
+    """The inverse of :func:`tiles_to_manifest`; ``ValueError`` naming the first entry that is not
+    a ``tile_m`` tile labelled train or test."""
+    tiles = {}
+    for e in entries:
+        corner = np.asarray(e["utm_min"], np.float64)
+        key = np.round(corner / tile_m).astype(np.int64)
+        if np.any(np.abs(key * tile_m - corner) > 1e-6 * max(tile_m, 1.0)) or e.get("split") not in ("train", "test"):
+            raise ValueError(f"tile {e} is not a {tile_m:g} m tile labelled train or test")
+        tiles[(int(key[0]), int(key[1]))] = e["split"]
+    return tiles
+
+
 def split_of(utm_xy: np.ndarray, tiles: dict[tuple[int, int], str], tile_m: float, buffer_m: float) -> np.ndarray:
     """Per point: "train", "test", or "" when within ``buffer_m`` of a tile of the other split."""
     ij = np.floor(utm_xy / tile_m).astype(np.int64)
@@ -870,7 +888,7 @@ def _write_dataset(out: Path, ws: Workspace, h: str, cfg: TripletConfig, session
         "config_hash": h, "frame": frame.to_dict(), "domain": cfg.domain.model_dump(), "grid": cfg.grid,
         "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
                   "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
-        "tiles": [{"utm_min": [k[0] * cfg.tile_size_m, k[1] * cfg.tile_size_m], "split": v} for k, v in sorted(tiles.items())],
+        "tiles": tiles_to_manifest(tiles, cfg.tile_size_m),
         "shard_format": cfg.shard_format, "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
         "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
     }
