@@ -44,7 +44,7 @@ from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_do
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import triplet_examples
 from mapkit.mapping.semidense import SemiDenseMap
-from mapkit.multisession.registration import IcpClouds, IcpConfig, Registration, about_centre, icp_coarse_to_fine
+from mapkit.multisession.registration import IcpClouds, IcpConfig, Registration, about_centre, evaluate_alignment, icp_coarse_to_fine
 from mapkit.multisession.tiles import load_tiles
 from mapkit.places.patches import (
     CNN_DOMAIN,
@@ -381,10 +381,9 @@ def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarr
     ``target``'s: :func:`mapkit.multisession.registration.icp_coarse_to_fine`, the loop of
     :func:`~mapkit.multisession.registration.register_clouds` (same levels, normals, correspondence
     distances), on crops of the sessions' cached downsampled clouds (:meth:`SessionPoints.icp_level`);
-    fitness and point-to-plane RMSE at ``icp.eval_distance_m`` of the fine level (open3d's
-    correspondences; no structure-only figures). ``relative_change``: ICP stops when fitness and
-    RMSE change by less than this (open3d's criteria)."""
-    import open3d as o3d
+    fitness and point-to-plane RMSE at ``icp.eval_distance_m`` of the fine level, scored as
+    :func:`~mapkit.multisession.registration.evaluate_alignment` scores (no structure-only figures).
+    ``relative_change``: ICP stops when fitness and RMSE change by less than this (open3d's criteria)."""
 
     def level(voxel: float) -> Optional[IcpClouds]:
         sp, _, sg = source.icp_level(voxel)
@@ -397,16 +396,10 @@ def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarr
     T, clouds = icp_coarse_to_fine(level, icp, relative_change)
     if clouds is None:
         return Registration.failed()
-    reg, vec = o3d.pipelines.registration, o3d.utility.Vector3dVector
-    src = o3d.geometry.PointCloud(vec(clouds.source))
-    tgt = o3d.geometry.PointCloud(vec(clouds.target))
-    corr = np.asarray(reg.evaluate_registration(src, tgt, icp.eval_distance_m, T).correspondence_set)
-    if len(corr) == 0:
+    ev = evaluate_alignment(clouds.source, clouds.target, T, icp.voxel_sizes_m[-1], icp, clouds.target_normals, structure=False)
+    if ev["fitness"] == 0.0:  # no correspondence: no fit
         return Registration.failed()
-    moved = clouds.source[corr[:, 0]] @ T[:3, :3].T + T[:3, 3]
-    r = np.einsum("ij,ij->i", moved - clouds.target[corr[:, 1]], clouds.target_normals[corr[:, 1]])
-    fitness, rmse = len(corr) / len(clouds.source), float(np.sqrt(np.mean(r * r)))
-    return Registration(about_centre(T, centre), fitness, rmse, fitness, rmse)
+    return Registration(about_centre(T, centre), **ev)
 
 
 class ChunkSets:
