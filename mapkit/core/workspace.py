@@ -3,6 +3,7 @@
 A workspace holds one folder per drive (session) and the multi-session stages built on them::
 
     WORKSPACE/
+      .lock                       held by the command writing the workspace (pid, command)
       origin.json                 the local ENU frame (geodetic origin) of every map here
       build_config.yaml           the resolved build config
       metrics.json                the build's per-session summary
@@ -39,6 +40,7 @@ from typing import Literal, Optional, Union
 
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
+from mapkit.core.lock import workspace_lock
 
 #: the workspace's local frame; every map and pose in the workspace is in this ENU frame
 ORIGIN = "origin.json"
@@ -146,6 +148,10 @@ class Workspace:
 
     def __fspath__(self) -> str:
         return str(self.root)
+
+    def lock(self, command: Optional[str] = None, wait_s: float = 0.0):
+        """The workspace's write lock, a context manager (:func:`mapkit.core.lock.workspace_lock`)."""
+        return workspace_lock(self.root, command, wait_s)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Workspace) and self.root == other.root

@@ -1,0 +1,88 @@
+"""The workspace write lock: a second writer is refused (or waits) with the holder named, a killed
+holder leaves no stale lock, and one process may take it again inside itself."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from mapkit.core.lock import WorkspaceBusy, holds_lock, read_holder, workspace_lock
+from mapkit.core.workspace import Workspace
+
+HOLD = """
+import sys, time
+from pathlib import Path
+from mapkit.core.lock import workspace_lock
+with workspace_lock(sys.argv[1], command="mapkit build test-holder"):
+    Path(sys.argv[2]).write_text("held")
+    time.sleep(float(sys.argv[3]))
+"""
+
+
+def _hold(ws: Path, tmp_path: Path, seconds: float) -> subprocess.Popen:
+    flag = tmp_path / f"held-{time.monotonic_ns()}"
+    proc = subprocess.Popen([sys.executable, "-c", HOLD, str(ws), str(flag), str(seconds)])
+    t0 = time.monotonic()
+    while not flag.exists():
+        assert proc.poll() is None, "the holder exited before taking the lock"
+        assert time.monotonic() - t0 < 60, "the holder did not take the lock"
+        time.sleep(0.05)
+    return proc
+
+
+def test_second_writer_is_refused_naming_the_holder(tmp_path):
+    ws = tmp_path / "ws"
+    proc = _hold(ws, tmp_path, 30)
+    try:
+        with pytest.raises(WorkspaceBusy) as err:
+            with workspace_lock(ws, command="mapkit align"):
+                pytest.fail("took a lock another process holds")
+        msg = str(err.value)
+        assert f"pid {proc.pid}" in msg and "mapkit build test-holder" in msg and str(ws) in msg
+        assert read_holder(ws / ".lock")["pid"] == proc.pid
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_waiter_gets_the_lock_when_the_holder_finishes(tmp_path):
+    ws = tmp_path / "ws"
+    proc = _hold(ws, tmp_path, 1.0)
+    try:
+        with Workspace(ws).lock(command="waiter", wait_s=60):
+            assert read_holder(ws / ".lock")["command"] == "waiter"
+            assert proc.poll() == 0  # the holder finished before the waiter got in
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_killed_holder_leaves_no_stale_lock(tmp_path):
+    ws = tmp_path / "ws"
+    proc = _hold(ws, tmp_path, 60)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert (ws / ".lock").exists() and read_holder(ws / ".lock")["pid"] == proc.pid  # its record stays ...
+    with workspace_lock(ws, command="after the kill"):  # ... but the kernel released its flock
+        assert read_holder(ws / ".lock")["command"] == "after the kill"
+
+
+def test_reentrant_in_one_process_and_released_after(tmp_path):
+    ws = tmp_path / "ws"
+    with workspace_lock(ws, command="outer"):
+        with workspace_lock(ws, command="inner"):
+            assert holds_lock(ws)
+            assert read_holder(ws / ".lock")["command"] == "outer"
+        assert holds_lock(ws)
+    assert not holds_lock(ws)
+    assert read_holder(ws / ".lock") == {}
+    # released: another process takes it at once
+    out = subprocess.run([sys.executable, "-c", "import sys\nfrom mapkit.core.lock import workspace_lock\n"
+                          "with workspace_lock(sys.argv[1]): print('ok')", str(ws)], capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
