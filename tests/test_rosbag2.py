@@ -159,10 +159,12 @@ def test_rosbag2_folders_mapkit_cannot_read_are_clear_errors(tmp_path):
     (sq / "sq_0.db3").write_bytes(b"SQLite format 3\x00")
     (sq / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
         "version": 5, "storage_identifier": "sqlite3", "relative_file_paths": ["sq_0.db3"]}}))
-    assert guess_format(sq) == "mcap"
-    with pytest.raises(InputError, match=r"storage 'sqlite3' cannot be read yet") as exc:
-        open_log(sq)
+    assert guess_format(sq) == "rosbag"  # sqlite3 storage goes to the rosbags-based reader (tests/test_rosbag1.py)
+    with pytest.raises(InputError, match=r"storage 'sqlite3' is read by the 'rosbag' reader") as exc:
+        McapLog(sq)
     assert exc.value.field == "storage_identifier"
+    with pytest.raises(InputError, match="could not be read as a rosbag2 folder"):  # this one is only a header
+        open_log(sq)
     gone = _write(Rosbag2Writer(tmp_path / "gone"), [("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0), {})])
     (gone / "gone_0.mcap").unlink()
     with pytest.raises(InputError, match=r"missing: \['gone_0.mcap'\]"):

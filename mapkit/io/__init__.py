@@ -15,10 +15,12 @@ from mapkit.io.base import DriveLog
 #: reader name -> "module:Class"; each class has ``detect(path) -> bool``
 READERS: dict[str, str] = {
     "mcap": "mapkit.io.mcap_log:McapLog",  # a .mcap file or a rosbag2 folder with mcap storage
+    "rosbag": "mapkit.io.rosbag:RosbagLog",  # a ROS 1 .bag file or a rosbag2 folder with sqlite3 storage
     "kitti-odometry": "mapkit.io.kitti:KittiOdometry",
     "kitti-raw": "mapkit.io.kitti:KittiRaw",
     "robotcar": "mapkit.io.robotcar:RobotCar",
     "folder": "mapkit.io.folder:FolderLog",
+    "photos": "mapkit.io.photos:PhotoFolder",
 }
 
 
@@ -29,6 +31,18 @@ def reader_class(name: str) -> type[DriveLog]:
     return getattr(importlib.import_module(module), cls)
 
 
+def _rosbag2_reader(folder: Path) -> str:
+    """``rosbag`` for a rosbag2 folder with sqlite3 storage, ``mcap`` otherwise (McapLog explains other storage)."""
+    from mapkit.io.mcap_log import rosbag2_metadata
+
+    info = rosbag2_metadata(folder)
+    storage = str(info.get("storage_identifier") or "").strip().lower()
+    if not storage:  # old bags may leave it out: the storage files' suffix tells
+        files = [str(p) for p in info.get("relative_file_paths") or []] or [p.name for p in folder.iterdir()]
+        storage = "sqlite3" if any(f.endswith(".db3") for f in files) else "mcap"
+    return "rosbag" if storage == "sqlite3" else "mcap"
+
+
 def guess_format(path: str | Path) -> str:
     path = Path(path)
     if not path.exists():
@@ -36,21 +50,27 @@ def guess_format(path: str | Path) -> str:
     if path.is_file():
         from mapkit.io.mcap_log import ROSBAG2_METADATA, is_mcap, is_rosbag2
 
-        if is_mcap(path) or (path.name == ROSBAG2_METADATA and is_rosbag2(path.parent)):
+        if path.suffix == ".bag":
+            return "rosbag"
+        if path.name == ROSBAG2_METADATA and is_rosbag2(path.parent):
+            return _rosbag2_reader(path.parent)
+        if is_mcap(path):
             return "mcap"
-        raise InputError(path, "is a file but not an MCAP log (folders are read as rosbag2, KITTI, RobotCar or generic layouts)")
+        raise InputError(path, "is a file but not an MCAP log or a ROS 1 .bag (folders are read as rosbag2, KITTI, RobotCar, "
+                               "photo or generic layouts)")
     from mapkit.io.mcap_log import is_rosbag2
 
     if is_rosbag2(path):
-        return "mcap"  # its storage is checked on opening: mcap is read, other storage is a clear error
-    for name in ("kitti-odometry", "kitti-raw", "robotcar", "folder"):
+        return _rosbag2_reader(path)
+    for name in ("kitti-odometry", "kitti-raw", "robotcar", "folder", "photos"):
         try:
             cls = reader_class(name)
         except (ImportError, AttributeError):
             continue
         if cls.detect(path):
             return name
-    raise InputError(path, "folder layout not recognised as a rosbag2 bag (metadata.yaml), KITTI odometry, KITTI raw, Oxford RobotCar or a generic image folder")
+    raise InputError(path, "folder layout not recognised as a rosbag2 bag (metadata.yaml), KITTI odometry, KITTI raw, Oxford RobotCar, "
+                           "a geotagged photo folder or a generic image folder (a ROS 1 bag is a .bag file: give the file)")
 
 
 def open_log(path: str | Path, format: str | None = None, **kwargs) -> DriveLog:

@@ -78,7 +78,8 @@ def rosbag2_metadata(folder: str | Path) -> dict:
 def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
     """The MCAP files of a rosbag2 folder, in the order its metadata lists them.
 
-    Raises InputError for other storage (``sqlite3``), file-compressed bags and missing files.
+    Raises InputError for other storage (``sqlite3`` names the ``rosbag`` reader, which reads it), file-compressed
+    bags and missing files.
     """
     folder = Path(folder)
     info = rosbag2_metadata(folder)
@@ -88,7 +89,15 @@ def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
         raise InputError(meta_path, "lists no storage files", field="relative_file_paths")
     storage = str(info.get("storage_identifier") or "").strip().lower()
     if not storage:  # old bags may leave it out: the file suffix tells
-        storage = "mcap" if all(str(p).endswith(".mcap") for p in rel) else "unknown"
+        suffixes = {PurePosixPath(str(p)).suffix for p in rel}
+        storage = {frozenset({".mcap"}): "mcap", frozenset({".db3"}): "sqlite3"}.get(frozenset(suffixes), "unknown")
+    if storage == "sqlite3":
+        raise InputError(
+            meta_path,
+            "rosbag2 storage 'sqlite3' is read by the 'rosbag' reader, not the MCAP one: open it with "
+            "mapkit.io.open_log (it picks that reader) or `--format rosbag`",
+            field="storage_identifier",
+        )
     if storage != "mcap":
         raise InputError(
             meta_path,
@@ -295,7 +304,7 @@ class McapLog(DriveLog):
                 if decoder is None:
                     raise ValueError(f"no decoder for encoding {channel.message_encoding!r}")
                 decoded = decoder(message.data)
-                records = _to_records(decoded, msgtype, topic, i)
+                records = ros2.records_from_msg(decoded, msgtype, topic, i)
             except InputError as exc:
                 self._skip(topic, i, "could not be decoded", exc.what)
                 continue
@@ -304,25 +313,6 @@ class McapLog(DriveLog):
                 continue
             for rec in records:
                 yield Message(topic, kind, i, rec)
-
-
-def _to_records(msg: Any, msgtype: str, topic: str, index: int) -> list:
-    source = f"{topic}#{index}"
-    if msgtype in ("sensor_msgs/Image", "sensor_msgs/CompressedImage"):
-        return [ros2.image_from_msg(msg, msgtype, source)]
-    if msgtype == "sensor_msgs/CameraInfo":
-        return [ros2.camera_info_from_msg(msg, source)]
-    if msgtype == "sensor_msgs/NavSatFix":
-        return [ros2.gps_from_msg(msg)]
-    if msgtype == "sensor_msgs/PointCloud2":
-        return [ros2.lidar_from_msg(msg, source)]
-    if msgtype == "sensor_msgs/Imu":
-        return [ros2.imu_from_msg(msg)]
-    if msgtype in ("geometry_msgs/PoseStamped", "nav_msgs/Odometry"):
-        return [ros2.pose_from_msg(msg, msgtype, topic)]
-    if msgtype == "tf2_msgs/TFMessage":
-        return ros2.transforms_from_msg(msg, static=topic.rstrip("/").endswith("tf_static"))
-    return []
 
 
 # --- writer ---------------------------------------------------------------------------------------

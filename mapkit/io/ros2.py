@@ -3,7 +3,9 @@
 The definitions are the standard ``.msg`` texts (field lists of ROS 2 Humble and later), joined
 the way ``ros2 bag record`` stores them in MCAP schemas, so that any ROS 2 tool reads the logs
 mapkit writes. Encoding and decoding themselves are done by ``mcap_ros2``; this module only maps
-fields. PointCloud2 is decoded vectorised from its ``PointField`` layout.
+fields. PointCloud2 is decoded vectorised from its ``PointField`` layout. The same functions take the
+dataclasses ``rosbags`` deserialises from ROS 1 bags and rosbag2 folders (``mapkit.io.rosbag``): ROS 1
+names its fields alike except CameraInfo's ``D``/``K``, and its header's extra ``seq`` is not read.
 """
 
 from __future__ import annotations
@@ -277,16 +279,19 @@ def camera_info_to_msg(info: CameraInfo, frame_id: Optional[str] = None) -> dict
 
 
 def camera_info_from_msg(msg: Any, source: str) -> CameraInfo:
-    K = np.asarray(msg.k, np.float64).reshape(3, 3)
+    """From a ROS 2 ``CameraInfo`` (``d``, ``k``) or a ROS 1 one (``D``, ``K``); the rest is named alike."""
+    k = msg.k if hasattr(msg, "k") else msg.K
+    d = msg.d if hasattr(msg, "d") else msg.D
+    K = np.asarray(k, np.float64).reshape(3, 3)
     if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise InputError(None, f"camera info {source} has no focal length (k = {list(msg.k)})", field="k")
+        raise InputError(None, f"camera info {source} has no focal length (k = {list(k)})", field="k")
     return CameraInfo(
         camera=msg.header.frame_id or source.split("#")[0],
         width=int(msg.width),
         height=int(msg.height),
         K=K,
         distortion_model=msg.distortion_model or "plumb_bob",
-        D=np.asarray(msg.d, np.float64),
+        D=np.asarray(d, np.float64),
         stamp_ns=stamp_ns_of(msg.header),
     )
 
@@ -511,3 +516,26 @@ def transforms_from_msg(msg: Any, static: bool) -> list[FrameTransform]:
         T = make_pose(quat_wxyz_to_matrix(_quat_of(ts.transform.rotation)), _vec_of(ts.transform.translation))
         out.append(FrameTransform(stamp_ns_of(ts.header), ts.header.frame_id, ts.child_frame_id, T, static=static))
     return out
+
+
+def records_from_msg(msg: Any, msgtype: str, topic: str, index: int) -> list:
+    """The mapkit records of one decoded message (a TF message gives several; an unknown type none).
+
+    Shared by the MCAP reader (``mcap_ros2`` objects) and the rosbags reader (its dataclasses): both
+    name fields as ROS 2 does, bar the ROS 1 differences the converters above accept."""
+    source = f"{topic}#{index}"
+    if msgtype in ("sensor_msgs/Image", "sensor_msgs/CompressedImage"):
+        return [image_from_msg(msg, msgtype, source)]
+    if msgtype == "sensor_msgs/CameraInfo":
+        return [camera_info_from_msg(msg, source)]
+    if msgtype == "sensor_msgs/NavSatFix":
+        return [gps_from_msg(msg)]
+    if msgtype == "sensor_msgs/PointCloud2":
+        return [lidar_from_msg(msg, source)]
+    if msgtype == "sensor_msgs/Imu":
+        return [imu_from_msg(msg)]
+    if msgtype in ("geometry_msgs/PoseStamped", "nav_msgs/Odometry"):
+        return [pose_from_msg(msg, msgtype, topic)]
+    if msgtype == "tf2_msgs/TFMessage":
+        return transforms_from_msg(msg, static=topic.rstrip("/").endswith("tf_static"))
+    return []
