@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import warnings
 from datetime import datetime, timezone
 from pathlib import Path
@@ -11,10 +12,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from mapkit.core.config import TopicConfig, resolve_topics
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geodesy import LocalFrame
 from mapkit.core.types import StreamKind
 from mapkit.io import guess_format, open_log
 from mapkit.io.kitti import KittiOdometry, KittiRaw
+from mapkit.mapping.gps_align import align_to_gps
+from mapkit.mapping.trajectory import TrajectoryConfig, choose_source, estimate_trajectory
+
+REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 FX, FY, CX, CY = 700.0, 710.0, 320.5, 240.25
 BASELINE_M = 0.54
@@ -426,3 +433,215 @@ def test_guess_format_picks_the_kitti_readers(tmp_path, rng):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # a complete raw drive reads without warnings
         assert isinstance(open_log(drive), KittiRaw)
+
+
+# --- OXTS as an INS pose stream ----------------------------------------------------------------------
+
+def _oxts_only(root: Path, n: int = 3) -> Path:
+    """A raw drive with OXTS records and calibration, no images and no scans."""
+    drive = make_raw(root, n)
+    shutil.rmtree(drive / "image_02")
+    shutil.rmtree(drive / "velodyne_points")
+    return drive
+
+
+def _poses(log) -> np.ndarray:
+    return np.stack([p.parent_from_child for p in _records(log, "/kitti/oxts/pose")])
+
+
+def test_raw_oxts_pose_is_the_devkit_mercator_pose(tmp_path):
+    drive = _oxts_only(tmp_path)
+    log = KittiRaw(drive)
+    samples = _records(log, "/kitti/oxts/pose")
+    assert [p.stamp_ns for p in samples] == [_expected_ns(s) for s in STAMP_TEXT]
+    assert {(p.parent_frame, p.child_frame, p.source) for p in samples} == {("oxts_enu", "imu", "ins")}
+    T = _poses(log)
+    v0, v2 = _oxts_values(0), _oxts_values(2)
+    # the spherical Mercator scaled by cos(lat0) is a local isometry at lat0 on a sphere of 6378137 m:
+    # east = r cos(lat0) dlon exactly, north = r dlat to second order (< 1 um over these 2 m)
+    r = 6378137.0
+    np.testing.assert_allclose(T[0][:3, 3], 0.0, atol=1e-9)  # origin at the first record's position
+    np.testing.assert_allclose(T[2][0, 3], r * np.cos(np.radians(v0[0])) * np.radians(v2[1] - v0[1]), atol=1e-6)
+    np.testing.assert_allclose(T[2][1, 3], r * np.radians(v2[0] - v0[0]), atol=1e-6)
+    assert T[2][2, 3] == pytest.approx(v2[2] - v0[2], abs=1e-9)
+    # the orientation is the IMU's: Rz(yaw) Ry(pitch) Rx(roll) of the forward-left-up body in ENU
+    imu = _records(log, "/kitti/oxts/imu")[2]
+    np.testing.assert_allclose(T[2][:3, :3], Rotation.from_quat(np.roll(imu.orientation_quat_wxyz, -1)).as_matrix(), atol=1e-12)
+    assert np.arctan2(T[2][1, 0], T[2][0, 0]) == pytest.approx(v2[5])  # heading of x: the OXTS yaw from east
+
+    # the devkit's convertOxtsToPose: the first pose is the identity, the rest relative to it
+    T_devkit = _poses(KittiRaw(drive, oxts_origin="first_pose"))
+    np.testing.assert_allclose(T_devkit[0], np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(T_devkit, np.linalg.inv(T[0]) @ T, atol=1e-9)
+    assert _records(KittiRaw(drive, oxts_origin="first_pose"), "/kitti/oxts/pose")[0].parent_frame == "oxts_first_pose"
+    with pytest.raises(ValueError, match="oxts_origin"):
+        KittiRaw(drive, oxts_origin="first")
+
+
+def test_raw_oxts_only_drive_gives_a_pose_trajectory_and_lidar_wins_when_present(tmp_path):
+    drive = _oxts_only(tmp_path / "a")
+    log = KittiRaw(drive)
+    assert choose_source(log, TrajectoryConfig(), resolve_topics(log, TopicConfig())) == "poses"
+    traj = estimate_trajectory(log, TrajectoryConfig())
+    assert traj.source == "poses:/kitti/oxts/pose" and traj.body_frame == "imu"
+    np.testing.assert_allclose(traj.world_from_base, _poses(log), atol=1e-12)
+    full = KittiRaw(make_raw(tmp_path / "b"))  # velodyne too: its pose stream stays, LiDAR odometry is chosen
+    assert choose_source(full, TrajectoryConfig(), resolve_topics(full, TopicConfig())) == "lidar"
+    assert resolve_topics(full, TopicConfig())[StreamKind.POSE] == ["/kitti/oxts/pose"]
+    asked = estimate_trajectory(full, TrajectoryConfig(source="poses"))  # trajectory: {source: poses}
+    assert asked.source == "poses:/kitti/oxts/pose" and len(asked) == 3
+
+
+@pytest.fixture(scope="module")
+def kitti_oxts() -> Path:
+    """The real OXTS records of KITTI raw 2011_09_26_drive_0001; skipped with a reason when absent."""
+    drive = REAL_DATA / "kitti-raw-0001-oxts" / "2011_09_26" / "2011_09_26_drive_0001_sync"
+    if not (drive / "oxts" / "timestamps.txt").is_file():
+        pytest.skip(f"real data not found at {drive} (expected ../shared/data/kitti-raw-0001-oxts beside the project)")
+    return drive
+
+
+def _real_poses_and_gps_enu(drive: Path) -> tuple[np.ndarray, np.ndarray, list]:
+    log = open_log(drive)
+    T = _poses(log)
+    fixes = _records(log, "/kitti/oxts/gps")
+    frame = LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m)
+    enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
+    return T, enu, fixes
+
+
+@pytest.mark.realdata
+def test_real_oxts_heading_follows_the_gps_travel_direction(kitti_oxts):
+    assert guess_format(kitti_oxts) == "kitti-raw"
+    T, enu, _ = _real_poses_and_gps_enu(kitti_oxts)
+    assert len(T) == 108
+    heading = np.exp(1j * np.arctan2(T[:, 1, 0], T[:, 0, 0]))  # yaw of the body's x axis in the E/N plane
+    errors = []
+    for i in range(len(enu)):
+        far = np.nonzero(np.linalg.norm(enu[i + 1:, :2] - enu[i, :2], axis=1) >= 2.0)[0]
+        if not len(far):
+            break
+        j = i + 1 + far[0]  # the first fix at least 2 m on
+        travel = np.exp(1j * np.arctan2(enu[j, 1] - enu[i, 1], enu[j, 0] - enu[i, 0]))
+        errors.append(abs(np.degrees(np.angle((heading[i] + heading[j]) / travel))))
+    errors = np.array(errors)
+    assert len(errors) > 90
+    # measured on this drive: max 0.59 deg, median 0.35 deg over 103 segments
+    assert errors.max() < 1.0
+
+
+@pytest.mark.realdata
+def test_real_oxts_positions_are_the_fixes_up_to_the_devkit_mercator_scales(kitti_oxts):
+    T, enu, fixes = _real_poses_and_gps_enu(kitti_oxts)
+    p = T[:, :3, 3]
+    assert np.linalg.norm(enu[-1, :2]) > 100.0
+    # the devkit's sphere (radius a) against WGS84 at the first fix: east scale a/N, north a/M
+    a, f = 6378137.0, 1 / 298.257223563
+    e2, lat = f * (2 - f), np.radians(fixes[0].lat_deg)
+    N = a / np.sqrt(1 - e2 * np.sin(lat) ** 2)
+    M = a * (1 - e2) / (1 - e2 * np.sin(lat) ** 2) ** 1.5
+    # measured: the poses are 0.19 m from the fixes' exact ENU at the far end, 2.6 mm after these scales
+    assert np.linalg.norm(p - enu, axis=1).max() < 0.2
+    np.testing.assert_allclose(p, enu * [a / N, a / M, 1.0], atol=0.005)
+    # what the build's georeferencing gets from them: 'yaw' (auto for a pose stream) 4.6 cm RMSE, 'yaw_scale' 1.9 mm
+    sigma = np.array([f.horizontal_sigma_m for f in fixes])
+    assert align_to_gps(p, enu, sigma, mode="yaw").stats()["residual_rmse_m"] < 0.06
+    yaw_scale = align_to_gps(p, enu, sigma, mode="yaw_scale").stats()
+    assert yaw_scale["residual_rmse_m"] < 0.005
+    assert yaw_scale["scale"] == pytest.approx(1.00144, abs=2e-4)
+
+
+@pytest.mark.realdata
+def test_real_oxts_drive_gives_a_107_m_pose_trajectory(kitti_oxts):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # calib_imu_to_velo.txt and friends are there: nothing to warn about
+        log = open_log(kitti_oxts)
+        traj = estimate_trajectory(log, TrajectoryConfig())
+    assert traj.source == "poses:/kitti/oxts/pose" and len(traj) == 108
+    assert traj.body_frame == "imu"  # no base_link in KITTI's calibration: the trajectory is of the OXTS unit
+    length = np.linalg.norm(np.diff(traj.world_from_base[:, :3, 3], axis=0), axis=1).sum()
+    assert length == pytest.approx(107.0, abs=0.5)  # 106.97 m in the devkit's Mercator, 107.12 m in exact ENU
+
+
+# --- KITTI odometry with velodyne/ only ---------------------------------------------------------------
+
+def make_lidar_odometry(root: Path, rng: np.random.Generator, n: int = 4, *, calib: bool = True, poses: bool = True) -> dict:
+    """An odometry sequence as the LiDAR download unpacks (velodyne/, calib.txt, times.txt, poses.txt)."""
+    written = make_odometry(root, rng, n, times=TIMES[:n], poses=poses, velodyne=np.zeros((1, 4)), second_camera=False)
+    shutil.rmtree(root / "image_0")
+    scans = [rng.normal(size=(5 + 3 * i, 4)).astype("<f4") for i in range(n)]
+    for i, pts in enumerate(scans):
+        pts.tofile(root / "velodyne" / f"{i:06d}.bin")
+    if not calib:
+        (root / "calib.txt").unlink()
+    return {**written, "scans": scans}
+
+
+def test_lidar_only_odometry_folder_reads_scans_poses_and_extrinsic(tmp_path, rng):
+    written = make_lidar_odometry(tmp_path / "seq", rng)
+    assert guess_format(tmp_path / "seq") == "kitti-odometry"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        log = open_log(tmp_path / "seq")
+    assert {s.topic: s.kind for s in log.streams()} == {
+        "/kitti/tf_static": StreamKind.TF, "/kitti/ground_truth": StreamKind.POSE, "/kitti/velodyne/points": StreamKind.LIDAR}
+    scans = _records(log, "/kitti/velodyne/points")
+    assert [s.stamp_ns for s in scans] == TIMES_NS
+    for scan, pts in zip(scans, written["scans"]):
+        np.testing.assert_array_equal(scan.points_xyz, pts[:, :3])
+        np.testing.assert_array_equal(scan.intensity, pts[:, 3])
+    gt = _records(log, "/kitti/ground_truth")
+    np.testing.assert_allclose(np.stack([p.parent_from_child for p in gt]), written["poses"], atol=1e-9)
+    tf = {(t.parent_frame, t.child_frame): t.parent_from_child for t in log.transforms()}
+    np.testing.assert_allclose(tf[("camera_0", "velodyne")][:3, :], written["Tr"], atol=1e-12)
+    assert choose_source(log, TrajectoryConfig(), resolve_topics(log, TopicConfig())) == "lidar"
+
+
+def test_lidar_only_odometry_without_calib_warns_only_when_poses_need_it(tmp_path, rng):
+    make_lidar_odometry(tmp_path / "gt", rng, calib=False)
+    with pytest.warns(InputWarning, match="poses.txt"):
+        log = KittiOdometry(tmp_path / "gt")
+    assert list(log.transforms()) == [] and len(_records(log, "/kitti/ground_truth")) == 4
+    make_lidar_odometry(tmp_path / "plain", rng, calib=False, poses=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(list(KittiOdometry(tmp_path / "plain").records(StreamKind.LIDAR))) == 4
+
+
+def test_lidar_only_odometry_counts_must_agree_and_lidar_off_is_named(tmp_path, rng):
+    make_lidar_odometry(tmp_path / "seq", rng)
+    with pytest.raises(InputError, match="lidar=False"):
+        KittiOdometry(tmp_path / "seq", lidar=False)
+    (tmp_path / "seq" / "velodyne" / "000003.bin").unlink()
+    with pytest.raises(InputError) as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == tmp_path / "seq" / "times.txt" and "3 scans in velodyne/" in str(exc.value)
+    assert not KittiOdometry.detect(tmp_path / "seq" / "velodyne")  # the scans' folder itself is no sequence
+
+
+# --- bytes that are not text ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("name, line", [("calib.txt", 2), ("times.txt", 3), ("poses.txt", 4)])
+def test_odometry_non_text_byte_names_file_and_line(tmp_path, rng, name, line):
+    make_odometry(tmp_path / "seq", rng, times=TIMES)
+    path = tmp_path / "seq" / name
+    lines = path.read_bytes().splitlines(keepends=True)
+    lines[line - 1] = lines[line - 1][:3] + b"\xe9" + lines[line - 1][3:]  # a Latin-1 e-acute
+    path.write_bytes(b"".join(lines))
+    with pytest.raises(InputError, match=f"line {line}") as exc:
+        KittiOdometry(tmp_path / "seq")
+    assert exc.value.path == path
+
+
+def test_raw_non_text_byte_names_file_and_line(tmp_path):
+    drive = _oxts_only(tmp_path)
+    record = drive / "oxts" / "data" / "0000000001.txt"
+    record.write_bytes(b"\xff" + record.read_bytes())
+    with pytest.raises(InputError, match="line 1.*0xff") as exc:
+        list(KittiRaw(drive).records(StreamKind.POSE))
+    assert exc.value.path == record
+    stamps = drive / "oxts" / "timestamps.txt"
+    stamps.write_bytes(stamps.read_bytes().replace(b"13:02:25.268", b"13:02:25\xa0268"))
+    with pytest.raises(InputError, match="line 2") as exc:
+        KittiRaw(drive)
+    assert exc.value.path == stamps

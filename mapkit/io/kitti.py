@@ -15,17 +15,34 @@ turns clockwise seen from above, so a sweep runs from the rear (azimuth +pi) thr
 (azimuth 0) to the rear again (-pi). Each point's time is interpolated from its azimuth across the
 sweep: in raw drives between ``timestamps_start.txt`` and ``timestamps_end.txt``; in odometry
 sequences, which keep no sweep times, over the nominal 0.1 s centred on the frame stamp.
+
+OXTS poses. A raw drive's OXTS records also give the INS pose of ``imu`` on ``/oxts/pose``, made
+as the KITTI devkit makes it (``convertOxtsToPose.m``): position by a Mercator projection on a
+sphere of radius 6378137 m whose scale is cos(latitude of the first record), so x is east and y
+north in metres near the drive, z the altitude; orientation ``Rz(yaw) Ry(pitch) Rx(roll)`` of the
+forward-left-up body in that east-north-up frame. By default (``oxts_origin="first_position"``)
+only the translation is moved to the first record, as pykitti does: the stream's frame stays
+levelled with x east and y north, so gravity and heading need no estimating, and a pose and the
+GPS fix of its record share one point (the fixes' ``frame_id`` is ``imu`` too). With
+``oxts_origin="first_pose"`` the first pose is the identity, as the devkit's own output.
+
+The projection is the devkit's, not an exact tangent frame: a sphere of the equatorial radius
+stands in for the WGS84 ellipsoid, so near latitude 49 deg its east scale is 0.19 % short and its
+north scale 0.10 % long (a/N and a/M, N and M the ellipsoid's radii of curvature). On the real
+107 m drive in ../shared/data this puts the last pose 0.19 m from the fix's exact local ENU
+position; a rigid yaw fit to the fixes leaves 4.6 cm RMSE, a yaw + scale fit 2 mm.
 """
 
 from __future__ import annotations
 
 import calendar
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from functools import partial
 from pathlib import Path
-from typing import Iterator, Optional, Sequence
+from typing import Callable, Iterator, Literal, Optional, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -72,8 +89,45 @@ IMU_AXES = {
     "level": (("wf", "wl", "wu"), ("af", "al", "au"), "imu_level"),
 }
 
+#: radius of the sphere the devkit's Mercator projection uses (``latlonToMercator.m``)
+MERCATOR_EARTH_RADIUS_M = 6378137.0
+
+#: origin of the OXTS pose stream, and the name of its parent frame (module docstring)
+OxtsOrigin = Literal["first_position", "first_pose"]
+OXTS_POSE_FRAME: dict[str, str] = {"first_position": "oxts_enu", "first_pose": "oxts_first_pose"}
+
 
 # --- shared parsing ------------------------------------------------------------------------------
+
+def _undecodable(path: Path) -> InputError:
+    """The error for a text file holding bytes that are not UTF-8, naming the first such line."""
+    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+        try:
+            line.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            return InputError(
+                path, f"line {lineno}: byte 0x{line[exc.start]:02x} at column {exc.start + 1} is not UTF-8 text (KITTI writes ASCII)",
+                field=f"line {lineno}",
+            )
+    return InputError(path, "is not UTF-8 text (KITTI writes ASCII)")
+
+
+def read_text(path: Path) -> str:
+    """A KITTI text file's content; a byte that is not UTF-8 is an ``InputError`` naming its line."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise _undecodable(path) from None
+
+
+@contextmanager
+def decode_errors_named(path: Path) -> Iterator[None]:
+    """Turns a ``UnicodeDecodeError`` raised while reading ``path`` into an ``InputError`` naming its line."""
+    try:
+        yield
+    except UnicodeDecodeError:
+        raise _undecodable(path) from None
+
 
 @dataclass(frozen=True)
 class CalibFile:
@@ -88,19 +142,18 @@ class CalibFile:
         files are sometimes stored without labels)."""
         entries: dict[str, tuple[int, str]] = {}
         next_unlabelled = 0
-        with open(path) as f:
-            for lineno, line in enumerate(f, start=1):
-                text = line.strip()
-                if not text:
-                    continue
-                name, sep, values = text.partition(":")
-                if sep:
-                    entries[name.strip()] = (lineno, values.strip())
-                    continue
-                if next_unlabelled >= len(unlabelled):
-                    raise InputError(path, f"line {lineno} has no 'name:' label", field=f"line {lineno}")
-                entries[unlabelled[next_unlabelled]] = (lineno, text)
-                next_unlabelled += 1
+        for lineno, line in enumerate(read_text(Path(path)).splitlines(), start=1):
+            text = line.strip()
+            if not text:
+                continue
+            name, sep, values = text.partition(":")
+            if sep:
+                entries[name.strip()] = (lineno, values.strip())
+                continue
+            if next_unlabelled >= len(unlabelled):
+                raise InputError(path, f"line {lineno} has no 'name:' label", field=f"line {lineno}")
+            entries[unlabelled[next_unlabelled]] = (lineno, text)
+            next_unlabelled += 1
         return cls(Path(path), entries)
 
     def __contains__(self, name: str) -> bool:
@@ -127,6 +180,12 @@ class CalibFile:
     def rigid(self, rotation: str, translation: str) -> np.ndarray:
         """4x4 ``[R | T]`` from a 9-number rotation entry and a 3-number translation entry."""
         return make_pose(self.matrix(rotation, 3, 3), self.numbers(translation, 3))
+
+
+def read_stamps(path: Path, parse: Callable[[str], int], what: str) -> np.ndarray:
+    """``read_stamp_lines`` with a byte that is not text named by its line."""
+    with decode_errors_named(path):
+        return read_stamp_lines(path, parse, what)
 
 
 def kitti_datetime_ns(text: str) -> int:
@@ -172,6 +231,11 @@ def sweep_point_times_s(xyz: np.ndarray, sweep_start_s: float, sweep_duration_s:
     return (sweep_start_s + fraction * sweep_duration_s).astype(np.float32)
 
 
+def _holds_numbered(folder: Path, suffix: str) -> bool:
+    """Whether ``folder`` holds a file named like KITTI's frames (``000000.png``, ``000000.bin``)."""
+    return folder.is_dir() and any(p.suffix == suffix and p.stem.isdigit() for p in folder.iterdir())
+
+
 def _require_same_count(path: Path, what: str, n: int, other: str, m: int) -> None:
     if n != m:
         raise InputError(path, f"{n} {what} but {m} {other}; the counts must agree")
@@ -180,12 +244,17 @@ def _require_same_count(path: Path, what: str, n: int, other: str, m: int) -> No
 # --- odometry -------------------------------------------------------------------------------------
 
 class KittiOdometry(FolderLayoutLog):
-    """A KITTI odometry sequence folder (``image_0/`` or ``image_l/``, ``calib.txt``, ...).
+    """A KITTI odometry sequence folder: camera folders (``image_0/`` or ``image_l/``, ...), or
+    ``velodyne/`` scans alone (the odometry LiDAR download, SemanticKITTI), with ``calib.txt``.
 
     Topics (prefix ``/kitti``): ``/camera_i/image`` and ``/camera_i/camera_info`` per camera folder,
     ``/ground_truth`` (when ``poses.txt`` exists: ``world_from_camera_0``, where world is camera 0 at
     the first frame), ``/velodyne/points`` (with ``velodyne/``) and ``/tf_static``. Stamps come from
     ``times.txt``; without it, frames are 0.1 s apart from 0, with one ``InputWarning`` saying so.
+    Every file lists one entry per frame: images of each camera, scans, times and poses must agree
+    in number. ``calib.txt`` is required with images (their intrinsics); a LiDAR-only folder reads
+    without it, but its ``poses.txt`` (of camera 0) then has no ``Tr`` to relate it to the scanner,
+    and a warning says so.
     """
 
     format_name = "kitti-odometry"
@@ -195,19 +264,31 @@ class KittiOdometry(FolderLayoutLog):
         prefix = topic_prefix.rstrip("/")
         self.image_dirs = self._camera_folders()
         image_paths = {i: sorted(p for p in d.iterdir() if p.suffix == ".png") for i, d in self.image_dirs.items()}
-        n = len(image_paths[0])
-        if n == 0:
-            raise InputError(self.image_dirs[0], "holds no .png images")
-        first_folder = self.image_dirs[0].name
-        for i, paths in image_paths.items():
-            folder = self.image_dirs[i]
-            _require_same_count(folder, f"images in {folder.name}/", len(paths), f"in {first_folder}/", n)
+        scan_dir = self.path / "velodyne"
+        scan_paths = sorted(scan_dir.glob("*.bin")) if lidar and scan_dir.is_dir() else []
+        if self.image_dirs:
+            n = len(image_paths[0])
+            first_folder = self.image_dirs[0].name
+            self._frames_what = f"images in {first_folder}/"
+            if n == 0:
+                raise InputError(self.image_dirs[0], "holds no .png images")
+            for i, paths in image_paths.items():
+                folder = self.image_dirs[i]
+                _require_same_count(folder, f"images in {folder.name}/", len(paths), f"in {first_folder}/", n)
+            if scan_paths:
+                _require_same_count(scan_dir, "scans", len(scan_paths), self._frames_what, n)
+        elif scan_paths:
+            n = len(scan_paths)
+            self._frames_what = "scans in velodyne/"
+        else:
+            what = "and lidar=False" if not lidar and _holds_numbered(scan_dir, ".bin") else "or velodyne/*.bin"
+            raise InputError(self.path, f"no image_0/ or image_l/ folder {what}: nothing to read as a KITTI odometry sequence")
 
         self.calib = self._read_calib()
         self.projections = self._projections()
         self.stamps_ns = self._read_stamps(n)
         self.world_from_camera_0 = self._read_poses(n)
-        self.velodyne_paths = self._velodyne_paths(n) if lidar else []
+        self.velodyne_paths = scan_paths
 
         first = int(self.stamps_ns[0])
         transforms = [
@@ -215,9 +296,16 @@ class KittiOdometry(FolderLayoutLog):
             for i, T in sorted(camera_0_from_rectified_cameras(self.projections).items())
             if i != 0 and i in self.image_dirs
         ]
-        if "Tr" in self.calib:
+        if self.calib is not None and "Tr" in self.calib:
             Tr = self.calib.matrix("Tr", 3, 4)
             transforms.append(FrameTransform(first, "camera_0", "velodyne", make_pose(Tr[:, :3], Tr[:, 3])))
+        elif self.velodyne_paths and self.world_from_camera_0 is not None:
+            warnings.warn(
+                f"{self.path}: no Tr in {'calib.txt' if self.calib is not None else 'a calib.txt (there is none)'}: the ground "
+                "truth of poses.txt (camera 0) is not related to the velodyne frame",
+                InputWarning,
+                stacklevel=2,
+            )
         self._add_static_transforms(f"{prefix}/tf_static", transforms)
 
         stamps = self.stamps_ns.tolist()
@@ -243,29 +331,30 @@ class KittiOdometry(FolderLayoutLog):
     @classmethod
     def detect(cls, path: Path) -> bool:
         path = Path(path)
-        for name in ODOMETRY_CAMERA_FOLDERS[0]:
-            folder = path / name
-            if folder.is_dir() and any(p.suffix == ".png" and p.stem.isdigit() for p in folder.iterdir()):
-                return True
-        return False
+        cameras = (path / name for name in ODOMETRY_CAMERA_FOLDERS[0])
+        return any(_holds_numbered(folder, ".png") for folder in cameras) or _holds_numbered(path / "velodyne", ".bin")
 
     @property
     def calib_path(self) -> Path:
         return self.path / "calib.txt"
 
     def _camera_folders(self) -> dict[int, Path]:
+        """Camera index -> its folder; a sequence with cameras must have camera 0's."""
         found: dict[int, Path] = {}
         for i, names in ODOMETRY_CAMERA_FOLDERS.items():
             folder = next((self.path / n for n in names if (self.path / n).is_dir()), None)
             if folder is not None:
                 found[i] = folder
-        if 0 not in found:
-            raise InputError(self.path, "no image_0/ or image_l/ folder: not a KITTI odometry sequence")
+        if found and 0 not in found:
+            names = ", ".join(f"{f.name}/" for f in found.values())
+            raise InputError(self.path, f"has {names} but no image_0/ or image_l/ folder: not a KITTI odometry sequence")
         return found
 
-    def _read_calib(self) -> CalibFile:
+    def _read_calib(self) -> Optional[CalibFile]:
         path = self.calib_path
         if not path.is_file():
+            if not self.image_dirs:
+                return None
             raise InputError(path, "missing calibration: a KITTI odometry sequence needs calib.txt (P0 ... P3)")
         calib = CalibFile.read(path, ODOMETRY_CALIB_ORDER)
         # every entry of an odometry calib.txt is a 3x4 matrix: check them all, used or not
@@ -276,6 +365,7 @@ class KittiOdometry(FolderLayoutLog):
     def _projections(self) -> dict[int, np.ndarray]:
         projections = {}
         for i, folder in self.image_dirs.items():
+            assert self.calib is not None  # required with images
             if f"P{i}" not in self.calib:
                 raise InputError(self.calib.path, f"missing calibration: no P{i} for the images in {folder.name}/", field=f"P{i}")
             projections[i] = self.calib.matrix(f"P{i}", 3, 4)
@@ -290,25 +380,18 @@ class KittiOdometry(FolderLayoutLog):
                 stacklevel=3,
             )
             return np.arange(n, dtype=np.int64) * NOMINAL_PERIOD_NS
-        stamps = read_stamp_lines(path, seconds_to_ns, "frame times")
-        _require_same_count(path, "times", len(stamps), f"images in {self.image_dirs[0].name}/", n)
+        stamps = read_stamps(path, seconds_to_ns, "frame times")
+        _require_same_count(path, "times", len(stamps), self._frames_what, n)
         return stamps
 
     def _read_poses(self, n: int) -> Optional[np.ndarray]:
         path = self.path / "poses.txt"
         if not path.is_file():
             return None
-        poses = read_kitti_poses(path)
-        _require_same_count(path, "poses", len(poses), f"images in {self.image_dirs[0].name}/", n)
+        with decode_errors_named(path):
+            poses = read_kitti_poses(path)
+        _require_same_count(path, "poses", len(poses), self._frames_what, n)
         return poses
-
-    def _velodyne_paths(self, n: int) -> list[Path]:
-        folder = self.path / "velodyne"
-        if not folder.is_dir():
-            return []
-        paths = sorted(folder.glob("*.bin"))
-        _require_same_count(folder, "scans", len(paths), f"images in {self.image_dirs[0].name}/", n)
-        return paths
 
     def _ground_truth(self) -> Iterator[PoseSample]:
         assert self.world_from_camera_0 is not None
@@ -332,7 +415,10 @@ class KittiRaw(FolderLayoutLog):
     looked up in the drive folder, then in its parent (the date folder, where KITTI puts them).
 
     Topics (prefix ``/kitti``): ``/camera_i/image`` and ``/camera_i/camera_info`` per image_0i/,
-    ``/oxts/gps`` (``GpsFix``), ``/oxts/imu`` (``ImuSample``), ``/velodyne/points`` and ``/tf_static``.
+    ``/oxts/gps`` (``GpsFix``), ``/oxts/imu`` (``ImuSample``), ``/oxts/pose`` (``PoseSample`` of
+    ``imu``, source ``ins``; see the module docstring), ``/velodyne/points`` and ``/tf_static``.
+    A drive with OXTS only thus has a pose stream for the trajectory stage (``source: poses``, which
+    ``auto`` picks when there is no LiDAR) and for evaluation as ground truth.
 
     Options:
     - ``rectified``: whether images are rectified (``_sync``: intrinsics from ``P_rect_0i``, no
@@ -343,6 +429,12 @@ class KittiRaw(FolderLayoutLog):
       a strapdown IMU measures. ``"level"`` gives ``wf wl wu`` / ``af al au`` instead, which the
       devkit defines in the level frame (forward, left, up, rotated by heading only, parallel to
       the earth's surface); their ``frame_id`` is ``imu_level``.
+    - ``oxts_origin``: ``"first_position"`` (default) gives ``oxts_enu_from_imu``, the devkit's
+      Mercator pose with the first record's position subtracted: a levelled frame, x east, y north,
+      as pykitti gives it; the default because heading and gravity then need no estimating, and a
+      pose and the GPS fix of its record locate one point, the OXTS unit. ``"first_pose"`` gives
+      ``oxts_first_pose_from_imu``, the devkit's ``convertOxtsToPose`` (the first pose is the
+      identity, its frame the OXTS body at the first record).
     The orientation of each ``ImuSample`` is ``enu_from_imu = Rz(yaw) Ry(pitch) Rx(roll)`` (yaw 0 =
     east, counter-clockwise; pitch positive = front down; roll positive = left side up), or
     ``Rz(yaw)`` for the level frame. A GPS fix has covariance ``pos_accuracy^2`` on east, north, up.
@@ -356,13 +448,17 @@ class KittiRaw(FolderLayoutLog):
         *,
         lidar: bool = True,
         imu_axes: str = "body",
+        oxts_origin: OxtsOrigin = "first_position",
         rectified: Optional[bool] = None,
         topic_prefix: str = "/kitti",
     ):
         super().__init__(path)
         if imu_axes not in IMU_AXES:
             raise ValueError(f"imu_axes must be one of {sorted(IMU_AXES)}, not {imu_axes!r}")
+        if oxts_origin not in OXTS_POSE_FRAME:
+            raise ValueError(f"oxts_origin must be one of {sorted(OXTS_POSE_FRAME)}, not {oxts_origin!r}")
         self.imu_axes = imu_axes
+        self.oxts_origin = oxts_origin
         self.rectified = (not self.path.name.endswith("_extract")) if rectified is None else rectified
         prefix = topic_prefix.rstrip("/")
 
@@ -415,7 +511,7 @@ class KittiRaw(FolderLayoutLog):
     # --- files and calibration ---------------------------------------------------------------------
     def _stamped_files(self, folder: Path, suffix: str) -> tuple[np.ndarray, list[Path]]:
         stamps_path = folder / "timestamps.txt"
-        stamps = read_stamp_lines(stamps_path, kitti_datetime_ns, "timestamps")
+        stamps = read_stamps(stamps_path, kitti_datetime_ns, "timestamps")
         paths = sorted(p for p in (folder / "data").iterdir() if p.suffix == suffix)
         _require_same_count(stamps_path, "timestamps", len(stamps), f"{suffix} files in {folder.name}/data/", len(paths))
         return stamps, paths
@@ -465,16 +561,24 @@ class KittiRaw(FolderLayoutLog):
 
     # --- OXTS and Velodyne ---------------------------------------------------------------------------
     def _add_oxts(self, prefix: str, stamps: np.ndarray, paths: list[Path]) -> None:
-        gps_topic, imu_topic = f"{prefix}/oxts/gps", f"{prefix}/oxts/imu"
+        gps_topic, imu_topic, pose_topic = f"{prefix}/oxts/gps", f"{prefix}/oxts/imu", f"{prefix}/oxts/pose"
         rate_names, accel_names, imu_frame = IMU_AXES[self.imu_axes]
         rate_idx = [_OXTS[c] for c in rate_names]
         accel_idx = [_OXTS[c] for c in accel_names]
         level = self.imu_axes == "level"
+        pose_frame = OXTS_POSE_FRAME[self.oxts_origin]
 
         def iterate(wanted: Wanted) -> Iterator[Message]:
-            want_gps, want_imu = wanted(gps_topic), wanted(imu_topic)
+            want_gps, want_imu, want_pose = wanted(gps_topic), wanted(imu_topic), wanted(pose_topic)
+            scale, origin_from_mercator = 1.0, np.eye(4)
             for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths)):
                 v = read_oxts_record(path)
+                if want_pose:
+                    if i == 0:  # the devkit's scale and origin both come from the first record
+                        scale = mercator_scale(v[_OXTS["lat"]])
+                        origin_from_mercator = self._origin_from_mercator(mercator_from_imu(v, scale))
+                    pose = PoseSample(stamp, pose_frame, "imu", origin_from_mercator @ mercator_from_imu(v, scale), source="ins")
+                    yield Message(pose_topic, StreamKind.POSE, i, pose)
                 if want_gps:
                     cov = np.eye(3) * v[_OXTS["pos_accuracy"]] ** 2
                     fix = GpsFix(stamp, v[_OXTS["lat"]], v[_OXTS["lon"]], v[_OXTS["alt"]], GpsStatus.FIX, cov, frame_id="imu")
@@ -486,14 +590,21 @@ class KittiRaw(FolderLayoutLog):
                     yield Message(imu_topic, StreamKind.IMU, i, ImuSample(stamp, imu_frame, v[rate_idx], v[accel_idx], q_wxyz))
 
         n = len(paths)
-        self._add([stream_info(gps_topic, StreamKind.GPS, n), stream_info(imu_topic, StreamKind.IMU, n)], iterate)
+        kinds = {gps_topic: StreamKind.GPS, imu_topic: StreamKind.IMU, pose_topic: StreamKind.POSE}
+        self._add([stream_info(topic, kind, n) for topic, kind in kinds.items()], iterate)
+
+    def _origin_from_mercator(self, mercator_from_first: np.ndarray) -> np.ndarray:
+        """The pose stream's frame from the devkit's Mercator frame, given the first record's pose (``oxts_origin``)."""
+        if self.oxts_origin == "first_pose":
+            return invert_pose(mercator_from_first)
+        return make_pose(np.eye(3), -mercator_from_first[:3, 3])
 
     def _add_velodyne(self, prefix: str, stamps: np.ndarray, paths: list[Path]) -> None:
         folder = self.path / "velodyne_points"
         starts = ends = None
         if (folder / "timestamps_start.txt").is_file() and (folder / "timestamps_end.txt").is_file():
-            starts = read_stamp_lines(folder / "timestamps_start.txt", kitti_datetime_ns, "sweep start times")
-            ends = read_stamp_lines(folder / "timestamps_end.txt", kitti_datetime_ns, "sweep end times")
+            starts = read_stamps(folder / "timestamps_start.txt", kitti_datetime_ns, "sweep start times")
+            ends = read_stamps(folder / "timestamps_end.txt", kitti_datetime_ns, "sweep end times")
             _require_same_count(folder / "timestamps_start.txt", "start times", len(starts), "scans", len(paths))
             _require_same_count(folder / "timestamps_end.txt", "end times", len(ends), "scans", len(paths))
 
@@ -509,14 +620,33 @@ class KittiRaw(FolderLayoutLog):
         self._add_records(f"{prefix}/velodyne/points", StreamKind.LIDAR, scans, count=len(paths))
 
 
-def enu_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """``Rz(yaw) Ry(pitch) Rx(roll)``: the OXTS orientation of a forward-left-up body in ENU."""
-    return Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+def enu_from_rpy(roll: float | np.ndarray, pitch: float | np.ndarray, yaw: float | np.ndarray) -> np.ndarray:
+    """``Rz(yaw) Ry(pitch) Rx(roll)``: the OXTS orientation(s) of a forward-left-up body in ENU."""
+    return Rotation.from_euler("ZYX", np.stack(np.broadcast_arrays(yaw, pitch, roll), axis=-1)).as_matrix()
+
+
+def mercator_scale(lat0_deg: float) -> float:
+    """The devkit's Mercator scale (``latToScale.m``): cos of the first record's latitude."""
+    return float(np.cos(np.radians(lat0_deg)))
+
+
+def mercator_from_imu(oxts: np.ndarray, scale: float) -> np.ndarray:
+    """(..., 4, 4) poses of the OXTS body in the devkit's frame from (..., 30) OXTS records.
+
+    Position (``latlonToMercator.m``): x = s r lon, y = s r ln(tan(pi/4 + lat/2)) with s = ``scale``
+    and r = 6378137 m, z = altitude; x is east and y north, in metres where the latitude is near the
+    one ``scale`` was made from. Orientation: ``Rz(yaw) Ry(pitch) Rx(roll)`` (``enu_from_rpy``).
+    """
+    v = np.asarray(oxts, np.float64)
+    lat, lon = np.radians(v[..., _OXTS["lat"]]), np.radians(v[..., _OXTS["lon"]])
+    r = scale * MERCATOR_EARTH_RADIUS_M
+    t = np.stack([r * lon, r * np.log(np.tan(np.pi / 4 + lat / 2)), v[..., _OXTS["alt"]]], axis=-1)
+    return make_pose(enu_from_rpy(v[..., _OXTS["roll"]], v[..., _OXTS["pitch"]], v[..., _OXTS["yaw"]]), t)
 
 
 def read_oxts_record(path: Path) -> np.ndarray:
     """The 30 values of one OXTS file (one line); anything else is an error naming file and line."""
-    lines = [(n, line) for n, line in enumerate(path.read_text().splitlines(), start=1) if line.strip()]
+    lines = [(n, line) for n, line in enumerate(read_text(path).splitlines(), start=1) if line.strip()]
     if len(lines) != 1:
         raise InputError(path, f"holds {len(lines)} non-empty lines, expected one OXTS record", field="line 1")
     lineno, line = lines[0]
