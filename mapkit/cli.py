@@ -301,13 +301,33 @@ def index_structure(
 @eval_app.command("build")
 def eval_build(
     workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build`."),
-    truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
+    truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from (all its sessions), or one "
+                               "session's true trajectory: a TUM file (stamp tx ty tz qx qy qz qw), a KITTI poses file (12 numbers "
+                               "a line; stamps from times.txt beside it or --truth-times), or a log's pose topic (LOG::/topic)."),
+    session: Optional[str] = typer.Option(None, "--session", "-s",
+                                          help="The session a true trajectory belongs to (default: the only one)."),
+    truth_topic: Optional[str] = typer.Option(None, "--truth-topic",
+                                              help="The pose topic of a --truth log (default: its only pose topic)."),
+    truth_times: Optional[Path] = typer.Option(None, "--truth-times", help="Stamps of a KITTI poses file, one time in seconds a line."),
+    truth_time_offset: float = typer.Option(0.0, "--truth-time-offset", help="Seconds added to every true stamp (another clock, "
+                                            "or times relative to the drive's start)."),
+    max_dt: float = typer.Option(0.02, "--max-dt",
+                                 help="Largest stamp difference (s) at which a true pose is paired with an estimated one."),
+    align: str = typer.Option("auto", "--align", help="How a true trajectory's own frame is fitted: se3 (rigid), sim3 (with scale), "
+                              "none (the truth is in the workspace's ENU frame), auto (sim3 for a camera-only trajectory that GPS did "
+                              "not scale, else se3)."),
+    segment: float = typer.Option(100.0, "--segment", help="Length of true path (m) over which the relative error (RPE) is measured."),
 ) -> None:
-    """Trajectory error after GPS alignment and map accuracy against the synthetic truth."""
+    """Trajectory error (and map accuracy against the synthetic town) of a built workspace against ground truth.
+
+    A true trajectory is in a frame of its own: the estimate is aligned to it first (SE(3) or Sim(3), as evo's -a / -as).
+    """
     from mapkit.core.workspace import Workspace
     from mapkit.evaluation.evaluate import evaluate_build, format_eval
 
-    typer.echo(format_eval(evaluate_build(workspace, truth)), nl=False)
+    r = evaluate_build(workspace, truth, session=session, truth_topic=truth_topic, truth_times=truth_times,
+                       time_offset_s=truth_time_offset, max_dt_s=max_dt, align=align, segment_m=segment)
+    typer.echo(format_eval(r), nl=False)
     typer.echo(f"written to {Workspace(workspace).eval_build_json} and eval_build.md")
 
 

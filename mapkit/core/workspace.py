@@ -7,7 +7,7 @@ A workspace holds one folder per drive (session) and the multi-session stages bu
       origin.json                 the local ENU frame (geodetic origin) of every map here
       build_config.yaml           the resolved build config
       metrics.json                the build's per-session summary
-      eval_build.json, .md        mapkit eval build (synthetic truth)
+      eval_build.json, .md        mapkit eval build (synthetic town, TUM / KITTI file or pose topic)
       sessions/<name>/            one drive: mapkit build
         config.yaml, metrics.json
         trajectory/               odometry (trajectory.npz, TUM, KITTI)

@@ -1,9 +1,18 @@
-"""``mapkit eval build``: a built workspace against the synthetic town's ground truth.
+"""``mapkit eval build``: a built workspace against ground truth.
 
-Per session: the absolute trajectory error of the GPS-aligned trajectory (no further alignment:
-what a map user gets), the GPS fixes' own error for comparison, and the semi-dense map's distance
-to the true surfaces (the town's mesh plus that session's parked cars), with points per 100 m.
-The truth lives in the town's ENU frame; it is moved exactly (through ECEF) into the workspace's.
+Against the synthetic town (georeferenced truth), per session: the absolute trajectory error of
+the GPS-aligned trajectory (no further alignment: what a map user gets), the GPS fixes' own error
+for comparison, and the semi-dense map's distance to the true surfaces (the town's mesh plus that
+session's parked cars), with points per 100 m. The truth lives in the town's ENU frame; it is
+moved exactly (through ECEF) into the workspace's.
+
+Against a true trajectory of a real drive (a TUM or KITTI file, a pose topic of a log: see
+:func:`mapkit.evaluation.truth.read_truth`), for one session: the truth is in a frame of its own,
+so the estimate is first fitted to it, as evo's ``-a`` / ``-as`` do (:func:`compare_trajectories`):
+a rigid SE(3) Umeyama fit for a metric trajectory, a Sim(3) one for a camera-only trajectory
+that GPS did not scale; then the ATE and the relative error per ``segment_m`` of path (RPE, as
+KITTI's odometry benchmark measures it). The report says which truth, how stamps were paired and
+how the estimate was aligned.
 
 ``mapkit eval align``: the inter-session misalignment of the same true surface before and after
 ``mapkit align`` (:func:`evaluate_align`, its table :func:`format_align_truth`).
@@ -14,18 +23,28 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Optional
 
 import numpy as np
 
-from mapkit.core.errors import InputError
+from mapkit.core.errors import ConfigError, InputError, MapkitError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
+from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad, sim3_scale, transform_points, umeyama
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.evaluation.metrics import map_accuracy, trajectory_errors
-from mapkit.evaluation.truth import error_transforms, session_truth, session_truth_mesh, ws_from_town
+from mapkit.evaluation.truth import (
+    TruthTrajectory,
+    associate_truth,
+    error_transforms,
+    is_town,
+    read_truth,
+    session_truth,
+    session_truth_mesh,
+    split_log_topic,
+    ws_from_town,
+)
 from mapkit.io import open_log
 from mapkit.mapping.gps_align import fit_transform
 from mapkit.mapping.semidense import SemiDenseMap
@@ -33,29 +52,209 @@ from mapkit.mapping.trajectory import Trajectory
 from mapkit.multisession.align import PairResult, _support_points
 
 
-def evaluate_build(workspace: str | Path | Workspace, truth: str | Path) -> dict:
-    """Every session of the workspace that the town knows, against its truth; writes
-    ``eval_build.json`` and ``eval_build.md`` into the workspace."""
+Alignment = Literal["auto", "se3", "sim3", "none"]
+
+
+def evaluate_build(workspace: str | Path | Workspace, truth: str | Path, *, session: Optional[str] = None,
+                   truth_topic: Optional[str] = None, truth_times: Optional[Path] = None, time_offset_s: float = 0.0,
+                   max_dt_s: float = 0.02, align: Alignment = "auto", segment_m: float = 100.0) -> dict:
+    """A built workspace against ``truth``; writes ``eval_build.json`` and ``eval_build.md`` into it.
+
+    ``truth`` is a synthetic town folder (every session the town knows, or ``session``), or a true
+    trajectory of one session (``session``, or the workspace's only one): a TUM or KITTI file, or
+    a log's pose topic (``LOG::/topic`` or ``truth_topic``). See :func:`compare_trajectories` for
+    ``max_dt_s``, ``align`` and ``segment_m``.
+    """
+    if align not in ("auto", "se3", "sim3", "none"):
+        raise ConfigError(f"--align {align!r}: expected auto, se3, sim3 or none")
+    ws = Workspace(workspace)
+    path, topic = split_log_topic(truth, truth_topic)
+    if is_town(path):
+        if topic is not None or truth_times is not None:
+            raise InputError(path, "is a synthetic town, which holds every session's truth; a truth topic or --truth-times "
+                             "is for a log or a KITTI poses file")
+        return _evaluate_town(ws, path, session)
+    name = _truth_session(ws, session)
+    est, est_info = _session_estimate(ws.session(name))
+    t = read_truth(path, topic=topic, times=truth_times, time_offset_s=time_offset_s, body_frame=est.body_frame)
+    if align == "auto":
+        align = "se3" if est_info["metric"] else "sim3"
+    r = {"estimate": est_info, **compare_trajectories(est.stamps_ns, est.world_from_base, t, max_dt_s, align, segment_m)}
+    results: dict = {"workspace": str(ws.root), "truth": t.source, "truth_kind": t.kind, "sessions": {name: r}}
+    write_json(ws.eval_build_json, results)
+    atomic_write_text(ws.eval_build_md, format_eval(results))
+    return results
+
+
+def _evaluate_town(ws: Workspace, truth: Path, session: Optional[str]) -> dict:
+    """Every session of the workspace that the town knows (or ``session`` only), against its truth."""
     import open3d as o3d
 
-    ws, truth = Workspace(workspace), Path(truth)
     ws_frame = ws.require_frame("nothing to compare with truth")
     town_to_ws = ws_from_town(truth, ws_frame)
     mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))
     if not mesh.has_triangles():
         raise InputError(truth / "world" / "mesh.ply", "holds no triangles")
     mesh.transform(town_to_ws)
-    results: dict = {"workspace": str(ws.root), "truth": str(truth), "sessions": {}}
-    for name in ws.session_names():
+    results: dict = {"workspace": str(ws.root), "truth": str(truth), "truth_kind": "town", "sessions": {}}
+    for name in ws.session_names() if session is None else [_truth_session(ws, session)]:
         try:
             gt_stamps, gt_world_from_base = session_truth(truth, name)
-        except (FileNotFoundError, InputError):
+        except (FileNotFoundError, MapkitError):
             continue
         results["sessions"][name] = _evaluate_session(ws, ws.session(name), truth, mesh, town_to_ws, ws_frame,
                                                       gt_stamps, town_to_ws @ gt_world_from_base)
     write_json(ws.eval_build_json, results)
     atomic_write_text(ws.eval_build_md, format_eval(results))
     return results
+
+
+def _truth_session(ws: Workspace, session: Optional[str]) -> str:
+    """The session one true trajectory belongs to: ``session``, or the workspace's only one."""
+    names = ws.session_names()
+    if session is not None:
+        if session not in names:
+            raise InputError(ws.root, f"has no session {session!r}; its sessions: {', '.join(names) or 'none'}", field="--session")
+        return session
+    if len(names) == 1:
+        return names[0]
+    if not names:
+        raise InputError(ws.root, "holds no sessions (run mapkit build first)")
+    raise InputError(ws.root, f"has {len(names)} sessions ({', '.join(names)}); name the one the truth belongs to with --session",
+                     field="--session")
+
+
+def _session_estimate(s: SessionDirs) -> tuple[Trajectory, dict]:
+    """The trajectory to evaluate: the georef stage's (in the workspace's ENU frame when
+    georeferenced), else the odometry's; and what it is, for the report."""
+    georeferenced = s.gps_alignment.is_file() and bool(json.loads(s.gps_alignment.read_text()).get("georeferenced", False))
+    if s.georef_trajectory.is_dir():
+        folder, which = s.georef_trajectory, "the georef stage's trajectory" + (" (GPS-aligned, workspace ENU)" if georeferenced else
+                                                                                 " (not georeferenced: the odometry's frame)")
+    elif s.trajectory.is_dir():
+        folder, which = s.trajectory, "the odometry trajectory (before GPS alignment)"
+    else:
+        raise InputError(s.root, "has no trajectory to evaluate (run mapkit build first)")
+    est = Trajectory.load(folder)
+    # structure from motion has no scale until GPS gives it one
+    metric = georeferenced or not est.source.startswith("camera")
+    return est, {"trajectory": which, "folder": str(folder), "source": est.source, "frame": est.frame, "body_frame": est.body_frame,
+                 "poses": len(est), "span_s": _span_s(est.stamps_ns), "georeferenced": georeferenced, "metric": metric}
+
+
+def _span_s(stamps_ns: np.ndarray) -> list[float]:
+    return [int(stamps_ns[0]) * 1e-9, int(stamps_ns[-1]) * 1e-9]
+
+
+def compare_trajectories(est_stamps_ns: np.ndarray, est_poses: np.ndarray, truth: TruthTrajectory, max_dt_s: float = 0.02,
+                         align: Literal["se3", "sim3", "none"] = "se3", segment_m: float = 100.0) -> dict:
+    """An estimated trajectory against a true one in a frame of its own.
+
+    Stamps are paired by :func:`~mapkit.evaluation.truth.associate_truth` within ``max_dt_s``.
+    ``align``: ``se3`` fits a rigid transform truth_from_estimate to the paired positions (Umeyama;
+    evo's ``-a``), ``sim3`` a similarity (``-as``: a camera-only trajectory has no scale of its
+    own), ``none`` takes the truth to be in the estimate's frame (the workspace ENU) and adds
+    horizontal and vertical figures. Then the ATE of the aligned positions and rotations, and the
+    relative error over every stretch of ``segment_m`` metres of true path (RPE, translation in %
+    of the length, rotation in degrees per 100 m). Rotation figures assume both trajectories are of
+    one body frame (the report names both).
+    """
+    est_stamps_ns = np.asarray(est_stamps_ns, np.int64)
+    max_dt_ns = int(round(max_dt_s * 1e9))
+    ts, te = truth.stamps_ns, est_stamps_ns
+    if ts[0] > te[-1] + max_dt_ns or ts[-1] < te[0] - max_dt_ns:
+        raise InputError(truth.source, f"its stamps ({ts[0] * 1e-9:.3f} to {ts[-1] * 1e-9:.3f} s) do not overlap the session's "
+                         f"({te[0] * 1e-9:.3f} to {te[-1] * 1e-9:.3f} s){_clock_hint(ts, te)}", field="time")
+    a = associate_truth(te, ts, truth.world_from_body, max_dt_ns)
+    if len(a.est_index) < 3:
+        raise InputError(truth.source, f"only {len(a.est_index)} of the session's {len(te)} poses have a true pose within {max_dt_s} s "
+                         f"(truth {ts[0] * 1e-9:.3f} to {ts[-1] * 1e-9:.3f} s, {len(ts)} poses); at least 3 are needed "
+                         f"(a larger --max-dt?){_clock_hint(ts, te)}", field="time")
+    est = np.asarray(est_poses, np.float64)[a.est_index]
+    gt = a.truth_poses
+    out: dict = {
+        "truth": {"kind": truth.kind, "source": truth.source, "frame": truth.frame, "body_frame": truth.body_frame,
+                  "stamps": truth.stamps, "poses": len(truth), "span_s": _span_s(ts)},
+        "association": {"max_dt_s": max_dt_s, "estimated_poses": len(te), "associated": len(a.est_index),
+                        "interpolated": a.interpolated, "nearest": a.nearest,
+                        "nearest_dt_median_s": float(np.median(a.nearest_dt_s)) if len(a.nearest_dt_s) else None,
+                        "nearest_dt_max_s": float(a.nearest_dt_s.max()) if len(a.nearest_dt_s) else None},
+    }
+    S = np.eye(4) if align == "none" else umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=align == "sim3")
+    aligned = _apply_sim3(S, est)
+    scale = sim3_scale(S)
+    out["alignment"] = {"mode": align, "truth_from_estimate": S, "scale": scale,
+                        "rotation_deg": float(np.degrees(rotation_angle_rad(S[:3, :3] / scale))),
+                        "translation": [float(x) for x in S[:3, 3]], "straight_path": _straight(est[:, :3, 3])}
+    out["ate"] = _pose_errors(aligned, gt, enu=align == "none")
+    out["rpe"] = relative_errors(aligned, gt, segment_m)
+    return out
+
+
+def _clock_hint(truth_ns: np.ndarray, est_ns: np.ndarray) -> str:
+    """A hint when one side counts from the drive's start (KITTI ``times.txt``) and the other from the epoch."""
+    truth_relative, est_relative = truth_ns[0] < _RELATIVE_NS, est_ns[0] < _RELATIVE_NS
+    if truth_relative == est_relative:
+        return ""
+    side = "the truth's" if truth_relative else "the session's"
+    return (f"; {side} stamps look relative to the drive's start: --truth-time-offset {(est_ns[0] - truth_ns[0]) * 1e-9:.6f} "
+            "would start both together")
+
+
+#: stamps below this (about 11.6 days) count from a drive's start, not from the epoch
+_RELATIVE_NS = 10**6 * 10**9
+
+
+def _apply_sim3(S: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """Poses moved by a similarity: rotated and translated, positions scaled (rotations stay rotations)."""
+    scale = sim3_scale(S)
+    out = poses.copy()
+    out[:, :3, :3] = (S[:3, :3] / scale) @ poses[:, :3, :3]
+    out[:, :3, 3] = poses[:, :3, 3] @ S[:3, :3].T + S[:3, 3]
+    return out
+
+
+def _straight(positions: np.ndarray) -> bool:
+    """The path is (nearly) a line: a rotation about it is then not observable, and the fitted
+    transform's roll about the path is arbitrary (the position errors are not affected)."""
+    sv = np.linalg.svd(positions - positions.mean(axis=0), compute_uv=False)
+    return bool(sv[1] < 1e-2 * sv[0])
+
+
+def _pose_errors(est: np.ndarray, gt: np.ndarray, enu: bool) -> dict:
+    """ATE statistics of paired poses (positions in metres, rotations in degrees)."""
+    err = est[:, :3, 3] - gt[:, :3, 3]
+    d = np.linalg.norm(err, axis=1)
+    rot = np.degrees(rotation_angle_rad(np.swapaxes(gt[:, :3, :3], 1, 2) @ est[:, :3, :3]))
+    r = {"poses": len(d), "rmse_m": float(np.sqrt(np.mean(d**2))), "mean_m": float(d.mean()), "median_m": float(np.median(d)),
+         "max_m": float(d.max()), "rotation_rmse_deg": float(np.sqrt(np.mean(rot**2))), "rotation_median_deg": float(np.median(rot))}
+    if enu:
+        r["horizontal_rmse_m"] = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
+        r["vertical_rmse_m"] = float(np.sqrt(np.mean(err[:, 2] ** 2)))
+    return r
+
+
+def relative_errors(est: np.ndarray, gt: np.ndarray, segment_m: float) -> dict:
+    """Relative pose error over stretches of ``segment_m`` metres of true path, from every pose.
+
+    For each pose i, j is the first pose at least ``segment_m`` further along the true path; the
+    error is (gt_i^-1 gt_j)^-1 (est_i^-1 est_j): its translation in % of the true stretch, its
+    rotation in degrees per 100 m (KITTI odometry's measure, with one segment length).
+    """
+    along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    j = np.searchsorted(along, along + segment_m, side="left")
+    i = np.nonzero(j < len(gt))[0]
+    j = j[i]
+    r: dict = {"segment_m": segment_m, "segments": len(i), "path_m": float(along[-1])}
+    if not len(i):
+        return r
+    E = invert_pose(invert_pose(gt[i]) @ gt[j]) @ (invert_pose(est[i]) @ est[j])
+    length = along[j] - along[i]
+    t_pct = np.linalg.norm(E[:, :3, 3], axis=1) / length * 100.0
+    r_deg = np.degrees(rotation_angle_rad(E[:, :3, :3])) / length * 100.0
+    r.update(translation_percent_mean=float(t_pct.mean()), translation_percent_median=float(np.median(t_pct)),
+             rotation_deg_per_100m_mean=float(r_deg.mean()))
+    return r
 
 
 def _evaluate_session(ws: Workspace, s: SessionDirs, truth: Path, mesh, town_to_ws: np.ndarray, ws_frame: LocalFrame,
@@ -111,6 +310,9 @@ def _gps_error(ws: Workspace, name: str, gt_stamps, gt_ws, frame: LocalFrame) ->
 
 
 def format_eval(results: dict) -> str:
+    """The Markdown of :func:`evaluate_build`'s result: the town's table, or the trajectory report."""
+    if results.get("truth_kind", "town") != "town":
+        return format_trajectory_eval(results)
     lines = [
         "| session | georef. | ATE RMSE m | horizontal RMSE m | mean offset ENU m | ATE RMSE m, offset removed | GPS alone horiz. RMSE m "
         "| rot median deg | map points | to mesh, as georeferenced: median m / within 0.5 m | to mesh, offset removed: median m / within 0.5 m "
@@ -130,6 +332,51 @@ def format_eval(results: dict) -> str:
             f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | {f(ml.get('points_per_100m'), 0)} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def format_trajectory_eval(results: dict) -> str:
+    """Per session: what was compared with what (frames, stamps, alignment), then the errors."""
+    kinds = {"tum": "a TUM trajectory file", "kitti": "a KITTI poses file", "topic": "a pose topic of a log"}
+    modes = {"se3": "a rigid SE(3) Umeyama fit of the estimated positions to the true ones (the truth is in a frame of its own; evo -a)",
+             "sim3": "a Sim(3) Umeyama fit, scale included (a camera-only trajectory has no metric scale; evo -as)",
+             "none": "none: the truth is taken to be in the workspace's ENU frame (absolute figures)"}
+    lines: list[str] = []
+    f = lambda v, p=3: "" if v is None else f"{v:.{p}f}"  # noqa: E731
+    for name, r in results["sessions"].items():
+        e, t, a, al, ate, rpe = r["estimate"], r["truth"], r["association"], r["alignment"], r["ate"], r["rpe"]
+        dt = (f" (|dt| median {f(a['nearest_dt_median_s'], 4)} s, max {f(a['nearest_dt_max_s'], 4)} s)" if a["nearest"] else "")
+        S = np.asarray(al["truth_from_estimate"], np.float64)
+        lines += [
+            f"## Session {name} against {kinds.get(t['kind'], t['kind'])}",
+            "",
+            f"- Estimate: {e['trajectory']}, {e['poses']} poses of {e['body_frame']} from {e['source']}, "
+            f"{e['span_s'][0]:.3f} to {e['span_s'][1]:.3f} s.",
+            f"- Truth: `{t['source']}`, {t['poses']} poses (body frame: {t['body_frame']}; frame: {t['frame']}), "
+            f"{t['span_s'][0]:.3f} to {t['span_s'][1]:.3f} s; stamps from {t['stamps']}.",
+            f"- Association: {a['associated']} of {a['estimated_poses']} estimated poses; {a['interpolated']} interpolated between "
+            f"true poses within {a['max_dt_s']} s on both sides, {a['nearest']} paired with the nearest true pose within "
+            f"{a['max_dt_s']} s{dt}; the others have no true pose that close and are not compared.",
+            f"- Alignment: {modes[al['mode']]}" + ("" if al["mode"] == "none" else
+                                                   f": rotation {al['rotation_deg']:.3f} deg, translation "
+                                                   f"({', '.join(f'{x:.3f}' for x in S[:3, 3])}), scale {al['scale']:.6f}") + "."
+            + (" The path is nearly straight: the fit's roll about it is arbitrary (position errors are not affected)."
+               if al["straight_path"] and al["mode"] != "none" else ""),
+            f"- Rotation errors: both are poses of {e['body_frame']}." if t["body_frame"] == e["body_frame"] else
+            f"- Rotation errors compare {e['body_frame']} with the truth's body frame as they are: a fixed rotation between "
+            "the two counts as error.",
+            "",
+            "| ATE RMSE m | mean m | median m | max m | rotation RMSE deg "
+            + ("| horizontal RMSE m | vertical RMSE m " if "horizontal_rmse_m" in ate else "")
+            + f"| RPE over {rpe['segment_m']:g} m: translation % | rotation deg / 100 m | segments |",
+            "|---|---|---|---|---|" + ("---|---|" if "horizontal_rmse_m" in ate else "") + "---|---|---|",
+            f"| {f(ate['rmse_m'])} | {f(ate['mean_m'])} | {f(ate['median_m'])} | {f(ate['max_m'])} | {f(ate['rotation_rmse_deg'])} | "
+            + (f"{f(ate['horizontal_rmse_m'])} | {f(ate['vertical_rmse_m'])} | " if "horizontal_rmse_m" in ate else "")
+            + f"{f(rpe.get('translation_percent_mean'), 2)} | {f(rpe.get('rotation_deg_per_100m_mean'), 3)} | {rpe['segments']} |",
+            "",
+        ]
+        if not rpe["segments"]:
+            lines += [f"The true path is {rpe['path_m']:.1f} m long, shorter than one RPE segment.", ""]
+    return "\n".join(lines)
 
 
 def _absolute_errors(est: Trajectory, gt_stamps: np.ndarray, gt_ws: np.ndarray) -> dict:
@@ -307,4 +554,5 @@ def format_align_truth(t: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["evaluate_align", "evaluate_build", "format_align_truth", "format_eval"]
+__all__ = ["compare_trajectories", "evaluate_align", "evaluate_build", "format_align_truth", "format_eval", "format_trajectory_eval",
+           "relative_errors"]
