@@ -6,6 +6,7 @@ else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import functools
 import logging
 import sys
 import warnings
@@ -33,6 +34,28 @@ app.add_typer(index_app, name="index")
 app.add_typer(eval_app, name="eval")
 
 
+_WAIT_S = 0.0
+
+
+def _writes(arg: str):
+    """Hold the write lock of the workspace named by the command's argument ``arg`` for the whole
+    command (:mod:`mapkit.core.lock`): a second writer refuses, naming the first, or waits ``--wait``."""
+
+    def wrap(fn):
+        @functools.wraps(fn)
+        def run(*args, **kwargs):
+            from mapkit.core.lock import workspace_lock
+
+            if arg == "workspace" and not Path(kwargs[arg]).is_dir():
+                return fn(*args, **kwargs)  # no workspace to protect: the command says what is missing
+            with workspace_lock(kwargs[arg], command=f"mapkit {fn.__name__.replace('_', ' ')}", wait_s=_WAIT_S):
+                return fn(*args, **kwargs)
+
+        return run
+
+    return wrap
+
+
 def _version(value: bool) -> None:
     if value:
         typer.echo(f"mapkit {__version__}")
@@ -45,8 +68,11 @@ def _root(
     executor: str = typer.Option("local", "--executor", help="Where per-frame, per-patch and per-pair work runs: local (processes) or ray."),
     workers: Optional[int] = typer.Option(None, "--workers", help="Local processes or CPUs of a local Ray instance (default: one, or the stage's own setting)."),
     ray_address: Optional[str] = typer.Option(None, "--ray-address", help="A running Ray cluster ('auto' or HOST:PORT); default: start a local instance."),
+    wait: float = typer.Option(0.0, "--wait", help="Seconds to wait for another mapkit command writing the same workspace (default: refuse at once)."),
 ) -> None:
     """mapkit: dataset building and mapping for visual localization."""
+    global _WAIT_S
+    _WAIT_S = max(wait, 0.0)
     if executor not in ("local", "ray"):
         raise MapkitError(f"--executor {executor!r}: expected local or ray")
     if executor == "ray" or workers is not None or ray_address is not None:
@@ -130,6 +156,7 @@ def synth(
 
 
 @app.command()
+@_writes("out")
 def build(
     logs: List[Path] = typer.Argument(..., help="One or more drive logs; each becomes a session."),
     out: Path = typer.Option(..., "--out", "-o", help="Workspace folder."),
@@ -144,6 +171,7 @@ def build(
 
 
 @app.command()
+@_writes("workspace")
 def align(
     workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (two or more georeferenced sessions)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."),
@@ -157,6 +185,7 @@ def align(
 
 
 @app.command("export-crs")
+@_writes("workspace")
 def export_crs(
     workspace: Path = typer.Argument(..., help="A georeferenced workspace (mapkit build, optionally mapkit align)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
@@ -179,6 +208,7 @@ def export_crs(
 
 
 @app.command()
+@_writes("workspace")
 def triplets(
     workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets)."),
@@ -252,6 +282,7 @@ def demo(
 
 
 @index_app.command("export")
+@_writes("workspace")
 def index_export(
     workspace: Path = typer.Argument(..., help="A workspace with finished indexes under WORKSPACE/indexes."),
     out: Path = typer.Option(..., "--out", "-o", help="Bundle folder to write (replaced atomically)."),
@@ -268,6 +299,7 @@ def index_export(
 
 
 @index_app.command("vlad")
+@_writes("workspace")
 def index_vlad(
     workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (aligned poses are used when `mapkit align` ran)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/vlad)."),
@@ -282,6 +314,7 @@ def index_vlad(
 
 
 @index_app.command("structure")
+@_writes("workspace")
 def index_structure(
     workspace: Path = typer.Argument(..., help="A workspace (its aligned maps are used when `mapkit align` ran)."),
     kind: str = typer.Option("nbld", "--kind", "-k", help="Descriptor: nbld, m2dp, or cnn (with --model)."),
@@ -299,6 +332,7 @@ def index_structure(
 
 
 @eval_app.command("build")
+@_writes("workspace")
 def eval_build(
     workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build`."),
     truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from (all its sessions), or one "
@@ -332,6 +366,7 @@ def eval_build(
 
 
 @eval_app.command("align")
+@_writes("workspace")
 def eval_align(
     workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
     truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from."),
@@ -345,6 +380,7 @@ def eval_align(
 
 
 @eval_app.command("retrieval")
+@_writes("workspace")
 def eval_retrieval(
     workspace: Path = typer.Argument(..., help="The workspace the bundle was built from."),
     bundle: Path = typer.Argument(..., help="A VLAD bundle (`mapkit index vlad`)."),
@@ -359,6 +395,7 @@ def eval_retrieval(
 
 
 @eval_app.command("places")
+@_writes("workspace")
 def eval_places(
     workspace: Path = typer.Argument(..., help="An aligned workspace."),
     pair: List[str] = typer.Option(..., "--pair", "-p", help="DATABASE:QUERY session pair; repeat for several."),
@@ -384,6 +421,7 @@ def eval_places(
 
 
 @eval_app.command("localize")
+@_writes("workspace")
 def eval_localize(
     workspace: Path = typer.Argument(..., help="A built (and ideally aligned) workspace of a synthetic town."),
     truth: Path = typer.Option(..., "--truth", help="The synthetic town: session roles and true poses."),

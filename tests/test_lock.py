@@ -86,3 +86,29 @@ def test_reentrant_in_one_process_and_released_after(tmp_path):
     out = subprocess.run([sys.executable, "-c", "import sys\nfrom mapkit.core.lock import workspace_lock\n"
                           "with workspace_lock(sys.argv[1]): print('ok')", str(ws)], capture_output=True, text=True)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_second_cli_writer_refuses_with_one_line_and_writes_nothing(tmp_path, capsys):
+    """Two commands into one workspace (the issue's concurrent builds): the second exits 2 with the
+    holder named and touches nothing; with --wait it runs once the first is done."""
+    from mapkit.cli import main
+
+    ws = tmp_path / "ws"
+    proc = _hold(ws, tmp_path, 30)
+    try:
+        before = sorted(p.name for p in ws.iterdir())
+        assert main(["build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"pid {proc.pid}" in err[0] and "being written" in err[0]
+        assert sorted(p.name for p in ws.iterdir()) == before  # no build_config.yaml, no sessions/
+    finally:
+        proc.kill()
+        proc.wait()
+    proc = _hold(ws, tmp_path, 1.0)
+    try:  # waiting: the lock is taken after the holder ends, then the build reports its own error
+        assert main(["--wait", "60", "build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
+        assert "no such file" in capsys.readouterr().err
+        assert proc.poll() == 0
+    finally:
+        proc.kill()
+        proc.wait()

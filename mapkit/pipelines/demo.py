@@ -367,7 +367,8 @@ def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Option
     d.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ex = default_executor()  # `mapkit --executor ray demo` set one; else a local pool of `workers`
-    with (nullcontext(ex) if ex is not None else use_executor("local", workers=workers)) as ex:
+    with d.ws.lock(command="mapkit demo"), \
+            (nullcontext(ex) if ex is not None else use_executor("local", workers=workers)) as ex:
         d.metrics["executor"] = {"kind": ex.kind, "workers": ex.workers}
         for stage in STAGES:
             try:
