@@ -51,7 +51,7 @@ pip_install() { "$VPY" -m pip install --quiet --disable-pip-version-check "$@"; 
 STAMP="$VENV/.mapkit-setup"
 WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) $(pwd -P)"
 if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
-   || ! "$VPY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, rosbags, pyproj, faiss, h5py, pytest, torch, onnx, onnxruntime, ray" >/dev/null 2>&1 \
+   || ! "$VPY" -I -c "import mapkit, open3d, pycolmap, cv2, kiss_icp, mcap_ros2, rosbags, pyproj, faiss, h5py, gtsam, PIL, pytest, hypothesis, torch, onnx, onnxruntime, ray, rerun, mkdocs, mkdocstrings" >/dev/null 2>&1 \
    || [ "$("$VPY" -I -c 'import mapkit, pathlib; print(pathlib.Path(mapkit.__file__).resolve().parents[1])' 2>/dev/null)" != "$(pwd -P)" ]; then
   t0=$(date +%s)
   # torch's CPU build first, pinned, so that the learning extra pulls no CUDA packages. On this kind
@@ -61,8 +61,8 @@ if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
     say "installing torch==2.13.0 (CPU build)"
     pip_install torch==2.13.0 ${TORCH_INDEX:+--index-url "$TORCH_INDEX"}
   fi
-  say "installing mapkit (editable) with its extras learning, distributed and test"
-  pip_install -e ".[test,learning,distributed]"
+  say "installing mapkit (editable) with its extras learning, distributed, viewer, docs and test"
+  pip_install -e ".[test,learning,distributed,viewer,docs]"
   echo "$WANT" > "$STAMP"
   say "installed in $(( $(date +%s) - t0 )) s"
 fi
