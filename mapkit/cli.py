@@ -247,6 +247,50 @@ def localize(
 
 
 @app.command()
+def view(
+    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (aligned maps are added when `mapkit align` ran)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="The .rrd to write (default WORKSPACE/view.rrd)."),
+    budget_points: int = typer.Option(2_000_000, "--budget-points", min=0, help="At most this many map points over all maps "
+                                      "together; each map keeps the same share, sampled uniformly."),
+    image_spacing: float = typer.Option(10.0, "--image-spacing", min=0.0,
+                                        help="One camera thumbnail per this many metres of camera travel."),
+    thumbnail_width: int = typer.Option(320, "--thumbnail-width", min=16, help="Thumbnail width in pixels."),
+    localize: Optional[Path] = typer.Option(None, "--localize", help="A localization folder: `mapkit localize` runs (itself or its "
+                                            "sub-folders) and cached retrieval hits (cache/); default WORKSPACE/localize."),
+    gps: bool = typer.Option(True, "--gps/--no-gps",
+                             help="Draw the GPS fixes, read again from each session's log (the build keeps no fix positions)."),
+    spawn: bool = typer.Option(False, "--spawn", help="Also open the Rerun viewer on it (needs a display)."),
+    png: Optional[Path] = typer.Option(None, "--png",
+                                       help="Also render a top view of the recording to this PNG (matplotlib, no viewer needed)."),
+) -> None:
+    """Write a Rerun recording (.rrd) of a workspace: trajectories, maps, GPS fixes, thumbnails at their poses, localizer runs.
+
+    Kept to a budget whatever the workspace's size: at most --budget-points map points (default 2 M), one thumbnail per 10 m.
+
+    Open it with `rerun FILE.rrd`. Needs the viewer extra (the rerun-sdk package).
+    """
+    from contextlib import nullcontext
+
+    from mapkit.core.workspace import Workspace
+    from mapkit.report.view import render_top_view, write_recording
+
+    ws = Workspace(workspace)
+    target = (out or ws.recording).resolve()
+    # it only reads the workspace; its lock is held only when the recording lands inside it
+    inside = ws.root.is_dir() and target.is_relative_to(ws.root.resolve())
+    with ws.lock("mapkit view", _WAIT_S) if inside else nullcontext():
+        s = write_recording(ws, out, budget_points=budget_points, image_spacing_m=image_spacing, thumbnail_width_px=thumbnail_width,
+                            localize=localize, gps=gps, spawn=spawn, progress=sys.stderr.isatty())
+    typer.echo(f"{s.path}: {s.bytes / 1e6:.1f} MB in {s.seconds:.1f} s; {s.points:,} of {sum(s.map_points_total.values()):,} map points "
+               f"in {len(s.map_points)} map(s), {sum(s.images.values())} thumbnails, {sum(s.gps_fixes.values())} GPS fixes, "
+               f"{sum(e.endswith('/trajectory') for e in s.poses)} trajectories")
+    for note in s.notes:
+        typer.echo(f"note: {note}")
+    if png is not None:
+        typer.echo(f"top view written to {render_top_view(s.path, png)}")
+
+
+@app.command()
 def train(
     dataset: Path = typer.Argument(..., help="A triplet dataset (`mapkit triplets`)."),
     out: Path = typer.Option(..., "--out", "-o", help="Model folder: checkpoints, model.pt, model.onnx, manifest, curve."),

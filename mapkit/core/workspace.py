@@ -314,6 +314,11 @@ class Workspace:
         return self.localize_dir / "cache"
 
     @property
+    def recording(self) -> Path:
+        """The Rerun recording ``mapkit view`` writes by default."""
+        return self.root / "view.rrd"
+
+    @property
     def eval_dir(self) -> Path:
         return self.root / "eval"
 
