@@ -338,7 +338,7 @@ _TIME_FIELDS = ("time", "t", "timestamp", "time_stamp", "offset_time")
 
 
 def lidar_to_msg(scan: LidarScan) -> dict:
-    """PointCloud2 with float32 x, y, z[, intensity][, time (s since stamp)][, ring (uint16)]."""
+    """PointCloud2 with float32 ``x, y, z[, intensity][, time (s since stamp)][, ring (uint16)]``."""
     n = len(scan)
     cols = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if scan.intensity is not None:
