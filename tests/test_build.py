@@ -1,6 +1,7 @@
 """`mapkit build` on a cut of the real KITTI clip: outputs, formats, and resuming after a crash."""
 
 import json
+import warnings
 import shutil
 
 import numpy as np
@@ -175,3 +176,61 @@ def test_build_reads_images_from_the_topics_named_in_topics_images(tmp_path):
     assert table["stamp_ns"].tolist() == [T0 + i * 100_000_000 + 20_000_000 for i in range(1, 19)]
     for rel in table["image"]:
         assert (cv2.imread(str(db / rel), cv2.IMREAD_UNCHANGED) == 190).all()
+
+
+def _imageless_log(path, yaw_deg: float = 37.0):
+    """A log as an INS-equipped car without a camera records it: 30 s of fused poses of base_link
+    at 10 Hz along a 300 m bend, and GPS at 1 Hz (1 m noise) in an ENU frame turned by ``yaw_deg``
+    from the pose frame. No image, no LiDAR."""
+    from mapkit.core.geodesy import LocalFrame
+    from mapkit.core.geometry import yaw_rotation
+    from mapkit.core.types import GpsFix
+
+    rng = np.random.default_rng(5)
+    frame = LocalFrame(49.0, 8.4, 110.0)
+    R = yaw_rotation(np.radians(yaw_deg))
+    with McapWriter(path) as w:
+        for i in range(300):
+            t = T0 + i * 100_000_000
+            s = i * 1.0
+            xyz = np.array([s, 0.002 * s**2, 0.0])
+            w.write("/ins/pose", PoseSample(t, "map", "base_link", make_pose(yaw_rotation(np.arctan(0.004 * s)), xyz)))
+            if i % 10 == 0:
+                lat, lon, alt = frame.enu_to_geodetic((R @ xyz + rng.normal(scale=1.0, size=3))[None])
+                w.write("/gps/fix", GpsFix(t, float(lat[0]), float(lon[0]), float(alt[0]), covariance_enu_m2=np.diag([1.0, 1.0, 4.0])))
+    return path
+
+
+def test_a_log_without_images_builds_its_trajectory_and_georef_and_skips_the_image_stages(tmp_path, capsys):
+    """``mapkit build`` on an image-less log exits 0: trajectory and GPS alignment (the known 37 deg
+    yaw recovered), the map and image database skipped with the reason in metrics.json, a warning
+    and the summary."""
+    log = _imageless_log(tmp_path / "highway.mcap")
+    with pytest.warns(InputWarning, match="semidense skipped: the log has no image stream"):
+        assert main(["build", str(log), "--out", str(tmp_path / "ws")]) == 0
+    captured = capsys.readouterr()
+    assert "semidense skipped: the log has no image stream" in captured.out
+    assert "imagedb skipped: the log has no image stream" in captured.out
+    s = Workspace(tmp_path / "ws").session("highway")
+    assert is_done(s.trajectory) and is_done(s.georef) and not s.map.exists() and not s.imagedb.exists()
+    st = json.loads((tmp_path / "ws" / "metrics.json").read_text())["sessions"]["highway"]["stages"]
+    assert st["semidense"] == {"skipped": "the log has no image stream"} and st["imagedb"] == st["semidense"]
+    s_m = np.arange(300.0)
+    length = np.linalg.norm(np.diff(np.stack([s_m, 0.002 * s_m**2], axis=1), axis=0), axis=1).sum()  # 359.7 m
+    assert st["trajectory"]["source"] == "poses:/ins/pose" and st["trajectory"]["length_m"] == pytest.approx(length)
+    assert st["georef"]["georeferenced"] and st["georef"]["yaw_deg"] == pytest.approx(37.0, abs=0.5)
+    assert st["georef"]["units"] == "m" and st["georef"]["residual_rmse_m"] < 3.0
+
+
+def test_imagedb_false_and_map_false_skip_those_stages_without_a_warning(tmp_path):
+    log = _two_camera_log(tmp_path / "two_cams.mcap", front_grey=60, rear_grey=190)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("trajectory:\n  source: poses\nmap: false\nimagedb: false\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ws = build([log], tmp_path / "ws", config=cfg, progress=False)
+    assert [str(w.message) for w in caught if "skipped" in str(w.message)] == []
+    s = Workspace(ws).session("two_cams")
+    assert is_done(s.georef) and not s.map.exists() and not s.imagedb.exists()
+    st = json.loads((ws / "metrics.json").read_text())["sessions"]["two_cams"]["stages"]
+    assert st["semidense"] == {"skipped": "map: false in the config"} and st["imagedb"] == {"skipped": "imagedb: false in the config"}

@@ -49,6 +49,7 @@ def trajectory_over_gps(
     title: str,
     truth_enu: Optional[np.ndarray] = None,
 ) -> Path:
+    """The GPS-aligned trajectory over the fixes it was fitted to (used and rejected): ENU metres."""
     plt, fig, ax = _figure()
     if truth_enu is not None:
         ax.plot(truth_enu[:, 0], truth_enu[:, 1], color="0.6", lw=3, label="ground truth")
@@ -65,7 +66,11 @@ def trajectory_over_gps(
     return _save(plt, fig, path)
 
 
-def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray], title: str, max_points: int = 300_000) -> Path:
+def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray], title: str, max_points: int = 300_000,
+                 axes: tuple[str, str] = ("east", "north"), units: str = "m") -> Path:
+    """Map points seen from above, coloured by height, with the trajectory. ``axes`` names the
+    horizontal axes (east/north once georeferenced) and ``units`` their unit ("m", or "arbitrary
+    units" for a reconstruction that is not)."""
     plt, fig, ax = _figure((9, 9))
     if len(points) > max_points:
         points = points[np.random.default_rng(0).choice(len(points), max_points, replace=False)]
@@ -73,15 +78,15 @@ def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray],
         z = points[:, 2]
         lo, hi = np.percentile(z, [2, 98]) if len(z) > 10 else (z.min(), z.max() + 1e-6)
         sc = ax.scatter(points[:, 0], points[:, 1], s=0.2, c=np.clip(z, lo, hi), cmap="viridis", linewidths=0)
-        fig.colorbar(sc, ax=ax, shrink=0.6, label="height [m]")
+        fig.colorbar(sc, ax=ax, shrink=0.6, label=f"height [{units}]")
     if traj_enu is not None and len(traj_enu):
         ax.plot(traj_enu[:, 0], traj_enu[:, 1], "r-", lw=0.8, label="trajectory")
         ax.legend(loc="best", fontsize=8)
     extent = [a for a in (points[:, :2] if len(points) else None, None if traj_enu is None else traj_enu[:, :2]) if a is not None and len(a)]
     if extent:
         _frame_equal(ax, np.vstack(extent))
-    ax.set_xlabel("east [m]")
-    ax.set_ylabel("north [m]")
+    ax.set_xlabel(f"{axes[0]} [{units}]")
+    ax.set_ylabel(f"{axes[1]} [{units}]")
     ax.set_title(title)
     return _save(plt, fig, path)
 

@@ -9,6 +9,13 @@ hash of the config that made it; re-running skips finished stages and redoes hal
 3. ``map/``         the semi-dense map in the workspace's local ENU frame (PLY + observations)
 4. ``imagedb/``     the georeferenced image database (COLMAP reconstruction + images.csv)
 
+The image stages (3 and 4) are skipped, with the reason in the session's ``metrics.json`` and a
+warning, when the log has no image stream; stage 3 also when ``map: false`` or when a camera-only
+trajectory could not be georeferenced (its scale is arbitrary, the mapper's parameters are in
+metres), stage 4 when ``imagedb: false``. Lengths and poses of a camera-only session that is not
+georeferenced are in the reconstruction's arbitrary units and say so (``length_sfm_units``,
+``pose_units``).
+
 Every session of a workspace shares one local ENU origin and UTM zone (``WORKSPACE/origin.json``,
 set by the first session with GPS), so maps of different sessions are in one frame from the start.
 """
@@ -24,7 +31,8 @@ from types import SimpleNamespace
 from typing import Iterator, Literal, Optional
 
 import numpy as np
-from pydantic import Field
+from scipy.spatial.transform import Rotation
+from pydantic import Field, field_validator
 
 from mapkit.core.config import MapkitConfig, TopicConfig, dump_config, load_config, resolve_topics
 from mapkit.core.errors import InputError, InputWarning, MapkitError
@@ -41,7 +49,7 @@ from mapkit.io.plots import map_top_view, trajectory_over_gps
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
 from mapkit.mapping.semidense import SemiDenseConfig, SemiDenseMap, build_semidense_map
-from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, estimate_trajectory
+from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, camera_up_hint, estimate_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -60,14 +68,19 @@ class GeorefConfig(MapkitConfig):
     vertical_sigma_factor: float = Field(2.0, description="GPS height sigma as a multiple of its horizontal sigma.")
     min_inlier_threshold_m: float = Field(2.0, description="The horizontal gate is never tighter than this.")
     max_pose_gap_s: float = Field(1.0, description="A fix between trajectory poses further apart than this is not used.")
-    strict: bool = Field(False, description="Fail instead of falling back when Sim3 rotation is unobservable.")
+    strict: bool = Field(False, description="Fail instead of building the session unreferenced when GPS cannot place it, "
+                         "and when a camera-only drive is too straight for GPS to fix its roll and the cameras give no up hint.")
+
+
+class ImageDbStageConfig(ImageDbConfig):
+    enabled: bool = Field(True, description="Write the image database (stage 4); `imagedb: false` is short for `enabled: false`.")
 
 
 class BuildConfig(MapkitConfig):
     topics: TopicConfig = TopicConfig()
     trajectory: TrajectoryConfig = TrajectoryConfig()
     georef: GeorefConfig = GeorefConfig()
-    imagedb: ImageDbConfig = ImageDbConfig()
+    imagedb: ImageDbStageConfig = ImageDbStageConfig()
     semidense: SemiDenseConfig = Field(default_factory=SemiDenseConfig, description="Semi-dense mapping (stage 3), "
                                        "checked with the rest of the config before any stage runs.")
     map: bool = Field(True, description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
@@ -75,12 +88,20 @@ class BuildConfig(MapkitConfig):
     camera: Optional[str] = Field(None, description="Camera (frame id) to map with; if unset, the first one (by name) with "
                                   "intrinsics, of those on topics.images when that is set.")
 
+    @field_validator("imagedb", mode="before")
+    @classmethod
+    def _imagedb_switch(cls, v):
+        return {"enabled": v} if isinstance(v, bool) else v
+
 
 def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     d = cfg.model_dump(mode="json")
     # semi-dense hashes as the overrides it was given, as when it was a plain dict of them: stages
     # finished before it was typed stay finished
     d["semidense"] = cfg.semidense.model_dump(mode="json", exclude_unset=True)
+    # the image database's switch decides whether it runs, not what it holds: stages finished before
+    # the switch existed stay finished
+    d["imagedb"].pop("enabled")
     return config_hash({p: d.get(p) for p in parts})
 
 
@@ -129,8 +150,7 @@ class SessionBuilder:
         traj = estimate_trajectory(self.log, self.cfg.trajectory, self.cfg.topics, progress=self.progress)
         traj.save(out)
         m = {"source": traj.source, "poses": len(traj), "duration_s": (int(traj.stamps_ns[-1]) - int(traj.stamps_ns[0])) * 1e-9,
-             "length_m": float(np.linalg.norm(np.diff(traj.world_from_base[:, :3, 3], axis=0), axis=1).sum()),
-             "seconds": time.perf_counter() - t0}
+             **_length(traj), "seconds": time.perf_counter() - t0}
         write_json(out / "metrics.json", m)
         mark_done(out, h)
         return out
@@ -153,8 +173,14 @@ class SessionBuilder:
         enu_traj = traj.world_from_base.copy()
         enu_traj[:, :3, :3] = R @ traj.world_from_base[:, :3, :3]
         enu_traj[:, :3, 3] = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
-        Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if al is not None else traj.frame,
-                   body_frame=traj.body_frame).save(self.dirs.georef_trajectory)
+        aligned = Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if al is not None else traj.frame,
+                             body_frame=traj.body_frame)
+        aligned.save(self.dirs.georef_trajectory)
+        result.update(_length(aligned, georeferenced=al is not None))
+        if al is None:  # a picture of what there is, in the trajectory's own frame and units
+            xyz, axes = _top_view_positions(traj)
+            map_top_view(out / "trajectory_top_view.png", np.zeros((0, 3)), xyz, f"{self.name}: trajectory, NOT georeferenced",
+                         axes=axes, units="m" if result["units"] == "m" else "arbitrary units")
         result["seconds"] = time.perf_counter() - t0
         write_json(self.dirs.gps_alignment, result)
         mark_done(out, h)
@@ -190,21 +216,25 @@ class SessionBuilder:
         # structure from motion has no gravity and no scale: only a full Sim3 can place it. A metric
         # trajectory keeps its scale under 'auto': GPS over a drive of a few hundred metres, with a
         # bias that drifts over minutes, estimates scale worse than LiDAR odometry measures it.
-        if traj.source.startswith("camera"):
+        # Its gravity comes from GPS where the path bends enough; on a straight path the cameras'
+        # mean up fixes the roll about it (see gps_align's module notes).
+        up_map = None
+        if _camera_only(traj):
             mode = "sim3"
+            up_map = camera_up_hint(traj.world_from_base)
         else:
             mode = "yaw" if g.mode == "auto" else g.mode
         try:
             al = align_to_gps(
                 antenna, gps_enu[ok], sigma[ok], stamps[ok], mode=mode, inlier_sigmas=g.inlier_sigmas,
                 vertical_sigma_factor=g.vertical_sigma_factor, min_inlier_threshold_m=g.min_inlier_threshold_m,
-                strict=g.strict, source=str(self.log_path),
+                up_map=up_map, strict=g.strict, source=str(self.log_path),
             )
         except InputError as exc:
             if g.strict:
                 raise
             result["reason"] = exc.what
-            warnings.warn(f"{exc}; the map is NOT georeferenced", InputWarning, stacklevel=3)
+            warnings.warn(f"{exc}; the session is NOT georeferenced", InputWarning, stacklevel=3)
             return None, None
         result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
                       fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
@@ -344,7 +374,8 @@ class SessionBuilder:
         smap.save(out, frame=frame)
         traj = self.enu_trajectory()
 
-        map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3], f"{self.name}: semi-dense map, {len(smap.points_world)} points")
+        map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3],
+                     f"{self.name}: semi-dense map, {len(smap.points_world)} points", axes=_plot_axes(frame))
         m = {"points": int(len(smap.points_world)), "seconds": time.perf_counter() - t0,
              "crs": None if frame is None else frame.to_dict()}
         m.update(smap.stats())
@@ -365,17 +396,24 @@ class SessionBuilder:
         write_json(self.dirs.camera_mount, {"camera": name, "base_frame": body,
                                             "base_from_camera": self.base_from_camera(body).tolist()})
         writer = ImageDbWriter(out, self.cfg.imagedb, {name: info})
+        metric = self.metric()
+        # a spacing in metres means nothing at a reconstruction's arbitrary scale: every registered frame is kept
+        min_spacing = self.cfg.imagedb.min_spacing_m if metric else 0.0
         last = None
         db_id_of_frame: dict[int, int] = {}
         for i, frame, T in self.posed_frames():
-            if last is not None and np.linalg.norm(T[:3, 3] - last) < self.cfg.imagedb.min_spacing_m:
+            if last is not None and np.linalg.norm(T[:3, 3] - last) < min_spacing:
                 continue
             last = T[:3, 3]
             im = writer.add(frame.stamp_ns, name, frame.image, T, frame.encoding)
             db_id_of_frame[i] = im.image_id
-        if not self.cfg.map:
+        m: dict = {"images": len(writer.images), "pose_units": "m" if metric else ARBITRARY_UNITS}
+        if not metric:
+            m["note"] = ("not georeferenced: poses (images.csv x_m/y_m/z_m, colmap/) are in the reconstruction's arbitrary "
+                         "units, and imagedb.min_spacing_m was not applied")
+        if self.skip_reason("semidense") is not None:
             writer.close(self.frame())
-            write_json(out / "metrics.json", {"images": len(writer.images), "seconds": time.perf_counter() - t0, "map": False})
+            write_json(out / "metrics.json", {**m, "seconds": time.perf_counter() - t0, "map": False})
             mark_done(out, h)
             return out
         smap = SemiDenseMap.load(self.semidense())
@@ -386,29 +424,86 @@ class SessionBuilder:
         counts = np.bincount(point_of[keep], minlength=len(smap.points_world))
         indptr = np.concatenate([[0], np.cumsum(counts)])
         writer.close(self.frame(), smap.points_world, (indptr, ids[keep]))
-        write_json(out / "metrics.json", {"images": len(writer.images), "seconds": time.perf_counter() - t0})
+        write_json(out / "metrics.json", {**m, "seconds": time.perf_counter() - t0})
         mark_done(out, h)
         return out
+
+    # --- which stages run -----------------------------------------------------------------------
+    def metric(self) -> bool:
+        """Whether the session's poses are in metres: georeferenced, or a metric source (LiDAR, poses)."""
+        return not _camera_only(self.enu_trajectory()) or self.frame() is not None
+
+    def skip_reason(self, stage: str) -> Optional[str]:
+        """Why an image stage (``semidense``, ``imagedb``) does not run for this session, or None."""
+        if stage in SKIPPED_BY_CONFIG and not (self.cfg.map if stage == "semidense" else self.cfg.imagedb.enabled):
+            return SKIPPED_BY_CONFIG[stage]
+        if not resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMAGE):
+            return "the log has no image stream" + ("" if self.cfg.topics.images is None else " on topics.images")
+        if stage == "semidense" and not self.metric():
+            return ("the camera-only trajectory is not georeferenced: its scale is arbitrary and the mapper's parameters "
+                    "are in metres")
+        return None
 
     def run(self) -> dict:
         t0 = time.perf_counter()
         self.dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.dirs.config, dump_config(self.cfg))
-        stages = (self.trajectory, self.georef, self.semidense, self.imagedb) if self.cfg.map else (self.trajectory, self.georef, self.imagedb)
-        for stage in stages:
+        for stage in (self.trajectory, self.georef, self.semidense, self.imagedb):
             s0 = time.perf_counter()
+            reason = self.skip_reason(stage.__name__) if stage.__name__ in SKIPPED_BY_CONFIG else None
+            if reason is not None:
+                if reason not in SKIPPED_BY_CONFIG.values():
+                    warnings.warn(f"{self.log_path}: {stage.__name__} skipped: {reason}", InputWarning, stacklevel=2)
+                self.metrics["stages"][stage.__name__] = {"skipped": reason}
+                continue
             folder = stage()
             m_path = folder / "metrics.json"
             stage_metrics = json.loads(m_path.read_text()) if m_path.is_file() else {}
             if folder == self.dirs.georef:
                 ga = json.loads(self.dirs.gps_alignment.read_text())
-                stage_metrics = {"georeferenced": ga["georeferenced"], **ga.get("alignment", {})}
+                stage_metrics = {"georeferenced": ga["georeferenced"], **{k: ga[k] for k in ("reason", "units") if k in ga},
+                                 **{k: v for k, v in ga.items() if k.startswith("length_")}, **ga.get("alignment", {})}
             stage_metrics["wall_s_this_run"] = time.perf_counter() - s0
             self.metrics["stages"][stage.__name__] = stage_metrics
         self.metrics["wall_s_this_run"] = time.perf_counter() - t0
         write_json(self.dirs.metrics, self.metrics)
         self.close()
         return self.metrics
+
+
+ARBITRARY_UNITS = "arbitrary units (structure from motion, not georeferenced)"
+SKIPPED_BY_CONFIG = {"semidense": "map: false in the config", "imagedb": "imagedb: false in the config"}
+
+
+def _camera_only(traj: Trajectory) -> bool:
+    """Structure from motion: no scale, no gravity until GPS alignment."""
+    return traj.source.startswith("camera")
+
+
+def _length(traj: Trajectory, georeferenced: bool = False) -> dict:
+    """The path length with its units: metres, or the arbitrary units of an unreferenced reconstruction."""
+    length = float(np.linalg.norm(np.diff(traj.world_from_base[:, :3, 3], axis=0), axis=1).sum())
+    if georeferenced or not _camera_only(traj):
+        return {"units": "m", "length_m": length}
+    return {"units": ARBITRARY_UNITS, "length_sfm_units": length}
+
+
+def _top_view_positions(traj: Trajectory) -> tuple[np.ndarray, tuple[str, str]]:
+    """Positions to draw from above, and their axis names: a camera-only trajectory turned so that
+    the cameras' mean up is +z (its own frame has no gravity), any other as it is."""
+    xyz = traj.world_from_base[:, :3, 3]
+    up = camera_up_hint(traj.world_from_base) if _camera_only(traj) else None
+    if up is None:
+        return xyz, _plot_axes(None)
+    axis = np.cross(up, [0.0, 0.0, 1.0])
+    n = float(np.linalg.norm(axis))
+    rotvec = (axis / n if n > 1e-12 else np.array([1.0, 0.0, 0.0])) * float(np.arctan2(n, up[2]))  # up onto +z
+    return xyz @ Rotation.from_rotvec(rotvec).as_matrix().T, ("x (levelled by the cameras' up)", "y")
+
+
+def _plot_axes(frame: Optional[LocalFrame]) -> tuple[str, str]:
+    """Axis names of a top view: east/north in a georeferenced session, the odometry's x/y otherwise."""
+    return ("east", "north") if frame is not None else ("x (trajectory frame)", "y (trajectory frame)")
 
 
 def _log_bytes(log: Path) -> int:
@@ -488,18 +583,28 @@ def _fix_workspace_frame(logs: list[Path], ws: Workspace, cfg: BuildConfig) -> N
 
 
 def format_build_summary(workspace: str | Path | Workspace) -> str:
-    """A table of every session of a workspace: trajectory, georeferencing, map and database."""
+    """A table of every session of a workspace: trajectory, georeferencing, map and database, and
+    under a session the stages it skipped and why. Lengths are in metres except those marked
+    ``au`` (a camera-only session that is not georeferenced: the reconstruction's arbitrary units)."""
     ws = Workspace(workspace)
     m = json.loads(ws.metrics.read_text())
     rows = [f"workspace {ws.root}",
-            f"  {'session':<24} {'traj src':<22} {'length m':>9} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} {'points':>9} {'images':>7} {'time s':>7}"]
+            f"  {'session':<24} {'traj src':<22} {'length m':>11} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} "
+            f"{'points':>9} {'images':>7} {'time s':>7}"]
     for name, s in m["sessions"].items():
         st = s["stages"]
         tr, ge, mp, db = st.get("trajectory", {}), st.get("georef", {}), st.get("semidense", {}), st.get("imagedb", {})
         rmse = ge.get("residual_rmse_m")
+        length = ge.get("length_m", tr.get("length_m"))
+        length_cell = f"{length:.1f}" if length is not None else f"{tr.get('length_sfm_units', 0):.1f} au"
         rows.append(
-            f"  {name:<24} {str(tr.get('source', ''))[:22]:<22} {tr.get('length_m', 0):>9.1f} "
+            f"  {name:<24} {str(tr.get('source', ''))[:22]:<22} {length_cell:>11} "
             f"{'yes' if ge.get('georeferenced') else 'NO':>7} {'' if rmse is None else f'{rmse:.2f}':>10} "
             f"{ge.get('fixes_rejected', ''):>8} {mp.get('points', 0):>9} {db.get('images', 0):>7} {s.get('wall_s_this_run', 0):>7.1f}"
         )
+        if ge.get("reason"):
+            rows.append(f"    not georeferenced: {ge['reason']}")
+        rows.extend(f"    {stage} skipped: {st[stage]['skipped']}" for stage in ("semidense", "imagedb") if "skipped" in st.get(stage, {}))
+        if db.get("pose_units", "m") != "m":
+            rows.append(f"    imagedb poses in {db['pose_units']}")
     return "\n".join(rows)

@@ -7,10 +7,16 @@ each fix's reported sigma) refines on the inliers. The default model is gravity-
 the vertical, translation and scale (5 parameters), for trajectories whose z axis is already
 vertical (LiDAR odometry started level, INS); ``yaw`` keeps the trajectory's own metric scale
 (4 parameters), which is what a build does with LiDAR or INS poses (see ``mapkit.mapping.build``), and
-still reports the scale GPS would have chosen. ``sim3`` estimates all 7 parameters (camera-only
-reconstructions have an arbitrary orientation); when the drive is too straight for the rotation
-about its direction of travel to be observable, it falls back to the gravity-aware model with a
-warning, or raises if asked to be strict.
+still reports the scale GPS would have chosen.
+
+``sim3`` estimates all 7 parameters and needs no levelled frame: structure from motion has an
+arbitrary orientation and scale. Every length it judges is in GPS metres (the trajectory's extent,
+its spread off the path axis), never in the trajectory's own units. When the drive is too straight
+for GPS to fix the rotation about its direction of travel (the predicted standard deviation of that
+roll exceeds ``max_roll_sigma_deg``), a gravity hint fixes that one angle: ``up_map``, a direction of
+the trajectory frame that is roughly up (for a camera trajectory the cameras' mean -y, as cameras
+are mounted roughly level). Without a hint the full Sim3 is kept and the roll is reported as
+unobservable (or, ``strict``, refused).
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import interpolate_poses, make_sim3, sim3_scale, transform_points, umeyama, yaw_rotation
 
 Mode = Literal["yaw_scale", "sim3", "yaw"]
+Gravity = Literal["level frame", "gps", "up hint", "unobservable"]
 
 
 @dataclass
@@ -39,6 +46,12 @@ class GpsAlignment:
     rejected: list[dict] = field(default_factory=list)  # index, stamp, reason, residual
     notes: list[str] = field(default_factory=list)
     free_scale: Optional[float] = None  # in ``yaw`` mode: the scale a ``yaw_scale`` fit of the inliers gives
+    extent_m: float = float("nan")  # the trajectory's extent along its main axis where GPS overlaps it, in GPS metres
+    # what fixed the rotation about the direction of travel: the frame's own gravity (yaw modes), GPS
+    # (the path bends enough), the up hint, or nothing (reported as unobservable)
+    gravity: Gravity = "level frame"
+    roll_sigma_deg: Optional[float] = None  # sim3: predicted 1-sigma of that roll from GPS alone (fix sigmas, geometry); <= 180
+    up_tilt_deg: Optional[float] = None  # sim3 with an up hint: angle between the hint, once aligned, and ENU up
 
     @property
     def scale(self) -> float:
@@ -62,6 +75,10 @@ class GpsAlignment:
             "scale": self.scale,
             "yaw_deg": float(np.degrees(self.yaw_rad)),
             "scale_if_estimated": self.free_scale,
+            "extent_m": self.extent_m,
+            "gravity": self.gravity,
+            "roll_sigma_deg": self.roll_sigma_deg,
+            "up_tilt_deg": self.up_tilt_deg,
             "notes": list(self.notes),
         }
 
@@ -90,11 +107,52 @@ def associate_fixes(
     return antenna, ok
 
 
-def fit_transform(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None, mode: Mode = "yaw_scale") -> np.ndarray:
-    """Weighted least-squares ``dst_from_src``: ``sim3``, or gravity-aware ``yaw_scale`` / ``yaw`` (rigid, 4 DoF)."""
+def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation by ``angle`` about the unit vector ``axis`` (Rodrigues)."""
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def _principal_axis(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(weighted centroid, unit direction of largest weighted spread)."""
+    wn = w / w.sum()
+    mu = wn @ points
+    _, _, vt = np.linalg.svd((points - mu) * np.sqrt(wn)[:, None], full_matrices=False)
+    return mu, vt[0]
+
+
+def _roll_from_up(T: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray, up_src: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation about the path axis (the principal axis of ``src``) replaced by the one
+    that turns ``up_src`` closest to ENU up; scale and translation re-fitted (weighted least squares)
+    for that rotation. The axis direction, the only part of the rotation a straight path fixes, is kept."""
+    s = sim3_scale(T)
+    R = T[:3, :3] / s
+    mu_s, a = _principal_axis(src, w)
+    g = R.T @ np.array([0.0, 0.0, 1.0])  # ENU up in the source frame
+    u_perp = up_src - (up_src @ a) * a
+    g_perp = g - (g @ a) * a
+    if np.linalg.norm(u_perp) < 1e-9 or np.linalg.norm(g_perp) < 1e-9:
+        return T  # the hint (or up) lies along the path: it says nothing about the roll
+    R = R @ _axis_rotation(a, float(np.arctan2(a @ np.cross(u_perp, g_perp), u_perp @ g_perp)))
+    wn = w / w.sum()
+    mu_d = wn @ dst
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = float(wn @ np.sum(xs**2, axis=1))
+    s = float(np.trace(R.T @ ((xd * wn[:, None]).T @ xs)) / var_s) if var_s > 0 else s
+    return make_sim3(s, R, mu_d - s * R @ mu_s)
+
+
+def fit_transform(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None, mode: Mode = "yaw_scale",
+                  up_src: Optional[np.ndarray] = None) -> np.ndarray:
+    """Weighted least-squares ``dst_from_src``: ``sim3``, or gravity-aware ``yaw_scale`` / ``yaw`` (rigid, 4 DoF).
+
+    ``up_src`` (``sim3`` only): a unit vector of the source frame that is roughly up; it fixes the
+    rotation about the principal axis of ``src``, which a straight path leaves free.
+    """
     w = np.ones(len(src)) if w is None else np.asarray(w, np.float64)
     if mode == "sim3":
-        return umeyama(src, dst, with_scale=True, weights=w)
+        T = umeyama(src, dst, with_scale=True, weights=w)
+        return T if up_src is None else _roll_from_up(T, src, dst, w, up_src)
     # gravity-aware: 2D Procrustes (Umeyama in the plane) for yaw and scale, z by the weighted mean
     wn = w / w.sum()
     mu_s, mu_d = wn @ src, wn @ dst
@@ -122,6 +180,27 @@ def planarity(points: np.ndarray) -> tuple[float, float]:
     return extent, float(s[1] / s[0]) if s[0] > 0 else 0.0
 
 
+def gps_metres_per_unit(p_map: np.ndarray, p_enu: np.ndarray, max_points: int = 200) -> float:
+    """GPS metres per trajectory unit: the median ratio of ENU to map distance over pairs of fixes far
+    apart on the trajectory (at least half its largest distance), so GPS noise and outliers barely move it."""
+    idx = np.unique(np.linspace(0, len(p_map) - 1, min(len(p_map), max_points)).astype(int))
+    a, b = np.triu_indices(len(idx), k=1)
+    d_map = np.linalg.norm(p_map[idx[a]] - p_map[idx[b]], axis=1)
+    d_enu = np.linalg.norm(p_enu[idx[a]] - p_enu[idx[b]], axis=1)
+    far = d_map >= 0.5 * d_map.max() if len(d_map) and d_map.max() > 0 else np.zeros(0, bool)
+    return float(np.median(d_enu[far] / d_map[far])) if far.any() else 0.0
+
+
+def roll_sigma_rad(p_map: np.ndarray, metres_per_unit: float, sigma_m: float) -> float:
+    """Predicted 1-sigma (rad) of the rotation about the path's principal axis from GPS fixes of
+    ``sigma_m``: a roll ``d`` moves a fix at distance ``r`` (metres) from the axis by ``r d``, so the
+    least-squares information is ``sum r^2 / sigma^2``."""
+    mu, a = _principal_axis(p_map, np.ones(len(p_map)))
+    x = p_map - mu
+    r2 = np.sum((x - np.outer(x @ a, a)) ** 2, axis=1) * metres_per_unit**2
+    return float(sigma_m / np.sqrt(r2.sum())) if r2.sum() > 0 else float("inf")
+
+
 def align_to_gps(
     p_map: np.ndarray,
     p_enu: np.ndarray,
@@ -133,7 +212,8 @@ def align_to_gps(
     min_inlier_threshold_m: float = 2.0,
     ransac_iters: int = 300,
     min_extent_m: float = 20.0,
-    min_straightness_ratio: float = 0.02,
+    max_roll_sigma_deg: float = 2.0,
+    up_map: Optional[np.ndarray] = None,
     strict: bool = False,
     seed: int = 0,
     source: str = "gps",
@@ -144,7 +224,14 @@ def align_to_gps(
     median of the known ones, or 3 m); the vertical sigma is ``vertical_sigma_factor`` times it.
     A fix is an inlier when its normalised residual is below ``inlier_sigmas`` (3.37: the 99%
     bound of a chi-square with 3 degrees of freedom); the horizontal gate is never tighter than
-    ``min_inlier_threshold_m``.
+    ``min_inlier_threshold_m``. The extent check (``min_extent_m``) is in GPS metres: the trajectory's
+    extent times :func:`gps_metres_per_unit` (1 in ``yaw``, whose trajectory is metric by definition).
+
+    ``sim3`` only: the rotation about the direction of travel is taken from GPS when its predicted
+    sigma (vertical fix sigma over the root-sum-square distance of the fixes from the path axis, in
+    metres: a roll of a level path moves its off-axis fixes up and down) is at most
+    ``max_roll_sigma_deg``; else from ``up_map`` (a roughly-up unit vector of the map frame) when
+    given; else it stays as the full Sim3 found it, reported as unobservable (an error if ``strict``).
     """
     p_map = np.asarray(p_map, np.float64)
     p_enu = np.asarray(p_enu, np.float64)
@@ -153,22 +240,16 @@ def align_to_gps(
     notes: list[str] = []
     if n < 3:
         raise InputError(source, f"only {n} GPS fixes overlap the trajectory; at least 3 are needed", field="gps")
-    extent, ratio = planarity(p_map[:, :2] if mode != "sim3" else p_map)
+    dims = slice(None) if mode == "sim3" else slice(0, 2)  # the yaw models see the plane only
+    extent_map, _ = planarity(p_map[:, dims])
+    # in GPS metres, whatever the trajectory's units ('yaw' declares them metres: its scale is fixed at 1)
+    metres_per_unit = 1.0 if mode == "yaw" else gps_metres_per_unit(p_map[:, dims], p_enu[:, dims])
+    extent = extent_map * metres_per_unit
     if extent < min_extent_m:
         raise InputError(
-            source, f"the trajectory spans {extent:.1f} m where GPS overlaps it; at least {min_extent_m:.0f} m are needed "
-            "to observe heading and scale", field="gps",
+            source, f"the trajectory spans {extent:.1f} m (GPS metres) where GPS overlaps it; at least {min_extent_m:.0f} m "
+            "are needed to observe heading and scale", field="gps",
         )
-    if mode == "sim3":
-        _, ratio3 = planarity(p_map)
-        if ratio3 < min_straightness_ratio:
-            msg = (f"the drive is too straight (second/first principal axis {ratio3:.3f} < {min_straightness_ratio}) "
-                   "for the rotation about its direction to be observable from GPS")
-            if strict:
-                raise InputError(source, msg, field="gps")
-            warnings.warn(f"{source}: {msg}; falling back to the gravity-aware yaw+scale model", InputWarning, stacklevel=2)
-            notes.append(msg + "; fell back to yaw_scale")
-            mode = "yaw_scale"
     sig = np.full(n, np.nan) if sigma_m is None else np.asarray(sigma_m, np.float64).copy()
     known = np.isfinite(sig) & (sig > 0)
     sig[~known] = np.median(sig[known]) if known.any() else 3.0
@@ -177,20 +258,42 @@ def align_to_gps(
     sig_h = np.maximum(sig, min_inlier_threshold_m / inlier_sigmas)
     sig_v = vertical_sigma_factor * sig_h
 
+    gravity: Gravity = "level frame"
+    roll_sigma = None
+    up = None
+    if mode == "sim3":
+        roll_sigma = min(float(np.degrees(roll_sigma_rad(p_map, metres_per_unit, float(np.median(sig_v))))), 180.0)
+        gravity = "gps"
+        if roll_sigma > max_roll_sigma_deg:
+            msg = (f"the drive is too straight for GPS to fix the rotation about its direction of travel (predicted "
+                   f"sigma {roll_sigma:.1f} deg > {max_roll_sigma_deg:g} deg)")
+            if up_map is not None:
+                up = np.asarray(up_map, np.float64) / np.linalg.norm(up_map)
+                gravity = "up hint"
+                notes.append(msg + "; that roll is taken from the up hint (the cameras' mean up)")
+            elif strict:
+                raise InputError(source, msg, field="gps")
+            else:
+                gravity = "unobservable"
+                warnings.warn(f"{source}: {msg}; kept the full Sim3, whose roll about the path is unobservable",
+                              InputWarning, stacklevel=2)
+                notes.append(msg + "; roll about the path axis unobservable (full Sim3 kept)")
+
     def normalised(T: np.ndarray) -> np.ndarray:
         d = transform_points(T, p_map) - p_enu
         return np.sqrt((d[:, 0] ** 2 + d[:, 1] ** 2) / sig_h**2 + d[:, 2] ** 2 / sig_v**2)
 
-    # RANSAC: minimal samples, spread apart in time so the sample spans the trajectory
+    # RANSAC: minimal samples, spread apart so the sample spans the trajectory (judged in the map's
+    # own space, where positions are free of GPS noise and outliers)
     rng = np.random.default_rng(seed)
     k = _min_sample(mode)
     best_inl, best_score = None, -1.0
     for _ in range(ransac_iters):
         idx = np.sort(rng.choice(n, size=k, replace=False))
-        if np.linalg.norm(p_map[idx[-1], :2] - p_map[idx[0], :2]) < 0.1 * extent:
+        if np.linalg.norm(p_map[idx[-1], dims] - p_map[idx[0], dims]) < 0.1 * extent_map:
             continue
         try:
-            T = fit_transform(p_map[idx], p_enu[idx], np.ones(k), mode)
+            T = fit_transform(p_map[idx], p_enu[idx], np.ones(k), mode, up)
         except (np.linalg.LinAlgError, ValueError):
             continue
         u = normalised(T)
@@ -203,14 +306,14 @@ def align_to_gps(
 
     # IRLS on the inliers with Cauchy weights on the normalised residual, then re-classify
     inl = best_inl
-    T = fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, mode)
+    T = fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, mode, up)
     for _ in range(10):
         u = normalised(T)
         inl_new = u < inlier_sigmas
         if inl_new.sum() < k:
             break
         w = 1.0 / (1.0 + u[inl_new] ** 2) / sig_h[inl_new] ** 2
-        T_new = fit_transform(p_map[inl_new], p_enu[inl_new], w, mode)
+        T_new = fit_transform(p_map[inl_new], p_enu[inl_new], w, mode, up)
         converged = np.array_equal(inl_new, inl) and np.allclose(T_new, T, atol=1e-9)
         T, inl = T_new, inl_new
         if converged:
@@ -225,4 +328,8 @@ def align_to_gps(
     free_scale = None
     if mode == "yaw":  # a check on the odometry's scale, not applied
         free_scale = sim3_scale(fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, "yaw_scale"))
-    return GpsAlignment(T, mode, inl, res, stamps, rejected, notes, free_scale)
+    up_tilt = None
+    if mode == "sim3" and up_map is not None:
+        up_enu = T[:3, :3] @ (np.asarray(up_map, np.float64) / np.linalg.norm(up_map))
+        up_tilt = float(np.degrees(np.arccos(np.clip(up_enu[2] / np.linalg.norm(up_enu), -1.0, 1.0))))
+    return GpsAlignment(T, mode, inl, res, stamps, rejected, notes, free_scale, extent, gravity, roll_sigma, up_tilt)

@@ -223,6 +223,16 @@ def estimate_trajectory(
     return trajectory_from_camera(log, topics[StreamKind.IMAGE][0], cfg, progress)
 
 
+def camera_up_hint(world_from_cam: np.ndarray, min_agreement: float = 0.5) -> Optional[np.ndarray]:
+    """The cameras' mean up (-y of the optical frame: x right, y down, z forward) in the trajectory's
+    frame, as a unit vector: roughly the world's up when the cameras are mounted (or held) roughly
+    level. None when the cameras disagree (the mean of their unit up vectors is shorter than
+    ``min_agreement``), as in a collection of photos taken in every direction."""
+    up = -np.asarray(world_from_cam, np.float64)[:, :3, 1].mean(axis=0)
+    n = float(np.linalg.norm(up))
+    return up / n if n >= min_agreement else None
+
+
 def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False) -> Trajectory:
     """pycolmap structure from motion (SIFT, sequential matching, incremental mapping) with the
     log's intrinsics fixed. The result has an arbitrary orientation and scale: GPS alignment must
