@@ -1,5 +1,6 @@
-"""Camera-only builds on real images: the KITTI clip as a generic folder log (images, a frame table
-with GPS, intrinsics), its trajectory from pycolmap, georeferenced by GPS alone.
+"""Camera-only builds on real images: the KITTI clip as a walk of geotagged photos (JPEGs with EXIF
+GPS, time and 35 mm focal length, as a phone writes them) and as a generic folder log (images, a
+frame table with GPS, intrinsics), its trajectory from pycolmap, georeferenced by GPS alone.
 
 GPS is the clip's true camera positions placed in ENU (heading 30 deg east of north, camera y down
 = ENU down, the camera 1.65 m above the road as on KITTI's car) plus 2 m of noise per axis, so the
@@ -11,8 +12,10 @@ import json
 import re
 import warnings
 
+import cv2
 import numpy as np
 import pytest
+from test_readers_photos import write_geotagged_folder  # noqa: E402  (JPEGs with EXIF tags, as a phone writes them)
 
 from mapkit.core.errors import InputWarning
 from mapkit.core.geodesy import LocalFrame
@@ -61,15 +64,29 @@ def _folder_log(kitti_clip, folder, n: int):
     return folder
 
 
+def _photo_walk(kitti_clip, folder, n: int):
+    """The first ``n`` frames as a folder of geotagged JPEGs: GPS (as in ``_folder_log``, no accuracy
+    tag), UTC time, and the 35 mm equivalent focal length in whole millimetres (24 mm: fx 710.3 px
+    where the calibration says 707.1, the rounding a phone's EXIF carries)."""
+    true_enu, _ = _truth(kitti_clip)
+    gps = true_enu[:n] + np.random.default_rng(0).normal(scale=2.0, size=(n, 3))
+    images = [cv2.imread(str(kitti_clip / "image_l" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE) for i in range(n)]
+    h, w = images[0].shape
+    f35 = round(707.0912 * np.hypot(36, 24) / np.hypot(w, h))
+    stamps = [(T0_S * 10 + i) * 100_000_000 for i in range(n)]
+    folder.mkdir(parents=True)
+    return write_geotagged_folder(folder, images, np.c_[ORIGIN.enu_to_geodetic(gps)], stamps, f35)
+
+
 def _frame_index(stamps_ns: np.ndarray) -> np.ndarray:
     return np.round((stamps_ns * 1e-9 - T0_S) / 0.1).astype(int)
 
 
 @pytest.fixture(scope="module")
 def walk(kitti_clip, tmp_path_factory):
-    """The whole clip (51 frames, about 60 m straight) built camera-only with GPS."""
+    """The whole clip (51 frames, about 60 m straight) as a geotagged photo walk, built camera-only."""
     tmp = tmp_path_factory.mktemp("camera_only")
-    log = _folder_log(kitti_clip, tmp / "kitti_walk", 51)
+    log = _photo_walk(kitti_clip, tmp / "kitti_walk", 51)
     (tmp / "build.yaml").write_text(CONFIG)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -78,11 +95,12 @@ def walk(kitti_clip, tmp_path_factory):
     return Workspace(ws), kitti_clip
 
 
-def test_camera_only_folder_log_is_georeferenced_within_gps_noise(walk):
+def test_geotagged_photo_walk_is_georeferenced_within_gps_noise(walk):
     ws, clip = walk
     s = ws.session("kitti_walk")
     ga = json.loads(s.gps_alignment.read_text())
     al = ga["alignment"]
+    assert json.loads(ws.metrics.read_text())["sessions"]["kitti_walk"]["log"].endswith("kitti_walk")
     assert ga["georeferenced"] and al["mode"] == "sim3" and al["fixes_used"] >= 48
     # 3D residuals of 2 m-per-axis noise: RMSE sqrt(3)*2 = 3.5 m (measured 3.24 m)
     assert 2.5 < al["residual_rmse_m"] < 4.5
