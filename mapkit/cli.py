@@ -258,7 +258,7 @@ def view(
     localize: Optional[Path] = typer.Option(None, "--localize", help="A localization folder: `mapkit localize` runs (itself or its "
                                             "sub-folders) and cached retrieval hits (cache/); default WORKSPACE/localize."),
     gps: bool = typer.Option(True, "--gps/--no-gps",
-                             help="Draw the GPS fixes, read again from each session's log (the build keeps no fix positions)."),
+                             help="Draw the GPS fixes the georef stage used (read again from the log for workspaces built before it saved them)."),
     spawn: bool = typer.Option(False, "--spawn", help="Also open the Rerun viewer on it (needs a display)."),
     png: Optional[Path] = typer.Option(None, "--png",
                                        help="Also render a top view of the recording to this PNG (matplotlib, no viewer needed)."),

@@ -178,10 +178,11 @@ def test_build_reads_images_from_the_topics_named_in_topics_images(tmp_path):
         assert (cv2.imread(str(db / rel), cv2.IMREAD_UNCHANGED) == 190).all()
 
 
-def _imageless_log(path, yaw_deg: float = 37.0):
+def _imageless_log(path, yaw_deg: float = 37.0, faults: bool = False):
     """A log as an INS-equipped car without a camera records it: 30 s of fused poses of base_link
     at 10 Hz along a 300 m bend, and GPS at 1 Hz (1 m noise) in an ENU frame turned by ``yaw_deg``
-    from the pose frame. No image, no LiDAR."""
+    from the pose frame. No image, no LiDAR. ``faults``: the first fix reports FIX at (0, 0), the
+    tenth is 1 km off, and the last five have no altitude (NaN)."""
     from mapkit.core.geodesy import LocalFrame
     from mapkit.core.geometry import yaw_rotation
     from mapkit.core.types import GpsFix
@@ -196,7 +197,9 @@ def _imageless_log(path, yaw_deg: float = 37.0):
             xyz = np.array([s, 0.002 * s**2, 0.0])
             w.write("/ins/pose", PoseSample(t, "map", "base_link", make_pose(yaw_rotation(np.arctan(0.004 * s)), xyz)))
             if i % 10 == 0:
-                lat, lon, alt = frame.enu_to_geodetic((R @ xyz + rng.normal(scale=1.0, size=3))[None])
+                noisy = R @ xyz + rng.normal(scale=1.0, size=3) + ([1000.0, 0, 0] if faults and i == 90 else 0.0)
+                lat, lon, alt = (np.array([v]) for v in (0.0, 0.0, 0.0)) if faults and i == 0 else frame.enu_to_geodetic(noisy[None])
+                alt = np.array([np.nan]) if faults and i >= 250 else alt
                 w.write("/gps/fix", GpsFix(t, float(lat[0]), float(lon[0]), float(alt[0]), covariance_enu_m2=np.diag([1.0, 1.0, 4.0])))
     return path
 
@@ -220,6 +223,31 @@ def test_a_log_without_images_builds_its_trajectory_and_georef_and_skips_the_ima
     assert st["trajectory"]["source"] == "poses:/ins/pose" and st["trajectory"]["length_m"] == pytest.approx(length)
     assert st["georef"]["georeferenced"] and st["georef"]["yaw_deg"] == pytest.approx(37.0, abs=0.5)
     assert st["georef"]["units"] == "m" and st["georef"]["residual_rmse_m"] < 3.0
+
+
+def test_wild_gps_fixes_are_screened_before_one_can_become_the_origin(tmp_path):
+    """Issue 23's null island: a first fix at (0, 0) with FIX status once became origin.json. Now it
+    and a 1 km jump are rejected and counted, fixes without altitude take the others' median, the
+    origin is the first good fix, and the alignment is as good as without the faults."""
+    from mapkit.mapping.gps_screen import JUMP, NULL_ISLAND
+
+    log = _imageless_log(tmp_path / "highway.mcap", faults=True)
+    with pytest.warns(InputWarning) as caught:
+        ws = build([log], tmp_path / "ws", progress=False)
+    msgs = [str(w.message) for w in caught]
+    assert any("2 of 30 GPS fixes rejected" in m and "null island" in m and "jump" in m for m in msgs), msgs
+    assert any("5 of 28 GPS fixes have no altitude" in m for m in msgs), msgs
+    origin = Workspace(ws).frame()
+    assert origin.lat0_deg == pytest.approx(49.0, abs=1e-3) and origin.lon0_deg == pytest.approx(8.4, abs=1e-3)
+    s = Workspace(ws).session("highway")
+    ga = json.loads(s.gps_alignment.read_text())
+    assert ga["gps_screen"]["rejected"] == {NULL_ISLAND: 1, JUMP: 1} and ga["gps_screen"]["altitude_filled"] == 5
+    assert ga["alignment"]["yaw_deg"] == pytest.approx(37.0, abs=0.5) and ga["alignment"]["residual_rmse_m"] < 3.0
+    with np.load(s.gps_fixes) as f:
+        assert len(f["stamps_ns"]) == 28 and f["enu"].shape == (28, 3) and np.isfinite(f["enu"]).all()
+        assert f["inlier"].sum() >= 25 and not (f["inlier"] & ~f["associated"]).any()
+        # the fixes are where the workspace frame puts them: the first good one is the origin
+        assert np.linalg.norm(f["enu"][0]) < 1e-6
 
 
 def test_imagedb_false_and_map_false_skip_those_stages_without_a_warning(tmp_path):

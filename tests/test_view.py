@@ -265,3 +265,28 @@ def test_without_the_sdk_mapkit_works_and_view_says_how_to_install(workspace):
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip() == f"error: {INSTALL_HINT}"
+
+
+def test_gps_fixes_saved_by_the_georef_stage_are_drawn_without_the_log(tmp_path):
+    """A session built since the georef stage saves its screened fixes: they are drawn from
+    gps_fixes.npz as saved (the log is not needed), rejected = associated but not an inlier."""
+    ws = Workspace(tmp_path / "ws")
+    write_json(ws.origin, FRAME.to_dict())
+    d = ws.session("c")
+    stamps = T0 + np.arange(20, dtype=np.int64) * 100_000_000
+    Trajectory(stamps, _poses(np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)]), "poses", frame="enu").save(d.georef_trajectory)
+    write_json(d.gps_alignment, {"georeferenced": True, **FRAME.to_dict(), "rejected_fixes": []})
+    mark_done(d.georef, "test")
+    write_json(d.metrics, {"session": "c", "log": str(tmp_path / "gone")})
+    enu = np.c_[np.arange(6) * 4.0, np.full(6, 0.5), np.zeros(6)]
+    associated = np.array([1, 1, 1, 1, 1, 0], bool)
+    inlier = np.array([1, 0, 1, 1, 0, 0], bool)
+    np.savez(d.gps_fixes, stamps_ns=stamps[:6], enu=enu, sigma_m=np.ones(6), associated=associated, inlier=inlier)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "log not found" warning: the log is not read
+        s = write_recording(ws, tmp_path / "c.rrd", progress=False)
+    data = read_recording(s.path)
+    fixes = np.asarray(data["world/build/c/gps/fixes"]["Points3D:positions"][0], np.float64)
+    rejected = np.asarray(data["world/build/c/gps/rejected"]["Points3D:positions"][0], np.float64)
+    np.testing.assert_allclose(rejected, enu[[1, 4]], atol=1e-4)
+    np.testing.assert_allclose(fixes, enu[[0, 2, 3, 5]], atol=1e-4)

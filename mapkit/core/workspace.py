@@ -86,6 +86,12 @@ class SessionDirs:
         return self.georef / "gps_alignment.json"
 
     @property
+    def gps_fixes(self) -> Path:
+        """The fixes the georef stage used, in the workspace ENU frame (``stamps_ns``, ``enu``, ``sigma_m``,
+        ``associated``, ``inlier``), after screening."""
+        return self.georef / "gps_fixes.npz"
+
+    @property
     def map(self) -> Path:
         return self.root / "map"
 

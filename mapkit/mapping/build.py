@@ -26,13 +26,14 @@ import json
 import logging
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterator, Literal, Optional
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from pydantic import Field, field_validator
+from scipy.spatial.transform import Rotation
 
 from mapkit.core.config import MapkitConfig, TopicConfig, dump_config, load_config, resolve_topics
 from mapkit.core.errors import InputError, InputWarning, MapkitError
@@ -40,13 +41,14 @@ from mapkit.core.executor import Executor, TaskError, get_executor
 from mapkit.core.frames import FrameTree
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, reset_stage, write_json
-from mapkit.core.types import CameraFrame, CameraInfo, StreamKind
+from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, reset_stage, write_json
+from mapkit.core.types import CameraFrame, CameraInfo, GpsFix, StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
 from mapkit.io.plots import map_top_view, trajectory_over_gps
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
+from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
 from mapkit.mapping.semidense import SemiDenseConfig, SemiDenseMap, build_semidense_map
 from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, camera_up_hint, estimate_trajectory
@@ -128,6 +130,7 @@ class SessionBuilder:
         self._camera_choice: Optional[tuple[str, list[str], CameraInfo]] = None
         self._mounts: dict[str, np.ndarray] = {}  # trajectory body frame -> base_from_camera
         self._enu_trajectory: Optional[Trajectory] = None
+        self._fixes: Optional[tuple[list[str], list[GpsFix], Optional[GpsScreen]]] = None
 
     @property
     def log(self) -> DriveLog:
@@ -195,9 +198,10 @@ class SessionBuilder:
         """
         if self.cfg.georef.mode == "given":
             return self._given(traj, result)
-        topics = resolve_topics(self.log, self.cfg.topics)
-        gps_topics = topics.get(StreamKind.GPS, [])
-        fixes = [] if not gps_topics else [f for f in self.log.records(StreamKind.GPS, topic=gps_topics[0]) if f.has_fix]
+        gps_topics, fixes, screen = self._screened_fixes()
+        if screen is not None:
+            result["gps_screen"] = screen.summary()
+            screen.warn(str(self.log_path))
         if len(fixes) < 3:
             result["reason"] = "no GPS stream" if not gps_topics else f"{len(fixes)} valid GPS fixes"
             warnings.warn(f"{self.log_path}: {result['reason']}; the map is built in the trajectory's local frame "
@@ -238,6 +242,10 @@ class SessionBuilder:
             return None, None
         result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
                       fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
+        inlier = np.zeros(len(fixes), bool)
+        inlier[np.nonzero(ok)[0][al.inliers]] = True
+        with atomic_path(self.dirs.gps_fixes) as tmp, open(tmp, "wb") as f:
+            np.savez(f, stamps_ns=stamps, enu=gps_enu, sigma_m=sigma, associated=ok, inlier=inlier)
 
         traj_enu = transform_points(al.enu_from_map, traj.world_from_base[:, :3, 3])
         trajectory_over_gps(out / "trajectory_over_gps.png", traj_enu, gps_enu[ok], al.inliers,
@@ -262,13 +270,37 @@ class SessionBuilder:
         return al, frame
 
     def proposed_frame(self) -> Optional[LocalFrame]:
-        """The workspace frame this session would set if it were the first one georeferenced."""
+        """The workspace frame this session would set if it were the first one georeferenced: at its
+        first fix that passed screening (a wild fix never becomes the origin)."""
         g = self.cfg.georef
         if g.mode == "given":
             return None if g.origin is None else LocalFrame(*g.origin)
-        gps = resolve_topics(self.log, self.cfg.topics).get(StreamKind.GPS, [])
-        fix = next((f for f in self.log.records(StreamKind.GPS, topic=gps[0]) if f.has_fix), None) if gps else None
-        return None if fix is None else LocalFrame(fix.lat_deg, fix.lon_deg, fix.alt_m)
+        _, fixes, _ = self._screened_fixes()
+        return None if not fixes else LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m)
+
+    def _screened_fixes(self) -> tuple[list[str], list[GpsFix], Optional[GpsScreen]]:
+        """(GPS topics, the fixes of the first that pass :func:`screen_fixes`, the screening), read once.
+
+        A fix without altitude (NaN: a frame table without ``alt``, a photo without GPSAltitude) takes
+        the median altitude of the others, or 0 m when none has one; the georef record says how many."""
+        if self._fixes is None:
+            gps_topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.GPS, [])
+            if not gps_topics:
+                self._fixes = (gps_topics, [], None)
+            else:
+                screen = screen_fixes([f for f in self.log.records(StreamKind.GPS, topic=gps_topics[0]) if f.has_fix])
+                fixes = screen.kept
+                alt = np.array([f.alt_m for f in fixes], np.float64)
+                missing = ~np.isfinite(alt)
+                if missing.any():
+                    fill = float(np.median(alt[~missing])) if (~missing).any() else 0.0
+                    fixes = [replace(f, alt_m=fill) if m else f for f, m in zip(fixes, missing)]
+                    screen.altitude_filled = int(missing.sum())
+                    warnings.warn(f"{self.log_path}: {int(missing.sum())} of {len(fixes)} GPS fixes have no altitude; "
+                                  f"{fill:.2f} m ({'the median of the others' if (~missing).any() else 'none has one'}) is used",
+                                  InputWarning, stacklevel=3)
+                self._fixes = (gps_topics, fixes, screen)
+        return self._fixes
 
     def _workspace_frame(self, proposed: LocalFrame) -> LocalFrame:
         """The workspace's frame: the one already set, else ``proposed``, which becomes it."""

@@ -40,6 +40,8 @@ class GpsScreen:
     rejected: Counter = field(default_factory=Counter)
     #: the stamps of the first few rejected fixes of each reason, for the report
     examples: dict[str, list[int]] = field(default_factory=dict)
+    #: kept fixes whose unknown altitude the georef stage filled in
+    altitude_filled: int = 0
 
     @property
     def total(self) -> int:
@@ -47,7 +49,7 @@ class GpsScreen:
 
     def summary(self) -> dict:
         return {"fixes": self.total, "kept": len(self.kept), "rejected": dict(self.rejected),
-                "rejected_examples_stamp_ns": self.examples}
+                "rejected_examples_stamp_ns": self.examples, "altitude_filled": self.altitude_filled}
 
     def warn(self, source: str) -> None:
         """One warning naming the counts of each reason (nothing when every fix was kept)."""

@@ -5,7 +5,7 @@ Everything is drawn in the workspace's local ENU frame (x east, y north, z up), 
     world/build/<session>/trajectory     the GPS-aligned trajectory (``mapkit build``), a line strip
     world/build/<session>/vehicle        its pose over time
     world/build/<session>/map            the session's semi-dense map, decimated
-    world/build/<session>/gps/fixes      GPS fixes in ENU (read again from the session's log), and
+    world/build/<session>/gps/fixes      GPS fixes in ENU (as the georef stage saved them), and
     world/build/<session>/gps/rejected   those the alignment rejected
     world/align/<session>/...            the same after ``mapkit align`` (trajectory, vehicle, map)
     world/<source>/<session>/camera      thumbnails at their camera poses over time (a pinhole), from
@@ -200,15 +200,21 @@ class _Writer:
         self.summary.images[cam] = logged
 
     def gps(self, entity: str, name: str, frame: "LocalFrame") -> None:
-        """The session's GPS fixes in ENU, the rejected ones apart. The build saves only their stamps and
-        residuals (``gps_alignment.json``), so the fixes are read again from the session's log."""
-        fixes = _gps_fixes(self.ws, name)
-        if fixes is None:
-            return
-        stamps, lat, lon, alt = fixes
-        enu = frame.geodetic_to_enu(lat, lon, alt)
-        ga = json.loads(self.ws.session(name).gps_alignment.read_text())
-        rejected = np.isin(stamps, [int(r["stamp_ns"]) for r in ga.get("rejected_fixes", [])])
+        """The session's GPS fixes in ENU, the rejected ones apart: those the georef stage saved
+        (``georef/gps_fixes.npz``, after screening), else, for a workspace built before it saved them,
+        read again from the session's log with the rejections of ``gps_alignment.json``."""
+        saved = self.ws.session(name).gps_fixes
+        if saved.is_file():
+            with np.load(saved, allow_pickle=False) as f:
+                enu, rejected = f["enu"], f["associated"] & ~f["inlier"]
+        else:
+            fixes = _gps_fixes(self.ws, name)
+            if fixes is None:
+                return
+            stamps, lat, lon, alt = fixes
+            enu = frame.geodetic_to_enu(lat, lon, alt)
+            ga = json.loads(self.ws.session(name).gps_alignment.read_text())
+            rejected = np.isin(stamps, [int(r["stamp_ns"]) for r in ga.get("rejected_fixes", [])])
         rr = self.rr
         self.rec.log(f"{entity}/gps/fixes", rr.Points3D(enu[~rejected], colors=[[40, 200, 80]], radii=rr.Radius.ui_points(3.0)),
                      static=True)
@@ -323,8 +329,8 @@ def write_recording(workspace: str | Path | Workspace, out: str | Path | None = 
     """Write a Rerun recording of ``workspace`` to ``out`` (default ``WORKSPACE/view.rrd``, replaced atomically).
 
     Every session's trajectory and map (``mapkit build``; and the aligned ones under ``world/align``
-    when ``mapkit align`` finished), its GPS fixes (``gps``: read again from the session's log, which
-    must still be where the build found it), thumbnails of its images at their poses, and, from
+    when ``mapkit align`` finished), its GPS fixes (``gps``: those the georef stage saved; for a workspace
+    built before it saved them, read again from the session's log, which must still be where the build found it), thumbnails of its images at their poses, and, from
     ``localize`` (default ``WORKSPACE/localize``), every ``mapkit localize`` run's estimates and the
     database poses retrieved for each query of the cached hits. At most ``budget_points`` map points
     over all maps; one thumbnail per ``image_spacing_m`` of camera travel. ``spawn`` also streams the
@@ -418,8 +424,8 @@ def _missing_notes(frame: Optional["LocalFrame"], gps: bool, runs: list[Path], h
     """What the recording cannot show, and why (its notes panel and the command's output)."""
     notes = []
     if gps:
-        notes.append("GPS fixes: the build saves their stamps and residuals only (gps_alignment.json); their positions are read "
-                     "again from each session's log")
+        notes.append("GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for sessions "
+                     "built before it was saved, read again from the session's log")
     if frame is None:
         notes.append("the workspace is not georeferenced (no origin.json): no GPS fixes")
     notes.append("particle clouds: no localizer run saves its particles; not drawn")
