@@ -1,10 +1,12 @@
 """Trajectory stage: kiss-icp recovers a known motion; pose streams move to the base frame."""
 
+import warnings
+
 import numpy as np
 import open3d as o3d
 import pytest
 
-from mapkit.core.errors import InputError
+from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
 from mapkit.core.types import FrameTransform, LidarScan, PoseSample
 from mapkit.io.mcap_log import McapLog, McapWriter
@@ -96,6 +98,28 @@ def test_kiss_icp_trajectory_matches_known_motion(lidar_log):
     travelled = np.linalg.norm(np.diff(expected[:, :3, 3], axis=0), axis=1).sum()
     assert err_t.max() < 0.02 * travelled, f"max translation error {err_t.max():.3f} m over {travelled:.0f} m"
     assert np.degrees(err_r.max()) < 2.0  # kiss-icp drifts ~1.5 deg in pitch on this flat toy street
+
+
+def test_lidar_trajectory_without_a_base_in_the_calibration_is_the_scanners(tmp_path):
+    """KITTI raw's calibration names imu, velodyne and cameras but no base_link: the trajectory is the
+    scanner's own (body_frame 'lidar'), so that the GPS antenna ('imu') is found from it, with no
+    'no extrinsic' warning and no identity assumed between base_link and the scanner."""
+    path = tmp_path / "raw.mcap"
+    scene = _street_scene()
+    truth = _truth()
+    with McapWriter(path) as w:
+        w.write_transforms("/tf_static", [FrameTransform(0, "imu", "lidar", BASE_FROM_LIDAR)])
+        for i, world_from_base in enumerate(truth):
+            w.write("/lidar/points", LidarScan(T0 + i * 100_000_000, "lidar", _scan(scene, world_from_base @ BASE_FROM_LIDAR)))
+    with McapLog(path) as log, warnings.catch_warnings():
+        warnings.simplefilter("error", InputWarning)
+        traj = estimate_trajectory(log, TrajectoryConfig())
+    assert traj.body_frame == "lidar"
+    lidar = truth @ BASE_FROM_LIDAR
+    expected = invert_pose(lidar[0]) @ lidar  # the scanner's poses from its first
+    err_t = np.linalg.norm(traj.world_from_base[:, :3, 3] - expected[:, :3, 3], axis=1)
+    travelled = np.linalg.norm(np.diff(expected[:, :3, 3], axis=0), axis=1).sum()
+    assert err_t.max() < 0.02 * travelled, f"max translation error {err_t.max():.3f} m over {travelled:.0f} m"  # as the base's
 
 
 def test_pose_stream_of_a_camera_is_moved_to_the_base(tmp_path):

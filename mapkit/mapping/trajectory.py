@@ -181,11 +181,19 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
     bar.close()
     if len(stamps) < 2:
         raise InputError(log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic)
-    base_from_lidar = _base_from(_tree(log), cfg.base_frame, lidar_frame or "", log, "LiDAR")
+    tree = _tree(log)
+    body = cfg.base_frame
+    if lidar_frame and body not in tree.frames and lidar_frame in tree.frames:
+        # the calibration names no base (KITTI raw: imu, velodyne, cameras): the trajectory is the
+        # scanner's, so that later lookups (the GPS antenna, the cameras) start from a frame it knows
+        body, base_from_lidar = lidar_frame, np.eye(4)
+    else:
+        base_from_lidar = _base_from(tree, body, lidar_frame or "", log, "LiDAR")
     # world := the base frame at the first scan
     world_from_base = base_from_lidar @ np.stack(lidar0_from_lidar) @ invert_pose(base_from_lidar)
     order = np.argsort(stamps, kind="stable")
-    return Trajectory(np.asarray(stamps, np.int64)[order], world_from_base[order], source=f"lidar:{topic}", frame="odom")
+    return Trajectory(np.asarray(stamps, np.int64)[order], world_from_base[order], source=f"lidar:{topic}", frame="odom",
+                      body_frame=body)
 
 
 def _progress(log: DriveLog, topic: str, enabled: bool):
