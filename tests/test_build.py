@@ -223,6 +223,12 @@ def test_a_log_without_images_builds_its_trajectory_and_georef_and_skips_the_ima
     assert st["trajectory"]["source"] == "poses:/ins/pose" and st["trajectory"]["length_m"] == pytest.approx(length)
     assert st["georef"]["georeferenced"] and st["georef"]["yaw_deg"] == pytest.approx(37.0, abs=0.5)
     assert st["georef"]["units"] == "m" and st["georef"]["residual_rmse_m"] < 3.0
+    # a later stage that needs a map names why this session has none
+    from mapkit.multisession.align import align_workspace
+
+    with pytest.warns(InputWarning, match=r"has no semi-dense map \(skipped at build: the log has no image stream\)"):
+        with pytest.raises(InputError, match="0 alignable session"):
+            align_workspace(tmp_path / "ws", progress=False)
 
 
 def test_wild_gps_fixes_are_screened_before_one_can_become_the_origin(tmp_path):

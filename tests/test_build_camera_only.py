@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from test_readers_photos import write_geotagged_folder  # noqa: E402  (JPEGs with EXIF tags, as a phone writes them)
 
-from mapkit.core.errors import InputWarning
+from mapkit.core.errors import InputWarning, MapkitError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import rotation_angle_rad, sim3_scale, transform_points, umeyama
 from mapkit.core.runio import is_done
@@ -170,3 +170,9 @@ def test_unreferenced_camera_only_session_says_arbitrary_units_and_skips_the_map
     summary = format_build_summary(w)
     assert " au " in summary and "semidense skipped: the camera-only trajectory is not georeferenced" in summary
     assert "imagedb poses in arbitrary units" in summary
+    # later stages: the index refuses poses in arbitrary units instead of mixing them with metre radii
+    from mapkit.retrieval.index_vlad import build_vlad_index
+
+    with pytest.warns(InputWarning, match=r"\['short'\] left out of the index: their image poses are in arbitrary units"):
+        with pytest.raises(MapkitError, match="no session with a metric image database"):
+            build_vlad_index(w, progress=False)

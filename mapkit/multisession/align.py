@@ -163,7 +163,8 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     names = ws.session_names() if sessions is None else sessions
     data = [s for s in (load_session(ws.session(n), ws_frame, cfg.submap_length_m) for n in names) if s is not None]
     if len(data) < 2:
-        raise InputError(ws.root, f"{len(data)} alignable session(s); multi-session alignment needs at least two built, georeferenced sessions")
+        raise InputError(ws.root, f"{len(data)} alignable session(s); multi-session alignment needs at least two built, "
+                         "georeferenced sessions with a semi-dense map (the warnings above say why each was skipped)")
     run_hash = config_hash({"cfg": cfg, "sessions": [[s.name, s.map_hash] for s in data]})
     if is_done(out, run_hash):
         return out

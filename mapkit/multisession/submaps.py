@@ -65,7 +65,10 @@ def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m:
     dirs = sdir if isinstance(sdir, SessionDirs) else SessionDirs(Path(sdir))
     ga_path = dirs.gps_alignment
     if not dirs.has("georef") or not dirs.has("map"):
-        warnings.warn(f"{dirs.root}: session is not fully built (georef and map stages); skipped", InputWarning, stacklevel=2)
+        stages = json.loads(dirs.metrics.read_text()).get("stages", {}) if dirs.metrics.is_file() else {}
+        skipped = (stages.get("semidense") or {}).get("skipped")
+        what = f"has no semi-dense map (skipped at build: {skipped})" if skipped else "is not fully built (georef and map stages)"
+        warnings.warn(f"{dirs.root}: session {what}; skipped", InputWarning, stacklevel=2)
         return None
     ga = json.loads(ga_path.read_text())
     if not ga.get("georeferenced"):

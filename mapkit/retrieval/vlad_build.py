@@ -69,7 +69,12 @@ def _chosen_sessions(ws: Workspace, cfg: VladIndexConfig) -> tuple[list[str], li
     if not ws.sessions_dir.is_dir():
         raise InputError(ws.sessions_dir, "not a workspace (no sessions/ folder): run mapkit build first")
     available = ws.sessions_with_images()
-    db_names = list(cfg.database_sessions) if cfg.database_sessions is not None else available
+    unscaled = {n: u for n in available if (u := _pose_units(ws, n)) != "m"}
+    if unscaled and cfg.database_sessions is None:
+        warnings.warn(f"{ws.sessions_dir}: session(s) {sorted(unscaled)} left out of the index: their image poses are in "
+                      "arbitrary units (camera-only, not georeferenced), and the index's radii and the localizer are in metres",
+                      InputWarning, stacklevel=3)
+    db_names = list(cfg.database_sessions) if cfg.database_sessions is not None else [n for n in available if n not in unscaled]
     train_names = list(cfg.train_sessions) if cfg.train_sessions is not None else db_names
     for field, names in (("database_sessions", db_names), ("train_sessions", train_names)):
         missing = [n for n in names if n not in available]
@@ -77,11 +82,27 @@ def _chosen_sessions(ws: Workspace, cfg: VladIndexConfig) -> tuple[list[str], li
             raise InputError(ws.sessions_dir, f"no image database for session(s) {missing}; the workspace has {available}", field=field)
         if len(set(names)) != len(names):
             raise ConfigError(f"{field} lists a session twice: {names}")
+    bad = [n for n in db_names if n in unscaled]
+    if bad:
+        raise InputError(ws.sessions_dir, f"session(s) {bad} have image poses in {unscaled[bad[0]]}; a database needs poses in "
+                         "metres (georeference them: GPS over a longer stretch)", field="database_sessions")
     if not db_names:
-        raise InputError(ws.sessions_dir, "no session with an image database to index", field="database_sessions")
+        why = (f"the image poses of {sorted(unscaled)} are in arbitrary units" if unscaled else
+               "a log without images, or `imagedb: false`, builds none")
+        raise InputError(ws.sessions_dir, f"no session with a metric image database to index ({why})", field="database_sessions")
     if not train_names:
         raise ConfigError("train_sessions is empty: the vocabulary and PCA need training images")
     return db_names, train_names
+
+
+def _pose_units(ws: Workspace, name: str) -> str:
+    """The units of a session's image poses as its build recorded them ("m" when it recorded none:
+    databases built before the field existed were all metric)."""
+    path = ws.session(name).imagedb / "metrics.json"
+    try:
+        return str(json.loads(path.read_text()).get("pose_units", "m"))
+    except (OSError, ValueError):
+        return "m"
 
 
 def _read_sessions(ws: Workspace, cfg: VladIndexConfig, db_names: list[str], train_names: list[str]) -> dict[str, SessionImages]:
