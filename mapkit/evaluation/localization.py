@@ -23,7 +23,7 @@ from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import localization_track
-from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer
+from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer, write_run_trajectories
 from mapkit.localization.mcl import pose_errors
 from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 
@@ -118,6 +118,7 @@ def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, c
         "seconds_per_query": wall / max(1, len(paths)), "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
         "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths)),
     }
+    write_run_trajectories(out / name, imgs.table["stamp_ns"][ok], r)  # the estimates, for evo and mapkit view
     localization_track(out / f"{name}.png", gt[:, :3, 3], r.retrieval_position, r.filter_position,
                        f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
                        f"{entry['retrieval']['median_translation_m']:.1f} m, filter "

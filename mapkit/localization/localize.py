@@ -118,6 +118,16 @@ class LocalizationRun:
         return T
 
 
+def write_run_trajectories(out: Path, stamps_ns: np.ndarray, r: LocalizationRun) -> Path:
+    """The filter's and retrieval's camera poses of a run as TUM files in ``out`` (``poses_tum.txt``,
+    ``retrieval_tum.txt``; queries where the filter has no estimate yet are left out of both), as
+    evo and ``mapkit view`` read them."""
+    ok = np.isfinite(r.filter_position[:, 0])
+    for key, name in (("filter", "poses_tum.txt"), ("retrieval", "retrieval_tum.txt")):
+        write_tum(out / name, np.asarray(stamps_ns, np.int64)[ok], r.poses(key)[ok])
+    return out
+
+
 def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] = None, progress: bool = False,
                   hits: Optional[tuple[np.ndarray, np.ndarray]] = None) -> LocalizationRun:
     """Retrieval alone and the filter over a sequence of images (arrays or files).
@@ -261,9 +271,7 @@ def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: s
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         t0 = time.perf_counter()
         r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
-    ok = np.isfinite(r.filter_position[:, 0])
-    for key, name in (("filter", "poses_tum.txt"), ("retrieval", "retrieval_tum.txt")):
-        write_tum(out / name, stamps[ok], r.poses(key)[ok])
+    write_run_trajectories(out, stamps, r)
     write_json(out / "metrics.json", {"bundle": str(bundle), "log": str(log), "queries": len(stamps), "seconds": time.perf_counter() - t0,
                                       "filter_ms_per_step": 1000 * r.filter_s / len(stamps),
                                       "frame": "workspace ENU of the bundle (world_from_camera)"})
