@@ -62,6 +62,25 @@ def test_build_writes_every_stage_in_the_fields_formats(clip12, tmp_path):
     assert (s / "trajectory" / "poses_tum.txt").is_file() and (s / "trajectory" / "poses_kitti.txt").is_file()
 
 
+def test_a_corrupt_image_costs_its_frame_not_the_build(clip12, tmp_path):
+    """Issue 23: one corrupt PNG aborted a whole build. Now that frame is skipped with a warning that
+    names the file; the map and the image database are built from the others."""
+    d = tmp_path / "clip12"
+    shutil.copytree(clip12, d)
+    bad = d / "image_l" / "000005.png"
+    data = bytearray(bad.read_bytes())
+    data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)  # the second half of the file zeroed
+    bad.write_bytes(bytes(data))
+    with pytest.warns(InputWarning, match=r"000005\.png.*frame 5 of camera_0 skipped"):
+        ws = build([d], tmp_path / "ws", progress=False)
+    s = Workspace(ws).session("clip12")
+    assert is_done(s.map) and is_done(s.imagedb)
+    stages = json.loads(Workspace(ws).metrics.read_text())["sessions"]["clip12"]["stages"]
+    assert stages["semidense"]["points"] > 5000
+    stamps = read_images_csv(s.images_csv)["stamp_ns"]
+    assert len(stamps) >= 7 and not np.isin(stamps, [int(round(0.5e9))]).any()  # frame 5 (t = 0.5 s) is not in it
+
+
 def test_interrupted_build_resumes_without_redoing_finished_stages(clip12, tmp_path, monkeypatch):
     ws = tmp_path / "ws"
 

@@ -52,7 +52,8 @@ def _gray(i: int, shape=(6, 8)) -> np.ndarray:
 def _random_poses(rng: np.random.Generator, n: int) -> np.ndarray:
     T = np.tile(np.eye(4), (n, 1, 1))
     T[:, :3, :3] = Rotation.from_rotvec(rng.normal(scale=0.3, size=(n, 3))).as_matrix()
-    T[:, :3, 3] = rng.normal(scale=5.0, size=(n, 3))
+    # a random walk of about 1 m per frame: poses a car can drive (the reader rejects moves faster than 100 m/s)
+    T[:, :3, 3] = np.cumsum(rng.normal(scale=0.5, size=(n, 3)), axis=0)
     return T
 
 

@@ -302,7 +302,7 @@ def test_synthetic_session_as_a_ros1_bag_builds_the_same_trajectory(tmp_path, ca
     assert a["gps"] == b["gps"]
     assert main(["info", str(bag)]) == 0 and "/lidar/points" in capsys.readouterr().out
     trajectories = []
-    cfg = TrajectoryConfig(kiss_icp={"max_threads": 1})  # one thread: kiss-icp's sums in a fixed order, bit-identical runs
+    cfg = TrajectoryConfig(kiss_icp={"max_threads": 1})
     for path in (folder, bag):
         with open_log(path) as log, warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -310,4 +310,6 @@ def test_synthetic_session_as_a_ros1_bag_builds_the_same_trajectory(tmp_path, ca
     mcap_traj, bag_traj = trajectories
     assert len(bag_traj) == len(mcap_traj) == 39
     np.testing.assert_array_equal(bag_traj.stamps_ns, mcap_traj.stamps_ns)
-    np.testing.assert_array_equal(bag_traj.world_from_base, mcap_traj.world_from_base)
+    # the scans are identical (test above); kiss-icp's thread pool is set by the first run in the process
+    # (another test may have run it on every core), so sums may come in another order: equal to rounding
+    np.testing.assert_allclose(bag_traj.world_from_base, mcap_traj.world_from_base, rtol=0, atol=1e-9)

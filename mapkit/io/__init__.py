@@ -38,7 +38,8 @@ def _rosbag2_reader(folder: Path) -> str:
     info = rosbag2_metadata(folder)
     storage = str(info.get("storage_identifier") or "").strip().lower()
     if not storage:  # old bags may leave it out: the storage files' suffix tells
-        files = [str(p) for p in info.get("relative_file_paths") or []] or [p.name for p in folder.iterdir()]
+        rel = info.get("relative_file_paths")
+        files = [str(p) for p in rel] if isinstance(rel, list) and rel else [p.name for p in folder.iterdir()]
         storage = "sqlite3" if any(f.endswith(".db3") for f in files) else "mcap"
     return "rosbag" if storage == "sqlite3" else "mcap"
 
@@ -54,7 +55,7 @@ def guess_format(path: str | Path) -> str:
             return "rosbag"
         if path.name == ROSBAG2_METADATA and is_rosbag2(path.parent):
             return _rosbag2_reader(path.parent)
-        if is_mcap(path):
+        if is_mcap(path) or path.suffix == ".mcap":  # McapLog reads a file whose leading magic is damaged, or says why not
             return "mcap"
         raise InputError(path, "is a file but not an MCAP log or a ROS 1 .bag (folders are read as rosbag2, KITTI, RobotCar, "
                                "photo or generic layouts)")

@@ -3,21 +3,28 @@
 A reader streams: ``messages()`` is a generator over records in time order, holding at most a few
 messages in memory. The base class enforces the guarantees consumers rely on: on every stream,
 timestamps strictly increase. A duplicate or out-of-order message is skipped with a warning that
-names the file, topic and index, and counted in ``skipped``.
+names the file, topic and index, and counted in ``skipped``. And no exception of damaged input leaves a
+reader raw: readers name the file and line or byte themselves; what one lets slip (``DATA_ERRORS``)
+becomes an ``InputError`` naming the file and how far reading got, its cause chained for debugging.
 """
 
 from __future__ import annotations
 
+import struct
 import warnings
+import zlib
 from abc import ABC, abstractmethod
 from collections import Counter
 from pathlib import Path
 from typing import Iterable, Iterator, Optional
 
-from mapkit.core.errors import InputWarning
+from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.types import CameraInfo, FrameTransform, Message, StreamInfo, StreamKind
 
 MAX_WARNINGS_PER_STREAM = 5
+#: what parsers and decoders raise on damaged bytes (numpy's LinAlgError and UnicodeDecodeError are ValueErrors,
+#: decimal's Overflow an ArithmeticError); a programming error (TypeError, AttributeError, ...) is not among them
+DATA_ERRORS = (ValueError, KeyError, IndexError, struct.error, ArithmeticError, MemoryError, EOFError, OSError, zlib.error)
 
 
 class DriveLog(ABC):
@@ -50,7 +57,7 @@ class DriveLog(ABC):
         """Stream messages of the chosen kinds/topics; per stream, stamps strictly increase."""
         wanted = self._select_topics(kinds, topics)
         last: dict[tuple[str, str], int] = {}
-        for msg in self._iter_messages(wanted):
+        for msg in self._guarded(self._iter_messages(wanted)):
             # transforms of several child frames share one TF message and stamp: key by child too
             key = (msg.topic, getattr(msg.record, "child_frame", "") if msg.kind == StreamKind.TF else "")
             prev = last.get(key)
@@ -68,7 +75,7 @@ class DriveLog(ABC):
         Readers that can read stamps without decoding payloads override this; ``mapkit info``
         uses it to count and time streams.
         """
-        for msg in self._iter_messages(topics):
+        for msg in self._guarded(self._iter_messages(topics)):
             yield msg.topic, msg.stamp_ns
 
     def records(self, kind: StreamKind | str, topic: Optional[str] = None) -> Iterator:
@@ -117,6 +124,21 @@ class DriveLog(ABC):
         return f"{type(self).__name__}({str(self.path)!r})"
 
     # --- internals --------------------------------------------------------------------------------
+    def _guarded(self, messages: Iterator[Message]) -> Iterator[Message]:
+        """``messages``, with a ``DATA_ERRORS`` exception turned into an ``InputError`` naming the file and the
+        last message read (readers name line or byte themselves; this is the net under them)."""
+        last: Optional[Message] = None
+        while True:
+            try:
+                msg = next(messages)
+            except StopIteration:
+                return
+            except DATA_ERRORS as exc:
+                where = "before the first message" if last is None else f"after message {last.index} of {last.topic}"
+                raise InputError(self.path, f"could not be read {where} ({type(exc).__name__}: {str(exc)[:200]})") from exc
+            last = msg
+            yield msg
+
     def _count_of(self, kind: StreamKind) -> int:
         return sum(1 for s in self.streams() if s.kind == kind)
 

@@ -38,7 +38,9 @@ from __future__ import annotations
 import csv
 import heapq
 import json
+import warnings
 from collections import Counter
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Optional, Sequence
@@ -46,7 +48,7 @@ from typing import Callable, Iterable, Iterator, Optional, Sequence
 import cv2
 import numpy as np
 
-from mapkit.core.errors import InputError
+from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import make_pose, quat_wxyz_to_matrix
 from mapkit.core.types import (
     CameraFrame,
@@ -61,7 +63,7 @@ from mapkit.core.types import (
     StreamKind,
 )
 from mapkit.io.base import DriveLog
-from mapkit.io.trajectory import seconds_to_ns  # noqa: F401  (re-exported: the folder readers parse stamps with it)
+from mapkit.io.trajectory import seconds_to_ns as exact_seconds_to_ns
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -81,21 +83,58 @@ def stream_info(topic: str, kind: StreamKind, count: Optional[int] = None) -> St
     return StreamInfo(topic, kind, MSGTYPE[kind], count)
 
 
+def undecodable(path: Path, expected: str) -> InputError:
+    """The error for a text file holding bytes that are not UTF-8, naming the first such line and column."""
+    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
+        try:
+            line.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            return InputError(path, f"line {lineno}: byte 0x{line[exc.start]:02x} at column {exc.start + 1} is not UTF-8 text ({expected})",
+                              field=f"line {lineno}")
+    return InputError(path, f"is not UTF-8 text ({expected})")
+
+
 # --- time -------------------------------------------------------------------------------------------
+
+#: stamps are int64 nanoseconds: about 292 years either side of 1970
+MAX_STAMP_NS = 2**63 - 1
+
+
+def seconds_to_ns(text: str) -> int:
+    """Decimal seconds to integer nanoseconds, exactly; a value outside int64 nanoseconds is a ``ValueError``,
+    refused before the exact conversion (which would build a huge integer from an exponent like ``1e999999999``)."""
+    try:
+        approx = float(text)
+    except ValueError:
+        approx = 0.0  # not a float: the exact parser says why
+    if not abs(approx) < MAX_STAMP_NS * 1e-9:
+        raise ValueError(f"{text.strip()[:40]!r} is not a time in seconds within +-{MAX_STAMP_NS * 1e-9:.3g} s")
+    return exact_seconds_to_ns(text)
+
+
+def check_stamp_ns(stamp: int) -> int:
+    """``stamp`` when it fits int64 nanoseconds; a ``ValueError`` otherwise."""
+    if not -MAX_STAMP_NS <= stamp <= MAX_STAMP_NS:
+        raise ValueError(f"{stamp} ns is outside the range of int64 nanoseconds")
+    return stamp
+
 
 def read_stamp_lines(path: Path, parse: Callable[[str], int], what: str) -> np.ndarray:
     """int64 stamps of a file holding one stamp per line (blank lines ignored)."""
     if not path.is_file():
         raise InputError(path, f"missing {what}")
     stamps: list[int] = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, start=1):
-            if not line.strip():
-                continue
-            try:
-                stamps.append(parse(line))
-            except ValueError as exc:
-                raise InputError(path, f"line {lineno}: {exc}", field=f"line {lineno}") from None
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise undecodable(path, f"{what} are text") from None
+    for lineno, line in enumerate(text.split("\n"), start=1):
+        if not line.strip():
+            continue
+        try:
+            stamps.append(check_stamp_ns(parse(line)))
+        except ValueError as exc:
+            raise InputError(path, f"line {lineno}: {exc}", field=f"line {lineno}") from None
     return np.asarray(stamps, dtype=np.int64)
 
 
@@ -125,7 +164,11 @@ class ImageLayout:
 
 
 def read_image(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    """The decoded pixels of an image file; a missing or undecodable file is an ``InputError`` naming it."""
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:  # e.g. a header claiming more pixels than OpenCV allows
+        raise InputError(path, f"could not be decoded as an image ({str(exc).strip().splitlines()[-1]})") from None
     if img is None:
         what = "could not be decoded as an image" if path.is_file() else "image file is missing"
         raise InputError(path, what)
@@ -139,6 +182,30 @@ def probe_image(path: Path, convert: Optional[ImageConvert] = None) -> ImageLayo
     """Layout of one image after ``convert``: decodes it once (the first image of a camera)."""
     img = read_image(path)
     return ImageLayout.of(img if convert is None else convert(img))
+
+
+#: how many images of a camera are tried, in order, for its layout before a damaged start is an error
+PROBE_TRIES = 10
+
+
+def probe_images(paths: Iterable[Path], convert: Optional[ImageConvert] = None) -> ImageLayout:
+    """Layout of the first image among ``paths`` that decodes; the damaged ones before it are skipped with a
+    warning naming them (their frames fail again when read, and are skipped there). After ``PROBE_TRIES``
+    failures the first error is raised."""
+    first_error: Optional[InputError] = None
+    for n, path in enumerate(paths):
+        if n == PROBE_TRIES:
+            break
+        try:
+            layout = probe_image(path, convert)
+        except InputError as exc:
+            first_error = first_error or exc
+            warnings.warn(f"{exc}; the layout of its camera is taken from the next image", InputWarning, stacklevel=2)
+            continue
+        return layout
+    if first_error is None:
+        raise InputError(None, "no image to read the camera's layout from")
+    raise first_error
 
 
 def lazy_frame(
@@ -170,8 +237,10 @@ class CsvTable:
         self.path = Path(path)
         if not self.path.is_file():
             raise InputError(self.path, "no such file")
-        with open(self.path, newline="") as f:
-            header = next(csv.reader(f), None)
+        with open(self.path, newline="", encoding="utf-8") as f:
+            reader = csv.reader(f)
+            with self._errors_named(reader):
+                header = next(reader, None)
         if not header:
             raise InputError(self.path, "is empty: no header line", field="header")
         self.columns = [c.strip() for c in header]
@@ -181,6 +250,16 @@ class CsvTable:
             raise InputError(
                 self.path, f"header has no column {', '.join(map(repr, missing))} (columns: {', '.join(self.columns)})", field="header"
             )
+
+    @contextmanager
+    def _errors_named(self, reader) -> Iterator[None]:
+        """Turns bytes that are not UTF-8 and what ``csv`` cannot parse into an ``InputError`` naming the line."""
+        try:
+            yield
+        except UnicodeDecodeError:
+            raise undecodable(self.path, "a CSV table is UTF-8 text") from None
+        except csv.Error as exc:
+            raise InputError(self.path, f"line {reader.line_num}: {exc}", field=f"line {reader.line_num}") from None
 
     def has(self, column: str) -> bool:
         return column in self._index
@@ -196,29 +275,33 @@ class CsvTable:
             rows.close()  # releases the file now, not when the generator is collected
 
     def rows(self) -> Iterator["CsvRow"]:
-        n = len(self.columns)
-        with open(self.path, newline="") as f:
+        with open(self.path, newline="", encoding="utf-8") as f:
             reader = csv.reader(f)
-            next(reader, None)
-            for values in reader:
-                if not values or (len(values) == 1 and not values[0].strip()):
-                    continue
-                line = reader.line_num
-                if len(values) < n:
-                    col = self.columns[len(values)]
-                    raise InputError(
-                        self.path,
-                        f"{len(values)} values but the header names {n} columns (no value for {col!r})",
-                        field=f"line {line}, column {col}",
-                    )
-                if len(values) > n:
-                    col = self.columns[-1]
-                    raise InputError(
-                        self.path,
-                        f"{len(values)} values but the header names {n} columns (extra values after {col!r})",
-                        field=f"line {line}, column {col}",
-                    )
-                yield CsvRow(self, line, values)
+            with self._errors_named(reader):
+                yield from self._rows_of(reader)
+
+    def _rows_of(self, reader) -> Iterator["CsvRow"]:
+        n = len(self.columns)
+        next(reader, None)
+        for values in reader:
+            if not values or (len(values) == 1 and not values[0].strip()):
+                continue
+            line = reader.line_num
+            if len(values) < n:
+                col = self.columns[len(values)]
+                raise InputError(
+                    self.path,
+                    f"{len(values)} values but the header names {n} columns (no value for {col!r})",
+                    field=f"line {line}, column {col}",
+                )
+            if len(values) > n:
+                col = self.columns[-1]
+                raise InputError(
+                    self.path,
+                    f"{len(values)} values but the header names {n} columns (extra values after {col!r})",
+                    field=f"line {line}, column {col}",
+                )
+            yield CsvRow(self, line, values)
 
 
 class CsvRow:
@@ -256,6 +339,13 @@ class CsvRow:
             return int(cell)
         except ValueError:
             raise self.error(column, f"{cell!r} is not an integer") from None
+
+    def stamp_ns(self, column: str, ns_per_unit: int = 1) -> int:
+        """An integer stamp in ``ns_per_unit`` ns units, as int64 nanoseconds."""
+        try:
+            return check_stamp_ns(self.integer(column) * ns_per_unit)
+        except ValueError as exc:
+            raise self.error(column, str(exc)) from None
 
     def seconds_ns(self, column: str) -> int:
         try:
@@ -414,16 +504,16 @@ def _read_intrinsics_file(folder: Path) -> Optional[_Intrinsics]:
     json_path, yaml_path = folder / "intrinsics.json", folder / "camera.yaml"
     if json_path.is_file():
         try:
-            return _intrinsics_from_mapping(json.loads(json_path.read_text()), json_path)
-        except json.JSONDecodeError as exc:
-            raise InputError(json_path, f"is not valid JSON: {exc}") from None
+            return _intrinsics_from_mapping(json.loads(json_path.read_text(encoding="utf-8")), json_path)
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
+            raise InputError(json_path, f"is not valid JSON: {type(exc).__name__}: {str(exc)[:200]}") from None
     if yaml_path.is_file():
         import yaml
 
         try:
-            return _intrinsics_from_mapping(yaml.safe_load(yaml_path.read_text()), yaml_path)
-        except yaml.YAMLError as exc:
-            raise InputError(yaml_path, f"is not valid YAML: {exc}") from None
+            return _intrinsics_from_mapping(yaml.safe_load(yaml_path.read_text(encoding="utf-8")), yaml_path)
+        except (yaml.YAMLError, UnicodeDecodeError, RecursionError) as exc:
+            raise InputError(yaml_path, f"is not valid YAML: {type(exc).__name__}: {str(exc)[:200]}") from None
     return None
 
 
@@ -450,10 +540,9 @@ class FolderLog(FolderLayoutLog):
         self.has_pose = _all_or_none(self.table, POSE_COLUMNS, "pose")
         self._intrinsics_in_columns = _all_or_none(self.table, INTRINSICS_COLUMNS, "intrinsics")
         self._intrinsics_file = None if self._intrinsics_in_columns else _read_intrinsics_file(self.path)
-        first = self.table.first_row()
-        if first is None:
+        if self.table.first_row() is None:
             raise InputError(self.table.path, "lists no frames")
-        self.layout = probe_image(self._image_path(first))
+        self.layout = probe_images(self._image_path(row) for row in self.table.rows())
         size = self._intrinsics_file.size if self._intrinsics_file is not None else None
         if size is not None and size != (self.layout.width, self.layout.height):
             raise InputError(self.path, f"intrinsics are for {size[0]}x{size[1]} images, the images are {self.layout}")
@@ -505,16 +594,20 @@ class FolderLog(FolderLayoutLog):
         if not name:
             raise row.error("image", "is empty")
         path = self.image_dir / name
-        if not path.is_file():
+        try:
+            exists = path.is_file()
+        except (ValueError, OSError) as exc:  # a NUL byte, a name too long for the file system
+            raise row.error("image", f"names {name[:80]!r}, which cannot be a file name ({exc})") from None
+        if not exists:
             raise row.error("image", f"names image {str(path)!r}, which does not exist")
         return path
 
     def _stamp_ns(self, row: CsvRow) -> int:
         col = self.time_column
         if col == "timestamp_ns":
-            return row.integer(col)
+            return row.stamp_ns(col)
         if col == "timestamp_us":
-            return row.integer(col) * 1000
+            return row.stamp_ns(col, 1000)
         return row.seconds_ns(col)
 
     def _camera_info(self, row: CsvRow, stamp_ns: int) -> CameraInfo:

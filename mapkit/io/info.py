@@ -98,7 +98,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     """A fixed-width table for people."""
     lines = [f"{summary['log']}  ({summary['format']}, {summary['messages_read']} messages)"]
     if summary.get("truncated_at_byte") is not None:
-        lines.append(f"  ! log damaged: reading stopped near byte {summary['truncated_at_byte']}")
+        lines.append(f"  ! log damaged near byte {summary['truncated_at_byte']}: the damaged part is skipped (the warnings say what)")
     header = f"  {'topic':<34} {'type':<30} {'count':>7} {'rate Hz':>8} {'span s':>9}"
     lines += [header, "  " + "-" * (len(header) - 2)]
     for s in summary["streams"]:

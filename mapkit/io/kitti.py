@@ -54,10 +54,11 @@ from mapkit.io.folder import (
     FolderLayoutLog,
     ImageLayout,
     Wanted,
-    probe_image,
+    probe_images,
     read_stamp_lines,
     seconds_to_ns,
     stream_info,
+    undecodable,
 )
 from mapkit.io.trajectory import read_kitti_poses
 
@@ -96,20 +97,22 @@ MERCATOR_EARTH_RADIUS_M = 6378137.0
 OxtsOrigin = Literal["first_position", "first_pose"]
 OXTS_POSE_FRAME: dict[str, str] = {"first_position": "oxts_enu", "first_pose": "oxts_first_pose"}
 
+#: largest departure of ``R^T R`` from the identity (max abs entry) a rotation may show. KITTI prints poses and
+#: calibration with 6-7 significant digits, which leaves about 1e-7 (1.5e-7 on the real clip in ../shared/data);
+#: a rotation scaled x5 departs by 24, a zero one by 1
+ORTHONORMAL_TOL = 1e-3
+#: fastest a pose or OXTS fix may move from the previous accepted one: 100 m/s (360 km/h) is far above what the
+#: car of a drive log reaches (KITTI's poses move at most 1.2 m per 0.1 s frame on the real clip) and still
+#: 100 times below a 1 km jump within 0.1 s, so one bad record is rejected, a fast drive never
+MAX_SPEED_MPS = 100.0
+#: how many rejected lines a warning lists by name
+_LISTED = 5
+
 
 # --- shared parsing ------------------------------------------------------------------------------
 
 def _undecodable(path: Path) -> InputError:
-    """The error for a text file holding bytes that are not UTF-8, naming the first such line."""
-    for lineno, line in enumerate(path.read_bytes().split(b"\n"), start=1):
-        try:
-            line.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            return InputError(
-                path, f"line {lineno}: byte 0x{line[exc.start]:02x} at column {exc.start + 1} is not UTF-8 text (KITTI writes ASCII)",
-                field=f"line {lineno}",
-            )
-    return InputError(path, "is not UTF-8 text (KITTI writes ASCII)")
+    return undecodable(path, "KITTI writes ASCII")
 
 
 def read_text(path: Path) -> str:
@@ -177,9 +180,80 @@ class CalibFile:
     def matrix(self, name: str, rows: int, cols: int) -> np.ndarray:
         return self.numbers(name, rows * cols).reshape(rows, cols)
 
+    def _bad(self, name: str, what: str) -> InputError:
+        lineno = self.entries[name][0]
+        return InputError(self.path, f"line {lineno} ({name}) {what}", field=f"line {lineno}")
+
+    def rotation(self, name: str, R: Optional[np.ndarray] = None) -> np.ndarray:
+        """The 3x3 rotation of entry ``name`` (or ``R``, read from it), checked to be one."""
+        R = self.matrix(name, 3, 3) if R is None else R
+        problem = rotation_problem(R)
+        if problem:
+            raise self._bad(name, f"is not a rotation: {problem}")
+        return R
+
     def rigid(self, rotation: str, translation: str) -> np.ndarray:
         """4x4 ``[R | T]`` from a 9-number rotation entry and a 3-number translation entry."""
-        return make_pose(self.matrix(rotation, 3, 3), self.numbers(translation, 3))
+        return make_pose(self.rotation(rotation), self.numbers(translation, 3))
+
+    def rigid_3x4(self, name: str) -> np.ndarray:
+        """4x4 pose from a 12-number ``[R | t]`` entry (odometry ``Tr``)."""
+        Rt = self.matrix(name, 3, 4)
+        return make_pose(self.rotation(name, Rt[:, :3]), Rt[:, 3])
+
+    def camera_matrix(self, name: str, cols: int = 3) -> np.ndarray:
+        """A projection (``cols`` 4) or intrinsic matrix (3) whose left 3x3 block is invertible with positive focal lengths."""
+        M = self.matrix(name, 3, cols)
+        K = M[:, :3]
+        s = np.linalg.svd(K, compute_uv=False)
+        if not s[-1] > 1e-9 * s[0]:
+            raise self._bad(name, "has a singular left 3x3 block: not a camera matrix")
+        if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1], atol=1e-6)):
+            raise self._bad(name, f"is not a rectified camera matrix (fx {K[0, 0]:g}, fy {K[1, 1]:g}, last row {K[2].tolist()} "
+                                  "should be positive, positive, [0, 0, 1])")
+        return M
+
+
+def rotation_problem(R: np.ndarray) -> str:
+    """Why ``R`` is not a rotation ("" when it is one, within ``ORTHONORMAL_TOL``)."""
+    departure = float(np.abs(R.T @ R - np.eye(3)).max())
+    if departure > ORTHONORMAL_TOL:
+        return f"R^T R departs from the identity by {departure:.3g} (tolerance {ORTHONORMAL_TOL:g})"
+    if np.linalg.det(R) < 0:
+        return "it is a reflection (determinant -1)"
+    return ""
+
+
+def screen_poses(stamps_ns: np.ndarray, poses: np.ndarray) -> list[str]:
+    """Per pose, why it is physically impossible ("" when it is not): a rotation that is not one, or a
+    move from the last accepted pose faster than ``MAX_SPEED_MPS``."""
+    reasons: list[str] = []
+    last: Optional[tuple[int, np.ndarray]] = None
+    for stamp, T in zip(stamps_ns.tolist(), poses):
+        problem = rotation_problem(T[:3, :3])
+        if not problem and last is not None:
+            problem = too_fast(last[0], last[1], stamp, T[:3, 3])
+        if not problem:
+            last = (stamp, T[:3, 3])
+        reasons.append(problem)
+    return reasons
+
+
+def too_fast(stamp0_ns: int, p0: np.ndarray, stamp_ns: int, p: np.ndarray) -> str:
+    """Why a move from ``p0`` to ``p`` is impossible ("" when it is possible); order is checked elsewhere."""
+    dt = (stamp_ns - stamp0_ns) * 1e-9
+    dist = float(np.linalg.norm(np.asarray(p) - np.asarray(p0)))
+    if dt > 0 and dist > MAX_SPEED_MPS * dt:
+        return f"moves {dist:.4g} m in {dt:.3g} s, faster than {MAX_SPEED_MPS:g} m/s"
+    return ""
+
+
+def rejection_summary(path: Path, what: str, total: int, rejected: dict[str, str]) -> str:
+    """One warning's text: how many of ``total`` were rejected, why, and the first few by name."""
+    listed = "; ".join(f"{where}: {why}" for where, why in list(rejected.items())[:_LISTED])
+    more = f"; and {len(rejected) - _LISTED} more" if len(rejected) > _LISTED else ""
+    return (f"{path}: {len(rejected)} of {total} {what} rejected as physically impossible "
+            f"and skipped: {listed}{more}")
 
 
 def read_stamps(path: Path, parse: Callable[[str], int], what: str) -> np.ndarray:
@@ -207,7 +281,7 @@ def kitti_datetime_ns(text: str) -> int:
 
 def camera_0_from_rectified_cameras(projections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
     """``camera_0_from_camera_i`` of rectified cameras from their 3x4 projection matrices."""
-    t = {i: np.linalg.solve(P[:, :3], P[:, 3]) for i, P in projections.items()}
+    t = {i: np.linalg.solve(P[:, :3], P[:, 3]) for i, P in projections.items()}  # P[:, :3] checked invertible on reading
     t0 = t.get(0, np.zeros(3))
     return {i: make_pose(np.eye(3), t0 - ti) for i, ti in t.items()}
 
@@ -262,6 +336,7 @@ class KittiOdometry(FolderLayoutLog):
     def __init__(self, path: str | Path, *, lidar: bool = True, topic_prefix: str = "/kitti"):
         super().__init__(path)
         prefix = topic_prefix.rstrip("/")
+        self._gt_topic = f"{prefix}/ground_truth"
         self.image_dirs = self._camera_folders()
         image_paths = {i: sorted(p for p in d.iterdir() if p.suffix == ".png") for i, d in self.image_dirs.items()}
         scan_dir = self.path / "velodyne"
@@ -287,6 +362,8 @@ class KittiOdometry(FolderLayoutLog):
         self.calib = self._read_calib()
         self.projections = self._projections()
         self.stamps_ns = self._read_stamps(n)
+        #: which poses of poses.txt passed ``screen_poses`` (the others are not read)
+        self.pose_accepted = np.ones(n, dtype=bool)
         self.world_from_camera_0 = self._read_poses(n)
         self.velodyne_paths = scan_paths
 
@@ -297,8 +374,7 @@ class KittiOdometry(FolderLayoutLog):
             if i != 0 and i in self.image_dirs
         ]
         if self.calib is not None and "Tr" in self.calib:
-            Tr = self.calib.matrix("Tr", 3, 4)
-            transforms.append(FrameTransform(first, "camera_0", "velodyne", make_pose(Tr[:, :3], Tr[:, 3])))
+            transforms.append(FrameTransform(first, "camera_0", "velodyne", self.calib.rigid_3x4("Tr")))
         elif self.velodyne_paths and self.world_from_camera_0 is not None:
             warnings.warn(
                 f"{self.path}: no Tr in {'calib.txt' if self.calib is not None else 'a calib.txt (there is none)'}: the ground "
@@ -311,7 +387,7 @@ class KittiOdometry(FolderLayoutLog):
         stamps = self.stamps_ns.tolist()
         for i, folder in sorted(self.image_dirs.items()):
             camera = f"camera_{i}"
-            layout = probe_image(image_paths[i][0])
+            layout = probe_images(image_paths[i])
             P = self.projections[i]
             info = CameraInfo(camera, layout.width, layout.height, P[:, :3].copy(), "plumb_bob", np.zeros(5), first)
             self._add_camera(
@@ -324,7 +400,7 @@ class KittiOdometry(FolderLayoutLog):
                 count=n,
             )
         if self.world_from_camera_0 is not None:
-            self._add_records(f"{prefix}/ground_truth", StreamKind.POSE, self._ground_truth, count=n)
+            self._add_records(self._gt_topic, StreamKind.POSE, self._ground_truth, count=int(self.pose_accepted.sum()))
         if self.velodyne_paths:
             self._add_records(f"{prefix}/velodyne/points", StreamKind.LIDAR, self._scans, count=n)
 
@@ -368,7 +444,7 @@ class KittiOdometry(FolderLayoutLog):
             assert self.calib is not None  # required with images
             if f"P{i}" not in self.calib:
                 raise InputError(self.calib.path, f"missing calibration: no P{i} for the images in {folder.name}/", field=f"P{i}")
-            projections[i] = self.calib.matrix(f"P{i}", 3, 4)
+            projections[i] = self.calib.camera_matrix(f"P{i}", 4)
         return projections
 
     def _read_stamps(self, n: int) -> np.ndarray:
@@ -390,13 +466,23 @@ class KittiOdometry(FolderLayoutLog):
             return None
         with decode_errors_named(path):
             poses = read_kitti_poses(path)
+            # read_kitti_poses skips blank and comment lines: the line number of each pose, for messages
+            linenos = [k for k, line in enumerate(read_text(path).splitlines(), start=1)
+                       if line.strip() and not line.strip().startswith("#")]
         _require_same_count(path, "poses", len(poses), self._frames_what, n)
+        reasons = screen_poses(self.stamps_ns, poses)
+        self.pose_accepted = np.array([not r for r in reasons], dtype=bool)
+        rejected = {f"line {k}": r for k, r in zip(linenos, reasons) if r}
+        if rejected:
+            self.skipped[(self._gt_topic, "physically impossible pose")] += len(rejected)
+            warnings.warn(rejection_summary(path, "poses", len(poses), rejected), InputWarning, stacklevel=3)
         return poses
 
     def _ground_truth(self) -> Iterator[PoseSample]:
         assert self.world_from_camera_0 is not None
-        for stamp, T in zip(self.stamps_ns.tolist(), self.world_from_camera_0):
-            yield PoseSample(stamp, "world", "camera_0", T, source="ground_truth")
+        for stamp, T, ok in zip(self.stamps_ns.tolist(), self.world_from_camera_0, self.pose_accepted):
+            if ok:
+                yield PoseSample(stamp, "world", "camera_0", T, source="ground_truth")
 
     def _scans(self) -> Iterator[LidarScan]:
         half_sweep_s = 0.5 * NOMINAL_PERIOD_NS * 1e-9
@@ -486,7 +572,7 @@ class KittiRaw(FolderLayoutLog):
             if not paths:
                 continue
             camera = f"camera_{i}"
-            layout = probe_image(paths[0])
+            layout = probe_images(paths)
             info = self._camera_info(camera, i, layout, cam_to_cam, first) if cam_to_cam is not None else None
             self._add_camera(
                 camera,
@@ -524,10 +610,10 @@ class KittiRaw(FolderLayoutLog):
 
     def _camera_info(self, camera: str, i: int, layout: ImageLayout, cam_to_cam: CalibFile, stamp_ns: int) -> CameraInfo:
         if self.rectified:
-            K = cam_to_cam.matrix(f"P_rect_{i:02d}", 3, 4)[:, :3]
+            K = cam_to_cam.camera_matrix(f"P_rect_{i:02d}", 4)[:, :3]
             D = np.zeros(5)
         else:
-            K = cam_to_cam.matrix(f"K_{i:02d}", 3, 3)
+            K = cam_to_cam.camera_matrix(f"K_{i:02d}")
             D = cam_to_cam.numbers(f"D_{i:02d}", 5)
         return CameraInfo(camera, layout.width, layout.height, K, "plumb_bob", D, stamp_ns)
 
@@ -545,8 +631,8 @@ class KittiRaw(FolderLayoutLog):
             return out
         if self.rectified:
             # the rectified camera 0 is the unrectified one turned by R_rect_00
-            rect_0_from_camera_0 = make_pose(cam_to_cam.matrix("R_rect_00", 3, 3), np.zeros(3))
-            projections = {i: cam_to_cam.matrix(f"P_rect_{i:02d}", 3, 4) for i in sorted({0, *cameras})}
+            rect_0_from_camera_0 = make_pose(cam_to_cam.rotation("R_rect_00"), np.zeros(3))
+            projections = {i: cam_to_cam.camera_matrix(f"P_rect_{i:02d}", 4) for i in sorted({0, *cameras})}
             camera_0_from_camera_i = camera_0_from_rectified_cameras(projections)
         else:
             rect_0_from_camera_0 = np.eye(4)
@@ -571,13 +657,26 @@ class KittiRaw(FolderLayoutLog):
         def iterate(wanted: Wanted) -> Iterator[Message]:
             want_gps, want_imu, want_pose = wanted(gps_topic), wanted(imu_topic), wanted(pose_topic)
             scale, origin_from_mercator = 1.0, np.eye(4)
+            last: Optional[tuple[int, np.ndarray]] = None  # stamp and position of the last accepted record
+            rejected: dict[str, str] = {}
             for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths)):
                 v = read_oxts_record(path)
-                if want_pose:
-                    if i == 0:  # the devkit's scale and origin both come from the first record
+                problem = oxts_problem(v)
+                if not problem:
+                    if last is None:  # the devkit's scale and origin both come from the first (accepted) record
                         scale = mercator_scale(v[_OXTS["lat"]])
-                        origin_from_mercator = self._origin_from_mercator(mercator_from_imu(v, scale))
-                    pose = PoseSample(stamp, pose_frame, "imu", origin_from_mercator @ mercator_from_imu(v, scale), source="ins")
+                    mercator = mercator_from_imu(v, scale)
+                    problem = "" if last is None else too_fast(*last, stamp, mercator[:3, 3])
+                if problem:
+                    rejected[f"{path.name} line 1"] = problem
+                    for topic in (t for t, w in ((gps_topic, want_gps), (imu_topic, want_imu), (pose_topic, want_pose)) if w):
+                        self.skipped[(topic, "physically impossible OXTS record")] += 1
+                    continue
+                if last is None:
+                    origin_from_mercator = self._origin_from_mercator(mercator)
+                last = (stamp, mercator[:3, 3])
+                if want_pose:
+                    pose = PoseSample(stamp, pose_frame, "imu", origin_from_mercator @ mercator, source="ins")
                     yield Message(pose_topic, StreamKind.POSE, i, pose)
                 if want_gps:
                     cov = np.eye(3) * v[_OXTS["pos_accuracy"]] ** 2
@@ -588,6 +687,8 @@ class KittiRaw(FolderLayoutLog):
                     roll, pitch = (0.0, 0.0) if level else (v[_OXTS["roll"]], v[_OXTS["pitch"]])
                     q_wxyz = matrix_to_quat_wxyz(enu_from_rpy(roll, pitch, v[_OXTS["yaw"]]))
                     yield Message(imu_topic, StreamKind.IMU, i, ImuSample(stamp, imu_frame, v[rate_idx], v[accel_idx], q_wxyz))
+            if rejected:
+                warnings.warn(rejection_summary(paths[0].parent, "OXTS records", len(paths), rejected), InputWarning, stacklevel=2)
 
         n = len(paths)
         kinds = {gps_topic: StreamKind.GPS, imu_topic: StreamKind.IMU, pose_topic: StreamKind.POSE}
@@ -642,6 +743,17 @@ def mercator_from_imu(oxts: np.ndarray, scale: float) -> np.ndarray:
     r = scale * MERCATOR_EARTH_RADIUS_M
     t = np.stack([r * lon, r * np.log(np.tan(np.pi / 4 + lat / 2)), v[..., _OXTS["alt"]]], axis=-1)
     return make_pose(enu_from_rpy(v[..., _OXTS["roll"]], v[..., _OXTS["pitch"]], v[..., _OXTS["yaw"]]), t)
+
+
+def oxts_problem(v: np.ndarray) -> str:
+    """Why an OXTS record cannot be a real one ("" when it can): latitude, longitude or an angle out of range."""
+    lat, lon = v[_OXTS["lat"]], v[_OXTS["lon"]]
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
+        return f"latitude {lat:g}, longitude {lon:g} out of range"
+    angles = np.abs(v[[_OXTS["roll"], _OXTS["pitch"], _OXTS["yaw"]]])
+    if angles.max() > 2 * np.pi:  # the devkit gives radians in [-pi, pi]
+        return f"roll, pitch, yaw {v[_OXTS['roll']]:g}, {v[_OXTS['pitch']]:g}, {v[_OXTS['yaw']]:g} rad out of range"
+    return ""
 
 
 def read_oxts_record(path: Path) -> np.ndarray:

@@ -4,23 +4,39 @@ A log is one ``.mcap`` file or a rosbag2 folder with MCAP storage, as ``ros2 bag
 writes it (``metadata.yaml`` beside ``<name>_0.mcap``, ``<name>_1.mcap``, ...); the folder's files
 are read in the order ``metadata.yaml`` lists them, as one log.
 
-Reading uses each file's chunk index when it has one (messages come in log-time order, one chunk
-decompressed at a time). A truncated or corrupt file has no usable summary: it is read linearly
-up to the damage, with a warning saying at which byte it stopped and how many messages were read.
+Reading never trusts one damaged byte with the rest of the file. Each file's chunks are located from
+its summary when that is intact (CRC and chunk index checked), otherwise by a linear scan that steps
+over damage to the next well-formed chunk; each chunk is decompressed on its own, with its CRC
+checked, and messages come in log-time order. A damaged chunk, a truncated end or a damaged summary
+costs only the messages in the damaged part: a warning names the file and byte offset, and every
+intact chunk after it is read.
 """
 
 from __future__ import annotations
 
+import heapq
+import io
+import itertools
+import mmap
 import os
 import shutil
+import struct
 import warnings
+import zlib
 from collections import Counter
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path, PurePosixPath
-from typing import Any, Iterator, Optional
+from typing import Any, Callable, Iterator, Optional
 
+import lz4.frame
 import yaml
+import zstandard
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, SeekingReader
+from mcap.opcode import Opcode
+from mcap.records import Channel, ChunkIndex, Schema, Statistics
+from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as Ros2Writer
@@ -55,6 +71,23 @@ def is_mcap(path: Path) -> bool:
         return False
 
 
+def _mcap_with_damaged_magic(path: Path) -> bool:
+    """Whether a file whose first 8 bytes are not the MCAP magic is an MCAP all the same: it ends with the
+    magic, or a header record (opcode 0x01 and a length inside the file) follows the 8 bytes."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(MCAP_MAGIC) + 9)
+            size = os.fstat(f.fileno()).st_size
+            f.seek(max(size - len(MCAP_MAGIC), 0))
+            tail = f.read()
+    except OSError:
+        return False
+    if size < 2 * len(MCAP_MAGIC) + 9:
+        return False
+    op, length = struct.unpack_from("<BQ", head, len(MCAP_MAGIC))
+    return tail == MCAP_MAGIC or (op == Opcode.HEADER and length < size)
+
+
 def is_rosbag2(path: str | Path) -> bool:
     """A folder holding a rosbag2 ``metadata.yaml`` (any storage)."""
     return (Path(path) / ROSBAG2_METADATA).is_file()
@@ -67,8 +100,8 @@ def rosbag2_metadata(folder: str | Path) -> dict:
         raise InputError(folder, f"not a rosbag2 folder (no {ROSBAG2_METADATA})")
     try:
         doc = yaml.safe_load(meta_path.read_text())
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise InputError(meta_path, f"could not be read as YAML ({type(exc).__name__}: {exc})") from None
+    except (OSError, UnicodeDecodeError, yaml.YAMLError, RecursionError) as exc:
+        raise InputError(meta_path, f"could not be read as YAML ({type(exc).__name__}: {str(exc)[:200]})") from None
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     if not isinstance(info, dict):
         raise InputError(meta_path, "has no rosbag2_bagfile_information mapping", field="rosbag2_bagfile_information")
@@ -84,9 +117,12 @@ def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     info = rosbag2_metadata(folder)
     meta_path = folder / ROSBAG2_METADATA
-    rel = info.get("relative_file_paths") or [f["path"] for f in info.get("files") or [] if isinstance(f, dict) and "path" in f]
+    files_info = info.get("files") if isinstance(info.get("files"), list) else []
+    rel = info.get("relative_file_paths") or [f["path"] for f in files_info if isinstance(f, dict) and "path" in f]
     if not rel:
         raise InputError(meta_path, "lists no storage files", field="relative_file_paths")
+    if not isinstance(rel, list) or not all(isinstance(p, str) and p and "\0" not in p for p in rel):
+        raise InputError(meta_path, f"relative_file_paths is not a list of file names: {str(rel)[:80]}", field="relative_file_paths")
     storage = str(info.get("storage_identifier") or "").strip().lower()
     if not storage:  # old bags may leave it out: the file suffix tells
         suffixes = {PurePosixPath(str(p)).suffix for p in rel}
@@ -117,38 +153,385 @@ def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
     return files
 
 
+#: largest chunk mapkit decompresses: far above what recorders write (``ros2 bag record`` closes a chunk at a
+#: few MB; one message larger than that makes a chunk of its own size), and it keeps a corrupt size field from
+#: asking for exabytes
+MAX_CHUNK_BYTES = 1 << 30
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, body length
+#: a chunk's fields before its compression name: message start and end time, uncompressed size and CRC
+_CHUNK_HEAD = struct.Struct("<QQQI")
+#: a message's fields before its payload: channel id, sequence, log time, publish time
+_MESSAGE_HEAD = struct.Struct("<HIQQ")
+#: a footer record: opcode, length (20), summary start, summary offset start, summary CRC
+_FOOTER = struct.Struct("<BQQQI")
+_COMPRESSIONS = ("", "zstd", "lz4")
+_KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
+_SUMMARY_RECORDS = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.CHUNK_INDEX: ChunkIndex, Opcode.STATISTICS: Statistics}
+#: what damaged bytes make the record parsers and decompressors raise
+_PARSE_ERRORS = (McapError, EOFError, ValueError, struct.error, OverflowError, MemoryError, RuntimeError, zstandard.ZstdError)
+
+
+class _Damage(Exception):
+    """A part of an MCAP file that cannot be read; ``offset`` is the file byte where it starts (None: nowhere in particular)."""
+
+    def __init__(self, offset: Optional[int], what: str):
+        super().__init__(what)
+        self.offset = offset
+        self.what = what
+
+
+@dataclass(frozen=True)
+class _Segment:
+    """A chunk record, or a message record outside chunks, located in its file."""
+
+    offset: int  # of the record's opcode byte
+    length: int  # of the record's body
+    start_ns: int  # log time of its first message
+    chunk: bool
+    #: channels with messages in the chunk (from its chunk index), None where unknown
+    channel_ids: Optional[frozenset[int]] = None
+
+
+@dataclass(frozen=True)
+class _ChunkHead:
+    """The fields of a chunk record up to its compressed records."""
+
+    start_ns: int
+    uncompressed_size: int
+    crc: int
+    compression: str
+    data_at: int  # file offset of the compressed records
+    data_len: int
+
+
+def _records(buf, start: int, end: int, where: Callable[[int], int]) -> Iterator[tuple[int, memoryview]]:
+    """(opcode, body) of the records in ``buf[start:end]``, bodies as views (copy what is kept); ``where`` maps a
+    position to a file offset for errors."""
+    view = memoryview(buf)
+    pos = start
+    try:
+        while pos < end:
+            if pos + _RECORD_HEAD.size > end:
+                raise _Damage(where(pos), "a record header is cut off")
+            op, length = _RECORD_HEAD.unpack_from(buf, pos)
+            body = pos + _RECORD_HEAD.size
+            if length > end - body:
+                raise _Damage(where(pos), f"a record claims {length} bytes, {end - body} are left")
+            with view[body:body + length] as record:
+                yield op, record
+            pos = body + length
+    finally:
+        view.release()  # an mmap cannot close while a view of it lives
+
+
+def _parse(op: int, body: bytes | memoryview, offset: int):
+    """The summary-type record (schema, channel, chunk index, statistics) of one record body."""
+    try:
+        return _SUMMARY_RECORDS[Opcode(op)].read(ReadDataStream(io.BytesIO(body)))
+    except _PARSE_ERRORS as exc:
+        raise _Damage(offset, f"a {Opcode(op).name.lower()} record is damaged ({type(exc).__name__})") from None
+
+
+def _message(body: bytes | memoryview, offset: int) -> McapMessage:
+    """A message record's fields, its payload copied out of ``body``."""
+    if len(body) < _MESSAGE_HEAD.size:
+        raise _Damage(offset, f"a message record of {len(body)} bytes is shorter than its fixed fields")
+    channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(body)
+    return McapMessage(channel_id=channel_id, log_time=log_time, data=bytes(body[_MESSAGE_HEAD.size:]), publish_time=publish_time,
+                       sequence=sequence)
+
+
+def _decompress(compression: str, data: bytes, size: int, offset: int) -> bytes:
+    """``data`` decompressed; stops after ``size`` + 1 bytes however the stream is damaged."""
+    if compression == "":
+        out = data
+    elif compression == "zstd" and zstandard.frame_content_size(data) == size:
+        out = zstandard.ZstdDecompressor().decompress(data)  # one allocation, of the size already checked
+    elif compression == "zstd":  # a frame without its size (or a damaged one): in pieces, stopping past the size
+        buf = bytearray()
+        for piece in zstandard.ZstdDecompressor().read_to_iter(io.BytesIO(data), write_size=1 << 20):
+            buf += piece
+            if len(buf) > size:
+                break
+        out = bytes(buf)
+    else:
+        decompressor = lz4.frame.LZ4FrameDecompressor()
+        buf = bytearray(decompressor.decompress(data, max_length=size + 1))
+        while not decompressor.eof and not decompressor.needs_input and len(buf) <= size:
+            buf += decompressor.decompress(b"", max_length=size + 1 - len(buf))
+        out = bytes(buf)
+    if len(out) != size:
+        got = f"more than {size}" if len(out) > size else str(len(out))
+        raise _Damage(offset, f"the chunk decompresses to {got} bytes, its header says {size}")
+    return out
+
+
 class _McapFile:
-    """One MCAP file: its summary if readable, indexed or linear raw iteration."""
+    """One MCAP file, located record by record so that damage costs only the damaged part.
+
+    With an intact summary (its CRC matches; in a file written without CRCs, every chunk index points at a
+    chunk record of the length it gives) the chunks come from the chunk index. Otherwise a linear scan of the data section finds them;
+    it steps over a damaged record by searching for the next well-formed chunk record (opcode, length and
+    fields that add up). Each chunk is then read on its own with its CRC checked, so a damaged chunk is
+    skipped and every intact chunk after it is kept. Messages come in log-time order: chunks are opened
+    in order of their first message and merged, so only overlapping chunks are held at once.
+    """
 
     def __init__(self, path: Path, validate_crcs: bool):
         self.path = path
         self.validate_crcs = validate_crcs
-        self.file = open(path, "rb")
-        self.summary = None
-        self.indexed = False
-        self.summary_error: Optional[str] = None
-        self.linear_schemas: dict[int, Any] = {}
+        with open(path, "rb") as f:
+            self.size = os.fstat(f.fileno()).st_size
+            self._map = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.statistics: Optional[Statistics] = None
+        self.segments: list[_Segment] = []
+        #: the summary was read and checked (its channels and counts are trusted)
+        self.summary_ok = False
+        #: why the summary was not used, when the file has one that is damaged
+        self.summary_problem: Optional[str] = None
+        #: damage found while locating records (each costs the messages in it)
+        self.damage: list[_Damage] = []
+        # definitions from a damaged summary, used only for ids no chunk defines
+        self._fallback_schemas: dict[int, Schema] = {}
+        self._fallback_channels: dict[int, Channel] = {}
         # decoders are cached by schema id, which is only unique within one file
         self.decoders = DecoderFactory()
-        try:
-            self.summary = SeekingReader(self.file).get_summary()
-            self.indexed = self.summary is not None and len(self.summary.chunk_indexes) > 0
-        except (McapError, EOFError, ValueError, OSError, StopIteration, Exception) as exc:  # noqa: BLE001
-            # a truncated file has no footer: everything below falls back to a linear read
-            self.summary_error = f"{type(exc).__name__}: {exc}"
+        self._read_summary()
+        if not self.indexed:
+            self._scan()
+
+    @property
+    def indexed(self) -> bool:
+        return self.summary_ok and any(s.chunk for s in self.segments)
 
     def close(self) -> None:
-        self.file.close()
+        self._map.close()
 
-    def channels(self) -> Optional[list[tuple[str, str, Optional[int]]]]:
-        """(topic, schema name, count) from the summary; None without one."""
-        if self.summary is None or not self.summary.channels:
-            return None
-        counts = self.summary.statistics.channel_message_counts if self.summary.statistics else {}
-        return [
-            (c.topic, self.summary.schemas[c.schema_id].name if c.schema_id else "", counts.get(c.id))
-            for c in self.summary.channels.values()
+    # --- locating ---------------------------------------------------------------------------------
+    def _read_summary(self) -> None:
+        """Reads the summary; it is used when its CRC matches (or, written without a CRC, when every chunk
+        index points at a chunk record of the length it gives). A damaged summary still lends its schemas
+        and channels to messages whose own definitions are lost with a damaged chunk."""
+        footer_at = self.size - len(MCAP_MAGIC) - _FOOTER.size
+        if footer_at < len(MCAP_MAGIC) or self._map[self.size - len(MCAP_MAGIC):] != MCAP_MAGIC:
+            self.damage.append(_Damage(self.size, "the file ends without a footer (truncated)"))
+            return
+        op, length, summary_start, _, crc = _FOOTER.unpack_from(self._map, footer_at)
+        if op != Opcode.FOOTER or length != _FOOTER.size - _RECORD_HEAD.size:
+            self.summary_problem = f"the footer record at byte {footer_at} is damaged"
+            return
+        if summary_start == 0:
+            return  # written without a summary
+        if not len(MCAP_MAGIC) <= summary_start <= footer_at:
+            self.summary_problem = f"the footer puts the summary at byte {summary_start}, outside the file"
+            return
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        statistics, indexes, problem = None, [], None
+        try:
+            for op, body in _records(self._map, summary_start, footer_at, lambda pos: pos):
+                if op in _SUMMARY_RECORDS:
+                    rec = _parse(op, body, summary_start)
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = rec
+                    elif isinstance(rec, Statistics):
+                        statistics = rec
+                    else:
+                        indexes.append(rec)
+        except _Damage as exc:
+            problem = f"the summary is damaged ({exc.what})"
+        segments = [
+            _Segment(ci.chunk_start_offset, ci.chunk_length - _RECORD_HEAD.size, ci.message_start_time, True,
+                     frozenset(ci.message_index_offsets) or None)
+            for ci in indexes
         ]
+        if problem is None and crc and zlib.crc32(self._map[summary_start:footer_at + _FOOTER.size - 4]) != crc:
+            problem = f"the summary section (bytes {summary_start} to {self.size}) fails its CRC"
+        if problem is None and not crc:  # nothing vouches for the chunk index: check where it points
+            try:
+                for seg in segments:
+                    self._chunk_at(seg.offset, seg.length)
+            except _Damage as exc:
+                problem = f"the summary does not match the data ({exc.what} at byte {exc.offset})"
+        if problem is not None:
+            self.summary_problem = problem
+            self._fallback_schemas, self._fallback_channels = schemas, channels
+            return
+        self.schemas, self.channels, self.statistics, self.segments = schemas, channels, statistics, segments
+        self.summary_ok = True
+
+    def _chunk_at(self, offset: int, length: Optional[int] = None) -> _ChunkHead:
+        """The fields of the chunk record at ``offset`` (checked for shape, not content); ``_Damage`` if none is there."""
+        m = self._map
+        if not len(MCAP_MAGIC) <= offset <= self.size - _RECORD_HEAD.size:
+            raise _Damage(offset, "no chunk record there (outside the file)")
+        op, body_len = _RECORD_HEAD.unpack_from(m, offset)
+        if op != Opcode.CHUNK:
+            raise _Damage(offset, f"expected a chunk record, found opcode 0x{op:02x}")
+        if length is not None and body_len != length:
+            raise _Damage(offset, f"the chunk record is {body_len} bytes long, its index says {length}")
+        body = offset + _RECORD_HEAD.size
+        if body_len > self.size - body:
+            raise _Damage(offset, f"a chunk record of {body_len} bytes runs past the end of the file")
+        fixed = _CHUNK_HEAD.size + 4
+        if body_len < fixed + 8:
+            raise _Damage(offset, f"a chunk record of {body_len} bytes is shorter than its fixed fields")
+        start, _, size, crc = _CHUNK_HEAD.unpack_from(m, body)
+        (name_len,) = struct.unpack_from("<I", m, body + _CHUNK_HEAD.size)
+        if name_len > max(map(len, _COMPRESSIONS)) or body_len < fixed + name_len + 8:
+            raise _Damage(offset, "the chunk's compression field is damaged")
+        name = bytes(m[body + fixed:body + fixed + name_len])
+        (data_len,) = struct.unpack_from("<Q", m, body + fixed + name_len)
+        if fixed + name_len + 8 + data_len != body_len:
+            raise _Damage(offset, f"the chunk's fields do not add up to its length of {body_len} bytes")
+        if name.decode("ascii", "replace") not in _COMPRESSIONS:
+            raise _Damage(offset, f"unknown chunk compression {name!r}")
+        return _ChunkHead(start, size, crc, name.decode(), body + fixed + name_len + 8, data_len)
+
+    def _next_chunk(self, start: int) -> Optional[int]:
+        """The offset of the next well-formed chunk record at or after ``start``, if any."""
+        pos = start
+        while True:
+            pos = self._map.find(bytes([Opcode.CHUNK]), pos)
+            if pos < 0:
+                return None
+            try:
+                self._chunk_at(pos)
+                return pos
+            except _Damage:
+                pos += 1
+
+    def _scan(self) -> None:
+        """Locates chunks (and messages outside chunks) from the start of the file, up to the data end."""
+        pos = len(MCAP_MAGIC)
+        while pos + _RECORD_HEAD.size <= self.size:
+            op, length = _RECORD_HEAD.unpack_from(self._map, pos)
+            if op in (Opcode.DATA_END, Opcode.FOOTER):
+                return
+            body, end = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
+            try:
+                if op not in _KNOWN_OPCODES:
+                    raise _Damage(pos, f"no record starts here (opcode 0x{op:02x})")
+                if end > self.size:
+                    raise _Damage(pos, f"a record of {length} bytes runs past the end of the file")
+                if op == Opcode.CHUNK:
+                    head = self._chunk_at(pos)
+                    self.segments.append(_Segment(pos, length, head.start_ns, True))
+                elif op == Opcode.MESSAGE:
+                    log_time = _message(bytes(self._map[body:body + min(length, _MESSAGE_HEAD.size)]), pos).log_time
+                    self.segments.append(_Segment(pos, length, log_time, False))
+                elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
+                    self._define(_parse(op, bytes(self._map[body:end]), pos))
+            except _Damage as exc:
+                resume = self._next_chunk(pos + 1)
+                after = f"bytes {pos} to {resume} are skipped" if resume is not None else "nothing after it can be read"
+                self.damage.append(_Damage(exc.offset, f"{exc.what}; {after}"))
+                if resume is None:
+                    return
+                pos = resume
+                continue
+            pos = end
+        if pos < self.size:
+            self.damage.append(_Damage(pos, "a record header is cut off (truncated)"))
+
+    def _define(self, rec) -> None:
+        """A schema or channel seen in the data: the first definition of an id counts."""
+        if isinstance(rec, Schema):
+            self.schemas.setdefault(rec.id, rec)
+        else:
+            self.channels.setdefault(rec.id, rec)
+
+    # --- reading ----------------------------------------------------------------------------------
+    def _load(self, seg: _Segment) -> tuple[list[McapMessage], Optional[_Damage]]:
+        """The messages of one segment, defining the schemas and channels in it; on damage part-way, the
+        messages before it and the damage."""
+        body = seg.offset + _RECORD_HEAD.size
+        if not seg.chunk:
+            return [_message(bytes(self._map[body:body + seg.length]), seg.offset)], None
+        head = self._chunk_at(seg.offset, seg.length)
+        if head.uncompressed_size > MAX_CHUNK_BYTES:
+            raise _Damage(seg.offset, f"the chunk claims {head.uncompressed_size} bytes uncompressed (more than {MAX_CHUNK_BYTES})")
+        try:
+            data = _decompress(head.compression, bytes(self._map[head.data_at:head.data_at + head.data_len]),
+                               head.uncompressed_size, seg.offset)
+        except _PARSE_ERRORS as exc:
+            raise _Damage(seg.offset, f"the chunk does not decompress ({type(exc).__name__}: {exc})") from None
+        if self.validate_crcs and head.crc and zlib.crc32(data) != head.crc:
+            raise _Damage(seg.offset, "the chunk fails its CRC")
+        messages: list[McapMessage] = []
+        try:
+            for op, rec in _records(data, 0, len(data), lambda _: seg.offset):
+                if op == Opcode.MESSAGE:
+                    messages.append(_message(rec, seg.offset))
+                elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
+                    self._define(_parse(op, rec, seg.offset))
+        except _Damage as exc:
+            return messages, exc
+        return messages, None
+
+    def raw(self, topics: Optional[set[str]], on_damage: Callable[[_Damage], None]) -> Iterator[tuple[Any, Any, McapMessage]]:
+        """(schema, channel, message) in log-time order; damaged segments go to ``on_damage`` and are skipped."""
+        segments = sorted(self.segments, key=lambda s: (s.start_ns, s.offset))
+        wanted_ids = None
+        if topics is not None and self.summary_ok:
+            wanted_ids = {cid for cid, c in self.channels.items() if c.topic in topics}
+        heap: list[tuple[int, int, McapMessage]] = []
+        order = itertools.count()
+        unknown: Counter[int] = Counter()
+        i = 0
+        while i < len(segments) or heap:
+            # open every segment that may hold a message earlier than the earliest one held
+            while i < len(segments) and (not heap or segments[i].start_ns <= heap[0][0]):
+                seg = segments[i]
+                i += 1
+                if wanted_ids is not None and seg.channel_ids is not None and not seg.channel_ids & wanted_ids:
+                    continue
+                try:
+                    messages, damage = self._load(seg)
+                except _Damage as exc:
+                    messages, damage = [], exc
+                if damage is not None:
+                    on_damage(damage)
+                for m in messages:
+                    heapq.heappush(heap, (m.log_time, next(order), m))
+            if not heap:
+                continue
+            message = heapq.heappop(heap)[2]
+            channel = self.channels.get(message.channel_id) or self._fallback_channels.get(message.channel_id)
+            if channel is None:
+                unknown[message.channel_id] += 1
+                continue
+            if topics is None or channel.topic in topics:
+                yield self.schemas.get(channel.schema_id) or self._fallback_schemas.get(channel.schema_id), channel, message
+        for cid, n in unknown.items():
+            on_damage(_Damage(None, f"{n} messages of channel {cid} skipped: its channel record is lost"))
+
+    def count_messages(self) -> Counter[int]:
+        """Messages per channel id by reading every segment (no summary to count them); damage is left
+        for the reading passes to report."""
+        counts: Counter[int] = Counter()
+        for seg in self.segments:
+            try:
+                messages, _ = self._load(seg)
+            except _Damage:
+                continue
+            counts.update(m.channel_id for m in messages)
+        return counts
+
+    def channel_list(self) -> list[tuple[str, str, Optional[int]]]:
+        """(topic, schema name, count) of every channel."""
+        if self.summary_ok and self.channels:
+            counts = self.statistics.channel_message_counts if self.statistics else {}
+            channels, schemas = self.channels, self.schemas
+        else:
+            counts = self.count_messages()
+            lent = {cid: c for cid, c in self._fallback_channels.items() if counts.get(cid)}
+            channels, schemas = {**lent, **self.channels}, {**self._fallback_schemas, **self.schemas}
+        return [(c.topic, schemas[c.schema_id].name if c.schema_id in schemas else "", counts.get(cid)) for cid, c in channels.items()]
 
 
 class McapLog(DriveLog):
@@ -171,20 +554,26 @@ class McapLog(DriveLog):
             raise InputError(self.path, "no such file")
         for f in files:
             if not is_mcap(f):
-                raise InputError(f, "not an MCAP file (bad magic bytes)")
+                if not _mcap_with_damaged_magic(f):
+                    raise InputError(f, "not an MCAP file (bad magic bytes)")
+                warnings.warn(f"{f}: the MCAP magic bytes at its start are damaged; read as MCAP all the same (its header "
+                              "record or closing magic says it is one)", InputWarning, stacklevel=2)
         #: the MCAP files read, in order (one for a bare ``.mcap``)
         self.files: list[Path] = files
         self._parts: list[_McapFile] = []
         try:
             for f in files:
                 self._parts.append(_McapFile(f, validate_crcs))
-        except OSError as exc:
+        except (OSError, ValueError) as exc:
             self.close()
             raise InputError(f, f"could not be opened ({exc})") from None
         self._streams: Optional[list[StreamInfo]] = None
-        #: byte offset where reading stopped at damage (in ``truncated_file``), else None
+        #: byte offset of the first damage met (in ``truncated_file``, the earliest there), else None; reading goes on after it
         self.truncated_at: Optional[int] = None
         self.truncated_file: Optional[Path] = None
+        #: (file, byte offset or None, what) of every damaged part met, once each
+        self.damage: list[tuple[Path, Optional[int], str]] = []
+        self._reported: set[tuple[Path, Optional[int], str]] = set()
 
     def close(self) -> None:
         for part in self._parts:
@@ -205,10 +594,7 @@ class McapLog(DriveLog):
         types: dict[str, str] = {}
         counts: dict[str, Optional[int]] = {}
         for part in self._parts:
-            chans = part.channels()
-            if chans is None:
-                chans = self._scan_channels(part)
-            for topic, t, n in chans:
+            for topic, t, n in part.channel_list():
                 types.setdefault(topic, t)
                 if n is None or (topic in counts and counts[topic] is None):
                     counts[topic] = None  # unknown in one file: unknown in all
@@ -220,62 +606,33 @@ class McapLog(DriveLog):
         ]
         return self._streams
 
-    def _scan_channels(self, part: _McapFile) -> list[tuple[str, str, Optional[int]]]:
-        """Channels and counts by a linear pass (no summary to read them from)."""
-        counts: Counter[int] = Counter()
-        channels: dict[int, Any] = {}
-        for _, channel, message in self._linear_raw(part, None, warn=False):
-            channels[channel.id] = channel
-            counts[channel.id] += 1
-        schemas = part.linear_schemas
-        return [(c.topic, schemas[c.schema_id].name if c.schema_id in schemas else "", counts[cid]) for cid, c in channels.items()]
-
     # --- raw iteration ----------------------------------------------------------------------------
     def _raw(self, topics: Optional[set[str]]) -> Iterator[tuple[_McapFile, Any, Any, Any]]:
         """(file, schema, channel, message) of every message, file after file."""
         for part in self._parts:
-            if part.indexed:
-                part.file.seek(0)
-                reader = SeekingReader(part.file, validate_crcs=self.validate_crcs)
-                try:
-                    for schema, channel, message in reader.iter_messages(
-                        topics=None if topics is None else sorted(topics), log_time_order=True
-                    ):
-                        yield part, schema, channel, message
-                except (McapError, EOFError, ValueError, OSError) as exc:
-                    self._report_damage(part, part.file.tell(), exc)
-            else:
-                for schema, channel, message in self._linear_raw(part, topics):
-                    yield part, schema, channel, message
+            if part.summary_problem is not None:
+                self._warn_once(part, None, f"{part.summary_problem}; its chunks are found by a linear scan instead")
+            for damage in part.damage:
+                self._report_damage(part, damage)
+            for schema, channel, message in part.raw(topics, partial(self._report_damage, part)):
+                yield part, schema, channel, message
 
-    def _linear_raw(self, part: _McapFile, topics: Optional[set[str]], warn: bool = True) -> Iterator[tuple[Any, Any, Any]]:
-        """Records of one file in file order, stopping (with a warning) where the file is damaged."""
-        part.file.seek(0)
-        part.linear_schemas = {}
-        reader = NonSeekingReader(part.file, validate_crcs=self.validate_crcs)
-        it = reader.iter_messages(topics=None if topics is None else sorted(topics), log_time_order=False)
-        try:
-            for schema, channel, message in it:
-                if schema is not None:
-                    part.linear_schemas[schema.id] = schema
-                yield schema, channel, message
-        except (McapError, EOFError, ValueError, OSError, Exception) as exc:  # noqa: BLE001
-            if warn:
-                self._report_damage(part, part.file.tell(), exc)
-            else:
-                self.truncated_at, self.truncated_file = part.file.tell(), part.path
+    def _report_damage(self, part: _McapFile, damage: _Damage) -> None:
+        if damage.offset is None:
+            self._warn_once(part, None, damage.what)
+            return
+        if self.truncated_at is None or (part.path == self.truncated_file and damage.offset < self.truncated_at):
+            self.truncated_at, self.truncated_file = damage.offset, part.path
+        self._warn_once(part, damage.offset, f"log is truncated or corrupt near byte {damage.offset} of {part.size} ({damage.what}); "
+                                             "the messages there are skipped, intact chunks after it are read")
 
-    def _report_damage(self, part: _McapFile, offset: int, exc: BaseException) -> None:
-        self.truncated_at, self.truncated_file = offset, part.path
-        size = part.path.stat().st_size
-        rest = self._parts[self._parts.index(part) + 1:]
-        more = f"; reading goes on with the next file, {rest[0].path.name}" if rest else ""
-        warnings.warn(
-            f"{part.path}: log is truncated or corrupt near byte {offset} of {size} "
-            f"({type(exc).__name__}: {exc}); messages after it are not read{more}",
-            InputWarning,
-            stacklevel=4,
-        )
+    def _warn_once(self, part: _McapFile, offset: Optional[int], what: str) -> None:
+        key = (part.path, offset, what)
+        if key in self._reported:
+            return
+        self._reported.add(key)
+        self.damage.append(key)
+        warnings.warn(f"{part.path}: {what}", InputWarning, stacklevel=4)
 
     def stamps(self, topics: Optional[set[str]] = None) -> Iterator[tuple[str, int]]:
         """(topic, header stamp in ns) of every message, without decoding payloads."""

@@ -59,7 +59,7 @@ from scipy.spatial.transform import Rotation
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import make_pose, yaw_rotation
 from mapkit.core.types import GpsFix, GpsStatus, LidarScan, PoseSample, StreamKind
-from mapkit.io.folder import CsvRow, CsvTable, FolderLayoutLog, ImageConvert, probe_image
+from mapkit.io.folder import MAX_STAMP_NS, CsvRow, CsvTable, FolderLayoutLog, ImageConvert, probe_images
 
 #: name, image folder, timestamps file, OpenCV conversion of its Bayer pattern (SDK image.py)
 CAMERAS: tuple[tuple[str, str, str, int], ...] = (
@@ -143,7 +143,15 @@ def _utm_zone(row: CsvRow) -> int:
 
 
 def _stamp_ns(row: CsvRow, column: str) -> int:
-    return row.integer(column) * 1000
+    return row.stamp_ns(column, 1000)
+
+
+def _microseconds(text: str) -> Optional[int]:
+    """A RobotCar stamp (ASCII digits, microseconds) as int64 ns; None when ``text`` is not one."""
+    if not (text.isascii() and text.isdigit()) or len(text) > 19:
+        return None
+    stamp = int(text) * 1000
+    return stamp if stamp <= MAX_STAMP_NS else None
 
 
 def _read_lidar(path: Path, layout: str) -> tuple[np.ndarray, Optional[np.ndarray]]:
@@ -221,27 +229,29 @@ class RobotCar(FolderLayoutLog):
         """(stamp ns, path) of each file: from the timestamps file if there is one, else the folder."""
 
         def listed() -> Iterator[tuple[int, Path]]:
-            with open(stamps_file) as f:
-                for lineno, line in enumerate(f, start=1):
-                    parts = line.split()
-                    if not parts:
-                        continue
-                    if len(parts) > 2 or not parts[0].isdigit():
-                        what = f"line {lineno} is not 'timestamp_us chunk': {line.strip()[:80]!r}"
-                        raise InputError(stamps_file, what, field=f"line {lineno}")
-                    path = folder / f"{parts[0]}{suffix}"
-                    if path.is_file():
-                        yield int(parts[0]) * 1000, path
-                    else:
-                        self._skip(topic, lineno - 1, f"listed in {stamps_file.name} but not on disk", str(path))
+            for lineno, raw in enumerate(stamps_file.read_bytes().splitlines(), start=1):
+                line = raw.decode("utf-8", "replace")
+                parts = line.split()
+                if not parts:
+                    continue
+                stamp = _microseconds(parts[0])
+                if len(parts) > 2 or stamp is None:
+                    what = f"line {lineno} is not 'timestamp_us chunk': {line.strip()[:80]!r}"
+                    raise InputError(stamps_file, what, field=f"line {lineno}")
+                path = folder / f"{parts[0]}{suffix}"
+                if path.is_file():
+                    yield stamp, path
+                else:
+                    self._skip(topic, lineno - 1, f"listed in {stamps_file.name} but not on disk", str(path))
 
         def on_disk() -> Iterator[tuple[int, Path]]:
             paths = [p for p in folder.iterdir() if p.suffix == suffix]
-            for p in paths:
-                if not p.stem.isdigit():
+            stamps = {p: _microseconds(p.stem) for p in paths}
+            for p, stamp in stamps.items():
+                if stamp is None:
                     raise InputError(p, f"file name is not a timestamp in microseconds ({folder.name}/<timestamp_us>{suffix})")
-            for p in sorted(paths, key=lambda p: int(p.stem)):
-                yield int(p.stem) * 1000, p
+            for p in sorted(paths, key=stamps.__getitem__):
+                yield stamps[p], p
 
         return listed if stamps_file.is_file() else on_disk
 
@@ -250,10 +260,10 @@ class RobotCar(FolderLayoutLog):
             return False
         topic = f"{prefix}/{name}/image"
         frames = self._stamped_files(topic, folder, stamps_file, ".png")
-        first = next((p for p in sorted(folder.iterdir()) if p.suffix == ".png"), None)
-        if first is None:
+        images = sorted(p for p in folder.iterdir() if p.suffix == ".png")
+        if not images:
             return False
-        self._add_camera(name, topic, frames, probe_image(first, convert), convert=convert)
+        self._add_camera(name, topic, frames, probe_images(images, convert), convert=convert)
         return True
 
     def _add_lidar(self, prefix: str, name: str, layout: str) -> None:

@@ -18,14 +18,18 @@ from mapkit.core.runio import atomic_write_text
 _NS_PER_S = Decimal(1_000_000_000)
 
 
+#: int64 nanoseconds span about 292 years either side of 1970
+_MAX_SECONDS = Decimal(2**63 - 1) / _NS_PER_S
+
+
 def seconds_to_ns(text: str) -> int:
     """Decimal seconds (``12.5``, ``1.036224e-01``) to integer nanoseconds, exactly (no float)."""
     try:
         value = Decimal(text.strip())
     except InvalidOperation:
         raise ValueError(f"{text!r} is not a number of seconds") from None
-    if not value.is_finite():
-        raise ValueError(f"{text!r} is not a finite number of seconds")
+    if not value.is_finite() or abs(value) >= _MAX_SECONDS:  # a huge exponent would overflow the context or build a huge integer
+        raise ValueError(f"{text.strip()[:40]!r} is not a finite number of seconds within +-{_MAX_SECONDS:.3g}")
     return int((value * _NS_PER_S).to_integral_value(rounding=ROUND_HALF_EVEN))
 
 

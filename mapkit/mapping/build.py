@@ -131,6 +131,7 @@ class SessionBuilder:
         self._mounts: dict[str, np.ndarray] = {}  # trajectory body frame -> base_from_camera
         self._enu_trajectory: Optional[Trajectory] = None
         self._fixes: Optional[tuple[list[str], list[GpsFix], Optional[GpsScreen]]] = None
+        self._undecodable = 0  # frames whose image did not decode, in the current pass over the log
 
     @property
     def log(self) -> DriveLog:
@@ -375,21 +376,40 @@ class SessionBuilder:
                                      field="tf") from exc
         return self._mounts[body_frame]
 
-    def posed_frames(self) -> Iterator[tuple[int, CameraFrame, np.ndarray]]:
+    def posed_frames(self, decode: bool = True) -> Iterator[tuple[int, CameraFrame, np.ndarray]]:
         """(frame index, CameraFrame, enu_from_camera) of the mapping camera on the chosen image
-        topics (``topics.images``), inside the trajectory."""
+        topics (``topics.images``), inside the trajectory; with ``decode``, decoded first. A frame
+        whose image cannot be decoded (a corrupt PNG or JPEG: the reader's ``InputError`` names the
+        file) is skipped with a warning: it costs that frame, not the build. Without ``decode`` the
+        caller decodes the frames it keeps through :meth:`decodes`."""
         name, image_topics, info = self._camera()
         traj = self.enu_trajectory()
         base_from_cam = self.base_from_camera(traj.body_frame)
         index = 0
+        self._undecodable = 0
         for msg in self.log.messages(topics=image_topics):
             frame = msg.record
             if frame.camera != name:
                 continue
             poses, ok = interpolate_poses(traj.stamps_ns, traj.world_from_base, np.array([frame.stamp_ns], np.int64))
-            if ok[0]:
+            if ok[0] and (not decode or self.decodes(frame, index)):
                 yield index, frame, poses[0] @ base_from_cam
             index += 1
+        if self._undecodable > 5:
+            warnings.warn(f"{self.log.path}: {self._undecodable} frames of {name} could not be decoded and were skipped "
+                          "(the first 5 are named above)", InputWarning, stacklevel=2)
+
+    def decodes(self, frame: CameraFrame, index: int) -> bool:
+        """Whether the frame's image decodes (it is then cached on the frame); a warning names the
+        first five that do not."""
+        try:
+            frame.image
+        except InputError as exc:
+            self._undecodable += 1
+            if self._undecodable <= 5:
+                warnings.warn(f"{exc}; frame {index} of {frame.camera} skipped", InputWarning, stacklevel=3)
+            return False
+        return True
 
     # --- stage 3 --------------------------------------------------------------------------------
     def semidense(self) -> Path:
@@ -433,8 +453,8 @@ class SessionBuilder:
         min_spacing = self.cfg.imagedb.min_spacing_m if metric else 0.0
         last = None
         db_id_of_frame: dict[int, int] = {}
-        for i, frame, T in self.posed_frames():
-            if last is not None and np.linalg.norm(T[:3, 3] - last) < min_spacing:
+        for i, frame, T in self.posed_frames(decode=False):  # only the frames kept are decoded
+            if last is not None and np.linalg.norm(T[:3, 3] - last) < min_spacing or not self.decodes(frame, i):
                 continue
             last = T[:3, 3]
             im = writer.add(frame.stamp_ns, name, frame.image, T, frame.encoding)
