@@ -18,6 +18,11 @@ The baseline of the comparison is the ``estimated`` row; the ratio printed is ea
 distance over it. Run on a built demo workspace (a few minutes per variant on one core)::
 
     python3 bench/map_error_budget.py --workspace runs/main/workspace --town runs/main/town --session test-clear
+
+``--semidense FILE.yaml`` sets semi-dense mapper fields over the workspace's build config, e.g. the
+outlier filters of issue 26 (``min_consistent_views: 1``) for a run on true poses only::
+
+    python3 bench/map_error_budget.py ... --variants truth --semidense filters.yaml
 """
 
 from __future__ import annotations
@@ -70,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--variants", nargs="+", default=None, choices=VARIANTS,
                     help="default: all, 'aligned' only when WORKSPACE/align holds the session")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--semidense", type=Path, default=None,
+                    help="YAML of SemiDenseConfig fields set over the workspace's build config (e.g. the outlier filters)")
     a = ap.parse_args(argv)
 
     import open3d as o3d
@@ -101,6 +108,10 @@ def main(argv: list[str] | None = None) -> int:
     variants = a.variants or [v for v in VARIANTS if v != "aligned" or (aligned_dir / "map").is_dir()]
     cfg_path = ws / "build_config.yaml"
     cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
+    if a.semidense is not None:
+        import yaml
+
+        cfg = cfg.model_copy(update={"semidense": cfg.semidense.model_copy(update=yaml.safe_load(a.semidense.read_text()) or {})})
     log = session_log(town, name)  # the workspace's metrics hold the path as the build was given it
 
     rows = []
@@ -131,17 +142,20 @@ def main(argv: list[str] | None = None) -> int:
             finally:
                 builder.close()
             pts = SemiDenseMap.load(out).points_world
-            r = map_accuracy(pts, mesh)
+            path_m = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+            r = map_accuracy(pts, mesh, road_length_m=path_m)
             err = np.linalg.norm(poses[:, :3, 3] - gt_i[:, :3, 3], axis=1)
             rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
                          "seconds": time.perf_counter() - t0})
             _print_row(rows[-1])
     base = next((r for r in rows if r["variant"] == "estimated"), None)
-    print(f"\n| {name}: poses | position RMSE m | map points | median to mesh m | within 0.5 m | ratio of median to estimated |")
-    print("|---|---|---|---|---|---|")
+    print(f"\n| {name}: poses | position RMSE m | map points | points per 100 m | median to mesh m | within 0.5 m "
+          "| ratio of median to estimated |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         ratio = f"{r['median_distance_m'] / base['median_distance_m']:.2f}" if base else ""
-        print(f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {r['median_distance_m']:.3f} | "
+        per100 = f"{r['points_per_100m']:.0f}" if r.get("points_per_100m") is not None else ""
+        print(f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {per100} | {r['median_distance_m']:.3f} | "
               f"{r['fraction_within_0.5m']:.3f} | {ratio} |")
     if a.json:
         a.json.write_text(json.dumps({"session": name, "rows": rows}, indent=2))

@@ -426,3 +426,126 @@ def test_blank_frames_give_an_empty_map_not_a_crash():
     sd = build_semidense_map(frames, K, SemiDenseConfig(), progress=False)
     assert len(sd) == 0 and len(sd.keyframe_ids) >= 5
     assert sd.obs_indptr.tolist() == [0]
+
+
+# --- outlier rejection (issue 26): one known answer per filter ---------------------------------------------
+
+def _plane_depth(world_from_cam: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Camera depth of the slanted wall z = 8 + 0.2 x (world) along the rays of pixels ``uv`` (N, 2)."""
+    rays = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_SYN).T @ world_from_cam[:3, :3].T  # camera z = 1
+    c = world_from_cam[:3, 3]
+    return (8.0 + 0.2 * c[0] - c[2]) / (rays[:, 2] - 0.2 * rays[:, 0])
+
+
+def test_multi_view_filter_removes_depths_injected_along_rays(rng):
+    """Six views of a known wall hold sparse depths (40 % of pixels, 5 % of them wrong); the keyframe's
+    true wall points survive the multi-view test and points moved along their rays do not."""
+    from mapkit.mapping.semidense import multi_view_filter
+
+    uv_all = np.stack(np.meshgrid(np.arange(W_IMG), np.arange(H_IMG)), -1).reshape(-1, 2).astype(np.float64)
+    views = []
+    for i in (-3, -2, -1, 1, 2, 3):  # a sideways drive past the wall, the keyframe in the middle
+        T = make_pose(np.eye(3), [0.25 * i, 0.05 * i, 0.1 * i])
+        depth = np.full((H_IMG, W_IMG), np.nan, np.float32)
+        pick = rng.random(len(uv_all)) < 0.4
+        z = _plane_depth(T, uv_all[pick])
+        wrong = rng.random(len(z)) < 0.05
+        z[wrong] *= rng.choice([0.6, 1.5], size=wrong.sum())
+        depth[uv_all[pick, 1].astype(int), uv_all[pick, 0].astype(int)] = z
+        views.append((T, depth))
+    kf = np.eye(4)
+    uv = uv_all[rng.choice(len(uv_all), 3000, replace=False)]
+    z = _plane_depth(kf, uv)
+    injected = rng.random(len(z)) < 0.2
+    z[injected] *= np.where(rng.random(injected.sum()) < 0.5, rng.uniform(0.6, 0.85, injected.sum()), rng.uniform(1.2, 1.6, injected.sum()))
+    X = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_SYN).T * z[:, None]
+    cfg = SemiDenseConfig(min_consistent_views=1)
+    keep = multi_view_filter(transform_points(kf, X), views, K_SYN, min_views=cfg.min_consistent_views,
+                             min_agree_over_conflict=cfg.min_agree_over_conflict, rel_tol=cfg.consistency_rel_tol,
+                             pixel_radius=cfg.consistency_pixel_radius)
+    assert np.mean(~keep[injected]) >= 0.9  # recall of the injected outliers
+    assert np.mean(keep[~injected]) >= 0.9  # the true points stay
+
+
+def test_multi_view_filter_in_the_mapper_keeps_the_room_accurate(room, room_map):
+    """Switched on in ``build_semidense_map``: what enters fusion is a subset of each keyframe's
+    depths, the map keeps most of the room but none of its stray points, and says what went."""
+    poses, images = room
+    sd_off, _ = room_map
+    raw, fused = {}, {}
+    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    cfg = ROOM_CFG.model_copy(update={"min_consistent_views": 1})
+    sd = build_semidense_map(iter(frames), K_SYN, cfg, progress=False, on_keyframe=lambda f, T, p: raw.__setitem__(f, p),
+                             on_fused=lambda f, T, p: fused.__setitem__(f, p))
+    assert sorted(fused) == sorted(raw)
+    for f in raw:
+        assert set(map(tuple, fused[f].pixels_uv)) <= set(map(tuple, raw[f].pixels_uv))
+    assert sd.rejected["multi_view"] == sum(len(raw[f]) - len(fused[f]) for f in raw) > 0
+    assert 0.6 * len(sd_off) < len(sd) < len(sd_off)
+    d, d_off = distance_to_box(sd.points_world), distance_to_box(sd_off.points_world)
+    assert (d_off > 0.3).sum() > 20 and (d > 0.3).sum() == 0  # the unfiltered map's stray points are gone
+    assert (d > 0.1).sum() < 0.3 * (d_off > 0.1).sum()
+
+
+def test_ratio_test_rejects_matches_on_repeated_texture(room):
+    """Stripes with a period of 8 px: with the margin test off, the full-range search matches them at
+    random periods; the second-best ratio rejects nearly all of them, and keeps unique texture."""
+    depth, baselines = 5.0, (0.0, 0.15, 0.25, 0.4)
+    poses_side = [make_pose(np.eye(3), [b, 0, 0]) for b in baselines]
+    rng = np.random.default_rng(3)
+    noise = cv2.GaussianBlur(rng.standard_normal((H_IMG, W_IMG + 40)).astype(np.float32), (0, 0), 1.5)
+    textured = np.clip(128 + 60 * noise / noise.std(), 0, 255).astype(np.uint8)
+    stripes = np.tile(((np.arange(W_IMG + 40) // 4) % 2 * 120 + 60).astype(np.uint8), (H_IMG, 1))
+    no_margin = ROOM_CFG.model_copy(update={"ambiguity_margin": 0.0})
+    ratio = no_margin.model_copy(update={"ambiguity_ratio": 0.9})
+
+    def run(wall, cfg):
+        views = [wall[:, int(round(F_PX * b / depth)) :][:, :W_IMG].copy() for b in baselines]
+        return map_keyframe(views[0], poses_side[0], list(zip(views[1:], poses_side[1:])), K_SYN, cfg)
+
+    loose, strict = run(stripes, no_margin), run(stripes, ratio)
+    assert loose.stats["with_estimate"] > 0.3 * loose.stats["candidates"]  # ambiguity gets through without a test
+    assert strict.stats["with_estimate"] < 0.05 * strict.stats["candidates"]
+    unique = run(textured, ratio)
+    assert len(unique) > 0.5 * unique.stats["candidates"]
+    assert np.all(np.abs(unique.depth - depth) < 0.02 * depth)
+
+
+def test_convergence_threshold_keeps_exactly_the_sharp_depths(room):
+    """max_sigma_inv_depth admits exactly the depths whose fused inverse-depth sigma is below it,
+    and those lie closer to the walls than the ones it holds back."""
+    poses, images = room
+    nbs = [(images[i], poses[i]) for i in (2, 3, 5, 6)]
+    every = map_keyframe(images[4], poses[4], nbs, K_SYN, ROOM_CFG)
+    thr = float(np.median(every.sigma_inv_depth))
+    sharp = map_keyframe(images[4], poses[4], nbs, K_SYN, ROOM_CFG.model_copy(update={"max_sigma_inv_depth": thr}))
+    below = every.sigma_inv_depth <= thr
+    assert set(map(tuple, sharp.pixels_uv)) == set(map(tuple, every.pixels_uv[below]))
+    err = distance_to_box(every.points_world(K_SYN, poses[4]))
+    assert np.median(err[below]) < np.median(err[~below])
+
+
+def test_statistical_pass_removes_isolated_points_and_keeps_observations(room_map, rng):
+    """open3d's statistical pass drops points scattered in the air off a dense wall; the map's
+    ``select`` keeps each surviving point's observers."""
+    from mapkit.mapping.semidense import statistical_inliers
+
+    wall = np.column_stack([rng.uniform(0, 5, 4000), rng.uniform(0, 3, 4000), np.full(4000, 8.0) + rng.normal(0, 0.01, 4000)])
+    air = rng.uniform([0, 0, 1], [5, 3, 7], size=(100, 3))
+    keep = statistical_inliers(np.vstack([wall, air]), 20, 2.0)
+    assert keep[:4000].mean() >= 0.95 and (~keep[4000:]).mean() >= 0.9
+    sd, _ = room_map
+    mask = np.arange(len(sd)) % 3 == 0
+    sub = sd.select(mask)
+    assert len(sub) == mask.sum() and sub.obs_indptr[-1] == len(sub.obs_frame_ids)
+    for j, i in enumerate(np.nonzero(mask)[0][:50]):
+        assert np.array_equal(sub.observations(j), sd.observations(i))
+
+
+def test_consistency_breaks_down_by_depth(room_map, room):
+    """Every pair falls in exactly one depth range and one keyframe-distance range."""
+    poses, _ = room
+    sd, per_kf = room_map
+    c = consistency(sd, [(fid, poses[fid], p) for fid, p in per_kf.items()])
+    assert sum(b["pairs"] for b in c["by_depth_m"]) == c["pairs"] == sum(b["pairs"] for b in c["by_keyframe_distance_m"])
+    assert all(b["p90_rel"] < 0.05 for b in c["by_depth_m"] if b["pairs"] > 100)  # the room: every depth range agrees

@@ -14,12 +14,16 @@ LSD-SLAM), reduced to pure geometry because the poses are already known:
    +-3 sigma of the estimate so far; the cost is 1 - ZNCC over DSO's 8-pixel pattern.
 4. **Consistency** (here, :func:`map_keyframe`): a depth is kept when at least
    ``min_agreeing_frames`` frames (the keyframe plus neighbours whose own match lies within 3
-   sigma) agree and its relative uncertainty is low; agreeing matches are fused by inverse
-   variance, as in LSD-SLAM's depth observation update.
-5. **Fusion** (:mod:`.semidense_fusion`): points of nearby keyframes closer than
-   ``fusion_radius_m`` are fused by greedy non-maximum suppression on the depth sigma; the
-   survivor inherits the observations of those it absorbed, so every map point lists every frame
-   that observed it (the references that the paper's place voting needs).
+   sigma) agree and its relative uncertainty is low (optionally also its inverse-depth sigma:
+   ``max_sigma_inv_depth``, the depth filter's convergence); agreeing matches are fused by
+   inverse variance, as in LSD-SLAM's depth observation update.
+5. **Fusion** (:mod:`.semidense_fusion`): optionally (``min_consistent_views``, issue 26) a
+   keyframe's depths first pass a multi-view test against the keyframes around it, which keeps
+   the streaks of wrong matches along viewing rays out of the map; points of nearby keyframes
+   closer than ``fusion_radius_m`` are fused by greedy non-maximum suppression on the depth
+   sigma; the survivor inherits the observations of those it absorbed, so every map point lists
+   every frame that observed it (the references that the paper's place voting needs); an
+   optional statistical outlier pass (``outlier_neighbours``) ends it.
 
 This module holds the configuration, the results (:class:`KeyframePoints`, :class:`SemiDenseMap`
 with its save/load), the per-keyframe driver :func:`map_keyframe`, the streaming
@@ -38,7 +42,7 @@ the world; ``K`` is the 3x3 pinhole matrix of the (undistorted) images; inverse 
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
 
@@ -52,7 +56,7 @@ from mapkit.core.geometry import invert_pose, rotation_angle_rad, transform_poin
 from mapkit.core.runio import atomic_path, atomic_write_ply, atomic_write_text, progress_bar
 from mapkit.mapping.semidense_candidates import PATTERN_DSO8, gradient_threshold, image_gradients, select_candidates
 from mapkit.mapping.semidense_epipolar import _candidate_searcher, _neighbour_geometry, _Pyramid
-from mapkit.mapping.semidense_fusion import _Fuser, greedy_nms
+from mapkit.mapping.semidense_fusion import _Fuser, _ViewWindow, consistent_views, greedy_nms, multi_view_filter, statistical_inliers
 
 __all__ = [
     "KeyframePoints",
@@ -61,11 +65,14 @@ __all__ = [
     "SemiDenseMap",
     "build_semidense_map",
     "consistency",
+    "consistent_views",
     "gradient_threshold",
     "greedy_nms",
     "image_gradients",
     "map_keyframe",
+    "multi_view_filter",
     "select_candidates",
+    "statistical_inliers",
 ]
 
 
@@ -89,6 +96,7 @@ class SemiDenseConfig(MapkitConfig):
     min_epipolar_length_px: float = Field(2.0, ge=0, description="Skip a full-range search whose epipolar segment (whole depth range, inside the image) is shorter than this: no parallax (LSD-SLAM: MIN_EPL_LENGTH_SQUARED = 1^2 px; 2 px because the pattern itself spans 4).")
     min_gradient_epipolar_cos: float = Field(0.3, ge=0, le=1, description="Skip a neighbour when |cos| of the angle between the image gradient and the epipolar line is below this: the line runs along the edge (LSD-SLAM MIN_EPL_ANGLE_SQUARED = 0.3^2).")
     max_cost: float = Field(0.3, gt=0, le=2, description="Largest accepted 1 - ZNCC over the 8-pixel pattern (ZNCC >= 0.7).")
+    ambiguity_ratio: Optional[float] = Field(None, gt=0, le=1, description="Second-best ratio test of a full-range search (as Lowe's ratio and LSD-SLAM's second-best check): ambiguous (rejected) when another local minimum, more than 2 level-pixels away, scores at least this fraction of the best's ZNCC. None = off (only ambiguity_margin).")
     ambiguity_margin: float = Field(0.1, ge=0, description="A full-range search is ambiguous (rejected) when another local minimum, more than 2 level-pixels away, costs less than best + this (in 1 - ZNCC). LSD-SLAM asks the second-best SSD to be 1.5x the best; a ratio is meaningless for ZNCC costs near 0, hence a margin.")
     image_noise_sigma: float = Field(4.0, gt=0, description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: cameraPixelNoise2 = 4^2).")
     min_sigma_px: float = Field(0.25, gt=0, description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block matching (parabola bias, 'pixel locking').")
@@ -97,6 +105,7 @@ class SemiDenseConfig(MapkitConfig):
     agree_sigmas: float = Field(3.0, gt=0, description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% of a Gaussian).")
     max_rel_sigma: float = Field(0.02, gt=0, description="Largest accepted sigma(depth)/depth (= sigma(rho)/rho) of a fused point.")
     max_sigma_depth_m: float = Field(0.3, gt=0, description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a median of 0.15 m.")
+    max_sigma_inv_depth: Optional[float] = Field(None, gt=0, description="Depth-filter convergence: largest accepted sigma of inverse depth (1/m) after fusing a candidate's observations, before it enters the map (LSD-SLAM keeps a pixel's hypothesis out of use until its inverse-depth variance has shrunk; SVO's depth filter calls a seed converged below a fixed sigma). None = off.")
     # --- keyframes and neighbours ---
     keyframe_spacing_m: float = Field(1.0, gt=0, description="A frame becomes a keyframe after this much motion since the last keyframe (m).")
     keyframe_rotation_deg: float = Field(10.0, gt=0, description="... or after this much rotation since the last keyframe (deg).")
@@ -106,6 +115,14 @@ class SemiDenseConfig(MapkitConfig):
     # --- fusion ---
     fusion_radius_m: float = Field(0.05, gt=0, description="No two map points closer than this (m): the better-measured point absorbs the other's observations. Below the 0.15 m accuracy goal.")
     fusion_window_keyframes: int = Field(10, ge=1, description="A point stays open for fusion until this many keyframes pass without it absorbing a new observation.")
+    # --- outlier rejection at fusion ---
+    min_consistent_views: int = Field(0, ge=0, description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes have their own depth within consistency_rel_tol at its reprojection. 0 = off (the default until it meets issue 26's targets on the whole KITTI clip; 1 with the defaults below is the setting chosen on the clip's first half).")
+    consistency_rel_tol: float = Field(0.06, gt=0, description="Relative depth tolerance |z - z_other| / z_other of the multi-view consistency test (COLMAP: filter_max_depth_diff = 0.01 on dense depth maps; 0.06 chosen on the first half of the KITTI clip, where 0.01-0.06 were tried).")
+    consistency_pixel_radius: float = Field(1.5, gt=0, description="A reprojected depth is compared with the other keyframe's depths within this radius (px): semi-dense candidates are one per cell, so the same edge may sit a pixel off.")
+    min_agree_over_conflict: float = Field(2.0, ge=0, description="... and only where the agreeing views number at least this times the views whose depths there contradict it (stability-based fusion, Merrell et al. ICCV 2007: support against free-space violations and occlusions; 2 chosen on the first half of the KITTI clip among 0, 1, 1.5, 2). 0 = agreement alone decides.")
+    consistency_window_keyframes: int = Field(12, ge=1, description="Keyframes before and after a keyframe that vote on its depths; a keyframe enters fusion this many keyframes late (memory: 2n+1 sparse depth images).")
+    outlier_neighbours: int = Field(0, ge=0, description="Final statistical outlier pass over the fused map (open3d remove_statistical_outlier): neighbours whose mean distance is compared. 0 = off.")
+    outlier_std_ratio: float = Field(2.0, gt=0, description="... a point goes when its mean neighbour distance exceeds the map's mean by this many standard deviations (the PCL/open3d tutorial value).")
 
     @model_validator(mode="after")
     def _check(self) -> "SemiDenseConfig":
@@ -150,11 +167,16 @@ class KeyframePoints:
     def points_world(self, K: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray:
         return transform_points(world_from_cam, self.points_cam(K))
 
-    def depth_image(self, shape: tuple[int, int]) -> np.ndarray:
-        """(H, W) float64 depth (m) at the accepted pixels, NaN elsewhere."""
-        img = np.full(shape, np.nan)
+    def depth_image(self, shape: tuple[int, int], dtype=np.float64) -> np.ndarray:
+        """(H, W) depth (m) at the accepted pixels, NaN elsewhere."""
+        img = np.full(shape, np.nan, dtype)
         img[self.pixels_uv[:, 1], self.pixels_uv[:, 0]] = self.depth
         return img
+
+    def select(self, keep: np.ndarray) -> "KeyframePoints":
+        """The points where ``keep`` (N,) is true."""
+        return KeyframePoints(self.pixels_uv[keep], self.inv_depth[keep], self.sigma_inv_depth[keep], self.intensity[keep],
+                              self.neighbour_ids, self.agreed[keep], self.frame_id, dict(self.stats))
 
 
 @dataclass
@@ -177,9 +199,22 @@ class SemiDenseMap:
     #: frame's pose can be interpolated between keyframes over time (absent in maps saved before)
     frame_ids: Optional[np.ndarray] = None
     frame_stamps_ns: Optional[np.ndarray] = None
+    #: points each outlier filter of the fusion removed, by name (not saved: the build's metrics hold it)
+    rejected: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(len(self.points_world))
+
+    def select(self, keep: np.ndarray) -> "SemiDenseMap":
+        """The map restricted to the points where ``keep`` (N,) is true, with their observations."""
+        keep = np.asarray(keep, bool)
+        c = self.obs_counts
+        sel_obs = np.repeat(keep, c)
+        return replace(
+            self, points_world=self.points_world[keep], intensity=self.intensity[keep], sigma_depth=self.sigma_depth[keep],
+            source_keyframe=self.source_keyframe[keep], obs_indptr=np.r_[0, np.cumsum(c[keep])].astype(np.int64),
+            obs_frame_ids=self.obs_frame_ids[sel_obs], rejected=dict(self.rejected),
+        )
 
     def observations(self, i: int) -> np.ndarray:
         """Frame ids that observed point ``i``."""
@@ -204,6 +239,7 @@ class SemiDenseMap:
             "observations": int(c.sum()),
             "obs_per_point_median": float(np.median(c)) if len(c) else None,
             "sigma_depth_median_m": float(np.median(self.sigma_depth)) if len(c) else None,
+            **({"rejected": dict(self.rejected)} if self.rejected else {}),
         }
 
     def save(self, folder: str | Path, frame=None) -> Path:
@@ -268,6 +304,7 @@ def _accepted(rho: np.ndarray, sigma: np.ndarray, agreed: np.ndarray, cfg: SemiD
             & (rho >= rho_min) & (rho <= rho_max)
             & (sigma <= cfg.max_rel_sigma * rho)
             & (sigma <= cfg.max_sigma_depth_m * rho**2)
+            & (sigma <= (np.inf if cfg.max_sigma_inv_depth is None else cfg.max_sigma_inv_depth))
         )
 
 
@@ -395,6 +432,16 @@ class _KeyframeTask:
     neighbour_pyramids: Optional[list[_Pyramid]] = None
 
 
+@dataclass
+class _Checked:
+    """A mapped keyframe waiting for the keyframes that vote on its depths (and voting on theirs)."""
+
+    frame_id: int
+    world_from_cam: np.ndarray
+    points: KeyframePoints
+    depth: Optional[np.ndarray]  # (H, W) float32 own depths, NaN elsewhere; None when nobody votes
+
+
 def _map_keyframe_task(shared: tuple[np.ndarray, SemiDenseConfig], t: _KeyframeTask) -> tuple[int, int, np.ndarray, KeyframePoints]:
     K, cfg = shared
     pts = map_keyframe(t.image, t.world_from_cam, t.neighbours, K, cfg, frame_id=t.frame_id, neighbour_ids=t.neighbour_ids,
@@ -432,13 +479,16 @@ def build_semidense_map(
     progress: bool = True,
     on_keyframe: Optional[Callable[[int, np.ndarray, KeyframePoints], None]] = None,
     executor: Optional[Executor] = None,
+    on_fused: Optional[Callable[[int, np.ndarray, KeyframePoints], None]] = None,
 ) -> SemiDenseMap:
     """Semi-dense map of a drive from ``(frame_id, stamp_ns, gray (H, W), world_from_cam 4x4)``.
 
     Frames stream through a window of ``2 * neighbour_window_frames + 1`` images: a keyframe
     (chosen by motion) is mapped once the frames after it have arrived, against the frames up to
     ``neighbour_window_frames`` before and after it. ``on_keyframe(frame_id, world_from_cam,
-    points)`` is called with each keyframe's own accepted depths (e.g. for ``consistency``).
+    points)`` is called with each keyframe's own accepted depths (e.g. for ``consistency``), and
+    ``on_fused`` (same arguments) with those of them that passed the multi-view consistency test
+    and entered fusion (all of them when the test is off), a keyframe's filtered depth map.
 
     Keyframes are mapped on ``executor`` (default: :func:`mapkit.core.executor.get_executor`), a few
     per worker at a time, and fused here in keyframe order, so the map is the same bit for bit on
@@ -494,6 +544,26 @@ def build_semidense_map(
             if window[k].is_keyframe:
                 yield task(window, k)
 
+    # multi-view consistency: a keyframe enters fusion once the keyframes after it that vote have arrived
+    check_views = cfg.min_consistent_views > 0
+    voting: _ViewWindow[_Checked] = _ViewWindow(cfg.consistency_window_keyframes if check_views else 0)
+    rejected = {"multi_view": 0} if check_views else {}
+
+    def fuse(item: _Checked, others: list[_Checked]) -> None:
+        pts, world_from_cam = item.points, item.world_from_cam
+        xyz = pts.points_world(K, world_from_cam)
+        if check_views:
+            keep = multi_view_filter(xyz, [(o.world_from_cam, o.depth) for o in others], K, min_views=cfg.min_consistent_views,
+                                     min_agree_over_conflict=cfg.min_agree_over_conflict, rel_tol=cfg.consistency_rel_tol,
+                                     pixel_radius=cfg.consistency_pixel_radius)
+            rejected["multi_view"] += int((~keep).sum())
+            pts, xyz = pts.select(keep), xyz[keep]
+        if on_fused is not None:
+            on_fused(item.frame_id, world_from_cam, pts)
+        obs_pt = np.concatenate([np.arange(len(pts)), np.nonzero(pts.agreed)[0]])
+        obs_fid = np.concatenate([np.full(len(pts), item.frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]])
+        fuser.add(xyz, pts.sigma_depth, pts.intensity, item.frame_id, obs_pt, obs_fid)
+
     results = executor.map(_map_keyframe_task, keyframe_tasks(), shared=(K, cfg), desc="semi-dense keyframes",
                            label=lambda t: f"keyframe {t.frame_id}")
     try:
@@ -503,18 +573,20 @@ def build_semidense_map(
             kf_ids.append(frame_id)
             kf_stamps.append(stamp_ns)
             kf_poses.append(world_from_cam)
-            obs_pt = np.concatenate([np.arange(len(pts)), np.nonzero(pts.agreed)[0]])
-            obs_fid = np.concatenate([np.full(len(pts), frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]])
-            fuser.add(pts.points_world(K, world_from_cam), pts.sigma_depth, pts.intensity, frame_id, obs_pt, obs_fid)
+            depth = pts.depth_image(image_shape, np.float32) if check_views else None
+            for item, others in voting.push(_Checked(frame_id, world_from_cam, pts, depth)):
+                fuse(item, others)
             if progress:
                 bar.set_postfix(keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done))
+        for item, others in voting.flush():
+            fuse(item, others)
     finally:
         results.close()
         bar.close()
 
     out = fuser.finish()
     h, w = image_shape if image_shape is not None else (0, 0)
-    return SemiDenseMap(
+    sd_map = SemiDenseMap(
         points_world=out["xyz"].astype(np.float64),
         intensity=out["intensity"].astype(np.uint8),
         sigma_depth=out["sigma"].astype(np.float32),
@@ -529,7 +601,13 @@ def build_semidense_map(
         config=cfg,
         frame_ids=np.asarray(all_ids, np.int64),
         frame_stamps_ns=np.asarray(all_stamps, np.int64),
+        rejected=rejected,
     )
+    if cfg.outlier_neighbours > 0:
+        keep = statistical_inliers(sd_map.points_world, cfg.outlier_neighbours, cfg.outlier_std_ratio)
+        sd_map = sd_map.select(keep)
+        sd_map.rejected["statistical"] = int((~keep).sum())
+    return sd_map
 
 
 # --- cross-frame consistency -------------------------------------------------------------------------------
@@ -540,6 +618,7 @@ def consistency(
     *,
     max_pixel_distance: float = 1.0,
     baseline_bins_m: Sequence[float] = (0.0, 2.0, 5.0, 10.0, np.inf),
+    depth_bins_m: Sequence[float] = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf),
 ) -> dict:
     """How well map points agree with the depths other keyframes estimated on their own.
 
@@ -550,7 +629,8 @@ def consistency(
     is the headline figure. Occlusion (the map point hidden behind what the keyframe sees) and
     chance hits on unrelated structure make the tail, and both grow with the distance between
     the two keyframes, hence the breakdown by that distance and by sign ("map nearer" than the
-    keyframe's own depth violates free space; "map farther" is mostly occlusion).
+    keyframe's own depth violates free space; "map farther" is mostly occlusion), and by the
+    keyframe's own depth (``by_depth_m``: far depths are measured with less parallax).
     """
     K = sd_map.K
     w, h = sd_map.image_size_wh
@@ -558,6 +638,7 @@ def consistency(
     src_centre = np.array([kf_centre.get(int(s), np.full(3, np.nan)) for s in sd_map.source_keyframe]).reshape(-1, 3)
     signed: list[np.ndarray] = []
     baseline: list[np.ndarray] = []
+    own_depth: list[np.ndarray] = []
     projected = 0
     frames_used = 0
     offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
@@ -589,9 +670,11 @@ def consistency(
         if m.any():
             signed.append((z[m] - best_z[m]) / best_z[m])
             baseline.append(np.linalg.norm(src_centre[sel[m]] - world_from_cam[:3, 3], axis=1))
+            own_depth.append(best_z[m])
             frames_used += 1
     r = np.concatenate(signed) if signed else np.zeros(0)
     b = np.concatenate(baseline) if baseline else np.zeros(0)
+    zo = np.concatenate(own_depth) if own_depth else np.zeros(0)
     out: dict[str, Any] = {"pairs": int(len(r)), "frames": frames_used, "projected": int(projected)}
     if len(r) == 0:
         return {**out, "median_rel": None}
@@ -604,12 +687,23 @@ def consistency(
         frac_below_5pct=float(np.mean(a < 0.05)),
         frac_map_nearer_5pct=float(np.mean(r < -0.05)),
         frac_map_farther_5pct=float(np.mean(r > 0.05)),
-        by_keyframe_distance_m=[
-            {"from_m": float(lo), "to_m": float(hi) if np.isfinite(hi) else None, "pairs": int(sel.sum()),
-             "median_rel": float(np.median(a[sel])) if sel.any() else None,
-             "frac_below_5pct": float(np.mean(a[sel] < 0.05)) if sel.any() else None}
-            for lo, hi in zip(baseline_bins_m[:-1], baseline_bins_m[1:])
-            for sel in [(b >= lo) & (b < hi)]
-        ],
+        by_keyframe_distance_m=_binned(r, b, baseline_bins_m),
+        by_depth_m=_binned(r, zo, depth_bins_m),
     )
+    return out
+
+
+def _binned(signed_rel: np.ndarray, key: np.ndarray, bins: Sequence[float]) -> list[dict]:
+    """Disagreement figures of the pairs whose ``key`` lies in each ``[from, to)`` of ``bins``."""
+    out = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        sel = (key >= lo) & (key < hi)
+        a, r = np.abs(signed_rel[sel]), signed_rel[sel]
+        some = bool(sel.any())
+        out.append({
+            "from_m": float(lo), "to_m": float(hi) if np.isfinite(hi) else None, "pairs": int(sel.sum()),
+            "median_rel": float(np.median(a)) if some else None, "p90_rel": float(np.percentile(a, 90)) if some else None,
+            "frac_below_5pct": float(np.mean(a < 0.05)) if some else None,
+            "frac_map_farther_5pct": float(np.mean(r > 0.05)) if some else None,
+        })
     return out

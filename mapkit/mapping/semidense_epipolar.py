@@ -15,8 +15,9 @@ Steps 2 and 3 of the semi-dense mapper (:mod:`mapkit.mapping.semidense`):
    curve gives the minimum and the curvature; the pixel error along the line is the curvature
    term for ``image_noise_sigma`` added in quadrature to a quarter-pixel floor, and is mapped to
    inverse depth by the line's pixels per unit inverse depth. Ambiguous searches (a second local
-   minimum almost as good) and short lines (small parallax) are rejected here; lines along the
-   gradient's edge are skipped by ``map_keyframe`` before searching.
+   minimum within ``ambiguity_margin`` of the best cost, or, with ``ambiguity_ratio``, scoring that
+   fraction of the best ZNCC: the second-best ratio test) and short lines (small parallax) are
+   rejected here; lines along the gradient's edge are skipped by ``map_keyframe`` before searching.
 
 Here live the pyramid atlas (:class:`_Pyramid`), the geometry of a neighbour
 (:func:`_neighbour_geometry`), the vectorised searcher (:class:`_Searcher`) and its setup for a
@@ -51,6 +52,7 @@ class SearchParams(CandidateParams, Protocol):
     min_epipolar_length_px: float
     max_cost: float
     ambiguity_margin: float
+    ambiguity_ratio: float | None
     image_noise_sigma: float
     min_sigma_px: float
 
@@ -198,6 +200,8 @@ class _Searcher:
             far = np.abs(s_samples - s_samples[rows, best][:, None]) > 2.0 * (2.0 ** level)[:, None]
             second = np.where(interior & far, cost, _BAD_COST).min(axis=1)
             valid &= second >= best_cost + cfg.ambiguity_margin
+            if cfg.ambiguity_ratio is not None:  # ZNCC = 1 - cost; no second minimum scores -3
+                valid &= (1.0 - second) < cfg.ambiguity_ratio * (1.0 - best_cost)
 
         centre, h, (c_minus, c_zero, c_plus), valid = self._refine(
             idx, a, b, nb, target, P0, direction, L, valid, level, step, s_samples[rows, best],
