@@ -1,8 +1,8 @@
 """`mapkit build` on a cut of the real KITTI clip: outputs, formats, and resuming after a crash."""
 
 import json
-import warnings
 import shutil
+import warnings
 
 import numpy as np
 import open3d as o3d

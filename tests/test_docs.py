@@ -13,11 +13,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import REPO, SHARED_DATA
 
 import mapkit
 from mapkit.core.errors import InputWarning
 from mapkit.core.workspace import Workspace
-from conftest import REPO, SHARED_DATA
 
 DOCS = REPO / "docs"
 

@@ -12,8 +12,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import invert_pose, make_pose
-from mapkit.mapping.factor_graph import (FactorGraphConfig, GpsObservations, GravityObservations, fuse_session, gravity_from_imu,
-                                         select_keyframes)
+from mapkit.mapping.factor_graph import (
+    FactorGraphConfig,
+    GpsObservations,
+    GravityObservations,
+    fuse_session,
+    gravity_from_imu,
+    select_keyframes,
+)
 
 pytest.importorskip("gtsam")
 

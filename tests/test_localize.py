@@ -8,9 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_index_vlad import PLACES, make_workspace, place_pose, small_config
-
 from scipy.spatial.transform import Rotation
+from test_index_vlad import PLACES, make_workspace, place_pose, small_config
 
 from mapkit.core.config import load_config
 from mapkit.core.errors import ConfigError

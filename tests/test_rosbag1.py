@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.rosbag1 import Writer as Rosbag1Writer
-from rosbags.rosbag2 import StoragePlugin, Writer as Rosbag2SqliteWriter
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Rosbag2SqliteWriter
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from mapkit.cli import main

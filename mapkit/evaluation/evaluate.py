@@ -51,7 +51,6 @@ from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.multisession.align import PairResult, _support_points
 
-
 Alignment = Literal["auto", "se3", "sim3", "none"]
 
 

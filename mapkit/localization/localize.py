@@ -44,7 +44,6 @@ from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclCon
 from mapkit.retrieval.index_vlad import VladIndex
 from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
-
 Row4 = tuple[float, float, float, float]
 
 #: the default ``base_from_camera``: a camera looking straight ahead at the base's origin
