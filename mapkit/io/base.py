@@ -16,7 +16,7 @@ import zlib
 from abc import ABC, abstractmethod
 from collections import Counter
 from pathlib import Path
-from typing import Iterable, Iterator, Optional
+from typing import Callable, Iterable, Iterator, Optional
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.types import CameraInfo, FrameTransform, Message, StreamInfo, StreamKind
@@ -159,6 +159,17 @@ class DriveLog(ABC):
                     raise InputError(self.path, f"no topic {t!r} in this log (topics: {sorted(known)})", field="topic")
                 wanted.add(t)
         return wanted
+
+    def _records_or_skip(self, topic: str, index: int, decode: Callable[[], list]) -> list:
+        """The records ``decode()`` makes of one message; a payload that cannot be decoded is skipped
+        with a warning and gives none (one corrupt message must not end the stream)."""
+        try:
+            return decode()
+        except InputError as exc:
+            self._skip(topic, index, "could not be decoded", exc.what)
+        except Exception as exc:  # noqa: BLE001 - whatever a decoder raises on a corrupt payload
+            self._skip(topic, index, "could not be decoded", f"{type(exc).__name__}: {exc}")
+        return []
 
     def _skip(self, topic: str, index: int, reason: str, detail: str = "") -> None:
         self.skipped[(topic, reason)] += 1

@@ -656,18 +656,13 @@ class McapLog(DriveLog):
             if kind == StreamKind.OTHER or schema is None:
                 continue
             msgtype = ros2.short_type(schema.name)
-            try:
+            def decode() -> list:
                 decoder = part.decoders.decoder_for(channel.message_encoding, schema)
                 if decoder is None:
                     raise ValueError(f"no decoder for encoding {channel.message_encoding!r}")
-                decoded = decoder(message.data)
-                records = ros2.records_from_msg(decoded, msgtype, topic, i)
-            except InputError as exc:
-                self._skip(topic, i, "could not be decoded", exc.what)
-                continue
-            except Exception as exc:  # noqa: BLE001 - a corrupt payload must not end the stream
-                self._skip(topic, i, "could not be decoded", f"{type(exc).__name__}: {exc}")
-                continue
+                return ros2.records_from_msg(decoder(message.data), msgtype, topic, i)
+
+            records = self._records_or_skip(topic, i, decode)
             for rec in records:
                 yield Message(topic, kind, i, rec)
 

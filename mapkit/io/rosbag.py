@@ -171,13 +171,7 @@ class RosbagLog(DriveLog):
             topic = conn.topic
             i = index[topic]
             index[topic] += 1
-            try:
-                records = ros2.records_from_msg(self._reader.deserialize(raw, conn.msgtype), msgtype, topic, i)
-            except InputError as exc:
-                self._skip(topic, i, "could not be decoded", exc.what)
-                continue
-            except Exception as exc:  # noqa: BLE001 - one corrupt payload must not end the stream
-                self._skip(topic, i, "could not be decoded", f"{type(exc).__name__}: {exc}")
-                continue
+            records = self._records_or_skip(
+                topic, i, lambda: ros2.records_from_msg(self._reader.deserialize(raw, conn.msgtype), msgtype, topic, i))
             for rec in records:
                 yield Message(topic, kinds[topic], i, rec)
