@@ -44,8 +44,12 @@ def test_tiny_main_job_runs_every_stage_with_non_empty_outputs(tiny_demo):
         counts = json.loads((ws / "indexes" / f"structure-{kind}" / "manifest.json").read_text())["counts"]
         assert counts["entries"] > 0 and counts["frames"] > 0, (kind, counts)
     # localization and place recognition tables with rows
-    for run in m["localize"].values():
+    for name, run in m["localize"].items():
         assert run and all(s["queries"] > 0 for s in run.values()), run
+        for session in run:  # the estimates, as TUM files evo and mapkit view read
+            assert (ws / "localize" / name / session / "poses_tum.txt").stat().st_size > 0
+    # the recording of the workspace, within its budget, and its top view in the report
+    assert (ws / "view.rrd").stat().st_size > 100_000 and 0 < m["view"]["points"] <= 1_000_000
     assert m["places"] and all(len(v) >= 3 for v in m["places"].values()), m["places"]
     assert "| " in (ws / "eval" / "places" / "places.md").read_text()
     assert {"vlad", "structure-nbld", "structure-m2dp"} <= set(m["bundles"]["indexes"])
@@ -65,6 +69,7 @@ def test_report_is_one_self_contained_page_with_every_stage(tiny_demo):
     assert page.count("data:image/png;base64,") >= 3  # town map, contact sheet, trajectories...
     assert not re.search(r"(src|href)=\"https?:", page)  # nothing fetched from a network
     assert "Whole run" in page and "eval_build" not in page.split("<body>")[0]
+    assert "Documentation: " in page and "rerun " in page  # where to read on, and how to open the recording
 
 
 def test_exported_bundle_loads_and_finds_a_database_image(tiny_demo):

@@ -24,6 +24,7 @@ Timings of every stage go into ``timings.md``, ``metrics.json`` and the report.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import os
@@ -50,6 +51,7 @@ from mapkit.multisession.align import align_workspace
 from mapkit.places.index_structure import build_structure_index
 from mapkit.places.triplets import export_triplets
 from mapkit.report.html import Section, write_report
+from mapkit.report.view import render_top_view, write_recording
 from mapkit.retrieval.index_vlad import build_vlad_index
 from mapkit.synth import session_logs, synthesize
 
@@ -337,6 +339,24 @@ def _export(d: Demo) -> None:
         d.metrics["bundles"] = {"path": str(out), "indexes": sorted(b.indexes)}
 
 
+def _view(d: Demo) -> None:
+    with d.stage("view", "Fly through it (mapkit view)") as sec:
+        d.need("build")
+        if importlib.util.find_spec("rerun") is None:
+            raise _Skip("the viewer extra (rerun-sdk) is not installed")
+        s = write_recording(d.ws, budget_points=VIEW_BUDGET_POINTS, progress=d.progress)
+        png = render_top_view(s.path, d.out / "view_top.png")
+        sec.md(f"`{s.path}` ({s.bytes / 1e6:.1f} MB, {s.seconds:.0f} s): open it with `rerun {s.path}` (the viewer extra). "
+               f"{s.points:,} of {sum(s.map_points_total.values()):,} map points in {len(s.map_points)} maps, "
+               f"{sum(s.images.values())} thumbnails at their poses, {sum(s.gps_fixes.values())} GPS fixes, the localizer's "
+               "estimates over time. Its top view, drawn from the recording:")
+        sec.picture(png, "the recording from above", 900)
+        d.metrics["view"] = {"path": str(s.path), "bytes": s.bytes, "seconds": round(s.seconds, 1), "points": s.points}
+
+
+#: map points in the demo's recording (mapkit view's default budget is 2 M)
+VIEW_BUDGET_POINTS = 1_000_000
+
 #: the demo's training budget: the run measured for issue #9 (about 15 min on 2 cores); the paper's
 #: full schedule (20,000 triplets, several hard-negative cycles) is `mapkit train` with its defaults
 CNN_DEMO_BUDGET = {"triplet_set": 2000, "epochs": 5}
@@ -354,7 +374,7 @@ def _train_cnn(d: Demo) -> None:
         d.metrics["train_cnn"] = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
 
 
-STAGES = (_synth, _build, _align, _triplets, _train_cnn, _index_vlad, _index_structure, _localize, _places, _export)
+STAGES = (_synth, _build, _align, _triplets, _train_cnn, _index_vlad, _index_structure, _localize, _places, _export, _view)
 
 
 def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Optional[int] = None, workers: int = 2,
@@ -380,6 +400,16 @@ def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Option
     return _finish(d, time.perf_counter() - t0)
 
 
+def _docs_line(d: Demo) -> str:
+    """Where to read on: the documentation (the checkout's docs/, when mapkit runs from one) and the recording."""
+    docs = Path(__file__).resolve().parents[2] / "docs" / "index.md"
+    parts = [f"Documentation: `{docs}` (a site with `mkdocs build --strict`)" if docs.is_file() else
+             "Documentation: the docs/ folder of mapkit's source"]
+    if d.ok("view"):
+        parts.append(f"3D: `rerun {d.ws.recording}`")
+    return "; ".join(parts) + "."
+
+
 def _finish(d: Demo, seconds: float) -> dict:
     d.metrics["seconds_total"] = round(seconds, 1)
     d.metrics["report"] = str(d.out / "report.html")
@@ -389,7 +419,7 @@ def _finish(d: Demo, seconds: float) -> dict:
     ex = d.metrics.get("executor", {})
     intro = (f"mapkit {__version__}, synthetic town preset `{d.preset}`, executor {ex.get('kind', 'local')} with "
              f"{ex.get('workers', d.workers)} worker(s). "
-             f"Whole run: **{seconds / 60:.1f} min** wall time.\n\n" + "\n".join(rows))
+             f"Whole run: **{seconds / 60:.1f} min** wall time. {_docs_line(d)}\n\n" + "\n".join(rows))
     write_report(d.out / "report.html", f"mapkit demo: {d.preset} town", intro, d.sections)
     atomic_write_text(d.out / "timings.md", "\n".join(rows) + "\n")
     write_json(d.out / "metrics.json", d.metrics)

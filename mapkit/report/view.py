@@ -315,12 +315,11 @@ def _gps_fixes(ws: Workspace, name: str) -> Optional[tuple[np.ndarray, np.ndarra
 
 
 def _localize_runs(folder: Path) -> Iterator[Path]:
-    """``folder`` and its sub-folders that hold a ``mapkit localize`` run (``poses_tum.txt``)."""
+    """``folder`` and the folders below it that hold a localizer's estimates (``poses_tum.txt``): a
+    ``mapkit localize`` run, or one test session of a ``mapkit eval localize`` run (``RUN/SESSION``)."""
     if not folder.is_dir():
         return
-    for f in [folder, *sorted(p for p in folder.iterdir() if p.is_dir())]:
-        if (f / "poses_tum.txt").is_file():
-            yield f
+    yield from sorted(p.parent for p in folder.rglob("poses_tum.txt"))
 
 
 def write_recording(workspace: str | Path | Workspace, out: str | Path | None = None, budget_points: int = 2_000_000,
@@ -379,7 +378,7 @@ def write_recording(workspace: str | Path | Workspace, out: str | Path | None = 
                     w.map(m, q, rng)
             bar.update(1)
         for run in runs:
-            w.localize_run(run, f"world/localize/{run.name}")
+            w.localize_run(run, f"world/localize/{run.relative_to(loc_folder).as_posix() if run != loc_folder else run.name}")
             bar.update(1)
         for h in hits:
             w.retrieved(h, "world/localize/hits")
@@ -430,8 +429,8 @@ def _missing_notes(frame: Optional["LocalFrame"], gps: bool, runs: list[Path], h
         notes.append("the workspace is not georeferenced (no origin.json): no GPS fixes")
     notes.append("particle clouds: no localizer run saves its particles; not drawn")
     if hits and not runs:
-        notes.append("mapkit eval localize saves no estimated trajectory (only its errors and PNGs): only the retrieved database "
-                     "poses of its cached hits are drawn")
+        notes.append("no localizer estimates (poses_tum.txt) were found: only the retrieved database poses of the cached hits "
+                     "are drawn (mapkit eval localize writes the estimates per test session since they are saved)")
     return notes
 
 
