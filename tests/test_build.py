@@ -120,8 +120,10 @@ def test_build_cli_errors_are_one_line(tmp_path, capsys):
     assert "imagedb.min_spacing" in err and "Traceback" not in err
 
 
-def test_missing_intrinsics_is_one_clear_error_and_keeps_finished_stages(tmp_path, rng, capsys):
-    """A generic folder with poses but no intrinsics: the trajectory is built, the map refuses."""
+def test_missing_intrinsics_is_one_clear_error_before_any_stage_runs(tmp_path, rng, capsys):
+    """A generic folder with poses but no intrinsics: refused before the trajectory is built (issue 23:
+    it was reported only after trajectory and georeferencing ran); with map and image database off
+    the same log builds its trajectory."""
     import cv2
 
     d = tmp_path / "drive"
@@ -135,7 +137,10 @@ def test_missing_intrinsics_is_one_clear_error_and_keeps_finished_stages(tmp_pat
     err = capsys.readouterr().err
     assert "no camera intrinsics" in err and str(d) in err and "Traceback" not in err
     s = tmp_path / "ws" / "sessions" / "drive"
-    assert is_done(s / "trajectory") and not is_done(s / "map")
+    assert not (s / "trajectory").exists()
+    (tmp_path / "c.yaml").write_text("map: false\nimagedb: false\n")
+    assert main(["build", str(d), "--out", str(tmp_path / "ws"), "-c", str(tmp_path / "c.yaml")]) == 0
+    assert is_done(s / "trajectory") and not (s / "map").exists()
 
 
 def test_two_logs_with_one_session_name_are_refused_before_anything_is_written(tmp_path):

@@ -57,7 +57,7 @@ def test_waiter_gets_the_lock_when_the_holder_finishes(tmp_path):
     try:
         with Workspace(ws).lock(command="waiter", wait_s=60):
             assert read_holder(ws / ".lock")["command"] == "waiter"
-            assert proc.poll() == 0  # the holder finished before the waiter got in
+            assert proc.wait(timeout=30) == 0  # the holder released it by finishing (its exit may trail the release)
     finally:
         proc.kill()
         proc.wait()
@@ -107,8 +107,8 @@ def test_second_cli_writer_refuses_with_one_line_and_writes_nothing(tmp_path, ca
     proc = _hold(ws, tmp_path, 1.0)
     try:  # waiting: the lock is taken after the holder ends, then the build reports its own error
         assert main(["--wait", "60", "build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
-        assert "no such file" in capsys.readouterr().err
-        assert proc.poll() == 0
+        assert "no-such.mcap: no such" in capsys.readouterr().err
+        assert proc.wait(timeout=30) == 0
     finally:
         proc.kill()
         proc.wait()

@@ -17,7 +17,7 @@ from typing import Iterable, Iterator
 
 from mapkit import __version__
 from mapkit.core.errors import InputError
-from mapkit.core.runio import sha256_file, write_json
+from mapkit.core.runio import WRITE_ERRNOS, sha256_file, write_error, write_json
 
 MANIFEST = "manifest.json"
 
@@ -71,7 +71,8 @@ def read_manifest(path: Path, what: str, format_version: int, required: Iterable
 
 
 def is_finished(out: Path, build_hash: str, format_version: int) -> bool:
-    """A bundle at ``out`` built from the same inputs, whose files are all present at their sizes."""
+    """A bundle at ``out`` built from the same inputs, whose files all have their sizes and SHA-256
+    (an edited file, even of the same size, makes it unfinished and the next build replaces it)."""
     try:
         m = json.loads((out / MANIFEST).read_text())
     except (OSError, json.JSONDecodeError):
@@ -79,7 +80,8 @@ def is_finished(out: Path, build_hash: str, format_version: int) -> bool:
     if m.get("format_version") != format_version or m.get("build_hash") != build_hash:
         return False
     files = m.get("files") or {}
-    return all((out / f).is_file() and (out / f).stat().st_size == info.get("bytes") for f, info in files.items())
+    return all((out / f).is_file() and (out / f).stat().st_size == info.get("bytes") and sha256_file(out / f) == info.get("sha256")
+               for f, info in files.items())
 
 
 @contextmanager
@@ -134,11 +136,16 @@ def pid_alive(pid: int) -> bool:
     return True
 
 
-def link_or_copy(src: Path, dst: Path) -> None:
-    """Hard-link ``src`` to ``dst`` (a copy where links are impossible): unchanged files of a
-    grown or reconfigured bundle cost no space."""
+def copy_file(src: Path, dst: Path) -> None:
+    """Copy ``src`` to ``dst``, never a hard link: a link would let an edit of one bundle corrupt
+    the other (an exported bundle's file was the workspace index's). ``shutil.copy2`` copies in the
+    kernel (``copy_file_range``/``sendfile``), which shares the blocks where the file system can
+    (reflinks on XFS, Btrfs); a full disk is one :class:`~mapkit.core.runio.WriteError` line."""
     dst.parent.mkdir(parents=True, exist_ok=True)
     try:
-        os.link(src, dst)
-    except OSError:
         shutil.copy2(src, dst)
+    except OSError as exc:
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(dst, exc) from None
+        raise
+

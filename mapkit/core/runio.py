@@ -1,54 +1,131 @@
 """Run-folder plumbing: atomic writes, finished-stage markers, resolved configs and metrics.
 
 A stage writes into its output folder and, last of all, a ``.done`` marker holding the hash of
-the configuration that made it. A folder without the marker (an interrupted run) is never taken
-for a finished one; a marker with another hash means the config changed and the stage reruns.
+the configuration that made it, the identity of its inputs (``inputs``: a log's fingerprint, the
+:func:`stage_digest` of the upstream stages it read) and the size and SHA-256 of its outputs
+(``outputs``). A folder without the marker (an interrupted run) is never taken for a finished one;
+a marker with another config hash or other inputs means the stage reruns; an output that no longer
+matches its record is re-made by its own stage (:func:`is_done` with ``verify``) or refused by the
+stage that loads it (:func:`verify_file`). Markers written before inputs were recorded have no
+``inputs`` and stay valid for their config hash, so that existing workspaces do not rebuild.
+
+Writes are verified before the rename that publishes them (:func:`atomic_path`), and an OS error
+while writing (a full disk above all) becomes one :class:`WriteError` line naming the path and the
+free space.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
+import logging
 import os
 import shutil
 import tempfile
+import warnings
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
 
 import numpy as np
 
+from mapkit.core.errors import InputError, InputWarning, MapkitError
+from mapkit.core.fingerprint import check_file, record_files, sha256_file  # noqa: F401  (sha256_file: re-exported, stages import it from here)
+
 if TYPE_CHECKING:
     from mapkit.core.geodesy import LocalFrame
+
+logger = logging.getLogger(__name__)
 
 DONE_MARKER = ".done"
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+# errors of the storage, not of the program: reported as one line (a full disk, a quota, a read-only mount, a failing device)
+WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO}
+
+
+class WriteError(MapkitError, OSError):
+    """An output could not be written (disk full, quota, read-only, I/O error); nothing was renamed into place.
+    An ``OSError`` too, as what it replaces was."""
+
+
+def write_error(path: Path, exc: OSError) -> WriteError:
+    """The one line for an OS error while writing ``path``: the error and the free space where it was written."""
+    where = path.parent
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        free = f"{shutil.disk_usage(where).free / 1e6:.1f} MB free on {where}"
+    except OSError:
+        free = "free space unknown"
+    return WriteError(f"{path}: could not be written ({exc.strerror or exc}; {free}); nothing was renamed into place: "
+                      "make room (or fix the mount) and re-run the command, which resumes")
 
 
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success it replaces ``path`` in one rename."""
+    """Yield a temporary path beside ``path``; on success it is checked (:func:`_check_written`)
+    and replaces ``path`` in one rename. An OS error of the storage while writing is a :class:`WriteError`."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual permissions
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(path, exc) from None
+        raise
+    tmp_path = Path(tmp)
+    try:
+        os.chmod(tmp_path, 0o666 & ~_UMASK)  # mkstemp makes 0600; outputs get the usual permissions
         yield tmp_path
+        _check_written(tmp_path, path)
         os.replace(tmp_path, path)
+    except OSError as exc:
+        tmp_path.unlink(missing_ok=True)
+        if exc.errno in WRITE_ERRNOS:
+            raise write_error(path, exc) from None
+        raise
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
 
 
+def _check_written(tmp: Path, path: Path) -> None:
+    """Read back what the formats allow cheaply before it is renamed into place: every member of a
+    ``.npz`` (CRC-checked), a ``.json`` parsed, an HDF5 file opened. A short or damaged write
+    (a writer that reported success on a full disk) is a :class:`WriteError` instead of a finished file."""
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npz":
+            with zipfile.ZipFile(tmp) as z:
+                bad = z.testzip()
+            if bad is not None:
+                raise ValueError(f"member {bad} fails its CRC")
+        elif suffix == ".json":
+            json.loads(tmp.read_bytes())
+        elif suffix in (".h5", ".hdf5"):
+            import h5py
+
+            with h5py.File(tmp, "r"):
+                pass
+    except (ValueError, zipfile.BadZipFile, OSError) as exc:
+        raise WriteError(f"{path}: the file written does not read back ({exc}; {tmp.stat().st_size} bytes on disk); "
+                         "not renamed into place (a full disk?)") from None
+
+
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """``data`` at ``path``, atomically, its size checked on disk before the rename."""
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+            size = os.fstat(f.fileno()).st_size
+        if size != len(data):
+            raise WriteError(f"{path}: wrote {size} of {len(data)} bytes; not renamed into place (a full disk?)")
     return Path(path)
 
 
@@ -101,7 +178,7 @@ def atomic_write_ply(path: str | Path, points: np.ndarray, colors: Optional[np.n
             os.fsync(f.fileno())
             size = os.fstat(f.fileno()).st_size
         if size != expected:
-            raise OSError(f"{path}: wrote {size} bytes, expected {expected} ({n} points); not renamed into place")
+            raise WriteError(f"{path}: wrote {size} bytes, expected {expected} ({n} points); not renamed into place (a full disk?)")
     return path
 
 
@@ -137,15 +214,76 @@ def config_hash(obj: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def is_done(folder: str | Path, cfg_hash: str | None = None) -> bool:
-    marker = Path(folder) / DONE_MARKER
-    if not marker.is_file():
+def read_marker(folder: str | Path) -> Optional[dict]:
+    """The ``.done`` record of a stage folder, None when there is none (or it does not parse: not finished)."""
+    try:
+        record = json.loads((Path(folder) / DONE_MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def is_done(folder: str | Path, cfg_hash: str | None = None, *, inputs: Optional[dict] = None, verify: bool = False) -> bool:
+    """Whether ``folder`` holds a finished stage made with ``cfg_hash`` from ``inputs``.
+
+    ``inputs`` are compared with the marker's record of them, when it has one (a marker written
+    before inputs were recorded is valid for its config hash alone). With ``verify``, every output
+    the marker recorded must still have its size and SHA-256; a stage whose inputs or outputs
+    changed is not finished (the reason is logged, or warned for changed outputs)."""
+    record = read_marker(folder)
+    if record is None or (cfg_hash is not None and record.get("config_hash") != cfg_hash):
         return False
-    return cfg_hash is None or json.loads(marker.read_text()).get("config_hash") == cfg_hash
+    if inputs is not None and "inputs" in record and record["inputs"] != json.loads(to_json(inputs)):
+        changed = sorted(k for k in set(inputs) | set(record["inputs"]) if json.loads(to_json(inputs.get(k))) != record["inputs"].get(k))
+        logger.info("%s: inputs changed (%s); the stage runs again", folder, ", ".join(changed))
+        return False
+    if verify:
+        for rel, rec in (record.get("outputs") or {}).items():
+            why = check_file(Path(folder) / rel, rec)
+            if why is not None:
+                warnings.warn(f"{Path(folder) / rel} {why}; its stage runs again", InputWarning, stacklevel=2)
+                return False
+    return True
 
 
-def mark_done(folder: str | Path, cfg_hash: str, **info: Any) -> None:
-    write_json(Path(folder) / DONE_MARKER, {"config_hash": cfg_hash, **info})
+def mark_done(folder: str | Path, cfg_hash: str, *, inputs: Optional[dict] = None, outputs: bool | Sequence[str] = (),
+              **info: Any) -> None:
+    """Finish a stage: its marker records ``cfg_hash``, ``inputs`` (JSON) and the size and SHA-256 of
+    ``outputs`` (paths relative to ``folder``, a folder standing for its files; True: every file in it)."""
+    folder = Path(folder)
+    record: dict[str, Any] = {"config_hash": cfg_hash}
+    if inputs is not None:
+        record["inputs"] = inputs
+    if outputs:
+        record["outputs"] = record_files(folder, ["."] if outputs is True else list(outputs))
+    write_json(folder / DONE_MARKER, {**record, **info})
+
+
+def stage_digest(folder: str | Path) -> Optional[str]:
+    """What a downstream stage records of an upstream one: a hash of its marker's output record (of
+    its config hash and inputs for a marker without one), so that a re-made upstream output
+    invalidates what was made from it. None when the stage has not finished."""
+    record = read_marker(folder)
+    if record is None:
+        return None
+    return config_hash({k: record.get(k) for k in ("config_hash", "inputs", "outputs")})
+
+
+def verify_file(path: str | Path, rerun: str) -> None:
+    """Refuse a stage output that differs from what its stage recorded: one ``InputError`` naming
+    the file and the command to re-run (``rerun``). The record is the nearest ``.done`` marker
+    above ``path``; a marker without output records (an older workspace) checks nothing."""
+    path = Path(path)
+    for folder in path.parents:
+        record = read_marker(folder)
+        if record is None:
+            continue
+        rec = (record.get("outputs") or {}).get(path.relative_to(folder).as_posix())
+        if rec is not None:
+            why = check_file(path, rec)
+            if why is not None:
+                raise InputError(path, f"{why}: re-run {rerun} to write it again", field="sha256")
+        return
 
 
 def reset_stage(folder: str | Path) -> Path:
@@ -155,14 +293,6 @@ def reset_stage(folder: str | Path) -> Path:
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
     return folder
-
-
-def sha256_file(path: str | Path, block: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(block):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def progress_bar(total: Optional[int], enabled: Optional[bool], desc: str, unit: str, leave: bool = True):

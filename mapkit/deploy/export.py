@@ -4,8 +4,9 @@ The export holds one self-describing sub-folder per index (VLAD, structure NBLD 
 each the index's own bundle with its own manifest and checksums, and a top-level
 ``manifest.json`` that says what is there: the export's format version, per index its kind,
 format version, parameters, the CRS and origin of its poses, its source sessions, and the sha256
-of its manifest (which in turn checksums each of its files). Files are hard-linked where
-possible, so an export costs no space on the workspace's disk.
+of its manifest (which in turn checksums each of its files). Files are copied, never hard-linked:
+an edit of the export must not reach the workspace's index (the kernel shares blocks where the
+file system can reflink).
 
 :func:`load_bundle` is the deployment-side entry point: it refuses an unknown export format
 version, checks every index's manifest against the top-level one, verifies every file's
@@ -21,9 +22,9 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 from mapkit import __version__
-from mapkit.core.bundle import MANIFEST, building, link_or_copy, load_manifest
+from mapkit.core.bundle import MANIFEST, building, copy_file, load_manifest
 from mapkit.core.errors import InputError
-from mapkit.core.runio import sha256_file, write_json
+from mapkit.core.runio import atomic_write_text, sha256_file, write_json
 from mapkit.core.workspace import Workspace
 
 FORMAT_VERSION = 1
@@ -89,8 +90,8 @@ def _index_entry(name: str, src: Path, origin: Optional[dict]) -> dict:
 
 
 def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Sequence[str]] = None) -> Path:
-    """Copy (hard-link) the finished indexes of ``workspace`` into ``out`` with a top-level
-    manifest; returns ``out``. ``names`` selects folders of ``WORKSPACE/indexes`` (default all).
+    """Copy the finished indexes of ``workspace`` into ``out`` with a top-level manifest; returns ``out``.
+    ``names`` selects folders of ``WORKSPACE/indexes`` (default all).
     The export is built beside ``out`` and renamed into place, so ``out`` is always whole."""
     ws, out = Workspace(workspace), Path(out)
     found = find_indexes(ws)
@@ -107,7 +108,7 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
         for name, src in found.items():
             for f in sorted(src.rglob("*")):
                 if f.is_file():
-                    link_or_copy(f, tmp / name / f.relative_to(src))
+                    copy_file(f, tmp / name / f.relative_to(src))
         manifest = {
             "format_version": FORMAT_VERSION,
             "kind": KIND,
@@ -117,7 +118,7 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
             "crs": origin,
             "indexes": entries,
         }
-        (tmp / "README.txt").write_text(_readme(entries))
+        atomic_write_text(tmp / "README.txt", _readme(entries))
         write_json(tmp / MANIFEST, manifest)
     return out
 

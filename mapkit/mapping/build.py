@@ -1,7 +1,9 @@
 """``mapkit build``: one drive log to a georeferenced session map, stage by stage.
 
 Stages (each a folder under ``WORKSPACE/sessions/<name>/`` with a ``.done`` marker holding the
-hash of the config that made it; re-running skips finished stages and redoes half-written ones):
+hash of the config that made it, the log's fingerprint, the digests of the upstream stages it read
+and the SHA-256 of its outputs; re-running skips finished stages and redoes half-written ones, those
+whose log or upstream stage changed, and those whose outputs were changed or truncated since):
 
 1. ``trajectory/``  vehicle poses (kiss-icp, a pose stream, ...), TUM and KITTI files
 2. ``georef/``      GPS alignment: ``enu_from_map``, residuals, rejected fixes, aligned trajectory,
@@ -15,6 +17,11 @@ trajectory could not be georeferenced (its scale is arbitrary, the mapper's para
 metres), stage 4 when ``imagedb: false``. Lengths and poses of a camera-only session that is not
 georeferenced are in the reconstruction's arbitrary units and say so (``length_sfm_units``,
 ``pose_units``).
+
+Before any stage writes, every log is checked: one still being written (a copy in progress) is
+refused, topics the config names must exist, and a camera the config names (``camera``,
+``topics.images``) must have frames and intrinsics when a map or image database is asked for
+(it is not found missing after the trajectory has been estimated).
 
 Every session of a workspace shares one local ENU origin and UTM zone (``WORKSPACE/origin.json``,
 set by the first session with GPS), so maps of different sessions are in one frame from the start.
@@ -41,7 +48,8 @@ from mapkit.core.executor import Executor, TaskError, get_executor
 from mapkit.core.frames import FrameTree
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, reset_stage, write_json
+from mapkit.core.fingerprint import describe_change, log_fingerprint
+from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, reset_stage, stage_digest, write_json
 from mapkit.core.types import CameraFrame, CameraInfo, GpsFix, StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
@@ -66,16 +74,26 @@ class GeorefConfig(MapkitConfig):
     )
     origin: Optional[tuple[float, float, float]] = Field(
         None, description="(lat deg, lon deg, alt m) of the pose stream's ENU frame; only with mode 'given'.")
-    inlier_sigmas: float = Field(3.37, description="Gate on the sigma-normalised residual (chi-square 3 dof, 99%).")
-    vertical_sigma_factor: float = Field(2.0, description="GPS height sigma as a multiple of its horizontal sigma.")
-    min_inlier_threshold_m: float = Field(2.0, description="The horizontal gate is never tighter than this.")
-    max_pose_gap_s: float = Field(1.0, description="A fix between trajectory poses further apart than this is not used.")
+    inlier_sigmas: float = Field(3.37, gt=0, allow_inf_nan=False,
+                                 description="Gate on the sigma-normalised residual (chi-square 3 dof, 99%).")
+    vertical_sigma_factor: float = Field(2.0, gt=0, allow_inf_nan=False,
+                                         description="GPS height sigma as a multiple of its horizontal sigma.")
+    min_inlier_threshold_m: float = Field(2.0, ge=0, allow_inf_nan=False, description="The horizontal gate is never tighter than this.")
+    max_pose_gap_s: float = Field(1.0, gt=0, allow_inf_nan=False,
+                                  description="A fix between trajectory poses further apart than this is not used.")
     strict: bool = Field(False, description="Fail instead of building the session unreferenced when GPS cannot place it, "
                          "and when a camera-only drive is too straight for GPS to fix its roll and the cameras give no up hint.")
 
 
 class ImageDbStageConfig(ImageDbConfig):
     enabled: bool = Field(True, description="Write the image database (stage 4); `imagedb: false` is short for `enabled: false`.")
+
+    @field_validator("min_spacing_m")
+    @classmethod
+    def _spacing(cls, v: float) -> float:
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"must be a finite distance >= 0 m, not {v}")
+        return v
 
 
 class BuildConfig(MapkitConfig):
@@ -132,6 +150,8 @@ class SessionBuilder:
         self._enu_trajectory: Optional[Trajectory] = None
         self._fixes: Optional[tuple[list[str], list[GpsFix], Optional[GpsScreen]]] = None
         self._undecodable = 0  # frames whose image did not decode, in the current pass over the log
+        self._log_fp: Optional[dict] = None
+        self._finished: set[Path] = set()  # stage folders found finished (outputs verified) in this run
 
     @property
     def log(self) -> DriveLog:
@@ -142,12 +162,62 @@ class SessionBuilder:
     def close(self) -> None:
         if self._log is not None:
             self._log.close()
+            self._log = None
+
+    # --- what the stages consumed -----------------------------------------------------------------
+    def log_fingerprint(self) -> dict:
+        """The log's fingerprint (:func:`mapkit.core.fingerprint.log_fingerprint`), taken once: a log
+        still being written is refused here, before any stage reads it."""
+        if self._log_fp is None:
+            self._log_fp = log_fingerprint(self.log_path)
+        return self._log_fp
+
+    def _inputs(self, *upstream: Path) -> dict:
+        """A stage's input record: the log's fingerprint and the digests of the upstream stages it reads."""
+        return {"log": self.log_fingerprint(), **{folder.name: stage_digest(folder) for folder in upstream}}
+
+    def _is_finished(self, out: Path, h: str, inputs: dict) -> bool:
+        """The stage at ``out`` finished with this config and these inputs, its outputs unchanged (checked once per run)."""
+        if out in self._finished:
+            return True
+        if is_done(out, h, inputs=inputs, verify=True):
+            self._finished.add(out)
+            return True
+        return False
+
+    def _mark(self, out: Path, h: str, inputs: dict) -> None:
+        """Mark a stage finished, unless its log changed while the stage read it (then nothing is marked)."""
+        now = log_fingerprint(self.log_path, watch=False)
+        if now != inputs["log"]:
+            raise InputError(self.log_path, f"changed while the {out.name} stage read it ({describe_change(inputs['log'], now)}); "
+                             "the stage is not marked finished: build again once the log is complete", field="mtime")
+        mark_done(out, h, inputs=inputs, outputs=True)
+        self._finished.add(out)
+
+    def preflight(self) -> None:
+        """Checks that need the log but write nothing: the log is not still being written, the topics
+        the config names exist, and, when the config asks for a map or an image database, that the
+        mapping camera has frames and intrinsics: a camera the config names (``camera``, or
+        ``topics.images``) must exist, and a log with images must have intrinsics for the camera
+        chosen. A log without images skips the image stages instead (see :meth:`skip_reason`)."""
+        self.log_fingerprint()
+        topics = resolve_topics(self.log, self.cfg.topics)
+        if not (self.cfg.map or self.cfg.imagedb.enabled):
+            return
+        named = self.cfg.camera is not None or self.cfg.topics.images is not None
+        if named and not topics.get(StreamKind.IMAGE):
+            asked = f"camera {self.cfg.camera!r}" if self.cfg.camera is not None else f"topics.images {self.cfg.topics.images}"
+            raise InputError(self.log_path, f"has no image stream, but the config asks for {asked} to map with",
+                             field="camera" if self.cfg.camera is not None else "topics.images")
+        if topics.get(StreamKind.IMAGE):
+            self._camera()
 
     # --- stage 1 --------------------------------------------------------------------------------
     def trajectory(self) -> Path:
         out = self.dirs.trajectory
         h = _stage_hash(self.cfg, "topics", "trajectory")
-        if is_done(out, h):
+        inputs = self._inputs()
+        if self._is_finished(out, h, inputs):
             return out
         t0 = time.perf_counter()
         reset_stage(out)
@@ -156,17 +226,19 @@ class SessionBuilder:
         m = {"source": traj.source, "poses": len(traj), "duration_s": (int(traj.stamps_ns[-1]) - int(traj.stamps_ns[0])) * 1e-9,
              **_length(traj), "seconds": time.perf_counter() - t0}
         write_json(out / "metrics.json", m)
-        mark_done(out, h)
+        self._mark(out, h, inputs)
         return out
 
     # --- stage 2 --------------------------------------------------------------------------------
     def georef(self) -> Path:
         out = self.dirs.georef
         h = _stage_hash(self.cfg, "topics", "trajectory", "georef")
-        if is_done(out, h):
+        inputs = self._inputs(self.trajectory())
+        if self._is_finished(out, h, inputs):
             return out
         t0 = time.perf_counter()
         reset_stage(out)
+        self._enu_trajectory = None
         traj = Trajectory.load(self.trajectory())
         result: dict = {"session": self.name, "georeferenced": False}
         al, frame = self._align(traj, out, result)
@@ -187,7 +259,7 @@ class SessionBuilder:
                          axes=axes, units="m" if result["units"] == "m" else "arbitrary units")
         result["seconds"] = time.perf_counter() - t0
         write_json(self.dirs.gps_alignment, result)
-        mark_done(out, h)
+        self._mark(out, h, inputs)
         return out
 
     def _align(self, traj: Trajectory, out: Path, result: dict):
@@ -415,7 +487,8 @@ class SessionBuilder:
     def semidense(self) -> Path:
         out = self.dirs.map
         h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera")
-        if is_done(out, h):
+        inputs = self._inputs(self.georef())
+        if self._is_finished(out, h, inputs):
             return out
         t0 = time.perf_counter()
         reset_stage(out)
@@ -432,14 +505,16 @@ class SessionBuilder:
              "crs": None if frame is None else frame.to_dict()}
         m.update(smap.stats())
         write_json(out / "metrics.json", m)
-        mark_done(out, h)
+        self._mark(out, h, inputs)
         return out
 
     # --- stage 4 --------------------------------------------------------------------------------
     def imagedb(self) -> Path:
         out = self.dirs.imagedb
         h = _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera", "imagedb", "map")
-        if is_done(out, h):
+        with_map = self.skip_reason("semidense") is None
+        inputs = self._inputs(self.georef(), *([self.semidense()] if with_map else []))
+        if self._is_finished(out, h, inputs):
             return out
         t0 = time.perf_counter()
         reset_stage(out)
@@ -463,10 +538,10 @@ class SessionBuilder:
         if not metric:
             m["note"] = ("not georeferenced: poses (images.csv x_m/y_m/z_m, colmap/) are in the reconstruction's arbitrary "
                          "units, and imagedb.min_spacing_m was not applied")
-        if self.skip_reason("semidense") is not None:
+        if not with_map:
             writer.close(self.frame())
             write_json(out / "metrics.json", {**m, "seconds": time.perf_counter() - t0, "map": False})
-            mark_done(out, h)
+            self._mark(out, h, inputs)
             return out
         smap = SemiDenseMap.load(self.semidense())
         # observations by map frame index -> by database image id (frames not kept are dropped)
@@ -477,7 +552,7 @@ class SessionBuilder:
         indptr = np.concatenate([[0], np.cumsum(counts)])
         writer.close(self.frame(), smap.points_world, (indptr, ids[keep]))
         write_json(out / "metrics.json", {**m, "seconds": time.perf_counter() - t0})
-        mark_done(out, h)
+        self._mark(out, h, inputs)
         return out
 
     # --- which stages run -----------------------------------------------------------------------
@@ -498,6 +573,7 @@ class SessionBuilder:
 
     def run(self) -> dict:
         t0 = time.perf_counter()
+        self.preflight()
         self.dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.dirs.config, dump_config(self.cfg))
         for stage in (self.trajectory, self.georef, self.semidense, self.imagedb):
@@ -583,6 +659,12 @@ def build(logs: list[str | Path], workspace: str | Path | Workspace, config: Opt
             raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
         names[name] = log
     cfg = load_config(BuildConfig, config)
+    builders = [SessionBuilder(log, workspace, cfg, progress=progress) for log in logs]
+    for b in builders:  # nothing is written before every log passed its checks
+        try:
+            b.preflight()
+        finally:
+            b.close()
     ws = Workspace(workspace)
     ws.root.mkdir(parents=True, exist_ok=True)
     atomic_write_text(ws.build_config, dump_config(cfg))
@@ -590,10 +672,7 @@ def build(logs: list[str | Path], workspace: str | Path | Workspace, config: Opt
     if ex.workers > 1 and len(logs) > 1:
         summary = _build_parallel(logs, ws, cfg, ex, progress)
     else:
-        summary = {}
-        for log in logs:
-            b = SessionBuilder(log, ws, cfg, progress=progress)
-            summary[b.name] = b.run()
+        summary = {b.name: b.run() for b in builders}
     write_json(ws.metrics, {"sessions": summary})
     return ws.root
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Iterator, Literal, Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from mapkit.core.config import MapkitConfig, TopicConfig, resolve_topics
 from mapkit.core.errors import InputError, InputWarning
@@ -30,11 +30,22 @@ from mapkit.io.trajectory import read_tum, write_kitti_poses, write_tum
 
 
 class KissIcpOptions(MapkitConfig):
-    max_range_m: float = Field(100.0, description="kiss-icp data.max_range; its voxel size is max_range/100 unless set.")
-    min_range_m: float = Field(2.0, description="kiss-icp data.min_range: drops returns from the vehicle body.")
+    """kiss-icp's parameters, checked here: kiss-icp itself fails on a zero voxel or a negative range
+    with a traceback from its C++ core, after the log has been opened."""
+
+    max_range_m: float = Field(100.0, gt=0, allow_inf_nan=False,
+                               description="kiss-icp data.max_range; its voxel size is max_range/100 unless set.")
+    min_range_m: float = Field(2.0, ge=0, allow_inf_nan=False, description="kiss-icp data.min_range: drops returns from the vehicle body.")
     deskew: bool = Field(True, description="Motion compensation from per-point times (kiss-icp's own).")
-    voxel_size_m: Optional[float] = Field(None, description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).")
-    max_threads: int = Field(0, description="kiss-icp registration.max_num_threads; 0 = all cores.")
+    voxel_size_m: Optional[float] = Field(None, gt=0, allow_inf_nan=False,
+                                          description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).")
+    max_threads: int = Field(0, ge=0, description="kiss-icp registration.max_num_threads; 0 = all cores.")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> "KissIcpOptions":
+        if self.min_range_m >= self.max_range_m:
+            raise ValueError(f"min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})")
+        return self
 
 
 class CameraSfmOptions(MapkitConfig):

@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Optional
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
@@ -48,8 +48,8 @@ from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json
-from mapkit.core.workspace import AlignedDirs, Workspace
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, read_marker, stage_digest, verify_file, write_json
+from mapkit.core.workspace import AlignedDirs, SessionDirs, Workspace
 from mapkit.io.plots import align_histograms, align_pairs_map
 from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
 from mapkit.mapping.trajectory import Trajectory
@@ -96,6 +96,26 @@ class AlignConfig(MapkitConfig):
     freeze_existing: bool = Field(True, description="When sessions are added, keep the corrections of sessions aligned before fixed (their outputs do not change); false re-solves all.")
     merge_unverified: bool = Field(False, description="Put submaps that overlap other sessions but have no accepted registration into the merged map.")
     tile_size_m: float = Field(100.0, gt=0, description="Side of the UTM tiles of the merged map (m).")
+
+    @field_validator("icp")
+    @classmethod
+    def _icp_levels(cls, icp: IcpConfig) -> IcpConfig:
+        """ICP's levels, checked before anything is loaded (open3d fails on a voxel <= 0 deep inside the registration)."""
+        check_levels(icp.voxel_sizes_m, "voxel_sizes_m")
+        check_levels(icp.max_correspondence_m, "max_correspondence_m")
+        if len(icp.voxel_sizes_m) != len(icp.max_correspondence_m):
+            raise ValueError(f"{len(icp.voxel_sizes_m)} voxel_sizes_m but {len(icp.max_correspondence_m)} max_correspondence_m "
+                             "(one per level)")
+        return icp
+
+
+def check_levels(values: list[float], name: str) -> None:
+    """ICP levels (voxel sizes, distances in m): at least one, each finite and > 0 (a ``ValueError`` naming ``name`` otherwise)."""
+    if not values:
+        raise ValueError(f"{name}: at least one ICP level is needed")
+    bad = [v for v in values if not np.isfinite(v) or v <= 0]
+    if bad:
+        raise ValueError(f"{name}: every level must be a finite length > 0 m, not {bad[0]}")
 
 
 # --- registering pairs on an executor -------------------------------------------------------------
@@ -161,12 +181,17 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     t0 = time.perf_counter()
 
     names = ws.session_names() if sessions is None else sessions
+    for n in names:
+        _verify_built(ws.session(n))
     data = [s for s in (load_session(ws.session(n), ws_frame, cfg.submap_length_m) for n in names) if s is not None]
+    for s in data:
+        _identify_map(s, ws.session(s.name))
     if len(data) < 2:
         raise InputError(ws.root, f"{len(data)} alignable session(s); multi-session alignment needs at least two built, "
                          "georeferenced sessions with a semi-dense map (the warnings above say why each was skipped)")
     run_hash = config_hash({"cfg": cfg, "sessions": [[s.name, s.map_hash] for s in data]})
-    if is_done(out, run_hash):
+    inputs = {s.name: {stage: stage_digest(ws.session(s.name).stage(stage)) for stage in ("georef", "map")} for s in data}
+    if is_done(out, run_hash, inputs=inputs):
         return out
     ws.align_done.unlink(missing_ok=True)
 
@@ -183,8 +208,27 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
                           "pairs_per_s": regs.fresh / regs.seconds if regs.seconds > 0 else None}
     write_json(out / "metrics.json", qa)
     atomic_write_text(out / "qa.md", format_align_qa(qa))
-    mark_done(out, run_hash, sessions=[s.name for s in data])
+    mark_done(out, run_hash, inputs=inputs, outputs=["sessions", "tiles", "pairs.json"], sessions=[s.name for s in data])
     return out
+
+
+def _verify_built(dirs: SessionDirs) -> None:
+    """Refuse a built session whose map or aligned trajectory changed since ``mapkit build`` wrote
+    it (a truncated ``points.ply`` would load with its missing points as zeros): one error naming
+    the file. Sessions that are not fully built are left to :func:`load_session`'s warning."""
+    if not (dirs.has("georef") and dirs.has("map")):
+        return
+    for path in (dirs.map / "points.ply", dirs.map / "observations.npz", dirs.gps_alignment, *sorted(dirs.georef_trajectory.glob("*.npz"))):
+        verify_file(path, f"mapkit build (session {dirs.name})")
+
+
+def _identify_map(s: SessionData, dirs: SessionDirs) -> None:
+    """Make the session's map hash (the key of cached registrations and corrections) cover the
+    map's content where its build recorded it, not only its config: a map rebuilt from a changed
+    log is registered again. Maps of older builds keep their config hash, and their cache."""
+    outputs = (read_marker(dirs.map) or {}).get("outputs")
+    if outputs:
+        s.map_hash = config_hash([s.map_hash, outputs])
 
 
 @dataclass

@@ -33,18 +33,20 @@ from pathlib import Path
 from typing import Callable, Iterator, Literal, Optional, Union
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 from scipy.spatial import cKDTree
 
 from mapkit.core.bundle import building
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, sha256_file, write_json
+from mapkit.core.runio import (atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, sha256_file, stage_digest,
+                               verify_file, write_json)
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import triplet_examples
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.multisession.registration import IcpClouds, IcpConfig, Registration, about_centre, evaluate_alignment, icp_coarse_to_fine
+from mapkit.multisession.align import check_levels
 from mapkit.multisession.tiles import load_tiles
 from mapkit.places.patches import (
     CNN_DOMAIN,
@@ -107,6 +109,20 @@ class TripletConfig(MapkitConfig):
                                              "a stage of its own after the dataset (not part of its config hash).")
     seed: int = Field(0, description="Seed of every random choice: the same seed and inputs give the same dataset.")
     sessions: Optional[list[str]] = Field(None, description="Sessions to use; all merged sessions of the alignment if unset.")
+
+    @field_validator("icp_voxel_sizes_m", "icp_max_correspondence_m")
+    @classmethod
+    def _icp_level(cls, values: list[float], info: ValidationInfo) -> list[float]:
+        """ICP levels, checked before anything is loaded (open3d fails on a voxel <= 0 deep inside the registration)."""
+        check_levels(values, info.field_name)
+        return values
+
+    @model_validator(mode="after")
+    def _icp_levels(self) -> "TripletConfig":
+        if len(self.icp_voxel_sizes_m) != len(self.icp_max_correspondence_m):
+            raise ValueError(f"{len(self.icp_voxel_sizes_m)} icp_voxel_sizes_m but {len(self.icp_max_correspondence_m)} "
+                             "icp_max_correspondence_m (one per level)")
+        return self
 
 
 # --- the inputs -------------------------------------------------------------------------------------
@@ -221,6 +237,9 @@ def load_aligned_sessions(workspace: Union[str, Path, Workspace], names: Optiona
     if not ws.align_done.is_file():
         raise InputError(ws.align_dir, "no finished multi-session alignment here (run mapkit align first)")
     frame = ws.require_frame()
+    for p in sorted(ws.tiles_dir.rglob("*")):  # each checked against what align recorded: no truncated cloud is cut into patches
+        if p.is_file():
+            verify_file(p, "mapkit align")
     _, sid, idx, tile_names = load_tiles(ws.tiles_dir)
     out = []
     for k, name in enumerate(tile_names):
@@ -229,6 +248,8 @@ def load_aligned_sessions(workspace: Union[str, Path, Workspace], names: Optiona
         keep = np.sort(idx[sid == k])
         if len(keep) == 0:
             continue
+        for f in ("points.ply", "observations.npz"):
+            verify_file(ws.aligned(name).map / f, "mapkit align")
         smap = SemiDenseMap.load(ws.aligned(name).map)
         first = first_observer_frames(keep, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids)
         order = np.argsort(smap.keyframe_ids, kind="stable")
@@ -649,7 +670,8 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
     out = Path(out) if out is not None else ws.triplets_dir
     # the PointNetVLAD layout is a stage of its own (mapkit.places.pointnetvlad): its settings do not change the dataset
     h = config_hash({"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": ws.align_record().get("config_hash")})
-    if is_done(out, h):
+    inputs = {"align": stage_digest(ws.align_dir)}  # a re-made alignment (other maps, same config) makes a new dataset
+    if is_done(out, h, inputs=inputs):
         return out
     t0 = time.perf_counter()
     sessions, frame = load_aligned_sessions(ws, cfg.sessions)
@@ -671,7 +693,7 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
         log.info("%d triplets from %d places (%d tried, %d ICP registrations)", places.counts.triplets, places.counts.sets,
                  places.counts.tried, places.counts.icp)
         _write_dataset(out, ws, h, cfg, sessions, frame, kp.tiles, shards, table, places, t0)
-        mark_done(out, h)
+        mark_done(out, h, inputs=inputs)
     return final
 
 

@@ -28,12 +28,12 @@ from typing import Optional
 import numpy as np
 
 from mapkit import __version__
-from mapkit.core.bundle import MANIFEST, building, is_finished, link_or_copy, write_manifest
+from mapkit.core.bundle import MANIFEST, building, copy_file, is_finished, write_manifest
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError, InputWarning
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, write_json
+from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, verify_file, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.retrieval.vlad import VladEncoder, kmeans
 from mapkit.retrieval.vlad_bundle import (
@@ -109,6 +109,8 @@ def _read_sessions(ws: Workspace, cfg: VladIndexConfig, db_names: list[str], tra
     """The image tables of the database and training sessions; fails before any bundle is written
     when there is nothing to index or to learn from."""
     sessions = {n: read_session_images(ws, n, cfg.prefer_aligned_poses) for n in dict.fromkeys(db_names + train_names)}
+    for n, s in sessions.items():  # an image table edited since its stage wrote it is refused, naming the stage to re-run
+        verify_file(s.csv_path, "mapkit align" if ws.align_dir in Path(s.csv_path).parents else f"mapkit build (session {n})")
     for field, names, least in (("database_sessions", db_names, 1), ("train_sessions", train_names, 2)):
         n_images = sum(len(sessions[n]) for n in names)
         if n_images < least:
@@ -390,12 +392,12 @@ def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
 
 
 def _rewrite_config(out: Path, cfg: VladIndexConfig) -> None:
-    """A copy of the bundle (hard links) with a new config.yaml and manifest config, swapped in."""
+    """A copy of the bundle with a new config.yaml and manifest config, swapped in."""
     with building(out) as tmp:
         for p in out.rglob("*"):
             rel = p.relative_to(out)
             if p.is_file() and rel.as_posix() not in (MANIFEST, "config.yaml"):
-                link_or_copy(p, tmp / rel)
+                copy_file(p, tmp / rel)
         atomic_write_text(tmp / "config.yaml", dump_config(cfg))
         manifest = json.loads((out / MANIFEST).read_text())
         manifest["config"] = cfg.model_dump(mode="json")

@@ -16,7 +16,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from mapkit.core.bundle import MANIFEST, building, link_or_copy, read_manifest, write_manifest
+from mapkit.core.bundle import MANIFEST, building, copy_file, read_manifest, write_manifest
 from mapkit.core.errors import InputError
 from mapkit.core.executor import Executor
 from mapkit.core.geodesy import LocalFrame
@@ -267,7 +267,7 @@ class VladIndex:
             for p in self.path.rglob("*"):
                 rel = p.relative_to(self.path)
                 if p.is_file() and rel.as_posix() not in rewritten:
-                    link_or_copy(p, tmp / rel)
+                    copy_file(p, tmp / rel)
             vectors = np.concatenate([np.load(self.path / VECTORS_FILE), new]) if (self.path / VECTORS_FILE).is_file() else None
             _write_index(tmp, index, vectors)
             _write_database_csv(tmp / DATABASE_CSV, database)
