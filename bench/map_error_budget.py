@@ -88,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     from mapkit.mapping.gps_align import fit_transform
     from mapkit.evaluation.metrics import map_accuracy
     from mapkit.core.config import load_config
+    from mapkit.core.runio import mark_done, read_marker
     from mapkit.mapping.semidense import SemiDenseMap
     from mapkit.synth import gt_poses, session_log
     from mapkit.mapping.trajectory import Trajectory
@@ -134,8 +135,13 @@ def main(argv: list[str] | None = None) -> int:
             shutil.copy(ws / "origin.json", scratch / "origin.json")
             for stage in ("trajectory", "georef"):  # finished stages: the builder goes straight to the map
                 shutil.copytree(sdir / stage, scratch / "sessions" / name / stage)
-            Trajectory(est.stamps_ns[ok], poses, est.source, frame=est.frame, body_frame=est.body_frame).save(
-                scratch / "sessions" / name / "georef" / "trajectory_enu")
+            georef = scratch / "sessions" / name / "georef"
+            Trajectory(est.stamps_ns[ok], poses, est.source, frame=est.frame, body_frame=est.body_frame).save(georef / "trajectory_enu")
+            # the georef stage verifies its outputs: mark it finished with the variant's poses, or the
+            # builder would re-run it from the estimated trajectory and every variant would map the same poses
+            record = read_marker(georef)
+            mark_done(georef, record.pop("config_hash"), inputs=record.pop("inputs", None), outputs=True,
+                      **{k: v for k, v in record.items() if k != "outputs"})
             builder = SessionBuilder(log, scratch, cfg, progress=False, name=name)
             try:
                 out = builder.semidense()
