@@ -8,7 +8,9 @@ import signal
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import pytest
 
@@ -26,6 +28,7 @@ with workspace_lock(sys.argv[1], command="mapkit build test-holder"):
 
 
 def _hold(ws: Path, tmp_path: Path, seconds: float) -> subprocess.Popen:
+    """A process that holds the workspace's lock for ``seconds`` (returned once it holds it)."""
     flag = tmp_path / f"held-{time.monotonic_ns()}"
     proc = subprocess.Popen([sys.executable, "-c", HOLD, str(ws), str(flag), str(seconds)])
     t0 = time.monotonic()
@@ -36,31 +39,34 @@ def _hold(ws: Path, tmp_path: Path, seconds: float) -> subprocess.Popen:
     return proc
 
 
+@contextmanager
+def _holder(ws: Path, tmp_path: Path, seconds: float) -> Iterator[subprocess.Popen]:
+    """``_hold`` for a ``with`` block: the holder is killed at its end, whatever happened."""
+    proc = _hold(ws, tmp_path, seconds)
+    try:
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 def test_second_writer_is_refused_naming_the_holder(tmp_path):
     ws = tmp_path / "ws"
-    proc = _hold(ws, tmp_path, 30)
-    try:
+    with _holder(ws, tmp_path, 30) as proc:
         with pytest.raises(WorkspaceBusy) as err:
             with workspace_lock(ws, command="mapkit align"):
                 pytest.fail("took a lock another process holds")
         msg = str(err.value)
         assert f"pid {proc.pid}" in msg and "mapkit build test-holder" in msg and str(ws) in msg
         assert read_holder(ws / ".lock")["pid"] == proc.pid
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def test_waiter_gets_the_lock_when_the_holder_finishes(tmp_path):
     ws = tmp_path / "ws"
-    proc = _hold(ws, tmp_path, 1.0)
-    try:
+    with _holder(ws, tmp_path, 1.0) as proc:
         with Workspace(ws).lock(command="waiter", wait_s=60):
             assert read_holder(ws / ".lock")["command"] == "waiter"
             assert proc.wait(timeout=30) == 0  # the holder released it by finishing (its exit may trail the release)
-    finally:
-        proc.kill()
-        proc.wait()
 
 
 def test_killed_holder_leaves_no_stale_lock(tmp_path):
@@ -94,21 +100,13 @@ def test_second_cli_writer_refuses_with_one_line_and_writes_nothing(tmp_path, ca
     from mapkit.cli import main
 
     ws = tmp_path / "ws"
-    proc = _hold(ws, tmp_path, 30)
-    try:
+    with _holder(ws, tmp_path, 30) as proc:
         before = sorted(p.name for p in ws.iterdir())
         assert main(["build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"pid {proc.pid}" in err[0] and "being written" in err[0]
         assert sorted(p.name for p in ws.iterdir()) == before  # no build_config.yaml, no sessions/
-    finally:
-        proc.kill()
-        proc.wait()
-    proc = _hold(ws, tmp_path, 1.0)
-    try:  # waiting: the lock is taken after the holder ends, then the build reports its own error
+    with _holder(ws, tmp_path, 1.0) as proc:  # waiting: the lock is taken after the holder ends, then the build reports its own error
         assert main(["--wait", "60", "build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
         assert "no-such.mcap: no such" in capsys.readouterr().err
         assert proc.wait(timeout=30) == 0
-    finally:
-        proc.kill()
-        proc.wait()
