@@ -123,12 +123,11 @@ CONFIGS: dict[str, str] = {
 
 def config_model(name: str) -> type[MapkitConfig]:
     """The config model registered as ``name``."""
-    import importlib
+    from mapkit.core.registry import load_entry
 
     if name not in CONFIGS:
         raise ConfigError(f"no configuration named {name!r}; known: {', '.join(sorted(CONFIGS))}")
-    module, model = CONFIGS[name].split(":")
-    return getattr(importlib.import_module(module), model)
+    return load_entry(CONFIGS[name])
 
 
 @config_app.command("defaults")

@@ -89,3 +89,18 @@ def test_average_rotations_of_symmetric_spread_is_centre():
     Rs = np.stack([centre @ Rotation.from_rotvec(v).as_matrix() for v in ([0.1, 0, 0], [-0.1, 0, 0], [0, 0.2, 0], [0, -0.2, 0])])
     np.testing.assert_allclose(g.average_rotations(Rs), centre, atol=1e-9)
     assert g.rotation_angle_rad(g.average_rotations(Rs).T @ centre) < 1e-9
+
+
+def test_transform_poses_by_a_similarity_keeps_rotations_rigid():
+    """A Sim(3) moves poses: positions as points, rotations turned (not scaled), and its inverse undoes it."""
+    from mapkit.core.geometry import is_rotation, make_pose, make_sim3, transform_points, transform_poses
+
+    rng = np.random.default_rng(4)
+    poses = np.stack([make_pose(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3) * 10) for _ in range(5)])
+    R = Rotation.from_rotvec([0.3, -0.2, 1.1]).as_matrix()
+    S = make_sim3(7.5, R, [1.0, -2.0, 3.0])
+    moved = transform_poses(S, poses)
+    assert is_rotation(moved[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(moved[:, :3, 3], transform_points(S, poses[:, :3, 3]), atol=1e-12)
+    np.testing.assert_allclose(moved[:, :3, :3], R @ poses[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(transform_poses(np.linalg.inv(S), moved), poses, atol=1e-9)

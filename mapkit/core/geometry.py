@@ -99,6 +99,16 @@ def sim3_scale(S: np.ndarray) -> float:
     return float(np.cbrt(np.linalg.det(np.asarray(S)[:3, :3])))
 
 
+def transform_poses(S: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) rigid poses moved by a similarity ``S``: rotated, and their positions scaled and
+    translated, so that rotations stay rotations (the scale goes into positions only)."""
+    S = np.asarray(S)
+    out = np.array(poses, dtype=np.float64, copy=True)
+    out[:, :3, :3] = (S[:3, :3] / sim3_scale(S)) @ out[:, :3, :3]
+    out[:, :3, 3] = transform_points(S, out[:, :3, 3])
+    return out
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True, weights: np.ndarray | None = None) -> np.ndarray:
     """Least-squares similarity (or rigid) transform ``dst_from_src`` (Umeyama 1991, eqs. 34-43).
 

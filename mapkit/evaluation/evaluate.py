@@ -29,7 +29,7 @@ import numpy as np
 
 from mapkit.core.errors import ConfigError, InputError, MapkitError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad, sim3_scale, transform_points, umeyama
+from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad, sim3_scale, transform_points, transform_poses, umeyama
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
@@ -180,7 +180,7 @@ def compare_trajectories(est_stamps_ns: np.ndarray, est_poses: np.ndarray, truth
                         "nearest_dt_max_s": float(a.nearest_dt_s.max()) if len(a.nearest_dt_s) else None},
     }
     S = np.eye(4) if align == "none" else umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=align == "sim3")
-    aligned = _apply_sim3(S, est)
+    aligned = transform_poses(S, est)
     scale = sim3_scale(S)
     out["alignment"] = {"mode": align, "truth_from_estimate": S, "scale": scale,
                         "rotation_deg": float(np.degrees(rotation_angle_rad(S[:3, :3] / scale))),
@@ -202,15 +202,6 @@ def _clock_hint(truth_ns: np.ndarray, est_ns: np.ndarray) -> str:
 
 #: stamps below this (about 11.6 days) count from a drive's start, not from the epoch
 _RELATIVE_NS = 10**6 * 10**9
-
-
-def _apply_sim3(S: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Poses moved by a similarity: rotated and translated, positions scaled (rotations stay rotations)."""
-    scale = sim3_scale(S)
-    out = poses.copy()
-    out[:, :3, :3] = (S[:3, :3] / scale) @ poses[:, :3, :3]
-    out[:, :3, 3] = poses[:, :3, 3] @ S[:3, :3].T + S[:3, 3]
-    return out
 
 
 def _straight(positions: np.ndarray) -> bool:

@@ -6,10 +6,10 @@ dependency of one reader never breaks the others.
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 from mapkit.core.errors import InputError
+from mapkit.core.registry import load_entry
 from mapkit.io.base import DriveLog
 
 #: reader name -> "module:Class"; each class has ``detect(path) -> bool``
@@ -27,8 +27,7 @@ READERS: dict[str, str] = {
 def reader_class(name: str) -> type[DriveLog]:
     if name not in READERS:
         raise InputError(None, f"unknown log format {name!r}; known: {', '.join(READERS)}", field="format")
-    module, cls = READERS[name].split(":")
-    return getattr(importlib.import_module(module), cls)
+    return load_entry(READERS[name])
 
 
 def _rosbag2_reader(folder: Path) -> str:

@@ -45,10 +45,10 @@ from scipy.spatial.transform import Rotation
 from mapkit.core.config import MapkitConfig, TopicConfig, dump_config, load_config, resolve_topics
 from mapkit.core.errors import InputError, InputWarning, MapkitError
 from mapkit.core.executor import Executor, TaskError, get_executor
+from mapkit.core.fingerprint import describe_change, log_fingerprint
 from mapkit.core.frames import FrameTree
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import interpolate_poses, sim3_scale, transform_points
-from mapkit.core.fingerprint import describe_change, log_fingerprint
+from mapkit.core.geometry import interpolate_poses, transform_points, transform_poses
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, reset_stage, stage_digest, write_json
 from mapkit.core.types import CameraFrame, CameraInfo, GpsFix, StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
@@ -245,11 +245,7 @@ class SessionBuilder:
         enu_from_map = np.eye(4) if al is None else al.enu_from_map
         result["enu_from_map"] = enu_from_map
         # the aligned trajectory: rigid poses in ENU (the similarity's scale goes into positions)
-        R = enu_from_map[:3, :3] / sim3_scale(enu_from_map)
-        enu_traj = traj.world_from_base.copy()
-        enu_traj[:, :3, :3] = R @ traj.world_from_base[:, :3, :3]
-        enu_traj[:, :3, 3] = (enu_from_map[:3, :3] @ traj.world_from_base[:, :3, 3].T).T + enu_from_map[:3, 3]
-        aligned = Trajectory(traj.stamps_ns, enu_traj, traj.source, frame="enu" if al is not None else traj.frame,
+        aligned = Trajectory(traj.stamps_ns, transform_poses(enu_from_map, traj.world_from_base), traj.source, frame="enu" if al is not None else traj.frame,
                              body_frame=traj.body_frame)
         aligned.save(self.dirs.georef_trajectory)
         result.update(_length(aligned, georeferenced=al is not None))

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Optional
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import interpolate_poses, make_sim3, sim3_scale, transform_points, umeyama, yaw_rotation
@@ -107,12 +108,6 @@ def associate_fixes(
     return antenna, ok
 
 
-def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rotation by ``angle`` about the unit vector ``axis`` (Rodrigues)."""
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
-
-
 def _principal_axis(points: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(weighted centroid, unit direction of largest weighted spread)."""
     wn = w / w.sum()
@@ -133,7 +128,7 @@ def _roll_from_up(T: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray
     g_perp = g - (g @ a) * a
     if np.linalg.norm(u_perp) < 1e-9 or np.linalg.norm(g_perp) < 1e-9:
         return T  # the hint (or up) lies along the path: it says nothing about the roll
-    R = R @ _axis_rotation(a, float(np.arctan2(a @ np.cross(u_perp, g_perp), u_perp @ g_perp)))
+    R = R @ Rotation.from_rotvec(a * float(np.arctan2(a @ np.cross(u_perp, g_perp), u_perp @ g_perp))).as_matrix()
     wn = w / w.sum()
     mu_d = wn @ dst
     xs, xd = src - mu_s, dst - mu_d
