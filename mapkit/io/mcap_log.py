@@ -455,9 +455,10 @@ class _McapFile:
         head = self._chunk_at(seg.offset, seg.length)
         if head.uncompressed_size > MAX_CHUNK_BYTES:
             raise _Damage(seg.offset, f"the chunk claims {head.uncompressed_size} bytes uncompressed (more than {MAX_CHUNK_BYTES})")
+        compressed = bytes(self._map[head.data_at:head.data_at + head.data_len])
+        self._release(head.data_at, head.data_at + head.data_len)
         try:
-            data = _decompress(head.compression, bytes(self._map[head.data_at:head.data_at + head.data_len]),
-                               head.uncompressed_size, seg.offset)
+            data = _decompress(head.compression, compressed, head.uncompressed_size, seg.offset)
         except _PARSE_ERRORS as exc:
             raise _Damage(seg.offset, f"the chunk does not decompress ({type(exc).__name__}: {exc})") from None
         if self.validate_crcs and head.crc and zlib.crc32(data) != head.crc:
@@ -472,6 +473,15 @@ class _McapFile:
         except _Damage as exc:
             return messages, exc
         return messages, None
+
+    def _release(self, start: int, end: int) -> None:
+        """Hand the mapped pages of ``[start, end)`` back to the kernel once their bytes are copied out: the
+        pages of a mapped file stay in the process's memory once touched, which would make a reader's
+        peak memory grow with the log's length. (They stay in the page cache; reading them again is exact.)"""
+        if hasattr(mmap, "MADV_DONTNEED"):
+            first = start - start % mmap.PAGESIZE
+            if end > first:
+                self._map.madvise(mmap.MADV_DONTNEED, first, end - first)
 
     def raw(self, topics: Optional[set[str]], on_damage: Callable[[_Damage], None]) -> Iterator[tuple[Any, Any, McapMessage]]:
         """(schema, channel, message) in log-time order; damaged segments go to ``on_damage`` and are skipped."""
