@@ -292,3 +292,52 @@ def test_imagedb_false_and_map_false_skip_those_stages_without_a_warning(tmp_pat
     assert is_done(s.georef) and not s.map.exists() and not s.imagedb.exists()
     st = json.loads((ws / "metrics.json").read_text())["sessions"]["two_cams"]["stages"]
     assert st["semidense"] == {"skipped": "map: false in the config"} and st["imagedb"] == {"skipped": "imagedb: false in the config"}
+
+
+def test_image_database_at_2hz_keeps_the_frames_it_skips_for_encoder_training(tmp_path):
+    """MCVL's database is its training drives sub-sampled to 2 Hz (Sec. IV-B): from a 10 Hz camera
+    ``min_interval_s: 0.5`` keeps every fifth frame; with ``training_frames`` the skipped ones (at
+    most one per ``training_interval_s``) go to training.csv, disjoint from the database."""
+    log = _two_camera_log(tmp_path / "two_cams.mcap", front_grey=60, rear_grey=190)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nmap: false\n"
+                   "imagedb:\n  min_spacing_m: 0.0\n  min_interval_s: 0.5\n  training_frames: true\n  training_interval_s: 0.2\n"
+                   "  image_format: png\n")
+    with pytest.warns(InputWarning, match="no GPS stream"):
+        ws = build([log], tmp_path / "ws", config=cfg, progress=False)
+    s = Workspace(ws).session("two_cams")
+    db, training = read_images_csv(s.images_csv), read_images_csv(s.training_csv)
+    stamp = [T0 + i * 100_000_000 for i in range(20)]
+    assert db["stamp_ns"].tolist() == [stamp[i] for i in (1, 6, 11, 16)]
+    assert training["stamp_ns"].tolist() == [stamp[i] for i in (3, 5, 8, 10, 13, 15, 18)]
+    assert all(rel.startswith("training/") and (s.imagedb / rel).is_file() for rel in training["image"])
+    # the training frames keep their poses: 0.5 m a frame along x
+    np.testing.assert_allclose(training["x_m"], [0.5 * i + 1.0 for i in (3, 5, 8, 10, 13, 15, 18)], atol=1e-9)
+    assert json.loads((s.imagedb / "metrics.json").read_text())["training_frames"] == 7
+
+
+def test_per_session_overrides_sub_sample_the_database_drives_and_leave_the_query_drives(tmp_path):
+    """One build of database and query drives, as MCVL's: ``sessions: {"train-*": ...}`` puts the
+    training drives' database at 2 Hz with their training frames; the query drive keeps every frame."""
+    logs = [_two_camera_log(tmp_path / f"{name}.mcap", front_grey=60, rear_grey=190) for name in ("train-x", "test-y")]
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nmap: false\n"
+                   "imagedb:\n  min_spacing_m: 0.0\n  image_format: png\n"
+                   "sessions:\n  'train-*':\n    imagedb:\n      min_interval_s: 0.5\n      training_frames: true\n")
+    with pytest.warns(InputWarning, match="no GPS stream"):
+        ws = Workspace(build(logs, tmp_path / "ws", config=cfg, progress=False))
+    train, test = ws.session("train-x"), ws.session("test-y")
+    assert len(read_images_csv(train.images_csv)["stamp_ns"]) == 4 and len(read_images_csv(train.training_csv)["stamp_ns"]) == 14
+    assert len(read_images_csv(test.images_csv)["stamp_ns"]) == 18 and not test.training_csv.exists()
+    import yaml
+
+    resolved = yaml.safe_load(train.config.read_text())
+    assert resolved["imagedb"]["min_interval_s"] == 0.5 and resolved["imagedb"]["min_spacing_m"] == 0.0
+    assert yaml.safe_load(test.config.read_text())["imagedb"]["min_interval_s"] == 0.0
+
+
+def test_a_misspelt_per_session_override_is_one_error_naming_it(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("sessions:\n  'train-*':\n    imagedb:\n      min_intervall_s: 0.5\n")
+    with pytest.raises(ConfigError, match=r"sessions\.train-\*\.imagedb\.min_intervall_s"):
+        build([tmp_path / "none.mcap"], tmp_path / "ws", config=cfg, progress=False)

@@ -152,7 +152,8 @@ def test_manifest_records_sessions_frame_and_every_file(built):
     assert metrics["images_encoded_per_s"] > 0
     # what the PCA-whitening learned on: 16 images of the two database sessions, 12 of 15 possible dimensions
     pca = {"dim": 12, "training_vectors": 16, "whitening": "power", "power": 0.5, "shrinkage": 0.0, "dim_requested": 12,
-           "rank_limited": False, "training_sessions": {"train-a": PLACES, "train-b": PLACES}, "training_vectors_in_database": 16}
+           "rank_limited": False, "training_sessions": {"train-a": PLACES, "train-b": PLACES}, "training_vectors_in_database": 16,
+           "training_vectors_from_training_frames": 0}
     assert m["vlad"]["pca"] == pca and metrics["pca"] == pca
 
 
@@ -355,3 +356,47 @@ def test_real_kitti_clip_neighbours_are_adjacent_frames(kitti_clip):
     assert np.median(gaps) <= 5, res["histogram"]
     assert np.mean(gaps <= 10) >= 0.8, res["histogram"]
     assert res["median_distance_m"] < 8.0
+
+
+def add_training_frames(ws: Path, session: str, source: str) -> int:
+    """Give ``session``'s image database training frames (``imagedb.training_frames``): the places
+    as ``source`` sees them, images that are not in any database."""
+    _, change = SESSIONS[source]
+    folder = ws / "sessions" / session / "imagedb"
+    (folder / "training" / "cam").mkdir(parents=True, exist_ok=True)
+    rel = [f"training/cam/{p:03d}.png" for p in range(PLACES)]
+    for p, r in enumerate(rel):
+        cv2.imwrite(str(folder / r), place_image(p, change))
+    poses = np.stack([place_pose(p, SESSIONS[source][0]) for p in range(PLACES)])
+    write_images_csv(folder / "training.csv", np.arange(1, PLACES + 1), 500_000_000 + 1_000_000_000 * np.arange(PLACES),
+                     ["cam"] * PLACES, rel, poses, FRAME)
+    return PLACES
+
+
+def test_training_frames_give_the_pca_more_than_the_database(tmp_path, built):
+    """Issue #20: the PCA learns also on the frames the build kept beside the database. Asked for 12
+    dimensions, learned on the 8 database images alone, full whitening has 7 and makes them
+    equidistant; with 8 training frames of the same places it has more vectors than dimensions (all
+    12, not rank-limited), the database keeps its structure, and queries of a third appearance
+    still find their place."""
+    ws = Path(shutil.copytree(built[0], tmp_path / "ws"))
+    shutil.rmtree(ws / "indexes")
+    add_training_frames(ws, "train-a", "extra-d")
+    vlad = SMALL_VLAD.model_copy(update={"whitening": "full"})
+    cfg = small_config(database_sessions=["train-a"], train_sessions=["train-a"], vlad=vlad)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # 12 dimensions capped at 7 without the frames
+        without = VladIndex.load(build_vlad_index(ws, tmp_path / "db-only", cfg.model_copy(update={"training_frames": False}),
+                                                  progress=False))
+        with_frames = VladIndex.load(build_vlad_index(ws, tmp_path / "frames", cfg, progress=False))
+    pca0, pca1 = without.manifest["vlad"]["pca"], with_frames.manifest["vlad"]["pca"]
+    assert (pca0["dim"], pca0["training_vectors"], pca0["training_vectors_from_training_frames"]) == (PLACES - 1, PLACES, 0)
+    assert (pca1["dim"], pca1["training_vectors"], pca1["training_vectors_from_training_frames"]) == (12, 2 * PLACES, PLACES)
+    assert pca0["rank_limited"] is True and pca1["rank_limited"] is False
+    assert pca1["training_vectors_in_database"] == PLACES and len(with_frames) == PLACES  # the frames are not indexed
+    np.testing.assert_allclose(pairwise_sq(without.vectors())[~np.eye(PLACES, dtype=bool)], 2 * PLACES / (PLACES - 1), rtol=1e-4)
+    sq = pairwise_sq(with_frames.vectors())[~np.eye(PLACES, dtype=bool)]
+    assert sq.std() / sq.mean() > 0.05
+    _, change = SESSIONS["test-c"]
+    for place in range(PLACES):
+        assert with_frames.query(place_image(place, change)).ids[0] == place

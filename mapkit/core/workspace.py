@@ -13,7 +13,8 @@ A workspace holds one folder per drive (session) and the multi-session stages bu
         trajectory/               odometry (trajectory.npz, TUM, KITTI)
         georef/                   GPS-aligned trajectory_enu/, gps_alignment.json
         map/                      semi-dense map: points.ply, observations.npz
-        imagedb/                  images/, images.csv, colmap/, camera_mount.json
+        imagedb/                  images/, images.csv, colmap/, camera_mount.json;
+                                  training/, training.csv: frames the database skipped (encoder training)
       align/                      mapkit align; .done lists the sessions it holds
         sessions/<name>/          trajectory/, map/, images.csv in the common frame
         tiles/                    merged map in UTM tiles
@@ -102,6 +103,12 @@ class SessionDirs:
     @property
     def images_csv(self) -> Path:
         return self.imagedb / "images.csv"
+
+    @property
+    def training_csv(self) -> Path:
+        """The frames the image database skipped but kept for learning the retrieval encoder
+        (``imagedb.training_frames``; images under ``imagedb/training/``)."""
+        return self.imagedb / "training.csv"
 
     @property
     def camera_mount(self) -> Path:

@@ -34,15 +34,16 @@ import logging
 import time
 import warnings
 from dataclasses import replace
+from fnmatch import fnmatchcase
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterator, Literal, Optional
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 from scipy.spatial.transform import Rotation
 
-from mapkit.core.config import MapkitConfig, TopicConfig, dump_config, load_config, resolve_topics
+from mapkit.core.config import MapkitConfig, TopicConfig, deep_merge, dump_config, load_config, resolve_topics
 from mapkit.core.errors import InputError, InputWarning, MapkitError
 from mapkit.core.executor import Executor, TaskError, get_executor
 from mapkit.core.fingerprint import describe_change, log_fingerprint
@@ -108,10 +109,46 @@ class BuildConfig(MapkitConfig):
     camera: Optional[str] = Field(None, description="Camera (frame id) to map with; if unset, the first one (by name) with "
                                   "intrinsics, of those on topics.images when that is set.")
 
+    sessions: dict[str, dict] = Field(
+        default_factory=dict,
+        description="Per-session overrides: a glob of session names -> settings of this config for the sessions it matches, "
+        "applied in order. MCVL's database is its training drives at 2 Hz while its queries stay at 4 Hz (Sec. IV-B): "
+        "{'train-*': {imagedb: {min_interval_s: 0.5, training_frames: true}}}.",
+    )
+
     @field_validator("imagedb", mode="before")
     @classmethod
     def _imagedb_switch(cls, v):
         return {"enabled": v} if isinstance(v, bool) else v
+
+    @model_validator(mode="after")
+    def _session_overrides_are_valid(self):
+        for pattern, override in self.sessions.items():
+            if "sessions" in override:
+                raise ValueError(f"sessions.{pattern}: a session's overrides cannot hold per-session overrides")
+            try:
+                self._merged(override)
+            except ValidationError as exc:
+                err = exc.errors()[0]
+                raise ValueError(f"sessions.{pattern}.{'.'.join(str(p) for p in err['loc'])}: {err['msg']}") from None
+        return self
+
+    def _merged(self, override: dict) -> "BuildConfig":
+        return BuildConfig.model_validate(deep_merge(self.model_dump(mode="json", exclude_unset=True, exclude={"sessions"}), override))
+
+    def for_session(self, name: str) -> "BuildConfig":
+        """The config session ``name`` is built with: this one with the overrides of every pattern of
+        ``sessions`` that matches the name, in order (itself when none does)."""
+        matching = [o for pattern, o in self.sessions.items() if fnmatchcase(name, pattern)]
+        if not matching:
+            return self
+        cfg = self
+        for override in matching:
+            cfg = cfg._merged(override)
+        return cfg
+
+
+_IMAGEDB_LATER_DEFAULTS = {"min_interval_s": 0.0, "training_frames": False, "training_interval_s": 0.0}
 
 
 def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
@@ -122,6 +159,10 @@ def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     # the image database's switch decides whether it runs, not what it holds: stages finished before
     # the switch existed stay finished
     d["imagedb"].pop("enabled")
+    # ... and so do those finished before the image database could sub-sample by time or keep training frames
+    for key, default in _IMAGEDB_LATER_DEFAULTS.items():
+        if d["imagedb"].get(key) == default:
+            d["imagedb"].pop(key)
     return config_hash({p: d.get(p) for p in parts})
 
 
@@ -138,9 +179,9 @@ class SessionBuilder:
         self.log_path = Path(log_path)
         self.ws = Workspace(workspace)
         self.workspace = self.ws.root
-        self.cfg = cfg
         self.progress = progress
         self.name = name or session_name(self.log_path)
+        self.cfg = cfg.for_session(self.name)
         self.dirs: SessionDirs = self.ws.session(self.name)
         self.dir = self.dirs.root
         self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
@@ -521,16 +562,26 @@ class SessionBuilder:
         writer = ImageDbWriter(out, self.cfg.imagedb, {name: info})
         metric = self.metric()
         # a spacing in metres means nothing at a reconstruction's arbitrary scale: every registered frame is kept
-        min_spacing = self.cfg.imagedb.min_spacing_m if metric else 0.0
-        last = None
+        dbc = self.cfg.imagedb
+        min_spacing = dbc.min_spacing_m if metric else 0.0
+        # a tenth of an interval's slack for the jitter of real camera stamps (2 Hz from a 4 Hz camera is every other frame)
+        min_interval_ns, training_interval_ns = dbc.min_interval_s * 0.9e9, dbc.training_interval_s * 0.9e9
+        last, last_ns, last_stored_ns = None, None, None
         db_id_of_frame: dict[int, int] = {}
         for i, frame, T in self.posed_frames(decode=False):  # only the frames kept are decoded
-            if last is not None and np.linalg.norm(T[:3, 3] - last) < min_spacing or not self.decodes(frame, i):
+            in_db = last is None or (np.linalg.norm(T[:3, 3] - last) >= min_spacing and frame.stamp_ns - last_ns >= min_interval_ns)
+            if not in_db and not (dbc.training_frames and frame.stamp_ns - last_stored_ns >= training_interval_ns):
                 continue
-            last = T[:3, 3]
-            im = writer.add(frame.stamp_ns, name, frame.image, T, frame.encoding)
-            db_id_of_frame[i] = im.image_id
+            if not self.decodes(frame, i):
+                continue
+            im = writer.add(frame.stamp_ns, name, frame.image, T, frame.encoding, training=not in_db)
+            last_stored_ns = frame.stamp_ns
+            if in_db:
+                last, last_ns = T[:3, 3], frame.stamp_ns
+                db_id_of_frame[i] = im.image_id
         m: dict = {"images": len(writer.images), "pose_units": "m" if metric else ARBITRARY_UNITS}
+        if dbc.training_frames:
+            m["training_frames"] = len(writer.training)
         if not metric:
             m["note"] = ("not georeferenced: poses (images.csv x_m/y_m/z_m, colmap/) are in the reconstruction's arbitrary "
                          "units, and imagedb.min_spacing_m was not applied")

@@ -5,6 +5,12 @@ as a COLMAP reconstruction (cameras, rigs, frames, images with poses and, when a
 its points with their tracks) plus ``images.csv`` with timestamp, image path, lat, lon, alt,
 easting, northing, up and the camera orientation quaternion. Images are stored once, optionally
 downscaled (intrinsics scaled with them).
+
+MCVL records its training drives at the camera's rate and keeps 2 Hz of them as the database
+(Sec. IV-B): ``min_interval_s`` sub-samples by time beside ``min_spacing_m``'s distance. With
+``training_frames`` the frames the database skips are kept too (``training/`` and
+``training.csv``, same columns), as images the retrieval encoder learns its vocabulary and
+PCA-whitening from that are not database images (:mod:`mapkit.retrieval.vlad_build`).
 """
 
 from __future__ import annotations
@@ -37,6 +43,15 @@ class ImageDbConfig(MapkitConfig):
     min_spacing_m: float = Field(
         0.5, description="Keep a frame when the camera moved this far since the last kept one (MCVL sub-sampled its training sequences to 2 Hz; spacing is rate-independent)."
     )
+    min_interval_s: float = Field(
+        0.0, ge=0, description="... and at least this long after the last kept one (s; 0 = no time limit). MCVL's database is its "
+        "training drives sub-sampled to 2 Hz (Sec. IV-B): 0.5 with a faster camera. A tenth of it is slack for stamp jitter."
+    )
+    training_frames: bool = Field(
+        False, description="Also store the frames the database skips (training/ and training.csv, at most one per "
+        "training_interval_s): images the retrieval encoder (vocabulary, PCA-whitening) learns from beside the database's."
+    )
+    training_interval_s: float = Field(0.0, ge=0, description="A skipped frame becomes a training frame at least this long after the last frame stored (s).")
     downscale: int = Field(1, ge=1, le=8, description="Store images downscaled by this integer factor (intrinsics scaled too).")
     image_format: Literal["png", "jpg"] = Field("jpg", description="Stored image format; jpg at quality 95 keeps databases small.")
     jpeg_quality: int = Field(95, ge=50, le=100)
@@ -82,9 +97,12 @@ class ImageDbWriter:
         self.cfg = cfg
         self.infos = {name: scaled_info(info, cfg.downscale) for name, info in infos.items()}
         self.images: list[DbImage] = []
+        self.training: list[DbImage] = []  # frames the database skipped, kept for encoder training
         (self.folder / "images").mkdir(parents=True, exist_ok=True)
 
-    def add(self, stamp_ns: int, camera: str, image: np.ndarray, world_from_cam: np.ndarray, encoding: str = "mono8") -> DbImage:
+    def add(self, stamp_ns: int, camera: str, image: np.ndarray, world_from_cam: np.ndarray, encoding: str = "mono8",
+            training: bool = False) -> DbImage:
+        """Store one image: a database image, or with ``training`` a training frame (not in the database)."""
         if camera not in self.infos:
             raise InputError(None, f"camera {camera!r} has no intrinsics (CameraInfo)", field="camera_info")
         if self.cfg.downscale > 1:
@@ -96,10 +114,11 @@ class ImageDbWriter:
         ok, buf = cv2.imencode(f".{ext}", image, params)
         if not ok:
             raise InputError(None, f"could not encode image of {camera} at {stamp_ns}")
-        rel = f"images/{camera}/{stamp_ns}.{ext}"
+        kept = self.training if training else self.images
+        rel = f"{'training' if training else 'images'}/{camera}/{stamp_ns}.{ext}"
         atomic_write_bytes(self.folder / rel, buf.tobytes())
-        img = DbImage(len(self.images) + 1, int(stamp_ns), camera, rel, np.asarray(world_from_cam, np.float64))
-        self.images.append(img)
+        img = DbImage(len(kept) + 1, int(stamp_ns), camera, rel, np.asarray(world_from_cam, np.float64))
+        kept.append(img)
         return img
 
     def close(
@@ -109,7 +128,8 @@ class ImageDbWriter:
         point_observers: Optional[tuple[np.ndarray, np.ndarray]] = None,
         point_colors: Optional[np.ndarray] = None,
     ) -> Path:
-        """Write ``images.csv`` and the COLMAP reconstruction ``colmap/``.
+        """Write ``images.csv`` (and ``training.csv`` when training frames are kept) and the COLMAP
+        reconstruction ``colmap/``.
 
         ``point_observers`` is CSR (indptr, image_ids) of database image ids observing each point.
         """
@@ -118,9 +138,11 @@ class ImageDbWriter:
         return self.folder
 
     def _write_csv(self, frame: Optional[LocalFrame]) -> None:
-        T = np.stack([im.world_from_cam for im in self.images]) if self.images else np.zeros((0, 4, 4))
-        write_images_csv(self.folder / "images.csv", [im.image_id for im in self.images], [im.stamp_ns for im in self.images],
-                         [im.camera for im in self.images], [im.relpath for im in self.images], T, frame)
+        tables = [("images.csv", self.images)] + ([("training.csv", self.training)] if self.cfg.training_frames else [])
+        for name, images in tables:
+            T = np.stack([im.world_from_cam for im in images]) if images else np.zeros((0, 4, 4))
+            write_images_csv(self.folder / name, [im.image_id for im in images], [im.stamp_ns for im in images],
+                             [im.camera for im in images], [im.relpath for im in images], T, frame)
 
     def _write_colmap(self, points_world, observers, colors) -> None:
         import pycolmap

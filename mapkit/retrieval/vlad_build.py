@@ -10,7 +10,8 @@ learns on the database itself, usually on fewer images than the 4096 dimensions 
 the dimension is then n - 1 and ``vlad.whitening`` must be regularised (the default, 'power')
 rather than full, which would make the database images equidistant (see :mod:`mapkit.retrieval.vlad`).
 Sessions beyond the database named in ``train_sessions`` give the PCA images the database does not
-hold. The manifest's ``vlad.pca`` (and ``metrics.json``'s ``pca``) records what it learned on. The bundle is written into a partial folder and renamed into place
+hold, and so do the frames a build kept beside each training session's database
+(``imagedb.training_frames``, used unless ``training_frames: false``). The manifest's ``vlad.pca`` (and ``metrics.json``'s ``pca``) records what it learned on. The bundle is written into a partial folder and renamed into place
 (:func:`mapkit.core.bundle.building`). See :mod:`mapkit.retrieval.index_vlad` for the layout.
 """
 
@@ -51,7 +52,7 @@ from mapkit.retrieval.vlad_bundle import (
 )
 from mapkit.retrieval.vlad_encoding import _PCA_BATCH, _faiss_threads, _map, _raw_task, _sample_task, encode_images
 
-Ref = tuple[str, int]  # (session, row of its image table)
+Ref = tuple[str, int]  # (session, row of its image table; rows past its end are its training frames)
 
 
 def _uniform_subset(n: int, size: int, seed: int, salt: int) -> np.ndarray:
@@ -111,6 +112,8 @@ def _read_sessions(ws: Workspace, cfg: VladIndexConfig, db_names: list[str], tra
     sessions = {n: read_session_images(ws, n, cfg.prefer_aligned_poses) for n in dict.fromkeys(db_names + train_names)}
     for n, s in sessions.items():  # an image table edited since its stage wrote it is refused, naming the stage to re-run
         verify_file(s.csv_path, "mapkit align" if ws.align_dir in Path(s.csv_path).parents else f"mapkit build (session {n})")
+        if s.training_csv is not None and cfg.training_frames and n in train_names:
+            verify_file(s.training_csv, f"mapkit build (session {n})")
     for field, names, least in (("database_sessions", db_names, 1), ("train_sessions", train_names, 2)):
         n_images = sum(len(sessions[n]) for n in names)
         if n_images < least:
@@ -125,6 +128,9 @@ def _build_hash(cfg: VladIndexConfig, db_names: list[str], train_names: list[str
     """What the bundle's vectors and index depend on: the config (not its query-time settings), the
     sessions and their tables (by checksum), the frame."""
     inputs = {n: [s.pose_source, sha256_file(s.csv_path)] for n, s in sessions.items()}
+    for n in train_names:  # the training frames count only where they are learned from: bundles without any stay valid
+        if cfg.training_frames and sessions[n].training_paths:
+            inputs[n].append(sha256_file(sessions[n].training_csv))
     return config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
                         "database": db_names, "train": train_names, "tables": inputs,
                         "frame": None if frame is None else frame.to_dict()})
@@ -189,8 +195,10 @@ class _Learned:
 def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], train_names: list[str], executor: Executor,
                    progress: bool, timings: dict[str, float]) -> _Learned:
     """1. vocabulary (k-means on descriptors drawn evenly from the vocabulary images), 2. PCA-whitening
-    on the raw VLADs of the training images (every image of the training sessions, uniformly subsampled)."""
-    train_refs = [(n, i) for n in train_names for i in range(len(sessions[n]))]
+    on the raw VLADs of the training images (every image of the training sessions, uniformly subsampled):
+    their database images and, with ``training_frames``, the frames kept beside the database."""
+    extra = {n: len(sessions[n].training_paths) if cfg.training_frames else 0 for n in train_names}
+    train_refs = [(n, i) for n in train_names for i in range(len(sessions[n]) + extra[n])]
     if len(train_refs) < 2:
         raise InputError(sessions[train_names[0]].csv_path, f"{len(train_refs)} training image(s): the PCA needs at least 2", field="train_sessions")
     train_sel = [train_refs[i] for i in _uniform_subset(len(train_refs), cfg.max_training_images, cfg.seed, 1)]
@@ -260,7 +268,7 @@ def _encode_database(learned: _Learned, sessions: dict[str, SessionImages], db_n
 
 
 def _path_of(sessions: dict[str, SessionImages], ref: Ref) -> str:
-    return str(sessions[ref[0]].image_paths[ref[1]])
+    return str(sessions[ref[0]].path(ref[1]))
 
 
 def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str],
@@ -292,7 +300,7 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
         "training_images": n_train,
         "vocabulary_images": learned.vocab_images,
         "vocabulary_descriptors": learned.vocab_descriptors,
-        "pca": _pca_record(cfg, learned, db_names),
+        "pca": _pca_record(cfg, learned, sessions, db_names),
         "executor": executor.kind,
         "workers": executor.workers,
         **timings,
@@ -334,7 +342,7 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
         "added_sessions": [],
         "vlad": {"raw_dim": encoder.raw_dim, "dim": encoder.pca.dim, "pca_dim_requested": cfg.vlad.pca_dim,
                  "training_images": len(learned.train_sel), "vocabulary_images": learned.vocab_images,
-                 "pca": _pca_record(cfg, learned, db_names)},
+                 "pca": _pca_record(cfg, learned, sessions, db_names)},
         "index": index_info,
         "entries": entries,
     }
@@ -343,18 +351,22 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
 # --------------------------------------------------------------------------- the index and the config
 
 
-def _pca_record(cfg: VladIndexConfig, learned: _Learned, db_names: list[str]) -> dict:
+def _pca_record(cfg: VladIndexConfig, learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str]) -> dict:
     """What the PCA-whitening learned on and how it scales its directions, for the manifest and metrics:
-    training vectors per session, how many of them are database images, output dimension (asked
+    training vectors per session, how many of them are database images and how many training frames, output dimension (asked
     for and got: at most n - 1), whitening (mode, power, shrinkage)."""
     pca = learned.encoder.pca
     per_session: dict[str, int] = {}
-    for name, _ in learned.train_sel:
+    in_database = training_frames = 0
+    for name, row in learned.train_sel:
         per_session[name] = per_session.get(name, 0) + 1
+        is_frame = row >= len(sessions[name])
+        training_frames += is_frame
+        in_database += name in db_names and not is_frame
     n = len(learned.train_sel)
     return {**pca.describe(), "training_vectors": n, "dim_requested": cfg.vlad.pca_dim, "rank_limited": pca.dim >= n - 1,
-            "training_sessions": per_session,
-            "training_vectors_in_database": sum(c for name, c in per_session.items() if name in db_names)}
+            "training_sessions": per_session, "training_vectors_in_database": in_database,
+            "training_vectors_from_training_frames": training_frames}
 
 
 def make_index(vectors: np.ndarray, cfg: VladIndexConfig):

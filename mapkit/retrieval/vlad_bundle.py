@@ -10,7 +10,7 @@ import csv
 import io
 import json
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal, Optional
@@ -80,6 +80,11 @@ class VladIndexConfig(MapkitConfig):
         "database itself, which is why vlad.whitening is regularised by default). Sessions beyond the database give the PCA "
         "images the database does not hold. Never the query sessions.",
     )
+    training_frames: bool = Field(
+        True,
+        description="The vocabulary and PCA learn also from the frames the training sessions' image databases skipped and kept "
+        "for this (mapkit build's imagedb.training_frames): images that are not database images (issue 20).",
+    )
     database_sessions: Optional[list[str]] = Field(None, description="Sessions whose images are indexed. None = every session in the workspace.")
     prefer_aligned_poses: bool = Field(
         True,
@@ -120,9 +125,17 @@ class SessionImages:
     workspace_paths: list[str]  # relative to the workspace, as written to database.csv
     world_from_cam: np.ndarray  # (n, 4, 4) local ENU
     base_from_camera: Optional[np.ndarray] = None  # (4, 4) the camera's mount, when the build recorded it
+    training_csv: Optional[Path] = None  # the frames the database skipped, kept for encoder training (imagedb.training_frames)
+    training_paths: list[Path] = field(default_factory=list)
 
     def __len__(self) -> int:
+        """Database images (training frames not counted)."""
         return len(self.image_paths)
+
+    def path(self, row: int) -> Path:
+        """Row ``row`` of the database images followed by the training frames."""
+        n = len(self.image_paths)
+        return self.image_paths[row] if row < n else self.training_paths[row - n]
 
 
 def workspace_sessions(workspace: str | Path) -> list[str]:
@@ -141,7 +154,10 @@ def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool =
     table = read_images_csv(csv_path)
     paths = [csv_path.parent / p for p in table["image"]]
     rel = [os.path.relpath(p, ws.root) for p in paths]
-    return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table), read_camera_mount(ws, name))
+    training_csv = ws.session(name).training_csv
+    training = [training_csv.parent / p for p in read_images_csv(training_csv)["image"]] if training_csv.is_file() else []
+    return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table), read_camera_mount(ws, name),
+                         training_csv if training_csv.is_file() else None, training)
 
 
 def read_camera_mount(workspace: str | Path, name: str) -> Optional[np.ndarray]:
