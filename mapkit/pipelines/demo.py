@@ -4,7 +4,8 @@ The chain, each stage the library's own entry point (re-running resumes: every s
 it already finished):
 
 1. ``synth``: the synthetic town and its sessions (ROS 2 MCAP logs with exact truth)
-2. ``build``: every session to a georeferenced semi-dense map and image database; eval build
+2. ``build``: every session to a georeferenced semi-dense map and image database
+   (``configs/build/demo.yaml``: the training drives' databases at MCVL's 2 Hz); eval build
 3. ``align``: all sessions in one frame (ICP of submaps, pose graph); eval align
 4. ``triplets``: the triplet patch dataset, with the true offsets of its positives
 5. ``index vlad``: the image retrieval index of the training sessions
@@ -176,7 +177,7 @@ def _condition(s: dict) -> str:
 def _build(d: Demo) -> None:
     with d.stage("build", "Session maps (mapkit build)") as sec:
         logs = session_logs(d.town)
-        build(logs, d.ws.root, progress=d.progress)
+        build(logs, d.ws.root, config=preset_path("build", "demo"), progress=d.progress)
         d.log(format_build_summary(d.ws.root))
         r = evaluate_build(d.ws, d.town)
         d.metrics["eval_build"] = r
