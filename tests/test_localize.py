@@ -178,6 +178,12 @@ def test_hit_recall_known_answer(tmp_path):
     gt = np.array([[0.0, 0, 0], [30.0, 0, 0], [500.0, 0, 0]])
     r = hit_recall(index, ids, gt, radius_m=5.0)
     assert r["recall_at_1"] == pytest.approx(1 / 3) and r["recall_at_3"] == pytest.approx(2 / 3)
+    # MCVL's recall@1/5/20: the right place fifth (x = 30 m) counts from @5 on
+    ids20 = np.array([[9, 8, 7, 6, 3] + [9] * 15, [0] * 20])
+    r = hit_recall(index, ids20, np.array([[30.0, 0, 0], [0.0, 0, 0]]), radius_m=5.0)
+    assert (r["recall_at_1"], r["recall_at_5"], r["recall_at_20"]) == (pytest.approx(0.5), pytest.approx(1.0), pytest.approx(1.0))
+    ids20[0, 4] = 9
+    assert hit_recall(index, ids20, np.array([[30.0, 0, 0], [0.0, 0, 0]]), radius_m=5.0)["recall_at_5"] == pytest.approx(0.5)
 
 
 def test_localize_log_writes_tum_poses_a_reader_takes_back(tmp_path):

@@ -314,6 +314,10 @@ class Workspace:
     def vlad_index(self) -> Path:
         return self.indexes_dir / "vlad"
 
+    def vlad_index_variant(self, name: str) -> Path:
+        """A second VLAD bundle built for comparison (``indexes/vlad-<name>``)."""
+        return self.indexes_dir / f"vlad-{name}"
+
     def structure_index(self, kind: str) -> Path:
         return self.indexes_dir / f"structure-{kind}"
 
