@@ -9,8 +9,19 @@ and with the mean offset removed, which is what the GPS bias leaves), the height
 drive (vertical error of the last tenth minus the first tenth; "offset removed" = after a yaw-only rigid fit
 to truth, as ``mapkit eval build``), the pitch error, the fraction of
 true positions inside their 95% ellipses (3-D chi-square, 7.815), and the seconds the graph takes
-(reading the IMU, gravity, the solve) against the build's trajectory stage of the same run. Also
-kiss-icp's drift against truth over 1 m steps: the rates the odometry noise model states.
+(preintegration or gravity, the solve, marginals) against the build's trajectory stage of the same run. Also
+kiss-icp's error against truth as the odometry model states it (per-pose jitter plus a random walk, per axis;
+:func:`odometry_noise_fit`): FactorGraphConfig's odometry defaults are tiny-sunny's fit.
+
+The IMU is preintegrated by default with the town's own IMU noise (``world/config.yaml``, ``imu:``:
+per-sample sigmas at ``rate_hz``, turned into densities; its constant biases' sigmas as the bias
+priors); ``--no-imu`` fuses with the gravity direction instead (the graph before issue 24's IMU),
+``--set`` overrides any FactorGraphConfig field after that.
+
+Slips: the spans where kiss-icp's motion over 1 s differs from the truth's by more than
+``--slip-m`` (evaluation side: found from the truth, never given to the graph); per span, the
+error of the displacement across it (padded by 0.5 s) for kiss-icp, the rigid fit and the graph,
+and the graph's largest offset-removed horizontal error inside it.
 """
 
 from __future__ import annotations
@@ -29,7 +40,7 @@ from mapkit.core.types import StreamKind
 from mapkit.core.workspace import Workspace
 from mapkit.evaluation.truth import session_truth, ws_from_town
 from mapkit.io import open_log
-from mapkit.mapping.factor_graph import FactorGraphConfig, GpsObservations, fuse_session, gravity_from_imu
+from mapkit.mapping.factor_graph import FactorGraphConfig, GpsObservations, ImuObservations, fuse_session, gravity_from_imu
 from mapkit.mapping.gps_align import fit_transform
 from mapkit.mapping.trajectory import Trajectory
 
@@ -84,33 +95,105 @@ def errors(stamps, poses, gt_stamps, gt_ws, covs=None) -> dict:
     return r
 
 
-def odometry_drift_rates(odom: Trajectory, gt_stamps, gt_ws, step_m: float = 1.0) -> tuple[float, float]:
-    """kiss-icp's drift per sqrt(metre) against truth: the RMS per-axis rotation and translation error of
-    relative motions over about ``step_m``, divided by sqrt(step)."""
-    gt, ok = interpolate_poses(gt_stamps, gt_ws, odom.stamps_ns)
-    est = odom.world_from_base[ok]
-    s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+def max_h_error(fused, gt_stamps, gt_ws, mask) -> float:
+    """Largest horizontal error of the fused poses in ``mask`` after the yaw-only rigid fit of the whole drive to truth."""
+    gt, ok = interpolate_poses(gt_stamps, gt_ws, fused.stamps_ns)
+    p = fused.enu_from_base[ok, :3, 3]
+    fix = fit_transform(p, gt[:, :3, 3], mode="yaw")
+    e = transform_points(fix, p) - gt[:, :3, 3]
+    m = mask[ok]
+    return float(np.max(np.linalg.norm(e[m, :2], axis=1))) if m.any() else float("nan")
+
+
+def odometry_noise_fit(odom: Trajectory, gt_stamps, gt_ws, steps_m=(0.5, 1, 2, 4, 8, 16, 32), skip_s: float = 3.0) -> dict:
+    """kiss-icp's error against truth as FactorGraphConfig models it: per-pose white jitter plus a random walk in the
+    distance driven. For each step length d, the robust (MAD) spread of the relative-motion error per axis (base frame:
+    rotation roll/pitch/yaw, translation x/y/z) is fitted by var(d) = 2 jitter^2 + walk^2 d (non-negative least squares).
+    The first and last ``skip_s`` are left out: starting from rest and the final braking are where kiss-icp slips,
+    which the robust loss handles, not the Gaussian."""
+    from scipy.optimize import nnls
     from scipy.spatial.transform import Rotation
 
-    rot, tr, d = [], [], []
-    for i in range(len(s)):
-        j = int(np.searchsorted(s, s[i] + step_m))
-        if j >= len(s):
-            break
-        E = invert_pose(invert_pose(gt[i]) @ gt[j]) @ (invert_pose(est[i]) @ est[j])
-        rot.append(Rotation.from_matrix(E[:3, :3]).as_rotvec())
-        tr.append(E[:3, 3])
-        d.append(s[j] - s[i])
-    d = np.asarray(d)
-    rot, tr = np.asarray(rot), np.asarray(tr)
-    return float(np.sqrt(np.mean(rot**2 / d[:, None]))), float(np.sqrt(np.mean(tr**2 / d[:, None])))
+    gt, ok = interpolate_poses(gt_stamps, gt_ws, odom.stamps_ns)
+    est = odom.world_from_base[ok]
+    t = (odom.stamps_ns[ok] - odom.stamps_ns[ok][0]) * 1e-9
+    use = (t > skip_s) & (t < t[-1] - skip_s)
+    s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    rows, var = [], []
+    for step in steps_m:
+        e = []
+        for i in np.nonzero(use)[0]:
+            j = int(np.searchsorted(s, s[i] + step))
+            if j >= len(s) or not use[j]:
+                continue
+            E = invert_pose(invert_pose(gt[i]) @ gt[j]) @ (invert_pose(est[i]) @ est[j])
+            e.append(np.concatenate([Rotation.from_matrix(E[:3, :3]).as_rotvec(), E[:3, 3]]))
+        if len(e) < 20:
+            continue
+        e = np.asarray(e)
+        mad = 1.4826 * np.median(np.abs(e - np.median(e, axis=0)), axis=0)
+        rows.append([2.0, step])
+        var.append(mad**2)
+    A, var = np.asarray(rows), np.asarray(var)
+    fit = np.array([nnls(A, var[:, k])[0] for k in range(6)])  # (6, 2): jitter^2, walk^2
+    return {"jitter": np.sqrt(fit[:, 0]).tolist(), "walk_per_sqrt_m": np.sqrt(fit[:, 1]).tolist()}
+
+
+def town_imu_config(town: Path) -> dict:
+    """FactorGraphConfig fields for the town's simulated IMU: white noise as densities (sigma / sqrt(rate)), its
+    constant per-session biases' sigmas as the bias priors. The biases are constant there, but the random walk stays
+    the library's (a trace over a drive; much less makes the bias chain's information 1e15 and the marginals singular)."""
+    c = yaml.safe_load((town / "world" / "config.yaml").read_text()).get("imu") or {}
+    if not c.get("enabled", False):
+        return {}
+    root = np.sqrt(float(c["rate_hz"]))
+    return {"imu_gyro_noise_density": float(c["gyro_noise_rad_s"]) / root,
+            "imu_accel_noise_density": float(c["accel_noise_m_s2"]) / root,
+            "imu_gyro_bias_sigma": max(float(c["gyro_bias_rad_s"]), 1e-6),
+            "imu_accel_bias_sigma": max(float(c["accel_bias_m_s2"]), 1e-6)}
+
+
+def slip_spans(odom: Trajectory, gt_stamps, gt_ws, slip_m: float, window_s: float = 1.0) -> list[tuple[int, int]]:
+    """Stamp spans (ns) where the odometry's relative motion over ``window_s`` misses the truth's by more than ``slip_m``."""
+    gt, ok = interpolate_poses(gt_stamps, gt_ws, odom.stamps_ns)
+    st, est = odom.stamps_ns[ok], odom.world_from_base[ok]
+    w = int(window_s * 1e9)
+    j = np.searchsorted(st, st + w)
+    bad = []
+    for i in np.nonzero(j < len(st))[0]:
+        e = (invert_pose(est[i]) @ est[j[i]])[:3, 3] - (invert_pose(gt[i]) @ gt[j[i]])[:3, 3]
+        if np.linalg.norm(e) > slip_m:
+            bad.append((int(st[i]), int(st[j[i]])))
+    spans: list[list[int]] = []
+    for a, b in bad:
+        if spans and a <= spans[-1][1]:
+            spans[-1][1] = max(spans[-1][1], b)
+        else:
+            spans.append([a, b])
+    return [(a, b) for a, b in spans]
+
+
+def slip_errors(span, trajectories: dict, gt_stamps, gt_ws, pad_s: float = 0.5) -> dict:
+    """Per trajectory: error (m) of its motion across the padded span against the truth's, in the span's first pose's
+    frame (so that the odometry's own frame compares)."""
+    a, b = span[0] - int(pad_s * 1e9), span[1] + int(pad_s * 1e9)
+    out = {}
+    for label, (stamps, poses) in trajectories.items():
+        q = np.clip(np.array([a, b], np.int64), max(stamps[0], gt_stamps[0]), min(stamps[-1], gt_stamps[-1]))
+        p, _ = interpolate_poses(stamps, poses, q)
+        gq, _ = interpolate_poses(gt_stamps, gt_ws, q)
+        out[label] = float(np.linalg.norm((invert_pose(p[0]) @ p[1])[:3, 3] - (invert_pose(gq[0]) @ gq[1])[:3, 3]))
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("workspace", type=Path)
     ap.add_argument("town", type=Path)
-    ap.add_argument("--no-gravity", action="store_true", help="Fuse GPS and odometry only.")
+    ap.add_argument("--no-gravity", action="store_true", help="Without the IMU: fuse GPS and odometry only.")
+    ap.add_argument("--no-imu", action="store_true", help="Do not preintegrate the IMU (its gravity direction only).")
+    ap.add_argument("--slip-m", type=float, default=0.5, help="A 1 s odometry motion this far off the truth's is a slip.")
+    ap.add_argument("--sessions", nargs="*", default=None, help="Only these sessions.")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="FactorGraphConfig overrides (YAML values).")
     ap.add_argument("--json", type=Path, default=None, help="Write the figures here too.")
     args = ap.parse_args()
@@ -118,9 +201,13 @@ def main() -> None:
     frame = ws.require_frame()
     town_to_ws = ws_from_town(args.town, frame)
     build = json.loads(ws.metrics.read_text())["sessions"]
-    cfg = FactorGraphConfig(**{k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)})
-    rows, out = [], {}
+    fields = {} if args.no_imu else town_imu_config(args.town)
+    fields.update({k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)})
+    cfg = FactorGraphConfig(**fields)
+    rows, out, slip_rows = [], {}, []
     for name in ws.session_names():
+        if args.sessions and name not in args.sessions:
+            continue
         s = ws.session(name)
         odom = Trajectory.load(s.trajectory)
         georef = Trajectory.load(s.georef_trajectory)
@@ -131,38 +218,76 @@ def main() -> None:
         gps, (imu_t, gyro, accel, base_from_imu) = read_sensors(build[name]["log"], frame, odom.body_frame)
         t_read = time.perf_counter() - t0
         t1 = time.perf_counter()
-        gravity = None
-        if not args.no_gravity:
+        gravity, imu = None, None
+        if not args.no_imu:
+            imu = ImuObservations(imu_t, gyro, accel, base_from_imu)
+        elif not args.no_gravity:
             gravity = gravity_from_imu(imu_t, gyro, accel, base_from_imu, odom.stamps_ns, odom.world_from_base, odom.stamps_ns)
-        fused = fuse_session(odom.stamps_ns, odom.world_from_base, gps, gravity, cfg, enu_from_odom=enu_from_odom, source=name)
+        fused = fuse_session(odom.stamps_ns, odom.world_from_base, gps, gravity, cfg, enu_from_odom=enu_from_odom, source=name,
+                             imu=imu)
         t_graph = time.perf_counter() - t1
         traj_s = build[name]["stages"]["trajectory"]["seconds"]
-        rot_rate, tr_rate = odometry_drift_rates(odom, gt_stamps, gt_ws)
+        noise_fit = odometry_noise_fit(odom, gt_stamps, gt_ws)
         before = errors(georef.stamps_ns, georef.world_from_base, gt_stamps, gt_ws)
         after = errors(fused.stamps_ns, fused.enu_from_base, gt_stamps, gt_ws, fused.covariances)
         geo_sig = np.sqrt(np.diag(fused.georef_covariance)[3:])
+        spans = []
+        for span in slip_spans(odom, gt_stamps, gt_ws, args.slip_m):
+            errs = slip_errors(span, {"kiss-icp": (odom.stamps_ns, odom.world_from_base),
+                                      "georef": (georef.stamps_ns, georef.world_from_base),
+                                      "fused": (fused.stamps_ns, fused.enu_from_base)}, gt_stamps, gt_ws)
+            inside = (fused.stamps_ns >= span[0]) & (fused.stamps_ns <= span[1])
+            t0 = odom.stamps_ns[0]
+            spans.append({"from_s": (span[0] - t0) * 1e-9, "to_s": (span[1] - t0) * 1e-9, **errs,
+                          "fused_max_h_err_offset_removed_m": max_h_error(fused, gt_stamps, gt_ws, inside)})
+            slip_rows.append(f"| {name} | {spans[-1]['from_s']:.1f}-{spans[-1]['to_s']:.1f} | {errs['kiss-icp']:.2f} | "
+                             f"{errs['georef']:.2f} | {errs['fused']:.2f} | {spans[-1]['fused_max_h_err_offset_removed_m']:.2f} |")
         out[name] = {"georef": before, "fused": after, "seconds_read_sensors": t_read, "seconds_graph": t_graph,
-                     "seconds_trajectory_stage": traj_s, "odom_rot_rad_per_sqrt_m": rot_rate, "odom_trans_m_per_sqrt_m": tr_rate,
-                     "georef_sigma_enu_m": geo_sig.tolist(), "stats": fused.stats}
+                     "seconds_trajectory_stage": traj_s, "odometry_noise_fit": noise_fit,
+                     "georef_sigma_enu_m": geo_sig.tolist(), "slips": spans, "stats": fused.stats}
+        after["height_drift_sigma_m"] = fused.stats["end_minus_start_sigma_enu_m"][2]
         for label, r in (("georef (rigid fit)", before), ("fused (graph)", after)):
+            sig = f" (1σ {r['height_drift_sigma_m']:.2f})" if "height_drift_sigma_m" in r else ""
             rows.append(f"| {name} | {label} | {r['ate_h_m']:.2f} | {r['ate_v_m']:.2f} | {r['ate_h_offset_removed_m']:.2f} | "
-                        f"{r['ate_v_offset_removed_m']:.2f} | {r['height_drift_m']:+.2f} | {r['height_p2p_m']:.2f} | "
+                        f"{r['ate_v_offset_removed_m']:.2f} | {r['height_drift_m']:+.2f}{sig} | {r['height_p2p_m']:.2f} | "
                         f"{r['pitch_err_mean_deg']:+.2f} / {r['pitch_err_rms_deg']:.2f} | "
                         + (f"{100 * r['inside_95_3d']:.0f}% (NEES {r['nees_mean']:.1f}) |" if "inside_95_3d" in r else " |"))
     print("| session | trajectory | ATE h m | ATE v m | ATE h m, offset removed | ATE v m, offset removed | height drift m "
-          "| height p2p m | pitch err mean / rms deg | inside 95% ellipse |")
+          "(graph: its own 1σ, end minus start) | height p2p m | pitch err mean / rms deg | inside 95% ellipse |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     print()
-    print("| session | graph s (gravity + solve + marginals) | sensor read s | trajectory stage s | ratio | kiss-icp drift rot "
-          "deg/sqrt(m) | trans m/sqrt(m) | keyframes | GPS outliers (> 3.37 sigma) | georef sigma ENU m |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| session | graph s (IMU or gravity + solve + marginals) | sensor read s | trajectory stage s | ratio | keyframes "
+          "| GPS outliers (> 3.37 sigma) | georef sigma ENU m |")
+    print("|---|---|---|---|---|---|---|---|")
     for name, r in out.items():
         st = r["stats"]
         print(f"| {name} | {r['seconds_graph']:.2f} | {r['seconds_read_sensors']:.2f} | {r['seconds_trajectory_stage']:.1f} | "
-              f"{100 * r['seconds_graph'] / r['seconds_trajectory_stage']:.1f}% | {np.degrees(r['odom_rot_rad_per_sqrt_m']):.3f} | "
-              f"{r['odom_trans_m_per_sqrt_m']:.4f} | {st['keyframes']} | {st.get('gps_fixes_outliers', '')} of {st.get('gps_fixes', '')} | "
-              f"{', '.join(f'{x:.2f}' for x in r['georef_sigma_enu_m'])} |")
+              f"{100 * r['seconds_graph'] / r['seconds_trajectory_stage']:.1f}% | {st['keyframes']} | "
+              f"{st.get('gps_fixes_outliers', '')} of {st.get('gps_fixes', '')} | {', '.join(f'{x:.2f}' for x in r['georef_sigma_enu_m'])} |")
+    print()
+    print("| session | kiss-icp jitter rot roll/pitch/yaw rad | trans x/y/z m | walk rot rad/sqrt(m) | trans m/sqrt(m) |")
+    print("|---|---|---|---|---|")
+    for name, r in out.items():
+        j, w = r["odometry_noise_fit"]["jitter"], r["odometry_noise_fit"]["walk_per_sqrt_m"]
+        f = lambda v: ", ".join(f"{x:.1e}" for x in v)  # noqa: E731
+        print(f"| {name} | {f(j[:3])} | {f(j[3:])} | {f(w[:3])} | {f(w[3:])} |")
+    print()
+    print(f"| session | slip span s (1 s motion > {args.slip_m} m off) | kiss-icp displacement err m | rigid fit m | graph m "
+          "| graph max h err inside, offset removed m |")
+    print("|---|---|---|---|---|---|")
+    print("\n".join(slip_rows))
+    print()
+    print("| session | slips the graph found: span s (metres it moved the odometry) | drift / jitter factors down-weighted "
+          "| IMU bias at the end: gyro rad/s; accel m/s^2 |")
+    print("|---|---|---|---|")
+    for name, r in out.items():
+        st = r["stats"]
+        b = st.get("imu_bias_end")
+        bias = "" if b is None else (f"{', '.join(f'{x:+.4f}' for x in b['gyro_rad_s'])}; "
+                                     f"{', '.join(f'{x:+.3f}' for x in b['accel_m_s2'])}")
+        found = ", ".join(f"{a:.1f}-{b_:.1f} ({m:.2f})" for (a, b_), m in zip(st["odom_slip_spans_s"], st["odom_slip_m"]))
+        print(f"| {name} | {found} | {st['odom_drift_downweighted']} / {st['odom_jitter_downweighted']} of {st['keyframes']} | {bias} |")
     total_graph = sum(r["seconds_graph"] for r in out.values())
     total_traj = sum(r["seconds_trajectory_stage"] for r in out.values())
     print(f"\ngraph / trajectory stage, all sessions: {total_graph:.2f} s / {total_traj:.1f} s = {100 * total_graph / total_traj:.1f}%")
