@@ -83,6 +83,17 @@ class SessionDirs:
         return self.georef / "trajectory_enu"
 
     @property
+    def fused_trajectory(self) -> Path:
+        """The factor graph's trajectory (workspace ENU; ``georef.fuse``), a :class:`~mapkit.mapping.trajectory.Trajectory` folder."""
+        return self.georef / "trajectory_fused"
+
+    @property
+    def fused_covariances(self) -> Path:
+        """Per pose of the fused trajectory: ``stamps_ns`` and ``covariances`` (N, 6, 6: rotation in ENU axes rad, position
+        ENU m), and ``georef_covariance`` (6, 6: how well the session is tied to ENU)."""
+        return self.georef / "trajectory_fused_covariances.npz"
+
+    @property
     def gps_alignment(self) -> Path:
         return self.georef / "gps_alignment.json"
 

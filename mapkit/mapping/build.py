@@ -56,6 +56,7 @@ from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
 from mapkit.io.plots import map_top_view, trajectory_over_gps
+from mapkit.mapping.factor_graph import FactorGraphConfig, GpsObservations, ImuObservations, fuse_session
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
@@ -84,6 +85,10 @@ class GeorefConfig(MapkitConfig):
                                   description="A fix between trajectory poses further apart than this is not used.")
     strict: bool = Field(False, description="Fail instead of building the session unreferenced when GPS cannot place it, "
                          "and when a camera-only drive is too straight for GPS to fix its roll and the cameras give no up hint.")
+    fuse: bool = Field(False, description="Also fuse the odometry, GPS and the IMU on a factor graph (mapping/factor_graph.py, "
+                       "issue 24): georef/trajectory_fused/ and its per-pose covariances beside trajectory_enu/; the map and "
+                       "image database then use it. Metric trajectories only; off until issue 24's height drift is settled.")
+    factor_graph: FactorGraphConfig = FactorGraphConfig()
 
 
 class ImageDbStageConfig(ImageDbConfig):
@@ -113,7 +118,7 @@ class BuildConfig(MapkitConfig):
         default_factory=dict,
         description="Per-session overrides: a glob of session names -> settings of this config for the sessions it matches, "
         "applied in order. MCVL's database is its training drives at 2 Hz while its queries stay at 4 Hz (Sec. IV-B): "
-        "{'train-*': {imagedb: {min_interval_s: 0.5, training_frames: true}}}.",
+        "{'train-*': {imagedb: {min_interval_s: 0.5}}}.",
     )
 
     @field_validator("imagedb", mode="before")
@@ -163,6 +168,10 @@ def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     for key, default in _IMAGEDB_LATER_DEFAULTS.items():
         if d["imagedb"].get(key) == default:
             d["imagedb"].pop(key)
+    # ... and those georeferenced before the factor graph could fuse them, while it does not
+    if not d["georef"]["fuse"]:
+        d["georef"].pop("fuse")
+        d["georef"].pop("factor_graph")
     return config_hash({p: d.get(p) for p in parts})
 
 
@@ -290,6 +299,8 @@ class SessionBuilder:
                              body_frame=traj.body_frame)
         aligned.save(self.dirs.georef_trajectory)
         result.update(_length(aligned, georeferenced=al is not None))
+        if self.cfg.georef.fuse and al is not None and not _camera_only(traj):
+            result["fused"] = self._fuse(traj, al.enu_from_map)
         if al is None:  # a picture of what there is, in the trajectory's own frame and units
             xyz, axes = _top_view_positions(traj)
             map_top_view(out / "trajectory_top_view.png", np.zeros((0, 3)), xyz, f"{self.name}: trajectory, NOT georeferenced",
@@ -362,6 +373,34 @@ class SessionBuilder:
                             f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)")
         return al, frame
 
+    def _fuse(self, traj: Trajectory, enu_from_map: np.ndarray) -> dict:
+        """The factor graph over the odometry, the fixes this stage kept and the IMU (odometry and GPS alone without one):
+        writes the fused trajectory and its covariances, returns the graph's stats."""
+        fixes = np.load(self.dirs.gps_fixes)
+        _, kept, _ = self._screened_fixes()
+        tree = FrameTree(self.log.transforms())
+        try:
+            base_from_gps = tree.lookup(traj.body_frame, kept[0].frame_id)
+        except InputError:
+            base_from_gps = np.eye(4)
+        gps = GpsObservations(fixes["stamps_ns"], fixes["enu"], fixes["sigma_m"], base_from_gps)
+        imu = None
+        imu_topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMU, [])
+        if imu_topics:
+            samples = list(self.log.records(StreamKind.IMU, topic=imu_topics[0]))
+            if len(samples) >= 2:
+                imu = ImuObservations(np.array([s.stamp_ns for s in samples], np.int64),
+                                      np.stack([s.angular_velocity_rad_s for s in samples]),
+                                      np.stack([s.linear_acceleration_m_s2 for s in samples]),
+                                      tree.lookup(traj.body_frame, samples[0].frame_id))
+        fused = fuse_session(traj.stamps_ns, traj.world_from_base, gps, None, self.cfg.georef.factor_graph,
+                             enu_from_odom=enu_from_map, source=str(self.log_path), imu=imu)
+        Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu",
+                   body_frame=traj.body_frame).save(self.dirs.fused_trajectory)
+        with atomic_path(self.dirs.fused_covariances) as tmp, open(tmp, "wb") as f:
+            np.savez(f, stamps_ns=fused.stamps_ns, covariances=fused.covariances, georef_covariance=fused.georef_covariance)
+        return {**fused.stats, "imu": "preintegrated" if imu is not None else "no IMU stream"}
+
     def _given(self, traj: Trajectory, result: dict):
         """Georeferencing that the pose stream already carries (an INS, or a simulator's truth):
         its frame is ENU at ``georef.origin``; placed exactly (through ECEF) in the workspace frame."""
@@ -427,10 +466,12 @@ class SessionBuilder:
         return LocalFrame.from_dict(d) if d.get("georeferenced") else None
 
     def enu_trajectory(self) -> Trajectory:
-        """The GPS-aligned trajectory (stage 2's output, the stage run first if need be), read once."""
+        """The GPS-aligned trajectory (stage 2's output, the stage run first if need be; the fused one with
+        ``georef.fuse``), read once."""
         if self._enu_trajectory is None:
             self.georef()
-            self._enu_trajectory = Trajectory.load(self.dirs.georef_trajectory)
+            fused = self.cfg.georef.fuse and self.dirs.fused_trajectory.is_dir()
+            self._enu_trajectory = Trajectory.load(self.dirs.fused_trajectory if fused else self.dirs.georef_trajectory)
         return self._enu_trajectory
 
     # --- camera frames with poses ---------------------------------------------------------------
