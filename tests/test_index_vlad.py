@@ -383,7 +383,7 @@ def test_training_frames_give_the_pca_more_than_the_database(tmp_path, built):
     shutil.rmtree(ws / "indexes")
     add_training_frames(ws, "train-a", "extra-d")
     vlad = SMALL_VLAD.model_copy(update={"whitening": "full"})
-    cfg = small_config(database_sessions=["train-a"], train_sessions=["train-a"], vlad=vlad)
+    cfg = small_config(database_sessions=["train-a"], train_sessions=["train-a"], vlad=vlad, training_frames=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # 12 dimensions capped at 7 without the frames
         without = VladIndex.load(build_vlad_index(ws, tmp_path / "db-only", cfg.model_copy(update={"training_frames": False}),
