@@ -2,8 +2,9 @@
 
 Runs ``mapkit.mapping.semidense.build_semidense_map`` over the 51-frame KITTI odometry clip beside the
 project (left grey camera, exact poses) twice in one process: once as the mapper was before its
-outlier filters (``FILTERS_OFF``: no multi-view consistency, no ratio test, no convergence threshold,
-no statistical pass) and once with the filters of the config (``--config`` over the defaults). Then:
+outlier filters (``FILTERS_OFF``: no multi-view, photometric or free-space test, no ratio test, no
+convergence threshold, no statistical pass) and once with the filters of the config (``--config`` over
+the defaults, or a build config's ``semidense`` section). Then:
 
 - writes the filtered map (``points.ply``, ``observations.npz``, ``config.yaml``) into ``--out``;
 - computes the consistency figure of issue 26 for both maps: every map point reprojected into the
@@ -11,9 +12,15 @@ no statistical pass) and once with the filters of the config (``--config`` over 
   nearest pixel (median, 90th percentile, share of pairs where the map is > 5 % farther), broken
   down by the distance between the keyframes and by the keyframe's own depth. Two references:
   ``raw``, every keyframe's depths as the epipolar search accepted them (outliers included), and
-  ``filtered``, the depths that passed the multi-view test and entered the map (each keyframe's
+  ``filtered``, the depths that passed the fusion's tests and entered the map (each keyframe's
   filtered depth map, as COLMAP's fusion reads them);
-- ``--ablation``: each filter alone, one row each (same figures);
+- tells apart the pairs where the map lies > 5 % farther than the keyframe's own depth: that depth
+  failed the keyframe's own multi-view test (the reference is suspect, not the map), or it passed
+  and the map point is confirmed by >= 2 other keyframes (occluded: that keyframe cannot see the
+  point), or neither; and scores every run against one fixed reference, the unfiltered run's
+  keyframe depths that pass the multi-view test (``verified_depths``), with and without the
+  occluded pairs (``mapkit.mapping.semidense.consistency`` with ``verified``);
+- ``--ablation``: each filter alone, then combinations, one row each (same figures);
 - writes ``metrics.json``, ``semidense_kitti.png`` (top view of the filtered map, one keyframe's
   depths over its image) and ``semidense_rejected.png`` (top view: kept points, and the points of
   the unfiltered map with no filtered point within ``REJECTED_RADIUS_M``: what the filters removed).
@@ -41,24 +48,31 @@ if str(ROOT) not in sys.path:
 
 from mapkit.core.config import load_config  # noqa: E402
 from mapkit.core.runio import write_json  # noqa: E402
-from mapkit.mapping.semidense import KeyframePoints, SemiDenseConfig, SemiDenseMap, build_semidense_map, consistency  # noqa: E402
+from mapkit.mapping.semidense import KeyframePoints, SemiDenseConfig, SemiDenseMap, build_semidense_map, consistency, multi_view_filter  # noqa: E402
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 DEFAULT_OUT = Path("/tmp/mapkit-semidense-kitti")
 FRAME_PERIOD_NS = 100_000_000  # KITTI odometry: 10 Hz
 REJECTED_RADIUS_M = 0.1  # an unfiltered point with no filtered one this close was removed (2x the fusion radius)
 #: the mapper as it was before issue 26: every outlier filter off
-FILTERS_OFF = {"min_consistent_views": 0, "ambiguity_ratio": None, "max_sigma_inv_depth": None, "outlier_neighbours": 0}
-#: the filtered run without --config: the multi-view test on at its defaults (chosen on frames 0-25 of the clip)
-FILTERS_ON = {"min_consistent_views": 1}
-#: each filter alone for --ablation (and all four), over FILTERS_OFF and the config's other fields
+FILTERS_OFF = {"min_consistent_views": 0, "ambiguity_ratio": None, "max_sigma_inv_depth": None, "outlier_neighbours": 0,
+               "photometric_min_views": 0, "free_space_window_keyframes": 0}
+#: the filtered run without --config: the multi-view test at its defaults (chosen on frames 0-25 of the clip) and the
+#: free-space test against 25 keyframes either side (the recommended filters, configs/build/clean-maps.yaml)
+FILTERS_ON = {"min_consistent_views": 1, "free_space_window_keyframes": 25}
+#: each filter alone for --ablation (then combinations), over FILTERS_OFF and the config's other fields
 FILTERS_ALONE = {
     "ratio test": {"ambiguity_ratio": 0.8},
     "convergence": {"max_sigma_inv_depth": 0.001},
-    "multi-view": FILTERS_ON,
+    "multi-view": {"min_consistent_views": 1},
+    "photometric": {"photometric_min_views": 1},
+    "free space": {"free_space_window_keyframes": 25},
     "statistical": {"outlier_neighbours": 20},
 }
-FILTERS_ALONE["all four"] = {k: v for d in FILTERS_ALONE.values() for k, v in d.items()}
+FILTERS_ALONE["multi-view + free space"] = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["free space"]}
+FILTERS_ALONE["multi-view + photometric"] = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["photometric"]}
+FILTERS_ALONE["the three fusion tests"] = {**FILTERS_ALONE["multi-view + photometric"], **FILTERS_ALONE["free space"]}
+FILTERS_ALONE["all six"] = {k: v for name, d in list(FILTERS_ALONE.items())[:6] for k, v in d.items()}
 
 
 def read_clip_geometry(clip: Path) -> tuple[np.ndarray, np.ndarray, list[Path]]:
@@ -93,14 +107,40 @@ class Run:
             on_fused=lambda fid, T, pts: self.filtered.__setitem__(fid, (T, pts)),
         )
         self.seconds = time.perf_counter() - t0
-        self.consistency = {ref: consistency(self.map, [(fid, T, pts) for fid, (T, pts) in d.items()])
-                            for ref, d in (("raw", self.raw), ("filtered", self.filtered))}
+        self.consistency: dict = {}
+
+    def score(self, verified: dict[int, tuple[np.ndarray, KeyframePoints]]) -> None:
+        """The consistency figures against this run's own keyframe depths (``raw``: the issue's figure, with
+        the farther pairs told apart against ``verified``) and against those that entered fusion (``filtered``)."""
+        as_list = lambda d: [(fid, T, pts) for fid, (T, pts) in d.items()]  # noqa: E731
+        self.consistency = {"raw": consistency(self.map, as_list(self.raw), verified=as_list(verified)),
+                            "filtered": consistency(self.map, as_list(self.filtered))}
 
     def metrics(self) -> dict:
         return {"seconds": self.seconds, "keyframes_per_s": len(self.raw) / self.seconds,
                 "keyframe_points_before_fusion": sum(len(p) for _, p in self.raw.values()),
-                "keyframe_points_after_multi_view": sum(len(p) for _, p in self.filtered.values()),
+                "keyframe_points_after_fusion_filters": sum(len(p) for _, p in self.filtered.values()),
                 **self.map.stats(), "consistency": self.consistency}
+
+
+def verified_depths(raw: dict[int, tuple[np.ndarray, KeyframePoints]], K: np.ndarray, cfg: SemiDenseConfig,
+                    shape: tuple[int, int]) -> dict[int, tuple[np.ndarray, KeyframePoints]]:
+    """Each keyframe's depths that pass the mapper's multi-view test (at ``cfg``'s consistency settings,
+    ``min_consistent_views`` at least 1) against the keyframes within ``consistency_window_keyframes``:
+    one fixed reference for every run (the unfiltered run's depths), so that no run is scored
+    against its own filters. ``shape``: (H, W) of the images."""
+    ids = sorted(raw)
+    n = cfg.consistency_window_keyframes
+    depth = {f: raw[f][1].depth_image(shape, np.float32) for f in ids}
+    out = {}
+    for i, f in enumerate(ids):
+        T, pts = raw[f]
+        others = [(raw[g][0], depth[g]) for g in ids[max(0, i - n): i + n + 1] if g != f]
+        keep = multi_view_filter(pts.points_world(K, T), others, K, min_views=max(cfg.min_consistent_views, 1),
+                                 min_agree_over_conflict=cfg.min_agree_over_conflict, rel_tol=cfg.consistency_rel_tol,
+                                 pixel_radius=cfg.consistency_pixel_radius)
+        out[f] = (T, pts.select(keep))
+    return out
 
 
 def picture(path: Path, sd_map, poses: np.ndarray, keyframe: tuple[int, KeyframePoints], image: np.ndarray) -> None:
@@ -182,6 +222,17 @@ def _summary_rows(c: dict) -> list[str]:
             f"{100 * c['frac_map_nearer_5pct']:.1f} %", f"{100 * c['frac_below_5pct']:.1f} %", str(c["pairs"])]
 
 
+def _four(c: dict) -> str:
+    if not c.get("pairs"):
+        return "-"
+    return (f"{100 * c['median_rel']:.2f} / {100 * c['p90_rel']:.1f} / {100 * c['frac_map_farther_5pct']:.1f} / "
+            f"{100 * c['frac_map_nearer_5pct']:.1f} %")
+
+
+def _fusion_filters_on(cfg: SemiDenseConfig) -> bool:
+    return cfg.min_consistent_views > 0 or cfg.photometric_min_views > 0 or cfg.free_space_window_keyframes > 0
+
+
 def _bins(c: dict, key: str) -> list[tuple[str, str]]:
     out = []
     for b in c[key]:
@@ -192,6 +243,18 @@ def _bins(c: dict, key: str) -> list[tuple[str, str]]:
     return out
 
 
+def _load_semidense(path: Path) -> SemiDenseConfig:
+    """SemiDenseConfig from a YAML of its fields, or the ``semidense`` section of a build config (configs/build/)."""
+    import yaml
+
+    doc = yaml.safe_load(path.read_text()) or {}
+    if isinstance(doc, dict) and "semidense" in doc:
+        from mapkit.mapping.build import BuildConfig
+
+        return load_config(BuildConfig, path).semidense
+    return load_config(SemiDenseConfig, path)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP, help="KITTI clip folder (image_l/, poses.txt, calib.txt)")
@@ -199,15 +262,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first-frame", type=int, default=0, help="start at this frame (25: the second half of the clip)")
     ap.add_argument("--frames", type=int, default=10**9, help="use at most N frames")
     ap.add_argument("--config", type=Path, default=None,
-                    help="YAML over SemiDenseConfig defaults for the filtered run (default: FILTERS_ON); "
+                    help="YAML over SemiDenseConfig defaults for the filtered run, or a build config (its semidense section; "
+                         "e.g. configs/build/clean-maps.yaml) (default: FILTERS_ON); "
                          "the unfiltered run sets FILTERS_OFF over it")
-    ap.add_argument("--ablation", action="store_true", help="also map with each outlier filter alone, and with all four")
+    ap.add_argument("--ablation", action="store_true", help="also map with each outlier filter alone, and with combinations of them")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     if not (args.clip / "poses.txt").is_file():
         print(f"error: no KITTI clip at {args.clip}", file=sys.stderr)
         return 2
-    cfg = load_config(SemiDenseConfig, args.config) if args.config else SemiDenseConfig(**FILTERS_ON)
+    cfg = _load_semidense(args.config) if args.config else SemiDenseConfig(**FILTERS_ON)
     off = cfg.model_copy(update=FILTERS_OFF)
     K, poses, images = read_clip_geometry(args.clip)
     frames = range(args.first_frame, min(args.first_frame + args.frames, len(images)))
@@ -219,6 +283,10 @@ def main(argv: list[str] | None = None) -> int:
             [(k, off.model_copy(update=v)) for k, v in FILTERS_ALONE.items()] if args.ablation else []):
         runs[name] = Run(c, poses, images, frames, K, progress=not args.no_progress)
     base, new = runs["unfiltered"], runs["filtered"]
+    w, h = new.map.image_size_wh
+    verified = verified_depths(base.raw, K, cfg, (h, w))
+    for r in runs.values():
+        r.score(verified)
     new.map.save(args.out)
     gone = rejected_mask(base.map, new.map)
 
@@ -235,17 +303,16 @@ def main(argv: list[str] | None = None) -> int:
     picture(args.out / "semidense_kitti.png", new.map, poses, (mid, new.filtered[mid][1]), mid_image)
     rejected_picture(args.out / "semidense_rejected.png", base.map, new.map, gone, poses)
 
-    w, h = new.map.image_size_wh
     print(f"\n## Semi-dense map of {args.clip.name}, frames {frames.start}-{frames.stop - 1} ({w}x{h})\n")
     print("Consistency: map points against other keyframes' own depths; reference raw = every keyframe's accepted depths,")
-    print("filtered = those that passed the multi-view test (the same as raw when it is off).\n")
+    print("filtered = those that passed the fusion's outlier tests (the same as raw when they are off).\n")
     heads = ["median", "p90", "map farther > 5 %", "map nearer > 5 %", "within 5 %", "pairs"]
     print("| run | points | per 100 m | s | reference | " + " | ".join(heads) + " |")
     print("|---|---|---|---|---|" + "---|" * len(heads))
     for name, r in runs.items():
         st = r.map.stats()
         for ref in ("raw", "filtered"):
-            if ref == "filtered" and r.cfg.min_consistent_views == 0:
+            if ref == "filtered" and not _fusion_filters_on(r.cfg):
                 continue
             head = f"| {name} | {len(r.map)} | {st['points_per_100m']:.0f} | {r.seconds:.1f} | {ref} | "
             print(head + " | ".join(_summary_rows(r.consistency[ref])) + " |")
@@ -253,15 +320,33 @@ def main(argv: list[str] | None = None) -> int:
           f"removed (no kept point within {REJECTED_RADIUS_M} m): {int(gone.sum())}; "
           f"filtered run took {metrics['speed_ratio_filtered_over_unfiltered']:.2f}x the unfiltered one's time")
     print(f"rejected by the fusion filters (filtered run): {new.map.rejected}")
+    print("\nWhere the pairs with the map > 5 % farther come from (shares of all pairs, raw reference): the keyframe's own depth")
+    print("there failed its multi-view test (reference unverified); it passed and the map point agrees with >= 2 other keyframes'")
+    print("verified depths (occluded: the keyframe cannot see the point); the rest (unexplained). Then the figures against one fixed")
+    print("reference for all runs, the unfiltered run's keyframe depths that pass the multi-view test (verified), with and without")
+    print("the occluded pairs.\n")
+    print("| run | points | farther | ref. unverified | occluded | unexplained | verified ref.: median / p90 / farther / nearer "
+          "| verified, occluded excluded: median / p90 / farther / nearer |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, r in runs.items():
+        c = r.consistency["raw"]
+        fc = c["farther_causes"]
+        print(f"| {name} | {len(r.map)} | {100 * c['frac_map_farther_5pct']:.1f} % | {100 * fc['reference_unverified']:.1f} % | "
+              f"{100 * fc['occluded']:.1f} % | {100 * fc['unexplained']:.1f} % | {_four(c['verified_reference'])} | {_four(c['verified_visible'])} |")
     for key, label in (("by_depth_m", "keyframe's own depth"), ("by_keyframe_distance_m", "distance between the keyframes")):
         print(f"\nby {label}: median / p90 / map farther > 5 % (pairs)\n")
         cols = [("unfiltered", "raw"), ("filtered", "raw"), ("filtered", "filtered")]
         table = {(n, ref): dict(_bins(runs[n].consistency[ref], key)) for n, ref in cols}
+        names = [f"{n} ({ref} ref.)" for n, ref in cols]
+        if key == "by_keyframe_distance_m":
+            for n in ("unfiltered", "filtered"):
+                table[(n, "visible")] = dict(_bins(runs[n].consistency["raw"]["verified_visible"], key))
+                names.append(f"{n} (verified ref., occluded excluded)")
         spans = list(dict.fromkeys(s for t in table.values() for s in t))
-        print("| range | " + " | ".join(f"{n} ({ref} ref.)" for n, ref in cols) + " |")
-        print("|---|" + "---|" * len(cols))
+        print("| range | " + " | ".join(names) + " |")
+        print("|---|" + "---|" * len(table))
         for span in spans:
-            print(f"| {span} | " + " | ".join(table[c].get(span, "") for c in cols) + " |")
+            print(f"| {span} | " + " | ".join(t.get(span, "") for t in table.values()) + " |")
     print(f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, semidense_kitti.png, semidense_rejected.png")
     return 0
 

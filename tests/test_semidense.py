@@ -549,3 +549,191 @@ def test_consistency_breaks_down_by_depth(room_map, room):
     c = consistency(sd, [(fid, poses[fid], p) for fid, p in per_kf.items()])
     assert sum(b["pairs"] for b in c["by_depth_m"]) == c["pairs"] == sum(b["pairs"] for b in c["by_keyframe_distance_m"])
     assert all(b["p90_rel"] < 0.05 for b in c["by_depth_m"] if b["pairs"] > 100)  # the room: every depth range agrees
+
+
+def _room_true_depths(world_from_cam: np.ndarray) -> np.ndarray:
+    """(H, W) true depth of the room in a camera, as the sparse depth images the filters read (float32)."""
+    return cast(world_from_cam, K_SYN, W_IMG, H_IMG)[0].astype(np.float32)
+
+
+def test_photometric_filter_removes_depths_moved_along_rays(room, rng):
+    """A keyframe's true depths of the room keep their patch in the other keyframes' images (NCC near 1
+    despite the exposure flicker); depths moved along their rays by 25-40 % land on other texture and
+    are rejected, except near the focus of expansion of the forward motion, where a wrong depth
+    hardly moves in the other images."""
+    from mapkit.mapping.semidense import photometric_filter, photometric_ncc
+
+    poses, images = room
+    k = 5
+    u, v = select_candidates(images[k], ROOM_CFG)
+    pick = rng.choice(len(u), 2000, replace=False)
+    uv = np.column_stack([u[pick], v[pick]]).astype(np.int32)
+    z = _room_true_depths(poses[k])[uv[:, 1], uv[:, 0]].astype(np.float64)
+    moved = rng.random(len(z)) < 0.2
+    z[moved] *= np.where(rng.random(moved.sum()) < 0.5, rng.uniform(0.6, 0.75, moved.sum()), rng.uniform(1.25, 1.4, moved.sum()))
+    views = [(poses[i], images[i], _room_true_depths(poses[i])) for i in (2, 3, 4, 6, 7, 8)]
+    cfg = SemiDenseConfig(photometric_min_views=1)
+    keep = photometric_filter(poses[k], images[k], uv, z, views, K_SYN, min_views=cfg.photometric_min_views, ncc_min=cfg.photometric_ncc_min,
+                              min_agree_over_conflict=cfg.photometric_min_agree_over_conflict, patch_radius=cfg.photometric_patch_radius,
+                              rel_tol=cfg.consistency_rel_tol, pixel_radius=cfg.consistency_pixel_radius)
+    # where the views' parallax moves a wrong depth's image by more than a few pixels in most views (not near
+    # the focus of expansion of the forward motion), the patch lands on other texture there: rejected
+    z_true = _room_true_depths(poses[k])[uv[:, 1], uv[:, 0]].astype(np.float64)
+    rays = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_SYN).T
+    shifts = []
+    for T, _, _ in views:
+        a, b = (transform_points(invert_pose(T) @ poses[k], rays * d[:, None]) @ K_SYN.T for d in (z, z_true))
+        shifts.append(np.hypot(*(a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:]).T))
+    shifted = moved & (np.median(shifts, axis=0) > 2)
+    assert shifted.sum() > 150
+    assert np.mean(~keep[shifted]) >= 0.9  # (5x5 patches of smooth texture are ramps: a few wrong ones still correlate)
+    assert np.mean(~keep[moved]) >= 0.85  # those pushed behind the wall are hidden in every view, so no view speaks for them
+    assert np.mean(keep[~moved]) >= 0.95
+    ncc = photometric_ncc(poses[k], images[k], uv, z, views, K_SYN, patch_radius=2, rel_tol=0.06, pixel_radius=1.5)
+    assert np.nanmedian(ncc[~moved]) > 0.9
+    # a view whose depths show a surface in front of every point is not asked (the points are hidden there)
+    near_wall = np.full((H_IMG, W_IMG), 0.5, np.float32)
+    hidden = photometric_ncc(poses[k], images[k], uv, z, [(poses[4], images[4], near_wall)], K_SYN, patch_radius=2, rel_tol=0.06, pixel_radius=1.5)
+    assert np.isnan(hidden).all()
+
+
+def test_visibility_tells_free_space_violations_from_occlusions(rng):
+    """A slanted wall seen by six views: keyframe points on it agree everywhere; points pulled towards
+    the camera float in front of it (free-space violations), points pushed behind it are hidden
+    (occluded), and neither kind agrees. ``free_space_filter`` rejects the first kind only."""
+    from mapkit.mapping.semidense import free_space_filter, visibility_views
+
+    uv_all = np.stack(np.meshgrid(np.arange(W_IMG), np.arange(H_IMG)), -1).reshape(-1, 2).astype(np.float64)
+    views = []
+    for i in (-3, -2, -1, 1, 2, 3):
+        T = make_pose(np.eye(3), [0.25 * i, 0.05 * i, 0.1 * i])
+        depth = _plane_depth(T, uv_all).reshape(H_IMG, W_IMG).astype(np.float32)
+        views.append((T, depth))
+    kf = np.eye(4)
+    inner = uv_all[(uv_all[:, 0] >= 60) & (uv_all[:, 0] < W_IMG - 60) & (uv_all[:, 1] >= 60) & (uv_all[:, 1] < H_IMG - 60)]
+    uv = inner[rng.choice(len(inner), 3000, replace=False)].astype(np.int32)  # inside every view (shifts < 60 px)
+    z = _plane_depth(kf, uv.astype(np.float64))
+    kind = rng.integers(0, 3, len(z))  # 0 on the wall, 1 in front of it, 2 behind it
+    z = z * np.where(kind == 1, 0.7, np.where(kind == 2, 1.4, 1.0))
+    X = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_SYN).T * z[:, None]
+    agree, occluded, free = visibility_views(X, views, K_SYN, 0.06, 1.5)
+    in_view = np.sum([_visible(X, T) for T, _ in views], axis=0)
+    assert np.all(in_view == 6)
+    assert np.all(agree[kind == 0] == 6) and np.all(occluded[kind == 0] + free[kind == 0] == 0)
+    assert np.all(free[kind == 1] == 6) and np.all(occluded[kind == 1] == 0) and np.all(agree[kind == 1] == 0)
+    assert np.all(occluded[kind == 2] == 6) and np.all(free[kind == 2] == 0) and np.all(agree[kind == 2] == 0)
+    # world points of each view's depths (the wall), for the hidden-in-source half of the test
+    walls = [transform_points(T, np.column_stack([uv_all, np.ones(len(uv_all))]) @ np.linalg.inv(K_SYN).T
+                              * d.reshape(-1)[:, None].astype(np.float64)) for T, d in views]
+    keep = free_space_filter(kf, uv, z, X, [(T, d, P) for (T, d), P in zip(views, walls)], K_SYN, (H_IMG, W_IMG),
+                             rel_tol=0.06, pixel_radius=1.5, max_violations=0)
+    assert np.all(keep[kind == 0]) and not np.any(keep[kind == 1])
+    # the points behind the wall are hidden in the keyframe itself by the wall the views saw: rejected as well
+    assert np.mean(~keep[kind == 2]) > 0.9
+
+
+def test_hidden_in_source_counts_the_views_whose_surface_hides_a_depth():
+    """A keyframe's depths at 10 m; three views saw a pole 5 m in front of a block of its pixels and a
+    board at 9.7 m (within tolerance) in front of another: only the first block is hidden, three times."""
+    from mapkit.mapping.semidense import hidden_in_source
+
+    kf = np.eye(4)
+    uv = np.stack(np.meshgrid(np.arange(100, 140), np.arange(80, 120)), -1).reshape(-1, 2).astype(np.int32)
+    depth = np.full(len(uv), 10.0)
+    rays = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_SYN).T
+    pole = uv[:, 0] < 110
+    board = uv[:, 0] >= 130
+    surface = np.vstack([rays[pole] * 5.0, rays[board] * 9.7])
+    count = hidden_in_source(kf, uv, depth, [surface] * 3, K_SYN, (H_IMG, W_IMG), 0.06)
+    assert np.all(count[pole] == 3) and np.all(count[~pole] == 0)
+
+
+def test_view_window_votes_within_the_window_also_at_the_end():
+    """Each item is released with exactly the items within +-window of it, including the last ones
+    (flushed once the stream ends)."""
+    from mapkit.mapping.semidense_fusion import _ViewWindow
+
+    window, n = 3, 11
+    vw: "_ViewWindow[int]" = _ViewWindow(window)
+    seen = []
+    for i in range(n):
+        seen.extend(vw.push(i))
+    seen.extend(vw.flush())
+    assert [item for item, _ in seen] == list(range(n))
+    for item, others in seen:
+        assert sorted(others) == [j for j in range(max(0, item - window), min(n, item + window + 1)) if j != item]
+
+
+def test_photometric_and_free_space_filters_in_the_mapper(room, room_map):
+    """Switched on in ``build_semidense_map``, each alone: what enters fusion is a subset of each
+    keyframe's depths, the map says how many each test removed, and it keeps the room accurate."""
+    poses, images = room
+    sd_off, _ = room_map
+    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    d_off = distance_to_box(sd_off.points_world)
+    for name, update in (("photometric", {"photometric_min_views": 1}), ("free_space", {"free_space_window_keyframes": 4})):
+        raw, fused = {}, {}
+        sd = build_semidense_map(iter(frames), K_SYN, ROOM_CFG.model_copy(update=update), progress=False,
+                                 on_keyframe=lambda f, T, p: raw.__setitem__(f, p), on_fused=lambda f, T, p: fused.__setitem__(f, p))
+        assert sorted(fused) == sorted(raw)
+        for f in raw:
+            assert set(map(tuple, fused[f].pixels_uv)) <= set(map(tuple, raw[f].pixels_uv))
+        assert sd.rejected[name] == sum(len(raw[f]) - len(fused[f]) for f in raw)
+        d = distance_to_box(sd.points_world)
+        assert len(sd) > 0.6 * len(sd_off), name
+        assert (d > 0.3).sum() <= (d_off > 0.3).sum() and np.median(d) < 0.03, name
+
+
+def test_consistency_tells_occluded_pairs_from_unverified_references():
+    """Map points on a wall 10 m ahead, seen by keyframes C and D (their own depths agree) and B: B's
+    depth there is a pole at 5 m for half the points (verified: B sees the pole, so it cannot see the
+    wall) and a stray 5 m depth its multi-view test rejected for the other half. Every B pair lies
+    100 % farther; half are occluded, half have an unverified reference, none is unexplained; against
+    the verified depths with the occluded pairs left out, the map agrees exactly."""
+    rng = np.random.default_rng(4)
+    uv = np.unique(rng.integers([20, 20], [W_IMG - 20, H_IMG - 20], size=(400, 2)), axis=0)
+    Kinv = np.linalg.inv(K_SYN)
+    P = np.column_stack([uv, np.ones(len(uv))]) @ Kinv.T * 10.0  # keyframe A at the origin: the map's source
+    poses = {0: np.eye(4), 1: make_pose(np.eye(3), [0.3, 0, 0]), 2: make_pose(np.eye(3), [-0.3, 0, 0]), 3: make_pose(np.eye(3), [0, 0.2, 0])}
+
+    def own(fid: int, scale: np.ndarray) -> KeyframePoints:
+        X = transform_points(invert_pose(poses[fid]), P)
+        pix = np.rint(X[:, :2] / X[:, 2:3] @ K_SYN[:2, :2].T + K_SYN[:2, 2]).astype(np.int32)
+        n = len(P)
+        return KeyframePoints(pix, 1.0 / (X[:, 2] * scale), np.full(n, 1e-3), np.zeros(n, np.uint8), np.zeros(0, np.int64),
+                              np.zeros((n, 0), bool), fid)
+
+    half = np.arange(len(P)) % 2 == 0
+    kf = {1: own(1, np.ones(len(P))), 2: own(2, np.ones(len(P))), 3: own(3, np.full(len(P), 0.5))}
+    verified = {1: kf[1], 2: kf[2], 3: kf[3].select(half)}
+    ids = np.array(sorted(poses))
+    sd = SemiDenseMap(P, np.zeros(len(P), np.uint8), np.full(len(P), 0.01, np.float32), np.zeros(len(P), np.int64),
+                      np.arange(len(P) + 1, dtype=np.int64), np.zeros(len(P), np.int64), ids, ids, np.array([poses[i] for i in ids]),
+                      K_SYN, (W_IMG, H_IMG))
+    c = consistency(sd, [(f, poses[f], p) for f, p in kf.items()], verified=[(f, poses[f], p) for f, p in verified.items()])
+    assert c["pairs"] == 3 * len(P)
+    assert c["frac_map_farther_5pct"] == pytest.approx(1 / 3)
+    fc = c["farther_causes"]
+    assert fc["occluded"] == pytest.approx(half.sum() / c["pairs"])
+    assert fc["reference_unverified"] == pytest.approx((~half).sum() / c["pairs"])
+    assert fc["unexplained"] == 0.0
+    assert c["verified_visible"]["pairs"] == 2 * len(P) and c["verified_visible"]["p90_rel"] < 1e-9
+
+
+def test_sparse_depth_answers_as_the_dense_image(rng):
+    """A keyframe's depths kept as pixels (``SparseDepth``) give the visibility counts of its dense depth image."""
+    from mapkit.mapping.semidense import visibility_views
+    from mapkit.mapping.semidense_fusion import SparseDepth
+
+    uv = np.unique(np.column_stack([rng.integers(0, W_IMG, 4000), rng.integers(0, H_IMG, 4000)]), axis=0).astype(np.int32)
+    depth = rng.uniform(4.0, 12.0, len(uv))
+    dense = np.full((H_IMG, W_IMG), np.nan, np.float32)
+    dense[uv[:, 1], uv[:, 0]] = depth
+    sparse = SparseDepth(uv, depth, (H_IMG, W_IMG))
+    lin = rng.integers(0, H_IMG * W_IMG, 1000)
+    assert np.array_equal(sparse.take(lin), dense.ravel()[lin], equal_nan=True)
+    T = make_pose(np.eye(3), [0.2, 0.0, 0.1])
+    X = rng.uniform([-3, -2, 3], [3, 2, 14], size=(3000, 3))
+    for a, b in zip(visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5), visibility_views(X, [(T, sparse)], K_SYN, 0.06, 1.5)):
+        assert np.array_equal(a, b)
+    assert visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5)[0].sum() > 0  # some agree: the comparison is not vacuous

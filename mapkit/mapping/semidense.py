@@ -17,9 +17,11 @@ LSD-SLAM), reduced to pure geometry because the poses are already known:
    sigma) agree and its relative uncertainty is low (optionally also its inverse-depth sigma:
    ``max_sigma_inv_depth``, the depth filter's convergence); agreeing matches are fused by
    inverse variance, as in LSD-SLAM's depth observation update.
-5. **Fusion** (:mod:`.semidense_fusion`): optionally (``min_consistent_views``, issue 26) a
-   keyframe's depths first pass a multi-view test against the keyframes around it, which keeps
-   the streaks of wrong matches along viewing rays out of the map; points of nearby keyframes
+5. **Fusion** (:mod:`.semidense_fusion`): optionally (issue 26) a keyframe's depths first pass a
+   multi-view geometric test (``min_consistent_views``) and a photometric one
+   (``photometric_min_views``) against the keyframes around it, then a free-space test against a
+   wider window (``free_space_window_keyframes``), which keep the streaks of wrong matches along
+   viewing rays and the points floating in front of surfaces out of the map; points of nearby keyframes
    closer than ``fusion_radius_m`` are fused by greedy non-maximum suppression on the depth
    sigma; the survivor inherits the observations of those it absorbed, so every map point lists
    every frame that observed it (the references that the paper's place voting needs); an
@@ -56,7 +58,20 @@ from mapkit.core.geometry import invert_pose, rotation_angle_rad, transform_poin
 from mapkit.core.runio import atomic_path, atomic_write_ply, atomic_write_text, progress_bar
 from mapkit.mapping.semidense_candidates import PATTERN_DSO8, gradient_threshold, image_gradients, select_candidates
 from mapkit.mapping.semidense_epipolar import _candidate_searcher, _neighbour_geometry, _Pyramid
-from mapkit.mapping.semidense_fusion import _Fuser, _ViewWindow, consistent_views, greedy_nms, multi_view_filter, statistical_inliers
+from mapkit.mapping.semidense_fusion import (
+    SparseDepth,
+    _Fuser,
+    _ViewWindow,
+    consistent_views,
+    free_space_filter,
+    greedy_nms,
+    hidden_in_source,
+    multi_view_filter,
+    photometric_filter,
+    photometric_ncc,
+    statistical_inliers,
+    visibility_views,
+)
 
 __all__ = [
     "KeyframePoints",
@@ -66,13 +81,18 @@ __all__ = [
     "build_semidense_map",
     "consistency",
     "consistent_views",
+    "free_space_filter",
     "gradient_threshold",
     "greedy_nms",
+    "hidden_in_source",
     "image_gradients",
     "map_keyframe",
     "multi_view_filter",
+    "photometric_filter",
+    "photometric_ncc",
     "select_candidates",
     "statistical_inliers",
+    "visibility_views",
 ]
 
 
@@ -116,11 +136,17 @@ class SemiDenseConfig(MapkitConfig):
     fusion_radius_m: float = Field(0.05, gt=0, description="No two map points closer than this (m): the better-measured point absorbs the other's observations. Below the 0.15 m accuracy goal.")
     fusion_window_keyframes: int = Field(10, ge=1, description="A point stays open for fusion until this many keyframes pass without it absorbing a new observation.")
     # --- outlier rejection at fusion ---
-    min_consistent_views: int = Field(0, ge=0, description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes have their own depth within consistency_rel_tol at its reprojection. 0 = off (the default until it meets issue 26's targets on the whole KITTI clip; 1 with the defaults below is the setting chosen on the clip's first half).")
+    min_consistent_views: int = Field(0, ge=0, description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes have their own depth within consistency_rel_tol at its reprojection. 0 = off (the default; 1 with the defaults below is the setting chosen on the clip's first half, and with free_space_window_keyframes = 25 the recommended one: configs/build/clean-maps.yaml).")
     consistency_rel_tol: float = Field(0.06, gt=0, description="Relative depth tolerance |z - z_other| / z_other of the multi-view consistency test (COLMAP: filter_max_depth_diff = 0.01 on dense depth maps; 0.06 chosen on the first half of the KITTI clip, where 0.01-0.06 were tried).")
     consistency_pixel_radius: float = Field(1.5, gt=0, description="A reprojected depth is compared with the other keyframe's depths within this radius (px): semi-dense candidates are one per cell, so the same edge may sit a pixel off.")
     min_agree_over_conflict: float = Field(2.0, ge=0, description="... and only where the agreeing views number at least this times the views whose depths there contradict it (stability-based fusion, Merrell et al. ICCV 2007: support against free-space violations and occlusions; 2 chosen on the first half of the KITTI clip among 0, 1, 1.5, 2). 0 = agreement alone decides.")
     consistency_window_keyframes: int = Field(12, ge=1, description="Keyframes before and after a keyframe that vote on its depths; a keyframe enters fusion this many keyframes late (memory: 2n+1 sparse depth images).")
+    photometric_min_views: int = Field(0, ge=0, description="Photometric consistency (as DSO's point activation and COLMAP's photometric term): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes that see it unoccluded show its patch with NCC >= photometric_ncc_min, and they number at least photometric_min_agree_over_conflict times those whose NCC falls below. 0 = off (measured alone it cleans less than the geometric test at the same point count on the KITTI clip: bench/semidense_kitti_clip.py --ablation).")
+    photometric_ncc_min: float = Field(0.5, ge=-1, le=1, description="... NCC of the (2 photometric_patch_radius + 1)^2 patch, lifted at the depth (fronto-parallel) and sampled in the other keyframe, that counts as agreement (0.5 chosen on the first half of the KITTI clip among 0.5, 0.7, 0.8: the setting with the lowest 90th percentile that keeps half the points).")
+    photometric_min_agree_over_conflict: float = Field(1.0, ge=0, description="... agreeing keyframes at least this times the disagreeing ones (1 chosen on the first half of the KITTI clip among 0.5, 1, 2).")
+    photometric_patch_radius: int = Field(2, ge=1, le=5, description="Half-side (px) of the patch the photometric test compares: 2 = 5x5, the extent of DSO's 8-pixel pattern.")
+    free_space_window_keyframes: int = Field(0, ge=0, description="Visibility test after the geometric and photometric ones (free-space carving as in TSDF fusion; Merrell et al.'s stability-based fusion, ICCV 2007): a depth is rejected when more than free_space_max_violations of the keyframes up to this many before and after it either see through it (it floats in front of a surface their checked depths hold at its reprojection) or saw a surface that would hide it in its own keyframe. 0 = off; 25 (twice the consistency window: the clip's 26-frame first half is too short to choose it on) is the setting measured. Keyframes enter fusion this many keyframes later again (memory: 2n+1 sparse keyframe depths).")
+    free_space_max_violations: int = Field(0, ge=0, description="... violating keyframes tolerated (0: one violation rejects; chosen on the first half of the KITTI clip among 0, 1, 2).")
     outlier_neighbours: int = Field(0, ge=0, description="Final statistical outlier pass over the fused map (open3d remove_statistical_outlier): neighbours whose mean distance is compared. 0 = off.")
     outlier_std_ratio: float = Field(2.0, gt=0, description="... a point goes when its mean neighbour distance exceeds the map's mean by this many standard deviations (the PCL/open3d tutorial value).")
 
@@ -439,7 +465,9 @@ class _Checked:
     frame_id: int
     world_from_cam: np.ndarray
     points: KeyframePoints
-    depth: Optional[np.ndarray]  # (H, W) float32 own depths, NaN elsewhere; None when nobody votes
+    depth: Optional[np.ndarray | SparseDepth]  # own depths: (H, W) float32, NaN elsewhere, while voting; sparse while carving
+    image: Optional[np.ndarray] = None  # (H, W) grey keyframe image, for the photometric test
+    xyz: Optional[np.ndarray] = None  # (N, 3) world points of ``points``, once they passed the voting filters
 
 
 def _map_keyframe_task(shared: tuple[np.ndarray, SemiDenseConfig], t: _KeyframeTask) -> tuple[int, int, np.ndarray, KeyframePoints]:
@@ -487,8 +515,9 @@ def build_semidense_map(
     (chosen by motion) is mapped once the frames after it have arrived, against the frames up to
     ``neighbour_window_frames`` before and after it. ``on_keyframe(frame_id, world_from_cam,
     points)`` is called with each keyframe's own accepted depths (e.g. for ``consistency``), and
-    ``on_fused`` (same arguments) with those of them that passed the multi-view consistency test
-    and entered fusion (all of them when the test is off), a keyframe's filtered depth map.
+    ``on_fused`` (same arguments) with those of them that passed the fusion's outlier tests (multi-view,
+    photometric, free space) and entered fusion (all of them when the tests are off), a keyframe's
+    filtered depth map.
 
     Keyframes are mapped on ``executor`` (default: :func:`mapkit.core.executor.get_executor`), a few
     per worker at a time, and fused here in keyframe order, so the map is the same bit for bit on
@@ -511,6 +540,8 @@ def build_semidense_map(
         nbs = [f for k, f in enumerate(window) if k != center and abs(k - center) <= W]
         t = _KeyframeTask(kf.frame_id, kf.stamp_ns, kf.image, kf.world_from_cam, [(f.image, f.world_from_cam) for f in nbs],
                           [f.frame_id for f in nbs])
+        if cfg.photometric_min_views > 0:
+            kf_images[kf.frame_id] = kf.image
         if executor.in_process:  # a frame's pyramid serves every keyframe whose window holds it
             for f in (kf, *nbs):
                 if f.pyramid is None:
@@ -544,19 +575,46 @@ def build_semidense_map(
             if window[k].is_keyframe:
                 yield task(window, k)
 
-    # multi-view consistency: a keyframe enters fusion once the keyframes after it that vote have arrived
+    # the fusion filters: a keyframe enters the multi-view and photometric tests once the keyframes after it that vote
+    # have arrived, then the free-space test once those after it that carve have passed the first two
     check_views = cfg.min_consistent_views > 0
-    voting: _ViewWindow[_Checked] = _ViewWindow(cfg.consistency_window_keyframes if check_views else 0)
-    rejected = {"multi_view": 0} if check_views else {}
+    check_photo = cfg.photometric_min_views > 0
+    check_free = cfg.free_space_window_keyframes > 0
+    voting: _ViewWindow[_Checked] = _ViewWindow(cfg.consistency_window_keyframes if check_views or check_photo else 0)
+    carving: _ViewWindow[_Checked] = _ViewWindow(cfg.free_space_window_keyframes)
+    rejected = {name: 0 for name, on in (("multi_view", check_views), ("photometric", check_photo), ("free_space", check_free)) if on}
+    kf_images: dict[int, np.ndarray] = {}  # keyframe images on their way to the photometric test
+
+    def vote(item: _Checked, others: list[_Checked]) -> Iterator[tuple[_Checked, list[_Checked]]]:
+        pts = item.points
+        keep = np.ones(len(pts), bool)
+        if check_views:
+            keep = multi_view_filter(pts.points_world(K, item.world_from_cam), [(o.world_from_cam, o.depth) for o in others], K,
+                                     min_views=cfg.min_consistent_views, min_agree_over_conflict=cfg.min_agree_over_conflict,
+                                     rel_tol=cfg.consistency_rel_tol, pixel_radius=cfg.consistency_pixel_radius)
+            rejected["multi_view"] += int((~keep).sum())
+        if check_photo:
+            sub = np.nonzero(keep)[0]
+            ok = photometric_filter(item.world_from_cam, item.image, pts.pixels_uv[sub], pts.depth[sub],
+                                    [(o.world_from_cam, o.image, o.depth) for o in others], K, min_views=cfg.photometric_min_views,
+                                    ncc_min=cfg.photometric_ncc_min, min_agree_over_conflict=cfg.photometric_min_agree_over_conflict,
+                                    patch_radius=cfg.photometric_patch_radius, rel_tol=cfg.consistency_rel_tol,
+                                    pixel_radius=cfg.consistency_pixel_radius)
+            rejected["photometric"] += int((~ok).sum())
+            keep[sub[~ok]] = False
+        pts = pts.select(keep) if not keep.all() else pts
+        sparse = SparseDepth(pts.pixels_uv, pts.depth, image_shape) if check_free else None
+        checked = _Checked(item.frame_id, item.world_from_cam, pts, sparse, xyz=pts.points_world(K, item.world_from_cam))
+        yield from carving.push(checked)
 
     def fuse(item: _Checked, others: list[_Checked]) -> None:
-        pts, world_from_cam = item.points, item.world_from_cam
-        xyz = pts.points_world(K, world_from_cam)
-        if check_views:
-            keep = multi_view_filter(xyz, [(o.world_from_cam, o.depth) for o in others], K, min_views=cfg.min_consistent_views,
-                                     min_agree_over_conflict=cfg.min_agree_over_conflict, rel_tol=cfg.consistency_rel_tol,
-                                     pixel_radius=cfg.consistency_pixel_radius)
-            rejected["multi_view"] += int((~keep).sum())
+        pts, world_from_cam, xyz = item.points, item.world_from_cam, item.xyz
+        if check_free:
+            keep = free_space_filter(world_from_cam, pts.pixels_uv, pts.depth, xyz,
+                                     [(o.world_from_cam, o.depth, o.xyz) for o in others], K,
+                                     image_shape, rel_tol=cfg.consistency_rel_tol, pixel_radius=cfg.consistency_pixel_radius,
+                                     max_violations=cfg.free_space_max_violations)
+            rejected["free_space"] += int((~keep).sum())
             pts, xyz = pts.select(keep), xyz[keep]
         if on_fused is not None:
             on_fused(item.frame_id, world_from_cam, pts)
@@ -573,12 +631,17 @@ def build_semidense_map(
             kf_ids.append(frame_id)
             kf_stamps.append(stamp_ns)
             kf_poses.append(world_from_cam)
-            depth = pts.depth_image(image_shape, np.float32) if check_views else None
-            for item, others in voting.push(_Checked(frame_id, world_from_cam, pts, depth)):
-                fuse(item, others)
+            depth = pts.depth_image(image_shape, np.float32) if check_views or check_photo else None
+            image = kf_images.pop(frame_id) if check_photo else None
+            for ready in voting.push(_Checked(frame_id, world_from_cam, pts, depth, image)):
+                for item, others in vote(*ready):
+                    fuse(item, others)
             if progress:
                 bar.set_postfix(keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done))
-        for item, others in voting.flush():
+        for ready in voting.flush():
+            for item, others in vote(*ready):
+                fuse(item, others)
+        for item, others in carving.flush():
             fuse(item, others)
     finally:
         results.close()
@@ -612,35 +675,28 @@ def build_semidense_map(
 
 # --- cross-frame consistency -------------------------------------------------------------------------------
 
-def consistency(
-    sd_map: SemiDenseMap,
-    keyframes: Iterable[tuple[int, np.ndarray, KeyframePoints]],
-    *,
-    max_pixel_distance: float = 1.0,
-    baseline_bins_m: Sequence[float] = (0.0, 2.0, 5.0, 10.0, np.inf),
-    depth_bins_m: Sequence[float] = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf),
-) -> dict:
-    """How well map points agree with the depths other keyframes estimated on their own.
+@dataclass
+class _Pairs:
+    """(map point, other keyframe) pairs of :func:`consistency`, one entry each."""
 
-    Every map point is reprojected into every keyframe ``(frame_id, world_from_cam, points)``
-    other than its source keyframe; where that keyframe has its own accepted depth at the nearest
-    pixel (within ``max_pixel_distance``, chosen by image distance only, never by depth), the
-    relative disagreement |z_map - z_own| / z_own is recorded. ``median_rel`` over all such pairs
-    is the headline figure. Occlusion (the map point hidden behind what the keyframe sees) and
-    chance hits on unrelated structure make the tail, and both grow with the distance between
-    the two keyframes, hence the breakdown by that distance and by sign ("map nearer" than the
-    keyframe's own depth violates free space; "map farther" is mostly occlusion), and by the
-    keyframe's own depth (``by_depth_m``: far depths are measured with less parallax).
-    """
+    point: np.ndarray  # (P,) index of the map point
+    frame_id: np.ndarray  # (P,) the other keyframe
+    signed_rel: np.ndarray  # (P,) (z_map - z_own) / z_own
+    baseline_m: np.ndarray  # (P,) distance between the point's source keyframe and the other one
+    own_depth: np.ndarray  # (P,) z_own (m)
+    own_pixel: np.ndarray  # (P,) row * W + column of the other keyframe's depth that was compared
+    projected: int  # map points that projected into another keyframe's image
+
+
+def _pairs(sd_map: SemiDenseMap, keyframes: Iterable[tuple[int, np.ndarray, KeyframePoints]], max_pixel_distance: float) -> _Pairs:
+    """Every map point reprojected into every keyframe but its source, against that keyframe's own
+    depth at the nearest pixel (within ``max_pixel_distance``, chosen by image distance only)."""
     K = sd_map.K
     w, h = sd_map.image_size_wh
     kf_centre = dict(zip(sd_map.keyframe_ids.tolist(), sd_map.keyframe_world_from_cam[:, :3, 3]))
     src_centre = np.array([kf_centre.get(int(s), np.full(3, np.nan)) for s in sd_map.source_keyframe]).reshape(-1, 3)
-    signed: list[np.ndarray] = []
-    baseline: list[np.ndarray] = []
-    own_depth: list[np.ndarray] = []
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("point", "frame_id", "signed_rel", "baseline_m", "own_depth", "own_pixel")}
     projected = 0
-    frames_used = 0
     offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
     for fid, world_from_cam, pts in keyframes:
         own = pts.depth_image((h, w))
@@ -658,6 +714,7 @@ def consistency(
         xi, yi = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
         best_d2 = np.full(len(z), np.inf)
         best_z = np.full(len(z), np.nan)
+        best_px = np.full(len(z), -1, np.int64)
         for dx, dy in offsets:
             cx, cy = xi + dx, yi + dy
             ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h)
@@ -665,31 +722,94 @@ def consistency(
             zz[ok] = own[cy[ok], cx[ok]]
             d2 = (cx - x) ** 2 + (cy - y) ** 2
             better = np.isfinite(zz) & (d2 <= max_pixel_distance**2) & (d2 < best_d2)
-            best_d2[better], best_z[better] = d2[better], zz[better]
+            best_d2[better], best_z[better], best_px[better] = d2[better], zz[better], (cy * w + cx)[better]
         m = np.isfinite(best_z)
         if m.any():
-            signed.append((z[m] - best_z[m]) / best_z[m])
-            baseline.append(np.linalg.norm(src_centre[sel[m]] - world_from_cam[:3, 3], axis=1))
-            own_depth.append(best_z[m])
-            frames_used += 1
-    r = np.concatenate(signed) if signed else np.zeros(0)
-    b = np.concatenate(baseline) if baseline else np.zeros(0)
-    zo = np.concatenate(own_depth) if own_depth else np.zeros(0)
-    out: dict[str, Any] = {"pairs": int(len(r)), "frames": frames_used, "projected": int(projected)}
-    if len(r) == 0:
-        return {**out, "median_rel": None}
+            parts["point"].append(sel[m])
+            parts["frame_id"].append(np.full(int(m.sum()), int(fid), np.int64))
+            parts["signed_rel"].append((z[m] - best_z[m]) / best_z[m])
+            parts["baseline_m"].append(np.linalg.norm(src_centre[sel[m]] - world_from_cam[:3, 3], axis=1))
+            parts["own_depth"].append(best_z[m])
+            parts["own_pixel"].append(best_px[m])
+    cat = {k: np.concatenate(v) if v else np.zeros(0, np.int64 if k in ("point", "frame_id", "own_pixel") else np.float64)
+           for k, v in parts.items()}
+    return _Pairs(**cat, projected=projected)
+
+
+def _figures(r: np.ndarray) -> dict:
+    """Headline figures of signed relative disagreements ``r``."""
     a = np.abs(r)
+    if len(r) == 0:
+        return {"pairs": 0, "median_rel": None}
+    return {"pairs": int(len(r)), "median_rel": float(np.median(a)), "p75_rel": float(np.percentile(a, 75)),
+            "p90_rel": float(np.percentile(a, 90)), "frac_below_5pct": float(np.mean(a < 0.05)),
+            "frac_map_nearer_5pct": float(np.mean(r < -0.05)), "frac_map_farther_5pct": float(np.mean(r > 0.05))}
+
+
+def consistency(
+    sd_map: SemiDenseMap,
+    keyframes: Iterable[tuple[int, np.ndarray, KeyframePoints]],
+    *,
+    max_pixel_distance: float = 1.0,
+    baseline_bins_m: Sequence[float] = (0.0, 2.0, 5.0, 10.0, np.inf),
+    depth_bins_m: Sequence[float] = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf),
+    verified: Optional[Iterable[tuple[int, np.ndarray, KeyframePoints]]] = None,
+    min_confirming: int = 2,
+) -> dict:
+    """How well map points agree with the depths other keyframes estimated on their own.
+
+    Every map point is reprojected into every keyframe ``(frame_id, world_from_cam, points)``
+    other than its source keyframe; where that keyframe has its own accepted depth at the nearest
+    pixel (within ``max_pixel_distance``, chosen by image distance only, never by depth), the
+    relative disagreement |z_map - z_own| / z_own is recorded. ``median_rel`` over all such pairs
+    is the headline figure. Occlusion (the map point hidden behind what the keyframe sees) and
+    chance hits on unrelated structure make the tail, and both grow with the distance between
+    the two keyframes, hence the breakdown by that distance and by sign ("map nearer" than the
+    keyframe's own depth violates free space; "map farther" is mostly occlusion), and by the
+    keyframe's own depth (``by_depth_m``: far depths are measured with less parallax).
+
+    ``verified``: each keyframe's depths that passed a multi-view test (same ids; e.g. what
+    ``build_semidense_map`` hands ``on_fused`` with ``min_consistent_views`` on). Then the pairs
+    where the map lies more than 5 % farther are told apart (``farther_causes``, shares of all
+    pairs): ``reference_unverified``, the keyframe's own depth there is one its multi-view test
+    rejected (the reference, not the map, is suspect); ``occluded``, that depth is verified and
+    the map point agrees within 5 % with the verified depths of at least ``min_confirming`` other
+    keyframes (two surfaces both seen from several keyframes, the nearer hiding the farther: the
+    keyframe could not see the point); ``unexplained``, the rest. ``verified_reference`` holds the
+    figures against the verified depths alone, and ``verified_visible`` the same without the
+    occluded pairs.
+    """
+    w, h = sd_map.image_size_wh
+    p = _pairs(sd_map, keyframes, max_pixel_distance)
+    out: dict[str, Any] = {"pairs": int(len(p.signed_rel)), "frames": int(len(np.unique(p.frame_id))), "projected": p.projected}
+    if len(p.signed_rel) == 0:
+        return {**out, "median_rel": None}
+    r = p.signed_rel
     out.update(
-        hit_rate=len(r) / projected,
-        median_rel=float(np.median(a)),
-        p75_rel=float(np.percentile(a, 75)),
-        p90_rel=float(np.percentile(a, 90)),
-        frac_below_5pct=float(np.mean(a < 0.05)),
-        frac_map_nearer_5pct=float(np.mean(r < -0.05)),
-        frac_map_farther_5pct=float(np.mean(r > 0.05)),
-        by_keyframe_distance_m=_binned(r, b, baseline_bins_m),
-        by_depth_m=_binned(r, zo, depth_bins_m),
+        hit_rate=len(r) / p.projected,
+        **{k: v for k, v in _figures(r).items() if k != "pairs"},
+        by_keyframe_distance_m=_binned(r, p.baseline_m, baseline_bins_m),
+        by_depth_m=_binned(r, p.own_depth, depth_bins_m),
     )
+    if verified is None:
+        return out
+    ver_kf = list(verified)
+    ver_pixels = {int(fid): set((pts.pixels_uv[:, 1].astype(np.int64) * w + pts.pixels_uv[:, 0]).tolist()) for fid, _, pts in ver_kf}
+    v = _pairs(sd_map, ver_kf, max_pixel_distance)
+    confirming = np.bincount(v.point[np.abs(v.signed_rel) <= 0.05], minlength=len(sd_map))
+
+    def occluded(pairs: _Pairs, ref_verified: np.ndarray) -> np.ndarray:
+        return (pairs.signed_rel > 0.05) & ref_verified & (confirming[pairs.point] >= min_confirming)
+
+    ref_ok = np.array([px in ver_pixels.get(int(f), ()) for f, px in zip(p.frame_id.tolist(), p.own_pixel.tolist())], bool)
+    farther = r > 0.05
+    occ = occluded(p, ref_ok)
+    out["farther_causes"] = {"reference_unverified": float(np.mean(farther & ~ref_ok)), "occluded": float(np.mean(occ)),
+                             "unexplained": float(np.mean(farther & ref_ok & ~occ)), "min_confirming": min_confirming}
+    occ_v = occluded(v, np.ones(len(v.signed_rel), bool))
+    out["verified_reference"] = _figures(v.signed_rel)
+    out["verified_visible"] = {**_figures(v.signed_rel[~occ_v]),
+                               "by_keyframe_distance_m": _binned(v.signed_rel[~occ_v], v.baseline_m[~occ_v], baseline_bins_m)}
     return out
 
 

@@ -7,7 +7,17 @@ Step 5 of the semi-dense mapper (:mod:`mapkit.mapping.semidense`):
   keyframes up to ``consistency_window_keyframes`` before and after it, and a depth enters the map
   only where enough of them hold their own depth within a relative tolerance there. A wrong match
   (a streak along the viewing ray behind a tree or a pole) lands where no other keyframe saw
-  anything at that depth.
+  anything at that depth. :func:`visibility_views` tells a contradicting view's two cases apart:
+  the depth hides behind what the view sees (occlusion) or floats in front of it (free space).
+- **Photometric consistency** (:func:`photometric_ncc`, :func:`photometric_filter`; DSO activates a
+  point only where its photometric residual is low in the frames that see it, COLMAP scores depths
+  by patch NCC): the patch around each depth, lifted at that depth, is compared by NCC with its
+  image in the same keyframes, skipping those whose depths show it hidden.
+- **Free space** (:func:`free_space_filter`, :func:`hidden_in_source`; the carving of TSDF fusion
+  and Merrell et al.'s stability-based fusion, ICCV 2007), over a wider window and against the
+  depths that passed the two tests above: a depth goes when a keyframe sees through it (it floats
+  in front of a surface that keyframe holds) or saw a surface that would hide it in its own image.
+  A depth merely hidden from another keyframe is kept.
 - **Fusion**: points of nearby keyframes closer than ``fusion_radius_m`` are fused by greedy
   non-maximum suppression on the depth sigma; the surviving (best-measured) point inherits the
   observations of those it absorbed, so every map point lists every frame that observed it (the
@@ -21,54 +31,220 @@ Step 5 of the semi-dense mapper (:mod:`mapkit.mapping.semidense`):
 from __future__ import annotations
 
 from collections import deque
-from typing import Generic, Iterator, Sequence, TypeVar
+from typing import Generic, Iterator, Optional, Sequence, TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from mapkit.core.geometry import invert_pose, transform_points
+from mapkit.mapping.semidense_epipolar import _remap
 
 T = TypeVar("T")
+
+
+class SparseDepth:
+    """A keyframe's sparse depth image kept as its pixels: the same lookups as a dense (H, W) array
+    (NaN where there is no depth) at a few kilobytes instead of H x W floats; for long windows."""
+
+    def __init__(self, pixels_uv: np.ndarray, depth: np.ndarray, shape: tuple[int, int]):
+        self.shape = (int(shape[0]), int(shape[1]))
+        lin = pixels_uv[:, 1].astype(np.int64) * self.shape[1] + pixels_uv[:, 0].astype(np.int64)
+        order = np.argsort(lin, kind="stable")
+        self.lin, self.depth = lin[order], np.asarray(depth, np.float32)[order]
+
+    def take(self, lin: np.ndarray) -> np.ndarray:
+        """Depths (float32, NaN where none) at linear pixel indices ``row * W + column`` of any shape."""
+        if len(self.lin) == 0:
+            return np.full(lin.shape, np.nan, np.float32)
+        pos = np.minimum(np.searchsorted(self.lin, lin), len(self.lin) - 1)
+        return np.where(self.lin[pos] == lin, self.depth[pos], np.float32(np.nan))
+
+
+def _take(depth, lin: np.ndarray) -> np.ndarray:
+    """Values of a dense (H, W) depth image or a :class:`SparseDepth` at linear pixel indices."""
+    return depth.take(lin) if isinstance(depth, SparseDepth) else np.take(depth.ravel(), lin)
+
+
+def _project(world_from_cam: np.ndarray, K: np.ndarray, points_world: np.ndarray, shape: tuple[int, int],
+             margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(index, x, y, z) of the points in front of a camera whose projection lies inside its (H, W)
+    image grown by ``margin`` px; z is the depth in that camera."""
+    h, w = shape
+    E = invert_pose(world_from_cam)[:3]
+    P = K @ E  # (3, 4); column by column: matrix products with 3 columns are slow in BLAS
+    X, Y, Z = points_world[:, 0], points_world[:, 1], points_world[:, 2]
+    hx, hy, hz = (P[i, 0] * X + P[i, 1] * Y + P[i, 2] * Z + P[i, 3] for i in range(3))
+    z = E[2, 0] * X + E[2, 1] * Y + E[2, 2] * Z + E[2, 3]
+    idx = np.nonzero(z > 1e-3)[0]
+    x, y, z = hx[idx] / hz[idx], hy[idx] / hz[idx], z[idx]
+    inside = (x > -0.5 - margin) & (x < w - 0.5 + margin) & (y > -0.5 - margin) & (y < h - 0.5 + margin)
+    return idx[inside], x[inside], y[inside], z[inside]
+
+
+def _depth_evidence(depth, x: np.ndarray, y: np.ndarray, z: np.ndarray, rel_tol: float,
+                    pixel_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a view's depth image (dense (H, W) or :class:`SparseDepth`) says about points projected at
+    ``x, y`` with depth ``z``: three (n,)
+    bool, ``seen`` (some depth within ``pixel_radius``), ``agree`` (one of them within ``rel_tol``
+    of its own value) and ``behind`` (one of them nearer than ``z / (1 + rel_tol)``: the view sees a
+    surface in front of the point there)."""
+    h, w = depth.shape
+    r = int(np.ceil(pixel_radius))
+    # the pixel offsets that can lie strictly within the radius of a point in the centre pixel's rounding cell
+    d = np.arange(-r, r + 1)
+    dx, dy = (a.ravel() for a in np.meshgrid(d, d))
+    near = np.maximum(np.abs(dx) - 0.5, 0) ** 2 + np.maximum(np.abs(dy) - 0.5, 0) ** 2 < pixel_radius**2
+    dx, dy = dx[near], dy[near]
+    xf, yf = x.astype(np.float32)[:, None], y.astype(np.float32)[:, None]
+    cx = np.rint(xf).astype(np.int32) + dx.astype(np.int32)[None]  # (n, O)
+    cy = np.rint(yf).astype(np.int32) + dy.astype(np.int32)[None]
+    ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h) & ((cx - xf) ** 2 + (cy - yf) ** 2 <= np.float32(pixel_radius**2))
+    lin = np.clip(cy, 0, h - 1) * w + np.clip(cx, 0, w - 1)
+    z_own = np.where(ok, _take(depth, lin), np.float32(np.nan))
+    zc = z.astype(np.float32)[:, None]
+    with np.errstate(invalid="ignore"):
+        seen = np.isfinite(z_own).any(axis=1)
+        agree = (np.abs(zc - z_own) <= np.float32(rel_tol) * z_own).any(axis=1)
+        behind = (zc > np.float32(1.0 + rel_tol) * z_own).any(axis=1)
+    return seen, agree, behind
+
+
+def visibility_views(points_world: np.ndarray, views: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
+                     rel_tol: float, pixel_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per point, how many ``views`` agree with its depth, see it hidden behind a nearer surface, and
+    see through it: three (N,) int.
+
+    A view is ``(world_from_cam, depth image (H, W) in m, NaN where it has no depth)`` (or a
+    :class:`SparseDepth`). It agrees
+    with a point when some pixel within ``pixel_radius`` of the point's reprojection holds a depth
+    ``z_own`` with ``|z - z_own| <= rel_tol * z_own``, ``z`` the point's depth in that view. When
+    such pixels hold depths but none agrees, the view either holds one nearer than the point
+    (``occluded``: the point hides behind what the view sees, which says nothing against it), or
+    only farther ones (``free_space``: the point floats in front of the surface the view sees
+    through it, so the view's rays pass where the point claims to be; Merrell et al.'s free-space
+    violation, ICCV 2007). A view without a depth there says nothing.
+    """
+    n = len(points_world)
+    agree_n, occluded_n, free_n = (np.zeros(n, np.int64) for _ in range(3))
+    r = int(np.ceil(pixel_radius))
+    for world_from_cam, depth in views:
+        idx, x, y, z = _project(world_from_cam, K, points_world, depth.shape, r)
+        seen, agree, behind = _depth_evidence(depth, x, y, z, rel_tol, pixel_radius)
+        agree_n[idx[agree]] += 1
+        occluded_n[idx[seen & ~agree & behind]] += 1
+        free_n[idx[seen & ~agree & ~behind]] += 1
+    return agree_n, occluded_n, free_n
 
 
 def consistent_views(points_world: np.ndarray, views: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
                      rel_tol: float, pixel_radius: float) -> tuple[np.ndarray, np.ndarray]:
     """How many ``views`` agree on each point's depth, and how many contradict it: two (N,) int.
 
-    A view is ``(world_from_cam, depth image (H, W) in m, NaN where it has no depth)``. It agrees
-    with a point when some pixel within ``pixel_radius`` of the point's reprojection holds a depth
-    ``z_own`` with ``|z - z_own| <= rel_tol * z_own``, ``z`` the point's depth in that view; it
-    contradicts the point when such pixels hold depths but none agrees (the point lies in front of
-    what that view saw, or hides behind it: Merrell et al.'s free-space violations and occlusions,
-    ICCV 2007). A view without a depth there says nothing.
+    As :func:`visibility_views`; a view contradicts a point when it holds depths near the point's
+    reprojection and none agrees, whether the point hides behind them or floats in front of them
+    (Merrell et al.'s occlusions and free-space violations, ICCV 2007).
     """
-    n = len(points_world)
+    agree, occluded, free = visibility_views(points_world, views, K, rel_tol, pixel_radius)
+    return agree, occluded + free
+
+
+def hidden_in_source(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray,
+                     surfaces_world: Sequence[np.ndarray], K: np.ndarray, shape: tuple[int, int], rel_tol: float) -> np.ndarray:
+    """(N,) int: for each of a keyframe's depths (``pixels_uv`` (N, 2) int, ``depth`` (N,) m), how many
+    of the other keyframes' surfaces (``surfaces_world``, one (M_k, 3) array of world points per
+    keyframe) put a point on the same pixel of this keyframe nearer than ``depth / (1 + rel_tol)``.
+
+    Such a depth would be hidden in the very image it was measured in: the keyframe's ray to it
+    passes through a surface that another keyframe saw (a wrong match behind a pole or a trunk
+    lands there). The other keyframes' points are splatted on their nearest pixel only, so that a
+    foreground edge next to a background depth does not hide it.
+    """
+    h, w = shape
+    n = len(depth)
     count = np.zeros(n, np.int64)
-    conflict = np.zeros(n, np.int64)
-    r = int(np.ceil(pixel_radius))
-    offsets = [(dx, dy) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
-    for world_from_cam, depth in views:
-        h, w = depth.shape
-        X = transform_points(invert_pose(world_from_cam), points_world)
-        idx = np.nonzero(X[:, 2] > 1e-3)[0]
-        uvw = X[idx] @ K.T
-        x, y, z = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2], X[idx, 2]
-        inside = (x > -0.5 - r) & (x < w - 0.5 + r) & (y > -0.5 - r) & (y < h - 0.5 + r)
-        idx, x, y, z = idx[inside], x[inside], y[inside], z[inside]
-        xi, yi = np.rint(x).astype(np.int64), np.rint(y).astype(np.int64)
-        agree = np.zeros(len(idx), bool)
-        seen = np.zeros(len(idx), bool)
-        for dx, dy in offsets:
-            cx, cy = xi + dx, yi + dy
-            ok = (cx >= 0) & (cx < w) & (cy >= 0) & (cy < h) & ((cx - x) ** 2 + (cy - y) ** 2 <= pixel_radius**2)
-            z_own = np.full(len(idx), np.nan)
-            z_own[ok] = depth[cy[ok], cx[ok]]
-            seen |= np.isfinite(z_own)
-            with np.errstate(invalid="ignore"):
-                agree |= np.abs(z - z_own) <= rel_tol * z_own
-        count[idx[agree]] += 1
-        conflict[idx[seen & ~agree]] += 1
-    return count, conflict
+    if n == 0:
+        return count
+    lin = pixels_uv[:, 1].astype(np.int64) * w + pixels_uv[:, 0].astype(np.int64)
+    pixels, at = np.unique(lin, return_inverse=True)  # the keyframe's pixels, sorted; ``at``: each depth's
+    for pts in surfaces_world:
+        if len(pts) == 0:
+            continue
+        _, x, y, z = _project(source_world_from_cam, K, pts, shape, 0.0)
+        q = np.rint(y).astype(np.int64).clip(0, h - 1) * w + np.rint(x).astype(np.int64).clip(0, w - 1)
+        pos = np.minimum(np.searchsorted(pixels, q), len(pixels) - 1)
+        hit = pixels[pos] == q
+        nearest = np.full(len(pixels), np.inf)
+        np.minimum.at(nearest, pos[hit], z[hit])
+        count += nearest[at] * (1.0 + rel_tol) < depth
+    return count
+    lin = pixels_uv[:, 1].astype(np.int64) * w + pixels_uv[:, 0].astype(np.int64)
+    nearest = np.empty(h * w, np.float64)
+    for pts in surfaces_world:
+        if len(pts) == 0:
+            continue
+        idx, x, y, z = _project(source_world_from_cam, K, pts, shape, 0.0)
+        nearest.fill(np.inf)
+        np.minimum.at(nearest, np.rint(y).astype(np.int64).clip(0, h - 1) * w + np.rint(x).astype(np.int64).clip(0, w - 1), z)
+        count += nearest[lin] * (1.0 + rel_tol) < depth
+    return count
+
+
+def photometric_ncc(source_world_from_cam: np.ndarray, source_image: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray,
+                    views: Sequence[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]], K: np.ndarray, *, patch_radius: int,
+                    rel_tol: float, pixel_radius: float) -> np.ndarray:
+    """(N, V) NCC of each keyframe depth's patch with its image in each view; NaN where not compared.
+
+    The depths are a keyframe's (``pixels_uv`` (N, 2) int in ``source_image``, ``depth`` (N,) m); a
+    view is ``(world_from_cam, grey image (H, W), depth image (H, W) in m or None)``. The
+    ``(2 patch_radius + 1)^2`` pixels around each depth are lifted at its depth (a fronto-parallel
+    patch, as the epipolar search assumes), projected into the view and sampled bilinearly; the
+    normalised cross-correlation of the two patches is blind to exposure changes. A view is not
+    compared where the patch leaves its image, or where its depth image shows a surface nearer
+    than the point around the point's reprojection (the point is hidden there, so its patch is not
+    expected to match: :func:`visibility_views`).
+    """
+    n = len(depth)
+    out = np.full((n, len(views)), np.nan)
+    if n == 0:
+        return out
+    Kinv = np.linalg.inv(K)
+    r = int(patch_radius)
+    du, dv = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1))
+    du, dv = du.ravel(), dv.ravel()
+    src = np.asarray(source_image, np.float32)
+    h, w = src.shape
+    pu = np.clip(pixels_uv[:, 0:1] + du[None], 0, w - 1)
+    pv = np.clip(pixels_uv[:, 1:2] + dv[None], 0, h - 1)
+    a = src[pv, pu]  # (N, T)
+    a -= a.mean(axis=1, keepdims=True)
+    a_norm = np.sqrt((a * a).sum(axis=1))
+    pu, pv = pu.astype(np.float32), pv.astype(np.float32)
+    zc = depth.astype(np.float32)[:, None]
+    centre_world = transform_points(source_world_from_cam, (np.column_stack([pixels_uv, np.ones(n)]) @ Kinv.T) * depth[:, None])
+    for k, (world_from_cam, image, view_depth) in enumerate(views):
+        # a tap lifted at the centre's depth z, in the view: z K R K^-1 [u v 1] + K t (columnwise: no BLAS on thin arrays)
+        view_from_src = invert_pose(world_from_cam) @ source_world_from_cam
+        A = (K @ view_from_src[:3, :3] @ Kinv).astype(np.float32)
+        bt = (K @ view_from_src[:3, 3]).astype(np.float32)
+        hx, hy, hz = (zc * (A[i, 0] * pu + A[i, 1] * pv + A[i, 2]) + bt[i] for i in range(3))
+        front = hz > 1e-3
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = np.where(front, hx / hz, -1e4)
+            y = np.where(front, hy / hz, -1e4)
+        b = _remap(np.asarray(image, np.float32), x, y)  # NaN outside the image
+        valid = np.isfinite(b).all(axis=1) & (a_norm > 1e-3)
+        if view_depth is not None:
+            idx, cx, cy, cz = _project(world_from_cam, K, centre_world, view_depth.shape, int(np.ceil(pixel_radius)))
+            seen, agree, behind = _depth_evidence(view_depth, cx, cy, cz, rel_tol, pixel_radius)
+            valid[idx[seen & ~agree & behind]] = False
+        b = np.where(valid[:, None], b, np.float32(0))
+        b -= b.mean(axis=1, keepdims=True)
+        b_norm = np.sqrt((b * b).sum(axis=1))
+        valid &= b_norm > 1e-3
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ncc = (a * b).sum(axis=1) / (a_norm * b_norm)
+        out[valid, k] = ncc[valid]
+    return out
 
 
 def multi_view_filter(points_world: np.ndarray, views: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray, *, min_views: int,
@@ -77,6 +253,36 @@ def multi_view_filter(points_world: np.ndarray, views: Sequence[tuple[np.ndarray
     at least ``min_agree_over_conflict`` times as many views as contradict them."""
     agree, conflict = consistent_views(points_world, views, K, rel_tol, pixel_radius)
     return (agree >= min_views) & (agree >= min_agree_over_conflict * conflict)
+
+
+def photometric_filter(source_world_from_cam: np.ndarray, source_image: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray,
+                       views: Sequence[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]], K: np.ndarray, *, min_views: int,
+                       ncc_min: float, min_agree_over_conflict: float, patch_radius: int, rel_tol: float,
+                       pixel_radius: float) -> np.ndarray:
+    """(N,) bool: the keyframe depths whose patch at least ``min_views`` views show with NCC >= ``ncc_min``
+    (:func:`photometric_ncc`; views that do not see a depth, or see it hidden, are not asked), by at
+    least ``min_agree_over_conflict`` times as many views as show something else there."""
+    ncc = photometric_ncc(source_world_from_cam, source_image, pixels_uv, depth, views, K, patch_radius=patch_radius,
+                          rel_tol=rel_tol, pixel_radius=pixel_radius)
+    compared = np.isfinite(ncc)
+    with np.errstate(invalid="ignore"):
+        agree = (ncc >= ncc_min).sum(axis=1)
+    conflict = compared.sum(axis=1) - agree
+    return (agree >= min_views) & (agree >= min_agree_over_conflict * conflict)
+
+
+def free_space_filter(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray, points_world: np.ndarray,
+                      views: Sequence[tuple[np.ndarray, np.ndarray | SparseDepth, np.ndarray]], K: np.ndarray, shape: tuple[int, int], *,
+                      rel_tol: float, pixel_radius: float, max_violations: int) -> np.ndarray:
+    """(N,) bool: a keyframe's depths (``pixels_uv``, ``depth``, and as ``points_world``) that at most
+    ``max_violations`` of the ``views`` contradict on visibility. A view is ``(world_from_cam, depth
+    image (H, W) or :class:`SparseDepth`, its depths as world points (M, 3))``; it contradicts a depth when it sees through
+    it (the depth floats in front of the surface the view holds there: :func:`visibility_views`'s
+    free-space count) or holds a surface that hides it in its own keyframe (:func:`hidden_in_source`).
+    A depth hidden behind what a view sees is not contradicted (occlusion)."""
+    _, _, free = visibility_views(points_world, [(T, d) for T, d, _ in views], K, rel_tol, pixel_radius)
+    hidden = hidden_in_source(source_world_from_cam, pixels_uv, depth, [X for _, _, X in views], K, shape, rel_tol)
+    return free + hidden <= max_violations
 
 
 class _ViewWindow(Generic[T]):
@@ -103,7 +309,8 @@ class _ViewWindow(Generic[T]):
     def _release(self) -> tuple[T, list[T]]:
         k = self.released
         self.released += 1
-        return self.buf[k], [x for i, x in enumerate(self.buf) if i != k]
+        # while flushing, released items are no longer dropped from the front: keep to +-window
+        return self.buf[k], [x for i, x in enumerate(self.buf) if i != k and abs(i - k) <= self.window]
 
 
 def statistical_inliers(points: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
