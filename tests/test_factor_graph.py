@@ -152,29 +152,37 @@ def test_pitch_fixed_by_gravity():
     assert np.max(np.abs(pitch(fused.enu_from_base) - pitch(truth))) < 0.1
 
 
-def test_covariances_consistent_over_many_drives():
-    """Drift, jitter, GPS bias and noise drawn from the model itself: the NEES of the middle pose over 30 independent
-    drives lies in the two-sided 95% chi-square band (90 dof), and the 95% ellipses hold 80-100% of them."""
+def assert_nees_consistent(stamps, truth, rng, imu_truth=None, drives: int = 30) -> None:
+    """Drift, jitter, GPS bias and noise (and, given the 100 Hz truth, the IMU's noise and constant biases) drawn from
+    the model itself: the NEES of the middle pose over ``drives`` independent drives lies in the two-sided 95%
+    chi-square band (90 dof for 30 drives: 65.6-118.1), and the 95% ellipses hold 80-100% of them."""
     cfg = FactorGraphConfig(gps_robust="none", odom_robust="none")
-    stamps, truth = true_drive(length_m=150.0)
-    rng = np.random.default_rng(7)
-    nees = []
     sb = cfg.gps_bias_sigma_m
     white = np.sqrt(GPS_SIGMA_REPORTED**2 - sb**2)
-    for _ in range(30):
+    nees = []
+    for _ in range(drives):
         odom = drifted_odometry(truth, rng=rng, rot_sigma_per_sqrt_m=cfg.odom_rotation_walk_rad_per_sqrt_m,
                                 trans_sigma_per_sqrt_m=cfg.odom_translation_walk_m_per_sqrt_m,
                                 rot_jitter=cfg.odom_rotation_jitter_rad, trans_jitter=cfg.odom_translation_jitter_m)
-        bias = rng.standard_normal(3) * sb * np.array([1, 1, cfg.gps_vertical_sigma_factor])
-        gps, _ = gps_fixes(stamps, truth, rng, bias=bias, white=white)
-        fused = fuse_session(stamps, odom, gps, None, cfg)
+        gps, _ = gps_fixes(stamps, truth, rng, bias=rng.standard_normal(3) * sb * np.array([1, 1, cfg.gps_vertical_sigma_factor]),
+                           white=white)
+        imu = None
+        if imu_truth is not None:
+            imu = imu_from_truth(*imu_truth, rng, rng.standard_normal(3) * cfg.imu_accel_bias_sigma,
+                                 rng.standard_normal(3) * cfg.imu_gyro_bias_sigma, cfg)
+        fused = fuse_session(stamps, odom, gps, None, cfg, imu=imu)
         i = len(stamps) // 2
         e = fused_errors(fused, truth)[i]
         nees.append(float(e @ np.linalg.solve(fused.covariances[i, 3:, 3:], e)))
     nees = np.asarray(nees)
-    # chi-square with 90 dof: 2.5% and 97.5% quantiles 65.6 and 118.1
     assert 65.6 <= nees.sum() <= 118.1, nees.sum()
     assert np.mean(nees <= CHI2_95_3DOF) >= 0.8
+
+
+def test_covariances_consistent_over_many_drives():
+    """Odometry and GPS drawn from the model over 30 drives of 150 m: NEES consistent (assert_nees_consistent)."""
+    stamps, truth = true_drive(length_m=150.0)
+    assert_nees_consistent(stamps, truth, np.random.default_rng(7))
 
 
 def test_no_gps_keeps_the_odometry_with_growing_covariance():
@@ -406,27 +414,6 @@ def test_imu_input_checked_and_gaps_skipped():
 
 def test_covariances_consistent_with_the_imu():
     """As test_covariances_consistent_over_many_drives, with the IMU preintegrated (its white noise at the configured
-    densities, constant biases drawn from their priors): over 30 drives of 20 s the middle pose's NEES sums inside the
-    two-sided 95% chi-square band (90 dof) and its 95% ellipse holds 80-100% of the true positions."""
-    cfg = FactorGraphConfig(gps_robust="none", odom_robust="none")
+    densities, constant biases drawn from their priors), over 30 drives of 20 s with braking."""
     stamps100, truth100 = braking_drive(duration_s=20.0, brake_at_s=14.0)
-    stamps, truth = stamps100[::10], truth100[::10]
-    rng = np.random.default_rng(8)
-    sb = cfg.gps_bias_sigma_m
-    white = np.sqrt(GPS_SIGMA_REPORTED**2 - sb**2)
-    nees = []
-    for _ in range(30):
-        odom = drifted_odometry(truth, rng=rng, rot_sigma_per_sqrt_m=cfg.odom_rotation_walk_rad_per_sqrt_m,
-                                trans_sigma_per_sqrt_m=cfg.odom_translation_walk_m_per_sqrt_m,
-                                rot_jitter=cfg.odom_rotation_jitter_rad, trans_jitter=cfg.odom_translation_jitter_m)
-        gps, _ = gps_fixes(stamps, truth, rng, bias=rng.standard_normal(3) * sb * np.array([1, 1, cfg.gps_vertical_sigma_factor]),
-                           white=white)
-        imu = imu_from_truth(stamps100, truth100, rng, rng.standard_normal(3) * cfg.imu_accel_bias_sigma,
-                             rng.standard_normal(3) * cfg.imu_gyro_bias_sigma, cfg)
-        fused = fuse_session(stamps, odom, gps, None, cfg, imu=imu)
-        i = len(stamps) // 2
-        e = fused_errors(fused, truth)[i]
-        nees.append(float(e @ np.linalg.solve(fused.covariances[i, 3:, 3:], e)))
-    nees = np.asarray(nees)
-    assert 65.6 <= nees.sum() <= 118.1, nees.sum()
-    assert np.mean(nees <= CHI2_95_3DOF) >= 0.8
+    assert_nees_consistent(stamps100[::10], truth100[::10], np.random.default_rng(8), imu_truth=(stamps100, truth100))

@@ -301,11 +301,12 @@ def select_keyframes(stamps_ns: np.ndarray, world_from_base: np.ndarray, distanc
     return np.asarray(keys, np.int64)
 
 
-def _robust(gtsam, base, cfg: FactorGraphConfig):
-    if cfg.gps_robust == "none":
+def _robust(gtsam, base, kind: str, k: float):
+    """``base`` under the robust loss ``kind`` ("cauchy", "huber" or "none") of scale ``k`` sigmas."""
+    if kind == "none":
         return base
     est = gtsam.noiseModel.mEstimator
-    m = est.Cauchy.Create(cfg.gps_robust_k) if cfg.gps_robust == "cauchy" else est.Huber.Create(cfg.gps_robust_k)
+    m = est.Cauchy.Create(k) if kind == "cauchy" else est.Huber.Create(k)
     return gtsam.noiseModel.Robust.Create(m, base)
 
 
@@ -334,11 +335,7 @@ def _drift_covariance(rel: np.ndarray, cfg: FactorGraphConfig) -> np.ndarray:
 
 
 def _odom_loss(gtsam, noise, cfg: FactorGraphConfig):
-    if cfg.odom_robust == "none":
-        return noise
-    est = gtsam.noiseModel.mEstimator
-    m = est.Huber.Create(cfg.odom_robust_k) if cfg.odom_robust == "huber" else est.Cauchy.Create(cfg.odom_robust_k)
-    return gtsam.noiseModel.Robust.Create(m, noise)
+    return _robust(gtsam, noise, cfg.odom_robust, cfg.odom_robust_k)
 
 
 def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: Optional[GpsObservations] = None,
@@ -675,7 +672,7 @@ def _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, base_from_antenna, s
         k = int(near[i])
         lever = (state_from_base @ invert_pose(odom[kf[k]]) @ odom_at_fix[i] @ base_from_antenna)[:3, 3]
         sw = np.sqrt(white_var[i])
-        noise = _robust(gtsam, gtsam.noiseModel.Diagonal.Sigmas(np.array([sw, sw, vf * sw])), cfg)
+        noise = _robust(gtsam, gtsam.noiseModel.Diagonal.Sigmas(np.array([sw, sw, vf * sw])), cfg.gps_robust, cfg.gps_robust_k)
         if n_bias:
             u = (f_stamps[i] - f_stamps.min()) / max(1, int(f_stamps.max() - f_stamps.min())) * (n_bias - 1)
             j = min(int(u), n_bias - 2)
