@@ -84,8 +84,8 @@ def test_pages_and_picture(site):
     assert (DOCS / "img" / "tiny-town-top-view.png").stat().st_size < 300_000
     assert not list(site.rglob("*.py")), "the docs' Python helpers must not be published"
     papers = (site / "papers" / "index.html").read_text()
-    assert "15.5 / 1.77 m vs 34.6 / 2.45" in papers  # the multi-hypothesis preset on the demo
-    assert "NBLD 0.308, M2DP 0.277, VLAD 0.333" in papers  # held-out place recognition
+    assert "15.5 / 1.69 m vs 24.3 / 2.35" in papers  # the multi-hypothesis preset on the demo
+    assert "NBLD 0.325, M2DP 0.394, VLAD 0.234" in papers  # held-out place recognition
     assert "13 min 16 s" in (site / "benchmarks" / "index.html").read_text()
     assert 'class="mermaid"' in (site / "architecture" / "index.html").read_text()
     readme = (REPO / "README.md").read_text()
