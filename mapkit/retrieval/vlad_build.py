@@ -10,8 +10,8 @@ learns on the database itself, usually on fewer images than the 4096 dimensions 
 the dimension is then n - 1 and ``vlad.whitening`` must be regularised (the default, 'power')
 rather than full, which would make the database images equidistant (see :mod:`mapkit.retrieval.vlad`).
 Sessions beyond the database named in ``train_sessions`` give the PCA images the database does not
-hold, and so do the frames a build kept beside each training session's database
-(``imagedb.training_frames``, used unless ``training_frames: false``). The manifest's ``vlad.pca`` (and ``metrics.json``'s ``pca``) records what it learned on. The bundle is written into a partial folder and renamed into place
+hold, and so, with ``training_frames: true``, do the frames a build kept beside each training
+session's database (``imagedb.training_frames``). The manifest's ``vlad.pca`` (and ``metrics.json``'s ``pca``) records what it learned on. The bundle is written into a partial folder and renamed into place
 (:func:`mapkit.core.bundle.building`). See :mod:`mapkit.retrieval.index_vlad` for the layout.
 """
 

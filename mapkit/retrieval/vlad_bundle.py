@@ -10,7 +10,8 @@ import csv
 import io
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal, Optional
@@ -129,11 +130,18 @@ class SessionImages:
     world_from_cam: np.ndarray  # (n, 4, 4) local ENU
     base_from_camera: Optional[np.ndarray] = None  # (4, 4) the camera's mount, when the build recorded it
     training_csv: Optional[Path] = None  # the frames the database skipped, kept for encoder training (imagedb.training_frames)
-    training_paths: list[Path] = field(default_factory=list)
 
     def __len__(self) -> int:
         """Database images (training frames not counted)."""
         return len(self.image_paths)
+
+    @cached_property
+    def training_paths(self) -> list[Path]:
+        """The training frames' readable paths, read from ``training_csv`` when first asked for (only an
+        index that learns from them does)."""
+        if self.training_csv is None:
+            return []
+        return [self.training_csv.parent / p for p in read_images_csv(self.training_csv)["image"]]
 
     def path(self, row: int) -> Path:
         """Row ``row`` of the database images followed by the training frames."""
@@ -158,9 +166,8 @@ def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool =
     paths = [csv_path.parent / p for p in table["image"]]
     rel = [os.path.relpath(p, ws.root) for p in paths]
     training_csv = ws.session(name).training_csv
-    training = [training_csv.parent / p for p in read_images_csv(training_csv)["image"]] if training_csv.is_file() else []
     return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table), read_camera_mount(ws, name),
-                         training_csv if training_csv.is_file() else None, training)
+                         training_csv if training_csv.is_file() else None)
 
 
 def read_camera_mount(workspace: str | Path, name: str) -> Optional[np.ndarray]:
