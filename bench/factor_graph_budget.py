@@ -47,7 +47,7 @@ from mapkit.mapping.trajectory import Trajectory
 CHI2_95_3DOF = 7.815
 
 
-def read_sensors(log_path: str, frame, body: str) -> tuple[GpsObservations, tuple]:
+def read_sensors(log_path: str, frame, body: str) -> tuple[GpsObservations, ImuObservations]:
     """GPS fixes in the workspace ENU frame and IMU samples with the base-from-IMU mount."""
     with open_log(log_path) as log:
         fixes = [f for f in log.records(StreamKind.GPS) if f.has_fix]
@@ -58,10 +58,7 @@ def read_sensors(log_path: str, frame, body: str) -> tuple[GpsObservations, tupl
     enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
     gps = GpsObservations(np.array([f.stamp_ns for f in fixes], np.int64), enu, np.array([f.horizontal_sigma_m for f in fixes]),
                           base_from_gps)
-    imu_t = np.array([s.stamp_ns for s in imu], np.int64)
-    gyro = np.stack([s.angular_velocity_rad_s for s in imu])
-    accel = np.stack([s.linear_acceleration_m_s2 for s in imu])
-    return gps, (imu_t, gyro, accel, base_from_imu)
+    return gps, ImuObservations.from_samples(imu, base_from_imu)
 
 
 def pitch_deg(poses: np.ndarray) -> np.ndarray:
@@ -215,14 +212,15 @@ def main() -> None:
         gt_stamps, gt = session_truth(args.town, name)
         gt_ws = town_to_ws @ gt
         t0 = time.perf_counter()
-        gps, (imu_t, gyro, accel, base_from_imu) = read_sensors(build[name]["log"], frame, odom.body_frame)
+        gps, samples = read_sensors(build[name]["log"], frame, odom.body_frame)
         t_read = time.perf_counter() - t0
         t1 = time.perf_counter()
         gravity, imu = None, None
         if not args.no_imu:
-            imu = ImuObservations(imu_t, gyro, accel, base_from_imu)
+            imu = samples
         elif not args.no_gravity:
-            gravity = gravity_from_imu(imu_t, gyro, accel, base_from_imu, odom.stamps_ns, odom.world_from_base, odom.stamps_ns)
+            gravity = gravity_from_imu(samples.stamps_ns, samples.gyro_rad_s, samples.accel_m_s2, samples.base_from_imu,
+                                       odom.stamps_ns, odom.world_from_base, odom.stamps_ns)
         fused = fuse_session(odom.stamps_ns, odom.world_from_base, gps, gravity, cfg, enu_from_odom=enu_from_odom, source=name,
                              imu=imu)
         t_graph = time.perf_counter() - t1

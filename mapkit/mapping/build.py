@@ -376,7 +376,8 @@ class SessionBuilder:
     def _fuse(self, traj: Trajectory, enu_from_map: np.ndarray) -> dict:
         """The factor graph over the odometry, the fixes this stage kept and the IMU (odometry and GPS alone without one):
         writes the fused trajectory and its covariances, returns the graph's stats."""
-        fixes = np.load(self.dirs.gps_fixes)
+        with np.load(self.dirs.gps_fixes) as f:
+            fixes = {k: f[k] for k in ("stamps_ns", "enu", "sigma_m")}
         _, kept, _ = self._screened_fixes()
         tree = FrameTree(self.log.transforms())
         try:
@@ -389,10 +390,7 @@ class SessionBuilder:
         if imu_topics:
             samples = list(self.log.records(StreamKind.IMU, topic=imu_topics[0]))
             if len(samples) >= 2:
-                imu = ImuObservations(np.array([s.stamp_ns for s in samples], np.int64),
-                                      np.stack([s.angular_velocity_rad_s for s in samples]),
-                                      np.stack([s.linear_acceleration_m_s2 for s in samples]),
-                                      tree.lookup(traj.body_frame, samples[0].frame_id))
+                imu = ImuObservations.from_samples(samples, tree.lookup(traj.body_frame, samples[0].frame_id))
         fused = fuse_session(traj.stamps_ns, traj.world_from_base, gps, None, self.cfg.georef.factor_graph,
                              enu_from_odom=enu_from_map, source=str(self.log_path), imu=imu)
         Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu",

@@ -175,6 +175,12 @@ class ImuObservations:
     accel_m_s2: np.ndarray
     base_from_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
 
+    @classmethod
+    def from_samples(cls, samples: list, base_from_imu: np.ndarray) -> "ImuObservations":
+        """From a log's ``ImuSample`` records (``DriveLog.records(StreamKind.IMU)``) and the IMU's mount."""
+        return cls(np.array([s.stamp_ns for s in samples], np.int64), np.stack([s.angular_velocity_rad_s for s in samples]),
+                   np.stack([s.linear_acceleration_m_s2 for s in samples]), np.asarray(base_from_imu, np.float64))
+
 
 @dataclass
 class FusedTrajectory:
