@@ -165,7 +165,7 @@ def hidden_in_source(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, d
     if n == 0:
         return count
     lin = pixels_uv[:, 1].astype(np.int64) * w + pixels_uv[:, 0].astype(np.int64)
-    pixels, at = np.unique(lin, return_inverse=True)  # the keyframe's pixels, sorted; ``at``: each depth's
+    pixels, at = np.unique(lin, return_inverse=True)  # the keyframe's pixels, sorted; ``at``: each depth's among them
     for pts in surfaces_world:
         if len(pts) == 0:
             continue
@@ -176,16 +176,6 @@ def hidden_in_source(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, d
         nearest = np.full(len(pixels), np.inf)
         np.minimum.at(nearest, pos[hit], z[hit])
         count += nearest[at] * (1.0 + rel_tol) < depth
-    return count
-    lin = pixels_uv[:, 1].astype(np.int64) * w + pixels_uv[:, 0].astype(np.int64)
-    nearest = np.empty(h * w, np.float64)
-    for pts in surfaces_world:
-        if len(pts) == 0:
-            continue
-        idx, x, y, z = _project(source_world_from_cam, K, pts, shape, 0.0)
-        nearest.fill(np.inf)
-        np.minimum.at(nearest, np.rint(y).astype(np.int64).clip(0, h - 1) * w + np.rint(x).astype(np.int64).clip(0, w - 1), z)
-        count += nearest[lin] * (1.0 + rel_tol) < depth
     return count
 
 
