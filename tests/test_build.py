@@ -336,6 +336,14 @@ def test_per_session_overrides_sub_sample_the_database_drives_and_leave_the_quer
     assert yaml.safe_load(test.config.read_text())["imagedb"]["min_interval_s"] == 0.0
 
 
+def test_a_per_session_pattern_that_matches_no_session_is_a_warning_naming_it(tmp_path):
+    log = _two_camera_log(tmp_path / "test-y.mcap", front_grey=60, rear_grey=190)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("trajectory:\n  source: poses\nmap: false\nimagedb: false\nsessions:\n  'trian-*':\n    imagedb:\n      min_interval_s: 0.5\n")
+    with pytest.warns(InputWarning, match=r"sessions\.trian-\* matches none of this build's sessions \['test-y'\]"):
+        build([log], tmp_path / "ws", config=cfg, progress=False)
+
+
 def test_a_misspelt_per_session_override_is_one_error_naming_it(tmp_path):
     cfg = tmp_path / "c.yaml"
     cfg.write_text("sessions:\n  'train-*':\n    imagedb:\n      min_intervall_s: 0.5\n")

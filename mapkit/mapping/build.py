@@ -745,6 +745,10 @@ def build(logs: list[str | Path], workspace: str | Path | Workspace, config: Opt
             raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
         names[name] = log
     cfg = load_config(BuildConfig, config)
+    for pattern in cfg.sessions:
+        if not any(fnmatchcase(name, pattern) for name in names):
+            warnings.warn(f"{config}: sessions.{pattern} matches none of this build's sessions {sorted(names)}; its settings "
+                          "are not used", InputWarning, stacklevel=2)
     builders = [SessionBuilder(log, workspace, cfg, progress=progress) for log in logs]
     for b in builders:  # nothing is written before every log passed its checks
         try:
