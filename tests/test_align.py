@@ -19,6 +19,7 @@ from mapkit.multisession.align import (
     AlignConfig,
     Edge,
     PoseGraph,
+    support_points,
     SessionData,
     align_workspace,
     candidate_pairs,
@@ -154,7 +155,7 @@ def test_candidate_pairs_pairs_only_nearby_submaps_of_different_sessions():
 def test_pose_graph_distributes_a_known_offset():
     # two sessions of 3 submaps; ICP says session 1 sits 2 m east of session 0 everywhere
     centres = np.array([[25.0, 0, 0], [75, 0, 0], [125, 0, 0]] * 2)
-    g = PoseGraph(centres, AlignConfig().graph)
+    g = PoseGraph(centres, AlignConfig().graph, session_of=np.repeat([0, 1], 3))
     edges = []
     for k in range(2):
         for s in (0, 3):
@@ -167,6 +168,61 @@ def test_pose_graph_distributes_a_known_offset():
     assert np.allclose(x[:3, 3], 1.0, atol=0.05) and np.allclose(x[3:, 3], -1.0, atol=0.05)
     assert np.abs(x[:, 4:]).max() < 0.05 and np.abs(x[:, :3]).max() < 1e-3
     assert g.edge_rms_sigmas(x, edges).max() < 0.5
+
+
+def _mc_graph(rng, cfg, n_sessions=4, n_sub=3, outlier=False):
+    """Sessions of ``n_sub`` submaps along x, each displaced by its GPS bias drawn from the graph's
+    own prior; ICP edges between every pair of sessions at each place, exact, and odometry exact."""
+    centres = np.array([[25.0 + 50 * k, 0, 0] for k in range(n_sub)] * n_sessions)
+    bias = rng.standard_normal((n_sessions, 3)) * np.asarray(cfg.gps_bias_sigma_m)
+    true_t = -np.repeat(bias, n_sub, axis=0)  # the correction that undoes each session's bias
+    x0 = np.zeros((len(centres), 6))
+    x0[:, 3:] = true_t + bias.mean(axis=0)  # where align starts it: the sessions' relative offsets (session_offsets)
+    g = PoseGraph(centres + np.repeat(bias, n_sub, axis=0), cfg, initial=x0, session_of=np.repeat(np.arange(n_sessions), n_sub))
+    for s in range(n_sessions):
+        for k in range(n_sub - 1):
+            g.add(Edge("odometry", s * n_sub + k, s * n_sub + k + 1, support_points(np.array([50.0 * (k + 1), 0, 0]) + bias[s], np.array([1.0, 0, 0]), 10.0), np.eye(4), 0.1))
+    for sa in range(n_sessions):
+        for sb in range(sa + 1, n_sessions):
+            for k in range(n_sub):
+                T = make_pose(np.eye(3), bias[sb] - bias[sa])  # session a's points onto session b's
+                g.add(Edge("icp", sa * n_sub + k, sb * n_sub + k, support_points(g.centres[sa * n_sub + k], np.array([1.0, 0, 0]), 10.0), T, 0.1, 0))
+    bad = None
+    if outlier:  # one registration 3 m off, between the first two sessions
+        bad = Edge("icp", 0, n_sub, support_points(g.centres[0], np.array([1.0, 0, 0]), 10.0), make_pose(np.eye(3), bias[1] - bias[0] + [3.0, 0, 0]), 0.1, 1)
+        g.add(bad)
+    return g, true_t, bad
+
+
+def test_pose_graph_covariances_are_consistent_with_its_gps_model():
+    # Monte Carlo over the GPS bias model: the true corrections fall inside their 95% ellipsoids
+    # about 95% of the time (the common offset of N sessions is known to sigma_b / sqrt(N), not better)
+    cfg = AlignConfig().graph
+    rng = np.random.default_rng(4)
+    d2, sig = [], []
+    for _ in range(60):
+        g, true_t, _ = _mc_graph(rng, cfg)
+        x = g.solve()
+        cov = g.covariances()
+        e = x[:, 3:] - true_t
+        d2 += [float(ei @ np.linalg.solve(c[3:, 3:], ei)) for ei, c in zip(e, cov)]
+        sig.append(np.sqrt(cov[0, 3, 3]))
+    inside = np.mean(np.asarray(d2) <= 7.815)
+    assert 0.90 <= inside <= 0.99, inside
+    assert abs(np.median(sig) - 2.0 / np.sqrt(4)) < 0.15  # sigma_b / sqrt(N) east
+
+
+def test_pose_graph_removes_a_rejected_edge_as_if_never_added():
+    cfg = AlignConfig().graph
+    g, true_t, bad = _mc_graph(np.random.default_rng(1), cfg, n_sessions=3, outlier=True)
+    x_all = g.solve()
+    rms = g.edge_rms_sigmas(x_all, [bad])
+    assert rms[0] > cfg.reject_sigmas  # the Cauchy kernel kept it from pulling the others far
+    x_removed = g.remove([bad])
+    clean, _, _ = _mc_graph(np.random.default_rng(1), cfg, n_sessions=3)
+    x_clean = clean.solve()
+    assert np.abs(x_removed - x_clean).max() < 1e-3
+    assert np.abs(np.diff(x_removed[:, 3:] - true_t, axis=0)).max() < 1e-3  # sessions agree exactly
 
 
 def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
@@ -213,6 +269,15 @@ def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
     assert m2["registration"]["registered_this_run"] == m2["registration"]["pairs"] - m["registration"]["pairs"]
     assert (out / "sessions" / "s0" / "trajectory" / "poses_tum.txt").read_text() == before_s0  # frozen
     assert misalignment(ws, "s0", "s3", errors, probe) < 0.1
+    assert m2["graph"]["sessions_solved"] == 1  # only s3's submaps were variables of the graph
+    # the frozen sessions keep their covariances and GPS biases; s3's are its own, and every
+    # session's bias is estimated to what 3-4 sessions allow (2 m / sqrt(N) horizontally)
+    for name in ("s0", "s3"):
+        sm = json.loads((out / "sessions" / name / "submaps.json").read_text())
+        sig = np.array([k["position_sigma_enu_m"] for k in sm["submaps"]])
+        assert np.all(sig[:, :2] > 0.5) and np.all(sig[:, :2] < 1.3), (name, sig)
+        # the bias less well than the submaps: each submap holds it to gps_submap_sigma_m (1 m)
+        assert sig[0, 0] < sm["gps_bias"]["sigma_enu_m"][0] < 1.6
 
 
 def test_a_session_displaced_by_30m_is_not_merged(tmp_path, street_world):

@@ -65,3 +65,19 @@ def test_aligned_sessions_share_one_offset_the_mean_of_their_biases(evaluated):
     rows = {line.split("|")[1].strip(): line for line in format_align_truth(evaluated).splitlines() if line.startswith("| first")}
     o = t["first"]["aligned"]["offset_removed"]
     assert rows["first"].rstrip(" |").endswith(f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m")
+
+
+def test_eval_align_states_the_gps_bound_and_checks_the_covariances(evaluated):
+    b, t = evaluated["gps_bias_bound"], evaluated["trajectories"]
+    mean = np.mean([t[n]["gps"]["mean_offset_enu_m"] for n in t], axis=0)
+    assert b["sessions"] == 2 and b["allowed_horizontal_m"] == pytest.approx(np.linalg.norm(mean[:2]))
+    # one common offset at the mean of the two biases, give or take what the drives' shapes add
+    shape = max(t[n]["aligned"]["offset_removed"]["horizontal_rmse_m"] for n in t)
+    assert b["aligned_horizontal_rmse_median_m"] <= b["allowed_horizontal_m"] + shape + 0.3
+    # the covariances are not overconfident: the graph knows two sessions pin the frame to
+    # about 2 m / sqrt(2), so every submap's true position lies inside its 95% ellipsoid
+    c = evaluated["consistency"]
+    assert c["submaps"] >= 2 and set(c["sessions"]) == {"first", "second"}
+    assert c["inside_95"] >= 0.9 and 0.0 < c["nees_mean"] < 7.815
+    md = format_align_truth(evaluated)
+    assert "GPS bound" in md and f"{100 * c['inside_95']:.0f}% of {c['submaps']} submap centres" in md

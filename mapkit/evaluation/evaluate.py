@@ -429,6 +429,8 @@ def evaluate_align(workspace: str | Path | Workspace, truth: str | Path, max_poi
     out: dict = {"pairs": {}, "trajectories": traj}
     out.update(_pair_misalignment(sess, names, max_points_per_pair, overlap_m, out["pairs"]))
     out.update(_registration_errors(ws, sess))
+    out["consistency"] = _consistency(ws, sess)
+    out["gps_bias_bound"] = _bias_bound(traj)
     write_json(ws.eval_align_json, out)
     atomic_write_text(ws.eval_align_md,
                       "# Multi-session alignment against the synthetic truth\n\n" + format_align_truth(out) + "\n")
@@ -520,6 +522,53 @@ def _registration_errors(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
     }
 
 
+CHI2_95_3DOF = 7.815  # 95% quantile of chi-square with 3 degrees of freedom
+
+
+def _consistency(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
+    """Are the graph's covariances honest? At every submap's centre c, the true position error of
+    the aligned session there (E_after c - c) against the submap's marginal position covariance:
+    the fraction inside its 95% ellipsoid (NEES <= 7.815) should be near 0.95 (evo and SLAM
+    benchmarks check the same). Submaps without a covariance (aligned by an older mapkit) are left out."""
+    d2_all: list[float] = []
+    per: dict = {}
+    for name, se in sess.items():
+        path = ws.aligned(name).submaps
+        if not path.is_file():
+            continue
+        d2 = []
+        for sm in json.loads(path.read_text())["submaps"]:
+            cov = np.asarray(sm.get("covariance", np.zeros((6, 6))), np.float64)[3:, 3:]
+            if not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0:
+                continue
+            c = np.asarray(sm["centre_enu"], np.float64)
+            E = se.after[se.nearest(c[None, :2])[0]]
+            e = E[:3, :3] @ c + E[:3, 3] - c
+            d2.append(float(e @ np.linalg.solve(cov, e)))
+        if d2:
+            per[name] = {"submaps": len(d2), "inside_95": float(np.mean(np.asarray(d2) <= CHI2_95_3DOF)), "nees_mean": float(np.mean(d2))}
+            d2_all += d2
+    a = np.asarray(d2_all)
+    return {"submaps": int(len(a)), "inside_95": float(np.mean(a <= CHI2_95_3DOF)) if len(a) else None,
+            "nees_mean": float(a.mean()) if len(a) else None, "sessions": per}
+
+
+def _bias_bound(traj: dict) -> dict:
+    """What GPS allows: relative alignment cannot tell a bias that all sessions share from the
+    truth, so with equal bias priors the best frame sits at the mean of the N sessions' biases
+    (expected horizontal error sigma_b sqrt(2 / N)). Each session's bias is measured as its GPS-alone
+    mean offset from the truth; the bound is the horizontal norm of their mean, and the figure to
+    hold against it each session's horizontal RMSE after alignment."""
+    if not traj:
+        return {}
+    gps = np.array([e["gps"]["mean_offset_enu_m"] for e in traj.values()])
+    allowed = float(np.linalg.norm(gps.mean(axis=0)[:2]))
+    after = np.array([e["aligned"]["horizontal_rmse_m"] for e in traj.values()])
+    return {"sessions": len(gps), "mean_gps_bias_enu_m": gps.mean(axis=0).tolist(), "allowed_horizontal_m": allowed,
+            "aligned_horizontal_rmse_median_m": float(np.median(after)),
+            "ratio_median": float(np.median(after) / allowed) if allowed > 0 else None}
+
+
 def format_align_truth(t: dict) -> str:
     """The Markdown of :func:`evaluate_align`'s result: misalignment per session pair before and
     after alignment, the accepted registrations' true errors, each session's trajectory error."""
@@ -541,6 +590,17 @@ def format_align_truth(t: dict) -> str:
             cells += [f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m"
                       for o in (e[w].get("offset_removed") for w in ("gps", "aligned")) if o]
             lines.append("| " + " | ".join([name, *cells]) + " |")
+    b = t.get("gps_bias_bound")
+    if b:
+        lines += ["", f"GPS bound: the frame cannot beat the mean of the {b['sessions']} sessions' GPS biases "
+                  f"({', '.join(f'{x:.2f}' for x in b['mean_gps_bias_enu_m'])} m east, north, up; {b['allowed_horizontal_m']:.2f} m horizontally). "
+                  f"Median horizontal RMSE after alignment {b['aligned_horizontal_rmse_median_m']:.2f} m: "
+                  + (f"{b['ratio_median']:.2f}x the bound." if b["ratio_median"] is not None else "the bound is zero.")]
+    c = t.get("consistency")
+    if c and c.get("submaps"):
+        lines += ["", f"Covariance consistency: {100 * c['inside_95']:.0f}% of {c['submaps']} submap centres lie inside their 95% "
+                  f"position ellipsoids (mean NEES {c['nees_mean']:.2f}; 3 expected): "
+                  + ", ".join(f"{n} {100 * v['inside_95']:.0f}%" for n, v in c["sessions"].items()) + "."]
     return "\n".join(lines)
 
 

@@ -10,9 +10,11 @@ ICP exceeds lambda_ICP. mapkit does this for a whole workspace:
    point-to-plane ICP (normals estimated from neighbourhoods, coarse to fine). Pairs with too low
    a fitness, an RMSE above lambda_ICP or an implausibly large correction are rejected, each with
    its reason. Registrations are cached: adding a session registers only its pairs.
-3. A pose graph over all submaps (odometry edges inside a session, ICP edges between sessions,
-   weak GPS priors) is solved with scipy's robust least squares; ICP edges that disagree with the
-   rest after the solve are rejected and it is solved again.
+3. A factor graph over all submaps (GTSAM, iSAM2; odometry edges inside a session, ICP edges
+   between sessions, both robust, and one GPS bias state per session) is solved, sessions entering
+   one update at a time; ICP edges that disagree with the rest after the solve are rejected and
+   removed from the graph. Every submap's correction gets its marginal covariance, every session
+   its GPS bias with its covariance.
 4. Corrections are interpolated along each session (no tearing) and applied to its trajectory and
    map. Submaps that overlap other sessions but have no accepted registration are *unverified* and
    left out of the merged map (never silently merged).
@@ -197,13 +199,14 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
 
     regs = _register_pairs(out / "registrations.json", data, cfg, executor, progress)  # 1. registrations
     nodes = _Nodes.of(data)
-    x = _solve_graph(ws, data, nodes, regs.results, cfg)  # 2. pose graph
+    sol = _solve_graph(ws, data, nodes, regs.results, cfg)  # 2. pose graph
     status, n_cand, n_acc = _submap_status(nodes, regs.results)  # 3. which submaps are verified
     _require_a_verified_pair(ws, regs.results)
 
     # 4. outputs
-    qa = _write_outputs(ws, data, x, nodes.offsets, status, n_cand, n_acc, regs.results, cfg, ws_frame)
+    qa = _write_outputs(ws, data, sol, nodes.offsets, status, n_cand, n_acc, regs.results, cfg, ws_frame)
     qa["seconds"] = time.perf_counter() - t0
+    qa["graph"] = {"seconds": sol.seconds, "isam2_updates": sol.updates, "sessions_solved": sol.solved}
     qa["registration"] = {"pairs": len(regs.results), "registered_this_run": regs.fresh, "seconds_registering": regs.seconds,
                           "pairs_per_s": regs.fresh / regs.seconds if regs.seconds > 0 else None}
     write_json(out / "metrics.json", qa)
@@ -295,42 +298,53 @@ class _Nodes:
         return cls(offsets, node_of, np.concatenate([s.centres for s in data]))
 
 
-def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results: list[PairResult], cfg: AlignConfig) -> np.ndarray:
-    """Corrections (n, 6) of all submaps; ICP edges that disagree with the rest after a solve are
-    rejected (their pairs' verdicts say so) and the graph solved again."""
+@dataclass
+class _Solution:
+    x: np.ndarray  # (n, 6) corrections [rotation vector, translation at the centre]
+    covariance: np.ndarray  # (n, 6, 6) their marginal covariances (rotation rad, translation m; ENU axes)
+    biases: dict[str, tuple[np.ndarray, np.ndarray]]  # session -> GPS bias estimate (ENU m) and its covariance
+    seconds: float
+    updates: int  # iSAM2 updates
+    solved: int  # sessions whose submaps were variables (the others were frozen by an earlier run)
+
+
+def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results: list[PairResult], cfg: AlignConfig) -> _Solution:
+    """Corrections of all submaps and their covariances; ICP edges that disagree with the rest after
+    a solve are rejected (their pairs' verdicts say so) and removed from the graph."""
+    t0 = time.perf_counter()
     offsets = nodes.offsets
     prev = _previous_corrections(ws, data, cfg) if cfg.freeze_existing else {}
     fixed = np.zeros(len(nodes.centres), bool)
     x0 = np.zeros((len(nodes.centres), 6))
+    cov0 = np.zeros((len(nodes.centres), 6, 6))
     for si, s in enumerate(data):
         if s.name in prev:
             fixed[offsets[si] : offsets[si + 1]] = True
-            x0[offsets[si] : offsets[si + 1]] = prev[s.name]
-    # start every free session at its robust session-level offset, so that the Cauchy loss below
+            x0[offsets[si] : offsets[si + 1]], cov0[offsets[si] : offsets[si + 1]] = prev[s.name].x, prev[s.name].covariance
+    # start every free session at its robust session-level offset, so that the Cauchy kernel below
     # judges ICP edges from inside the right basin (a session 8 m off would otherwise see all of its
     # correct registrations as outliers against its prior)
     init = session_offsets([r for r in results if r.accepted], [s.name for s in data],
-                           {s.name: prev[s.name][:, 3:].mean(axis=0) for s in data if s.name in prev})
+                           {s.name: prev[s.name].x[:, 3:].mean(axis=0) for s in data if s.name in prev})
     for si, s in enumerate(data):
         if s.name not in prev:
             x0[offsets[si] : offsets[si + 1], 3:] = init[s.name]
-    graph = PoseGraph(nodes.centres, cfg.graph, fixed=fixed, initial=x0)
+    session_of = np.repeat(np.arange(len(data)), np.diff(offsets))
+    graph = PoseGraph(nodes.centres, cfg.graph, fixed=fixed, initial=x0, session_of=session_of)
     for si, s in enumerate(data):
         for k in range(s.n_submaps - 1):
             a, b = offsets[si] + k, offsets[si] + k + 1
             sup = support_points(s.boundaries[k], s.directions[k], cfg.graph.lever_m)
             graph.add(Edge("odometry", a, b, sup, np.eye(4), cfg.graph.odometry_sigma_m))
-    icp_edges = []
     session_index = {s.name: si for si, s in enumerate(data)}
     for pi, r in enumerate(results):
         if not r.accepted:
             continue
         a, b = nodes.node_of[tuple(r.source)], nodes.node_of[tuple(r.target)]
         direction = data[session_index[r.source[0]]].directions[r.source[1]]
-        icp_edges.append(Edge("icp", a, b, support_points(r.centre, direction, cfg.graph.lever_m), r.target_from_source, cfg.graph.icp_sigma_m, pi))
-    odo_edges = list(graph.edges)
-    active = list(icp_edges)
-    x = graph.solve(odo_edges + active)
+        graph.add(Edge("icp", a, b, support_points(r.centre, direction, cfg.graph.lever_m), r.target_from_source, cfg.graph.icp_sigma_m, pi))
+    active = [e for e in graph.edges if e.kind == "icp"]
+    x = graph.solve()
     for _ in range(cfg.graph.max_rounds - 1):
         rms = graph.edge_rms_sigmas(x, active)
         bad = rms > cfg.graph.reject_sigmas
@@ -339,9 +353,24 @@ def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results:
         for e, rr, is_bad in zip(active, rms, bad):
             if is_bad:
                 results[e.pair].verdict = Verdict.of(Reason.INCONSISTENT, f"{rr:.1f} sigma after the pose graph")
+        x = graph.remove([e for e, is_bad in zip(active, bad) if is_bad])
         active = [e for e, is_bad in zip(active, bad) if not is_bad]
-        x = graph.solve(odo_edges + active)
-    return x
+    # frozen sessions enter as known: what the graph gives the new ones is relative to their frame,
+    # so the frame's own uncertainty (the frozen anchors' covariance, nearly all common to them) is added
+    frame = _frame_covariance(fixed, cov0, graph.edges, active)
+    cov = np.where(fixed[:, None, None], cov0, graph.covariances() + frame)
+    biases = {n: p.bias for n, p in prev.items() if p.bias is not None}
+    biases.update({data[si].name: (b, c + frame[3:, 3:]) for si, (b, c) in graph.biases().items()})
+    return _Solution(x, cov, biases, time.perf_counter() - t0, graph.updates, len(data) - len(prev))
+
+
+def _frame_covariance(fixed: np.ndarray, cov0: np.ndarray, edges: list[Edge], active: list[Edge]) -> np.ndarray:
+    """(6, 6) covariance of the frozen sessions' frame as the new ones see it: the mean covariance
+    of the frozen nodes that an edge in the graph ties to a free node (zeros if none)."""
+    kept = {id(e) for e in active}
+    anchors = {e.a if fixed[e.a] else e.b for e in edges
+               if fixed[e.a] != fixed[e.b] and (e.kind != "icp" or id(e) in kept)}
+    return cov0[sorted(anchors)].mean(axis=0) if anchors else np.zeros((6, 6))
 
 
 def _submap_status(nodes: _Nodes, results: list[PairResult]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -376,9 +405,18 @@ def aligned_sessions(workspace: str | Path) -> list[str]:
 # --- outputs ---------------------------------------------------------------------------------------
 
 
-def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConfig) -> dict[str, np.ndarray]:
-    """Corrections of sessions aligned by an earlier run with the same config and maps."""
-    prev: dict[str, np.ndarray] = {}
+@dataclass
+class _Previous:
+    """A session aligned by an earlier run: its corrections, their covariances and its GPS bias (if recorded)."""
+
+    x: np.ndarray
+    covariance: np.ndarray
+    bias: Optional[tuple[np.ndarray, np.ndarray]]
+
+
+def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConfig) -> dict[str, _Previous]:
+    """Sessions aligned by an earlier run with the same config and maps."""
+    prev: dict[str, _Previous] = {}
     for s in data:
         p = ws.aligned(s.name).submaps
         if not p.is_file():
@@ -388,13 +426,16 @@ def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConf
             continue
         if not any(sm["status"] == "verified" for sm in d["submaps"]):
             continue  # nothing confirmed it then: align it afresh with the new company
-        prev[s.name] = np.array([sm["correction"] for sm in d["submaps"]], np.float64)
+        bias = d.get("gps_bias")
+        prev[s.name] = _Previous(np.array([sm["correction"] for sm in d["submaps"]], np.float64),
+                                 np.array([sm.get("covariance", np.zeros((6, 6)).tolist()) for sm in d["submaps"]], np.float64),
+                                 (np.asarray(bias["enu_m"]), np.asarray(bias["covariance_m2"])) if bias else None)
     if len(prev) == len(data):
         return {}  # no new session (a changed threshold, say): solve everything again
     return prev
 
 
-def _write_outputs(ws: Workspace, data: list[SessionData], x: np.ndarray, offsets: np.ndarray, status: np.ndarray,
+def _write_outputs(ws: Workspace, data: list[SessionData], sol: _Solution, offsets: np.ndarray, status: np.ndarray,
                    n_cand: np.ndarray, n_acc: np.ndarray, results: list[PairResult], cfg: AlignConfig, ws_frame: LocalFrame) -> dict:
     """Every session's refined outputs, pairs.json, the merged map's tiles and the QA pictures; returns the QA summary."""
     out = ws.align_dir
@@ -402,7 +443,9 @@ def _write_outputs(ws: Workspace, data: list[SessionData], x: np.ndarray, offset
     merged_pts, merged_sid, merged_idx = [], [], []
     for si, s in enumerate(data):
         nodes = slice(offsets[si], offsets[si + 1])
-        pts, keep, qa["sessions"][s.name] = _write_session(ws, s, x[nodes], status[nodes], n_cand[nodes], n_acc[nodes], cfg, ws_frame)
+        bias = sol.biases.get(s.name)
+        pts, keep, qa["sessions"][s.name] = _write_session(ws, s, sol.x[nodes], sol.covariance[nodes], bias, status[nodes], n_cand[nodes],
+                                                           n_acc[nodes], cfg, ws_frame)
         merged_pts.append(pts[keep])
         merged_sid.append(np.full(int(keep.sum()), si, np.int16))
         merged_idx.append(np.flatnonzero(keep).astype(np.int64))
@@ -416,11 +459,13 @@ def _write_outputs(ws: Workspace, data: list[SessionData], x: np.ndarray, offset
     return qa
 
 
-def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, st: np.ndarray, n_cand: np.ndarray, n_acc: np.ndarray,
-                   cfg: AlignConfig, ws_frame: LocalFrame) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Session ``s`` under its submaps' corrections ``xs``: trajectory, map, image table and
-    submaps.json in ``align/sessions/<name>``. Returns its corrected points, those that go into
-    the merged map (not unverified, unless merge_unverified) and its QA summary."""
+def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarray, bias: Optional[tuple[np.ndarray, np.ndarray]],
+                   st: np.ndarray, n_cand: np.ndarray, n_acc: np.ndarray, cfg: AlignConfig,
+                   ws_frame: LocalFrame) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Session ``s`` under its submaps' corrections ``xs`` (covariances ``cov``, GPS bias ``bias``):
+    trajectory, map, image table and submaps.json in ``align/sessions/<name>``. Returns its
+    corrected points, those that go into the merged map (not unverified, unless merge_unverified)
+    and its QA summary."""
     dirs = ws.aligned(s.name)
     poses = apply_correction_poses(s, xs)
     Trajectory(s.stamps_ns, poses, "align", frame="enu").save(dirs.trajectory)
@@ -445,15 +490,20 @@ def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, st: np.ndarray
         T[:3, 3] = s.centres[k] + xs[k, 3:] - Rk @ s.centres[k]
         submaps.append({"index": k, "arc_m": [float(s.submap_edges_m[k]), float(s.submap_edges_m[k + 1])],
                         "centre_enu": s.centres[k].tolist(), "correction": xs[k].tolist(), "corrected_from_built": T.tolist(),
+                        "covariance": cov[k].tolist(), "position_sigma_enu_m": np.sqrt(np.diag(cov[k])[3:]).tolist(),
                         "status": str(st[k]), "pairs": int(n_cand[k]), "pairs_accepted": int(n_acc[k]),
                         "points": int((s.submap_of_point == k).sum())})
-    write_json(dirs.submaps, {"session": s.name, "map_hash": s.map_hash, "config_hash": config_hash(cfg),
-                              "frame": ws_frame.to_dict(), "submaps": submaps})
+    doc = {"session": s.name, "map_hash": s.map_hash, "config_hash": config_hash(cfg), "frame": ws_frame.to_dict(), "submaps": submaps,
+           "covariance_axes": "rotation (rad) about east, north, up; translation (m) east, north, up; at each submap's centre"}
+    if bias is not None:
+        doc["gps_bias"] = {"enu_m": bias[0].tolist(), "covariance_m2": bias[1].tolist(), "sigma_enu_m": np.sqrt(np.diag(bias[1])).tolist()}
+    write_json(dirs.submaps, doc)
     keep = np.isin(s.submap_of_point, np.flatnonzero((st != "unverified") | cfg.merge_unverified))
     summary = {
         "submaps": s.n_submaps, "verified": int((st == "verified").sum()), "unverified": int((st == "unverified").sum()),
         "no_overlap": int((st == "no overlap").sum()), "points": len(pts), "points_merged": int(keep.sum()),
         "correction_median_m": float(np.median(move)), "correction_max_m": float(move.max()),
+        "position_sigma_median_m": [float(v) for v in np.median(np.sqrt(np.maximum(cov[:, [3, 4, 5], [3, 4, 5]], 0)), axis=0)],
         "merged": bool(keep.any()),
     }
     return pts, keep, summary

@@ -1,6 +1,17 @@
-"""The pose graph over all submaps: odometry edges inside a session, ICP edges between sessions and
-weak GPS priors, solved with scipy's robust least squares (:class:`PoseGraph`); and the
-session-level offsets that start it inside the right basin (:func:`session_offsets`).
+"""The pose graph over all submaps, on GTSAM: odometry edges inside a session, ICP edges between
+sessions as robust between factors, and GPS through one bias state per session, solved
+incrementally with iSAM2 (:class:`PoseGraph`); and the session-level offsets that start it inside
+the right basin (:func:`session_offsets`).
+
+Node k is the pose ``X_k = (R_k, c_k + t_k)`` of submap k's frame (origin at its centre c_k, axes
+ENU), so its correction moves a point by ``p' = R_k (p - c_k) + c_k + t_k``. An edge asks two
+submaps to agree on the points both hold (``T_a p = T_b T_ab p``); its information is that of its
+support points (distances in metres, so rotation and translation share one unit). The GPS model
+is the receiver's: every fix of a drive carries one slowly varying bias, so a session's submaps
+share a bias state ``b_s`` (prior ``gps_bias_sigma_m``) and each submap's correction is
+``t_k = -b_s`` up to ``gps_submap_sigma_m``. N sessions that ICP ties together then sit at the
+mean of their N biases, and the marginal covariances say so: a submap's position is known to
+about ``gps_bias_sigma_m / sqrt(N)``, not to the GPS noise averaged over thousands of fixes.
 """
 
 from __future__ import annotations
@@ -17,14 +28,21 @@ from mapkit.multisession.registration import PairResult
 
 
 class GraphConfig(MapkitConfig):
-    prior_sigma_m: list[float] = Field([3.0, 3.0, 3.0], description="GPS prior on each submap's correction, east/north/up (m): weak, GPS drifts by metres.")
+    gps_bias_sigma_m: list[float] = Field([2.0, 2.0, 4.0], min_length=3, max_length=3,
+                                          description="Prior on each session's GPS bias, east/north/up (m): the offset all fixes "
+                                          "of one drive share (a receiver's bias wanders over minutes). 2 m horizontal, twice "
+                                          "that vertical: a consumer receiver's order, and the synthetic town's GPS model.")
+    gps_submap_sigma_m: float = Field(1.0, gt=0, description="How far one submap's correction may depart from its session's "
+                                      "bias (m): what the session's rigid GPS fit leaves along the drive.")
     prior_sigma_deg: float = Field(3.0, gt=0, description="Prior on each submap's rotation correction (deg).")
     odometry_sigma_m: float = Field(0.10, gt=0, description="How much two consecutive submaps of a session may disagree at their boundary (m).")
     icp_sigma_m: float = Field(0.10, gt=0, description="Uncertainty of an accepted ICP registration at its support points (m).")
     lever_m: float = Field(10.0, gt=0, description="Support points of an edge lie this far from its centre, so rotations are constrained too (m).")
-    robust_scale: float = Field(3.0, gt=0, description="Cauchy loss scale, in sigmas, of the robust solve (applied to every whitened residual).")
-    reject_sigmas: float = Field(6.0, gt=0, description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and the graph solved again.")
+    robust_scale: float = Field(3.0, gt=0, description="Cauchy kernel width, in sigmas (Mahalanobis), of every edge factor.")
+    reject_sigmas: float = Field(6.0, gt=0, description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and its factor removed from the graph.")
     max_rounds: int = Field(3, ge=1, description="Solve / reject rounds.")
+    relinearize_threshold: float = Field(1e-3, gt=0, description="iSAM2 relinearises a variable whose update exceeds this (rad or m).")
+    max_updates: int = Field(20, ge=1, description="iSAM2 updates after the last factor was added, until the estimate moves less than the threshold.")
 
 
 @dataclass
@@ -56,29 +74,224 @@ def _apply_node(x: np.ndarray, centres: np.ndarray, node: np.ndarray, pts: np.nd
     return np.einsum("eij,epj->epi", R, pts - c) + c + t[:, None, :]
 
 
-class PoseGraph:
-    """Corrections of submaps: node k moves its submap's points by p' = R_k (p - c_k) + c_k + t_k.
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
-    Residuals are distances at support points (so rotation and translation share one unit):
-    odometry edges ask consecutive submaps of a session to move their common boundary alike,
-    ICP edges ask T_a(p) = T_b(T_ab p), priors keep every correction near zero (GPS).
+
+def support_information(local: np.ndarray, sigma_m: float) -> np.ndarray:
+    """(6, 6) information, in gtsam's Pose3 tangent (rotation, translation), of comparing the points
+    ``local`` (P, 3; relative to the node's origin, in its axes) to ``sigma_m`` each: a right
+    perturbation (w, v) moves q by w x q + v, so the Jacobian of each point is [-[q]x, I]."""
+    J = np.concatenate([np.hstack([-_skew(q), np.eye(3)]) for q in local])
+    return J.T @ J / sigma_m**2
+
+
+def _shift(c: np.ndarray) -> np.ndarray:
+    S = np.eye(4)
+    S[:3, 3] = c
+    return S
+
+
+def _bias_error(centre: np.ndarray):
+    """Submap correction plus its session's GPS bias: ``(t(X) - c) + b``; d t(X) / d(w, v) = [0, R]."""
+
+    def error(this, values, H):
+        pose = values.atPose3(this.keys()[0])
+        bias = values.atPoint3(this.keys()[1])
+        if H is not None:
+            H[0] = np.hstack([np.zeros((3, 3)), pose.rotation().matrix()])
+            H[1] = np.eye(3)
+        return pose.translation() - centre + bias
+
+    return error
+
+
+class PoseGraph:
+    """Corrections of submaps on a GTSAM factor graph solved by iSAM2 (see the module's docstring).
+
+    Sessions enter one at a time, each with its own nodes, odometry, GPS and the ICP edges to the
+    sessions before it, as iSAM2 updates; rejected ICP edges leave by factor removal, not by a new
+    solve. Nodes in ``fixed`` (sessions aligned by an earlier run) are not variables: an edge to one
+    becomes a prior on the other end. ``session_of`` (n,) groups nodes into sessions (one GPS bias
+    each); by default every node is its own session.
     """
 
-    def __init__(self, centres: np.ndarray, cfg: GraphConfig, fixed: Optional[np.ndarray] = None, initial: Optional[np.ndarray] = None):
+    def __init__(self, centres: np.ndarray, cfg: GraphConfig, fixed: Optional[np.ndarray] = None, initial: Optional[np.ndarray] = None,
+                 session_of: Optional[np.ndarray] = None):
         self.centres = np.asarray(centres, np.float64)
         self.cfg = cfg
         n = len(self.centres)
         self.fixed = np.zeros(n, bool) if fixed is None else np.asarray(fixed, bool)
         self.x0 = np.zeros((n, 6)) if initial is None else np.asarray(initial, np.float64).copy()
+        self.session_of = np.arange(n) if session_of is None else np.asarray(session_of, np.int64)
         self.edges: list[Edge] = []
+        self._isam = None
+        self._factor_of: dict[int, int] = {}  # id(edge) -> iSAM2 factor index
+        self.updates = 0
 
     def add(self, edge: Edge) -> None:
         self.edges.append(edge)
 
+    # -- conversions -------------------------------------------------------------------------------
+
+    def _pose(self, x: np.ndarray, k: int):
+        import gtsam
+
+        return gtsam.Pose3(gtsam.Rot3(Rotation.from_rotvec(x[k, :3]).as_matrix()), self.centres[k] + x[k, 3:])
+
+    def _x_of(self, values) -> np.ndarray:
+        import gtsam
+
+        x = self.x0.copy()
+        for k in np.flatnonzero(~self.fixed):
+            p = values.atPose3(gtsam.symbol("x", int(k)))
+            x[k, :3] = Rotation.from_matrix(p.rotation().matrix()).as_rotvec()
+            x[k, 3:] = p.translation() - self.centres[k]
+        return x
+
+    # -- factors -----------------------------------------------------------------------------------
+
+    def _edge_factor(self, e: Edge):
+        """``e`` as a robust factor on its free end(s): BetweenFactor(X_b, X_a, M) with
+        ``M = S_b T_ab S_a^-1`` (S_k moves c_k to the origin), its error in a's frame; with a fixed,
+        the reverse (error in b's frame); with one end fixed, a prior on the other. None if both are fixed."""
+        import gtsam
+
+        if self.fixed[e.a] and self.fixed[e.b]:
+            return None
+        M = _shift(-self.centres[e.b]) @ e.target_from_source @ _shift(self.centres[e.a])
+        if not self.fixed[e.a]:
+            this, other, meas = e.a, e.b, M
+            local = e.support - self.centres[e.a]
+        else:
+            this, other, meas = e.b, e.a, np.linalg.inv(M)
+            local = e.support @ e.target_from_source[:3, :3].T + e.target_from_source[:3, 3] - self.centres[e.b]
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_scale),
+                                               gtsam.noiseModel.Gaussian.Information(support_information(local, e.sigma_m)))
+        X = lambda k: gtsam.symbol("x", int(k))  # noqa: E731
+        if self.fixed[other]:
+            return gtsam.PriorFactorPose3(X(this), self._pose(self.x0, other).compose(gtsam.Pose3(meas)), noise)
+        return gtsam.BetweenFactorPose3(X(other), X(this), gtsam.Pose3(meas), noise)
+
+    def _session_block(self, s: int, edges: list[Edge], x_init: np.ndarray):
+        """Values and factors of session ``s``'s free nodes: poses, its bias, GPS and rotation
+        priors, and ``edges`` (those that are now fully inside the graph)."""
+        import gtsam
+
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        nodes = [int(k) for k in np.flatnonzero((self.session_of == s) & ~self.fixed)]
+        owned: list[Edge] = []
+        if nodes:
+            b = gtsam.symbol("b", s)
+            values.insert(b, -x_init[nodes, 3:].mean(axis=0))
+            graph.add(gtsam.PriorFactorPoint3(b, np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(self.cfg.gps_bias_sigma_m, float))))
+            rot_prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, np.radians(self.cfg.prior_sigma_deg)), np.full(3, 1e4)])
+            gps = gtsam.noiseModel.Isotropic.Sigma(3, self.cfg.gps_submap_sigma_m)
+            for k in nodes:
+                xk = gtsam.symbol("x", k)
+                values.insert(xk, self._pose(x_init, k))
+                graph.add(gtsam.PriorFactorPose3(xk, gtsam.Pose3(gtsam.Rot3(), self.centres[k]), rot_prior))
+                graph.add(gtsam.CustomFactor(gps, [xk, b], _bias_error(self.centres[k])))
+        for e in edges:
+            f = self._edge_factor(e)
+            if f is not None:
+                owned.append(e)
+                graph.add(f)
+        return graph, values, owned
+
+    # -- solving -----------------------------------------------------------------------------------
+
+    def solve(self, edges: Optional[list[Edge]] = None) -> np.ndarray:
+        """Corrections (n, 6) = [rotation vector, translation at the centre], sessions added one
+        iSAM2 update at a time (each with the edges to the sessions already in)."""
+        import gtsam
+
+        edges = self.edges if edges is None else edges
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.cfg.relinearize_threshold)
+        params.relinearizeSkip = 1
+        self._isam, self._factor_of, self.updates = gtsam.ISAM2(params), {}, 0
+        if self.fixed.all():
+            return self.x0.copy()
+        sessions = list(dict.fromkeys(self.session_of.tolist()))  # in node order
+        rank = {s: r for r, s in enumerate(sessions)}
+        entered = lambda e: max(rank[self.session_of[e.a]], rank[self.session_of[e.b]])  # noqa: E731
+        for r, s in enumerate(sessions):
+            graph, values, owned = self._session_block(s, [e for e in edges if entered(e) == r], self.x0)
+            if graph.size() == 0 and values.size() == 0:
+                continue
+            res = self._isam.update(graph, values)
+            self.updates += 1
+            for e, idx in zip(owned, list(res.getNewFactorsIndices())[graph.size() - len(owned):]):
+                self._factor_of[id(e)] = int(idx)
+        return self._converge()
+
+    def remove(self, edges: list[Edge]) -> np.ndarray:
+        """Take ``edges`` out of the solved graph (iSAM2 factor removal) and return the new corrections."""
+        import gtsam
+
+        idx = [self._factor_of.pop(id(e)) for e in edges if id(e) in self._factor_of]
+        if idx:
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), idx)
+            self.updates += 1
+        return self._converge()
+
+    def _converge(self) -> np.ndarray:
+        if self._isam is None or self.fixed.all():
+            return self.x0.copy()
+        x = self._x_of(self._isam.calculateEstimate())
+        for _ in range(self.cfg.max_updates):
+            self._isam.update()
+            self.updates += 1
+            x_new = self._x_of(self._isam.calculateEstimate())
+            moved = np.abs(x_new - x).max()
+            x = x_new
+            if moved < self.cfg.relinearize_threshold:
+                break
+        return x
+
+    def covariances(self) -> np.ndarray:
+        """(n, 6, 6) marginal covariance of every node's correction, (rotation rad, translation m)
+        in ENU axes at the submap's centre; zeros for fixed nodes (they are not estimated here)."""
+        import gtsam
+
+        n = len(self.centres)
+        out = np.zeros((n, 6, 6))
+        if self._isam is None:
+            return out
+        est = self._isam.calculateEstimate()
+        for k in np.flatnonzero(~self.fixed):
+            xk = gtsam.symbol("x", int(k))
+            R = est.atPose3(xk).rotation().matrix()
+            A = np.kron(np.eye(2), R)  # body (rotation, translation) -> ENU axes
+            out[k] = A @ self._isam.marginalCovariance(xk) @ A.T
+        return out
+
+    def biases(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Each session with free nodes: its GPS bias estimate (ENU, m) and covariance (3, 3)."""
+        import gtsam
+
+        out = {}
+        if self._isam is None:
+            return out
+        est = self._isam.calculateEstimate()
+        for s in sorted(set(self.session_of[~self.fixed].tolist())):
+            b = gtsam.symbol("b", int(s))
+            out[int(s)] = (np.asarray(est.atPoint3(b)), np.asarray(self._isam.marginalCovariance(b)))
+        return out
+
+    def edge_rms_sigmas(self, x: np.ndarray, edges: list[Edge]) -> np.ndarray:
+        """RMS residual of each edge at its support points, in its sigmas."""
+        stacked = self._stack(edges)
+        if stacked is None:
+            return np.zeros(0)
+        a, b, P, Pb, sigma = stacked
+        d = np.linalg.norm(_apply_node(x, self.centres, a, P) - _apply_node(x, self.centres, b, Pb), axis=2)
+        return np.sqrt(np.mean(d**2, axis=1)) / sigma
+
     @staticmethod
     def _stack(edges: list[Edge]) -> Optional[tuple]:
-        """Node indices, support points in both frames and sigmas of ``edges``, as arrays (built
-        once per solve, not at every evaluation of the residuals)."""
+        """Node indices, support points in both frames and sigmas of ``edges``, as arrays."""
         if not edges:
             return None
         a = np.array([e.a for e in edges])
@@ -87,63 +300,6 @@ class PoseGraph:
         Tab = np.stack([e.target_from_source for e in edges])
         Pb = np.einsum("eij,epj->epi", Tab[:, :3, :3], P) + Tab[:, None, :3, 3]  # the same points in b's frame
         return a, b, P, Pb, np.array([e.sigma_m for e in edges])
-
-    def _edge_displacements(self, x: np.ndarray, stacked: tuple) -> np.ndarray:
-        """(E, P, 3) disagreement T_a(p) - T_b(T_ab p) at every support point, in metres."""
-        a, b, P, Pb, _ = stacked
-        return _apply_node(x, self.centres, a, P) - _apply_node(x, self.centres, b, Pb)
-
-    def _residuals(self, x_free: np.ndarray, stacked: Optional[tuple]) -> np.ndarray:
-        x = self.x0.copy()
-        x[~self.fixed] = x_free.reshape(-1, 6)
-        free = np.flatnonzero(~self.fixed)
-        out = [(x[free, 3:] / np.asarray(self.cfg.prior_sigma_m)).ravel(), (x[free, :3] / np.radians(self.cfg.prior_sigma_deg)).ravel()]
-        if stacked is not None:
-            out.append((self._edge_displacements(x, stacked) / stacked[4][:, None, None]).ravel())
-        return np.concatenate(out)
-
-    def solve(self, edges: Optional[list[Edge]] = None) -> np.ndarray:
-        """Corrections (n, 6) = [rotation vector, translation at the centre]."""
-        from scipy.optimize import least_squares
-        from scipy.sparse import lil_matrix
-
-        edges = self.edges if edges is None else edges
-        free = np.flatnonzero(~self.fixed)
-        if len(free) == 0:
-            return self.x0.copy()
-        col = -np.ones(len(self.centres), np.int64)
-        col[free] = np.arange(len(free))
-        stacked = self._stack(edges)
-        n_res = len(self._residuals(self.x0[free].ravel(), stacked))
-        S = lil_matrix((n_res, 6 * len(free)), dtype=np.int8)
-        row = 0
-        for k in range(len(free)):  # translation priors, then rotation priors
-            S[row + 3 * k : row + 3 * k + 3, 6 * k + 3 : 6 * k + 6] = 1
-        row += 3 * len(free)
-        for k in range(len(free)):
-            S[row + 3 * k : row + 3 * k + 3, 6 * k : 6 * k + 3] = 1
-        row += 3 * len(free)
-        for e in edges:
-            m = 3 * len(e.support)
-            for node in (e.a, e.b):
-                if col[node] >= 0:
-                    S[row : row + m, 6 * col[node] : 6 * col[node] + 6] = 1
-            row += m
-        # one Cauchy loss on every whitened row (scipy applies it to all residuals): rows within
-        # a few sigmas stay nearly quadratic, a wrong ICP edge far out loses its pull
-        res = least_squares(self._residuals, self.x0[free].ravel(), jac_sparsity=S.tocsr(), args=(stacked,),
-                            loss="cauchy", f_scale=self.cfg.robust_scale, method="trf", x_scale="jac", max_nfev=200)
-        x = self.x0.copy()
-        x[free] = res.x.reshape(-1, 6)
-        return x
-
-    def edge_rms_sigmas(self, x: np.ndarray, edges: list[Edge]) -> np.ndarray:
-        """RMS residual of each edge, in its sigmas."""
-        stacked = self._stack(edges)
-        if stacked is None:
-            return np.zeros(0)
-        d = np.linalg.norm(self._edge_displacements(x, stacked), axis=2)
-        return np.sqrt(np.mean(d**2, axis=1)) / stacked[4]
 
 
 # --- session offsets -------------------------------------------------------------------------------
