@@ -11,6 +11,8 @@ mesh (with that session's parked cars), as ``mapkit eval build`` does:
 * ``true_position``: true positions, estimated orientations;
 * ``true_roll_pitch``: estimated positions and heading, true roll and pitch (what leveling by
   gravity, from an IMU, could at best give);
+* ``fused``: the trajectory the factor graph gives (``georef: {fuse: true}``: odometry, GPS and the
+  preintegrated IMU; issue 24), after the same yaw-only fit to truth;
 * ``aligned``: not rebuilt: the session's map as ``mapkit align`` left it, after the same yaw-only
   fit of its refined trajectory (only when the workspace was aligned).
 
@@ -39,7 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-VARIANTS = ("estimated", "truth", "true_rotation", "true_position", "true_roll_pitch", "aligned")
+VARIANTS = ("estimated", "truth", "true_rotation", "true_position", "true_roll_pitch", "fused", "aligned")
 
 
 def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -59,6 +61,24 @@ def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     elif variant != "estimated":
         raise ValueError(f"unknown variant {variant!r}; one of {VARIANTS}")
     return q
+
+
+def _fused(log, ws: Path, sdir: Path, name: str, cfg, scratch: Path):
+    """The session's trajectory fused by the factor graph: its georef stage run again with
+    ``georef.fuse`` in a scratch copy (the trajectory stage reused)."""
+    from mapkit.mapping.build import SessionBuilder
+    from mapkit.mapping.trajectory import Trajectory
+
+    (scratch / "sessions" / name).mkdir(parents=True)
+    shutil.copy(ws / "origin.json", scratch / "origin.json")
+    shutil.copytree(sdir / "trajectory", scratch / "sessions" / name / "trajectory")
+    fcfg = cfg.model_copy(update={"georef": cfg.georef.model_copy(update={"fuse": True})})
+    builder = SessionBuilder(log, scratch, fcfg, progress=False, name=name)
+    try:
+        builder.georef()
+        return Trajectory.load(builder.dirs.fused_trajectory)
+    finally:
+        builder.close()
 
 
 def _print_row(r: dict) -> None:
@@ -106,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     gt_i, ok = interpolate_poses(gt_stamps, gt, est.stamps_ns)
     est_fit = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw") @ est.world_from_base[ok]
     aligned_dir = ws / "align" / "sessions" / name
-    variants = a.variants or [v for v in VARIANTS if v != "aligned" or (aligned_dir / "map").is_dir()]
+    variants = a.variants or [v for v in VARIANTS if v not in ("aligned", "fused") or (aligned_dir / "map").is_dir() and v == "aligned"]
     cfg_path = ws / "build_config.yaml"
     cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
     if a.semidense is not None:
@@ -129,14 +149,21 @@ def main(argv: list[str] | None = None) -> int:
                              "seconds": time.perf_counter() - t0})
                 _print_row(rows[-1])
                 continue
-            poses = _variant_poses(v, est_fit, gt_i)
+            stamps, truth_v = est.stamps_ns[ok], gt_i
+            if v == "fused":
+                fused = _fused(log, ws, sdir, name, cfg, Path(tmp) / "fuse")
+                truth_v, ok_f = interpolate_poses(gt_stamps, gt, fused.stamps_ns)
+                stamps = fused.stamps_ns[ok_f]
+                poses = fit_transform(fused.world_from_base[ok_f, :3, 3], truth_v[:, :3, 3], mode="yaw") @ fused.world_from_base[ok_f]
+            else:
+                poses = _variant_poses(v, est_fit, gt_i)
             scratch = Path(tmp) / v
             (scratch / "sessions" / name).mkdir(parents=True)
             shutil.copy(ws / "origin.json", scratch / "origin.json")
             for stage in ("trajectory", "georef"):  # finished stages: the builder goes straight to the map
                 shutil.copytree(sdir / stage, scratch / "sessions" / name / stage)
             georef = scratch / "sessions" / name / "georef"
-            Trajectory(est.stamps_ns[ok], poses, est.source, frame=est.frame, body_frame=est.body_frame).save(georef / "trajectory_enu")
+            Trajectory(stamps, poses, est.source, frame=est.frame, body_frame=est.body_frame).save(georef / "trajectory_enu")
             # the georef stage verifies its outputs: mark it finished with the variant's poses, or the
             # builder would re-run it from the estimated trajectory and every variant would map the same poses
             record = read_marker(georef)
@@ -150,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
             pts = SemiDenseMap.load(out).points_world
             path_m = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
             r = map_accuracy(pts, mesh, road_length_m=path_m)
-            err = np.linalg.norm(poses[:, :3, 3] - gt_i[:, :3, 3], axis=1)
+            err = np.linalg.norm(poses[:, :3, 3] - truth_v[:, :3, 3], axis=1)
             rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
                          "seconds": time.perf_counter() - t0})
             _print_row(rows[-1])

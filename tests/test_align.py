@@ -170,9 +170,10 @@ def test_pose_graph_distributes_a_known_offset():
     assert g.edge_rms_sigmas(x, edges).max() < 0.5
 
 
-def _mc_graph(rng, cfg, n_sessions=4, n_sub=3, outlier=False):
+def _mc_graph(rng, cfg, n_sessions=4, n_sub=3, outlier=False, isolated=0):
     """Sessions of ``n_sub`` submaps along x, each displaced by its GPS bias drawn from the graph's
-    own prior; ICP edges between every pair of sessions at each place, exact, and odometry exact."""
+    own prior; ICP edges between every pair of sessions at each place, exact, and odometry exact;
+    the last ``isolated`` sessions touch no other."""
     centres = np.array([[25.0 + 50 * k, 0, 0] for k in range(n_sub)] * n_sessions)
     bias = rng.standard_normal((n_sessions, 3)) * np.asarray(cfg.gps_bias_sigma_m)
     true_t = -np.repeat(bias, n_sub, axis=0)  # the correction that undoes each session's bias
@@ -182,8 +183,8 @@ def _mc_graph(rng, cfg, n_sessions=4, n_sub=3, outlier=False):
     for s in range(n_sessions):
         for k in range(n_sub - 1):
             g.add(Edge("odometry", s * n_sub + k, s * n_sub + k + 1, support_points(np.array([50.0 * (k + 1), 0, 0]) + bias[s], np.array([1.0, 0, 0]), 10.0), np.eye(4), 0.1))
-    for sa in range(n_sessions):
-        for sb in range(sa + 1, n_sessions):
+    for sa in range(n_sessions - isolated):
+        for sb in range(sa + 1, n_sessions - isolated):
             for k in range(n_sub):
                 T = make_pose(np.eye(3), bias[sb] - bias[sa])  # session a's points onto session b's
                 g.add(Edge("icp", sa * n_sub + k, sb * n_sub + k, support_points(g.centres[sa * n_sub + k], np.array([1.0, 0, 0]), 10.0), T, 0.1, 0))
@@ -210,6 +211,18 @@ def test_pose_graph_covariances_are_consistent_with_its_gps_model():
     inside = np.mean(np.asarray(d2) <= 7.815)
     assert 0.90 <= inside <= 0.99, inside
     assert abs(np.median(sig) - 2.0 / np.sqrt(4)) < 0.15  # sigma_b / sqrt(N) east
+
+
+def test_a_session_that_touches_no_other_keeps_its_gps_uncertainty():
+    cfg = AlignConfig().graph
+    g, true_t, _ = _mc_graph(np.random.default_rng(2), cfg, n_sessions=4, isolated=1)
+    g.solve()
+    sig = np.sqrt(g.covariances()[:, [3, 4, 5], [3, 4, 5]])
+    # three linked sessions: 2 m / sqrt(3) east; the lone one: its own bias prior and its 3 submaps'
+    # 1 m ties to it, sqrt(2^2 + 1/3) m
+    assert np.allclose(sig[:9, 0], 2.0 / np.sqrt(3), atol=0.1)
+    assert np.allclose(sig[9:, 0], np.sqrt(4 + 1 / 3), atol=0.1)
+    assert np.allclose(sig[9:, 2], np.sqrt(16 + 1 / 3), atol=0.15)  # vertical: 4 m bias prior
 
 
 def test_pose_graph_removes_a_rejected_edge_as_if_never_added():
