@@ -139,3 +139,14 @@ def test_fused_georeferencing_writes_poses_with_covariances_and_the_map_uses_the
     rigid_mm, fused_mm = step_errors_mm(Trajectory.load(s.georef_trajectory)), step_errors_mm(fused)
     assert np.median(fused_mm) < 0.5 * np.median(rigid_mm), (np.median(fused_mm), np.median(rigid_mm))
     assert np.median(fused_mm) < 5.0
+    # what reads a session's trajectory after the build reads the one its map was made with
+    assert s2.enu_trajectory == s2.fused_trajectory and s.enu_trajectory == s.georef_trajectory
+    fused_fit = Trajectory(fused.stamps_ns, fused.world_from_base, fused.source, frame="enu")
+    assert evaluate_build(ws2, town)["sessions"]["drive"]["trajectory_used"] == "factor graph"
+    assert evaluate_build(ws, town)["sessions"]["drive"]["trajectory_used"] == "rigid GPS fit"
+    tum = tmp_path / "truth.tum"  # one session against a trajectory file: the fused poses are the estimate
+    fused_fit.save(tmp_path / "as-truth")
+    tum.write_text((tmp_path / "as-truth" / "poses_tum.txt").read_text())
+    r = evaluate_build(ws2, tum, session="drive")["sessions"]["drive"]
+    assert r["estimate"]["folder"] == str(s2.fused_trajectory) and "factor graph" in r["estimate"]["trajectory"]
+    assert r["ate"]["rmse_m"] < 1e-6  # compared with itself

@@ -88,6 +88,13 @@ class SessionDirs:
         return self.georef / "trajectory_fused"
 
     @property
+    def enu_trajectory(self) -> Path:
+        """The trajectory the session's map and image database were made with: the factor graph's
+        when the georef stage wrote one (``georef.fuse``; a georef run without it clears it), else the
+        rigid GPS fit's."""
+        return self.fused_trajectory if self.fused_trajectory.is_dir() else self.georef_trajectory
+
+    @property
     def fused_covariances(self) -> Path:
         """Per pose of the fused trajectory: ``stamps_ns`` and ``covariances`` (N, 6, 6: rotation in ENU axes rad, position
         ENU m), and ``georef_covariance`` (6, 6: how well the session is tied to ENU)."""

@@ -183,7 +183,7 @@ def _session_sources(ws: Workspace, ws_frame: LocalFrame, name: str, source: Sou
     ga = json.loads(ga_path.read_text())
     if not ga.get("georeferenced"):
         raise InputError(ga_path, f"session {name!r} is not georeferenced ({ga.get('reason', 'no reason given')}): it has no CRS", field="session")
-    return "built", LocalFrame.from_dict(ga), sdir.georef_trajectory, sdir.map / "points.ply"
+    return "built", LocalFrame.from_dict(ga), sdir.enu_trajectory, sdir.map / "points.ply"
 
 
 def _read_points(path: Path) -> np.ndarray:

@@ -127,8 +127,8 @@ def _session_estimate(s: SessionDirs) -> tuple[Trajectory, dict]:
     """The trajectory to evaluate: the georef stage's (in the workspace's ENU frame when
     georeferenced), else the odometry's; and what it is, for the report."""
     georeferenced = s.gps_alignment.is_file() and bool(json.loads(s.gps_alignment.read_text()).get("georeferenced", False))
-    if s.georef_trajectory.is_dir():
-        folder, which = s.georef_trajectory, "the georef stage's trajectory" + (" (GPS-aligned, workspace ENU)" if georeferenced else
+    if s.enu_trajectory.is_dir():
+        folder, which = s.enu_trajectory, "the georef stage's trajectory" + (" (the factor graph's)" if s.enu_trajectory == s.fused_trajectory else "") + (" (GPS-aligned, workspace ENU)" if georeferenced else
                                                                                  " (not georeferenced: the odometry's frame)")
     elif s.trajectory.is_dir():
         folder, which = s.trajectory, "the odometry trajectory (before GPS alignment)"
@@ -252,8 +252,9 @@ def _evaluate_session(ws: Workspace, s: SessionDirs, truth: Path, mesh, town_to_
     """One session's entry of ``eval_build.json``: trajectory and map against the truth, absolute
     figures only when the session is georeferenced (they mean nothing otherwise)."""
     georeferenced = s.gps_alignment.is_file() and json.loads(s.gps_alignment.read_text()).get("georeferenced", False)
-    r: dict = {"georeferenced": bool(georeferenced)}
-    est = Trajectory.load(s.georef_trajectory) if s.georef_trajectory.is_dir() else None
+    r: dict = {"georeferenced": bool(georeferenced),
+               "trajectory_used": "factor graph" if s.enu_trajectory == s.fused_trajectory else "rigid GPS fit"}
+    est = Trajectory.load(s.enu_trajectory) if s.enu_trajectory.is_dir() else None  # what the map was made with
     fix = None
     if est is not None:
         r["trajectory_local"], fix = _offset_removed_errors(est, gt_stamps, gt_ws)
@@ -447,7 +448,7 @@ def _session_errors(ws: Workspace, truth: Path, names: list[str], town_to_ws: np
     for name in names:
         gt_stamps, gt = session_truth(truth, name)
         gt_ws = town_to_ws @ gt
-        before = Trajectory.load(ws.session(name).georef_trajectory)
+        before = Trajectory.load(ws.session(name).enu_trajectory)
         after = Trajectory.load(ws.aligned(name).trajectory)
         pb, Eb = error_transforms(before.stamps_ns, before.world_from_base, gt_stamps, gt_ws)
         _, Ea = error_transforms(after.stamps_ns, after.world_from_base, gt_stamps, gt_ws)

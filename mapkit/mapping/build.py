@@ -468,8 +468,7 @@ class SessionBuilder:
         ``georef.fuse``), read once."""
         if self._enu_trajectory is None:
             self.georef()
-            fused = self.cfg.georef.fuse and self.dirs.fused_trajectory.is_dir()
-            self._enu_trajectory = Trajectory.load(self.dirs.fused_trajectory if fused else self.dirs.georef_trajectory)
+            self._enu_trajectory = Trajectory.load(self.dirs.enu_trajectory)
         return self._enu_trajectory
 
     # --- camera frames with poses ---------------------------------------------------------------

@@ -221,7 +221,7 @@ def _verify_built(dirs: SessionDirs) -> None:
     the file. Sessions that are not fully built are left to :func:`load_session`'s warning."""
     if not (dirs.has("georef") and dirs.has("map")):
         return
-    for path in (dirs.map / "points.ply", dirs.map / "observations.npz", dirs.gps_alignment, *sorted(dirs.georef_trajectory.glob("*.npz"))):
+    for path in (dirs.map / "points.ply", dirs.map / "observations.npz", dirs.gps_alignment, *sorted(dirs.enu_trajectory.glob("*.npz"))):
         verify_file(path, f"mapkit build (session {dirs.name})")
 
 

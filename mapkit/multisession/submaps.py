@@ -74,7 +74,7 @@ def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m:
     if not ga.get("georeferenced"):
         warnings.warn(f"{ga_path}: session is not georeferenced ({ga.get('reason', 'no reason given')}); skipped", InputWarning, stacklevel=2)
         return None
-    traj = Trajectory.load(dirs.georef_trajectory)
+    traj = Trajectory.load(dirs.enu_trajectory)
     smap = SemiDenseMap.load(dirs.map)
     ws_from_session = LocalFrame.from_dict(ga).to_frame(ws_frame)
     poses = ws_from_session @ traj.world_from_base

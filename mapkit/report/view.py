@@ -403,7 +403,7 @@ def _session(w: _Writer, name: str, i: int, frame: Optional["LocalFrame"], align
     from mapkit.mapping.trajectory import Trajectory
 
     dirs = w.ws.session(name)
-    traj = Trajectory.load(dirs.georef_trajectory)
+    traj = Trajectory.load(dirs.enu_trajectory)
     if traj.frame != "enu":
         w.summary.notes.append(f"session {name}: not georeferenced; drawn in its own frame")
         warnings.warn(f"session {name!r} is not georeferenced: drawn in its own frame, not the workspace's", InputWarning, stacklevel=3)
