@@ -347,11 +347,13 @@ def index_vlad(
     workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (aligned poses are used when `mapkit align` ran)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/vlad)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults index_vlad`."),
+    reuse: Optional[Path] = typer.Option(None, "--reuse", help="A bundle of the same images and settings but another whitening: "
+                                         "its vectors are re-scaled, no image is encoded again."),
 ) -> None:
     """Dense SIFT, RootSIFT, VLAD and PCA-whitening image retrieval index, as a deployable bundle."""
     from mapkit.retrieval.index_vlad import build_vlad_index
 
-    bundle = build_vlad_index(workspace, out, config, progress=sys.stderr.isatty())
+    bundle = build_vlad_index(workspace, out, config, progress=sys.stderr.isatty(), reuse=reuse)
     typer.echo((bundle / "metrics.json").read_text(), nl=False)
     typer.echo(f"bundle written to {bundle}")
 

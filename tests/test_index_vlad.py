@@ -400,3 +400,33 @@ def test_training_frames_give_the_pca_more_than_the_database(tmp_path, built):
     _, change = SESSIONS["test-c"]
     for place in range(PLACES):
         assert with_frames.query(place_image(place, change)).ids[0] == place
+
+
+def test_another_whitening_from_a_bundle_equals_encoding_again(tmp_path, built, monkeypatch):
+    """``reuse``: the full-whitening bundle re-scaled from the power-law one holds the vectors that
+    encoding every image again with full whitening gives, without encoding a single image."""
+    ws, out = built
+    full_cfg = small_config(vlad=SMALL_VLAD.model_copy(update={"whitening": "full"}))
+    encoded = VladIndex.load(build_vlad_index(ws, tmp_path / "encoded", full_cfg, progress=False))
+    import mapkit.retrieval.vlad_build as vb
+
+    def no_encoding(*a, **k):
+        raise AssertionError("an image was encoded")
+
+    monkeypatch.setattr(vb, "_learn_encoder", no_encoding)
+    monkeypatch.setattr(vb, "_encode_database", no_encoding)
+    derived = VladIndex.load(build_vlad_index(ws, tmp_path / "derived", full_cfg, progress=False, reuse=out))
+    assert derived.manifest["vlad"]["pca"]["whitening"] == "full" and derived.manifest["build_hash"] == encoded.manifest["build_hash"]
+    np.testing.assert_allclose(derived.vectors(), encoded.vectors(), atol=2e-5)
+    q = place_image(4, SESSIONS["test-c"][1])
+    np.testing.assert_allclose(derived.encode(q), encoded.encode(q), atol=2e-5)
+    np.testing.assert_array_equal(derived.query(derived.encode(q)).ids, encoded.query(encoded.encode(q)).ids)
+    assert json.loads((tmp_path / "derived" / "metrics.json").read_text())["rewhitened_from"] == str(out)
+    # plain PCA (no whitening) from the full one, back again
+    plain = build_vlad_index(ws, tmp_path / "plain", small_config(vlad=SMALL_VLAD.model_copy(update={"whiten": False})),
+                             progress=False, reuse=tmp_path / "derived")
+    assert VladIndex.load(plain).manifest["vlad"]["pca"]["whitening"] == "none"
+    # a bundle of other images or settings is refused, naming it
+    with pytest.raises(InputError, match="only the whitening"):
+        build_vlad_index(ws, tmp_path / "other", small_config(vlad=SMALL_VLAD.model_copy(update={"whitening": "full", "num_words": 4})),
+                         progress=False, reuse=out)

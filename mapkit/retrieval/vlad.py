@@ -351,6 +351,29 @@ class PcaWhitening:
         y /= np.maximum(norm, _TINY)
         return y
 
+    def _scales(self) -> np.ndarray:
+        return whitening_scales(self.variances, self.power, self.shrinkage) if self.whiten else np.ones(len(self.variances))
+
+    def rewhitened(self, whiten: bool, power: float = 1.0, shrinkage: float = 0.0) -> tuple["PcaWhitening", np.ndarray]:
+        """The same PCA with another whitening, and the factor (d,) that takes this one's outputs to
+        the new one's before the L2 (:meth:`rescale`). Exact: the whitening only scales the principal
+        directions, and the L2 at the end removes the scale of a whole vector."""
+        if not 0.0 <= power <= 1.0 or shrinkage < 0:
+            raise ConfigError(f"whitening power must be in [0, 1] and shrinkage >= 0, got {power} and {shrinkage}")
+        if not whiten:
+            power, shrinkage = 0.0, 0.0
+        new_scales = whitening_scales(self.variances, power, shrinkage) if whiten else np.ones(len(self.variances))
+        ratio = new_scales / self._scales()
+        projection = (self.projection.astype(np.float64) * ratio[:, None]).astype(np.float32)
+        return PcaWhitening(self.mean, projection, self.variances, whiten, float(power), float(shrinkage), self.n_train), ratio
+
+    @staticmethod
+    def rescale(vectors: np.ndarray, ratio: np.ndarray) -> np.ndarray:
+        """Outputs of one whitening (n, d), unit rows, as another's: scaled per direction by ``ratio``, then L2 again."""
+        y = np.asarray(vectors, np.float64) * ratio
+        y /= np.maximum(np.linalg.norm(y, axis=1, keepdims=True), _TINY)
+        return y.astype(np.float32)
+
     def state_dict(self) -> dict[str, np.ndarray]:
         return {"mean": self.mean, "projection": self.projection, "variances": self.variances, "whiten": np.array(self.whiten),
                 "power": np.array(self.power), "shrinkage": np.array(self.shrinkage), "n_train": np.array(self.n_train)}

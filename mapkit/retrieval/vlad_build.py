@@ -29,19 +29,21 @@ from typing import Optional
 import numpy as np
 
 from mapkit import __version__
-from mapkit.core.bundle import MANIFEST, building, copy_file, is_finished, write_manifest
+from mapkit.core.bundle import MANIFEST, building, copy_file, is_finished, read_manifest, write_manifest
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError, InputWarning
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, verify_file, write_json
 from mapkit.core.workspace import Workspace
-from mapkit.retrieval.vlad import VladEncoder, kmeans
+from mapkit.retrieval.vlad import PcaWhitening, VladEncoder, kmeans, whitening_parameters
 from mapkit.retrieval.vlad_bundle import (
     _QUERY_TIME_FIELDS,
     DATABASE_CSV,
     ENCODER_DIR,
     FORMAT_VERSION,
+    INDEX_FILE,
+    VECTORS_FILE,
     SessionImages,
     VladIndexConfig,
     _database_table,
@@ -143,6 +145,7 @@ def build_vlad_index(
     overrides: Optional[dict] = None,
     progress: bool = True,
     executor: Optional[Executor] = None,
+    reuse: str | Path | None = None,
 ) -> Path:
     """Build the VLAD index bundle of ``workspace``; returns its folder (default ``WORKSPACE/indexes/vlad``).
 
@@ -153,6 +156,13 @@ def build_vlad_index(
     The vocabulary and PCA learn from training-session images only; every database image is
     encoded once (the training subsample's raw VLADs are kept for the PCA and reused). Skips when
     the bundle at ``out`` was built from the same config and session tables.
+
+    ``reuse``: a finished bundle of the same workspace built with the same config but for the
+    whitening (``vlad.whiten``, ``whitening``, ``whitening_power``, ``whitening_shrinkage``): its
+    vocabulary, PCA and database vectors are taken and only re-scaled, with no image encoded again.
+    Exact, since the whitening only scales the principal directions and every vector is L2-normalised
+    last (:meth:`~mapkit.retrieval.vlad.PcaWhitening.rewhitened`). A bundle built from anything else
+    is refused, naming it.
     """
     t_start = time.perf_counter()
     ws = Workspace(workspace)
@@ -171,7 +181,7 @@ def build_vlad_index(
 
     with building(out) as tmp:
         metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress,
-                                        executor or get_executor(cfg.workers))
+                                        executor or get_executor(cfg.workers), None if reuse is None else Path(reuse))
         metrics["seconds_total"] = time.perf_counter() - t_start
         write_json(tmp / "metrics.json", metrics)
         write_manifest(tmp, manifest)  # last: it checksums every other file
@@ -197,13 +207,7 @@ def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], tra
     """1. vocabulary (k-means on descriptors drawn evenly from the vocabulary images), 2. PCA-whitening
     on the raw VLADs of the training images (every image of the training sessions, uniformly subsampled):
     their database images and, with ``training_frames``, the frames kept beside the database."""
-    extra = {n: len(sessions[n].training_paths) if cfg.training_frames else 0 for n in train_names}
-    train_refs = [(n, i) for n in train_names for i in range(len(sessions[n]) + extra[n])]
-    if len(train_refs) < 2:
-        raise InputError(sessions[train_names[0]].csv_path, f"{len(train_refs)} training image(s): the PCA needs at least 2", field="train_sessions")
-    train_sel = [train_refs[i] for i in _uniform_subset(len(train_refs), cfg.max_training_images, cfg.seed, 1)]
-    vocab_sel = [train_sel[i] for i in _uniform_subset(len(train_sel), cfg.max_vocabulary_images, cfg.seed, 2)]
-
+    train_sel, vocab_sel = _training_selection(cfg, sessions, train_names)
     t0 = time.perf_counter()
     per_image = math.ceil(cfg.vlad.kmeans_max_descriptors / len(vocab_sel))
     tasks = [(_path_of(sessions, r), per_image, cfg.vlad.seed, k) for k, r in enumerate(vocab_sel)]
@@ -228,6 +232,49 @@ def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], tra
     timings["pca_s"] = time.perf_counter() - t0
     _warn_small_pca(cfg, encoder, len(train_sel))
     return _Learned(encoder, train_sel, raw_train, len(vocab_sel), n_descriptors)
+
+
+def _training_selection(cfg: VladIndexConfig, sessions: dict[str, SessionImages], train_names: list[str]) -> tuple[list[Ref], list[Ref]]:
+    """The PCA's training images and, among them, the vocabulary's: uniform, seeded subsets (the same on every run)."""
+    extra = {n: len(sessions[n].training_paths) if cfg.training_frames else 0 for n in train_names}
+    train_refs = [(n, i) for n in train_names for i in range(len(sessions[n]) + extra[n])]
+    if len(train_refs) < 2:
+        raise InputError(sessions[train_names[0]].csv_path, f"{len(train_refs)} training image(s): the PCA needs at least 2", field="train_sessions")
+    train_sel = [train_refs[i] for i in _uniform_subset(len(train_refs), cfg.max_training_images, cfg.seed, 1)]
+    return train_sel, [train_sel[i] for i in _uniform_subset(len(train_sel), cfg.max_vocabulary_images, cfg.seed, 2)]
+
+
+_WHITENING_FIELDS = ("whiten", "whitening", "whitening_power", "whitening_shrinkage")
+
+
+def _rewhiten(reuse: Path, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str], train_names: list[str],
+              frame: Optional[LocalFrame], timings: dict[str, float]) -> tuple[_Learned, np.ndarray]:
+    """The encoder and database vectors of the bundle ``reuse`` under ``cfg``'s whitening (see ``build_vlad_index``)."""
+    import faiss
+
+    t0 = time.perf_counter()
+    manifest = read_manifest(reuse, "VLAD index", FORMAT_VERSION, (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"), True)
+    old = VladIndexConfig.model_validate(manifest["config"])
+    as_old = cfg.model_copy(update={"vlad": cfg.vlad.model_copy(update={k: getattr(old.vlad, k) for k in _WHITENING_FIELDS})})
+    if manifest.get("added_sessions") or manifest.get("build_hash") != _build_hash(as_old, db_names, train_names, sessions, frame):
+        raise InputError(reuse / MANIFEST, "was built from other sessions, images or settings than this index's (only the whitening "
+                         "may differ); build this one from the images instead", field="reuse")
+    encoder = VladEncoder.load(reuse / ENCODER_DIR)
+    pca, ratio = encoder.pca.rewhitened(cfg.vlad.whiten, *whitening_parameters(cfg.vlad))
+    vpath = reuse / VECTORS_FILE
+    if vpath.is_file():
+        verify_file(vpath, f"the VLAD index bundle {reuse}")
+        vectors = np.load(vpath)
+    else:
+        index = faiss.read_index(str(reuse / INDEX_FILE))
+        vectors = index.reconstruct_n(0, index.ntotal)
+    train_sel, vocab_sel = _training_selection(cfg, sessions, train_names)
+    old_metrics = reuse / "metrics.json"
+    n_desc = json.loads(old_metrics.read_text()).get("vocabulary_descriptors", 0) if old_metrics.is_file() else 0
+    learned = _Learned(VladEncoder(cfg.vlad, encoder.vocabulary, pca), train_sel, np.zeros((0, encoder.raw_dim), np.float32),
+                       len(vocab_sel), n_desc)
+    timings["rewhiten_s"] = time.perf_counter() - t0
+    return learned, PcaWhitening.rescale(vectors, ratio)
 
 
 def _warn_small_pca(cfg: VladIndexConfig, encoder: VladEncoder, n_train: int) -> None:
@@ -273,11 +320,16 @@ def _path_of(sessions: dict[str, SessionImages], ref: Ref) -> str:
 
 def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str],
                 train_names: list[str], frame: Optional[LocalFrame], build_hash: str, progress: bool,
-                executor: Executor) -> tuple[dict, dict]:
-    """Learn, encode and write everything but metrics.json and the manifest into ``tmp``; returns both."""
+                executor: Executor, reuse: Optional[Path] = None) -> tuple[dict, dict]:
+    """Learn, encode (or re-whiten ``reuse``'s) and write everything but metrics.json and the manifest into ``tmp``; returns both."""
     timings: dict[str, float] = {}
-    learned = _learn_encoder(cfg, sessions, train_names, executor, progress, timings)
-    vectors, n_reused, n_todo = _encode_database(learned, sessions, db_names, executor, progress, timings)
+    if reuse is None:
+        learned = _learn_encoder(cfg, sessions, train_names, executor, progress, timings)
+        vectors, n_reused, n_todo = _encode_database(learned, sessions, db_names, executor, progress, timings)
+    else:
+        learned, vectors = _rewhiten(reuse, cfg, sessions, db_names, train_names, frame, timings)
+        n_reused, n_todo = len(vectors), 0
+        timings.update(encode_training_s=0.0, encode_database_s=0.0)
 
     # 4. index
     t0 = time.perf_counter()
@@ -290,7 +342,7 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
     _write_index(tmp, index, vectors if cfg.index == "ivf" else None)
     _write_database_csv(tmp / DATABASE_CSV, _database_table(db_names, sessions, frame))
     atomic_write_text(tmp / "config.yaml", dump_config(cfg))
-    n_train, n_encoded = len(learned.train_sel), len(learned.train_sel) + n_todo
+    n_train, n_encoded = len(learned.train_sel), (len(learned.train_sel) if reuse is None else 0) + n_todo
     encode_s = timings["encode_training_s"] + timings["encode_database_s"]
     metrics = {
         "images_encoded": n_encoded,
@@ -303,6 +355,7 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
         "pca": _pca_record(cfg, learned, sessions, db_names),
         "executor": executor.kind,
         "workers": executor.workers,
+        **({"rewhitened_from": str(reuse)} if reuse is not None else {}),
         **timings,
     }
     return metrics, _manifest(ws, cfg, sessions, db_names, train_names, frame, build_hash, learned, index_info, len(vectors))
