@@ -38,13 +38,12 @@ from mapkit.core.frames import FrameTree
 from mapkit.core.geometry import interpolate_poses, invert_pose, transform_points
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import Workspace
+from mapkit.evaluation.evaluate import CHI2_95_3DOF
 from mapkit.evaluation.truth import session_truth, ws_from_town
 from mapkit.io import open_log
 from mapkit.mapping.factor_graph import FactorGraphConfig, GpsObservations, ImuObservations, fuse_session, gravity_from_imu
 from mapkit.mapping.gps_align import fit_transform
 from mapkit.mapping.trajectory import Trajectory
-
-CHI2_95_3DOF = 7.815
 
 
 def read_sensors(log_path: str, frame, body: str) -> tuple[GpsObservations, ImuObservations]:

@@ -126,7 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     gt_i, ok = interpolate_poses(gt_stamps, gt, est.stamps_ns)
     est_fit = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw") @ est.world_from_base[ok]
     aligned_dir = ws / "align" / "sessions" / name
-    variants = a.variants or [v for v in VARIANTS if v not in ("aligned", "fused") or (aligned_dir / "map").is_dir() and v == "aligned"]
+    # by default every variant but the fused one (it runs the georef stage again), and aligned only where align ran
+    variants = a.variants or [v for v in VARIANTS if v != "fused" and (v != "aligned" or (aligned_dir / "map").is_dir())]
     cfg_path = ws / "build_config.yaml"
     cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
     if a.semidense is not None:

@@ -50,6 +50,11 @@ def average_rotations(R: np.ndarray, weights: np.ndarray | None = None) -> np.nd
 
 # --- SE(3) ----------------------------------------------------------------------------------------
 
+def skew(v: np.ndarray) -> np.ndarray:
+    """(3, 3) cross-product matrix [v]x of a 3-vector: [v]x w = v x w."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Stack rotation(s) (..., 3, 3) and translation(s) (..., 3) into homogeneous (..., 4, 4)."""
     R = np.asarray(R, dtype=np.float64)

@@ -74,7 +74,7 @@ from pydantic import Field
 
 from mapkit.core.config import MapkitConfig
 from mapkit.core.errors import InputError, InputWarning
-from mapkit.core.geometry import interpolate_poses, invert_pose
+from mapkit.core.geometry import interpolate_poses, invert_pose, skew
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 
 #: a fix is an inlier of the solution below this whitened residual (chi-square, 3 dof, 99%; as gps_align's gate)
@@ -250,10 +250,6 @@ def gravity_from_imu(imu_stamps_ns: np.ndarray, gyro_rad_s: np.ndarray, accel_m_
 # --- factors -----------------------------------------------------------------------------------------
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _gps_error(z: np.ndarray, lever: np.ndarray, a: float, keys: list[int]):
     """Antenna = t + R lever + (1-a) b0 + a b1 (keys: pose[, b0, b1]); gtsam's Pose3 tangent is (rotation, translation),
     right-perturbed: d(R lever)/dw = -R [lever]x, dt = R dt_local."""
@@ -266,7 +262,7 @@ def _gps_error(z: np.ndarray, lever: np.ndarray, a: float, keys: list[int]):
             b0, b1 = values.atPoint3(this.keys()[1]), values.atPoint3(this.keys()[2])
             pred = pred + (1 - a) * b0 + a * b1
         if H is not None:
-            H[0] = np.hstack([-R @ _skew(lever), R])
+            H[0] = np.hstack([-R @ skew(lever), R])
             if len(keys) == 3:
                 H[1] = (1 - a) * np.eye(3)
                 H[2] = a * np.eye(3)
@@ -284,7 +280,7 @@ def _gravity_error(up_meas: np.ndarray):
         bias = values.atPoint3(this.keys()[1])
         v = pose.rotation().matrix().T @ np.array([0.0, 0.0, 1.0])
         if H is not None:
-            H[0] = np.hstack([_skew(v), np.zeros((3, 3))])
+            H[0] = np.hstack([skew(v), np.zeros((3, 3))])
             H[1] = np.eye(3)
         return v + bias - up_meas
 
@@ -329,7 +325,7 @@ def _adjoint(T: np.ndarray) -> np.ndarray:
     A = np.zeros((6, 6))
     A[:3, :3] = R
     A[3:, 3:] = R
-    A[3:, :3] = _skew(t) @ R
+    A[3:, :3] = skew(t) @ R
     return A
 
 

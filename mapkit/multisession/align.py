@@ -482,6 +482,7 @@ def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarra
     smap.save(dirs.map, frame=ws_frame)
     _write_refined_images(s, poses, ws.session(s.name).images_csv, dirs, ws_frame)
     move = np.linalg.norm(poses[:, :3, 3] - s.poses[:, :3, 3], axis=1)
+    sigma = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2)[:, 3:], 0))  # (K, 3) position sigmas, ENU m
     submaps = []
     for k in range(s.n_submaps):
         Rk = Rotation.from_rotvec(xs[k, :3]).as_matrix()
@@ -490,7 +491,7 @@ def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarra
         T[:3, 3] = s.centres[k] + xs[k, 3:] - Rk @ s.centres[k]
         submaps.append({"index": k, "arc_m": [float(s.submap_edges_m[k]), float(s.submap_edges_m[k + 1])],
                         "centre_enu": s.centres[k].tolist(), "correction": xs[k].tolist(), "corrected_from_built": T.tolist(),
-                        "covariance": cov[k].tolist(), "position_sigma_enu_m": np.sqrt(np.diag(cov[k])[3:]).tolist(),
+                        "covariance": cov[k].tolist(), "position_sigma_enu_m": sigma[k].tolist(),
                         "status": str(st[k]), "pairs": int(n_cand[k]), "pairs_accepted": int(n_acc[k]),
                         "points": int((s.submap_of_point == k).sum())})
     doc = {"session": s.name, "map_hash": s.map_hash, "config_hash": config_hash(cfg), "frame": ws_frame.to_dict(), "submaps": submaps,
@@ -503,7 +504,7 @@ def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarra
         "submaps": s.n_submaps, "verified": int((st == "verified").sum()), "unverified": int((st == "unverified").sum()),
         "no_overlap": int((st == "no overlap").sum()), "points": len(pts), "points_merged": int(keep.sum()),
         "correction_median_m": float(np.median(move)), "correction_max_m": float(move.max()),
-        "position_sigma_median_m": [float(v) for v in np.median(np.sqrt(np.maximum(cov[:, [3, 4, 5], [3, 4, 5]], 0)), axis=0)],
+        "position_sigma_median_m": np.median(sigma, axis=0).tolist(),
         "merged": bool(keep.any()),
     }
     return pts, keep, summary

@@ -24,6 +24,7 @@ from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.config import MapkitConfig
+from mapkit.core.geometry import skew
 from mapkit.multisession.registration import PairResult
 
 
@@ -74,15 +75,11 @@ def _apply_node(x: np.ndarray, centres: np.ndarray, node: np.ndarray, pts: np.nd
     return np.einsum("eij,epj->epi", R, pts - c) + c + t[:, None, :]
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def support_information(local: np.ndarray, sigma_m: float) -> np.ndarray:
     """(6, 6) information, in gtsam's Pose3 tangent (rotation, translation), of comparing the points
     ``local`` (P, 3; relative to the node's origin, in its axes) to ``sigma_m`` each: a right
     perturbation (w, v) moves q by w x q + v, so the Jacobian of each point is [-[q]x, I]."""
-    J = np.concatenate([np.hstack([-_skew(q), np.eye(3)]) for q in local])
+    J = np.concatenate([np.hstack([-skew(q), np.eye(3)]) for q in local])
     return J.T @ J / sigma_m**2
 
 

@@ -351,9 +351,6 @@ class PcaWhitening:
         y /= np.maximum(norm, _TINY)
         return y
 
-    def _scales(self) -> np.ndarray:
-        return whitening_scales(self.variances, self.power, self.shrinkage) if self.whiten else np.ones(len(self.variances))
-
     def rewhitened(self, whiten: bool, power: float = 1.0, shrinkage: float = 0.0) -> tuple["PcaWhitening", np.ndarray]:
         """The same PCA with another whitening, and the factor (d,) that takes this one's outputs to
         the new one's before the L2 (:meth:`rescale`). Exact: the whitening only scales the principal
@@ -361,9 +358,8 @@ class PcaWhitening:
         if not 0.0 <= power <= 1.0 or shrinkage < 0:
             raise ConfigError(f"whitening power must be in [0, 1] and shrinkage >= 0, got {power} and {shrinkage}")
         if not whiten:
-            power, shrinkage = 0.0, 0.0
-        new_scales = whitening_scales(self.variances, power, shrinkage) if whiten else np.ones(len(self.variances))
-        ratio = new_scales / self._scales()
+            power, shrinkage = 0.0, 0.0  # plain PCA: every scale 1, as whitening_scales gives for alpha = 0
+        ratio = whitening_scales(self.variances, power, shrinkage) / whitening_scales(self.variances, self.power, self.shrinkage)
         projection = (self.projection.astype(np.float64) * ratio[:, None]).astype(np.float32)
         return PcaWhitening(self.mean, projection, self.variances, whiten, float(power), float(shrinkage), self.n_train), ratio
 

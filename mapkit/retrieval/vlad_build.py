@@ -43,7 +43,6 @@ from mapkit.retrieval.vlad_bundle import (
     ENCODER_DIR,
     FORMAT_VERSION,
     INDEX_FILE,
-    VECTORS_FILE,
     SessionImages,
     VladIndexConfig,
     _database_table,
@@ -51,6 +50,7 @@ from mapkit.retrieval.vlad_bundle import (
     _write_database_csv,
     _write_index,
     read_session_images,
+    read_vectors,
 )
 from mapkit.retrieval.vlad_encoding import _PCA_BATCH, _faiss_threads, _map, _raw_task, _sample_task, encode_images
 
@@ -250,8 +250,6 @@ _WHITENING_FIELDS = ("whiten", "whitening", "whitening_power", "whitening_shrink
 def _rewhiten(reuse: Path, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str], train_names: list[str],
               frame: Optional[LocalFrame], timings: dict[str, float]) -> tuple[_Learned, np.ndarray]:
     """The encoder and database vectors of the bundle ``reuse`` under ``cfg``'s whitening (see ``build_vlad_index``)."""
-    import faiss
-
     t0 = time.perf_counter()
     manifest = read_manifest(reuse, "VLAD index", FORMAT_VERSION, (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"), True)
     old = VladIndexConfig.model_validate(manifest["config"])
@@ -261,13 +259,7 @@ def _rewhiten(reuse: Path, cfg: VladIndexConfig, sessions: dict[str, SessionImag
                          "may differ); build this one from the images instead", field="reuse")
     encoder = VladEncoder.load(reuse / ENCODER_DIR)
     pca, ratio = encoder.pca.rewhitened(cfg.vlad.whiten, *whitening_parameters(cfg.vlad))
-    vpath = reuse / VECTORS_FILE
-    if vpath.is_file():
-        verify_file(vpath, f"the VLAD index bundle {reuse}")
-        vectors = np.load(vpath)
-    else:
-        index = faiss.read_index(str(reuse / INDEX_FILE))
-        vectors = index.reconstruct_n(0, index.ntotal)
+    vectors = read_vectors(reuse)  # read_manifest above checked every listed file's sha256
     train_sel, vocab_sel = _training_selection(cfg, sessions, train_names)
     old_metrics = reuse / "metrics.json"
     n_desc = json.loads(old_metrics.read_text()).get("vocabulary_descriptors", 0) if old_metrics.is_file() else 0

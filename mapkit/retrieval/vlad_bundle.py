@@ -196,6 +196,19 @@ def _write_index(folder: Path, index, vectors: Optional[np.ndarray]) -> None:
         np.save(folder / VECTORS_FILE, np.ascontiguousarray(vectors, np.float32))
 
 
+def read_vectors(folder: Path, index=None) -> np.ndarray:
+    """(N, D) float32 database vectors of the bundle at ``folder``: vectors.npy (IVF bundles), else
+    reconstructed exactly from its flat index (``index``, read from the bundle if not given)."""
+    p = folder / VECTORS_FILE
+    if p.is_file():
+        return np.load(p)
+    if index is None:
+        import faiss
+
+        index = faiss.read_index(str(folder / INDEX_FILE))
+    return index.reconstruct_n(0, index.ntotal)
+
+
 def _database_table(names: list[str], sessions: dict[str, SessionImages], frame: Optional[LocalFrame], first_id: int = 0) -> dict[str, Any]:
     cols: dict[str, list] = {c: [] for c in DATABASE_COLUMNS}
     T_all = []

@@ -40,6 +40,7 @@ from mapkit.retrieval.vlad_bundle import (
     _write_index,
     read_database_csv,
     read_session_images,
+    read_vectors,
 )
 from mapkit.retrieval.vlad_encoding import _file_key, encode_images, read_image
 
@@ -231,10 +232,7 @@ class VladIndex:
 
     def vectors(self) -> np.ndarray:
         """(N, D) float32 database vectors: from vectors.npy, or reconstructed exactly from a flat index."""
-        p = self.path / VECTORS_FILE
-        if p.is_file():
-            return np.load(p)
-        return self.index.reconstruct_n(0, self.index.ntotal)
+        return read_vectors(self.path, self.index)
 
     # ---- growing
 
