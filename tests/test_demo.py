@@ -35,6 +35,9 @@ def test_tiny_main_job_runs_every_stage_with_non_empty_outputs(tiny_demo):
     ws = out / "workspace"
     # synth and build: every session georeferenced; align: at least two sessions in one frame
     assert len(m["georeferenced"]) == len(m["eval_build"]["sessions"]) >= 3
+    # the demo's maps are made on the factor graph's trajectory (configs/build/demo.yaml: georef.fuse)
+    used = {n: s.get("trajectory_used") for n, s in m["eval_build"]["sessions"].items()}
+    assert set(used.values()) == {"factor graph"}, used
     assert len(aligned_sessions(ws)) >= 2
     assert m["eval_align"]["pairs_evaluated"] > 0
     # triplets, and the three indexes the demo builds
