@@ -35,6 +35,7 @@ import time
 import warnings
 from dataclasses import replace
 from fnmatch import fnmatchcase
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterator, Literal, Optional
@@ -56,10 +57,11 @@ from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
 from mapkit.io.plots import map_top_view, trajectory_over_gps
-from mapkit.mapping.factor_graph import FactorGraphConfig, GpsObservations, ImuObservations, fuse_session
+from mapkit.mapping.factor_graph import FactorGraphConfig, FusedTrajectory, GpsObservations, ImuObservations, fuse_session, loop_counts
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
+from mapkit.mapping.loop_closure import loop_closures, propose_loops, read_scans, scans_needed, verify_loops
 from mapkit.mapping.semidense import SemiDenseConfig, SemiDenseMap, build_semidense_map
 from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, camera_up_hint, estimate_trajectory
 
@@ -380,24 +382,44 @@ class SessionBuilder:
             fixes = {k: f[k] for k in ("stamps_ns", "enu", "sigma_m")}
         _, kept, _ = self._screened_fixes()
         tree = FrameTree(self.log.transforms())
-        try:
-            base_from_gps = tree.lookup(traj.body_frame, kept[0].frame_id)
-        except InputError:
-            base_from_gps = np.eye(4)
-        gps = GpsObservations(fixes["stamps_ns"], fixes["enu"], fixes["sigma_m"], base_from_gps)
+        gps = GpsObservations(fixes["stamps_ns"], fixes["enu"], fixes["sigma_m"], _mount(tree, traj.body_frame, kept[0].frame_id))
         imu = None
         imu_topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMU, [])
         if imu_topics:
             samples = list(self.log.records(StreamKind.IMU, topic=imu_topics[0]))
             if len(samples) >= 2:
                 imu = ImuObservations.from_samples(samples, tree.lookup(traj.body_frame, samples[0].frame_id))
-        fused = fuse_session(traj.stamps_ns, traj.world_from_base, gps, None, self.cfg.georef.factor_graph,
-                             enu_from_odom=enu_from_map, source=str(self.log_path), imu=imu)
+        fuse = partial(fuse_session, traj.stamps_ns, traj.world_from_base, gps, None, self.cfg.georef.factor_graph,
+                       enu_from_odom=enu_from_map, source=str(self.log_path), imu=imu)
+        fused, loop_stats = fuse(), {}
+        if self.cfg.georef.factor_graph.loop_closures:
+            fused, loop_stats = self._close_loops(traj, fused, tree, fuse)
         Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu",
                    body_frame=traj.body_frame).save(self.dirs.fused_trajectory)
         with atomic_path(self.dirs.fused_covariances) as tmp, open(tmp, "wb") as f:
             np.savez(f, stamps_ns=fused.stamps_ns, covariances=fused.covariances, georef_covariance=fused.georef_covariance)
-        return {**fused.stats, "imu": "preintegrated" if imu is not None else "no IMU stream"}
+        return {**fused.stats, **loop_stats, "imu": "preintegrated" if imu is not None else "no IMU stream"}
+
+    def _close_loops(self, traj: Trajectory, fused: FusedTrajectory, tree: FrameTree, fuse) -> tuple[FusedTrajectory, dict]:
+        """Loop closures (mapping/loop_closure.py) proposed on the fused trajectory and verified by ICP of local maps of the
+        LiDAR scans (read once, up to the last one needed), placed with it; with any accepted, the graph solved again with
+        them, from the solution without. Returns the trajectory and the loop step's stats."""
+        topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.LIDAR, [])
+        if not topics:
+            return fused, {"loops": "not used: no LiDAR stream"}
+        t0 = time.perf_counter()
+        cfg = self.cfg.georef.factor_graph
+        candidates = propose_loops(fused.enu_from_base, fused.keyframes, cfg)
+        scans = read_scans(self.log.records(StreamKind.LIDAR, topic=topics[0]), traj.stamps_ns, fused.enu_from_base,
+                           scans_needed(candidates, len(traj.stamps_ns), cfg), partial(_mount, tree, traj.body_frame), cfg,
+                           source=f"{self.log_path} {topics[0]}")
+        checks = verify_loops(candidates, scans, fused.enu_from_base, cfg)
+        loops = loop_closures(checks, traj.stamps_ns)
+        stats = loop_counts(loops)
+        if loops.edges:
+            fused = fuse(loops=loops, start=fused)
+        stats.update(loop_checks=[c.to_dict(traj.stamps_ns) for c in checks], loop_seconds=time.perf_counter() - t0)
+        return fused, stats
 
     def _given(self, traj: Trajectory, result: dict):
         """Georeferencing that the pose stream already carries (an INS, or a simulator's truth):
@@ -686,6 +708,17 @@ class SessionBuilder:
 
 ARBITRARY_UNITS = "arbitrary units (structure from motion, not georeferenced)"
 SKIPPED_BY_CONFIG = {"semidense": "map: false in the config", "imagedb": "imagedb: false in the config"}
+
+
+def _mount(tree: FrameTree, body_frame: str, frame: str) -> np.ndarray:
+    """``body_frame``-from-``frame`` (a sensor's mount), the identity when the calibration does not tie them (the
+    trajectory stage warned then, and took them as one frame)."""
+    if frame in ("", body_frame):
+        return np.eye(4)
+    try:
+        return tree.lookup(body_frame, frame)
+    except InputError:
+        return np.eye(4)
 
 
 def _camera_only(traj: Trajectory) -> bool:

@@ -53,6 +53,7 @@ from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, read_marker, stage_digest, verify_file, write_json
 from mapkit.core.workspace import AlignedDirs, SessionDirs, Workspace
 from mapkit.io.plots import align_histograms, align_pairs_map
+from mapkit.mapping.icp import open3d_one_thread
 from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.multisession.corrections import apply_correction_points, apply_correction_poses, correction_at
@@ -65,7 +66,6 @@ from mapkit.multisession.registration import (
     Verdict,
     decide,
     evaluate_alignment,
-    open3d_one_thread,
     register_clouds,
     register_pair,
 )

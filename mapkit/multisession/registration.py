@@ -1,7 +1,7 @@
 """Registering two clouds: coarse-to-fine point-to-plane ICP, its scoring and the accept/reject decision.
 
-:func:`icp_coarse_to_fine` is the one ICP loop of mapkit: :func:`register_clouds` feeds it
-clouds it downsamples itself (submap pairs of ``mapkit align``), and
+:func:`mapkit.mapping.icp.icp_coarse_to_fine` is the one ICP loop of mapkit: :func:`register_clouds`
+feeds it clouds it downsamples itself (submap pairs of ``mapkit align``), and
 :func:`mapkit.places.triplets.register_cell` the crops of clouds it downsampled once per session.
 :func:`decide` judges a :class:`Registration` under the :class:`IcpConfig` gates and says why in a
 :class:`Verdict` (a code to count by, and the text written to pairs.json and qa.md).
@@ -10,10 +10,9 @@ clouds it downsamples itself (submap pairs of ``mapkit align``), and
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable, Iterator, Optional, Union
+from typing import Optional, Union
 
 import numpy as np
 from pydantic import Field
@@ -21,10 +20,9 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.config import MapkitConfig
+from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine
 from mapkit.multisession.submaps import SessionData, SubmapClouds, submap_points
 
-#: open3d's own ICP stopping criterion (relative change of fitness and RMSE between iterations)
-OPEN3D_RELATIVE_CHANGE = 1e-6
 
 
 class IcpConfig(MapkitConfig):
@@ -67,40 +65,6 @@ class Registration:
         return cls(np.eye(4), 0.0, float("nan"), 0.0, float("nan"), 0)
 
 
-@dataclass(frozen=True)
-class IcpClouds:
-    """One ICP level: source and target points relative to the registration's centre (rotations
-    pivot there), and the target's normals (point-to-plane)."""
-
-    source: np.ndarray  # (N, 3)
-    target: np.ndarray  # (M, 3)
-    target_normals: np.ndarray  # (M, 3)
-
-
-def icp_coarse_to_fine(level: Callable[[float], Optional[IcpClouds]], cfg: IcpConfig,
-                       relative_change: float = OPEN3D_RELATIVE_CHANGE) -> tuple[np.ndarray, Optional[IcpClouds]]:
-    """Point-to-plane ICP over the levels of ``cfg`` (voxel size, correspondence distance), each
-    starting from the transform of the one before. ``level(voxel)`` gives a level's clouds, or
-    None when there are too few points: ICP stops there. Returns the transform (centre-relative)
-    and the last level's clouds (None when it stopped early). ``relative_change``: a level stops
-    when fitness and RMSE change by less than this between iterations (open3d's criteria)."""
-    import open3d as o3d
-
-    reg, vec = o3d.pipelines.registration, o3d.utility.Vector3dVector
-    criteria = reg.ICPConvergenceCriteria(relative_change, relative_change, cfg.max_iterations)
-    T = np.eye(4)
-    clouds = None
-    for voxel, max_d in zip(cfg.voxel_sizes_m, cfg.max_correspondence_m):
-        clouds = level(voxel)
-        if clouds is None:
-            break
-        src = o3d.geometry.PointCloud(vec(clouds.source))
-        tgt = o3d.geometry.PointCloud(vec(clouds.target))
-        tgt.normals = vec(clouds.target_normals)
-        T = np.asarray(reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(), criteria).transformation)
-    return T, clouds
-
-
 def about_centre(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """``T`` (acting on coordinates relative to ``centre``, x' = x - c) in ENU coordinates."""
     C = np.eye(4)
@@ -135,7 +99,7 @@ def register_clouds(source: np.ndarray, target: np.ndarray, centre: np.ndarray, 
         tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=cfg.normal_radius_factor * voxel, max_nn=cfg.normal_max_nn))
         return IcpClouds(np.array(src.points), np.array(tgt.points), np.array(tgt.normals))
 
-    T, fine_clouds = icp_coarse_to_fine(level, cfg)
+    T, fine_clouds = icp_coarse_to_fine(level, cfg.voxel_sizes_m, cfg.max_correspondence_m, cfg.max_iterations)
     fine = cfg.voxel_sizes_m[-1]
     if fine_clouds is None:  # stopped early: evaluate at the fine level from scratch
         src, tgt, target_normals = np.asarray(src0.voxel_down_sample(fine).points), np.asarray(tgt0.voxel_down_sample(fine).points), None
@@ -323,21 +287,3 @@ def register_pair(a: Union[SessionData, SubmapClouds], i: int, b: Union[SessionD
     return PairResult(**base, target_from_source=r.target_from_source, verdict=verdict, fitness=r.fitness,
                       rmse_m=r.rmse_m, correction_m=moved, seconds=time.perf_counter() - t0, structure_fitness=r.structure_fitness,
                       structure_rmse_m=r.structure_rmse_m)
-
-
-@contextmanager
-def open3d_one_thread() -> Iterator[None]:
-    """open3d (TBB) on one thread for a while: its ICP reduces over threads in a varying order, so
-    with more than one thread two runs of the same pair differ in the last bits (measured, 0.20)."""
-    import open3d as o3d
-
-    util = o3d.utility
-    if not hasattr(util, "set_max_threads"):  # open3d < 0.20: no control; workers still run one per core
-        yield
-        return
-    before = util.get_max_threads()
-    util.set_max_threads(1)
-    try:
-        yield
-    finally:
-        util.set_max_threads(before)

@@ -45,7 +45,8 @@ from mapkit.core.runio import (atomic_path, atomic_write_text, config_hash, is_d
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import triplet_examples
 from mapkit.mapping.semidense import SemiDenseMap
-from mapkit.multisession.registration import IcpClouds, IcpConfig, Registration, about_centre, evaluate_alignment, icp_coarse_to_fine
+from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine
+from mapkit.multisession.registration import IcpConfig, Registration, about_centre, evaluate_alignment
 from mapkit.multisession.align import check_levels
 from mapkit.multisession.tiles import load_tiles
 from mapkit.places.patches import (
@@ -399,7 +400,7 @@ def make_patches_csr(points: np.ndarray, indptr: np.ndarray, centres: np.ndarray
 def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarray, reach: float, icp: IcpConfig,
                   relative_change: float) -> Registration:
     """Point-to-plane ICP of ``source``'s points within ``reach`` (horizontally) of ``centre`` onto
-    ``target``'s: :func:`mapkit.multisession.registration.icp_coarse_to_fine`, the loop of
+    ``target``'s: :func:`mapkit.mapping.icp.icp_coarse_to_fine`, the loop of
     :func:`~mapkit.multisession.registration.register_clouds` (same levels, normals, correspondence
     distances), on crops of the sessions' cached downsampled clouds (:meth:`SessionPoints.icp_level`);
     fitness and point-to-plane RMSE at ``icp.eval_distance_m`` of the fine level, scored as
@@ -414,7 +415,7 @@ def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarr
             return None
         return IcpClouds(sp[si] - centre, tp[ti] - centre, tn[ti])  # centre-relative: rotations pivot about the cell
 
-    T, clouds = icp_coarse_to_fine(level, icp, relative_change)
+    T, clouds = icp_coarse_to_fine(level, icp.voxel_sizes_m, icp.max_correspondence_m, icp.max_iterations, relative_change)
     if clouds is None:
         return Registration.failed()
     ev = evaluate_alignment(clouds.source, clouds.target, T, icp.voxel_sizes_m[-1], icp, clouds.target_normals, structure=False)
