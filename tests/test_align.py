@@ -11,7 +11,7 @@ import pytest
 
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import make_pose, yaw_rotation
-from mapkit.core.runio import mark_done, write_json
+from mapkit.core.runio import is_done, mark_done, write_json
 from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
@@ -275,12 +275,21 @@ def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
     align_workspace(ws, overrides=cfg, progress=False)
     assert (out / "metrics.json").stat().st_mtime_ns == stamp
     before_s0 = (out / "sessions" / "s0" / "trajectory" / "poses_tum.txt").read_text()
+    map_s0 = out / "sessions" / "s0" / "map" / "points.ply"
+    stamp_s0 = map_s0.stat().st_mtime_ns
+    table_s1 = out / "sessions" / "s1" / "images.csv"
+    good_s1 = table_s1.read_bytes()
+    table_s1.write_bytes(good_s1[:-10])  # damaged since the last run: s1 is written again, not kept
     errors["s3"] = gps_error(-1.0, -1.5, 0.2, 0.1)
     write_session(ws, "s3", street_world, errors["s3"], np.random.default_rng(200), lane_y=2.0)
     align_workspace(ws, overrides=cfg, progress=False)
     m2 = json.loads((out / "metrics.json").read_text())
     assert m2["registration"]["registered_this_run"] == m2["registration"]["pairs"] - m["registration"]["pairs"]
     assert (out / "sessions" / "s0" / "trajectory" / "poses_tum.txt").read_text() == before_s0  # frozen
+    # a frozen session's files are those of the last run, kept, not written again; a damaged one is rewritten whole
+    assert {n: s["outputs_kept"] for n, s in m2["sessions"].items()} == {"s0": True, "s1": False, "s2": True, "s3": False}
+    assert map_s0.stat().st_mtime_ns == stamp_s0 and table_s1.read_bytes() == good_s1
+    assert is_done(out, verify=True)  # the marker records the kept files as they are
     assert misalignment(ws, "s0", "s3", errors, probe) < 0.1
     assert m2["graph"]["sessions_solved"] == 1  # only s3's submaps were variables of the graph
     # the frozen sessions keep their covariances and GPS biases; s3's are its own, and every

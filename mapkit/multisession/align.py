@@ -48,6 +48,7 @@ from scipy.spatial.transform import Rotation
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.executor import Executor, get_executor
+from mapkit.core.fingerprint import check_file
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, read_marker, stage_digest, verify_file, write_json
@@ -195,6 +196,7 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     inputs = {s.name: {stage: stage_digest(ws.session(s.name).stage(stage)) for stage in ("georef", "map")} for s in data}
     if is_done(out, run_hash, inputs=inputs):
         return out
+    finished = (read_marker(out) or {}).get("outputs") or {}  # what the last finished run wrote (frozen sessions keep theirs)
     ws.align_done.unlink(missing_ok=True)
 
     regs = _register_pairs(out / "registrations.json", data, cfg, executor, progress)  # 1. registrations
@@ -204,7 +206,7 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     _require_a_verified_pair(ws, regs.results)
 
     # 4. outputs
-    qa = _write_outputs(ws, data, sol, nodes.offsets, status, n_cand, n_acc, regs.results, cfg, ws_frame)
+    qa = _write_outputs(ws, data, sol, nodes.offsets, status, n_cand, n_acc, regs.results, cfg, ws_frame, finished)
     qa["seconds"] = time.perf_counter() - t0
     qa["graph"] = {"seconds": sol.seconds, "isam2_updates": sol.updates, "sessions_solved": sol.solved}
     qa["registration"] = {"pairs": len(regs.results), "registered_this_run": regs.fresh, "seconds_registering": regs.seconds,
@@ -306,6 +308,7 @@ class _Solution:
     seconds: float
     updates: int  # iSAM2 updates
     solved: int  # sessions whose submaps were variables (the others were frozen by an earlier run)
+    frozen: frozenset[str] = frozenset()  # those others: their corrections are the earlier run's
 
 
 def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results: list[PairResult], cfg: AlignConfig) -> _Solution:
@@ -361,7 +364,7 @@ def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results:
     cov = np.where(fixed[:, None, None], cov0, graph.covariances() + frame)
     biases = {n: p.bias for n, p in prev.items() if p.bias is not None}
     biases.update({data[si].name: (b, c + frame[3:, 3:]) for si, (b, c) in graph.biases().items()})
-    return _Solution(x, cov, biases, time.perf_counter() - t0, graph.updates, len(data) - len(prev))
+    return _Solution(x, cov, biases, time.perf_counter() - t0, graph.updates, len(data) - len(prev), frozenset(prev))
 
 
 def _frame_covariance(fixed: np.ndarray, cov0: np.ndarray, edges: list[Edge], active: list[Edge]) -> np.ndarray:
@@ -436,16 +439,20 @@ def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConf
 
 
 def _write_outputs(ws: Workspace, data: list[SessionData], sol: _Solution, offsets: np.ndarray, status: np.ndarray,
-                   n_cand: np.ndarray, n_acc: np.ndarray, results: list[PairResult], cfg: AlignConfig, ws_frame: LocalFrame) -> dict:
-    """Every session's refined outputs, pairs.json, the merged map's tiles and the QA pictures; returns the QA summary."""
+                   n_cand: np.ndarray, n_acc: np.ndarray, results: list[PairResult], cfg: AlignConfig, ws_frame: LocalFrame,
+                   finished: dict) -> dict:
+    """Every session's refined outputs, pairs.json, the merged map's tiles and the QA pictures; returns the QA summary.
+    ``finished``: the output records of the last finished run (its marker's), by which a frozen session's
+    trajectory, map and image table are kept instead of written again when they are still those files."""
     out = ws.align_dir
     qa: dict = {"format_version": ALIGN_FORMAT_VERSION, "frame": ws_frame.to_dict(), "sessions": {}, "pairs": {}}
     merged_pts, merged_sid, merged_idx = [], [], []
     for si, s in enumerate(data):
         nodes = slice(offsets[si], offsets[si + 1])
         bias = sol.biases.get(s.name)
+        keep_files = s.name in sol.frozen and _outputs_intact(ws, s.name, finished)
         pts, keep, qa["sessions"][s.name] = _write_session(ws, s, sol.x[nodes], sol.covariance[nodes], bias, status[nodes], n_cand[nodes],
-                                                           n_acc[nodes], cfg, ws_frame)
+                                                           n_acc[nodes], cfg, ws_frame, keep_files)
         merged_pts.append(pts[keep])
         merged_sid.append(np.full(int(keep.sum()), si, np.int16))
         merged_idx.append(np.flatnonzero(keep).astype(np.int64))
@@ -459,28 +466,41 @@ def _write_outputs(ws: Workspace, data: list[SessionData], sol: _Solution, offse
     return qa
 
 
+def _outputs_intact(ws: Workspace, name: str, finished: dict) -> bool:
+    """Whether session ``name``'s trajectory, map and image table under ``align/sessions`` are still the
+    files the last finished run recorded (size and SHA-256 in ``finished``), its map among them."""
+    prefix = f"sessions/{name}/"
+    recorded = {rel: rec for rel, rec in finished.items() if rel.startswith(prefix) and rel != prefix + "submaps.json"}
+    if not {prefix + "map/points.ply", prefix + "map/observations.npz"} <= set(recorded):
+        return False
+    return all(check_file(ws.align_dir / rel, rec) is None for rel, rec in recorded.items())
+
+
 def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarray, bias: Optional[tuple[np.ndarray, np.ndarray]],
                    st: np.ndarray, n_cand: np.ndarray, n_acc: np.ndarray, cfg: AlignConfig,
-                   ws_frame: LocalFrame) -> tuple[np.ndarray, np.ndarray, dict]:
+                   ws_frame: LocalFrame, keep_files: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """Session ``s`` under its submaps' corrections ``xs`` (covariances ``cov``, GPS bias ``bias``):
     trajectory, map, image table and submaps.json in ``align/sessions/<name>``. Returns its
     corrected points, those that go into the merged map (not unverified, unless merge_unverified)
-    and its QA summary."""
+    and its QA summary. ``keep_files``: the trajectory, map and image table on disk were made from
+    these same corrections (a frozen session, checked against the last run's records): only
+    submaps.json, whose statuses and pair counts the new pairs change, is written."""
     dirs = ws.aligned(s.name)
     poses = apply_correction_poses(s, xs)
-    Trajectory(s.stamps_ns, poses, "align", frame="enu").save(dirs.trajectory)
     pts = apply_correction_points(s, xs, s.points, s.point_arc_m)
-    smap = copy.copy(s.smap)
-    smap.points_world = pts
-    # keyframe poses follow their trajectory's correction
-    kf_arc = np.interp(smap.keyframe_stamps_ns.astype(np.float64), s.stamps_ns.astype(np.float64), s.arc_m)
-    R, c, t = correction_at(s, xs, kf_arc)
-    kf = s.ws_from_session @ smap.keyframe_world_from_cam
-    kf[:, :3, :3] = R @ kf[:, :3, :3]
-    kf[:, :3, 3] = np.einsum("mij,mj->mi", R, kf[:, :3, 3] - c) + c + t
-    smap.keyframe_world_from_cam = kf
-    smap.save(dirs.map, frame=ws_frame)
-    _write_refined_images(s, poses, ws.session(s.name).images_csv, dirs, ws_frame)
+    if not keep_files:
+        Trajectory(s.stamps_ns, poses, "align", frame="enu").save(dirs.trajectory)
+        smap = copy.copy(s.smap)
+        smap.points_world = pts
+        # keyframe poses follow their trajectory's correction
+        kf_arc = np.interp(smap.keyframe_stamps_ns.astype(np.float64), s.stamps_ns.astype(np.float64), s.arc_m)
+        R, c, t = correction_at(s, xs, kf_arc)
+        kf = s.ws_from_session @ smap.keyframe_world_from_cam
+        kf[:, :3, :3] = R @ kf[:, :3, :3]
+        kf[:, :3, 3] = np.einsum("mij,mj->mi", R, kf[:, :3, 3] - c) + c + t
+        smap.keyframe_world_from_cam = kf
+        smap.save(dirs.map, frame=ws_frame)
+        _write_refined_images(s, poses, ws.session(s.name).images_csv, dirs, ws_frame)
     move = np.linalg.norm(poses[:, :3, 3] - s.poses[:, :3, 3], axis=1)
     sigma = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2)[:, 3:], 0))  # (K, 3) position sigmas, ENU m
     submaps = []
@@ -506,6 +526,7 @@ def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarra
         "correction_median_m": float(np.median(move)), "correction_max_m": float(move.max()),
         "position_sigma_median_m": np.median(sigma, axis=0).tolist(),
         "merged": bool(keep.any()),
+        "outputs_kept": keep_files,
     }
     return pts, keep, summary
 
