@@ -12,6 +12,8 @@ true positions inside their 95% ellipses (3-D chi-square, 7.815), and the second
 (preintegration or gravity, the solve, marginals) against the build's trajectory stage of the same run. Also
 kiss-icp's error against truth as the odometry model states it (per-pose jitter plus a random walk, per axis;
 :func:`odometry_noise_fit`): FactorGraphConfig's odometry defaults are tiny-sunny's fit.
+The non-holonomic constraint's spread against truth (:func:`nhc_fit`): ``nhc_sigma_m_s``'s default is tiny-sunny's;
+``--set nhc_sigma_m_s=0`` gives the graph without it.
 
 The IMU is preintegrated by default with the town's own IMU noise (``world/config.yaml``, ``imu:``:
 per-sample sigmas at ``rate_hz``, turned into densities; its constant biases' sigmas as the bias
@@ -147,6 +149,30 @@ def odometry_noise_fit(odom: Trajectory, gt_stamps, gt_ws, steps_m=(0.5, 1, 2, 4
     return {"jitter": np.sqrt(fit[:, 0]).tolist(), "walk_per_sqrt_m": np.sqrt(fit[:, 1]).tolist()}
 
 
+def nhc_fit(odom: Trajectory, gt_stamps, gt_ws, cfg: FactorGraphConfig) -> dict:
+    """The non-holonomic constraint as FactorGraphConfig models it, against the truth: at the graph's keyframes, the true
+    base's displacement across the chord of the odometry's heading change (half of it from the earlier keyframe's x axis),
+    per second of the step (rms and robust spread, m/s); ``nhc_sigma_m_s``'s default is tiny-sunny's rms. Also the same
+    with the truth's own heading change (what the car does: lane wander) and with the odometry's displacement (what
+    kiss-icp's steps say, its sideways errors included)."""
+    from mapkit.mapping.factor_graph import select_keyframes
+
+    kf = select_keyframes(odom.stamps_ns, odom.world_from_base, cfg.keyframe_distance_m, cfg.keyframe_interval_s)
+    gt, ok = interpolate_poses(gt_stamps, gt_ws, odom.stamps_ns[kf])
+    est, st = odom.world_from_base[kf][ok], odom.stamps_ns[kf][ok]
+    out = {}
+    for label, heading, disp in (("model", est, gt), ("truth", gt, gt), ("odometry", est, est)):
+        r = []
+        for k in range(len(st) - 1):
+            h = invert_pose(heading[k]) @ heading[k + 1]
+            half = 0.5 * np.arctan2(h[1, 0], h[0, 0])
+            t = (invert_pose(disp[k]) @ disp[k + 1])[:3, 3]
+            r.append((np.cos(half) * t[1] - np.sin(half) * t[0]) / ((st[k + 1] - st[k]) * 1e-9))
+        r = np.asarray(r)
+        out[label] = {"rms_m_s": float(np.sqrt(np.mean(r**2))), "robust_m_s": float(1.4826 * np.median(np.abs(r - np.median(r))))}
+    return out
+
+
 def town_imu_config(town: Path) -> dict:
     """FactorGraphConfig fields for the town's simulated IMU: white noise as densities (sigma / sqrt(rate)), its
     constant per-session biases' sigmas as the bias priors. The biases are constant there, but the random walk stays
@@ -237,6 +263,7 @@ def main() -> None:
         t_graph = time.perf_counter() - t1
         traj_s = build[name]["stages"]["trajectory"]["seconds"]
         noise_fit = odometry_noise_fit(odom, gt_stamps, gt_ws)
+        nhc = nhc_fit(odom, gt_stamps, gt_ws, cfg)
         before = errors(georef.stamps_ns, georef.world_from_base, gt_stamps, gt_ws)
         after = errors(fused.stamps_ns, fused.enu_from_base, gt_stamps, gt_ws, fused.covariances)
         geo_sig = np.sqrt(np.diag(fused.georef_covariance)[3:])
@@ -252,7 +279,7 @@ def main() -> None:
             slip_rows.append(f"| {name} | {spans[-1]['from_s']:.1f}-{spans[-1]['to_s']:.1f} | {errs['kiss-icp']:.2f} | "
                              f"{errs['georef']:.2f} | {errs['fused']:.2f} | {spans[-1]['fused_max_h_err_offset_removed_m']:.2f} |")
         out[name] = {"georef": before, "fused": after, "seconds_read_sensors": t_read, "seconds_graph": t_graph,
-                     "seconds_trajectory_stage": traj_s, "odometry_noise_fit": noise_fit,
+                     "seconds_trajectory_stage": traj_s, "odometry_noise_fit": noise_fit, "nhc_fit": nhc,
                      "georef_sigma_enu_m": geo_sig.tolist(), "slips": spans, "stats": fused.stats,
                      "gps_mean_error": gps_mean_error(gps, gt_stamps, gt_ws, cfg)}
         after["height_drift_sigma_m"] = fused.stats["end_minus_start_sigma_enu_m"][2]
@@ -282,6 +309,14 @@ def main() -> None:
         j, w = r["odometry_noise_fit"]["jitter"], r["odometry_noise_fit"]["walk_per_sqrt_m"]
         f = lambda v: ", ".join(f"{x:.1e}" for x in v)  # noqa: E731
         print(f"| {name} | {f(j[:3])} | {f(j[3:])} | {f(w[:3])} | {f(w[3:])} |")
+    print()
+    print("| session | across the chord, m/s: model (odometry's heading, true displacement) rms / robust | the truth's own "
+          f"| the odometry's own | nhc_sigma_m_s = {cfg.nhc_sigma_m_s} |")
+    print("|---|---|---|---|---|")
+    for name, r in out.items():
+        n = r["nhc_fit"]
+        print(f"| {name} | {n['model']['rms_m_s']:.4f} / {n['model']['robust_m_s']:.4f} | {n['truth']['rms_m_s']:.4f} / "
+              f"{n['truth']['robust_m_s']:.4f} | {n['odometry']['rms_m_s']:.4f} / {n['odometry']['robust_m_s']:.4f} | |")
     print()
     print(f"| session | slip span s (1 s motion > {args.slip_m} m off) | kiss-icp displacement err m | rigid fit m | graph m "
           "| graph max h err inside, offset removed m |")

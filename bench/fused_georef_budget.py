@@ -1,6 +1,6 @@
 """The rigid GPS fit against the factor graph (``georef: {fuse: true}``) on one straight synthetic drive, as the map sees them.
 
-    python bench/fused_georef_budget.py [--out DIR]
+    python bench/fused_georef_budget.py [--out DIR] [--set KEY=VALUE ...]
 
 The drive is ``tests/test_build_synth.py``'s: 80 m of the tiny town, GPS with white noise and
 multipath but no bias. It is built twice into one workspace's copies, once with the default rigid
@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import yaml
 from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,6 +52,9 @@ def score(traj: Trajectory, stamps: np.ndarray, truth: np.ndarray) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="working folder (default: a temporary one)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="FactorGraphConfig overrides for the fused build (YAML values), e.g. nhc_sigma_m_s=0 for the graph without "
+                    "the non-holonomic constraint")
     args = ap.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="mapkit-fused-"))
     town = root / "town"
@@ -61,7 +65,8 @@ def main() -> None:
     fused_ws = root / "fused"
     if not fused_ws.exists():
         shutil.copytree(rigid_ws, fused_ws)  # the trajectory stage is kept, georef and map redone
-    (root / "fuse.yaml").write_text("georef:\n  fuse: true\n")
+    fg = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    (root / "fuse.yaml").write_text(yaml.safe_dump({"georef": {"fuse": True, **({"factor_graph": fg} if fg else {})}}))
     build([log], fused_ws, config=root / "fuse.yaml", progress=False)
     stamps, truth = session_truth(town, "drive")
     truth = ws_from_town(town, Workspace(rigid_ws).frame()) @ truth
