@@ -327,3 +327,31 @@ def test_align_needs_two_georeferenced_sessions(tmp_path, street_world):
     make_workspace(ws, street_world, {"only": gps_error(0, 0, 0)})
     with pytest.raises(InputError, match="at least two"):
         align_workspace(ws, progress=False)
+
+
+def test_a_fused_trajectory_holds_its_submaps_together_more_tightly(tmp_path, street_world, monkeypatch):
+    """A session whose trajectory is the factor graph's (georef/trajectory_fused) ties consecutive
+    submaps with ``odometry_sigma_fused_m``; a rigid GPS fit of kiss-icp's keeps ``odometry_sigma_m``."""
+    import shutil
+
+    import mapkit.multisession.align as align_mod
+
+    errors = {"s0": gps_error(1.0, -1.0, 0.2), "s1": gps_error(-1.0, 1.5, -0.3)}
+    ws = tmp_path / "ws"
+    make_workspace(ws, street_world, errors)
+    georef = ws / "sessions" / "s1" / "georef"
+    shutil.copytree(georef / "trajectory_enu", georef / "trajectory_fused")
+    sigmas: dict[int, set] = {}
+    real_edge = align_mod.Edge
+
+    def edge(kind, a, b, *args):
+        if kind == "odometry":
+            sigmas.setdefault(a, set()).add(args[-1])
+        return real_edge(kind, a, b, *args)
+
+    monkeypatch.setattr(align_mod, "Edge", edge)
+    cfg = {"graph": {"odometry_sigma_m": 0.1, "odometry_sigma_fused_m": 0.02}}
+    out = align_workspace(ws, overrides=cfg, progress=False)
+    n0 = len(json.loads((out / "sessions" / "s0" / "submaps.json").read_text())["submaps"])
+    assert n0 >= 3 and len(sigmas) >= 2 * (n0 - 1)
+    assert all(v == ({0.1} if a < n0 else {0.02}) for a, v in sigmas.items()), sigmas

@@ -338,7 +338,8 @@ def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results:
         for k in range(s.n_submaps - 1):
             a, b = offsets[si] + k, offsets[si] + k + 1
             sup = support_points(s.boundaries[k], s.directions[k], cfg.graph.lever_m)
-            graph.add(Edge("odometry", a, b, sup, np.eye(4), cfg.graph.odometry_sigma_m))
+            sigma = cfg.graph.odometry_sigma_fused_m if s.fused else cfg.graph.odometry_sigma_m
+            graph.add(Edge("odometry", a, b, sup, np.eye(4), sigma))
     session_index = {s.name: si for si, s in enumerate(data)}
     for pi, r in enumerate(results):
         if not r.accepted:

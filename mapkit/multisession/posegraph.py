@@ -36,7 +36,12 @@ class GraphConfig(MapkitConfig):
     gps_submap_sigma_m: float = Field(1.0, gt=0, description="How far one submap's correction may depart from its session's "
                                       "bias (m): what the session's rigid GPS fit leaves along the drive.")
     prior_sigma_deg: float = Field(3.0, gt=0, description="Prior on each submap's rotation correction (deg).")
-    odometry_sigma_m: float = Field(0.10, gt=0, description="How much two consecutive submaps of a session may disagree at their boundary (m).")
+    odometry_sigma_m: float = Field(0.10, gt=0, description="How much two consecutive submaps of a session may disagree at their boundary (m), "
+                                    "on a trajectory of kiss-icp fitted rigidly to GPS (the build's default).")
+    odometry_sigma_fused_m: float = Field(0.02, gt=0, description="... on the factor graph's trajectory (georef.fuse: IMU, GPS and "
+                                          "kiss-icp), which holds a drive together better: 0.02 chosen on the tiny town among 0.10, "
+                                          "0.05, 0.02, 0.01 (misalignment with the four-level ICP 0.085 -> 0.074 m). On the demo, "
+                                          "where it was scored, it did not carry over: 0.053 m at 0.10, 0.058 m at 0.02 (docs/accuracy.md).")
     icp_sigma_m: float = Field(0.10, gt=0, description="Uncertainty of an accepted ICP registration at its support points (m).")
     lever_m: float = Field(10.0, gt=0, description="Support points of an edge lie this far from its centre, so rotations are constrained too (m).")
     robust_scale: float = Field(3.0, gt=0, description="Cauchy kernel width, in sigmas (Mahalanobis), of every edge factor.")

@@ -44,6 +44,7 @@ class SessionData:
     submap_edges_m: np.ndarray = field(default=None)  # (S+1,) distance driven where submaps start and end
     smap: object = field(default=None, repr=False)  # the SemiDenseMap as built (session frame)
     ws_from_session: np.ndarray = field(default_factory=lambda: np.eye(4))
+    fused: bool = False  # the trajectory is the factor graph's (georef.fuse), not the rigid GPS fit of kiss-icp's
 
     @property
     def n_submaps(self) -> int:
@@ -85,7 +86,7 @@ def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m:
     point_arc = np.interp(src_stamp, traj.stamps_ns.astype(np.float64), arc)
     done = json.loads((dirs.map / DONE_MARKER).read_text())
     s = SessionData(dirs.name, traj.stamps_ns, poses, arc, pts, point_arc, dirs.map, done.get("config_hash", ""),
-                    smap=smap, ws_from_session=ws_from_session)
+                    smap=smap, ws_from_session=ws_from_session, fused=dirs.fused_trajectory.is_dir())
     cut_submaps(s, length_m)
     return s
 
