@@ -20,6 +20,17 @@ the defaults, or a build config's ``semidense`` section). Then:
   point), or neither; and scores every run against one fixed reference, the unfiltered run's
   keyframe depths that pass the multi-view test (``verified_depths``), with and without the
   occluded pairs (``mapkit.mapping.semidense.consistency`` with ``verified``);
+- breaks the figures down along the drive (``by_source_keyframe``, ``by_reference_keyframe``: ranges of
+  ``KEYFRAME_RANGE`` frames, each with its farther pairs told apart) and by the distance between the
+  keyframes up to the longest the clip holds (pairs more than ``HALF_CLIP_M`` apart exist only on the
+  whole clip, not on either half);
+- checks the given poses against the images (``pose_check``): SIFT matches (Lowe's ratio test) between
+  frames 1 and ``POSE_CHECK_GAP`` apart, and their distance to the epipolar lines the given poses
+  predict, per frame (KITTI's poses come from its GPS/INS; a rotation off by a few tenths of a degree
+  moves an epipolar line by pixels, and the depths of a keyframe searched along such lines disagree
+  with everyone's); ``--refine-rotations`` maps on the given positions with every frame's rotation
+  re-estimated from those matches (:func:`refine_rotations`), a diagnostic of what the map measures on
+  poses that agree with the images, not the issue's "given poses";
 - ``--ablation``: each filter alone, then combinations, one row each (same figures);
 - writes ``metrics.json``, ``semidense_kitti.png`` (top view of the filtered map, one keyframe's
   depths over its image) and ``semidense_rejected.png`` (top view: kept points, and the points of
@@ -37,7 +48,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Optional
 
 import cv2
 import numpy as np
@@ -54,9 +65,16 @@ DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 DEFAULT_OUT = Path("/tmp/mapkit-semidense-kitti")
 FRAME_PERIOD_NS = 100_000_000  # KITTI odometry: 10 Hz
 REJECTED_RADIUS_M = 0.1  # an unfiltered point with no filtered one this close was removed (2x the fusion radius)
-#: the mapper as it was before issue 26: every outlier filter off
+KEYFRAME_RANGE = 5  # frames per row of the breakdown along the drive
+#: distance bins (m) between the keyframes of a pair; 30 m is about the longest a half clip (26 frames at 1.2 m) holds
+DISTANCE_BINS_M = (0.0, 2.0, 5.0, 10.0, 20.0, 30.0, np.inf)
+HALF_CLIP_M = 30.0
+POSE_CHECK_GAP = 3  # the neighbour window's farthest frame (neighbour_window_frames)
+LOWE_RATIO = 0.7  # SIFT ratio test (Lowe, IJCV 2004: 0.8; 0.7 stricter, fewer wrong matches on repeated facades)
+POSE_HUBER_PX = 1.0  # robust scale (px) of the epipolar distances in refine_rotations
+#: the mapper as it was before issue 26: every outlier filter off, a depth accepted where 3 frames agree
 FILTERS_OFF = {"min_consistent_views": 0, "ambiguity_ratio": None, "max_sigma_inv_depth": None, "outlier_neighbours": 0,
-               "photometric_min_views": 0, "free_space_window_keyframes": 0}
+               "photometric_min_views": 0, "free_space_window_keyframes": 0, "min_agreeing_frames": 3}
 #: the filtered run without --config: the multi-view test at its defaults (chosen on frames 0-25 of the clip) and the
 #: free-space test against 25 keyframes either side (the recommended filters, configs/build/clean-maps.yaml)
 FILTERS_ON = {"min_consistent_views": 1, "free_space_window_keyframes": 25}
@@ -68,10 +86,12 @@ FILTERS_ALONE = {
     "photometric": {"photometric_min_views": 1},
     "free space": {"free_space_window_keyframes": 25},
     "statistical": {"outlier_neighbours": 20},
+    "4 agreeing frames": {"min_agreeing_frames": 4},
 }
 FILTERS_ALONE["multi-view + free space"] = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["free space"]}
 FILTERS_ALONE["multi-view + photometric"] = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["photometric"]}
 FILTERS_ALONE["the three fusion tests"] = {**FILTERS_ALONE["multi-view + photometric"], **FILTERS_ALONE["free space"]}
+FILTERS_ALONE["multi-view + free space, 4 agreeing frames"] = {**FILTERS_ALONE["multi-view + free space"], **FILTERS_ALONE["4 agreeing frames"]}
 FILTERS_ALONE["all six"] = {k: v for name, d in list(FILTERS_ALONE.items())[:6] for k, v in d.items()}
 
 
@@ -93,6 +113,94 @@ def stream_frames(poses: np.ndarray, images: list[Path], frames: range) -> Itera
         yield i, i * FRAME_PERIOD_NS, cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), poses[i]
 
 
+def feature_matches(images: list[Path], frames: range, max_gap: int) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """(i, j, pixels in i (n, 2), pixels in j (n, 2)) of SIFT matches passing Lowe's ratio test, for every
+    pair of ``frames`` at most ``max_gap`` apart."""
+    sift = cv2.SIFT_create(nfeatures=3000)
+    feats = {i: sift.detectAndCompute(cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), None) for i in frames}
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    out = []
+    for i in frames:
+        for j in range(i + 1, min(i + max_gap, frames.stop - 1) + 1):
+            (ki, di), (kj, dj) = feats[i], feats[j]
+            if di is None or dj is None or len(di) < 2 or len(dj) < 2:
+                continue
+            good = [a for a, b in matcher.knnMatch(di, dj, k=2) if a.distance < LOWE_RATIO * b.distance]
+            out.append((i, j, np.array([ki[a.queryIdx].pt for a in good]).reshape(-1, 2),
+                        np.array([kj[a.trainIdx].pt for a in good]).reshape(-1, 2)))
+    return out
+
+
+def _skew(t: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+
+
+def epipolar_distances_px(K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: np.ndarray, xj: np.ndarray) -> np.ndarray:
+    """(n,) distances (px) of the pixels ``xj`` of frame j from the epipolar lines of their matches ``xi`` in
+    frame i under ``poses`` (world_from_cam)."""
+    Ki = np.linalg.inv(K)
+    rel = np.linalg.inv(poses[j]) @ poses[i]  # cam_j from cam_i
+    F = Ki.T @ _skew(rel[:3, 3]) @ rel[:3, :3] @ Ki
+    lines = np.column_stack([xi, np.ones(len(xi))]) @ F.T
+    return np.abs((np.column_stack([xj, np.ones(len(xj))]) * lines).sum(1)) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
+
+
+def refine_rotations(K: np.ndarray, poses: np.ndarray, matches: list[tuple[int, int, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """``poses`` with the rotations of the matched frames re-estimated, positions held: a small rotation per frame
+    that minimises the matches' epipolar distances (Huber, ``POSE_HUBER_PX``), with a weak prior at the given
+    rotation (one pixel per 1/f rad of correction): on a straight drive a common roll about the line of the
+    camera centres leaves every epipolar line in place. A diagnostic: a bundle adjustment of rotations only."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    ids = sorted({f for i, j, _, _ in matches for f in (i, j)})
+    col = {f: 3 * k for k, f in enumerate(ids)}
+    Ki = np.linalg.inv(K)
+    norm = [(i, j, np.column_stack([a, np.ones(len(a))]) @ Ki.T, np.column_stack([b, np.ones(len(b))]) @ Ki.T) for i, j, a, b in matches]
+    R0, C = poses[:, :3, :3], poses[:, :3, 3]
+
+    def rotations(x: np.ndarray) -> dict[int, np.ndarray]:
+        return {f: R0[f] @ Rotation.from_rotvec(x[col[f]: col[f] + 3]).as_matrix() for f in ids}
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        R = rotations(x)
+        out = []
+        for i, j, a, b in norm:
+            E = _skew(R[j].T @ (C[i] - C[j])) @ (R[j].T @ R[i])
+            lines = a @ E.T
+            out.append(K[0, 0] * (b * lines).sum(1) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12))
+        out.append(K[0, 0] * x)  # a weak prior at the given rotations (1 px per 1/f rad): holds the roll about a straight drive
+        return np.concatenate(out)
+
+    sol = least_squares(residuals, np.zeros(3 * len(ids)), loss="huber", f_scale=POSE_HUBER_PX)
+    out = poses.copy()
+    for f, R in rotations(sol.x).items():
+        out[f, :3, :3] = R
+    return out
+
+
+def pose_check(K: np.ndarray, given: np.ndarray, refined: Optional[np.ndarray], matches) -> list[dict]:
+    """Per frame: median epipolar distance (px) of its matches with the next frame and with the frame
+    ``POSE_CHECK_GAP`` on, under the given poses (and the refined ones), and the rotation between the two."""
+    from mapkit.core.geometry import rotation_angle_rad
+
+    out = []
+    for i, j, a, b in matches:
+        if j - i not in (1, POSE_CHECK_GAP):
+            continue
+        row = next((r for r in out if r["frame"] == i), None)
+        if row is None:
+            row = {"frame": i}
+            if refined is not None:
+                row["rotation_change_deg"] = float(np.degrees(rotation_angle_rad(given[i, :3, :3].T @ refined[i, :3, :3])))
+            out.append(row)
+        row[f"given_px_gap{j - i}"] = float(np.median(epipolar_distances_px(K, given, i, j, a, b))) if len(a) else None
+        if refined is not None:
+            row[f"refined_px_gap{j - i}"] = float(np.median(epipolar_distances_px(K, refined, i, j, a, b))) if len(a) else None
+        row[f"matches_gap{j - i}"] = int(len(a))
+    return out
+
+
 class Run:
     """One mapping of the clip: the map, each keyframe's raw and filtered depths, the time it took."""
 
@@ -109,12 +217,14 @@ class Run:
         self.seconds = time.perf_counter() - t0
         self.consistency: dict = {}
 
-    def score(self, verified: dict[int, tuple[np.ndarray, KeyframePoints]]) -> None:
+    def score(self, verified: dict[int, tuple[np.ndarray, KeyframePoints]], keyframe_bins: list[float]) -> None:
         """The consistency figures against this run's own keyframe depths (``raw``: the issue's figure, with
-        the farther pairs told apart against ``verified``) and against those that entered fusion (``filtered``)."""
+        the farther pairs told apart against ``verified``, and broken down along the drive by ``keyframe_bins``)
+        and against those that entered fusion (``filtered``)."""
         as_list = lambda d: [(fid, T, pts) for fid, (T, pts) in d.items()]  # noqa: E731
-        self.consistency = {"raw": consistency(self.map, as_list(self.raw), verified=as_list(verified)),
-                            "filtered": consistency(self.map, as_list(self.filtered))}
+        self.consistency = {"raw": consistency(self.map, as_list(self.raw), verified=as_list(verified), baseline_bins_m=DISTANCE_BINS_M,
+                                               keyframe_bins=keyframe_bins),
+                            "filtered": consistency(self.map, as_list(self.filtered), baseline_bins_m=DISTANCE_BINS_M)}
 
     def metrics(self) -> dict:
         return {"seconds": self.seconds, "keyframes_per_s": len(self.raw) / self.seconds,
@@ -266,6 +376,9 @@ def main(argv: list[str] | None = None) -> int:
                          "e.g. configs/build/clean-maps.yaml) (default: FILTERS_ON); "
                          "the unfiltered run sets FILTERS_OFF over it")
     ap.add_argument("--ablation", action="store_true", help="also map with each outlier filter alone, and with combinations of them")
+    ap.add_argument("--refine-rotations", action="store_true",
+                    help="map on the given positions with each frame's rotation re-estimated from SIFT matches (a diagnostic: "
+                         "what the map measures on poses that agree with the images)")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     if not (args.clip / "poses.txt").is_file():
@@ -278,6 +391,13 @@ def main(argv: list[str] | None = None) -> int:
     if len(frames) < 2:
         print(f"error: frames {args.first_frame}.. of a {len(images)}-frame clip: nothing to map", file=sys.stderr)
         return 2
+    t0 = time.perf_counter()
+    matches = feature_matches(images, frames, POSE_CHECK_GAP)
+    refined = refine_rotations(K, poses, matches) if args.refine_rotations else None
+    checked = pose_check(K, poses, refined, matches)
+    pose_seconds = time.perf_counter() - t0
+    if refined is not None:
+        poses = refined
     runs: dict[str, Run] = {}
     for name, c in [("unfiltered", off), ("filtered", cfg)] + (
             [(k, off.model_copy(update=v)) for k, v in FILTERS_ALONE.items()] if args.ablation else []):
@@ -285,8 +405,9 @@ def main(argv: list[str] | None = None) -> int:
     base, new = runs["unfiltered"], runs["filtered"]
     w, h = new.map.image_size_wh
     verified = verified_depths(base.raw, K, cfg, (h, w))
+    keyframe_bins = list(range(frames.start, frames.stop, KEYFRAME_RANGE)) + [float("inf")]
     for r in runs.values():
-        r.score(verified)
+        r.score(verified, keyframe_bins)
     new.map.save(args.out)
     gone = rejected_mask(base.map, new.map)
 
@@ -295,6 +416,8 @@ def main(argv: list[str] | None = None) -> int:
         "filters_off": FILTERS_OFF, "config": cfg.model_dump(mode="json"),
         "runs": {name: r.metrics() for name, r in runs.items()},
         "rejected_points": int(gone.sum()), "speed_ratio_filtered_over_unfiltered": new.seconds / base.seconds,
+        "poses": {"refined_rotations": bool(args.refine_rotations), "seconds": pose_seconds, "lowe_ratio": LOWE_RATIO,
+                  "huber_px": POSE_HUBER_PX, "epipolar_check": checked},
     }
     write_json(args.out / "metrics.json", metrics)
     kf = sorted(new.raw)
@@ -347,6 +470,42 @@ def main(argv: list[str] | None = None) -> int:
         print("|---|" + "---|" * len(table))
         for span in spans:
             print(f"| {span} | " + " | ".join(t.get(span, "") for t in table.values()) + " |")
+    print("\nAlong the drive, map points by their keyframe (source) and pairs by the keyframe whose own depth is compared")
+    print("(reference): median / p90 / map farther > 5 % (pairs); then the farther pairs' shares of the range's pairs:")
+    print("reference unverified / occluded / unexplained\n")
+    print("| frames | " + " | ".join(f"{n} by {side}" for n in ("unfiltered", "filtered") for side in ("source", "reference")) + " |")
+    print("|---|" + "---|" * 4)
+    cells = {(n, side): runs[n].consistency["raw"][f"by_{side}_keyframe"] for n in ("unfiltered", "filtered") for side in ("source", "reference")}
+    for k, lo in enumerate(keyframe_bins[:-1]):
+        row = []
+        for b in cells.values():
+            b = b[k]
+            if not b["pairs"]:
+                row.append("-")
+                continue
+            fc = b["farther_causes"]
+            row.append(f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} % ({b['pairs']}); "
+                       f"{100 * fc['reference_unverified']:.1f} / {100 * fc['occluded']:.1f} / {100 * fc['unexplained']:.1f}")
+        hi = min(int(lo) + KEYFRAME_RANGE, frames.stop) - 1
+        print(f"| {int(lo)}-{hi} | " + " | ".join(row) + " |")
+    far_new = new.consistency["raw"]["by_keyframe_distance_m"]
+    beyond = [b for b in far_new if b["from_m"] >= HALF_CLIP_M]
+    if beyond and beyond[0]["pairs"]:
+        share = beyond[0]["pairs"] / new.consistency["raw"]["pairs"]
+        print(f"\nfiltered run: {100 * share:.1f} % of the pairs are keyframes >= {HALF_CLIP_M:.0f} m apart (none on a half clip), "
+              f"{100 * beyond[0]['frac_map_farther_5pct']:.0f} % of them farther")
+    print(f"\nGiven poses against the images ({'rotations re-estimated: mapped on the refined poses' if refined is not None else 'mapped on the given poses'}; "
+          f"{pose_seconds:.0f} s): median distance (px) of SIFT matches from the epipolar lines, frames 1 and {POSE_CHECK_GAP} apart\n")
+    cols = ["given_px_gap1", f"given_px_gap{POSE_CHECK_GAP}"] + (["refined_px_gap1", f"refined_px_gap{POSE_CHECK_GAP}", "rotation_change_deg"] if refined is not None else [])
+    print("| frames | " + " | ".join(cols) + " |")
+    print("|---|" + "---|" * len(cols))
+    for lo in keyframe_bins[:-1]:
+        rows = [r for r in checked if lo <= r["frame"] < lo + KEYFRAME_RANGE]
+        vals = []
+        for c in cols:
+            v = [r[c] for r in rows if r.get(c) is not None]
+            vals.append(f"{np.median(v):.2f}" if v else "-")
+        print(f"| {int(lo)}-{min(int(lo) + KEYFRAME_RANGE, frames.stop) - 1} | " + " | ".join(vals) + " |")
     print(f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, semidense_kitti.png, semidense_rejected.png")
     return 0
 

@@ -487,6 +487,26 @@ def test_multi_view_filter_in_the_mapper_keeps_the_room_accurate(room, room_map)
     assert (d > 0.1).sum() < 0.3 * (d_off > 0.1).sum()
 
 
+def test_four_agreeing_frames_keep_a_subset_with_fewer_stray_points(room, room_map):
+    """min_agreeing_frames = 4 (configs/build/clean-maps.yaml): every accepted depth has at least 3
+    agreeing neighbours, each keyframe's depths are a subset of those at 3 (the same estimates, fewer
+    accepted), and the room's stray points (> 0.3 m off the walls) drop by more than half."""
+    poses, images = room
+    sd3, raw3 = room_map
+    raw4 = {}
+    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    sd4 = build_semidense_map(iter(frames), K_SYN, ROOM_CFG.model_copy(update={"min_agreeing_frames": 4}), progress=False,
+                              on_keyframe=lambda f, T, p: raw4.__setitem__(f, p))
+    assert sorted(raw4) == sorted(raw3)
+    for f, p4 in raw4.items():
+        assert (p4.agreed.sum(axis=1) >= 3).all()
+        at3 = {tuple(uv): rho for uv, rho in zip(raw3[f].pixels_uv.tolist(), raw3[f].inv_depth)}
+        assert all(at3.get(tuple(uv)) == rho for uv, rho in zip(p4.pixels_uv.tolist(), p4.inv_depth))
+    assert sum(len(p) for p in raw4.values()) < sum(len(p) for p in raw3.values())
+    stray3, stray4 = ((distance_to_box(sd.points_world) > 0.3).sum() for sd in (sd3, sd4))
+    assert stray3 > 20 and stray4 < 0.5 * stray3
+
+
 def test_ratio_test_rejects_matches_on_repeated_texture(room):
     """Stripes with a period of 8 px: with the margin test off, the full-range search matches them at
     random periods; the second-best ratio rejects nearly all of them, and keeps unique texture."""
@@ -684,12 +704,10 @@ def test_photometric_and_free_space_filters_in_the_mapper(room, room_map):
         assert (d > 0.3).sum() <= (d_off > 0.3).sum() and np.median(d) < 0.03, name
 
 
-def test_consistency_tells_occluded_pairs_from_unverified_references():
-    """Map points on a wall 10 m ahead, seen by keyframes C and D (their own depths agree) and B: B's
-    depth there is a pole at 5 m for half the points (verified: B sees the pole, so it cannot see the
-    wall) and a stray 5 m depth its multi-view test rejected for the other half. Every B pair lies
-    100 % farther; half are occluded, half have an unverified reference, none is unexplained; against
-    the verified depths with the occluded pairs left out, the map agrees exactly."""
+def _occlusion_scene():
+    """Map points on a wall 10 m ahead, from keyframe 0; keyframes 1 and 2 see it (their own depths agree);
+    keyframe 3's depth there is 5 m: verified (a pole hides the wall) for half the points, a stray depth its
+    multi-view test rejected for the other half. Returns (map, poses, own depths, verified depths, half)."""
     rng = np.random.default_rng(4)
     uv = np.unique(rng.integers([20, 20], [W_IMG - 20, H_IMG - 20], size=(400, 2)), axis=0)
     Kinv = np.linalg.inv(K_SYN)
@@ -710,6 +728,15 @@ def test_consistency_tells_occluded_pairs_from_unverified_references():
     sd = SemiDenseMap(P, np.zeros(len(P), np.uint8), np.full(len(P), 0.01, np.float32), np.zeros(len(P), np.int64),
                       np.arange(len(P) + 1, dtype=np.int64), np.zeros(len(P), np.int64), ids, ids, np.array([poses[i] for i in ids]),
                       K_SYN, (W_IMG, H_IMG))
+    return sd, poses, kf, verified, half
+
+
+def test_consistency_tells_occluded_pairs_from_unverified_references():
+    """The scene of ``_occlusion_scene``: every pair with keyframe 3 lies 100 % farther; half are occluded,
+    half have an unverified reference, none is unexplained; against the verified depths with the occluded
+    pairs left out, the map agrees exactly."""
+    sd, poses, kf, verified, half = _occlusion_scene()
+    P = sd.points_world
     c = consistency(sd, [(f, poses[f], p) for f, p in kf.items()], verified=[(f, poses[f], p) for f, p in verified.items()])
     assert c["pairs"] == 3 * len(P)
     assert c["frac_map_farther_5pct"] == pytest.approx(1 / 3)
@@ -718,6 +745,54 @@ def test_consistency_tells_occluded_pairs_from_unverified_references():
     assert fc["reference_unverified"] == pytest.approx((~half).sum() / c["pairs"])
     assert fc["unexplained"] == 0.0
     assert c["verified_visible"]["pairs"] == 2 * len(P) and c["verified_visible"]["p90_rel"] < 1e-9
+
+
+def test_consistency_breaks_down_along_the_drive():
+    """The same scene by keyframe range: every point comes from keyframe 0 (source range [0, 3) holds all
+    pairs); by reference, keyframes 1-2 agree exactly and keyframe 3 holds every farther pair, half of its
+    pairs occluded and half unverified."""
+    sd, poses, kf, verified, half = _occlusion_scene()
+    n = len(sd)
+    c = consistency(sd, [(f, poses[f], p) for f, p in kf.items()], verified=[(f, poses[f], p) for f, p in verified.items()],
+                    keyframe_bins=[0, 3, np.inf])
+    src, ref = c["by_source_keyframe"], c["by_reference_keyframe"]
+    assert [b["pairs"] for b in src] == [3 * n, 0]
+    assert [b["pairs"] for b in ref] == [2 * n, n] and ref[1]["from_frame"] == 3 and ref[1]["to_frame"] is None
+    assert ref[0]["frac_map_farther_5pct"] == 0.0 and ref[0]["p90_rel"] < 1e-9
+    assert ref[1]["frac_map_farther_5pct"] == 1.0
+    fc = ref[1]["farther_causes"]
+    assert fc["occluded"] == pytest.approx(half.mean()) and fc["reference_unverified"] == pytest.approx(1 - half.mean())
+    assert fc["unexplained"] == 0.0 and ref[0]["farther_causes"]["occluded"] == 0.0
+
+
+def test_rotation_refinement_recovers_perturbed_rotations(rng):
+    """bench/semidense_kitti_clip.py's diagnostic: a straight drive of 8 frames 1.2 m apart past random points;
+    frames 1-6 get rotations off by 0.3-0.8 deg (as KITTI's first frames are), the matches are the true
+    projections. The epipolar distances go from pixels to nearly zero, and every frame's rotation relative
+    to frame 0 comes back within 0.02 deg."""
+    from bench.semidense_kitti_clip import epipolar_distances_px, refine_rotations
+    from mapkit.core.geometry import rotation_angle_rad
+    from scipy.spatial.transform import Rotation
+
+    true = np.array([make_pose(np.eye(3), [0.0, 0.0, 1.2 * i]) for i in range(8)])
+    X = rng.uniform([-8, -3, 12], [8, 2, 40], size=(300, 3))
+    matches = []
+    for i in range(8):
+        for j in range(i + 1, min(i + 3, 7) + 1):
+            xi, xj = (transform_points(invert_pose(true[f]), X) @ K_SYN.T for f in (i, j))
+            matches.append((i, j, xi[:, :2] / xi[:, 2:], xj[:, :2] / xj[:, 2:]))
+    given = true.copy()
+    for f in range(1, 7):
+        axis = rng.normal(size=3)
+        given[f, :3, :3] = true[f, :3, :3] @ Rotation.from_rotvec(np.radians(rng.uniform(0.3, 0.8)) * axis / np.linalg.norm(axis)).as_matrix()
+    before = np.median(np.concatenate([epipolar_distances_px(K_SYN, given, i, j, a, b) for i, j, a, b in matches]))
+    refined = refine_rotations(K_SYN, given, matches)
+    after = np.median(np.concatenate([epipolar_distances_px(K_SYN, refined, i, j, a, b) for i, j, a, b in matches]))
+    assert before > 0.5 and after < 0.02
+    assert np.allclose(refined[:, :3, 3], given[:, :3, 3])  # positions held
+    for f in range(1, 8):
+        err = rotation_angle_rad((refined[0, :3, :3].T @ refined[f, :3, :3]).T @ (true[0, :3, :3].T @ true[f, :3, :3]))
+        assert np.degrees(err) < 0.02, f
 
 
 def test_sparse_depth_answers_as_the_dense_image(rng):

@@ -121,7 +121,7 @@ class SemiDenseConfig(MapkitConfig):
     image_noise_sigma: float = Field(4.0, gt=0, description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: cameraPixelNoise2 = 4^2).")
     min_sigma_px: float = Field(0.25, gt=0, description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block matching (parabola bias, 'pixel locking').")
     # --- acceptance ---
-    min_agreeing_frames: int = Field(3, ge=2, description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'.")
+    min_agreeing_frames: int = Field(3, ge=2, description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation (issue 26): it cleans each keyframe's own depths, but with the fusion filters on the map itself hardly changes.")
     agree_sigmas: float = Field(3.0, gt=0, description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% of a Gaussian).")
     max_rel_sigma: float = Field(0.02, gt=0, description="Largest accepted sigma(depth)/depth (= sigma(rho)/rho) of a fused point.")
     max_sigma_depth_m: float = Field(0.3, gt=0, description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a median of 0.15 m.")
@@ -755,6 +755,7 @@ def consistency(
     depth_bins_m: Sequence[float] = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf),
     verified: Optional[Iterable[tuple[int, np.ndarray, KeyframePoints]]] = None,
     min_confirming: int = 2,
+    keyframe_bins: Optional[Sequence[float]] = None,
 ) -> dict:
     """How well map points agree with the depths other keyframes estimated on their own.
 
@@ -778,6 +779,12 @@ def consistency(
     keyframe could not see the point); ``unexplained``, the rest. ``verified_reference`` holds the
     figures against the verified depths alone, and ``verified_visible`` the same without the
     occluded pairs.
+
+    ``keyframe_bins``: edges ``[from, to)`` of frame ids; then ``by_source_keyframe`` (the map point's
+    keyframe in the range) and ``by_reference_keyframe`` (the keyframe whose own depth is compared in
+    the range) break the figures down along the drive, each bin with its farther pairs told apart
+    (``farther_causes``, shares of the bin's pairs) when ``verified`` is given: where a drive's figure
+    comes from, and whether the map or the reference depths are to blame there.
     """
     w, h = sd_map.image_size_wh
     p = _pairs(sd_map, keyframes, max_pixel_distance)
@@ -791,6 +798,10 @@ def consistency(
         by_keyframe_distance_m=_binned(r, p.baseline_m, baseline_bins_m),
         by_depth_m=_binned(r, p.own_depth, depth_bins_m),
     )
+    src_fid = sd_map.source_keyframe[p.point]
+    if keyframe_bins is not None:
+        out["by_source_keyframe"] = _binned(r, src_fid, keyframe_bins, unit="frame")
+        out["by_reference_keyframe"] = _binned(r, p.frame_id, keyframe_bins, unit="frame")
     if verified is None:
         return out
     ver_kf = list(verified)
@@ -806,6 +817,13 @@ def consistency(
     occ = occluded(p, ref_ok)
     out["farther_causes"] = {"reference_unverified": float(np.mean(farther & ~ref_ok)), "occluded": float(np.mean(occ)),
                              "unexplained": float(np.mean(farther & ref_ok & ~occ)), "min_confirming": min_confirming}
+    if keyframe_bins is not None:
+        for key, fid in (("by_source_keyframe", src_fid), ("by_reference_keyframe", p.frame_id)):
+            for b in out[key]:
+                sel = (fid >= b["from_frame"]) & (fid < (np.inf if b["to_frame"] is None else b["to_frame"]))
+                n = max(int(sel.sum()), 1)
+                b["farther_causes"] = {"reference_unverified": float((sel & farther & ~ref_ok).sum() / n),
+                                       "occluded": float((sel & occ).sum() / n), "unexplained": float((sel & farther & ref_ok & ~occ).sum() / n)}
     occ_v = occluded(v, np.ones(len(v.signed_rel), bool))
     out["verified_reference"] = _figures(v.signed_rel)
     out["verified_visible"] = {**_figures(v.signed_rel[~occ_v]),
@@ -813,15 +831,16 @@ def consistency(
     return out
 
 
-def _binned(signed_rel: np.ndarray, key: np.ndarray, bins: Sequence[float]) -> list[dict]:
-    """Disagreement figures of the pairs whose ``key`` lies in each ``[from, to)`` of ``bins``."""
+def _binned(signed_rel: np.ndarray, key: np.ndarray, bins: Sequence[float], unit: str = "m") -> list[dict]:
+    """Disagreement figures of the pairs whose ``key`` lies in each ``[from, to)`` of ``bins`` (keys
+    ``from_<unit>``, ``to_<unit>``)."""
     out = []
     for lo, hi in zip(bins[:-1], bins[1:]):
         sel = (key >= lo) & (key < hi)
         a, r = np.abs(signed_rel[sel]), signed_rel[sel]
         some = bool(sel.any())
         out.append({
-            "from_m": float(lo), "to_m": float(hi) if np.isfinite(hi) else None, "pairs": int(sel.sum()),
+            f"from_{unit}": float(lo), f"to_{unit}": float(hi) if np.isfinite(hi) else None, "pairs": int(sel.sum()),
             "median_rel": float(np.median(a)) if some else None, "p90_rel": float(np.percentile(a, 90)) if some else None,
             "frac_below_5pct": float(np.mean(a < 0.05)) if some else None,
             "frac_map_farther_5pct": float(np.mean(r > 0.05)) if some else None,
