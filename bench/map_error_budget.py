@@ -4,8 +4,9 @@ Rebuilds one demo session's semi-dense map (stage 3 of ``mapkit build``, the sam
 in a scratch workspace, once per pose variant, and measures every map against the town's true
 mesh (with that session's parked cars), as ``mapkit eval build`` does:
 
-* ``estimated``: the session's georeferenced trajectory after a yaw-only rigid fit to truth (the
-  GPS bias removed; what ``eval build`` calls "offset removed");
+* ``estimated``: the session's georeferenced trajectory (the rigid GPS fit, ``georef/trajectory_enu``,
+  also in a workspace built with ``georef.fuse``) after a yaw-only rigid fit to truth (the GPS bias
+  removed; what ``eval build`` calls "offset removed");
 * ``truth``: the true poses: the mapper's own accuracy;
 * ``true_rotation``: estimated positions, true orientations;
 * ``true_position``: true positions, estimated orientations;
@@ -16,8 +17,11 @@ mesh (with that session's parked cars), as ``mapkit eval build`` does:
 * ``aligned``: not rebuilt: the session's map as ``mapkit align`` left it, after the same yaw-only
   fit of its refined trajectory (only when the workspace was aligned).
 
-The baseline of the comparison is the ``estimated`` row; the ratio printed is each variant's median
-distance over it. Run on a built demo workspace (a few minutes per variant on one core)::
+Each rebuilt variant's poses are written into the trajectory the mapper reads
+(``georef/trajectory_fused`` in a workspace built with ``georef.fuse``, else ``georef/trajectory_enu``),
+and the bench checks that the mapper read them. The baseline of the comparison is the ``estimated``
+row; the ratio printed is each variant's median distance over it. Run on a built demo workspace (a
+few minutes per variant on one core)::
 
     python3 bench/map_error_budget.py --workspace runs/main/workspace --town runs/main/town --session test-clear
 
@@ -63,18 +67,47 @@ def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return q
 
 
-def _fused(log, ws: Path, sdir: Path, name: str, cfg, scratch: Path):
+# the config sections each reused stage hashes, and the stages whose digests its inputs record (as
+# SessionBuilder.trajectory / .georef compute them)
+_REUSED_STAGES = {"trajectory": (("topics", "trajectory"), ()), "georef": (("topics", "trajectory", "georef"), ("trajectory",))}
+
+
+def _copy_stages(builder, sdir: Path, stages: tuple[str, ...]) -> None:
+    """Copy the workspace session's finished ``stages`` into the builder's (scratch) session."""
+    for stage in stages:
+        shutil.copytree(sdir / stage, getattr(builder.dirs, stage))
+    shutil.copy(sdir.parents[1] / "origin.json", builder.workspace / "origin.json")
+
+
+def _mark_finished(builder, stages: tuple[str, ...]) -> None:
+    """Mark the scratch session's ``stages`` finished as the builder checks them now: the config hash and
+    inputs this checkout's code computes, and the outputs as they are (the variant's poses included).
+
+    The workspace's own markers are not enough: a config section that gained a field since the build
+    hashes differently (the factor graph's did, and with ``georef.fuse`` the georef stage hashes it),
+    and the builder would run the stage again, writing the estimated trajectory over the variant's."""
+    from mapkit.core.runio import mark_done, read_marker
+    from mapkit.mapping.build import _stage_hash
+
+    for stage in stages:  # upstream first: a stage's inputs hold the digest of its upstream's marker
+        sections, upstream = _REUSED_STAGES[stage]
+        out = getattr(builder.dirs, stage)
+        info = {k: v for k, v in (read_marker(out) or {}).items() if k not in ("config_hash", "inputs", "outputs")}
+        mark_done(out, _stage_hash(builder.cfg, *sections), inputs=builder._inputs(*(getattr(builder.dirs, u) for u in upstream)),
+                  outputs=True, **info)
+
+
+def _fused(log, sdir: Path, name: str, cfg, scratch: Path):
     """The session's trajectory fused by the factor graph: its georef stage run again with
-    ``georef.fuse`` in a scratch copy (the trajectory stage reused)."""
+    ``georef.fuse`` (this checkout's factor graph) in a scratch copy (the trajectory stage reused)."""
     from mapkit.mapping.build import SessionBuilder
     from mapkit.mapping.trajectory import Trajectory
 
-    (scratch / "sessions" / name).mkdir(parents=True)
-    shutil.copy(ws / "origin.json", scratch / "origin.json")
-    shutil.copytree(sdir / "trajectory", scratch / "sessions" / name / "trajectory")
     fcfg = cfg.model_copy(update={"georef": cfg.georef.model_copy(update={"fuse": True})})
     builder = SessionBuilder(log, scratch, fcfg, progress=False, name=name)
     try:
+        _copy_stages(builder, sdir, ("trajectory",))
+        _mark_finished(builder, ("trajectory",))
         builder.georef()
         return Trajectory.load(builder.dirs.fused_trajectory)
     finally:
@@ -108,7 +141,6 @@ def main(argv: list[str] | None = None) -> int:
     from mapkit.mapping.gps_align import fit_transform
     from mapkit.evaluation.metrics import map_accuracy
     from mapkit.core.config import load_config
-    from mapkit.core.runio import mark_done, read_marker
     from mapkit.mapping.semidense import SemiDenseMap
     from mapkit.synth import gt_poses, session_log
     from mapkit.mapping.trajectory import Trajectory
@@ -152,29 +184,28 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             stamps, truth_v = est.stamps_ns[ok], gt_i
             if v == "fused":
-                fused = _fused(log, ws, sdir, name, cfg, Path(tmp) / "fuse")
+                fused = _fused(log, sdir, name, cfg, Path(tmp) / "fuse")
                 truth_v, ok_f = interpolate_poses(gt_stamps, gt, fused.stamps_ns)
                 stamps = fused.stamps_ns[ok_f]
                 poses = fit_transform(fused.world_from_base[ok_f, :3, 3], truth_v[:, :3, 3], mode="yaw") @ fused.world_from_base[ok_f]
             else:
                 poses = _variant_poses(v, est_fit, gt_i)
-            scratch = Path(tmp) / v
-            (scratch / "sessions" / name).mkdir(parents=True)
-            shutil.copy(ws / "origin.json", scratch / "origin.json")
-            for stage in ("trajectory", "georef"):  # finished stages: the builder goes straight to the map
-                shutil.copytree(sdir / stage, scratch / "sessions" / name / stage)
-            georef = scratch / "sessions" / name / "georef"
-            Trajectory(stamps, poses, est.source, frame=est.frame, body_frame=est.body_frame).save(georef / "trajectory_enu")
-            # the georef stage verifies its outputs: mark it finished with the variant's poses, or the
-            # builder would re-run it from the estimated trajectory and every variant would map the same poses
-            record = read_marker(georef)
-            mark_done(georef, record.pop("config_hash"), inputs=record.pop("inputs", None), outputs=True,
-                      **{k: v for k, v in record.items() if k != "outputs"})
-            builder = SessionBuilder(log, scratch, cfg, progress=False, name=name)
+            builder = SessionBuilder(log, Path(tmp) / v, cfg, progress=False, name=name)
             try:
+                # the workspace's trajectory and georef stages, the variant's poses in the trajectory the
+                # mapper reads (the factor graph's with georef.fuse, else the rigid fit's), both stages
+                # marked finished: the builder goes straight to the map
+                _copy_stages(builder, sdir, ("trajectory", "georef"))
+                mapped = builder.dirs.enu_trajectory
+                shutil.rmtree(mapped)
+                Trajectory(stamps, poses, est.source, frame=est.frame, body_frame=est.body_frame).save(mapped)
+                _mark_finished(builder, ("trajectory", "georef"))
                 out = builder.semidense()
+                used = builder.enu_trajectory()
             finally:
                 builder.close()
+            if not (np.array_equal(used.stamps_ns, stamps) and np.allclose(used.world_from_base, poses, rtol=0, atol=1e-9)):
+                raise RuntimeError(f"{v}: the mapper read other poses than the variant's ({mapped} was rewritten)")
             pts = SemiDenseMap.load(out).points_world
             path_m = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
             r = map_accuracy(pts, mesh, road_length_m=path_m)
