@@ -355,3 +355,32 @@ def test_a_fused_trajectory_holds_its_submaps_together_more_tightly(tmp_path, st
     n0 = len(json.loads((out / "sessions" / "s0" / "submaps.json").read_text())["submaps"])
     assert n0 >= 3 and len(sigmas) >= 2 * (n0 - 1)
     assert all(v == ({0.1} if a < n0 else {0.02}) for a, v in sigmas.items()), sigmas
+
+
+def test_a_sparse_session_is_kept_with_its_reason_and_one_without_gps_is_skipped(tmp_path, street_world):
+    """Issue 24's degenerate sessions: a foggy one whose map is too sparse to register (every pair it is in is
+    rejected as "too few points"; it stays in the alignment on its GPS, its submaps unverified, out of the
+    merged map), and one whose GPS never fixed (not georeferenced: skipped with a warning naming it)."""
+    errors = {"s0": gps_error(1.5, -2.0, 0.3), "s1": gps_error(-2.0, 1.0, -0.4), "fog": gps_error(0.5, 2.5, 0.0)}
+    ws = tmp_path / "ws"
+    make_workspace(ws, street_world, errors)
+    fog = SemiDenseMap.load(ws / "sessions" / "fog" / "map")
+    keep = np.random.default_rng(5).random(len(fog.points_world)) < 0.005  # ~0.5% of the points: a few hundred per submap
+    sparse = SemiDenseMap(fog.points_world[keep], fog.intensity[keep], fog.sigma_depth[keep], fog.source_keyframe[keep],
+                          np.arange(int(keep.sum()) + 1, dtype=np.int64), fog.source_keyframe[keep], fog.keyframe_ids,
+                          fog.keyframe_stamps_ns, fog.keyframe_world_from_cam, fog.K, fog.image_size_wh)
+    sparse.save(ws / "sessions" / "fog" / "map")
+    mark_done(ws / "sessions" / "fog" / "map", "test")
+    write_session(ws, "nogps", street_world, np.eye(4), np.random.default_rng(300))
+    write_json(ws / "sessions" / "nogps" / "georef" / "gps_alignment.json",
+               {"session": "nogps", "georeferenced": False, "reason": "no GPS fix in the log"})
+    mark_done(ws / "sessions" / "nogps" / "georef", "test")
+    with pytest.warns(UserWarning, match="nogps.*not georeferenced \\(no GPS fix in the log\\); skipped"):
+        out = align_workspace(ws, overrides={"graph": {"max_rounds": 2}}, progress=False)
+    m = json.loads((out / "metrics.json").read_text())
+    assert sorted(m["sessions"]) == ["fog", "s0", "s1"]
+    pairs = json.loads((out / "pairs.json").read_text())["pairs"]
+    fog_pairs = [p for p in pairs if "fog" in (p["source"][0], p["target"][0])]
+    assert fog_pairs and all(not p["accepted"] and "too few points" in p["reason"] for p in fog_pairs), fog_pairs[0]["reason"]
+    assert m["sessions"]["fog"]["verified"] == 0 and not m["sessions"]["fog"]["merged"]
+    assert m["sessions"]["s0"]["verified"] > 0 and m["sessions"]["s0"]["merged"]

@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose
-from mapkit.core.errors import InputError
+from mapkit.core.errors import InputError, InputWarning
 from mapkit.mapping.factor_graph import (
     FactorGraphConfig,
     GpsObservations,
@@ -466,3 +466,17 @@ def test_flat_road_keeps_its_height_when_the_odometry_crabs_in_a_turn():
     assert with_nhc.nhc_sigma_m_s > 0
     assert abs(height_drift(with_nhc)) < 0.2
     assert abs(height_drift(FactorGraphConfig(**town_imu, nhc_sigma_m_s=0.0))) > 0.3
+
+
+def test_gps_that_does_not_overlap_the_drive_is_left_out_with_its_reason():
+    """Fixes recorded an hour after the drive (a receiver's clock on another time base, or a log cut
+    apart): none lies on the trajectory, so the graph keeps the odometry as it does without GPS and
+    says why, instead of tying poses to fixes of another time."""
+    stamps, truth = true_drive(length_m=120.0)
+    odom = drifted_odometry(truth, pitch_rad_per_m=np.radians(0.02))
+    gps, _ = gps_fixes(stamps, truth, np.random.default_rng(3))
+    late = GpsObservations(gps.stamps_ns + 3_600_000_000_000, gps.enu, gps.sigma_m, gps.base_from_antenna)
+    with pytest.warns(InputWarning, match="only 0 GPS fixes overlap the trajectory; at least 3 are needed; fused without GPS"):
+        fused = fuse_session(stamps, odom, late, None, LOOSE)
+    assert fused.stats["gps"] == "not used: only 0 GPS fixes overlap the trajectory; at least 3 are needed"
+    assert np.allclose(fused.enu_from_base, odom, atol=1e-6)
