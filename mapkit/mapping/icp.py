@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 #: open3d's own ICP stopping criterion (relative change of fitness and RMSE between iterations)
 OPEN3D_RELATIVE_CHANGE = 1e-6
@@ -55,6 +56,19 @@ def icp_coarse_to_fine(level: Callable[[float], Optional[IcpClouds]], voxel_size
         tgt.normals = vec(clouds.target_normals)
         T = np.asarray(reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(), criteria).transformation)
     return T, clouds
+
+
+def point_to_plane(moved: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
+                   max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How registered points sit on a target's surfaces: ``hit`` (N,) whether a target point lies within
+    ``max_distance`` of each of ``moved`` (source points already transformed), ``j`` the nearest target
+    point of each hit, and the hits' signed point-to-plane residuals along that point's normal. What ICP's
+    acceptance gates score (:func:`mapkit.multisession.registration.evaluate_alignment`,
+    :func:`mapkit.mapping.loop_closure.support`)."""
+    d, j = cKDTree(target).query(moved, distance_upper_bound=max_distance)
+    hit = np.isfinite(d)
+    j = j[hit]
+    return hit, j, np.einsum("ij,ij->i", moved[hit] - target[j], target_normals[j])
 
 
 @contextmanager

@@ -44,7 +44,7 @@ from mapkit.core.errors import InputWarning
 from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad, transform_points
 from mapkit.core.types import LidarScan
 from mapkit.mapping.factor_graph import FactorGraphConfig, LoopClosures, LoopEdge
-from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine, open3d_one_thread
+from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine, open3d_one_thread, point_to_plane
 
 #: a scan's pose is the odometry's within this of the sweep's last point (kiss-icp's stamp) or of its header stamp
 SCAN_POSE_TOLERANCE_NS = 1_000_000
@@ -260,14 +260,10 @@ def support(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, 
     """How ``T`` fits ``source`` onto ``target``: (fitness: the fraction of source points with a target point within
     ``max_distance``; point-to-plane RMSE over those; the 6x6 point-to-plane Hessian over those, for the right perturbation
     ``T exp(xi)`` (xi = rotation, translation, in the source's frame); how many)."""
-    moved = transform_points(T, source)
-    d, j = cKDTree(target).query(moved, distance_upper_bound=max_distance)
-    hit = np.isfinite(d)
+    hit, j, r = point_to_plane(transform_points(T, source), target, target_normals, max_distance)
     if not hit.any():
         return 0.0, float("nan"), np.zeros((6, 6)), 0
-    n = target_normals[j[hit]]
-    r = np.einsum("ij,ij->i", moved[hit] - target[j[hit]], n)
-    n_src = n @ T[:3, :3]  # the normals in the source's frame
+    n_src = target_normals[j] @ T[:3, :3]  # the normals in the source's frame
     J = np.hstack([np.cross(source[hit], n_src), n_src])
     return float(hit.mean()), float(np.sqrt(np.mean(r**2))), J.T @ J, int(hit.sum())
 

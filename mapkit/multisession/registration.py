@@ -16,13 +16,11 @@ from typing import Optional, Union
 
 import numpy as np
 from pydantic import Field
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.config import MapkitConfig
-from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine
+from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine, point_to_plane
 from mapkit.multisession.submaps import SessionData, SubmapClouds, submap_points
-
 
 
 class IcpConfig(MapkitConfig):
@@ -132,19 +130,16 @@ def evaluate_alignment(source: np.ndarray, target: np.ndarray, T: np.ndarray, vo
     if len(source) == 0 or len(target) == 0:
         return {"fitness": 0.0, "rmse_m": float("nan"), "structure_fitness": 0.0, "structure_rmse_m": float("nan"), "structure_points": 0}
     moved = source @ T[:3, :3].T + T[:3, 3]
-    d, k = cKDTree(target).query(moved, distance_upper_bound=cfg.eval_distance_m)
-    inlier = np.isfinite(d)
     n_t = normals(target) if target_normals is None else target_normals
-    r = np.abs(np.einsum("ij,ij->i", moved[inlier] - target[k[inlier]], n_t[k[inlier]]))
+    inlier, _, signed = point_to_plane(moved, target, n_t, cfg.eval_distance_m)
+    r = np.abs(signed)
     out = {"fitness": float(inlier.mean()), "rmse_m": rms(r)}
     if not structure:
         return {**out, "structure_fitness": out["fitness"], "structure_rmse_m": out["rmse_m"], "structure_points": 0}
     upright = np.abs(normals(source) @ T[:3, :3].T[:, 2]) < cfg.structure_max_normal_z
-    r_s = np.abs(np.einsum("ij,ij->i", moved[inlier & upright] - target[k[inlier & upright]], n_t[k[inlier & upright]]))
+    r_s = r[upright[inlier]]
     return {**out, "structure_fitness": float((inlier & upright).sum() / max(1, upright.sum())), "structure_rmse_m": rms(r_s),
             "structure_points": int(upright.sum())}
-
-
 
 
 # --- the decision ----------------------------------------------------------------------------------
