@@ -58,6 +58,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from mapkit.core.config import load_config  # noqa: E402
+from mapkit.core.geometry import skew  # noqa: E402
 from mapkit.core.runio import write_json  # noqa: E402
 from mapkit.mapping.semidense import KeyframePoints, SemiDenseConfig, SemiDenseMap, build_semidense_map, consistency, multi_view_filter  # noqa: E402
 
@@ -131,16 +132,12 @@ def feature_matches(images: list[Path], frames: range, max_gap: int) -> list[tup
     return out
 
 
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-
-
 def epipolar_distances_px(K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: np.ndarray, xj: np.ndarray) -> np.ndarray:
     """(n,) distances (px) of the pixels ``xj`` of frame j from the epipolar lines of their matches ``xi`` in
     frame i under ``poses`` (world_from_cam)."""
     Ki = np.linalg.inv(K)
     rel = np.linalg.inv(poses[j]) @ poses[i]  # cam_j from cam_i
-    F = Ki.T @ _skew(rel[:3, 3]) @ rel[:3, :3] @ Ki
+    F = Ki.T @ skew(rel[:3, 3]) @ rel[:3, :3] @ Ki
     lines = np.column_stack([xi, np.ones(len(xi))]) @ F.T
     return np.abs((np.column_stack([xj, np.ones(len(xj))]) * lines).sum(1)) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
 
@@ -166,7 +163,7 @@ def refine_rotations(K: np.ndarray, poses: np.ndarray, matches: list[tuple[int, 
         R = rotations(x)
         out = []
         for i, j, a, b in norm:
-            E = _skew(R[j].T @ (C[i] - C[j])) @ (R[j].T @ R[i])
+            E = skew(R[j].T @ (C[i] - C[j])) @ (R[j].T @ R[i])
             lines = a @ E.T
             out.append(K[0, 0] * (b * lines).sum(1) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12))
         out.append(K[0, 0] * x)  # a weak prior at the given rotations (1 px per 1/f rad): holds the roll about a straight drive

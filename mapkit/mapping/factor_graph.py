@@ -463,8 +463,8 @@ def _add_nhc(gtsam, graph, odom_rel: list[np.ndarray], kf_stamps: np.ndarray, st
     not). A ``BetweenFactorPose3`` with that rank-one information (plus 1e-8 on the other directions), not a Python
     factor: gtsam's Python factors cost a call into the interpreter per factor and solver step, which doubled the
     graph's time in a trial with a velocity form of the constraint. Returns the number of factors."""
-    Ad_bs = _adjoint(invert_pose(state_from_base))
     base_from_state = invert_pose(state_from_base)
+    Ad_bs = _adjoint(base_from_state)
     for k, rel in enumerate(odom_rel):
         dt = max(float(kf_stamps[k + 1] - kf_stamps[k]) * 1e-9, 1e-3)
         half = 0.5 * float(np.arctan2(rel[1, 0], rel[0, 0]))

@@ -798,8 +798,8 @@ def consistency(
         by_keyframe_distance_m=_binned(r, p.baseline_m, baseline_bins_m),
         by_depth_m=_binned(r, p.own_depth, depth_bins_m),
     )
-    src_fid = sd_map.source_keyframe[p.point]
     if keyframe_bins is not None:
+        src_fid = sd_map.source_keyframe[p.point]
         out["by_source_keyframe"] = _binned(r, src_fid, keyframe_bins, unit="frame")
         out["by_reference_keyframe"] = _binned(r, p.frame_id, keyframe_bins, unit="frame")
     if verified is None:
