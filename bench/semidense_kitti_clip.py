@@ -30,7 +30,9 @@ the defaults, or a build config's ``semidense`` section). Then:
   moves an epipolar line by pixels, and the depths of a keyframe searched along such lines disagree
   with everyone's); ``--refine-rotations`` maps on the given positions with every frame's rotation
   re-estimated from those matches (:func:`refine_rotations`), a diagnostic of what the map measures on
-  poses that agree with the images, not the issue's "given poses";
+  poses that agree with the images, not the issue's "given poses"; ``--refine-in-mapper`` maps on the
+  given poses with the mapper's own streaming refinement on (``refine_rotations``,
+  :mod:`mapkit.mapping.pose_refine`), the way a build runs it;
 - ``--ablation``: each filter alone, then combinations, one row each (same figures);
 - writes ``metrics.json``, ``semidense_kitti.png`` (top view of the filtered map, one keyframe's
   depths over its image) and ``semidense_rejected.png`` (top view: kept points, and the points of
@@ -58,8 +60,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from mapkit.core.config import load_config  # noqa: E402
-from mapkit.core.geometry import skew  # noqa: E402
 from mapkit.core.runio import write_json  # noqa: E402
+from mapkit.mapping.pose_refine import epipolar_distances_px, refine_rotations  # noqa: E402
 from mapkit.mapping.semidense import KeyframePoints, SemiDenseConfig, SemiDenseMap, build_semidense_map, consistency, multi_view_filter  # noqa: E402
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
@@ -129,50 +131,6 @@ def feature_matches(images: list[Path], frames: range, max_gap: int) -> list[tup
             good = [a for a, b in matcher.knnMatch(di, dj, k=2) if a.distance < LOWE_RATIO * b.distance]
             out.append((i, j, np.array([ki[a.queryIdx].pt for a in good]).reshape(-1, 2),
                         np.array([kj[a.trainIdx].pt for a in good]).reshape(-1, 2)))
-    return out
-
-
-def epipolar_distances_px(K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: np.ndarray, xj: np.ndarray) -> np.ndarray:
-    """(n,) distances (px) of the pixels ``xj`` of frame j from the epipolar lines of their matches ``xi`` in
-    frame i under ``poses`` (world_from_cam)."""
-    Ki = np.linalg.inv(K)
-    rel = np.linalg.inv(poses[j]) @ poses[i]  # cam_j from cam_i
-    F = Ki.T @ skew(rel[:3, 3]) @ rel[:3, :3] @ Ki
-    lines = np.column_stack([xi, np.ones(len(xi))]) @ F.T
-    return np.abs((np.column_stack([xj, np.ones(len(xj))]) * lines).sum(1)) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
-
-
-def refine_rotations(K: np.ndarray, poses: np.ndarray, matches: list[tuple[int, int, np.ndarray, np.ndarray]]) -> np.ndarray:
-    """``poses`` with the rotations of the matched frames re-estimated, positions held: a small rotation per frame
-    that minimises the matches' epipolar distances (Huber, ``POSE_HUBER_PX``), with a weak prior at the given
-    rotation (one pixel per 1/f rad of correction): on a straight drive a common roll about the line of the
-    camera centres leaves every epipolar line in place. A diagnostic: a bundle adjustment of rotations only."""
-    from scipy.optimize import least_squares
-    from scipy.spatial.transform import Rotation
-
-    ids = sorted({f for i, j, _, _ in matches for f in (i, j)})
-    col = {f: 3 * k for k, f in enumerate(ids)}
-    Ki = np.linalg.inv(K)
-    norm = [(i, j, np.column_stack([a, np.ones(len(a))]) @ Ki.T, np.column_stack([b, np.ones(len(b))]) @ Ki.T) for i, j, a, b in matches]
-    R0, C = poses[:, :3, :3], poses[:, :3, 3]
-
-    def rotations(x: np.ndarray) -> dict[int, np.ndarray]:
-        return {f: R0[f] @ Rotation.from_rotvec(x[col[f]: col[f] + 3]).as_matrix() for f in ids}
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        R = rotations(x)
-        out = []
-        for i, j, a, b in norm:
-            E = skew(R[j].T @ (C[i] - C[j])) @ (R[j].T @ R[i])
-            lines = a @ E.T
-            out.append(K[0, 0] * (b * lines).sum(1) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12))
-        out.append(K[0, 0] * x)  # a weak prior at the given rotations (1 px per 1/f rad): holds the roll about a straight drive
-        return np.concatenate(out)
-
-    sol = least_squares(residuals, np.zeros(3 * len(ids)), loss="huber", f_scale=POSE_HUBER_PX)
-    out = poses.copy()
-    for f, R in rotations(sol.x).items():
-        out[f, :3, :3] = R
     return out
 
 
@@ -376,12 +334,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--refine-rotations", action="store_true",
                     help="map on the given positions with each frame's rotation re-estimated from SIFT matches (a diagnostic: "
                          "what the map measures on poses that agree with the images)")
+    ap.add_argument("--refine-in-mapper", action="store_true",
+                    help="map on the given poses with the mapper's own rotation refinement on (refine_rotations: true, "
+                         "mapkit.mapping.pose_refine; the same as a --config that sets it): both runs")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     if not (args.clip / "poses.txt").is_file():
         print(f"error: no KITTI clip at {args.clip}", file=sys.stderr)
         return 2
     cfg = _load_semidense(args.config) if args.config else SemiDenseConfig(**FILTERS_ON)
+    if args.refine_in_mapper:
+        cfg = cfg.model_copy(update={"refine_rotations": True})
     off = cfg.model_copy(update=FILTERS_OFF)
     K, poses, images = read_clip_geometry(args.clip)
     frames = range(args.first_frame, min(args.first_frame + args.frames, len(images)))
@@ -390,7 +353,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     t0 = time.perf_counter()
     matches = feature_matches(images, frames, POSE_CHECK_GAP)
-    refined = refine_rotations(K, poses, matches) if args.refine_rotations else None
+    refined = refine_rotations(K, poses, matches, huber_px=POSE_HUBER_PX) if args.refine_rotations else None
     checked = pose_check(K, poses, refined, matches)
     pose_seconds = time.perf_counter() - t0
     if refined is not None:
@@ -413,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
         "filters_off": FILTERS_OFF, "config": cfg.model_dump(mode="json"),
         "runs": {name: r.metrics() for name, r in runs.items()},
         "rejected_points": int(gone.sum()), "speed_ratio_filtered_over_unfiltered": new.seconds / base.seconds,
-        "poses": {"refined_rotations": bool(args.refine_rotations), "seconds": pose_seconds, "lowe_ratio": LOWE_RATIO,
+        "poses": {"refined_rotations": bool(args.refine_rotations), "refined_in_mapper": new.map.pose_refinement or None, "seconds": pose_seconds, "lowe_ratio": LOWE_RATIO,
                   "huber_px": POSE_HUBER_PX, "epipolar_check": checked},
     }
     write_json(args.out / "metrics.json", metrics)
@@ -503,6 +466,12 @@ def main(argv: list[str] | None = None) -> int:
             v = [r[c] for r in rows if r.get(c) is not None]
             vals.append(f"{np.median(v):.2f}" if v else "-")
         print(f"| {int(lo)}-{min(int(lo) + KEYFRAME_RANGE, frames.stop) - 1} | " + " | ".join(vals) + " |")
+    pr = new.map.pose_refinement
+    if pr:
+        print(f"\nThe mapper's own rotation refinement (refine_rotations, window of {cfg.refine_lag_frames} frames either side): {pr['frames']} frames, "
+              f"correction median {pr['correction_deg_median']:.3f} deg, max {pr['correction_deg_max']:.3f} deg; "
+              f"matched pairs' median epipolar distance {pr['epipolar_px_median_given']:.2f} px given, "
+              f"{pr['epipolar_px_median_refined']:.2f} px refined")
     print(f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, semidense_kitti.png, semidense_rejected.png")
     return 0
 

@@ -4,6 +4,9 @@ This is the map-construction step of the semi-dense place-recognition pipeline (
 paper: "any system that tracks and triangulates points with nonzero image gradient", DSO or
 LSD-SLAM), reduced to pure geometry because the poses are already known:
 
+0. **Rotations** (:mod:`.pose_refine`, optional: ``refine_rotations``): each frame's camera rotation
+   refined on its given position against SIFT matches with the next frames (their epipolar distances,
+   a sliding window), for poses whose rotations disagree with the images by tenths of a degree.
 1. **Candidates** (:mod:`.semidense_candidates`, after DSO's candidate point selection: Engel,
    Koltun, Cremers, TPAMI 2018): pixels whose gradient beats a block-adaptive threshold, the
    strongest per ``cell_size`` cell, so texture-poor regions still get points.
@@ -56,6 +59,7 @@ from mapkit.core.errors import InputError
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geometry import invert_pose, rotation_angle_rad, transform_points
 from mapkit.core.runio import atomic_path, atomic_write_ply, atomic_write_text, progress_bar
+from mapkit.mapping.pose_refine import RotationRefiner
 from mapkit.mapping.semidense_candidates import PATTERN_DSO8, gradient_threshold, image_gradients, select_candidates
 from mapkit.mapping.semidense_epipolar import _candidate_searcher, _neighbour_geometry, _Pyramid
 from mapkit.mapping.semidense_fusion import (
@@ -132,6 +136,17 @@ class SemiDenseConfig(MapkitConfig):
     neighbour_window_frames: int = Field(3, ge=1, description="Neighbours are the frames up to this many before and after a keyframe (streaming window of 2n+1 images).")
     min_baseline_m: float = Field(0.1, ge=0, description="Neighbours closer than this to the keyframe are not used (no parallax).")
     max_baseline_m: float = Field(10.0, gt=0, description="Neighbours farther than this from the keyframe are not used (little overlap).")
+    # --- camera rotations refined against the images (issue 26) ---
+    refine_rotations: bool = Field(False, description="Refine every frame's camera rotation on its given position before mapping: SIFT matches with the frames up to refine_max_gap_frames on, their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.122 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.")
+    refine_max_gap_frames: int = Field(3, ge=1, description="... frames matched with each frame, forward (3: the neighbour window).")
+    refine_lag_frames: int = Field(6, ge=1, description="... a frame's rotation is solved with this many frames before and after it, and handed to the mapper this many frames late (>= refine_max_gap_frames).")
+    refine_huber_px: float = Field(1.0, gt=0, description="... Huber scale (px) of the epipolar distances.")
+    refine_prior_px: float = Field(1.0, gt=0, description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).")
+    refine_anchor_px: float = Field(0.1, gt=0, description="... frames already handed on stay in the window held at their final rotations by a prior of this many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median 0.317 against 0.392 m); scored on the KITTI clip.")
+    refine_gate_px: float = Field(10.0, gt=0, description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).")
+    refine_features: int = Field(3000, ge=50, description="... SIFT features per frame (OpenCV).")
+    refine_lowe_ratio: float = Field(0.7, gt=0, le=1, description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on repeated facades).")
+    refine_min_matches: int = Field(30, ge=8, description="... a pair of frames with fewer matches is left out (the prior holds a frame with none).")
     # --- fusion ---
     fusion_radius_m: float = Field(0.05, gt=0, description="No two map points closer than this (m): the better-measured point absorbs the other's observations. Below the 0.15 m accuracy goal.")
     fusion_window_keyframes: int = Field(10, ge=1, description="A point stays open for fusion until this many keyframes pass without it absorbing a new observation.")
@@ -156,6 +171,8 @@ class SemiDenseConfig(MapkitConfig):
             raise ValueError(f"max_depth_m ({self.max_depth_m}) must exceed min_depth_m ({self.min_depth_m})")
         if self.max_baseline_m <= self.min_baseline_m:
             raise ValueError("max_baseline_m must exceed min_baseline_m")
+        if self.refine_lag_frames < self.refine_max_gap_frames:
+            raise ValueError(f"refine_lag_frames ({self.refine_lag_frames}) must be at least refine_max_gap_frames ({self.refine_max_gap_frames})")
         return self
 
 
@@ -227,6 +244,8 @@ class SemiDenseMap:
     frame_stamps_ns: Optional[np.ndarray] = None
     #: points each outlier filter of the fusion removed, by name (not saved: the build's metrics hold it)
     rejected: dict = field(default_factory=dict)
+    #: what the rotation refinement did (frames, corrections, epipolar distances before and after; not saved either)
+    pose_refinement: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(len(self.points_world))
@@ -239,7 +258,7 @@ class SemiDenseMap:
         return replace(
             self, points_world=self.points_world[keep], intensity=self.intensity[keep], sigma_depth=self.sigma_depth[keep],
             source_keyframe=self.source_keyframe[keep], obs_indptr=np.r_[0, np.cumsum(c[keep])].astype(np.int64),
-            obs_frame_ids=self.obs_frame_ids[sel_obs], rejected=dict(self.rejected),
+            obs_frame_ids=self.obs_frame_ids[sel_obs], rejected=dict(self.rejected), pose_refinement=dict(self.pose_refinement),
         )
 
     def observations(self, i: int) -> np.ndarray:
@@ -266,6 +285,7 @@ class SemiDenseMap:
             "obs_per_point_median": float(np.median(c)) if len(c) else None,
             "sigma_depth_median_m": float(np.median(self.sigma_depth)) if len(c) else None,
             **({"rejected": dict(self.rejected)} if self.rejected else {}),
+            **({"pose_refinement": dict(self.pose_refinement)} if self.pose_refinement else {}),
         }
 
     def save(self, folder: str | Path, frame=None) -> Path:
@@ -533,6 +553,12 @@ def build_semidense_map(
     all_ids, all_stamps = [], []
     image_shape: Optional[tuple[int, int]] = None
     total = len(frames) if hasattr(frames, "__len__") else None  # type: ignore[arg-type]
+    refiner = None
+    if cfg.refine_rotations:
+        refiner = RotationRefiner(K, max_gap=cfg.refine_max_gap_frames, lag=cfg.refine_lag_frames, huber_px=cfg.refine_huber_px,
+                                  prior_px=cfg.refine_prior_px, anchor_px=cfg.refine_anchor_px, gate_px=cfg.refine_gate_px, features=cfg.refine_features, lowe_ratio=cfg.refine_lowe_ratio,
+                                  min_matches=cfg.refine_min_matches, min_baseline_m=cfg.min_baseline_m)
+        frames = refiner.stream(frames)
     bar = progress_bar(total, progress, desc="semi-dense", unit="frame")
 
     def task(window: deque[_Buffered], center: int) -> _KeyframeTask:
@@ -665,6 +691,7 @@ def build_semidense_map(
         frame_ids=np.asarray(all_ids, np.int64),
         frame_stamps_ns=np.asarray(all_stamps, np.int64),
         rejected=rejected,
+        pose_refinement=refiner.report() if refiner is not None else {},
     )
     if cfg.outlier_neighbours > 0:
         keep = statistical_inliers(sd_map.points_world, cfg.outlier_neighbours, cfg.outlier_std_ratio)
