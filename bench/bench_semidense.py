@@ -2,8 +2,9 @@
 
 Also the cost of issue 26's outlier filters: the end-to-end run is timed with every filter off
 (the mapper as it was, ``FILTERS_OFF``), with the recommended ones on (``FILTERS_ON``) and with every
-fusion filter on (multi-view, photometric, free space: ``FILTERS_FUSION_ALL``), in turn, best of
-``--repeat`` each in wall and CPU time; goal: ``FILTERS_ON`` within 1.3x of off.
+fusion filter on (multi-view, photometric, free space: ``FILTERS_FUSION_ALL``), and with the recommended ones
+and the camera-rotation refinement (``refine_rotations``), in turn, best of ``--repeat`` each in wall and CPU
+time; goal: ``FILTERS_ON`` within 1.3x of off.
 
 Issue goal: at least 2 keyframes per second at 640x480 on the 2-core machine. The frames are
 real: the KITTI clip beside the project, resized to 640x480 (the camera matrix is scaled with
@@ -134,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
 
     # 1b. the outlier filters: off (the mapper before issue 26), the recommended ones, all at fusion; in turn, wall and CPU
     filter_cfgs = {"off": cfg.model_copy(update=FILTERS_OFF), "on": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON}),
-                   "all fusion tests": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_FUSION_ALL})}
+                   "all fusion tests": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_FUSION_ALL}),
+                   "on + rotation refinement": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON, "refine_rotations": True})}
     filter_t = {k: [float("inf"), float("inf")] for k in filter_cfgs}
     filter_pts = {}
     for _ in range(args.repeat):
@@ -189,7 +191,10 @@ def main(argv: list[str] | None = None) -> int:
             f"outlier filters on ({FILTERS_ON}) / off, end to end: {slow_wall:.2f}x the wall time, {slow_cpu:.2f}x the CPU time "
             f"(goal <= {GOAL_FILTER_SLOWDOWN}x: {'met' if max(slow_wall, slow_cpu) <= GOAL_FILTER_SLOWDOWN else 'NOT met'}); "
             f"all fusion tests / off: {filter_t['all fusion tests'][0] / filter_t['off'][0]:.2f}x wall, "
-            f"{filter_t['all fusion tests'][1] / filter_t['off'][1]:.2f}x CPU"
+            f"{filter_t['all fusion tests'][1] / filter_t['off'][1]:.2f}x CPU; "
+            f"recommended filters with the rotation refinement (refine_rotations) / off: "
+            f"{filter_t['on + rotation refinement'][0] / filter_t['off'][0]:.2f}x wall, "
+            f"{filter_t['on + rotation refinement'][1] / filter_t['off'][1]:.2f}x CPU"
         ),
     )
     return 0
