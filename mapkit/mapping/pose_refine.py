@@ -72,24 +72,50 @@ def _solve(f_px: float, R0: dict[int, np.ndarray], C: dict[int, np.ndarray], fre
     centre = np.zeros((len(free), 3)) if prior_at is None else np.asarray(prior_at, float).reshape(-1, 3)
     scale = np.broadcast_to(np.asarray(prior_px, float), (len(free),))[:, None]
 
+    col = {f: k for k, f in enumerate(free)}
+    rows = np.cumsum([0] + [len(p[2]) for p in pairs])
+    touching = {f: [q for q, (i, j, _, _) in enumerate(pairs) if f in (i, j)] for f in free}
+
     def rotations(x: np.ndarray) -> dict[int, np.ndarray]:
         Rs = _rotvecs_to_matrices(x.reshape(-1, 3))
         return {f: R0[f] @ Rs[k] for k, f in enumerate(free)}
 
+    def pair_residuals(q: int, Ri: np.ndarray, Rj: np.ndarray) -> np.ndarray:
+        i, j, a, b = pairs[q]
+        E = skew(Rj.T @ (C[i] - C[j])) @ (Rj.T @ Ri)
+        lines = a @ E.T
+        return f_px * (b * lines).sum(1) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
+
     def residuals(x: np.ndarray) -> np.ndarray:
         R = rotations(x)
-        out = []
-        for i, j, a, b in pairs:
-            E = skew(R[j].T @ (C[i] - C[j])) @ (R[j].T @ R[i])
-            lines = a @ E.T
-            out.append(f_px * (b * lines).sum(1) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12))
+        out = [pair_residuals(q, R[i], R[j]) for q, (i, j, _, _) in enumerate(pairs)]
         out.append((f_px * (x.reshape(-1, 3) - centre) / scale).ravel())  # prior_px px of epipolar distance per 1/f rad
         return np.concatenate(out)
 
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        """Forward differences, each column re-evaluating only the pairs of its own frame (a pair's residuals
+        depend on its two frames' corrections alone): a window of n frames costs 6 pair evaluations per column
+        instead of all of them."""
+        R = rotations(x)
+        base = [pair_residuals(q, R[i], R[j]) for q, (i, j, _, _) in enumerate(pairs)]
+        J = np.zeros((rows[-1] + 3 * len(free), 3 * len(free)))
+        h = 1e-7  # rad
+        for f in free:
+            k = col[f]
+            for ax in range(3):
+                xk = x[3 * k: 3 * k + 3].copy()
+                xk[ax] += h
+                Rf = R0[f] @ _rotvecs_to_matrices(xk[None])[0]
+                for q in touching[f]:
+                    i, j = pairs[q][0], pairs[q][1]
+                    J[rows[q]:rows[q + 1], 3 * k + ax] = (pair_residuals(q, Rf if i == f else R[i], Rf if j == f else R[j]) - base[q]) / h
+        J[rows[-1]:, :] = np.diag(np.repeat(f_px / scale[:, 0], 3))
+        return J
+
     x0 = np.zeros(3 * len(free)) if x0 is None else np.asarray(x0, float).ravel()
-    # dense finite differences: a window holds a few frames (scipy's sparse trust-region solver, lsmr, needed
-    # hundreds of iterations here where the exact one takes under ten)
-    sol = least_squares(residuals, x0, loss="huber", f_scale=huber_px)
+    # a dense Jacobian: a window holds a few frames (scipy's sparse trust-region solver, lsmr, needed hundreds of
+    # iterations here where the exact one takes under ten)
+    sol = least_squares(residuals, x0, jac=jacobian, loss="huber", f_scale=huber_px)
     return sol.x.reshape(-1, 3)
 
 
