@@ -14,8 +14,9 @@ rotations alone are a small, well-posed problem:
   matches' distances (px) to the epipolar lines their partners predict, Huber-robust, with a weak prior at
   the given rotation (``prior_px`` pixels per 1/f rad of correction): on a straight drive a common roll about
   the line of camera centres leaves every epipolar line in place, and the prior holds it;
-- streaming, in a sliding window: a frame's rotation is solved with the ``lag`` frames before and after it,
-  all free, and handed on once the ``lag``-th frame after it has arrived.
+- streaming, in a sliding window: a frame's rotation is solved with the ``lag`` frames before and after it
+  (those handed on held near their final rotations by ``anchor_px``), and handed on once the ``lag``-th frame
+  after it has arrived.
 
 :func:`refine_rotations` solves a whole set of frames at once (a diagnostic, ``bench/semidense_kitti_clip.py``);
 :class:`RotationRefiner` is the streaming form that :func:`mapkit.mapping.semidense.build_semidense_map` runs
@@ -205,9 +206,10 @@ class RotationRefiner:
     def stream(self, frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
         f_px = float(self.K[0, 0])
         # the window: up to ``lag`` frames already handed on (features dropped), then those still waiting; a frame is
-        # handed on once ``lag`` frames after it have arrived, solved with every frame of the window free and held
-        # only by its prior (no frame is fixed: fixed anchors would pass their error on, and the weakly seen
-        # rotation about the drive would wander from window to window)
+        # handed on once ``lag`` frames after it have arrived, solved with every frame of the window free: those
+        # still waiting held at their given rotations (prior_px), those handed on at their final ones (anchor_px);
+        # no frame is fixed outright (fixed anchors passed their error on, and the weakly seen rotation about the
+        # drive wandered 1.4 deg over the KITTI clip)
         window: deque[_Frame] = deque()
         done = 0  # frames at the window's front already handed on
         pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
