@@ -146,11 +146,15 @@ def synth(
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding the preset (e.g. configs/synth/benchmark-camera.yaml)."),
     trajectory: Optional[Path] = typer.Option(None, help="Drive one session along this TUM / KITTI / RobotCar INS file."),
     overwrite: bool = typer.Option(False, help="Regenerate outputs that already exist."),
+    record_rate_hz: Optional[float] = typer.Option(None, help="Cameras record video at this rate (camera.record_rate_hz); "
+                                                   "each session's own rate stays its image rate (manifest: image_rate_hz)."),
 ) -> None:
     """Generate the synthetic town: georeferenced multi-session drive logs with ground truth."""
     from mapkit.synth import synthesize
 
-    path = synthesize(preset=preset, out=out, seed=seed, config=config, trajectory=trajectory, overwrite=overwrite)
+    overrides = {"camera": {"record_rate_hz": record_rate_hz}} if record_rate_hz is not None else None
+    path = synthesize(preset=preset, out=out, seed=seed, config=config, trajectory=trajectory, overwrite=overwrite,
+                      overrides=overrides)
     typer.echo(f"synthetic town written to {path}")
 
 
@@ -310,11 +314,15 @@ def demo(
     seed: Optional[int] = typer.Option(None, help="Seed of the town (the preset's if omitted)."),
     workers: int = typer.Option(2, help="Processes for image encoding."),
     train_cnn: bool = typer.Option(False, "--train-cnn", help="Also train the 3D CNN descriptor (learning extra; adds up to 30 min)."),
+    record_rate_hz: Optional[float] = typer.Option(None, help="Cameras record video at this rate (RobotCar's 16) and the maps "
+                                                   "use every image, as the semi-dense paper's DSO maps do; image databases "
+                                                   "and queries keep the preset's rates."),
 ) -> None:
     """Synthetic town to deployable bundles and an HTML report, in one command."""
     from mapkit.pipelines.demo import run_demo
 
-    m = run_demo(out, preset=preset, seed=seed, workers=workers, train_cnn=train_cnn, progress=sys.stderr.isatty())
+    m = run_demo(out, preset=preset, seed=seed, workers=workers, train_cnn=train_cnn, progress=sys.stderr.isatty(),
+                 record_rate_hz=record_rate_hz)
     typer.echo((out / "timings.md").read_text(), nl=False)
     typer.echo(f"report: {m['report']}")
     if "bundles" in m:

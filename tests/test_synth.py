@@ -188,6 +188,30 @@ def test_tiny_drives_can_be_georeferenced_aligned_and_localized():
         assert near.mean() > 0.5, (p.name, near.mean())  # most of every drive retraces the first one
 
 
+def test_new_road_weight_spreads_planned_routes_over_more_streets():
+    """session_plan.new_road_weight: later planned routes steer away from roads earlier ones took
+    (more distinct streets for held-out places, issue 21); at 0 the routes are the ones planned
+    without the option (the presets' drives do not move)."""
+    from mapkit.synth.sessions import plan_sessions
+    from mapkit.synth.world import build_town
+
+    base = load_config("tiny").model_dump(mode="json")
+    four = [{**base["sessions"][0], "name": f"d{k}", "follow": None, "length_m": 250.0} for k in range(4)]
+    cfg0 = load_config("tiny", overrides={"sessions": four})
+    town = build_town(cfg0)
+
+    def roads(weight: float) -> list[list[int]]:
+        cfg = load_config("tiny", overrides={"sessions": four, "session_plan": {"new_road_weight": weight}})
+        return [p.drive.route_roads for p in plan_sessions(cfg, town)]
+
+    independent, weighted = roads(0.0), roads(4.0)
+    assert independent == [p.drive.route_roads for p in plan_sessions(cfg0, town)]
+    distinct = lambda rs: len(set().union(*map(set, rs)))  # noqa: E731
+    assert distinct(weighted) > distinct(independent), (distinct(weighted), distinct(independent))
+    anchor = town.anchor["road"]
+    assert all(anchor in r for r in weighted)  # every planned route still drives the anchor road
+
+
 # --- determinism ------------------------------------------------------------------------------------
 
 def test_tiny_is_deterministic(tiny, tmp_path):
@@ -220,6 +244,21 @@ def test_resume_skips_finished_sessions_and_overwrite_redoes_them(tmp_path):
 
 
 # --- the logs ---------------------------------------------------------------------------------------
+
+def test_video_rate_records_every_session_faster_and_keeps_its_own_image_rate(tmp_path):
+    """camera.record_rate_hz: the camera records at that rate whatever the session's own rate,
+    which the manifest keeps as image_rate_hz (what `mapkit demo --record-rate-hz` maps from and
+    sub-samples its image databases to)."""
+    one = {**SHORT, "sessions": SHORT["sessions"][:1], "lidar": {"enabled": False}}
+    own = load_config("tiny", overrides=one).camera.rate_hz
+    out = synthesize(preset="tiny", out=tmp_path / "video", overrides={**one, "camera": {"record_rate_hz": 2 * own}}, progress=False)
+    s = load_world(out).sessions[0]
+    assert s["camera_rate_hz"] == 2 * own and s["image_rate_hz"] == own
+    stamps = np.array([st for st, _ in _images(out / s["file"])])
+    assert len(stamps) == pytest.approx(s["duration_s"] * 2 * own, abs=2)
+    assert np.median(np.diff(stamps)) * 1e-9 == pytest.approx(1 / (2 * own), rel=1e-3)
+    assert load_world(out).config.camera.record_rate_hz == 2 * own  # the resolved config records it
+
 
 def test_topics_types_and_stamps(tiny, world):
     s = world.sessions[0]

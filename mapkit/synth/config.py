@@ -89,6 +89,11 @@ class CameraConfig(_Model):
     height: int = Field(480, ge=16)
     hfov_deg: float = Field(75.0, gt=10, lt=170)
     rate_hz: float = Field(10.0, gt=0)
+    # Video: every session's camera records at this rate whatever its own rate; a session's own
+    # rate (its camera_rate_hz, else rate_hz) stays its image rate, the rate of its image database
+    # and queries (manifest: image_rate_hz), so that maps can be made from every image, as DSO
+    # consumes video (semi-dense paper Sec. 3), while retrieval sees the same images as without it.
+    record_rate_hz: Optional[float] = Field(None, gt=0)
     compression: Literal["jpeg", "png", "raw"] = "jpeg"
     mount: MountConfig = MountConfig(xyz_m=(1.6, 0.0, 1.55), rpy_deg=(0.0, 3.0, 0.0))
 
@@ -171,6 +176,9 @@ class SessionPlanConfig(_Model):
     night_exposure_ev: float = -1.0
     dates: tuple[dt.date, ...] = ()
     camera_rate_hz: Optional[float] = None
+    # Planned routes (listed or drawn) steer away from roads earlier sessions planned: a road driven
+    # n times is exp(-new_road_weight * n) times less likely at each junction. 0 = independent walks.
+    new_road_weight: float = Field(0.0, ge=0)
 
 
 class SynthConfig(_Model):

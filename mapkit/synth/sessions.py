@@ -76,8 +76,10 @@ def _heading_at(g: RoadGraph, road_id: int, start: int, at_start: bool, lookahea
 
 
 def _walk(g: RoadGraph, in_road: int, came_from: int, node: int, target_m: float, rng: np.random.Generator,
-          used: set[int]) -> tuple[list[int], list[int]]:
-    """Nodes and roads of a random walk from ``node`` (arrived on ``in_road``), about ``target_m`` long."""
+          used: set[int], driven: Optional[dict[int, int]] = None, new_road_weight: float = 0.0) -> tuple[list[int], list[int]]:
+    """Nodes and roads of a random walk from ``node`` (arrived on ``in_road``), about ``target_m`` long.
+    A road earlier sessions drove ``n`` times (``driven``) is ``exp(-new_road_weight * n)`` times
+    less likely to be taken."""
     deg = g.degree()
     nodes, roads = [], []
     total = 0.0
@@ -94,7 +96,7 @@ def _walk(g: RoadGraph, in_road: int, came_from: int, node: int, target_m: float
             if deg[other] == 1 and total + road.length_m < target_m:
                 continue  # a dead end only as the last leg
             cands.append((road, other))
-            weights.append(np.exp(-turn / 0.8))
+            weights.append(np.exp(-turn / 0.8 - new_road_weight * (driven or {}).get(road.id, 0)))
         if not cands:
             break
         w = np.array(weights) / np.sum(weights)
@@ -107,13 +109,14 @@ def _walk(g: RoadGraph, in_road: int, came_from: int, node: int, target_m: float
     return nodes, roads
 
 
-def plan_route(g: RoadGraph, anchor: dict, before_m: float, after_m: float, rng: np.random.Generator) -> tuple[list[int], list[int]]:
+def plan_route(g: RoadGraph, anchor: dict, before_m: float, after_m: float, rng: np.random.Generator,
+               driven: Optional[dict[int, int]] = None, new_road_weight: float = 0.0) -> tuple[list[int], list[int]]:
     """(nodes, roads) of a route through the anchor road (a -> b), about ``before_m``/``after_m``
-    of road before and after it."""
+    of road before and after it; ``driven``/``new_road_weight``: see :func:`_walk`."""
     a, b, rid = anchor["from_node"], anchor["to_node"], anchor["road"]
     used = {rid}
-    bwd_nodes, bwd_roads = _walk(g, rid, b, a, before_m, rng, used)
-    fwd_nodes, fwd_roads = _walk(g, rid, a, b, after_m, rng, used)
+    bwd_nodes, bwd_roads = _walk(g, rid, b, a, before_m, rng, used, driven, new_road_weight)
+    fwd_nodes, fwd_roads = _walk(g, rid, a, b, after_m, rng, used, driven, new_road_weight)
     nodes = bwd_nodes[::-1] + [a, b] + fwd_nodes
     roads = bwd_roads[::-1] + [rid] + fwd_roads
     return nodes, roads
@@ -225,9 +228,10 @@ def speed_profile(s: np.ndarray, kappa: np.ndarray, v_max: float, cfg: SynthConf
 
 
 def drive_route(town: Town, sc: SessionConfig, cfg: SynthConfig, start_ns: int, rng: np.random.Generator,
-                follow: Optional[tuple[list[int], list[int], float]] = None) -> Drive:
+                follow: Optional[tuple[list[int], list[int], float]] = None, driven: Optional[dict[int, int]] = None) -> Drive:
     """A route through the anchor (or along another session's route: ``follow`` = its nodes, roads
-    and split), driven in the right-hand lane and cropped to the session's length."""
+    and split), driven in the right-hand lane and cropped to the session's length; ``driven``:
+    how often earlier sessions planned each road (``session_plan.new_road_weight`` steers away)."""
     g = town.roads
     anchor = town.anchor
     split = float(rng.uniform(0.3, 0.6))
@@ -238,7 +242,7 @@ def drive_route(town: Town, sc: SessionConfig, cfg: SynthConfig, start_ns: int, 
     else:
         before = split * sc.length_m + ROUTE_MARGIN_M
         after = (1 - split) * sc.length_m + ROUTE_MARGIN_M
-        nodes, roads = plan_route(g, anchor, before, after, rng)
+        nodes, roads = plan_route(g, anchor, before, after, rng, driven, cfg.session_plan.new_road_weight)
     centre = route_centerline(g, nodes, roads)
     centre = np.stack([gaussian_filter1d(centre[:, k], 3.0, mode="nearest") for k in range(2)], 1)
     pts, s = _resample_uniform(centre, 0.5)
@@ -379,8 +383,9 @@ class SessionPlan:
     start_ns: int
     conditions: Conditions
     drive: Drive
-    camera_rate_hz: float
+    camera_rate_hz: float  # the rate the camera records at
     seed: int
+    image_rate_hz: Optional[float] = None  # the session's own rate when the camera records faster (camera.record_rate_hz)
 
     @property
     def name(self) -> str:
@@ -416,6 +421,7 @@ class SessionPlan:
             "speed_mps": sc.speed_mps,
             "lane_offset_m": sc.lane_offset_m,
             "camera_rate_hz": self.camera_rate_hz,
+            "image_rate_hz": self.image_rate_hz or self.camera_rate_hz,
             "lidar_rate_hz": cfg.lidar.rate_hz if cfg.lidar.enabled else None,
             "gps_rate_hz": g.rate_hz,
             "imu_rate_hz": cfg.imu.rate_hz if cfg.imu.enabled else None,
@@ -469,6 +475,7 @@ def plan_sessions(cfg: SynthConfig, town: Town, external: Optional[ExternalPath]
     rng_auto = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x5E55]))
     sessions = list(cfg.sessions) + auto_sessions(cfg, rng_auto)
     plans = []
+    driven: dict[int, int] = {}  # road id -> sessions whose planned route takes it
     for i, sc in enumerate(sessions):
         seed = int(np.random.SeedSequence([cfg.seed, 0xD21, i]).generate_state(1)[0])
         rng = np.random.default_rng(seed)
@@ -486,10 +493,13 @@ def plan_sessions(cfg: SynthConfig, town: Town, external: Optional[ExternalPath]
                 if leader.drive.plan is None:
                     raise ConfigError(f"session {sc.name!r} cannot follow {sc.follow!r}: it drives an external trajectory")
                 follow = leader.drive.plan
-            drive = drive_route(town, sc, cfg, start_ns, rng, follow)
+            drive = drive_route(town, sc, cfg, start_ns, rng, follow, driven)
+            for r in set(drive.route_roads):
+                driven[r] = driven.get(r, 0) + 1
         if len(drive.stamps_ns) < 2:
             raise ConfigError(f"session {sc.name!r}: its drive is shorter than one ground-truth step")
-        plans.append(SessionPlan(i, sc, local, start_ns, cond, drive, sc.camera_rate_hz or cfg.camera.rate_hz, seed))
+        own_rate = sc.camera_rate_hz or cfg.camera.rate_hz
+        plans.append(SessionPlan(i, sc, local, start_ns, cond, drive, cfg.camera.record_rate_hz or own_rate, seed, own_rate))
     return plans
 
 
