@@ -128,12 +128,39 @@ def test_rerun_resumes_without_rebuilding(tiny_demo):
     assert {n: s["status"] for n, s in again["stages"].items()}["export"] == "ok"
 
 
+def test_video_rate_build_config_keeps_each_sessions_image_rate(tmp_path):
+    """With cameras recording faster than the sessions' own rates, the demo's build config keeps
+    every image database at its session's rate (never denser than configs/build/demo.yaml's)."""
+    from mapkit.core.config import load_config
+    from mapkit.core.presets import preset_path
+    from mapkit.mapping.build import BuildConfig
+    from mapkit.pipelines.demo import demo_build_config
+
+    same = {"train-a": {"camera_rate_hz": 4.0, "image_rate_hz": 4.0}, "test-b": {"camera_rate_hz": 4.0}}
+    assert demo_build_config(tmp_path, same) == preset_path("build", "demo")
+    roles = {"train-a": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0}, "test-b": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0},
+             "test-c": {"camera_rate_hz": 16.0, "image_rate_hz": 16.0}}
+    path = demo_build_config(tmp_path, roles)
+    assert path.parent == tmp_path and path.is_file()
+    cfg, base = load_config(BuildConfig, path), load_config(BuildConfig, preset_path("build", "demo"))
+    assert base.for_session("train-a").imagedb.min_interval_s == 0.5  # MCVL's 2 Hz training databases
+    assert cfg.for_session("train-a").imagedb.min_interval_s == 0.5  # kept: sparser than 4 Hz
+    assert cfg.for_session("test-b").imagedb.min_interval_s == 0.25  # the session's own 4 Hz, not the 16 Hz video
+    assert cfg.for_session("test-c").imagedb.min_interval_s == base.for_session("test-c").imagedb.min_interval_s
+    assert cfg.georef.fuse == base.georef.fuse and cfg.semidense == base.semidense  # the maps: every image, as the demo's
+
+
 def test_places_pairs_mix_conditions_and_skip_empty_maps():
     roles = {"a": {"role": "train"}, "b": {"role": "train"}, "c": {"role": "train"}, "x": {"role": "test"}, "y": {"role": "test"}}
     pts = {"a": 10, "b": 30, "c": 20, "x": 5, "y": 0}
     # the two fullest training maps (b, c) against each test session with a map, then test to test
     assert places_pairs(roles, pts) == [("b", "x"), ("c", "x")]
     pts["y"] = 7
+    assert places_pairs(roles, pts) == [("b", "x"), ("c", "x"), ("b", "y"), ("c", "y"), ("x", "y")]
+    # a test drive that retraces a training drive's streets is scored against that one first
+    roles["y"]["follows"] = "a"
+    assert places_pairs(roles, pts) == [("b", "x"), ("c", "x"), ("a", "y"), ("b", "y"), ("x", "y")]
+    pts["a"] = 0  # ... when it has a map
     assert places_pairs(roles, pts) == [("b", "x"), ("c", "x"), ("b", "y"), ("c", "y"), ("x", "y")]
 
 

@@ -135,6 +135,14 @@ def test_evaluate_places_on_the_street(tmp_path):
         assert (out / f).is_file()
     md = (out / "places.md").read_text()
     assert "| b to a |" in md and "| a to b |" in md and "NBLD" in md and "VLAD" in md
+    # both maps' densities, side by side: the maps the pairs used, counted from their own points and keyframes
+    for name in ("a", "b"):
+        m, d = maps[name], res["maps"][name]
+        path = np.linalg.norm(np.diff(m.keyframe_world_from_cam[:, :3, 3], axis=0), axis=1).sum()
+        assert d["points"] == len(m) and d["keyframes"] == len(m.keyframe_ids)
+        assert d["points_per_100m"] == pytest.approx(100 * len(m) / path)
+    ratio = res["maps"]["b"]["points_per_100m"] / res["maps"]["a"]["points_per_100m"]
+    assert "## Map densities" in md and f"| {ratio:.2f} |" in md
     assert json.loads((out / "places.json").read_text())["pairs"][0]["methods"]["nbld"]["curve"]["recall"]
     n_rows = len((out / "queries.csv").read_text().splitlines()) - 1
     assert n_rows == 2 * sum(p["queries"] for p in res["pairs"])

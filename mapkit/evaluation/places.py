@@ -630,6 +630,7 @@ def evaluate_places(
         "vlad_bundle": None if vlad is None else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
         "vlad_note": vlad_note, "headline": "all_places" if split.source == "none" else "held_out", "split": split.to_dict(),
         "split_description": split.describe(), "pairs": [],
+        "maps": map_densities(maps, sorted({s for p in pairs for s in p})),
     }
     if "cnn" in methods and cfg.structure.cnn_model is not None:
         from mapkit.places.cnn import model_fingerprint
@@ -884,6 +885,33 @@ def _block(p: dict, scope: str) -> dict:
     return p["all_places"]
 
 
+def map_densities(maps: Callable[[str], tuple], names: Sequence[str]) -> dict[str, dict]:
+    """Each evaluated session's semi-dense map (``maps(name)[0]``, the map the pairs use): keyframes,
+    points, the keyframes' path and points per 100 m of it (NBLD compares densities: maps of
+    unequal density are one reason its votes fail, issue 21)."""
+    out: dict[str, dict] = {}
+    for name in names:
+        st = maps(name)[0].stats()
+        out[name] = {k: st.get(k) for k in ("keyframes", "points", "keyframe_path_m", "points_per_100m")}
+    return out
+
+
+def _maps_table(results: dict) -> list[str]:
+    """Query and database map densities side by side, per pair."""
+    maps = results.get("maps") or {}
+    if not maps:
+        return []
+    f = lambda v, d=0: "" if v is None else f"{v:,.{d}f}"  # noqa: E731
+    lines = ["| pair | query: keyframes / points / per 100 m | database: keyframes / points / per 100 m | density query / database |",
+             "|---|---|---|---|"]
+    for p in results["pairs"]:
+        q, d = maps.get(p["query"], {}), maps.get(p["database"], {})
+        ratio = (q["points_per_100m"] / d["points_per_100m"]) if q.get("points_per_100m") and d.get("points_per_100m") else None
+        lines.append(f"| {p['query']} to {p['database']} | {f(q.get('keyframes'))} / {f(q.get('points'))} / {f(q.get('points_per_100m'))} "
+                     f"| {f(d.get('keyframes'))} / {f(d.get('points'))} / {f(d.get('points_per_100m'))} | {f(ratio, 2)} |")
+    return lines
+
+
 def format_places(results: dict) -> str:
     """The AUC tables in the form of the paper's Table 2 (rows: pairs, columns: methods), held-out
     queries first, then over all queries; each method's best F1 operating point, keypoints per
@@ -893,6 +921,8 @@ def format_places(results: dict) -> str:
         lines += ["", f"## {title}", ""] + _auc_table(results, scope)
     lines += ["", "## Operating points and keypoints", ""] + _best_f1_table(results) + [""] + _keypoints_table(results)
     lines += [""] + _bootstrap_table(results)
+    if results.get("maps"):
+        lines += ["", "## Map densities", "", "The semi-dense maps compared, points per 100 m of their keyframes' path:", ""] + _maps_table(results)
     notes = [f"{p['query']} to {p['database']}: {p['held_out_note']}" for p in results["pairs"] if p.get("held_out_note")]
     notes += [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
               for m, r in p["methods"].items() if not r.get("available") and r.get("note") and r["note"] != p.get("held_out_note")]
@@ -1055,4 +1085,4 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
 
 __all__ = ["PlacesEvalConfig", "table1_counts", "pr_curve", "pr_auc", "best_f1", "score_queries", "VladBaseline", "nearest_l2",
            "nearest_stamp", "bootstrap_auc", "evaluate_places", "format_places", "plot_pr_curves", "PlaceSplit", "split_from_dataset",
-           "split_from_points", "tiles_split_of_workspace", "resolve_split", "query_split_counts", "no_held_out_note"]
+           "map_densities", "split_from_points", "tiles_split_of_workspace", "resolve_split", "query_split_counts", "no_held_out_note"]

@@ -35,7 +35,10 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Callable, Iterator, Optional
 
+import yaml
+
 from mapkit import __version__
+from mapkit.core.config import deep_merge, load_config
 from mapkit.core.errors import MapkitError
 from mapkit.core.executor import default_executor, use_executor
 from mapkit.core.presets import preset_path
@@ -47,7 +50,7 @@ from mapkit.evaluation.localization import evaluate_localization
 from mapkit.evaluation.places import evaluate_places
 from mapkit.evaluation.triplets import evaluate_triplets
 from mapkit.evaluation.truth import town_sessions
-from mapkit.mapping.build import build, format_build_summary
+from mapkit.mapping.build import BuildConfig, build, format_build_summary
 from mapkit.multisession.align import align_workspace
 from mapkit.places.index_structure import build_structure_index
 from mapkit.places.triplets import export_triplets
@@ -79,13 +82,15 @@ class Demo:
     """The state of one demo run: where things are, what each stage found, how long it took."""
 
     def __init__(self, out: Path, preset: str, seed: Optional[int], workers: int, train_cnn: bool, progress: bool,
-                 log: Callable[[str], None]):
+                 log: Callable[[str], None], record_rate_hz: Optional[float] = None, synth_overrides: Optional[dict] = None):
         self.out, self.preset, self.seed, self.workers = Path(out), preset, seed, workers
+        self.record_rate_hz, self.synth_overrides = record_rate_hz, synth_overrides
         self.train_cnn, self.progress, self.log = train_cnn, progress, log
         self.town = self.out / "town"
         self.ws = Workspace(self.out / "workspace")
         self.bundles = self.out / "bundles"
-        self.metrics: dict = {"mapkit_version": __version__, "preset": preset, "seed": seed, "workers": workers, "stages": {}}
+        self.metrics: dict = {"mapkit_version": __version__, "preset": preset, "seed": seed, "workers": workers,
+                              "record_rate_hz": record_rate_hz, "stages": {}}
         self.sections: list[Section] = []
         self.roles: dict[str, dict] = {}
 
@@ -158,10 +163,14 @@ class Demo:
 
 def _synth(d: Demo) -> None:
     with d.stage("synth", "Synthetic town") as sec:
-        synthesize(preset=d.preset, out=d.town, seed=d.seed)
+        overrides = dict(d.synth_overrides or {})
+        if d.record_rate_hz is not None:
+            overrides = deep_merge(overrides, {"camera": {"record_rate_hz": float(d.record_rate_hz)}})
+        synthesize(preset=d.preset, out=d.town, seed=d.seed, overrides=overrides or None)
         d.roles = town_sessions(d.town)
-        rows = ["| session | role | condition |", "|---|---|---|"]
-        rows += [f"| {n} | {s.get('role', '')} | {_condition(s)} |" for n, s in sorted(d.roles.items())]
+        rows = ["| session | role | condition | camera Hz (recorded / images) |", "|---|---|---|---|"]
+        rows += [f"| {n} | {s.get('role', '')} | {_condition(s)} | {s.get('camera_rate_hz', '')} / "
+                 f"{s.get('image_rate_hz', s.get('camera_rate_hz', ''))} |" for n, s in sorted(d.roles.items())]
         sec.md("\n".join(rows))
         sec.picture(d.town / "pictures" / "map.png", "the town: streets, buildings and the drives", 560)
         sec.picture(d.town / "pictures" / "contact_sheet.png", "one camera frame per session", 560)
@@ -177,7 +186,7 @@ def _condition(s: dict) -> str:
 def _build(d: Demo) -> None:
     with d.stage("build", "Session maps (mapkit build)") as sec:
         logs = session_logs(d.town)
-        build(logs, d.ws.root, config=preset_path("build", "demo"), progress=d.progress)
+        build(logs, d.ws.root, config=demo_build_config(d.out, d.roles), progress=d.progress)
         d.log(format_build_summary(d.ws.root))
         r = evaluate_build(d.ws, d.town)
         d.metrics["eval_build"] = r
@@ -187,6 +196,30 @@ def _build(d: Demo) -> None:
             sec.picture(d.ws.session(n).georef / "trajectory_over_gps.png", f"{n}: trajectory over GPS", 380)
         for n in sorted(r["sessions"]):
             sec.picture(d.ws.session(n).map / "top_view.png", f"{n}: semi-dense map, top view", 380)
+
+
+def demo_build_config(out: Path, roles: dict[str, dict]) -> Path:
+    """``configs/build/demo.yaml``, or, when the town's cameras record faster than the sessions'
+    own image rates (video, ``camera.record_rate_hz``), a copy in ``out`` whose image databases
+    keep each session's own rate (``imagedb.min_interval_s``, never shorter than the demo's): the
+    maps are made from every image, retrieval and the localizer see the images they would without
+    video."""
+    base = preset_path("build", "demo")
+    faster = {n: s for n, s in roles.items() if s.get("image_rate_hz") and s["camera_rate_hz"] > s["image_rate_hz"] * 1.001}
+    if not faster:
+        return base
+    data = yaml.safe_load(base.read_text()) or {}
+    cfg = load_config(BuildConfig, base)
+    sessions = dict(data.get("sessions") or {})
+    for name, s in sorted(faster.items()):
+        interval = max(cfg.for_session(name).imagedb.min_interval_s, 1.0 / float(s["image_rate_hz"]))
+        sessions[name] = deep_merge(sessions.get(name, {}), {"imagedb": {"min_interval_s": round(interval, 6)}})
+    data["sessions"] = sessions
+    path = out / "build_config_video.yaml"
+    atomic_write_text(path, "# configs/build/demo.yaml with each session's image database at its own image rate: the town's\n"
+                            "# cameras record faster (camera.record_rate_hz) and the maps use every image (mapkit demo).\n"
+                      + yaml.safe_dump(data, sort_keys=False))
+    return path
 
 
 def _align(d: Demo) -> None:
@@ -287,12 +320,17 @@ def _localize(d: Demo) -> None:
 
 
 def places_pairs(roles: dict[str, dict], map_points: dict[str, int]) -> list[tuple[str, str]]:
-    """Session pairs (database, query) mixing conditions: each test session against the two
-    training sessions with the fullest maps, and against the first test session."""
+    """Session pairs (database, query) mixing conditions: each test session against two training
+    sessions with maps, the one whose streets it retraces (its ``follows``) first, then the fullest
+    maps; and each later test session against the first."""
     train = sorted((n for n, s in roles.items() if s.get("role") == "train" and map_points.get(n, 0) > 0),
-                   key=lambda n: (-map_points[n], n))[:2]
+                   key=lambda n: (-map_points[n], n))
     tests = sorted(n for n, s in roles.items() if s.get("role") == "test" and map_points.get(n, 0) > 0)
-    pairs = [(db, q) for q in tests for db in train]
+    pairs = []
+    for q in tests:
+        leader = roles[q].get("follows")
+        dbs = ([leader] if leader in train else []) + [n for n in train if n != leader]
+        pairs += [(db, q) for db in dbs[:2]]
     if tests:
         pairs += [(tests[0], q) for q in tests[1:]]
     return pairs
@@ -379,12 +417,18 @@ STAGES = (_synth, _build, _align, _triplets, _train_cnn, _index_vlad, _index_str
 
 
 def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Optional[int] = None, workers: int = 2,
-             train_cnn: bool = False, progress: bool = False, log: Callable[[str], None] = logger.info) -> dict:
+             train_cnn: bool = False, progress: bool = False, log: Callable[[str], None] = logger.info,
+             record_rate_hz: Optional[float] = None, synth_overrides: Optional[dict] = None) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
     the paths of the report and the bundle. ``log`` takes the stage lines ("[demo] build: ok in
-    12 s"); by default they go to this module's logger at INFO (the CLI shows them on stderr)."""
+    12 s"); by default they go to this module's logger at INFO (the CLI shows them on stderr).
 
-    d = Demo(Path(out), preset, seed, workers, train_cnn, progress, log)
+    ``record_rate_hz``: the town's cameras record video at this rate and the maps are made from
+    every image, as the semi-dense paper's DSO maps are (Sec. 3); image databases and queries keep
+    the preset's rates (:func:`demo_build_config`). ``synth_overrides``: merged over the town's
+    preset, as a ``mapkit synth --config`` file would be."""
+
+    d = Demo(Path(out), preset, seed, workers, train_cnn, progress, log, record_rate_hz, synth_overrides)
     d.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ex = default_executor()  # `mapkit --executor ray demo` set one; else a local pool of `workers`
@@ -427,4 +471,4 @@ def _finish(d: Demo, seconds: float) -> dict:
     return d.metrics
 
 
-__all__ = ["STAGES", "places_pairs", "run_demo"]
+__all__ = ["STAGES", "demo_build_config", "places_pairs", "run_demo"]
