@@ -31,6 +31,7 @@ from mapkit.synth import (
     load_world,
     session_log,
     session_logs,
+    street_coverage,
     synthesize,
 )
 from mapkit.synth.config import GpsConfig, presets_dir
@@ -133,6 +134,8 @@ def test_output_layout_and_manifest(tiny, world):
         assert local.strftime("%H:%M") == s["time_of_day"]
     assert roles == {"train", "test"}
     assert len({s["condition"] for s in m["sessions"]}) == 3
+    streets = json.loads((tiny / "metrics.json").read_text())["streets"]
+    assert streets["distinct_m"] <= streets["driven_m"] == pytest.approx(sum(s["length_m"] for s in m["sessions"]), abs=10)
     assert session_logs(tiny) == sorted(tiny / s["file"] for s in m["sessions"])
     # the mesh is readable by open3d and is what load_world gives
     import open3d as o3d
@@ -200,16 +203,18 @@ def test_new_road_weight_spreads_planned_routes_over_more_streets():
     cfg0 = load_config("tiny", overrides={"sessions": four})
     town = build_town(cfg0)
 
-    def roads(weight: float) -> list[list[int]]:
-        cfg = load_config("tiny", overrides={"sessions": four, "session_plan": {"new_road_weight": weight}})
-        return [p.drive.route_roads for p in plan_sessions(cfg, town)]
+    def plans(weight: float) -> list:
+        return plan_sessions(load_config("tiny", overrides={"sessions": four, "session_plan": {"new_road_weight": weight}}), town)
 
-    independent, weighted = roads(0.0), roads(4.0)
-    assert independent == [p.drive.route_roads for p in plan_sessions(cfg0, town)]
-    distinct = lambda rs: len(set().union(*map(set, rs)))  # noqa: E731
+    independent, weighted = plans(0.0), plans(4.0)
+    assert [p.drive.route_roads for p in independent] == [p.drive.route_roads for p in plan_sessions(cfg0, town)]
+    distinct = lambda ps: len(set().union(*(set(p.drive.route_roads) for p in ps)))  # noqa: E731
     assert distinct(weighted) > distinct(independent), (distinct(weighted), distinct(independent))
-    anchor = town.anchor["road"]
-    assert all(anchor in r for r in weighted)  # every planned route still drives the anchor road
+    assert all(town.anchor["road"] in p.drive.route_roads for p in weighted)  # every route still drives the anchor road
+    # the street length synth reports (metrics.json "streets"): 4 drives of 250 m, more of it distinct when spread
+    a, b = street_coverage(independent), street_coverage(weighted)
+    assert a["driven_m"] == pytest.approx(1000, abs=8) and b["driven_m"] == pytest.approx(1000, abs=8)
+    assert 250 <= a["distinct_m"] < b["distinct_m"] <= b["driven_m"], (a, b)
 
 
 # --- determinism ------------------------------------------------------------------------------------

@@ -171,6 +171,11 @@ def _synth(d: Demo) -> None:
         rows = ["| session | role | condition | camera Hz (recorded / images) |", "|---|---|---|---|"]
         rows += [f"| {n} | {s.get('role', '')} | {_condition(s)} | {s.get('camera_rate_hz', '')} / "
                  f"{s.get('image_rate_hz', s.get('camera_rate_hz', ''))} |" for n, s in sorted(d.roles.items())]
+        streets = json.loads((d.town / "metrics.json").read_text()).get("streets") or {}
+        d.metrics["streets"] = streets
+        if streets:
+            rows.append(f"\nDriven {streets['driven_m'] / 1000:.1f} km; distinct streets {streets['distinct_m'] / 1000:.1f} km, "
+                        f"{streets['distinct_train_m'] / 1000:.1f} km of them by training drives (where held-out places can lie).")
         sec.md("\n".join(rows))
         sec.picture(d.town / "pictures" / "map.png", "the town: streets, buildings and the drives", 560)
         sec.picture(d.town / "pictures" / "contact_sheet.png", "one camera frame per session", 560)

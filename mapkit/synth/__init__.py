@@ -72,7 +72,7 @@ from mapkit.synth.world import RoadGraph, read_ply, read_roads
 
 __all__ = [
     "synthesize", "load_world", "gt_poses", "camera_poses", "World", "load_config", "SynthConfig", "PRESETS",
-    "GpsErrorModel", "extrinsics", "intrinsics", "session_log", "session_logs",
+    "GpsErrorModel", "extrinsics", "intrinsics", "session_log", "session_logs", "street_coverage",
 ]
 
 #: how a session's log is written; part of the output hashes, so that a town written with bare
@@ -219,6 +219,7 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
             "image_size": [cfg.camera.width, cfg.camera.height], "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
         },
         "sessions": sorted(session_metrics, key=lambda m: order.get(m.get("name"), 0)),
+        "streets": street_coverage(plans),
     }
     write_json(out / "metrics.json", metrics)
     mark_done(out, full_hash)
@@ -246,6 +247,28 @@ def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
                           nthreads=_WORKER["nthreads"])
     mark_done(Path(marker), cfg_hash, metrics=m)
     return m
+
+
+def street_coverage(plans: list, radius_m: float = 15.0) -> dict:
+    """Metres of street the drives cover: all drives, and the distinct ones (1 m samples of each
+    drive's path farther than ``radius_m`` from every earlier drive's), in all and of the training
+    drives: where held-out places can lie (issue 21)."""
+    from scipy.spatial import cKDTree
+
+    def samples(xy: np.ndarray) -> np.ndarray:
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+        t = np.arange(0.0, s[-1], 1.0)
+        return np.stack([np.interp(t, s, xy[:, 0]), np.interp(t, s, xy[:, 1])], 1)
+
+    seen: list[np.ndarray] = []
+    driven = distinct = distinct_train = 0
+    for p in plans:
+        r = samples(p.drive.path_xy)
+        new = int((cKDTree(np.vstack(seen)).query(r)[0] > radius_m).sum()) if seen else len(r)
+        driven, distinct = driven + len(r), distinct + new
+        distinct_train += new if p.config.role == "train" else 0
+        seen.append(r)
+    return {"driven_m": driven, "distinct_m": distinct, "distinct_train_m": distinct_train, "radius_m": radius_m}
 
 
 def _render_parallel(cfg: SynthConfig, trajectory, out: Path, todo: list, workers: int, progress) -> list[dict]:
