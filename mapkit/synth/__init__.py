@@ -255,15 +255,12 @@ def street_coverage(plans: list, radius_m: float = 15.0) -> dict:
     drives: where held-out places can lie (issue 21)."""
     from scipy.spatial import cKDTree
 
-    def samples(xy: np.ndarray) -> np.ndarray:
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
-        t = np.arange(0.0, s[-1], 1.0)
-        return np.stack([np.interp(t, s, xy[:, 0]), np.interp(t, s, xy[:, 1])], 1)
+    from mapkit.synth.sessions import _resample_uniform
 
     seen: list[np.ndarray] = []
     driven = distinct = distinct_train = 0
     for p in plans:
-        r = samples(p.drive.path_xy)
+        r = _resample_uniform(p.drive.path_xy, 1.0)[0]
         new = int((cKDTree(np.vstack(seen)).query(r)[0] > radius_m).sum()) if seen else len(r)
         driven, distinct = driven + len(r), distinct + new
         distinct_train += new if p.config.role == "train" else 0

@@ -385,7 +385,7 @@ class SessionPlan:
     drive: Drive
     camera_rate_hz: float  # the rate the camera records at
     seed: int
-    image_rate_hz: Optional[float] = None  # the session's own rate when the camera records faster (camera.record_rate_hz)
+    image_rate_hz: float  # the session's own rate (lower than camera_rate_hz when camera.record_rate_hz records video)
 
     @property
     def name(self) -> str:
@@ -421,7 +421,7 @@ class SessionPlan:
             "speed_mps": sc.speed_mps,
             "lane_offset_m": sc.lane_offset_m,
             "camera_rate_hz": self.camera_rate_hz,
-            "image_rate_hz": self.image_rate_hz or self.camera_rate_hz,
+            "image_rate_hz": self.image_rate_hz,
             "lidar_rate_hz": cfg.lidar.rate_hz if cfg.lidar.enabled else None,
             "gps_rate_hz": g.rate_hz,
             "imu_rate_hz": cfg.imu.rate_hz if cfg.imu.enabled else None,
