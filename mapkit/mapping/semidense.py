@@ -49,7 +49,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Optional, Sequence
+from typing import Any, Callable, Iterable, Iterator, Literal, Optional, Sequence
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -137,14 +137,15 @@ class SemiDenseConfig(MapkitConfig):
     min_baseline_m: float = Field(0.1, ge=0, description="Neighbours closer than this to the keyframe are not used (no parallax).")
     max_baseline_m: float = Field(10.0, gt=0, description="Neighbours farther than this from the keyframe are not used (little overlap).")
     # --- camera rotations refined against the images (issue 26) ---
-    refine_rotations: bool = Field(False, description="Refine every frame's camera rotation on its given position before mapping: SIFT matches with the frames up to refine_max_gap_frames on, their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.122 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.")
+    refine_rotations: bool = Field(False, description="Refine every frame's camera rotation on its given position before mapping: correspondences with the frames up to refine_max_gap_frames on (tracked corners, or SIFT: refine_matcher), their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.122 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.")
     refine_max_gap_frames: int = Field(3, ge=1, description="... frames matched with each frame, forward (3: the neighbour window).")
     refine_lag_frames: int = Field(6, ge=1, description="... a frame's rotation is solved with this many frames before and after it, and handed to the mapper this many frames late (>= refine_max_gap_frames).")
     refine_huber_px: float = Field(1.0, gt=0, description="... Huber scale (px) of the epipolar distances.")
     refine_prior_px: float = Field(1.0, gt=0, description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).")
     refine_anchor_px: float = Field(0.1, gt=0, description="... frames already handed on stay in the window held at their final rotations by a prior of this many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median 0.317 against 0.392 m); scored on the KITTI clip.")
     refine_gate_px: float = Field(10.0, gt=0, description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).")
-    refine_features: int = Field(3000, ge=50, description="... SIFT features per frame (OpenCV).")
+    refine_matcher: Literal["tracks", "sift"] = Field("tracks", description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test (the matcher of session 13's figures). On the KITTI clip both give the same rotations (median distance of independent SIFT matches to the refined epipolar lines 0.18 px either way) and tracks take a fifth of the CPU time (python3 bench/bench_semidense.py).")
+    refine_features: int = Field(600, ge=50, description="... corners tracked per frame (tracks), or SIFT features per frame (sift; 3000 in session 13's figures).")
     refine_lowe_ratio: float = Field(0.7, gt=0, le=1, description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on repeated facades).")
     refine_min_matches: int = Field(30, ge=8, description="... a pair of frames with fewer matches is left out (the prior holds a frame with none).")
     # --- fusion ---
@@ -556,7 +557,7 @@ def build_semidense_map(
     refiner = None
     if cfg.refine_rotations:
         refiner = RotationRefiner(K, max_gap=cfg.refine_max_gap_frames, lag=cfg.refine_lag_frames, huber_px=cfg.refine_huber_px,
-                                  prior_px=cfg.refine_prior_px, anchor_px=cfg.refine_anchor_px, gate_px=cfg.refine_gate_px, features=cfg.refine_features, lowe_ratio=cfg.refine_lowe_ratio,
+                                  prior_px=cfg.refine_prior_px, anchor_px=cfg.refine_anchor_px, gate_px=cfg.refine_gate_px, matcher=cfg.refine_matcher, features=cfg.refine_features, lowe_ratio=cfg.refine_lowe_ratio,
                                   min_matches=cfg.refine_min_matches, min_baseline_m=cfg.min_baseline_m)
         frames = refiner.stream(frames)
     bar = progress_bar(total, progress, desc="semi-dense", unit="frame")
