@@ -130,7 +130,7 @@ def _solve(f_px: float, R0: dict[int, np.ndarray], C: dict[int, np.ndarray], fre
     pairs = [p for p in pairs if p[0] in col and p[1] in col and len(p[2])]
     centre = np.zeros((n, 3)) if prior_at is None else np.asarray(prior_at, float).reshape(-1, 3)
     w_prior = np.repeat(f_px / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3)  # px of residual per rad of correction
-    # every pair's matches stacked, each row knowing its pair (seg) and the pair its two frames (pi, pj)
+    # every pair's matches stacked: each row knows its pair (seg), each pair its two frames (pi, pj)
     pi = np.array([col[p[0]] for p in pairs], int)
     pj = np.array([col[p[1]] for p in pairs], int)
     counts = np.array([len(p[2]) for p in pairs], int)
