@@ -24,7 +24,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,7 +32,7 @@ if str(ROOT) not in sys.path:
 
 from bench.bench_semidense import load_frames  # noqa: E402
 from bench.common import best_wall_and_cpu, report  # noqa: E402
-from bench.semidense_kitti_clip import DEFAULT_CLIP  # noqa: E402
+from bench.semidense_kitti_clip import DEFAULT_CLIP, feature_matches  # noqa: E402
 from mapkit.core.geometry import rotation_angle_rad  # noqa: E402
 from mapkit.mapping.pose_refine import RotationRefiner, epipolar_distances_px  # noqa: E402
 
@@ -45,19 +44,6 @@ SETTINGS = [
     ("tracks, 1,000 corners", {"features": 1000}),
     ("tracks, 400 corners, 15 px apart", {"features": 400, "track_min_distance_px": 15}),
 ]
-
-
-def independent_check(K: np.ndarray, images: list[np.ndarray], max_gap: int = 3) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
-    """SIFT matches (3,000 features, ratio test 0.7) of every frame with the next ``max_gap``."""
-    sift, bf = cv2.SIFT_create(3000), cv2.BFMatcher(cv2.NORM_L2)
-    feats = [sift.detectAndCompute(im, None) for im in images]
-    out = []
-    for i in range(len(images)):
-        for j in range(i + 1, min(i + max_gap + 1, len(images))):
-            (ka, da), (kb, db) = feats[i], feats[j]
-            good = [m for m, n in bf.knnMatch(da, db, k=2) if m.distance < 0.7 * n.distance]
-            out.append((i, j, np.array([ka[m.queryIdx].pt for m in good]).reshape(-1, 2), np.array([kb[m.trainIdx].pt for m in good]).reshape(-1, 2)))
-    return out
 
 
 def check_px(K: np.ndarray, poses: np.ndarray, matches) -> float:
@@ -82,7 +68,7 @@ def main() -> int:
 
     K, poses, images = load_frames(args.clip, args.first_frame + args.frames)
     poses, images = poses[args.first_frame:], images[args.first_frame:]
-    matches = independent_check(K, images)
+    matches = feature_matches(images, range(len(images)), 3)  # the independent check: SIFT, ratio test, 1-3 frames apart
     given_px = check_px(K, poses, matches)
 
     refined, rows = {}, []

@@ -50,7 +50,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -116,11 +116,12 @@ def stream_frames(poses: np.ndarray, images: list[Path], frames: range) -> Itera
         yield i, i * FRAME_PERIOD_NS, cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), poses[i]
 
 
-def feature_matches(images: list[Path], frames: range, max_gap: int) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+def feature_matches(images: Sequence[Path | np.ndarray], frames: range, max_gap: int) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
     """(i, j, pixels in i (n, 2), pixels in j (n, 2)) of SIFT matches passing Lowe's ratio test, for every
-    pair of ``frames`` at most ``max_gap`` apart."""
+    pair of ``frames`` at most ``max_gap`` apart; ``images`` are paths or grey images already read."""
     sift = cv2.SIFT_create(nfeatures=3000)
-    feats = {i: sift.detectAndCompute(cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), None) for i in frames}
+    grey = lambda im: im if isinstance(im, np.ndarray) else cv2.imread(str(im), cv2.IMREAD_GRAYSCALE)  # noqa: E731
+    feats = {i: sift.detectAndCompute(grey(images[i]), None) for i in frames}
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     out = []
     for i in frames:

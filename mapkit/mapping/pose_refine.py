@@ -10,8 +10,8 @@ rotations alone are a small, well-posed problem:
 
 - correspondences of each frame with the frames up to ``max_gap`` after it: by default corners tracked from frame
   to frame (Shi-Tomasi corners, pyramidal Lucas-Kanade with a forward-backward check, as visual-inertial odometry
-  front ends track; ``matcher="tracks"``), or SIFT features matched by Lowe's ratio test (``matcher="sift"``, 5x
-  the CPU time for the same rotations on the KITTI clip); matches farther than ``gate_px`` from the given
+  front ends track; ``matcher="tracks"``), or SIFT features matched by Lowe's ratio test (``matcher="sift"``, about
+  ten times the CPU time for rotations as good on the KITTI clip: ``bench/rotation_refine_matchers.py``); matches farther than ``gate_px`` from the given
   epipolar lines left out (repeated facades, tracks that slid along an edge);
 - per frame a small rotation ``x`` (rotation vector, camera frame: ``R = R_given @ exp(x)``) minimising the
   matches' distances (px) to the epipolar lines their partners predict, Huber-robust, with a weak prior at
@@ -241,7 +241,7 @@ class RotationRefiner:
     # corners per frame (or SIFT features), Lucas-Kanade window, corner spacing, forward-backward tolerance; chosen on
     # frames 0-23 of the KITTI clip at 640x480 by the median distance of independent SIFT matches to the refined
     # epipolar lines (given 0.550 px; SIFT refinement 0.184; 600 corners in 11 / 15 px windows 0.183 / 0.185, 400
-    # corners 0.196, 1,000 corners 0.183 px; bench/bench_semidense.py times the refinement)
+    # corners 0.190, 1,000 corners 0.184 px: bench/rotation_refine_matchers.py)
     features: int = 600
     track_window_px: int = 11
     track_min_distance_px: int = 10
@@ -252,6 +252,9 @@ class RotationRefiner:
     corrections_deg: dict = field(default_factory=dict)
     _before: list = field(default_factory=list)
     _after: list = field(default_factory=list)
+    # the tracker's state: the last frame's (grey, corners, track ids), reset by each stream; the next track id
+    _last: Optional[tuple] = field(default=None, init=False, repr=False)
+    _next_track: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.lag < self.max_gap:
@@ -280,7 +283,7 @@ class RotationRefiner:
         import cv2
 
         uv, ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
-        prev = getattr(self, "_last", None)
+        prev = self._last
         if prev is not None and len(prev[1]) and prev[0].shape == g.shape:
             lk = dict(winSize=(self.track_window_px, self.track_window_px), maxLevel=3,
                       criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
@@ -299,7 +302,7 @@ class RotationRefiner:
             if new is not None:
                 new = cv2.cornerSubPix(g, new.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1),
                                        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01)).reshape(-1, 2)
-                first = getattr(self, "_next_track", 0)
+                first = self._next_track
                 self._next_track = first + len(new)
                 uv, ids = np.vstack([uv, new]), np.concatenate([ids, np.arange(first, first + len(new))])
         self._last = (g, uv.astype(np.float32), ids)
@@ -325,6 +328,7 @@ class RotationRefiner:
 
     def stream(self, frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
         f_px = float(self.K[0, 0])
+        self._last = None  # a new stream's first frame is not tracked from another stream's last
         # the window: up to ``lag`` frames already handed on (features dropped), then those still waiting; a frame is
         # handed on once ``lag`` frames after it have arrived, solved with every frame of the window free: those
         # still waiting held at their given rotations (prior_px), those handed on at their final ones (anchor_px);
