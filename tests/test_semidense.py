@@ -825,6 +825,21 @@ def test_epipolar_derivatives_match_finite_differences(rng):
         assert np.allclose(fd_j, d_j[:, k], rtol=1e-4, atol=1e-3 * np.abs(d_j).max())
 
 
+def test_right_jacobians_are_the_first_order_turn(rng):
+    """``R0 exp(x + dx)`` is ``R0 exp(x) exp(Jr(x) dx)`` to first order, for rotations of several sizes and at zero."""
+    from mapkit.mapping.pose_refine import _right_jacobians
+    from scipy.spatial.transform import Rotation
+
+    x = np.vstack([np.zeros(3), rng.normal(size=(5, 3)) * [[1e-3], [0.01], [0.3], [1.0], [2.5]]])
+    Jr = _right_jacobians(x)
+    h = 1e-7
+    for xk, J in zip(x, Jr):
+        for k in range(3):
+            dx = h * np.eye(3)[k]
+            turn = Rotation.from_rotvec(xk).inv() * Rotation.from_rotvec(xk + dx)  # exp(x)^-1 exp(x + dx)
+            assert np.allclose(turn.as_rotvec() / h, J @ np.eye(3)[k], atol=1e-6)
+
+
 def test_rotation_solver_agrees_with_scipy_least_squares(rng):
     """The refiner's own solver (Levenberg-Marquardt on reweighted 3x3-block normal equations) reaches the minimum
     that scipy's general robust least squares finds for the same Huber cost: pixel epipolar distances computed the

@@ -62,13 +62,19 @@ def _rotvecs_to_matrices(x: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
 
 
-def _right_jacobian(x: np.ndarray) -> np.ndarray:
-    """(3, 3) right Jacobian of SO(3) at the rotation vector ``x``: R0 exp(x + dx) = R0 exp(x) exp(Jr(x) dx) to first order."""
-    theta = float(np.linalg.norm(x))
-    Kx = skew(x)
-    if theta < 1e-8:
-        return np.eye(3) - 0.5 * Kx
-    return np.eye(3) - (1 - np.cos(theta)) / theta**2 * Kx + (theta - np.sin(theta)) / theta**3 * (Kx @ Kx)
+def _right_jacobians(x: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) right Jacobians of SO(3) at the rotation vectors ``x`` (n, 3): R0 exp(x + dx) = R0 exp(x) exp(Jr(x) dx)
+    to first order."""
+    x = np.asarray(x, float).reshape(-1, 3)
+    theta = np.linalg.norm(x, axis=1)
+    small = theta < 1e-8
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5, (1 - np.cos(th)) / th**2)[:, None, None]
+    b = np.where(small, 0.0, (th - np.sin(th)) / th**3)[:, None, None]
+    Kx = np.zeros((len(x), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -x[:, 2], x[:, 1], -x[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = x[:, 2], -x[:, 1], x[:, 0]
+    return np.eye(3) - a * Kx + b * (Kx @ Kx)
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -159,16 +165,22 @@ def _solve(f_px: float, R0: dict[int, np.ndarray], C: dict[int, np.ndarray], fre
         cost += c
         if not with_system:
             return cost, H, g
-        # per pair, the 6x6 block and gradient in the perturbations (d_i, d_j), then turned into x by the frames'
-        # right Jacobians (d = Jr(x) dx)
-        Jr = np.array([_right_jacobian(xk) for xk in x])
-        wr = w * r
-        for q, (ki, kj) in enumerate(zip(pi, pj)):
-            rows = slice(starts[q], starts[q] + counts[q])
-            Jq = np.concatenate([d_i[rows] @ Jr[ki], d_j[rows] @ Jr[kj]], axis=1)
-            idx = np.r_[3 * ki:3 * ki + 3, 3 * kj:3 * kj + 3]
-            H[np.ix_(idx, idx)] += (Jq * w[rows, None]).T @ Jq
-            g[idx] += Jq.T @ wr[rows]
+        # per pair, the 6x6 block and gradient in the perturbations (d_i, d_j), summed over its rows (which are
+        # contiguous), then turned into x by the frames' right Jacobians (d = Jr(x) dx) and added into H and g
+        D = np.concatenate([d_i, d_j], axis=1)
+        Dw = D * w[:, None]
+        S = np.stack([Dw[s0:s0 + k].T @ D[s0:s0 + k] for s0, k in zip(starts, counts)])  # (pairs, 6, 6)
+        G = np.add.reduceat(Dw * r[:, None], starts)  # (pairs, 6)
+        Jr = _right_jacobians(x)
+        T = np.zeros((len(pairs), 6, 6))
+        T[:, :3, :3], T[:, 3:, 3:] = Jr[pi], Jr[pj]
+        S = np.einsum("qki,qkl,qlj->qij", T, S, T)
+        G = np.einsum("qki,qk->qi", T, G)
+        blocks = H.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)  # a view: blocks[k, l] is H's (k, l) 3x3 block
+        for (rk, ck), (rs, cs) in (((pi, pi), (0, 0)), ((pi, pj), (0, 3)), ((pj, pi), (3, 0)), ((pj, pj), (3, 3))):
+            np.add.at(blocks, (rk, ck), S[:, rs:rs + 3, cs:cs + 3])
+        np.add.at(g.reshape(n, 3), pi, G[:, :3])
+        np.add.at(g.reshape(n, 3), pj, G[:, 3:])
         return cost, H, g
 
     x = np.zeros((n, 3)) if x0 is None else np.asarray(x0, float).reshape(n, 3).copy()
