@@ -845,8 +845,9 @@ def test_rotation_solver_agrees_with_scipy_least_squares(rng):
     that scipy's general robust least squares finds for the same Huber cost: pixel epipolar distances computed the
     textbook way (fundamental matrix of the poses, ``epipolar_distances_px``) and the prior, on noisy matches with
     10% wrong ones; every frame's correction agrees within 1e-4 deg."""
-    from mapkit.mapping.pose_refine import _normalised, _rotvecs_to_matrices, _solve, epipolar_distances_px
+    from mapkit.mapping.pose_refine import _normalised, _solve, epipolar_distances_px
     from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
 
     n_frames = 6
     true = np.array([make_pose(np.eye(3), [0.1 * i, 0.0, 1.0 * i]) for i in range(n_frames)])
@@ -864,7 +865,7 @@ def test_rotation_solver_agrees_with_scipy_least_squares(rng):
 
     def poses_at(x):
         out = given.copy()
-        out[:, :3, :3] = given[:, :3, :3] @ _rotvecs_to_matrices(x.reshape(-1, 3))
+        out[:, :3, :3] = given[:, :3, :3] @ Rotation.from_rotvec(x.reshape(-1, 3)).as_matrix()
         return out
 
     def residuals(x):  # signs do not matter under a Huber loss of squares

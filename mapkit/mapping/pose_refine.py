@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Optional, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import skew
 
@@ -48,18 +49,6 @@ def epipolar_distances_px(K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: 
     F = Ki.T @ skew(rel[:3, 3]) @ rel[:3, :3] @ Ki
     lines = np.column_stack([xi, np.ones(len(xi))]) @ F.T
     return np.abs((np.column_stack([xj, np.ones(len(xj))]) * lines).sum(1)) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
-
-
-def _rotvecs_to_matrices(x: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) rotation matrices of the rotation vectors ``x`` (n, 3) (Rodrigues, vectorised)."""
-    theta = np.linalg.norm(x, axis=1)
-    small = theta < 1e-12
-    k = np.where(small[:, None], 0.0, x / np.where(small, 1.0, theta)[:, None])
-    Kx = np.zeros((len(x), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(theta)[:, None, None], np.cos(theta)[:, None, None]
-    return np.eye(3) + s * Kx + (1 - c) * (Kx @ Kx)
 
 
 def _right_jacobians(x: np.ndarray) -> np.ndarray:
@@ -157,7 +146,7 @@ def _solve(f_px: float, R0: dict[int, np.ndarray], C: dict[int, np.ndarray], fre
             g += w_p * w_prior * prior
         if not pairs:
             return cost, H, g
-        R = R0f @ _rotvecs_to_matrices(x)
+        R = R0f @ Rotation.from_rotvec(x).as_matrix()
         t = np.einsum("qki,qk->qi", R[pj], baseline)  # Rj^T (Ci - Cj)
         M = np.einsum("qki,qkj->qij", R[pj], R[pi])  # Rj^T Ri
         r, d_i, d_j = _pair_terms(f_px, M[seg], t[seg], A, B, with_system)
@@ -216,7 +205,7 @@ def refine_rotations(K: np.ndarray, poses: np.ndarray, matches: Matches, huber_p
     pairs = [(i, j, _normalised(K, a), _normalised(K, b)) for i, j, a, b in matches if len(a)]
     x = _solve(float(K[0, 0]), R0, C, ids, pairs, huber_px, prior_px)
     out = np.array(poses, np.float64, copy=True)
-    Rs = _rotvecs_to_matrices(x)
+    Rs = Rotation.from_rotvec(x).as_matrix()
     for k, f in enumerate(ids):
         out[f, :3, :3] = R0[f] @ Rs[k]
     return out
@@ -353,7 +342,7 @@ class RotationRefiner:
 
         def pose(fr: _Frame, x: np.ndarray) -> np.ndarray:
             T = np.array(fr.given, np.float64, copy=True)
-            T[:3, :3] = fr.given[:3, :3] @ _rotvecs_to_matrices(x[None])[0]
+            T[:3, :3] = fr.given[:3, :3] @ Rotation.from_rotvec(x).as_matrix()
             return T
 
         def hand_on() -> tuple[int, int, np.ndarray, np.ndarray]:
