@@ -801,10 +801,12 @@ def test_rotation_refinement_recovers_perturbed_rotations(rng):
         assert np.degrees(err) < 0.02, f
 
 
-def test_epipolar_derivatives_match_finite_differences(rng):
-    """The refiner's analytic derivatives of the epipolar distance with respect to each camera's rotation are the
-    finite differences of the distance itself (random cameras, random matches)."""
-    from mapkit.mapping.pose_refine import _pair_terms
+@pytest.mark.parametrize("f_px", [F_PX, (F_PX, 2.5 * F_PX)], ids=["square", "fx!=fy"])
+def test_epipolar_derivatives_match_finite_differences(rng, f_px):
+    """The refiner's epipolar distances are the pixel distances the fundamental matrix gives (also where fx != fy,
+    as in an image resized to another aspect), and its analytic derivatives with respect to each camera's rotation
+    are the finite differences of the distance itself (random cameras, random matches)."""
+    from mapkit.mapping.pose_refine import _pair_terms, epipolar_distances_px
     from scipy.spatial.transform import Rotation
 
     Ri, Rj = Rotation.random(2, random_state=4).as_matrix()
@@ -813,9 +815,13 @@ def test_epipolar_derivatives_match_finite_differences(rng):
     b = np.column_stack([rng.normal(size=(20, 2)) * 0.4, np.ones(20)])
 
     def terms(Ri, Rj, derivatives=True):
-        return _pair_terms(F_PX, np.broadcast_to(Rj.T @ Ri, (20, 3, 3)), np.broadcast_to(Rj.T @ (Ci - Cj), (20, 3)), a, b, derivatives)
+        return _pair_terms(f_px, np.broadcast_to(Rj.T @ Ri, (20, 3, 3)), np.broadcast_to(Rj.T @ (Ci - Cj), (20, 3)), a, b, derivatives)
 
     r, d_i, d_j = terms(Ri, Rj)
+    fx, fy = np.broadcast_to(f_px, (2,))
+    K = np.array([[fx, 0, 320.0], [0, fy, 240.0], [0, 0, 1]])
+    poses = [make_pose(Ri, Ci), make_pose(Rj, Cj)]
+    assert np.allclose(np.abs(r), epipolar_distances_px(K, poses, 0, 1, (a @ K.T)[:, :2], (b @ K.T)[:, :2]), rtol=1e-9)
     h = 1e-6
     for k in range(3):
         turn = Rotation.from_rotvec(h * np.eye(3)[k]).as_matrix()

@@ -74,24 +74,29 @@ def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0], axis=-1)
 
 
-def _pair_terms(f_px: float, M: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray,
+def _pair_terms(f_px: float | Sequence[float], M: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray,
                 derivatives: bool = True) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
     """Signed epipolar distances (n,) in px of the matches ``b`` (frame j) from the lines of ``a`` (frame i; both
     normalised homogeneous (n, 3)), and their derivatives (n, 3) with respect to right perturbations of Ri and Rj
-    (``Ri exp(d)``), given each row's M = Rj^T Ri (n, 3, 3) and t = Rj^T (Ci - Cj) (n, 3).
+    (``Ri exp(d)``), given each row's M = Rj^T Ri (n, 3, 3) and t = Rj^T (Ci - Cj) (n, 3), for a camera of focal
+    lengths ``f_px`` (fx, fy; or one number for both).
 
-    The line is l = t x (M a) and the distance f (b.l) / |l_xy|. Perturbing Ri turns M a into M (a + d x a):
+    The line is l = t x (M a) in normalised coordinates, K^-T l in pixels, whose normal is (lx / fx, ly / fy): the
+    distance in pixels is (b.l) / |(lx / fx, ly / fy)|. Perturbing Ri turns M a into M (a + d x a):
     dl = -[t]x M [a]x d. Perturbing Rj turns t into t - d x t and M into M - [d]x M, and the two terms sum to
     dl = [l]x d (the identity [t]x[m]x - [m]x[t]x = [t x m]x)."""
+    fx, fy = np.broadcast_to(np.asarray(f_px, float), (2,))
     line = _cross(t, np.einsum("nij,nj->ni", M, a))
-    norm = np.maximum(np.hypot(line[:, 0], line[:, 1]), 1e-12)
+    nx, ny = line[:, 0] / fx, line[:, 1] / fy  # the pixel line's normal
+    norm = np.maximum(np.hypot(nx, ny), 1e-15)
     s = (b * line).sum(1)
-    r = f_px * s / norm
+    r = s / norm
     if not derivatives:
         return r, None, None
-    g = b / norm[:, None]  # dr/dl / f
-    g[:, :2] -= (s / norm**3)[:, None] * line[:, :2]
-    g *= f_px
+    g = b / norm[:, None]  # dr/dl
+    k = s / norm**3
+    g[:, 0] -= k * nx / fx
+    g[:, 1] -= k * ny / fy
     d_j = _cross(g, line)  # g^T [l]x
     d_i = _cross(a, np.einsum("ni,nij->nj", _cross(g, t), M))  # -g^T [t]x M [a]x = a x (M^T (g x t))
     return r, d_i, d_j
@@ -104,12 +109,13 @@ def _huber(r: np.ndarray, delta: float) -> tuple[float, np.ndarray]:
     return float(np.where(inside, r * r, 2 * delta * ar - delta * delta).sum()), np.where(inside, 1.0, delta / np.maximum(ar, 1e-300))
 
 
-def _solve(f_px: float, R0: dict[int, np.ndarray], C: dict[int, np.ndarray], free: list[int],
+def _solve(f_px: float | Sequence[float], R0: dict[int, np.ndarray], C: dict[int, np.ndarray], free: list[int],
            pairs: list[tuple[int, int, np.ndarray, np.ndarray]], huber_px: float, prior_px: float | np.ndarray,
            prior_at: Optional[np.ndarray] = None, x0: Optional[np.ndarray] = None, max_iterations: int = 50,
            step_tol_rad: float = 1e-6) -> np.ndarray:
     """Rotation corrections (len(free), 3) of the ``free`` frames (``R = R0 @ exp(x)``), each held by a prior at
-    ``prior_at`` (default: no correction) of ``prior_px`` px per 1/f rad (a number, or one per frame).
+    ``prior_at`` (default: no correction) of ``prior_px`` px per 1/f rad (a number, or one per frame; f the mean of
+    fx and fy).
     ``pairs`` hold normalised homogeneous coordinates (n, 3) of the matches in frame i and frame j.
 
     The Huber cost of every epipolar distance and prior residual is minimised by Levenberg-Marquardt on
@@ -124,7 +130,8 @@ def _solve(f_px: float, R0: dict[int, np.ndarray], C: dict[int, np.ndarray], fre
     col = {f: k for k, f in enumerate(free)}
     pairs = [p for p in pairs if p[0] in col and p[1] in col and len(p[2])]
     centre = np.zeros((n, 3)) if prior_at is None else np.asarray(prior_at, float).reshape(-1, 3)
-    w_prior = np.repeat(f_px / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3)  # px of residual per rad of correction
+    f_mean = float(np.mean(f_px))
+    w_prior = np.repeat(f_mean / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3)  # px of residual per rad of correction
     # every pair's matches stacked: each row knows its pair (seg), each pair its two frames (pi, pj)
     pi = np.array([col[p[0]] for p in pairs], int)
     pj = np.array([col[p[1]] for p in pairs], int)
@@ -203,7 +210,7 @@ def refine_rotations(K: np.ndarray, poses: np.ndarray, matches: Matches, huber_p
     R0 = {f: poses[f, :3, :3] for f in ids}
     C = {f: poses[f, :3, 3] for f in ids}
     pairs = [(i, j, _normalised(K, a), _normalised(K, b)) for i, j, a, b in matches if len(a)]
-    x = _solve(float(K[0, 0]), R0, C, ids, pairs, huber_px, prior_px)
+    x = _solve((float(K[0, 0]), float(K[1, 1])), R0, C, ids, pairs, huber_px, prior_px)
     out = np.array(poses, np.float64, copy=True)
     Rs = Rotation.from_rotvec(x).as_matrix()
     for k, f in enumerate(ids):
@@ -241,8 +248,9 @@ class RotationRefiner:
     matcher: str = "tracks"  # or "sift"
     # corners per frame (or SIFT features), Lucas-Kanade window, corner spacing, forward-backward tolerance; chosen on
     # frames 0-23 of the KITTI clip at 640x480 by the median distance of independent SIFT matches to the refined
-    # epipolar lines (given 0.550 px; SIFT refinement 0.184; 600 corners in 11 / 15 px windows 0.183 / 0.185, 400
-    # corners 0.190, 1,000 corners 0.184 px: bench/rotation_refine_matchers.py)
+    # epipolar lines (given 0.550 px; SIFT refinement 0.175; 600 corners in 11 / 15 px windows 0.180 / 0.183, 400
+    # corners 0.183, 1,000 corners 0.181 px: bench/rotation_refine_matchers.py, residuals in exact pixels since
+    # session 16; the same order with fx-scaled residuals before)
     features: int = 600
     track_window_px: int = 11
     track_min_distance_px: int = 10
@@ -328,7 +336,7 @@ class RotationRefiner:
         return _normalised(self.K, ua), _normalised(self.K, ub)
 
     def stream(self, frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
-        f_px = float(self.K[0, 0])
+        f_px = (float(self.K[0, 0]), float(self.K[1, 1]))
         self._last = None  # a new stream's first frame is not tracked from another stream's last
         # the window: up to ``lag`` frames already handed on (features dropped), then those still waiting; a frame is
         # handed on once ``lag`` frames after it have arrived, solved with every frame of the window free: those
