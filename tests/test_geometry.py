@@ -20,6 +20,14 @@ def test_quaternion_round_trip_and_sign(rng):
     np.testing.assert_allclose(g.matrix_to_quat_wxyz(g.yaw_rotation(np.pi / 2)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-12)
 
 
+def test_skew_is_the_cross_product_for_one_vector_and_a_stack(rng):
+    u, v = rng.normal(size=(2, 7, 3))
+    np.testing.assert_allclose(g.skew(u[0]) @ v[0], np.cross(u[0], v[0]), atol=1e-12)
+    S = g.skew(u)
+    assert S.shape == (7, 3, 3)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", S, v), np.cross(u, v), atol=1e-12)
+
+
 def test_invert_pose_is_inverse(rng):
     T = np.stack([_random_pose(rng) for _ in range(5)])
     np.testing.assert_allclose(g.invert_pose(T) @ T, np.broadcast_to(np.eye(4), T.shape), atol=1e-12)

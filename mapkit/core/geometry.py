@@ -51,8 +51,13 @@ def average_rotations(R: np.ndarray, weights: np.ndarray | None = None) -> np.nd
 # --- SE(3) ----------------------------------------------------------------------------------------
 
 def skew(v: np.ndarray) -> np.ndarray:
-    """(3, 3) cross-product matrix [v]x of a 3-vector: [v]x w = v x w."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    """Cross-product matrix [v]x of a 3-vector, (3, 3), or of each of a stack of them, (..., 3) -> (..., 3, 3):
+    [v]x w = v x w."""
+    v = np.asarray(v, dtype=np.float64)
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
 
 
 def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -60,9 +60,7 @@ def _right_jacobians(x: np.ndarray) -> np.ndarray:
     th = np.where(small, 1.0, theta)
     a = np.where(small, 0.5, (1 - np.cos(th)) / th**2)[:, None, None]
     b = np.where(small, 0.0, (th - np.sin(th)) / th**3)[:, None, None]
-    Kx = np.zeros((len(x), 3, 3))
-    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -x[:, 2], x[:, 1], -x[:, 0]
-    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = x[:, 2], -x[:, 1], x[:, 0]
+    Kx = skew(x)
     return np.eye(3) - a * Kx + b * (Kx @ Kx)
 
 
