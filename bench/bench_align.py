@@ -24,6 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mapkit.core.runio import read_timings  # noqa: E402
 from mapkit.multisession.align import align_workspace  # noqa: E402
 
 
@@ -45,7 +46,7 @@ def run(workspace: Path, counts: list[int]) -> dict:
                 out = align_workspace(tmp, progress=False)
             total = time.perf_counter() - t0
             m = json.loads((out / "metrics.json").read_text())
-            reg = m["registration"]
+            reg = {**m["registration"], **read_timings(out)}
             rows.append({"sessions": k, "pairs": reg["pairs"], "accepted": m["pairs"]["accepted"], "total_s": total,
                          "registration_s": reg["seconds_registering"], "pairs_per_s": reg["pairs_per_s"]})
             print(f"{k} sessions: {reg['pairs']:4d} submap pairs ({m['pairs']['accepted']} accepted), "

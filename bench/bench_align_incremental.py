@@ -28,6 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from mapkit.core.runio import read_timings  # noqa: E402
 from mapkit.multisession.align import align_workspace  # noqa: E402
 
 
@@ -45,7 +46,7 @@ def _align(ws: Path) -> tuple[float, dict]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out = align_workspace(ws, progress=False)
-    return time.perf_counter() - t0, json.loads((out / "metrics.json").read_text())
+    return time.perf_counter() - t0, {**json.loads((out / "metrics.json").read_text()), "timings": read_timings(out)}
 
 
 def run(workspace: Path, repeat: int = 1, added: str | None = None) -> dict:
@@ -82,7 +83,7 @@ def run(workspace: Path, repeat: int = 1, added: str | None = None) -> dict:
          "add_one_s": t_add, "ratio": med_add / med_all, "ratios": [a / b for a, b in zip(t_add, t_all)],
          "pairs_scratch": m_all["registration"]["pairs"], "pairs_registered_adding": reg["registered_this_run"],
          "pair_share": reg["registered_this_run"] / m_all["registration"]["pairs"],
-         "graph_scratch_s": m_all["graph"]["seconds"], "graph_add_s": m_add["graph"]["seconds"],
+         "graph_scratch_s": m_all["timings"]["graph_seconds"], "graph_add_s": m_add["timings"]["graph_seconds"],
          "sessions_solved_adding": m_add["graph"]["sessions_solved"],
          "sessions_kept_adding": sum(bool(v.get("outputs_kept")) for v in m_add["sessions"].values())}
     print(f"all {len(names)} sessions from scratch: median {med_all:.1f} s of {len(t_all)} ({r['pairs_scratch']} submap pairs registered, "

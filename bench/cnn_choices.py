@@ -1,4 +1,4 @@
-"""The CNN descriptor's unstated values, measured (issue 21, item 4): triplet margin, optimiser,
+"""The CNN descriptor's unstated values, measured: triplet margin, optimiser,
 channel widths and hidden width, one at a time against the default, scored on held-out places.
 
 The semi-dense paper (Sec. 3.3.2, 4.2) fixes the input, the layer types, the 512-d output, the
@@ -56,6 +56,7 @@ from typing import Optional
 import numpy as np
 
 from mapkit.core.errors import MapkitError
+from mapkit.core.runio import read_timings
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -181,15 +182,15 @@ def run_variant(name: str, seed: int, ws: Path, town: Path, triplets: Path, pair
     t0 = time.perf_counter()
     model = train_cnn(triplets, out / "runs" / tag, overrides=overrides)
     call_s = time.perf_counter() - t0
-    m = json.loads((model / "metrics.json").read_text())
+    m = {**json.loads((model / "metrics.json").read_text()), **read_timings(model)}
     t1 = time.perf_counter()
     r = evaluate(ws, town, triplets, pairs, "cnn", out / "places" / tag, model)
     eval_s = time.perf_counter() - t1
-    ep = m["epochs"]
+    ep = json.loads((model / "metrics.json").read_text())["epochs"]
     row = {"variant": name, "seed": seed, "overrides": VARIANTS[name], **auc_figures(r, "cnn"),
            "test_accuracy": m["final"].get("test_accuracy"), "test_margin_mean": m["final"].get("test_margin_mean"),
            "final_loss": m["final"].get("loss"), "train_wall_s": m.get("wall_s_training"),
-           "train_cpu_s": float(sum(e.get("train_cpu_s", 0.0) for e in ep)), "triplets_per_s": m.get("triplets_per_s_mean"),
+           "train_cpu_s": float(sum(e.get("train_cpu_s", 0.0) for e in m["epochs"])), "triplets_per_s": m.get("triplets_per_s_mean"),
            "triplet_set": m.get("triplet_set"), "epochs": len(ep), "this_call_train_s": call_s, "this_call_eval_s": eval_s,
            "model": str(model), "places": str(out / "places" / tag)}
     print(f"[cnn_choices] {tag}: held-out mean AUC {_f(row['auc_mean'])}, test accuracy {_f(row['test_accuracy'])}, "

@@ -20,7 +20,7 @@ torch = pytest.importorskip("torch")
 from mapkit.cli import config_model
 from mapkit.core.config import load_config  # noqa: E402
 from mapkit.core.errors import ConfigError, InputError  # noqa: E402
-from mapkit.core.runio import write_json  # noqa: E402
+from mapkit.core.runio import read_timings, write_json  # noqa: E402
 from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402
 from mapkit.places.cnn import (  # noqa: E402
     CnnConfig,
@@ -175,7 +175,9 @@ def test_training_writes_every_output_and_learns(tiny_model):
     assert [r["epoch"] for r in m["epochs"]] == [1, 2, 3]
     assert m["epochs"][-1]["loss"] < m["epochs"][0]["loss"]
     assert all(r["hard_triplets"] > 0 for r in m["epochs"][1:]) and "hard_triplets" not in m["epochs"][0]
-    assert 0.0 <= m["final"]["test_accuracy"] <= 1.0 and m["final"]["triplets_per_s"] > 0
+    assert 0.0 <= m["final"]["test_accuracy"] <= 1.0
+    # how long it took is the run record, apart from the results
+    assert "triplets_per_s" not in m["final"] and read_timings(tiny_model)["epochs"][-1]["triplets_per_s"] > 0
     man = json.loads((tiny_model / "manifest.json").read_text())
     assert man["kind"] == "mapkit cnn descriptor" and "model.onnx" in man["files"] and man["model_config"]["grid"] == 8
     assert load_config(TrainConfig, tiny_model / "config.yaml").model.conv2_channels == 4

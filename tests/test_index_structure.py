@@ -15,7 +15,7 @@ from test_align import STREET_M, street  # noqa: E402  (the street of boxes: fro
 
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import make_pose, yaw_rotation
-from mapkit.core.runio import write_json
+from mapkit.core.runio import read_timings, write_json
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.index_structure import (
     _DESCRIBERS,
@@ -209,7 +209,7 @@ def test_rebuild_with_same_inputs_skips_and_config_change_rebuilds(street_ws, nb
     assert (nbld_index / "manifest.json").stat().st_mtime_ns == before
     other = build_structure_index(ws, "nbld", out=ws / "idx-pca10", sessions=["a"], overrides={**FAST, "pca_dim": 10}, cache_dir=ws / "cache")
     assert StructureIndex.load(other).manifest["counts"]["dim"] == 10
-    assert json.loads((other / "metrics.json").read_text())["sessions"]["a"]["cached"]  # descriptors reused, only the PCA is new
+    assert read_timings(other)["sessions"]["a"]["cached"]  # descriptors reused, only the PCA is new
     assert not list(ws.glob(".*partial*")) and not list((ws / "indexes").glob(".*partial*"))
     (ws / ".idx-pca12.partial-999999999-dead").mkdir()  # an interrupted build, its process gone
     build_structure_index(ws, "nbld", out=ws / "idx-pca12", sessions=["a"], overrides={**FAST, "pca_dim": 12}, cache_dir=ws / "cache")

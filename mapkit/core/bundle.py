@@ -17,16 +17,17 @@ from typing import Iterable, Iterator
 
 from mapkit import __version__
 from mapkit.core.errors import InputError
-from mapkit.core.runio import WRITE_ERRNOS, sha256_file, write_error, write_json
+from mapkit.core.runio import TIMINGS, WRITE_ERRNOS, sha256_file, write_error, write_json
 
 MANIFEST = "manifest.json"
 
 
 def write_manifest(folder: Path, manifest: dict) -> None:
-    """Checksum every file of the bundle but the manifest, then write the manifest (last)."""
+    """Checksum every file of the bundle but the manifest and the run record (``timings.json``: how
+    long the build took, which differs from run to run), then write the manifest (last)."""
     files = {}
     for p in sorted(folder.rglob("*")):
-        if p.is_file() and p.name != MANIFEST and not p.name.endswith(".partial"):
+        if p.is_file() and p.name not in (MANIFEST, TIMINGS) and not p.name.endswith(".partial"):
             files[p.relative_to(folder).as_posix()] = {"sha256": sha256_file(p), "bytes": p.stat().st_size}
     manifest["files"] = files
     write_json(folder / MANIFEST, manifest)

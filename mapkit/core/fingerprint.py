@@ -113,7 +113,7 @@ def record_files(folder: Path, rels: list[str]) -> dict[str, dict[str, Any]]:
         p = folder / rel
         paths = [p] if p.is_file() else sorted(q for q in p.rglob("*") if q.is_file()) if p.is_dir() else []
         for q in paths:
-            if q.name.endswith(".partial") or q.name.startswith(".done"):
+            if q.name.endswith(".partial") or q.name.startswith(".done") or q.name == "timings.json":  # run records
                 continue
             out[q.relative_to(folder).as_posix()] = {"bytes": q.stat().st_size, "sha256": sha256_file(q)}
     return out

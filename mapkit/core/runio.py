@@ -9,6 +9,10 @@ matches its record is re-made by its own stage (:func:`is_done` with ``verify``)
 stage that loads it (:func:`verify_file`). Markers written before inputs were recorded have no
 ``inputs`` and stay valid for their config hash, so that existing workspaces do not rebuild.
 
+Wall-clock figures (how long a stage took, how fast it went) are a record of one run, not a result:
+they go into the stage folder's ``timings.json`` (:func:`write_timings`), never into ``metrics.json``
+nor into any file a marker records, so that the same inputs give byte-identical results.
+
 Writes are verified before the rename that publishes them (:func:`atomic_path`), and an OS error
 while writing (a full disk above all) becomes one :class:`WriteError` line naming the path and the
 free space.
@@ -40,6 +44,8 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 DONE_MARKER = ".done"
+#: a stage folder's run record: wall-clock figures of the run that made it (never hashed, never compared)
+TIMINGS = "timings.json"
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 # errors of the storage, not of the program: reported as one line (a full disk, a quota, a read-only mount, a failing device)
@@ -206,6 +212,24 @@ def to_json(obj: Any) -> str:
 
 def write_json(path: str | Path, obj: Any) -> Path:
     return atomic_write_text(path, to_json(obj))
+
+
+def write_timings(folder: str | Path, **figures: Any) -> Path:
+    """Add wall-clock ``figures`` (seconds, rates) to the run record ``folder/timings.json``; floats
+    are rounded to the millisecond. Returns its path."""
+    path = Path(folder) / TIMINGS
+    record = read_timings(folder)
+    record.update({k: round(v, 3) if isinstance(v, float) else v for k, v in figures.items()})
+    return write_json(path, record)
+
+
+def read_timings(folder: str | Path) -> dict:
+    """The run record of a stage folder (:func:`write_timings`); empty when there is none."""
+    try:
+        record = json.loads((Path(folder) / TIMINGS).read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
 
 
 def config_hash(obj: Any) -> str:

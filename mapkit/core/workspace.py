@@ -23,6 +23,7 @@ A workspace holds one folder per drive (session) and the multi-session stages bu
       cnn/                        mapkit train
       indexes/vlad/               mapkit index vlad
       indexes/structure-<kind>/   mapkit index structure
+      indexes/cache/              structure descriptors of session maps, shared by index builds and evaluations
       localize/                   mapkit eval localize (cache/ holds retrieved hits)
       eval/places/                mapkit eval places
 
@@ -338,6 +339,12 @@ class Workspace:
 
     def structure_index(self, kind: str) -> Path:
         return self.indexes_dir / f"structure-{kind}"
+
+    @property
+    def descriptor_cache(self) -> Path:
+        """Structure descriptors of session maps (keyed by map checksum and descriptor parameters),
+        shared by ``mapkit index structure`` and ``mapkit eval places``: a map is described once."""
+        return self.indexes_dir / "cache"
 
     @property
     def localize_dir(self) -> Path:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -112,7 +111,6 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
         manifest = {
             "format_version": FORMAT_VERSION,
             "kind": KIND,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "mapkit_version": __version__,
             "source_workspace": str(ws.root.resolve()),
             "crs": origin,

@@ -20,7 +20,7 @@ import numpy as np
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose
-from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import localization_track
 from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer, write_run_trajectories
@@ -80,17 +80,20 @@ def evaluate_localization(workspace: str | Path | Workspace, truth: str | Path, 
         raise InputError(Path(bundle) / "manifest.json", f"test session(s) {clash} are in the index: they cannot be queries", field="sessions")
     ws_frame = ws.require_frame()
     results: dict = {"bundle": str(bundle), "train_sessions": index.train_sessions, "sessions": {}}
+    timings: dict = {}
     for name in tests:
-        results["sessions"][name] = _localize_session(ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out, cache_dir, progress)
+        results["sessions"][name], timings[name] = _localize_session(ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out,
+                                                                     cache_dir, progress)
     write_json(out / "eval_localize.json", results)
+    write_timings(out, sessions=timings)
     atomic_write_text(out / "eval_localize.md", format_localization(results))
     return results
 
 
 def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, cfg: LocalizeConfig, ws_frame: LocalFrame, town_entry: dict, out: Path,
-                      cache_dir: str | Path | None, progress: bool) -> dict:
-    """One test session through retrieval and the filter: its row of Table II, its recall and
-    timings; draws its track against the truth into ``out/<name>.png``."""
+                      cache_dir: str | Path | None, progress: bool) -> tuple[dict, dict]:
+    """One test session through retrieval and the filter: its row of Table II and its recall, and
+    its timings (a run record); draws its track against the truth into ``out/<name>.png``."""
     from mapkit.evaluation.truth import truth_camera_poses_at
 
     imgs = read_session_images(ws.root, name)
@@ -114,16 +117,16 @@ def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, c
     entry = {
         "condition": town_entry.get("condition") or town_entry.get("weather"),
         "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(),
-        **hit_recall(index, ids, gt[:, :3, 3]), "seconds": wall, "hits_from_cache": cached,
-        "seconds_per_query": wall / max(1, len(paths)), "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
-        "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths)),
+        **hit_recall(index, ids, gt[:, :3, 3]),
     }
+    timings = {"seconds": wall, "hits_from_cache": cached, "seconds_per_query": wall / max(1, len(paths)),
+               "retrieval_s_per_query": t_retrieve / max(1, len(paths)), "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths))}
     write_run_trajectories(out / name, imgs.table["stamp_ns"][ok], r)  # the estimates, for evo and mapkit view
     localization_track(out / f"{name}.png", gt[:, :3, 3], r.retrieval_position, r.filter_position,
                        f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
                        f"{entry['retrieval']['median_translation_m']:.1f} m, filter "
                        f"{entry['filter']['median_translation_m']:.1f} m)")
-    return entry
+    return entry, timings
 
 
 def format_localization(results: dict) -> str:

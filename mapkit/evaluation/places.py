@@ -67,7 +67,7 @@ from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
-from mapkit.core.runio import atomic_write_text, write_json
+from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import _save
 from mapkit.mapping.semidense import SemiDenseMap
@@ -98,6 +98,9 @@ class PlacesEvalConfig(MapkitConfig):
     vlad_encodings_dir: Optional[str] = Field(
         None, description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize --cache-dir`): "
         "images already encoded there with the same bundle are not encoded again.")
+    descriptor_cache_dir: Optional[str] = Field(
+        None, description="A folder of structure descriptors shared with index builds (the demo shares WORKSPACE/indexes/cache): "
+        "maps already described there with the same parameters are not described again; default: this evaluation's cache/.")
     bootstrap: int = Field(
         500, ge=0,
         description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = none). "
@@ -637,17 +640,23 @@ def evaluate_places(
 
         results["cnn_model"] = model_fingerprint(cfg.structure.cnn_model)
     rows: list[list] = []
+    timings: dict = {}
     for db, query in pairs:
         results["pairs"].append(_eval_pair(ws, db, query, methods, cfg, gt, cond, vlad, vlad_note, maps, split, out, cache,
-                                           progress, rows))
+                                           progress, rows, timings))
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
     write_json(out / "places.json", results)
+    write_timings(out, pairs=timings)
     atomic_write_text(out / "places.md", format_places(results))
     _write_queries_csv(out / "queries.csv", rows)
     plot_pr_curves(out / "pr_curves.png", results)
     return results
+
+
+#: a method's wall-clock figures on a pair: the evaluation's run record (timings.json), not places.json
+TIMING_FACTS = ("seconds", "query_describe_s", "query_match_and_vote_s", "vote_ms_per_frame", "encode_and_load_s")
 
 
 def _check_methods(methods: Sequence[str], cfg: PlacesEvalConfig) -> None:
@@ -697,11 +706,11 @@ def no_held_out_note(query: str, counts: dict, split: PlaceSplit) -> str:
 
 def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: PlacesEvalConfig, gt: _Truth, cond: dict,
                vlad, vlad_note: Optional[str], maps: _Maps, split: PlaceSplit, out: Path, cache: Path, progress: bool,
-               rows: list[list]) -> dict:
+               rows: list[list], timings: dict) -> dict:
     """One pair's entry of ``places.json``: every method on the same queries, scored over the
     held-out queries (``methods``, the headline; all queries when there is no split) and over all
     (``all_places``), each with the paired bootstrap comparison of the methods' AUCs; appends the
-    per-query rows of ``queries.csv`` to ``rows``."""
+    per-query rows of ``queries.csv`` to ``rows`` and each method's timings to ``timings``."""
     q, qsrc = _pair_queries(maps, query, cfg, gt, split)
     held = q.held_out
     scoped = split.source != "none"
@@ -732,6 +741,7 @@ def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: 
             entry["methods"][method] = entry["all_places"]["methods"][method] = {"available": False, "note": vlad_note}
             continue
         facts["seconds"] = time.perf_counter() - t0
+        timings[f"{db}:{query}:{method}"] = {k: facts.pop(k) for k in TIMING_FACTS if k in facts}
         everywhere = {**scored.summary(cfg.bootstrap), **facts}
         entry["all_places"]["methods"][method] = everywhere
         if not scoped:
@@ -789,6 +799,7 @@ def _eval_structure(kind, ws: Workspace, db, query, q_ids, q_pos, cfg: PlacesEva
                     maps: _Maps, progress) -> tuple[dict, _Scored]:
     """(the facts of the method that do not depend on which queries are summarised, every query scored)."""
     scfg = cfg.structure.model_copy(update={"kind": kind, "database_sessions": [db]})
+    cache = Path(cfg.descriptor_cache_dir) if cfg.descriptor_cache_dir else cache
     own = out / "indexes" / f"{kind}-{db}"  # own output folder
     bundle = build_structure_index(ws.root, kind, own, [db], scfg, cache_dir=cache, progress=progress)
     idx = StructureIndex.load(bundle, verify=False)  # just built or verified by its build hash
@@ -888,7 +899,7 @@ def _block(p: dict, scope: str) -> dict:
 def map_densities(maps: Callable[[str], tuple], names: Sequence[str]) -> dict[str, dict]:
     """Each evaluated session's semi-dense map (``maps(name)[0]``, the map the pairs use): keyframes,
     points, the keyframes' path and points per 100 m of it (NBLD compares densities: maps of
-    unequal density are one reason its votes fail, issue 21)."""
+    unequal density are one reason its votes fail)."""
     out: dict[str, dict] = {}
     for name in names:
         st = maps(name)[0].stats()

@@ -26,7 +26,7 @@ import numpy as np
 
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_path, atomic_write_text, write_json
+from mapkit.core.runio import atomic_path, atomic_write_text, write_json, write_timings
 from mapkit.core.threads import single_thread_blas
 from mapkit.core.workspace import Workspace
 from mapkit.evaluation.truth import town_sessions, truth_camera_poses_at
@@ -240,6 +240,7 @@ def evaluate_retrieval(
 
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "eval_retrieval.json", results)
+    write_timings(out, sessions={n: a["timings"] for n, a in per_session.items()})
     atomic_write_text(out / "eval_retrieval.md", format_retrieval(results))
     _write_queries_csv(out / "eval_retrieval_queries.csv", rows)
     plot_retrieval(out / "eval_retrieval.png", per_session, results, db_pos)
@@ -283,9 +284,9 @@ def _query_session(ws: Workspace, idx: VladIndex, name: str, truth: Optional[Pat
         "truth_source": truth_source, "reachable": rec["reachable"], "recall": rec["recall"],
         "recall_curve": [float(x) for x in rec["curve"]],
         "measurement": _stats(t_err, r_err),
-        "encode_s_per_image": encode_s / len(keep), "search_ms_per_query": 1e3 * search_s / len(keep),
     }
-    arrays = {"q": q_pos, "top1": db_pos[ids[:, 0]], "hit1": rec["first_hit_rank"] == 1, "z": z_pos,
+    arrays = {"timings": {"encode_s_per_image": encode_s / len(keep), "search_ms_per_query": 1e3 * search_s / len(keep)},
+              "q": q_pos, "top1": db_pos[ids[:, 0]], "hit1": rec["first_hit_rank"] == 1, "z": z_pos,
               "curve": rec["curve"], "t_err": t_err, "r_err": r_err, "first": rec["first_hit_rank"]}
     for i, j in enumerate(keep):
         rows.append([name, int(s.table["image_id"][j]), int(s.table["stamp_ns"][j]), *q_pos[i], int(ids[i, 0]), *db_pos[ids[i, 0]],

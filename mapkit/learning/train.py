@@ -15,7 +15,10 @@ triplet accuracy and distance margins. Output folder::
     checkpoints/epoch-NNNN.pt   model, optimiser, triplet set and metrics after each epoch (the last two kept)
     model.pt                    state dict and model config of the final model (torch)
     model.onnx                  the same network as ONNX (what the structure index runs, without torch)
-    metrics.json                per epoch: loss, test accuracy and margins, hard triplets, triplets/s, wall time
+    metrics.json                per epoch: loss, active triplets, test accuracy and margins, hard triplets; sizes of
+                                the triplet sets (the same for the same data, config and thread count, run to run)
+    timings.json                per epoch: training seconds (wall and CPU), triplets/s, hard-mining seconds, wall
+                                time so far; the mean rate, the whole training's and this call's wall time
     training_curve.png          loss and test accuracy per epoch
     config.yaml                 the resolved TrainConfig
     manifest.json               format, config hash, model config, patch domain, dataset, checksums of every file
@@ -31,7 +34,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -42,7 +44,7 @@ from mapkit import __version__
 from mapkit.core.bundle import write_manifest
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, write_json
+from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, write_json, write_timings
 from mapkit.io.plots import training_curve
 from mapkit.places.cnn import (
     MODEL_FORMAT_VERSION,
@@ -62,6 +64,8 @@ from mapkit.places.triplets import TripletDataset
 log = logging.getLogger(__name__)
 
 CHECKPOINTS = "checkpoints"
+#: an epoch's wall-clock figures: the run record (timings.json), not metrics.json
+EPOCH_TIMINGS = ("train_s", "train_cpu_s", "triplets_per_s", "wall_s", "hard_mining_s")
 #: settings that change neither the weights nor the order of training: a new value resumes
 _RESUME_FREE = {"epochs", "threads", "keep_checkpoints"}
 
@@ -341,18 +345,19 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
     export_onnx(model, cfg.model, out / ONNX_FILE)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
     total_wall = history[-1]["wall_s"] if history else 0.0
-    metrics = {"epochs": history, "final": history[-1] if history else {}, "train_triplets_available": int(len(train_all)),
-               "triplet_set": int(len(tset)), "test_triplets": int(len(test_t)),
-               "triplets_per_s_mean": float(np.mean([r["triplets_per_s"] for r in history])) if history else None,
-               "wall_s_training": total_wall, "wall_s_this_call": time.perf_counter() - t_start, "threads": cfg.threads,
+    epochs = [{k: v for k, v in r.items() if k not in EPOCH_TIMINGS} for r in history]
+    metrics = {"epochs": epochs, "final": epochs[-1] if epochs else {}, "train_triplets_available": int(len(train_all)),
+               "triplet_set": int(len(tset)), "test_triplets": int(len(test_t)), "threads": cfg.threads,
                "torch_version": torch.__version__}
     write_json(out / "metrics.json", metrics)
+    write_timings(out, epochs=[{k: r[k] for k in EPOCH_TIMINGS if k in r} for r in history],
+                  triplets_per_s_mean=float(np.mean([r["triplets_per_s"] for r in history])) if history else None,
+                  wall_s_training=total_wall, wall_s_this_call=time.perf_counter() - t_start)
 
     training_curve(out / "training_curve.png", history, title=f"CNN descriptor, {cfg.model.form}, hard negatives "
                    f"{'on' if cfg.hard_negatives else 'off'}")
     manifest = {
-        "format_version": MODEL_FORMAT_VERSION, "kind": "mapkit cnn descriptor",
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"), "mapkit_version": __version__,
+        "format_version": MODEL_FORMAT_VERSION, "kind": "mapkit cnn descriptor", "mapkit_version": __version__,
         "config_hash": full_hash, "resume_hash": resume_hash, "config": cfg.model_dump(mode="json"),
         "model_config": cfg.model.model_dump(mode="json"), "domain": ds.manifest["domain"], "epochs": len(history),
         "hard_negatives": cfg.hard_negatives,

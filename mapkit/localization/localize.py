@@ -36,7 +36,7 @@ from pydantic import Field, field_validator
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
-from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, write_json
+from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, sha256_file, write_json, write_timings
 from mapkit.core.types import StreamKind
 from mapkit.io import open_log
 from mapkit.io.trajectory import write_tum
@@ -194,11 +194,11 @@ def bundle_fingerprint(index) -> str:
 
 
 def _images_digest(images: list) -> str:
-    """Digest of the query images' paths, sizes and modification times (files only)."""
+    """Digest of the query images' paths, sizes and contents (files only; not their modification
+    times, so that the same images written again keep their cache)."""
     h = hashlib.sha256()
     for p in images:
-        st = Path(p).stat()
-        h.update(f"{Path(p).resolve()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        h.update(f"{Path(p).resolve()}\0{Path(p).stat().st_size}\0{sha256_file(p)}\n".encode())
     return h.hexdigest()[:16]
 
 
@@ -226,7 +226,7 @@ def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | No
     """:func:`query_all` through a cache file ``hits-<session>-k<top_k>-<bundle fingerprint>.npz``.
 
     A cached file is used only if it names the same bundle fingerprint, session, top_k and query
-    images (paths, sizes, mtimes); otherwise the images are encoded again and the file replaced.
+    images (paths, sizes, contents); otherwise the images are encoded again and the file replaced.
     Returns ``(ids, distances, from_cache)``.
     """
     if cache_dir is None:
@@ -271,9 +271,9 @@ def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: s
         t0 = time.perf_counter()
         r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
     write_run_trajectories(out, stamps, r)
-    write_json(out / "metrics.json", {"bundle": str(bundle), "log": str(log), "queries": len(stamps), "seconds": time.perf_counter() - t0,
-                                      "filter_ms_per_step": 1000 * r.filter_s / len(stamps),
+    write_json(out / "metrics.json", {"bundle": str(bundle), "log": str(log), "queries": len(stamps),
                                       "frame": "workspace ENU of the bundle (world_from_camera)"})
+    write_timings(out, seconds=time.perf_counter() - t0, filter_ms_per_step=1000 * r.filter_s / len(stamps))
     return out
 
 

@@ -48,10 +48,12 @@ from mapkit.core.config import MapkitConfig, TopicConfig, deep_merge, dump_confi
 from mapkit.core.errors import InputError, InputWarning, MapkitError
 from mapkit.core.executor import Executor, TaskError, get_executor
 from mapkit.core.fingerprint import describe_change, log_fingerprint
-from mapkit.core.frames import FrameTree
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, transform_points, transform_poses
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, reset_stage, stage_digest, write_json
+from mapkit.core.runio import (
+    atomic_path, atomic_write_text, config_hash, is_done, mark_done, read_timings, reset_stage, stage_digest, write_json,
+    write_timings,
+)
 from mapkit.core.types import CameraFrame, CameraInfo, GpsFix, StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
@@ -63,7 +65,7 @@ from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
 from mapkit.mapping.loop_closure import loop_closures, propose_loops, read_scans, scans_needed, verify_loops
 from mapkit.mapping.semidense import SemiDenseConfig, SemiDenseMap, build_semidense_map
-from mapkit.mapping.trajectory import Trajectory, TrajectoryConfig, camera_up_hint, estimate_trajectory
+from mapkit.mapping.trajectory import SensorMounts, Trajectory, TrajectoryConfig, camera_up_hint, estimate_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -88,9 +90,19 @@ class GeorefConfig(MapkitConfig):
     strict: bool = Field(False, description="Fail instead of building the session unreferenced when GPS cannot place it, "
                          "and when a camera-only drive is too straight for GPS to fix its roll and the cameras give no up hint.")
     fuse: bool = Field(False, description="Also fuse the odometry, GPS and the IMU on a factor graph (mapping/factor_graph.py, "
-                       "issue 24): georef/trajectory_fused/ and its per-pose covariances beside trajectory_enu/; the map and "
-                       "image database then use it. Metric trajectories only; off until issue 24's height drift is settled.")
+                       "GPS with its bias state, the IMU preintegrated): georef/trajectory_fused/ and its per-pose covariances beside "
+                       "trajectory_enu/; the map and image database then use it. Metric trajectories only. Off by default: it needs "
+                       "an IMU stream to keep its height, and the rigid GPS fit needs none.")
     factor_graph: FactorGraphConfig = FactorGraphConfig()
+
+
+class ExtrinsicsConfig(MapkitConfig):
+    assume_identity: list[str] = Field(
+        default_factory=list,
+        description="Sensor frames (a NavSatFix's, a PointCloud2's, a camera's frame_id) that the log's tf may leave unlinked "
+        "to the trajectory's frame: each is then taken as mounted at it (the identity), with one warning. Any other "
+        "unlinked sensor is an error: a guessed mount moves the map by the lever arm, or turns it.",
+    )
 
 
 class ImageDbStageConfig(ImageDbConfig):
@@ -109,6 +121,7 @@ class BuildConfig(MapkitConfig):
     trajectory: TrajectoryConfig = TrajectoryConfig()
     georef: GeorefConfig = GeorefConfig()
     imagedb: ImageDbStageConfig = ImageDbStageConfig()
+    extrinsics: ExtrinsicsConfig = ExtrinsicsConfig()
     semidense: SemiDenseConfig = Field(default_factory=SemiDenseConfig, description="Semi-dense mapping (stage 3), "
                                        "checked with the rest of the config before any stage runs.")
     map: bool = Field(True, description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
@@ -174,6 +187,9 @@ def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     if not d["georef"]["fuse"]:
         d["georef"].pop("fuse")
         d["georef"].pop("factor_graph")
+    # ... and those built before a mount could be assumed, while none is: where one is, every stage depends on it
+    if d["extrinsics"]["assume_identity"]:
+        parts = (*parts, "extrinsics")
     return config_hash({p: d.get(p) for p in parts})
 
 
@@ -196,9 +212,11 @@ class SessionBuilder:
         self.dirs: SessionDirs = self.ws.session(self.name)
         self.dir = self.dirs.root
         self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
+        self.timings: dict[str, float] = {}  # wall seconds of each stage in this run (the session's timings.json)
         self._log: Optional[DriveLog] = None
         self._camera_choice: Optional[tuple[str, list[str], CameraInfo]] = None
         self._mounts: dict[str, np.ndarray] = {}  # trajectory body frame -> base_from_camera
+        self._sensor_mounts: Optional[SensorMounts] = None
         self._enu_trajectory: Optional[Trajectory] = None
         self._fixes: Optional[tuple[list[str], list[GpsFix], Optional[GpsScreen]]] = None
         self._undecodable = 0  # frames whose image did not decode, in the current pass over the log
@@ -210,6 +228,13 @@ class SessionBuilder:
         if self._log is None:
             self._log = open_log(self.log_path)
         return self._log
+
+    @property
+    def mounts(self) -> SensorMounts:
+        """The log's sensor mounts (its static tf, with ``extrinsics.assume_identity``), read once per builder."""
+        if self._sensor_mounts is None:
+            self._sensor_mounts = SensorMounts.of(self.log, self.cfg.extrinsics.assume_identity)
+        return self._sensor_mounts
 
     def close(self) -> None:
         if self._log is not None:
@@ -273,11 +298,12 @@ class SessionBuilder:
             return out
         t0 = time.perf_counter()
         reset_stage(out)
-        traj = estimate_trajectory(self.log, self.cfg.trajectory, self.cfg.topics, progress=self.progress)
+        traj = estimate_trajectory(self.log, self.cfg.trajectory, self.cfg.topics, progress=self.progress, mounts=self.mounts)
         traj.save(out)
         m = {"source": traj.source, "poses": len(traj), "duration_s": (int(traj.stamps_ns[-1]) - int(traj.stamps_ns[0])) * 1e-9,
-             **_length(traj), "seconds": time.perf_counter() - t0}
+             **_length(traj)}
         write_json(out / "metrics.json", m)
+        write_timings(out, seconds=time.perf_counter() - t0)
         self._mark(out, h, inputs)
         return out
 
@@ -301,14 +327,16 @@ class SessionBuilder:
                              body_frame=traj.body_frame)
         aligned.save(self.dirs.georef_trajectory)
         result.update(_length(aligned, georeferenced=al is not None))
+        fused_timings: dict = {}
         if self.cfg.georef.fuse and al is not None and not _camera_only(traj):
             result["fused"] = self._fuse(traj, al.enu_from_map)
+            fused_timings = {f"fused_{k}": result["fused"].pop(k) for k in FUSED_TIMINGS if k in result["fused"]}
         if al is None:  # a picture of what there is, in the trajectory's own frame and units
             xyz, axes = _top_view_positions(traj)
             map_top_view(out / "trajectory_top_view.png", np.zeros((0, 3)), xyz, f"{self.name}: trajectory, NOT georeferenced",
                          axes=axes, units="m" if result["units"] == "m" else "arbitrary units")
-        result["seconds"] = time.perf_counter() - t0
         write_json(self.dirs.gps_alignment, result)
+        write_timings(out, seconds=time.perf_counter() - t0, **fused_timings)
         self._mark(out, h, inputs)
         return out
 
@@ -334,10 +362,7 @@ class SessionBuilder:
         stamps = np.array([f.stamp_ns for f in fixes], np.int64)
         gps_enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
         sigma = np.array([f.horizontal_sigma_m for f in fixes])
-        try:
-            base_from_gps = FrameTree(self.log.transforms()).lookup(traj.body_frame, fixes[0].frame_id)
-        except InputError:
-            base_from_gps = np.eye(4)
+        base_from_gps = self.mounts.base_from(traj.body_frame, fixes[0].frame_id, "GPS antenna", without_tf_ok=True)
         g = self.cfg.georef
         antenna, ok = associate_fixes(traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(g.max_pose_gap_s * 1e9))
         # structure from motion has no gravity and no scale: only a full Sim3 can place it. A metric
@@ -381,26 +406,26 @@ class SessionBuilder:
         with np.load(self.dirs.gps_fixes) as f:
             fixes = {k: f[k] for k in ("stamps_ns", "enu", "sigma_m")}
         _, kept, _ = self._screened_fixes()
-        tree = FrameTree(self.log.transforms())
-        gps = GpsObservations(fixes["stamps_ns"], fixes["enu"], fixes["sigma_m"], _mount(tree, traj.body_frame, kept[0].frame_id))
+        gps = GpsObservations(fixes["stamps_ns"], fixes["enu"], fixes["sigma_m"],
+                              self.mounts.base_from(traj.body_frame, kept[0].frame_id, "GPS antenna", without_tf_ok=True))
         imu = None
         imu_topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMU, [])
         if imu_topics:
             samples = list(self.log.records(StreamKind.IMU, topic=imu_topics[0]))
             if len(samples) >= 2:
-                imu = ImuObservations.from_samples(samples, tree.lookup(traj.body_frame, samples[0].frame_id))
+                imu = ImuObservations.from_samples(samples, self.mounts.base_from(traj.body_frame, samples[0].frame_id, "IMU"))
         fuse = partial(fuse_session, traj.stamps_ns, traj.world_from_base, gps, None, self.cfg.georef.factor_graph,
                        enu_from_odom=enu_from_map, source=str(self.log_path), imu=imu)
         fused, loop_stats = fuse(), {}
         if self.cfg.georef.factor_graph.loop_closures:
-            fused, loop_stats = self._close_loops(traj, fused, tree, fuse)
+            fused, loop_stats = self._close_loops(traj, fused, fuse)
         Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu",
                    body_frame=traj.body_frame).save(self.dirs.fused_trajectory)
         with atomic_path(self.dirs.fused_covariances) as tmp, open(tmp, "wb") as f:
             np.savez(f, stamps_ns=fused.stamps_ns, covariances=fused.covariances, georef_covariance=fused.georef_covariance)
         return {**fused.stats, **loop_stats, "imu": "preintegrated" if imu is not None else "no IMU stream"}
 
-    def _close_loops(self, traj: Trajectory, fused: FusedTrajectory, tree: FrameTree, fuse) -> tuple[FusedTrajectory, dict]:
+    def _close_loops(self, traj: Trajectory, fused: FusedTrajectory, fuse) -> tuple[FusedTrajectory, dict]:
         """Loop closures (mapping/loop_closure.py) proposed on the fused trajectory and verified by ICP of local maps of the
         LiDAR scans (read once, up to the last one needed), placed with it; with any accepted, the graph solved again with
         them, from the solution without. Returns the trajectory and the loop step's stats."""
@@ -411,7 +436,8 @@ class SessionBuilder:
         cfg = self.cfg.georef.factor_graph
         candidates = propose_loops(fused.enu_from_base, fused.keyframes, cfg)
         scans = read_scans(self.log.records(StreamKind.LIDAR, topic=topics[0]), traj.stamps_ns, fused.enu_from_base,
-                           scans_needed(candidates, len(traj.stamps_ns), cfg), partial(_mount, tree, traj.body_frame), cfg,
+                           scans_needed(candidates, len(traj.stamps_ns), cfg),
+                           partial(self.mounts.base_from, traj.body_frame, what="LiDAR", without_tf_ok=True), cfg,
                            source=f"{self.log_path} {topics[0]}")
         checks = verify_loops(candidates, scans, fused.enu_from_base, cfg)
         loops = loop_closures(checks, traj.stamps_ns)
@@ -534,15 +560,7 @@ class SessionBuilder:
         """The mapping camera's mount: the pose of the camera in the trajectory's body frame
         (looked up in the log's transforms once per body frame)."""
         if body_frame not in self._mounts:
-            name = self._camera()[0]
-            if body_frame == name:
-                self._mounts[body_frame] = np.eye(4)
-            else:
-                try:
-                    self._mounts[body_frame] = FrameTree(self.log.transforms()).lookup(body_frame, name)
-                except InputError as exc:
-                    raise InputError(self.log_path, f"no extrinsic between the trajectory's frame {body_frame!r} and camera {name!r}",
-                                     field="tf") from exc
+            self._mounts[body_frame] = self.mounts.base_from(body_frame, self._camera()[0], "camera")
         return self._mounts[body_frame]
 
     def posed_frames(self, decode: bool = True) -> Iterator[tuple[int, CameraFrame, np.ndarray]]:
@@ -598,10 +616,10 @@ class SessionBuilder:
 
         map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3],
                      f"{self.name}: semi-dense map, {len(smap.points_world)} points", axes=_plot_axes(frame))
-        m = {"points": int(len(smap.points_world)), "seconds": time.perf_counter() - t0,
-             "crs": None if frame is None else frame.to_dict()}
+        m = {"points": int(len(smap.points_world)), "crs": None if frame is None else frame.to_dict()}
         m.update(smap.stats())
         write_json(out / "metrics.json", m)
+        write_timings(out, seconds=time.perf_counter() - t0)
         self._mark(out, h, inputs)
         return out
 
@@ -647,7 +665,8 @@ class SessionBuilder:
                          "units, and imagedb.min_spacing_m was not applied")
         if not with_map:
             writer.close(self.frame())
-            write_json(out / "metrics.json", {**m, "seconds": time.perf_counter() - t0, "map": False})
+            write_json(out / "metrics.json", {**m, "map": False})
+            write_timings(out, seconds=time.perf_counter() - t0)
             self._mark(out, h, inputs)
             return out
         smap = SemiDenseMap.load(self.semidense())
@@ -658,7 +677,8 @@ class SessionBuilder:
         counts = np.bincount(point_of[keep], minlength=len(smap.points_world))
         indptr = np.concatenate([[0], np.cumsum(counts)])
         writer.close(self.frame(), smap.points_world, (indptr, ids[keep]))
-        write_json(out / "metrics.json", {**m, "seconds": time.perf_counter() - t0})
+        write_json(out / "metrics.json", m)
+        write_timings(out, seconds=time.perf_counter() - t0)
         self._mark(out, h, inputs)
         return out
 
@@ -698,27 +718,19 @@ class SessionBuilder:
                 ga = json.loads(self.dirs.gps_alignment.read_text())
                 stage_metrics = {"georeferenced": ga["georeferenced"], **{k: ga[k] for k in ("reason", "units") if k in ga},
                                  **{k: v for k, v in ga.items() if k.startswith("length_")}, **ga.get("alignment", {})}
-            stage_metrics["wall_s_this_run"] = time.perf_counter() - s0
+            self.timings[stage.__name__] = time.perf_counter() - s0
             self.metrics["stages"][stage.__name__] = stage_metrics
-        self.metrics["wall_s_this_run"] = time.perf_counter() - t0
+        self.timings["total"] = time.perf_counter() - t0
         write_json(self.dirs.metrics, self.metrics)
+        write_timings(self.dir, wall_s_this_run=self.timings)
         self.close()
         return self.metrics
 
 
+#: the factor graph's wall-clock figures, moved from its stats to the georef stage's run record
+FUSED_TIMINGS = ("seconds", "solve_s", "loop_seconds")
 ARBITRARY_UNITS = "arbitrary units (structure from motion, not georeferenced)"
 SKIPPED_BY_CONFIG = {"semidense": "map: false in the config", "imagedb": "imagedb: false in the config"}
-
-
-def _mount(tree: FrameTree, body_frame: str, frame: str) -> np.ndarray:
-    """``body_frame``-from-``frame`` (a sensor's mount), the identity when the calibration does not tie them (the
-    trajectory stage warned then, and took them as one frame)."""
-    if frame in ("", body_frame):
-        return np.eye(4)
-    try:
-        return tree.lookup(body_frame, frame)
-    except InputError:
-        return np.eye(4)
 
 
 def _camera_only(traj: Trajectory) -> bool:
@@ -809,7 +821,7 @@ def _build_parallel(logs: list[Path], ws: Workspace, cfg: BuildConfig, ex: Execu
                                label=lambda p: str(p)), order):
             done[i] = m
             if progress:
-                logger.info("built %s: %.1f s", m["session"], m.get("wall_s_this_run", 0))
+                logger.info("built %s: %.1f s", m["session"], _session_seconds(ws, m["session"]))
     except TaskError as exc:
         raise (exc.cause if isinstance(exc.cause, MapkitError) else exc) from exc
     return {done[i]["session"]: done[i] for i in range(len(logs))}
@@ -835,6 +847,11 @@ def _fix_workspace_frame(logs: list[Path], ws: Workspace, cfg: BuildConfig) -> N
             return
 
 
+def _session_seconds(ws: Workspace, name: str) -> float:
+    """Wall seconds of a session's last build run, from its run record (0 when it has none)."""
+    return float(read_timings(ws.session(name).root).get("wall_s_this_run", {}).get("total", 0.0))
+
+
 def format_build_summary(workspace: str | Path | Workspace) -> str:
     """A table of every session of a workspace: trajectory, georeferencing, map and database, and
     under a session the stages it skipped and why. Lengths are in metres except those marked
@@ -853,7 +870,7 @@ def format_build_summary(workspace: str | Path | Workspace) -> str:
         rows.append(
             f"  {name:<24} {str(tr.get('source', ''))[:22]:<22} {length_cell:>11} "
             f"{'yes' if ge.get('georeferenced') else 'NO':>7} {'' if rmse is None else f'{rmse:.2f}':>10} "
-            f"{ge.get('fixes_rejected', ''):>8} {mp.get('points', 0):>9} {db.get('images', 0):>7} {s.get('wall_s_this_run', 0):>7.1f}"
+            f"{ge.get('fixes_rejected', ''):>8} {mp.get('points', 0):>9} {db.get('images', 0):>7} {_session_seconds(ws, name):>7.1f}"
         )
         if ge.get("reason"):
             rows.append(f"    not georeferenced: {ge['reason']}")

@@ -54,7 +54,8 @@ def icp_coarse_to_fine(level: Callable[[float], Optional[IcpClouds]], voxel_size
         src = o3d.geometry.PointCloud(vec(clouds.source))
         tgt = o3d.geometry.PointCloud(vec(clouds.target))
         tgt.normals = vec(clouds.target_normals)
-        T = np.asarray(reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(), criteria).transformation)
+        with open3d_one_thread():  # the same pair gives the same transform to the bit on every run
+            T = np.asarray(reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(), criteria).transformation)
     return T, clouds
 
 

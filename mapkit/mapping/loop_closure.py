@@ -101,8 +101,7 @@ class LoopCheck:
         c = self.candidate
         return {"stamps_ns": [int(stamps_ns[c.a]), int(stamps_ns[c.b])], "distance_m": c.distance_m, "travel_m": c.travel_m,
                 "accepted": self.accepted, "reason": self.text, "fitness": self.fitness, "rmse_m": self.rmse_m,
-                "constraint": self.constraint, "correction_m": self.correction_m, "correction_deg": self.correction_deg,
-                "seconds": self.seconds}
+                "constraint": self.constraint, "correction_m": self.correction_m, "correction_deg": self.correction_deg}
 
 
 def loop_closures(checks: list[LoopCheck], stamps_ns: np.ndarray) -> LoopClosures:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Literal, Optional
+from typing import Iterable, Iterator, Literal, Optional
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -24,7 +24,7 @@ from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.frames import FrameTree
 from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar
-from mapkit.core.types import StreamKind
+from mapkit.core.types import FrameTransform, StreamKind
 from mapkit.io.base import DriveLog
 from mapkit.io.trajectory import read_tum, write_kitti_poses, write_tum
 
@@ -39,7 +39,13 @@ class KissIcpOptions(MapkitConfig):
     deskew: bool = Field(True, description="Motion compensation from per-point times (kiss-icp's own).")
     voxel_size_m: Optional[float] = Field(None, gt=0, allow_inf_nan=False,
                                           description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).")
-    max_threads: int = Field(0, ge=0, description="kiss-icp registration.max_num_threads; 0 = all cores.")
+    max_points_per_voxel: int = Field(20, ge=1, description="kiss-icp mapping.max_points_per_voxel: points kept per voxel of its local map.")
+    max_threads: int = Field(
+        1, ge=0,
+        description="kiss-icp registration.max_num_threads; 0 = all cores. With one thread kiss-icp gives the same poses "
+                    "to the bit on every run; with more, its correspondences are summed in a varying order. kiss-icp "
+                    "fixes the count once per process (a TBB global control): the first kiss-icp of a process decides.",
+    )
 
     @model_validator(mode="after")
     def _ranges(self) -> "KissIcpOptions":
@@ -109,26 +115,75 @@ class Trajectory:
         return cls(stamps, poses, "tum")
 
 
-def _tree(log: DriveLog) -> FrameTree:
-    return FrameTree(log.transforms())
+class SensorMounts:
+    """Where a log's sensors sit on the vehicle: ``base``-from-``frame``, looked up in the log's static tf.
 
+    A sensor whose frame is the base (or empty) is at the identity. One that tf does not link to the base is an
+    :class:`InputError` naming the log, the two frames and what the tree holds, unless ``assume_identity`` (the build
+    config's ``extrinsics.assume_identity``) lists its frame: the two frames are then taken as one, and one
+    :class:`InputWarning` per pair says so. A log that holds no transform at all (a bag recorded without
+    ``/tf_static``, frame tables, photos, RobotCar) has nothing that could place its GPS antenna or LiDAR: lookups
+    that pass ``without_tf_ok`` take those at the base too, with the same warning; a camera or an IMU, whose
+    orientation matters, still needs its extrinsic or the config's word.
+    """
 
-def _base_from(tree: FrameTree, base: str, frame: str, log: DriveLog, what: str) -> np.ndarray:
-    if frame in ("", base):
+    def __init__(self, transforms: Iterable[FrameTransform], source: str | Path | None, assume_identity: Iterable[str] = ()):
+        self.tree = FrameTree(list(transforms))
+        self.source = source
+        self.assume_identity = frozenset(assume_identity)
+        self._assumed: set[tuple[str, str]] = set()  # (base, frame) pairs already taken as one, and said so
+
+    @classmethod
+    def of(cls, log: DriveLog, assume_identity: Iterable[str] = ()) -> "SensorMounts":
+        return cls(log.transforms(), log.path, assume_identity)
+
+    def base_from(self, base: str, frame: str, what: str, *, without_tf_ok: bool = False) -> np.ndarray:
+        """``base``-from-``frame`` of the ``what`` sensor (``"camera"``, ``"GPS antenna"``, ...)."""
+        if frame in ("", base):
+            return np.eye(4)
+        try:
+            return self.tree.lookup(base, frame)
+        except InputError:
+            pass
+        allowed = frame in self.assume_identity
+        if not allowed and not (without_tf_ok and not self.tree.frames):
+            raise InputError(self.source, f"tf does not link the {what} frame {frame!r} to {base!r} "
+                             f"({self._holds(base, frame)}): record that transform in /tf_static, or list {frame!r} in "
+                             f"the build config's extrinsics.assume_identity to take the {what} as mounted at {base!r}",
+                             field="tf")
+        if (base, frame) not in self._assumed:
+            self._assumed.add((base, frame))
+            why = ("as extrinsics.assume_identity allows: tf does not link them" if allowed
+                   else "the log holds no extrinsics (tf) at all")
+            warnings.warn(f"{self.source}: the {what} frame {frame!r} is taken as {base!r} (identity {base}_from_{frame}), {why}",
+                          InputWarning, stacklevel=3)
         return np.eye(4)
-    try:
-        return tree.lookup(base, frame)
-    except InputError:
-        warnings.warn(
-            f"{log.path}: no extrinsic between {base!r} and the {what} frame {frame!r}; taking them as the same frame",
-            InputWarning,
-            stacklevel=3,
-        )
-        return np.eye(4)
+
+    def _holds(self, base: str, frame: str) -> str:
+        """What the tree holds of the two frames, for the error."""
+        frames = sorted(self.tree.frames)
+        if not frames:
+            return "the log's tf holds no transform"
+        said = []
+        for f in (base, frame):
+            if f not in self.tree.frames:
+                said.append(f"{f!r} is not in it")
+                continue
+            linked = [g for g in frames if g != f and self._linked(f, g)]
+            said.append(f"{f!r} is linked to {', '.join(map(repr, linked))}" if linked else f"{f!r} is linked to nothing")
+        return f"the log's tf holds {', '.join(map(repr, frames))}; " + ", ".join(said)
+
+    def _linked(self, a: str, b: str) -> bool:
+        try:
+            self.tree.lookup(a, b)
+            return True
+        except InputError:
+            return False
 
 
-def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str) -> Trajectory:
-    """A pose stream as the trajectory; a stream of another body frame is moved to the base."""
+def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str, mounts: Optional[SensorMounts] = None) -> Trajectory:
+    """A pose stream as the trajectory; a stream of another body frame is moved to the base (``mounts``: the log's
+    sensor mounts with the build's policy, else its tf alone)."""
     stamps, poses = [], []
     child = None
     for p in log.records(StreamKind.POSE, topic=topic):
@@ -138,9 +193,10 @@ def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str) -> Traject
     if len(stamps) < 2:
         raise InputError(log.path, f"pose topic {topic} has {len(stamps)} poses; a trajectory needs at least 2", field=topic)
     child = child or base_frame
-    tree = _tree(log)
+    mounts = mounts or SensorMounts.of(log)
+    tree = mounts.tree
     if child == base_frame or (base_frame in tree.frames and child in tree.frames):
-        world_from_base = np.stack(poses) @ invert_pose(_base_from(tree, base_frame, child, log, "pose"))
+        world_from_base = np.stack(poses) @ invert_pose(mounts.base_from(base_frame, child, "pose stream"))
         body = base_frame
     else:
         # no calibration ties the pose's frame to the base (KITTI odometry: poses are camera_0's);
@@ -153,8 +209,9 @@ def _scans(log: DriveLog, topic: str) -> Iterator:
     yield from log.records(StreamKind.LIDAR, topic=topic)
 
 
-def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False) -> Trajectory:
-    """kiss-icp odometry on one LiDAR stream, reported for the base frame.
+def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False,
+                          mounts: Optional[SensorMounts] = None) -> Trajectory:
+    """kiss-icp odometry on one LiDAR stream, reported for the base frame (placed by ``mounts``, else by the log's tf).
 
     kiss-icp deskews each sweep to the time of its last point (``exp((t_norm - 1) * omega)``),
     so the pose it returns belongs to the stamp of that point, not to the header stamp.
@@ -168,6 +225,7 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
     kcfg.data.min_range = o.min_range_m
     kcfg.data.deskew = o.deskew
     kcfg.mapping.voxel_size = o.voxel_size_m if o.voxel_size_m is not None else o.max_range_m / 100.0
+    kcfg.mapping.max_points_per_voxel = o.max_points_per_voxel
     kcfg.registration.max_num_threads = o.max_threads
     odometry = KissICP(kcfg)
     stamps, lidar0_from_lidar = [], []
@@ -192,14 +250,15 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
     bar.close()
     if len(stamps) < 2:
         raise InputError(log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic)
-    tree = _tree(log)
+    mounts = mounts or SensorMounts.of(log)
+    tree = mounts.tree
     body = cfg.base_frame
     if lidar_frame and body not in tree.frames and lidar_frame in tree.frames:
         # the calibration names no base (KITTI raw: imu, velodyne, cameras): the trajectory is the
         # scanner's, so that later lookups (the GPS antenna, the cameras) start from a frame it knows
         body, base_from_lidar = lidar_frame, np.eye(4)
     else:
-        base_from_lidar = _base_from(tree, body, lidar_frame or "", log, "LiDAR")
+        base_from_lidar = mounts.base_from(body, lidar_frame or "", "LiDAR", without_tf_ok=True)
     # world := the base frame at the first scan
     world_from_base = base_from_lidar @ np.stack(lidar0_from_lidar) @ invert_pose(base_from_lidar)
     order = np.argsort(stamps, kind="stable")
@@ -225,18 +284,19 @@ def choose_source(log: DriveLog, cfg: TrajectoryConfig, topics: dict[StreamKind,
 
 
 def estimate_trajectory(
-    log: DriveLog, cfg: TrajectoryConfig, topic_cfg: TopicConfig | None = None, progress: bool = False
+    log: DriveLog, cfg: TrajectoryConfig, topic_cfg: TopicConfig | None = None, progress: bool = False,
+    mounts: Optional[SensorMounts] = None,
 ) -> Trajectory:
     topics = resolve_topics(log, topic_cfg or TopicConfig())
     source = choose_source(log, cfg, topics)
     if source == "lidar":
         if not topics.get(StreamKind.LIDAR):
             raise InputError(log.path, "trajectory.source is lidar but the log has no LiDAR stream", field="trajectory.source")
-        return trajectory_from_lidar(log, topics[StreamKind.LIDAR][0], cfg, progress)
+        return trajectory_from_lidar(log, topics[StreamKind.LIDAR][0], cfg, progress, mounts)
     if source == "poses":
         if not topics.get(StreamKind.POSE):
             raise InputError(log.path, "trajectory.source is poses but the log has no pose stream", field="trajectory.source")
-        return trajectory_from_poses(log, topics[StreamKind.POSE][0], cfg.base_frame)
+        return trajectory_from_poses(log, topics[StreamKind.POSE][0], cfg.base_frame, mounts)
     if not topics.get(StreamKind.IMAGE):
         raise InputError(log.path, "trajectory.source is camera but the log has no image stream", field="trajectory.source")
     return trajectory_from_camera(log, topics[StreamKind.IMAGE][0], cfg, progress)

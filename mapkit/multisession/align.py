@@ -51,7 +51,9 @@ from mapkit.core.executor import Executor, get_executor
 from mapkit.core.fingerprint import check_file
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, read_marker, stage_digest, verify_file, write_json
+from mapkit.core.runio import (
+    atomic_write_text, config_hash, is_done, mark_done, read_marker, stage_digest, verify_file, write_json, write_timings,
+)
 from mapkit.core.workspace import AlignedDirs, SessionDirs, Workspace
 from mapkit.io.plots import align_histograms, align_pairs_map
 from mapkit.mapping.icp import open3d_one_thread
@@ -88,12 +90,13 @@ __all__ = [
 
 
 class AlignConfig(MapkitConfig):
-    submap_length_m: float = Field(50.0, gt=0, description="Submaps are cut every this much driving (m); the issue's example, 50 m.")
+    submap_length_m: float = Field(50.0, gt=0, description="Submaps are cut every this much driving (m). mapkit choice: each submap gets one rigid "
+                                   "correction, so shorter submaps follow the GPS error more closely and longer ones hold more points to register.")
     overlap_radius_m: float = Field(35.0, gt=0, description="Submaps of different sessions whose trajectory centres lie within this distance (m) are registered.")
     crop_radius_m: float = Field(40.0, gt=0, description="Both clouds of a pair are cropped to this horizontal radius around the pair centre (m).")
     target_neighbours: int = Field(1, ge=0, description="The target cloud also includes this many neighbouring submaps on each side, so the source is fully covered.")
     min_points: int = Field(1000, ge=10, description="A submap with fewer points (after cropping) is not registered: a few hundred points "
-                            "fit a wall in many places (on the demo, such a pair was accepted 1.8 m off).")
+                            "fit a wall in many places, and such a pair can be accepted metres off.")
     icp: IcpConfig = IcpConfig()
     graph: GraphConfig = GraphConfig()
     freeze_existing: bool = Field(True, description="When sessions are added, keep the corrections of sessions aligned before fixed (their outputs do not change); false re-solves all.")
@@ -207,11 +210,11 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
 
     # 4. outputs
     qa = _write_outputs(ws, data, sol, nodes.offsets, status, n_cand, n_acc, regs.results, cfg, ws_frame, finished)
-    qa["seconds"] = time.perf_counter() - t0
-    qa["graph"] = {"seconds": sol.seconds, "isam2_updates": sol.updates, "sessions_solved": sol.solved}
-    qa["registration"] = {"pairs": len(regs.results), "registered_this_run": regs.fresh, "seconds_registering": regs.seconds,
-                          "pairs_per_s": regs.fresh / regs.seconds if regs.seconds > 0 else None}
+    qa["graph"] = {"isam2_updates": sol.updates, "sessions_solved": sol.solved}
+    qa["registration"] = {"pairs": len(regs.results), "registered_this_run": regs.fresh}
     write_json(out / "metrics.json", qa)
+    write_timings(out, seconds=time.perf_counter() - t0, graph_seconds=sol.seconds, seconds_registering=regs.seconds,
+                  pairs_per_s=regs.fresh / regs.seconds if regs.seconds > 0 else None)
     atomic_write_text(out / "qa.md", format_align_qa(qa))
     mark_done(out, run_hash, inputs=inputs, outputs=["sessions", "tiles", "pairs.json"], sessions=[s.name for s in data])
     return out
@@ -230,7 +233,7 @@ def _verify_built(dirs: SessionDirs) -> None:
 def _identify_map(s: SessionData, dirs: SessionDirs) -> None:
     """Make the session's map hash (the key of cached registrations and corrections) cover the
     map's content where its build recorded it, not only its config: a map rebuilt from a changed
-    log is registered again. Maps of older builds keep their config hash, and their cache."""
+    log is registered again. A map whose marker records no outputs keeps its config hash, and its cache."""
     outputs = (read_marker(dirs.map) or {}).get("outputs")
     if outputs:
         s.map_hash = config_hash([s.map_hash, outputs])
@@ -277,7 +280,7 @@ def _register_pairs(cache_path: Path, data: list[SessionData], cfg: AlignConfig,
 
 
 def _judge(r: PairResult, cfg: AlignConfig) -> PairResult:
-    """``r`` with its verdict under the current gates (a cached registration was judged under those of its day)."""
+    """``r`` with its verdict under the current gates (a cached registration was judged under the gates of the run that cached it)."""
     if r.source_points >= cfg.min_points and r.target_points >= cfg.min_points and r.verdict.reason is not Reason.NOT_REGISTERED:
         r.verdict, _ = decide(r.registration(), cfg.icp, r.centre)
     else:

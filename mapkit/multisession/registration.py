@@ -254,14 +254,14 @@ class PairResult:
             "target_from_source": self.target_from_source.tolist(), "accepted": self.accepted, "reason": self.reason,
             "fitness": self.fitness, "structure_fitness": self.structure_fitness, "rmse_m": self.rmse_m,
             "structure_rmse_m": self.structure_rmse_m, "source_points": self.source_points,
-            "target_points": self.target_points, "correction_m": self.correction_m, "seconds": self.seconds, "key": self.key,
+            "target_points": self.target_points, "correction_m": self.correction_m, "key": self.key,
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> "PairResult":
         return cls(tuple(d["source"]), tuple(d["target"]), np.asarray(d["centre"]), np.asarray(d["target_from_source"]),
                    Verdict.recorded(d["reason"], bool(d["accepted"])), float(d["fitness"]), float(d["rmse_m"]), int(d["source_points"]),
-                   int(d["target_points"]), float(d["correction_m"]), float(d["seconds"]), float(d.get("structure_fitness", 0.0)),
+                   int(d["target_points"]), float(d["correction_m"]), float(d.get("seconds", 0.0)), float(d.get("structure_fitness", 0.0)),
                    float(d.get("structure_rmse_m", float("nan"))), d.get("key", ""))
 
 

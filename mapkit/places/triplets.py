@@ -17,7 +17,7 @@ triplet raises :class:`NoTripletsError` (saying why) and writes nothing. The sam
 PointNetVLAD's training layout are a later stage (:mod:`mapkit.places.pointnetvlad`, which imports this
 module and not the reverse).
 
-Where the time goes (20k triplets of the demo town): ICP, then cutting, normalising and
+Where the time goes (20k triplets of a synthetic town): ICP, then cutting, normalising and
 voxelising ~16k patches of ~5k points. Each session is downsampled and its normals estimated once
 (not per registration); a cell's places are made together (:class:`ChunkSets`: one fetch of each
 session's points about the cell, one batch through yaw normalisation and voxelisation).
@@ -41,7 +41,7 @@ from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import (atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, sha256_file, stage_digest,
-                               verify_file, write_json)
+                               verify_file, write_json, write_timings)
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import triplet_examples
 from mapkit.mapping.semidense import SemiDenseMap
@@ -91,7 +91,7 @@ class TripletConfig(MapkitConfig):
                                 "(semi-dense paper, section 4.1; no value given there: mapkit align's default).")
     min_fitness: float = Field(0.3, ge=0, le=1, description="A member whose ICP fitness is below this is rejected.")
     max_members: int = Field(8, ge=2, description="At most this many sessions per place.")
-    negative_min_distance_m: float = Field(100.0, gt=0, description="Negatives lie farther than this from the anchor (the issue's example, 100 m).")
+    negative_min_distance_m: float = Field(100.0, gt=0, description="Negatives lie farther than this from the anchor (semi-dense paper, section 4.1: \"far away\", no value given; mapkit choice: 100 m, five patch widths).")
     negative_pool: int = Field(2000, ge=10, description="Negative patches drawn per split and shared by its triplets.")
     tile_size_m: float = Field(200.0, gt=0, description="Side of the UTM tiles assigned to train or test (a few blocks of a town; "
                                "the buffer strips take less of a larger tile).")
@@ -100,9 +100,9 @@ class TripletConfig(MapkitConfig):
     shard_patches: int = Field(4096, ge=16, description="Patches per shard file.")
     shard_format: Literal["hdf5", "npz"] = Field("hdf5", description="Shard files: HDF5 (patches-NNNNN.h5: datasets occupancy and "
                                                  "density_comparison, chunked by 16 whole grids, gzip level 1, metadata in attributes) "
-                                                 "or compressed NumPy (patches-NNNNN.npz, the format of mapkit's first datasets).")
+                                                 "or compressed NumPy (patches-NNNNN.npz, read by np.load alone).")
     icp_relative_change: float = Field(1e-4, gt=0, description="ICP stops when its fitness and RMSE change by less than this "
-                                       "fraction between iterations. open3d's default is 1e-6; measured on the demo town's cells, "
+                                       "fraction between iterations. open3d's default is 1e-6; measured on a synthetic town's cells, "
                                        "1e-4 saves a third of the ICP time and moves no registration by more than 0.16 m at 16 m "
                                        "from the cell centre (99% by less than 0.10 m) nor changes any acceptance decision.")
     pointnetvlad: PointNetVladConfig = Field(PointNetVladConfig(), description="Also export the dataset in PointNetVLAD's "
@@ -911,9 +911,9 @@ def _write_dataset(out: Path, ws: Workspace, h: str, cfg: TripletConfig, session
     write_json(out / "manifest.json", manifest)
     n = places.counts
     metrics = {"triplets": counts, "quota": places.quota, "patches": int(shards.n), "places": n.sets, "places_tried": n.tried,
-               "members_rejected_by_icp": n.rejected_members, "icp_registrations": n.icp, "seconds": seconds,
-               "triplets_per_s": sum(counts.values()) / seconds if seconds > 0 else None}
+               "members_rejected_by_icp": n.rejected_members, "icp_registrations": n.icp}
     write_json(out / "metrics.json", metrics)
+    write_timings(out, seconds=seconds, triplets_per_s=sum(counts.values()) / seconds if seconds > 0 else None)
 
     ds = TripletDataset(out)
     if counts["train"] or counts["test"]:

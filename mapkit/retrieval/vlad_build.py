@@ -34,7 +34,7 @@ from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError, InputWarning
 from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, verify_file, write_json
+from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, verify_file, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.retrieval.vlad import PcaWhitening, VladEncoder, kmeans, whitening_parameters
 from mapkit.retrieval.vlad_bundle import (
@@ -46,7 +46,6 @@ from mapkit.retrieval.vlad_bundle import (
     SessionImages,
     VladIndexConfig,
     _database_table,
-    _now,
     _write_database_csv,
     _write_index,
     read_session_images,
@@ -182,8 +181,9 @@ def build_vlad_index(
     with building(out) as tmp:
         metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress,
                                         executor or get_executor(cfg.workers), None if reuse is None else Path(reuse))
-        metrics["seconds_total"] = time.perf_counter() - t_start
+        timings = metrics.pop("timings")
         write_json(tmp / "metrics.json", metrics)
+        write_timings(tmp, **timings, seconds_total=time.perf_counter() - t_start)
         write_manifest(tmp, manifest)  # last: it checksums every other file
     return out
 
@@ -338,7 +338,6 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
     encode_s = timings["encode_training_s"] + timings["encode_database_s"]
     metrics = {
         "images_encoded": n_encoded,
-        "images_encoded_per_s": n_encoded / encode_s if encode_s > 0 else None,
         "database_images": len(vectors),
         "database_images_reused_from_training": n_reused,
         "training_images": n_train,
@@ -348,7 +347,8 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
         "executor": executor.kind,
         "workers": executor.workers,
         **({"rewhitened_from": str(reuse)} if reuse is not None else {}),
-        **timings,
+        # a run record, not a result: the caller moves it to timings.json
+        "timings": {**timings, "images_encoded_per_s": n_encoded / encode_s if encode_s > 0 else None},
     }
     return metrics, _manifest(ws, cfg, sessions, db_names, train_names, frame, build_hash, learned, index_info, len(vectors))
 
@@ -361,7 +361,6 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
     return {
         "format_version": FORMAT_VERSION,
         "kind": "mapkit VLAD index",
-        "created": _now(),
         "mapkit_version": __version__,
         "build_hash": build_hash,
         "config": cfg.model_dump(mode="json"),
@@ -458,7 +457,6 @@ def _rewrite_config(out: Path, cfg: VladIndexConfig) -> None:
         atomic_write_text(tmp / "config.yaml", dump_config(cfg))
         manifest = json.loads((out / MANIFEST).read_text())
         manifest["config"] = cfg.model_dump(mode="json")
-        manifest["modified"] = _now()
         write_manifest(tmp, manifest)
 
 

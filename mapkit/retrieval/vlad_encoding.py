@@ -18,6 +18,7 @@ import numpy as np
 
 from mapkit.core.errors import InputError
 from mapkit.core.executor import Executor, TaskError, get_executor
+from mapkit.core.fingerprint import sha256_file
 from mapkit.retrieval.vlad import VladEncoder
 
 _PCA_BATCH = 256  # raw VLADs (64 KiB each at K = 128) projected per matrix product
@@ -84,9 +85,10 @@ def _faiss_threads(n: int) -> Iterator[None]:
 
 
 def _file_key(path: str | Path) -> str:
+    """A cache key of an image file: its resolved path, size and content hash (not its mtime, so that
+    the same images written again give the same cache)."""
     p = Path(path).resolve()
-    st = p.stat()
-    return f"{p}|{st.st_size}|{st.st_mtime_ns}"
+    return f"{p}|{p.stat().st_size}|{sha256_file(p)[:16]}"
 
 
 def encode_images(

@@ -20,7 +20,7 @@ from mapkit.core.bundle import MANIFEST, building, copy_file, read_manifest, wri
 from mapkit.core.errors import InputError
 from mapkit.core.executor import Executor
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_path, sha256_file, write_json
+from mapkit.core.runio import TIMINGS, atomic_path, read_timings, sha256_file, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.mapping.imagedb import images_world_from_cam
 from mapkit.retrieval.measurement import Measurement, mean_shift_measurement
@@ -34,7 +34,6 @@ from mapkit.retrieval.vlad_bundle import (
     VladIndexConfig,
     _concat_tables,
     _database_table,
-    _now,
     _same_frame,
     _write_database_csv,
     _write_index,
@@ -187,7 +186,7 @@ class VladIndex:
         """(n, D) encodings of image files, on the run's executor (see :func:`encode_images`).
 
         With ``cache_dir``, encodings are kept in ``encodings-<build hash>.npz`` there, keyed by
-        each file's resolved path, size and mtime, and only the files not found are encoded: two
+        each file's resolved path, size and content hash, and only the files not found are encoded: two
         evaluations of the same images (localization and place recognition) encode them once.
         ``workers`` (default: the bundle's setting) applies when no run-wide executor is set.
         """
@@ -261,7 +260,7 @@ class VladIndex:
         index = faiss.clone_index(self.index)
         index.add(new)
         with building(self.path) as tmp:
-            rewritten = {MANIFEST, INDEX_FILE, VECTORS_FILE, DATABASE_CSV, "metrics.json"}
+            rewritten = {MANIFEST, INDEX_FILE, VECTORS_FILE, DATABASE_CSV, "metrics.json", TIMINGS}
             for p in self.path.rglob("*"):
                 rel = p.relative_to(self.path)
                 if p.is_file() and rel.as_posix() not in rewritten:
@@ -270,9 +269,12 @@ class VladIndex:
             _write_index(tmp, index, vectors)
             _write_database_csv(tmp / DATABASE_CSV, database)
             metrics = json.loads((self.path / "metrics.json").read_text()) if (self.path / "metrics.json").is_file() else {}
-            metrics.setdefault("added_sessions", {})[name] = {"images": len(s), "encode_s": encode_s,
-                                                              "images_encoded_per_s": len(s) / encode_s if encode_s > 0 else None}
+            metrics.setdefault("added_sessions", {})[name] = {"images": len(s)}
             write_json(tmp / "metrics.json", metrics)
+            timings = read_timings(self.path)
+            timings.setdefault("added_sessions", {})[name] = {"encode_s": encode_s,
+                                                              "images_encoded_per_s": len(s) / encode_s if encode_s > 0 else None}
+            write_timings(tmp, **timings)
             manifest = json.loads(json.dumps(self.manifest))
             manifest["sessions"][name] = {
                 "images": len(s), "training_images": 0, "database": True, "training": False, "pose_source": s.pose_source,
@@ -280,10 +282,9 @@ class VladIndex:
                 "source_workspace": str(ws.root.resolve()),
             }
             manifest["database_sessions"] = list(manifest["database_sessions"]) + [name]
-            manifest["added_sessions"] = list(manifest.get("added_sessions", [])) + [{"session": name, "added": _now(), "images": len(s)}]
+            manifest["added_sessions"] = list(manifest.get("added_sessions", [])) + [{"session": name, "images": len(s)}]
             manifest["entries"] = int(index.ntotal)
             manifest["index"]["ntotal"] = int(index.ntotal)
-            manifest["modified"] = _now()
             write_manifest(tmp, manifest)
         self.manifest, self.index, self.database = manifest, index, database
         self.world_from_cam = images_world_from_cam(database)

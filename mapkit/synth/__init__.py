@@ -5,8 +5,10 @@ buildings with textured facades in repeated styles; trees, lamps, signs, fences,
 generated from a seed at a WGS84 origin, and vehicles drive routes through it under different
 times of day and weathers. Camera images are ray cast on the CPU with open3d's RaycastingScene
 and shaded from what the rays hit; a spinning LiDAR, GPS with a realistic error process and an
-IMU are simulated alongside. Presets: ``tiny`` (tests, seconds), ``demo`` (minutes), ``benchmark``
-(MCVL Table I scale); see ``configs/synth/*.yaml``.
+IMU are simulated alongside. Presets (``configs/synth/*.yaml``): ``tiny`` (three 250 m drives, every
+stage of ``mapkit demo`` in a few minutes on 2 cores), ``demo`` (the main job's default: five drives,
+every stage within ten minutes on 2 cores), ``places`` (eight drives; the papers' claims are measured
+on it) and ``benchmark`` (MCVL Sec. IV-B scale, hours).
 
 Public API::
 
@@ -33,7 +35,9 @@ Output layout (``out``)::
     sessions/<name>.gt.tum    ground-truth base_link poses in the world frame (GT rate)
     sessions/<name>.camera.tum  ground-truth camera (optical frame) poses at the image stamps
     sessions/<name>.parked_cars.ply  this session's parked cars (not in world/mesh.ply: they move)
-    metrics.json              world statistics, per-session counts, render times and rates
+    metrics.json              world statistics, per-session counts, what was rendered, street coverage
+    timings.json              wall-clock figures: seconds per step, camera frames and LiDAR scans
+                              rendered per second, per-session render seconds
     pictures/map.png          bird's-eye map of roads, buildings and routes
     pictures/contact_sheet.png  the anchor place seen by every session
 
@@ -62,7 +66,7 @@ import numpy as np
 
 from mapkit.core.errors import ConfigError, MapkitError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json, write_timings
 from mapkit.core.threads import single_thread_blas
 from mapkit.io.mcap_log import ROSBAG2_METADATA, is_rosbag2
 from mapkit.io.trajectory import read_tum
@@ -87,7 +91,7 @@ def session_log_relpath(session: str) -> str:
 
 def session_log(path: str | Path, session: str) -> Path:
     """A session's log: its rosbag2 folder ``sessions/<name>/`` (``metadata.yaml``, ``<name>_0.mcap``),
-    or the bare ``sessions/<name>.mcap`` of a town written before logs were rosbag2 folders."""
+    or else a bare ``sessions/<name>.mcap`` (a log written as one MCAP file)."""
     folder = Path(path) / session_log_relpath(session)
     if is_rosbag2(folder):
         return folder
@@ -109,7 +113,7 @@ def session_logs(path: str | Path) -> list[Path]:
         if p.is_dir() and is_rosbag2(p):
             found[p.name] = p
         elif p.is_file() and p.suffix == ".mcap" and "." not in p.stem:
-            found.setdefault(p.stem, p)  # an older town's bare log; its folder wins when both exist
+            found.setdefault(p.stem, p)  # a bare .mcap log; the session's folder wins when both exist
     return [found[k] for k in sorted(found)]
 
 
@@ -180,12 +184,15 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
             mark_done(world_dir, full_hash, world_hash=w_hash)
             timing["world_write_s"] = time.perf_counter() - t
         session_metrics = []
+        session_timings: dict[str, dict] = {}
         todo = []
         for p in plans:
             h = _session_hash(cfg, w_hash, p.index, p.config)
             marker = out / "sessions" / ".markers" / p.name
             if not overwrite and is_done(marker, h):
-                session_metrics.append(json.loads((marker / ".done").read_text()).get("metrics", {}) | {"skipped": True})
+                done = json.loads((marker / ".done").read_text()).get("metrics", {})
+                done.pop("timings_s", None)  # a marker may hold the session's timings: a run record, not a result
+                session_metrics.append(done | {"skipped": True})
             else:
                 todo.append((p, h, marker))
         t = time.perf_counter()
@@ -193,10 +200,13 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
         if workers <= 1:
             for p, h, marker in todo:
                 m = write_session(town, p, cfg, out, progress)
+                session_timings[p.name] = m.pop("timings_s")
                 mark_done(marker, h, metrics=m)
                 session_metrics.append(m)
         else:
-            session_metrics += _render_parallel(cfg, trajectory, out, todo, workers, progress)
+            for m in _render_parallel(cfg, trajectory, out, todo, workers, progress):
+                session_timings[m["name"]] = m.pop("timings_s")
+                session_metrics.append(m)
         timing["render_s"] = time.perf_counter() - t
         t = time.perf_counter()
         _pictures(out, town, plans)
@@ -205,23 +215,23 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
     rendered = [m for m in session_metrics if not m.get("skipped")]
     cam = sum(m["camera_frames"] for m in rendered)
     lid = sum(m["lidar_scans"] for m in rendered)
-    cam_s = sum(m["camera_render_s"] for m in rendered)
-    lid_s = sum(m["lidar_render_s"] for m in rendered)
+    cam_s = sum(t["camera_render_s"] for t in session_timings.values())
+    lid_s = sum(t["lidar_render_s"] for t in session_timings.values())
     order = {p.name: k for k, p in enumerate(plans)}
     metrics = {
         "format_version": FORMAT_VERSION, "preset": cfg.preset, "seed": cfg.seed, "config_hash": full_hash,
         "world": town.summary(),
-        "timing_s": {k: round(v, 3) for k, v in timing.items()},
         "rendered": {
             "sessions": len(rendered), "camera_frames": cam, "lidar_scans": lid,
-            "camera_frames_per_s": round(cam / cam_s, 3) if cam_s else None,
-            "lidar_scans_per_s": round(lid / lid_s, 3) if lid_s else None,
             "image_size": [cfg.camera.width, cfg.camera.height], "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
         },
         "sessions": sorted(session_metrics, key=lambda m: order.get(m.get("name"), 0)),
         "streets": street_coverage(plans),
     }
     write_json(out / "metrics.json", metrics)
+    write_timings(out, **{k: round(v, 3) for k, v in timing.items()},
+                  camera_frames_per_s=round(cam / cam_s, 3) if cam_s else None,
+                  lidar_scans_per_s=round(lid / lid_s, 3) if lid_s else None, sessions=session_timings)
     mark_done(out, full_hash)
     return out
 
@@ -245,14 +255,14 @@ def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
     with single_thread_blas():
         m = write_session(_WORKER["town"], _WORKER["plans"][index], _WORKER["cfg"], Path(out), _WORKER["progress"],
                           nthreads=_WORKER["nthreads"])
-    mark_done(Path(marker), cfg_hash, metrics=m)
+    mark_done(Path(marker), cfg_hash, metrics={k: v for k, v in m.items() if k != "timings_s"})
     return m
 
 
 def street_coverage(plans: list, radius_m: float = 15.0) -> dict:
     """Metres of street the drives cover: all drives, and the distinct ones (1 m samples of each
     drive's path farther than ``radius_m`` from every earlier drive's), in all and of the training
-    drives: where held-out places can lie (issue 21)."""
+    drives: where held-out places can lie."""
     from scipy.spatial import cKDTree
 
     from mapkit.synth.sessions import _resample_uniform
@@ -279,7 +289,7 @@ def _render_parallel(cfg: SynthConfig, trajectory, out: Path, todo: list, worker
     ctx = mp.get_context("spawn")
     # most work first, so that the pool finishes together (longest-processing-time order): per
     # second of driving, a camera frame costs ~0.17 s, a LiDAR sweep ~0.02 s, the rest ~0.1 s
-    # (demo preset, metrics.json); a test drive's 4 Hz camera doubles its cost
+    # (demo preset, the sessions' render seconds in timings.json); a test drive's 4 Hz camera doubles its cost
     lidar_rate = cfg.lidar.rate_hz if cfg.lidar.enabled else 0.0
     todo = sorted(todo, key=lambda x: -x[0].drive.duration_s * (0.17 * x[0].camera_rate_hz + 0.02 * lidar_rate + 0.1))
     with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,

@@ -630,9 +630,10 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
         "gps_fixes_without_fix": int((~err.valid).sum()), "imu_samples": int(len(imu_ns)),
         "ground_truth_poses": int(len(drive.stamps_ns)),
         "parked_cars": int(len(np.unique(parked.object_id[parked.material == Mat.CAR_BODY]))),
-        "anchor_frame": keep_frame, "wall_s": round(wall, 3), "camera_render_s": round(render_s["camera"], 3),
-        "lidar_render_s": round(render_s["lidar"], 3),
-        "mcap_bytes": int(sum(f.stat().st_size for f in log_dir.glob("*.mcap"))),
+        "anchor_frame": keep_frame, "mcap_bytes": int(sum(f.stat().st_size for f in log_dir.glob("*.mcap"))),
+        # how long it took: a run record (the caller moves it to the town's timings.json)
+        "timings_s": {"wall_s": round(wall, 3), "camera_render_s": round(render_s["camera"], 3),
+                      "lidar_render_s": round(render_s["lidar"], 3)},
     }
 
 
