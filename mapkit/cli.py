@@ -140,7 +140,7 @@ def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topi
 
 @app.command()
 def synth(
-    preset: str = typer.Option("tiny", help="tiny (tests), demo, or benchmark: configs/synth/NAME.yaml, installed as mapkit/configs/synth/."),
+    preset: str = typer.Option("tiny", help="tiny (tests), demo, places or benchmark: configs/synth/NAME.yaml, installed as mapkit/configs/synth/."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the world and session logs."),
     seed: Optional[int] = typer.Option(None, help="Seed of the town and sessions (the preset's if omitted)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding the preset (e.g. configs/synth/benchmark-camera.yaml)."),
@@ -261,7 +261,7 @@ def view(
     localize: Optional[Path] = typer.Option(None, "--localize", help="A localization folder: `mapkit localize` runs (itself or its "
                                             "sub-folders) and cached retrieval hits (cache/); default WORKSPACE/localize."),
     gps: bool = typer.Option(True, "--gps/--no-gps",
-                             help="Draw the GPS fixes the georef stage used (read again from the log for workspaces built before it saved them)."),
+                             help="Draw the GPS fixes the georef stage used (its georef/gps_fixes.npz; where a session has none, read again from its log)."),
     spawn: bool = typer.Option(False, "--spawn", help="Also open the Rerun viewer on it (needs a display)."),
     png: Optional[Path] = typer.Option(None, "--png",
                                        help="Also render a top view of the recording to this PNG (matplotlib, no viewer needed)."),
@@ -310,7 +310,8 @@ def train(
 @app.command()
 def demo(
     out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o", help="Output folder (town, workspace, bundles, report.html)."),
-    preset: str = typer.Option("demo", help="Synthetic town preset: demo (default), tiny (seconds, stops before alignment) or benchmark."),
+    preset: str = typer.Option("demo", help="Synthetic town preset: demo (default, every stage within ten minutes on 2 cores), "
+                                              "tiny (every stage in a few minutes), places (the papers' claims) or benchmark."),
     seed: Optional[int] = typer.Option(None, help="Seed of the town (the preset's if omitted)."),
     workers: int = typer.Option(2, help="Processes for image encoding."),
     train_cnn: bool = typer.Option(False, "--train-cnn", help="Also train the 3D CNN descriptor (learning extra; adds up to 30 min)."),
@@ -342,7 +343,7 @@ def index_export(
     """One deployable folder: every index with its manifest (format version, parameters, CRS, sessions, checksums)."""
     from mapkit.deploy.export import export_bundles, load_bundle
 
-    path = export_bundles(workspace, out, name or None)  # checks every file's checksum before it links the file
+    path = export_bundles(workspace, out, name or None)  # verifies every index's checksums, then copies its files
     b = load_bundle(path, verify=False)
     for n, e in b.manifest["indexes"].items():
         typer.echo(f"{n}: {e['descriptor']}, {e['entries']} entries, sessions {', '.join(e['source_sessions'])}")
@@ -376,7 +377,7 @@ def index_structure(
     session: Optional[List[str]] = typer.Option(None, "--session", "-s", help="Database session; repeat for several (default: all)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."),
 ) -> None:
-    """NBLD / M2DP patch descriptor index with keypoint-to-frame voting, as a deployable bundle."""
+    """Structure index of a workspace's maps (NBLD, M2DP or a trained CNN's patch descriptors) with keypoint-to-frame voting, as a deployable bundle."""
     from mapkit.places.index_structure import build_structure_index
 
     overrides = {"cnn_model": str(model)} if model is not None else None

@@ -29,7 +29,7 @@ from mapkit.pipelines.demo import run_demo  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="demo", help="synthetic town preset: demo (default), tiny (every stage on a small town, about a minute) or benchmark")
+    ap.add_argument("--preset", default="demo", help="synthetic town preset: demo (default), tiny (every stage on a small town), places (the papers' claims) or benchmark")
     ap.add_argument("--out", type=Path, default=Path("runs/main"), help="output folder (default runs/main)")
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--workers", type=int, default=2, help="processes for image encoding (default 2)")

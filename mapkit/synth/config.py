@@ -22,7 +22,7 @@ from mapkit.core.errors import ConfigError
 from mapkit.core.presets import configs_dir, preset_path
 
 FORMAT_VERSION = 1
-PRESETS = ("tiny", "demo", "benchmark")
+PRESETS = ("tiny", "demo", "places", "benchmark")
 WEATHERS = ("clear", "sunny", "overcast", "cloudy", "foggy", "rainy", "snowy")
 Weather = Literal["clear", "sunny", "overcast", "cloudy", "foggy", "rainy", "snowy"]
 Season = Literal["spring", "summer", "autumn", "winter"]
