@@ -1,6 +1,6 @@
 """Speed of the structure descriptors (NBLD, M2DP) and of patch preparation, on one core.
 
-Issue goal: at least 2,000 patches described per second on one core for NBLD and for M2DP, on
+Goal: at least 2,000 patches described per second on one core for NBLD and for M2DP, on
 patches of a realistic semi-dense size (500-3,000 points). Everything runs single-threaded
 (BLAS and OpenMP pinned to one thread before numpy is imported, OpenCV's pool to one thread).
 

@@ -33,7 +33,7 @@ from bench.common import best_of, report  # noqa: E402
 
 
 def tiny_workspace(cache: Path) -> Path:
-    """The ``tiny`` town built into ``cache/ws`` (once: ~30 s)."""
+    """The ``tiny`` town built into ``cache/ws`` (once: a few minutes)."""
     from mapkit.mapping.build import build
     from mapkit.core.errors import InputWarning
     from mapkit.synth import session_logs, synthesize

@@ -1,6 +1,6 @@
 """What recognising a changed log costs: mapkit's sampled log fingerprint against hashing the whole file.
 
-Issue #23: a done-marker records the identity of the log a stage read, and a re-run compares it
+A done-marker records the identity of the log a stage read, and a re-run compares it
 before trusting the stage. This benchmark writes a log-sized file of random bytes (``--gib``,
 default 1 GiB, in a temporary folder), then times, in one run, the best of ``--repeat``:
 

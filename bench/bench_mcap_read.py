@@ -1,6 +1,6 @@
 """Read throughput and peak memory of ``McapLog`` on a multi-GB MCAP, against bare ``mcap``.
 
-Foundation issue: reading a multi-GB MCAP of images and point clouds should run within 1.3x of the
+Goal: reading a multi-GB MCAP of images and point clouds should run within 1.3x of the
 ``mcap`` library's own decode of every message, and its peak memory should not grow with the
 log's length. This benchmark checks both in one run and prints the ratios; it never fails.
 
@@ -51,7 +51,7 @@ from bench.common import best_of, peak_rss_mb_of, report, self_peak_rss_mb  # no
 # also records its own high-water mark (VmHWM, per address space) as a cross-check.
 
 GB = 1e9
-#: the issue's goals: mapkit within 1.3x of bare mcap decoding; peak memory flat in log length
+#: the goals: mapkit within 1.3x of bare mcap decoding; peak memory flat in log length
 THROUGHPUT_GOAL = 1.3
 MEMORY_GOAL = 1.10  # peak RSS of the full log over that of the quarter log ("about 1.0")
 

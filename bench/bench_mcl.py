@@ -17,7 +17,7 @@ under 1 ms of work (CPU time), single-threaded; wall time is printed beside it. 
    R = 20 retrieved poses, re-injection check, mode estimate, adaptive resampling) with 1,000
    particles, and its ratio to the paper's step (1.). Building the 20 hypotheses from the hits is
    included; the track's odometry is exact and one hit per step is right.
-6. The paper's step as :func:`mapkit.localization.localize.run_localizer` takes it (issue #20):
+6. The paper's step as :func:`mapkit.localization.localize.run_localizer` takes it:
    the camera-pose measurement converted to the base through the camera mount before the step,
    the estimate converted back to the camera after it; its ratio to the bare step (1.) is the
    cost of running the filter on the vehicle's base pose.

@@ -1,13 +1,13 @@
 """Speed of semi-dense mapping at 640x480 against two baselines measured in the same run.
 
-Also the cost of issue 26's outlier filters: the end-to-end run is timed with every filter off
-(the mapper as it was, ``FILTERS_OFF``), with the recommended ones on (``FILTERS_ON``) and with every
+Also the cost of the outlier filters: the end-to-end run is timed with every filter off
+(``FILTERS_OFF``), with the recommended ones on (``FILTERS_ON``) and with every
 fusion filter on (multi-view, photometric, free space: ``FILTERS_FUSION_ALL``), and with the recommended ones
-and the camera-rotation refinement (``refine_rotations``; with its default tracked corners, and with session
-13's SIFT matching), in turn, best of ``--repeat`` each in wall and CPU time; goal: ``FILTERS_ON``, and
+and the camera-rotation refinement (``refine_rotations``; with its default tracked corners, and with SIFT
+matching: 3,000 features, Lowe's ratio test), in turn, best of ``--repeat`` each in wall and CPU time; goal: ``FILTERS_ON``, and
 ``FILTERS_ON`` with the refinement, within 1.3x of off.
 
-Issue goal: at least 2 keyframes per second at 640x480 on the 2-core machine. The frames are
+Goal: at least 2 keyframes per second at 640x480 on the 2-core machine. The frames are
 real: the KITTI clip beside the project, resized to 640x480 (the camera matrix is scaled with
 them, fx != fy, which is still an exact pinhole camera), with its given poses. Three figures:
 
@@ -49,7 +49,7 @@ from mapkit.core.geometry import invert_pose  # noqa: E402
 from mapkit.mapping.semidense import PATTERN_DSO8, SemiDenseConfig, build_semidense_map, map_keyframe, select_candidates  # noqa: E402
 
 GOAL_KEYFRAMES_PER_S = 2.0
-GOAL_FILTER_SLOWDOWN = 1.3  # issue 26: mapping with the outlier filters within 1.3x of the time without
+GOAL_FILTER_SLOWDOWN = 1.3  # mapkit goal: mapping with the outlier filters within 1.3x of the time without
 SIZE_WH = (640, 480)
 #: every test at fusion: multi-view, photometric, free space
 FILTERS_FUSION_ALL = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["photometric"], **FILTERS_ALONE["free space"]}
@@ -134,11 +134,11 @@ def main(argv: list[str] | None = None) -> int:
     sd = end_to_end()
     kfs_e2e = len(sd.keyframe_ids) / t_e2e
 
-    # 1b. the outlier filters: off (the mapper before issue 26), the recommended ones, all at fusion; in turn, wall and CPU
+    # 1b. the outlier filters: all off, the recommended ones, all at fusion; in turn, wall and CPU
     filter_cfgs = {"off": cfg.model_copy(update=FILTERS_OFF), "on": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON}),
                    "all fusion tests": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_FUSION_ALL}),
                    "on + rotation refinement": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON, "refine_rotations": True}),
-                   # the refinement with session 13's SIFT matching (3,000 features, Lowe's ratio test): the tracks' baseline
+                   # the refinement with SIFT matching (3,000 features, Lowe's ratio test): the tracked corners' baseline
                    "on + rotation refinement, SIFT": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON, "refine_rotations": True,
                                                                              "refine_matcher": "sift", "refine_features": 3000})}
     filter_t = {k: [float("inf"), float("inf")] for k in filter_cfgs}

@@ -1,6 +1,6 @@
 """Synthetic town: rendering speed, and the demo preset's time and peak memory.
 
-1. Camera frames per second rendered together with their LiDAR sweep (issue 3's target: a 640x480
+1. Camera frames per second rendered together with their LiDAR sweep (the target: a 640x480
    camera and a 32-beam LiDAR, here the HDL-32E layout at 1024 azimuth steps; the demo's 64 x 512
    LiDAR casts the same number of rays) on the demo town, per condition, including JPEG encoding and
    building the PointCloud2 message; best of ``--repeat`` passes over ``--frames`` poses. The
@@ -152,7 +152,7 @@ def main(argv=None) -> int:
 
     rows, overall = evaluate(out)
     report("Naive thumbnail matching on the demo (32x24 grayscale, within 25 m)", rows,
-           f"overall: {overall:.3f} of the queries found; the issue asks for under 0.5")
+           f"overall: {overall:.3f} of the queries found; the goal is under 0.5")
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -2,7 +2,7 @@
 
 Baselines, in the same run:
 - the paper's procedure taken literally, one ICP per place (``icp_cell_m`` so small that every
-  place has its own cell), with today's code;
+  place has its own cell), with this checkout's code;
 - with ``--reference FILE``, an earlier ``mapkit/places/triplets.py`` (a saved copy), on the same
   workspace: the before/after of a change.
 

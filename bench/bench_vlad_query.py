@@ -1,8 +1,8 @@
 """Query time of the VLAD index at city scale: exact flat search against IVF, on ONE core.
 
-The goal (issue): < 20 ms per query, top-20 of 100,000 database images of 4096 dimensions (MCVL
+The goal: < 20 ms per query, top-20 of 100,000 database images of 4096 dimensions (MCVL
 Sec. IV-A: 4096-D VLAD after PCA-whitening, R = 20). Exact flat search reads the whole 1.6 GB
-matrix per query and is memory bound (~107 ms here); an inverted file (IVF) reads nprobe of its
+matrix per query and is memory bound; an inverted file (IVF) reads nprobe of its
 nlist lists. Every variant is measured in this run against exact search on the same data:
 
 * time per query, one query at a time (what the localizer does, one image per step) and in one

@@ -1,6 +1,6 @@
 """Retrieval quality of the VLAD encoder's whitening variants, with the PCA learned on the database.
 
-Issue #20 (item 3): a PCA learned on n database images keeps n - 1 directions, and full whitening
+A PCA learned on n database images keeps n - 1 directions, and full whitening
 (MCVL's [33]) then maps those n images to the corners of a regular simplex: every pair of database
 vectors is the same distance apart, and a query's coordinates along the last, noise-dominated
 directions are scaled up the most. This benchmark measures, on a workspace's sessions and in one
@@ -23,8 +23,8 @@ its defaults (train sessions = database sessions), at ``pca_dim`` 4096 (capped a
 
 Raw VLADs are computed once per split and cached in ``--cache``; the variants only refit the PCA.
 
-Run from the repository root, on a built workspace (the tiny town takes ~1.5 min to synthesize and
-build, the encoding here ~4 min on one core)::
+Run from the repository root, on a built workspace (the tiny town takes a few minutes to synthesize
+and build, the encoding here ~4 min on one core)::
 
     python3 bench/bench_whitening.py WS [--cache DIR] [--radius 25]
 """

@@ -1,4 +1,4 @@
-"""Today's georeferenced trajectory (one rigid GPS fit) against the factor-graph fusion, on the synthetic town.
+"""The default georeferenced trajectory (one rigid GPS fit) against the factor-graph fusion, on the synthetic town.
 
     mapkit synth --preset tiny --out T
     mapkit build T/sessions/*/ --out W --config NOMAP.yaml      # NOMAP.yaml: "map: false" and "imagedb: false"
@@ -17,7 +17,7 @@ The non-holonomic constraint's spread against truth (:func:`nhc_fit`): ``nhc_sig
 
 The IMU is preintegrated by default with the town's own IMU noise (``world/config.yaml``, ``imu:``:
 per-sample sigmas at ``rate_hz``, turned into densities; its constant biases' sigmas as the bias
-priors); ``--no-imu`` fuses with the gravity direction instead (the graph before issue 24's IMU),
+priors); ``--no-imu`` fuses with the gravity direction instead (no IMU factors),
 ``--set`` overrides any FactorGraphConfig field after that.
 
 Slips: the spans where kiss-icp's motion over 1 s differs from the truth's by more than

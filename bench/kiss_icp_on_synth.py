@@ -7,7 +7,7 @@ The script reads the poses it writes and compares them with the ground truth of 
 the same instants: ATE (RMSE of positions) after a rigid alignment (Umeyama, no scale) and without
 one (anchored at the first scan), and the drift in percent of the distance driven.
 
-Given a bare ``.mcap`` (a town written before logs were rosbag2 folders), kiss-icp uses its MCAP
+Given a bare ``.mcap`` (a session's log as one MCAP file, not a rosbag2 folder), kiss-icp uses its MCAP
 dataloader instead, and kiss-icp 1.3.0 cannot read a PointCloud2 decoded by mcap-ros2-support (0.5
 and 0.6 alike): its ``get_datatype_name`` looks for the PointField constants in ``vars(field)``,
 which is empty for mcap_ros2's slotted message classes ("Unknown datatype code 7"; upstream PR

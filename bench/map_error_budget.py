@@ -13,7 +13,7 @@ mesh (with that session's parked cars), as ``mapkit eval build`` does:
 * ``true_roll_pitch``: estimated positions and heading, true roll and pitch (what leveling by
   gravity, from an IMU, could at best give);
 * ``fused``: the trajectory the factor graph gives (``georef: {fuse: true}``: odometry, GPS and the
-  preintegrated IMU; issue 24), after the same yaw-only fit to truth;
+  preintegrated IMU), after the same yaw-only fit to truth;
 * ``aligned``: not rebuilt: the session's map as ``mapkit align`` left it, after the same yaw-only
   fit of its refined trajectory (only when the workspace was aligned).
 
@@ -26,7 +26,7 @@ few minutes per variant on one core)::
     python3 bench/map_error_budget.py --workspace runs/main/workspace --town runs/main/town --session test-clear
 
 ``--semidense FILE.yaml`` sets semi-dense mapper fields over the workspace's build config, e.g. the
-outlier filters of issue 26 (``min_consistent_views: 1``) for a run on true poses only::
+outlier filters (``min_consistent_views: 1``) for a run on true poses only::
 
     python3 bench/map_error_budget.py ... --variants truth --semidense filters.yaml
 """
@@ -80,12 +80,12 @@ def _copy_stages(builder, sdir: Path, stages: tuple[str, ...]) -> None:
 
 
 def _mark_finished(builder, stages: tuple[str, ...]) -> None:
-    """Mark the scratch session's ``stages`` finished as the builder checks them now: the config hash and
+    """Mark the scratch session's ``stages`` finished as the builder checks them: the config hash and
     inputs this checkout's code computes, and the outputs as they are (the variant's poses included).
 
-    The workspace's own markers are not enough: a config section that gained a field since the build
-    hashes differently (the factor graph's did, and with ``georef.fuse`` the georef stage hashes it),
-    and the builder would run the stage again, writing the estimated trajectory over the variant's."""
+    The workspace's own markers are not enough: a workspace built by another version of mapkit may
+    hash a config section differently (a field added to it changes its hash; with ``georef.fuse`` the
+    georef stage hashes the factor graph's section), and the builder would run the stage again, writing the estimated trajectory over the variant's."""
     from mapkit.core.runio import mark_done, read_marker
     from mapkit.mapping.build import _stage_hash
 

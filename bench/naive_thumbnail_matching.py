@@ -108,7 +108,7 @@ def main(argv=None) -> int:
     pairs = [tuple(p.split(":", 1)) for p in args.pair] if args.pair else None
     rows, overall = evaluate(args.dir, pairs)
     report(f"Naive nearest neighbour on {THUMB[0]}x{THUMB[1]} grayscale thumbnails across conditions (found within {RADIUS_M:.0f} m)",
-           rows, f"overall: {overall:.3f} of the queries found (raw pixels); the issue asks for under 0.5")
+           rows, f"overall: {overall:.3f} of the queries found (raw pixels); the goal is under 0.5")
     return 0
 
 

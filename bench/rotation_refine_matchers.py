@@ -1,7 +1,7 @@
 """How the rotation refinement matches frames: SIFT against tracked corners, on the real KITTI clip.
 
-``mapkit.mapping.pose_refine.RotationRefiner`` (issue 26) needs correspondences between each frame and the
-next few. Session 13 matched 3,000 SIFT features per frame by Lowe's ratio test; session 15 tracks corners from
+``mapkit.mapping.pose_refine.RotationRefiner`` needs correspondences between each frame and the next few. It
+can match 3,000 SIFT features per frame by Lowe's ratio test (``matcher: sift``), or, by default, track corners from
 frame to frame (Shi-Tomasi, pyramidal Lucas-Kanade, forward-backward check). This bench runs the streaming
 refiner alone over ``--frames`` frames of the clip at 640x480 with its given poses, once per matcher setting, and
 prints for each:
@@ -38,7 +38,7 @@ from mapkit.mapping.pose_refine import RotationRefiner, epipolar_distances_px  #
 
 #: (label, RotationRefiner keywords); the first is the baseline of the ratios
 SETTINGS = [
-    ("SIFT, 3,000 features (session 13)", {"matcher": "sift", "features": 3000}),
+    ("SIFT, 3,000 features", {"matcher": "sift", "features": 3000}),
     ("tracks, 600 corners, 11 px window (default)", {}),
     ("tracks, 600 corners, 15 px window", {"track_window_px": 15}),
     ("tracks, 1,000 corners", {"features": 1000}),

@@ -1,13 +1,13 @@
 """Semi-dense map of the real KITTI clip with its given poses: cross-frame consistency, with and without outlier rejection.
 
 Runs ``mapkit.mapping.semidense.build_semidense_map`` over the 51-frame KITTI odometry clip beside the
-project (left grey camera, exact poses) twice in one process: once as the mapper was before its
-outlier filters (``FILTERS_OFF``: no multi-view, photometric or free-space test, no ratio test, no
+project (left grey camera, exact poses) twice in one process: once with every
+outlier filter off (``FILTERS_OFF``: no multi-view, photometric or free-space test, no ratio test, no
 convergence threshold, no statistical pass) and once with the filters of the config (``--config`` over
 the defaults, or a build config's ``semidense`` section). Then:
 
 - writes the filtered map (``points.ply``, ``observations.npz``, ``config.yaml``) into ``--out``;
-- computes the consistency figure of issue 26 for both maps: every map point reprojected into the
+- computes the cross-frame consistency figure for both maps: every map point reprojected into the
   keyframes that did not create it, its depth compared with that keyframe's own depth at the
   nearest pixel (median, 90th percentile, share of pairs where the map is > 5 % farther), broken
   down by the distance between the keyframes and by the keyframe's own depth. Two references:
@@ -30,7 +30,7 @@ the defaults, or a build config's ``semidense`` section). Then:
   moves an epipolar line by pixels, and the depths of a keyframe searched along such lines disagree
   with everyone's); ``--refine-rotations`` maps on the given positions with every frame's rotation
   re-estimated from those matches (:func:`refine_rotations`), a diagnostic of what the map measures on
-  poses that agree with the images, not the issue's "given poses"; ``--refine-in-mapper`` maps on the
+  poses that agree with the images, not on the clip's given poses; ``--refine-in-mapper`` maps on the
   given poses with the mapper's own streaming refinement on (``refine_rotations``,
   :mod:`mapkit.mapping.pose_refine`), the way a build runs it;
 - ``--ablation``: each filter alone, then combinations, one row each (same figures);
@@ -75,7 +75,7 @@ HALF_CLIP_M = 30.0
 POSE_CHECK_GAP = 3  # the neighbour window's farthest frame (neighbour_window_frames)
 LOWE_RATIO = 0.7  # SIFT ratio test (Lowe, IJCV 2004: 0.8; 0.7 stricter, fewer wrong matches on repeated facades)
 POSE_HUBER_PX = 1.0  # robust scale (px) of the epipolar distances in refine_rotations
-#: the mapper as it was before issue 26: every outlier filter off, a depth accepted where 3 frames agree
+#: every outlier filter off: a depth accepted where 3 frames agree
 FILTERS_OFF = {"min_consistent_views": 0, "ambiguity_ratio": None, "max_sigma_inv_depth": None, "outlier_neighbours": 0,
                "photometric_min_views": 0, "free_space_window_keyframes": 0, "min_agreeing_frames": 3}
 #: the filtered run without --config: the multi-view test at its defaults (chosen on frames 0-25 of the clip) and the
@@ -174,7 +174,7 @@ class Run:
         self.consistency: dict = {}
 
     def score(self, verified: dict[int, tuple[np.ndarray, KeyframePoints]], keyframe_bins: list[float]) -> None:
-        """The consistency figures against this run's own keyframe depths (``raw``: the issue's figure, with
+        """The consistency figures against this run's own keyframe depths (``raw``: the headline figure, with
         the farther pairs told apart against ``verified``, and broken down along the drive by ``keyframe_bins``)
         and against those that entered fusion (``filtered``)."""
         as_list = lambda d: [(fid, T, pts) for fid, (T, pts) in d.items()]  # noqa: E731

@@ -9,7 +9,7 @@ Table I (queries at 4 Hz). This recipe does the same on mapkit's synthetic town:
 2. ``mapkit build --config configs/build/mcvl-database.yaml``: each drive's images with their
    ground-truth poses, as the paper's database has them; no map
 3. ``mapkit index vlad``: dense SIFT, VLAD, PCA-whitening of the 54 training drives (power-law
-   whitening, mapkit's default); and, for issue 20's before/after, a second bundle with the
+   whitening, mapkit's default); and, to compare the two whitenings, a second bundle with the
    paper's full whitening (re-scaled from the first: no image encoded twice), localized with the
    paper's defaults
 4. ``mapkit eval localize``: the filter on the 5 test sequences with the paper's defaults; then,
@@ -97,7 +97,7 @@ def run(out: Path, workers: int = 2, preset: str = "benchmark", progress: bool =
     text = [f"# MCVL benchmark, preset {preset} (Sec. IV-B scale with the benchmark preset): {len(train)} training drives, {len(roles) - len(train)} test sequences",
             "", "\n".join(rows), "", f"Whole run this time: {metrics['seconds_total'] / 60:.1f} min (stages already finished are skipped).", ""]
     labels = {"paper": "paper: MCVL Sec. IV-A defaults (PCA with mapkit's default power-law whitening)",
-              "paper-full-whitening": "paper: MCVL Sec. IV-A defaults with the paper's full PCA-whitening (issue 20's 'before')",
+              "paper-full-whitening": "paper: MCVL Sec. IV-A defaults with the paper's full PCA-whitening (to compare with the default's)",
               "paper-estimated-motion": "paper, mu_v and Sigma_v estimated from the training drives at {:g} Hz: mu_v = {}, Sigma_v = {} "
                                         "(MCVL Sec. III-A permits it; not the paper's values)",
               "odometry-multihypothesis": "beyond the paper: odometry-driven multi-hypothesis preset"}

@@ -153,14 +153,14 @@ def test_candidate_pairs_pairs_only_nearby_submaps_of_different_sessions():
 
 
 def test_pose_graph_distributes_a_known_offset():
-    # two sessions of 3 submaps; ICP says session 1 sits 2 m east of session 0 everywhere
+    # two sessions of 3 submaps; ICP says the second sits 2 m east of the first everywhere
     centres = np.array([[25.0, 0, 0], [75, 0, 0], [125, 0, 0]] * 2)
     g = PoseGraph(centres, AlignConfig().graph, session_of=np.repeat([0, 1], 3))
     edges = []
     for k in range(2):
         for s in (0, 3):
             edges.append(Edge("odometry", s + k, s + k + 1, np.array([[50.0 * (k + 1), 0, 0], [50.0 * (k + 1) + 10, 0, 0], [50.0 * (k + 1), 10, 0]]), np.eye(4), 0.1))
-    T = make_pose(np.eye(3), [-2.0, 0, 0])  # maps session 1's points onto session 0's
+    T = make_pose(np.eye(3), [-2.0, 0, 0])  # maps the second session's points onto the first's
     for k in range(3):
         edges.append(Edge("icp", 3 + k, k, centres[k] + np.array([[0, 0, 0], [10.0, 0, 0], [0, 10.0, 0]]), T, 0.1))
     x = g.solve(edges)
@@ -358,7 +358,7 @@ def test_a_fused_trajectory_holds_its_submaps_together_more_tightly(tmp_path, st
 
 
 def test_a_sparse_session_is_kept_with_its_reason_and_one_without_gps_is_skipped(tmp_path, street_world):
-    """Issue 24's degenerate sessions: a foggy one whose map is too sparse to register (every pair it is in is
+    """Degenerate sessions: a foggy one whose map is too sparse to register (every pair it is in is
     rejected as "too few points"; it stays in the alignment on its GPS, its submaps unverified, out of the
     merged map), and one whose GPS never fixed (not georeferenced: skipped with a warning naming it)."""
     errors = {"s0": gps_error(1.5, -2.0, 0.3), "s1": gps_error(-2.0, 1.0, -0.4), "fog": gps_error(0.5, 2.5, 0.0)}

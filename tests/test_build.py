@@ -63,8 +63,8 @@ def test_build_writes_every_stage_in_the_fields_formats(clip12, tmp_path):
 
 
 def test_a_corrupt_image_costs_its_frame_not_the_build(clip12, tmp_path):
-    """Issue 23: one corrupt PNG aborted a whole build. Now that frame is skipped with a warning that
-    names the file; the map and the image database are built from the others."""
+    """A corrupt PNG costs its frame, not the build: that frame is skipped with a warning that names the
+    file, and the map and the image database are built from the others."""
     d = tmp_path / "clip12"
     shutil.copytree(clip12, d)
     bad = d / "image_l" / "000005.png"
@@ -121,9 +121,9 @@ def test_build_cli_errors_are_one_line(tmp_path, capsys):
 
 
 def test_missing_intrinsics_is_one_clear_error_before_any_stage_runs(tmp_path, rng, capsys):
-    """A generic folder with poses but no intrinsics: refused before the trajectory is built (issue 23:
-    it was reported only after trajectory and georeferencing ran); with map and image database off
-    the same log builds its trajectory."""
+    """A generic folder with poses but no intrinsics: refused before the trajectory is built (the
+    trajectory and georeferencing do not need intrinsics, so only an early check spares their work); with
+    map and image database off the same log builds its trajectory."""
     import cv2
 
     d = tmp_path / "drive"
@@ -256,8 +256,8 @@ def test_a_log_without_images_builds_its_trajectory_and_georef_and_skips_the_ima
 
 
 def test_wild_gps_fixes_are_screened_before_one_can_become_the_origin(tmp_path):
-    """Issue 23's null island: a first fix at (0, 0) with FIX status once became origin.json. Now it
-    and a 1 km jump are rejected and counted, fixes without altitude take the others' median, the
+    """Null island: a first fix at (0, 0) with FIX status must not become origin.json. It and a 1 km
+    jump are rejected and counted, fixes without altitude take the others' median, the
     origin is the first good fix, and the alignment is as good as without the faults."""
     from mapkit.mapping.gps_screen import JUMP, NULL_ISLAND
 

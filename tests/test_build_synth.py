@@ -92,7 +92,7 @@ def test_image_database_records_the_camera_mount(built):
 
 
 def test_fused_georeferencing_writes_poses_with_covariances_and_the_map_uses_them(built, tmp_path):
-    """``georef: {fuse: true}`` (issue 24): the factor graph over kiss-icp, GPS and the preintegrated
+    """``georef: {fuse: true}``: the factor graph over kiss-icp, GPS and the preintegrated
     IMU writes its trajectory and per-pose covariances beside the rigid fit's; the trajectory stage
     is kept, the georef and map stages redone on the fused poses. Against the truth, the fused
     frame-to-frame motion is better than kiss-icp's (the IMU is exact over a tenth of a second);

@@ -34,8 +34,9 @@ pytest.importorskip("gtsam")
 
 GPS_SIGMA_REPORTED = 2.5  # white 1.5 m and bias 2.0 m, as the synthetic town's receiver reports them
 CHI2_95_3DOF = 7.815
-# the gravity tests' odometry drifts 0.01-0.03 deg/m, as kiss-icp did on the tiny town before its 512-column sweep: the
-# model has to be told so (the defaults are today's kiss-icp, 20 times tighter in pitch)
+# the gravity tests' odometry drifts 0.01-0.03 deg/m, as kiss-icp does on the tiny town with a 256-column sweep
+# (bench/lidar_odometry_budget.py): the model has to be told so (the defaults fit kiss-icp on the presets' 512-column
+# sweep, 20 times tighter in pitch)
 LOOSE = FactorGraphConfig(odom_rotation_walk_rad_per_sqrt_m=(1.5e-3,) * 3, odom_translation_walk_m_per_sqrt_m=(0.01,) * 3)
 NO_JITTER = dict(odom_rotation_jitter_rad=(1e-5,) * 3, odom_translation_jitter_m=(1e-4,) * 3)
 
@@ -117,7 +118,7 @@ def test_drift_removed_and_outliers_downweighted():
     gps, bad = gps_fixes(stamps, truth, rng, bias=bias, outliers=6)
     fused = fuse_session(stamps, odom, gps, true_gravity(stamps, truth), LOOSE)
 
-    # the odometry as today's rigid fit leaves it: its own shape against the truth's
+    # the odometry as the default rigid fit leaves it: its own shape against the truth's
     from mapkit.mapping.gps_align import fit_transform
 
     T = fit_transform(odom[:, :3, 3], truth[:, :3, 3], mode="yaw")
@@ -434,11 +435,11 @@ def flat_turning_drive():
 
 
 def test_flat_road_keeps_its_height_when_the_odometry_crabs_in_a_turn():
-    """Issue 24's height drift, known answer: a flat road, and odometry whose steps point 1 deg off the car's heading
+    """Height drift, known answer: a flat road, and odometry whose steps point 1 deg off the car's heading
     while it turns (kiss-icp's across-track error in tiny-rainy's turns: -19 mm per 1 m step), true elsewhere; the IMU
     with the synthetic town's noise and biases drawn from its priors. The height drift over the drive (last tenth minus
     first tenth, as bench/factor_graph_budget.py) stays below 0.2 m with the non-holonomic constraint (seeds 0-7:
-    -0.02 to +0.12 m); without it (the graph before issue 24's fix) the crab tilts the whole drive (seeds 0-7: +0.28
+    -0.02 to +0.12 m); without it (``nhc_sigma_m_s=0``) the crab tilts the whole drive (seeds 0-7: +0.28
     to +0.48 m)."""
     rng = np.random.default_rng(0)
     stamps100, truth100 = flat_turning_drive()

@@ -406,7 +406,7 @@ def test_kitti_clip_map_is_consistent_across_frames(kitti_clip):
     assert len(sd) > 20000
     c = consistency(sd, [(fid, T, p) for fid, (T, p) in own.items()])
     assert c["pairs"] > 20000
-    assert c["median_rel"] < 0.05  # the issue's goal
+    assert c["median_rel"] < 0.05  # the goal: keyframes agree within 5 % (median)
     assert c["by_keyframe_distance_m"][0]["median_rel"] < 0.03  # neighbouring keyframes agree closely
 
 
@@ -434,7 +434,7 @@ def test_blank_frames_give_an_empty_map_not_a_crash():
     assert sd.obs_indptr.tolist() == [0]
 
 
-# --- outlier rejection (issue 26): one known answer per filter ---------------------------------------------
+# --- outlier rejection: one known answer per filter -------------------------------------------------------
 
 def _plane_depth(world_from_cam: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Camera depth of the slanted wall z = 8 + 0.2 x (world) along the rays of pixels ``uv`` (N, 2)."""

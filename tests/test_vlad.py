@@ -116,9 +116,9 @@ def places_with_background(seed: int, places: int = 20, dim: int = 400):
 
 
 def test_full_whitening_on_its_own_n_vectors_makes_them_equidistant_regularised_does_not():
-    """Issue #20: n vectors whitened in n - 1 dimensions are the corners of a regular simplex, so
-    after L2 every pair is at squared distance 2n / (n - 1) and a database learned on returns
-    only ties (the demo: 684 images, 2.0029). Regularised whitening keeps the structure."""
+    """Fully whitened in the n - 1 dimensions they span, n vectors are the corners of a regular simplex,
+    so after L2 every pair is at squared distance 2n / (n - 1) and the database the PCA learned on,
+    searched against itself, returns only ties (684 images: all at 2.0029). Regularised whitening keeps the structure."""
     db, _ = places_with_background(0)
     n, places = len(db), len(db) // 2
     same_place = np.r_[np.arange(places) + places, np.arange(places)]
@@ -163,10 +163,10 @@ def test_encoder_config_chooses_the_whitening(rng):
         assert (pca.power, pca.shrinkage, pca.n_train) == (power, shrinkage, 30)
         np.testing.assert_allclose(np.linalg.norm(pca.projection, axis=1), whitening_scales(pca.variances, power, shrinkage), rtol=1e-4)
     assert VladConfig().whitening == "power" and VladConfig().whitening_power == 0.5
-    # an encoder saved before the whitening was recorded loads as fully whitened
+    # a saved state without the whitening's power and shrinkage loads as fully whitened
     state = PcaWhitening.fit(x, 8).state_dict()
-    old = {k: state[k] for k in ("mean", "projection", "variances", "whiten")}
-    assert PcaWhitening.from_state_dict(old).describe()["whitening"] == "full"
+    bare = {k: state[k] for k in ("mean", "projection", "variances", "whiten")}
+    assert PcaWhitening.from_state_dict(bare).describe()["whitening"] == "full"
 
 
 def shifted_and_brighter(img: np.ndarray, dx: int = 3, dy: int = 2, gain: float = 1.1, offset: float = 15) -> np.ndarray:

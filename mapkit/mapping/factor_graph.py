@@ -14,7 +14,7 @@ Keyframes are taken from the odometry every ``keyframe_distance_m`` or ``keyfram
   Python API, so the rates are a stated model fitted against the synthetic town's truth by
   ``bench/factor_graph_budget.py``, not a per-scan covariance;
 - the odometry's slips: kiss-icp on a street of flat facades sees a corridor and loses metres
-  along it in a second (braking, issue 24), and lags when starting from rest. A slip is not
+  along it in a second (braking), and lags when starting from rest. A slip is not
   random-walk drift, so no honest Gaussian describes it; the odometry's factors carry a
   redescending robust loss (``odom_robust``: Cauchy) and the IMU, millimetre-exact over a second,
   carries the graph through. Runs of keyframe steps whose translation the solution moves beyond
@@ -34,14 +34,14 @@ Keyframes are taken from the odometry every ``keyframe_distance_m`` or ``keyfram
   (a dropout) get no IMU factor; each covered run has its own bias prior;
 - with the IMU, the car's non-holonomic constraint (``nhc_sigma_m_s``): between consecutive keyframes
   the base (the rear axle) moves along the chord of its arc, at half the odometry's heading change,
-  and not across it. Without it the graph's height drifted 0.13-0.49 m over the flat tiny town's 250 m drives (issue
-  24), where the rigid fit drifts 0.1 m: a constant pitch offset of the states, an accelerometer x bias
-  of g times it and a climb along the route are one direction that the IMU alone sees only weakly (the
-  gyro, in turns), and kiss-icp's steps pointing off the car's heading (sideways errors of its registrations,
-  16-172 mm rms per 0.1 s step there; its mean per step -19 mm in tiny-rainy's turns: a 1.1 deg crab)
-  pushed the solution along it. With the constraint the car travels where it heads (its rotation, from
-  the IMU and the odometry), not where the odometry's sideways steps put it, and the graph's own sigma
-  of the height drift there falls from 0.14-0.27 m to 0.10-0.11 m;
+  and not across it. Why: a constant pitch offset of the states, an accelerometer x bias of g times it
+  and a climb along the route are one direction that the IMU alone sees only weakly (the gyro, in turns),
+  and odometry steps pointing off the car's heading (the sideways errors of kiss-icp's registrations: in
+  a turn, a crab of about a degree) push the solution along it, so that the drive's height drifts on a
+  flat road. With the constraint the car travels where it heads (its rotation, from the IMU and the
+  odometry), not where the odometry's sideways steps put it. Known answer:
+  ``tests/test_factor_graph.py::test_flat_road_keeps_its_height_when_the_odometry_crabs_in_a_turn``; on
+  the synthetic town, ``bench/factor_graph_budget.py`` against ``--set nhc_sigma_m_s=0``;
 - a GPS factor per fix (a ``CustomFactor``: antenna position = pose * lever arm + bias), attached to
   the nearest keyframe with the odometry's motion to the fix time folded into the lever arm, with a
   robust noise model (Cauchy or Huber) on the fix's white noise;
@@ -101,7 +101,7 @@ DOWNWEIGHTED_SIGMAS = 3.0 * np.sqrt(6.0)
 
 
 class FactorGraphConfig(MapkitConfig):
-    keyframe_distance_m: float = Field(1.0, description="A keyframe every this many metres driven (issue 24's brief: 1 m).")
+    keyframe_distance_m: float = Field(1.0, description="A keyframe every this many metres driven.")
     keyframe_interval_s: float = Field(0.5, description="... or every this many seconds, whichever comes first (standing still).")
     # kiss-icp's error as the sum of a random walk of its frame in the distance driven and a per-pose jitter that does not
     # accumulate (scan-to-map registration: the next scan is registered to the map, not to this pose). Per base axis:
@@ -162,7 +162,7 @@ class FactorGraphConfig(MapkitConfig):
                                     "into the accelerometer bias).")
     imu_max_gap_s: float = Field(0.1, description="Keyframe intervals where IMU samples are further apart than this get no IMU "
                                  "factor (a dropout).")
-    # the car's non-holonomic constraint (issue 24: the height drift on the flat tiny town). Its sigma is fitted on
+    # the car's non-holonomic constraint: without it the graph's height drifts on a flat road. Its sigma is fitted on
     # tiny-sunny's truth only; tiny-night and tiny-rainy were not used for the choice
     nhc_sigma_m_s: float = Field(
         0.005, ge=0, description="With the IMU preintegrated: a car's rear axle rolls, it does not slide. Between consecutive "
@@ -171,7 +171,7 @@ class FactorGraphConfig(MapkitConfig):
         "frame's origin is taken for the rear axle's centre: a base elsewhere (the car's centre, the front axle) moves "
         "sideways in every turn. Synthetic town, tiny-sunny: the truth's displacement across the chord of the odometry's "
         "heading change, rms 0.0047 m/s times dt (robust spread 0.0019; the truth's own, with its heading: 0.0025, lane "
-        "wander); the demo's 8 drives, not used for the choice: 0.0039-0.0059.")
+        "wander); eight other synthetic drives, not used for the choice: 0.0039-0.0059.")
     nhc_robust_k: float = Field(2.0, gt=0, description="Cauchy loss on those factors, in sigmas (a skid; the odometry's heading "
                                 "change off where it slips).")
     first_attitude_sigma_rad: float = Field(0.2, description="Weak prior on the first keyframe's attitude (the initial guess's).")

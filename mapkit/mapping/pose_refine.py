@@ -4,8 +4,8 @@ The poses a mapper is handed come from GPS/INS, LiDAR odometry or a factor graph
 good to centimetres between neighbouring frames, but a camera rotation off by a few tenths of a degree
 (an INS heading settling, a mount flexing, an extrinsic calibrated on another day) moves every epipolar
 line by pixels, and the depths a keyframe finds along such lines disagree with every other keyframe's
-(issue 26: frames 0-14 of the KITTI odometry clip, 2 px off their epipolar lines, rotations off by up to
-0.8 deg). DSO removes such errors by its photometric bundle adjustment; with the positions trusted, the
+(on frames 0-14 of the KITTI odometry clip the given poses put matches 2 px off their epipolar lines, with
+rotations off by up to 0.8 deg). DSO removes such errors by its photometric bundle adjustment; with the positions trusted, the
 rotations alone are a small, well-posed problem:
 
 - correspondences of each frame with the frames up to ``max_gap`` after it: by default corners tracked from frame
@@ -247,8 +247,7 @@ class RotationRefiner:
     # corners per frame (or SIFT features), Lucas-Kanade window, corner spacing, forward-backward tolerance; chosen on
     # frames 0-23 of the KITTI clip at 640x480 by the median distance of independent SIFT matches to the refined
     # epipolar lines (given 0.550 px; SIFT refinement 0.175; 600 corners in 11 / 15 px windows 0.180 / 0.183, 400
-    # corners 0.183, 1,000 corners 0.181 px: bench/rotation_refine_matchers.py, residuals in exact pixels since
-    # session 16; the same order with fx-scaled residuals before)
+    # corners 0.183, 1,000 corners 0.181 px: bench/rotation_refine_matchers.py, residuals in exact pixels)
     features: int = 600
     track_window_px: int = 11
     track_min_distance_px: int = 10

@@ -20,7 +20,7 @@ LSD-SLAM), reduced to pure geometry because the poses are already known:
    sigma) agree and its relative uncertainty is low (optionally also its inverse-depth sigma:
    ``max_sigma_inv_depth``, the depth filter's convergence); agreeing matches are fused by
    inverse variance, as in LSD-SLAM's depth observation update.
-5. **Fusion** (:mod:`.semidense_fusion`): optionally (issue 26) a keyframe's depths first pass a
+5. **Fusion** (:mod:`.semidense_fusion`): optionally a keyframe's depths first pass a
    multi-view geometric test (``min_consistent_views``) and a photometric one
    (``photometric_min_views``) against the keyframes around it, then a free-space test against a
    wider window (``free_space_window_keyframes``), which keep the streaks of wrong matches along
@@ -125,7 +125,7 @@ class SemiDenseConfig(MapkitConfig):
     image_noise_sigma: float = Field(4.0, gt=0, description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: cameraPixelNoise2 = 4^2).")
     min_sigma_px: float = Field(0.25, gt=0, description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block matching (parabola bias, 'pixel locking').")
     # --- acceptance ---
-    min_agreeing_frames: int = Field(3, ge=2, description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation (issue 26): it cleans each keyframe's own depths, but with the fusion filters on the map itself hardly changes.")
+    min_agreeing_frames: int = Field(3, ge=2, description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation: it cleans each keyframe's own depths, but with the fusion filters on the map itself hardly changes.")
     agree_sigmas: float = Field(3.0, gt=0, description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% of a Gaussian).")
     max_rel_sigma: float = Field(0.02, gt=0, description="Largest accepted sigma(depth)/depth (= sigma(rho)/rho) of a fused point.")
     max_sigma_depth_m: float = Field(0.3, gt=0, description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a median of 0.15 m.")
@@ -136,7 +136,7 @@ class SemiDenseConfig(MapkitConfig):
     neighbour_window_frames: int = Field(3, ge=1, description="Neighbours are the frames up to this many before and after a keyframe (streaming window of 2n+1 images).")
     min_baseline_m: float = Field(0.1, ge=0, description="Neighbours closer than this to the keyframe are not used (no parallax).")
     max_baseline_m: float = Field(10.0, gt=0, description="Neighbours farther than this from the keyframe are not used (little overlap).")
-    # --- camera rotations refined against the images (issue 26) ---
+    # --- camera rotations refined against the images ---
     refine_rotations: bool = Field(False, description="Refine every frame's camera rotation on its given position before mapping: correspondences with the frames up to refine_max_gap_frames on (tracked corners, or SIFT: refine_matcher), their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.116 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.")
     refine_max_gap_frames: int = Field(3, ge=1, description="... frames matched with each frame, forward (3: the neighbour window).")
     refine_lag_frames: int = Field(6, ge=1, description="... a frame's rotation is solved with this many frames before and after it, and handed to the mapper this many frames late (>= refine_max_gap_frames).")
@@ -144,8 +144,8 @@ class SemiDenseConfig(MapkitConfig):
     refine_prior_px: float = Field(1.0, gt=0, description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).")
     refine_anchor_px: float = Field(0.1, gt=0, description="... frames already handed on stay in the window held at their final rotations by a prior of this many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median 0.317 against 0.392 m); scored on the KITTI clip.")
     refine_gate_px: float = Field(10.0, gt=0, description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).")
-    refine_matcher: Literal["tracks", "sift"] = Field("tracks", description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test (the matcher of session 13's figures). On the KITTI clip both give rotations as good (median distance of independent SIFT matches to the refined epipolar lines: frames 25-50, given 0.305 px, SIFT 0.207, tracks 0.204) and the tracks' refiner takes a tenth of SIFT's CPU time (python3 bench/rotation_refine_matchers.py).")
-    refine_features: int = Field(600, ge=50, description="... corners tracked per frame (tracks), or SIFT features per frame (sift; 3000 in session 13's figures).")
+    refine_matcher: Literal["tracks", "sift"] = Field("tracks", description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test. On the KITTI clip both give rotations as good (median distance of independent SIFT matches to the refined epipolar lines: frames 25-50, given 0.305 px, SIFT 0.207, tracks 0.204) and the tracks' refiner takes a tenth of SIFT's CPU time (python3 bench/rotation_refine_matchers.py).")
+    refine_features: int = Field(600, ge=50, description="... corners tracked per frame (tracks), or SIFT features per frame (sift).")
     refine_lowe_ratio: float = Field(0.7, gt=0, le=1, description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on repeated facades).")
     refine_min_matches: int = Field(30, ge=8, description="... a pair of frames with fewer matches is left out (the prior holds a frame with none).")
     # --- fusion ---

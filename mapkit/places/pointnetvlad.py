@@ -1,4 +1,4 @@
-"""A triplet dataset in the layout PointNetVLAD's scripts read (issue #6).
+"""A triplet dataset in the layout PointNetVLAD's scripts read.
 
 PointNetVLAD (Uy and Lee, CVPR 2018; github.com/mikacuy/pointnetvlad) works on submaps, each a
 binary file of 4096 points (float64, x y z interleaved: an N x 3 array), centred on their

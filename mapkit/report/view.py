@@ -201,8 +201,8 @@ class _Writer:
 
     def gps(self, entity: str, name: str, frame: "LocalFrame") -> None:
         """The session's GPS fixes in ENU, the rejected ones apart: those the georef stage saved
-        (``georef/gps_fixes.npz``, after screening), else, for a workspace built before it saved them,
-        read again from the session's log with the rejections of ``gps_alignment.json``."""
+        (``georef/gps_fixes.npz``, after screening), else, for a session without that file, read again
+        from the session's log with the rejections of ``gps_alignment.json``."""
         saved = self.ws.session(name).gps_fixes
         if saved.is_file():
             with np.load(saved, allow_pickle=False) as f:
@@ -328,8 +328,8 @@ def write_recording(workspace: str | Path | Workspace, out: str | Path | None = 
     """Write a Rerun recording of ``workspace`` to ``out`` (default ``WORKSPACE/view.rrd``, replaced atomically).
 
     Every session's trajectory and map (``mapkit build``; and the aligned ones under ``world/align``
-    when ``mapkit align`` finished), its GPS fixes (``gps``: those the georef stage saved; for a workspace
-    built before it saved them, read again from the session's log, which must still be where the build found it), thumbnails of its images at their poses, and, from
+    when ``mapkit align`` finished), its GPS fixes (``gps``: those the georef stage saved; for a session
+    without ``georef/gps_fixes.npz``, read again from the session's log, which must still be where the build found it), thumbnails of its images at their poses, and, from
     ``localize`` (default ``WORKSPACE/localize``), every ``mapkit localize`` run's estimates and the
     database poses retrieved for each query of the cached hits. At most ``budget_points`` map points
     over all maps; one thumbnail per ``image_spacing_m`` of camera travel. ``spawn`` also streams the
@@ -423,14 +423,14 @@ def _missing_notes(frame: Optional["LocalFrame"], gps: bool, runs: list[Path], h
     """What the recording cannot show, and why (its notes panel and the command's output)."""
     notes = []
     if gps:
-        notes.append("GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for sessions "
-                     "built before it was saved, read again from the session's log")
+        notes.append("GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for a session "
+                     "without that file, read again from the session's log")
     if frame is None:
         notes.append("the workspace is not georeferenced (no origin.json): no GPS fixes")
     notes.append("particle clouds: no localizer run saves its particles; not drawn")
     if hits and not runs:
         notes.append("no localizer estimates (poses_tum.txt) were found: only the retrieved database poses of the cached hits "
-                     "are drawn (mapkit eval localize writes the estimates per test session since they are saved)")
+                     "are drawn (mapkit eval localize writes each test session's estimates)")
     return notes
 
 

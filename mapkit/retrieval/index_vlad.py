@@ -17,7 +17,10 @@ Bundle layout (``WORKSPACE/indexes/vlad`` by default)::
     vectors.npy     (N, D) float32 database vectors; IVF bundles only (see below)
     database.csv    DATABASE_COLUMNS: entry id, session, image, stamp, camera pose in the local ENU
                     frame (x, y, z, qw, qx, qy, qz, world_from_cam), UTM and WGS84 position
-    metrics.json    timings (images encoded per second, per step)
+    metrics.json    images encoded, database and training images, the vocabulary's sample, what the
+                    PCA learned on (``pca``), the executor and its workers
+    timings.json    wall-clock figures: seconds per step (vocabulary, encoding, PCA, index), images
+                    encoded per second, the total
 
 ``vectors.npy`` is written for IVF bundles only. A flat index stores the exact float32 vectors
 itself (``index.reconstruct_n`` gives them back), so a second copy would double the bundle for
@@ -34,13 +37,15 @@ is gone). Re-running with the same config and the same inputs (session tables) r
 The vocabulary's descriptor sample is drawn evenly from up to ``max_vocabulary_images`` training
 images (a uniform sample of each image's RootSIFT descriptors, seeded per image), so it does not
 depend on the number of workers. The PCA learns from up to ``max_training_images`` of them. With
-fewer training images than the paper's 4096 dimensions the PCA is capped at n - 1, and whitening
-in nearly as many dimensions as images flattens the differences between the training images
-(which are usually the database): on the 8-session demo (684 training images, 683-D) recall@1/5/20
-within 25 m was 0.38/0.62/0.83 whitened, against 0.46/0.69/0.88 with ``vlad.pca_dim: 256``.
+fewer training images than the paper's 4096 dimensions the PCA is capped at n - 1, and full
+whitening in nearly as many dimensions as images makes the training images (usually the database)
+all equidistant; ``vlad.whitening`` therefore defaults to power-law whitening, which keeps their
+structure (:mod:`mapkit.retrieval.vlad`). ``python3 bench/bench_whitening.py WS`` measures the
+recall of every whitening variant on a workspace.
 
-Encoding is the expensive part (~0.27 s per 640x480 image and core). It runs on an executor
-(:mod:`mapkit.core.executor`: this process, ``workers`` spawned processes, or Ray) whose workers compute
+Encoding is the expensive part (the bundle's ``timings.json`` gives its rate, ``images_encoded_per_s``).
+It runs on an executor (:mod:`mapkit.core.executor`: this process, ``workers`` spawned processes, or
+Ray) whose workers compute
 the raw VLAD (16384-D; only the config and the small vocabulary are shipped to them, once per
 worker), while the parent applies the PCA in batches, in input order; the vectors are the same bit
 for bit whichever executor ran.

@@ -1,4 +1,4 @@
-"""Bounded fuzzing of the readers for CI (issue 23): only InputError and InputWarning may leave a reader.
+"""Bounded fuzzing of the readers for CI: only InputError and InputWarning may leave a reader.
 
 Hypothesis writes arbitrary text into the files of small valid KITTI odometry, KITTI raw OXTS and folder
 logs (calibration, stamps, poses, OXTS records, CSV rows: numbers that are not finite, huge exponents,

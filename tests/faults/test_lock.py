@@ -95,7 +95,7 @@ def test_reentrant_in_one_process_and_released_after(tmp_path):
 
 
 def test_second_cli_writer_refuses_with_one_line_and_writes_nothing(tmp_path, capsys):
-    """Two commands into one workspace (the issue's concurrent builds): the second exits 2 with the
+    """Two commands into one workspace (two builds at once): the second exits 2 with the
     holder named and touches nothing; with --wait it runs once the first is done."""
     from mapkit.cli import main
 

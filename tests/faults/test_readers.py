@@ -1,4 +1,4 @@
-"""Readers on damaged input (issue 23, "Readers crash"): each case ends in an InputError naming the file and
+"""Readers on damaged input: no reader crashes; each case ends in an InputError naming the file and
 line or byte, or in an InputWarning saying what was skipped, with every intact part read.
 
 The MCAP cases damage a log written by mapkit's ``McapWriter`` at known places (the summary section, the
@@ -81,7 +81,8 @@ def test_premise_the_clean_log_has_many_chunks_and_a_summary(mcap_log):
 
 
 def test_twenty_flips_in_the_summary_lose_nothing(mcap_log, tmp_path):
-    """The issue's case: 8 of 20 one-byte flips in the summary made a build fail with every chunk intact."""
+    """A one-byte flip anywhere in the summary loses no message: the summary is set aside, a linear scan reads every
+    chunk, and a warning says so (20 flips spread over the summary, one at a time)."""
     path, layout = mcap_log
     data = path.read_bytes()
     footer_at = layout.size - 8 - 29
@@ -117,7 +118,8 @@ def test_a_broken_chunk_length_without_summary_is_stepped_over(mcap_log, tmp_pat
 
 
 def test_a_chunk_claiming_exabytes_is_skipped_without_allocating_them(mcap_log, tmp_path):
-    """A flipped uncompressed-size field used to end in MemoryError or OverflowError."""
+    """A flipped uncompressed-size field (2^63 bytes) costs its chunk only: nothing is allocated for it, no MemoryError
+    or OverflowError leaves the reader, and the warning names the field and the byte."""
     path, layout = mcap_log
     data = bytearray(path.read_bytes())
     start, _, lost = layout.chunks[3]
@@ -257,7 +259,7 @@ def test_real_oxts_records_are_all_accepted():
 def test_stamp_beyond_int64_nanoseconds_names_its_line(tmp_path):
     seq = _odometry(tmp_path)
     lines = (seq / "times.txt").read_text().splitlines()
-    lines[2] = "1e999999999"  # used to build a billion-digit integer
+    lines[2] = "1e999999999"  # beyond int64 ns; parsed exactly it would be a billion-digit integer
     (seq / "times.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match="line 3") as exc:
         KittiOdometry(seq)

@@ -1,4 +1,4 @@
-"""Issue 23's workspace faults: nothing stale, nothing half-written.
+"""Workspace faults: nothing stale, nothing half-written.
 
 A log built while still being copied, a replaced log, a truncated ``points.ply``, a full disk, an
 edited export and bad config values: each ends in one clear error or a correct rebuild, and
@@ -63,7 +63,7 @@ def full_log(tmp_path_factory) -> bytes:
 
 
 def test_a_log_still_being_copied_is_refused_then_built_once_complete(tmp_path, full_log):
-    """The issue's partial copy: while bytes keep arriving the build refuses before writing anything;
+    """A log still being copied: while bytes keep arriving the build refuses before writing anything;
     once the copy is complete it builds every pose."""
     log = tmp_path / "drive.mcap"
     half = len(full_log) // 2
@@ -92,8 +92,8 @@ def test_a_log_still_being_copied_is_refused_then_built_once_complete(tmp_path, 
 
 
 def test_a_log_completed_after_its_build_is_rebuilt(tmp_path, full_log):
-    """A log built while incomplete (its copy stalled), then completed, was kept with its partial
-    session; the trajectory's marker records the log's fingerprint, so the session is built again."""
+    """A log built while incomplete (its copy stalled), then completed: the trajectory's marker records the
+    log's fingerprint, so the next build makes the session again instead of keeping the partial one."""
     log = tmp_path / "drive.mcap"
     log.write_bytes(full_log[: len(full_log) // 2])
     with warnings.catch_warnings():
@@ -125,7 +125,8 @@ def test_a_replaced_log_is_rebuilt_and_an_unchanged_one_is_not(tmp_path, full_lo
 
 
 def test_markers_of_older_workspaces_stay_valid_for_their_config(tmp_path):
-    """A marker without input records (written before they existed) is finished for its config hash."""
+    """A marker without input records is finished for its config hash: workspaces whose markers hold none stay
+    valid; once a marker records inputs, other inputs make it unfinished."""
     folder = tmp_path / "stage"
     folder.mkdir()
     mark_done(folder, "abc")
@@ -138,7 +139,7 @@ def test_markers_of_older_workspaces_stay_valid_for_their_config(tmp_path):
 @pytest.mark.filterwarnings("ignore:.*skipped. the log has no image stream")
 def test_a_truncated_stage_output_is_remade_by_build(tmp_path, full_log):
     """A truncated artefact of a finished stage (here the aligned trajectory the later stages load)
-    no longer counts as finished: the next build re-makes that stage, with a warning naming the file."""
+    does not count as finished: the next build re-makes that stage, with a warning naming the file."""
     log = tmp_path / "drive.mcap"
     log.write_bytes(full_log)
     ws = _build(_settled(log), tmp_path / "ws")
@@ -152,7 +153,7 @@ def test_a_truncated_stage_output_is_remade_by_build(tmp_path, full_log):
 
 @pytest.fixture()
 def aligned_inputs(tmp_path) -> Path:
-    """Two built sessions of the synthetic street whose markers record their outputs, as a build now writes them."""
+    """Two built sessions of the synthetic street whose markers record their outputs, as a build writes them."""
     from test_align import gps_error
 
     ws = tmp_path / "ws"
@@ -164,8 +165,9 @@ def aligned_inputs(tmp_path) -> Path:
 
 
 def test_a_truncated_points_ply_is_one_error_in_align(aligned_inputs):
-    """The issue: a truncated points.ply loaded with its missing points as zeros and align merged 0
-    of its points, exit 0. Now align refuses it, naming the file and the command to re-run."""
+    """A truncated points.ply is one error, not a map merged with its missing points as zeros: align refuses
+    it, naming the file and the command to re-run, and so it does a points.ply of the right size whose
+    SHA-256 differs from the one its stage recorded."""
     ply = aligned_inputs / "sessions" / "s1" / "map" / "points.ply"
     data = ply.read_bytes()
     ply.write_bytes(data[: len(data) // 3])
@@ -238,7 +240,7 @@ def test_disk_full_is_one_line_and_nothing_is_renamed_into_place(tmp_path, monke
 
 
 def test_a_short_npz_write_is_not_renamed_into_place(tmp_path, monkeypatch):
-    """A writer that reports success on a full disk (the issue's open3d) leaves a file that does not
+    """A writer that reports success on a full disk (as open3d's may) leaves a file that does not
     read back: the check before the rename refuses it."""
     from mapkit.core.runio import atomic_path
 
@@ -349,9 +351,9 @@ def test_a_real_full_disk_stops_the_build_with_one_line_and_it_resumes(tmp_path,
 
 
 def test_a_tampered_export_is_restored_by_re_export_and_the_index_is_untouched(tmp_path):
-    """The issue: the export shared files with the workspace index by hard link, so editing the
-    export corrupted the index, and `index vlad` (sizes only) still called it finished. Now the
-    export's files are copies, re-export restores it, and an index edited in place is rebuilt."""
+    """An export shares no file with the workspace's index (its files are copies, not hard links), so
+    editing the export leaves the index intact; loading the edited export fails its checksum, re-export
+    restores it, and an index edited in place (same size, other bytes) is not taken for finished but rebuilt."""
     from test_index_vlad import make_workspace as vlad_workspace
     from test_index_vlad import small_config
 
@@ -381,7 +383,8 @@ def test_a_tampered_export_is_restored_by_re_export_and_the_index_is_untouched(t
 
 
 def test_a_named_camera_missing_from_the_log_is_refused_before_the_trajectory(tmp_path, full_log):
-    """`camera: front` on a log without that camera was reported only after trajectory and georef ran."""
+    """`camera: front` on a log without that camera is refused before any stage runs (the trajectory and georef
+    stages do not need the camera, so only an early check spares their work): nothing is written."""
     log = tmp_path / "drive.mcap"
     log.write_bytes(full_log)
     _settled(log)
