@@ -66,4 +66,8 @@ if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
   echo "$WANT" > "$STAMP"
   say "installed in $(( $(date +%s) - t0 )) s"
 fi
+# the docs site serves Mermaid itself (docs/offline.py): fetched once from the npm registry, then offline
+if ! "$VPY" docs/offline.py >/dev/null 2>&1; then
+  say "warning: could not fetch Mermaid for the docs site (npm registry unreachable?); mkdocs build will try again"
+fi
 "$VPY" -c "import open3d, mapkit; print(f'[setup] ok: mapkit {mapkit.__version__}, open3d {open3d.__version__}, in $VENV')" >&2
