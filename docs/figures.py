@@ -1,0 +1,476 @@
+"""The measured figures of the README and the docs: collected from what runs write, rendered into the pages.
+
+Every table of measured figures in ``README.md`` and ``docs/`` lies between two markers::
+
+    <!-- figures: NAME -->
+    ...generated...
+    <!-- /figures -->
+
+and is made by the renderer ``NAME`` of this file from the records in ``docs/results/``. A record is what a
+set of runs measured (the figures extracted from their ``metrics.json``, ``timings.json`` and evaluation
+outputs), with the command that made each run, the date and the machine. So a page cannot state a figure
+that no run wrote, two pages cannot disagree about one figure, and a fresh run can be held against the
+docs (``compare``).
+
+    python3 docs/figures.py collect places RUN...       # runs of `mapkit demo --preset places --seed S --train-cnn`
+    python3 docs/figures.py collect main-job RUN...     # runs of the README's main job (the demo preset)
+    python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
+    python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
+    python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
+    python3 docs/figures.py render                      # fill every block of README.md and docs/**/*.md
+    python3 docs/figures.py check                       # exit 1 when a block is not its rendering (a test runs it)
+    python3 docs/figures.py compare places RUN          # a fresh run beside the record: within its spread?
+
+A figure measured over several runs (seeds) is shown as its median with the range over the runs,
+``0.63 (0.55-0.71)``; a comparison (A above B) holds only where it holds in every run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import re
+import statistics
+import sys
+from pathlib import Path
+from typing import Callable, Iterable, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs" / "results"
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.DOTALL)
+METHODS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
+STAGE_LABELS = {"synth": "synthetic town", "build": "build (trajectory, georeferencing, map, image database)",
+                "align": "align", "triplets": "triplets", "train_cnn": "CNN training", "index_vlad": "VLAD index",
+                "index_structure": "structure indexes", "localize": "MCVL localization", "places": "place recognition",
+                "export": "bundle export", "view": "Rerun recording"}
+
+
+# --------------------------------------------------------------------------- reading runs
+
+
+def _json(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def extract_run(run: Path) -> dict:
+    """The figures of one `mapkit demo` run folder: stage times, maps, alignment, localization,
+    place recognition and triplets, keyed as the renderers read them."""
+    m, t = _json(run / "metrics.json"), _json(run / "timings.json")
+    if not m:
+        raise SystemExit(f"{run}: no metrics.json (not a finished mapkit demo run)")
+    town = _json(run / "town" / "metrics.json")
+    out: dict = {"preset": m.get("preset"), "seed": town.get("seed"), "mapkit_version": m.get("mapkit_version"),
+                 "status": {n: s["status"] for n, s in m["stages"].items()},
+                 "stages_s": {n: s.get("seconds") for n, s in (t.get("stages") or {}).items()},
+                 "total_s": t.get("seconds_total"), "driven_m": (m.get("streets") or {}).get("driven_m")}
+    out["maps"] = {n: {"median_m": s["map_local"]["median_distance_m"], "within_0.5m": s["map_local"]["fraction_within_0.5m"],
+                       "points_per_100m": s["map_local"]["points_per_100m"], "ate_m": s["trajectory_local"]["ate_rmse_m"]}
+                   for n, s in (m.get("eval_build") or {}).get("sessions", {}).items() if "map_local" in s}
+    ea = m.get("eval_align") or {}
+    out["align"] = {"pairs": {k: v["after_median_m"] for k, v in (ea.get("pairs") or {}).items()},
+                    "median_m": ea.get("after_median_m")}
+    out["localize"] = {cfg: {n: {"retrieval_mean_m": s["retrieval"]["mean_translation_m"],
+                                 "retrieval_median_m": s["retrieval"]["median_translation_m"],
+                                 "filter_mean_m": s["filter"]["mean_translation_m"],
+                                 "filter_median_m": s["filter"]["median_translation_m"], "queries": s["queries"]}
+                             for n, s in sessions.items()}
+                       for cfg, sessions in (m.get("localize") or {}).items()}
+    places = _json(run / "workspace" / "eval" / "places" / "places.json")
+    out["places"] = {}
+    for p in places.get("pairs", []):
+        key = f"{p['query']} > {p['database']}"
+        entry = {"condition": f"{_cond(p, 'query')} to {_cond(p, 'database')}"}
+        for scope, block in (("held_out", p), ("all", p["all_places"])):
+            entry[scope] = {"queries": block.get("queries"),
+                            **{k: r.get("auc") for k, r in block["methods"].items() if r.get("available", True)}}
+        out["places"][key] = entry
+    tr = m.get("triplets") or {}
+    out["triplets"] = {"count": sum((tr.get("export") or {}).get("triplets", {}).values()) if tr else None,
+                       "offset_median_m": (tr.get("truth") or {}).get("offset_median_m"),
+                       "offset_p90_m": (tr.get("truth") or {}).get("offset_p90_m")}
+    return out
+
+
+def _cond(pair: dict, role: str) -> str:
+    c = (pair.get("conditions") or {}).get(role) or {}
+    name = str(c.get("condition") or "")
+    return "night" if name.startswith("night") else (c.get("weather") or name)
+
+
+def machine() -> str:
+    """This machine, as records state it: cores, memory, CPU model, OS."""
+    cpu = ""
+    try:
+        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        cpu = platform.processor()
+    try:
+        mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    except (ValueError, OSError, AttributeError):
+        mem = float("nan")
+    return f"{os.cpu_count()} cores, {mem:.0f} GB, {cpu}, {platform.system()} {platform.release()}, Python {platform.python_version()}"
+
+
+def collect(name: str, sources: list[Path], command: str) -> Path:
+    """Write the record ``docs/results/NAME.json`` from ``sources`` (run folders, or one JSON file)."""
+    if name in ("first-run", "references", "mcvl-benchmark", "benchmarks"):
+        data = json.loads(sources[0].read_text())
+        record = {"name": name, **data}
+    else:
+        runs = [extract_run(p) for p in sources]
+        presets = {r["preset"] for r in runs}
+        if len(presets) != 1:
+            raise SystemExit(f"runs of different presets: {sorted(map(str, presets))}")
+        record = {"name": name, "command": command, "preset": presets.pop(), "runs": runs}
+    record.setdefault("measured", dt.date.today().isoformat())
+    record.setdefault("machine", machine())
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(record, indent=1, sort_keys=False) + "\n")
+    return path
+
+
+def record(name: str) -> dict:
+    path = RESULTS / f"{name}.json"
+    if not path.is_file():
+        raise SystemExit(f"no record {path.relative_to(ROOT)}: collect it first (python3 docs/figures.py collect {name} ...)")
+    return json.loads(path.read_text())
+
+
+# --------------------------------------------------------------------------- formatting
+
+
+def spread(values: Iterable[Optional[float]], fmt: str = "{:.3f}") -> str:
+    """The median of ``values`` with their range over the runs (``0.63 (0.55-0.71)``); one value alone;
+    ``n/a`` for none. Missing values (None) are left out and counted."""
+    vals = [float(v) for v in values if v is not None]
+    if not vals:
+        return "n/a"
+    med = statistics.median(vals)
+    if len(vals) == 1 or max(vals) == min(vals):
+        return fmt.format(med)
+    return f"{fmt.format(med)} ({fmt.format(min(vals))}-{fmt.format(max(vals))})"
+
+
+def verdict(differences: list[Optional[float]]) -> str:
+    """Whether "A above B" holds, from its difference in each run: in every run, in none, or in some
+    (then not beyond the run-to-run spread)."""
+    d = [x for x in differences if x is not None]
+    if not d:
+        return "not measured"
+    above = sum(x > 0 for x in d)
+    if above == len(d):
+        return f"yes, in {len(d)} of {len(d)} runs"
+    if above == 0:
+        return f"no, in {len(d)} of {len(d)} runs"
+    return f"not beyond the spread ({above} of {len(d)} runs)"
+
+
+def table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
+
+
+def _runs_note(rec: dict) -> str:
+    seeds = [r.get("seed") for r in rec["runs"]]
+    return (f"{len(seeds)} runs (seeds {', '.join(map(str, seeds))}), measured {rec['measured']} on {rec['machine']}; "
+            f"each figure is the median with its range over the runs.")
+
+
+def _tiny(x: float) -> str:
+    """A difference that may be exactly zero in float64: "below 1e-15" rather than 0.0e+00."""
+    return "below 1e-15" if x < 1e-15 else f"{x:.1e}"
+
+
+def _minutes(seconds: Optional[float]) -> str:
+    if seconds is None:
+        return "n/a"
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m} min {s:02d} s"
+
+
+# --------------------------------------------------------------------------- figures of the places runs
+
+
+def _mean_auc(run: dict, method: str, scope: str = "held_out") -> Optional[float]:
+    vals = [p[scope].get(method) for p in run["places"].values()]
+    vals = [v for v in vals if v is not None]
+    return statistics.fmean(vals) if vals else None
+
+
+def _pair_diffs(run: dict, a: str, b: str, scope: str = "held_out", only: Optional[Callable[[str], bool]] = None) -> list[float]:
+    """Per pair of one run, AUC of method ``a`` minus the best of methods ``b`` (a tuple) or of ``b``."""
+    out = []
+    for p in run["places"].values():
+        if only is not None and not only(p["condition"]):
+            continue
+        s = p[scope]
+        bs = [s.get(x) for x in (b if isinstance(b, tuple) else (b,))]
+        av = max((s.get(x) for x in (a if isinstance(a, tuple) else (a,)) if s.get(x) is not None), default=None)
+        bv = max((v for v in bs if v is not None), default=None)
+        if av is not None and bv is not None:
+            out.append(av - bv)
+    return out
+
+
+def _ahead(diffs: list[float]) -> str:
+    return f"{sum(d > 0 for d in diffs)} of {len(diffs)}"
+
+
+def render_claims() -> str:
+    """One row per claim of the papers: what was measured, what the paper says, whether it holds."""
+    rows = []
+    refs = _maybe("references")
+    if refs:
+        rows.append(["M2DP as its authors compute it", f"1 - cos to `M2DP.m`'s output: {_tiny(refs['m2dp']['one_minus_cos'])}",
+                     "identical", "yes" if refs["m2dp"]["one_minus_cos"] < 1e-9 else "no", "`python3 bench/reference_checks.py`"])
+        rows.append(["dense SIFT as VLFeat computes it", f"median cosine to `vl_phow`: {refs['dsift']['median_cosine']:.5f}",
+                     "identical", "yes" if refs["dsift"]["median_cosine"] > 0.999 else "no", "`python3 bench/reference_checks.py`"])
+    pl = _maybe("places")
+    if pl:
+        runs, cmd = pl["runs"], "`mapkit demo --preset places --seed S --train-cnn`"
+        d = [(_mean_auc(r, "nbld") or 0) - (_mean_auc(r, "m2dp") or 0) for r in runs]
+        ahead = [_ahead(_pair_diffs(r, "nbld", "m2dp")) for r in runs]
+        rows.append(["NBLD above M2DP", f"mean held-out AUC {spread(_mean_auc(r, 'nbld') for r in runs)} vs "
+                     f"{spread(_mean_auc(r, 'm2dp') for r in runs)}; ahead on {', '.join(ahead)} pairs",
+                     "Table 2: on all 10 pairs", verdict(d), cmd])
+        for cond in ("night", "snowy"):
+            per_run = [_pair_diffs(r, ("nbld", "m2dp"), "vlad", only=lambda c, cond=cond: c.startswith(cond)) for r in runs]
+            rows.append([f"structure above appearance ({cond} queries)",
+                         f"better of NBLD, M2DP minus VLAD, per pair: {spread([x for ds in per_run for x in ds])}; "
+                         f"ahead on {', '.join(_ahead(ds) for ds in per_run)} pairs",
+                         "Sec. 6, Table 2: structure above appearance on 6 of 10 pairs (NetVLAD there, VLAD here)",
+                         verdict([statistics.fmean(ds) if ds else None for ds in per_run]), cmd])
+        if any(_mean_auc(r, "cnn") is not None for r in runs):
+            hand = [max(_mean_auc(r, "nbld") or 0, _mean_auc(r, "m2dp") or 0) for r in runs]
+            cnn = [_mean_auc(r, "cnn") for r in runs]
+            rel = [(c - h) / h if c is not None and h else None for c, h in zip(cnn, hand)]
+            rows.append(["learned (3D CNN) above hand-crafted", f"mean held-out AUC {spread(cnn)} vs the better hand-crafted "
+                         f"{spread(hand)}: {spread([100 * x if x is not None else None for x in rel], '{:+.0f}')} %",
+                         "Sec. 6: 5-20 % above", verdict(rel), cmd])
+        for n in sorted({s for r in runs for s in r["localize"].get("paper", {})}):
+            vals = [r["localize"]["paper"].get(n) for r in runs]
+            ret, fil = [v and v["retrieval_mean_m"] for v in vals], [v and v["filter_mean_m"] for v in vals]
+            rows.append([f"MCVL filter below retrieval alone ({n})", f"mean error {spread(fil, '{:.1f}')} m vs {spread(ret, '{:.1f}')} m",
+                         "Table II: below", verdict([r - f if r is not None and f is not None else None for r, f in zip(ret, fil)]), cmd])
+    bench = _maybe("mcvl-benchmark")
+    if bench:
+        seqs = bench["sequences"]
+        below = sum(s["filter_mean_m"] < s["retrieval_mean_m"] for s in seqs.values())
+        rows.append(["MCVL filter below retrieval at the paper's scale", f"{below} of {len(seqs)} test sequences",
+                     "Table II: 5 of 5", "yes" if below == len(seqs) else f"on {below} of {len(seqs)}",
+                     "`python3 pipelines/mcvl_benchmark.py`"])
+    note = f"\n\n{_runs_note(pl)}" if pl else ""
+    return table(["claim", "figure", "paper", "holds?", "command"], rows) + note
+
+
+def render_places_auc() -> str:
+    """The semi-dense paper's Table 2 form: held-out AUC per pair and method, over the places runs."""
+    pl = record("places")
+    runs = pl["runs"]
+    methods = [m for m in METHODS if any(m in p["held_out"] for r in runs for p in r["places"].values())]
+    pairs = sorted({k for r in runs for k in r["places"]}, key=lambda k: (k.split(" > ")[0], k))
+    rows = []
+    for k in pairs:
+        present = [r["places"][k] for r in runs if k in r["places"]]
+        rows.append([k.replace(" > ", " to "), present[0]["condition"], *[spread(p["held_out"].get(m) for p in present) for m in methods],
+                     spread([p["held_out"]["queries"] for p in present], "{:.0f}"), f"{len(present)} of {len(runs)}"])
+    rows.append(["mean", "", *[spread(_mean_auc(r, m) for r in runs) for m in methods], "", ""])
+    return (table(["query to database", "conditions", *[METHODS[m] for m in methods], "held-out queries", "runs"], rows)
+            + f"\n\n{_runs_note(pl)}")
+
+
+def render_places_mcvl() -> str:
+    """MCVL's Table II form on the places town: retrieval alone and the filter, per test drive and configuration."""
+    pl = record("places")
+    runs = pl["runs"]
+    rows = []
+    for cfg in sorted({c for r in runs for c in r["localize"]}):
+        for n in sorted({s for r in runs for s in r["localize"][cfg]}):
+            v = [r["localize"][cfg].get(n) for r in runs]
+            f = lambda k: spread([x[k] if x else None for x in v], "{:.1f}")  # noqa: E731
+            rows.append([n, cfg, f("retrieval_mean_m"), f("retrieval_median_m"), f("filter_mean_m"), f("filter_median_m")])
+    return (table(["test drive", "filter settings", "retrieval mean m", "retrieval median m", "filter mean m", "filter median m"], rows)
+            + f"\n\n{_runs_note(pl)}")
+
+
+def render_maps() -> str:
+    pl = record("places")
+    runs = pl["runs"]
+    rows = []
+    for n in sorted({s for r in runs for s in r["maps"]}):
+        v = [r["maps"].get(n) for r in runs]
+        f = lambda k, fmt="{:.3f}": spread([x[k] if x else None for x in v], fmt)  # noqa: E731
+        rows.append([n, f("median_m"), f("within_0.5m", "{:.2f}"), f("points_per_100m", "{:.0f}"), f("ate_m")])
+    return (table(["session", "map to true surfaces, median m", "share within 0.5 m", "points per 100 m", "trajectory ATE m"], rows)
+            + "\n\nOffset removed: each session's constant offset from the truth (its GPS bias) is taken out first. "
+            + _runs_note(pl))
+
+
+def render_align() -> str:
+    pl = record("places")
+    runs = pl["runs"]
+    sessions = sorted({s for r in runs for k in r["align"]["pairs"] for s in k.split(" / ")})
+    rows = []
+    for n in sessions:
+        per_run = [[v for k, v in r["align"]["pairs"].items() if n in k.split(" / ")] for r in runs]
+        rows.append([n, spread([statistics.median(p) if p else None for p in per_run]), spread([max(p) if p else None for p in per_run])])
+    rows.append(["all pairs", spread(r["align"]["median_m"] for r in runs), ""])
+    return (table(["session", "misalignment to its neighbours, median over pairs m", "worst pair m"], rows)
+            + "\n\nMisalignment: the median distance between the two sessions' maps of a pair after alignment, measured "
+            "against the true surfaces. " + _runs_note(pl))
+
+
+def render_triplets() -> str:
+    pl = record("places")
+    runs = pl["runs"]
+    rows = [["triplets exported", spread([r["triplets"]["count"] for r in runs], "{:.0f}")],
+            ["true offset of positives, median m", spread(r["triplets"]["offset_median_m"] for r in runs)],
+            ["true offset of positives, 90th percentile m", spread(r["triplets"]["offset_p90_m"] for r in runs)]]
+    return table(["figure", "value"], rows) + f"\n\n{_runs_note(pl)}"
+
+
+def _stages(name: str) -> str:
+    rec = record(name)
+    runs = rec["runs"]
+    stages = [s for s in STAGE_LABELS if any(r["stages_s"].get(s) for r in runs)]
+    rows = [[STAGE_LABELS[s], spread([r["stages_s"].get(s) for r in runs], "{:.0f}")] for s in stages]
+    rows.append(["**whole run**", f"**{_minutes(statistics.median([r['total_s'] for r in runs]))}** "
+                 f"({_minutes(min(r['total_s'] for r in runs))} - {_minutes(max(r['total_s'] for r in runs))})"])
+    driven = runs[0].get("driven_m")
+    return (table(["stage", "seconds"], rows) + f"\n\n{len(runs)} runs of `{rec['command']}`"
+            + (f" ({driven / 1000:.1f} km driven)" if driven else "") + f", measured {rec['measured']} on {rec['machine']}.")
+
+
+def render_first_run() -> str:
+    rec = record("first-run")
+    rows = [["set-up (`bash scripts/setup.sh`, empty pip cache)", _minutes(rec["setup_s"])],
+            ["main job (`.venv/bin/python pipelines/main.py --out runs/main`)", _minutes(rec["main_job_s"])],
+            ["tests (`.venv/bin/python -m pytest -q`)", _minutes(rec["tests_s"])]]
+    return (table(["from a fresh clone", "time"], rows)
+            + f"\n\nMeasured {rec['measured']} by `python3 bench/first_run.py` on {rec['machine']}, nothing else running.")
+
+
+def render_references() -> str:
+    refs = record("references")
+    rows = [["M2DP (`m2dp_reference`) against the authors' `M2DP.m` on a real KITTI scan", f"1 - cos = {_tiny(refs['m2dp']['one_minus_cos'])}"],
+            ["dense SIFT (mode `phow`) against VLFeat's `vl_phow` on a KITTI frame",
+             f"median cosine {refs['dsift']['median_cosine']:.5f}, 5th percentile {refs['dsift']['p05_cosine']:.5f}"]]
+    return table(["check", "agreement"], rows) + f"\n\nMeasured {refs['measured']} by `python3 bench/reference_checks.py`."
+
+
+def _maybe(name: str) -> Optional[dict]:
+    return json.loads((RESULTS / f"{name}.json").read_text()) if (RESULTS / f"{name}.json").is_file() else None
+
+
+RENDERERS: dict[str, Callable[[], str]] = {
+    "claims": render_claims, "places-auc": render_places_auc, "places-mcvl": render_places_mcvl, "maps": render_maps,
+    "align": render_align, "triplets": render_triplets, "references": render_references, "first-run": render_first_run,
+    "main-job-stages": lambda: _stages("main-job"), "tiny-stages": lambda: _stages("tiny"),
+    "places-stages": lambda: _stages("places"),
+}
+
+
+# --------------------------------------------------------------------------- pages
+
+
+def blocks(text: str) -> list[tuple[str, str]]:
+    """(name, body) of every figures block of a page."""
+    return [(m.group("name"), m.group("body")) for m in BLOCK.finditer(text)]
+
+
+def fill(text: str, render: Callable[[str], str]) -> str:
+    return BLOCK.sub(lambda m: m.group(1) + render(m.group("name")).rstrip("\n") + "\n" + m.group(4), text)
+
+
+def _rendered() -> Callable[[str], str]:
+    cache: dict[str, str] = {}
+
+    def render(name: str) -> str:
+        if name not in RENDERERS:
+            raise SystemExit(f"no renderer for figures block {name!r}; known: {', '.join(sorted(RENDERERS))}")
+        if name not in cache:
+            cache[name] = RENDERERS[name]()
+        return cache[name]
+    return render
+
+
+def render_pages(pages: list[Path] = PAGES) -> list[Path]:
+    """Fill every block; returns the pages that changed."""
+    render, changed = _rendered(), []
+    for page in pages:
+        text = page.read_text()
+        new = fill(text, render)
+        if new != text:
+            page.write_text(new)
+            changed.append(page)
+    return changed
+
+
+def check_pages(pages: list[Path] = PAGES) -> list[str]:
+    """Blocks whose text is not their rendering from today's records ("page: block")."""
+    render, stale = _rendered(), []
+    for page in pages:
+        text = page.read_text()
+        for name, body in blocks(text):
+            if body.rstrip("\n") != render(name).rstrip("\n"):
+                stale.append(f"{page.relative_to(ROOT)}: {name}")
+    return stale
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("collect", help="write docs/results/NAME.json from run folders (or a JSON file)")
+    c.add_argument("name")
+    c.add_argument("sources", nargs="+", type=Path)
+    c.add_argument("--command", default="", help="the command that made each run, as the docs should show it")
+    sub.add_parser("render", help="fill every figures block of README.md and docs/")
+    sub.add_parser("check", help="exit 1 when a block is not its rendering")
+    cmp_ = sub.add_parser("compare", help="a fresh run's figures beside a record's spread")
+    cmp_.add_argument("name")
+    cmp_.add_argument("run", type=Path)
+    a = ap.parse_args(argv)
+    if a.cmd == "collect":
+        print(collect(a.name, a.sources, a.command))
+    elif a.cmd == "render":
+        for p in render_pages():
+            print(f"rendered {p.relative_to(ROOT)}")
+    elif a.cmd == "check":
+        stale = check_pages()
+        for s in stale:
+            print(f"stale: {s} (python3 docs/figures.py render)")
+        return 1 if stale else 0
+    elif a.cmd == "compare":
+        return compare(a.name, a.run)
+    return 0
+
+
+def compare(name: str, run: Path) -> int:
+    """Print a fresh run's headline figures beside the record's range; exit 1 if one lies outside it."""
+    rec, new = record(name), extract_run(run)
+    rows, outside = [], 0
+
+    def check(label: str, values: list[Optional[float]], value: Optional[float]) -> None:
+        nonlocal outside
+        vals = [v for v in values if v is not None]
+        if not vals or value is None:
+            return
+        inside = min(vals) <= value <= max(vals)
+        outside += not inside
+        rows.append([label, spread(vals), f"{value:.3f}", "yes" if inside else "**no**"])
+
+    for m in METHODS:
+        check(f"mean held-out AUC {METHODS[m]}", [_mean_auc(r, m) for r in rec["runs"]], _mean_auc(new, m))
+    for n in new["maps"]:
+        check(f"{n} map median m", [r["maps"].get(n, {}).get("median_m") for r in rec["runs"]], new["maps"][n]["median_m"])
+    print(table(["figure", "record", "this run", "within the record's range"], rows))
+    return 1 if outside else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
