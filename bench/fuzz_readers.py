@@ -498,12 +498,21 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=300.0, help="length of the campaign (default 300)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, help="also write the counts per fault class as JSON here (docs/figures.py collect robustness)")
     args = ap.parse_args()
     t0 = time.monotonic()
     with quiet_stderr():
         tallies = campaign(args.seconds, args.seed)
     print(f"fault campaign: seed {args.seed}, {time.monotonic() - t0:.0f} s\n")
     print(table(tallies))
+    if args.out:
+        import json
+
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({
+            "command": f"python3 bench/fuzz_readers.py --seconds {args.seconds:g} --seed {args.seed}", "outcomes": list(OUTCOMES),
+            "classes": {name: {"tried": t.tried, **{o: t.outcomes.get(o, 0) for o in OUTCOMES}} for name, t in tallies.items()},
+        }, indent=1) + "\n")
     bad = [(name, kind, t.examples[kind]) for name, t in tallies.items() for kind in ("crash", "silent loss", "intact data lost")
            if kind in t.examples]
     for name, kind, detail in bad:

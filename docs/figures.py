@@ -88,11 +88,39 @@ def extract_run(run: Path) -> dict:
             entry[scope] = {"queries": block.get("queries"),
                             **{k: r.get("auc") for k, r in block["methods"].items() if r.get("available", True)}}
         out["places"][key] = entry
+    out["units"] = _units(run, out)
     tr = m.get("triplets") or {}
     out["triplets"] = {"count": sum((tr.get("export") or {}).get("triplets", {}).values()) if tr else None,
                        "offset_median_m": (tr.get("truth") or {}).get("offset_median_m"),
                        "offset_p90_m": (tr.get("truth") or {}).get("offset_p90_m")}
     return out
+
+
+def _units(run: Path, out: dict) -> dict:
+    """What each stage of a run did and how long it took (from the stages' metrics.json and timings.json):
+    the per-unit costs of the scaling projection."""
+    ws = run / "workspace"
+    sessions = sorted(p for p in (ws / "sessions").iterdir() if p.is_dir()) if (ws / "sessions").is_dir() else []
+
+    def total(stage: str, key: str, file: str = "metrics.json") -> float:
+        return float(sum((_json(p / stage / file).get(key) or 0) for p in sessions))
+    u = {"trajectory_s": total("trajectory", "seconds", "timings.json"), "scans": total("trajectory", "poses"),
+         "semidense_s": total("map", "seconds", "timings.json"), "keyframes": total("map", "keyframes"),
+         "map_points": total("map", "points"), "imagedb_s": total("imagedb", "seconds", "timings.json"),
+         "images": total("imagedb", "images"), "driven_m": out.get("driven_m")}
+    align_t, align_m = _json(ws / "align" / "timings.json"), _json(ws / "align" / "metrics.json")
+    u["registering_s"], u["pairs_registered"] = align_t.get("seconds_registering"), (align_m.get("registration") or {}).get("registered_this_run")
+    u["triplets_s"] = _json(ws / "triplets" / "timings.json").get("seconds")
+    u["triplets"] = sum((_json(ws / "triplets" / "metrics.json").get("triplets") or {}).values())
+    vt, vm = _json(ws / "indexes" / "vlad" / "timings.json"), _json(ws / "indexes" / "vlad" / "metrics.json")
+    u["vlad_encode_s"] = (vt.get("encode_training_s") or 0) + (vt.get("encode_database_s") or 0)
+    u["vlad_images"] = vm.get("images_encoded")
+    for kind in ("nbld", "m2dp"):
+        t = (_json(ws / "indexes" / f"structure-{kind}" / "timings.json").get("sessions") or {}).values()
+        fresh = [x for x in t if not x.get("cached")]
+        u[f"{kind}_describe_s"] = sum(x["describe_s"] for x in fresh) if fresh else None
+        u[f"{kind}_patches"] = sum(x["patches"] for x in fresh) if fresh else None
+    return u
 
 
 def _cond(pair: dict, role: str) -> str:
@@ -117,7 +145,7 @@ def machine() -> str:
 
 def collect(name: str, sources: list[Path], command: str) -> Path:
     """Write the record ``docs/results/NAME.json`` from ``sources`` (run folders, or one JSON file)."""
-    if name in ("first-run", "references", "mcvl-benchmark", "benchmarks"):
+    if name in ("first-run", "references", "mcvl-benchmark", "benchmarks", "robustness"):
         data = json.loads(sources[0].read_text())
         record = {"name": name, **data}
     else:
@@ -363,6 +391,75 @@ def render_references() -> str:
     return table(["check", "agreement"], rows) + f"\n\nMeasured {refs['measured']} by `python3 bench/reference_checks.py`."
 
 
+def render_robustness() -> str:
+    """The fault campaign (bench/fuzz_readers.py): per fault class, inputs tried and their outcomes."""
+    rec = record("robustness")
+    outcomes = rec["outcomes"]
+    rows = [[name, str(c["tried"]), *[str(c.get(o, 0)) for o in outcomes]] for name, c in rec["classes"].items()]
+    total = [str(sum(c.get(o, 0) for c in rec["classes"].values())) for o in outcomes]
+    rows.append(["**all**", str(sum(c["tried"] for c in rec["classes"].values())), *total])
+    return (table(["fault class", "inputs", *outcomes], rows)
+            + f"\n\n`{rec['command']}`, measured {rec['measured']} on {rec['machine']}.")
+
+
+def render_mcvl_benchmark() -> str:
+    """MCVL at its Sec. IV-B scale (pipelines/mcvl_benchmark.py): Table II per test sequence and filter setting."""
+    rec = record("mcvl-benchmark")
+    rows = [[seq, run, f"{v['retrieval_mean_m']:.1f}", f"{v['retrieval_median_m']:.1f}", f"{v['filter_mean_m']:.1f}",
+             f"{v['filter_median_m']:.1f}"] for run, seqs in rec["localize"].items() for seq, v in seqs.items()]
+    return (table(["test sequence", "filter settings", "retrieval mean m", "retrieval median m", "filter mean m", "filter median m"], rows)
+            + f"\n\nOne run (seed {rec.get('seed', 7)}) of `{rec['command']}`, measured {rec['measured']} on {rec['machine']}.")
+
+
+def _unit_costs(run: dict) -> dict[str, tuple[str, Optional[float]]]:
+    """Per-unit wall seconds of one places run: (unit, seconds per unit) per stage."""
+    u = run.get("units") or {}
+
+    def per(seconds: Optional[float], n: Optional[float]) -> Optional[float]:
+        return seconds / n if seconds is not None and n else None
+    return {
+        "odometry (kiss-icp)": ("LiDAR scan", per(u.get("trajectory_s"), u.get("scans"))),
+        "semi-dense mapping": ("keyframe", per(u.get("semidense_s"), u.get("keyframes"))),
+        "image database": ("image", per(u.get("imagedb_s"), u.get("images"))),
+        "ICP of a submap pair": ("pair", per(u.get("registering_s"), u.get("pairs_registered"))),
+        "triplets": ("triplet", per(u.get("triplets_s"), u.get("triplets"))),
+        "VLAD encoding (2 workers, wall)": ("image", per(u.get("vlad_encode_s"), u.get("vlad_images"))),
+        "NBLD describing (2 workers, wall)": ("patch", per(u.get("nbld_describe_s"), u.get("nbld_patches"))),
+        "M2DP describing (2 workers, wall)": ("patch", per(u.get("m2dp_describe_s"), u.get("m2dp_patches"))),
+        "map density": ("metre driven (points)", per(u.get("map_points"), u.get("driven_m"))),
+    }
+
+
+def render_scaling_units() -> str:
+    pl = record("places")
+    runs = pl["runs"]
+    costs = [_unit_costs(r) for r in runs]
+    rows = [[stage, unit, spread([c[stage][1] for c in costs], "{:.3g}")] for stage, (unit, _) in costs[0].items()]
+    return table(["stage", "unit", "seconds (points) per unit"], rows) + "\n\nFrom the places runs' timings.json and metrics: " + _runs_note(pl)
+
+
+def render_scaling_projection() -> str:
+    """The city job of docs/scaling.md from the places runs' per-unit costs: CPU hours per stage and the
+    wall time on 512 cores (eta = 0.8) and on 2 cores."""
+    pl = record("places")
+    med = {k: statistics.median([c[k][1] for c in map(_unit_costs, pl["runs"]) if c[k][1] is not None] or [0.0])
+           for k in _unit_costs(pl["runs"][0])}
+    n = {"odometry (kiss-icp)": 2.19e6, "semi-dense mapping": 1.0e6, "image database": 1.0e6, "ICP of a submap pair": 1.0e6,
+         "triplets": 2.0e4, "VLAD encoding (2 workers, wall)": 1.0e6}
+    rho = med["map density"]
+    n["NBLD describing (2 workers, wall)"] = n["M2DP describing (2 workers, wall)"] = rho * 1.0e6 / 20
+    workers = {k: 2.0 if "2 workers" in k else 1.0 for k in n}
+    rows, total = [], 0.0
+    for k, units in n.items():
+        cpu_h = units * med[k] * workers[k] / 3600
+        total += cpu_h
+        rows.append([k, f"{units:.3g}", f"{cpu_h:,.0f}", f"{cpu_h / (0.8 * 512):.1f}", f"{cpu_h / 2 / 24:,.0f}"])
+    rows.append(["**all per-unit stages**", "", f"**{total:,.0f}**", f"**{total / (0.8 * 512):.1f}**", f"**{total / 2 / 24:,.0f}**"])
+    return (table(["stage", "units n", "CPU hours", "wall hours on 512 cores", "wall days on 2 cores"], rows)
+            + "\n\nPer-unit costs: the medians of the table above; rho (map points a metre) from the same runs; "
+            "the global steps below come on top.")
+
+
 def _maybe(name: str) -> Optional[dict]:
     return json.loads((RESULTS / f"{name}.json").read_text()) if (RESULTS / f"{name}.json").is_file() else None
 
@@ -371,7 +468,8 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "claims": render_claims, "places-auc": render_places_auc, "places-mcvl": render_places_mcvl, "maps": render_maps,
     "align": render_align, "triplets": render_triplets, "references": render_references, "first-run": render_first_run,
     "main-job-stages": lambda: _stages("main-job"), "tiny-stages": lambda: _stages("tiny"),
-    "places-stages": lambda: _stages("places"),
+    "places-stages": lambda: _stages("places"), "robustness": render_robustness, "mcvl-benchmark": render_mcvl_benchmark,
+    "scaling-units": render_scaling_units, "scaling-projection": render_scaling_projection,
 }
 
 

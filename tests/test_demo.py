@@ -211,3 +211,38 @@ def test_markdown_subset_to_html():
     assert "<ul><li>one</li><li>two</li></ul>" in h
     page = render("T", "intro", [Section("A stage", ["x"], seconds=12.3)])
     assert 'id="a-stage"' in page and "12 s" in page and 'href="#a-stage"' in page
+
+
+def test_the_docs_figures_read_a_run_as_it_is_written(tiny_demo):
+    """docs/figures.py extracts a run's figures from the files the run wrote (what the docs' tables come from)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
+    try:
+        import figures
+    finally:
+        sys.path.pop(0)
+    out, m = tiny_demo
+    r = figures.extract_run(out)
+    assert r["preset"] == "tiny" and r["seed"] == 7
+    assert set(r["stages_s"]) == set(m["stages"]) and r["total_s"] >= sum(r["stages_s"].values()) - 1.0
+    assert set(r["maps"]) == {"tiny-sunny", "tiny-rainy", "tiny-night"}
+    assert all(0 < v["median_m"] < 1.0 and 0 < v["within_0.5m"] <= 1 for v in r["maps"].values()), r["maps"]
+    assert set(r["localize"]) == {"paper", "odometry-multihypothesis"} and r["localize"]["paper"]["tiny-night"]["queries"] > 0
+    assert {k.split(" > ")[0] for k in r["places"]} == {"tiny-night"}
+    assert r["units"]["scans"] > 800 and r["units"]["trajectory_s"] > 0 and r["units"]["keyframes"] > 0
+
+
+def test_figures_spread_and_verdicts():
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "docs"))
+    try:
+        import figures
+    finally:
+        sys.path.pop(0)
+    assert figures.spread([0.5, 0.7, 0.6]) == "0.600 (0.500-0.700)"
+    assert figures.spread([0.5, None]) == "0.500" and figures.spread([None]) == "n/a"
+    assert figures.verdict([0.1, 0.2, 0.01]) == "yes, in 3 of 3 runs"
+    assert figures.verdict([0.1, -0.2, 0.3]) == "not beyond the spread (2 of 3 runs)"
+    assert figures.verdict([-0.1, -0.2]) == "no, in 2 of 2 runs"
