@@ -47,10 +47,21 @@ def run(workspace: Path, counts: list[int]) -> dict:
             total = time.perf_counter() - t0
             m = json.loads((out / "metrics.json").read_text())
             reg = {**m["registration"], **read_timings(out)}
-            rows.append({"sessions": k, "pairs": reg["pairs"], "accepted": m["pairs"]["accepted"], "total_s": total,
-                         "registration_s": reg["seconds_registering"], "pairs_per_s": reg["pairs_per_s"]})
-            print(f"{k} sessions: {reg['pairs']:4d} submap pairs ({m['pairs']['accepted']} accepted), "
-                  f"{reg['pairs_per_s']:.1f} pairs/s, align total {total:.1f} s", flush=True)
+            rows.append(
+                {
+                    "sessions": k,
+                    "pairs": reg["pairs"],
+                    "accepted": m["pairs"]["accepted"],
+                    "total_s": total,
+                    "registration_s": reg["seconds_registering"],
+                    "pairs_per_s": reg["pairs_per_s"],
+                }
+            )
+            print(
+                f"{k} sessions: {reg['pairs']:4d} submap pairs ({m['pairs']['accepted']} accepted), "
+                f"{reg['pairs_per_s']:.1f} pairs/s, align total {total:.1f} s",
+                flush=True,
+            )
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     base = rows[0]
@@ -58,8 +69,10 @@ def run(workspace: Path, counts: list[int]) -> dict:
         r["time_ratio"] = r["total_s"] / base["total_s"]
         r["pairs_ratio"] = r["pairs"] / max(1, base["pairs"])
         r["quadratic_ratio"] = (r["sessions"] / base["sessions"]) ** 2
-        print(f"{base['sessions']} -> {r['sessions']} sessions: time x{r['time_ratio']:.2f}, overlapping pairs x{r['pairs_ratio']:.2f}, "
-              f"sessions^2 x{r['quadratic_ratio']:.1f}")
+        print(
+            f"{base['sessions']} -> {r['sessions']} sessions: time x{r['time_ratio']:.2f}, overlapping pairs x{r['pairs_ratio']:.2f}, "
+            f"sessions^2 x{r['quadratic_ratio']:.1f}"
+        )
     return {"benchmark": "align", "workspace": str(workspace), "rows": rows}
 
 

@@ -79,19 +79,35 @@ def run(workspace: Path, repeat: int = 1, added: str | None = None) -> dict:
         shutil.rmtree(inc.parent / (inc.name + "-aligned"), ignore_errors=True)
     med_all, med_add = float(np.median(t_all)), float(np.median(t_add))
     reg = m_add["registration"]
-    r = {"sessions": len(names), "added": names[-1], "repeat": repeat, "scratch_s": t_all, "first_n_minus_1_s": t_first,
-         "add_one_s": t_add, "ratio": med_add / med_all, "ratios": [a / b for a, b in zip(t_add, t_all)],
-         "pairs_scratch": m_all["registration"]["pairs"], "pairs_registered_adding": reg["registered_this_run"],
-         "pair_share": reg["registered_this_run"] / m_all["registration"]["pairs"],
-         "graph_scratch_s": m_all["timings"]["graph_seconds"], "graph_add_s": m_add["timings"]["graph_seconds"],
-         "sessions_solved_adding": m_add["graph"]["sessions_solved"],
-         "sessions_kept_adding": sum(bool(v.get("outputs_kept")) for v in m_add["sessions"].values())}
-    print(f"all {len(names)} sessions from scratch: median {med_all:.1f} s of {len(t_all)} ({r['pairs_scratch']} submap pairs registered, "
-          f"graph {r['graph_scratch_s']:.2f} s)")
-    print(f"adding {names[-1]} to the other {len(names) - 1}: median {med_add:.1f} s of {len(t_add)} ({r['pairs_registered_adding']} pairs "
-          f"registered, {r['pair_share']:.0%} of all; {r['sessions_solved_adding']} session solved, graph {r['graph_add_s']:.2f} s; "
-          f"{r['sessions_kept_adding']} frozen sessions' files kept)")
-    print(f"add one / from scratch: x{r['ratio']:.2f} (each run: {', '.join(f'x{x:.2f}' for x in r['ratios'])}; target < 0.33)")
+    r = {
+        "sessions": len(names),
+        "added": names[-1],
+        "repeat": repeat,
+        "scratch_s": t_all,
+        "first_n_minus_1_s": t_first,
+        "add_one_s": t_add,
+        "ratio": med_add / med_all,
+        "ratios": [a / b for a, b in zip(t_add, t_all)],
+        "pairs_scratch": m_all["registration"]["pairs"],
+        "pairs_registered_adding": reg["registered_this_run"],
+        "pair_share": reg["registered_this_run"] / m_all["registration"]["pairs"],
+        "graph_scratch_s": m_all["timings"]["graph_seconds"],
+        "graph_add_s": m_add["timings"]["graph_seconds"],
+        "sessions_solved_adding": m_add["graph"]["sessions_solved"],
+        "sessions_kept_adding": sum(bool(v.get("outputs_kept")) for v in m_add["sessions"].values()),
+    }
+    print(
+        f"all {len(names)} sessions from scratch: median {med_all:.1f} s of {len(t_all)} ({r['pairs_scratch']} submap pairs registered, "
+        f"graph {r['graph_scratch_s']:.2f} s)"
+    )
+    print(
+        f"adding {names[-1]} to the other {len(names) - 1}: median {med_add:.1f} s of {len(t_add)} ({r['pairs_registered_adding']} pairs "
+        f"registered, {r['pair_share']:.0%} of all; {r['sessions_solved_adding']} session solved, graph {r['graph_add_s']:.2f} s; "
+        f"{r['sessions_kept_adding']} frozen sessions' files kept)"
+    )
+    print(
+        f"add one / from scratch: x{r['ratio']:.2f} (each run: {', '.join(f'x{x:.2f}' for x in r['ratios'])}; target < 0.33)"
+    )
     return r
 
 
@@ -99,7 +115,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("workspace", type=Path)
     ap.add_argument("--json", type=Path, help="also write the figures here")
-    ap.add_argument("--repeat", type=int, default=1, help="scratch and add runs, in turns; the ratio is of their medians")
+    ap.add_argument(
+        "--repeat", type=int, default=1, help="scratch and add runs, in turns; the ratio is of their medians"
+    )
     ap.add_argument("--added", help="the session to add (default: the last by name)")
     a = ap.parse_args()
     r = run(a.workspace, a.repeat, a.added)

@@ -62,9 +62,11 @@ def main() -> None:
     med = {k: float(np.median([t for t, _ in v])) for k, v in runs.items()}
     for k, v in runs.items():
         m = v[-1][1]
-        print(f"{k}: median {med[k]:.1f} s of {len(v)} ({', '.join(f'{t:.1f}' for t, _ in v)}); registering "
-              f"{m['timings']['seconds_registering']:.1f} s summed over workers for {m['registration']['pairs']} pairs; "
-              f"{m['pairs']['accepted']} accepted")
+        print(
+            f"{k}: median {med[k]:.1f} s of {len(v)} ({', '.join(f'{t:.1f}' for t, _ in v)}); registering "
+            f"{m['timings']['seconds_registering']:.1f} s summed over workers for {m['registration']['pairs']} pairs; "
+            f"{m['pairs']['accepted']} accepted"
+        )
     print(f"four levels / three: x{med['four levels (default)'] / med['three levels']:.2f}")
 
 

@@ -33,13 +33,25 @@ def _make_town(out: Path, length_m: float = 150.0) -> Path:
     overrides = {
         "camera": {"width": 640, "height": 480},
         "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0], "azimuth_steps": 512},
-        "sessions": [{"name": "bench", "role": "train", "date": "2014-06-26", "time": "11:00", "weather": "overcast",
-                      "length_m": length_m, "speed_mps": 8.0, "lane_offset_m": 0.0}],
+        "sessions": [
+            {
+                "name": "bench",
+                "role": "train",
+                "date": "2014-06-26",
+                "time": "11:00",
+                "weather": "overcast",
+                "length_m": length_m,
+                "speed_mps": 8.0,
+                "lane_offset_m": 0.0,
+            }
+        ],
     }
     return synthesize(preset="tiny", out=out, overrides=overrides, progress=True)
 
 
-def bare_kiss_icp(scans: list[tuple[np.ndarray, np.ndarray]], cfg, threads: int | None = None) -> tuple[float, np.ndarray]:
+def bare_kiss_icp(
+    scans: list[tuple[np.ndarray, np.ndarray]], cfg, threads: int | None = None
+) -> tuple[float, np.ndarray]:
     """Seconds of kiss-icp alone over ``scans`` and the poses it gave (``threads``: its
     registration.max_num_threads, 0 = all cores; None = mapkit's config)."""
     from kiss_icp.config import KISSConfig
@@ -79,13 +91,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--town", type=Path, help="a synthetic town folder (default: make a one-session town)")
     ap.add_argument("--session", default=None, help="session name (default: the first)")
-    ap.add_argument("--quick", action="store_true", help="smoke run: a 48 m town (6 s of driving) when no --town is given")
+    ap.add_argument(
+        "--quick", action="store_true", help="smoke run: a 48 m town (6 s of driving) when no --town is given"
+    )
     args = ap.parse_args(argv)
 
-    from mapkit.mapping.build import BuildConfig, build
     from mapkit.io.mcap_log import McapLog
-    from mapkit.synth import session_logs
+    from mapkit.mapping.build import BuildConfig, build
     from mapkit.mapping.trajectory import trajectory_from_lidar
+    from mapkit.synth import session_logs
 
     with tempfile.TemporaryDirectory(prefix="mapkit-bench-build-") as tmp:
         tmp = Path(tmp)
@@ -120,22 +134,51 @@ def main(argv=None) -> int:
         stages = json.loads((tmp / "ws" / "metrics.json").read_text())["sessions"][log_path.stem]["stages"]
     rows = [
         {"what": "kiss-icp alone (scans in memory)", "seconds": t_bare_icp, "scans": len(scans), "ratio": 1.0},
-        {"what": "bare mcap decode of the scans", "seconds": t_bare_read, "scans": len(scans), "ratio": t_bare_read / t_bare_icp},
-        {"what": "mapkit trajectory stage (reads + kiss-icp)", "seconds": t_mapkit, "scans": len(scans), "ratio": t_mapkit / t_bare_icp},
-        {"what": "mapkit vs kiss-icp + bare decode", "seconds": t_mapkit, "scans": len(scans), "ratio": t_mapkit / (t_bare_icp + t_bare_read)},
+        {
+            "what": "bare mcap decode of the scans",
+            "seconds": t_bare_read,
+            "scans": len(scans),
+            "ratio": t_bare_read / t_bare_icp,
+        },
+        {
+            "what": "mapkit trajectory stage (reads + kiss-icp)",
+            "seconds": t_mapkit,
+            "scans": len(scans),
+            "ratio": t_mapkit / t_bare_icp,
+        },
+        {
+            "what": "mapkit vs kiss-icp + bare decode",
+            "seconds": t_mapkit,
+            "scans": len(scans),
+            "ratio": t_mapkit / (t_bare_icp + t_bare_read),
+        },
     ]
-    report("kiss-icp inside mapkit", rows,
-           f"Goal: mapkit <= 1.10x kiss-icp by itself. Including reading, {t_mapkit / t_bare_icp:.3f}x of kiss-icp on "
-           f"in-memory scans; {t_mapkit / (t_bare_icp + t_bare_read):.3f}x of kiss-icp plus bare mcap decoding.")
-    report("kiss-icp threads and repeatability", [
-        {"what": "registration threads: 1", "ms_per_sweep": 1e3 * t_one_thread / len(scans), "ratio": 1.0},
-        {"what": "registration threads: all", "ms_per_sweep": 1e3 * t_all_threads / len(scans), "ratio": t_all_threads / t_one_thread},
-    ], f"Two identical kiss-icp runs over these {len(scans)} sweeps differ by up to {repeat_diff:.3g} m in position.")
+    report(
+        "kiss-icp inside mapkit",
+        rows,
+        f"Goal: mapkit <= 1.10x kiss-icp by itself. Including reading, {t_mapkit / t_bare_icp:.3f}x of kiss-icp on "
+        f"in-memory scans; {t_mapkit / (t_bare_icp + t_bare_read):.3f}x of kiss-icp plus bare mcap decoding.",
+    )
+    report(
+        "kiss-icp threads and repeatability",
+        [
+            {"what": "registration threads: 1", "ms_per_sweep": 1e3 * t_one_thread / len(scans), "ratio": 1.0},
+            {
+                "what": "registration threads: all",
+                "ms_per_sweep": 1e3 * t_all_threads / len(scans),
+                "ratio": t_all_threads / t_one_thread,
+            },
+        ],
+        f"Two identical kiss-icp runs over these {len(scans)} sweeps differ by up to {repeat_diff:.3g} m in position.",
+    )
     rows2 = [{"stage": k, "seconds": v.get("wall_s_this_run", float("nan"))} for k, v in stages.items()]
     rows2.append({"stage": "build (all)", "seconds": t_build})
-    report("build real-time factor", rows2,
-           f"Session {log_path.stem}: {duration_s:.1f} s of driving built in {t_build:.1f} s: real-time factor "
-           f"{duration_s / t_build:.2f} (goal >= 1).")
+    report(
+        "build real-time factor",
+        rows2,
+        f"Session {log_path.stem}: {duration_s:.1f} s of driving built in {t_build:.1f} s: real-time factor "
+        f"{duration_s / t_build:.2f} (goal >= 1).",
+    )
     return 0
 
 

@@ -52,7 +52,9 @@ def _grids(dataset: Path, n: int, form: str, seed: int) -> np.ndarray:
     return (rng.random(shape) < 0.05).astype(np.uint8)
 
 
-def bench_training(torch, grids: np.ndarray, form: str, batch: int, steps: int, naive_triplets: int, repeat: int) -> list[dict]:
+def bench_training(
+    torch, grids: np.ndarray, form: str, batch: int, steps: int, naive_triplets: int, repeat: int
+) -> list[dict]:
     from mapkit.places.cnn import CnnConfig, build_model, grids_to_input, triplet_loss
 
     cfg = CnnConfig(form=form)
@@ -84,10 +86,24 @@ def bench_training(torch, grids: np.ndarray, form: str, batch: int, steps: int, 
     wn, cn = best_wall_and_cpu(naive, repeat)
     nb = steps * batch
     return [
-        {"method": f"batch of {batch} triplets (mapkit.learning.train)", "triplets": nb, "wall_s": wb, "cpu_s": cb,
-         "triplets_per_s_wall": nb / wb, "triplets_per_s_cpu": nb / cb, "speedup_vs_naive_wall": (nb / wb) / (naive_triplets / wn)},
-        {"method": "naive: one triplet per step, 3 forwards", "triplets": naive_triplets, "wall_s": wn, "cpu_s": cn,
-         "triplets_per_s_wall": naive_triplets / wn, "triplets_per_s_cpu": naive_triplets / cn, "speedup_vs_naive_wall": 1.0},
+        {
+            "method": f"batch of {batch} triplets (mapkit.learning.train)",
+            "triplets": nb,
+            "wall_s": wb,
+            "cpu_s": cb,
+            "triplets_per_s_wall": nb / wb,
+            "triplets_per_s_cpu": nb / cb,
+            "speedup_vs_naive_wall": (nb / wb) / (naive_triplets / wn),
+        },
+        {
+            "method": "naive: one triplet per step, 3 forwards",
+            "triplets": naive_triplets,
+            "wall_s": wn,
+            "cpu_s": cn,
+            "triplets_per_s_wall": naive_triplets / wn,
+            "triplets_per_s_cpu": naive_triplets / cn,
+            "speedup_vs_naive_wall": 1.0,
+        },
     ]
 
 
@@ -105,8 +121,12 @@ def bench_describe(torch, grids: np.ndarray, form: str, batch: int, repeat: int)
         sess = ort.InferenceSession(str(Path(tmp) / "m.onnx"), opts, providers=["CPUExecutionProvider"])
 
     def run_onnx():
-        return np.concatenate([sess.run(["descriptors"], {"grids": grids_to_input(grids[k : k + batch], form)})[0]
-                               for k in range(0, len(grids), batch)])
+        return np.concatenate(
+            [
+                sess.run(["descriptors"], {"grids": grids_to_input(grids[k : k + batch], form)})[0]
+                for k in range(0, len(grids), batch)
+            ]
+        )
 
     def run_torch():
         return torch_describe(model, grids, form, batch)
@@ -116,10 +136,24 @@ def bench_describe(torch, grids: np.ndarray, form: str, batch: int, repeat: int)
     wo, co = best_wall_and_cpu(run_onnx, repeat)
     n = len(grids)
     rows = [
-        {"method": "onnxruntime (deployment)", "patches": n, "wall_s": wo, "cpu_s": co, "patches_per_s_wall": n / wo,
-         "patches_per_s_cpu": n / co, "speedup_vs_torch_wall": wt / wo},
-        {"method": "torch eager, no_grad", "patches": n, "wall_s": wt, "cpu_s": ct, "patches_per_s_wall": n / wt,
-         "patches_per_s_cpu": n / ct, "speedup_vs_torch_wall": 1.0},
+        {
+            "method": "onnxruntime (deployment)",
+            "patches": n,
+            "wall_s": wo,
+            "cpu_s": co,
+            "patches_per_s_wall": n / wo,
+            "patches_per_s_cpu": n / co,
+            "speedup_vs_torch_wall": wt / wo,
+        },
+        {
+            "method": "torch eager, no_grad",
+            "patches": n,
+            "wall_s": wt,
+            "cpu_s": ct,
+            "patches_per_s_wall": n / wt,
+            "patches_per_s_cpu": n / ct,
+            "speedup_vs_torch_wall": 1.0,
+        },
     ]
     return rows, diff
 
@@ -145,21 +179,44 @@ def bench_index_describer(torch, form: str, n_kp: int, repeat: int) -> list[dict
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         export_onnx(build_model(cfg_m, seed=0), cfg_m, folder / "model.onnx")
-        write_manifest(folder, {"format_version": 1, "kind": "mapkit cnn descriptor", "model_config": cfg_m.model_dump(mode="json"),
-                                "domain": CNN_DOMAIN.model_dump()})
+        write_manifest(
+            folder,
+            {
+                "format_version": 1,
+                "kind": "mapkit cnn descriptor",
+                "model_config": cfg_m.model_dump(mode="json"),
+                "domain": CNN_DOMAIN.model_dump(),
+            },
+        )
         cfg = StructureIndexConfig(kind="cnn", cnn_model=str(folder))
         describe_cnn(pts, kp[:8], obs[:8], cfg, tree)  # warm-up, loads the session
         w, c = best_wall_and_cpu(lambda: describe_cnn(pts, kp, obs, cfg, tree), repeat)
         wg, cg = best_wall_and_cpu(lambda: voxel_grids(pts, kp, obs, CNN_DOMAIN, 32, tree, packed=True), repeat)
-    return [{"stage": "describe_cnn (extract + yaw + voxelise + ONNX)", "patches": n_kp, "wall_s": w, "cpu_s": c,
-             "patches_per_s_wall": n_kp / w, "share_in_voxel_grids": wg / w},
-            {"stage": "voxel_grids alone", "patches": n_kp, "wall_s": wg, "cpu_s": cg, "patches_per_s_wall": n_kp / wg,
-             "share_in_voxel_grids": 1.0}]
+    return [
+        {
+            "stage": "describe_cnn (extract + yaw + voxelise + ONNX)",
+            "patches": n_kp,
+            "wall_s": w,
+            "cpu_s": c,
+            "patches_per_s_wall": n_kp / w,
+            "share_in_voxel_grids": wg / w,
+        },
+        {
+            "stage": "voxel_grids alone",
+            "patches": n_kp,
+            "wall_s": wg,
+            "cpu_s": cg,
+            "patches_per_s_wall": n_kp / wg,
+            "share_in_voxel_grids": 1.0,
+        },
+    ]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dataset", type=Path, default=Path("runs/main/workspace/triplets"), help="triplet dataset for real grids")
+    ap.add_argument(
+        "--dataset", type=Path, default=Path("runs/main/workspace/triplets"), help="triplet dataset for real grids"
+    )
     ap.add_argument("--form", choices=("occupancy", "density_comparison"), default="occupancy")
     ap.add_argument("--threads", type=int, default=2, help="torch and onnxruntime threads")
     ap.add_argument("--steps", type=int, default=8, help="batches of 25 triplets timed")
@@ -176,12 +233,17 @@ def main() -> None:
     src = f"real grids of {args.dataset}" if (args.dataset / "manifest.json").is_file() else "random grids (~5 % fill)"
     print(f"# CNN descriptor speed: {args.form}, {args.threads} threads, torch {torch.__version__}, {src}")
     t0 = time.perf_counter()
-    report("Training throughput (forward + backward + step)",
-           bench_training(torch, grids[:256], args.form, 25, args.steps, args.naive, args.repeat),
-           "speedup_vs_naive_wall: batched triplets/s over the per-triplet loop's, same run.")
+    report(
+        "Training throughput (forward + backward + step)",
+        bench_training(torch, grids[:256], args.form, 25, args.steps, args.naive, args.repeat),
+        "speedup_vs_naive_wall: batched triplets/s over the per-triplet loop's, same run.",
+    )
     rows, diff = bench_describe(torch, grids[: args.patches], args.form, 256, args.repeat)
-    report("Describe throughput (inference on 32^3 grids)", rows,
-           f"speedup_vs_torch_wall: onnxruntime over torch eager, same weights and grids; max |ONNX - torch| = {diff:.2e}.")
+    report(
+        "Describe throughput (inference on 32^3 grids)",
+        rows,
+        f"speedup_vs_torch_wall: onnxruntime over torch eager, same weights and grids; max |ONNX - torch| = {diff:.2e}.",
+    )
     report("Index describer on a synthetic street", bench_index_describer(torch, args.form, args.patches, args.repeat))
     print(f"\nbench seconds: {time.perf_counter() - t0:.1f}")
 

@@ -47,7 +47,13 @@ from __future__ import annotations
 
 import os
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS"):
+for _var in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
@@ -74,6 +80,7 @@ OBSERVER_BEHIND_M = 8.0
 
 
 # --- the synthetic street ---------------------------------------------------------------------------
+
 
 def _segment_points(a: np.ndarray, b: np.ndarray, spacing: float, rng: np.random.Generator) -> np.ndarray:
     """Points along the segments a[i] -> b[i], about ``spacing`` apart, with 2 cm noise."""
@@ -122,6 +129,7 @@ def street_map(rng: np.random.Generator, length_m: float = 600.0) -> np.ndarray:
 
 # --- straightforward per-patch baselines ----------------------------------------------------------------
 
+
 def nbld_loop(patches: list[np.ndarray], cfg: d3.NBLDConfig) -> np.ndarray:
     """NBLD one patch at a time: a 3-D histogram in (r, azimuth, z), then the comparisons."""
     R, H = cfg.domain.radius, cfg.domain.height
@@ -132,7 +140,9 @@ def nbld_loop(patches: list[np.ndarray], cfg: d3.NBLDConfig) -> np.ndarray:
         r = np.hypot(p[:, 0], p[:, 1])
         az = np.mod(np.arctan2(p[:, 1], p[:, 0]), 2 * math.pi)
         az[r == 0] = 0.0
-        c, _ = np.histogramdd(np.column_stack([r, az, p[:, 2]]), bins=(nr, na, nz), range=((0, R), (0, 2 * math.pi), (-H / 2, H / 2)))
+        c, _ = np.histogramdd(
+            np.column_stack([r, az, p[:, 2]]), bins=(nr, na, nz), range=((0, R), (0, 2 * math.pi), (-H / 2, H / 2))
+        )
         dens = c / vol[:, None, None]
         bits = np.zeros((3, nr, na, nz), np.uint8)
         for i in range(nr):
@@ -169,11 +179,17 @@ def m2dp_loop(patches: list[np.ndarray], cfg: d3.M2DPConfig) -> np.ndarray:
 def m2dp_reference_loop(patches: list[np.ndarray], cfg: d3.M2DPConfig) -> np.ndarray:
     """M2DP with the authors' settings one patch at a time: ``m2dp_reference`` (float64, one
     plane at a time, the authors' bin edges by ``np.searchsorted``, full SVD)."""
-    return np.array([d3.m2dp_reference(p, cfg.n_plane_azimuths, cfg.n_plane_elevations, cfg.n_radial, cfg.n_angular)
-                     for p in patches], np.float32)
+    return np.array(
+        [
+            d3.m2dp_reference(p, cfg.n_plane_azimuths, cfg.n_plane_elevations, cfg.n_radial, cfg.n_angular)
+            for p in patches
+        ],
+        np.float32,
+    )
 
 
 # --- runs ----------------------------------------------------------------------------------------------
+
 
 def prepare(points, keypoints, observer_dirs, domain, tree, max_points=None):
     """Extracted, yaw-normalised patches (CSR) of all keypoints, built in blocks (thinned to
@@ -184,7 +200,11 @@ def prepare(points, keypoints, observer_dirs, domain, tree, max_points=None):
         indptr, indices = pa.extract_patches(points, kp, domain, tree)
         if max_points is not None:
             indptr, indices = d3.thin_patches(indptr, indices, max_points)
-        parts.append(pa.yaw_normalise_patches(pa.gather_local(points, kp, indptr, indices), indptr, observer_dirs[k0 : k0 + 128])[1])
+        parts.append(
+            pa.yaw_normalise_patches(
+                pa.gather_local(points, kp, indptr, indices), indptr, observer_dirs[k0 : k0 + 128]
+            )[1]
+        )
         counts.append(np.diff(indptr))
     indptr = np.concatenate([[0], np.cumsum(np.concatenate(counts))])
     return indptr, np.concatenate(parts)
@@ -210,19 +230,37 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
         t_loop = best_wall_and_cpu(lambda: loop(patches, sub), 1)[1] / nb * m
         ref = loop(patches, sub)
         agree = float(np.mean(ref != desc[:nb])) if kind == "NBLD" else float(np.abs(ref - desc[:nb]).max())
-        t_chain, c_chain = best_wall_and_cpu(lambda: d3.describe(kind.lower(), points, keypoints, observer_dirs, chain_cfg, tree=tree), args.repeat)
-        rows.append({
-            "map": label, "what": f"{what} descriptor", "patches": m,
-            "points/patch": f"{np.percentile(sizes, 5):.0f}/{np.median(sizes):.0f}/{np.percentile(sizes, 95):.0f}",
-            "us/patch (cpu)": c_desc / m * 1e6, "patches/s (cpu)": m / c_desc, "patches/s (wall)": m / t_desc,
-            "loop patches/s (cpu)": m / t_loop, "speed-up (cpu)": t_loop / c_desc,
-            "loop vs fast": f"{'bits differing' if kind == 'NBLD' else 'max |diff|'} {agree:.2g}",
-        })
-        rows.append({
-            "map": label, "what": f"{what} describe() chain", "patches": m, "points/patch": rows[-1]["points/patch"],
-            "us/patch (cpu)": c_chain / m * 1e6, "patches/s (cpu)": m / c_chain, "patches/s (wall)": m / t_chain,
-            "loop patches/s (cpu)": "", "speed-up (cpu)": "", "loop vs fast": "",
-        })
+        t_chain, c_chain = best_wall_and_cpu(
+            lambda: d3.describe(kind.lower(), points, keypoints, observer_dirs, chain_cfg, tree=tree), args.repeat
+        )
+        rows.append(
+            {
+                "map": label,
+                "what": f"{what} descriptor",
+                "patches": m,
+                "points/patch": f"{np.percentile(sizes, 5):.0f}/{np.median(sizes):.0f}/{np.percentile(sizes, 95):.0f}",
+                "us/patch (cpu)": c_desc / m * 1e6,
+                "patches/s (cpu)": m / c_desc,
+                "patches/s (wall)": m / t_desc,
+                "loop patches/s (cpu)": m / t_loop,
+                "speed-up (cpu)": t_loop / c_desc,
+                "loop vs fast": f"{'bits differing' if kind == 'NBLD' else 'max |diff|'} {agree:.2g}",
+            }
+        )
+        rows.append(
+            {
+                "map": label,
+                "what": f"{what} describe() chain",
+                "patches": m,
+                "points/patch": rows[-1]["points/patch"],
+                "us/patch (cpu)": c_chain / m * 1e6,
+                "patches/s (cpu)": m / c_chain,
+                "patches/s (wall)": m / t_chain,
+                "loop patches/s (cpu)": "",
+                "speed-up (cpu)": "",
+                "loop vs fast": "",
+            }
+        )
     # M2DP on thinned patches (max_points): speed, and how far the descriptor moves from the exact one
     sub = cfg.m2dp.model_copy(update={"max_points": args.max_points})
     thin_cfg = cfg.model_copy(update={"m2dp": sub})
@@ -232,20 +270,33 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
     exact = d3.describe("m2dp", points, keypoints, observer_dirs, cfg, tree=tree)
     P = sub.n_planes
     cos = np.minimum(np.einsum("ij,ij->i", thin[:, :P], exact[:, :P]), np.einsum("ij,ij->i", thin[:, P:], exact[:, P:]))
-    t_chain, c_chain = best_wall_and_cpu(lambda: d3.describe("m2dp", points, keypoints, observer_dirs, thin_cfg, tree=tree), args.repeat)
+    t_chain, c_chain = best_wall_and_cpu(
+        lambda: d3.describe("m2dp", points, keypoints, observer_dirs, thin_cfg, tree=tree), args.repeat
+    )
     sizes = np.diff(indptr)
-    for what, c, t in ((f"M2DP descriptor, max_points={args.max_points}", c_desc, t_desc),
-                       (f"M2DP describe() chain, max_points={args.max_points}", c_chain, t_chain)):
-        rows.append({
-            "map": label, "what": what, "patches": m,
-            "points/patch": f"{np.percentile(sizes, 5):.0f}/{np.median(sizes):.0f}/{np.percentile(sizes, 95):.0f}",
-            "us/patch (cpu)": c / m * 1e6, "patches/s (cpu)": m / c, "patches/s (wall)": m / t,
-            "loop patches/s (cpu)": "", "speed-up (cpu)": "",
-            "loop vs fast": f"vs exact: cosine of u1, v1 median {np.median(cos):.4f}, 5th pct {np.percentile(cos, 5):.4f}",
-        })
+    for what, c, t in (
+        (f"M2DP descriptor, max_points={args.max_points}", c_desc, t_desc),
+        (f"M2DP describe() chain, max_points={args.max_points}", c_chain, t_chain),
+    ):
+        rows.append(
+            {
+                "map": label,
+                "what": what,
+                "patches": m,
+                "points/patch": f"{np.percentile(sizes, 5):.0f}/{np.median(sizes):.0f}/{np.percentile(sizes, 95):.0f}",
+                "us/patch (cpu)": c / m * 1e6,
+                "patches/s (cpu)": m / c,
+                "patches/s (wall)": m / t,
+                "loop patches/s (cpu)": "",
+                "speed-up (cpu)": "",
+                "loop vs fast": f"vs exact: cosine of u1, v1 median {np.median(cos):.4f}, 5th pct {np.percentile(cos, 5):.4f}",
+            }
+        )
     # CNN voxel grids: extraction, yaw normalisation and voxelisation per patch, the stages
     # timed separately over the same blocks of keypoints as voxel_grids() uses
-    t_grids, c_grids = best_wall_and_cpu(lambda: pa.voxel_grids(points, keypoints, observer_dirs, pa.CNN_DOMAIN, tree=tree), args.repeat)
+    t_grids, c_grids = best_wall_and_cpu(
+        lambda: pa.voxel_grids(points, keypoints, observer_dirs, pa.CNN_DOMAIN, tree=tree), args.repeat
+    )
     stages = {"extract": 0.0, "yaw": 0.0, "voxelise": 0.0}
     sizes = []
     for k0 in range(0, m, 128):
@@ -261,13 +312,22 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
             stages[name] += t
         sizes.append(np.diff(indptr))
     s = np.concatenate(sizes)
-    rows.append({
-        "map": label, "what": "CNN grids: voxel_grids()", "patches": m,
-        "points/patch": f"{np.percentile(s, 5):.0f}/{np.median(s):.0f}/{np.percentile(s, 95):.0f}",
-        "us/patch (cpu)": c_grids / m * 1e6, "patches/s (cpu)": m / c_grids, "patches/s (wall)": m / t_grids,
-        "loop patches/s (cpu)": "", "speed-up (cpu)": "",
-        "loop vs fast": "extract {:.0f} / yaw {:.0f} / voxelise {:.0f} us".format(*(stages[k] / m * 1e6 for k in ("extract", "yaw", "voxelise"))),
-    })
+    rows.append(
+        {
+            "map": label,
+            "what": "CNN grids: voxel_grids()",
+            "patches": m,
+            "points/patch": f"{np.percentile(s, 5):.0f}/{np.median(s):.0f}/{np.percentile(s, 95):.0f}",
+            "us/patch (cpu)": c_grids / m * 1e6,
+            "patches/s (cpu)": m / c_grids,
+            "patches/s (wall)": m / t_grids,
+            "loop patches/s (cpu)": "",
+            "speed-up (cpu)": "",
+            "loop vs fast": "extract {:.0f} / yaw {:.0f} / voxelise {:.0f} us".format(
+                *(stages[k] / m * 1e6 for k in ("extract", "yaw", "voxelise"))
+            ),
+        }
+    )
     return rows
 
 
@@ -287,7 +347,9 @@ def map_inputs(args):
     smap = SemiDenseMap.load(args.map)
     sign, axis = (-1.0 if args.up.startswith("-") else 1.0), "xyz".index(args.up[-1])
     # a proper rotation that takes the named axis to +z
-    R = {0: np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]]), 1: np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]]), 2: np.eye(3)}[axis].astype(float)
+    R = {0: np.array([[0, 1, 0], [0, 0, 1], [1, 0, 0]]), 1: np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]]), 2: np.eye(3)}[
+        axis
+    ].astype(float)
     if sign < 0:
         R = np.diag([1.0, -1.0, -1.0]) @ R
     points = smap.points_world @ R.T
@@ -307,7 +369,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--map", type=Path, help="also run on this saved SemiDenseMap folder")
     ap.add_argument("--up", default="z", help="the map axis pointing up: x, y, z, -x, -y or -z")
-    ap.add_argument("--max-points", type=int, default=1024, help="M2DP's max_points for the thinned rows (default 1024)")
+    ap.add_argument(
+        "--max-points", type=int, default=1024, help="M2DP's max_points for the thinned rows (default 1024)"
+    )
     ap.add_argument("--quick", action="store_true", help="smoke run: 400 patches, 20 in the loops, best of two")
     args = ap.parse_args()
     if args.quick:
@@ -317,21 +381,37 @@ def main() -> None:
     rows = run("synthetic street", *synthetic_inputs(args), args)
     if args.map is not None:
         rows += run(f"map {args.map.name}", *map_inputs(args), args)
-    goal = {r["what"]: r["patches/s (cpu)"] >= GOAL_PATCHES_PER_S for r in rows if r["map"] == "synthetic street" and "descriptor" in r["what"]}
-    note = (f"Goal: >= {GOAL_PATCHES_PER_S:.0f} patches/s per descriptor on one core (synthetic street, CPU time): "
-            + ", ".join(f"{k}: {'met' if v else 'MISSED'}" for k, v in goal.items())
-            + f". points/patch = 5th percentile / median / 95th percentile. Load average when done: {os.getloadavg()[0]:.1f}"
-            + " (2 cores; CPU time excludes waiting for the core, not sharing its caches).")
+    goal = {
+        r["what"]: r["patches/s (cpu)"] >= GOAL_PATCHES_PER_S
+        for r in rows
+        if r["map"] == "synthetic street" and "descriptor" in r["what"]
+    }
+    note = (
+        f"Goal: >= {GOAL_PATCHES_PER_S:.0f} patches/s per descriptor on one core (synthetic street, CPU time): "
+        + ", ".join(f"{k}: {'met' if v else 'MISSED'}" for k, v in goal.items())
+        + f". points/patch = 5th percentile / median / 95th percentile. Load average when done: {os.getloadavg()[0]:.1f}"
+        + " (2 cores; CPU time excludes waiting for the core, not sharing its caches)."
+    )
     fast = [r for r in rows if r["map"] == "synthetic street" and r["what"].endswith("descriptor")]
     speed = {r["what"]: r["patches/s (cpu)"] for r in fast}
-    note += (f" M2DP with the authors' settings (M2DPConfig.authors(): PCA frame, farthest-point radius, unnormalised axes) "
-             f"runs at {speed['M2DP(authors) descriptor'] / speed['M2DP descriptor']:.2f} x the default's patches/s (CPU); its loop "
-             "baseline is m2dp_reference per patch.")
-    report("structure descriptors, one core", rows, note, headline={
-        "mapkit": ", ".join(f"{r['what'].split()[0]} {r['patches/s (cpu)']:,.0f}" for r in fast) + " patches/s (CPU, one core)",
-        "baseline": "per-patch loops " + ", ".join(f"{r['what'].split()[0]} {r['loop patches/s (cpu)']:,.0f}" for r in fast) + " patches/s",
-        "ratio": " / ".join(f"{r['speed-up (cpu)']:.0f}" for r in fast) + " (speed-up)",
-    })
+    note += (
+        f" M2DP with the authors' settings (M2DPConfig.authors(): PCA frame, farthest-point radius, unnormalised axes) "
+        f"runs at {speed['M2DP(authors) descriptor'] / speed['M2DP descriptor']:.2f} x the default's patches/s (CPU); its loop "
+        "baseline is m2dp_reference per patch."
+    )
+    report(
+        "structure descriptors, one core",
+        rows,
+        note,
+        headline={
+            "mapkit": ", ".join(f"{r['what'].split()[0]} {r['patches/s (cpu)']:,.0f}" for r in fast)
+            + " patches/s (CPU, one core)",
+            "baseline": "per-patch loops "
+            + ", ".join(f"{r['what'].split()[0]} {r['loop patches/s (cpu)']:,.0f}" for r in fast)
+            + " patches/s",
+            "ratio": " / ".join(f"{r['speed-up (cpu)']:.0f}" for r in fast) + " (speed-up)",
+        },
+    )
 
 
 if __name__ == "__main__":

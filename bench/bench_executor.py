@@ -34,8 +34,8 @@ from bench.common import best_of, report  # noqa: E402
 
 def tiny_workspace(cache: Path) -> Path:
     """The ``tiny`` town built into ``cache/ws`` (once: a few minutes)."""
-    from mapkit.mapping.build import build
     from mapkit.core.errors import InputWarning
+    from mapkit.mapping.build import build
     from mapkit.synth import session_logs, synthesize
 
     town = synthesize(preset="tiny", out=cache / "town", progress=False)
@@ -62,16 +62,24 @@ def make_encoder(paths: list[Path]):
     sample = np.concatenate(list(_map(_sample_task, tasks, VladEncoder(cfg), SERIAL, False, "")))
     encoder = VladEncoder(cfg, kmeans(sample, cfg.num_words, 10, cfg.seed))
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the PCA is capped at 15 dimensions by 16 images: the encoding cost is the same
+        warnings.simplefilter(
+            "ignore"
+        )  # the PCA is capped at 15 dimensions by 16 images: the encoding cost is the same
         encoder.fit_pca(np.stack(list(_map(_raw_task, train, encoder, SERIAL, False, ""))))
     return encoder
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--workspace", type=Path, default=None, help="a built workspace (default: the tiny town, made in --cache)")
-    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "mapkit-bench-executor",
-                    help="where the tiny town is kept between runs")
+    ap.add_argument(
+        "--workspace", type=Path, default=None, help="a built workspace (default: the tiny town, made in --cache)"
+    )
+    ap.add_argument(
+        "--cache",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "mapkit-bench-executor",
+        help="where the tiny town is kept between runs",
+    )
     ap.add_argument("--images", type=int, default=80, help="images encoded per executor")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per executor; the best is reported")
     ap.add_argument("--workers", type=int, default=2, help="processes of the pool and CPUs of the Ray instance")
@@ -92,23 +100,38 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         ray_ex = make_executor("ray", args.workers)
         encode_images(encoder, paths[: 2 * args.workers], progress=False, executor=ray_ex)  # workers up, imports done
-        ray_note = f"Ray start-up {time.perf_counter() - t0:.1f} s (local instance and worker warm-up, not timed below)."
+        ray_note = (
+            f"Ray start-up {time.perf_counter() - t0:.1f} s (local instance and worker warm-up, not timed below)."
+        )
         executors[f"Ray ({args.workers} CPUs)"] = ray_ex
     except Exception as exc:  # noqa: BLE001 - the rest of the benchmark stands without Ray
         ray_note = f"Ray skipped: {exc}"
     rows, reference, serial_s = [], None, None
     for name, ex in executors.items():
         out: dict = {}
-        seconds = best_of(lambda: out.__setitem__("v", encode_images(encoder, paths, progress=False, executor=ex)), args.repeat)
+        seconds = best_of(
+            lambda: out.__setitem__("v", encode_images(encoder, paths, progress=False, executor=ex)), args.repeat
+        )
         if reference is None:
             reference, serial_s = out["v"], seconds
-        rows.append({"executor": name, "images": len(paths), "seconds": seconds, "images_per_s": len(paths) / seconds,
-                     "speed_vs_serial": serial_s / seconds, "bit_identical": bool(np.array_equal(out["v"], reference))})
+        rows.append(
+            {
+                "executor": name,
+                "images": len(paths),
+                "seconds": seconds,
+                "images_per_s": len(paths) / seconds,
+                "speed_vs_serial": serial_s / seconds,
+                "bit_identical": bool(np.array_equal(out["v"], reference)),
+            }
+        )
     for ex in executors.values():
         ex.close()
     h, w = np.asarray(__import__("cv2").imread(str(paths[0]), 0)).shape
-    report("VLAD database encoding per executor", rows,
-           f"{len(paths)} images of {w}x{h} px from {ws}; 128 words, {encoder.pca.dim}-D after PCA. {ray_note}")
+    report(
+        "VLAD database encoding per executor",
+        rows,
+        f"{len(paths)} images of {w}x{h} px from {ws}; 128 words, {encoder.pca.dim}-D after PCA. {ray_note}",
+    )
     return 0
 
 

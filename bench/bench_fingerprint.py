@@ -66,8 +66,11 @@ def main(argv: list[str] | None = None) -> int:
         watched = best_of(lambda: log_fingerprint(log), args.repeat)
     print(f"log of {size / 2**30:.2f} GiB, best of {args.repeat}")
     print(f"{'method':<44} {'seconds':>9} {'ratio to full hash':>19}")
-    for name, t in (("SHA-256 of the whole file (baseline)", full), ("log_fingerprint, settled log", sampled),
-                    ("log_fingerprint, fresh log (growth watch)", watched)):
+    for name, t in (
+        ("SHA-256 of the whole file (baseline)", full),
+        ("log_fingerprint, settled log", sampled),
+        ("log_fingerprint, fresh log (growth watch)", watched),
+    ):
         print(f"{name:<44} {t:>9.4f} {t / full:>19.4f}")
     print(f"a changed tail byte noticed: {tail_noticed}; growth noticed: {grown_noticed}")
     return 0

@@ -35,9 +35,9 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -57,6 +57,7 @@ MEMORY_GOAL = 1.10  # peak RSS of the full log over that of the quarter log ("ab
 
 
 # --- synthetic drive ------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class DriveSpec:
@@ -183,14 +184,15 @@ class _SyntheticSensors:
         return xyz, np.clip(intensity, 0, 255), base["time"][keep], base["ring"][keep]
 
 
-def write_drive(path: Path, duration_s: float, spec: DriveSpec, compression: str = "zstd",
-                progress: bool = True) -> Path:
+def write_drive(
+    path: Path, duration_s: float, spec: DriveSpec, compression: str = "zstd", progress: bool = True
+) -> Path:
     """Write ``duration_s`` seconds of the synthetic drive to ``path`` (an MCAP) and return it."""
     import numpy as np
     from tqdm import tqdm
 
-    from mapkit.io.mcap_log import McapWriter
     from mapkit.core.types import CameraFrame, GpsFix, ImuSample, LidarScan
+    from mapkit.io.mcap_log import McapWriter
 
     sensors = _SyntheticSensors(spec)
     rng = np.random.default_rng(spec.seed + 1)
@@ -207,8 +209,14 @@ def write_drive(path: Path, duration_s: float, spec: DriveSpec, compression: str
 
     with McapWriter(path, compression=compression) as writer:
         writer.add_metadata("mapkit-bench", {**asdict(spec), "duration_s": duration_s})
-        bar = tqdm(total=n_ticks / spec.imu_hz, unit="log-s", desc=f"writing {path.name}",
-                   disable=not progress, file=sys.stderr, bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} {unit} [{elapsed}<{remaining}]")
+        bar = tqdm(
+            total=n_ticks / spec.imu_hz,
+            unit="log-s",
+            desc=f"writing {path.name}",
+            disable=not progress,
+            file=sys.stderr,
+            bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} {unit} [{elapsed}<{remaining}]",
+        )
         for k in range(n_ticks):
             t_ns = t0_ns + k * imu_dt_ns
             t_s = k / spec.imu_hz
@@ -222,14 +230,18 @@ def write_drive(path: Path, duration_s: float, spec: DriveSpec, compression: str
                 writer.write(topics["image"], CameraFrame(t_ns, "camera", sensors.image(i), encoding="rgb8"))
             if k % per_scan == per_scan // 2:
                 xyz, intensity, point_time, ring = sensors.scan(k // per_scan)
-                writer.write(topics["lidar"], LidarScan(t_ns, "lidar", xyz, intensity=intensity,
-                                                        point_time_s=point_time, ring=ring))
+                writer.write(
+                    topics["lidar"],
+                    LidarScan(t_ns, "lidar", xyz, intensity=intensity, point_time_s=point_time, ring=ring),
+                )
             if k % per_gps == 0:
                 east = spec.turn_radius_m * math.sin(yaw)
                 north = spec.turn_radius_m * (1 - math.cos(yaw))
                 lat = lat0 + math.degrees(north / earth_r) + rng.normal(0, 3e-6)
                 lon = lon0 + math.degrees(east / (earth_r * math.cos(math.radians(lat0)))) + rng.normal(0, 3e-6)
-                writer.write(topics["gps"], GpsFix(t_ns, lat, lon, 520.0 + rng.normal(0, 0.5), covariance_enu_m2=cov_gps))
+                writer.write(
+                    topics["gps"], GpsFix(t_ns, lat, lon, 520.0 + rng.normal(0, 0.5), covariance_enu_m2=cov_gps)
+                )
             if k % 10 == 9:
                 bar.update(10 / spec.imu_hz)
         bar.close()
@@ -257,8 +269,10 @@ def make_logs(workdir: Path, gb: float, compression: str, spec: DriveSpec, overw
     bytes_per_s = calib.stat().st_size / calib_s
     calib.unlink()
     duration_s = gb * GB / bytes_per_s
-    print(f"calibration: {bytes_per_s / 1e6:.1f} MB per second of log -> {duration_s:.0f} s of log for {gb:g} GB",
-          file=sys.stderr)
+    print(
+        f"calibration: {bytes_per_s / 1e6:.1f} MB per second of log -> {duration_s:.0f} s of log for {gb:g} GB",
+        file=sys.stderr,
+    )
     for key, seconds in (("full", duration_s), ("quarter", duration_s / 4)):
         t0 = time.perf_counter()
         write_drive(Path(info[key]["path"]), seconds, spec, compression)
@@ -284,6 +298,7 @@ def make_logs_in_child(workdir: Path, gb: float, compression: str, overwrite: bo
 
 
 # --- reading modes (each runs in a fresh process) -------------------------------------------------
+
 
 def read_mcap_raw(path: str) -> tuple[int, int]:
     """(b) bare ``mcap``: every message record, payload left as CDR bytes."""
@@ -320,8 +335,8 @@ def read_mcap_decoded_crc(path: str) -> tuple[int, int]:
 
 def read_mapkit(path: str, validate_crcs: bool = True) -> tuple[int, int]:
     """(c) ``McapLog.messages()``: records with their arrays materialised (lazy decoding can't cheat)."""
-    from mapkit.io.mcap_log import McapLog
     from mapkit.core.types import CameraFrame, LidarScan
+    from mapkit.io.mcap_log import McapLog
 
     n = nbytes = 0
     with McapLog(path, validate_crcs=validate_crcs) as log:
@@ -381,6 +396,7 @@ def run_mode(mode: str, path: str, repeat: int, out_json: str) -> None:
     result: dict = {"mode": mode, "cpu_s": []}
     open_only(path)  # imports happen here, not inside the first timed read
     if repeat > 0:
+
         def once() -> None:
             c0 = time.process_time()
             result["messages"], result["payload_bytes"] = read(path)
@@ -421,8 +437,17 @@ def warm_page_cache(paths: list[Path]) -> None:
 
 # --- the benchmark --------------------------------------------------------------------------------
 
-def run_benchmark(gb: float, repeat: int, rounds: int, compression: str, workdir: Optional[Path], keep: bool,
-                  overwrite: bool = False, spec: DriveSpec = DriveSpec()) -> dict:
+
+def run_benchmark(
+    gb: float,
+    repeat: int,
+    rounds: int,
+    compression: str,
+    workdir: Path | None,
+    keep: bool,
+    overwrite: bool = False,
+    spec: DriveSpec = DriveSpec(),
+) -> dict:
     from tqdm import tqdm
 
     own_dir = workdir is None
@@ -460,31 +485,45 @@ def run_benchmark(gb: float, repeat: int, rounds: int, compression: str, workdir
             raw_wall = results["mcap-raw", log, repeat]["wall_s"]
             for mode in MODES:
                 r = results[mode, log, repeat]
-                rows.append({
-                    "mode": mode,
-                    "log": log,
-                    "file_GB": size / GB,
-                    "messages": r["messages"],
-                    "wall_s": r["wall_s"],
-                    "cpu_s": r["cpu_s"],
-                    "file_MB_per_s": size / 1e6 / r["wall_s"],
-                    "msgs_per_s": r["messages"] / r["wall_s"],
-                    "x_mcap_decoded": r["wall_s"] / base_wall,
-                    "x_mcap_raw": r["wall_s"] / raw_wall,
-                    "peak_rss_MB": r["peak_rss_mb"],
-                    "own_hwm_MB": r["vm_hwm_mb"],
-                    "open_rss_MB": results[mode, log, 0]["peak_rss_mb"],
-                })
+                rows.append(
+                    {
+                        "mode": mode,
+                        "log": log,
+                        "file_GB": size / GB,
+                        "messages": r["messages"],
+                        "wall_s": r["wall_s"],
+                        "cpu_s": r["cpu_s"],
+                        "file_MB_per_s": size / 1e6 / r["wall_s"],
+                        "msgs_per_s": r["messages"] / r["wall_s"],
+                        "x_mcap_decoded": r["wall_s"] / base_wall,
+                        "x_mcap_raw": r["wall_s"] / raw_wall,
+                        "peak_rss_MB": r["peak_rss_mb"],
+                        "own_hwm_MB": r["vm_hwm_mb"],
+                        "open_rss_MB": results[mode, log, 0]["peak_rss_mb"],
+                    }
+                )
         gen_rows = [
-            {"log": log, "file_GB": paths[log].stat().st_size / GB, "messages": results["mcap-raw", log, repeat]["messages"],
-             "payload_GB": results["mcap-raw", log, repeat]["payload_bytes"] / GB,
-             "compressed_over_raw": paths[log].stat().st_size / results["mcap-raw", log, repeat]["payload_bytes"],
-             "log_s": logs[log].get("duration_s", float("nan")), "write_s": logs[log]["write_s"]}
+            {
+                "log": log,
+                "file_GB": paths[log].stat().st_size / GB,
+                "messages": results["mcap-raw", log, repeat]["messages"],
+                "payload_GB": results["mcap-raw", log, repeat]["payload_bytes"] / GB,
+                "compressed_over_raw": paths[log].stat().st_size / results["mcap-raw", log, repeat]["payload_bytes"],
+                "log_s": logs[log].get("duration_s", float("nan")),
+                "write_s": logs[log]["write_s"],
+            }
             for log in paths
         ]
-        return {"rows": rows, "generation": gen_rows, "workdir": str(workdir), "compression": compression,
-                "repeat": repeat, "rounds": rounds,
-                "parent_rss_mb": parent_rss, "load_avg_1min": (load_before, load_after)}
+        return {
+            "rows": rows,
+            "generation": gen_rows,
+            "workdir": str(workdir),
+            "compression": compression,
+            "repeat": repeat,
+            "rounds": rounds,
+            "parent_rss_mb": parent_rss,
+            "load_avg_1min": (load_before, load_after),
+        }
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
         if not keep:
@@ -508,48 +547,61 @@ def summarise(out: dict) -> None:
     delta_full = mk_full["peak_rss_MB"] - mk_full["open_rss_MB"]
     delta_quarter = mk_quarter["peak_rss_MB"] - mk_quarter["open_rss_MB"]
 
-    report("generated logs", out["generation"],
-           f"compression {out['compression']}; payload = CDR bytes of all messages; write_s includes generating content "
-           f"(nan: reused from --workdir)")
-    note = "\n".join([
-        f"Each mode runs in {out['rounds']} fresh processes interleaved with the other modes, each timing "
-        f"{out['repeat']} reads; the best read is shown, and the highest peak RSS. The page cache was warmed by one "
-        f"read of both logs first, so every mode reads from memory. open_rss_MB: a process importing and opening "
-        f"the log without reading it. peak_rss_MB is bench.common.peak_rss_mb_of, floored by the measuring "
-        f"process's own peak ({out['parent_rss_mb']:.0f} MB); own_hwm_MB is the child's VmHWM, a cross-check.",
-        f"Throughput, like for like: mapkit (no CRC) / mcap-decoded = {full_ratio:.2f}x wall ({cpu_ratio:.2f}x CPU) "
-        f"on the full log, {by['mapkit-nocrc', 'quarter']['x_mcap_decoded']:.2f}x on the quarter log; "
-        f"mapkit (default, CRCs checked) / mcap-decoded+crc = {crc_ratio:.2f}x; "
-        f"mapkit (default) / mcap-decoded = {by['mapkit', 'full']['x_mcap_decoded']:.2f}x; "
-        f"mapkit / mcap-raw = {by['mapkit', 'full']['x_mcap_raw']:.2f}x. "
-        f"Goal <= {THROUGHPUT_GOAL}x: {'MET' if max(full_ratio, crc_ratio) <= THROUGHPUT_GOAL else 'NOT MET'} "
-        f"(the larger of the two like-for-like ratios).",
-        f"Memory: peak RSS full / quarter log = {mem['mapkit']:.3f} for mapkit "
-        f"({mk_full['peak_rss_MB']:.0f} vs {mk_quarter['peak_rss_MB']:.0f} MB; above open: {delta_full:.0f} vs "
-        f"{delta_quarter:.0f} MB), {mem['mcap-decoded']:.3f} for mcap-decoded, {mem['mcap-raw']:.3f} for mcap-raw. "
-        f"Goal <= {MEMORY_GOAL} (flat in log length): {'MET' if mem['mapkit'] <= MEMORY_GOAL else 'NOT MET'}.",
-    ])
+    report(
+        "generated logs",
+        out["generation"],
+        f"compression {out['compression']}; payload = CDR bytes of all messages; write_s includes generating content "
+        f"(nan: reused from --workdir)",
+    )
+    note = "\n".join(
+        [
+            f"Each mode runs in {out['rounds']} fresh processes interleaved with the other modes, each timing "
+            f"{out['repeat']} reads; the best read is shown, and the highest peak RSS. The page cache was warmed by one "
+            f"read of both logs first, so every mode reads from memory. open_rss_MB: a process importing and opening "
+            f"the log without reading it. peak_rss_MB is bench.common.peak_rss_mb_of, floored by the measuring "
+            f"process's own peak ({out['parent_rss_mb']:.0f} MB); own_hwm_MB is the child's VmHWM, a cross-check.",
+            f"Throughput, like for like: mapkit (no CRC) / mcap-decoded = {full_ratio:.2f}x wall ({cpu_ratio:.2f}x CPU) "
+            f"on the full log, {by['mapkit-nocrc', 'quarter']['x_mcap_decoded']:.2f}x on the quarter log; "
+            f"mapkit (default, CRCs checked) / mcap-decoded+crc = {crc_ratio:.2f}x; "
+            f"mapkit (default) / mcap-decoded = {by['mapkit', 'full']['x_mcap_decoded']:.2f}x; "
+            f"mapkit / mcap-raw = {by['mapkit', 'full']['x_mcap_raw']:.2f}x. "
+            f"Goal <= {THROUGHPUT_GOAL}x: {'MET' if max(full_ratio, crc_ratio) <= THROUGHPUT_GOAL else 'NOT MET'} "
+            f"(the larger of the two like-for-like ratios).",
+            f"Memory: peak RSS full / quarter log = {mem['mapkit']:.3f} for mapkit "
+            f"({mk_full['peak_rss_MB']:.0f} vs {mk_quarter['peak_rss_MB']:.0f} MB; above open: {delta_full:.0f} vs "
+            f"{delta_quarter:.0f} MB), {mem['mcap-decoded']:.3f} for mcap-decoded, {mem['mcap-raw']:.3f} for mcap-raw. "
+            f"Goal <= {MEMORY_GOAL} (flat in log length): {'MET' if mem['mapkit'] <= MEMORY_GOAL else 'NOT MET'}.",
+        ]
+    )
     # a single-threaded read that waits for a CPU shows wall > CPU: then CPU ratios are the better guide
     busy = [f"{r['mode']}/{r['log']}" for r in rows if r["wall_s"] > 1.10 * r["cpu_s"]]
     load = out["load_avg_1min"]
-    note += (f"\nMachine load (1-min average) {load[0]:.1f} before and {load[1]:.1f} after the reads on "
-             f"{os.cpu_count()} CPUs.")
+    note += (
+        f"\nMachine load (1-min average) {load[0]:.1f} before and {load[1]:.1f} after the reads on "
+        f"{os.cpu_count()} CPUs."
+    )
     if busy:
-        note += (f" Wall time exceeded CPU time by >10% for {', '.join(busy)}: other processes competed for "
-                 f"the CPUs, so compare the CPU ratio ({cpu_ratio:.2f}x) rather than the wall ratio.")
+        note += (
+            f" Wall time exceeded CPU time by >10% for {', '.join(busy)}: other processes competed for "
+            f"the CPUs, so compare the CPU ratio ({cpu_ratio:.2f}x) rather than the wall ratio."
+        )
     report("MCAP read: mapkit vs bare mcap", rows, note)
 
 
-def main(argv: Optional[list[str]] = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--gb", type=float, default=2.0, help="size of the full log in GB (10^9 bytes); default 2.0")
     p.add_argument("--quick", action="store_true", help="smoke run: a 0.2 GB log (overrides --gb)")
     p.add_argument("--repeat", type=int, default=2, help="reads per process, the best is kept; default 2")
-    p.add_argument("--rounds", type=int, default=2,
-                   help="fresh processes per mode, interleaved with the other modes; default 2")
+    p.add_argument(
+        "--rounds", type=int, default=2, help="fresh processes per mode, interleaved with the other modes; default 2"
+    )
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression")
-    p.add_argument("--workdir", type=Path, default=None,
-                   help="where the logs are written (default: a new folder under /tmp)")
+    p.add_argument(
+        "--workdir", type=Path, default=None, help="where the logs are written (default: a new folder under /tmp)"
+    )
     p.add_argument("--keep", action="store_true", help="keep the logs (with --workdir, later runs reuse them)")
     p.add_argument("--overwrite", action="store_true", help="rewrite logs already in --workdir")
     args = p.parse_args(argv)

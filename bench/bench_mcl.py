@@ -32,15 +32,21 @@ from __future__ import annotations
 import os
 
 # single-threaded, set before numpy is imported: the figure is per core
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+for _var in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -52,8 +58,14 @@ from bench.common import report  # noqa: E402
 from mapkit.core.config import load_config  # noqa: E402
 from mapkit.core.geometry import make_pose, yaw_rotation  # noqa: E402
 from mapkit.localization.localize import LocalizeConfig  # noqa: E402
-from mapkit.retrieval.measurement import Measurement, PoseHypotheses, euler_from_matrix, matrix_from_euler, mean_shift_measurement  # noqa: E402
 from mapkit.localization.mcl import CameraMount, MclConfig, MonteCarloLocalizer, init_particles  # noqa: E402
+from mapkit.retrieval.measurement import (
+    Measurement,
+    PoseHypotheses,
+    euler_from_matrix,
+    matrix_from_euler,
+    mean_shift_measurement,
+)  # noqa: E402
 
 GOAL_STEP_MS = 1.0
 #: the multi-hypothesis figure is timed with this preset's filter settings
@@ -63,11 +75,18 @@ PRESET = ROOT / "configs" / "localize" / "odometry-multihypothesis.yaml"
 def track_measurements(n: int, seed: int) -> list[Measurement]:
     """Noisy measurements (5 m, 0.03 rad) of a straight track at 1 m per step."""
     rng = np.random.default_rng(seed)
-    return [Measurement.from_pose([t + rng.normal(scale=5.0), rng.normal(scale=5.0), rng.normal(scale=5.0)],
-                                  yaw_rotation(rng.normal(scale=0.03))) for t in range(n)]
+    return [
+        Measurement.from_pose(
+            [t + rng.normal(scale=5.0), rng.normal(scale=5.0), rng.normal(scale=5.0)],
+            yaw_rotation(rng.normal(scale=0.03)),
+        )
+        for t in range(n)
+    ]
 
 
-def loop_step(positions: list[np.ndarray], euler: list[np.ndarray], z: Measurement, cfg: MclConfig, rng: np.random.Generator):
+def loop_step(
+    positions: list[np.ndarray], euler: list[np.ndarray], z: Measurement, cfg: MclConfig, rng: np.random.Generator
+):
     """One step, particle by particle, as a straightforward port of the authors' MATLAB code."""
     n = len(positions)
     mu_v, sd_v = np.asarray(cfg.velocity_mean_m), np.sqrt(cfg.velocity_cov_m2)
@@ -228,8 +247,14 @@ def main() -> None:
     t_mount = time_mapkit_through_mount(meas, args.steps, args.repeat)
 
     def row(case: str, n: int, t: tuple[float, float], speedup: float | None) -> dict:
-        return {"case": case, "particles_or_R": n, "wall_ms_per_call": t[0] * 1e3, "cpu_ms_per_call": t[1] * 1e3,
-                "calls_per_s_cpu": 1.0 / t[1], "speedup_vs_loop_cpu": speedup}
+        return {
+            "case": case,
+            "particles_or_R": n,
+            "wall_ms_per_call": t[0] * 1e3,
+            "cpu_ms_per_call": t[1] * 1e3,
+            "calls_per_s_cpu": 1.0 / t[1],
+            "speedup_vs_loop_cpu": speedup,
+        }
 
     rows = [
         row("mapkit step", 1000, t_1k, t_loop[1] / t_1k[1]),
@@ -240,13 +265,15 @@ def main() -> None:
         row("mapkit step, camera poses in and out (mount)", 1000, t_mount, t_loop[1] / t_mount[1]),
     ]
     verdict = "met" if t_1k[1] * 1e3 < GOAL_STEP_MS else "MISSED"
-    note = (f"One step with 1,000 particles: {t_1k[1] * 1e3:.3f} ms CPU ({t_1k[0] * 1e3:.3f} ms wall) vectorised vs "
-            f"{t_loop[1] * 1e3:.1f} ms CPU per-particle loop (x{t_loop[1] / t_1k[1]:.0f}); goal < {GOAL_STEP_MS:g} ms of work: "
-            f"{verdict}. Multi-hypothesis step (beyond the paper, 20 hits): {t_mh[1] * 1e3:.3f} ms CPU, "
-            f"x{t_mh[1] / t_1k[1]:.2f} the paper's step; goal < {GOAL_STEP_MS:g} ms: {'met' if t_mh[1] * 1e3 < GOAL_STEP_MS else 'MISSED'}. "
-            f"The step on camera poses through the mount (camera -> base -> camera, as run_localizer): "
-            f"{t_mount[1] * 1e3:.3f} ms CPU, x{t_mount[1] / t_1k[1]:.2f} the bare step. "
-            f"Single-threaded; load average at start {load_at_start}.")
+    note = (
+        f"One step with 1,000 particles: {t_1k[1] * 1e3:.3f} ms CPU ({t_1k[0] * 1e3:.3f} ms wall) vectorised vs "
+        f"{t_loop[1] * 1e3:.1f} ms CPU per-particle loop (x{t_loop[1] / t_1k[1]:.0f}); goal < {GOAL_STEP_MS:g} ms of work: "
+        f"{verdict}. Multi-hypothesis step (beyond the paper, 20 hits): {t_mh[1] * 1e3:.3f} ms CPU, "
+        f"x{t_mh[1] / t_1k[1]:.2f} the paper's step; goal < {GOAL_STEP_MS:g} ms: {'met' if t_mh[1] * 1e3 < GOAL_STEP_MS else 'MISSED'}. "
+        f"The step on camera poses through the mount (camera -> base -> camera, as run_localizer): "
+        f"{t_mount[1] * 1e3:.3f} ms CPU, x{t_mount[1] / t_1k[1]:.2f} the bare step. "
+        f"Single-threaded; load average at start {load_at_start}."
+    )
     report("mcl", rows, note)
 
 

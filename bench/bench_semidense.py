@@ -61,12 +61,22 @@ def load_frames(clip: Path, n: int) -> tuple[np.ndarray, np.ndarray, list[np.nda
     sx, sy = SIZE_WH[0] / w0, SIZE_WH[1] / h0
     # pixel centres map as x' + 0.5 = s (x + 0.5) under cv2.resize
     S = np.array([[sx, 0, 0.5 * sx - 0.5], [0, sy, 0.5 * sy - 0.5], [0, 0, 1]])
-    images = [cv2.resize(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), SIZE_WH, interpolation=cv2.INTER_AREA) for p in paths[:n]]
+    images = [
+        cv2.resize(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), SIZE_WH, interpolation=cv2.INTER_AREA) for p in paths[:n]
+    ]
     return S @ K, poses[:n], images
 
 
-def naive_full_search(ref: np.ndarray, tgt: np.ndarray, K: np.ndarray, ref_world_from_cam: np.ndarray, world_from_cam: np.ndarray,
-                      us: np.ndarray, vs: np.ndarray, cfg: SemiDenseConfig) -> list[float]:
+def naive_full_search(
+    ref: np.ndarray,
+    tgt: np.ndarray,
+    K: np.ndarray,
+    ref_world_from_cam: np.ndarray,
+    world_from_cam: np.ndarray,
+    us: np.ndarray,
+    vs: np.ndarray,
+    cfg: SemiDenseConfig,
+) -> list[float]:
     """Per-pixel loops: for each candidate, 32 inverse depths on the full range, ZNCC of the pattern."""
     cam_from_ref = invert_pose(world_from_cam) @ ref_world_from_cam
     KRKi = K @ cam_from_ref[:3, :3] @ np.linalg.inv(K)
@@ -80,8 +90,12 @@ def naive_full_search(ref: np.ndarray, tgt: np.ndarray, K: np.ndarray, ref_world
             return None
         x0, y0 = int(x), int(y)
         ax, ay = x - x0, y - y0
-        return ((1 - ax) * (1 - ay) * img[y0, x0] + ax * (1 - ay) * img[y0, x0 + 1]
-                + (1 - ax) * ay * img[y0 + 1, x0] + ax * ay * img[y0 + 1, x0 + 1])
+        return (
+            (1 - ax) * (1 - ay) * img[y0, x0]
+            + ax * (1 - ay) * img[y0, x0 + 1]
+            + (1 - ax) * ay * img[y0 + 1, x0]
+            + ax * ay * img[y0 + 1, x0 + 1]
+        )
 
     def zncc(a, b):
         ma, mb = sum(a) / len(a), sum(b) / len(b)
@@ -128,19 +142,31 @@ def main(argv: list[str] | None = None) -> int:
 
     # 1. end to end, and one keyframe alone
     def end_to_end():
-        return build_semidense_map(((i, i, img, T) for i, (img, T) in enumerate(zip(images, poses))), K, cfg, progress=False)
+        return build_semidense_map(
+            ((i, i, img, T) for i, (img, T) in enumerate(zip(images, poses))), K, cfg, progress=False
+        )
 
     t_e2e = best_of(end_to_end, repeat=max(1, args.repeat - 1))
     sd = end_to_end()
     kfs_e2e = len(sd.keyframe_ids) / t_e2e
 
     # 1b. the outlier filters: all off, the recommended ones, all at fusion; in turn, wall and CPU
-    filter_cfgs = {"off": cfg.model_copy(update=FILTERS_OFF), "on": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON}),
-                   "all fusion tests": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_FUSION_ALL}),
-                   "on + rotation refinement": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON, "refine_rotations": True}),
-                   # the refinement with SIFT matching (3,000 features, Lowe's ratio test): the tracked corners' baseline
-                   "on + rotation refinement, SIFT": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON, "refine_rotations": True,
-                                                                             "refine_matcher": "sift", "refine_features": 3000})}
+    filter_cfgs = {
+        "off": cfg.model_copy(update=FILTERS_OFF),
+        "on": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON}),
+        "all fusion tests": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_FUSION_ALL}),
+        "on + rotation refinement": cfg.model_copy(update={**FILTERS_OFF, **FILTERS_ON, "refine_rotations": True}),
+        # the refinement with SIFT matching (3,000 features, Lowe's ratio test): the tracked corners' baseline
+        "on + rotation refinement, SIFT": cfg.model_copy(
+            update={
+                **FILTERS_OFF,
+                **FILTERS_ON,
+                "refine_rotations": True,
+                "refine_matcher": "sift",
+                "refine_features": 3000,
+            }
+        ),
+    }
     filter_t = {k: [float("inf"), float("inf")] for k in filter_cfgs}
     filter_pts = {}
     for _ in range(args.repeat):
@@ -152,7 +178,11 @@ def main(argv: list[str] | None = None) -> int:
     slow_wall, slow_cpu = filter_t["on"][0] / filter_t["off"][0], filter_t["on"][1] / filter_t["off"][1]
     refine_wall, refine_cpu = (filter_t["on + rotation refinement"][k] / filter_t["off"][k] for k in (0, 1))
     c = len(images) // 2
-    nb = [i for i in range(c - cfg.neighbour_window_frames, c + cfg.neighbour_window_frames + 1) if i != c and 0 <= i < len(images)]
+    nb = [
+        i
+        for i in range(c - cfg.neighbour_window_frames, c + cfg.neighbour_window_frames + 1)
+        if i != c and 0 <= i < len(images)
+    ]
     one = lambda: map_keyframe(images[c], poses[c], [(images[i], poses[i]) for i in nb], K, cfg)  # noqa: E731
     cpu0 = time.process_time()
     t_kf = best_of(one, repeat=args.repeat)
@@ -170,18 +200,46 @@ def main(argv: list[str] | None = None) -> int:
     t_naive_kf = t_naive_each * (n_full + n_prior * cfg.prior_search_samples / cfg.search_samples)
 
     # 3. StereoSGBM on one 640x480 pair
-    sgbm = cv2.StereoSGBM_create(minDisparity=0, numDisparities=128, blockSize=5, P1=8 * 25, P2=32 * 25, mode=cv2.STEREO_SGBM_MODE_SGBM)
+    sgbm = cv2.StereoSGBM_create(
+        minDisparity=0, numDisparities=128, blockSize=5, P1=8 * 25, P2=32 * 25, mode=cv2.STEREO_SGBM_MODE_SGBM
+    )
     t_sgbm = best_of(lambda: sgbm.compute(images[c], images[c + 1]), repeat=args.repeat)
 
     t_e2e_kf = t_e2e / len(sd.keyframe_ids)
     rows = [
-        {"method": "mapkit build_semidense_map (end to end, per keyframe)", "s_per_keyframe": t_e2e_kf, "keyframes_per_s": kfs_e2e, "time_vs_map_keyframe": t_e2e_kf / t_kf},
-        *({"method": f"  end to end, outlier filters {k} ({filter_pts[k]} points)", "s_per_keyframe": filter_t[k][0] / len(sd.keyframe_ids),
-           "keyframes_per_s": len(sd.keyframe_ids) / filter_t[k][0], "time_vs_map_keyframe": filter_t[k][0] / len(sd.keyframe_ids) / t_kf}
-          for k in filter_cfgs),
-        {"method": "mapkit map_keyframe (one keyframe, 6 neighbours)", "s_per_keyframe": t_kf, "keyframes_per_s": 1.0 / t_kf, "time_vs_map_keyframe": 1.0},
-        {"method": f"naive per-pixel loop ({len(sub)} candidates, scaled to {n_full} full + {n_prior} prior searches)", "s_per_keyframe": t_naive_kf, "keyframes_per_s": 1.0 / t_naive_kf, "time_vs_map_keyframe": t_naive_kf / t_kf},
-        {"method": "OpenCV StereoSGBM, one 640x480 pair, 128 disparities", "s_per_keyframe": t_sgbm, "keyframes_per_s": 1.0 / t_sgbm, "time_vs_map_keyframe": t_sgbm / t_kf},
+        {
+            "method": "mapkit build_semidense_map (end to end, per keyframe)",
+            "s_per_keyframe": t_e2e_kf,
+            "keyframes_per_s": kfs_e2e,
+            "time_vs_map_keyframe": t_e2e_kf / t_kf,
+        },
+        *(
+            {
+                "method": f"  end to end, outlier filters {k} ({filter_pts[k]} points)",
+                "s_per_keyframe": filter_t[k][0] / len(sd.keyframe_ids),
+                "keyframes_per_s": len(sd.keyframe_ids) / filter_t[k][0],
+                "time_vs_map_keyframe": filter_t[k][0] / len(sd.keyframe_ids) / t_kf,
+            }
+            for k in filter_cfgs
+        ),
+        {
+            "method": "mapkit map_keyframe (one keyframe, 6 neighbours)",
+            "s_per_keyframe": t_kf,
+            "keyframes_per_s": 1.0 / t_kf,
+            "time_vs_map_keyframe": 1.0,
+        },
+        {
+            "method": f"naive per-pixel loop ({len(sub)} candidates, scaled to {n_full} full + {n_prior} prior searches)",
+            "s_per_keyframe": t_naive_kf,
+            "keyframes_per_s": 1.0 / t_naive_kf,
+            "time_vs_map_keyframe": t_naive_kf / t_kf,
+        },
+        {
+            "method": "OpenCV StereoSGBM, one 640x480 pair, 128 disparities",
+            "s_per_keyframe": t_sgbm,
+            "keyframes_per_s": 1.0 / t_sgbm,
+            "time_vs_map_keyframe": t_sgbm / t_kf,
+        },
     ]
     report(
         "semi-dense mapping at 640x480",

@@ -32,7 +32,13 @@ from __future__ import annotations
 
 import os
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS"):
+for _var in (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
@@ -60,14 +66,13 @@ from mapkit.places.index_structure import (  # noqa: E402
     session_keypoints,
 )
 
-
 # --- 1. describe() ------------------------------------------------------------------------------------
 
 
 def demo_keypoints(workspace: Path, n: int, seed: int):
     """(label, points, keypoints, observer_dirs) from the densest aligned map of the workspace."""
-    from mapkit.places.index_structure import session_map_dir, session_names
     from mapkit.mapping.semidense import SemiDenseMap
+    from mapkit.places.index_structure import session_map_dir, session_names
 
     best = None
     for name in session_names(workspace):
@@ -79,7 +84,12 @@ def demo_keypoints(workspace: Path, n: int, seed: int):
     smap = SemiDenseMap.load(d)
     kps = session_keypoints(smap, name, 0.05, 0)
     pick = np.sort(np.random.default_rng(seed).choice(len(kps), min(n, len(kps)), replace=False))
-    return f"demo {name} ({len(smap.points_world)} points)", smap.points_world, kps.positions[pick], (kps.observer_positions - kps.positions)[pick]
+    return (
+        f"demo {name} ({len(smap.points_world)} points)",
+        smap.points_world,
+        kps.positions[pick],
+        (kps.observer_positions - kps.positions)[pick],
+    )
 
 
 def synthetic_keypoints(n: int, seed: int):
@@ -103,8 +113,16 @@ def bench_describe(args) -> list[dict]:
         sub = cfg.nbld if kind == "nbld" else cfg.m2dp
         ptr, _ = pa.extract_patches(points, kp, sub.domain, tree)
         wall, cpu = best_wall_and_cpu(lambda: d3.describe(kind, points, kp, dirs, cfg, tree=tree), args.repeat)
-        rows.append({"descriptor": kind.upper(), "data": label, "patches": len(kp), "points_per_patch_median": float(np.median(np.diff(ptr))),
-                     "patches_per_s_cpu": len(kp) / cpu, "patches_per_s_wall": len(kp) / wall})
+        rows.append(
+            {
+                "descriptor": kind.upper(),
+                "data": label,
+                "patches": len(kp),
+                "points_per_patch_median": float(np.median(np.diff(ptr))),
+                "patches_per_s_cpu": len(kp) / cpu,
+                "patches_per_s_wall": len(kp) / wall,
+            }
+        )
     return rows
 
 
@@ -123,7 +141,7 @@ def synthetic_index(n: int, dim: int, spectrum: np.ndarray, rng: np.random.Gener
     """A loaded-index object over ``n`` synthetic descriptors (identity PCA) and their frame CSR."""
     import faiss
 
-    X = (rng.standard_normal((n, dim), dtype=np.float32) * np.sqrt(spectrum).astype(np.float32))
+    X = rng.standard_normal((n, dim), dtype=np.float32) * np.sqrt(spectrum).astype(np.float32)
     index = faiss.IndexFlatL2(dim)
     index.add(X)
     n_frames = max(n // 20, 2)
@@ -131,10 +149,21 @@ def synthetic_index(n: int, dim: int, spectrum: np.ndarray, rng: np.random.Gener
     first = np.sort(rng.integers(0, n_frames - 7, n))  # entries in driving order
     ptr = np.r_[0, np.cumsum(counts)].astype(np.int64)
     ref = np.repeat(first - ptr[:-1], counts) + np.arange(ptr[-1])
-    entries = {"session": np.zeros(n, np.int32), "point_index": np.arange(n), "position": np.zeros((n, 3)), "ref_indptr": ptr, "ref_frame": ref}
+    entries = {
+        "session": np.zeros(n, np.int32),
+        "point_index": np.arange(n),
+        "position": np.zeros((n, 3)),
+        "ref_indptr": ptr,
+        "ref_frame": ref,
+    }
     T = np.repeat(np.eye(4)[None], n_frames, axis=0)
-    frames = {"session": np.zeros(n_frames, np.int32), "frame_id": np.arange(n_frames), "stamp_ns": np.arange(n_frames),
-              "world_from_cam": T, "pose_source": np.full(n_frames, POSE_KEYFRAME, np.int8)}
+    frames = {
+        "session": np.zeros(n_frames, np.int32),
+        "frame_id": np.arange(n_frames),
+        "stamp_ns": np.arange(n_frames),
+        "world_from_cam": T,
+        "pose_source": np.full(n_frames, POSE_KEYFRAME, np.int8),
+    }
     pca = d3.DescriptorPCA(np.zeros(dim), np.eye(dim), spectrum)
     manifest = {"session_names": ["synthetic"], "format_version": 1}
     idx = StructureIndex(Path("synthetic"), manifest, StructureIndexConfig(), pca, index, entries, frames)
@@ -167,7 +196,9 @@ def bench_query(args) -> list[dict]:
     n_frames_q = args.frames
     K = args.keypoints
     src = rng.integers(0, len(idx), (n_frames_q, K))
-    Q = idx.X[src] + (args.query_noise * rng.standard_normal((n_frames_q, K, dim)) * np.sqrt(spectrum)).astype(np.float32)
+    Q = idx.X[src] + (args.query_noise * rng.standard_normal((n_frames_q, K, dim)) * np.sqrt(spectrum)).astype(
+        np.float32
+    )
     ptr, ref = idx.entries["ref_indptr"], idx.entries["ref_frame"]
 
     def faiss_frame(q):
@@ -183,8 +214,14 @@ def bench_query(args) -> list[dict]:
     same_votes = all(np.array_equal(idx.votes(e), loop_votes(e, ptr, ref, idx.n_frames)) for e in ents[:5])
 
     # batched: all frames of a session at once (one faiss call, vote_many)
-    kp = SessionKeypoints("q", np.arange(n_frames_q * K), np.zeros((n_frames_q * K, 3)), np.zeros((n_frames_q * K, 3)),
-                          np.arange(n_frames_q * K + 1, dtype=np.int64), np.repeat(np.arange(n_frames_q), K).astype(np.int64))
+    kp = SessionKeypoints(
+        "q",
+        np.arange(n_frames_q * K),
+        np.zeros((n_frames_q * K, 3)),
+        np.zeros((n_frames_q * K, 3)),
+        np.arange(n_frames_q * K + 1, dtype=np.int64),
+        np.repeat(np.arange(n_frames_q), K).astype(np.int64),
+    )
 
     def batch():
         e, d = idx.nearest(Q.reshape(-1, dim))
@@ -203,34 +240,76 @@ def bench_query(args) -> list[dict]:
     agree = float(np.mean([np.mean(tree.query(Q[i], k=1)[1] == ents[i]) for i in range(n_tree)]))
 
     rows = [
-        {"method": "faiss IndexFlatL2 + bincount votes (library, per frame)", "db_descriptors": len(idx), "keypoints_per_frame": K,
-         "ms_per_frame_cpu": 1e3 * cpu_f / n_timed, "ms_per_frame_wall": 1e3 * wall_f / n_timed, "build_s": t_faiss_build},
-        {"method": "library, batched over the session (vote_frames)", "db_descriptors": len(idx), "keypoints_per_frame": K,
-         "ms_per_frame_cpu": 1e3 * cpu_b / n_frames_q, "ms_per_frame_wall": 1e3 * wall_b / n_frames_q, "build_s": t_faiss_build},
-        {"method": "baseline: scipy cKDTree (exact) per frame", "db_descriptors": len(idx), "keypoints_per_frame": K,
-         "ms_per_frame_cpu": 1e3 * cpu_t / n_tree, "ms_per_frame_wall": 1e3 * wall_t / n_tree, "build_s": t_tree_build},
-        {"method": "voting alone: CSR gather + np.bincount", "db_descriptors": len(idx), "keypoints_per_frame": K,
-         "ms_per_frame_cpu": 1e3 * cpu_vote / n_timed, "ms_per_frame_wall": 1e3 * wall_vote / n_timed, "build_s": 0.0},
-        {"method": "baseline: voting with a Python loop", "db_descriptors": len(idx), "keypoints_per_frame": K,
-         "ms_per_frame_cpu": 1e3 * cpu_loop / n_timed, "ms_per_frame_wall": 1e3 * wall_loop / n_timed, "build_s": 0.0},
+        {
+            "method": "faiss IndexFlatL2 + bincount votes (library, per frame)",
+            "db_descriptors": len(idx),
+            "keypoints_per_frame": K,
+            "ms_per_frame_cpu": 1e3 * cpu_f / n_timed,
+            "ms_per_frame_wall": 1e3 * wall_f / n_timed,
+            "build_s": t_faiss_build,
+        },
+        {
+            "method": "library, batched over the session (vote_frames)",
+            "db_descriptors": len(idx),
+            "keypoints_per_frame": K,
+            "ms_per_frame_cpu": 1e3 * cpu_b / n_frames_q,
+            "ms_per_frame_wall": 1e3 * wall_b / n_frames_q,
+            "build_s": t_faiss_build,
+        },
+        {
+            "method": "baseline: scipy cKDTree (exact) per frame",
+            "db_descriptors": len(idx),
+            "keypoints_per_frame": K,
+            "ms_per_frame_cpu": 1e3 * cpu_t / n_tree,
+            "ms_per_frame_wall": 1e3 * wall_t / n_tree,
+            "build_s": t_tree_build,
+        },
+        {
+            "method": "voting alone: CSR gather + np.bincount",
+            "db_descriptors": len(idx),
+            "keypoints_per_frame": K,
+            "ms_per_frame_cpu": 1e3 * cpu_vote / n_timed,
+            "ms_per_frame_wall": 1e3 * wall_vote / n_timed,
+            "build_s": 0.0,
+        },
+        {
+            "method": "baseline: voting with a Python loop",
+            "db_descriptors": len(idx),
+            "keypoints_per_frame": K,
+            "ms_per_frame_cpu": 1e3 * cpu_loop / n_timed,
+            "ms_per_frame_wall": 1e3 * wall_loop / n_timed,
+            "build_s": 0.0,
+        },
     ]
-    checks = {"spectrum": spectrum_src, "query_noise": args.query_noise, "frames": idx.n_frames, "references": int(len(ref)),
-              "cKDTree_agrees_with_faiss": agree,
-              "loop_votes_equal": same_votes, "batched_equals_single": same_batch,
-              "ratio_cKDTree_over_faiss_per_frame_cpu": (cpu_t / n_tree) / (cpu_f / n_timed),
-              "ratio_loop_over_bincount_voting_cpu": cpu_loop / max(cpu_vote, 1e-12),
-              "ratio_single_over_batched_per_frame_cpu": (cpu_f / n_timed) / (cpu_b / n_frames_q)}
+    checks = {
+        "spectrum": spectrum_src,
+        "query_noise": args.query_noise,
+        "frames": idx.n_frames,
+        "references": int(len(ref)),
+        "cKDTree_agrees_with_faiss": agree,
+        "loop_votes_equal": same_votes,
+        "batched_equals_single": same_batch,
+        "ratio_cKDTree_over_faiss_per_frame_cpu": (cpu_t / n_tree) / (cpu_f / n_timed),
+        "ratio_loop_over_bincount_voting_cpu": cpu_loop / max(cpu_vote, 1e-12),
+        "ratio_single_over_batched_per_frame_cpu": (cpu_f / n_timed) / (cpu_b / n_frames_q),
+    }
     return rows, checks
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workspace", default="runs/main/workspace", help="Aligned workspace for real patches (synthetic street if absent).")
+    ap.add_argument(
+        "--workspace",
+        default="runs/main/workspace",
+        help="Aligned workspace for real patches (synthetic street if absent).",
+    )
     ap.add_argument("--patches-nbld", type=int, default=1000)
     ap.add_argument("--patches-m2dp", type=int, default=200)
     ap.add_argument("--db-size", type=int, default=1_000_000)
     ap.add_argument("--keypoints", type=int, default=100, help="Query keypoints per frame (demo median: ~100).")
-    ap.add_argument("--query-noise", type=float, default=0.7, help="Query = database descriptor + this x spread of noise.")
+    ap.add_argument(
+        "--query-noise", type=float, default=0.7, help="Query = database descriptor + this x spread of noise."
+    )
     ap.add_argument("--frames", type=int, default=100, help="Query frames of the batched run.")
     ap.add_argument("--timed-frames", type=int, default=20, help="Frames timed one by one.")
     ap.add_argument("--tree-frames", type=int, default=3, help="Frames timed with cKDTree (slow in 25-D).")
@@ -240,10 +319,15 @@ def main(argv=None) -> int:
     rows_d = bench_describe(args)
     report("describe(): patches per second (whole chain, one thread)", rows_d)
     rows_q, checks = bench_query(args)
-    report(f"query time per frame, {args.db_size} database descriptors (one thread)", rows_q,
-           "ratios: " + ", ".join(f"{k} = {v:.3g}" for k, v in checks.items() if k.startswith("ratio")))
+    report(
+        f"query time per frame, {args.db_size} database descriptors (one thread)",
+        rows_q,
+        "ratios: " + ", ".join(f"{k} = {v:.3g}" for k, v in checks.items() if k.startswith("ratio")),
+    )
     print("checks: " + ", ".join(f"{k} = {v}" for k, v in checks.items() if not k.startswith("ratio")))
-    print("BENCH_JSON " + json.dumps({"bench": "structure_index", "describe": rows_d, "query": rows_q, "checks": checks}))
+    print(
+        "BENCH_JSON " + json.dumps({"bench": "structure_index", "describe": rows_d, "query": rows_q, "checks": checks})
+    )
     return 0
 
 

@@ -34,17 +34,19 @@ def render_speed(frames: int, repeat: int) -> list[dict]:
     import cv2
     import open3d as o3d
 
-    from mapkit.io import ros2
     from mapkit.core.threads import single_thread_blas
+    from mapkit.core.types import LidarScan
+    from mapkit.io import ros2
     from mapkit.synth.appearance import F32
     from mapkit.synth.config import load_config
     from mapkit.synth.render import Renderer
     from mapkit.synth.sensors import extrinsics
     from mapkit.synth.sessions import plan_sessions, session_parked_cars
     from mapkit.synth.world import build_town
-    from mapkit.core.types import LidarScan
 
-    cfg = load_config("demo", overrides={"lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 1024}})
+    cfg = load_config(
+        "demo", overrides={"lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 1024}}
+    )
     rows = []
     with single_thread_blas():
         town = build_town(cfg)
@@ -85,11 +87,17 @@ def render_speed(frames: int, repeat: int) -> list[dict]:
             full()  # warm up
             t_full = best_of(full, repeat)
             t_bare = best_of(bare, repeat)
-            rows.append({
-                "condition": label, "session": plan.name, "frames": frames,
-                "fps_camera_plus_lidar": round(frames / t_full, 2), "ms_per_frame": round(1000 * t_full / frames, 1),
-                "fps_bare_ray_casts": round(frames / t_bare, 2), "shading_cost_ratio": round(t_full / t_bare, 2),
-            })
+            rows.append(
+                {
+                    "condition": label,
+                    "session": plan.name,
+                    "frames": frames,
+                    "fps_camera_plus_lidar": round(frames / t_full, 2),
+                    "ms_per_frame": round(1000 * t_full / frames, 1),
+                    "fps_bare_ray_casts": round(frames / t_bare, 2),
+                    "shading_cost_ratio": round(t_full / t_bare, 2),
+                }
+            )
     return rows
 
 
@@ -130,8 +138,11 @@ def main(argv=None) -> int:
 
     rows = render_speed(args.frames, args.repeat)
     mean_fps = float(np.mean([r["fps_camera_plus_lidar"] for r in rows]))
-    report("Synthetic town: camera frames rendered per second with their LiDAR sweep (640x480, 32 x 1024 rays)", rows,
-           f"mean over conditions: {mean_fps:.2f} frames/s (goal: 5); ratio = full pipeline / bare ray casts")
+    report(
+        "Synthetic town: camera frames rendered per second with their LiDAR sweep (640x480, 32 x 1024 rays)",
+        rows,
+        f"mean over conditions: {mean_fps:.2f} frames/s (goal: 5); ratio = full pipeline / bare ray casts",
+    )
     if args.skip_demo:
         return 0
     tmp = None
@@ -146,13 +157,19 @@ def main(argv=None) -> int:
     info["peak_rss_largest_worker_mb"] = round(info["peak_rss_largest_worker_mb"], 1)
     info.pop("workers", None)
     info["throughput_frames_per_s"] = round(info["camera_frames"] / info["wall_s"], 2)
-    report("Synthetic town: the demo preset end to end (fresh process)", [info],
-           f"{time.perf_counter() - t0:.0f} s including interpreter start; workers are spawned, so memory is per process")
+    report(
+        "Synthetic town: the demo preset end to end (fresh process)",
+        [info],
+        f"{time.perf_counter() - t0:.0f} s including interpreter start; workers are spawned, so memory is per process",
+    )
     from bench.naive_thumbnail_matching import evaluate
 
     rows, overall = evaluate(out)
-    report("Naive thumbnail matching on the demo (32x24 grayscale, within 25 m)", rows,
-           f"overall: {overall:.3f} of the queries found; the goal is under 0.5")
+    report(
+        "Naive thumbnail matching on the demo (32x24 grayscale, within 25 m)",
+        rows,
+        f"overall: {overall:.3f} of the queries found; the goal is under 0.5",
+    )
     if tmp is not None:
         tmp.cleanup()
     return 0

@@ -128,8 +128,12 @@ def main() -> None:
     ap.add_argument("--noise", type=float, default=0.8, help="per-image noise around its place (relative)")
     ap.add_argument("--nlist", type=int, default=1024, help="IVF lists (~4 sqrt(N) = 1265 at 100k)")
     ap.add_argument("--train", type=int, default=40_000, help="vectors the IVF k-means trains on")
-    ap.add_argument("--single-flat-queries", type=int, default=40, help="exact single-query timing on this many queries")
-    ap.add_argument("--pq-m", type=int, nargs="*", default=[64], help="IVF-PQ sub-quantizers to try (bytes per vector at 8 bits)")
+    ap.add_argument(
+        "--single-flat-queries", type=int, default=40, help="exact single-query timing on this many queries"
+    )
+    ap.add_argument(
+        "--pq-m", type=int, nargs="*", default=[64], help="IVF-PQ sub-quantizers to try (bytes per vector at 8 bits)"
+    )
     ap.add_argument("--skip-pq", action="store_true")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
@@ -137,8 +141,10 @@ def main() -> None:
 
     t0 = time.perf_counter()
     db, q = roads_of_vectors(args.n, args.dim, args.roads, args.step, args.noise, args.queries, rng)
-    print(f"data: {len(db)} x {db.shape[1]} float32 ({db.nbytes / 2**30:.2f} GiB), {len(q)} queries, {time.perf_counter() - t0:.1f} s",
-          flush=True)
+    print(
+        f"data: {len(db)} x {db.shape[1]} float32 ({db.nbytes / 2**30:.2f} GiB), {len(q)} queries, {time.perf_counter() - t0:.1f} s",
+        flush=True,
+    )
 
     rows: list[dict] = []
     flat = faiss.IndexFlatL2(args.dim)
@@ -149,14 +155,27 @@ def main() -> None:
     cos1 = np.einsum("ij,ij->i", q, db[exact[:, 0]])
     cos20 = np.einsum("ij,ij->i", q, db[exact[:, -1]])
     cos_rand = np.einsum("ij,ij->i", q, db[rng.integers(0, len(db), len(q))])
-    print(f"cosine query-nn1 {np.median(cos1):.3f}, query-nn20 {np.median(cos20):.3f}, query-random {np.median(cos_rand):.3f} "
-          f"(medians); exact top-20 on the query's road: {np.mean(exact // (args.n // args.roads) == exact[:, :1] // (args.n // args.roads)):.2f}, "
-          f"spanning {np.median(exact.max(1) - exact.min(1)):.0f} consecutive images (median)", flush=True)
+    print(
+        f"cosine query-nn1 {np.median(cos1):.3f}, query-nn20 {np.median(cos20):.3f}, query-random {np.median(cos_rand):.3f} "
+        f"(medians); exact top-20 on the query's road: {np.mean(exact // (args.n // args.roads) == exact[:, :1] // (args.n // args.roads)):.2f}, "
+        f"spanning {np.median(exact.max(1) - exact.min(1)):.0f} consecutive images (median)",
+        flush=True,
+    )
     del flat
 
-    def row(name: str, single_ms: float, batch_ms: float, recall: float, build_s: float, bytes_per_vector: float) -> dict:
-        r = {"index": name, "single_ms": single_ms, "batch_ms": batch_ms, "recall@20": recall, "speedup_vs_flat": flat_single / single_ms,
-             "meets_20ms": single_ms < GOAL_MS, "bytes_per_vector": bytes_per_vector, "build_s": build_s}
+    def row(
+        name: str, single_ms: float, batch_ms: float, recall: float, build_s: float, bytes_per_vector: float
+    ) -> dict:
+        r = {
+            "index": name,
+            "single_ms": single_ms,
+            "batch_ms": batch_ms,
+            "recall@20": recall,
+            "speedup_vs_flat": flat_single / single_ms,
+            "meets_20ms": single_ms < GOAL_MS,
+            "bytes_per_vector": bytes_per_vector,
+            "build_s": build_s,
+        }
         rows.append(r)
         print(f"  {name}: {single_ms:.2f} ms/query single, {batch_ms:.2f} batched, recall@20 {recall:.3f}", flush=True)
         return r
@@ -176,8 +195,14 @@ def main() -> None:
     for nprobe in (8, 16, 32, 64):
         ivf.nprobe = nprobe
         b_ms, (_, ids) = time_batch(ivf, q, TOP_K)
-        row(f"IVF{args.nlist},Flat nprobe {nprobe}", time_single(ivf, q, TOP_K, len(q)), b_ms, recall_vs(exact, ids), t_ivf,
-            4 * args.dim + 8)
+        row(
+            f"IVF{args.nlist},Flat nprobe {nprobe}",
+            time_single(ivf, q, TOP_K, len(q)),
+            b_ms,
+            recall_vs(exact, ids),
+            t_ivf,
+            4 * args.dim + 8,
+        )
 
     if not args.skip_pq:
         del ivf  # frees its 1.6 GB of lists; the trained coarse quantizer is shared with the PQ variants
@@ -191,25 +216,47 @@ def main() -> None:
             for nprobe in (16, 32):
                 pq.nprobe = nprobe
                 b_ms, (_, ids) = time_batch(pq, q, TOP_K)
-                row(f"IVF{args.nlist},PQ{m} nprobe {nprobe}", time_single(pq, q, TOP_K, len(q)), b_ms, recall_vs(exact, ids), t_pq,
-                    m + 8)
+                row(
+                    f"IVF{args.nlist},PQ{m} nprobe {nprobe}",
+                    time_single(pq, q, TOP_K, len(q)),
+                    b_ms,
+                    recall_vs(exact, ids),
+                    t_pq,
+                    m + 8,
+                )
             if m == 64:
                 pq.nprobe = 32
                 rr = Rerank(pq, db, factor=4)
                 b_ms, (_, ids) = time_batch(rr, q, TOP_K)
-                row(f"IVF{args.nlist},PQ{m} nprobe 32 + exact re-rank of 80", time_single(rr, q, TOP_K, len(q)), b_ms,
-                    recall_vs(exact, ids), t_pq, m + 8 + 4 * args.dim)
+                row(
+                    f"IVF{args.nlist},PQ{m} nprobe 32 + exact re-rank of 80",
+                    time_single(rr, q, TOP_K, len(q)),
+                    b_ms,
+                    recall_vs(exact, ids),
+                    t_pq,
+                    m + 8 + 4 * args.dim,
+                )
             del pq
 
     meets = [r for r in rows if r["meets_20ms"]]
     best = max(meets, key=lambda r: (r["recall@20"], -r["single_ms"])) if meets else None
-    report("VLAD query: top-20 of 100k x 4096-D on one core", rows,
-           f"speedup_vs_flat = exact single-query time / this single-query time; goal < {GOAL_MS:g} ms per single query.")
+    report(
+        "VLAD query: top-20 of 100k x 4096-D on one core",
+        rows,
+        f"speedup_vs_flat = exact single-query time / this single-query time; goal < {GOAL_MS:g} ms per single query.",
+    )
     summary = {
-        "bench": "vlad_query", "n": len(db), "dim": args.dim, "queries": len(q), "goal_ms": GOAL_MS,
-        "flat_single_ms": flat_single, "flat_batch_ms": flat_batch,
+        "bench": "vlad_query",
+        "n": len(db),
+        "dim": args.dim,
+        "queries": len(q),
+        "goal_ms": GOAL_MS,
+        "flat_single_ms": flat_single,
+        "flat_batch_ms": flat_batch,
         "meets_goal": [r["index"] for r in meets],
-        "best_meeting_goal": None if best is None else {k: best[k] for k in ("index", "single_ms", "recall@20", "speedup_vs_flat")},
+        "best_meeting_goal": None
+        if best is None
+        else {k: best[k] for k in ("index", "single_ms", "recall@20", "speedup_vs_flat")},
         "peak_rss_mb": self_peak_rss_mb(),
         "load_avg_1min": os.getloadavg()[0],
     }

@@ -55,9 +55,16 @@ from mapkit.retrieval.vlad_bundle import read_session_images  # noqa: E402
 from mapkit.retrieval.vlad_encoding import read_image  # noqa: E402
 
 KS = (1, 5, 20)
-VARIANTS = [("none", False, 0.0, 0.0), ("full", True, 1.0, 0.0), ("power 0.25", True, 0.25, 0.0), ("power 0.5", True, 0.5, 0.0),
-            ("power 0.75", True, 0.75, 0.0), ("shrink 0.1", True, 1.0, 0.1), ("shrink 1", True, 1.0, 1.0),
-            ("shrink 10", True, 1.0, 10.0)]
+VARIANTS = [
+    ("none", False, 0.0, 0.0),
+    ("full", True, 1.0, 0.0),
+    ("power 0.25", True, 0.25, 0.0),
+    ("power 0.5", True, 0.5, 0.0),
+    ("power 0.75", True, 0.75, 0.0),
+    ("shrink 0.1", True, 1.0, 0.1),
+    ("shrink 1", True, 1.0, 1.0),
+    ("shrink 10", True, 1.0, 10.0),
+]
 
 
 def raw_vlads(ws: Workspace, db: list[str], sessions: list[str], cache: Path, cfg: VladConfig) -> dict[str, np.ndarray]:
@@ -120,29 +127,49 @@ def main() -> None:
                 warnings.simplefilter("ignore")  # the dimension cap at n - 1 is the point here
                 pca = PcaWhitening.fit(x_db, args.pca_dim, whiten=whiten, power=power, shrinkage=shrinkage)
             v_db, v_q = pca.transform(x_db), pca.transform(raw[query])
-            d2 = (v_q ** 2).sum(1)[:, None] + (v_db ** 2).sum(1)[None, :] - 2 * v_q @ v_db.T
+            d2 = (v_q**2).sum(1)[:, None] + (v_db**2).sum(1)[None, :] - 2 * v_q @ v_db.T
             ids = np.argsort(d2, axis=1)[:, : max(KS)]
             rec = recall_at_k(q_pos, db_pos, ids, KS, args.radius)
             self_r1, ties, spread = self_search(v_db, db_pos, args.radius)
-            rows.append({"query": query, "database": "+".join(db), "n_db": len(x_db), "dim": pca.dim, "whitening": name,
-                         **{f"recall@{k}": rec["recall"][k] for k in KS},
-                         "db self r@1": self_r1, "db ties": ties, "db dist std/mean": spread})
+            rows.append(
+                {
+                    "query": query,
+                    "database": "+".join(db),
+                    "n_db": len(x_db),
+                    "dim": pca.dim,
+                    "whitening": name,
+                    **{f"recall@{k}": rec["recall"][k] for k in KS},
+                    "db self r@1": self_r1,
+                    "db ties": ties,
+                    "db dist std/mean": spread,
+                }
+            )
             p = pooled[name]
             p["queries"] += len(q_pos)
             for k in KS:
                 p["hits"][k] += round(rec["recall"][k] * len(q_pos))
     report(f"Whitening variants, leave one session out ({args.radius:g} m)", rows)
     full = pooled["full"]
-    summary = [{"whitening": name, "queries": p["queries"],
-                **{f"recall@{k}": p["hits"][k] / p["queries"] for k in KS},
-                **{f"r@{k} / full": (p["hits"][k] / full["hits"][k]) if full["hits"][k] else float("nan") for k in KS}}
-               for name, p in pooled.items()]
+    summary = [
+        {
+            "whitening": name,
+            "queries": p["queries"],
+            **{f"recall@{k}": p["hits"][k] / p["queries"] for k in KS},
+            **{f"r@{k} / full": (p["hits"][k] / full["hits"][k]) if full["hits"][k] else float("nan") for k in KS},
+        }
+        for name, p in pooled.items()
+    ]
     best = max(summary, key=lambda r: (r["recall@1"], r["recall@5"], r["recall@20"]))
-    report(f"Pooled over the {len(sessions)} splits (baseline: full whitening, the paper's)", summary,
-           ratio_note=f"best recall@1: {best['whitening']} ({best['recall@1']:.3f} against {summary[1]['recall@1']:.3f} full)",
-           headline={"mapkit": f"recall@1 {best['recall@1']:.3f} ({best['whitening']})",
-                     "baseline": f"recall@1 {summary[1]['recall@1']:.3f} (full whitening)",
-                     "ratio": f"{best['recall@1'] / summary[1]['recall@1']:.2f}" if summary[1]["recall@1"] else "n/a"})
+    report(
+        f"Pooled over the {len(sessions)} splits (baseline: full whitening, the paper's)",
+        summary,
+        ratio_note=f"best recall@1: {best['whitening']} ({best['recall@1']:.3f} against {summary[1]['recall@1']:.3f} full)",
+        headline={
+            "mapkit": f"recall@1 {best['recall@1']:.3f} ({best['whitening']})",
+            "baseline": f"recall@1 {summary[1]['recall@1']:.3f} (full whitening)",
+            "ratio": f"{best['recall@1'] / summary[1]['recall@1']:.2f}" if summary[1]["recall@1"] else "n/a",
+        },
+    )
 
 
 if __name__ == "__main__":

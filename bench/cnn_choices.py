@@ -51,7 +51,6 @@ import sys
 import time
 import warnings
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -120,21 +119,32 @@ def dataset_negative_distance(triplets: Path) -> float:
     return load_config(TripletConfig, triplets / "config.yaml").negative_min_distance_m
 
 
-def _same_eval(folder: Path, pairs: list[tuple[str, str]], methods: list[str], fingerprint: Optional[dict]) -> Optional[dict]:
+def _same_eval(
+    folder: Path, pairs: list[tuple[str, str]], methods: list[str], fingerprint: dict | None
+) -> dict | None:
     """The results in ``folder`` when they scored ``methods`` on ``pairs`` (with the model of ``fingerprint``)."""
     f = folder / "places.json"
     if not f.is_file():
         return None
     r = json.loads(f.read_text())
-    if r.get("methods") != methods or [(p["database"], p["query"]) for p in r.get("pairs", [])] != [tuple(p) for p in pairs]:
+    if r.get("methods") != methods or [(p["database"], p["query"]) for p in r.get("pairs", [])] != [
+        tuple(p) for p in pairs
+    ]:
         return None
     if fingerprint is not None and (r.get("cnn_model") or {}).get("onnx_sha256") != fingerprint["onnx_sha256"]:
         return None
     return r
 
 
-def evaluate(ws: Path, town: Path, triplets: Path, pairs: list[tuple[str, str]], method: str, out: Path,
-             model: Optional[Path] = None) -> dict:
+def evaluate(
+    ws: Path,
+    town: Path,
+    triplets: Path,
+    pairs: list[tuple[str, str]],
+    method: str,
+    out: Path,
+    model: Path | None = None,
+) -> dict:
     """``mapkit eval places`` of one method into ``out`` (reused when already there), held out by ``triplets``' tiles."""
     from mapkit.evaluation.places import evaluate_places
 
@@ -167,18 +177,35 @@ def auc_figures(r: dict, method: str) -> dict:
         v = [x for x in d.values() if x is not None]
         return float(np.mean(v)) if v else None
 
-    return {"auc_mean": mean(per), "auc_per_pair": per, "auc_all_places_mean": mean(allp), "auc_all_places_per_pair": allp,
-            "held_out_queries": queries}
+    return {
+        "auc_mean": mean(per),
+        "auc_per_pair": per,
+        "auc_all_places_mean": mean(allp),
+        "auc_all_places_per_pair": allp,
+        "held_out_queries": queries,
+    }
 
 
-def run_variant(name: str, seed: int, ws: Path, town: Path, triplets: Path, pairs: list[tuple[str, str]], out: Path, budget: dict,
-                neg_m: float, threads: int) -> dict:
+def run_variant(
+    name: str,
+    seed: int,
+    ws: Path,
+    town: Path,
+    triplets: Path,
+    pairs: list[tuple[str, str]],
+    out: Path,
+    budget: dict,
+    neg_m: float,
+    threads: int,
+) -> dict:
     """Train one variant (resumed or skipped when done) and score it; returns its row of figures."""
     from mapkit.core.config import deep_merge
     from mapkit.learning.train import train_cnn
 
     tag = f"{name}-s{seed}"
-    overrides = deep_merge(deep_merge(dict(budget), VARIANTS[name]), {"seed": seed, "threads": threads, "negative_min_distance_m": neg_m})
+    overrides = deep_merge(
+        deep_merge(dict(budget), VARIANTS[name]), {"seed": seed, "threads": threads, "negative_min_distance_m": neg_m}
+    )
     t0 = time.perf_counter()
     model = train_cnn(triplets, out / "runs" / tag, overrides=overrides)
     call_s = time.perf_counter() - t0
@@ -187,14 +214,29 @@ def run_variant(name: str, seed: int, ws: Path, town: Path, triplets: Path, pair
     r = evaluate(ws, town, triplets, pairs, "cnn", out / "places" / tag, model)
     eval_s = time.perf_counter() - t1
     ep = json.loads((model / "metrics.json").read_text())["epochs"]
-    row = {"variant": name, "seed": seed, "overrides": VARIANTS[name], **auc_figures(r, "cnn"),
-           "test_accuracy": m["final"].get("test_accuracy"), "test_margin_mean": m["final"].get("test_margin_mean"),
-           "final_loss": m["final"].get("loss"), "train_wall_s": m.get("wall_s_training"),
-           "train_cpu_s": float(sum(e.get("train_cpu_s", 0.0) for e in m["epochs"])), "triplets_per_s": m.get("triplets_per_s_mean"),
-           "triplet_set": m.get("triplet_set"), "epochs": len(ep), "this_call_train_s": call_s, "this_call_eval_s": eval_s,
-           "model": str(model), "places": str(out / "places" / tag)}
-    print(f"[cnn_choices] {tag}: held-out mean AUC {_f(row['auc_mean'])}, test accuracy {_f(row['test_accuracy'])}, "
-          f"training {row['train_wall_s']:.0f} s wall", flush=True)
+    row = {
+        "variant": name,
+        "seed": seed,
+        "overrides": VARIANTS[name],
+        **auc_figures(r, "cnn"),
+        "test_accuracy": m["final"].get("test_accuracy"),
+        "test_margin_mean": m["final"].get("test_margin_mean"),
+        "final_loss": m["final"].get("loss"),
+        "train_wall_s": m.get("wall_s_training"),
+        "train_cpu_s": float(sum(e.get("train_cpu_s", 0.0) for e in m["epochs"])),
+        "triplets_per_s": m.get("triplets_per_s_mean"),
+        "triplet_set": m.get("triplet_set"),
+        "epochs": len(ep),
+        "this_call_train_s": call_s,
+        "this_call_eval_s": eval_s,
+        "model": str(model),
+        "places": str(out / "places" / tag),
+    }
+    print(
+        f"[cnn_choices] {tag}: held-out mean AUC {_f(row['auc_mean'])}, test accuracy {_f(row['test_accuracy'])}, "
+        f"training {row['train_wall_s']:.0f} s wall",
+        flush=True,
+    )
     return row
 
 
@@ -212,7 +254,7 @@ def _f(x, nd: int = 3) -> str:
     return "n/a" if x is None else f"{x:.{nd}f}"
 
 
-def best_of_groups(rows: list[dict]) -> dict[str, Optional[str]]:
+def best_of_groups(rows: list[dict]) -> dict[str, str | None]:
     """The variant of each group with the highest seed-0 mean held-out AUC (None when none was run or scored)."""
     s0 = {r["variant"]: r["auc_mean"] for r in rows if r["seed"] == 0 and r["auc_mean"] is not None}
     out = {}
@@ -231,62 +273,99 @@ def summarise(rows: list[dict]) -> list[dict]:
         if not rs:
             continue
         a = [r["auc_mean"] for r in rs if r["auc_mean"] is not None]
-        out.append({
-            "variant": name, "seeds": len(rs),
-            "auc_mean": float(np.mean(a)) if a else None,
-            "auc_by_seed": " / ".join(_f(r["auc_mean"]) for r in rs),
-            "spread": float(max(a) - min(a)) if len(a) > 1 else None,
-            "sd": float(np.std(a, ddof=1)) if len(a) > 1 else None,
-            "auc_all_places": float(np.mean([r["auc_all_places_mean"] for r in rs if r["auc_all_places_mean"] is not None]))
-            if any(r["auc_all_places_mean"] is not None for r in rs) else None,
-            "test_accuracy": float(np.mean([r["test_accuracy"] for r in rs if r["test_accuracy"] is not None]))
-            if any(r["test_accuracy"] is not None for r in rs) else None,
-            "train_wall_s": float(np.mean([r["train_wall_s"] for r in rs])),
-            "train_cpu_s": float(np.mean([r["train_cpu_s"] for r in rs])),
-            "cpu_ratio_to_default": (float(np.mean([r["train_cpu_s"] for r in rs])) / base["train_cpu_s"]) if base and base["train_cpu_s"] else None,
-        })
+        out.append(
+            {
+                "variant": name,
+                "seeds": len(rs),
+                "auc_mean": float(np.mean(a)) if a else None,
+                "auc_by_seed": " / ".join(_f(r["auc_mean"]) for r in rs),
+                "spread": float(max(a) - min(a)) if len(a) > 1 else None,
+                "sd": float(np.std(a, ddof=1)) if len(a) > 1 else None,
+                "auc_all_places": float(
+                    np.mean([r["auc_all_places_mean"] for r in rs if r["auc_all_places_mean"] is not None])
+                )
+                if any(r["auc_all_places_mean"] is not None for r in rs)
+                else None,
+                "test_accuracy": float(np.mean([r["test_accuracy"] for r in rs if r["test_accuracy"] is not None]))
+                if any(r["test_accuracy"] is not None for r in rs)
+                else None,
+                "train_wall_s": float(np.mean([r["train_wall_s"] for r in rs])),
+                "train_cpu_s": float(np.mean([r["train_cpu_s"] for r in rs])),
+                "cpu_ratio_to_default": (float(np.mean([r["train_cpu_s"] for r in rs])) / base["train_cpu_s"])
+                if base and base["train_cpu_s"]
+                else None,
+            }
+        )
     return out
 
 
 def markdown(result: dict) -> str:
     """The tables of cnn_choices.md."""
     pairs = [f"{d}:{q}" for d, q in result["pairs"]]
-    lines = [f"# CNN choices on {result['workspace']}", "",
-             f"Triplets {result['triplets']} (negatives beyond {result['negative_min_distance_m']:g} m), budget "
-             f"{result['budget']}, pairs as the demo picks them; held-out places of the dataset's test tiles.", "",
-             "| variant | seed | " + " | ".join(pairs) + " | mean held-out AUC | all places | test accuracy | train wall s | train CPU s |",
-             "|---|---|" + "---|" * len(pairs) + "---|---|---|---|---|"]
+    lines = [
+        f"# CNN choices on {result['workspace']}",
+        "",
+        f"Triplets {result['triplets']} (negatives beyond {result['negative_min_distance_m']:g} m), budget "
+        f"{result['budget']}, pairs as the demo picks them; held-out places of the dataset's test tiles.",
+        "",
+        "| variant | seed | "
+        + " | ".join(pairs)
+        + " | mean held-out AUC | all places | test accuracy | train wall s | train CPU s |",
+        "|---|---|" + "---|" * len(pairs) + "---|---|---|---|---|",
+    ]
     ref = result.get("reference")
     if ref:
-        lines.append(f"| {ref['method']} (reference) | - | " + " | ".join(_f(ref["auc_per_pair"].get(p)) for p in pairs)
-                     + f" | {_f(ref['auc_mean'])} | {_f(ref['auc_all_places_mean'])} | - | - | - |")
+        lines.append(
+            f"| {ref['method']} (reference) | - | "
+            + " | ".join(_f(ref["auc_per_pair"].get(p)) for p in pairs)
+            + f" | {_f(ref['auc_mean'])} | {_f(ref['auc_all_places_mean'])} | - | - | - |"
+        )
     for r in result["runs"]:
-        lines.append(f"| {r['variant']} | {r['seed']} | " + " | ".join(_f(r["auc_per_pair"].get(p)) for p in pairs)
-                     + f" | {_f(r['auc_mean'])} | {_f(r['auc_all_places_mean'])} | {_f(r['test_accuracy'])} | {r['train_wall_s']:.0f} "
-                     f"| {r['train_cpu_s']:.0f} |")
+        lines.append(
+            f"| {r['variant']} | {r['seed']} | "
+            + " | ".join(_f(r["auc_per_pair"].get(p)) for p in pairs)
+            + f" | {_f(r['auc_mean'])} | {_f(r['auc_all_places_mean'])} | {_f(r['test_accuracy'])} | {r['train_wall_s']:.0f} "
+            f"| {r['train_cpu_s']:.0f} |"
+        )
     if result["runs"]:
         q = result["runs"][0]["held_out_queries"]
         lines += ["", "Held-out queries per pair: " + ", ".join(f"{p} {q.get(p)}" for p in pairs)]
-    lines += ["", "| variant | seeds | mean held-out AUC | by seed | spread | sd | all places | test accuracy | train wall s | "
-              "train CPU s | CPU / default |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| variant | seeds | mean held-out AUC | by seed | spread | sd | all places | test accuracy | train wall s | "
+        "train CPU s | CPU / default |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for s in result["summary"]:
-        lines.append(f"| {s['variant']} | {s['seeds']} | {_f(s['auc_mean'])} | {s['auc_by_seed']} | {_f(s['spread'])} | {_f(s['sd'])} | "
-                     f"{_f(s['auc_all_places'])} | {_f(s['test_accuracy'])} | {s['train_wall_s']:.0f} | {s['train_cpu_s']:.0f} | "
-                     f"{_f(s['cpu_ratio_to_default'], 2)} |")
+        lines.append(
+            f"| {s['variant']} | {s['seeds']} | {_f(s['auc_mean'])} | {s['auc_by_seed']} | {_f(s['spread'])} | {_f(s['sd'])} | "
+            f"{_f(s['auc_all_places'])} | {_f(s['test_accuracy'])} | {s['train_wall_s']:.0f} | {s['train_cpu_s']:.0f} | "
+            f"{_f(s['cpu_ratio_to_default'], 2)} |"
+        )
     lines += ["", "Best of each group (seed 0): " + ", ".join(f"{g} {v}" for g, v in result["best_of_groups"].items())]
     return "\n".join(lines) + "\n"
 
 
-def main(argv: Optional[list[str]] = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("workspace", type=Path, help="aligned workspace (mapkit demo's WORKSPACE)")
     ap.add_argument("town", type=Path, help="its synthetic town (ground truth)")
     ap.add_argument("--out", type=Path, required=True, help="output folder (models, evaluations, cnn_choices.json)")
-    ap.add_argument("--triplets", type=Path, default=None, help="triplet dataset to train on and split by (default WS/triplets)")
-    ap.add_argument("--budget", default=DEFAULT_BUDGET, help=f"TrainConfig overrides of every run (default {DEFAULT_BUDGET}, the demo's)")
+    ap.add_argument(
+        "--triplets", type=Path, default=None, help="triplet dataset to train on and split by (default WS/triplets)"
+    )
+    ap.add_argument(
+        "--budget",
+        default=DEFAULT_BUDGET,
+        help=f"TrainConfig overrides of every run (default {DEFAULT_BUDGET}, the demo's)",
+    )
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of: {', '.join(VARIANTS)}")
     ap.add_argument("--seeds", default="0", help="seeds every listed variant is trained with (comma-separated)")
-    ap.add_argument("--no-second-seed", action="store_true", help="do not train the default and each group's best again with seed 1")
+    ap.add_argument(
+        "--no-second-seed", action="store_true", help="do not train the default and each group's best again with seed 1"
+    )
     ap.add_argument("--pairs", default=None, help="db:query pairs, comma-separated (default: the demo's places_pairs)")
     ap.add_argument("--reference", default="m2dp", help="structure method scored once beside the CNN ('' for none)")
     ap.add_argument("--threads", type=int, default=2, help="torch threads per training")
@@ -313,8 +392,16 @@ def main(argv: Optional[list[str]] = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     print(f"[cnn_choices] pairs {pairs}; budget {budget}; triplets {triplets} (negatives > {neg_m:g} m)", flush=True)
 
-    result: dict = {"workspace": str(ws.root), "town": str(a.town), "triplets": str(triplets), "negative_min_distance_m": neg_m,
-                    "budget": budget, "pairs": [list(p) for p in pairs], "runs": [], "reference": None}
+    result: dict = {
+        "workspace": str(ws.root),
+        "town": str(a.town),
+        "triplets": str(triplets),
+        "negative_min_distance_m": neg_m,
+        "budget": budget,
+        "pairs": [list(p) for p in pairs],
+        "runs": [],
+        "reference": None,
+    }
     if a.reference:
         r = evaluate(ws.root, a.town, triplets, pairs, a.reference, out / "places" / a.reference)
         result["reference"] = {"method": a.reference, **auc_figures(r, a.reference)}
@@ -335,26 +422,50 @@ def main(argv: Optional[list[str]] = None) -> dict:
         again = ["default"] + [v for v in best_of_groups(result["runs"]).values() if v is not None]
         for n in again:
             if n in names and (n, 1) not in done:
-                result["runs"].append(run_variant(n, 1, ws.root, a.town, triplets, pairs, out, budget, neg_m, a.threads))
+                result["runs"].append(
+                    run_variant(n, 1, ws.root, a.town, triplets, pairs, out, budget, neg_m, a.threads)
+                )
                 save()
     # every other run finished earlier in this folder (other seeds, other variants): in the tables too
     done = {(r["variant"], r["seed"]) for r in result["runs"]}
     for n, s in finished_runs(out):
         if (n, s) not in done:
             try:
-                result["runs"].append(run_variant(n, s, ws.root, a.town, triplets, pairs, out, budget, neg_m, a.threads))
+                result["runs"].append(
+                    run_variant(n, s, ws.root, a.town, triplets, pairs, out, budget, neg_m, a.threads)
+                )
             except MapkitError as exc:  # trained with another budget or dataset: not comparable
                 print(f"[cnn_choices] {n}-s{s} left out: {exc}", flush=True)
     result["runs"].sort(key=lambda r: (list(VARIANTS).index(r["variant"]), r["seed"]))
     save()
 
-    rows = [{k: s[k] for k in ("variant", "seeds", "auc_mean", "auc_by_seed", "spread", "sd", "auc_all_places", "test_accuracy",
-                               "train_wall_s", "train_cpu_s", "cpu_ratio_to_default")} for s in result["summary"]]
+    rows = [
+        {
+            k: s[k]
+            for k in (
+                "variant",
+                "seeds",
+                "auc_mean",
+                "auc_by_seed",
+                "spread",
+                "sd",
+                "auc_all_places",
+                "test_accuracy",
+                "train_wall_s",
+                "train_cpu_s",
+                "cpu_ratio_to_default",
+            )
+        }
+        for s in result["summary"]
+    ]
     ref = result["reference"]
-    report("CNN choices: held-out place recognition per variant", rows,
-           ratio_note=(f"{ref['method']} on the same held-out queries: mean AUC {_f(ref['auc_mean'])}. " if ref else "")
-           + "cpu_ratio_to_default: training CPU time against the default (seed 0) in this run. Tables: "
-           + str(out / "cnn_choices.md"))
+    report(
+        "CNN choices: held-out place recognition per variant",
+        rows,
+        ratio_note=(f"{ref['method']} on the same held-out queries: mean AUC {_f(ref['auc_mean'])}. " if ref else "")
+        + "cpu_ratio_to_default: training CPU time against the default (seed 0) in this run. Tables: "
+        + str(out / "cnn_choices.md"),
+    )
     return result
 
 

@@ -11,7 +11,7 @@ import resource
 import subprocess
 import sys
 import time
-from typing import Callable, Optional
+from collections.abc import Callable
 
 
 def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
@@ -60,7 +60,7 @@ def self_peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def report(name: str, rows: list[dict], ratio_note: str = "", headline: Optional[dict] = None) -> None:
+def report(name: str, rows: list[dict], ratio_note: str = "", headline: dict | None = None) -> None:
     """Print a Markdown table of rows (dicts with the same keys) and a JSON line for machines.
 
     The JSON line (prefix ``BENCH_JSON``) holds the table's name, rows and note, and the

@@ -30,7 +30,9 @@ def compare(a: Path, b: Path, step: int) -> list[str]:
     ha, hb = (json.loads((t / "world" / "manifest.json").read_text())["config_hash"] for t in (a, b))
     if ha != hb:
         diffs.append(f"config hash {ha} != {hb}")
-    files = ["world/mesh.ply", "world/roads.json"] + [f"sessions/{p.name}" for p in sorted((a / "sessions").glob("*.gt.tum"))]
+    files = ["world/mesh.ply", "world/roads.json"] + [
+        f"sessions/{p.name}" for p in sorted((a / "sessions").glob("*.gt.tum"))
+    ]
     for rel in files:
         if not (b / rel).is_file() or _digest(a / rel) != _digest(b / rel):
             diffs.append(f"{rel} differs")
@@ -38,7 +40,9 @@ def compare(a: Path, b: Path, step: int) -> list[str]:
         with McapLog(log_a) as la, McapLog(session_log(b, log_a.name.split(".")[0])) as lb:
             fa = list(la.records("image"))[::step]
             fb = list(lb.records("image"))[::step]
-            same = len(fa) == len(fb) and all(x.stamp_ns == y.stamp_ns and np.array_equal(x.image, y.image) for x, y in zip(fa, fb))
+            same = len(fa) == len(fb) and all(
+                x.stamp_ns == y.stamp_ns and np.array_equal(x.image, y.image) for x, y in zip(fa, fb)
+            )
             print(f"{log_a.stem}: {len(fa)} images compared, {'identical' if same else 'DIFFERENT'}")
             if not same:
                 diffs.append(f"{log_a.name}: images differ")

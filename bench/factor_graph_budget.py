@@ -43,7 +43,13 @@ from mapkit.core.workspace import Workspace
 from mapkit.evaluation.evaluate import CHI2_95_3DOF
 from mapkit.evaluation.truth import session_truth, ws_from_town
 from mapkit.io import open_log
-from mapkit.mapping.factor_graph import FactorGraphConfig, GpsObservations, ImuObservations, fuse_session, gravity_from_imu
+from mapkit.mapping.factor_graph import (
+    FactorGraphConfig,
+    GpsObservations,
+    ImuObservations,
+    fuse_session,
+    gravity_from_imu,
+)
 from mapkit.mapping.gps_align import fit_transform
 from mapkit.mapping.trajectory import Trajectory
 
@@ -57,8 +63,12 @@ def read_sensors(log_path: str, frame, body: str) -> tuple[GpsObservations, ImuO
         base_from_gps = tree.lookup(body, fixes[0].frame_id)
         base_from_imu = tree.lookup(body, imu[0].frame_id)
     enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
-    gps = GpsObservations(np.array([f.stamp_ns for f in fixes], np.int64), enu, np.array([f.horizontal_sigma_m for f in fixes]),
-                          base_from_gps)
+    gps = GpsObservations(
+        np.array([f.stamp_ns for f in fixes], np.int64),
+        enu,
+        np.array([f.horizontal_sigma_m for f in fixes]),
+        base_from_gps,
+    )
     return gps, ImuObservations.from_samples(imu, base_from_imu)
 
 
@@ -115,7 +125,9 @@ def max_h_error(fused, gt_stamps, gt_ws, mask) -> float:
     return float(np.max(np.linalg.norm(e[m, :2], axis=1))) if m.any() else float("nan")
 
 
-def odometry_noise_fit(odom: Trajectory, gt_stamps, gt_ws, steps_m=(0.5, 1, 2, 4, 8, 16, 32), skip_s: float = 3.0) -> dict:
+def odometry_noise_fit(
+    odom: Trajectory, gt_stamps, gt_ws, steps_m=(0.5, 1, 2, 4, 8, 16, 32), skip_s: float = 3.0
+) -> dict:
     """kiss-icp's error against truth as FactorGraphConfig models it: per-pose white jitter plus a random walk in the
     distance driven. For each step length d, the robust (MAD) spread of the relative-motion error per axis (base frame:
     rotation roll/pitch/yaw, translation x/y/z) is fitted by var(d) = 2 jitter^2 + walk^2 d (non-negative least squares).
@@ -169,7 +181,10 @@ def nhc_fit(odom: Trajectory, gt_stamps, gt_ws, cfg: FactorGraphConfig) -> dict:
             t = (invert_pose(disp[k]) @ disp[k + 1])[:3, 3]
             r.append((np.cos(half) * t[1] - np.sin(half) * t[0]) / ((st[k + 1] - st[k]) * 1e-9))
         r = np.asarray(r)
-        out[label] = {"rms_m_s": float(np.sqrt(np.mean(r**2))), "robust_m_s": float(1.4826 * np.median(np.abs(r - np.median(r))))}
+        out[label] = {
+            "rms_m_s": float(np.sqrt(np.mean(r**2))),
+            "robust_m_s": float(1.4826 * np.median(np.abs(r - np.median(r)))),
+        }
     return out
 
 
@@ -181,10 +196,12 @@ def town_imu_config(town: Path) -> dict:
     if not c.get("enabled", False):
         return {}
     root = np.sqrt(float(c["rate_hz"]))
-    return {"imu_gyro_noise_density": float(c["gyro_noise_rad_s"]) / root,
-            "imu_accel_noise_density": float(c["accel_noise_m_s2"]) / root,
-            "imu_gyro_bias_sigma": max(float(c["gyro_bias_rad_s"]), 1e-6),
-            "imu_accel_bias_sigma": max(float(c["accel_bias_m_s2"]), 1e-6)}
+    return {
+        "imu_gyro_noise_density": float(c["gyro_noise_rad_s"]) / root,
+        "imu_accel_noise_density": float(c["accel_noise_m_s2"]) / root,
+        "imu_gyro_bias_sigma": max(float(c["gyro_bias_rad_s"]), 1e-6),
+        "imu_accel_bias_sigma": max(float(c["accel_bias_m_s2"]), 1e-6),
+    }
 
 
 def slip_spans(odom: Trajectory, gt_stamps, gt_ws, slip_m: float, window_s: float = 1.0) -> list[tuple[int, int]]:
@@ -226,9 +243,13 @@ def main() -> None:
     ap.add_argument("town", type=Path)
     ap.add_argument("--no-gravity", action="store_true", help="Without the IMU: fuse GPS and odometry only.")
     ap.add_argument("--no-imu", action="store_true", help="Do not preintegrate the IMU (its gravity direction only).")
-    ap.add_argument("--slip-m", type=float, default=0.5, help="A 1 s odometry motion this far off the truth's is a slip.")
+    ap.add_argument(
+        "--slip-m", type=float, default=0.5, help="A 1 s odometry motion this far off the truth's is a slip."
+    )
     ap.add_argument("--sessions", nargs="*", default=None, help="Only these sessions.")
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="FactorGraphConfig overrides (YAML values).")
+    ap.add_argument(
+        "--set", nargs="*", default=[], metavar="KEY=VALUE", help="FactorGraphConfig overrides (YAML values)."
+    )
     ap.add_argument("--json", type=Path, default=None, help="Write the figures here too.")
     args = ap.parse_args()
     ws = Workspace(args.workspace)
@@ -256,10 +277,18 @@ def main() -> None:
         if not args.no_imu:
             imu = samples
         elif not args.no_gravity:
-            gravity = gravity_from_imu(samples.stamps_ns, samples.gyro_rad_s, samples.accel_m_s2, samples.base_from_imu,
-                                       odom.stamps_ns, odom.world_from_base, odom.stamps_ns)
-        fused = fuse_session(odom.stamps_ns, odom.world_from_base, gps, gravity, cfg, enu_from_odom=enu_from_odom, source=name,
-                             imu=imu)
+            gravity = gravity_from_imu(
+                samples.stamps_ns,
+                samples.gyro_rad_s,
+                samples.accel_m_s2,
+                samples.base_from_imu,
+                odom.stamps_ns,
+                odom.world_from_base,
+                odom.stamps_ns,
+            )
+        fused = fuse_session(
+            odom.stamps_ns, odom.world_from_base, gps, gravity, cfg, enu_from_odom=enu_from_odom, source=name, imu=imu
+        )
         t_graph = time.perf_counter() - t1
         traj_s = build[name]["stages"]["trajectory"]["seconds"]
         noise_fit = odometry_noise_fit(odom, gt_stamps, gt_ws)
@@ -269,79 +298,134 @@ def main() -> None:
         geo_sig = np.sqrt(np.diag(fused.georef_covariance)[3:])
         spans = []
         for span in slip_spans(odom, gt_stamps, gt_ws, args.slip_m):
-            errs = slip_errors(span, {"kiss-icp": (odom.stamps_ns, odom.world_from_base),
-                                      "georef": (georef.stamps_ns, georef.world_from_base),
-                                      "fused": (fused.stamps_ns, fused.enu_from_base)}, gt_stamps, gt_ws)
+            errs = slip_errors(
+                span,
+                {
+                    "kiss-icp": (odom.stamps_ns, odom.world_from_base),
+                    "georef": (georef.stamps_ns, georef.world_from_base),
+                    "fused": (fused.stamps_ns, fused.enu_from_base),
+                },
+                gt_stamps,
+                gt_ws,
+            )
             inside = (fused.stamps_ns >= span[0]) & (fused.stamps_ns <= span[1])
             t0 = odom.stamps_ns[0]
-            spans.append({"from_s": (span[0] - t0) * 1e-9, "to_s": (span[1] - t0) * 1e-9, **errs,
-                          "fused_max_h_err_offset_removed_m": max_h_error(fused, gt_stamps, gt_ws, inside)})
-            slip_rows.append(f"| {name} | {spans[-1]['from_s']:.1f}-{spans[-1]['to_s']:.1f} | {errs['kiss-icp']:.2f} | "
-                             f"{errs['georef']:.2f} | {errs['fused']:.2f} | {spans[-1]['fused_max_h_err_offset_removed_m']:.2f} |")
-        out[name] = {"georef": before, "fused": after, "seconds_read_sensors": t_read, "seconds_graph": t_graph,
-                     "seconds_trajectory_stage": traj_s, "odometry_noise_fit": noise_fit, "nhc_fit": nhc,
-                     "georef_sigma_enu_m": geo_sig.tolist(), "slips": spans, "stats": fused.stats,
-                     "gps_mean_error": gps_mean_error(gps, gt_stamps, gt_ws, cfg)}
+            spans.append(
+                {
+                    "from_s": (span[0] - t0) * 1e-9,
+                    "to_s": (span[1] - t0) * 1e-9,
+                    **errs,
+                    "fused_max_h_err_offset_removed_m": max_h_error(fused, gt_stamps, gt_ws, inside),
+                }
+            )
+            slip_rows.append(
+                f"| {name} | {spans[-1]['from_s']:.1f}-{spans[-1]['to_s']:.1f} | {errs['kiss-icp']:.2f} | "
+                f"{errs['georef']:.2f} | {errs['fused']:.2f} | {spans[-1]['fused_max_h_err_offset_removed_m']:.2f} |"
+            )
+        out[name] = {
+            "georef": before,
+            "fused": after,
+            "seconds_read_sensors": t_read,
+            "seconds_graph": t_graph,
+            "seconds_trajectory_stage": traj_s,
+            "odometry_noise_fit": noise_fit,
+            "nhc_fit": nhc,
+            "georef_sigma_enu_m": geo_sig.tolist(),
+            "slips": spans,
+            "stats": fused.stats,
+            "gps_mean_error": gps_mean_error(gps, gt_stamps, gt_ws, cfg),
+        }
         after["height_drift_sigma_m"] = fused.stats["end_minus_start_sigma_enu_m"][2]
         for label, r in (("georef (rigid fit)", before), ("fused (graph)", after)):
             sig = f" (1σ {r['height_drift_sigma_m']:.2f})" if "height_drift_sigma_m" in r else ""
-            rows.append(f"| {name} | {label} | {r['ate_h_m']:.2f} | {r['ate_v_m']:.2f} | {r['ate_h_offset_removed_m']:.2f} | "
-                        f"{r['ate_v_offset_removed_m']:.2f} | {r['height_drift_m']:+.2f}{sig} | {r['height_p2p_m']:.2f} | "
-                        f"{r['pitch_err_mean_deg']:+.2f} / {r['pitch_err_rms_deg']:.2f} | "
-                        + (f"{100 * r['inside_95_3d']:.0f}% (NEES {r['nees_mean']:.1f}) |" if "inside_95_3d" in r else " |"))
-    print("| session | trajectory | ATE h m | ATE v m | ATE h m, offset removed | ATE v m, offset removed | height drift m "
-          "(graph: its own 1σ, end minus start) | height p2p m | pitch err mean / rms deg | inside 95% ellipse |")
+            rows.append(
+                f"| {name} | {label} | {r['ate_h_m']:.2f} | {r['ate_v_m']:.2f} | {r['ate_h_offset_removed_m']:.2f} | "
+                f"{r['ate_v_offset_removed_m']:.2f} | {r['height_drift_m']:+.2f}{sig} | {r['height_p2p_m']:.2f} | "
+                f"{r['pitch_err_mean_deg']:+.2f} / {r['pitch_err_rms_deg']:.2f} | "
+                + (f"{100 * r['inside_95_3d']:.0f}% (NEES {r['nees_mean']:.1f}) |" if "inside_95_3d" in r else " |")
+            )
+    print(
+        "| session | trajectory | ATE h m | ATE v m | ATE h m, offset removed | ATE v m, offset removed | height drift m "
+        "(graph: its own 1σ, end minus start) | height p2p m | pitch err mean / rms deg | inside 95% ellipse |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     print()
-    print("| session | graph s (IMU or gravity + solve + marginals) | sensor read s | trajectory stage s | ratio | keyframes "
-          "| GPS outliers (> 3.37 sigma) | georef sigma ENU m |")
+    print(
+        "| session | graph s (IMU or gravity + solve + marginals) | sensor read s | trajectory stage s | ratio | keyframes "
+        "| GPS outliers (> 3.37 sigma) | georef sigma ENU m |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name, r in out.items():
         st = r["stats"]
-        print(f"| {name} | {r['seconds_graph']:.2f} | {r['seconds_read_sensors']:.2f} | {r['seconds_trajectory_stage']:.1f} | "
-              f"{100 * r['seconds_graph'] / r['seconds_trajectory_stage']:.1f}% | {st['keyframes']} | "
-              f"{st.get('gps_fixes_outliers', '')} of {st.get('gps_fixes', '')} | {', '.join(f'{x:.2f}' for x in r['georef_sigma_enu_m'])} |")
+        print(
+            f"| {name} | {r['seconds_graph']:.2f} | {r['seconds_read_sensors']:.2f} | {r['seconds_trajectory_stage']:.1f} | "
+            f"{100 * r['seconds_graph'] / r['seconds_trajectory_stage']:.1f}% | {st['keyframes']} | "
+            f"{st.get('gps_fixes_outliers', '')} of {st.get('gps_fixes', '')} | {', '.join(f'{x:.2f}' for x in r['georef_sigma_enu_m'])} |"
+        )
     print()
-    print("| session | kiss-icp jitter rot roll/pitch/yaw rad | trans x/y/z m | walk rot rad/sqrt(m) | trans m/sqrt(m) |")
+    print(
+        "| session | kiss-icp jitter rot roll/pitch/yaw rad | trans x/y/z m | walk rot rad/sqrt(m) | trans m/sqrt(m) |"
+    )
     print("|---|---|---|---|---|")
     for name, r in out.items():
         j, w = r["odometry_noise_fit"]["jitter"], r["odometry_noise_fit"]["walk_per_sqrt_m"]
         f = lambda v: ", ".join(f"{x:.1e}" for x in v)  # noqa: E731
         print(f"| {name} | {f(j[:3])} | {f(j[3:])} | {f(w[:3])} | {f(w[3:])} |")
     print()
-    print("| session | across the chord, m/s: model (odometry's heading, true displacement) rms / robust | the truth's own "
-          f"| the odometry's own | nhc_sigma_m_s = {cfg.nhc_sigma_m_s} |")
+    print(
+        "| session | across the chord, m/s: model (odometry's heading, true displacement) rms / robust | the truth's own "
+        f"| the odometry's own | nhc_sigma_m_s = {cfg.nhc_sigma_m_s} |"
+    )
     print("|---|---|---|---|---|")
     for name, r in out.items():
         n = r["nhc_fit"]
-        print(f"| {name} | {n['model']['rms_m_s']:.4f} / {n['model']['robust_m_s']:.4f} | {n['truth']['rms_m_s']:.4f} / "
-              f"{n['truth']['robust_m_s']:.4f} | {n['odometry']['rms_m_s']:.4f} / {n['odometry']['robust_m_s']:.4f} | |")
+        print(
+            f"| {name} | {n['model']['rms_m_s']:.4f} / {n['model']['robust_m_s']:.4f} | {n['truth']['rms_m_s']:.4f} / "
+            f"{n['truth']['robust_m_s']:.4f} | {n['odometry']['rms_m_s']:.4f} / {n['odometry']['robust_m_s']:.4f} | |"
+        )
     print()
-    print(f"| session | slip span s (1 s motion > {args.slip_m} m off) | kiss-icp displacement err m | rigid fit m | graph m "
-          "| graph max h err inside, offset removed m |")
+    print(
+        f"| session | slip span s (1 s motion > {args.slip_m} m off) | kiss-icp displacement err m | rigid fit m | graph m "
+        "| graph max h err inside, offset removed m |"
+    )
     print("|---|---|---|---|---|---|")
     print("\n".join(slip_rows))
     print()
-    print("| session | slips the graph found: span s (metres it moved the odometry) | drift / jitter factors down-weighted "
-          "| IMU bias at the end: gyro rad/s; accel m/s^2 |")
+    print(
+        "| session | slips the graph found: span s (metres it moved the odometry) | drift / jitter factors down-weighted "
+        "| IMU bias at the end: gyro rad/s; accel m/s^2 |"
+    )
     print("|---|---|---|---|")
     for name, r in out.items():
         st = r["stats"]
         b = st.get("imu_bias_end")
-        bias = "" if b is None else (f"{', '.join(f'{x:+.4f}' for x in b['gyro_rad_s'])}; "
-                                     f"{', '.join(f'{x:+.3f}' for x in b['accel_m_s2'])}")
-        found = ", ".join(f"{a:.1f}-{b_:.1f} ({m:.2f})" for (a, b_), m in zip(st["odom_slip_spans_s"], st["odom_slip_m"]))
-        print(f"| {name} | {found} | {st['odom_drift_downweighted']} / {st['odom_jitter_downweighted']} of {st['keyframes']} | {bias} |")
+        bias = (
+            ""
+            if b is None
+            else (
+                f"{', '.join(f'{x:+.4f}' for x in b['gyro_rad_s'])}; {', '.join(f'{x:+.3f}' for x in b['accel_m_s2'])}"
+            )
+        )
+        found = ", ".join(
+            f"{a:.1f}-{b_:.1f} ({m:.2f})" for (a, b_), m in zip(st["odom_slip_spans_s"], st["odom_slip_m"])
+        )
+        print(
+            f"| {name} | {found} | {st['odom_drift_downweighted']} / {st['odom_jitter_downweighted']} of {st['keyframes']} | {bias} |"
+        )
     total_graph = sum(r["seconds_graph"] for r in out.values())
     total_traj = sum(r["seconds_trajectory_stage"] for r in out.values())
     print()
-    print("| session | GPS fixes' mean error ENU m (the session's bias draw) | chi-square under the bias model (95%: 7.81) |")
+    print(
+        "| session | GPS fixes' mean error ENU m (the session's bias draw) | chi-square under the bias model (95%: 7.81) |"
+    )
     print("|---|---|---|")
     for name, r in out.items():
         g = r["gps_mean_error"]
         print(f"| {name} | {', '.join(f'{v:+.2f}' for v in g['mean_enu_m'])} | {g['chi2_under_bias_model']:.1f} |")
-    print(f"\ngraph / trajectory stage, all sessions: {total_graph:.2f} s / {total_traj:.1f} s = {100 * total_graph / total_traj:.1f}%")
+    print(
+        f"\ngraph / trajectory stage, all sessions: {total_graph:.2f} s / {total_traj:.1f} s = {100 * total_graph / total_traj:.1f}%"
+    )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 

@@ -45,16 +45,25 @@ def score(traj: Trajectory, stamps: np.ndarray, truth: np.ndarray) -> dict:
     d = est[:, :3, 3] - gt[:, :3, 3]
     d -= d.mean(axis=0)
     rpy = Rotation.from_matrix(np.swapaxes(gt[:, :3, :3], 1, 2) @ est[:, :3, :3]).as_euler("xyz", degrees=True)
-    return {"step_mm": float(np.median(np.linalg.norm(step[:, :3, 3], axis=1)) * 1000), "roll_deg": float(rpy[:, 0].mean()),
-            "pitch_deg": float(rpy[:, 1].mean()), "ate_offset_removed_m": float(np.sqrt((d**2).sum(axis=1).mean()))}
+    return {
+        "step_mm": float(np.median(np.linalg.norm(step[:, :3, 3], axis=1)) * 1000),
+        "roll_deg": float(rpy[:, 0].mean()),
+        "pitch_deg": float(rpy[:, 1].mean()),
+        "ate_offset_removed_m": float(np.sqrt((d**2).sum(axis=1).mean())),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=None, help="working folder (default: a temporary one)")
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                    help="FactorGraphConfig overrides for the fused build (YAML values), e.g. nhc_sigma_m_s=0 for the graph without "
-                    "the non-holonomic constraint")
+    ap.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="FactorGraphConfig overrides for the fused build (YAML values), e.g. nhc_sigma_m_s=0 for the graph without "
+        "the non-holonomic constraint",
+    )
     args = ap.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="mapkit-fused-"))
     town = root / "town"
@@ -71,14 +80,20 @@ def main() -> None:
     stamps, truth = session_truth(town, "drive")
     truth = ws_from_town(town, Workspace(rigid_ws).frame()) @ truth
     rows = []
-    for label, ws, traj_dir in (("rigid fit", rigid_ws, Workspace(rigid_ws).session("drive").georef_trajectory),
-                                ("factor graph", fused_ws, Workspace(fused_ws).session("drive").fused_trajectory)):
+    for label, ws, traj_dir in (
+        ("rigid fit", rigid_ws, Workspace(rigid_ws).session("drive").georef_trajectory),
+        ("factor graph", fused_ws, Workspace(fused_ws).session("drive").fused_trajectory),
+    ):
         s = score(Trajectory.load(traj_dir), stamps, truth)
         m = evaluate_build(ws, town)["sessions"]["drive"]["map_local"]
-        rows.append(f"| {label} | {s['step_mm']:.1f} | {s['roll_deg']:+.3f} / {s['pitch_deg']:+.3f} | {s['ate_offset_removed_m']:.3f} | "
-                    f"{m['median_distance_m']:.3f} / {m['fraction_within_0.5m']:.3f} |")
-    print("| trajectory | frame-to-frame motion error, median mm | roll / pitch error, mean deg | ATE, offset removed m "
-          "| map to true surfaces, offset removed: median m / within 0.5 m |")
+        rows.append(
+            f"| {label} | {s['step_mm']:.1f} | {s['roll_deg']:+.3f} / {s['pitch_deg']:+.3f} | {s['ate_offset_removed_m']:.3f} | "
+            f"{m['median_distance_m']:.3f} / {m['fraction_within_0.5m']:.3f} |"
+        )
+    print(
+        "| trajectory | frame-to-frame motion error, median mm | roll / pitch error, mean deg | ATE, offset removed m "
+        "| map to true surfaces, offset removed: median m / within 0.5 m |"
+    )
     print("|---|---|---|---|---|")
     print("\n".join(rows))
     print(f"\nworking folder: {root}")

@@ -40,10 +40,10 @@ import time
 import traceback
 import warnings
 from collections import Counter, defaultdict
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
 
 import cv2
 import numpy as np
@@ -62,6 +62,7 @@ OUTCOMES = ("read in full", "warning, intact data kept", "clean error", "silent 
 
 # --- reading and classing ---------------------------------------------------------------------------
 
+
 @dataclass
 class Outcome:
     kind: str
@@ -74,7 +75,7 @@ class Read:
 
     messages: set = field(default_factory=set)  # (topic, stamp_ns) of every message read
     warnings: list[str] = field(default_factory=list)
-    error: Optional[BaseException] = None
+    error: BaseException | None = None
 
 
 def read_log(path: Path, fmt: str) -> Read:
@@ -99,22 +100,30 @@ def read_log(path: Path, fmt: str) -> Read:
     return out
 
 
-def classify(read: Read, everything: Optional[set] = None, kept: Optional[set] = None) -> Outcome:
+def classify(read: Read, everything: set | None = None, kept: set | None = None) -> Outcome:
     """The outcome of one read; ``everything`` and ``kept``: all messages of the log, and those a damage spared."""
     if read.error is not None:
         if isinstance(read.error, InputError):
             return Outcome("clean error", str(read.error)[:160])
         where = traceback.extract_tb(read.error.__traceback__)[-1]
-        return Outcome("crash", f"{type(read.error).__name__} at {Path(where.filename).name}:{where.lineno}: {str(read.error)[:120]}")
+        return Outcome(
+            "crash",
+            f"{type(read.error).__name__} at {Path(where.filename).name}:{where.lineno}: {str(read.error)[:120]}",
+        )
     if kept is not None and not kept <= read.messages:
         return Outcome("intact data lost", f"{len(kept - read.messages)} messages of undamaged chunks missing")
     complete = everything is None or everything <= read.messages
     if not read.warnings:
-        return Outcome("read in full") if complete else Outcome("silent loss", f"{len(everything - read.messages)} messages missing")
+        return (
+            Outcome("read in full")
+            if complete
+            else Outcome("silent loss", f"{len(everything - read.messages)} messages missing")
+        )
     return Outcome("warning, intact data kept", read.warnings[0][:160])
 
 
 # --- inputs -------------------------------------------------------------------------------------------
+
 
 def write_mcap(path: Path, compression: str = "zstd", n: int = 30) -> Path:
     """A small MCAP of images, GPS, IMU and a static transform in many chunks (1 kB chunk size)."""
@@ -153,7 +162,7 @@ def mcap_layout(path: Path) -> McapLayout:
     topics = {c.id: c.topic for c in summary.channels.values()}
     chunks = []
     for ci in summary.chunk_indexes:
-        stream = io.BytesIO(data[ci.chunk_start_offset:ci.chunk_start_offset + ci.chunk_length])
+        stream = io.BytesIO(data[ci.chunk_start_offset : ci.chunk_start_offset + ci.chunk_length])
         chunk = next(iter(StreamReader(stream, skip_magic=True, emit_chunks=True).records))
         msgs = frozenset((topics[m.channel_id], m.log_time) for m in breakup_chunk(chunk) if hasattr(m, "log_time"))
         chunks.append((ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length, msgs))
@@ -170,7 +179,11 @@ def write_rosbag1(path: Path, n: int = 30) -> Path:
     ts = get_typestore(Stores.ROS1_NOETIC)
     Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
     Fix, Status = ts.types["sensor_msgs/msg/NavSatFix"], ts.types["sensor_msgs/msg/NavSatStatus"]
-    Imu, Quat, Vec = ts.types["sensor_msgs/msg/Imu"], ts.types["geometry_msgs/msg/Quaternion"], ts.types["geometry_msgs/msg/Vector3"]
+    Imu, Quat, Vec = (
+        ts.types["sensor_msgs/msg/Imu"],
+        ts.types["geometry_msgs/msg/Quaternion"],
+        ts.types["geometry_msgs/msg/Vector3"],
+    )
     writer = Writer(path)
     writer.chunk_threshold = 1024
     with writer:
@@ -179,11 +192,24 @@ def write_rosbag1(path: Path, n: int = 30) -> Path:
         for i in range(n):
             t = T0 + i * 100_000_000
             header = Header(seq=i, stamp=Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), frame_id="imu")
-            fix = Fix(header=header, status=Status(status=0, service=1), latitude=49.0 + i * 1e-5, longitude=8.4, altitude=110.0,
-                      position_covariance=np.eye(3).ravel(), position_covariance_type=2)
-            imu = Imu(header=header, orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=np.zeros(9),
-                      angular_velocity=Vec(x=0.0, y=0.0, z=0.1), angular_velocity_covariance=np.zeros(9),
-                      linear_acceleration=Vec(x=0.0, y=0.0, z=9.81), linear_acceleration_covariance=np.zeros(9))
+            fix = Fix(
+                header=header,
+                status=Status(status=0, service=1),
+                latitude=49.0 + i * 1e-5,
+                longitude=8.4,
+                altitude=110.0,
+                position_covariance=np.eye(3).ravel(),
+                position_covariance_type=2,
+            )
+            imu = Imu(
+                header=header,
+                orientation=Quat(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.zeros(9),
+                angular_velocity=Vec(x=0.0, y=0.0, z=0.1),
+                angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=Vec(x=0.0, y=0.0, z=9.81),
+                linear_acceleration_covariance=np.zeros(9),
+            )
             writer.write(fix_c, t, ts.serialize_ros1(fix, Fix.__msgtype__))
             writer.write(imu_c, t, ts.serialize_ros1(imu, Imu.__msgtype__))
     return path
@@ -219,7 +245,9 @@ def write_kitti_raw_oxts(root: Path, n: int = 6) -> Path:
     stamps = [f"2011-09-26 13:02:{25 + i // 10:02d}.{(i % 10) * 100_000_000 + 3_000_000:09d}" for i in range(n)]
     (drive / "oxts" / "timestamps.txt").write_text("\n".join(stamps) + "\n")
     for i in range(n):
-        values = [49.011 + i * 6e-6, 8.422 + i * 9e-6, 112.8, 0.02, -0.01, 0.7] + [0.5] * 17 + [0.1, 0.05, 4, 11, 5, 5, 5]
+        values = (
+            [49.011 + i * 6e-6, 8.422 + i * 9e-6, 112.8, 0.02, -0.01, 0.7] + [0.5] * 17 + [0.1, 0.05, 4, 11, 5, 5, 5]
+        )
         (drive / "oxts" / "data" / f"{i:010d}.txt").write_text(" ".join(repr(float(v)) for v in values) + "\n")
     return drive
 
@@ -232,7 +260,9 @@ def write_folder(root: Path, n: int = 6) -> Path:
     for i in range(n):
         name = f"{i:04d}.{'png' if i % 2 == 0 else 'jpg'}"
         cv2.imwrite(str(root / "images" / name), rng.integers(0, 255, (24, 32, 3), dtype=np.uint8))
-        rows.append(f"{name},{1.7e9 + 0.1 * i:.3f},{49.0 + i * 1e-5},8.4,110.0,{i}.0,0.0,0.0,1.0,0.0,0.0,0.0,30.0,30.0,16.0,12.0")
+        rows.append(
+            f"{name},{1.7e9 + 0.1 * i:.3f},{49.0 + i * 1e-5},8.4,110.0,{i}.0,0.0,0.0,1.0,0.0,0.0,0.0,30.0,30.0,16.0,12.0"
+        )
     (root / "frames.csv").write_text("\n".join(rows) + "\n")
     return root
 
@@ -240,8 +270,28 @@ def write_folder(root: Path, n: int = 6) -> Path:
 # --- faults -------------------------------------------------------------------------------------------
 
 #: number tokens that parsers get wrong: non-finite, huge exponents, non-ASCII digits, hex floats, empties
-BAD_NUMBERS = ("nan", "inf", "-inf", "1e308", "1e999999999", "-1e999999999", "0", "-0", "1e-320", "0x1p3", "١٢", "²",
-               "1_0", "--1", "+", ".", "e5", "9" * 5000, "\x00", "1,5")
+BAD_NUMBERS = (
+    "nan",
+    "inf",
+    "-inf",
+    "1e308",
+    "1e999999999",
+    "-1e999999999",
+    "0",
+    "-0",
+    "1e-320",
+    "0x1p3",
+    "١٢",
+    "²",
+    "1_0",
+    "--1",
+    "+",
+    ".",
+    "e5",
+    "9" * 5000,
+    "\x00",
+    "1,5",
+)
 
 
 def flip(data: bytes, at: int, rnd: random.Random) -> bytes:
@@ -267,7 +317,7 @@ def mutate_text(text: bytes, rnd: random.Random) -> bytes:
     choice = rnd.randrange(7)
     if choice == 0 and line:  # one byte replaced by any byte
         at = rnd.randrange(len(line))
-        lines[k] = line[:at] + bytes([rnd.randrange(256)]) + line[at + 1:]
+        lines[k] = line[:at] + bytes([rnd.randrange(256)]) + line[at + 1 :]
     elif choice == 1:  # a hard number
         tokens[rnd.randrange(len(tokens))] = rnd.choice(BAD_NUMBERS).encode()
         lines[k] = b" ".join(tokens)
@@ -328,7 +378,9 @@ class FaultClass:
     run: Callable[[random.Random, Path], Outcome]
 
 
-def _mcap_class(name: str, pick: Callable[[McapLayout, random.Random], tuple[int, int, str]], compression: str, base: Path) -> FaultClass:
+def _mcap_class(
+    name: str, pick: Callable[[McapLayout, random.Random], tuple[int, int, str]], compression: str, base: Path
+) -> FaultClass:
     clean = write_mcap(base / f"clean-{compression}.mcap", compression)
     layout, data = mcap_layout(clean), clean.read_bytes()
 
@@ -347,8 +399,14 @@ def _mcap_class(name: str, pick: Callable[[McapLayout, random.Random], tuple[int
     return FaultClass(f"{name} ({compression})", run)
 
 
-def _file_class(name: str, clean_dir: Path, fmt: str, files: Callable[[Path], list[Path]],
-                damage: Callable[[bytes, random.Random], bytes], open_path: Callable[[Path], Path] = lambda p: p) -> FaultClass:
+def _file_class(
+    name: str,
+    clean_dir: Path,
+    fmt: str,
+    files: Callable[[Path], list[Path]],
+    damage: Callable[[bytes, random.Random], bytes],
+    open_path: Callable[[Path], Path] = lambda p: p,
+) -> FaultClass:
     """Damage one of ``files(copy)`` of a copy of ``clean_dir`` and read the copy with reader ``fmt``."""
 
     def run(rnd: random.Random, tmp: Path) -> Outcome:
@@ -368,12 +426,13 @@ def _damage_bytes(data: bytes, rnd: random.Random) -> bytes:
     if kind == 0:
         return flip(data, at, rnd)
     if kind == 1:
-        return data[:at] + rnd.randbytes(min(64, len(data) - at)) + data[at + 64:]
+        return data[:at] + rnd.randbytes(min(64, len(data) - at)) + data[at + 64 :]
     return data[:at]
 
 
 def fault_classes(base: Path) -> list[FaultClass]:
     """Every fault class, its clean inputs written under ``base``."""
+
     def in_summary(lay: McapLayout, rnd: random.Random):
         at = rnd.randrange(lay.summary_start, lay.size - 8 - 29)
         return at, at + 1, "flip"
@@ -409,12 +468,29 @@ def fault_classes(base: Path) -> list[FaultClass]:
     bag_dir = base / "bag"
     bag_dir.mkdir()
     write_rosbag1(bag_dir / "drive.bag")
-    classes.append(_file_class("ROS 1 bag flip/burst/truncation", bag_dir, "rosbag", lambda d: [d / "drive.bag"], _damage_bytes,
-                               lambda d: d / "drive.bag"))
+    classes.append(
+        _file_class(
+            "ROS 1 bag flip/burst/truncation",
+            bag_dir,
+            "rosbag",
+            lambda d: [d / "drive.bag"],
+            _damage_bytes,
+            lambda d: d / "drive.bag",
+        )
+    )
     odo = write_kitti_odometry(base / "kitti-odometry")
-    classes.append(_file_class("KITTI odometry text", odo, "kitti-odometry",
-                               lambda d: [d / "calib.txt", d / "times.txt", d / "poses.txt"], mutate_text))
-    classes.append(_file_class("KITTI impossible pose", odo, "kitti-odometry", lambda d: [d / "poses.txt"], impossible_pose))
+    classes.append(
+        _file_class(
+            "KITTI odometry text",
+            odo,
+            "kitti-odometry",
+            lambda d: [d / "calib.txt", d / "times.txt", d / "poses.txt"],
+            mutate_text,
+        )
+    )
+    classes.append(
+        _file_class("KITTI impossible pose", odo, "kitti-odometry", lambda d: [d / "poses.txt"], impossible_pose)
+    )
     raw = write_kitti_raw_oxts(base / "kitti-raw")
     raw_root = base / "kitti-raw"
 
@@ -426,15 +502,21 @@ def fault_classes(base: Path) -> list[FaultClass]:
         return d / raw.relative_to(raw_root)
 
     classes.append(_file_class("KITTI raw OXTS text", raw_root, "kitti-raw", oxts_files, mutate_text, drive_of))
-    classes.append(_file_class("KITTI raw impossible OXTS", raw_root, "kitti-raw", lambda d: oxts_files(d)[1:-1], impossible_oxts,
-                               drive_of))
+    classes.append(
+        _file_class(
+            "KITTI raw impossible OXTS", raw_root, "kitti-raw", lambda d: oxts_files(d)[1:-1], impossible_oxts, drive_of
+        )
+    )
     folder = write_folder(base / "folder")
     classes.append(_file_class("folder frames.csv", folder, "folder", lambda d: [d / "frames.csv"], mutate_csv))
-    classes.append(_file_class("corrupt PNG/JPEG", folder, "folder", lambda d: sorted((d / "images").iterdir()), _damage_bytes))
+    classes.append(
+        _file_class("corrupt PNG/JPEG", folder, "folder", lambda d: sorted((d / "images").iterdir()), _damage_bytes)
+    )
     return classes
 
 
 # --- the campaign ------------------------------------------------------------------------------------
+
 
 @dataclass
 class Tally:
@@ -443,8 +525,13 @@ class Tally:
     examples: dict = field(default_factory=dict)  # outcome kind -> one detail
 
 
-def campaign(seconds: float, seed: int, classes: Optional[list[FaultClass]] = None, base: Optional[Path] = None,
-             max_inputs: Optional[int] = None) -> dict[str, Tally]:
+def campaign(
+    seconds: float,
+    seed: int,
+    classes: list[FaultClass] | None = None,
+    base: Path | None = None,
+    max_inputs: int | None = None,
+) -> dict[str, Tally]:
     """Inputs of every class in turn until ``seconds`` have passed (or ``max_inputs`` per class)."""
     rnd = random.Random(seed)
     tallies: dict[str, Tally] = defaultdict(Tally)
@@ -476,7 +563,11 @@ def table(tallies: dict[str, Tally]) -> str:
     total = Counter()
     for t in tallies.values():
         total.update(t.outcomes)
-    rows.append(f"| all | {sum(t.tried for t in tallies.values())} | " + " | ".join(str(total.get(o, 0)) for o in OUTCOMES) + " |")
+    rows.append(
+        f"| all | {sum(t.tried for t in tallies.values())} | "
+        + " | ".join(str(total.get(o, 0)) for o in OUTCOMES)
+        + " |"
+    )
     return "\n".join(rows)
 
 
@@ -498,7 +589,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=300.0, help="length of the campaign (default 300)")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, help="also write the counts per fault class as JSON here (docs/figures.py collect robustness)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="also write the counts per fault class as JSON here (docs/figures.py collect robustness)",
+    )
     args = ap.parse_args()
     t0 = time.monotonic()
     with quiet_stderr():
@@ -509,12 +604,26 @@ def main() -> int:
         import json
 
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({
-            "command": f"python3 bench/fuzz_readers.py --seconds {args.seconds:g} --seed {args.seed}", "outcomes": list(OUTCOMES),
-            "classes": {name: {"tried": t.tried, **{o: t.outcomes.get(o, 0) for o in OUTCOMES}} for name, t in tallies.items()},
-        }, indent=1) + "\n")
-    bad = [(name, kind, t.examples[kind]) for name, t in tallies.items() for kind in ("crash", "silent loss", "intact data lost")
-           if kind in t.examples]
+        args.out.write_text(
+            json.dumps(
+                {
+                    "command": f"python3 bench/fuzz_readers.py --seconds {args.seconds:g} --seed {args.seed}",
+                    "outcomes": list(OUTCOMES),
+                    "classes": {
+                        name: {"tried": t.tried, **{o: t.outcomes.get(o, 0) for o in OUTCOMES}}
+                        for name, t in tallies.items()
+                    },
+                },
+                indent=1,
+            )
+            + "\n"
+        )
+    bad = [
+        (name, kind, t.examples[kind])
+        for name, t in tallies.items()
+        for kind in ("crash", "silent loss", "intact data lost")
+        if kind in t.examples
+    ]
     for name, kind, detail in bad:
         print(f"\n{name}: {kind}, e.g. {detail}")
     return 0

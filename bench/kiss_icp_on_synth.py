@@ -35,9 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import report  # noqa: E402
 from mapkit.core.geometry import interpolate_poses, invert_pose, umeyama  # noqa: E402
+from mapkit.core.types import StreamKind  # noqa: E402
 from mapkit.io.mcap_log import McapLog  # noqa: E402
 from mapkit.synth import gt_poses, load_world, synthesize  # noqa: E402
-from mapkit.core.types import StreamKind  # noqa: E402
 
 
 def lidar_times(mcap: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -68,7 +68,11 @@ def run_kiss_icp(mcap: Path, work: Path, patch: bool = True) -> tuple[np.ndarray
     """kiss-icp's command line on a log (a rosbag2 folder, or a bare .mcap patched unless ``patch`` is False)."""
     env = dict(os.environ, kiss_icp_out_dir=str(work))
     patch = patch and not Path(mcap).is_dir()  # its rosbag dataloader reads folders unpatched
-    cmd = [sys.executable, "-c", _PATCH, str(mcap)] if patch else ["kiss_icp_pipeline", "--topic", "/lidar/points", str(mcap)]
+    cmd = (
+        [sys.executable, "-c", _PATCH, str(mcap)]
+        if patch
+        else ["kiss_icp_pipeline", "--topic", "/lidar/points", str(mcap)]
+    )
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
     wall = time.perf_counter() - t0
@@ -97,13 +101,15 @@ def evaluate(out: Path, session: str, poses_kiss: np.ndarray, mcap: Path) -> dic
     dist = float(np.linalg.norm(np.diff(gt, axis=0), axis=1).sum())
     err = np.linalg.norm(est - gt, axis=1)
     row = {
-        "session": session, "scans": int(len(k)), "distance_m": round(dist, 2),
-        "ate_rmse_m": round(float(np.sqrt(np.mean(err ** 2))), 4),
+        "session": session,
+        "scans": int(len(k)),
+        "distance_m": round(dist, 2),
+        "ate_rmse_m": round(float(np.sqrt(np.mean(err**2))), 4),
         "ate_max_m": round(float(err.max()), 4),
     }
     if est_anchored is not None:
         e0 = np.linalg.norm(est_anchored - gt, axis=1)
-        row["anchored_rmse_m"] = round(float(np.sqrt(np.mean(e0 ** 2))), 4)
+        row["anchored_rmse_m"] = round(float(np.sqrt(np.mean(e0**2))), 4)
         row["final_drift_pct"] = round(100 * float(e0[-1]) / max(dist, 1e-9), 3)
     # relative pose error over 1 s (rotation in degrees)
     step = 10
@@ -117,10 +123,16 @@ def evaluate(out: Path, session: str, poses_kiss: np.ndarray, mcap: Path) -> dic
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dir", type=Path, help="a synthesized town (made with --preset into a temporary folder if omitted)")
+    ap.add_argument(
+        "--dir", type=Path, help="a synthesized town (made with --preset into a temporary folder if omitted)"
+    )
     ap.add_argument("--preset", default="tiny")
     ap.add_argument("--session", action="append", help="session name (repeatable; default: all)")
-    ap.add_argument("--no-patch", action="store_true", help="run kiss_icp_pipeline unpatched on bare .mcap logs (fails on kiss-icp 1.3.0; folders never need the patch)")
+    ap.add_argument(
+        "--no-patch",
+        action="store_true",
+        help="run kiss_icp_pipeline unpatched on bare .mcap logs (fails on kiss-icp 1.3.0; folders never need the patch)",
+    )
     args = ap.parse_args(argv)
     if shutil.which("kiss_icp_pipeline") is None:
         raise SystemExit("kiss_icp_pipeline is not installed (pip install kiss-icp)")
@@ -142,8 +154,11 @@ def main(argv=None) -> int:
         row["condition"] = world.session(name)["condition"]
         row["kiss_icp_wall_s"] = round(wall, 2)
         rows.append(row)
-    report("kiss-icp (its own CLI and rosbag dataloader) on synthetic LiDAR vs ground truth", rows,
-           "ATE after a rigid (SE3) alignment; anchored = first scan at its true pose, no fit.")
+    report(
+        "kiss-icp (its own CLI and rosbag dataloader) on synthetic LiDAR vs ground truth",
+        rows,
+        "ATE after a rigid (SE3) alignment; anchored = first scan at its true pose, no fit.",
+    )
     if tmp is not None:
         tmp.cleanup()
     return 0

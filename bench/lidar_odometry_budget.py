@@ -84,19 +84,30 @@ def session_row(town: Path, name: str, cfg: TrajectoryConfig) -> dict:
     v_est = np.linalg.norm(np.diff(est[:, :3, 3], axis=0), axis=1) / dt
     slips = int(np.sum((v_gt > 1.0) & (v_est < 0.7 * v_gt)))
     return {
-        "session": name, "scans": int(ok.sum()), "distance_m": round(float(np.sum(v_gt * dt)), 1),
-        "estimated_distance_m": round(float(np.sum(v_est * dt)), 1), "slipping_scans": slips,
-        "drift_pct": round(t_pct, 3), "drift_deg_per_100m": round(r_deg, 3), "subpaths": n,
-        "ate_offset_removed_m": round(float(np.sqrt(np.mean(ate ** 2))), 3),
-        "height_drift_max_m": round(float(np.abs(dz).max()), 3), "height_drift_end_m": round(float(dz[-1]), 3),
+        "session": name,
+        "scans": int(ok.sum()),
+        "distance_m": round(float(np.sum(v_gt * dt)), 1),
+        "estimated_distance_m": round(float(np.sum(v_est * dt)), 1),
+        "slipping_scans": slips,
+        "drift_pct": round(t_pct, 3),
+        "drift_deg_per_100m": round(r_deg, 3),
+        "subpaths": n,
+        "ate_offset_removed_m": round(float(np.sqrt(np.mean(ate**2))), 3),
+        "height_drift_max_m": round(float(np.abs(dz).max()), 3),
+        "height_drift_end_m": round(float(dz[-1]), 3),
         "kiss_icp_wall_s": round(wall, 1),
     }
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--town", action="append", default=[], metavar="LABEL=DIR",
-                    help=f"an already synthesized town for a layout ({', '.join(LAYOUTS)}); others are synthesized")
+    ap.add_argument(
+        "--town",
+        action="append",
+        default=[],
+        metavar="LABEL=DIR",
+        help=f"an already synthesized town for a layout ({', '.join(LAYOUTS)}); others are synthesized",
+    )
     ap.add_argument("--session", action="append", help="session name (repeatable; default: all)")
     args = ap.parse_args(argv)
     given = dict(t.split("=", 1) for t in args.town)
@@ -107,11 +118,17 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="lidar-odometry-budget-") as tmp:
         for label, overrides in LAYOUTS.items():
-            town = Path(given[label]) if label in given else synthesize("tiny", Path(tmp) / label, overrides=overrides, progress=False)
+            town = (
+                Path(given[label])
+                if label in given
+                else synthesize("tiny", Path(tmp) / label, overrides=overrides, progress=False)
+            )
             world = load_world(town)
             steps = world.config.lidar.azimuth_steps
             if steps != overrides["lidar"]["azimuth_steps"]:
-                raise SystemExit(f"{town}: its sweep has {steps} columns; the {label} layout has {overrides['lidar']['azimuth_steps']}")
+                raise SystemExit(
+                    f"{town}: its sweep has {steps} columns; the {label} layout has {overrides['lidar']['azimuth_steps']}"
+                )
             for name in args.session or [s["name"] for s in world.sessions]:
                 row = {"layout": f"{label} ({world.config.lidar.beams} x {steps})", **session_row(town, name, cfg)}
                 rows.append(row)
@@ -119,8 +136,11 @@ def main(argv=None) -> int:
     coarse = {r["session"]: r["drift_pct"] for r in rows if r["layout"].startswith("coarse")}
     for r in rows:
         r["ratio_to_coarse"] = round(r["drift_pct"] / coarse[r["session"]], 3) if coarse.get(r["session"]) else None
-    report("kiss-icp on the tiny town: KITTI drift, ATE and height drift per session, 256 vs 512 columns a sweep", rows,
-           "ratio = translational drift (%) over the coarse sweep's on the same session")
+    report(
+        "kiss-icp on the tiny town: KITTI drift, ATE and height drift per session, 256 vs 512 columns a sweep",
+        rows,
+        "ratio = translational drift (%) over the coarse sweep's on the same session",
+    )
     return 0
 
 

@@ -46,16 +46,30 @@ def score(ws: Path, town: Path) -> dict:
     e = traj.world_from_base[ok, :3, 3] - gt[:, :3, 3]
     local = e - e.mean(axis=0)
     georef = json.loads(s.gps_alignment.read_text())
-    return {"ate_m": float(np.sqrt((e**2).sum(axis=1).mean())), "ate_local_m": float(np.sqrt((local**2).sum(axis=1).mean())),
-            "revisit_m": revisit_error_m(ws, town), "height_spread_m": float(np.ptp(local[:, 2])), "georef_s": georef["seconds"],
-            "loops": georef["fused"].get("loop_accepted"), "loop_s": georef["fused"].get("loop_seconds")}
+    return {
+        "ate_m": float(np.sqrt((e**2).sum(axis=1).mean())),
+        "ate_local_m": float(np.sqrt((local**2).sum(axis=1).mean())),
+        "revisit_m": revisit_error_m(ws, town),
+        "height_spread_m": float(np.ptp(local[:, 2])),
+        "georef_s": georef["seconds"],
+        "loops": georef["fused"].get("loop_accepted"),
+        "loop_s": georef["fused"].get("loop_seconds"),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=None, help="working folder (default: a temporary one; reused when given)")
-    ap.add_argument("--size", type=float, nargs=3, default=(90.0, 70.0, 12.0), metavar=("W", "H", "R"),
-                    help="the route's rounded rectangle: width, height, corner radius (m)")
+    ap.add_argument(
+        "--out", type=Path, default=None, help="working folder (default: a temporary one; reused when given)"
+    )
+    ap.add_argument(
+        "--size",
+        type=float,
+        nargs=3,
+        default=(90.0, 70.0, 12.0),
+        metavar=("W", "H", "R"),
+        help="the route's rounded rectangle: width, height, corner radius (m)",
+    )
     ap.add_argument("--speed", type=float, default=9.0, help="cruising speed (m/s)")
     ap.add_argument("--extra", type=float, default=40.0, help="metres driven past the start after the lap")
     ap.add_argument("--lidar-hz", type=float, default=5.0, help="LiDAR sweep rate")
@@ -69,7 +83,8 @@ def main() -> None:
         loop_route(root / "loop.tum", tuple(args.size), args.extra, args.speed)
         (root / "synth.yaml").write_text(
             f"seed: {args.seed}\nsessions:\n  - {{name: loop, role: train, time: '12:00', weather: sunny, length_m: 400.0, "
-            f"camera_rate_hz: 0.2}}\ncamera: {{width: 64, height: 48}}\nlidar: {{rate_hz: {args.lidar_hz}}}\n")
+            f"camera_rate_hz: 0.2}}\ncamera: {{width: 64, height: 48}}\nlidar: {{rate_hz: {args.lidar_hz}}}\n"
+        )
         synthesize(preset="tiny", out=town, config=root / "synth.yaml", trajectory=root / "loop.tum", progress=False)
     log = session_log(town, "loop")
     (root / "base.yaml").write_text("map: false\nimagedb: false\n")
@@ -82,16 +97,22 @@ def main() -> None:
         build([log], root / f"ws-{label}", config=root / f"{label}.yaml", progress=False)
     kiss = json.loads((Workspace(root / "ws-base").session("loop").trajectory / "metrics.json").read_text())["seconds"]
     off, on = score(root / "ws-off", town), score(root / "ws-on", town)
-    print("| fused trajectory | ATE m | ATE, offset removed m | revisit motion error, median m | height error spread m "
-          "| georef stage s | loops accepted | loop step s |")
+    print(
+        "| fused trajectory | ATE m | ATE, offset removed m | revisit motion error, median m | height error spread m "
+        "| georef stage s | loops accepted | loop step s |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for label, r in (("without loop closures", off), ("with loop closures", on)):
         loops = "-" if r["loops"] is None else str(r["loops"])
         loop_s = "-" if r["loop_s"] is None else f"{r['loop_s']:.1f}"
-        print(f"| {label} | {r['ate_m']:.3f} | {r['ate_local_m']:.3f} | {r['revisit_m']:.3f} | {r['height_spread_m']:.3f} | "
-              f"{r['georef_s']:.1f} | {loops} | {loop_s} |")
-    print(f"\ngeoref stage with / without loop closures: {on['georef_s'] / off['georef_s']:.2f}x; the loop step is "
-          f"{on['loop_s'] / kiss:.0%} of kiss-icp's {kiss:.1f} s on this drive")
+        print(
+            f"| {label} | {r['ate_m']:.3f} | {r['ate_local_m']:.3f} | {r['revisit_m']:.3f} | {r['height_spread_m']:.3f} | "
+            f"{r['georef_s']:.1f} | {loops} | {loop_s} |"
+        )
+    print(
+        f"\ngeoref stage with / without loop closures: {on['georef_s'] / off['georef_s']:.2f}x; the loop step is "
+        f"{on['loop_s'] / kiss:.0%} of kiss-icp's {kiss:.1f} s on this drive"
+    )
     print(f"working folder: {root}")
 
 

@@ -69,7 +69,10 @@ def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
 
 # the config sections each reused stage hashes, and the stages whose digests its inputs record (as
 # SessionBuilder.trajectory / .georef compute them)
-_REUSED_STAGES = {"trajectory": (("topics", "trajectory"), ()), "georef": (("topics", "trajectory", "georef"), ("trajectory",))}
+_REUSED_STAGES = {
+    "trajectory": (("topics", "trajectory"), ()),
+    "georef": (("topics", "trajectory", "georef"), ("trajectory",)),
+}
 
 
 def _copy_stages(builder, sdir: Path, stages: tuple[str, ...]) -> None:
@@ -93,8 +96,13 @@ def _mark_finished(builder, stages: tuple[str, ...]) -> None:
         sections, upstream = _REUSED_STAGES[stage]
         out = getattr(builder.dirs, stage)
         info = {k: v for k, v in (read_marker(out) or {}).items() if k not in ("config_hash", "inputs", "outputs")}
-        mark_done(out, _stage_hash(builder.cfg, *sections), inputs=builder._inputs(*(getattr(builder.dirs, u) for u in upstream)),
-                  outputs=True, **info)
+        mark_done(
+            out,
+            _stage_hash(builder.cfg, *sections),
+            inputs=builder._inputs(*(getattr(builder.dirs, u) for u in upstream)),
+            outputs=True,
+            **info,
+        )
 
 
 def _fused(log, sdir: Path, name: str, cfg, scratch: Path):
@@ -115,35 +123,49 @@ def _fused(log, sdir: Path, name: str, cfg, scratch: Path):
 
 
 def _print_row(r: dict) -> None:
-    print(f"{r['variant']:16s} pose RMSE {r['position_rmse_m']:.3f} m  points {r['points']:7d}  median "
-          f"{r['median_distance_m']:.3f} m  within 0.5 m {r['fraction_within_0.5m']:.3f}  "
-          f"within 0.15 m {r['fraction_within_0.15m']:.3f}", flush=True)
+    print(
+        f"{r['variant']:16s} pose RMSE {r['position_rmse_m']:.3f} m  points {r['points']:7d}  median "
+        f"{r['median_distance_m']:.3f} m  within 0.5 m {r['fraction_within_0.5m']:.3f}  "
+        f"within 0.15 m {r['fraction_within_0.15m']:.3f}",
+        flush=True,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--workspace", type=Path, required=True, help="a workspace built by `mapkit build` from the town's logs")
+    ap.add_argument(
+        "--workspace", type=Path, required=True, help="a workspace built by `mapkit build` from the town's logs"
+    )
     ap.add_argument("--town", type=Path, required=True, help="the synthetic town (logs and truth)")
     ap.add_argument("--session", default="test-clear")
-    ap.add_argument("--variants", nargs="+", default=None, choices=VARIANTS,
-                    help="default: all, 'aligned' only when WORKSPACE/align holds the session")
+    ap.add_argument(
+        "--variants",
+        nargs="+",
+        default=None,
+        choices=VARIANTS,
+        help="default: all, 'aligned' only when WORKSPACE/align holds the session",
+    )
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
-    ap.add_argument("--semidense", type=Path, default=None,
-                    help="YAML of SemiDenseConfig fields set over the workspace's build config (e.g. the outlier filters)")
+    ap.add_argument(
+        "--semidense",
+        type=Path,
+        default=None,
+        help="YAML of SemiDenseConfig fields set over the workspace's build config (e.g. the outlier filters)",
+    )
     a = ap.parse_args(argv)
 
     import open3d as o3d
 
-    from mapkit.mapping.build import BuildConfig, SessionBuilder
-    from mapkit.evaluation.truth import session_truth_mesh, ws_from_town
+    from mapkit.core.config import load_config
     from mapkit.core.geodesy import LocalFrame
     from mapkit.core.geometry import interpolate_poses, transform_points
-    from mapkit.mapping.gps_align import fit_transform
     from mapkit.evaluation.metrics import map_accuracy
-    from mapkit.core.config import load_config
+    from mapkit.evaluation.truth import session_truth_mesh, ws_from_town
+    from mapkit.mapping.build import BuildConfig, SessionBuilder
+    from mapkit.mapping.gps_align import fit_transform
     from mapkit.mapping.semidense import SemiDenseMap
-    from mapkit.synth import gt_poses, session_log
     from mapkit.mapping.trajectory import Trajectory
+    from mapkit.synth import gt_poses, session_log
 
     ws, town, name = a.workspace, a.town, a.session
     sdir = ws / "sessions" / name
@@ -159,13 +181,17 @@ def main(argv: list[str] | None = None) -> int:
     est_fit = fit_transform(est.world_from_base[ok, :3, 3], gt_i[:, :3, 3], mode="yaw") @ est.world_from_base[ok]
     aligned_dir = ws / "align" / "sessions" / name
     # by default every variant but the fused one (it runs the georef stage again), and aligned only where align ran
-    variants = a.variants or [v for v in VARIANTS if v != "fused" and (v != "aligned" or (aligned_dir / "map").is_dir())]
+    variants = a.variants or [
+        v for v in VARIANTS if v != "fused" and (v != "aligned" or (aligned_dir / "map").is_dir())
+    ]
     cfg_path = ws / "build_config.yaml"
     cfg = load_config(BuildConfig, cfg_path) if cfg_path.is_file() else BuildConfig()
     if a.semidense is not None:
         import yaml
 
-        cfg = cfg.model_copy(update={"semidense": cfg.semidense.model_copy(update=yaml.safe_load(a.semidense.read_text()) or {})})
+        cfg = cfg.model_copy(
+            update={"semidense": cfg.semidense.model_copy(update=yaml.safe_load(a.semidense.read_text()) or {})}
+        )
     log = session_log(town, name)  # the workspace's metrics hold the path as the build was given it
 
     rows = []
@@ -178,8 +204,14 @@ def main(argv: list[str] | None = None) -> int:
                 fix = fit_transform(al.world_from_base[al_ok, :3, 3], al_gt[:, :3, 3], mode="yaw")
                 r = map_accuracy(transform_points(fix, SemiDenseMap.load(aligned_dir / "map").points_world), mesh)
                 err = np.linalg.norm(transform_points(fix, al.world_from_base[al_ok, :3, 3]) - al_gt[:, :3, 3], axis=1)
-                rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
-                             "seconds": time.perf_counter() - t0})
+                rows.append(
+                    {
+                        "variant": v,
+                        "position_rmse_m": float(np.sqrt(np.mean(err**2))),
+                        **r,
+                        "seconds": time.perf_counter() - t0,
+                    }
+                )
                 _print_row(rows[-1])
                 continue
             stamps, truth_v = est.stamps_ns[ok], gt_i
@@ -187,7 +219,10 @@ def main(argv: list[str] | None = None) -> int:
                 fused = _fused(log, sdir, name, cfg, Path(tmp) / "fuse")
                 truth_v, ok_f = interpolate_poses(gt_stamps, gt, fused.stamps_ns)
                 stamps = fused.stamps_ns[ok_f]
-                poses = fit_transform(fused.world_from_base[ok_f, :3, 3], truth_v[:, :3, 3], mode="yaw") @ fused.world_from_base[ok_f]
+                poses = (
+                    fit_transform(fused.world_from_base[ok_f, :3, 3], truth_v[:, :3, 3], mode="yaw")
+                    @ fused.world_from_base[ok_f]
+                )
             else:
                 poses = _variant_poses(v, est_fit, gt_i)
             builder = SessionBuilder(log, Path(tmp) / v, cfg, progress=False, name=name)
@@ -204,24 +239,36 @@ def main(argv: list[str] | None = None) -> int:
                 used = builder.enu_trajectory()
             finally:
                 builder.close()
-            if not (np.array_equal(used.stamps_ns, stamps) and np.allclose(used.world_from_base, poses, rtol=0, atol=1e-9)):
+            if not (
+                np.array_equal(used.stamps_ns, stamps) and np.allclose(used.world_from_base, poses, rtol=0, atol=1e-9)
+            ):
                 raise RuntimeError(f"{v}: the mapper read other poses than the variant's ({mapped} was rewritten)")
             pts = SemiDenseMap.load(out).points_world
             path_m = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
             r = map_accuracy(pts, mesh, road_length_m=path_m)
             err = np.linalg.norm(poses[:, :3, 3] - truth_v[:, :3, 3], axis=1)
-            rows.append({"variant": v, "position_rmse_m": float(np.sqrt(np.mean(err**2))), **r,
-                         "seconds": time.perf_counter() - t0})
+            rows.append(
+                {
+                    "variant": v,
+                    "position_rmse_m": float(np.sqrt(np.mean(err**2))),
+                    **r,
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
             _print_row(rows[-1])
     base = next((r for r in rows if r["variant"] == "estimated"), None)
-    print(f"\n| {name}: poses | position RMSE m | map points | points per 100 m | median to mesh m | within 0.5 m "
-          "| ratio of median to estimated |")
+    print(
+        f"\n| {name}: poses | position RMSE m | map points | points per 100 m | median to mesh m | within 0.5 m "
+        "| ratio of median to estimated |"
+    )
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         ratio = f"{r['median_distance_m'] / base['median_distance_m']:.2f}" if base else ""
         per100 = f"{r['points_per_100m']:.0f}" if r.get("points_per_100m") is not None else ""
-        print(f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {per100} | {r['median_distance_m']:.3f} | "
-              f"{r['fraction_within_0.5m']:.3f} | {ratio} |")
+        print(
+            f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {per100} | {r['median_distance_m']:.3f} | "
+            f"{r['fraction_within_0.5m']:.3f} | {ratio} |"
+        )
     if a.json:
         a.json.write_text(json.dumps({"session": name, "rows": rows}, indent=2))
     return 0

@@ -22,9 +22,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import report  # noqa: E402
+from mapkit.core.types import StreamKind  # noqa: E402
 from mapkit.io.mcap_log import McapLog  # noqa: E402
 from mapkit.synth import camera_poses, load_world  # noqa: E402
-from mapkit.core.types import StreamKind  # noqa: E402
 
 THUMB = (32, 24)
 RADIUS_M = 25.0
@@ -45,14 +45,22 @@ def thumbnails(out: Path, session: str, size=THUMB) -> tuple[np.ndarray, np.ndar
     return np.array(thumbs), np.array([pos[s] for s in stamps])
 
 
-def match(db: tuple[np.ndarray, np.ndarray], q: tuple[np.ndarray, np.ndarray], normalise: bool = False,
-          rng: np.random.Generator | None = None) -> dict:
+def match(
+    db: tuple[np.ndarray, np.ndarray],
+    q: tuple[np.ndarray, np.ndarray],
+    normalise: bool = False,
+    rng: np.random.Generator | None = None,
+) -> dict:
     Xd, Pd = db
     Xq, Pq = q
     if normalise:
-        Xd = (Xd - Xd.mean(1, keepdims=True)) / (np.linalg.norm(Xd - Xd.mean(1, keepdims=True), axis=1, keepdims=True) + 1e-6)
-        Xq = (Xq - Xq.mean(1, keepdims=True)) / (np.linalg.norm(Xq - Xq.mean(1, keepdims=True), axis=1, keepdims=True) + 1e-6)
-    d2 = (Xq ** 2).sum(1)[:, None] - 2 * Xq @ Xd.T + (Xd ** 2).sum(1)[None]
+        Xd = (Xd - Xd.mean(1, keepdims=True)) / (
+            np.linalg.norm(Xd - Xd.mean(1, keepdims=True), axis=1, keepdims=True) + 1e-6
+        )
+        Xq = (Xq - Xq.mean(1, keepdims=True)) / (
+            np.linalg.norm(Xq - Xq.mean(1, keepdims=True), axis=1, keepdims=True) + 1e-6
+        )
+    d2 = (Xq**2).sum(1)[:, None] - 2 * Xq @ Xd.T + (Xd**2).sum(1)[None]
     nn = np.argmin(d2, axis=1)
     geo = np.linalg.norm(Pq[:, None, :] - Pd[None, :, :], axis=2)
     valid = geo.min(axis=1) <= RADIUS_M
@@ -90,25 +98,34 @@ def evaluate(out: Path, pairs: list[tuple[str, str]] | None = None) -> tuple[lis
         norm = match(cache[db], cache[q], normalise=True)
         total_q += raw["queries"]
         total_f += raw["found"]
-        rows.append({
-            "database": f"{db} ({world.session(db)['condition']})", "query": f"{q} ({world.session(q)['condition']})",
-            "queries": raw["queries"], "found_raw": raw["found"],
-            "recall_raw": round(raw["found"] / max(raw["queries"], 1), 3),
-            "recall_normalised": round(norm["found"] / max(norm["queries"], 1), 3),
-            "chance": round(raw["chance"], 3),
-        })
+        rows.append(
+            {
+                "database": f"{db} ({world.session(db)['condition']})",
+                "query": f"{q} ({world.session(q)['condition']})",
+                "queries": raw["queries"],
+                "found_raw": raw["found"],
+                "recall_raw": round(raw["found"] / max(raw["queries"], 1), 3),
+                "recall_normalised": round(norm["found"] / max(norm["queries"], 1), 3),
+                "chance": round(raw["chance"], 3),
+            }
+        )
     return rows, total_f / max(total_q, 1)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dir", type=Path, required=True, help="a synthesized town (e.g. mapkit synth --preset demo)")
-    ap.add_argument("--pair", action="append", help="DATABASE:QUERY session names (default: each test vs its training session)")
+    ap.add_argument(
+        "--pair", action="append", help="DATABASE:QUERY session names (default: each test vs its training session)"
+    )
     args = ap.parse_args(argv)
     pairs = [tuple(p.split(":", 1)) for p in args.pair] if args.pair else None
     rows, overall = evaluate(args.dir, pairs)
-    report(f"Naive nearest neighbour on {THUMB[0]}x{THUMB[1]} grayscale thumbnails across conditions (found within {RADIUS_M:.0f} m)",
-           rows, f"overall: {overall:.3f} of the queries found (raw pixels); the goal is under 0.5")
+    report(
+        f"Naive nearest neighbour on {THUMB[0]}x{THUMB[1]} grayscale thumbnails across conditions (found within {RADIUS_M:.0f} m)",
+        rows,
+        f"overall: {overall:.3f} of the queries found (raw pixels); the goal is under 0.5",
+    )
     return 0
 
 

@@ -53,13 +53,21 @@ def _run_summary(out: Path, metrics: dict) -> dict:
     pairs = {}
     for p in places["pairs"]:
         key = f"{p['query']} to {p['database']}"
-        scopes = {"held_out": (p.get("methods"), p.get("queries")) if places.get("headline") == "held_out" else (None, None),
-                  "all_places": ((p.get("all_places") or p).get("methods"), (p.get("all_places") or p).get("queries"))}
-        pairs[key] = {scope: {"queries": q, **{m: (r or {}).get("auc") for m, r in (ms or {}).items()}}
-                      for scope, (ms, q) in scopes.items() if ms is not None}
-    return {"maps": places.get("maps", {}), "pairs": pairs,
-            "stages_s": {n: s.get("seconds") for n, s in metrics["stages"].items()},
-            "status": {n: s.get("status") for n, s in metrics["stages"].items()}}
+        scopes = {
+            "held_out": (p.get("methods"), p.get("queries")) if places.get("headline") == "held_out" else (None, None),
+            "all_places": ((p.get("all_places") or p).get("methods"), (p.get("all_places") or p).get("queries")),
+        }
+        pairs[key] = {
+            scope: {"queries": q, **{m: (r or {}).get("auc") for m, r in (ms or {}).items()}}
+            for scope, (ms, q) in scopes.items()
+            if ms is not None
+        }
+    return {
+        "maps": places.get("maps", {}),
+        "pairs": pairs,
+        "stages_s": {n: s.get("seconds") for n, s in metrics["stages"].items()},
+        "status": {n: s.get("status") for n, s in metrics["stages"].items()},
+    }
 
 
 def _fmt(v, d: int = 3) -> str:
@@ -71,36 +79,60 @@ def _ratio(a, b) -> str:
 
 
 def report(base: dict, video: dict, rate: float, base_label: str) -> str:
-    lines = [f"# Maps from every image ({rate:g} Hz video) against the preset's rates ({base_label})", "",
-             "## Map densities", "",
-             "| session | keyframes (preset / video) | points (preset / video) | per 100 m (preset / video) | ratio |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"# Maps from every image ({rate:g} Hz video) against the preset's rates ({base_label})",
+        "",
+        "## Map densities",
+        "",
+        "| session | keyframes (preset / video) | points (preset / video) | per 100 m (preset / video) | ratio |",
+        "|---|---|---|---|---|",
+    ]
     for name in sorted(set(base["maps"]) | set(video["maps"])):
         a, b = base["maps"].get(name, {}), video["maps"].get(name, {})
-        lines.append(f"| {name} | {_fmt(a.get('keyframes'), 0)} / {_fmt(b.get('keyframes'), 0)} | {_fmt(a.get('points'), 0)} / "
-                     f"{_fmt(b.get('points'), 0)} | {_fmt(a.get('points_per_100m'), 0)} / {_fmt(b.get('points_per_100m'), 0)} | "
-                     f"{_ratio(b.get('points_per_100m'), a.get('points_per_100m'))} |")
+        lines.append(
+            f"| {name} | {_fmt(a.get('keyframes'), 0)} / {_fmt(b.get('keyframes'), 0)} | {_fmt(a.get('points'), 0)} / "
+            f"{_fmt(b.get('points'), 0)} | {_fmt(a.get('points_per_100m'), 0)} / {_fmt(b.get('points_per_100m'), 0)} | "
+            f"{_ratio(b.get('points_per_100m'), a.get('points_per_100m'))} |"
+        )
     for scope, title in (("held_out", "Held-out places"), ("all_places", "All places")):
         keys = [k for k in base["pairs"] if scope in base["pairs"][k] or scope in video["pairs"].get(k, {})]
         if not keys:
             continue
-        methods = [m for m in ("nbld", "m2dp", "cnn", "vlad") if any(m in base["pairs"][k].get(scope, {}) for k in keys)]
-        lines += ["", f"## {title}: AUC, preset rate / video", "",
-                  "| pair | queries | " + " | ".join(m.upper() for m in methods) + " |", "|---|---|" + "---|" * len(methods)]
+        methods = [
+            m for m in ("nbld", "m2dp", "cnn", "vlad") if any(m in base["pairs"][k].get(scope, {}) for k in keys)
+        ]
+        lines += [
+            "",
+            f"## {title}: AUC, preset rate / video",
+            "",
+            "| pair | queries | " + " | ".join(m.upper() for m in methods) + " |",
+            "|---|---|" + "---|" * len(methods),
+        ]
         for k in keys:
             a, b = base["pairs"][k].get(scope, {}), video["pairs"].get(k, {}).get(scope, {})
-            lines.append(f"| {k} | {_fmt(a.get('queries'), 0)} / {_fmt(b.get('queries'), 0)} | "
-                         + " | ".join(f"{_fmt(a.get(m))} / {_fmt(b.get(m))}" for m in methods) + " |")
+            lines.append(
+                f"| {k} | {_fmt(a.get('queries'), 0)} / {_fmt(b.get('queries'), 0)} | "
+                + " | ".join(f"{_fmt(a.get(m))} / {_fmt(b.get(m))}" for m in methods)
+                + " |"
+            )
         for m in methods:
             va = [base["pairs"][k][scope].get(m) for k in keys if base["pairs"][k].get(scope, {}).get(m) is not None]
-            vb = [video["pairs"][k][scope].get(m) for k in keys if video["pairs"].get(k, {}).get(scope, {}).get(m) is not None]
+            vb = [
+                video["pairs"][k][scope].get(m)
+                for k in keys
+                if video["pairs"].get(k, {}).get(scope, {}).get(m) is not None
+            ]
             if va and vb:
-                lines.append(f"\n{m.upper()} mean AUC: {sum(va) / len(va):.3f} (preset) / {sum(vb) / len(vb):.3f} (video), "
-                             f"ratio {sum(vb) / len(vb) / (sum(va) / len(va)):.2f}")
+                lines.append(
+                    f"\n{m.upper()} mean AUC: {sum(va) / len(va):.3f} (preset) / {sum(vb) / len(vb):.3f} (video), "
+                    f"ratio {sum(vb) / len(vb) / (sum(va) / len(va)):.2f}"
+                )
     lines += ["", "## Stage times (s), preset / video", "", "| stage | preset | video | ratio |", "|---|---|---|---|"]
     for n in base["stages_s"]:
-        lines.append(f"| {n} | {_fmt(base['stages_s'][n], 1)} | {_fmt(video['stages_s'].get(n), 1)} | "
-                     f"{_ratio(video['stages_s'].get(n), base['stages_s'][n])} |")
+        lines.append(
+            f"| {n} | {_fmt(base['stages_s'][n], 1)} | {_fmt(video['stages_s'].get(n), 1)} | "
+            f"{_ratio(video['stages_s'].get(n), base['stages_s'][n])} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -112,8 +144,12 @@ def main(argv: list[str] | None = None) -> int:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="demo")
-    ap.add_argument("--sessions", nargs="+", default=list(DEFAULT_SESSIONS),
-                    help=f"drives of the preset to keep (default {' '.join(DEFAULT_SESSIONS)}); 'all' keeps every one")
+    ap.add_argument(
+        "--sessions",
+        nargs="+",
+        default=list(DEFAULT_SESSIONS),
+        help=f"drives of the preset to keep (default {' '.join(DEFAULT_SESSIONS)}); 'all' keeps every one",
+    )
     ap.add_argument("--rate", type=float, default=16.0, help="video rate (Hz; default 16, RobotCar's stereo camera)")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--workers", type=int, default=2)
@@ -125,8 +161,16 @@ def main(argv: list[str] | None = None) -> int:
     for label, rate in (("preset-rate", None), (f"video-{args.rate:g}hz", args.rate)):
         out = args.out / label
         print(f"[{label}] mapkit demo --preset {args.preset} into {out}", file=sys.stderr)
-        m = run_demo(out, args.preset, None, args.workers, False, progress=sys.stderr.isatty(), record_rate_hz=rate,
-                     synth_overrides=overrides)
+        m = run_demo(
+            out,
+            args.preset,
+            None,
+            args.workers,
+            False,
+            progress=sys.stderr.isatty(),
+            record_rate_hz=rate,
+            synth_overrides=overrides,
+        )
         bad = {n: s["status"] for n, s in m["stages"].items() if s["status"] in ("failed", "crashed")}
         if bad:
             print(f"[{label}] stages did not finish: {bad}; see {out / 'report.html'}", file=sys.stderr)
@@ -135,7 +179,9 @@ def main(argv: list[str] | None = None) -> int:
     base, video = runs["preset-rate"], runs[f"video-{args.rate:g}hz"]
     text = report(base, video, args.rate, f"preset {args.preset!r}, sessions {', '.join(args.sessions)}")
     atomic_write_text(args.out / "video_rate.md", text)
-    write_json(args.out / "video_rate.json", {"preset": args.preset, "sessions": args.sessions, "rate_hz": args.rate, **runs})
+    write_json(
+        args.out / "video_rate.json", {"preset": args.preset, "sessions": args.sessions, "rate_hz": args.rate, **runs}
+    )
     print(text, end="")
     return 0
 

@@ -37,7 +37,10 @@ def m2dp_check(folder: Path) -> dict:
     pts = np.fromfile(folder / "kitti-000000.bin", np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
     ref = np.loadtxt(folder / "kitti-000000.m2dp.txt").ravel()
     desc = d3.m2dp_reference(pts)
-    halves = [abs(float(a @ b)) / (np.linalg.norm(a) * np.linalg.norm(b)) for a, b in ((desc[:64], ref[:64]), (desc[64:], ref[64:]))]
+    halves = [
+        abs(float(a @ b)) / (np.linalg.norm(a) * np.linalg.norm(b))
+        for a, b in ((desc[:64], ref[:64]), (desc[64:], ref[64:]))
+    ]
     return {"points": int(len(pts)), "one_minus_cos": max(0.0, 1.0 - min(halves))}
 
 
@@ -46,13 +49,19 @@ def dsift_check(path: Path) -> dict:
         ref = {k: z[k] for k in z.files}
     _, _, desc = dense_sift(ref["image"], DsiftConfig(mode="phow"))
     ours = np.empty_like(desc[ref["index"]])
-    ours.reshape(-1, 16, 8)[:, :, [(-o) % 8 for o in range(8)]] = desc[ref["index"]].reshape(-1, 16, 8)  # VLFeat's bin order
+    ours.reshape(-1, 16, 8)[:, :, [(-o) % 8 for o in range(8)]] = desc[ref["index"]].reshape(
+        -1, 16, 8
+    )  # VLFeat's bin order
     zero_ours, zero_ref = ~ours.any(axis=1), ~ref["descriptors"].any(axis=1)
     kept = ~zero_ours & ~zero_ref
     a, b = ours[kept], ref["descriptors"][kept]
     cos = (a * b).sum(1) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
-    return {"frames_compared": int(kept.sum()), "median_cosine": float(np.median(cos)), "p05_cosine": float(np.percentile(cos, 5)),
-            "zeroing_agrees": float((zero_ours == zero_ref).mean())}
+    return {
+        "frames_compared": int(kept.sum()),
+        "median_cosine": float(np.median(cos)),
+        "p05_cosine": float(np.percentile(cos, 5)),
+        "zeroing_agrees": float((zero_ours == zero_ref).mean()),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -65,8 +74,10 @@ def main(argv: list[str] | None = None) -> int:
     result = {"command": "python3 bench/reference_checks.py", "m2dp": m2dp_check(m2dp_dir), "dsift": dsift_check(phow)}
     print(f"M2DP against M2DP.m: 1 - cos = {result['m2dp']['one_minus_cos']:.1e} ({result['m2dp']['points']} points)")
     d = result["dsift"]
-    print(f"dense SIFT (phow) against vl_phow: median cosine {d['median_cosine']:.6f}, 5th percentile {d['p05_cosine']:.6f} over "
-          f"{d['frames_compared']} frames; zeroing agrees on {100 * d['zeroing_agrees']:.2f} %")
+    print(
+        f"dense SIFT (phow) against vl_phow: median cosine {d['median_cosine']:.6f}, 5th percentile {d['p05_cosine']:.6f} over "
+        f"{d['frames_compared']} frames; zeroing agrees on {100 * d['zeroing_agrees']:.2f} %"
+    )
     if a.out:
         a.out.parent.mkdir(parents=True, exist_ok=True)
         a.out.write_text(json.dumps(result, indent=1) + "\n")

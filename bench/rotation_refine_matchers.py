@@ -67,15 +67,21 @@ def main() -> int:
         raise SystemExit(f"{args.clip}: the KITTI clip is not there (../shared/data, see its README)")
 
     K, poses, images = load_frames(args.clip, args.first_frame + args.frames)
-    poses, images = poses[args.first_frame:], images[args.first_frame:]
-    matches = feature_matches(images, range(len(images)), 3)  # the independent check: SIFT, ratio test, 1-3 frames apart
+    poses, images = poses[args.first_frame :], images[args.first_frame :]
+    matches = feature_matches(
+        images, range(len(images)), 3
+    )  # the independent check: SIFT, ratio test, 1-3 frames apart
     given_px = check_px(K, poses, matches)
 
     refined, rows = {}, []
     for label, kw in SETTINGS:
+
         def run(kw=kw, label=label):
             r = RotationRefiner(K, **kw)
-            refined[label] = np.array([T for _, _, _, T in r.stream((i, i, im, T) for i, (im, T) in enumerate(zip(images, poses)))])
+            refined[label] = np.array(
+                [T for _, _, _, T in r.stream((i, i, im, T) for i, (im, T) in enumerate(zip(images, poses)))]
+            )
+
         wall, cpu = best_wall_and_cpu(run, repeat=args.repeat)
         rows.append({"matcher": label, "wall_s": wall, "cpu_s": cpu, "check_px": check_px(K, refined[label], matches)})
     base = rows[0]
@@ -87,8 +93,10 @@ def main() -> int:
     report(
         f"rotation refinement matchers, KITTI frames {args.first_frame}-{args.first_frame + len(images) - 1} at 640x480",
         rows,
-        ratio_note=(f"check: median distance (px) of independent SIFT matches (1-3 frames apart) to the epipolar lines; "
-                    f"given poses {given_px:.4f} px. cpu_vs_sift: the refiner's CPU time over SIFT's, same run."),
+        ratio_note=(
+            f"check: median distance (px) of independent SIFT matches (1-3 frames apart) to the epipolar lines; "
+            f"given poses {given_px:.4f} px. cpu_vs_sift: the refiner's CPU time over SIFT's, same run."
+        ),
     )
     return 0
 

@@ -40,10 +40,10 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCH_DIR = Path(__file__).resolve().parent
@@ -59,16 +59,42 @@ QUICK_ARGS: dict[str, list[str]] = {
     "bench_executor": ["--images", "20"],
     "bench_mcl": ["--steps", "50", "--loop-steps", "1", "--repeat", "2"],
     "bench_semidense": ["--frames", "8", "--repeat", "1", "--naive", "40"],
-    "bench_structure_index": ["--db-size", "100000", "--repeat", "1", "--patches-nbld", "300", "--patches-m2dp", "100",
-                              "--frames", "20", "--timed-frames", "5", "--tree-frames", "1"],
+    "bench_structure_index": [
+        "--db-size",
+        "100000",
+        "--repeat",
+        "1",
+        "--patches-nbld",
+        "300",
+        "--patches-m2dp",
+        "100",
+        "--frames",
+        "20",
+        "--timed-frames",
+        "5",
+        "--tree-frames",
+        "1",
+    ],
     "bench_synth": ["--frames", "4", "--repeat", "1", "--skip-demo"],
     "bench_triplets": ["--n", "300"],
-    "bench_vlad_query": ["--n", "20000", "--queries", "50", "--nlist", "128", "--train", "5000",
-                         "--single-flat-queries", "10", "--skip-pq"],
+    "bench_vlad_query": [
+        "--n",
+        "20000",
+        "--queries",
+        "50",
+        "--nlist",
+        "128",
+        "--train",
+        "5000",
+        "--single-flat-queries",
+        "10",
+        "--skip-pq",
+    ],
 }
 
 
 # --- what a benchmark printed ---------------------------------------------------------------------------
+
 
 @dataclass
 class Printed:
@@ -96,7 +122,7 @@ def parse_output(stdout: str) -> Printed:
         text = line.strip()
         is_table = text.startswith(JSON_PREFIX)
         if is_table:
-            text = text[len(JSON_PREFIX):]
+            text = text[len(JSON_PREFIX) :]
         if not (text.startswith("{") and text.endswith("}")):
             continue
         try:
@@ -112,7 +138,7 @@ def parse_output(stdout: str) -> Printed:
 _RATIO_WORDS = re.compile(r"ratio|speed-?up|\bx\d|\d\s*x\b|\d(\.\d+)?x\b", re.IGNORECASE)
 
 
-def generic_ratio_line(printed: Printed) -> Optional[str]:
+def generic_ratio_line(printed: Printed) -> str | None:
     """The last plain-text output line that names a ratio or a speed-up (tables and JSON left out)."""
     for line in reversed(printed.lines):
         text = line.strip()
@@ -124,13 +150,17 @@ def generic_ratio_line(printed: Printed) -> Optional[str]:
 _RATIO_COLUMN = re.compile(r"ratio|speed.?up|speed_vs|_vs_|^x_", re.IGNORECASE)
 
 
-def generic_ratio_column(printed: Printed) -> Optional[str]:
+def generic_ratio_column(printed: Printed) -> str | None:
     """``column: label value; ...`` of the first table with a ratio-like numeric column."""
     for t in printed.tables:
         rows = t.get("rows") or []
         keys = list(rows[0]) if rows and isinstance(rows[0], dict) else []
         for k in keys[1:]:
-            vals = [(r.get(keys[0]), r.get(k)) for r in rows if isinstance(r.get(k), (int, float)) and not isinstance(r.get(k), bool)]
+            vals = [
+                (r.get(keys[0]), r.get(k))
+                for r in rows
+                if isinstance(r.get(k), (int, float)) and not isinstance(r.get(k), bool)
+            ]
             if _RATIO_COLUMN.search(k) and vals:
                 text = f"{k}: " + "; ".join(f"{label} {_f(v)}" for label, v in vals)
                 return text if len(text) <= 160 else text[:157] + "..."
@@ -139,6 +169,7 @@ def generic_ratio_column(printed: Printed) -> Optional[str]:
 
 # --- headline figures of the benchmarks that do not declare one ------------------------------------------
 
+
 def _f(v: float, digits: int = 3) -> str:
     return f"{v:.{digits}g}"
 
@@ -146,9 +177,11 @@ def _f(v: float, digits: int = 3) -> str:
 def _align(p: Printed) -> tuple[str, str, str]:
     rows = p.obj("benchmark", "align")["rows"]
     a, b = rows[0], rows[-1]
-    return (f"{_f(b['pairs_per_s'])} submap pairs/s; {a['sessions']} -> {b['sessions']} sessions: time x{_f(b['time_ratio'])}",
-            f"overlapping pairs x{_f(b['pairs_ratio'])}, sessions^2 x{_f(b['quadratic_ratio'])}",
-            f"{_f(b['time_ratio'] / b['pairs_ratio'])} (time growth / pair growth)")
+    return (
+        f"{_f(b['pairs_per_s'])} submap pairs/s; {a['sessions']} -> {b['sessions']} sessions: time x{_f(b['time_ratio'])}",
+        f"overlapping pairs x{_f(b['pairs_ratio'])}, sessions^2 x{_f(b['quadratic_ratio'])}",
+        f"{_f(b['time_ratio'] / b['pairs_ratio'])} (time growth / pair growth)",
+    )
 
 
 def _build(p: Printed) -> tuple[str, str, str]:
@@ -156,78 +189,119 @@ def _build(p: Printed) -> tuple[str, str, str]:
     mk = next(r for r in rows if r["what"].startswith("mapkit trajectory"))
     base = next(r for r in rows if r["what"].startswith("kiss-icp alone"))
     rtf = re.search(r"real-time factor ([\d.]+)", p.note("build real-time factor"))
-    return (f"trajectory stage {_f(mk['seconds'])} s ({mk['scans']} scans)" + (f"; build real-time factor {rtf.group(1)}" if rtf else ""),
-            f"kiss-icp alone {_f(base['seconds'])} s", f"{mk['ratio']:.3f} (time)")
+    return (
+        f"trajectory stage {_f(mk['seconds'])} s ({mk['scans']} scans)"
+        + (f"; build real-time factor {rtf.group(1)}" if rtf else ""),
+        f"kiss-icp alone {_f(base['seconds'])} s",
+        f"{mk['ratio']:.3f} (time)",
+    )
 
 
 def _cnn(p: Printed) -> tuple[str, str, str]:
     train, desc = p.table("Training throughput"), p.table("Describe throughput")
-    return (f"train {_f(train[0]['triplets_per_s_wall'])} triplets/s; describe {_f(desc[0]['patches_per_s_wall'])} patches/s (ONNX)",
-            f"one triplet per step {_f(train[1]['triplets_per_s_wall'])}/s; torch eager {_f(desc[1]['patches_per_s_wall'])}/s",
-            f"{_f(train[0]['speedup_vs_naive_wall'])} / {_f(desc[0]['speedup_vs_torch_wall'])}")
+    return (
+        f"train {_f(train[0]['triplets_per_s_wall'])} triplets/s; describe {_f(desc[0]['patches_per_s_wall'])} patches/s (ONNX)",
+        f"one triplet per step {_f(train[1]['triplets_per_s_wall'])}/s; torch eager {_f(desc[1]['patches_per_s_wall'])}/s",
+        f"{_f(train[0]['speedup_vs_naive_wall'])} / {_f(desc[0]['speedup_vs_torch_wall'])}",
+    )
 
 
 def _dsift(p: Printed) -> tuple[str, str, str]:
     s = p.obj("bench", "dsift_vlad_encode")
-    return (f"dense SIFT {_f(s['dense_sift_s'])} s/image; encode {_f(s['encode_s'])} s",
-            f"OpenCV SIFT on the same grid {_f(s['opencv_full_estimate_s'])} s/image (estimate)",
-            f"{s['opencv_per_descriptor_ratio']:.0f} (per descriptor)")
+    return (
+        f"dense SIFT {_f(s['dense_sift_s'])} s/image; encode {_f(s['encode_s'])} s",
+        f"OpenCV SIFT on the same grid {_f(s['opencv_full_estimate_s'])} s/image (estimate)",
+        f"{s['opencv_per_descriptor_ratio']:.0f} (per descriptor)",
+    )
 
 
 def _mcap_read(p: Printed) -> tuple[str, str, str]:
     rows = p.table("MCAP read")
     mk = next(r for r in rows if r["mode"] == "mapkit-nocrc" and r["log"] == "full")
     base = next(r for r in rows if r["mode"] == "mcap-decoded" and r["log"] == "full")
-    return (f"{_f(mk['wall_s'])} s to read the log (no CRC)", f"bare mcap decoding {_f(base['wall_s'])} s",
-            f"{mk['x_mcap_decoded']:.2f} (time)")
+    return (
+        f"{_f(mk['wall_s'])} s to read the log (no CRC)",
+        f"bare mcap decoding {_f(base['wall_s'])} s",
+        f"{mk['x_mcap_decoded']:.2f} (time)",
+    )
 
 
 def _mcl(p: Printed) -> tuple[str, str, str]:
     rows = p.table("mcl")
-    return (f"{_f(rows[0]['cpu_ms_per_call'])} ms CPU per step, 1,000 particles", f"per-particle loop {_f(rows[1]['cpu_ms_per_call'])} ms",
-            f"{rows[0]['speedup_vs_loop_cpu']:.0f} (speed-up)")
+    return (
+        f"{_f(rows[0]['cpu_ms_per_call'])} ms CPU per step, 1,000 particles",
+        f"per-particle loop {_f(rows[1]['cpu_ms_per_call'])} ms",
+        f"{rows[0]['speedup_vs_loop_cpu']:.0f} (speed-up)",
+    )
 
 
 def _semidense(p: Printed) -> tuple[str, str, str]:
     rows = p.table("semi-dense mapping")
     naive = next(r for r in rows if r["method"].startswith("naive"))
-    return (f"{_f(rows[0]['keyframes_per_s'])} keyframes/s end to end", f"naive per-pixel loop {_f(naive['keyframes_per_s'])} keyframes/s",
-            f"{naive['time_vs_map_keyframe']:.0f} (speed-up of map_keyframe)")
+    return (
+        f"{_f(rows[0]['keyframes_per_s'])} keyframes/s end to end",
+        f"naive per-pixel loop {_f(naive['keyframes_per_s'])} keyframes/s",
+        f"{naive['time_vs_map_keyframe']:.0f} (speed-up of map_keyframe)",
+    )
 
 
 def _structure_index(p: Printed) -> tuple[str, str, str]:
     s = p.obj("bench", "structure_index")
     d = ", ".join(f"{r['descriptor']} {_f(r['patches_per_s_cpu'])}" for r in s["describe"])
     q = s["query"]
-    return (f"describe() {d} patches/s; query {_f(q[0]['ms_per_frame_cpu'])} ms/frame ({q[0]['db_descriptors']} descriptors)",
-            f"cKDTree {_f(q[2]['ms_per_frame_cpu'])} ms/frame", f"{_f(s['checks']['ratio_cKDTree_over_faiss_per_frame_cpu'])} (query speed-up)")
+    return (
+        f"describe() {d} patches/s; query {_f(q[0]['ms_per_frame_cpu'])} ms/frame ({q[0]['db_descriptors']} descriptors)",
+        f"cKDTree {_f(q[2]['ms_per_frame_cpu'])} ms/frame",
+        f"{_f(s['checks']['ratio_cKDTree_over_faiss_per_frame_cpu'])} (query speed-up)",
+    )
 
 
 def _synth(p: Printed) -> tuple[str, str, str]:
     rows = p.table("Synthetic town: camera frames")
     mean = lambda k: sum(r[k] for r in rows) / len(rows)  # noqa: E731
-    return (f"{_f(mean('fps_camera_plus_lidar'))} frames/s with their LiDAR sweep", f"bare ray casts {_f(mean('fps_bare_ray_casts'))} frames/s",
-            f"{_f(mean('shading_cost_ratio'))} (time with shading / bare)")
+    return (
+        f"{_f(mean('fps_camera_plus_lidar'))} frames/s with their LiDAR sweep",
+        f"bare ray casts {_f(mean('fps_bare_ray_casts'))} frames/s",
+        f"{_f(mean('shading_cost_ratio'))} (time with shading / bare)",
+    )
 
 
 def _triplets(p: Printed) -> tuple[str, str, str]:
     s = p.obj("benchmark", "triplets")
-    return (f"{_f(s['mapkit']['triplets_per_s'])} triplets/s", f"per-place ICP {_f(s['baseline']['triplets_per_s'])} triplets/s",
-            f"{s['ratio']:.2f} (speed-up)")
+    return (
+        f"{_f(s['mapkit']['triplets_per_s'])} triplets/s",
+        f"per-place ICP {_f(s['baseline']['triplets_per_s'])} triplets/s",
+        f"{s['ratio']:.2f} (speed-up)",
+    )
 
 
 def _vlad_query(p: Printed) -> tuple[str, str, str]:
     s = p.obj("bench", "vlad_query")
     best = s["best_meeting_goal"] or {}
-    return ((f"{best['index']}: {_f(best['single_ms'])} ms/query, recall@20 {best['recall@20']:.3f}" if best else "no index under the goal")
-            + f" ({s['n']} x {s['dim']}-D)",
-            f"exact flat {_f(s['flat_single_ms'])} ms/query", f"{_f(best['speedup_vs_flat'])} (speed-up)" if best else "")
+    return (
+        (
+            f"{best['index']}: {_f(best['single_ms'])} ms/query, recall@20 {best['recall@20']:.3f}"
+            if best
+            else "no index under the goal"
+        )
+        + f" ({s['n']} x {s['dim']}-D)",
+        f"exact flat {_f(s['flat_single_ms'])} ms/query",
+        f"{_f(best['speedup_vs_flat'])} (speed-up)" if best else "",
+    )
 
 
 HEADLINES: dict[str, Callable[[Printed], tuple[str, str, str]]] = {
-    "bench_align": _align, "bench_build": _build, "bench_cnn": _cnn, "bench_dsift": _dsift, "bench_mcap_read": _mcap_read,
-    "bench_mcl": _mcl, "bench_semidense": _semidense, "bench_structure_index": _structure_index, "bench_synth": _synth,
-    "bench_triplets": _triplets, "bench_vlad_query": _vlad_query,
+    "bench_align": _align,
+    "bench_build": _build,
+    "bench_cnn": _cnn,
+    "bench_dsift": _dsift,
+    "bench_mcap_read": _mcap_read,
+    "bench_mcl": _mcl,
+    "bench_semidense": _semidense,
+    "bench_structure_index": _structure_index,
+    "bench_synth": _synth,
+    "bench_triplets": _triplets,
+    "bench_vlad_query": _vlad_query,
 }
 
 
@@ -236,7 +310,12 @@ def headline(name: str, printed: Printed) -> dict:
     declared = [t["headline"] for t in printed.tables if isinstance(t.get("headline"), dict)]
     if declared:
         h = declared[0]
-        return {"mapkit": h.get("mapkit", ""), "baseline": h.get("baseline", ""), "ratio": h.get("ratio", ""), "source": "declared"}
+        return {
+            "mapkit": h.get("mapkit", ""),
+            "baseline": h.get("baseline", ""),
+            "ratio": h.get("ratio", ""),
+            "source": "declared",
+        }
     pick = HEADLINES.get(name)
     if pick is not None:
         try:
@@ -252,6 +331,7 @@ def headline(name: str, printed: Printed) -> dict:
 
 
 # --- running ---------------------------------------------------------------------------------------------
+
 
 @dataclass
 class BenchSpec:
@@ -269,7 +349,7 @@ class BenchResult:
     command: list[str]
     status: str  # ok | failed | timed out | skipped
     detail: str = ""
-    returncode: Optional[int] = None
+    returncode: int | None = None
     wall_s: float = 0.0
     mapkit: str = ""
     baseline: str = ""
@@ -287,7 +367,12 @@ def inspect_bench(path: Path) -> BenchSpec:
     doc = (ast.get_docstring(tree) or "").strip()
     options, positionals = set(), []
     for node in ast.walk(tree):
-        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "add_argument" and node.args:
+        if (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "add_argument"
+            and node.args
+        ):
             first = node.args[0]
             if isinstance(first, ast.Constant) and isinstance(first.value, str):
                 (options.add(first.value) if first.value.startswith("-") else positionals.append(first.value))
@@ -303,7 +388,7 @@ def _first_sentence(doc: str, limit: int = 160) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def discover(bench_dir: Path, only: Optional[list[str]] = None) -> list[BenchSpec]:
+def discover(bench_dir: Path, only: list[str] | None = None) -> list[BenchSpec]:
     paths = sorted(bench_dir.glob("bench_*.py"))
     if only:
         wanted = {n.removesuffix(".py").removeprefix("bench_") for n in only}
@@ -314,7 +399,7 @@ def discover(bench_dir: Path, only: Optional[list[str]] = None) -> list[BenchSpe
     return [inspect_bench(p) for p in paths]
 
 
-def command_for(spec: BenchSpec, quick: bool, workspace: Path) -> tuple[list[str], Optional[str]]:
+def command_for(spec: BenchSpec, quick: bool, workspace: Path) -> tuple[list[str], str | None]:
     """The command line of a benchmark, or the reason it cannot run."""
     cmd = [sys.executable, str(spec.path)]
     for pos in spec.positionals:
@@ -337,7 +422,9 @@ def run_one(spec: BenchSpec, quick: bool, workspace: Path, timeout_s: float) -> 
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     t0 = time.perf_counter()
     # its own session, so that a timeout ends the benchmark's children (workers, fresh processes) too
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
     try:
         stdout, stderr = proc.communicate(timeout=timeout_s)
         timed_out = False
@@ -364,6 +451,7 @@ def run_one(spec: BenchSpec, quick: bool, workspace: Path, timeout_s: float) -> 
 
 # --- the report --------------------------------------------------------------------------------------------
 
+
 def _cell(text: str) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
 
@@ -382,17 +470,29 @@ def markdown(results: list[BenchResult], quick: bool, started: str) -> str:
     for r in results:
         status = r.status + (f": {r.detail}" if r.detail else "")
         wall = f"{r.wall_s:.0f}" if r.status != "skipped" else ""
-        lines.append("| " + " | ".join(_cell(c) for c in (r.name.removeprefix("bench_"), r.what, r.mapkit, r.baseline, r.ratio, wall, status)) + " |")
+        lines.append(
+            "| "
+            + " | ".join(
+                _cell(c) for c in (r.name.removeprefix("bench_"), r.what, r.mapkit, r.baseline, r.ratio, wall, status)
+            )
+            + " |"
+        )
     return "\n".join(lines) + "\n"
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("bench-report.md"), help="Markdown report; the JSON goes beside it (.json)")
+    ap.add_argument(
+        "--out", type=Path, default=Path("bench-report.md"), help="Markdown report; the JSON goes beside it (.json)"
+    )
     ap.add_argument("--quick", action="store_true", help="small runs: each benchmark's --quick, else its QUICK_ARGS")
     ap.add_argument("--only", nargs="+", metavar="NAME", help="run only these (descriptors3d or bench_descriptors3d)")
-    ap.add_argument("--timeout", type=float, default=None, help="seconds per benchmark (default 900 with --quick, else 3600)")
-    ap.add_argument("--workspace", type=Path, default=DEFAULT_WORKSPACE, help="aligned workspace for the benchmarks that take one")
+    ap.add_argument(
+        "--timeout", type=float, default=None, help="seconds per benchmark (default 900 with --quick, else 3600)"
+    )
+    ap.add_argument(
+        "--workspace", type=Path, default=DEFAULT_WORKSPACE, help="aligned workspace for the benchmarks that take one"
+    )
     ap.add_argument("--bench-dir", type=Path, default=BENCH_DIR, help="folder of the bench_*.py scripts")
     args = ap.parse_args(argv)
     timeout_s = args.timeout or (900.0 if args.quick else 3600.0)
@@ -402,14 +502,27 @@ def main(argv: Optional[list[str]] = None) -> int:
     for spec in specs:
         print(f"[run_all] {spec.name} ...", file=sys.stderr, flush=True)
         r = run_one(spec, args.quick, args.workspace, timeout_s)
-        print(f"[run_all] {spec.name}: {r.status}{': ' + r.detail if r.detail else ''} ({r.wall_s:.0f} s)", file=sys.stderr, flush=True)
+        print(
+            f"[run_all] {spec.name}: {r.status}{': ' + r.detail if r.detail else ''} ({r.wall_s:.0f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
         results.append(r)
         # written after every benchmark, so that an interrupted run keeps what it measured
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(markdown(results, args.quick, started))
-        args.out.with_suffix(".json").write_text(json.dumps(
-            {"started": started, "quick": args.quick, "timeout_s": timeout_s, "results": [asdict(x) for x in results]},
-            indent=1, default=str))
+        args.out.with_suffix(".json").write_text(
+            json.dumps(
+                {
+                    "started": started,
+                    "quick": args.quick,
+                    "timeout_s": timeout_s,
+                    "results": [asdict(x) for x in results],
+                },
+                indent=1,
+                default=str,
+            )
+        )
     print(markdown(results, args.quick, started))
     return 0
 

@@ -49,8 +49,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -62,7 +62,14 @@ if str(ROOT) not in sys.path:
 from mapkit.core.config import load_config  # noqa: E402
 from mapkit.core.runio import write_json  # noqa: E402
 from mapkit.mapping.pose_refine import epipolar_distances_px, refine_rotations  # noqa: E402
-from mapkit.mapping.semidense import KeyframePoints, SemiDenseConfig, SemiDenseMap, build_semidense_map, consistency, multi_view_filter  # noqa: E402
+from mapkit.mapping.semidense import (
+    KeyframePoints,
+    SemiDenseConfig,
+    SemiDenseMap,
+    build_semidense_map,
+    consistency,
+    multi_view_filter,
+)  # noqa: E402
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 DEFAULT_OUT = Path("/tmp/mapkit-semidense-kitti")
@@ -76,8 +83,15 @@ POSE_CHECK_GAP = 3  # the neighbour window's farthest frame (neighbour_window_fr
 LOWE_RATIO = 0.7  # SIFT ratio test (Lowe, IJCV 2004: 0.8; 0.7 stricter, fewer wrong matches on repeated facades)
 POSE_HUBER_PX = 1.0  # robust scale (px) of the epipolar distances in refine_rotations
 #: every outlier filter off: a depth accepted where 3 frames agree
-FILTERS_OFF = {"min_consistent_views": 0, "ambiguity_ratio": None, "max_sigma_inv_depth": None, "outlier_neighbours": 0,
-               "photometric_min_views": 0, "free_space_window_keyframes": 0, "min_agreeing_frames": 3}
+FILTERS_OFF = {
+    "min_consistent_views": 0,
+    "ambiguity_ratio": None,
+    "max_sigma_inv_depth": None,
+    "outlier_neighbours": 0,
+    "photometric_min_views": 0,
+    "free_space_window_keyframes": 0,
+    "min_agreeing_frames": 3,
+}
 #: the filtered run without --config: the multi-view test at its defaults (chosen on frames 0-25 of the clip) and the
 #: free-space test against 25 keyframes either side (the recommended filters, configs/build/clean-maps.yaml)
 FILTERS_ON = {"min_consistent_views": 1, "free_space_window_keyframes": 25}
@@ -94,7 +108,10 @@ FILTERS_ALONE = {
 FILTERS_ALONE["multi-view + free space"] = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["free space"]}
 FILTERS_ALONE["multi-view + photometric"] = {**FILTERS_ALONE["multi-view"], **FILTERS_ALONE["photometric"]}
 FILTERS_ALONE["the three fusion tests"] = {**FILTERS_ALONE["multi-view + photometric"], **FILTERS_ALONE["free space"]}
-FILTERS_ALONE["multi-view + free space, 4 agreeing frames"] = {**FILTERS_ALONE["multi-view + free space"], **FILTERS_ALONE["4 agreeing frames"]}
+FILTERS_ALONE["multi-view + free space, 4 agreeing frames"] = {
+    **FILTERS_ALONE["multi-view + free space"],
+    **FILTERS_ALONE["4 agreeing frames"],
+}
 FILTERS_ALONE["all six"] = {k: v for name, d in list(FILTERS_ALONE.items())[:6] for k, v in d.items()}
 
 
@@ -111,12 +128,16 @@ def read_clip_geometry(clip: Path) -> tuple[np.ndarray, np.ndarray, list[Path]]:
     return P0[:, :3], poses, images
 
 
-def stream_frames(poses: np.ndarray, images: list[Path], frames: range) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+def stream_frames(
+    poses: np.ndarray, images: list[Path], frames: range
+) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
     for i in frames:
         yield i, i * FRAME_PERIOD_NS, cv2.imread(str(images[i]), cv2.IMREAD_GRAYSCALE), poses[i]
 
 
-def feature_matches(images: Sequence[Path | np.ndarray], frames: range, max_gap: int) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+def feature_matches(
+    images: Sequence[Path | np.ndarray], frames: range, max_gap: int
+) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
     """(i, j, pixels in i (n, 2), pixels in j (n, 2)) of SIFT matches passing Lowe's ratio test, for every
     pair of ``frames`` at most ``max_gap`` apart; ``images`` are paths or grey images already read."""
     sift = cv2.SIFT_create(nfeatures=3000)
@@ -130,12 +151,18 @@ def feature_matches(images: Sequence[Path | np.ndarray], frames: range, max_gap:
             if di is None or dj is None or len(di) < 2 or len(dj) < 2:
                 continue
             good = [a for a, b in matcher.knnMatch(di, dj, k=2) if a.distance < LOWE_RATIO * b.distance]
-            out.append((i, j, np.array([ki[a.queryIdx].pt for a in good]).reshape(-1, 2),
-                        np.array([kj[a.trainIdx].pt for a in good]).reshape(-1, 2)))
+            out.append(
+                (
+                    i,
+                    j,
+                    np.array([ki[a.queryIdx].pt for a in good]).reshape(-1, 2),
+                    np.array([kj[a.trainIdx].pt for a in good]).reshape(-1, 2),
+                )
+            )
     return out
 
 
-def pose_check(K: np.ndarray, given: np.ndarray, refined: Optional[np.ndarray], matches) -> list[dict]:
+def pose_check(K: np.ndarray, given: np.ndarray, refined: np.ndarray | None, matches) -> list[dict]:
     """Per frame: median epipolar distance (px) of its matches with the next frame and with the frame
     ``POSE_CHECK_GAP`` on, under the given poses (and the refined ones), and the rotation between the two."""
     from mapkit.core.geometry import rotation_angle_rad
@@ -148,11 +175,15 @@ def pose_check(K: np.ndarray, given: np.ndarray, refined: Optional[np.ndarray], 
         if row is None:
             row = {"frame": i}
             if refined is not None:
-                row["rotation_change_deg"] = float(np.degrees(rotation_angle_rad(given[i, :3, :3].T @ refined[i, :3, :3])))
+                row["rotation_change_deg"] = float(
+                    np.degrees(rotation_angle_rad(given[i, :3, :3].T @ refined[i, :3, :3]))
+                )
             out.append(row)
         row[f"given_px_gap{j - i}"] = float(np.median(epipolar_distances_px(K, given, i, j, a, b))) if len(a) else None
         if refined is not None:
-            row[f"refined_px_gap{j - i}"] = float(np.median(epipolar_distances_px(K, refined, i, j, a, b))) if len(a) else None
+            row[f"refined_px_gap{j - i}"] = (
+                float(np.median(epipolar_distances_px(K, refined, i, j, a, b))) if len(a) else None
+            )
         row[f"matches_gap{j - i}"] = int(len(a))
     return out
 
@@ -160,13 +191,18 @@ def pose_check(K: np.ndarray, given: np.ndarray, refined: Optional[np.ndarray], 
 class Run:
     """One mapping of the clip: the map, each keyframe's raw and filtered depths, the time it took."""
 
-    def __init__(self, cfg: SemiDenseConfig, poses: np.ndarray, images: list[Path], frames: range, K: np.ndarray, progress: bool):
+    def __init__(
+        self, cfg: SemiDenseConfig, poses: np.ndarray, images: list[Path], frames: range, K: np.ndarray, progress: bool
+    ):
         self.cfg = cfg
         self.raw: dict[int, tuple[np.ndarray, KeyframePoints]] = {}
         self.filtered: dict[int, tuple[np.ndarray, KeyframePoints]] = {}
         t0 = time.perf_counter()
         self.map = build_semidense_map(
-            stream_frames(poses, images, frames), K, cfg, progress=progress,
+            stream_frames(poses, images, frames),
+            K,
+            cfg,
+            progress=progress,
             on_keyframe=lambda fid, T, pts: self.raw.__setitem__(fid, (T, pts)),
             on_fused=lambda fid, T, pts: self.filtered.__setitem__(fid, (T, pts)),
         )
@@ -178,19 +214,31 @@ class Run:
         the farther pairs told apart against ``verified``, and broken down along the drive by ``keyframe_bins``)
         and against those that entered fusion (``filtered``)."""
         as_list = lambda d: [(fid, T, pts) for fid, (T, pts) in d.items()]  # noqa: E731
-        self.consistency = {"raw": consistency(self.map, as_list(self.raw), verified=as_list(verified), baseline_bins_m=DISTANCE_BINS_M,
-                                               keyframe_bins=keyframe_bins),
-                            "filtered": consistency(self.map, as_list(self.filtered), baseline_bins_m=DISTANCE_BINS_M)}
+        self.consistency = {
+            "raw": consistency(
+                self.map,
+                as_list(self.raw),
+                verified=as_list(verified),
+                baseline_bins_m=DISTANCE_BINS_M,
+                keyframe_bins=keyframe_bins,
+            ),
+            "filtered": consistency(self.map, as_list(self.filtered), baseline_bins_m=DISTANCE_BINS_M),
+        }
 
     def metrics(self) -> dict:
-        return {"seconds": self.seconds, "keyframes_per_s": len(self.raw) / self.seconds,
-                "keyframe_points_before_fusion": sum(len(p) for _, p in self.raw.values()),
-                "keyframe_points_after_fusion_filters": sum(len(p) for _, p in self.filtered.values()),
-                **self.map.stats(), "consistency": self.consistency}
+        return {
+            "seconds": self.seconds,
+            "keyframes_per_s": len(self.raw) / self.seconds,
+            "keyframe_points_before_fusion": sum(len(p) for _, p in self.raw.values()),
+            "keyframe_points_after_fusion_filters": sum(len(p) for _, p in self.filtered.values()),
+            **self.map.stats(),
+            "consistency": self.consistency,
+        }
 
 
-def verified_depths(raw: dict[int, tuple[np.ndarray, KeyframePoints]], K: np.ndarray, cfg: SemiDenseConfig,
-                    shape: tuple[int, int]) -> dict[int, tuple[np.ndarray, KeyframePoints]]:
+def verified_depths(
+    raw: dict[int, tuple[np.ndarray, KeyframePoints]], K: np.ndarray, cfg: SemiDenseConfig, shape: tuple[int, int]
+) -> dict[int, tuple[np.ndarray, KeyframePoints]]:
     """Each keyframe's depths that pass the mapper's multi-view test (at ``cfg``'s consistency settings,
     ``min_consistent_views`` at least 1) against the keyframes within ``consistency_window_keyframes``:
     one fixed reference for every run (the unfiltered run's depths), so that no run is scored
@@ -201,10 +249,16 @@ def verified_depths(raw: dict[int, tuple[np.ndarray, KeyframePoints]], K: np.nda
     out = {}
     for i, f in enumerate(ids):
         T, pts = raw[f]
-        others = [(raw[g][0], depth[g]) for g in ids[max(0, i - n): i + n + 1] if g != f]
-        keep = multi_view_filter(pts.points_world(K, T), others, K, min_views=max(cfg.min_consistent_views, 1),
-                                 min_agree_over_conflict=cfg.min_agree_over_conflict, rel_tol=cfg.consistency_rel_tol,
-                                 pixel_radius=cfg.consistency_pixel_radius)
+        others = [(raw[g][0], depth[g]) for g in ids[max(0, i - n) : i + n + 1] if g != f]
+        keep = multi_view_filter(
+            pts.points_world(K, T),
+            others,
+            K,
+            min_views=max(cfg.min_consistent_views, 1),
+            min_agree_over_conflict=cfg.min_agree_over_conflict,
+            rel_tol=cfg.consistency_rel_tol,
+            pixel_radius=cfg.consistency_pixel_radius,
+        )
         out[f] = (T, pts.select(keep))
     return out
 
@@ -221,7 +275,9 @@ def picture(path: Path, sd_map, poses: np.ndarray, keyframe: tuple[int, Keyframe
     height = -X[:, 1]  # KITTI cameras: y points down; height above the camera in metres
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(14, 10), gridspec_kw={"height_ratios": [1.25, 1.0]})
     order = np.argsort(height)  # high points on top
-    sc = ax1.scatter(X[order, 2], -X[order, 0], c=height[order], s=0.2, cmap="viridis", vmin=-1.8, vmax=4.0, rasterized=True)
+    sc = ax1.scatter(
+        X[order, 2], -X[order, 0], c=height[order], s=0.2, cmap="viridis", vmin=-1.8, vmax=4.0, rasterized=True
+    )
     ax1.plot(poses[:, 2, 3], -poses[:, 0, 3], "r-", lw=1.5, label="camera path (given poses)")
     kf = np.isin(np.arange(len(poses)), sd_map.keyframe_ids)
     ax1.plot(poses[kf, 2, 3], -poses[kf, 0, 3], "r.", ms=4, label="keyframes")
@@ -230,12 +286,23 @@ def picture(path: Path, sd_map, poses: np.ndarray, keyframe: tuple[int, Keyframe
     ax1.set_aspect("equal")
     ax1.set_xlabel("forward z (m)")
     ax1.set_ylabel("left -x (m)")
-    ax1.set_title(f"top view: {len(sd_map)} fused map points (colour: height above the camera, m; the road is at -1.65)")
+    ax1.set_title(
+        f"top view: {len(sd_map)} fused map points (colour: height above the camera, m; the road is at -1.65)"
+    )
     ax1.legend(loc="upper left", markerscale=3)
     fig.colorbar(sc, ax=ax1, fraction=0.015, pad=0.01)
     ax2.imshow(image, cmap="gray", vmin=0, vmax=255)
     d = pts.depth
-    sc2 = ax2.scatter(pts.pixels_uv[:, 0], pts.pixels_uv[:, 1], c=d, s=0.8, cmap="turbo", vmin=0, vmax=float(np.percentile(d, 98)), rasterized=True)
+    sc2 = ax2.scatter(
+        pts.pixels_uv[:, 0],
+        pts.pixels_uv[:, 1],
+        c=d,
+        s=0.8,
+        cmap="turbo",
+        vmin=0,
+        vmax=float(np.percentile(d, 98)),
+        rasterized=True,
+    )
     ax2.set_title(f"keyframe {fid}: its {len(pts)} accepted depths (colour: depth, m)")
     ax2.set_axis_off()
     fig.colorbar(sc2, ax=ax2, fraction=0.015, pad=0.01)
@@ -254,7 +321,9 @@ def rejected_mask(unfiltered: SemiDenseMap, filtered: SemiDenseMap) -> np.ndarra
     return ~np.isfinite(d)
 
 
-def rejected_picture(path: Path, unfiltered: SemiDenseMap, filtered: SemiDenseMap, rejected: np.ndarray, poses: np.ndarray) -> None:
+def rejected_picture(
+    path: Path, unfiltered: SemiDenseMap, filtered: SemiDenseMap, rejected: np.ndarray, poses: np.ndarray
+) -> None:
     """Top view: the filtered map (grey) and what the filters removed (red), side by side and overlaid."""
     import matplotlib
 
@@ -263,10 +332,14 @@ def rejected_picture(path: Path, unfiltered: SemiDenseMap, filtered: SemiDenseMa
 
     kept, gone = filtered.points_world, unfiltered.points_world[rejected]
     fig, axes = plt.subplots(3, 1, figsize=(13, 15), sharex=True)
-    panels = ((f"kept: {len(kept)} points of the filtered map", [(kept, "0.25")]),
-              (f"rejected: {len(gone)} points of the unfiltered map ({len(unfiltered)}) with no kept point within {REJECTED_RADIUS_M} m",
-               [(gone, "tab:red")]),
-              ("both (kept drawn over rejected)", [(gone, "tab:red"), (kept, "0.25")]))
+    panels = (
+        (f"kept: {len(kept)} points of the filtered map", [(kept, "0.25")]),
+        (
+            f"rejected: {len(gone)} points of the unfiltered map ({len(unfiltered)}) with no kept point within {REJECTED_RADIUS_M} m",
+            [(gone, "tab:red")],
+        ),
+        ("both (kept drawn over rejected)", [(gone, "tab:red"), (kept, "0.25")]),
+    )
     for ax, (title, layers) in zip(axes, panels):
         for X, colour in layers:
             ax.scatter(X[:, 2], -X[:, 0], s=0.15, c=colour, rasterized=True)
@@ -284,15 +357,23 @@ def rejected_picture(path: Path, unfiltered: SemiDenseMap, filtered: SemiDenseMa
 
 
 def _summary_rows(c: dict) -> list[str]:
-    return [f"{100 * c['median_rel']:.2f} %", f"{100 * c['p90_rel']:.1f} %", f"{100 * c['frac_map_farther_5pct']:.1f} %",
-            f"{100 * c['frac_map_nearer_5pct']:.1f} %", f"{100 * c['frac_below_5pct']:.1f} %", str(c["pairs"])]
+    return [
+        f"{100 * c['median_rel']:.2f} %",
+        f"{100 * c['p90_rel']:.1f} %",
+        f"{100 * c['frac_map_farther_5pct']:.1f} %",
+        f"{100 * c['frac_map_nearer_5pct']:.1f} %",
+        f"{100 * c['frac_below_5pct']:.1f} %",
+        str(c["pairs"]),
+    ]
 
 
 def _four(c: dict) -> str:
     if not c.get("pairs"):
         return "-"
-    return (f"{100 * c['median_rel']:.2f} / {100 * c['p90_rel']:.1f} / {100 * c['frac_map_farther_5pct']:.1f} / "
-            f"{100 * c['frac_map_nearer_5pct']:.1f} %")
+    return (
+        f"{100 * c['median_rel']:.2f} / {100 * c['p90_rel']:.1f} / {100 * c['frac_map_farther_5pct']:.1f} / "
+        f"{100 * c['frac_map_nearer_5pct']:.1f} %"
+    )
 
 
 def _fusion_filters_on(cfg: SemiDenseConfig) -> bool:
@@ -304,7 +385,9 @@ def _bins(c: dict, key: str) -> list[tuple[str, str]]:
     for b in c[key]:
         if b["pairs"]:
             span = f"{b['from_m']:.0f}-{b['to_m']:.0f} m" if b["to_m"] is not None else f">= {b['from_m']:.0f} m"
-            figures = f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} %"
+            figures = (
+                f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} %"
+            )
             out.append((span, f"{figures} ({b['pairs']})"))
     return out
 
@@ -323,21 +406,35 @@ def _load_semidense(path: Path) -> SemiDenseConfig:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP, help="KITTI clip folder (image_l/, poses.txt, calib.txt)")
+    ap.add_argument(
+        "--clip", type=Path, default=DEFAULT_CLIP, help="KITTI clip folder (image_l/, poses.txt, calib.txt)"
+    )
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     ap.add_argument("--first-frame", type=int, default=0, help="start at this frame (25: the second half of the clip)")
     ap.add_argument("--frames", type=int, default=10**9, help="use at most N frames")
-    ap.add_argument("--config", type=Path, default=None,
-                    help="YAML over SemiDenseConfig defaults for the filtered run, or a build config (its semidense section; "
-                         "e.g. configs/build/clean-maps.yaml) (default: FILTERS_ON); "
-                         "the unfiltered run sets FILTERS_OFF over it")
-    ap.add_argument("--ablation", action="store_true", help="also map with each outlier filter alone, and with combinations of them")
-    ap.add_argument("--refine-rotations", action="store_true",
-                    help="map on the given positions with each frame's rotation re-estimated from SIFT matches (a diagnostic: "
-                         "what the map measures on poses that agree with the images)")
-    ap.add_argument("--refine-in-mapper", action="store_true",
-                    help="map on the given poses with the mapper's own rotation refinement on (refine_rotations: true, "
-                         "mapkit.mapping.pose_refine; the same as a --config that sets it): both runs")
+    ap.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="YAML over SemiDenseConfig defaults for the filtered run, or a build config (its semidense section; "
+        "e.g. configs/build/clean-maps.yaml) (default: FILTERS_ON); "
+        "the unfiltered run sets FILTERS_OFF over it",
+    )
+    ap.add_argument(
+        "--ablation", action="store_true", help="also map with each outlier filter alone, and with combinations of them"
+    )
+    ap.add_argument(
+        "--refine-rotations",
+        action="store_true",
+        help="map on the given positions with each frame's rotation re-estimated from SIFT matches (a diagnostic: "
+        "what the map measures on poses that agree with the images)",
+    )
+    ap.add_argument(
+        "--refine-in-mapper",
+        action="store_true",
+        help="map on the given poses with the mapper's own rotation refinement on (refine_rotations: true, "
+        "mapkit.mapping.pose_refine; the same as a --config that sets it): both runs",
+    )
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     if not (args.clip / "poses.txt").is_file():
@@ -361,7 +458,8 @@ def main(argv: list[str] | None = None) -> int:
         poses = refined
     runs: dict[str, Run] = {}
     for name, c in [("unfiltered", off), ("filtered", cfg)] + (
-            [(k, off.model_copy(update=v)) for k, v in FILTERS_ALONE.items()] if args.ablation else []):
+        [(k, off.model_copy(update=v)) for k, v in FILTERS_ALONE.items()] if args.ablation else []
+    ):
         runs[name] = Run(c, poses, images, frames, K, progress=not args.no_progress)
     base, new = runs["unfiltered"], runs["filtered"]
     w, h = new.map.image_size_wh
@@ -373,12 +471,22 @@ def main(argv: list[str] | None = None) -> int:
     gone = rejected_mask(base.map, new.map)
 
     metrics = {
-        "clip": str(args.clip), "frames": [frames.start, frames.stop], "image_size_wh": list(new.map.image_size_wh),
-        "filters_off": FILTERS_OFF, "config": cfg.model_dump(mode="json"),
+        "clip": str(args.clip),
+        "frames": [frames.start, frames.stop],
+        "image_size_wh": list(new.map.image_size_wh),
+        "filters_off": FILTERS_OFF,
+        "config": cfg.model_dump(mode="json"),
         "runs": {name: r.metrics() for name, r in runs.items()},
-        "rejected_points": int(gone.sum()), "speed_ratio_filtered_over_unfiltered": new.seconds / base.seconds,
-        "poses": {"refined_rotations": bool(args.refine_rotations), "refined_in_mapper": new.map.pose_refinement or None, "seconds": pose_seconds, "lowe_ratio": LOWE_RATIO,
-                  "huber_px": POSE_HUBER_PX, "epipolar_check": checked},
+        "rejected_points": int(gone.sum()),
+        "speed_ratio_filtered_over_unfiltered": new.seconds / base.seconds,
+        "poses": {
+            "refined_rotations": bool(args.refine_rotations),
+            "refined_in_mapper": new.map.pose_refinement or None,
+            "seconds": pose_seconds,
+            "lowe_ratio": LOWE_RATIO,
+            "huber_px": POSE_HUBER_PX,
+            "epipolar_check": checked,
+        },
     }
     write_json(args.out / "metrics.json", metrics)
     kf = sorted(new.raw)
@@ -388,7 +496,9 @@ def main(argv: list[str] | None = None) -> int:
     rejected_picture(args.out / "semidense_rejected.png", base.map, new.map, gone, poses)
 
     print(f"\n## Semi-dense map of {args.clip.name}, frames {frames.start}-{frames.stop - 1} ({w}x{h})\n")
-    print("Consistency: map points against other keyframes' own depths; reference raw = every keyframe's accepted depths,")
+    print(
+        "Consistency: map points against other keyframes' own depths; reference raw = every keyframe's accepted depths,"
+    )
     print("filtered = those that passed the fusion's outlier tests (the same as raw when they are off).\n")
     heads = ["median", "p90", "map farther > 5 %", "map nearer > 5 %", "within 5 %", "pairs"]
     print("| run | points | per 100 m | s | reference | " + " | ".join(heads) + " |")
@@ -400,24 +510,41 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             head = f"| {name} | {len(r.map)} | {st['points_per_100m']:.0f} | {r.seconds:.1f} | {ref} | "
             print(head + " | ".join(_summary_rows(r.consistency[ref])) + " |")
-    print(f"\npoints before / after the filters: {len(base.map)} / {len(new.map)} ({100 * len(new.map) / max(len(base.map), 1):.0f} %); "
-          f"removed (no kept point within {REJECTED_RADIUS_M} m): {int(gone.sum())}; "
-          f"filtered run took {metrics['speed_ratio_filtered_over_unfiltered']:.2f}x the unfiltered one's time")
+    print(
+        f"\npoints before / after the filters: {len(base.map)} / {len(new.map)} ({100 * len(new.map) / max(len(base.map), 1):.0f} %); "
+        f"removed (no kept point within {REJECTED_RADIUS_M} m): {int(gone.sum())}; "
+        f"filtered run took {metrics['speed_ratio_filtered_over_unfiltered']:.2f}x the unfiltered one's time"
+    )
     print(f"rejected by the fusion filters (filtered run): {new.map.rejected}")
-    print("\nWhere the pairs with the map > 5 % farther come from (shares of all pairs, raw reference): the keyframe's own depth")
-    print("there failed its multi-view test (reference unverified); it passed and the map point agrees with >= 2 other keyframes'")
-    print("verified depths (occluded: the keyframe cannot see the point); the rest (unexplained). Then the figures against one fixed")
-    print("reference for all runs, the unfiltered run's keyframe depths that pass the multi-view test (verified), with and without")
+    print(
+        "\nWhere the pairs with the map > 5 % farther come from (shares of all pairs, raw reference): the keyframe's own depth"
+    )
+    print(
+        "there failed its multi-view test (reference unverified); it passed and the map point agrees with >= 2 other keyframes'"
+    )
+    print(
+        "verified depths (occluded: the keyframe cannot see the point); the rest (unexplained). Then the figures against one fixed"
+    )
+    print(
+        "reference for all runs, the unfiltered run's keyframe depths that pass the multi-view test (verified), with and without"
+    )
     print("the occluded pairs.\n")
-    print("| run | points | farther | ref. unverified | occluded | unexplained | verified ref.: median / p90 / farther / nearer "
-          "| verified, occluded excluded: median / p90 / farther / nearer |")
+    print(
+        "| run | points | farther | ref. unverified | occluded | unexplained | verified ref.: median / p90 / farther / nearer "
+        "| verified, occluded excluded: median / p90 / farther / nearer |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name, r in runs.items():
         c = r.consistency["raw"]
         fc = c["farther_causes"]
-        print(f"| {name} | {len(r.map)} | {100 * c['frac_map_farther_5pct']:.1f} % | {100 * fc['reference_unverified']:.1f} % | "
-              f"{100 * fc['occluded']:.1f} % | {100 * fc['unexplained']:.1f} % | {_four(c['verified_reference'])} | {_four(c['verified_visible'])} |")
-    for key, label in (("by_depth_m", "keyframe's own depth"), ("by_keyframe_distance_m", "distance between the keyframes")):
+        print(
+            f"| {name} | {len(r.map)} | {100 * c['frac_map_farther_5pct']:.1f} % | {100 * fc['reference_unverified']:.1f} % | "
+            f"{100 * fc['occluded']:.1f} % | {100 * fc['unexplained']:.1f} % | {_four(c['verified_reference'])} | {_four(c['verified_visible'])} |"
+        )
+    for key, label in (
+        ("by_depth_m", "keyframe's own depth"),
+        ("by_keyframe_distance_m", "distance between the keyframes"),
+    ):
         print(f"\nby {label}: median / p90 / map farther > 5 % (pairs)\n")
         cols = [("unfiltered", "raw"), ("filtered", "raw"), ("filtered", "filtered")]
         table = {(n, ref): dict(_bins(runs[n].consistency[ref], key)) for n, ref in cols}
@@ -431,12 +558,22 @@ def main(argv: list[str] | None = None) -> int:
         print("|---|" + "---|" * len(table))
         for span in spans:
             print(f"| {span} | " + " | ".join(t.get(span, "") for t in table.values()) + " |")
-    print("\nAlong the drive, map points by their keyframe (source) and pairs by the keyframe whose own depth is compared")
+    print(
+        "\nAlong the drive, map points by their keyframe (source) and pairs by the keyframe whose own depth is compared"
+    )
     print("(reference): median / p90 / map farther > 5 % (pairs); then the farther pairs' shares of the range's pairs:")
     print("reference unverified / occluded / unexplained\n")
-    print("| frames | " + " | ".join(f"{n} by {side}" for n in ("unfiltered", "filtered") for side in ("source", "reference")) + " |")
+    print(
+        "| frames | "
+        + " | ".join(f"{n} by {side}" for n in ("unfiltered", "filtered") for side in ("source", "reference"))
+        + " |"
+    )
     print("|---|" + "---|" * 4)
-    cells = {(n, side): runs[n].consistency["raw"][f"by_{side}_keyframe"] for n in ("unfiltered", "filtered") for side in ("source", "reference")}
+    cells = {
+        (n, side): runs[n].consistency["raw"][f"by_{side}_keyframe"]
+        for n in ("unfiltered", "filtered")
+        for side in ("source", "reference")
+    }
     for k, lo in enumerate(keyframe_bins[:-1]):
         row = []
         for b in cells.values():
@@ -445,19 +582,27 @@ def main(argv: list[str] | None = None) -> int:
                 row.append("-")
                 continue
             fc = b["farther_causes"]
-            row.append(f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} % ({b['pairs']}); "
-                       f"{100 * fc['reference_unverified']:.1f} / {100 * fc['occluded']:.1f} / {100 * fc['unexplained']:.1f}")
+            row.append(
+                f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} % ({b['pairs']}); "
+                f"{100 * fc['reference_unverified']:.1f} / {100 * fc['occluded']:.1f} / {100 * fc['unexplained']:.1f}"
+            )
         hi = min(int(lo) + KEYFRAME_RANGE, frames.stop) - 1
         print(f"| {int(lo)}-{hi} | " + " | ".join(row) + " |")
     far_new = new.consistency["raw"]["by_keyframe_distance_m"]
     beyond = [b for b in far_new if b["from_m"] >= HALF_CLIP_M]
     if beyond and beyond[0]["pairs"]:
         share = beyond[0]["pairs"] / new.consistency["raw"]["pairs"]
-        print(f"\nfiltered run: {100 * share:.1f} % of the pairs are keyframes >= {HALF_CLIP_M:.0f} m apart (none on a half clip), "
-              f"{100 * beyond[0]['frac_map_farther_5pct']:.0f} % of them farther")
-    print(f"\nGiven poses against the images ({'rotations re-estimated: mapped on the refined poses' if refined is not None else 'mapped on the given poses'}; "
-          f"{pose_seconds:.0f} s): median distance (px) of SIFT matches from the epipolar lines, frames 1 and {POSE_CHECK_GAP} apart\n")
-    cols = ["given_px_gap1", f"given_px_gap{POSE_CHECK_GAP}"] + (["refined_px_gap1", f"refined_px_gap{POSE_CHECK_GAP}", "rotation_change_deg"] if refined is not None else [])
+        print(
+            f"\nfiltered run: {100 * share:.1f} % of the pairs are keyframes >= {HALF_CLIP_M:.0f} m apart (none on a half clip), "
+            f"{100 * beyond[0]['frac_map_farther_5pct']:.0f} % of them farther"
+        )
+    print(
+        f"\nGiven poses against the images ({'rotations re-estimated: mapped on the refined poses' if refined is not None else 'mapped on the given poses'}; "
+        f"{pose_seconds:.0f} s): median distance (px) of SIFT matches from the epipolar lines, frames 1 and {POSE_CHECK_GAP} apart\n"
+    )
+    cols = ["given_px_gap1", f"given_px_gap{POSE_CHECK_GAP}"] + (
+        ["refined_px_gap1", f"refined_px_gap{POSE_CHECK_GAP}", "rotation_change_deg"] if refined is not None else []
+    )
     print("| frames | " + " | ".join(cols) + " |")
     print("|---|" + "---|" * len(cols))
     for lo in keyframe_bins[:-1]:
@@ -469,11 +614,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {int(lo)}-{min(int(lo) + KEYFRAME_RANGE, frames.stop) - 1} | " + " | ".join(vals) + " |")
     pr = new.map.pose_refinement
     if pr:
-        print(f"\nThe mapper's own rotation refinement (refine_rotations, window of {cfg.refine_lag_frames} frames either side): {pr['frames']} frames, "
-              f"correction median {pr['correction_deg_median']:.3f} deg, max {pr['correction_deg_max']:.3f} deg; "
-              f"matched pairs' median epipolar distance {pr['epipolar_px_median_given']:.2f} px given, "
-              f"{pr['epipolar_px_median_refined']:.2f} px refined")
-    print(f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, semidense_kitti.png, semidense_rejected.png")
+        print(
+            f"\nThe mapper's own rotation refinement (refine_rotations, window of {cfg.refine_lag_frames} frames either side): {pr['frames']} frames, "
+            f"correction median {pr['correction_deg_median']:.3f} deg, max {pr['correction_deg_max']:.3f} deg; "
+            f"matched pairs' median epipolar distance {pr['epipolar_px_median_given']:.2f} px given, "
+            f"{pr['epipolar_px_median_refined']:.2f} px refined"
+        )
+    print(
+        f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, semidense_kitti.png, semidense_rejected.png"
+    )
     return 0
 
 

@@ -35,18 +35,27 @@ import platform
 import re
 import statistics
 import sys
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Callable, Iterable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.DOTALL)
 METHODS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
-STAGE_LABELS = {"synth": "synthetic town", "build": "build (trajectory, georeferencing, map, image database)",
-                "align": "align", "triplets": "triplets", "train_cnn": "CNN training", "index_vlad": "VLAD index",
-                "index_structure": "structure indexes", "localize": "MCVL localization", "places": "place recognition",
-                "export": "bundle export", "view": "Rerun recording"}
+STAGE_LABELS = {
+    "synth": "synthetic town",
+    "build": "build (trajectory, georeferencing, map, image database)",
+    "align": "align",
+    "triplets": "triplets",
+    "train_cnn": "CNN training",
+    "index_vlad": "VLAD index",
+    "index_structure": "structure indexes",
+    "localize": "MCVL localization",
+    "places": "place recognition",
+    "export": "bundle export",
+    "view": "Rerun recording",
+}
 
 
 # --------------------------------------------------------------------------- reading runs
@@ -63,36 +72,61 @@ def extract_run(run: Path) -> dict:
     if not m:
         raise SystemExit(f"{run}: no metrics.json (not a finished mapkit demo run)")
     town = _json(run / "town" / "metrics.json")
-    out: dict = {"preset": m.get("preset"), "seed": town.get("seed"), "mapkit_version": m.get("mapkit_version"),
-                 "status": {n: s["status"] for n, s in m["stages"].items()},
-                 "stages_s": {n: s.get("seconds") for n, s in (t.get("stages") or {}).items()},
-                 "total_s": t.get("seconds_total"), "driven_m": (m.get("streets") or {}).get("driven_m")}
-    out["maps"] = {n: {"median_m": s["map_local"]["median_distance_m"], "within_0.5m": s["map_local"]["fraction_within_0.5m"],
-                       "points_per_100m": s["map_local"]["points_per_100m"], "ate_m": s["trajectory_local"]["ate_rmse_m"]}
-                   for n, s in (m.get("eval_build") or {}).get("sessions", {}).items() if "map_local" in s}
+    out: dict = {
+        "preset": m.get("preset"),
+        "seed": town.get("seed"),
+        "mapkit_version": m.get("mapkit_version"),
+        "status": {n: s["status"] for n, s in m["stages"].items()},
+        "stages_s": {n: s.get("seconds") for n, s in (t.get("stages") or {}).items()},
+        "total_s": t.get("seconds_total"),
+        "driven_m": (m.get("streets") or {}).get("driven_m"),
+    }
+    out["maps"] = {
+        n: {
+            "median_m": s["map_local"]["median_distance_m"],
+            "within_0.5m": s["map_local"]["fraction_within_0.5m"],
+            "points_per_100m": s["map_local"]["points_per_100m"],
+            "ate_m": s["trajectory_local"]["ate_rmse_m"],
+        }
+        for n, s in (m.get("eval_build") or {}).get("sessions", {}).items()
+        if "map_local" in s
+    }
     ea = m.get("eval_align") or {}
-    out["align"] = {"pairs": {k: v["after_median_m"] for k, v in (ea.get("pairs") or {}).items()},
-                    "median_m": ea.get("after_median_m")}
-    out["localize"] = {cfg: {n: {"retrieval_mean_m": s["retrieval"]["mean_translation_m"],
-                                 "retrieval_median_m": s["retrieval"]["median_translation_m"],
-                                 "filter_mean_m": s["filter"]["mean_translation_m"],
-                                 "filter_median_m": s["filter"]["median_translation_m"], "queries": s["queries"]}
-                             for n, s in sessions.items()}
-                       for cfg, sessions in (m.get("localize") or {}).items()}
+    out["align"] = {
+        "pairs": {k: v["after_median_m"] for k, v in (ea.get("pairs") or {}).items()},
+        "median_m": ea.get("after_median_m"),
+    }
+    out["localize"] = {
+        cfg: {
+            n: {
+                "retrieval_mean_m": s["retrieval"]["mean_translation_m"],
+                "retrieval_median_m": s["retrieval"]["median_translation_m"],
+                "filter_mean_m": s["filter"]["mean_translation_m"],
+                "filter_median_m": s["filter"]["median_translation_m"],
+                "queries": s["queries"],
+            }
+            for n, s in sessions.items()
+        }
+        for cfg, sessions in (m.get("localize") or {}).items()
+    }
     places = _json(run / "workspace" / "eval" / "places" / "places.json")
     out["places"] = {}
     for p in places.get("pairs", []):
         key = f"{p['query']} > {p['database']}"
         entry = {"condition": f"{_cond(p, 'query')} to {_cond(p, 'database')}"}
         for scope, block in (("held_out", p), ("all", p["all_places"])):
-            entry[scope] = {"queries": block.get("queries"),
-                            **{k: r.get("auc") for k, r in block["methods"].items() if r.get("available", True)}}
+            entry[scope] = {
+                "queries": block.get("queries"),
+                **{k: r.get("auc") for k, r in block["methods"].items() if r.get("available", True)},
+            }
         out["places"][key] = entry
     out["units"] = _units(run, out)
     tr = m.get("triplets") or {}
-    out["triplets"] = {"count": sum((tr.get("export") or {}).get("triplets", {}).values()) if tr else None,
-                       "offset_median_m": (tr.get("truth") or {}).get("offset_median_m"),
-                       "offset_p90_m": (tr.get("truth") or {}).get("offset_p90_m")}
+    out["triplets"] = {
+        "count": sum((tr.get("export") or {}).get("triplets", {}).values()) if tr else None,
+        "offset_median_m": (tr.get("truth") or {}).get("offset_median_m"),
+        "offset_p90_m": (tr.get("truth") or {}).get("offset_p90_m"),
+    }
     return out
 
 
@@ -104,12 +138,22 @@ def _units(run: Path, out: dict) -> dict:
 
     def total(stage: str, key: str, file: str = "metrics.json") -> float:
         return float(sum((_json(p / stage / file).get(key) or 0) for p in sessions))
-    u = {"trajectory_s": total("trajectory", "seconds", "timings.json"), "scans": total("trajectory", "poses"),
-         "semidense_s": total("map", "seconds", "timings.json"), "keyframes": total("map", "keyframes"),
-         "map_points": total("map", "points"), "imagedb_s": total("imagedb", "seconds", "timings.json"),
-         "images": total("imagedb", "images"), "driven_m": out.get("driven_m")}
+
+    u = {
+        "trajectory_s": total("trajectory", "seconds", "timings.json"),
+        "scans": total("trajectory", "poses"),
+        "semidense_s": total("map", "seconds", "timings.json"),
+        "keyframes": total("map", "keyframes"),
+        "map_points": total("map", "points"),
+        "imagedb_s": total("imagedb", "seconds", "timings.json"),
+        "images": total("imagedb", "images"),
+        "driven_m": out.get("driven_m"),
+    }
     align_t, align_m = _json(ws / "align" / "timings.json"), _json(ws / "align" / "metrics.json")
-    u["registering_s"], u["pairs_registered"] = align_t.get("seconds_registering"), (align_m.get("registration") or {}).get("registered_this_run")
+    u["registering_s"], u["pairs_registered"] = (
+        align_t.get("seconds_registering"),
+        (align_m.get("registration") or {}).get("registered_this_run"),
+    )
     u["triplets_s"] = _json(ws / "triplets" / "timings.json").get("seconds")
     u["triplets"] = sum((_json(ws / "triplets" / "metrics.json").get("triplets") or {}).values())
     vt, vm = _json(ws / "indexes" / "vlad" / "timings.json"), _json(ws / "indexes" / "vlad" / "metrics.json")
@@ -165,14 +209,16 @@ def collect(name: str, sources: list[Path], command: str) -> Path:
 def record(name: str) -> dict:
     path = RESULTS / f"{name}.json"
     if not path.is_file():
-        raise SystemExit(f"no record {path.relative_to(ROOT)}: collect it first (python3 docs/figures.py collect {name} ...)")
+        raise SystemExit(
+            f"no record {path.relative_to(ROOT)}: collect it first (python3 docs/figures.py collect {name} ...)"
+        )
     return json.loads(path.read_text())
 
 
 # --------------------------------------------------------------------------- formatting
 
 
-def spread(values: Iterable[Optional[float]], fmt: str = "{:.3f}") -> str:
+def spread(values: Iterable[float | None], fmt: str = "{:.3f}") -> str:
     """The median of ``values`` with their range over the runs (``0.63 (0.55-0.71)``); one value alone;
     ``n/a`` for none. Missing values (None) are left out and counted."""
     vals = [float(v) for v in values if v is not None]
@@ -184,7 +230,7 @@ def spread(values: Iterable[Optional[float]], fmt: str = "{:.3f}") -> str:
     return f"{fmt.format(med)} ({fmt.format(min(vals))}-{fmt.format(max(vals))})"
 
 
-def verdict(differences: list[Optional[float]]) -> str:
+def verdict(differences: list[float | None]) -> str:
     """Whether "A above B" holds, from its difference in each run: in every run, in none, or in some
     (then not beyond the run-to-run spread)."""
     d = [x for x in differences if x is not None]
@@ -205,8 +251,10 @@ def table(header: list[str], rows: list[list[str]]) -> str:
 
 def _runs_note(rec: dict) -> str:
     seeds = [r.get("seed") for r in rec["runs"]]
-    return (f"{len(seeds)} runs (seeds {', '.join(map(str, seeds))}), measured {rec['measured']} on {rec['machine']}; "
-            f"each figure is the median with its range over the runs.")
+    return (
+        f"{len(seeds)} runs (seeds {', '.join(map(str, seeds))}), measured {rec['measured']} on {rec['machine']}; "
+        f"each figure is the median with its range over the runs."
+    )
 
 
 def _tiny(x: float) -> str:
@@ -214,7 +262,7 @@ def _tiny(x: float) -> str:
     return "below 1e-15" if x < 1e-15 else f"{x:.1e}"
 
 
-def _minutes(seconds: Optional[float]) -> str:
+def _minutes(seconds: float | None) -> str:
     if seconds is None:
         return "n/a"
     m, s = divmod(int(round(seconds)), 60)
@@ -224,13 +272,15 @@ def _minutes(seconds: Optional[float]) -> str:
 # --------------------------------------------------------------------------- figures of the places runs
 
 
-def _mean_auc(run: dict, method: str, scope: str = "held_out") -> Optional[float]:
+def _mean_auc(run: dict, method: str, scope: str = "held_out") -> float | None:
     vals = [p[scope].get(method) for p in run["places"].values()]
     vals = [v for v in vals if v is not None]
     return statistics.fmean(vals) if vals else None
 
 
-def _pair_diffs(run: dict, a: str, b: str, scope: str = "held_out", only: Optional[Callable[[str], bool]] = None) -> list[float]:
+def _pair_diffs(
+    run: dict, a: str, b: str, scope: str = "held_out", only: Callable[[str], bool] | None = None
+) -> list[float]:
     """Per pair of one run, AUC of method ``a`` minus the best of methods ``b`` (a tuple) or of ``b``."""
     out = []
     for p in run["places"].values():
@@ -254,44 +304,92 @@ def render_claims() -> str:
     rows = []
     refs = _maybe("references")
     if refs:
-        rows.append(["M2DP as its authors compute it", f"1 - cos to `M2DP.m`'s output: {_tiny(refs['m2dp']['one_minus_cos'])}",
-                     "identical", "yes" if refs["m2dp"]["one_minus_cos"] < 1e-9 else "no", "`python3 bench/reference_checks.py`"])
-        rows.append(["dense SIFT as VLFeat computes it", f"median cosine to `vl_phow`: {refs['dsift']['median_cosine']:.5f}",
-                     "identical", "yes" if refs["dsift"]["median_cosine"] > 0.999 else "no", "`python3 bench/reference_checks.py`"])
+        rows.append(
+            [
+                "M2DP as its authors compute it",
+                f"1 - cos to `M2DP.m`'s output: {_tiny(refs['m2dp']['one_minus_cos'])}",
+                "identical",
+                "yes" if refs["m2dp"]["one_minus_cos"] < 1e-9 else "no",
+                "`python3 bench/reference_checks.py`",
+            ]
+        )
+        rows.append(
+            [
+                "dense SIFT as VLFeat computes it",
+                f"median cosine to `vl_phow`: {refs['dsift']['median_cosine']:.5f}",
+                "identical",
+                "yes" if refs["dsift"]["median_cosine"] > 0.999 else "no",
+                "`python3 bench/reference_checks.py`",
+            ]
+        )
     pl = _maybe("places")
     if pl:
         runs, cmd = pl["runs"], "`mapkit demo --preset places --seed S --train-cnn`"
         d = [(_mean_auc(r, "nbld") or 0) - (_mean_auc(r, "m2dp") or 0) for r in runs]
         ahead = [_ahead(_pair_diffs(r, "nbld", "m2dp")) for r in runs]
-        rows.append(["NBLD above M2DP", f"mean held-out AUC {spread(_mean_auc(r, 'nbld') for r in runs)} vs "
-                     f"{spread(_mean_auc(r, 'm2dp') for r in runs)}; ahead on {', '.join(ahead)} pairs",
-                     "Table 2: on all 10 pairs", verdict(d), cmd])
+        rows.append(
+            [
+                "NBLD above M2DP",
+                f"mean held-out AUC {spread(_mean_auc(r, 'nbld') for r in runs)} vs "
+                f"{spread(_mean_auc(r, 'm2dp') for r in runs)}; ahead on {', '.join(ahead)} pairs",
+                "Table 2: on all 10 pairs",
+                verdict(d),
+                cmd,
+            ]
+        )
         for cond in ("night", "snowy"):
-            per_run = [_pair_diffs(r, ("nbld", "m2dp"), "vlad", only=lambda c, cond=cond: c.startswith(cond)) for r in runs]
-            rows.append([f"structure above appearance ({cond} queries)",
-                         f"better of NBLD, M2DP minus VLAD, per pair: {spread([x for ds in per_run for x in ds])}; "
-                         f"ahead on {', '.join(_ahead(ds) for ds in per_run)} pairs",
-                         "Sec. 6, Table 2: structure above appearance on 6 of 10 pairs (NetVLAD there, VLAD here)",
-                         verdict([statistics.fmean(ds) if ds else None for ds in per_run]), cmd])
+            per_run = [
+                _pair_diffs(r, ("nbld", "m2dp"), "vlad", only=lambda c, cond=cond: c.startswith(cond)) for r in runs
+            ]
+            rows.append(
+                [
+                    f"structure above appearance ({cond} queries)",
+                    f"better of NBLD, M2DP minus VLAD, per pair: {spread([x for ds in per_run for x in ds])}; "
+                    f"ahead on {', '.join(_ahead(ds) for ds in per_run)} pairs",
+                    "Sec. 6, Table 2: structure above appearance on 6 of 10 pairs (NetVLAD there, VLAD here)",
+                    verdict([statistics.fmean(ds) if ds else None for ds in per_run]),
+                    cmd,
+                ]
+            )
         if any(_mean_auc(r, "cnn") is not None for r in runs):
             hand = [max(_mean_auc(r, "nbld") or 0, _mean_auc(r, "m2dp") or 0) for r in runs]
             cnn = [_mean_auc(r, "cnn") for r in runs]
             rel = [(c - h) / h if c is not None and h else None for c, h in zip(cnn, hand)]
-            rows.append(["learned (3D CNN) above hand-crafted", f"mean held-out AUC {spread(cnn)} vs the better hand-crafted "
-                         f"{spread(hand)}: {spread([100 * x if x is not None else None for x in rel], '{:+.0f}')} %",
-                         "Sec. 6: 5-20 % above", verdict(rel), cmd])
+            rows.append(
+                [
+                    "learned (3D CNN) above hand-crafted",
+                    f"mean held-out AUC {spread(cnn)} vs the better hand-crafted "
+                    f"{spread(hand)}: {spread([100 * x if x is not None else None for x in rel], '{:+.0f}')} %",
+                    "Sec. 6: 5-20 % above",
+                    verdict(rel),
+                    cmd,
+                ]
+            )
         for n in sorted({s for r in runs for s in r["localize"].get("paper", {})}):
             vals = [r["localize"]["paper"].get(n) for r in runs]
             ret, fil = [v and v["retrieval_mean_m"] for v in vals], [v and v["filter_mean_m"] for v in vals]
-            rows.append([f"MCVL filter below retrieval alone ({n})", f"mean error {spread(fil, '{:.1f}')} m vs {spread(ret, '{:.1f}')} m",
-                         "Table II: below", verdict([r - f if r is not None and f is not None else None for r, f in zip(ret, fil)]), cmd])
+            rows.append(
+                [
+                    f"MCVL filter below retrieval alone ({n})",
+                    f"mean error {spread(fil, '{:.1f}')} m vs {spread(ret, '{:.1f}')} m",
+                    "Table II: below",
+                    verdict([r - f if r is not None and f is not None else None for r, f in zip(ret, fil)]),
+                    cmd,
+                ]
+            )
     bench = _maybe("mcvl-benchmark")
     if bench:
         seqs = bench["sequences"]
         below = sum(s["filter_mean_m"] < s["retrieval_mean_m"] for s in seqs.values())
-        rows.append(["MCVL filter below retrieval at the paper's scale", f"{below} of {len(seqs)} test sequences",
-                     "Table II: 5 of 5", "yes" if below == len(seqs) else f"on {below} of {len(seqs)}",
-                     "`python3 pipelines/mcvl_benchmark.py`"])
+        rows.append(
+            [
+                "MCVL filter below retrieval at the paper's scale",
+                f"{below} of {len(seqs)} test sequences",
+                "Table II: 5 of 5",
+                "yes" if below == len(seqs) else f"on {below} of {len(seqs)}",
+                "`python3 pipelines/mcvl_benchmark.py`",
+            ]
+        )
     note = f"\n\n{_runs_note(pl)}" if pl else ""
     return table(["claim", "figure", "paper", "holds?", "command"], rows) + note
 
@@ -305,11 +403,20 @@ def render_places_auc() -> str:
     rows = []
     for k in pairs:
         present = [r["places"][k] for r in runs if k in r["places"]]
-        rows.append([k.replace(" > ", " to "), present[0]["condition"], *[spread(p["held_out"].get(m) for p in present) for m in methods],
-                     spread([p["held_out"]["queries"] for p in present], "{:.0f}"), f"{len(present)} of {len(runs)}"])
+        rows.append(
+            [
+                k.replace(" > ", " to "),
+                present[0]["condition"],
+                *[spread(p["held_out"].get(m) for p in present) for m in methods],
+                spread([p["held_out"]["queries"] for p in present], "{:.0f}"),
+                f"{len(present)} of {len(runs)}",
+            ]
+        )
     rows.append(["mean", "", *[spread(_mean_auc(r, m) for r in runs) for m in methods], "", ""])
-    return (table(["query to database", "conditions", *[METHODS[m] for m in methods], "held-out queries", "runs"], rows)
-            + f"\n\n{_runs_note(pl)}")
+    return (
+        table(["query to database", "conditions", *[METHODS[m] for m in methods], "held-out queries", "runs"], rows)
+        + f"\n\n{_runs_note(pl)}"
+    )
 
 
 def render_places_mcvl() -> str:
@@ -321,9 +428,23 @@ def render_places_mcvl() -> str:
         for n in sorted({s for r in runs for s in r["localize"][cfg]}):
             v = [r["localize"][cfg].get(n) for r in runs]
             f = lambda k: spread([x[k] if x else None for x in v], "{:.1f}")  # noqa: E731
-            rows.append([n, cfg, f("retrieval_mean_m"), f("retrieval_median_m"), f("filter_mean_m"), f("filter_median_m")])
-    return (table(["test drive", "filter settings", "retrieval mean m", "retrieval median m", "filter mean m", "filter median m"], rows)
-            + f"\n\n{_runs_note(pl)}")
+            rows.append(
+                [n, cfg, f("retrieval_mean_m"), f("retrieval_median_m"), f("filter_mean_m"), f("filter_median_m")]
+            )
+    return (
+        table(
+            [
+                "test drive",
+                "filter settings",
+                "retrieval mean m",
+                "retrieval median m",
+                "filter mean m",
+                "filter median m",
+            ],
+            rows,
+        )
+        + f"\n\n{_runs_note(pl)}"
+    )
 
 
 def render_maps() -> str:
@@ -334,9 +455,14 @@ def render_maps() -> str:
         v = [r["maps"].get(n) for r in runs]
         f = lambda k, fmt="{:.3f}": spread([x[k] if x else None for x in v], fmt)  # noqa: E731
         rows.append([n, f("median_m"), f("within_0.5m", "{:.2f}"), f("points_per_100m", "{:.0f}"), f("ate_m")])
-    return (table(["session", "map to true surfaces, median m", "share within 0.5 m", "points per 100 m", "trajectory ATE m"], rows)
-            + "\n\nOffset removed: each session's constant offset from the truth (its GPS bias) is taken out first. "
-            + _runs_note(pl))
+    return (
+        table(
+            ["session", "map to true surfaces, median m", "share within 0.5 m", "points per 100 m", "trajectory ATE m"],
+            rows,
+        )
+        + "\n\nOffset removed: each session's constant offset from the truth (its GPS bias) is taken out first. "
+        + _runs_note(pl)
+    )
 
 
 def render_align() -> str:
@@ -346,19 +472,29 @@ def render_align() -> str:
     rows = []
     for n in sessions:
         per_run = [[v for k, v in r["align"]["pairs"].items() if n in k.split(" / ")] for r in runs]
-        rows.append([n, spread([statistics.median(p) if p else None for p in per_run]), spread([max(p) if p else None for p in per_run])])
+        rows.append(
+            [
+                n,
+                spread([statistics.median(p) if p else None for p in per_run]),
+                spread([max(p) if p else None for p in per_run]),
+            ]
+        )
     rows.append(["all pairs", spread(r["align"]["median_m"] for r in runs), ""])
-    return (table(["session", "misalignment to its neighbours, median over pairs m", "worst pair m"], rows)
-            + "\n\nMisalignment: the median distance between the two sessions' maps of a pair after alignment, measured "
-            "against the true surfaces. " + _runs_note(pl))
+    return (
+        table(["session", "misalignment to its neighbours, median over pairs m", "worst pair m"], rows)
+        + "\n\nMisalignment: the median distance between the two sessions' maps of a pair after alignment, measured "
+        "against the true surfaces. " + _runs_note(pl)
+    )
 
 
 def render_triplets() -> str:
     pl = record("places")
     runs = pl["runs"]
-    rows = [["triplets exported", spread([r["triplets"]["count"] for r in runs], "{:.0f}")],
-            ["true offset of positives, median m", spread(r["triplets"]["offset_median_m"] for r in runs)],
-            ["true offset of positives, 90th percentile m", spread(r["triplets"]["offset_p90_m"] for r in runs)]]
+    rows = [
+        ["triplets exported", spread([r["triplets"]["count"] for r in runs], "{:.0f}")],
+        ["true offset of positives, median m", spread(r["triplets"]["offset_median_m"] for r in runs)],
+        ["true offset of positives, 90th percentile m", spread(r["triplets"]["offset_p90_m"] for r in runs)],
+    ]
     return table(["figure", "value"], rows) + f"\n\n{_runs_note(pl)}"
 
 
@@ -367,28 +503,50 @@ def _stages(name: str) -> str:
     runs = rec["runs"]
     stages = [s for s in STAGE_LABELS if any(r["stages_s"].get(s) for r in runs)]
     rows = [[STAGE_LABELS[s], spread([r["stages_s"].get(s) for r in runs], "{:.0f}")] for s in stages]
-    rows.append(["**whole run**", f"**{_minutes(statistics.median([r['total_s'] for r in runs]))}** "
-                 f"({_minutes(min(r['total_s'] for r in runs))} - {_minutes(max(r['total_s'] for r in runs))})"])
+    rows.append(
+        [
+            "**whole run**",
+            f"**{_minutes(statistics.median([r['total_s'] for r in runs]))}** "
+            f"({_minutes(min(r['total_s'] for r in runs))} - {_minutes(max(r['total_s'] for r in runs))})",
+        ]
+    )
     driven = runs[0].get("driven_m")
-    return (table(["stage", "seconds"], rows) + f"\n\n{len(runs)} runs of `{rec['command']}`"
-            + (f" ({driven / 1000:.1f} km driven)" if driven else "") + f", measured {rec['measured']} on {rec['machine']}.")
+    return (
+        table(["stage", "seconds"], rows)
+        + f"\n\n{len(runs)} runs of `{rec['command']}`"
+        + (f" ({driven / 1000:.1f} km driven)" if driven else "")
+        + f", measured {rec['measured']} on {rec['machine']}."
+    )
 
 
 def render_first_run() -> str:
     rec = record("first-run")
-    rows = [["set-up (`bash scripts/setup.sh`, empty pip cache)", _minutes(rec["setup_s"])],
-            ["main job (`.venv/bin/python pipelines/main.py --out runs/main`)", _minutes(rec["main_job_s"])],
-            ["tests (`.venv/bin/python -m pytest -q`)", _minutes(rec["tests_s"])]]
-    return (table(["from a fresh clone", "time"], rows)
-            + f"\n\nMeasured {rec['measured']} by `python3 bench/first_run.py` on {rec['machine']}, nothing else running.")
+    rows = [
+        ["set-up (`bash scripts/setup.sh`, empty pip cache)", _minutes(rec["setup_s"])],
+        ["main job (`.venv/bin/python pipelines/main.py --out runs/main`)", _minutes(rec["main_job_s"])],
+        ["tests (`.venv/bin/python -m pytest -q`)", _minutes(rec["tests_s"])],
+    ]
+    return (
+        table(["from a fresh clone", "time"], rows)
+        + f"\n\nMeasured {rec['measured']} by `python3 bench/first_run.py` on {rec['machine']}, nothing else running."
+    )
 
 
 def render_references() -> str:
     refs = record("references")
-    rows = [["M2DP (`m2dp_reference`) against the authors' `M2DP.m` on a real KITTI scan", f"1 - cos = {_tiny(refs['m2dp']['one_minus_cos'])}"],
-            ["dense SIFT (mode `phow`) against VLFeat's `vl_phow` on a KITTI frame",
-             f"median cosine {refs['dsift']['median_cosine']:.5f}, 5th percentile {refs['dsift']['p05_cosine']:.5f}"]]
-    return table(["check", "agreement"], rows) + f"\n\nMeasured {refs['measured']} by `python3 bench/reference_checks.py`."
+    rows = [
+        [
+            "M2DP (`m2dp_reference`) against the authors' `M2DP.m` on a real KITTI scan",
+            f"1 - cos = {_tiny(refs['m2dp']['one_minus_cos'])}",
+        ],
+        [
+            "dense SIFT (mode `phow`) against VLFeat's `vl_phow` on a KITTI frame",
+            f"median cosine {refs['dsift']['median_cosine']:.5f}, 5th percentile {refs['dsift']['p05_cosine']:.5f}",
+        ],
+    ]
+    return (
+        table(["check", "agreement"], rows) + f"\n\nMeasured {refs['measured']} by `python3 bench/reference_checks.py`."
+    )
 
 
 def render_robustness() -> str:
@@ -398,25 +556,50 @@ def render_robustness() -> str:
     rows = [[name, str(c["tried"]), *[str(c.get(o, 0)) for o in outcomes]] for name, c in rec["classes"].items()]
     total = [str(sum(c.get(o, 0) for c in rec["classes"].values())) for o in outcomes]
     rows.append(["**all**", str(sum(c["tried"] for c in rec["classes"].values())), *total])
-    return (table(["fault class", "inputs", *outcomes], rows)
-            + f"\n\n`{rec['command']}`, measured {rec['measured']} on {rec['machine']}.")
+    return (
+        table(["fault class", "inputs", *outcomes], rows)
+        + f"\n\n`{rec['command']}`, measured {rec['measured']} on {rec['machine']}."
+    )
 
 
 def render_mcvl_benchmark() -> str:
     """MCVL at its Sec. IV-B scale (pipelines/mcvl_benchmark.py): Table II per test sequence and filter setting."""
     rec = record("mcvl-benchmark")
-    rows = [[seq, run, f"{v['retrieval_mean_m']:.1f}", f"{v['retrieval_median_m']:.1f}", f"{v['filter_mean_m']:.1f}",
-             f"{v['filter_median_m']:.1f}"] for run, seqs in rec["localize"].items() for seq, v in seqs.items()]
-    return (table(["test sequence", "filter settings", "retrieval mean m", "retrieval median m", "filter mean m", "filter median m"], rows)
-            + f"\n\nOne run (seed {rec.get('seed', 7)}) of `{rec['command']}`, measured {rec['measured']} on {rec['machine']}.")
+    rows = [
+        [
+            seq,
+            run,
+            f"{v['retrieval_mean_m']:.1f}",
+            f"{v['retrieval_median_m']:.1f}",
+            f"{v['filter_mean_m']:.1f}",
+            f"{v['filter_median_m']:.1f}",
+        ]
+        for run, seqs in rec["localize"].items()
+        for seq, v in seqs.items()
+    ]
+    return (
+        table(
+            [
+                "test sequence",
+                "filter settings",
+                "retrieval mean m",
+                "retrieval median m",
+                "filter mean m",
+                "filter median m",
+            ],
+            rows,
+        )
+        + f"\n\nOne run (seed {rec.get('seed', 7)}) of `{rec['command']}`, measured {rec['measured']} on {rec['machine']}."
+    )
 
 
-def _unit_costs(run: dict) -> dict[str, tuple[str, Optional[float]]]:
+def _unit_costs(run: dict) -> dict[str, tuple[str, float | None]]:
     """Per-unit wall seconds of one places run: (unit, seconds per unit) per stage."""
     u = run.get("units") or {}
 
-    def per(seconds: Optional[float], n: Optional[float]) -> Optional[float]:
+    def per(seconds: float | None, n: float | None) -> float | None:
         return seconds / n if seconds is not None and n else None
+
     return {
         "odometry (kiss-icp)": ("LiDAR scan", per(u.get("trajectory_s"), u.get("scans"))),
         "semi-dense mapping": ("keyframe", per(u.get("semidense_s"), u.get("keyframes"))),
@@ -435,17 +618,29 @@ def render_scaling_units() -> str:
     runs = pl["runs"]
     costs = [_unit_costs(r) for r in runs]
     rows = [[stage, unit, spread([c[stage][1] for c in costs], "{:.3g}")] for stage, (unit, _) in costs[0].items()]
-    return table(["stage", "unit", "seconds (points) per unit"], rows) + "\n\nFrom the places runs' timings.json and metrics: " + _runs_note(pl)
+    return (
+        table(["stage", "unit", "seconds (points) per unit"], rows)
+        + "\n\nFrom the places runs' timings.json and metrics: "
+        + _runs_note(pl)
+    )
 
 
 def render_scaling_projection() -> str:
     """The city job of docs/scaling.md from the places runs' per-unit costs: CPU hours per stage and the
     wall time on 512 cores (eta = 0.8) and on 2 cores."""
     pl = record("places")
-    med = {k: statistics.median([c[k][1] for c in map(_unit_costs, pl["runs"]) if c[k][1] is not None] or [0.0])
-           for k in _unit_costs(pl["runs"][0])}
-    n = {"odometry (kiss-icp)": 2.19e6, "semi-dense mapping": 1.0e6, "image database": 1.0e6, "ICP of a submap pair": 1.0e6,
-         "triplets": 2.0e4, "VLAD encoding (2 workers, wall)": 1.0e6}
+    med = {
+        k: statistics.median([c[k][1] for c in map(_unit_costs, pl["runs"]) if c[k][1] is not None] or [0.0])
+        for k in _unit_costs(pl["runs"][0])
+    }
+    n = {
+        "odometry (kiss-icp)": 2.19e6,
+        "semi-dense mapping": 1.0e6,
+        "image database": 1.0e6,
+        "ICP of a submap pair": 1.0e6,
+        "triplets": 2.0e4,
+        "VLAD encoding (2 workers, wall)": 1.0e6,
+    }
     rho = med["map density"]
     n["NBLD describing (2 workers, wall)"] = n["M2DP describing (2 workers, wall)"] = rho * 1.0e6 / 20
     workers = {k: 2.0 if "2 workers" in k else 1.0 for k in n}
@@ -454,22 +649,42 @@ def render_scaling_projection() -> str:
         cpu_h = units * med[k] * workers[k] / 3600
         total += cpu_h
         rows.append([k, f"{units:.3g}", f"{cpu_h:,.0f}", f"{cpu_h / (0.8 * 512):.1f}", f"{cpu_h / 2 / 24:,.0f}"])
-    rows.append(["**all per-unit stages**", "", f"**{total:,.0f}**", f"**{total / (0.8 * 512):.1f}**", f"**{total / 2 / 24:,.0f}**"])
-    return (table(["stage", "units n", "CPU hours", "wall hours on 512 cores", "wall days on 2 cores"], rows)
-            + "\n\nPer-unit costs: the medians of the table above; rho (map points a metre) from the same runs; "
-            "the global steps below come on top.")
+    rows.append(
+        [
+            "**all per-unit stages**",
+            "",
+            f"**{total:,.0f}**",
+            f"**{total / (0.8 * 512):.1f}**",
+            f"**{total / 2 / 24:,.0f}**",
+        ]
+    )
+    return (
+        table(["stage", "units n", "CPU hours", "wall hours on 512 cores", "wall days on 2 cores"], rows)
+        + "\n\nPer-unit costs: the medians of the table above; rho (map points a metre) from the same runs; "
+        "the global steps below come on top."
+    )
 
 
-def _maybe(name: str) -> Optional[dict]:
+def _maybe(name: str) -> dict | None:
     return json.loads((RESULTS / f"{name}.json").read_text()) if (RESULTS / f"{name}.json").is_file() else None
 
 
 RENDERERS: dict[str, Callable[[], str]] = {
-    "claims": render_claims, "places-auc": render_places_auc, "places-mcvl": render_places_mcvl, "maps": render_maps,
-    "align": render_align, "triplets": render_triplets, "references": render_references, "first-run": render_first_run,
-    "main-job-stages": lambda: _stages("main-job"), "tiny-stages": lambda: _stages("tiny"),
-    "places-stages": lambda: _stages("places"), "robustness": render_robustness, "mcvl-benchmark": render_mcvl_benchmark,
-    "scaling-units": render_scaling_units, "scaling-projection": render_scaling_projection,
+    "claims": render_claims,
+    "places-auc": render_places_auc,
+    "places-mcvl": render_places_mcvl,
+    "maps": render_maps,
+    "align": render_align,
+    "triplets": render_triplets,
+    "references": render_references,
+    "first-run": render_first_run,
+    "main-job-stages": lambda: _stages("main-job"),
+    "tiny-stages": lambda: _stages("tiny"),
+    "places-stages": lambda: _stages("places"),
+    "robustness": render_robustness,
+    "mcvl-benchmark": render_mcvl_benchmark,
+    "scaling-units": render_scaling_units,
+    "scaling-projection": render_scaling_projection,
 }
 
 
@@ -494,6 +709,7 @@ def _rendered() -> Callable[[str], str]:
         if name not in cache:
             cache[name] = RENDERERS[name]()
         return cache[name]
+
     return render
 
 
@@ -520,7 +736,7 @@ def check_pages(pages: list[Path] = PAGES) -> list[str]:
     return stale
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("collect", help="write docs/results/NAME.json from run folders (or a JSON file)")
@@ -553,7 +769,7 @@ def compare(name: str, run: Path) -> int:
     rec, new = record(name), extract_run(run)
     rows, outside = [], 0
 
-    def check(label: str, values: list[Optional[float]], value: Optional[float]) -> None:
+    def check(label: str, values: list[float | None], value: float | None) -> None:
         nonlocal outside
         vals = [v for v in values if v is not None]
         if not vals or value is None:
@@ -565,7 +781,9 @@ def compare(name: str, run: Path) -> int:
     for m in METHODS:
         check(f"mean held-out AUC {METHODS[m]}", [_mean_auc(r, m) for r in rec["runs"]], _mean_auc(new, m))
     for n in new["maps"]:
-        check(f"{n} map median m", [r["maps"].get(n, {}).get("median_m") for r in rec["runs"]], new["maps"][n]["median_m"])
+        check(
+            f"{n} map median m", [r["maps"].get(n, {}).get("median_m") for r in rec["runs"]], new["maps"][n]["median_m"]
+        )
     print(table(["figure", "record", "this run", "within the record's range"], rows))
     return 1 if outside else 0
 

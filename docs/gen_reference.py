@@ -81,7 +81,9 @@ def _command_markdown(path: list[str], cmd, ctx) -> list[str]:
             names = ", ".join(f"`{o}`" for o in [*p.opts, *p.secondary_opts])
             if p.param_type_name == "argument":
                 names = f"`{p.name.upper()}`" + (" ..." if p.nargs == -1 else "")
-            default = "required" if p.required else ("" if p.default is None or callable(p.default) else f"`{p.default}`")
+            default = (
+                "required" if p.required else ("" if p.default is None or callable(p.default) else f"`{p.default}`")
+            )
             out.append(f"| {names} | `{_cell(p.display_type(ctx))}` | {_cell(default)} | {_cell(p.help or '')} |")
         out.append("")
     return out
@@ -115,7 +117,7 @@ def on_config(config):
     return config
 
 
-_AUTOREF = re.compile(r'<autoref (?P<attrs>[^>]*?)>(?P<title>.*?)</autoref>', flags=re.DOTALL)
+_AUTOREF = re.compile(r"<autoref (?P<attrs>[^>]*?)>(?P<title>.*?)</autoref>", flags=re.DOTALL)
 _IDENTIFIER = re.compile(r'identifier="(?P<id>[^"]*)"')
 _DOTTED_NAME = re.compile(r"^[A-Za-z_][\w.]*$")
 

@@ -34,8 +34,10 @@ def mermaid_script(vendor: Path = VENDOR, url: str = MERMAID_URL) -> Path:
         with urllib.request.urlopen(url, timeout=120) as r:
             data = r.read()
     except OSError as exc:
-        raise SystemExit(f"the docs need Mermaid {MERMAID_VERSION} in {path.parent} and could not fetch it from {url} ({exc}); "
-                         "run `bash scripts/setup.sh` once where the npm registry is reachable") from None
+        raise SystemExit(
+            f"the docs need Mermaid {MERMAID_VERSION} in {path.parent} and could not fetch it from {url} ({exc}); "
+            "run `bash scripts/setup.sh` once where the npm registry is reachable"
+        ) from None
     digest = "sha512-" + base64.b64encode(hashlib.sha512(data).digest()).decode()
     if digest != MERMAID_INTEGRITY:
         raise SystemExit(f"{url}: integrity {digest} is not the pinned {MERMAID_INTEGRITY}; refusing it")

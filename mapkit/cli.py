@@ -11,7 +11,7 @@ import logging
 import sys
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING, List, Optional
+from typing import TYPE_CHECKING
 
 import typer
 
@@ -64,11 +64,25 @@ def _version(value: bool) -> None:
 
 @app.callback()
 def _root(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Print the version and exit."),
-    executor: str = typer.Option("local", "--executor", help="Where per-frame, per-patch and per-pair work runs: local (processes) or ray."),
-    workers: Optional[int] = typer.Option(None, "--workers", help="Local processes or CPUs of a local Ray instance (default: one, or the stage's own setting)."),
-    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="A running Ray cluster ('auto' or HOST:PORT); default: start a local instance."),
-    wait: float = typer.Option(0.0, "--wait", help="Seconds to wait for another mapkit command writing the same workspace (default: refuse at once)."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print the version and exit."
+    ),
+    executor: str = typer.Option(
+        "local", "--executor", help="Where per-frame, per-patch and per-pair work runs: local (processes) or ray."
+    ),
+    workers: int | None = typer.Option(
+        None,
+        "--workers",
+        help="Local processes or CPUs of a local Ray instance (default: one, or the stage's own setting).",
+    ),
+    ray_address: str | None = typer.Option(
+        None, "--ray-address", help="A running Ray cluster ('auto' or HOST:PORT); default: start a local instance."
+    ),
+    wait: float = typer.Option(
+        0.0,
+        "--wait",
+        help="Seconds to wait for another mapkit command writing the same workspace (default: refuse at once).",
+    ),
 ) -> None:
     """mapkit: dataset building and mapping for visual localization."""
     global _WAIT_S
@@ -84,8 +98,8 @@ def _root(
 @app.command()
 def info(
     log: Path = typer.Argument(..., help="An MCAP file or a KITTI / RobotCar / generic folder."),
-    format: Optional[str] = typer.Option(None, "--format", "-f", help="Reader name; guessed from the path if omitted."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Also write the summary as JSON here."),
+    format: str | None = typer.Option(None, "--format", "-f", help="Reader name; guessed from the path if omitted."),
+    json_out: Path | None = typer.Option(None, "--json", help="Also write the summary as JSON here."),
 ) -> None:
     """Per stream: topic, type, count, rate, time span; for GPS the distance covered and fix quality."""
     from mapkit.core.runio import write_json
@@ -140,30 +154,52 @@ def config_defaults(name: str = typer.Argument(..., help="Config name, e.g. topi
 
 @app.command()
 def synth(
-    preset: str = typer.Option("tiny", help="tiny (tests), demo, places or benchmark: configs/synth/NAME.yaml, installed as mapkit/configs/synth/."),
+    preset: str = typer.Option(
+        "tiny",
+        help="tiny (tests), demo, places or benchmark: configs/synth/NAME.yaml, installed as mapkit/configs/synth/.",
+    ),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the world and session logs."),
-    seed: Optional[int] = typer.Option(None, help="Seed of the town and sessions (the preset's if omitted)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding the preset (e.g. configs/synth/benchmark-camera.yaml)."),
-    trajectory: Optional[Path] = typer.Option(None, help="Drive one session along this TUM / KITTI / RobotCar INS file."),
+    seed: int | None = typer.Option(None, help="Seed of the town and sessions (the preset's if omitted)."),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding the preset (e.g. configs/synth/benchmark-camera.yaml)."
+    ),
+    trajectory: Path | None = typer.Option(
+        None, help="Drive one session along this TUM / KITTI / RobotCar INS file."
+    ),
     overwrite: bool = typer.Option(False, help="Regenerate outputs that already exist."),
-    record_rate_hz: Optional[float] = typer.Option(None, help="Cameras record video at this rate (camera.record_rate_hz); "
-                                                   "each session's own rate stays its image rate (manifest: image_rate_hz)."),
+    record_rate_hz: float | None = typer.Option(
+        None,
+        help="Cameras record video at this rate (camera.record_rate_hz); "
+        "each session's own rate stays its image rate (manifest: image_rate_hz).",
+    ),
 ) -> None:
     """Generate the synthetic town: georeferenced multi-session drive logs with ground truth."""
     from mapkit.synth import synthesize
 
     overrides = {"camera": {"record_rate_hz": record_rate_hz}} if record_rate_hz is not None else None
-    path = synthesize(preset=preset, out=out, seed=seed, config=config, trajectory=trajectory, overwrite=overwrite,
-                      overrides=overrides)
+    path = synthesize(
+        preset=preset,
+        out=out,
+        seed=seed,
+        config=config,
+        trajectory=trajectory,
+        overwrite=overwrite,
+        overrides=overrides,
+    )
     typer.echo(f"synthetic town written to {path}")
 
 
 @app.command()
 @_writes("out")
 def build(
-    logs: List[Path] = typer.Argument(..., help="One or more drive logs; each becomes a session."),
+    logs: list[Path] = typer.Argument(..., help="One or more drive logs; each becomes a session."),
     out: Path = typer.Option(..., "--out", "-o", help="Workspace folder."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults build` (e.g. configs/build/mcvl-database.yaml)."),
+    config: Path | None = typer.Option(
+        None,
+        "--config",
+        "-c",
+        help="YAML overriding `mapkit config defaults build` (e.g. configs/build/mcvl-database.yaml).",
+    ),
 ) -> None:
     """Build georeferenced session maps (trajectory, GPS alignment, semi-dense map, image database)."""
     from mapkit.mapping.build import build as run_build
@@ -176,8 +212,12 @@ def build(
 @app.command()
 @_writes("workspace")
 def align(
-    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (two or more georeferenced sessions)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."),
+    workspace: Path = typer.Argument(
+        ..., help="A workspace made by `mapkit build` (two or more georeferenced sessions)."
+    ),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."
+    ),
 ) -> None:
     """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""
     from mapkit.multisession.align import align_workspace
@@ -192,32 +232,60 @@ def align(
 def export_crs(
     workspace: Path = typer.Argument(..., help="A georeferenced workspace (mapkit build, optionally mapkit align)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder."),
-    crs: str = typer.Option("utm", "--crs", help="utm (the workspace's zone), ecef (EPSG:4978), wgs84 (EPSG:4979, trajectories only) or EPSG:<code>."),
-    session: Optional[List[str]] = typer.Option(None, "--session", "-s", help="A session to export (repeatable); default: every georeferenced one."),
+    crs: str = typer.Option(
+        "utm",
+        "--crs",
+        help="utm (the workspace's zone), ecef (EPSG:4978), wgs84 (EPSG:4979, trajectories only) or EPSG:<code>.",
+    ),
+    session: list[str] | None = typer.Option(
+        None, "--session", "-s", help="A session to export (repeatable); default: every georeferenced one."
+    ),
     what: str = typer.Option("trajectory,map", "--what", help="Comma-separated: trajectory, map."),
-    merged: bool = typer.Option(False, "--merged", help="Also write the merged map of `mapkit align` (merged_map.ply)."),
-    source: str = typer.Option("auto", "--source", help="auto (aligned where `mapkit align` holds the session), aligned or built."),
+    merged: bool = typer.Option(
+        False, "--merged", help="Also write the merged map of `mapkit align` (merged_map.ply)."
+    ),
+    source: str = typer.Option(
+        "auto", "--source", help="auto (aligned where `mapkit align` holds the session), aligned or built."
+    ),
 ) -> None:
     """Write trajectories (TUM, or CSV lat/lon) and maps (PLY) of a workspace in a chosen CRS, for GIS tools, CloudCompare, evo."""
     from mapkit.deploy.crs_export import export_crs as run_export
 
     parts = {w.strip() for w in what.split(",") if w.strip()}
     if not parts <= {"trajectory", "map"} or source not in ("auto", "aligned", "built"):
-        raise MapkitError(f"--what {what!r} (expected trajectory and/or map) / --source {source!r} (expected auto, aligned or built)")
-    m = run_export(workspace, out, crs, sessions=session or None, trajectory="trajectory" in parts, map="map" in parts,
-                   merged=merged, source=source)  # type: ignore[arg-type]
-    typer.echo(f"EPSG:{m['crs_epsg']} ({m['crs_name']}): {len(m['sessions'])} session(s)"
-               f"{', merged map' if 'merged_map' in m else ''} written to {out} (see export.json)")
+        raise MapkitError(
+            f"--what {what!r} (expected trajectory and/or map) / --source {source!r} (expected auto, aligned or built)"
+        )
+    m = run_export(
+        workspace,
+        out,
+        crs,
+        sessions=session or None,
+        trajectory="trajectory" in parts,
+        map="map" in parts,
+        merged=merged,
+        source=source,
+    )  # type: ignore[arg-type]
+    typer.echo(
+        f"EPSG:{m['crs_epsg']} ({m['crs_name']}): {len(m['sessions'])} session(s)"
+        f"{', merged map' if 'merged_map' in m else ''} written to {out} (see export.json)"
+    )
 
 
 @app.command()
 @_writes("workspace")
 def triplets(
     workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults triplets`."),
-    truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: also measure the positives' true offsets."),
-    pointnetvlad: bool = typer.Option(False, "--pointnetvlad", help="Also write the PointNetVLAD tuple layout (DATASET/pointnetvlad)."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets)."),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults triplets`."
+    ),
+    truth: Path | None = typer.Option(
+        None, "--truth", help="Synthetic town: also measure the positives' true offsets."
+    ),
+    pointnetvlad: bool = typer.Option(
+        False, "--pointnetvlad", help="Also write the PointNetVLAD tuple layout (DATASET/pointnetvlad)."
+    ),
 ) -> None:
     """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
     import json
@@ -230,8 +298,10 @@ def triplets(
     typer.echo((folder / "metrics.json").read_text(), nl=False)
     if truth is not None:
         typer.echo(json.dumps(evaluate_triplets(folder, workspace, truth), indent=2))
-    typer.echo(f"written to {folder}: patches-*.h5 (or .npz), patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png"
-               + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else ""))
+    typer.echo(
+        f"written to {folder}: patches-*.h5 (or .npz), patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png"
+        + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else "")
+    )
 
 
 @app.command()
@@ -239,8 +309,10 @@ def localize(
     bundle: Path = typer.Argument(..., help="A VLAD bundle (`mapkit index vlad`)."),
     log: Path = typer.Argument(..., help="A drive log with camera images."),
     out: Path = typer.Option(Path("localize"), "--out", "-o", help="Output folder (TUM trajectories, metrics)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize`."),
-    camera: Optional[str] = typer.Option(None, "--camera", help="Camera to use when the log has several."),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults localize`."
+    ),
+    camera: str | None = typer.Option(None, "--camera", help="Camera to use when the log has several."),
 ) -> None:
     """Run the Monte Carlo visual localizer on a drive log against a VLAD bundle."""
     from mapkit.localization.localize import localize_log
@@ -251,20 +323,35 @@ def localize(
 
 @app.command()
 def view(
-    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (aligned maps are added when `mapkit align` ran)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="The .rrd to write (default WORKSPACE/view.rrd)."),
-    budget_points: int = typer.Option(2_000_000, "--budget-points", min=0, help="At most this many map points over all maps "
-                                      "together; each map keeps the same share, sampled uniformly."),
-    image_spacing: float = typer.Option(10.0, "--image-spacing", min=0.0,
-                                        help="One camera thumbnail per this many metres of camera travel."),
+    workspace: Path = typer.Argument(
+        ..., help="A workspace made by `mapkit build` (aligned maps are added when `mapkit align` ran)."
+    ),
+    out: Path | None = typer.Option(None, "--out", "-o", help="The .rrd to write (default WORKSPACE/view.rrd)."),
+    budget_points: int = typer.Option(
+        2_000_000,
+        "--budget-points",
+        min=0,
+        help="At most this many map points over all maps together; each map keeps the same share, sampled uniformly.",
+    ),
+    image_spacing: float = typer.Option(
+        10.0, "--image-spacing", min=0.0, help="One camera thumbnail per this many metres of camera travel."
+    ),
     thumbnail_width: int = typer.Option(320, "--thumbnail-width", min=16, help="Thumbnail width in pixels."),
-    localize: Optional[Path] = typer.Option(None, "--localize", help="A localization folder: `mapkit localize` runs (itself or its "
-                                            "sub-folders) and cached retrieval hits (cache/); default WORKSPACE/localize."),
-    gps: bool = typer.Option(True, "--gps/--no-gps",
-                             help="Draw the GPS fixes the georef stage used (its georef/gps_fixes.npz; where a session has none, read again from its log)."),
+    localize: Path | None = typer.Option(
+        None,
+        "--localize",
+        help="A localization folder: `mapkit localize` runs (itself or its "
+        "sub-folders) and cached retrieval hits (cache/); default WORKSPACE/localize.",
+    ),
+    gps: bool = typer.Option(
+        True,
+        "--gps/--no-gps",
+        help="Draw the GPS fixes the georef stage used (its georef/gps_fixes.npz; where a session has none, read again from its log).",
+    ),
     spawn: bool = typer.Option(False, "--spawn", help="Also open the Rerun viewer on it (needs a display)."),
-    png: Optional[Path] = typer.Option(None, "--png",
-                                       help="Also render a top view of the recording to this PNG (matplotlib, no viewer needed)."),
+    png: Path | None = typer.Option(
+        None, "--png", help="Also render a top view of the recording to this PNG (matplotlib, no viewer needed)."
+    ),
 ) -> None:
     """Write a Rerun recording (.rrd) of a workspace: trajectories, maps, GPS fixes, thumbnails at their poses, localizer runs.
 
@@ -282,11 +369,22 @@ def view(
     # it only reads the workspace; its lock is held only when the recording lands inside it
     inside = ws.root.is_dir() and target.is_relative_to(ws.root.resolve())
     with ws.lock("mapkit view", _WAIT_S) if inside else nullcontext():
-        s = write_recording(ws, out, budget_points=budget_points, image_spacing_m=image_spacing, thumbnail_width_px=thumbnail_width,
-                            localize=localize, gps=gps, spawn=spawn, progress=sys.stderr.isatty())
-    typer.echo(f"{s.path}: {s.bytes / 1e6:.1f} MB in {s.seconds:.1f} s; {s.points:,} of {sum(s.map_points_total.values()):,} map points "
-               f"in {len(s.map_points)} map(s), {sum(s.images.values())} thumbnails, {sum(s.gps_fixes.values())} GPS fixes, "
-               f"{sum(e.endswith('/trajectory') for e in s.poses)} trajectories")
+        s = write_recording(
+            ws,
+            out,
+            budget_points=budget_points,
+            image_spacing_m=image_spacing,
+            thumbnail_width_px=thumbnail_width,
+            localize=localize,
+            gps=gps,
+            spawn=spawn,
+            progress=sys.stderr.isatty(),
+        )
+    typer.echo(
+        f"{s.path}: {s.bytes / 1e6:.1f} MB in {s.seconds:.1f} s; {s.points:,} of {sum(s.map_points_total.values()):,} map points "
+        f"in {len(s.map_points)} map(s), {sum(s.images.values())} thumbnails, {sum(s.gps_fixes.values())} GPS fixes, "
+        f"{sum(e.endswith('/trajectory') for e in s.poses)} trajectories"
+    )
     for note in s.notes:
         typer.echo(f"note: {note}")
     if png is not None:
@@ -296,8 +394,12 @@ def view(
 @app.command()
 def train(
     dataset: Path = typer.Argument(..., help="A triplet dataset (`mapkit triplets`)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Model folder: checkpoints, model.pt, model.onnx, manifest, curve."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults train`."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Model folder: checkpoints, model.pt, model.onnx, manifest, curve."
+    ),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults train`."
+    ),
 ) -> None:
     """Train the 3D CNN patch descriptor with the triplet loss and hard-negative cycling (learning extra)."""
     from mapkit.learning.train import train_cnn
@@ -309,21 +411,38 @@ def train(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("mapkit-demo"), "--out", "-o", help="Output folder (town, workspace, bundles, report.html)."),
-    preset: str = typer.Option("demo", help="Synthetic town preset: demo (default, every stage within ten minutes on 2 cores), "
-                                              "tiny (every stage in a few minutes), places (the papers' claims) or benchmark."),
-    seed: Optional[int] = typer.Option(None, help="Seed of the town (the preset's if omitted)."),
+    out: Path = typer.Option(
+        Path("mapkit-demo"), "--out", "-o", help="Output folder (town, workspace, bundles, report.html)."
+    ),
+    preset: str = typer.Option(
+        "demo",
+        help="Synthetic town preset: demo (default, every stage within ten minutes on 2 cores), "
+        "tiny (every stage in a few minutes), places (the papers' claims) or benchmark.",
+    ),
+    seed: int | None = typer.Option(None, help="Seed of the town (the preset's if omitted)."),
     workers: int = typer.Option(2, help="Processes for image encoding."),
-    train_cnn: bool = typer.Option(False, "--train-cnn", help="Also train the 3D CNN descriptor (learning extra; adds up to 30 min)."),
-    record_rate_hz: Optional[float] = typer.Option(None, help="Cameras record video at this rate (RobotCar's 16) and the maps "
-                                                   "use every image, as the semi-dense paper's DSO maps do; image databases "
-                                                   "and queries keep the preset's rates."),
+    train_cnn: bool = typer.Option(
+        False, "--train-cnn", help="Also train the 3D CNN descriptor (learning extra; adds up to 30 min)."
+    ),
+    record_rate_hz: float | None = typer.Option(
+        None,
+        help="Cameras record video at this rate (RobotCar's 16) and the maps "
+        "use every image, as the semi-dense paper's DSO maps do; image databases "
+        "and queries keep the preset's rates.",
+    ),
 ) -> None:
     """Synthetic town to deployable bundles and an HTML report, in one command."""
     from mapkit.pipelines.demo import run_demo
 
-    m = run_demo(out, preset=preset, seed=seed, workers=workers, train_cnn=train_cnn, progress=sys.stderr.isatty(),
-                 record_rate_hz=record_rate_hz)
+    m = run_demo(
+        out,
+        preset=preset,
+        seed=seed,
+        workers=workers,
+        train_cnn=train_cnn,
+        progress=sys.stderr.isatty(),
+        record_rate_hz=record_rate_hz,
+    )
     typer.echo((out / "timings.md").read_text(), nl=False)
     typer.echo(f"report: {m['report']}")
     if "bundles" in m:
@@ -338,7 +457,9 @@ def demo(
 def index_export(
     workspace: Path = typer.Argument(..., help="A workspace with finished indexes under WORKSPACE/indexes."),
     out: Path = typer.Option(..., "--out", "-o", help="Bundle folder to write (replaced atomically)."),
-    name: Optional[List[str]] = typer.Option(None, "--index", "-i", help="Index folder name (vlad, structure-nbld, ...); repeat; default all."),
+    name: list[str] | None = typer.Option(
+        None, "--index", "-i", help="Index folder name (vlad, structure-nbld, ...); repeat; default all."
+    ),
 ) -> None:
     """One deployable folder: every index with its manifest (format version, parameters, CRS, sessions, checksums)."""
     from mapkit.deploy.export import export_bundles, load_bundle
@@ -353,11 +474,19 @@ def index_export(
 @index_app.command("vlad")
 @_writes("workspace")
 def index_vlad(
-    workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build` (aligned poses are used when `mapkit align` ran)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/vlad)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults index_vlad`."),
-    reuse: Optional[Path] = typer.Option(None, "--reuse", help="A bundle of the same images and settings but another whitening: "
-                                         "its vectors are re-scaled, no image is encoded again."),
+    workspace: Path = typer.Argument(
+        ..., help="A workspace made by `mapkit build` (aligned poses are used when `mapkit align` ran)."
+    ),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/vlad)."),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults index_vlad`."
+    ),
+    reuse: Path | None = typer.Option(
+        None,
+        "--reuse",
+        help="A bundle of the same images and settings but another whitening: "
+        "its vectors are re-scaled, no image is encoded again.",
+    ),
 ) -> None:
     """Dense SIFT, RootSIFT, VLAD and PCA-whitening image retrieval index, as a deployable bundle."""
     from mapkit.retrieval.index_vlad import build_vlad_index
@@ -372,16 +501,26 @@ def index_vlad(
 def index_structure(
     workspace: Path = typer.Argument(..., help="A workspace (its aligned maps are used when `mapkit align` ran)."),
     kind: str = typer.Option("nbld", "--kind", "-k", help="Descriptor: nbld, m2dp, or cnn (with --model)."),
-    model: Optional[Path] = typer.Option(None, "--model", help="A trained CNN folder (`mapkit train`), for --kind cnn; runs its ONNX export."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/structure-KIND)."),
-    session: Optional[List[str]] = typer.Option(None, "--session", "-s", help="Database session; repeat for several (default: all)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."),
+    model: Path | None = typer.Option(
+        None, "--model", help="A trained CNN folder (`mapkit train`), for --kind cnn; runs its ONNX export."
+    ),
+    out: Path | None = typer.Option(
+        None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/structure-KIND)."
+    ),
+    session: list[str] | None = typer.Option(
+        None, "--session", "-s", help="Database session; repeat for several (default: all)."
+    ),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."
+    ),
 ) -> None:
     """Structure index of a workspace's maps (NBLD, M2DP or a trained CNN's patch descriptors) with keypoint-to-frame voting, as a deployable bundle."""
     from mapkit.places.index_structure import build_structure_index
 
     overrides = {"cnn_model": str(model)} if model is not None else None
-    bundle = build_structure_index(workspace, kind, out, session or None, config, overrides=overrides, progress=sys.stderr.isatty())
+    bundle = build_structure_index(
+        workspace, kind, out, session or None, config, overrides=overrides, progress=sys.stderr.isatty()
+    )
     typer.echo(f"bundle written to {bundle}")
 
 
@@ -389,22 +528,40 @@ def index_structure(
 @_writes("workspace")
 def eval_build(
     workspace: Path = typer.Argument(..., help="A workspace made by `mapkit build`."),
-    truth: Path = typer.Option(..., "--truth", help="The synthetic town folder the logs came from (all its sessions), or one "
-                               "session's true trajectory: a TUM file (stamp tx ty tz qx qy qz qw), a KITTI poses file (12 numbers "
-                               "a line; stamps from times.txt beside it or --truth-times), or a log's pose topic (LOG::/topic)."),
-    session: Optional[str] = typer.Option(None, "--session", "-s",
-                                          help="The session a true trajectory belongs to (default: the only one)."),
-    truth_topic: Optional[str] = typer.Option(None, "--truth-topic",
-                                              help="The pose topic of a --truth log (default: its only pose topic)."),
-    truth_times: Optional[Path] = typer.Option(None, "--truth-times", help="Stamps of a KITTI poses file, one time in seconds a line."),
-    truth_time_offset: float = typer.Option(0.0, "--truth-time-offset", help="Seconds added to every true stamp (another clock, "
-                                            "or times relative to the drive's start)."),
-    max_dt: float = typer.Option(0.02, "--max-dt",
-                                 help="Largest stamp difference (s) at which a true pose is paired with an estimated one."),
-    align: str = typer.Option("auto", "--align", help="How a true trajectory's own frame is fitted: se3 (rigid), sim3 (with scale), "
-                              "none (the truth is in the workspace's ENU frame), auto (sim3 for a camera-only trajectory that GPS did "
-                              "not scale, else se3)."),
-    segment: float = typer.Option(100.0, "--segment", help="Length of true path (m) over which the relative error (RPE) is measured."),
+    truth: Path = typer.Option(
+        ...,
+        "--truth",
+        help="The synthetic town folder the logs came from (all its sessions), or one "
+        "session's true trajectory: a TUM file (stamp tx ty tz qx qy qz qw), a KITTI poses file (12 numbers "
+        "a line; stamps from times.txt beside it or --truth-times), or a log's pose topic (LOG::/topic).",
+    ),
+    session: str | None = typer.Option(
+        None, "--session", "-s", help="The session a true trajectory belongs to (default: the only one)."
+    ),
+    truth_topic: str | None = typer.Option(
+        None, "--truth-topic", help="The pose topic of a --truth log (default: its only pose topic)."
+    ),
+    truth_times: Path | None = typer.Option(
+        None, "--truth-times", help="Stamps of a KITTI poses file, one time in seconds a line."
+    ),
+    truth_time_offset: float = typer.Option(
+        0.0,
+        "--truth-time-offset",
+        help="Seconds added to every true stamp (another clock, or times relative to the drive's start).",
+    ),
+    max_dt: float = typer.Option(
+        0.02, "--max-dt", help="Largest stamp difference (s) at which a true pose is paired with an estimated one."
+    ),
+    align: str = typer.Option(
+        "auto",
+        "--align",
+        help="How a true trajectory's own frame is fitted: se3 (rigid), sim3 (with scale), "
+        "none (the truth is in the workspace's ENU frame), auto (sim3 for a camera-only trajectory that GPS did "
+        "not scale, else se3).",
+    ),
+    segment: float = typer.Option(
+        100.0, "--segment", help="Length of true path (m) over which the relative error (RPE) is measured."
+    ),
 ) -> None:
     """Trajectory error (and map accuracy against the synthetic town) of a built workspace against ground truth.
 
@@ -413,8 +570,17 @@ def eval_build(
     from mapkit.core.workspace import Workspace
     from mapkit.evaluation.evaluate import evaluate_build, format_eval
 
-    r = evaluate_build(workspace, truth, session=session, truth_topic=truth_topic, truth_times=truth_times,
-                       time_offset_s=truth_time_offset, max_dt_s=max_dt, align=align, segment_m=segment)
+    r = evaluate_build(
+        workspace,
+        truth,
+        session=session,
+        truth_topic=truth_topic,
+        truth_times=truth_times,
+        time_offset_s=truth_time_offset,
+        max_dt_s=max_dt,
+        align=align,
+        segment_m=segment,
+    )
     typer.echo(format_eval(r), nl=False)
     typer.echo(f"written to {Workspace(workspace).eval_build_json} and eval_build.md")
 
@@ -438,8 +604,12 @@ def eval_align(
 def eval_retrieval(
     workspace: Path = typer.Argument(..., help="The workspace the bundle was built from."),
     bundle: Path = typer.Argument(..., help="A VLAD bundle (`mapkit index vlad`)."),
-    query: List[str] = typer.Option(..., "--query", "-q", help="Query session (not in the bundle); repeat for several."),
-    truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: true positions and appearance conditions."),
+    query: list[str] = typer.Option(
+        ..., "--query", "-q", help="Query session (not in the bundle); repeat for several."
+    ),
+    truth: Path | None = typer.Option(
+        None, "--truth", help="Synthetic town: true positions and appearance conditions."
+    ),
 ) -> None:
     """Recall@1/5/20 within 25 m per query session and the error of the mean-shift measurement."""
     from mapkit.evaluation.retrieval import evaluate_retrieval, format_retrieval
@@ -452,13 +622,21 @@ def eval_retrieval(
 @_writes("workspace")
 def eval_places(
     workspace: Path = typer.Argument(..., help="An aligned workspace."),
-    pair: List[str] = typer.Option(..., "--pair", "-p", help="DATABASE:QUERY session pair; repeat for several."),
-    method: List[str] = typer.Option(["nbld", "m2dp", "vlad"], "--method", "-m", help="nbld, m2dp, cnn (with --cnn-model), vlad; repeat for several."),
-    cnn_model: Optional[Path] = typer.Option(None, "--cnn-model", help="A trained CNN folder (`mapkit train`) for the cnn method."),
-    truth: Optional[Path] = typer.Option(None, "--truth", help="Synthetic town: true positions (else the aligned poses)."),
-    vlad_bundle: Optional[Path] = typer.Option(None, "--vlad-bundle", help="VLAD bundle for the image baseline."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."),
+    pair: list[str] = typer.Option(..., "--pair", "-p", help="DATABASE:QUERY session pair; repeat for several."),
+    method: list[str] = typer.Option(
+        ["nbld", "m2dp", "vlad"], "--method", "-m", help="nbld, m2dp, cnn (with --cnn-model), vlad; repeat for several."
+    ),
+    cnn_model: Path | None = typer.Option(
+        None, "--cnn-model", help="A trained CNN folder (`mapkit train`) for the cnn method."
+    ),
+    truth: Path | None = typer.Option(
+        None, "--truth", help="Synthetic town: true positions (else the aligned poses)."
+    ),
+    vlad_bundle: Path | None = typer.Option(None, "--vlad-bundle", help="VLAD bundle for the image baseline."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places)."),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."
+    ),
 ) -> None:
     """Place recognition precision/recall and AUC per session pair (the semi-dense paper's Table 2)."""
     from mapkit.core.errors import ConfigError
@@ -470,7 +648,9 @@ def eval_places(
             raise ConfigError(f"--pair {p!r}: expected DATABASE:QUERY")
         pairs.append(tuple(p.split(":")))
     overrides = {"structure": {"cnn_model": str(cnn_model)}} if cnn_model is not None else None
-    r = evaluate_places(workspace, pairs, method, out, truth, vlad_bundle, config, overrides=overrides, progress=sys.stderr.isatty())
+    r = evaluate_places(
+        workspace, pairs, method, out, truth, vlad_bundle, config, overrides=overrides, progress=sys.stderr.isatty()
+    )
     typer.echo(format_places(r))
 
 
@@ -479,18 +659,31 @@ def eval_places(
 def eval_localize(
     workspace: Path = typer.Argument(..., help="A built (and ideally aligned) workspace of a synthetic town."),
     truth: Path = typer.Option(..., "--truth", help="The synthetic town: session roles and true poses."),
-    bundle: Optional[Path] = typer.Option(None, "--bundle", help="A VLAD bundle; built from the training sessions if omitted."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/, installed as mapkit/configs/localize/)."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/localize)."),
-    cache_dir: Optional[Path] = typer.Option(None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."),
+    bundle: Path | None = typer.Option(
+        None, "--bundle", help="A VLAD bundle; built from the training sessions if omitted."
+    ),
+    config: Path | None = typer.Option(
+        None,
+        "--config",
+        "-c",
+        help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/, installed as mapkit/configs/localize/).",
+    ),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/localize)."),
+    cache_dir: Path | None = typer.Option(
+        None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."
+    ),
 ) -> None:
     """MCVL's protocol: training sessions build the index, test sessions are localized (Table II, Fig. 5)."""
     from mapkit.core.workspace import Workspace
     from mapkit.evaluation.localization import evaluate_localization, format_localization
 
-    r = evaluate_localization(workspace, truth, bundle, config=config, out=out, cache_dir=cache_dir, progress=sys.stderr.isatty())
+    r = evaluate_localization(
+        workspace, truth, bundle, config=config, out=out, cache_dir=cache_dir, progress=sys.stderr.isatty()
+    )
     typer.echo(format_localization(r), nl=False)
-    typer.echo(f"written to {out or Workspace(workspace).localize_dir}: eval_localize.json, .md and one PNG per sequence")
+    typer.echo(
+        f"written to {out or Workspace(workspace).localize_dir}: eval_localize.json, .md and one PNG per sequence"
+    )
 
 
 def configure_logging() -> None:
@@ -501,7 +694,7 @@ def configure_logging() -> None:
     logging.getLogger("mapkit").setLevel(logging.INFO)
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``mapkit`` script."""
     configure_logging()
     original = warnings.formatwarning

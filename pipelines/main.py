@@ -29,20 +29,35 @@ from mapkit.pipelines.demo import run_demo  # noqa: E402
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="demo", help="synthetic town preset: demo (default), tiny (every stage on a small town), places (the papers' claims) or benchmark")
+    ap.add_argument(
+        "--preset",
+        default="demo",
+        help="synthetic town preset: demo (default), tiny (every stage on a small town), places (the papers' claims) or benchmark",
+    )
     ap.add_argument("--out", type=Path, default=Path("runs/main"), help="output folder (default runs/main)")
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--workers", type=int, default=2, help="processes for image encoding (default 2)")
     ap.add_argument("--train-cnn", action="store_true", help="also train the 3D CNN (learning extra)")
-    ap.add_argument("--record-rate-hz", type=float, default=None,
-                    help="cameras record video at this rate (RobotCar's 16) and the maps use every image, as the "
-                         "semi-dense paper's DSO maps do; image databases and queries keep the preset's rates")
+    ap.add_argument(
+        "--record-rate-hz",
+        type=float,
+        default=None,
+        help="cameras record video at this rate (RobotCar's 16) and the maps use every image, as the "
+        "semi-dense paper's DSO maps do; image databases and queries keep the preset's rates",
+    )
     args = ap.parse_args(argv)
     # the demo's stage lines ("[demo] build: ok in 12 s") and its stages' progress are mapkit's INFO log records
     logging.basicConfig(level=logging.WARNING, format="%(message)s", stream=sys.stderr)
     logging.getLogger("mapkit").setLevel(logging.INFO)
-    m = run_demo(args.out, args.preset, args.seed, args.workers, args.train_cnn, progress=sys.stderr.isatty(),
-                 record_rate_hz=args.record_rate_hz)
+    m = run_demo(
+        args.out,
+        args.preset,
+        args.seed,
+        args.workers,
+        args.train_cnn,
+        progress=sys.stderr.isatty(),
+        record_rate_hz=args.record_rate_hz,
+    )
     print((args.out / "timings.md").read_text(), end="")
     print(f"report: {m['report']}")
     if "bundles" in m:

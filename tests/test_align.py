@@ -19,13 +19,13 @@ from mapkit.multisession.align import (
     AlignConfig,
     Edge,
     PoseGraph,
-    support_points,
     SessionData,
     align_workspace,
     candidate_pairs,
     cut_submaps,
     load_tiles,
     register_clouds,
+    support_points,
 )
 
 FRAME = LocalFrame(48.1, 11.5, 520.0)
@@ -55,7 +55,9 @@ def street(rng: np.random.Generator) -> np.ndarray:
     return np.concatenate(parts)
 
 
-def write_session(ws: Path, name: str, world: np.ndarray, error: np.ndarray, rng: np.random.Generator, lane_y: float = -2.0) -> None:
+def write_session(
+    ws: Path, name: str, world: np.ndarray, error: np.ndarray, rng: np.random.Generator, lane_y: float = -2.0
+) -> None:
     """A built session that drove the street at 10 m/s, whose map and trajectory are displaced by
     ``error`` (true -> as built), as a GPS bias would displace them."""
     sdir = ws / "sessions" / name
@@ -76,18 +78,32 @@ def write_session(ws: Path, name: str, world: np.ndarray, error: np.ndarray, rng
     kf_poses = np.stack([error @ make_pose(np.eye(3), [x, lane_y, 1.5]) for x in kf_x])
     src = kf_ids[np.clip(np.searchsorted(kf_x, np.clip(world_x(pts, error), 0, STREET_M - 1)), 0, len(kf_x) - 1)]
     smap = SemiDenseMap(
-        points_world=pts, intensity=np.full(len(pts), 128, np.uint8), sigma_depth=np.full(len(pts), 0.05, np.float32),
-        source_keyframe=src, obs_indptr=np.arange(len(pts) + 1, dtype=np.int64), obs_frame_ids=src.copy(),
-        keyframe_ids=kf_ids, keyframe_stamps_ns=kf_stamps, keyframe_world_from_cam=kf_poses,
-        K=np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), image_size_wh=(640, 480),
+        points_world=pts,
+        intensity=np.full(len(pts), 128, np.uint8),
+        sigma_depth=np.full(len(pts), 0.05, np.float32),
+        source_keyframe=src,
+        obs_indptr=np.arange(len(pts) + 1, dtype=np.int64),
+        obs_frame_ids=src.copy(),
+        keyframe_ids=kf_ids,
+        keyframe_stamps_ns=kf_stamps,
+        keyframe_world_from_cam=kf_poses,
+        K=np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
+        image_size_wh=(640, 480),
     )
     smap.save(sdir / "map")
     mark_done(sdir / "map", "test")
     # an image database: a camera 1.5 m above the base every 5 m
     img_t = np.arange(0.25, STREET_M / 10.0 - 0.25, 0.5)
     cams = np.stack([error @ make_pose(np.eye(3), [10.0 * ti, lane_y, 1.5]) for ti in img_t])
-    write_images_csv(sdir / "imagedb" / "images.csv", np.arange(1, len(img_t) + 1), (1_000_000_000 + img_t * 1e9).astype(np.int64),
-                     ["cam"] * len(img_t), [f"images/cam/{i}.jpg" for i in range(len(img_t))], cams, FRAME)
+    write_images_csv(
+        sdir / "imagedb" / "images.csv",
+        np.arange(1, len(img_t) + 1),
+        (1_000_000_000 + img_t * 1e9).astype(np.int64),
+        ["cam"] * len(img_t),
+        [f"images/cam/{i}.jpg" for i in range(len(img_t))],
+        cams,
+        FRAME,
+    )
 
 
 def world_x(pts: np.ndarray, error: np.ndarray) -> np.ndarray:
@@ -139,8 +155,16 @@ def test_register_clouds_recovers_a_known_offset(street_world):
 
 def test_candidate_pairs_pairs_only_nearby_submaps_of_different_sessions():
     def sess(name, y):
-        s = SessionData(name, np.arange(101, dtype=np.int64), np.stack([make_pose(np.eye(3), [x, y, 0]) for x in np.linspace(0, 200, 101)]),
-                        np.linspace(0, 200, 101), np.zeros((0, 3)), np.zeros(0), Path("."), "")
+        s = SessionData(
+            name,
+            np.arange(101, dtype=np.int64),
+            np.stack([make_pose(np.eye(3), [x, y, 0]) for x in np.linspace(0, 200, 101)]),
+            np.linspace(0, 200, 101),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            Path("."),
+            "",
+        )
         cut_submaps(s, 50.0)
         return s
 
@@ -159,7 +183,16 @@ def test_pose_graph_distributes_a_known_offset():
     edges = []
     for k in range(2):
         for s in (0, 3):
-            edges.append(Edge("odometry", s + k, s + k + 1, np.array([[50.0 * (k + 1), 0, 0], [50.0 * (k + 1) + 10, 0, 0], [50.0 * (k + 1), 10, 0]]), np.eye(4), 0.1))
+            edges.append(
+                Edge(
+                    "odometry",
+                    s + k,
+                    s + k + 1,
+                    np.array([[50.0 * (k + 1), 0, 0], [50.0 * (k + 1) + 10, 0, 0], [50.0 * (k + 1), 10, 0]]),
+                    np.eye(4),
+                    0.1,
+                )
+            )
     T = make_pose(np.eye(3), [-2.0, 0, 0])  # maps the second session's points onto the first's
     for k in range(3):
         edges.append(Edge("icp", 3 + k, k, centres[k] + np.array([[0, 0, 0], [10.0, 0, 0], [0, 10.0, 0]]), T, 0.1))
@@ -179,18 +212,47 @@ def _mc_graph(rng, cfg, n_sessions=4, n_sub=3, outlier=False, isolated=0):
     true_t = -np.repeat(bias, n_sub, axis=0)  # the correction that undoes each session's bias
     x0 = np.zeros((len(centres), 6))
     x0[:, 3:] = true_t + bias.mean(axis=0)  # where align starts it: the sessions' relative offsets (session_offsets)
-    g = PoseGraph(centres + np.repeat(bias, n_sub, axis=0), cfg, initial=x0, session_of=np.repeat(np.arange(n_sessions), n_sub))
+    g = PoseGraph(
+        centres + np.repeat(bias, n_sub, axis=0), cfg, initial=x0, session_of=np.repeat(np.arange(n_sessions), n_sub)
+    )
     for s in range(n_sessions):
         for k in range(n_sub - 1):
-            g.add(Edge("odometry", s * n_sub + k, s * n_sub + k + 1, support_points(np.array([50.0 * (k + 1), 0, 0]) + bias[s], np.array([1.0, 0, 0]), 10.0), np.eye(4), 0.1))
+            g.add(
+                Edge(
+                    "odometry",
+                    s * n_sub + k,
+                    s * n_sub + k + 1,
+                    support_points(np.array([50.0 * (k + 1), 0, 0]) + bias[s], np.array([1.0, 0, 0]), 10.0),
+                    np.eye(4),
+                    0.1,
+                )
+            )
     for sa in range(n_sessions - isolated):
         for sb in range(sa + 1, n_sessions - isolated):
             for k in range(n_sub):
                 T = make_pose(np.eye(3), bias[sb] - bias[sa])  # session a's points onto session b's
-                g.add(Edge("icp", sa * n_sub + k, sb * n_sub + k, support_points(g.centres[sa * n_sub + k], np.array([1.0, 0, 0]), 10.0), T, 0.1, 0))
+                g.add(
+                    Edge(
+                        "icp",
+                        sa * n_sub + k,
+                        sb * n_sub + k,
+                        support_points(g.centres[sa * n_sub + k], np.array([1.0, 0, 0]), 10.0),
+                        T,
+                        0.1,
+                        0,
+                    )
+                )
     bad = None
     if outlier:  # one registration 3 m off, between the first two sessions
-        bad = Edge("icp", 0, n_sub, support_points(g.centres[0], np.array([1.0, 0, 0]), 10.0), make_pose(np.eye(3), bias[1] - bias[0] + [3.0, 0, 0]), 0.1, 1)
+        bad = Edge(
+            "icp",
+            0,
+            n_sub,
+            support_points(g.centres[0], np.array([1.0, 0, 0]), 10.0),
+            make_pose(np.eye(3), bias[1] - bias[0] + [3.0, 0, 0]),
+            0.1,
+            1,
+        )
         g.add(bad)
     return g, true_t, bad
 
@@ -239,7 +301,11 @@ def test_pose_graph_removes_a_rejected_edge_as_if_never_added():
 
 
 def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
-    errors = {"s0": gps_error(1.5, -2.0, 0.3, 0.3), "s1": gps_error(-2.0, 1.0, -0.4, -0.2), "s2": gps_error(0.5, 2.5, 0.0, 0.0)}
+    errors = {
+        "s0": gps_error(1.5, -2.0, 0.3, 0.3),
+        "s1": gps_error(-2.0, 1.0, -0.4, -0.2),
+        "s2": gps_error(0.5, 2.5, 0.0, 0.0),
+    }
     ws = tmp_path / "ws"
     make_workspace(ws, street_world, errors)
     cfg = {"graph": {"max_rounds": 2}}
@@ -256,14 +322,18 @@ def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
     pts, sid, idx, names = load_tiles(out / "tiles")
     assert names == ["s0", "s1", "s2"] and len(pts) == sum(s["points"] for s in m["sessions"].values())
     refined = SemiDenseMap.load(out / "sessions" / "s1" / "map")
-    assert np.allclose(pts[(sid == 1)][np.argsort(idx[sid == 1])][:100], refined.points_world[np.sort(idx[sid == 1])][:100])
+    assert np.allclose(
+        pts[(sid == 1)][np.argsort(idx[sid == 1])][:100], refined.points_world[np.sort(idx[sid == 1])][:100]
+    )
     # the image databases moved with their sessions: every session's cameras are off the truth by
     # one common offset (the frame's gauge), not by their own GPS errors any more
     offsets = []
     for name in errors:
         tab = read_images_csv(out / "sessions" / name / "images.csv")
         lane = -2.0 if name in ("s0", "s2") else 2.0
-        true = np.stack([np.full(len(tab["x_m"]), 0.0), np.full(len(tab["x_m"]), lane), np.full(len(tab["x_m"]), 1.5)], axis=1)
+        true = np.stack(
+            [np.full(len(tab["x_m"]), 0.0), np.full(len(tab["x_m"]), lane), np.full(len(tab["x_m"]), 1.5)], axis=1
+        )
         true[:, 0] = (tab["stamp_ns"] - 1_000_000_000) * 1e-8
         offsets.append(np.median(images_world_from_cam(tab)[:, :3, 3] - true, axis=0))
         assert tab["image"][0].endswith("imagedb/images/cam/0.jpg") and not tab["image"][0].startswith("/")
@@ -287,7 +357,12 @@ def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
     assert m2["registration"]["registered_this_run"] == m2["registration"]["pairs"] - m["registration"]["pairs"]
     assert (out / "sessions" / "s0" / "trajectory" / "poses_tum.txt").read_text() == before_s0  # frozen
     # a frozen session's files are those of the last run, kept, not written again; a damaged one is rewritten whole
-    assert {n: s["outputs_kept"] for n, s in m2["sessions"].items()} == {"s0": True, "s1": False, "s2": True, "s3": False}
+    assert {n: s["outputs_kept"] for n, s in m2["sessions"].items()} == {
+        "s0": True,
+        "s1": False,
+        "s2": True,
+        "s3": False,
+    }
     assert map_s0.stat().st_mtime_ns == stamp_s0 and table_s1.read_bytes() == good_s1
     assert is_done(out, verify=True)  # the marker records the kept files as they are
     assert misalignment(ws, "s0", "s3", errors, probe) < 0.1
@@ -365,15 +440,29 @@ def test_a_sparse_session_is_kept_with_its_reason_and_one_without_gps_is_skipped
     ws = tmp_path / "ws"
     make_workspace(ws, street_world, errors)
     fog = SemiDenseMap.load(ws / "sessions" / "fog" / "map")
-    keep = np.random.default_rng(5).random(len(fog.points_world)) < 0.005  # ~0.5% of the points: a few hundred per submap
-    sparse = SemiDenseMap(fog.points_world[keep], fog.intensity[keep], fog.sigma_depth[keep], fog.source_keyframe[keep],
-                          np.arange(int(keep.sum()) + 1, dtype=np.int64), fog.source_keyframe[keep], fog.keyframe_ids,
-                          fog.keyframe_stamps_ns, fog.keyframe_world_from_cam, fog.K, fog.image_size_wh)
+    keep = (
+        np.random.default_rng(5).random(len(fog.points_world)) < 0.005
+    )  # ~0.5% of the points: a few hundred per submap
+    sparse = SemiDenseMap(
+        fog.points_world[keep],
+        fog.intensity[keep],
+        fog.sigma_depth[keep],
+        fog.source_keyframe[keep],
+        np.arange(int(keep.sum()) + 1, dtype=np.int64),
+        fog.source_keyframe[keep],
+        fog.keyframe_ids,
+        fog.keyframe_stamps_ns,
+        fog.keyframe_world_from_cam,
+        fog.K,
+        fog.image_size_wh,
+    )
     sparse.save(ws / "sessions" / "fog" / "map")
     mark_done(ws / "sessions" / "fog" / "map", "test")
     write_session(ws, "nogps", street_world, np.eye(4), np.random.default_rng(300))
-    write_json(ws / "sessions" / "nogps" / "georef" / "gps_alignment.json",
-               {"session": "nogps", "georeferenced": False, "reason": "no GPS fix in the log"})
+    write_json(
+        ws / "sessions" / "nogps" / "georef" / "gps_alignment.json",
+        {"session": "nogps", "georeferenced": False, "reason": "no GPS fix in the log"},
+    )
     mark_done(ws / "sessions" / "nogps" / "georef", "test")
     with pytest.warns(UserWarning, match="nogps.*not georeferenced \\(no GPS fix in the log\\); skipped"):
         out = align_workspace(ws, overrides={"graph": {"max_rounds": 2}}, progress=False)
@@ -381,6 +470,8 @@ def test_a_sparse_session_is_kept_with_its_reason_and_one_without_gps_is_skipped
     assert sorted(m["sessions"]) == ["fog", "s0", "s1"]
     pairs = json.loads((out / "pairs.json").read_text())["pairs"]
     fog_pairs = [p for p in pairs if "fog" in (p["source"][0], p["target"][0])]
-    assert fog_pairs and all(not p["accepted"] and "too few points" in p["reason"] for p in fog_pairs), fog_pairs[0]["reason"]
+    assert fog_pairs and all(not p["accepted"] and "too few points" in p["reason"] for p in fog_pairs), fog_pairs[0][
+        "reason"
+    ]
     assert m["sessions"]["fog"]["verified"] == 0 and not m["sessions"]["fog"]["merged"]
     assert m["sessions"]["s0"]["verified"] > 0 and m["sessions"]["s0"]["merged"]

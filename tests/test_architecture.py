@@ -95,7 +95,9 @@ def backward_edges(root: Path) -> list[str]:
             if mine == theirs or theirs == "__init__":
                 continue
             if RUNGS[theirs] > RUNGS[mine]:
-                bad.append(f"{path.relative_to(root.parent)}:{line}: {mine} (rung {RUNGS[mine]}) imports {target} (rung {RUNGS[theirs]})")
+                bad.append(
+                    f"{path.relative_to(root.parent)}:{line}: {mine} (rung {RUNGS[mine]}) imports {target} (rung {RUNGS[theirs]})"
+                )
             elif any({mine, theirs} <= group for group in SIBLINGS):
                 bad.append(f"{path.relative_to(root.parent)}:{line}: sibling {mine} imports {target}")
     return bad
@@ -105,13 +107,18 @@ def cycles(root: Path) -> list[list[str]]:
     graph: dict[str, set[str]] = defaultdict(set)
     for path in root.rglob("*.py"):
         me = module_name(path, root)
-        graph[me] |= {t for t, _ in imports_of(path, root) if t != me and _is_module(t, root) and not (root / Path(*t.split(".")[1:]) / "__init__.py").exists()}
+        graph[me] |= {
+            t
+            for t, _ in imports_of(path, root)
+            if t != me and _is_module(t, root) and not (root / Path(*t.split(".")[1:]) / "__init__.py").exists()
+        }
     # Tarjan's strongly connected components; a component of more than one module is a cycle
     index, low, stack, on, found = {}, {}, [], set(), []
 
     def visit(v):
         index[v] = low[v] = len(index)
-        stack.append(v); on.add(v)
+        stack.append(v)
+        on.add(v)
         for w in graph.get(v, ()):
             if w not in index:
                 visit(w)
@@ -121,7 +128,9 @@ def cycles(root: Path) -> list[list[str]]:
         if low[v] == index[v]:
             comp = []
             while True:
-                w = stack.pop(); on.discard(w); comp.append(w)
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
                 if w == v:
                     break
             if len(comp) > 1:

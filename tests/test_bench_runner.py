@@ -47,7 +47,12 @@ def test_run_all_reports_ratios_failures_and_timeouts(tmp_path):
     run_all = _run_all()
     benches = tmp_path / "benches"
     benches.mkdir()
-    for name, text in (("bench_fast", OK_BENCH), ("bench_text", TEXT_BENCH), ("bench_broken", FAILING_BENCH), ("bench_slow", HANGING_BENCH)):
+    for name, text in (
+        ("bench_fast", OK_BENCH),
+        ("bench_text", TEXT_BENCH),
+        ("bench_broken", FAILING_BENCH),
+        ("bench_slow", HANGING_BENCH),
+    ):
         (benches / f"{name}.py").write_text(text)
     (benches / "helper.py").write_text("raise SystemExit('not a benchmark')\n")
     out = tmp_path / "report" / "bench.md"
@@ -60,7 +65,11 @@ def test_run_all_reports_ratios_failures_and_timeouts(tmp_path):
     assert fast["status"] == "ok" and fast["command"][-1] == "--quick"  # it declares --quick, so it gets it
     assert (fast["mapkit"], fast["baseline"], fast["ratio"]) == ("500 /s quick", "200 /s", "2.50")
     assert fast["tables"][0]["rows"][1]["per_s"] == 200.0
-    assert text["status"] == "ok" and text["ratio"] == "speed-up over the loop: 4.0x" and text["command"][-1].endswith("bench_text.py")
+    assert (
+        text["status"] == "ok"
+        and text["ratio"] == "speed-up over the loop: 4.0x"
+        and text["command"][-1].endswith("bench_text.py")
+    )
     assert broken["status"] == "failed" and broken["returncode"] != 0
     assert broken["detail"] == "RuntimeError: boom: no data"
     assert slow["status"] == "timed out" and slow["wall_s"] < 30
@@ -75,7 +84,10 @@ def test_run_all_reports_ratios_failures_and_timeouts(tmp_path):
 
     # --only runs just the named ones, under either spelling
     run_all.main(["--bench-dir", str(benches), "--out", str(out), "--only", "fast", "bench_text.py"])
-    assert [r["name"] for r in json.loads(out.with_suffix(".json").read_text())["results"]] == ["bench_fast", "bench_text"]
+    assert [r["name"] for r in json.loads(out.with_suffix(".json").read_text())["results"]] == [
+        "bench_fast",
+        "bench_text",
+    ]
 
 
 def test_headline_falls_back_to_a_ratio_column():

@@ -53,7 +53,9 @@ def test_build_writes_every_stage_in_the_fields_formats(clip12, tmp_path):
         uv = im.project_point(pt.xyz)
         np.testing.assert_allclose(uv, im.points2D[el.point2D_idx].xy, atol=1e-6)
     table = read_images_csv(s / "imagedb" / "images.csv")
-    assert len(table["stamp_ns"]) == rec.num_images() and np.all(np.isnan(table["lat_deg"]))  # no GPS: not georeferenced
+    assert len(table["stamp_ns"]) == rec.num_images() and np.all(
+        np.isnan(table["lat_deg"])
+    )  # no GPS: not georeferenced
     ga = json.loads((s / "georef" / "gps_alignment.json").read_text())
     assert ga["georeferenced"] is False
     m = json.loads((ws / "metrics.json").read_text())["sessions"]["clip12"]["stages"]
@@ -172,8 +174,10 @@ def _two_camera_log(path, front_grey: int, rear_grey: int):
     image topic) whose frames are flat grey images, one grey level per camera, 20 ms apart."""
     K = np.array([[40.0, 0, 32], [0, 40, 24], [0, 0, 1]])
     with McapWriter(path) as w:
-        w.write_transforms("/tf_static", [FrameTransform(0, "base_link", cam, make_pose(np.eye(3), [1.0, 0, 1.5]))
-                                          for cam in ("front", "rear")])
+        w.write_transforms(
+            "/tf_static",
+            [FrameTransform(0, "base_link", cam, make_pose(np.eye(3), [1.0, 0, 1.5])) for cam in ("front", "rear")],
+        )
         for cam in ("front", "rear"):
             w.write(f"/{cam}/camera_info", CameraInfo(cam, 64, 48, K, stamp_ns=T0))
         for i in range(20):
@@ -190,8 +194,10 @@ def test_build_reads_images_from_the_topics_named_in_topics_images(tmp_path):
 
     log = _two_camera_log(tmp_path / "two_cams.mcap", front_grey=60, rear_grey=190)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("topics:\n  images: [/rear/image]\ntrajectory:\n  source: poses\nmap: false\n"
-                   "imagedb:\n  min_spacing_m: 0.0\n  image_format: png\n")
+    cfg.write_text(
+        "topics:\n  images: [/rear/image]\ntrajectory:\n  source: poses\nmap: false\n"
+        "imagedb:\n  min_spacing_m: 0.0\n  image_format: png\n"
+    )
     with pytest.warns(InputWarning, match="no GPS stream"):
         ws = build([log], tmp_path / "ws", config=cfg, progress=False)
     db = Workspace(ws).session("two_cams").imagedb
@@ -222,9 +228,16 @@ def _imageless_log(path, yaw_deg: float = 37.0, faults: bool = False):
             w.write("/ins/pose", PoseSample(t, "map", "base_link", make_pose(yaw_rotation(np.arctan(0.004 * s)), xyz)))
             if i % 10 == 0:
                 noisy = R @ xyz + rng.normal(scale=1.0, size=3) + ([1000.0, 0, 0] if faults and i == 90 else 0.0)
-                lat, lon, alt = (np.array([v]) for v in (0.0, 0.0, 0.0)) if faults and i == 0 else frame.enu_to_geodetic(noisy[None])
+                lat, lon, alt = (
+                    (np.array([v]) for v in (0.0, 0.0, 0.0))
+                    if faults and i == 0
+                    else frame.enu_to_geodetic(noisy[None])
+                )
                 alt = np.array([np.nan]) if faults and i >= 250 else alt
-                w.write("/gps/fix", GpsFix(t, float(lat[0]), float(lon[0]), float(alt[0]), covariance_enu_m2=np.diag([1.0, 1.0, 4.0])))
+                w.write(
+                    "/gps/fix",
+                    GpsFix(t, float(lat[0]), float(lon[0]), float(alt[0]), covariance_enu_m2=np.diag([1.0, 1.0, 4.0])),
+                )
     return path
 
 
@@ -291,7 +304,9 @@ def test_imagedb_false_and_map_false_skip_those_stages_without_a_warning(tmp_pat
     s = Workspace(ws).session("two_cams")
     assert is_done(s.georef) and not s.map.exists() and not s.imagedb.exists()
     st = json.loads((ws / "metrics.json").read_text())["sessions"]["two_cams"]["stages"]
-    assert st["semidense"] == {"skipped": "map: false in the config"} and st["imagedb"] == {"skipped": "imagedb: false in the config"}
+    assert st["semidense"] == {"skipped": "map: false in the config"} and st["imagedb"] == {
+        "skipped": "imagedb: false in the config"
+    }
 
 
 def test_image_database_at_2hz_keeps_the_frames_it_skips_for_encoder_training(tmp_path):
@@ -300,9 +315,11 @@ def test_image_database_at_2hz_keeps_the_frames_it_skips_for_encoder_training(tm
     most one per ``training_interval_s``) go to training.csv, disjoint from the database."""
     log = _two_camera_log(tmp_path / "two_cams.mcap", front_grey=60, rear_grey=190)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nmap: false\n"
-                   "imagedb:\n  min_spacing_m: 0.0\n  min_interval_s: 0.5\n  training_frames: true\n  training_interval_s: 0.2\n"
-                   "  image_format: png\n")
+    cfg.write_text(
+        "topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nmap: false\n"
+        "imagedb:\n  min_spacing_m: 0.0\n  min_interval_s: 0.5\n  training_frames: true\n  training_interval_s: 0.2\n"
+        "  image_format: png\n"
+    )
     with pytest.warns(InputWarning, match="no GPS stream"):
         ws = build([log], tmp_path / "ws", config=cfg, progress=False)
     s = Workspace(ws).session("two_cams")
@@ -321,13 +338,18 @@ def test_per_session_overrides_sub_sample_the_database_drives_and_leave_the_quer
     training drives' database at 2 Hz with their training frames; the query drive keeps every frame."""
     logs = [_two_camera_log(tmp_path / f"{name}.mcap", front_grey=60, rear_grey=190) for name in ("train-x", "test-y")]
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nmap: false\n"
-                   "imagedb:\n  min_spacing_m: 0.0\n  image_format: png\n"
-                   "sessions:\n  'train-*':\n    imagedb:\n      min_interval_s: 0.5\n      training_frames: true\n")
+    cfg.write_text(
+        "topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nmap: false\n"
+        "imagedb:\n  min_spacing_m: 0.0\n  image_format: png\n"
+        "sessions:\n  'train-*':\n    imagedb:\n      min_interval_s: 0.5\n      training_frames: true\n"
+    )
     with pytest.warns(InputWarning, match="no GPS stream"):
         ws = Workspace(build(logs, tmp_path / "ws", config=cfg, progress=False))
     train, test = ws.session("train-x"), ws.session("test-y")
-    assert len(read_images_csv(train.images_csv)["stamp_ns"]) == 4 and len(read_images_csv(train.training_csv)["stamp_ns"]) == 14
+    assert (
+        len(read_images_csv(train.images_csv)["stamp_ns"]) == 4
+        and len(read_images_csv(train.training_csv)["stamp_ns"]) == 14
+    )
     assert len(read_images_csv(test.images_csv)["stamp_ns"]) == 18 and not test.training_csv.exists()
     import yaml
 
@@ -339,7 +361,9 @@ def test_per_session_overrides_sub_sample_the_database_drives_and_leave_the_quer
 def test_a_per_session_pattern_that_matches_no_session_is_a_warning_naming_it(tmp_path):
     log = _two_camera_log(tmp_path / "test-y.mcap", front_grey=60, rear_grey=190)
     cfg = tmp_path / "c.yaml"
-    cfg.write_text("trajectory:\n  source: poses\nmap: false\nimagedb: false\nsessions:\n  'trian-*':\n    imagedb:\n      min_interval_s: 0.5\n")
+    cfg.write_text(
+        "trajectory:\n  source: poses\nmap: false\nimagedb: false\nsessions:\n  'trian-*':\n    imagedb:\n      min_interval_s: 0.5\n"
+    )
     with pytest.warns(InputWarning, match=r"sessions\.trian-\* matches none of this build's sessions \['test-y'\]"):
         build([log], tmp_path / "ws", config=cfg, progress=False)
 

@@ -60,7 +60,9 @@ def _folder_log(kitti_clip, folder, n: int):
         (folder / "images" / f"{i:06d}.png").symlink_to(kitti_clip / "image_l" / f"{i:06d}.png")
         rows.append(f"{i:06d}.png,{T0_S + 0.1 * i:.1f},{lat[i]:.9f},{lon[i]:.9f},{alt[i]:.3f},2.0")
     (folder / "frames.csv").write_text("\n".join(rows) + "\n")
-    (folder / "intrinsics.json").write_text(json.dumps({"fx": 707.0912, "fy": 707.0912, "cx": 601.8873, "cy": 183.1104}))
+    (folder / "intrinsics.json").write_text(
+        json.dumps({"fx": 707.0912, "fy": 707.0912, "cx": 601.8873, "cy": 183.1104})
+    )
     return folder
 
 
@@ -161,9 +163,15 @@ def test_unreferenced_camera_only_session_says_arbitrary_units_and_skips_the_map
     st = json.loads(w.metrics.read_text())["sessions"]["short"]["stages"]
     assert st["georef"]["georeferenced"] is False and "GPS metres" in st["georef"]["reason"]
     for stage in ("trajectory", "georef"):
-        assert st[stage]["units"].startswith("arbitrary units") and "length_m" not in st[stage] and st[stage]["length_sfm_units"] > 0
+        assert (
+            st[stage]["units"].startswith("arbitrary units")
+            and "length_m" not in st[stage]
+            and st[stage]["length_sfm_units"] > 0
+        )
     assert "not georeferenced" in st["semidense"]["skipped"] and not s.map.exists()
-    assert (s.georef / "trajectory_top_view.png").stat().st_size > 10_000  # drawn in arbitrary units, levelled by the cameras' up
+    assert (
+        s.georef / "trajectory_top_view.png"
+    ).stat().st_size > 10_000  # drawn in arbitrary units, levelled by the cameras' up
     db = json.loads((s.imagedb / "metrics.json").read_text())
     assert db["pose_units"].startswith("arbitrary units") and db["images"] == st["trajectory"]["poses"]
     assert np.isnan(read_images_csv(s.images_csv)["lat_deg"]).all()
@@ -173,6 +181,7 @@ def test_unreferenced_camera_only_session_says_arbitrary_units_and_skips_the_map
     # later stages: the index refuses poses in arbitrary units instead of mixing them with metre radii
     from mapkit.retrieval.index_vlad import build_vlad_index
 
-    with pytest.warns(InputWarning, match=r"\['short'\] left out of the index: their image poses are in arbitrary units"):
-        with pytest.raises(MapkitError, match="no session with a metric image database"):
-            build_vlad_index(w, progress=False)
+    with pytest.warns(
+        InputWarning, match=r"\['short'\] left out of the index: their image poses are in arbitrary units"
+    ), pytest.raises(MapkitError, match="no session with a metric image database"):
+        build_vlad_index(w, progress=False)

@@ -12,14 +12,28 @@ from mapkit.synth import session_log, synthesize
 # the alignment itself (a session's bias moves the whole map, see eval_build's mean offset)
 OVERRIDES = {
     "sessions": [
-        {"name": "drive", "role": "train", "date": "2014-06-26", "time": "11:00", "weather": "overcast",
-         "length_m": 80.0, "speed_mps": 8.0, "lane_offset_m": 0.0},
+        {
+            "name": "drive",
+            "role": "train",
+            "date": "2014-06-26",
+            "time": "11:00",
+            "weather": "overcast",
+            "length_m": 80.0,
+            "speed_mps": 8.0,
+            "lane_offset_m": 0.0,
+        },
     ],
     # the demo's HDL-64E beam layout: with tiny's HDL-32E, kiss-icp drifts in pitch
     "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0], "azimuth_steps": 512},
     "motion": {"start_from_rest": False},  # what these figures were measured with (the tiny preset starts from rest)
-    "gps": {"rate_hz": 5.0, "bias_sigma_m": 0.0, "white_sigma_m": 1.5, "multipath_rate_hz": 0.1, "multipath_sigma_m": 8.0,
-            "dropout_rate_hz": 0.0},
+    "gps": {
+        "rate_hz": 5.0,
+        "bias_sigma_m": 0.0,
+        "white_sigma_m": 1.5,
+        "multipath_rate_hz": 0.1,
+        "multipath_sigma_m": 8.0,
+        "dropout_rate_hz": 0.0,
+    },
 }
 
 
@@ -82,13 +96,18 @@ def test_image_database_records_the_camera_mount(built):
     np.testing.assert_allclose(rec["base_from_camera"], truth, atol=1e-9)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a short drive: the PCA is capped
-        cfg = VladIndexConfig(database_sessions=["drive"], train_sessions=["drive"],
-                              vlad={"num_words": 8, "pca_dim": 12, "kmeans_iterations": 10, "dsift": {"half_resolution": True}})
+        cfg = VladIndexConfig(
+            database_sessions=["drive"],
+            train_sessions=["drive"],
+            vlad={"num_words": 8, "pca_dim": 12, "kmeans_iterations": 10, "dsift": {"half_resolution": True}},
+        )
         index = VladIndex.load(build_vlad_index(ws, config=cfg, progress=False))
     np.testing.assert_allclose(index.base_from_camera, truth, atol=1e-9)
     np.testing.assert_allclose(LocalizeConfig().camera_mount(index).base_from_camera, truth, atol=1e-9)
     pinned = np.eye(4)[[2, 0, 1, 3]].T  # an explicit mount in the config wins over the bundle's
-    assert not np.allclose(LocalizeConfig(base_from_camera=tuple(map(tuple, pinned))).camera_mount(index).base_from_camera, truth)
+    assert not np.allclose(
+        LocalizeConfig(base_from_camera=tuple(map(tuple, pinned))).camera_mount(index).base_from_camera, truth
+    )
 
 
 def test_fused_georeferencing_writes_poses_with_covariances_and_the_map_uses_them(built, tmp_path):
@@ -118,7 +137,9 @@ def test_fused_georeferencing_writes_poses_with_covariances_and_the_map_uses_the
     map_marker = (s2.map / ".done").read_text()
     build([session_log(town, "drive")], ws2, config=cfg, progress=False)
     assert (s2.trajectory / ".done").read_text() == traj_marker  # kiss-icp not run again
-    assert is_done(s2.georef) and is_done(s2.map) and (s2.map / ".done").read_text() != map_marker  # the map follows the fused poses
+    assert (
+        is_done(s2.georef) and is_done(s2.map) and (s2.map / ".done").read_text() != map_marker
+    )  # the map follows the fused poses
     fused = Trajectory.load(s2.fused_trajectory)
     cov = np.load(s2.fused_covariances)
     assert cov["covariances"].shape == (len(fused.stamps_ns), 6, 6) and cov["georef_covariance"].shape == (6, 6)

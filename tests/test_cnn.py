@@ -38,8 +38,18 @@ from mapkit.places.patches import CNN_DOMAIN, density_comparison, pack_bits  # n
 from mapkit.places.triplets import TripletDataset  # noqa: E402
 
 TINY = CnnConfig(grid=8, conv1_channels=3, conv1_kernel=3, conv2_channels=4, hidden=16, dim=8)
-TINY_TRAIN = {"model": TINY.model_dump(), "triplet_set": 40, "batch_triplets": 5, "epochs": 3, "hard_every_epochs": 1,
-              "hard_fraction": 0.1, "hard_neighbours": 5, "negative_min_distance_m": 100.0, "threads": 1, "seed": 7}
+TINY_TRAIN = {
+    "model": TINY.model_dump(),
+    "triplet_set": 40,
+    "batch_triplets": 5,
+    "epochs": 3,
+    "hard_every_epochs": 1,
+    "hard_fraction": 0.1,
+    "hard_neighbours": 5,
+    "negative_min_distance_m": 100.0,
+    "threads": 1,
+    "seed": 7,
+}
 
 
 def make_tiny_dataset(folder: Path, grid: int = 8, places: int = 12, members: int = 3, seed: int = 0) -> Path:
@@ -71,15 +81,28 @@ def make_tiny_dataset(folder: Path, grid: int = 8, places: int = 12, members: in
     occ = np.stack(occ)
     dcg = density_comparison(occ.astype(np.int32))
     folder.mkdir(parents=True, exist_ok=True)
-    np.savez(folder / "patches-00000.npz", occupancy=pack_bits(occ), density_comparison=pack_bits(dcg), first_id=np.int64(0))
+    np.savez(
+        folder / "patches-00000.npz", occupancy=pack_bits(occ), density_comparison=pack_bits(dcg), first_id=np.int64(0)
+    )
     n = len(occ)
     np.savez(folder / "patches.npz", patch_id=np.arange(n), split=np.array(split), utm=np.array(utm))
     for s in ("train", "test"):
         np.save(folder / f"triplets_{s}.npy", np.array(triplets[s], np.int64))
-    write_json(folder / "manifest.json", {
-        "format_version": 1, "grid": grid, "domain": CNN_DOMAIN.model_dump(), "config_hash": f"tiny-{seed}", "sessions": ["a", "b"],
-        "tiles": [], "shards": [{"file": "patches-00000.npz", "first_id": 0, "patches": n, "sha256": ""}],
-        "patches": n, "triplets": {s: len(v) for s, v in triplets.items()}, "files": {}})
+    write_json(
+        folder / "manifest.json",
+        {
+            "format_version": 1,
+            "grid": grid,
+            "domain": CNN_DOMAIN.model_dump(),
+            "config_hash": f"tiny-{seed}",
+            "sessions": ["a", "b"],
+            "tiles": [],
+            "shards": [{"file": "patches-00000.npz", "first_id": 0, "patches": n, "sha256": ""}],
+            "patches": n,
+            "triplets": {s: len(v) for s, v in triplets.items()},
+            "files": {},
+        },
+    )
     return folder
 
 
@@ -114,7 +137,9 @@ def test_shapes_of_the_paper_network_for_both_input_forms(form, channels):
     cfg = CnnConfig(form=form)
     assert cfg.grid == 32 and cfg.dim == 512 and cfg.channels == channels  # Sec. 3.3.2, Fig. 3(c)
     model = build_model(cfg, seed=0)
-    grids = (np.random.default_rng(0).random((3, 3, 32, 32, 32) if form == "density_comparison" else (3, 32, 32, 32)) < 0.1)
+    grids = (
+        np.random.default_rng(0).random((3, 3, 32, 32, 32) if form == "density_comparison" else (3, 32, 32, 32)) < 0.1
+    )
     x = grids_to_input(grids.astype(np.uint8), form)
     assert x.shape == (3, channels, 32, 32, 32) and x.dtype == np.float32
     d = torch_describe(model, grids.astype(np.uint8), form)
@@ -131,7 +156,9 @@ def test_missing_torch_says_how_to_install_the_cpu_build(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)  # import torch now raises ImportError
     with pytest.raises(ConfigError) as e:
         require_torch()
-    assert "pip install torch==2.13.0" in str(e.value) and '.[learning]' in str(e.value) and "cpu" in str(e.value).lower()
+    assert (
+        "pip install torch==2.13.0" in str(e.value) and ".[learning]" in str(e.value) and "cpu" in str(e.value).lower()
+    )
 
 
 def test_train_config_defaults_are_the_papers_and_registered():
@@ -169,7 +196,15 @@ def test_trained_model_folder_onnx_equals_torch(tiny_model, tiny_ds):
 
 
 def test_training_writes_every_output_and_learns(tiny_model):
-    for name in ("model.pt", "model.onnx", "metrics.json", "config.yaml", "training_curve.png", "manifest.json", ".done"):
+    for name in (
+        "model.pt",
+        "model.onnx",
+        "metrics.json",
+        "config.yaml",
+        "training_curve.png",
+        "manifest.json",
+        ".done",
+    ):
         assert (tiny_model / name).is_file(), name
     m = json.loads((tiny_model / "metrics.json").read_text())
     assert [r["epoch"] for r in m["epochs"]] == [1, 2, 3]
@@ -215,11 +250,15 @@ def test_hard_negative_is_a_true_non_match_among_near_neighbours():
     cand_desc = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0], [0.3, 0.0], [5.0, 0.0]])
     cand_ids = np.array([100, 1, 2, 3, 4])
     cand_xy = np.array([[0.0, 0.0], [10.0, 0.0], [500.0, 0.0], [0.0, 500.0], [900.0, 0.0]])
-    got = hard_negatives(anchor_desc, np.zeros((1, 2)), np.array([100]), cand_desc, cand_xy, cand_ids, k=3, min_distance_m=100.0)
+    got = hard_negatives(
+        anchor_desc, np.zeros((1, 2)), np.array([100]), cand_desc, cand_xy, cand_ids, k=3, min_distance_m=100.0
+    )
     assert got.tolist() == [2]
     # with 2 moved to 50 m, neither of the anchor's 2 nearest neighbours (1 and 2; itself excluded) is a non-match
     cand_xy[2] = [50.0, 0.0]
-    got = hard_negatives(anchor_desc, np.zeros((1, 2)), np.array([100]), cand_desc, cand_xy, cand_ids, k=2, min_distance_m=100.0)
+    got = hard_negatives(
+        anchor_desc, np.zeros((1, 2)), np.array([100]), cand_desc, cand_xy, cand_ids, k=2, min_distance_m=100.0
+    )
     assert got.tolist() == [-1]
 
 
@@ -233,11 +272,16 @@ def test_cnn_kind_through_the_structure_index(tiny_model, tmp_path):
 
     ws = tmp_path / "ws"
     maps = make_street_workspace(ws)
-    bundle = build_structure_index(ws, "cnn", out=tmp_path / "cnn", sessions=["a"], overrides={**FAST, "cnn_model": str(tiny_model)})
+    bundle = build_structure_index(
+        ws, "cnn", out=tmp_path / "cnn", sessions=["a"], overrides={**FAST, "cnn_model": str(tiny_model)}
+    )
     idx = StructureIndex.load(bundle)
     man = idx.manifest
     assert idx.kind == "cnn" and man["counts"]["raw_dim"] == 8
-    assert man["cnn_model"]["onnx_sha256"] == json.loads((tiny_model / "manifest.json").read_text())["files"]["model.onnx"]["sha256"]
+    assert (
+        man["cnn_model"]["onnx_sha256"]
+        == json.loads((tiny_model / "manifest.json").read_text())["files"]["model.onnx"]["sha256"]
+    )
     # the index's query descriptors are the ONNX model's (PCA'd), equal to torch's on the same grids
     b = maps["b"]
     kp = b.points_world[:50]
@@ -267,11 +311,22 @@ def test_cnn_as_a_method_of_the_places_evaluation(tiny_model, tmp_path):
     with pytest.raises(InputError) as e:  # the method needs its model
         evaluate_places(ws, [("a", "b")], methods=["cnn"], out=tmp_path / "none")
     assert e.value.field == "structure.cnn_model"
-    overrides = {"structure": {"keypoint_fraction": 0.02, "cnn_model": str(tiny_model)}, "query_stride": 3, "bootstrap": 0}
+    overrides = {
+        "structure": {"keypoint_fraction": 0.02, "cnn_model": str(tiny_model)},
+        "query_stride": 3,
+        "bootstrap": 0,
+    }
     res = evaluate_places(ws, [("a", "b")], methods=["nbld", "cnn"], out=tmp_path / "eval", overrides=overrides)
     cnn = res["pairs"][0]["methods"]["cnn"]
-    assert cnn["available"] and 0.0 <= cnn["auc"] <= 1.0 and cnn["reachable"] == res["pairs"][0]["queries"] == len(maps["b"].keyframe_ids[::3])
-    assert res["cnn_model"]["onnx_sha256"] == json.loads((tiny_model / "manifest.json").read_text())["files"]["model.onnx"]["sha256"]
+    assert (
+        cnn["available"]
+        and 0.0 <= cnn["auc"] <= 1.0
+        and cnn["reachable"] == res["pairs"][0]["queries"] == len(maps["b"].keyframe_ids[::3])
+    )
+    assert (
+        res["cnn_model"]["onnx_sha256"]
+        == json.loads((tiny_model / "manifest.json").read_text())["files"]["model.onnx"]["sha256"]
+    )
     assert "| NBLD | CNN |" in (tmp_path / "eval" / "places.md").read_text()
 
 

@@ -55,7 +55,9 @@ def test_enu_to_utm_is_the_workspace_zone(geodetic):
     _, _, _, enu = geodetic
     assert parse_crs("utm", FRAME) == UTM and parse_crs("EPSG:4978") == 4978 and parse_crs("wgs84") == 4979
     assert np.array_equal(FRAME.enu_to_crs(enu, UTM), FRAME.enu_to_utm(enu))
-    assert crs_info(UTM)["kind"] == "utm" and crs_info(4978)["kind"] == "ecef" and crs_info(4979)["kind"] == "geographic"
+    assert (
+        crs_info(UTM)["kind"] == "utm" and crs_info(4978)["kind"] == "ecef" and crs_info(4979)["kind"] == "geographic"
+    )
     for bad in ("EPSG:999999", "lambert", "EPSG:2249"):  # unknown, not a CRS, US survey feet
         with pytest.raises(InputError):
             parse_crs(bad, FRAME)
@@ -121,7 +123,9 @@ def test_utm_ply_gives_back_the_workspace_origin(tmp_path, geodetic):
     back = np.asarray(o3d.io.read_point_cloud(str(p)).points)
     assert np.array_equal(back, utm)  # float64: UTM northings exactly
     assert np.abs(frame.crs_to_enu(back, epsg) - enu).max() < 1e-6
-    assert Transformer.from_pipeline(kv["enu_pipeline"]).transform(FRAME.lon0_deg, FRAME.lat0_deg, FRAME.alt0_m) == pytest.approx((0, 0, 0), abs=1e-6)
+    assert Transformer.from_pipeline(kv["enu_pipeline"]).transform(
+        FRAME.lon0_deg, FRAME.lat0_deg, FRAME.alt0_m
+    ) == pytest.approx((0, 0, 0), abs=1e-6)
     assert frame_from_ply_comments([f"comment {c}" for c in read_ply_header(p).comments])[0] == FRAME
 
 
@@ -148,9 +152,18 @@ def test_tiles_hold_utm_and_load_back_as_enu(tmp_path):
     old.mkdir()
     atomic_write_ply(old / "E0_N0.ply", enu[:10])
     np.savez(old / "E0_N0.npz", session_id=sid[:10], point_index=idx[:10])
-    write_json(old / "tiles.json", {"format_version": 1, "tile_size_m": 100.0, "utm_crs_epsg": UTM, "frame": FRAME.to_dict(),
-                                    "points_frame": "workspace ENU", "sessions": ["a", "b"],
-                                    "tiles": [{"name": "E0_N0", "utm_min": [0, 0], "utm_max": [1e7, 1e7], "points": 10}]})
+    write_json(
+        old / "tiles.json",
+        {
+            "format_version": 1,
+            "tile_size_m": 100.0,
+            "utm_crs_epsg": UTM,
+            "frame": FRAME.to_dict(),
+            "points_frame": "workspace ENU",
+            "sessions": ["a", "b"],
+            "tiles": [{"name": "E0_N0", "utm_min": [0, 0], "utm_max": [1e7, 1e7], "points": 10}],
+        },
+    )
     assert np.array_equal(load_tiles(old)[0], enu[:10])
     # an empty merged map has a readable manifest too
     write_tiles(tmp_path / "empty", np.zeros((0, 3)), sid[:0], idx[:0], ["a"], FRAME, 100.0)
@@ -191,7 +204,10 @@ def workspace(tmp_path):
     stamps, P = _poses()
     for name, georef in (("s0", True), ("s1", True), ("nogps", False)):
         sdir = ws / "sessions" / name
-        write_json(sdir / "georef" / "gps_alignment.json", {"georeferenced": georef, **(FRAME.to_dict() if georef else {"reason": "no GPS"})})
+        write_json(
+            sdir / "georef" / "gps_alignment.json",
+            {"georeferenced": georef, **(FRAME.to_dict() if georef else {"reason": "no GPS"})},
+        )
         Trajectory(stamps, P, "test", frame="enu").save(sdir / "georef" / "trajectory_enu")
         atomic_write_ply(sdir / "map" / "points.ply", P[:, :3, 3] + [0, 0, -1.5], frame=FRAME if georef else None)
     return ws
@@ -220,7 +236,12 @@ def test_export_crs_of_a_workspace(workspace, tmp_path):
 
 
 def test_cli_export_crs(workspace, tmp_path, capsys):
-    assert main(["export-crs", str(workspace), "-o", str(tmp_path / "c"), "--crs", "EPSG:4978", "-s", "s0", "--what", "map"]) == 0
+    assert (
+        main(
+            ["export-crs", str(workspace), "-o", str(tmp_path / "c"), "--crs", "EPSG:4978", "-s", "s0", "--what", "map"]
+        )
+        == 0
+    )
     assert "EPSG:4978" in capsys.readouterr().out
     assert sorted(p.name for p in (tmp_path / "c" / "s0").iterdir()) == ["map.ply"]
     assert ply_georef(tmp_path / "c" / "s0" / "map.ply")[1] == 4978

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from mapkit.cli import main
-from mapkit.core.runio import read_timings
 from mapkit.core.errors import InputError
+from mapkit.core.runio import read_timings
 from mapkit.deploy.export import export_bundles, load_bundle
 from mapkit.pipelines.demo import RUN_RECORDS, places_pairs, run_demo
 from mapkit.report.html import Section, markdown_to_html, render
@@ -21,6 +21,7 @@ from mapkit.retrieval.index_vlad import VladIndex
 
 def _differing_files(a: Path, b: Path) -> list[str]:
     """Files of run ``a`` and run ``b`` that are not the same to the byte (or exist in one only), run records aside."""
+
     def files(root: Path) -> dict[str, Path]:
         return {p.relative_to(root).as_posix(): p for p in root.rglob("*") if p.is_file() and p.name not in RUN_RECORDS}
 
@@ -176,8 +177,11 @@ def test_video_rate_build_config_keeps_each_sessions_image_rate(tmp_path):
 
     same = {"train-a": {"camera_rate_hz": 4.0, "image_rate_hz": 4.0}, "test-b": {"camera_rate_hz": 4.0}}
     assert demo_build_config(tmp_path, same) == preset_path("build", "demo")
-    roles = {"train-a": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0}, "test-b": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0},
-             "test-c": {"camera_rate_hz": 16.0, "image_rate_hz": 16.0}}
+    roles = {
+        "train-a": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0},
+        "test-b": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0},
+        "test-c": {"camera_rate_hz": 16.0, "image_rate_hz": 16.0},
+    }
     path = demo_build_config(tmp_path, roles)
     assert path.parent == tmp_path and path.is_file()
     cfg, base = load_config(BuildConfig, path), load_config(BuildConfig, preset_path("build", "demo"))
@@ -185,11 +189,19 @@ def test_video_rate_build_config_keeps_each_sessions_image_rate(tmp_path):
     assert cfg.for_session("train-a").imagedb.min_interval_s == 0.5  # kept: sparser than 4 Hz
     assert cfg.for_session("test-b").imagedb.min_interval_s == 0.25  # the session's own 4 Hz, not the 16 Hz video
     assert cfg.for_session("test-c").imagedb.min_interval_s == base.for_session("test-c").imagedb.min_interval_s
-    assert cfg.georef.fuse == base.georef.fuse and cfg.semidense == base.semidense  # the maps: every image, as the demo's
+    assert (
+        cfg.georef.fuse == base.georef.fuse and cfg.semidense == base.semidense
+    )  # the maps: every image, as the demo's
 
 
 def test_places_pairs_mix_conditions_and_skip_empty_maps():
-    roles = {"a": {"role": "train"}, "b": {"role": "train"}, "c": {"role": "train"}, "x": {"role": "test"}, "y": {"role": "test"}}
+    roles = {
+        "a": {"role": "train"},
+        "b": {"role": "train"},
+        "c": {"role": "train"},
+        "x": {"role": "test"},
+        "y": {"role": "test"},
+    }
     pts = {"a": 10, "b": 30, "c": 20, "x": 5, "y": 0}
     # the two fullest training maps (b, c) against each test session with a map, then test to test
     assert places_pairs(roles, pts) == [("b", "x"), ("c", "x")]
@@ -228,7 +240,10 @@ def test_the_docs_figures_read_a_run_as_it_is_written(tiny_demo):
     assert set(r["stages_s"]) == set(m["stages"]) and r["total_s"] >= sum(r["stages_s"].values()) - 1.0
     assert set(r["maps"]) == {"tiny-sunny", "tiny-rainy", "tiny-night"}
     assert all(0 < v["median_m"] < 1.0 and 0 < v["within_0.5m"] <= 1 for v in r["maps"].values()), r["maps"]
-    assert set(r["localize"]) == {"paper", "odometry-multihypothesis"} and r["localize"]["paper"]["tiny-night"]["queries"] > 0
+    assert (
+        set(r["localize"]) == {"paper", "odometry-multihypothesis"}
+        and r["localize"]["paper"]["tiny-night"]["queries"] > 0
+    )
     assert {k.split(" > ")[0] for k in r["places"]} == {"tiny-night"}
     assert r["units"]["scans"] > 800 and r["units"]["trajectory_s"] > 0 and r["units"]["keyframes"] > 0
 

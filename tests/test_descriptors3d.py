@@ -49,14 +49,16 @@ def test_nbld_density_step_gives_expected_bits():
 
 def test_nbld_counts_cells_and_leaves_out_the_outside():
     cfg = d3.NBLDConfig(n_vertical=4)  # 5 m layers: the layers named below
-    pts = np.array([
-        [-0.0, -0.0, 0.0],  # the keypoint (signed zeros): ring 0, sector 0, layer 2
-        [1.0, 0.1, 0.1],  # ring 0, sector 0, layer 2
-        [-0.1, 9.0, -9.0],  # ring 2, sector 2 (90-135 deg), layer 0
-        [10.0, 0.0, 10.0],  # on the outer boundary: last ring and layer
-        [10.5, 0.0, 0.0],  # outside the radius
-        [0.0, 1.0, 10.5],  # above the top
-    ])
+    pts = np.array(
+        [
+            [-0.0, -0.0, 0.0],  # the keypoint (signed zeros): ring 0, sector 0, layer 2
+            [1.0, 0.1, 0.1],  # ring 0, sector 0, layer 2
+            [-0.1, 9.0, -9.0],  # ring 2, sector 2 (90-135 deg), layer 0
+            [10.0, 0.0, 10.0],  # on the outer boundary: last ring and layer
+            [10.5, 0.0, 0.0],  # outside the radius
+            [0.0, 1.0, 10.5],  # above the top
+        ]
+    )
     c = d3.nbld_counts(pts, np.array([0, 6]), cfg)[0]
     assert c.sum() == 4
     assert c[0, 0, 2] == 2 and c[2, 2, 0] == 1 and c[2, 0, 3] == 1
@@ -109,7 +111,9 @@ def test_m2dp_equals_loop_reference(rng):
     p1 = _off_bin_edges(p1[np.hypot(p1[:, 0], p1[:, 1]) <= 10], cfg)
     assert len(p1) > 300  # edge points are rare: a few in a thousand at most
     p1 = np.vstack([np.zeros(3), p1])  # with the keypoint itself
-    p2 = _off_bin_edges(np.vstack([rng.normal([3, -2, 0], [0.3, 3, 2], (150, 3)), [[0.7, 0.4, 40.0]]]), cfg)  # one point far above: outside on most planes
+    p2 = _off_bin_edges(
+        np.vstack([rng.normal([3, -2, 0], [0.3, 3, 2], (150, 3)), [[0.7, 0.4, 40.0]]]), cfg
+    )  # one point far above: outside on most planes
     assert p2[-1, 2] == 40.0
     patches = [p1, np.zeros((0, 3)), p2]
     indptr = np.cumsum([0] + [len(p) for p in patches])
@@ -137,14 +141,18 @@ M2DP_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "m2dp
 
 def _half_cosines(a: np.ndarray, b: np.ndarray, P: int = 64) -> tuple[float, float]:
     """|cosine| of the u1 halves and of the v1 halves (each half's SVD sign is arbitrary)."""
-    return tuple(abs(float(x @ y)) / (np.linalg.norm(x) * np.linalg.norm(y)) for x, y in ((a[:P], b[:P]), (a[P:], b[P:])))
+    return tuple(
+        abs(float(x @ y)) / (np.linalg.norm(x) * np.linalg.norm(y)) for x, y in ((a[:P], b[:P]), (a[P:], b[P:]))
+    )
 
 
 @pytest.mark.realdata
 def test_m2dp_reference_reproduces_the_authors_m2dp_on_a_kitti_scan():
     scan, expected = M2DP_REFERENCE / "kitti-000000.bin", M2DP_REFERENCE / "kitti-000000.m2dp.txt"
     if not (scan.is_file() and expected.is_file()):
-        pytest.skip(f"M2DP reference not found at {M2DP_REFERENCE} (expected ../shared/data/m2dp-reference beside the project)")
+        pytest.skip(
+            f"M2DP reference not found at {M2DP_REFERENCE} (expected ../shared/data/m2dp-reference beside the project)"
+        )
     pts = np.fromfile(scan, np.float32).reshape(-1, 4)[:, :3].astype(np.float64)
     ref = np.loadtxt(expected).ravel()
     assert pts.shape == (124668, 3) and ref.shape == (192,)
@@ -152,7 +160,9 @@ def test_m2dp_reference_reproduces_the_authors_m2dp_on_a_kitti_scan():
     assert A.shape == (64, 128) and np.all(A.sum(axis=1) == len(pts))  # the farthest-point grid holds every point
     desc = d3.m2dp_reference(pts)
     assert min(_half_cosines(desc, ref)) >= 0.9999  # measured: 1 - cos < 1e-15
-    assert desc[64:].sum() >= 0 and np.isclose(np.linalg.norm(desc[:64]), 1) and np.isclose(np.linalg.norm(desc[64:]), 1)
+    assert (
+        desc[64:].sum() >= 0 and np.isclose(np.linalg.norm(desc[:64]), 1) and np.isclose(np.linalg.norm(desc[64:]), 1)
+    )
     # the batched patch descriptor with the authors' settings, on the scan as one patch (float32
     # binning: ~10 of its 8 M point-plane counts sit on a bin edge to float32 precision)
     authors = d3.m2dp_patches(pts, np.array([0, len(pts)]), d3.M2DPConfig.authors())[0]
@@ -193,8 +203,11 @@ def test_m2dp_patches_with_the_authors_settings_equal_m2dp_reference_on_each_pat
     cfg = d3.M2DPConfig.authors()
     street = _street(rng)
     patches = [
-        rng.normal(0, [4.0, 2.0, 0.7], (600, 3)) @ np.linalg.qr(rng.normal(size=(3, 3)))[0] + [3.0, -1.0, 2.0],  # tilted ellipsoid, off the origin
-        street[np.hypot(street[:, 0] - 30, street[:, 1]) < 10][::4],  # a street patch about (30, 0): facades, road markings
+        rng.normal(0, [4.0, 2.0, 0.7], (600, 3)) @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        + [3.0, -1.0, 2.0],  # tilted ellipsoid, off the origin
+        street[np.hypot(street[:, 0] - 30, street[:, 1]) < 10][
+            ::4
+        ],  # a street patch about (30, 0): facades, road markings
         np.zeros((0, 3)),
         np.array([[1.0, 2.0, 3.0]]),  # one point: at the mean, R = 0
         # three points at one place, one far above, two aside (not coplanar: in the PCA frame a plane
@@ -228,7 +241,12 @@ def test_m2dp_patches_with_the_authors_settings_equal_m2dp_reference_on_each_pat
 
 
 def test_m2dp_variants_do_what_they_say(rng):
-    p = np.vstack([rng.normal([2.0, 1.0, 0.0], [5.0, 1.5, 2.0], (500, 3)), rng.normal([-4.0, 3.0, 1.0], [0.5, 0.5, 4.0], (200, 3))])
+    p = np.vstack(
+        [
+            rng.normal([2.0, 1.0, 0.0], [5.0, 1.5, 2.0], (500, 3)),
+            rng.normal([-4.0, 3.0, 1.0], [0.5, 0.5, 4.0], (200, 3)),
+        ]
+    )
     ip = np.array([0, len(p)])
     # unnormalised in-plane axes: length sqrt(1 - n_x^2), orthogonal to the normal, y = n x x
     n, ax, ay = d3.m2dp_planes(d3.M2DPConfig(normalise_axes=False))
@@ -260,7 +278,9 @@ def test_m2dp_variants_do_what_they_say(rng):
     far = d3.M2DPConfig(radius="farthest")
     np.testing.assert_allclose(d3.m2dp_patches(3.0 * p, ip, far)[0], d3.m2dp_patches(p, ip, far)[0], atol=1e-4)
     authors = d3.M2DPConfig.authors()
-    np.testing.assert_allclose(d3.m2dp_patches(p + [40.0, -7.0, 3.0], ip, authors)[0], d3.m2dp_patches(p, ip, authors)[0], atol=1e-4)
+    np.testing.assert_allclose(
+        d3.m2dp_patches(p + [40.0, -7.0, 3.0], ip, authors)[0], d3.m2dp_patches(p, ip, authors)[0], atol=1e-4
+    )
     assert authors.dim == 192 and (authors.radius, authors.normalise_axes, authors.frame) == ("farthest", False, "pca")
     assert (d3.M2DPConfig().radius, d3.M2DPConfig().normalise_axes, d3.M2DPConfig().frame) == ("domain", True, "yaw")
 
@@ -321,14 +341,14 @@ def test_thin_patches_keeps_about_max_points_the_same_way_everywhere():
     ip, idx = d3.thin_patches(indptr, indices, 1024)
     kept = np.diff(ip)
     assert np.all(np.abs(kept[[0, 2]] - 1024) <= 10) and kept[1] == 100 and kept[3] == 1024
-    patch = [idx[ip[k]:ip[k + 1]] for k in range(4)]
+    patch = [idx[ip[k] : ip[k + 1]] for k in range(4)]
     assert np.array_equal(patch[1], np.arange(100)) and np.array_equal(patch[3], np.arange(7, 1031))
     # the more thinned patch keeps a subset of what the other keeps where they overlap (3000..4999)
     common = patch[2][patch[2] < 5000]
     assert len(common) > 100 and np.isin(common, patch[0]).all()
     # the same choice block by block: the last two patches alone give the same points
-    ip2, idx2 = d3.thin_patches(indptr[2:] - indptr[2], indices[indptr[2]:], 1024)
-    assert np.array_equal(idx2, idx[ip[2]:])
+    ip2, idx2 = d3.thin_patches(indptr[2:] - indptr[2], indices[indptr[2] :], 1024)
+    assert np.array_equal(idx2, idx[ip[2] :])
 
 
 def test_m2dp_of_a_thinned_dense_patch_stays_close(rng):

@@ -43,8 +43,11 @@ def _commands() -> list[list[str]]:
 
 
 def _public_modules() -> list[str]:
-    return ["mapkit"] + [m.name for m in pkgutil.walk_packages(mapkit.__path__, prefix="mapkit.")
-                         if not any(p.startswith("_") for p in m.name.split("."))]
+    return ["mapkit"] + [
+        m.name
+        for m in pkgutil.walk_packages(mapkit.__path__, prefix="mapkit.")
+        if not any(p.startswith("_") for p in m.name.split("."))
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -52,8 +55,14 @@ def site(tmp_path_factory) -> Path:
     for module in ("mkdocs", "material", "mkdocstrings_handlers.python"):
         pytest.importorskip(module, reason="the docs extra is not installed (pip install -e '.[docs]')")
     out = tmp_path_factory.mktemp("site")
-    run = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)], cwd=REPO,
-                         capture_output=True, text=True, timeout=300, env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    run = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "NO_MKDOCS_2_WARNING": "1"},
+    )
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     return out
 
@@ -98,8 +107,11 @@ def test_the_site_loads_nothing_from_a_network(site):
     external = re.compile(r"<(?:script|link|img|iframe|source)\b[^>]*\b(?:src|href)=[\"'](?:https?:)?//", re.IGNORECASE)
     found = [f"{p.relative_to(site)}: {m.group(0)}" for p in pages for m in external.finditer(p.read_text())]
     assert not found, found[:10]
-    css = [f"{p.relative_to(site)}: {m.group(0)}" for p in site.rglob("*.css")
-           for m in re.finditer(r"(?:@import\s+|url\()\s*[\"']?(?:https?:)?//", p.read_text())]
+    css = [
+        f"{p.relative_to(site)}: {m.group(0)}"
+        for p in site.rglob("*.css")
+        for m in re.finditer(r"(?:@import\s+|url\()\s*[\"']?(?:https?:)?//", p.read_text())
+    ]
     assert not css, css[:10]
     arch = (site / "architecture" / "index.html").read_text()
     assert '<script src="../js/mermaid.min.js"' in arch
@@ -130,8 +142,12 @@ def test_no_paragraph_of_the_docs_runs_over_150_words():
     assert [len(p.split()) for p in _paragraphs("a b c\n\nd e\n- f g h\n- i")] == [3, 2, 4, 2]
     assert [len(p.split()) for p in _paragraphs("x\n```\n" + "w " * 400 + "\n```\ny")] == [1, 1]  # code is no paragraph
     pages = [REPO / "README.md", *sorted(DOCS.rglob("*.md"))]
-    long = [f"{p.relative_to(REPO)}: {len(par.split())} words: {par[:80]}" for p in pages for par in _paragraphs(p.read_text())
-            if len(par.split()) > 150]
+    long = [
+        f"{p.relative_to(REPO)}: {len(par.split())} words: {par[:80]}"
+        for p in pages
+        for par in _paragraphs(p.read_text())
+        if len(par.split()) > 150
+    ]
     assert not long, long
 
 
@@ -149,7 +165,9 @@ def test_every_figures_block_is_its_rendering_from_the_records():
     assert figures.check_pages() == []
     # and the check sees a hand-edited figure
     page = next(p for p in figures.PAGES if "<!-- figures: claims -->" in p.read_text())
-    edited = page.read_text().replace("<!-- figures: claims -->\n", "<!-- figures: claims -->\n| edited | by hand |\n", 1)
+    edited = page.read_text().replace(
+        "<!-- figures: claims -->\n", "<!-- figures: claims -->\n| edited | by hand |\n", 1
+    )
     assert figures.fill(edited, lambda name: figures.RENDERERS[name]()) != edited
 
 

@@ -34,7 +34,13 @@ def textured_image(seed: int, h: int = 120, w: int = 160) -> np.ndarray:
     for _ in range(6):
         x, y = rng.integers(0, w), rng.integers(0, h)
         if rng.random() < 0.5:
-            cv2.rectangle(img, (int(x), int(y)), (int(x + rng.integers(8, 30)), int(y + rng.integers(8, 30))), float(rng.uniform(0, 255)), -1)
+            cv2.rectangle(
+                img,
+                (int(x), int(y)),
+                (int(x + rng.integers(8, 30)), int(y + rng.integers(8, 30))),
+                float(rng.uniform(0, 255)),
+                -1,
+            )
         else:
             cv2.circle(img, (int(x), int(y)), int(rng.integers(4, 15)), float(rng.uniform(0, 255)), -1)
     return np.clip(img, 0, 255).astype(np.uint8)
@@ -101,7 +107,17 @@ def test_half_resolution_keypoints_are_in_input_pixels():
     np.testing.assert_allclose(kp, 2 * grid.centres_xy() + 0.5)
 
 
-@pytest.mark.parametrize("theta, bins", [(0.0, {0: 1.0}), (45.0, {1: 1.0}), (90.0, {2: 1.0}), (270.0, {6: 1.0}), (22.5, {0: 0.5, 1: 0.5}), (337.5, {7: 0.5, 0: 0.5})])
+@pytest.mark.parametrize(
+    "theta, bins",
+    [
+        (0.0, {0: 1.0}),
+        (45.0, {1: 1.0}),
+        (90.0, {2: 1.0}),
+        (270.0, {6: 1.0}),
+        (22.5, {0: 0.5, 1: 0.5}),
+        (337.5, {7: 0.5, 0: 0.5}),
+    ],
+)
 def test_a_ramp_puts_its_energy_in_the_bins_of_its_direction(theta, bins):
     cfg = DsiftConfig(magnif=None, region_widths=[16, 24])  # no smoothing: the gradient is exact to the border
     _, _, desc = dense_sift(ramp(theta), cfg)
@@ -135,7 +151,9 @@ def test_phow_zeroes_exactly_the_frames_below_the_contrast_threshold():
     cfg = DsiftConfig(mode="phow")
     gray, _, _ = prepare_image(img, cfg)
     unthresholded = cfg.model_copy(update={"phow_contrast_threshold": None})
-    contrast = np.concatenate([frame_contrast(b.histograms, b.grid.bin_size) for b in iter_histogram_blocks(gray, unthresholded)])
+    contrast = np.concatenate(
+        [frame_contrast(b.histograms, b.grid.bin_size) for b in iter_histogram_blocks(gray, unthresholded)]
+    )
     zeroed = ~dense_sift(img, cfg).descriptors.any(axis=1)
     near = np.abs(contrast / cfg.phow_contrast_threshold - 1) < 1e-4  # float summation order may tip these
     assert zeroed.any() and not zeroed.all()
@@ -157,7 +175,9 @@ def test_phow_window_at_bin_size_1_is_the_bin_centre_window():
 
 # --- VLFeat vl_phow's output on a real KITTI frame (../shared/data/vlfeat-phow-reference) ------------------
 
-PHOW_REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "vlfeat-phow-reference" / "phow_kitti000000_640x480.npz"
+PHOW_REFERENCE = (
+    Path(__file__).resolve().parents[2] / "shared" / "data" / "vlfeat-phow-reference" / "phow_kitti000000_640x480.npz"
+)
 
 
 def vlfeat_layout(desc: np.ndarray) -> np.ndarray:
@@ -194,11 +214,15 @@ def test_phow_mode_reproduces_vlfeat_phow(phow_reference):
     # the contrast threshold zeroes the same descriptors (~21% of them)
     zero_ours, zero_ref = ~ours.any(axis=1), ~ref["descriptors"].any(axis=1)
     assert 0.15 < zero_ref.mean() < 0.3
-    assert (zero_ours == zero_ref).mean() >= 0.999, f"zero masks differ on {(zero_ours != zero_ref).sum()} of {len(idx)} frames"
+    assert (zero_ours == zero_ref).mean() >= 0.999, (
+        f"zero masks differ on {(zero_ours != zero_ref).sum()} of {len(idx)} frames"
+    )
     kept = ~zero_ours & ~zero_ref
     assert np.median(row_cosines(ours[kept], ref["descriptors"][kept])) >= 0.9999
     # without the threshold every frame agrees, not only the median
-    no_thr = vlfeat_layout(dense_sift(ref["image"], cfg.model_copy(update={"phow_contrast_threshold": None})).descriptors[idx])
+    no_thr = vlfeat_layout(
+        dense_sift(ref["image"], cfg.model_copy(update={"phow_contrast_threshold": None})).descriptors[idx]
+    )
     cos = row_cosines(no_thr, ref["descriptors_no_threshold"])
     assert np.median(cos) >= 0.9999 and cos.min() >= 0.999, (np.median(cos), cos.min())
 

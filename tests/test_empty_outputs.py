@@ -29,7 +29,9 @@ def _one_line(exc: BaseException) -> str:
 def test_align_with_no_verified_pair_fails_before_any_output(tmp_path):
     # the second session's map sits 30 m off the first: every candidate pair is rejected
     ws = tmp_path / "ws"
-    make_workspace(ws, street(np.random.default_rng(3)), {"s0": gps_error(1.0, -1.0, 0.0), "s2": gps_error(21.0, 21.0, 0.0)})
+    make_workspace(
+        ws, street(np.random.default_rng(3)), {"s0": gps_error(1.0, -1.0, 0.0), "s2": gps_error(21.0, 21.0, 0.0)}
+    )
     with pytest.raises(InputError, match=r"0 of \d+ candidate submap pairs verified") as e:
         align_workspace(ws, overrides={"overlap_radius_m": 60.0}, progress=False)
     msg = _one_line(e.value)
@@ -40,10 +42,17 @@ def test_align_with_no_verified_pair_fails_before_any_output(tmp_path):
 
 def _empty_map(like: SemiDenseMap) -> SemiDenseMap:
     return SemiDenseMap(
-        points_world=like.points_world[:0], intensity=like.intensity[:0], sigma_depth=like.sigma_depth[:0],
-        source_keyframe=like.source_keyframe[:0], obs_indptr=np.zeros(1, np.int64), obs_frame_ids=like.obs_frame_ids[:0],
-        keyframe_ids=like.keyframe_ids, keyframe_stamps_ns=like.keyframe_stamps_ns,
-        keyframe_world_from_cam=like.keyframe_world_from_cam, K=like.K, image_size_wh=like.image_size_wh,
+        points_world=like.points_world[:0],
+        intensity=like.intensity[:0],
+        sigma_depth=like.sigma_depth[:0],
+        source_keyframe=like.source_keyframe[:0],
+        obs_indptr=np.zeros(1, np.int64),
+        obs_frame_ids=like.obs_frame_ids[:0],
+        keyframe_ids=like.keyframe_ids,
+        keyframe_stamps_ns=like.keyframe_stamps_ns,
+        keyframe_world_from_cam=like.keyframe_world_from_cam,
+        K=like.K,
+        image_size_wh=like.image_size_wh,
     )
 
 

@@ -17,14 +17,37 @@ from mapkit.synth import session_logs, synthesize
 # alignment has something to remove
 OVERRIDES = {
     "sessions": [
-        {"name": "first", "role": "train", "date": "2014-06-26", "time": "11:00", "weather": "overcast", "length_m": 90.0,
-         "speed_mps": 8.0, "lane_offset_m": 0.0},
-        {"name": "second", "role": "train", "date": "2014-06-27", "time": "14:00", "weather": "sunny", "length_m": 90.0,
-         "speed_mps": 8.0, "lane_offset_m": 0.3, "follow": "first"},
+        {
+            "name": "first",
+            "role": "train",
+            "date": "2014-06-26",
+            "time": "11:00",
+            "weather": "overcast",
+            "length_m": 90.0,
+            "speed_mps": 8.0,
+            "lane_offset_m": 0.0,
+        },
+        {
+            "name": "second",
+            "role": "train",
+            "date": "2014-06-27",
+            "time": "14:00",
+            "weather": "sunny",
+            "length_m": 90.0,
+            "speed_mps": 8.0,
+            "lane_offset_m": 0.3,
+            "follow": "first",
+        },
     ],
     "lidar": {"beams": 64, "vertical_fov_deg": [-24.9, 2.0], "azimuth_steps": 512},
     "motion": {"start_from_rest": False},  # what these figures were measured with (the tiny preset starts from rest)
-    "gps": {"rate_hz": 5.0, "bias_sigma_m": 1.0, "white_sigma_m": 0.5, "multipath_rate_hz": 0.0, "dropout_rate_hz": 0.0},
+    "gps": {
+        "rate_hz": 5.0,
+        "bias_sigma_m": 1.0,
+        "white_sigma_m": 0.5,
+        "multipath_rate_hz": 0.0,
+        "dropout_rate_hz": 0.0,
+    },
 }
 
 
@@ -52,7 +75,9 @@ def test_aligned_sessions_share_one_offset_the_mean_of_their_biases(evaluated):
     after = np.array([t[n]["aligned"]["mean_offset_enu_m"] for n in ("first", "second")])
     # before: each session carries its own GPS bias; after: one common offset, between the two
     assert np.linalg.norm(after[0] - after[1]) < 0.5 < 2.0 < np.linalg.norm(before[0] - before[1])
-    assert np.all(np.minimum(before[0], before[1]) - 0.5 <= after[0]) and np.all(after[0] <= np.maximum(before[0], before[1]) + 0.5)
+    assert np.all(np.minimum(before[0], before[1]) - 0.5 <= after[0]) and np.all(
+        after[0] <= np.maximum(before[0], before[1]) + 0.5
+    )
     for n in t:
         for w in ("gps", "aligned"):
             assert t[n][w]["horizontal_rmse_m"] <= t[n][w]["ate_rmse_m"]
@@ -62,9 +87,17 @@ def test_aligned_sessions_share_one_offset_the_mean_of_their_biases(evaluated):
             assert o["ate_rmse_m"] <= t[n][w]["ate_rmse_m"] + 1e-9
             assert o["horizontal_rmse_m"] ** 2 + o["vertical_rmse_m"] ** 2 == pytest.approx(o["ate_rmse_m"] ** 2)
             assert abs(o["scale_vs_truth"] - 1.0) < 0.02  # LiDAR odometry is metric: about 1% over these 90 m drives
-    rows = {line.split("|")[1].strip(): line for line in format_align_truth(evaluated).splitlines() if line.startswith("| first")}
+    rows = {
+        line.split("|")[1].strip(): line
+        for line in format_align_truth(evaluated).splitlines()
+        if line.startswith("| first")
+    }
     o = t["first"]["aligned"]["offset_removed"]
-    assert rows["first"].rstrip(" |").endswith(f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m")
+    assert (
+        rows["first"]
+        .rstrip(" |")
+        .endswith(f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m")
+    )
 
 
 def test_eval_align_states_the_gps_bound_and_checks_the_covariances(evaluated):

@@ -38,7 +38,9 @@ def drive(t_s: np.ndarray) -> np.ndarray:
     y = 15.0 * np.sin(t_s / 6.0)
     z = 0.02 * x + 0.5 * np.sin(t_s / 4.0)
     yaw = np.arctan2(np.gradient(y, t_s) if len(t_s) > 1 else 0.0 * t_s, 8.0)
-    R = Rotation.from_euler("zyx", np.stack([yaw, -0.02 + 0.01 * np.sin(t_s), 0.01 * np.cos(t_s / 3)], axis=1)).as_matrix()
+    R = Rotation.from_euler(
+        "zyx", np.stack([yaw, -0.02 + 0.01 * np.sin(t_s), 0.01 * np.cos(t_s / 3)], axis=1)
+    ).as_matrix()
     return make_pose(R, np.stack([x, y, z], axis=1))
 
 
@@ -93,13 +95,17 @@ def test_tum_truth_in_its_own_frame_with_a_clock_offset(tmp_path):
 def test_kitti_truth_with_relative_times_needs_the_offset(tmp_path):
     ws = workspace(tmp_path)
     write_kitti_poses(tmp_path / "poses.txt", moved(RIGID, EST))
-    (tmp_path / "times.txt").write_text("".join(f"{t:.6f}\n" for t in EST_T))  # KITTI odometry's: from the drive's start
+    (tmp_path / "times.txt").write_text(
+        "".join(f"{t:.6f}\n" for t in EST_T)
+    )  # KITTI odometry's: from the drive's start
     with pytest.raises(InputError, match=r"do not overlap.*--truth-time-offset 1700000000\.000000") as e:
         evaluate_build(ws, tmp_path / "poses.txt")
     assert "poses.txt" in str(e.value)
     r = evaluate_build(ws, tmp_path / "poses.txt", time_offset_s=1_700_000_000.004)
     s = r["sessions"]["drive"]
-    assert s["association"]["associated"] == 400 and s["association"]["nearest_dt_max_s"] == pytest.approx(0.004, abs=1e-6)
+    assert s["association"]["associated"] == 400 and s["association"]["nearest_dt_max_s"] == pytest.approx(
+        0.004, abs=1e-6
+    )
     assert s["ate"]["rmse_m"] < 1e-6
     assert_transform(s["alignment"]["truth_from_estimate"], RIGID, 1e-6)
     assert "times.txt (line i is pose i)" in s["truth"]["stamps"]
@@ -177,7 +183,9 @@ def test_pose_topic_of_a_log_is_interpolated_where_dense(tmp_path):
 def test_association_interpolates_only_between_close_neighbours():
     est = np.array([0, 100, 200, 300], np.int64)
     truth = np.array([-5, 5, 95, 195, 250], np.int64)  # 300 has only a neighbour 50 away
-    poses = make_pose(np.repeat(np.eye(3)[None], 5, axis=0), np.stack([truth, 0 * truth, 0 * truth], axis=1).astype(float))
+    poses = make_pose(
+        np.repeat(np.eye(3)[None], 5, axis=0), np.stack([truth, 0 * truth, 0 * truth], axis=1).astype(float)
+    )
     a = associate_truth(est, truth, poses, max_dt_ns=10)
     assert list(a.est_index) == [0, 1, 2] and a.interpolated == 1 and a.nearest == 2
     assert np.allclose(a.truth_poses[:, 0, 3], [0.0, 95.0, 195.0])
@@ -210,8 +218,12 @@ def test_bad_truths_are_one_clear_error(tmp_path, capsys):
         evaluate_build(two, good)
     assert evaluate_build(two, good, session="b")["sessions"].keys() == {"b"}
     # the CLI: one line on stderr and exit code 2, never a traceback
-    for args in (["--truth", str(bad)], ["--truth", str(tmp_path / "missing.tum")], ["--truth", str(tmp_path)],
-                 ["--truth", str(good), "--align", "affine"]):
+    for args in (
+        ["--truth", str(bad)],
+        ["--truth", str(tmp_path / "missing.tum")],
+        ["--truth", str(tmp_path)],
+        ["--truth", str(good), "--align", "affine"],
+    ):
         assert main(["eval", "build", str(ws.root), *args]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err

@@ -120,8 +120,14 @@ def test_evaluate_places_on_the_street(tmp_path):
     maps = make_street_workspace(ws)
     out = tmp_path / "eval"
     overrides = {"structure": {"keypoint_fraction": 0.02}, "query_stride": 3, "split": "none"}
-    res = evaluate_places(ws, [("a", "b"), ("b", "a")], methods=["nbld", "vlad"], out=out, overrides=overrides,
-                          appearance=PositionAppearance(maps))
+    res = evaluate_places(
+        ws,
+        [("a", "b"), ("b", "a")],
+        methods=["nbld", "vlad"],
+        out=out,
+        overrides=overrides,
+        appearance=PositionAppearance(maps),
+    )
     assert res["headline"] == "all_places" and res["split"]["source"] == "none"
     for p in res["pairs"]:
         assert p["held_out_queries"] is None and p["all_places"]["methods"]["nbld"] == p["methods"]["nbld"]
@@ -151,7 +157,9 @@ def test_evaluate_places_on_the_street(tmp_path):
     trained = PositionAppearance(maps)
     trained.train_sessions = ["b"]
     with pytest.warns(InputWarning, match="trained the VLAD encoder"):
-        res3 = evaluate_places(ws, [("a", "b")], methods=["nbld", "vlad"], out=out, overrides=overrides, appearance=trained)
+        res3 = evaluate_places(
+            ws, [("a", "b")], methods=["nbld", "vlad"], out=out, overrides=overrides, appearance=trained
+        )
     assert res3["pairs"][0]["methods"]["vlad"]["available"] is False
     assert "trained the VLAD encoder" in (out / "places.md").read_text()
 
@@ -159,8 +167,13 @@ def test_evaluate_places_on_the_street(tmp_path):
     # default split needs UTM tiles, which a workspace without a geographic frame has not: all places, said so
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res2 = evaluate_places(ws, [("a", "b")], methods=["nbld", "vlad"], out=tmp_path / "eval2",
-                               overrides={k: v for k, v in overrides.items() if k != "split"})
+        res2 = evaluate_places(
+            ws,
+            [("a", "b")],
+            methods=["nbld", "vlad"],
+            out=tmp_path / "eval2",
+            overrides={k: v for k, v in overrides.items() if k != "split"},
+        )
     said = [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
     assert any("no VLAD bundle" in m for m in said) and any("no geographic frame" in m for m in said)
     assert res2["headline"] == "all_places" and "no geographic frame" in res2["split"]["notes"][0]
@@ -184,8 +197,16 @@ def write_triplet_manifest(folder, frame: LocalFrame, tiles: dict, tile_m: float
     """The two files of a triplet dataset the split is read from: manifest.json and config.yaml."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "config.yaml").write_text(dump_config(TripletConfig(tile_size_m=tile_m, buffer_m=buffer_m)))
-    write_json(folder / "manifest.json", {"format_version": 2, "seed": 0, "config_hash": "hand", "frame": frame.to_dict(),
-                                          "tiles": [{"utm_min": [i * tile_m, j * tile_m], "split": v} for (i, j), v in tiles.items()]})
+    write_json(
+        folder / "manifest.json",
+        {
+            "format_version": 2,
+            "seed": 0,
+            "config_hash": "hand",
+            "frame": frame.to_dict(),
+            "tiles": [{"utm_min": [i * tile_m, j * tile_m], "split": v} for (i, j), v in tiles.items()],
+        },
+    )
 
 
 def test_held_out_queries_of_hand_placed_tiles(tmp_path):
@@ -196,13 +217,16 @@ def test_held_out_queries_of_hand_placed_tiles(tmp_path):
     tiles = {(int(i0), int(j0)): "test", (int(i0) + 1, int(j0)): "train", (int(i0) + 1, int(j0) + 1): "train"}
     write_triplet_manifest(tmp_path / "ds", FRAME, tiles, 100.0, 10.0)
     cases = [  # UTM offset from the test tile's corner, expected label
-        ((50.0, 50.0), "test"),    # middle of the test tile
+        ((50.0, 50.0), "test"),  # middle of the test tile
         ((95.0, 50.0), "buffer"),  # 5 m from the training tile to the east
-        ((89.0, 50.0), "test"),    # 11 m from it
+        ((89.0, 50.0), "test"),  # 11 m from it
         ((105.0, 50.0), "buffer"),  # in the training tile, 5 m from the test tile
         ((150.0, 50.0), "train"),  # middle of the training tile
-        ((5.0, 50.0), "test"),     # 5 m from an unlabelled tile: no buffer towards it
-        ((94.0, 94.0), "buffer"),  # 6 m and 6 m from the diagonal training tile's corner: 8.5 m (and 6 m from the east one)
+        ((5.0, 50.0), "test"),  # 5 m from an unlabelled tile: no buffer towards it
+        (
+            (94.0, 94.0),
+            "buffer",
+        ),  # 6 m and 6 m from the diagonal training tile's corner: 8.5 m (and 6 m from the east one)
         ((-50.0, 50.0), "train"),  # an unlabelled tile
     ]
     utm = np.array([[x0 + dx, y0 + dy] for (dx, dy), _ in cases])
@@ -216,7 +240,10 @@ def test_held_out_queries_of_hand_placed_tiles(tmp_path):
     diag = {(int(i0), int(j0)): "test", (int(i0) + 1, int(j0) + 1): "train"}
     write_triplet_manifest(tmp_path / "diag", FRAME, diag, 100.0, 10.0)
     d = split_from_dataset(tmp_path / "diag", FRAME)
-    assert d.labels(enu_at_utm(FRAME, np.array([[x0 + 94.0, y0 + 94.0], [x0 + 92.0, y0 + 92.0]]))).tolist() == ["buffer", "test"]
+    assert d.labels(enu_at_utm(FRAME, np.array([[x0 + 94.0, y0 + 94.0], [x0 + 92.0, y0 + 92.0]]))).tolist() == [
+        "buffer",
+        "test",
+    ]
     # a dataset in another UTM zone, or tiles off the config's grid, are refused
     with pytest.raises(InputError, match="EPSG"):
         split_from_dataset(tmp_path / "ds", LocalFrame(47.37, 14.0, 400.0))
@@ -285,11 +312,16 @@ def test_evaluate_places_scores_held_out_queries(street_with_triplets, tmp_path)
     assert 0 < n_test < len(rows) and p["held_out_queries"] == p["queries"] == n_test
     assert p["query_split"] == {s: int(np.sum(expected == s)) for s in ("test", "train", "buffer")}
     assert p["all_places"]["queries"] == len(rows) and p["all_places"]["methods"]["nbld"]["queries"] == len(rows)
+
     # the headline AUC is the AUC of the held-out rows alone, the all-places AUC of all rows
     def auc_of(rs):
-        c = pr_curve(np.array([float(r["score"]) for r in rs]), np.array([r["correct"] == "1" for r in rs]),
-                     np.array([r["reachable"] == "1" for r in rs]))
+        c = pr_curve(
+            np.array([float(r["score"]) for r in rs]),
+            np.array([r["correct"] == "1" for r in rs]),
+            np.array([r["reachable"] == "1" for r in rs]),
+        )
         return pr_auc(c["recall"], c["precision"])
+
     held, every = p["methods"]["nbld"], p["all_places"]["methods"]["nbld"]
     assert held["auc"] == pytest.approx(auc_of([r for r in rows if r["held_out"] == "1"]))
     assert every["auc"] == pytest.approx(auc_of(rows))
@@ -298,13 +330,17 @@ def test_evaluate_places_scores_held_out_queries(street_with_triplets, tmp_path)
     assert held["keypoints_per_query_mean"] == pytest.approx(kp[expected == "test"].mean())
     assert every["keypoints_per_query_median"] == pytest.approx(np.median(kp)) and every["keypoints_per_query_mean"] > 0
     md = (out / "places.md").read_text()
-    assert md.index("## Held-out places") < md.index("## All places") and "Sec. 5.1" in md and str(columns.resolve()) in md
+    assert (
+        md.index("## Held-out places") < md.index("## All places") and "Sec. 5.1" in md and str(columns.resolve()) in md
+    )
 
     # a split without a test tile where the query drove: no held-out figures, said (and warned), all-places kept
     empty = tmp_path / "all-train"
     write_triplet_manifest(empty, frame, {k: "train" for k in tiles}, tile, buf)
     with pytest.warns(InputWarning, match="no held-out query"):
-        res2 = evaluate_places(ws, [("s0", "s1")], methods=["nbld"], out=tmp_path / "eval2", overrides={**ov, "triplets_dir": str(empty)})
+        res2 = evaluate_places(
+            ws, [("s0", "s1")], methods=["nbld"], out=tmp_path / "eval2", overrides={**ov, "triplets_dir": str(empty)}
+        )
     p2 = res2["pairs"][0]
     assert p2["held_out_queries"] == 0 and "no held-out query" in p2["held_out_note"]
     assert p2["methods"]["nbld"]["available"] is False and p2["methods"]["nbld"].get("auc") is None

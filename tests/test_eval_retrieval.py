@@ -18,13 +18,16 @@ from mapkit.retrieval.index_vlad import build_vlad_index, read_session_images
 
 def test_recall_at_k_on_a_hand_built_case():
     db = np.array([[0, 0, 0], [100, 0, 0], [200, 0, 0], [30, 0, 0]], float)
-    queries = np.array([
-        [0, 0, 0],  # right place at rank 2
-        [100, 10, 0],  # rank 1
-        [500, 0, 0],  # nothing within 25 m anywhere: unreachable
-        [26, 0, 0],  # rank 1: db 3 is 4 m away (db 0 at 26 m is not)
-        [125, 0, 0],  # db 1 exactly 25 m away at rank 3: the radius is inclusive
-    ], float)
+    queries = np.array(
+        [
+            [0, 0, 0],  # right place at rank 2
+            [100, 10, 0],  # rank 1
+            [500, 0, 0],  # nothing within 25 m anywhere: unreachable
+            [26, 0, 0],  # rank 1: db 3 is 4 m away (db 0 at 26 m is not)
+            [125, 0, 0],  # db 1 exactly 25 m away at rank 3: the radius is inclusive
+        ],
+        float,
+    )
     ids = np.array([[1, 0, 2], [1, 2, 0], [0, 1, 2], [3, 0, 1], [2, 0, 1]])
     r = recall_at_k(queries, db, ids, ks=(1, 2, 3), radius_m=25.0)
     assert r["recall"] == {1: 2 / 5, 2: 3 / 5, 3: 4 / 5}
@@ -75,8 +78,9 @@ def make_town(root, ws) -> None:
     (root / "world").mkdir(parents=True)
     (root / "sessions").mkdir()
     (root / "world" / "origin.json").write_text(json.dumps(town_frame.to_dict()))
-    (root / "world" / "manifest.json").write_text(json.dumps({"sessions": [
-        {"name": "test-c", "role": "test", "condition": "day-snowy", "weather": "snowy"}]}))
+    (root / "world" / "manifest.json").write_text(
+        json.dumps({"sessions": [{"name": "test-c", "role": "test", "condition": "day-snowy", "weather": "snowy"}]})
+    )
     s = read_session_images(ws, "test-c")
     true_ws = s.world_from_cam.copy()
     true_ws[:, 1, 3] += 1.2  # the session's recorded poses are 1.2 m off the truth
@@ -114,7 +118,11 @@ def test_query_sessions_in_the_bundle_are_refused(tmp_path, bundle):
         evaluate_retrieval(ws, out, ["test-c", "train-b"], out=tmp_path, progress=False)
     assert e.value.field == "sessions" and "train-b" in str(e.value)
     # a training-only session is refused too
-    b = build_vlad_index(ws, tmp_path / "b", small_config(database_sessions=["train-a"], train_sessions=["train-a", "train-b"]),
-                         progress=False)
+    b = build_vlad_index(
+        ws,
+        tmp_path / "b",
+        small_config(database_sessions=["train-a"], train_sessions=["train-a", "train-b"]),
+        progress=False,
+    )
     with pytest.raises(InputError, match="train-b"):
         evaluate_retrieval(ws, b, ["train-b"], out=tmp_path, progress=False)

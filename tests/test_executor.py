@@ -25,7 +25,15 @@ from test_align import street
 from test_semidense import K_SYN, ROOM_CFG, room  # noqa: F401 - the rendered room, a module fixture used below
 
 from mapkit.core.errors import ConfigError, InputError, InputWarning, MapkitError
-from mapkit.core.executor import SERIAL, ProcessExecutor, SerialExecutor, TaskError, get_executor, make_executor, use_executor
+from mapkit.core.executor import (
+    SERIAL,
+    ProcessExecutor,
+    SerialExecutor,
+    TaskError,
+    get_executor,
+    make_executor,
+    use_executor,
+)
 from mapkit.mapping.semidense import build_semidense_map
 from mapkit.multisession.align import AlignConfig, _register_task, _SubmapClouds
 from mapkit.retrieval.index_vlad import read_image
@@ -80,7 +88,9 @@ EXECUTORS = {"serial": lambda: SERIAL, "process": lambda: ProcessExecutor(2)}
 @pytest.mark.parametrize("kind", EXECUTORS)
 def test_results_come_back_in_input_order(kind):
     items = list(range(12))
-    assert list(EXECUTORS[kind]().map(slow_square, iter(items), chunksize=5)) == [x * x for x in items]  # a generator, in chunks
+    assert list(EXECUTORS[kind]().map(slow_square, iter(items), chunksize=5)) == [
+        x * x for x in items
+    ]  # a generator, in chunks
     assert list(EXECUTORS[kind]().map(slow_square, [])) == []
 
 
@@ -102,7 +112,11 @@ def test_a_mapkit_error_comes_back_whole_with_a_label(kind, tmp_path):
     with pytest.raises(TaskError) as e:
         list(EXECUTORS[kind]().map(read_image, [str(missing)], label=lambda p: Path(p).name))
     # InputError's __init__ differs from its args: the worker's error is rebuilt, not re-constructed
-    assert isinstance(e.value.cause, InputError) and e.value.cause.path == missing and e.value.cause.what == "cannot read this image"
+    assert (
+        isinstance(e.value.cause, InputError)
+        and e.value.cause.path == missing
+        and e.value.cause.what == "cannot read this image"
+    )
     assert "(no-such.png)" in str(e.value)
     if kind == "process":
         assert "read_image" in e.value.remote_traceback
@@ -144,7 +158,11 @@ def test_a_consumer_done_after_the_last_result_lets_the_pool_close(monkeypatch):
     (close), not killed (terminate: SIGTERM, and pycolmap's handler prints a stack trace)."""
     stops: list[bool] = []
     original = ProcessExecutor._stop
-    monkeypatch.setattr(ProcessExecutor, "_stop", lambda self, pool, pending, failed: (stops.append(failed), original(self, pool, pending, failed))[1])
+    monkeypatch.setattr(
+        ProcessExecutor,
+        "_stop",
+        lambda self, pool, pending, failed: (stops.append(failed), original(self, pool, pending, failed))[1],
+    )
     items = list(range(6))
     g = ProcessExecutor(2).map(slow_square, items)
     assert [r for _, r in zip(items, g)] == [x * x for x in items]
@@ -190,11 +208,22 @@ def test_ray_missing_says_how_to_install(monkeypatch):
 def test_semidense_keyframes_serial_equals_process_pool(room):  # noqa: F811
     poses, images = room
     frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
-    maps = {kind: build_semidense_map(iter(frames), K_SYN, ROOM_CFG, progress=False, executor=EXECUTORS[kind]()) for kind in EXECUTORS}
+    maps = {
+        kind: build_semidense_map(iter(frames), K_SYN, ROOM_CFG, progress=False, executor=EXECUTORS[kind]())
+        for kind in EXECUTORS
+    }
     a, b = maps["serial"], maps["process"]
     assert len(a) > 1000
-    for field in ("points_world", "sigma_depth", "intensity", "source_keyframe", "obs_indptr", "obs_frame_ids", "keyframe_ids",
-                  "keyframe_world_from_cam"):
+    for field in (
+        "points_world",
+        "sigma_depth",
+        "intensity",
+        "source_keyframe",
+        "obs_indptr",
+        "obs_frame_ids",
+        "keyframe_ids",
+        "keyframe_world_from_cam",
+    ):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
 
 
@@ -211,7 +240,12 @@ def test_icp_of_submap_pairs_serial_equals_process_pool():
     got = {kind: list(EXECUTORS[kind]().map(_register_task, pairs, shared=shared)) for kind in EXECUTORS}
     for a, b in zip(got["serial"], got["process"]):
         np.testing.assert_array_equal(a.target_from_source, b.target_from_source)
-        assert (a.fitness, a.rmse_m, a.structure_rmse_m, a.accepted) == (b.fitness, b.rmse_m, b.structure_rmse_m, b.accepted)
+        assert (a.fitness, a.rmse_m, a.structure_rmse_m, a.accepted) == (
+            b.fitness,
+            b.rmse_m,
+            b.structure_rmse_m,
+            b.accepted,
+        )
     # and the registrations are right: s1 is s0 moved by (0.6, -0.4, 0.1)
     np.testing.assert_allclose(got["serial"][0].target_from_source[:3, 3], [0.6, -0.4, 0.1], atol=0.1)
     assert got["serial"][0].accepted
@@ -245,7 +279,6 @@ def test_ray_keeps_the_contract(ray_executor):
     out = list(ex.map(lookup, range(40), shared=CountedShared(values), chunksize=2))
     assert [v for v, _, _ in out] == list(values)
     assert set(n for _, _, n in out) == {1}  # 20 tasks, one arrival of the shared state per worker process
-
 
 
 # A local Ray instance must not join whatever cluster the machine advertises, and must not listen beyond
@@ -337,8 +370,13 @@ def ray_env():
     pytest.importorskip("ray", reason='Ray is not installed (pip install -e ".[distributed]")')
     ray_tmp = Path(tempfile.mkdtemp(prefix="mkray"))  # short: Ray's unix sockets live below it (108-byte limit)
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
-    env.update(RAY_TMPDIR=str(ray_tmp), RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=secrets.token_hex(32),
-               RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S="0", RAY_USAGE_STATS_ENABLED="0")
+    env.update(
+        RAY_TMPDIR=str(ray_tmp),
+        RAY_AUTH_MODE="token",
+        RAY_AUTH_TOKEN=secrets.token_hex(32),
+        RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S="0",
+        RAY_USAGE_STATS_ENABLED="0",
+    )
     yield ray_tmp, env
     deadline = time.monotonic() + 15
     while (left := _processes_of(ray_tmp)) and time.monotonic() < deadline:
@@ -351,10 +389,12 @@ def ray_env():
 
 
 def _run_driver(env: dict, address: str = "") -> dict:
-    r = subprocess.run([sys.executable, "-c", RAY_DRIVER, address], env=env, capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-c", RAY_DRIVER, address], env=env, capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     line = next(x for x in r.stdout.splitlines() if x.startswith("REPORT "))
-    return dict(json.loads(line[len("REPORT "):]), stderr=r.stderr)
+    return dict(json.loads(line[len("REPORT ") :]), stderr=r.stderr)
 
 
 def _loopback(host: str) -> bool:
@@ -380,13 +420,33 @@ def test_local_ray_ignores_a_stale_cluster_and_ray_address_and_listens_on_loopba
 
 def test_an_explicit_address_joins_a_running_cluster(ray_env, tmp_path):
     ray_tmp, env = ray_env
-    env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"  # keep 127.0.0.1 as the node IP (Ray otherwise swaps in a routable one)
+    env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = (
+        "0"  # keep 127.0.0.1 as the node IP (Ray otherwise swaps in a routable one)
+    )
     port = _free_port()
     with open(tmp_path / "head.log", "w") as log:
-        head = subprocess.Popen([sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block",
-                                 "--node-ip-address", "127.0.0.1", "--port", str(port), "--include-dashboard=false",
-                                 "--num-cpus", "1", "--disable-usage-stats"],
-                                env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        head = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "ray.scripts.scripts",
+                "start",
+                "--head",
+                "--block",
+                "--node-ip-address",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--include-dashboard=false",
+                "--num-cpus",
+                "1",
+                "--disable-usage-stats",
+            ],
+            env=env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
     try:
         deadline = time.monotonic() + 60
         while True:
@@ -409,12 +469,30 @@ def test_an_explicit_address_joins_a_running_cluster(ray_env, tmp_path):
 
 # the tiny preset's two training drives (configs/synth/tiny.yaml) cut to 24 m: enough images for these
 # executor checks, in a few seconds (the preset's own 250 m drives are for the demo's every stage)
-TINY_TRAIN = {"sessions": [
-    {"name": "tiny-sunny", "role": "train", "date": "2014-06-26", "time": "09:24", "weather": "sunny", "length_m": 24.0,
-     "speed_mps": 9.0, "lane_offset_m": 0.0},
-    {"name": "tiny-rainy", "role": "train", "date": "2014-10-30", "time": "11:11", "weather": "rainy", "length_m": 24.0,
-     "speed_mps": 8.0, "lane_offset_m": 0.4},
-]}
+TINY_TRAIN = {
+    "sessions": [
+        {
+            "name": "tiny-sunny",
+            "role": "train",
+            "date": "2014-06-26",
+            "time": "09:24",
+            "weather": "sunny",
+            "length_m": 24.0,
+            "speed_mps": 9.0,
+            "lane_offset_m": 0.0,
+        },
+        {
+            "name": "tiny-rainy",
+            "role": "train",
+            "date": "2014-10-30",
+            "time": "11:11",
+            "weather": "rainy",
+            "length_m": 24.0,
+            "speed_mps": 8.0,
+            "lane_offset_m": 0.4,
+        },
+    ]
+}
 
 
 @pytest.fixture(scope="module")
@@ -437,8 +515,11 @@ def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, 
 
     ws = tiny_workspace
     # the demo's index build (its training sessions train and are indexed) with test_index_vlad's small encoder
-    overrides = {"vlad": SMALL_VLAD.model_dump(), "train_sessions": ["tiny-rainy", "tiny-sunny"],
-                 "database_sessions": ["tiny-rainy", "tiny-sunny"]}
+    overrides = {
+        "vlad": SMALL_VLAD.model_dump(),
+        "train_sessions": ["tiny-rainy", "tiny-sunny"],
+        "database_sessions": ["tiny-rainy", "tiny-sunny"],
+    }
     serial = build_vlad_index(ws, tmp_path / "serial", overrides=overrides, progress=False, executor=SERIAL)
     on_ray = build_vlad_index(ws, tmp_path / "ray", overrides=overrides, progress=False, executor=ray_executor)
     a, b = VladIndex.load(serial), VladIndex.load(on_ray)
@@ -462,9 +543,18 @@ def test_vlad_encoding_reports_an_unreadable_image_as_its_input_error(tmp_path):
 
 
 def _session_files(ws: Path) -> dict[str, bytes]:
-    keep = ("trajectory/poses_tum.txt", "georef/trajectory_enu/poses_tum.txt", "map/points.ply", "map/observations.npz",
-            "imagedb/images.csv")
-    return {str(p.relative_to(ws)): p.read_bytes() for p in sorted((ws / "sessions").rglob("*")) if str(p.relative_to(ws / "sessions")).split("/", 1)[-1] in keep}
+    keep = (
+        "trajectory/poses_tum.txt",
+        "georef/trajectory_enu/poses_tum.txt",
+        "map/points.ply",
+        "map/observations.npz",
+        "imagedb/images.csv",
+    )
+    return {
+        str(p.relative_to(ws)): p.read_bytes()
+        for p in sorted((ws / "sessions").rglob("*"))
+        if str(p.relative_to(ws / "sessions")).split("/", 1)[-1] in keep
+    }
 
 
 def test_sessions_built_in_parallel_equal_a_serial_build(tiny_workspace, tmp_path):

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose
 from mapkit.core.errors import InputError, InputWarning
+from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose
 from mapkit.mapping.factor_graph import (
     FactorGraphConfig,
     GpsObservations,
@@ -37,7 +37,9 @@ CHI2_95_3DOF = 7.815
 # the gravity tests' odometry drifts 0.01-0.03 deg/m, as kiss-icp does on the tiny town with a 256-column sweep
 # (bench/lidar_odometry_budget.py): the model has to be told so (the defaults fit kiss-icp on the presets' 512-column
 # sweep, 20 times tighter in pitch)
-LOOSE = FactorGraphConfig(odom_rotation_walk_rad_per_sqrt_m=(1.5e-3,) * 3, odom_translation_walk_m_per_sqrt_m=(0.01,) * 3)
+LOOSE = FactorGraphConfig(
+    odom_rotation_walk_rad_per_sqrt_m=(1.5e-3,) * 3, odom_translation_walk_m_per_sqrt_m=(0.01,) * 3
+)
 NO_JITTER = dict(odom_rotation_jitter_rad=(1e-5,) * 3, odom_translation_jitter_m=(1e-4,) * 3)
 
 
@@ -59,9 +61,18 @@ def true_drive(length_m: float = 300.0, speed: float = 10.0, rate_hz: float = 10
     return stamps, make_pose(R, np.column_stack([xy, z]))
 
 
-def drifted_odometry(truth: np.ndarray, pitch_rad_per_m: float = 0.0, roll_rad_per_m: float = 0.0, scale: float = 1.0,
-                     rng: np.random.Generator | None = None, rot_sigma_per_sqrt_m=0.0, trans_sigma_per_sqrt_m=0.0,
-                     rot_jitter=0.0, trans_jitter=0.0, forward_scale: np.ndarray | None = None):
+def drifted_odometry(
+    truth: np.ndarray,
+    pitch_rad_per_m: float = 0.0,
+    roll_rad_per_m: float = 0.0,
+    scale: float = 1.0,
+    rng: np.random.Generator | None = None,
+    rot_sigma_per_sqrt_m=0.0,
+    trans_sigma_per_sqrt_m=0.0,
+    rot_jitter=0.0,
+    trans_jitter=0.0,
+    forward_scale: np.ndarray | None = None,
+):
     """The truth's relative motions, each rotated by a drift proportional to its length (plus random-walk
     noise, per axis) and scaled, chained from the identity (the odometry's frame is the first pose's); then each
     pose moved by white jitter. ``forward_scale[i]`` scales step i's motion along the base's x (a slip along the road)."""
@@ -82,7 +93,9 @@ def drifted_odometry(truth: np.ndarray, pitch_rad_per_m: float = 0.0, roll_rad_p
         out.append(out[-1] @ rel)
     out = np.stack(out)
     if rng is not None and (np.any(np.asarray(rot_jitter)) or np.any(np.asarray(trans_jitter))):
-        w = rng.standard_normal((len(out), 6)) * np.concatenate([np.broadcast_to(rot_jitter, 3), np.broadcast_to(trans_jitter, 3)])
+        w = rng.standard_normal((len(out), 6)) * np.concatenate(
+            [np.broadcast_to(rot_jitter, 3), np.broadcast_to(trans_jitter, 3)]
+        )
         jit = make_pose(Rotation.from_rotvec(w[:, :3]).as_matrix(), w[:, 3:])
         out = out @ jit
     return out
@@ -162,15 +175,30 @@ def assert_nees_consistent(stamps, truth, rng, imu_truth=None, drives: int = 30)
     white = np.sqrt(GPS_SIGMA_REPORTED**2 - sb**2)
     nees = []
     for _ in range(drives):
-        odom = drifted_odometry(truth, rng=rng, rot_sigma_per_sqrt_m=cfg.odom_rotation_walk_rad_per_sqrt_m,
-                                trans_sigma_per_sqrt_m=cfg.odom_translation_walk_m_per_sqrt_m,
-                                rot_jitter=cfg.odom_rotation_jitter_rad, trans_jitter=cfg.odom_translation_jitter_m)
-        gps, _ = gps_fixes(stamps, truth, rng, bias=rng.standard_normal(3) * sb * np.array([1, 1, cfg.gps_vertical_sigma_factor]),
-                           white=white)
+        odom = drifted_odometry(
+            truth,
+            rng=rng,
+            rot_sigma_per_sqrt_m=cfg.odom_rotation_walk_rad_per_sqrt_m,
+            trans_sigma_per_sqrt_m=cfg.odom_translation_walk_m_per_sqrt_m,
+            rot_jitter=cfg.odom_rotation_jitter_rad,
+            trans_jitter=cfg.odom_translation_jitter_m,
+        )
+        gps, _ = gps_fixes(
+            stamps,
+            truth,
+            rng,
+            bias=rng.standard_normal(3) * sb * np.array([1, 1, cfg.gps_vertical_sigma_factor]),
+            white=white,
+        )
         imu = None
         if imu_truth is not None:
-            imu = imu_from_truth(*imu_truth, rng, rng.standard_normal(3) * cfg.imu_accel_bias_sigma,
-                                 rng.standard_normal(3) * cfg.imu_gyro_bias_sigma, cfg)
+            imu = imu_from_truth(
+                *imu_truth,
+                rng,
+                rng.standard_normal(3) * cfg.imu_accel_bias_sigma,
+                rng.standard_normal(3) * cfg.imu_gyro_bias_sigma,
+                cfg,
+            )
         fused = fuse_session(stamps, odom, gps, None, cfg, imu=imu)
         i = len(stamps) // 2
         e = fused_errors(fused, truth)[i]
@@ -204,8 +232,13 @@ def test_straight_drive_roll_fixed_by_gravity():
     odom = drifted_odometry(truth, roll_rad_per_m=np.radians(0.03))
     gps, _ = gps_fixes(stamps, truth, np.random.default_rng(5))
     fused = fuse_session(stamps, odom, gps, true_gravity(stamps, truth), LOOSE)
-    roll_err = np.degrees(np.abs(Rotation.from_matrix(np.swapaxes(truth[:, :3, :3], 1, 2) @ fused.enu_from_base[:, :3, :3])
-                                 .as_euler("ZYX")[:, 2]))
+    roll_err = np.degrees(
+        np.abs(
+            Rotation.from_matrix(np.swapaxes(truth[:, :3, :3], 1, 2) @ fused.enu_from_base[:, :3, :3]).as_euler("ZYX")[
+                :, 2
+            ]
+        )
+    )
     assert np.degrees(np.radians(0.03) * 200) > 5.0
     assert roll_err.max() < 0.1
     assert np.all(np.isfinite(fused.covariances))
@@ -275,7 +308,9 @@ def braking_drive(duration_s: float = 36.0, brake_at_s: float = 25.0):
     return stamps, make_pose(R, np.column_stack([xy, z]))
 
 
-def imu_from_truth(stamps, world_from_base, rng, accel_bias=np.zeros(3), gyro_bias=np.zeros(3), cfg=None) -> ImuObservations:
+def imu_from_truth(
+    stamps, world_from_base, rng, accel_bias=np.zeros(3), gyro_bias=np.zeros(3), cfg=None
+) -> ImuObservations:
     """What an IMU at IMU_MOUNT samples on this drive: central differences of its true pose (rate and specific force
     over the two neighbouring intervals), plus the constant biases and white noise at the configured densities."""
     cfg = cfg or FactorGraphConfig()
@@ -302,8 +337,12 @@ def motion_error(stamps, poses, truth, a_ns: int, b_ns: int) -> float:
     return float(np.linalg.norm(est - true))
 
 
-def slipping_session(seed: int = 11, slip_m: float = 4.0, accel_bias=np.array([0.02, -0.015, 0.02]),
-                     gyro_bias=np.array([5e-4, -3e-4, 4e-4])):
+def slipping_session(
+    seed: int = 11,
+    slip_m: float = 4.0,
+    accel_bias=np.array([0.02, -0.015, 0.02]),
+    gyro_bias=np.array([5e-4, -3e-4, 4e-4]),
+):
     """The braking drive's 10 Hz odometry (the model's own walk and jitter) losing ``slip_m`` along the road over
     26-27.5 s while braking, GPS with a 1 m bias, and the IMU."""
     rng = np.random.default_rng(seed)
@@ -315,9 +354,15 @@ def slipping_session(seed: int = 11, slip_m: float = 4.0, accel_bias=np.array([0
     in_slip = (t[:-1] >= 26.0) & (t[:-1] < 27.5)
     scale = np.ones(len(steps))
     scale[in_slip] = 1.0 - slip_m / steps[in_slip].sum()
-    odom = drifted_odometry(truth, rng=rng, rot_sigma_per_sqrt_m=cfg.odom_rotation_walk_rad_per_sqrt_m,
-                            trans_sigma_per_sqrt_m=cfg.odom_translation_walk_m_per_sqrt_m, rot_jitter=cfg.odom_rotation_jitter_rad,
-                            trans_jitter=cfg.odom_translation_jitter_m, forward_scale=scale)
+    odom = drifted_odometry(
+        truth,
+        rng=rng,
+        rot_sigma_per_sqrt_m=cfg.odom_rotation_walk_rad_per_sqrt_m,
+        trans_sigma_per_sqrt_m=cfg.odom_translation_walk_m_per_sqrt_m,
+        rot_jitter=cfg.odom_rotation_jitter_rad,
+        trans_jitter=cfg.odom_translation_jitter_m,
+        forward_scale=scale,
+    )
     gps, _ = gps_fixes(stamps, truth, rng, bias=np.array([1.0, -0.5, 0.8]))
     imu = imu_from_truth(stamps100, truth100, rng, accel_bias, gyro_bias)
     return stamps, truth, odom, gps, imu
@@ -332,18 +377,26 @@ def test_preintegration_predicts_the_true_motion():
     import gtsam
 
     stamps, truth = braking_drive()
-    imu = imu_from_truth(stamps, truth, np.random.default_rng(0), cfg=FactorGraphConfig(imu_gyro_noise_density=0.0,
-                                                                                       imu_accel_noise_density=0.0))
+    imu = imu_from_truth(
+        stamps,
+        truth,
+        np.random.default_rng(0),
+        cfg=FactorGraphConfig(imu_gyro_noise_density=0.0, imu_accel_noise_density=0.0),
+    )
     world_from_imu = truth @ IMU_MOUNT
     for a in (5.003, 24.507, 26.0):
         a_ns = stamps[0] + int(a * 1e9)
         b_ns = a_ns + 1_234_000_000
-        (Pa, Pb, Pm, Pp), _ = interpolate_poses(stamps, world_from_imu, np.array([a_ns, b_ns, a_ns - 5_000_000, a_ns + 5_000_000]))
+        (Pa, Pb, Pm, Pp), _ = interpolate_poses(
+            stamps, world_from_imu, np.array([a_ns, b_ns, a_ns - 5_000_000, a_ns + 5_000_000])
+        )
         v = (Pp[:3, 3] - Pm[:3, 3]) / 0.01
         pim = preintegrate(imu, int(a_ns), int(b_ns), imu_params(FactorGraphConfig()))
         pred = pim.predict(gtsam.NavState(gtsam.Rot3(Pa[:3, :3]), Pa[:3, 3], v), gtsam.imuBias.ConstantBias())
         assert np.linalg.norm(pred.position() - Pb[:3, 3]) < 2e-3
-        assert np.degrees(np.linalg.norm(Rotation.from_matrix(Pb[:3, :3].T @ pred.attitude().matrix()).as_rotvec())) < 5e-3
+        assert (
+            np.degrees(np.linalg.norm(Rotation.from_matrix(Pb[:3, :3].T @ pred.attitude().matrix()).as_rotvec())) < 5e-3
+        )
 
 
 def test_imu_bridges_a_slip():
@@ -369,8 +422,8 @@ def test_imu_bridges_a_slip():
     assert len(hits) == 1 and 3.5 < hits[0] < 4.5
     # covariances honest where it matters: the true position inside the 95% ellipse over the slip
     i = np.searchsorted(stamps, [SLIP_A_NS, SLIP_B_NS])
-    ei = e[i[0]:i[1]]
-    P = fused.covariances[i[0]:i[1], 3:, 3:]
+    ei = e[i[0] : i[1]]
+    P = fused.covariances[i[0] : i[1], 3:, 3:]
     d2 = np.einsum("ni,ni->n", ei, np.linalg.solve(P, ei[:, :, None])[:, :, 0])
     assert np.mean(d2 <= CHI2_95_3DOF) >= 0.9
 
@@ -385,7 +438,9 @@ def test_imu_bias_recovered():
     accel_bias = np.array([0.1, -0.06, 0.08])
     gyro_bias = np.array([0.0025, -0.0015, 0.002])
     stamps, truth, odom, gps, imu = slipping_session(seed=12, slip_m=0.0, accel_bias=accel_bias, gyro_bias=gyro_bias)
-    fused = fuse_session(stamps, odom, gps, None, FactorGraphConfig(imu_accel_bias_sigma=0.2, imu_gyro_bias_sigma=0.01), imu=imu)
+    fused = fuse_session(
+        stamps, odom, gps, None, FactorGraphConfig(imu_accel_bias_sigma=0.2, imu_gyro_bias_sigma=0.01), imu=imu
+    )
     b = fused.stats["imu_bias_end"]
     assert np.max(np.abs(np.asarray(b["accel_m_s2"]) - accel_bias)) < 0.015
     assert np.max(np.abs(np.asarray(b["gyro_rad_s"]) - gyro_bias)) < 3e-4
@@ -452,9 +507,17 @@ def test_flat_road_keeps_its_height_when_the_odometry_crabs_in_a_turn():
         odom.append(odom[-1] @ rel)
     odom = np.stack(odom)
     gps, _ = gps_fixes(stamps, truth, rng, bias=np.array([1.0, -0.5, 0.8]))
-    town_imu = dict(imu_accel_noise_density=0.002, imu_gyro_noise_density=2e-4, imu_accel_bias_sigma=0.02, imu_gyro_bias_sigma=5e-4)
-    imu = imu_from_truth(stamps100, truth100, rng, rng.standard_normal(3) * 0.02, rng.standard_normal(3) * 5e-4,
-                         FactorGraphConfig(**town_imu))
+    town_imu = dict(
+        imu_accel_noise_density=0.002, imu_gyro_noise_density=2e-4, imu_accel_bias_sigma=0.02, imu_gyro_bias_sigma=5e-4
+    )
+    imu = imu_from_truth(
+        stamps100,
+        truth100,
+        rng,
+        rng.standard_normal(3) * 0.02,
+        rng.standard_normal(3) * 5e-4,
+        FactorGraphConfig(**town_imu),
+    )
 
     def height_drift(cfg: FactorGraphConfig) -> float:
         fused = fuse_session(stamps, odom, gps, None, cfg, imu=imu)
@@ -477,7 +540,9 @@ def test_gps_that_does_not_overlap_the_drive_is_left_out_with_its_reason():
     odom = drifted_odometry(truth, pitch_rad_per_m=np.radians(0.02))
     gps, _ = gps_fixes(stamps, truth, np.random.default_rng(3))
     late = GpsObservations(gps.stamps_ns + 3_600_000_000_000, gps.enu, gps.sigma_m, gps.base_from_antenna)
-    with pytest.warns(InputWarning, match="only 0 GPS fixes overlap the trajectory; at least 3 are needed; fused without GPS"):
+    with pytest.warns(
+        InputWarning, match="only 0 GPS fixes overlap the trajectory; at least 3 are needed; fused without GPS"
+    ):
         fused = fuse_session(stamps, odom, late, None, LOOSE)
     assert fused.stats["gps"] == "not used: only 0 GPS fixes overlap the trajectory; at least 3 are needed"
     assert np.allclose(fused.enu_from_base, odom, atol=1e-6)

@@ -17,7 +17,9 @@ def test_quaternion_round_trip_and_sign(rng):
     assert np.all(q[:, 0] >= 0)
     np.testing.assert_allclose(g.quat_wxyz_to_matrix(q), R, atol=1e-12)
     # a 90 degree turn about z is (cos 45, 0, 0, sin 45) in wxyz
-    np.testing.assert_allclose(g.matrix_to_quat_wxyz(g.yaw_rotation(np.pi / 2)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-12)
+    np.testing.assert_allclose(
+        g.matrix_to_quat_wxyz(g.yaw_rotation(np.pi / 2)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-12
+    )
 
 
 def test_skew_is_the_cross_product_for_one_vector_and_a_stack(rng):
@@ -94,7 +96,9 @@ def test_associate_is_one_to_one_and_respects_max_dt():
 
 def test_average_rotations_of_symmetric_spread_is_centre():
     centre = g.yaw_rotation(1.0)
-    Rs = np.stack([centre @ Rotation.from_rotvec(v).as_matrix() for v in ([0.1, 0, 0], [-0.1, 0, 0], [0, 0.2, 0], [0, -0.2, 0])])
+    Rs = np.stack(
+        [centre @ Rotation.from_rotvec(v).as_matrix() for v in ([0.1, 0, 0], [-0.1, 0, 0], [0, 0.2, 0], [0, -0.2, 0])]
+    )
     np.testing.assert_allclose(g.average_rotations(Rs), centre, atol=1e-9)
     assert g.rotation_angle_rad(g.average_rotations(Rs).T @ centre) < 1e-9
 
@@ -104,7 +108,9 @@ def test_transform_poses_by_a_similarity_keeps_rotations_rigid():
     from mapkit.core.geometry import is_rotation, make_pose, make_sim3, transform_points, transform_poses
 
     rng = np.random.default_rng(4)
-    poses = np.stack([make_pose(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3) * 10) for _ in range(5)])
+    poses = np.stack(
+        [make_pose(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3) * 10) for _ in range(5)]
+    )
     R = Rotation.from_rotvec([0.3, -0.2, 1.1]).as_matrix()
     S = make_sim3(7.5, R, [1.0, -2.0, 3.0])
     moved = transform_poses(S, poses)

@@ -89,13 +89,17 @@ def test_association_interpolates_and_never_extrapolates_or_bridges_gaps():
 
 # --- camera-only (structure from motion) trajectories: arbitrary scale, unlevelled frame -------------
 
+
 def _sfm_case(rng, p_true: np.ndarray, seed: int, n_outliers: int = 10):
     """A structure-from-motion frame of a true ENU path: a random similarity (scale 0.05-20, any
     rotation, so neither levelled nor metric); GPS = truth + N(0, 3 m) + multipath jumps."""
     from scipy.spatial.transform import Rotation
 
-    map_from_enu = make_sim3(10 ** rng.uniform(np.log10(0.05), np.log10(20)), Rotation.random(random_state=seed).as_matrix(),
-                             rng.normal(0, 50, 3))
+    map_from_enu = make_sim3(
+        10 ** rng.uniform(np.log10(0.05), np.log10(20)),
+        Rotation.random(random_state=seed).as_matrix(),
+        rng.normal(0, 50, 3),
+    )
     p_map = transform_points(map_from_enu, p_true)
     p_enu = p_true + rng.normal(scale=3.0, size=p_true.shape)
     jumps = rng.choice(len(p_true), size=n_outliers, replace=False)
@@ -115,8 +119,14 @@ def test_sim3_georeferences_an_unlevelled_arbitrary_scale_camera_path_within_gps
     extent is judged in metres whatever the SfM scale, and every multipath jump is rejected."""
     rng = np.random.default_rng(seed)
     s = np.linspace(0, 400, 300)
-    p_true = np.stack([np.where(s < 150, s, 150 + 60 * np.sin((s - 150) / 60)), np.where(s < 150, 0.0, 0.9 * (s - 150)),
-                       0.02 * s + 0.8 * np.sin(s / 50)], axis=1)
+    p_true = np.stack(
+        [
+            np.where(s < 150, s, 150 + 60 * np.sin((s - 150) / 60)),
+            np.where(s < 150, 0.0, 0.9 * (s - 150)),
+            0.02 * s + 0.8 * np.sin(s / 50),
+        ],
+        axis=1,
+    )
     map_from_enu, p_map, p_enu, jumps = _sfm_case(rng, p_true, seed)
     res = align_to_gps(p_map, p_enu, sigma_m=np.full(len(p_map), 3.0), mode="sim3")
     true = np.linalg.inv(map_from_enu)

@@ -15,7 +15,9 @@ from conftest import REPO
 
 PATTERNS = {
     # a number after "session" that is not a quantity ("a session 8 m off" is a drive)
-    "a numbered development session": re.compile(r"\b[Ss]essions? \d+(?:\s*(?:-|to|and)\s*\d+)?\b(?!\s*(?:m|cm|km|deg|%|px|s)\b)"),
+    "a numbered development session": re.compile(
+        r"\b[Ss]essions? \d+(?:\s*(?:-|to|and)\s*\d+)?\b(?!\s*(?:m|cm|km|deg|%|px|s)\b)"
+    ),
     "an issue number": re.compile(r"\b[Ii]ssues? #?\d+|\(#\d+\)|\bPR #?\d+"),
     "a commit": re.compile(r"\b(?:clone|commit|checkout|HEAD) (?:at |of )?[0-9a-f]{7,40}\b"),
 }
@@ -33,16 +35,43 @@ def history_references(text: str) -> list[tuple[int, str, str]]:
 
 
 def _project_files() -> list:
-    out = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=REPO, capture_output=True,
-                         text=True, check=True).stdout.split()
-    return [REPO / p for p in out if (REPO / p).is_file() and (REPO / p).suffix in TEXT_SUFFIXES and not p.startswith("docs/results/")]
+    out = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.split()
+    return [
+        REPO / p
+        for p in out
+        if (REPO / p).is_file() and (REPO / p).suffix in TEXT_SUFFIXES and not p.startswith("docs/results/")
+    ]
 
 
 def test_the_patterns_find_history_and_spare_the_domains_words():
-    refused = ["since session 14 the demo drives", "sessions 9-10 measured", "Session 16's figures", "issue 24's height drift",
-               "(issue #10)", "a fresh clone at b6df563", "fixed in #21 (#21)"]
-    kept = ["the test-night session", "a session's map", "sessions with a map", "3 sessions", "one session per worker",
-            "test-seq-1", "sha256 9f2c1e0d", "a session 8 m off", "the session 'tiny-night'", "issues a warning", "# 2 cm"]
+    refused = [
+        "since session 14 the demo drives",
+        "sessions 9-10 measured",
+        "Session 16's figures",
+        "issue 24's height drift",
+        "(issue #10)",
+        "a fresh clone at b6df563",
+        "fixed in #21 (#21)",
+    ]
+    kept = [
+        "the test-night session",
+        "a session's map",
+        "sessions with a map",
+        "3 sessions",
+        "one session per worker",
+        "test-seq-1",
+        "sha256 9f2c1e0d",
+        "a session 8 m off",
+        "the session 'tiny-night'",
+        "issues a warning",
+        "# 2 cm",
+    ]
     assert all(history_references(t) for t in refused), [t for t in refused if not history_references(t)]
     assert not any(history_references(t) for t in kept), [t for t in kept if history_references(t)]
 
@@ -50,8 +79,11 @@ def test_the_patterns_find_history_and_spare_the_domains_words():
 def test_no_file_of_the_project_refers_to_its_development_history():
     files = _project_files()
     assert any(p.name == "README.md" for p in files) and any(p.suffix == ".py" for p in files)
-    found = [f"{p.relative_to(REPO)}:{n}: {what}: {line}" for p in files
-             for n, what, line in history_references(p.read_text(errors="replace"))
-             if p.name != "test_history.py"]
+    found = [
+        f"{p.relative_to(REPO)}:{n}: {what}: {line}"
+        for p in files
+        for n, what, line in history_references(p.read_text(errors="replace"))
+        if p.name != "test_history.py"
+    ]
     if found:
         pytest.fail(f"{len(found)} references to development history:\n" + "\n".join(found[:80]))

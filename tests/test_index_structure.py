@@ -34,7 +34,9 @@ from mapkit.places.index_structure import (
 FAST = {"keypoint_fraction": 0.02}  # ~900 keypoints per session of the test street (the paper: 0.05)
 
 
-def street_map(world: np.ndarray, rng: np.random.Generator, lane_y: float, x0: float, keep: float = 0.3) -> SemiDenseMap:
+def street_map(
+    world: np.ndarray, rng: np.random.Generator, lane_y: float, x0: float, keep: float = 0.3
+) -> SemiDenseMap:
     """One mapping of the street: a random ``keep`` of its surface samples with 3 cm noise, seen
     by a forward camera (+x) at 1 m spacing from ``x0``. Frame i sits at x0 + i; odd ids are
     keyframes (posed), even ids non-key neighbours. A point is observed by every frame 5-15 m
@@ -53,10 +55,17 @@ def street_map(world: np.ndarray, rng: np.random.Generator, lane_y: float, x0: f
     kf = ids % 2 == 1
     poses = np.stack([make_pose(np.eye(3), [x, lane_y, 1.5]) for x in frame_x[kf]])
     return SemiDenseMap(
-        points_world=pts, intensity=np.full(len(pts), 128, np.uint8), sigma_depth=np.full(len(pts), 0.05, np.float32),
-        source_keyframe=obs[indptr[:-1]], obs_indptr=indptr, obs_frame_ids=obs, keyframe_ids=ids[kf],
-        keyframe_stamps_ns=(1_000_000_000 + ids[kf] * 100_000_000).astype(np.int64), keyframe_world_from_cam=poses,
-        K=np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]), image_size_wh=(640, 480),
+        points_world=pts,
+        intensity=np.full(len(pts), 128, np.uint8),
+        sigma_depth=np.full(len(pts), 0.05, np.float32),
+        source_keyframe=obs[indptr[:-1]],
+        obs_indptr=indptr,
+        obs_frame_ids=obs,
+        keyframe_ids=ids[kf],
+        keyframe_stamps_ns=(1_000_000_000 + ids[kf] * 100_000_000).astype(np.int64),
+        keyframe_world_from_cam=poses,
+        K=np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]),
+        image_size_wh=(640, 480),
     )
 
 
@@ -64,10 +73,17 @@ def rotated(smap: SemiDenseMap, yaw: float, shift) -> SemiDenseMap:
     """The same map in a frame turned by ``yaw`` about z and shifted."""
     T = make_pose(yaw_rotation(yaw), shift)
     return SemiDenseMap(
-        points_world=smap.points_world @ T[:3, :3].T + T[:3, 3], intensity=smap.intensity, sigma_depth=smap.sigma_depth,
-        source_keyframe=smap.source_keyframe, obs_indptr=smap.obs_indptr, obs_frame_ids=smap.obs_frame_ids,
-        keyframe_ids=smap.keyframe_ids, keyframe_stamps_ns=smap.keyframe_stamps_ns,
-        keyframe_world_from_cam=T @ smap.keyframe_world_from_cam, K=smap.K, image_size_wh=smap.image_size_wh,
+        points_world=smap.points_world @ T[:3, :3].T + T[:3, 3],
+        intensity=smap.intensity,
+        sigma_depth=smap.sigma_depth,
+        source_keyframe=smap.source_keyframe,
+        obs_indptr=smap.obs_indptr,
+        obs_frame_ids=smap.obs_frame_ids,
+        keyframe_ids=smap.keyframe_ids,
+        keyframe_stamps_ns=smap.keyframe_stamps_ns,
+        keyframe_world_from_cam=T @ smap.keyframe_world_from_cam,
+        K=smap.K,
+        image_size_wh=smap.image_size_wh,
     )
 
 
@@ -75,7 +91,10 @@ def make_street_workspace(ws: Path, seed: int = 3) -> dict[str, SemiDenseMap]:
     """A workspace whose sessions "a" (database) and "b" (a re-mapping: other points, other lane,
     frames 0.5 m further on) drove the same street; written as aligned sessions."""
     world = street(np.random.default_rng(seed))
-    maps = {"a": street_map(world, np.random.default_rng(10), -2.0, 0.0), "b": street_map(world, np.random.default_rng(11), -1.0, 0.5)}
+    maps = {
+        "a": street_map(world, np.random.default_rng(10), -2.0, 0.0),
+        "b": street_map(world, np.random.default_rng(11), -1.0, 0.5),
+    }
     for name, m in maps.items():
         m.save(ws / "align" / "sessions" / name / "map")
     write_json(ws / "align" / ".done", {"config_hash": "test", "sessions": sorted(maps)})
@@ -116,10 +135,17 @@ def test_vote_counts_equal_hand_computed_votes():
 def test_session_frames_interpolates_non_key_frames():
     T = np.stack([make_pose(np.eye(3), [x, 0.0, 0.0]) for x in (0.0, 4.0)])
     smap = SemiDenseMap(
-        points_world=np.zeros((2, 3)), intensity=np.zeros(2, np.uint8), sigma_depth=np.zeros(2, np.float32),
-        source_keyframe=np.array([10, 12]), obs_indptr=np.array([0, 2, 4]), obs_frame_ids=np.array([10, 11, 12, 13]),
-        keyframe_ids=np.array([10, 12]), keyframe_stamps_ns=np.array([1000, 3000]), keyframe_world_from_cam=T,
-        K=np.eye(3), image_size_wh=(1, 1),
+        points_world=np.zeros((2, 3)),
+        intensity=np.zeros(2, np.uint8),
+        sigma_depth=np.zeros(2, np.float32),
+        source_keyframe=np.array([10, 12]),
+        obs_indptr=np.array([0, 2, 4]),
+        obs_frame_ids=np.array([10, 11, 12, 13]),
+        keyframe_ids=np.array([10, 12]),
+        keyframe_stamps_ns=np.array([1000, 3000]),
+        keyframe_world_from_cam=T,
+        K=np.eye(3),
+        image_size_wh=(1, 1),
     )
     f = session_frames(smap)
     assert f["frame_id"].tolist() == [10, 11, 12, 13]
@@ -136,18 +162,34 @@ def test_session_frames_interpolate_over_time_when_frames_are_unevenly_spaced():
     # in the stamp table.
     T = np.stack([make_pose(np.eye(3), [0.0, 0.0, 0.0]), make_pose(yaw_rotation(np.pi / 2), [4.0, 0.0, 0.0])])
     smap = SemiDenseMap(
-        points_world=np.zeros((2, 3)), intensity=np.zeros(2, np.uint8), sigma_depth=np.zeros(2, np.float32),
-        source_keyframe=np.array([10, 14]), obs_indptr=np.array([0, 3, 6]), obs_frame_ids=np.array([10, 11, 12, 13, 14, 15]),
-        keyframe_ids=np.array([10, 14]), keyframe_stamps_ns=np.array([1000, 2000]), keyframe_world_from_cam=T,
-        K=np.eye(3), image_size_wh=(1, 1),
+        points_world=np.zeros((2, 3)),
+        intensity=np.zeros(2, np.uint8),
+        sigma_depth=np.zeros(2, np.float32),
+        source_keyframe=np.array([10, 14]),
+        obs_indptr=np.array([0, 3, 6]),
+        obs_frame_ids=np.array([10, 11, 12, 13, 14, 15]),
+        keyframe_ids=np.array([10, 14]),
+        keyframe_stamps_ns=np.array([1000, 2000]),
+        keyframe_world_from_cam=T,
+        K=np.eye(3),
+        image_size_wh=(1, 1),
     )
     stamps = (np.array([15, 13, 12, 11, 10, 14]), np.array([2500, 1900, 1200, 1100, 1000, 2000]))  # any order
     f = session_frames(smap, stamps)
     assert f["frame_id"].tolist() == [10, 11, 12, 13, 14, 15]
-    assert f["pose_source"].tolist() == [POSE_KEYFRAME, POSE_INTERPOLATED, POSE_INTERPOLATED, POSE_INTERPOLATED, POSE_KEYFRAME, POSE_NONE]
+    assert f["pose_source"].tolist() == [
+        POSE_KEYFRAME,
+        POSE_INTERPOLATED,
+        POSE_INTERPOLATED,
+        POSE_INTERPOLATED,
+        POSE_KEYFRAME,
+        POSE_NONE,
+    ]
     assert f["stamp_ns"].tolist() == [1000, 1100, 1200, 1900, 2000, -1]
     np.testing.assert_allclose(f["world_from_cam"][1:4, :3, 3], [[0.4, 0, 0], [0.8, 0, 0], [3.6, 0, 0]], atol=1e-12)
-    np.testing.assert_allclose(f["world_from_cam"][3, :3, :3], yaw_rotation(0.9 * np.pi / 2), atol=1e-12)  # slerp, 90 % of the turn
+    np.testing.assert_allclose(
+        f["world_from_cam"][3, :3, :3], yaw_rotation(0.9 * np.pi / 2), atol=1e-12
+    )  # slerp, 90 % of the turn
     assert np.all(np.isnan(f["world_from_cam"][5]))
     # without the stamp table: over frame ids, as a constant camera rate would have it
     g = session_frames(smap)
@@ -205,14 +247,20 @@ def test_build_load_query_finds_the_same_place(street_ws, nbld_index):
 def test_rebuild_with_same_inputs_skips_and_config_change_rebuilds(street_ws, nbld_index):
     ws, _ = street_ws
     before = (nbld_index / "manifest.json").stat().st_mtime_ns
-    assert build_structure_index(ws, "nbld", sessions=["a"], overrides={**FAST, "lambda_v": 3.0}) == nbld_index  # query-time only
+    assert (
+        build_structure_index(ws, "nbld", sessions=["a"], overrides={**FAST, "lambda_v": 3.0}) == nbld_index
+    )  # query-time only
     assert (nbld_index / "manifest.json").stat().st_mtime_ns == before
-    other = build_structure_index(ws, "nbld", out=ws / "idx-pca10", sessions=["a"], overrides={**FAST, "pca_dim": 10}, cache_dir=ws / "cache")
+    other = build_structure_index(
+        ws, "nbld", out=ws / "idx-pca10", sessions=["a"], overrides={**FAST, "pca_dim": 10}, cache_dir=ws / "cache"
+    )
     assert StructureIndex.load(other).manifest["counts"]["dim"] == 10
     assert read_timings(other)["sessions"]["a"]["cached"]  # descriptors reused, only the PCA is new
     assert not list(ws.glob(".*partial*")) and not list((ws / "indexes").glob(".*partial*"))
     (ws / ".idx-pca12.partial-999999999-dead").mkdir()  # an interrupted build, its process gone
-    build_structure_index(ws, "nbld", out=ws / "idx-pca12", sessions=["a"], overrides={**FAST, "pca_dim": 12}, cache_dir=ws / "cache")
+    build_structure_index(
+        ws, "nbld", out=ws / "idx-pca12", sessions=["a"], overrides={**FAST, "pca_dim": 12}, cache_dir=ws / "cache"
+    )
     assert not list(ws.glob(".*partial*"))
 
 
@@ -220,7 +268,9 @@ def test_rebuild_with_same_inputs_skips_and_config_change_rebuilds(street_ws, nb
 def test_votes_invariant_to_rotating_a_session_map_about_z(street_ws, kind, tmp_path):
     ws, maps = street_ws
     # a sparser draw keeps M2DP (~10x slower per patch than NBLD) quick; the query is described twice
-    idx = StructureIndex.load(build_structure_index(ws, kind, out=tmp_path / kind, sessions=["a"], overrides={"keypoint_fraction": 0.01}))
+    idx = StructureIndex.load(
+        build_structure_index(ws, kind, out=tmp_path / kind, sessions=["a"], overrides={"keypoint_fraction": 0.01})
+    )
     query = maps["b"]
     q_ids = query.keyframe_ids[10:-10:3]
     turned = rotated(query, 2.2, [310.0, -75.0, 4.0])
@@ -271,7 +321,9 @@ def test_cnn_hook_needs_a_registered_describer(street_ws, tmp_path):
 
     register_describer("cnn", fake_cnn)
     try:
-        idx = StructureIndex.load(build_structure_index(ws, "cnn", out=tmp_path / "cnn", sessions=["a"], overrides=FAST))
+        idx = StructureIndex.load(
+            build_structure_index(ws, "cnn", out=tmp_path / "cnn", sessions=["a"], overrides=FAST)
+        )
         assert idx.manifest["counts"]["raw_dim"] == 32 and idx.kind == "cnn"
     finally:
         _DESCRIBERS.pop("cnn", None)

@@ -16,8 +16,8 @@ from test_vlad import shifted_and_brighter
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import read_timings
 from mapkit.core.geometry import make_pose, yaw_rotation
+from mapkit.core.runio import read_timings
 from mapkit.evaluation.retrieval import self_retrieval_kitti
 from mapkit.mapping.imagedb import write_images_csv
 from mapkit.retrieval.dsift import DsiftConfig
@@ -32,8 +32,13 @@ from mapkit.retrieval.index_vlad import (
 )
 from mapkit.retrieval.vlad import VladConfig
 
-SMALL_VLAD = VladConfig(dsift=DsiftConfig(region_widths=[16, 24]), num_words=8, pca_dim=12, kmeans_max_descriptors=20_000,
-                        kmeans_iterations=10)
+SMALL_VLAD = VladConfig(
+    dsift=DsiftConfig(region_widths=[16, 24]),
+    num_words=8,
+    pca_dim=12,
+    kmeans_max_descriptors=20_000,
+    kmeans_iterations=10,
+)
 PLACES = 8
 SPACING_M = 40.0  # places further apart than the 25 m of a retrieval hit
 FRAME = LocalFrame(51.7534, -1.2586, 59.0)
@@ -66,8 +71,15 @@ def write_session(ws: Path, name: str) -> None:
         rel.append(f"images/cam/{p:03d}.png")
         cv2.imwrite(str(folder / rel[-1]), place_image(p, change))
     poses = np.stack([place_pose(p, offset) for p in range(PLACES)])
-    write_images_csv(folder / "images.csv", np.arange(1, PLACES + 1), 1_000_000_000 * (np.arange(PLACES) + 1), ["cam"] * PLACES, rel,
-                     poses, FRAME)
+    write_images_csv(
+        folder / "images.csv",
+        np.arange(1, PLACES + 1),
+        1_000_000_000 * (np.arange(PLACES) + 1),
+        ["cam"] * PLACES,
+        rel,
+        poses,
+        FRAME,
+    )
 
 
 def make_workspace(root: Path, names=("train-a", "train-b", "test-c", "extra-d")) -> Path:
@@ -138,8 +150,14 @@ def test_manifest_records_sessions_frame_and_every_file(built):
     assert m["format_version"] == FORMAT_VERSION
     assert m["database_sessions"] == ["train-a", "train-b"] and m["train_sessions"] == ["train-a", "train-b"]
     assert m["sessions"]["train-a"] | {"images_csv_sha256": None} == {
-        "images": PLACES, "training_images": PLACES, "database": True, "training": True, "pose_source": "imagedb",
-        "images_csv": "sessions/train-a/imagedb/images.csv", "images_csv_sha256": None}
+        "images": PLACES,
+        "training_images": PLACES,
+        "database": True,
+        "training": True,
+        "pose_source": "imagedb",
+        "images_csv": "sessions/train-a/imagedb/images.csv",
+        "images_csv_sha256": None,
+    }
     assert "test-c" not in m["sessions"]
     assert m["frame"]["utm_crs_epsg"] == FRAME.utm_epsg
     assert m["index"] == {"kind": "flat", "faiss": "IndexFlatL2", "dim": 12, "metric": "squared L2", "ntotal": 16}
@@ -152,9 +170,18 @@ def test_manifest_records_sessions_frame_and_every_file(built):
     assert metrics["images_encoded"] == 16 and metrics["database_images_reused_from_training"] == 16
     assert read_timings(out)["images_encoded_per_s"] > 0 and "images_encoded_per_s" not in metrics
     # what the PCA-whitening learned on: 16 images of the two database sessions, 12 of 15 possible dimensions
-    pca = {"dim": 12, "training_vectors": 16, "whitening": "power", "power": 0.5, "shrinkage": 0.0, "dim_requested": 12,
-           "rank_limited": False, "training_sessions": {"train-a": PLACES, "train-b": PLACES}, "training_vectors_in_database": 16,
-           "training_vectors_from_training_frames": 0}
+    pca = {
+        "dim": 12,
+        "training_vectors": 16,
+        "whitening": "power",
+        "power": 0.5,
+        "shrinkage": 0.0,
+        "dim_requested": 12,
+        "rank_limited": False,
+        "training_sessions": {"train-a": PLACES, "train-b": PLACES},
+        "training_vectors_in_database": 16,
+        "training_vectors_from_training_frames": 0,
+    }
     assert m["vlad"]["pca"] == pca and metrics["pca"] == pca
 
 
@@ -186,10 +213,18 @@ def test_database_learned_on_is_not_equidistant_and_finds_its_other_visit(tmp_pa
     cfg = small_config(train_sessions=["train-a"], vlad=SMALL_VLAD.model_copy(update={"pca_dim": 64}))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # 64 dimensions capped at 7
-        full = VladIndex.load(build_vlad_index(ws, tmp_path / "full", cfg.model_copy(
-            update={"vlad": cfg.vlad.model_copy(update={"whitening": "full"})}), progress=False))
+        full = VladIndex.load(
+            build_vlad_index(
+                ws,
+                tmp_path / "full",
+                cfg.model_copy(update={"vlad": cfg.vlad.model_copy(update={"whitening": "full"})}),
+                progress=False,
+            )
+        )
         default = VladIndex.load(build_vlad_index(ws, tmp_path / "power", cfg, progress=False))
-    assert full.manifest["vlad"]["pca"]["whitening"] == "full" and default.manifest["vlad"]["pca"]["whitening"] == "power"
+    assert (
+        full.manifest["vlad"]["pca"]["whitening"] == "full" and default.manifest["vlad"]["pca"]["whitening"] == "power"
+    )
     learned_on = slice(0, PLACES)  # train-a: the PCA's 8 training images, rows 0..7 of the database
     sq_full = pairwise_sq(full.vectors()[learned_on])
     np.testing.assert_allclose(sq_full[np.isfinite(sq_full)], 2 * PLACES / (PLACES - 1), rtol=1e-4)
@@ -272,7 +307,9 @@ def test_rerun_skips_and_interrupted_build_is_not_finished(tmp_path, built):
     t_manifest = (out / "manifest.json").stat().st_mtime_ns
     t_index = (out / "index.faiss").stat().st_mtime_ns
     assert build_vlad_index(ws, out, cfg, progress=False) == out
-    assert (out / "manifest.json").stat().st_mtime_ns == t_manifest and (out / "index.faiss").stat().st_mtime_ns == t_index
+    assert (out / "manifest.json").stat().st_mtime_ns == t_manifest and (
+        out / "index.faiss"
+    ).stat().st_mtime_ns == t_index
     # a bundle that lost a file is not finished: the build runs again
     (out / "index.faiss").unlink()
     build_vlad_index(ws, out, cfg, progress=False)
@@ -282,7 +319,9 @@ def test_rerun_skips_and_interrupted_build_is_not_finished(tmp_path, built):
     build_vlad_index(ws, out, cfg, overrides={"top_k": 5, "workers": 2}, progress=False)
     assert VladIndex.load(out).cfg.top_k == 5 and (out / "index.faiss").stat().st_mtime_ns == t_index
     build_vlad_index(ws, out, cfg, overrides={"vlad": {"num_words": 6}}, progress=False)
-    assert VladIndex.load(out).encoder.vocabulary.shape == (6, 128) and (out / "index.faiss").stat().st_mtime_ns != t_index
+    assert (
+        VladIndex.load(out).encoder.vocabulary.shape == (6, 128) and (out / "index.faiss").stat().st_mtime_ns != t_index
+    )
     # a folder that is not a bundle is never replaced
     other = tmp_path / "mine"
     other.mkdir()
@@ -332,7 +371,9 @@ def test_encodings_cache_encodes_each_file_once_and_notices_a_changed_file(tmp_p
     plain = idx.encode_files(paths[:3])
     encoded = []
     real = iv.encode_images
-    monkeypatch.setattr(iv, "encode_images", lambda enc, ps, *a, **k: (encoded.append(len(ps)), real(enc, ps, *a, **k))[1])
+    monkeypatch.setattr(
+        iv, "encode_images", lambda enc, ps, *a, **k: (encoded.append(len(ps)), real(enc, ps, *a, **k))[1]
+    )
     first = idx.encode_files(paths[:3], cache_dir=tmp_path / "c")
     np.testing.assert_array_equal(first, plain)
     both = idx.encode_files(paths, cache_dir=tmp_path / "c")  # only the fourth is new
@@ -347,8 +388,13 @@ def test_encodings_cache_encodes_each_file_once_and_notices_a_changed_file(tmp_p
 def test_real_kitti_clip_neighbours_are_adjacent_frames(kitti_clip):
     # the default power-law whitening, learned on the same 51 frames it ranks (measured here: median
     # gap 3 frames, 92% within 10; full whitening, which flattens their distances: 17 and 29%)
-    cfg = VladConfig(dsift=DsiftConfig(half_resolution=True), num_words=16, pca_dim=16, kmeans_max_descriptors=30_000,
-                     kmeans_iterations=10)
+    cfg = VladConfig(
+        dsift=DsiftConfig(half_resolution=True),
+        num_words=16,
+        pca_dim=16,
+        kmeans_max_descriptors=30_000,
+        kmeans_iterations=10,
+    )
     assert cfg.whiten and cfg.whitening == "power"
     res = self_retrieval_kitti(kitti_clip, config=cfg, exclude=2)
     gaps = np.asarray(res["gaps"])
@@ -369,8 +415,15 @@ def add_training_frames(ws: Path, session: str, source: str) -> int:
     for p, r in enumerate(rel):
         cv2.imwrite(str(folder / r), place_image(p, change))
     poses = np.stack([place_pose(p, SESSIONS[source][0]) for p in range(PLACES)])
-    write_images_csv(folder / "training.csv", np.arange(1, PLACES + 1), 500_000_000 + 1_000_000_000 * np.arange(PLACES),
-                     ["cam"] * PLACES, rel, poses, FRAME)
+    write_images_csv(
+        folder / "training.csv",
+        np.arange(1, PLACES + 1),
+        500_000_000 + 1_000_000_000 * np.arange(PLACES),
+        ["cam"] * PLACES,
+        rel,
+        poses,
+        FRAME,
+    )
     return PLACES
 
 
@@ -387,15 +440,28 @@ def test_training_frames_give_the_pca_more_than_the_database(tmp_path, built):
     cfg = small_config(database_sessions=["train-a"], train_sessions=["train-a"], vlad=vlad, training_frames=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # 12 dimensions capped at 7 without the frames
-        without = VladIndex.load(build_vlad_index(ws, tmp_path / "db-only", cfg.model_copy(update={"training_frames": False}),
-                                                  progress=False))
+        without = VladIndex.load(
+            build_vlad_index(
+                ws, tmp_path / "db-only", cfg.model_copy(update={"training_frames": False}), progress=False
+            )
+        )
         with_frames = VladIndex.load(build_vlad_index(ws, tmp_path / "frames", cfg, progress=False))
     pca0, pca1 = without.manifest["vlad"]["pca"], with_frames.manifest["vlad"]["pca"]
-    assert (pca0["dim"], pca0["training_vectors"], pca0["training_vectors_from_training_frames"]) == (PLACES - 1, PLACES, 0)
-    assert (pca1["dim"], pca1["training_vectors"], pca1["training_vectors_from_training_frames"]) == (12, 2 * PLACES, PLACES)
+    assert (pca0["dim"], pca0["training_vectors"], pca0["training_vectors_from_training_frames"]) == (
+        PLACES - 1,
+        PLACES,
+        0,
+    )
+    assert (pca1["dim"], pca1["training_vectors"], pca1["training_vectors_from_training_frames"]) == (
+        12,
+        2 * PLACES,
+        PLACES,
+    )
     assert pca0["rank_limited"] is True and pca1["rank_limited"] is False
     assert pca1["training_vectors_in_database"] == PLACES and len(with_frames) == PLACES  # the frames are not indexed
-    np.testing.assert_allclose(pairwise_sq(without.vectors())[~np.eye(PLACES, dtype=bool)], 2 * PLACES / (PLACES - 1), rtol=1e-4)
+    np.testing.assert_allclose(
+        pairwise_sq(without.vectors())[~np.eye(PLACES, dtype=bool)], 2 * PLACES / (PLACES - 1), rtol=1e-4
+    )
     sq = pairwise_sq(with_frames.vectors())[~np.eye(PLACES, dtype=bool)]
     assert sq.std() / sq.mean() > 0.05
     _, change = SESSIONS["test-c"]
@@ -417,17 +483,30 @@ def test_another_whitening_from_a_bundle_equals_encoding_again(tmp_path, built, 
     monkeypatch.setattr(vb, "_learn_encoder", no_encoding)
     monkeypatch.setattr(vb, "_encode_database", no_encoding)
     derived = VladIndex.load(build_vlad_index(ws, tmp_path / "derived", full_cfg, progress=False, reuse=out))
-    assert derived.manifest["vlad"]["pca"]["whitening"] == "full" and derived.manifest["build_hash"] == encoded.manifest["build_hash"]
+    assert (
+        derived.manifest["vlad"]["pca"]["whitening"] == "full"
+        and derived.manifest["build_hash"] == encoded.manifest["build_hash"]
+    )
     np.testing.assert_allclose(derived.vectors(), encoded.vectors(), atol=2e-5)
     q = place_image(4, SESSIONS["test-c"][1])
     np.testing.assert_allclose(derived.encode(q), encoded.encode(q), atol=2e-5)
     np.testing.assert_array_equal(derived.query(derived.encode(q)).ids, encoded.query(encoded.encode(q)).ids)
     assert json.loads((tmp_path / "derived" / "metrics.json").read_text())["rewhitened_from"] == str(out)
     # plain PCA (no whitening) from the full one, back again
-    plain = build_vlad_index(ws, tmp_path / "plain", small_config(vlad=SMALL_VLAD.model_copy(update={"whiten": False})),
-                             progress=False, reuse=tmp_path / "derived")
+    plain = build_vlad_index(
+        ws,
+        tmp_path / "plain",
+        small_config(vlad=SMALL_VLAD.model_copy(update={"whiten": False})),
+        progress=False,
+        reuse=tmp_path / "derived",
+    )
     assert VladIndex.load(plain).manifest["vlad"]["pca"]["whitening"] == "none"
     # a bundle of other images or settings is refused, naming it
     with pytest.raises(InputError, match="only the whitening"):
-        build_vlad_index(ws, tmp_path / "other", small_config(vlad=SMALL_VLAD.model_copy(update={"whitening": "full", "num_words": 4})),
-                         progress=False, reuse=out)
+        build_vlad_index(
+            ws,
+            tmp_path / "other",
+            small_config(vlad=SMALL_VLAD.model_copy(update={"whitening": "full", "num_words": 4})),
+            progress=False,
+            reuse=out,
+        )

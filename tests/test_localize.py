@@ -40,8 +40,12 @@ def test_filter_follows_retrieval_on_a_bundle(tmp_path):
     # the filter runs on base poses; what comes back is the camera's pose (optical z along the road)
     assert np.median(rotation_angle_deg(R, truth[:, :3, :3])) < 5.0
     # another mount (pitched 10 deg, 1.5 m ahead, 1.2 m up) changes the tracked base, not the camera poses returned
-    pitched = make_pose(Rotation.from_euler("y", 10.0, degrees=True).as_matrix() @ FORWARD_CAMERA_ROTATION, [1.5, 0.0, 1.2])
-    r_p = run_localizer(index, list(imgs.image_paths), cfg.model_copy(update={"base_from_camera": tuple(map(tuple, pitched))}), odo)
+    pitched = make_pose(
+        Rotation.from_euler("y", 10.0, degrees=True).as_matrix() @ FORWARD_CAMERA_ROTATION, [1.5, 0.0, 1.2]
+    )
+    r_p = run_localizer(
+        index, list(imgs.image_paths), cfg.model_copy(update={"base_from_camera": tuple(map(tuple, pitched))}), odo
+    )
     np.testing.assert_allclose(r_p.retrieval_position, r.retrieval_position)
     assert np.median(np.linalg.norm(r_p.filter_position - truth[:, :3, 3], axis=1)) < 5.0
     assert np.median(rotation_angle_deg(r_p.filter_rotation, truth[:, :3, :3])) < 5.0
@@ -74,24 +78,35 @@ PRESETS = Path(__file__).resolve().parents[1] / "configs" / "localize"
 def test_presets_load_and_paper_is_the_default():
     assert load_config(LocalizeConfig, PRESETS / "paper.yaml") == LocalizeConfig()
     odo = load_config(LocalizeConfig, PRESETS / "odometry.yaml")
-    assert odo.odometry and not odo.mcl.multi_hypothesis.enabled and odo.mcl == LocalizeConfig().mcl.model_copy(
-        update={"odometry": odo.mcl.odometry})
+    assert (
+        odo.odometry
+        and not odo.mcl.multi_hypothesis.enabled
+        and odo.mcl == LocalizeConfig().mcl.model_copy(update={"odometry": odo.mcl.odometry})
+    )
     mh = load_config(LocalizeConfig, PRESETS / "odometry-multihypothesis.yaml")
     assert mh.odometry and mh.mcl.multi_hypothesis.enabled and mh.mcl.estimate == "mode"
     assert mh.mcl.multi_hypothesis.reinject_below > 0 and mh.top_k == 20
     for name in ("paper", "odometry", "odometry-multihypothesis"):  # every value names its source
-        lines = [ln for ln in (PRESETS / f"{name}.yaml").read_text().splitlines() if ":" in ln and not ln.lstrip().startswith("#")]
+        lines = [
+            ln
+            for ln in (PRESETS / f"{name}.yaml").read_text().splitlines()
+            if ":" in ln and not ln.lstrip().startswith("#")
+        ]
         leaves = [ln for ln in lines if not ln.rstrip().endswith(":") and "#" not in ln.split(":", 1)[0]]
         assert all("#" in ln for ln in leaves), [ln for ln in leaves if "#" not in ln]
         # no preset pins the camera mount: the bundle's recorded mount, else a forward camera
         cfg = load_config(LocalizeConfig, PRESETS / f"{name}.yaml")
         assert cfg.base_from_camera is None
-        np.testing.assert_array_equal(cfg.camera_mount().base_from_camera, make_pose(FORWARD_CAMERA_ROTATION, np.zeros(3)))
+        np.testing.assert_array_equal(
+            cfg.camera_mount().base_from_camera, make_pose(FORWARD_CAMERA_ROTATION, np.zeros(3))
+        )
 
 
 def test_camera_mount_must_be_rigid():
     with pytest.raises(ConfigError, match="base_from_camera"):
-        load_config(LocalizeConfig, overrides={"base_from_camera": [[0, 0, 2, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]]})
+        load_config(
+            LocalizeConfig, overrides={"base_from_camera": [[0, 0, 2, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]]}
+        )
     with pytest.raises(ConfigError):
         load_config(LocalizeConfig, overrides={"base_from_camera": [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]})  # 3x3
 
@@ -181,9 +196,15 @@ def test_hit_recall_known_answer(tmp_path):
     # MCVL's recall@1/5/20: the right place fifth (x = 30 m) counts from @5 on
     ids20 = np.array([[9, 8, 7, 6, 3] + [9] * 15, [0] * 20])
     r = hit_recall(index, ids20, np.array([[30.0, 0, 0], [0.0, 0, 0]]), radius_m=5.0)
-    assert (r["recall_at_1"], r["recall_at_5"], r["recall_at_20"]) == (pytest.approx(0.5), pytest.approx(1.0), pytest.approx(1.0))
+    assert (r["recall_at_1"], r["recall_at_5"], r["recall_at_20"]) == (
+        pytest.approx(0.5),
+        pytest.approx(1.0),
+        pytest.approx(1.0),
+    )
     ids20[0, 4] = 9
-    assert hit_recall(index, ids20, np.array([[30.0, 0, 0], [0.0, 0, 0]]), radius_m=5.0)["recall_at_5"] == pytest.approx(0.5)
+    assert hit_recall(index, ids20, np.array([[30.0, 0, 0], [0.0, 0, 0]]), radius_m=5.0)[
+        "recall_at_5"
+    ] == pytest.approx(0.5)
 
 
 def test_localize_log_writes_tum_poses_a_reader_takes_back(tmp_path):

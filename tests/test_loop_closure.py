@@ -17,6 +17,7 @@ import json
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_factor_graph import LOOSE, gps_fixes, true_drive
 
 from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose, rotation_angle_rad, yaw_rotation
 from mapkit.core.runio import read_timings
@@ -31,7 +32,6 @@ from mapkit.mapping.loop_closure import (
     scans_needed,
     verify_loop,
 )
-from test_factor_graph import LOOSE, gps_fixes, true_drive
 
 pytest.importorskip("gtsam")
 pytest.importorskip("open3d")
@@ -47,8 +47,10 @@ def drifting_odometry(truth: np.ndarray, yaw_rad_per_m: float, climb_m_per_m: fl
     (a gyro-like yaw-rate bias and a height ramp), chained from the identity."""
     steps = invert_pose(truth[:-1]) @ truth[1:]
     d = np.linalg.norm(steps[:, :3, 3], axis=1)
-    drift = make_pose(Rotation.from_rotvec(np.outer(d * yaw_rad_per_m, [0.0, 0.0, 1.0])).as_matrix(),
-                      np.outer(d * climb_m_per_m, [0.0, 0.0, 1.0]))
+    drift = make_pose(
+        Rotation.from_rotvec(np.outer(d * yaw_rad_per_m, [0.0, 0.0, 1.0])).as_matrix(),
+        np.outer(d * climb_m_per_m, [0.0, 0.0, 1.0]),
+    )
     out = [np.eye(4)]
     for step in steps @ drift:
         out.append(out[-1] @ step)
@@ -75,7 +77,9 @@ def end_to_start_error_m(P: np.ndarray, truth: np.ndarray, a: int, b: int) -> fl
     return float(np.linalg.norm((invert_pose(relative(truth, a, b)) @ relative(P, a, b))[:3, 3]))
 
 
-EDGE_COVARIANCE = np.diag(np.repeat([FactorGraphConfig().loop_floor_rotation_rad, FactorGraphConfig().loop_floor_translation_m], 3) ** 2)
+EDGE_COVARIANCE = np.diag(
+    np.repeat([FactorGraphConfig().loop_floor_rotation_rad, FactorGraphConfig().loop_floor_translation_m], 3) ** 2
+)
 
 
 def test_a_true_loop_edge_closes_the_drift(loop_drive):
@@ -91,12 +95,18 @@ def test_a_true_loop_edge_closes_the_drift(loop_drive):
     fused = fuse_session(stamps, odom, gps, None, LOOSE, loops=LoopClosures([edge], ["fitness", "fitness", "RMSE"]))
     assert end_to_start_error_m(fused.enu_from_base, truth, a, b) < 0.02
     s = fused.stats
-    assert s["loop_candidates"] == 4 and s["loop_accepted"] == 1 and s["loop_rejected_by_reason"] == {"fitness": 2, "RMSE": 1}
+    assert (
+        s["loop_candidates"] == 4
+        and s["loop_accepted"] == 1
+        and s["loop_rejected_by_reason"] == {"fitness": 2, "RMSE": 1}
+    )
     (r,) = s["loop_residuals"]
     assert r["stamps_ns"] == [int(stamps[a]), int(stamps[b])] and r["translation_m"] < 0.02 and r["sigmas"] < 1.0
     assert s["loop_downweighted"] == 0
     # the height ramp is gone along the whole drive, not only at the two poses
-    assert np.max(np.abs(fused.enu_from_base[:, 2, 3] - truth[:, 2, 3])) < 0.5 * np.max(np.abs(plain.enu_from_base[:, 2, 3] - truth[:, 2, 3]))
+    assert np.max(np.abs(fused.enu_from_base[:, 2, 3] - truth[:, 2, 3])) < 0.5 * np.max(
+        np.abs(plain.enu_from_base[:, 2, 3] - truth[:, 2, 3])
+    )
 
 
 def test_a_loop_edge_metres_off_gives_way(loop_drive):
@@ -108,8 +118,14 @@ def test_a_loop_edge_metres_off_gives_way(loop_drive):
     stamps, truth, odom, gps, a, b = loop_drive
     plain = fuse_session(stamps, odom, gps, None, LOOSE)
     wrong = relative(truth, a, b) @ make_pose(np.eye(3), [0.0, 12.0, 0.0])
-    fused = fuse_session(stamps, odom, gps, None, LOOSE,
-                         loops=LoopClosures([LoopEdge(int(stamps[a]), int(stamps[b]), wrong, EDGE_COVARIANCE)]))
+    fused = fuse_session(
+        stamps,
+        odom,
+        gps,
+        None,
+        LOOSE,
+        loops=LoopClosures([LoopEdge(int(stamps[a]), int(stamps[b]), wrong, EDGE_COVARIANCE)]),
+    )
     moved = np.linalg.norm(fused.enu_from_base[:, :3, 3] - plain.enu_from_base[:, :3, 3], axis=1)
     assert np.max(moved) < 1.2, np.max(moved)
     (r,) = fused.stats["loop_residuals"]
@@ -119,14 +135,26 @@ def test_a_loop_edge_metres_off_gives_way(loop_drive):
 def test_loops_off_and_bad_stamps(loop_drive):
     stamps, truth, odom, gps, a, b = loop_drive
     edge = LoopEdge(int(stamps[a]), int(stamps[b]), relative(truth, a, b), EDGE_COVARIANCE)
-    off = fuse_session(stamps[:60], odom[:60], None, None, LOOSE.model_copy(update={"loop_closures": False}),
-                       loops=LoopClosures([LoopEdge(int(stamps[5]), int(stamps[55]), edge.a_from_b, EDGE_COVARIANCE)]))
+    off = fuse_session(
+        stamps[:60],
+        odom[:60],
+        None,
+        None,
+        LOOSE.model_copy(update={"loop_closures": False}),
+        loops=LoopClosures([LoopEdge(int(stamps[5]), int(stamps[55]), edge.a_from_b, EDGE_COVARIANCE)]),
+    )
     assert off.stats["loops"] == "not used: loop_closures is off" and off.stats["loop_residuals"] == []
     from mapkit.core.errors import InputError
 
     with pytest.raises(InputError, match="loops.*not a pose"):
-        fuse_session(stamps[:60], odom[:60], None, None, LOOSE,
-                     loops=LoopClosures([LoopEdge(int(stamps[5]) + 1, int(stamps[55]), edge.a_from_b, EDGE_COVARIANCE)]))
+        fuse_session(
+            stamps[:60],
+            odom[:60],
+            None,
+            None,
+            LOOSE,
+            loops=LoopClosures([LoopEdge(int(stamps[5]) + 1, int(stamps[55]), edge.a_from_b, EDGE_COVARIANCE)]),
+        )
 
 
 def test_proposal_finds_the_revisit_once_per_stretch(loop_drive):
@@ -161,16 +189,34 @@ def street(tmp_path_factory):
     from mapkit.synth import gt_poses, load_world, synthesize
     from mapkit.synth.sensors import FRAME_LIDAR, extrinsics
 
-    out = synthesize(preset="tiny", out=tmp_path_factory.mktemp("loop-street") / "town", progress=False, overrides={
-        "sessions": [{"name": "street", "role": "train", "time": "12:00", "weather": "sunny", "length_m": 60.0,
-                      "speed_mps": 8.0, "camera_rate_hz": 0.5}],
-        "camera": {"width": 64, "height": 48}, "motion": {"start_from_rest": False}})
+    out = synthesize(
+        preset="tiny",
+        out=tmp_path_factory.mktemp("loop-street") / "town",
+        progress=False,
+        overrides={
+            "sessions": [
+                {
+                    "name": "street",
+                    "role": "train",
+                    "time": "12:00",
+                    "weather": "sunny",
+                    "length_m": 60.0,
+                    "speed_mps": 8.0,
+                    "camera_rate_hz": 0.5,
+                }
+            ],
+            "camera": {"width": 64, "height": 48},
+            "motion": {"start_from_rest": False},
+        },
+    )
     world = load_world(out)
     stamps, truth = gt_poses(out, "street")
     return world.renderer("street"), stamps, truth, extrinsics(world.config)[FRAME_LIDAR]
 
 
-def render_pass(street, first_ns: int, n: int, move: np.ndarray, stamp0_ns: int) -> tuple[list[LidarScan], np.ndarray, np.ndarray]:
+def render_pass(
+    street, first_ns: int, n: int, move: np.ndarray, stamp0_ns: int
+) -> tuple[list[LidarScan], np.ndarray, np.ndarray]:
     """``n`` sweeps at 10 Hz along the truth from ``first_ns``, the vehicle moved by ``move`` (world frame), stamped from
     ``stamp0_ns``: (scans as a log holds them, the pose stamps kiss-icp would give them (each sweep's last point), the
     unmoved true poses there, which is where an estimate that does not know of ``move`` puts them)."""
@@ -182,7 +228,11 @@ def render_pass(street, first_ns: int, n: int, move: np.ndarray, stamp0_ns: int)
     for k, t in enumerate(starts):
         at, _ = interpolate_poses(gt_stamps, truth, t + col_ns)
         sweep = renderer.scan_lidar(move @ at @ base_from_lidar, np.random.default_rng(k))
-        scans.append(LidarScan(int(stamp0_ns + k * sweep_ns), "lidar", sweep.points_xyz, sweep.intensity, sweep.time_s, sweep.ring))
+        scans.append(
+            LidarScan(
+                int(stamp0_ns + k * sweep_ns), "lidar", sweep.points_xyz, sweep.intensity, sweep.time_s, sweep.ring
+            )
+        )
         poses.append(interpolate_poses(gt_stamps, truth, np.array([t + col_ns[-1]]))[0][0])
     return scans, stamp0_ns + np.arange(n, dtype=np.int64) * sweep_ns + col_ns[-1], np.stack(poses)
 
@@ -203,7 +253,9 @@ def two_passes(street, move: np.ndarray, other_place_s: float = 0.0):
     truth_b = move @ true_b[3]
     cfg = FactorGraphConfig()
     cand = LoopCandidate(a, b, 0.0, 400.0)
-    scans = read_scans(scans_a + scans_b, stamps, estimate, scans_needed([cand], len(stamps), cfg), lambda frame: base_from_lidar, cfg)
+    scans = read_scans(
+        scans_a + scans_b, stamps, estimate, scans_needed([cand], len(stamps), cfg), lambda frame: base_from_lidar, cfg
+    )
     return scans, estimate, invert_pose(est_a[3]) @ truth_b, cand
 
 
@@ -225,7 +277,9 @@ def test_icp_recovers_a_known_offset_between_two_passes(street):
     floor = np.sqrt(np.diag(EDGE_COVARIANCE))
     assert np.all(sig >= floor) and np.all(sig < 1.5 * floor)
     closures = loop_closures([check], np.arange(14) * 1000)
-    assert len(closures.edges) == 1 and closures.rejected == [] and np.allclose(closures.edges[0].a_from_b, check.a_from_b)
+    assert (
+        len(closures.edges) == 1 and closures.rejected == [] and np.allclose(closures.edges[0].a_from_b, check.a_from_b)
+    )
 
 
 def test_icp_rejects_another_place_with_its_reason(street):
@@ -233,7 +287,12 @@ def test_icp_rejects_another_place_with_its_reason(street):
     the verdict names the gate with its figures; the graph's stats count it by that reason."""
     scans, estimate, _, cand = two_passes(street, np.eye(4), other_place_s=4.0)
     check = verify_loop(cand, scans, estimate, FactorGraphConfig())
-    assert not check.accepted and check.reason in (LoopReason.FITNESS, LoopReason.RMSE, LoopReason.DEGENERATE, LoopReason.CORRECTION), check.text
+    assert not check.accepted and check.reason in (
+        LoopReason.FITNESS,
+        LoopReason.RMSE,
+        LoopReason.DEGENERATE,
+        LoopReason.CORRECTION,
+    ), check.text
     assert check.detail and any(ch.isdigit() for ch in check.detail)
     assert loop_closures([check], np.arange(14)).rejected == [check.reason.value]
 
@@ -248,7 +307,9 @@ def test_a_missing_scan_is_a_warning_and_a_reason(street):
     cfg = FactorGraphConfig()
     cand = LoopCandidate(1, 5, 0.0, 400.0)
     with pytest.warns(InputWarning, match=f"no LiDAR scan found for 1 of the 7 poses.*stamp {int(stamps[5])}"):
-        got = read_scans(scans[:5] + scans[6:], stamps, est, scans_needed([cand], len(stamps), cfg), lambda f: base_from_lidar, cfg)
+        got = read_scans(
+            scans[:5] + scans[6:], stamps, est, scans_needed([cand], len(stamps), cfg), lambda f: base_from_lidar, cfg
+        )
     check = verify_loop(cand, got, est, cfg)
     assert check.reason is LoopReason.SCANS_MISSING and "keyframe b" in check.text
 
@@ -256,15 +317,20 @@ def test_a_missing_scan_is_a_warning_and_a_reason(street):
 # --- end to end --------------------------------------------------------------------------------------
 
 
-def loop_route(path, size_m: tuple[float, float, float] = (90.0, 70.0, 12.0), lap_extra_m: float = 40.0, speed: float = 9.0) -> None:
+def loop_route(
+    path, size_m: tuple[float, float, float] = (90.0, 70.0, 12.0), lap_extra_m: float = 40.0, speed: float = 9.0
+) -> None:
     """A TUM file of a rounded rectangle (width, height, corner radius) driven from rest a lap and ``lap_extra_m`` on,
     at ``speed`` (accelerating at 1.5 m/s^2, braking at 2 m/s^2 to a stop)."""
     from mapkit.io.trajectory import write_tum
 
     w, h, r = size_m
     corners = [(w / 2 - r, h / 2 - r), (-w / 2 + r, h / 2 - r), (-w / 2 + r, -h / 2 + r), (w / 2 - r, -h / 2 + r)]
-    arcs = [np.stack([cx + r * np.cos(th), cy + r * np.sin(th)], 1)
-            for k, (cx, cy) in enumerate(corners) for th in [np.linspace(k * np.pi / 2, (k + 1) * np.pi / 2, 60)]]
+    arcs = [
+        np.stack([cx + r * np.cos(th), cy + r * np.sin(th)], 1)
+        for k, (cx, cy) in enumerate(corners)
+        for th in [np.linspace(k * np.pi / 2, (k + 1) * np.pi / 2, 60)]
+    ]
     ring = np.vstack(arcs + [arcs[0][:1]])
     s_ring = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(ring, axis=0), axis=1))])
     total = s_ring[-1] + lap_extra_m
@@ -272,12 +338,25 @@ def loop_route(path, size_m: tuple[float, float, float] = (90.0, 70.0, 12.0), la
     t_cruise = (total - speed**2 / (2 * acc) - speed**2 / (2 * dec)) / speed
     t_end = speed / acc + t_cruise + speed / dec
     t = np.arange(0.0, t_end, 0.01)
-    s = np.where(t < speed / acc, 0.5 * acc * t**2,
-                 np.where(t < speed / acc + t_cruise, speed**2 / (2 * acc) + speed * (t - speed / acc),
-                          total - 0.5 * dec * np.maximum(t_end - t, 0.0) ** 2)) % s_ring[-1]
+    s = (
+        np.where(
+            t < speed / acc,
+            0.5 * acc * t**2,
+            np.where(
+                t < speed / acc + t_cruise,
+                speed**2 / (2 * acc) + speed * (t - speed / acc),
+                total - 0.5 * dec * np.maximum(t_end - t, 0.0) ** 2,
+            ),
+        )
+        % s_ring[-1]
+    )
     x, y = np.interp(s, s_ring, ring[:, 0]), np.interp(s, s_ring, ring[:, 1])
     yaw = np.unwrap(np.arctan2(np.gradient(y), np.gradient(x)))
-    write_tum(path, np.round((1_400_000_000 + t) * 1e9).astype(np.int64), make_pose(yaw_rotation(yaw), np.stack([x, y, 0 * x], 1)))
+    write_tum(
+        path,
+        np.round((1_400_000_000 + t) * 1e9).astype(np.int64),
+        make_pose(yaw_rotation(yaw), np.stack([x, y, 0 * x], 1)),
+    )
 
 
 def revisit_error_m(ws, town, fused: bool = True) -> float:
@@ -315,8 +394,10 @@ def loop_builds(tmp_path_factory):
     loop_route(root / "loop.tum")
     cfg = root / "synth.yaml"
     # LiDAR at 5 Hz: half the sweeps for kiss-icp (the test's time), which keeps its track from rest here
-    cfg.write_text("seed: 3\nsessions:\n  - {name: loop, role: train, time: '12:00', weather: sunny, length_m: 360.0, "
-                   "camera_rate_hz: 0.2}\ncamera: {width: 64, height: 48}\nlidar: {rate_hz: 5.0}\n")
+    cfg.write_text(
+        "seed: 3\nsessions:\n  - {name: loop, role: train, time: '12:00', weather: sunny, length_m: 360.0, "
+        "camera_rate_hz: 0.2}\ncamera: {width: 64, height: 48}\nlidar: {rate_hz: 5.0}\n"
+    )
     town = synthesize(preset="tiny", out=root / "town", config=cfg, trajectory=root / "loop.tum", progress=False)
     log = session_log(town, "loop")
     off, on = root / "off.yaml", root / "on.yaml"

@@ -47,7 +47,12 @@ def _write(path: Path, items: list[tuple[str, object, dict]]) -> Path:
 
 @pytest.mark.parametrize(
     "encoding, shape, dtype",
-    [("mono8", (48, 64), np.uint8), ("rgb8", (48, 64, 3), np.uint8), ("bgr8", (10, 7, 3), np.uint8), ("mono16", (12, 9), np.uint16)],
+    [
+        ("mono8", (48, 64), np.uint8),
+        ("rgb8", (48, 64, 3), np.uint8),
+        ("bgr8", (10, 7, 3), np.uint8),
+        ("mono16", (12, 9), np.uint16),
+    ],
 )
 def test_raw_image_round_trip(tmp_path, rng, encoding, shape, dtype):
     img = rng.integers(0, np.iinfo(dtype).max, size=shape, dtype=dtype)
@@ -128,8 +133,14 @@ def _foreign_cloud(path: Path, data: bytes, fields: list[dict], point_step: int,
         schema = w.register_msgdef("sensor_msgs/msg/PointCloud2", ros2.full_msgdef("sensor_msgs/PointCloud2"))
         msg = {
             "header": {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "os_lidar"},
-            "height": 1, "width": n, "fields": fields, "is_bigendian": big_endian,
-            "point_step": point_step, "row_step": point_step * n, "data": data, "is_dense": False,
+            "height": 1,
+            "width": n,
+            "fields": fields,
+            "is_bigendian": big_endian,
+            "point_step": point_step,
+            "row_step": point_step * n,
+            "data": data,
+            "is_dense": False,
         }
         w.write_message("/os/points", schema, msg, log_time=stamp)
         w.finish()
@@ -137,8 +148,14 @@ def _foreign_cloud(path: Path, data: bytes, fields: list[dict], point_step: int,
 
 def test_point_cloud_with_padding_and_ouster_nanosecond_times(tmp_path):
     n = 100
-    dt = np.dtype({"names": ["x", "y", "z", "intensity", "t"], "formats": ["<f4", "<f4", "<f4", "<f4", "<u4"],
-                   "offsets": [0, 4, 8, 16, 20], "itemsize": 32})
+    dt = np.dtype(
+        {
+            "names": ["x", "y", "z", "intensity", "t"],
+            "formats": ["<f4", "<f4", "<f4", "<f4", "<u4"],
+            "offsets": [0, 4, 8, 16, 20],
+            "itemsize": 32,
+        }
+    )
     arr = np.zeros(n, dt)
     arr["x"] = np.arange(n)
     arr["y"] = -np.arange(n)
@@ -159,7 +176,9 @@ def test_point_cloud_big_endian_and_absolute_times(tmp_path):
     arr = np.zeros(n, dt)
     arr["x"] = np.arange(n)
     arr["timestamp"] = stamp * 1e-9 + np.arange(n) * 0.01  # Hesai style: absolute seconds
-    fields = [{"name": k, "offset": dt.fields[k][1], "datatype": 8 if k == "timestamp" else 7, "count": 1} for k in dt.names]
+    fields = [
+        {"name": k, "offset": dt.fields[k][1], "datatype": 8 if k == "timestamp" else 7, "count": 1} for k in dt.names
+    ]
     _foreign_cloud(tmp_path / "be.mcap", arr.tobytes(), fields, dt.itemsize, n, stamp, big_endian=True)
     (scan,) = _read_all(tmp_path / "be.mcap")["/os/points"]
     np.testing.assert_array_equal(scan.points_xyz[:, 0], np.arange(n, dtype=np.float32))
@@ -172,7 +191,9 @@ def test_imu_pose_and_tf_round_trip(tmp_path):
         ImuSample(T0, "imu", np.array([0.01, 0.02, 0.3]), np.array([0.1, 0.0, 9.81]), q),
         ImuSample(T0 + 10_000_000, "imu", np.zeros(3), np.array([0, 0, 9.8]), None),
     ]
-    pose = PoseSample(T0, "world", "base_link", make_pose(yaw_rotation(0.7), [10.0, -3.0, 0.5]), covariance=np.eye(6) * 0.01)
+    pose = PoseSample(
+        T0, "world", "base_link", make_pose(yaw_rotation(0.7), [10.0, -3.0, 0.5]), covariance=np.eye(6) * 0.01
+    )
     stamped = PoseSample(T0, "map", "base_link", make_pose(yaw_rotation(-0.3), [1.0, 2.0, 3.0]))
     tfs = [
         FrameTransform(0, "base_link", "camera_front", make_pose(yaw_rotation(0.1), [1.5, 0, 1.4])),
@@ -198,14 +219,24 @@ def test_imu_pose_and_tf_round_trip(tmp_path):
         kinds = {s.topic: s.kind for s in log.streams()}
     assert set(got) == {("base_link", "camera_front"), ("base_link", "lidar")}
     assert all(t.static for t in got.values())
-    np.testing.assert_allclose(got[("base_link", "camera_front")].parent_from_child, tfs[0].parent_from_child, atol=1e-12)
-    assert kinds == {"/imu/data": StreamKind.IMU, "/gt/odom": StreamKind.POSE, "/gt/pose": StreamKind.POSE, "/tf_static": StreamKind.TF}
+    np.testing.assert_allclose(
+        got[("base_link", "camera_front")].parent_from_child, tfs[0].parent_from_child, atol=1e-12
+    )
+    assert kinds == {
+        "/imu/data": StreamKind.IMU,
+        "/gt/odom": StreamKind.POSE,
+        "/gt/pose": StreamKind.POSE,
+        "/tf_static": StreamKind.TF,
+    }
 
 
 def test_logs_are_readable_by_the_bare_mcap_library(tmp_path, rng):
     """What mapkit writes is standard ROS 2 MCAP: the mcap library decodes it on its own."""
     img = rng.integers(0, 255, (8, 8), dtype=np.uint8)
-    path = _write(tmp_path / "s.mcap", [("/cam/image", CameraFrame(T0, "cam", img), {}), ("/gps/fix", GpsFix(T0, 1.0, 2.0, 3.0), {})])
+    path = _write(
+        tmp_path / "s.mcap",
+        [("/cam/image", CameraFrame(T0, "cam", img), {}), ("/gps/fix", GpsFix(T0, 1.0, 2.0, 3.0), {})],
+    )
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         decoded = {ch.topic: (sch.name, m) for sch, ch, _, m in reader.iter_decoded_messages()}
@@ -219,7 +250,9 @@ def _big_log(path: Path, n: int = 60) -> Path:
     rng = np.random.default_rng(0)
     with McapWriter(path, chunk_size=4096, compression="none") as w:
         for i in range(n):
-            w.write("/cam/image", CameraFrame(T0 + i * 100_000_000, "cam", rng.integers(0, 255, (32, 32), dtype=np.uint8)))
+            w.write(
+                "/cam/image", CameraFrame(T0 + i * 100_000_000, "cam", rng.integers(0, 255, (32, 32), dtype=np.uint8))
+            )
             w.write("/gps/fix", GpsFix(T0 + i * 100_000_000, 49.0 + i * 1e-6, 8.4, 100.0))
     return path
 
@@ -230,10 +263,9 @@ def test_truncated_log_reads_what_it_can_and_says_where_it_stopped(tmp_path, kee
     data = full.read_bytes()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: int(len(data) * keep_fraction)])
-    with pytest.warns(InputWarning, match=r"truncated or corrupt near byte \d+"):
-        with McapLog(cut) as log:
-            recs = list(log.messages())
-            truncated_at = log.truncated_at
+    with pytest.warns(InputWarning, match=r"truncated or corrupt near byte \d+"), McapLog(cut) as log:
+        recs = list(log.messages())
+        truncated_at = log.truncated_at
     assert truncated_at is not None and truncated_at <= len(data)
     assert 0 < len(recs) <= 120
     if keep_fraction < 0.9:
@@ -250,9 +282,8 @@ def test_corrupt_chunk_is_reported(tmp_path):
     data[mid : mid + 64] = b"\xff" * 64
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
-    with pytest.warns(InputWarning, match="truncated or corrupt"):
-        with McapLog(bad) as log:
-            n = sum(1 for _ in log.messages())
+    with pytest.warns(InputWarning, match="truncated or corrupt"), McapLog(bad) as log:
+        n = sum(1 for _ in log.messages())
     assert 0 < n < 120
 
 
@@ -289,7 +320,15 @@ def test_undecodable_message_is_skipped_with_its_index(tmp_path):
         w = Ros2Writer(fh)
         schema = w.register_msgdef("sensor_msgs/msg/Image", ros2.full_msgdef("sensor_msgs/Image"))
         hdr = {"stamp": {"sec": 1, "nanosec": 0}, "frame_id": "cam"}
-        good = {"header": hdr, "height": 2, "width": 2, "encoding": "mono8", "is_bigendian": 0, "step": 2, "data": b"\x01\x02\x03\x04"}
+        good = {
+            "header": hdr,
+            "height": 2,
+            "width": 2,
+            "encoding": "mono8",
+            "is_bigendian": 0,
+            "step": 2,
+            "data": b"\x01\x02\x03\x04",
+        }
         bad = dict(good, header={"stamp": {"sec": 2, "nanosec": 0}, "frame_id": "cam"}, data=b"\x01")  # too short
         w.write_message("/cam", schema, good, log_time=1)
         w.write_message("/cam", schema, bad, log_time=2)
@@ -301,7 +340,9 @@ def test_undecodable_message_is_skipped_with_its_index(tmp_path):
 
 
 def test_records_of_one_topic_keep_to_that_topic(tmp_path):
-    path = _write(tmp_path / "two.mcap", [("/gps/a", GpsFix(T0, 1.0, 2.0, 3.0), {}), ("/gps/b", GpsFix(T0, 4.0, 5.0, 6.0), {})])
+    path = _write(
+        tmp_path / "two.mcap", [("/gps/a", GpsFix(T0, 1.0, 2.0, 3.0), {}), ("/gps/b", GpsFix(T0, 4.0, 5.0, 6.0), {})]
+    )
     with McapLog(path) as log:
         assert [f.lat_deg for f in log.records(StreamKind.GPS, topic="/gps/b")] == [4.0]
         assert sorted(f.lat_deg for f in log.records(StreamKind.GPS)) == [1.0, 4.0]
@@ -311,17 +352,15 @@ def test_records_of_one_topic_keep_to_that_topic(tmp_path):
 
 def test_missing_topic_is_named(tmp_path):
     path = _write(tmp_path / "g.mcap", [("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0), {})])
-    with McapLog(path) as log:
-        with pytest.raises(InputError, match="no topic '/lidar' in this log"):
-            list(log.messages(topics=["/lidar"]))
+    with McapLog(path) as log, pytest.raises(InputError, match="no topic '/lidar' in this log"):
+        list(log.messages(topics=["/lidar"]))
 
 
 def test_writer_is_atomic(tmp_path):
     target = tmp_path / "a.mcap"
-    with pytest.raises(RuntimeError):
-        with McapWriter(target) as w:
-            w.write("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0))
-            raise RuntimeError("crash while writing")
+    with pytest.raises(RuntimeError), McapWriter(target) as w:
+        w.write("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0))
+        raise RuntimeError("crash while writing")
     assert not target.exists()
     assert not list(tmp_path.glob("*.partial"))
 

@@ -1,6 +1,5 @@
 """The MCVL particle filter against hand-computed cases and synthetic tracks with known truth."""
 
-from typing import Optional
 
 import numpy as np
 import pytest
@@ -37,7 +36,12 @@ def _noiseless(**kw) -> MclConfig:
 
 def _straight_track(T: int, rng, sigma_m: float = 5.0, sigma_yaw_rad: float = 0.03):
     gt_pos = np.stack([np.arange(T, dtype=float), np.zeros(T), np.zeros(T)], axis=1)  # 1 m/step along x, yaw 0
-    meas = [Measurement.from_pose(gt_pos[t] + rng.normal(scale=sigma_m, size=3), yaw_rotation(rng.normal(scale=sigma_yaw_rad))) for t in range(T)]
+    meas = [
+        Measurement.from_pose(
+            gt_pos[t] + rng.normal(scale=sigma_m, size=3), yaw_rotation(rng.normal(scale=sigma_yaw_rad))
+        )
+        for t in range(T)
+    ]
     return gt_pos, np.broadcast_to(np.eye(3), (T, 3, 3)), meas
 
 
@@ -46,7 +50,11 @@ def test_defaults_are_the_papers():
     assert cfg.n_particles == 1000
     assert cfg.init_position_cov_m2 == (10, 10, 10) and cfg.init_euler_cov_rad2 == (0.001, 0.001, 1)
     assert cfg.velocity_mean_m == (0.1, 0.1, 0.01) and cfg.velocity_cov_m2 == (1, 1, 0.01)
-    assert cfg.angular_velocity_mean_rad == (0.001, 0.00001, 0.01) and cfg.angular_velocity_cov_rad2 == (0.0001, 0.00001, 0.01)
+    assert cfg.angular_velocity_mean_rad == (0.001, 0.00001, 0.01) and cfg.angular_velocity_cov_rad2 == (
+        0.0001,
+        0.00001,
+        0.01,
+    )
     assert cfg.measurement_cov == (5, 5, 5, 0.0001, 0.0001, 0.001)
     assert cfg.velocity_frame == "world" and not cfg.odometry.enabled and not cfg.recovery.enabled
     assert "Beyond the paper" in defaults_yaml(MclConfig)
@@ -119,7 +127,9 @@ def test_sus_counts_are_floor_or_ceil_and_skip_zero_weights():
 def test_weights_match_a_hand_computed_case():
     cfg = MclConfig()
     z = Measurement.from_pose([10.0, 0.0, 0.0], matrix_from_euler([0.0, 0.0, 0.5]))
-    p = Particles.from_euler(np.array([[10.0, 0.0, 0.0], [12.0, 1.0, 0.0]]), np.array([[0.0, 0.0, 0.5], [0.01, 0.0, 0.45]]))
+    p = Particles.from_euler(
+        np.array([[10.0, 0.0, 0.0], [12.0, 1.0, 0.0]]), np.array([[0.0, 0.0, 0.5], [0.01, 0.0, 0.45]])
+    )
     # eq. 3: -1/2 d^T Sigma_o^-1 d with Sigma_o = diag(5, 5, 5, 1e-4, 1e-4, 1e-3)
     ll1 = -0.5 * (2.0**2 / 5 + 1.0**2 / 5 + 0.01**2 / 1e-4 + 0.05**2 / 1e-3)
     np.testing.assert_allclose(log_likelihood(p, z, cfg), [0.0, ll1], atol=1e-9)
@@ -128,7 +138,9 @@ def test_weights_match_a_hand_computed_case():
 
 
 def test_angle_differences_wrap_across_pi():
-    np.testing.assert_allclose(wrap_angle([np.pi, -np.pi, 1.5 * np.pi, -1.5 * np.pi, 0.1]), [np.pi, np.pi, -0.5 * np.pi, 0.5 * np.pi, 0.1])
+    np.testing.assert_allclose(
+        wrap_angle([np.pi, -np.pi, 1.5 * np.pi, -1.5 * np.pi, 0.1]), [np.pi, np.pi, -0.5 * np.pi, 0.5 * np.pi, 0.1]
+    )
     cfg = MclConfig()
     z = Measurement.from_pose(ZERO3, yaw_rotation(np.pi - 0.01))
     # yaw -pi + 0.01 is 0.02 rad from the measurement across the cut; pi - 0.03 is as close on the other side
@@ -158,7 +170,9 @@ def test_filter_beats_the_measurements_on_a_straight_track():
     T = 100
     gt_pos, gt_rot, meas = _straight_track(T, np.random.default_rng(1))
     track = run_filter(meas, MclConfig(), seed=2)
-    raw = pose_errors(np.stack([m.translation for m in meas]), np.stack([m.rotation for m in meas]), gt_pos, gt_rot).summary()
+    raw = pose_errors(
+        np.stack([m.translation for m in meas]), np.stack([m.rotation for m in meas]), gt_pos, gt_rot
+    ).summary()
     filt = pose_errors(track.positions, track.rotations, gt_pos, gt_rot).summary()
     assert raw["mean_translation_m"] > 7.0  # 5 m per axis
     assert filt["mean_translation_m"] < 0.6 * raw["mean_translation_m"]
@@ -169,7 +183,9 @@ def test_filter_beats_the_measurements_on_a_straight_track():
 def _town_mount() -> CameraMount:
     """The synthetic town's front camera (mapkit.synth defaults): 1.6 m ahead of and 1.55 m above
     the base origin, pitched 3 deg down."""
-    return CameraMount(make_pose(Rotation.from_euler("y", 3.0, degrees=True).as_matrix() @ FORWARD_CAMERA_ROTATION, [1.6, 0.0, 1.55]))
+    return CameraMount(
+        make_pose(Rotation.from_euler("y", 3.0, degrees=True).as_matrix() @ FORWARD_CAMERA_ROTATION, [1.6, 0.0, 1.55])
+    )
 
 
 def test_camera_mount_known_answers():
@@ -180,7 +196,9 @@ def test_camera_mount_known_answers():
         np.testing.assert_allclose(R, yaw_rotation(heading), atol=1e-15)
         np.testing.assert_allclose(Measurement.from_pose(t, R).euler, [0.0, 0.0, heading], atol=1e-12)
     # the camera driving 1 m along its optical z is the base driving 1 m forward
-    np.testing.assert_allclose(fwd.odometry_to_base(make_pose(np.eye(3), [0, 0, 1.0])), make_pose(np.eye(3), [1.0, 0, 0]), atol=1e-15)
+    np.testing.assert_allclose(
+        fwd.odometry_to_base(make_pose(np.eye(3), [0, 0, 1.0])), make_pose(np.eye(3), [1.0, 0, 0]), atol=1e-15
+    )
     # the town's mount: a camera at (1.6, 0, 1.55) pitched 3 deg down sits on a base at the origin
     town = _town_mount()
     cam = town.base_from_camera
@@ -226,7 +244,7 @@ def _square_route(leg_m: float = 350.0, radius_m: float = 5.0):
     return np.c_[np.array(out_p), np.zeros(len(out_p))], yaw_rotation(np.array(out_y))
 
 
-def _turn_route_errors(seed: int, filter_mount: Optional[CameraMount]) -> tuple[dict, dict]:
+def _turn_route_errors(seed: int, filter_mount: CameraMount | None) -> tuple[dict, dict]:
     """Mean and median errors (camera poses) of the raw measurements and of the paper's filter on
     :func:`_square_route` seen by the town's camera (:func:`_town_mount`): measurements are the true
     camera pose + 2 m per axis and 0.01 rad. The filter runs on the base poses given by
@@ -237,8 +255,12 @@ def _turn_route_errors(seed: int, filter_mount: Optional[CameraMount]) -> tuple[
     T = len(base_pos)
     rng = np.random.default_rng(seed)
     noise_R = Rotation.from_rotvec(rng.normal(scale=0.01, size=(T, 3))).as_matrix()
-    meas = [Measurement.from_pose(cam_pos[t] + rng.normal(scale=2.0, size=3), cam_rot[t] @ noise_R[t]) for t in range(T)]
-    raw = pose_errors(np.stack([m.translation for m in meas]), np.stack([m.rotation for m in meas]), cam_pos, cam_rot).summary()
+    meas = [
+        Measurement.from_pose(cam_pos[t] + rng.normal(scale=2.0, size=3), cam_rot[t] @ noise_R[t]) for t in range(T)
+    ]
+    raw = pose_errors(
+        np.stack([m.translation for m in meas]), np.stack([m.rotation for m in meas]), cam_pos, cam_rot
+    ).summary()
     if filter_mount is None:
         track = run_filter(meas, MclConfig(), seed=seed)
         est = track.positions, track.rotations
@@ -289,7 +311,12 @@ def test_run_filter_leaves_rows_before_the_first_measurement_empty():
     track = run_filter(meas, MclConfig(n_particles=100), seed=0)
     np.testing.assert_array_equal(track.valid, [False, False, True, True, True, True, True])
     assert np.isnan(track.positions[:2]).all() and np.isfinite(track.positions[2:]).all()
-    assert pose_errors(track.positions, track.rotations, np.zeros((7, 3)), np.broadcast_to(np.eye(3), (7, 3, 3))).summary()["frames"] == 5
+    assert (
+        pose_errors(
+            track.positions, track.rotations, np.zeros((7, 3)), np.broadcast_to(np.eye(3), (7, 3, 3))
+        ).summary()["frames"]
+        == 5
+    )
 
 
 def test_odometry_driven_filter_tracks_a_turning_track():
@@ -300,8 +327,15 @@ def test_odometry_driven_filter_tracks_a_turning_track():
     gt_pos = np.stack([radius * np.sin(yaw), radius * (1 - np.cos(yaw)), np.zeros(T)], axis=1)
     gt_rot = yaw_rotation(yaw)
     rng = np.random.default_rng(5)
-    meas = [Measurement.from_pose(gt_pos[t] + rng.normal(scale=3.0, size=3), gt_rot[t] @ yaw_rotation(rng.normal(scale=0.02))) for t in range(T)]
-    odo = [None] + [make_pose(gt_rot[t - 1].T @ gt_rot[t], gt_rot[t - 1].T @ (gt_pos[t] - gt_pos[t - 1])) for t in range(1, T)]
+    meas = [
+        Measurement.from_pose(
+            gt_pos[t] + rng.normal(scale=3.0, size=3), gt_rot[t] @ yaw_rotation(rng.normal(scale=0.02))
+        )
+        for t in range(T)
+    ]
+    odo = [None] + [
+        make_pose(gt_rot[t - 1].T @ gt_rot[t], gt_rot[t - 1].T @ (gt_pos[t] - gt_pos[t - 1])) for t in range(1, T)
+    ]
     cfg = MclConfig(odometry={"enabled": True})
     with_odo = pose_errors(*_pr(run_filter(meas, cfg, seed=1, odometry=odo)), gt_pos, gt_rot).summary()
     paper = pose_errors(*_pr(run_filter(meas, MclConfig(), seed=1)), gt_pos, gt_rot).summary()
@@ -341,11 +375,14 @@ def test_pose_errors_known_answers():
     s = e.summary()
     assert s["frames"] == 3 and s["median_rotation_deg"] == pytest.approx(90.0)
     # relative: gt at 30 deg yaw, estimate at 75 deg
-    e2 = pose_errors(np.zeros((1, 3)), yaw_rotation(np.radians(75.0))[None], np.zeros((1, 3)), yaw_rotation(np.radians(30.0))[None])
+    e2 = pose_errors(
+        np.zeros((1, 3)), yaw_rotation(np.radians(75.0))[None], np.zeros((1, 3)), yaw_rotation(np.radians(30.0))[None]
+    )
     assert e2.rotation_deg[0] == pytest.approx(45.0)
 
 
 # --- beyond the paper: the multi-hypothesis measurement model -----------------------------------------
+
 
 def _mh_config(**mh) -> MclConfig:
     return MclConfig(odometry={"enabled": True}, multi_hypothesis={"enabled": True, **mh}, estimate="mode")
@@ -355,7 +392,9 @@ def test_mixture_likelihood_hand_built_case():
     from mapkit.localization.mcl import mixture_likelihood
 
     cfg = _mh_config(floor=0.1)  # kernel: Sigma_o's position part (5 m^2), rotation std sqrt(1e-3) rad
-    hyp = PoseHypotheses(np.array([[0.0, 0, 0], [500.0, 0, 0]]), yaw_rotation(np.array([0.0, 1.0])), np.array([0.75, 0.25]))
+    hyp = PoseHypotheses(
+        np.array([[0.0, 0, 0], [500.0, 0, 0]]), yaw_rotation(np.array([0.0, 1.0])), np.array([0.75, 0.25])
+    )
     theta = 0.02
     p = Particles.from_rotations(
         np.array([[0.0, 0, 0], [1.0, 2.0, 0], [0.0, 0, 0], [500.0, 0, 0], [250.0, 0, 0]]),
@@ -364,7 +403,9 @@ def test_mixture_likelihood_hand_built_case():
     L = mixture_likelihood(p, hyp, cfg)
     k_pos = np.exp(-0.5 * (1.0 + 4.0) / 5.0)
     k_rot = np.exp(-(1.0 - np.cos(theta)) / 1e-3)  # 3 - tr = 2 (1 - cos theta), over 2 sigma^2
-    np.testing.assert_allclose(L, [0.1 + 0.9 * 0.75, 0.1 + 0.9 * 0.75 * k_pos, 0.1 + 0.9 * 0.75 * k_rot, 0.1 + 0.9 * 0.25, 0.1], rtol=1e-9)
+    np.testing.assert_allclose(
+        L, [0.1 + 0.9 * 0.75, 0.1 + 0.9 * 0.75 * k_pos, 0.1 + 0.9 * 0.75 * k_rot, 0.1 + 0.9 * 0.25, 0.1], rtol=1e-9
+    )
     assert k_rot == pytest.approx(np.exp(-0.5 * theta**2 / 1e-3), rel=1e-4)  # a Gaussian in the angle to second order
     # a particle on the right place but facing the other way is as unlikely as one far away
     q = Particles.from_rotations(np.zeros((1, 3)), yaw_rotation(np.array([np.pi])))
@@ -375,7 +416,10 @@ def test_kernel_matrix_matches_a_direct_computation(rng):
     from mapkit.core.geometry import rotation_angle_rad
     from mapkit.localization.mcl import kernel_matrix
 
-    p = Particles.from_rotations(1e3 + rng.normal(scale=3.0, size=(50, 3)), Rotation.from_rotvec(rng.normal(scale=0.05, size=(50, 3))).as_matrix())
+    p = Particles.from_rotations(
+        1e3 + rng.normal(scale=3.0, size=(50, 3)),
+        Rotation.from_rotvec(rng.normal(scale=0.05, size=(50, 3))).as_matrix(),
+    )
     H = Rotation.from_rotvec(rng.normal(scale=0.05, size=(7, 3))).as_matrix()
     hyp = PoseHypotheses(1e3 + rng.normal(scale=3.0, size=(7, 3)), H, np.full(7, 1 / 7))
     var = np.array([4.0, 9.0, 1.0])
@@ -391,7 +435,11 @@ def test_sampling_from_hypotheses_follows_their_weights():
     from mapkit.localization.mcl import sample_hypotheses
 
     cfg = _mh_config()
-    hyp = PoseHypotheses(np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 100.0, 0]]), yaw_rotation(np.array([0.0, 1.0, 2.0])), np.array([0.5, 0.3, 0.2]))
+    hyp = PoseHypotheses(
+        np.array([[0.0, 0, 0], [100.0, 0, 0], [0, 100.0, 0]]),
+        yaw_rotation(np.array([0.0, 1.0, 2.0])),
+        np.array([0.5, 0.3, 0.2]),
+    )
     p = sample_hypotheses(hyp, cfg, np.random.default_rng(0), n=1000)
     j = np.argmin(np.linalg.norm(p.positions[:, None] - hyp.translations[None], axis=-1), axis=1)
     np.testing.assert_array_equal(np.bincount(j, minlength=3), [500, 300, 200])  # SUS: exact here
@@ -404,8 +452,12 @@ def test_mode_estimate_picks_the_heavier_mode():
     from mapkit.localization.mcl import mode_estimate
 
     rng = np.random.default_rng(0)
-    pos = np.concatenate([rng.normal(scale=1.0, size=(700, 3)) + [0.0, 0, 0], rng.normal(scale=1.0, size=(300, 3)) + [200.0, 0, 0]])
-    p = Particles.from_rotations(pos, np.concatenate([np.broadcast_to(np.eye(3), (700, 3, 3)), np.broadcast_to(yaw_rotation(2.0), (300, 3, 3))]))
+    pos = np.concatenate(
+        [rng.normal(scale=1.0, size=(700, 3)) + [0.0, 0, 0], rng.normal(scale=1.0, size=(300, 3)) + [200.0, 0, 0]]
+    )
+    p = Particles.from_rotations(
+        pos, np.concatenate([np.broadcast_to(np.eye(3), (700, 3, 3)), np.broadcast_to(yaw_rotation(2.0), (300, 3, 3))])
+    )
     mode = mode_estimate(p, None, 10.0)
     mean = estimate(p)
     assert np.linalg.norm(mode.position) < 0.3 and np.allclose(mode.rotation, np.eye(3), atol=1e-9)
@@ -470,7 +522,9 @@ def _aliased_retrieval(T: int, k: int, p_in: float, p_top: float, seed: int):
     yaw = np.arange(T) * 5.0 / 80.0
     gt_pos = np.stack([80.0 * np.sin(yaw), 80.0 * (1 - np.cos(yaw)), np.zeros(T)], axis=1)
     gt_rot = yaw_rotation(yaw)
-    odo = [None] + [make_pose(gt_rot[t - 1].T @ gt_rot[t], gt_rot[t - 1].T @ (gt_pos[t] - gt_pos[t - 1])) for t in range(1, T)]
+    odo = [None] + [
+        make_pose(gt_rot[t - 1].T @ gt_rot[t], gt_rot[t - 1].T @ (gt_pos[t] - gt_pos[t - 1])) for t in range(1, T)
+    ]
     hyps, present, at_top = [], np.zeros(T, bool), np.zeros(T, bool)
     for t in range(T):
         centres = rng.uniform(-300, 300, size=(4, 3)) * [1, 1, 0]

@@ -23,8 +23,13 @@ ONE_DRIVE = {"sessions": [{"name": "drive", "role": "train", "weather": "clear",
 
 @pytest.fixture(scope="module")
 def town(tmp_path_factory) -> Path:
-    return synthesize(preset="tiny", out=tmp_path_factory.mktemp("cam-only") / "town", overrides=ONE_DRIVE,
-                      config=CONFIGS / "synth" / "benchmark-camera.yaml", progress=False)
+    return synthesize(
+        preset="tiny",
+        out=tmp_path_factory.mktemp("cam-only") / "town",
+        overrides=ONE_DRIVE,
+        config=CONFIGS / "synth" / "benchmark-camera.yaml",
+        progress=False,
+    )
 
 
 def test_benchmark_camera_override_turns_off_only_the_lidar():
@@ -41,7 +46,9 @@ def test_camera_only_log_has_no_lidar_stream_nor_extrinsic(town):
 
 
 def test_given_georeferencing_puts_database_images_at_their_true_poses(town, tmp_path):
-    ws = build([session_log(town, "drive")], tmp_path / "ws", config=CONFIGS / "build" / "mcvl-database.yaml", progress=False)
+    ws = build(
+        [session_log(town, "drive")], tmp_path / "ws", config=CONFIGS / "build" / "mcvl-database.yaml", progress=False
+    )
     session = ws / "sessions" / "drive"
     assert not (session / "map").exists(), "map: false must not build the semi-dense map"
     table = read_images_csv(session / "imagedb" / "images.csv")
@@ -59,6 +66,8 @@ def test_given_georeferencing_puts_database_images_at_their_true_poses(town, tmp
 
 def test_given_georeferencing_without_origin_names_the_field(town, tmp_path):
     cfg = tmp_path / "no-origin.yaml"
-    cfg.write_text("topics: {poses: /ground_truth/odom}\ntrajectory: {source: poses}\ngeoref: {mode: given}\nmap: false\n")
+    cfg.write_text(
+        "topics: {poses: /ground_truth/odom}\ntrajectory: {source: poses}\ngeoref: {mode: given}\nmap: false\n"
+    )
     with pytest.raises(InputError, match=r"georef\.origin"):
         build([session_log(town, "drive")], tmp_path / "ws", config=cfg, progress=False)

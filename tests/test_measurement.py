@@ -5,7 +5,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import is_rotation, matrix_to_quat_wxyz, rotation_angle_rad, yaw_rotation
-from mapkit.retrieval.measurement import EULER_SEQUENCE, Measurement, euler_from_matrix, matrix_from_euler, mean_shift_measurement
+from mapkit.retrieval.measurement import (
+    EULER_SEQUENCE,
+    Measurement,
+    euler_from_matrix,
+    matrix_from_euler,
+    mean_shift_measurement,
+)
 
 
 def _blob(rng, centre, n, sigma=1.0):
@@ -126,6 +132,7 @@ def test_bad_input_is_refused(X, R, kw):
 
 
 # --- beyond the paper: the retrieved poses as hypotheses ----------------------------------------------
+
 
 def test_hit_weights_known_values():
     from mapkit.retrieval.measurement import hit_weights

@@ -27,11 +27,15 @@ def test_trajectory_errors_of_a_known_offset():
     est = gt.copy()
     est[:, 1, 3] += 0.5  # half a metre to the left everywhere
     est[:, :3, :3] = est[:, :3, :3] @ yaw_rotation(np.radians(2.0))
-    r = trajectory_errors(stamps[:-1] + 5 * 10**8, np.stack([(a + b) / 2 for a, b in zip(est[:-1], est[1:])]), stamps, gt)
+    r = trajectory_errors(
+        stamps[:-1] + 5 * 10**8, np.stack([(a + b) / 2 for a, b in zip(est[:-1], est[1:])]), stamps, gt
+    )
     # mid-way poses: compare against interpolated truth (the averaged rotations are close enough)
     assert r["poses_compared"] == 10
     assert r["ate_rmse_m"] == pytest.approx(0.5, abs=1e-6)
-    assert r["horizontal_rmse_m"] == pytest.approx(0.5, abs=1e-6) and r["vertical_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    assert r["horizontal_rmse_m"] == pytest.approx(0.5, abs=1e-6) and r["vertical_rmse_m"] == pytest.approx(
+        0.0, abs=1e-9
+    )
     up = est.copy()
     up[:, 2, 3] += 1.2  # and 1.2 m up: 1.3 m in all
     r_up = trajectory_errors(stamps, up, stamps, gt)

@@ -27,8 +27,11 @@ SKIP = shutil.ignore_patterns("__pycache__", "*.pyc")
 
 
 def _files(folder: Path) -> set[str]:
-    return {p.relative_to(folder).as_posix() for p in folder.rglob("*")
-            if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"}
+    return {
+        p.relative_to(folder).as_posix()
+        for p in folder.rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts and p.suffix != ".pyc"
+    }
 
 
 def _installed_python(code: str, path: list[Path], cwd: Path, *args: str) -> subprocess.CompletedProcess:
@@ -36,8 +39,9 @@ def _installed_python(code: str, path: list[Path], cwd: Path, *args: str) -> sub
     and the environment's site-packages (numpy, pydantic, ...), with ``cwd`` outside the checkout."""
     libs = dict.fromkeys([sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]])
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([*map(str, path), *libs]), PYTHONDONTWRITEBYTECODE="1")
-    return subprocess.run([sys.executable, "-S", "-c", code, *args], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-S", "-c", code, *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=300
+    )
 
 
 @pytest.fixture(scope="module")
@@ -56,8 +60,24 @@ def sources(tmp_path_factory) -> Path:
 def wheel(sources) -> Path:
     out = sources.parent / "dist"
     env = dict(os.environ, PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1")
-    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
-                        "-w", str(out), str(sources)], env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "-w",
+            str(out),
+            str(sources),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     (whl,) = out.glob("mapkit-*.whl")
     return whl
@@ -134,8 +154,9 @@ print("ok")
 
 def test_an_editable_install_maps_mapkit_configs_to_the_configs_folder(sources, tmp_path):
     build = "import sys; from setuptools import build_meta; print(build_meta.build_editable(sys.argv[1]))"
-    r = subprocess.run([sys.executable, "-c", build, str(tmp_path / "ed")], cwd=sources, capture_output=True, text=True,
-                       timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-c", build, str(tmp_path / "ed")], cwd=sources, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     (whl,) = (tmp_path / "ed").glob("*.whl")
     zipfile.ZipFile(whl).extractall(tmp_path / "site")
@@ -161,8 +182,10 @@ def test_a_checkout_reads_its_own_configs_even_with_another_installed(tmp_path):
     shutil.copytree(ROOT / "mapkit", copy / "mapkit", ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copytree(ROOT / "configs", copy / "configs")
     (copy / "configs" / "synth" / "probe.yaml").write_text("seed: 1\n")
-    code = ("import sys; sys.path.insert(0, sys.argv[1]); import mapkit; from mapkit.core.presets import configs_dir, preset_path; "
-            "print(mapkit.__file__); print(configs_dir()); print(preset_path('synth', 'probe'))")
+    code = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import mapkit; from mapkit.core.presets import configs_dir, preset_path; "
+        "print(mapkit.__file__); print(configs_dir()); print(preset_path('synth', 'probe'))"
+    )
     r = subprocess.run([sys.executable, "-c", code, str(copy)], capture_output=True, text=True, cwd=tmp_path)
     assert r.returncode == 0, r.stderr[-2000:]
     module, configs, probe = r.stdout.split()

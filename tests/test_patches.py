@@ -21,7 +21,9 @@ def _scene(rng, n_wall=1500, n_ground=800, n_pole=150):
     t = rng.uniform(-9, 9, n_wall)
     wall = np.column_stack([4 * nrm[0] + t * d[0], 4 * nrm[1] + t * d[1], rng.uniform(-1.5, 8, n_wall)])
     g = rng.uniform(-9, 9, (n_ground, 2)) * [1, 0.3]
-    ground = np.column_stack([g[:, 0] * d[0] + g[:, 1] * nrm[0], g[:, 0] * d[1] + g[:, 1] * nrm[1], rng.normal(-1.5, 0.02, n_ground)])
+    ground = np.column_stack(
+        [g[:, 0] * d[0] + g[:, 1] * nrm[0], g[:, 0] * d[1] + g[:, 1] * nrm[1], rng.normal(-1.5, 0.02, n_ground)]
+    )
     pole = np.column_stack([np.full(n_pole, -3.0), np.full(n_pole, 2.0), rng.uniform(-1.5, 5, n_pole)])
     return np.vstack([wall, ground, pole]) + rng.normal(0, 0.01, (n_wall + n_ground + n_pole, 3))
 
@@ -30,7 +32,10 @@ def test_select_keypoints_is_a_random_five_percent(rng):
     idx = pa.select_keypoints(10_000, rng=rng)
     assert len(idx) == 500 and len(np.unique(idx)) == 500
     assert np.all(np.diff(idx) > 0) and idx[0] >= 0 and idx[-1] < 10_000
-    np.testing.assert_array_equal(pa.select_keypoints(10_000, rng=np.random.default_rng(3)), pa.select_keypoints(10_000, rng=np.random.default_rng(3)))
+    np.testing.assert_array_equal(
+        pa.select_keypoints(10_000, rng=np.random.default_rng(3)),
+        pa.select_keypoints(10_000, rng=np.random.default_rng(3)),
+    )
     assert len(pa.select_keypoints(7, rng=rng)) == 1
     with pytest.raises(InputError):
         pa.select_keypoints(100, fraction=0.0)
@@ -46,7 +51,11 @@ def test_domain_presets_and_validation():
         pa.PatchDomain(kind="cube", half_size=10.0, radius=3.0)
 
 
-@pytest.mark.parametrize("domain", [pa.NBLD_DOMAIN, pa.M2DP_DOMAIN, pa.CNN_DOMAIN, pa.PatchDomain(kind="cylinder", radius=3.0, height=2.0)], ids=["nbld", "m2dp", "cube", "small"])
+@pytest.mark.parametrize(
+    "domain",
+    [pa.NBLD_DOMAIN, pa.M2DP_DOMAIN, pa.CNN_DOMAIN, pa.PatchDomain(kind="cylinder", radius=3.0, height=2.0)],
+    ids=["nbld", "m2dp", "cube", "small"],
+)
 def test_extract_patches_matches_brute_force(rng, domain):
     points = rng.uniform([-30, -30, -20], [30, 30, 20], (4000, 3))
     keypoints = np.vstack([points[:15], rng.uniform(-30, 30, (5, 3))])
@@ -97,7 +106,9 @@ def test_degenerate_patch_falls_back_to_middle_eigenvector(rng):
     # axis is the middle eigenvector, across the strip (120 deg or -60 deg)
     t, w = rng.uniform(-9, 9, 2000), rng.uniform(-1.5, 1.5, 2000)
     a = math.radians(30)
-    pts = np.column_stack([t * math.cos(a) - w * math.sin(a), t * math.sin(a) + w * math.cos(a), rng.normal(0, 0.01, 2000)])
+    pts = np.column_stack(
+        [t * math.cos(a) - w * math.sin(a), t * math.sin(a) + w * math.cos(a), rng.normal(0, 0.01, 2000)]
+    )
     yaw, _ = pa.yaw_normalise(pts, np.array([-1.0, 1.0]))
     assert yaw == pytest.approx(math.radians(120), abs=math.radians(1))
 

@@ -30,10 +30,25 @@ from mapkit.places.pointnetvlad import (  # noqa: E402
 )
 from mapkit.places.triplets import TripletDataset  # noqa: E402
 
-CFG = {"n_triplets": 120, "tile_size_m": 40.0, "buffer_m": 8.0, "test_fraction": 0.3, "negative_min_distance_m": 40.0,
-       "negative_pool": 40, "shard_patches": 64, "places_per_cell": 4, "keypoint_fraction": 0.02}
-PNV = {"enabled": True, "positive_distance_m": 10.0, "negative_distance_m": 30.0, "evaluation_distance_m": 25.0, "points": 512,
-       "max_negatives": 50}
+CFG = {
+    "n_triplets": 120,
+    "tile_size_m": 40.0,
+    "buffer_m": 8.0,
+    "test_fraction": 0.3,
+    "negative_min_distance_m": 40.0,
+    "negative_pool": 40,
+    "shard_patches": 64,
+    "places_per_cell": 4,
+    "keypoint_fraction": 0.02,
+}
+PNV = {
+    "enabled": True,
+    "positive_distance_m": 10.0,
+    "negative_distance_m": 30.0,
+    "evaluation_distance_m": 25.0,
+    "points": 512,
+    "max_negatives": 50,
+}
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +124,9 @@ def test_their_scripts_find_every_file_and_the_pickles_hold(exported):
         assert 0.3 < np.linalg.norm(pc, axis=1).mean() <= 0.5 + 1e-9
         if k % 7 == 0:  # back to metres in the patch frame: inside the patch's occupied voxels
             row = listing[f]
-            metric = pc / float(row["scale"]) + np.array([float(row[c]) for c in ("centroid_x_m", "centroid_y_m", "centroid_z_m")])
+            metric = pc / float(row["scale"]) + np.array(
+                [float(row[c]) for c in ("centroid_x_m", "centroid_y_m", "centroid_z_m")]
+            )
             occ = ds.grids([int(row["patch_id"])])[0]
             ijk = np.clip(((metric + box) / (2 * box) * g).astype(int), 0, g - 1)
             # (a point on a voxel face may land on either side after the round trip through the scale)
@@ -143,7 +160,10 @@ def test_their_scripts_find_every_file_and_the_pickles_hold(exported):
     # no test query has a training patch within the tiles' buffer
     assert np.linalg.norm(ne[split == "test"][:, None] - ne[split == "train"][None], axis=2).min() >= CFG["buffer_m"]
     # generate_test_sets.py's pickles: per run, the database (all its clouds) and the queries (its test clouds)
-    database, query = _queries(pnv, "mapkit_evaluation_database.pickle"), _queries(pnv, "mapkit_evaluation_query.pickle")
+    database, query = (
+        _queries(pnv, "mapkit_evaluation_database.pickle"),
+        _queries(pnv, "mapkit_evaluation_query.pickle"),
+    )
     assert len(database) == len(query) == len(m["runs"]) >= 2
     n_true = 0
     for i, run in enumerate(m["runs"]):
@@ -181,7 +201,9 @@ def test_ground_removal_and_normalisation():
     wall = np.c_[rng.uniform(-10, 10, 1500), np.full(1500, 6.0) + rng.normal(0, 0.05, 1500), rng.uniform(-1.5, 8, 1500)]
     kept = remove_ground(np.r_[ground, wall], 0.5, 15.0, np.random.default_rng(1))
     assert len(kept) < 1500 * 1.05 and kept[:, 2].min() > -1.5 + 0.4  # the wall stays, the ground goes
-    assert len(remove_ground(wall, 0.5, 15.0, np.random.default_rng(1))) == len(wall)  # no horizontal plane: nothing removed
+    assert len(remove_ground(wall, 0.5, 15.0, np.random.default_rng(1))) == len(
+        wall
+    )  # no horizontal plane: nothing removed
     pc, c, s = normalise_cloud(kept, 4096, np.random.default_rng(2))
     assert pc.shape == (4096, 3) and np.abs(pc).max() <= 1.0 and np.allclose(pc.mean(axis=0), 0, atol=1e-12)
     assert 0.4 < np.linalg.norm(pc, axis=1).mean() <= 0.5 + 1e-12
@@ -192,7 +214,10 @@ def test_ground_removal_and_normalisation():
 def test_standalone_export_is_reproducible(exported, tmp_path):
     ws, out = exported
     again = export_pointnetvlad(out, ws, tmp_path / "pnv", PointNetVladConfig(**PNV))
-    a, b = _queries(out / "pointnetvlad", "training_queries_baseline.pickle"), _queries(again, "training_queries_baseline.pickle")
+    a, b = (
+        _queries(out / "pointnetvlad", "training_queries_baseline.pickle"),
+        _queries(again, "training_queries_baseline.pickle"),
+    )
     assert a == b
     q = a[0]["query"]
     assert (out / "pointnetvlad" / q).read_bytes() == (again / q).read_bytes()

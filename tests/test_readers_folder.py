@@ -28,7 +28,9 @@ def _image(i: int) -> np.ndarray:
     return ((np.arange(5 * 7 * 3).reshape(5, 7, 3) * 7 + 40 * i) % 256).astype(np.uint8)
 
 
-def make_folder(root: Path, header: list[str], rows: list[list], *, images_subdir: bool = True, csv_name: str = "frames.csv") -> Path:
+def make_folder(
+    root: Path, header: list[str], rows: list[list], *, images_subdir: bool = True, csv_name: str = "frames.csv"
+) -> Path:
     image_dir = root / "images" if images_subdir else root
     image_dir.mkdir(parents=True, exist_ok=True)
     for i in range(3):
@@ -71,7 +73,10 @@ def test_images_gps_and_poses_read_back(tmp_path):
 
 @pytest.mark.parametrize(
     "column, values, scale",
-    [("timestamp_ns", STAMPS_NS, 1), ("timestamp_us", [1_700_000_000_123_456, 1_700_000_000_223_456, 1_700_000_000_323_456], 1000)],
+    [
+        ("timestamp_ns", STAMPS_NS, 1),
+        ("timestamp_us", [1_700_000_000_123_456, 1_700_000_000_223_456, 1_700_000_000_323_456], 1000),
+    ],
 )
 def test_integer_time_columns(tmp_path, column, values, scale):
     log = FolderLog(make_folder(tmp_path, [column, "image"], [[v, f"im{i}.png"] for i, v in enumerate(values)]))
@@ -90,7 +95,9 @@ def test_intrinsics_from_columns(tmp_path):
 def test_intrinsics_from_json_and_from_ros_yaml(tmp_path):
     rows = [[s, f"im{i}.png"] for i, s in enumerate(STAMPS_TEXT)]
     a = make_folder(tmp_path / "a", ["timestamp", "image"], rows)
-    (a / "intrinsics.json").write_text(json.dumps({"fx": 400.0, "fy": 410.0, "cx": 3.0, "cy": 2.0, "D": [0.1, -0.01, 0, 0, 0]}))
+    (a / "intrinsics.json").write_text(
+        json.dumps({"fx": 400.0, "fy": 410.0, "cx": 3.0, "cy": 2.0, "D": [0.1, -0.01, 0, 0, 0]})
+    )
     info = FolderLog(a).camera_infos()["camera"]
     assert (info.fx, info.fy, info.cx, info.cy) == (400.0, 410.0, 3.0, 2.0)
     np.testing.assert_allclose(info.D, [0.1, -0.01, 0, 0, 0])
@@ -110,7 +117,13 @@ def test_intrinsics_from_json_and_from_ros_yaml(tmp_path):
 
 
 def test_images_in_the_folder_itself_and_any_single_csv(tmp_path):
-    root = make_folder(tmp_path, ["timestamp", "image"], [[s, f"im{i}.png"] for i, s in enumerate(STAMPS_TEXT)], images_subdir=False, csv_name="log.csv")
+    root = make_folder(
+        tmp_path,
+        ["timestamp", "image"],
+        [[s, f"im{i}.png"] for i, s in enumerate(STAMPS_TEXT)],
+        images_subdir=False,
+        csv_name="log.csv",
+    )
     assert guess_format(root) == "folder"
     log = open_log(root)
     assert isinstance(log, FolderLog)

@@ -26,9 +26,13 @@ REAL_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FX, FY, CX, CY = 700.0, 710.0, 320.5, 240.25
 BASELINE_M = 0.54
 # camera 2 of the real KITTI rig: its P holds small y and z offsets as well as the baseline
-P2_KITTI = np.array([[7.188560e02, 0.0, 6.071928e02, 4.538225e01],
-                     [0.0, 7.188560e02, 1.852157e02, -1.130887e-01],
-                     [0.0, 0.0, 1.0, 3.779761e-03]])
+P2_KITTI = np.array(
+    [
+        [7.188560e02, 0.0, 6.071928e02, 4.538225e01],
+        [0.0, 7.188560e02, 1.852157e02, -1.130887e-01],
+        [0.0, 0.0, 1.0, 3.779761e-03],
+    ]
+)
 
 
 def _records(log, topic: str) -> list:
@@ -99,6 +103,7 @@ TIMES_NS = [0, 103_622_400, 207_244_900, 310_867_300]  # the decimal strings rea
 
 
 # --- odometry ---------------------------------------------------------------------------------------
+
 
 def test_odometry_reads_back_stamps_pixels_poses_and_intrinsics(tmp_path, rng):
     written = make_odometry(tmp_path / "seq", rng, times=TIMES)
@@ -240,6 +245,7 @@ def test_odometry_malformed_times_line_is_named(tmp_path, rng):
 
 # --- the real clip -----------------------------------------------------------------------------------
 
+
 @pytest.mark.realdata
 def test_real_kitti_clip(kitti_clip):
     assert guess_format(kitti_clip) == "kitti-odometry"
@@ -319,7 +325,9 @@ def make_raw(root: Path, n: int = 3, *, oxts_override: dict | None = None) -> Pa
     (date / "calib_velo_to_cam.txt").write_text(
         f"calib_time: 15-Mar-2012 11:37:16\nR: {_line(R_VELO_TO_CAM)}\nT: {_line(T_VELO_TO_CAM)}\ndelta_f: 0 0\n"
     )
-    (date / "calib_imu_to_velo.txt").write_text(f"calib_time: 25-May-2012 16:47:16\nR: {_line(R_IMU_TO_VELO)}\nT: {_line(T_IMU_TO_VELO)}\n")
+    (date / "calib_imu_to_velo.txt").write_text(
+        f"calib_time: 25-May-2012 16:47:16\nR: {_line(R_IMU_TO_VELO)}\nT: {_line(T_IMU_TO_VELO)}\n"
+    )
     return drive
 
 
@@ -416,7 +424,9 @@ def test_raw_timestamp_count_must_match_files(tmp_path):
 
 def test_raw_malformed_timestamp_names_line(tmp_path):
     drive = make_raw(tmp_path)
-    (drive / "image_02" / "timestamps.txt").write_text(f"{STAMP_TEXT[0]}\n2011-09-26 13:02:26,068554659\n{STAMP_TEXT[2]}\n")
+    (drive / "image_02" / "timestamps.txt").write_text(
+        f"{STAMP_TEXT[0]}\n2011-09-26 13:02:26,068554659\n{STAMP_TEXT[2]}\n"
+    )
     with pytest.raises(InputError, match="line 2"):
         KittiRaw(drive)
 
@@ -437,6 +447,7 @@ def test_guess_format_picks_the_kitti_readers(tmp_path, rng):
 
 
 # --- OXTS as an INS pose stream ----------------------------------------------------------------------
+
 
 def _oxts_only(root: Path, n: int = 3) -> Path:
     """A raw drive with OXTS records and calibration, no images and no scans."""
@@ -467,7 +478,9 @@ def test_raw_oxts_pose_is_the_devkit_mercator_pose(tmp_path):
     assert T[2][2, 3] == pytest.approx(v2[2] - v0[2], abs=1e-9)
     # the orientation is the IMU's: Rz(yaw) Ry(pitch) Rx(roll) of the forward-left-up body in ENU
     imu = _records(log, "/kitti/oxts/imu")[2]
-    np.testing.assert_allclose(T[2][:3, :3], Rotation.from_quat(np.roll(imu.orientation_quat_wxyz, -1)).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        T[2][:3, :3], Rotation.from_quat(np.roll(imu.orientation_quat_wxyz, -1)).as_matrix(), atol=1e-12
+    )
     assert np.arctan2(T[2][1, 0], T[2][0, 0]) == pytest.approx(v2[5])  # heading of x: the OXTS yaw from east
 
     # the devkit's convertOxtsToPose: the first pose is the identity, the rest relative to it
@@ -519,7 +532,7 @@ def test_real_oxts_heading_follows_the_gps_travel_direction(kitti_oxts):
     heading = np.exp(1j * np.arctan2(T[:, 1, 0], T[:, 0, 0]))  # yaw of the body's x axis in the E/N plane
     errors = []
     for i in range(len(enu)):
-        far = np.nonzero(np.linalg.norm(enu[i + 1:, :2] - enu[i, :2], axis=1) >= 2.0)[0]
+        far = np.nonzero(np.linalg.norm(enu[i + 1 :, :2] - enu[i, :2], axis=1) >= 2.0)[0]
         if not len(far):
             break
         j = i + 1 + far[0]  # the first fix at least 2 m on
@@ -566,7 +579,10 @@ def test_real_oxts_drive_gives_a_107_m_pose_trajectory(kitti_oxts):
 
 # --- KITTI odometry with velodyne/ only ---------------------------------------------------------------
 
-def make_lidar_odometry(root: Path, rng: np.random.Generator, n: int = 4, *, calib: bool = True, poses: bool = True) -> dict:
+
+def make_lidar_odometry(
+    root: Path, rng: np.random.Generator, n: int = 4, *, calib: bool = True, poses: bool = True
+) -> dict:
     """An odometry sequence as the LiDAR download unpacks (velodyne/, calib.txt, times.txt, poses.txt)."""
     written = make_odometry(root, rng, n, times=TIMES[:n], poses=poses, velodyne=np.zeros((1, 4)), second_camera=False)
     shutil.rmtree(root / "image_0")
@@ -585,7 +601,10 @@ def test_lidar_only_odometry_folder_reads_scans_poses_and_extrinsic(tmp_path, rn
         warnings.simplefilter("error")
         log = open_log(tmp_path / "seq")
     assert {s.topic: s.kind for s in log.streams()} == {
-        "/kitti/tf_static": StreamKind.TF, "/kitti/ground_truth": StreamKind.POSE, "/kitti/velodyne/points": StreamKind.LIDAR}
+        "/kitti/tf_static": StreamKind.TF,
+        "/kitti/ground_truth": StreamKind.POSE,
+        "/kitti/velodyne/points": StreamKind.LIDAR,
+    }
     scans = _records(log, "/kitti/velodyne/points")
     assert [s.stamp_ns for s in scans] == TIMES_NS
     for scan, pts in zip(scans, written["scans"]):
@@ -621,6 +640,7 @@ def test_lidar_only_odometry_counts_must_agree_and_lidar_off_is_named(tmp_path, 
 
 
 # --- bytes that are not text ----------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("name, line", [("calib.txt", 2), ("times.txt", 3), ("poses.txt", 4)])
 def test_odometry_non_text_byte_names_file_and_line(tmp_path, rng, name, line):

@@ -8,10 +8,10 @@ from __future__ import annotations
 import math
 import shutil
 import warnings
+from collections.abc import Sequence
 from datetime import datetime, timezone
 from fractions import Fraction
 from pathlib import Path
-from typing import Optional, Sequence
 
 import cv2
 import numpy as np
@@ -57,6 +57,7 @@ TOPIC_IMAGE, TOPIC_INFO, TOPIC_GPS = "/photos/camera/image", "/photos/camera/cam
 
 # --- writing photos with EXIF ----------------------------------------------------------------------
 
+
 def _dms(deg: float) -> tuple[IFDRational, IFDRational, IFDRational]:
     """|deg| as (degrees, minutes, seconds) rationals; seconds to 1e-6 (3e-5 m on the ground)."""
     micro_arcsec = round(abs(deg) * 3600 * 1_000_000)
@@ -65,16 +66,20 @@ def _dms(deg: float) -> tuple[IFDRational, IFDRational, IFDRational]:
     return IFDRational(d), IFDRational(m), IFDRational(Fraction(s, 1_000_000))
 
 
-def gps_tags(lat: float, lon: float, alt: Optional[float] = None) -> dict:
-    tags = {GPS_LATITUDE_REF: "N" if lat >= 0 else "S", GPS_LATITUDE: _dms(lat),
-            GPS_LONGITUDE_REF: "E" if lon >= 0 else "W", GPS_LONGITUDE: _dms(lon)}
+def gps_tags(lat: float, lon: float, alt: float | None = None) -> dict:
+    tags = {
+        GPS_LATITUDE_REF: "N" if lat >= 0 else "S",
+        GPS_LATITUDE: _dms(lat),
+        GPS_LONGITUDE_REF: "E" if lon >= 0 else "W",
+        GPS_LONGITUDE: _dms(lon),
+    }
     if alt is not None:
         tags[GPS_ALTITUDE_REF] = b"\x01" if alt < 0 else b"\x00"
         tags[GPS_ALTITUDE] = IFDRational(Fraction(round(abs(alt) * 1000), 1000))
     return tags
 
 
-def time_tags(stamp_ns: int, offset_minutes: Optional[int] = 0) -> dict:
+def time_tags(stamp_ns: int, offset_minutes: int | None = 0) -> dict:
     """DateTimeOriginal + SubSecTimeOriginal (9 digits) in the local time of the offset, and the offset."""
     seconds, frac = divmod(stamp_ns, 1_000_000_000)
     local = datetime.fromtimestamp(seconds + 60 * (offset_minutes or 0), tz=timezone.utc)
@@ -85,8 +90,15 @@ def time_tags(stamp_ns: int, offset_minutes: Optional[int] = 0) -> dict:
     return tags
 
 
-def write_photo(path: Path, image: np.ndarray, *, exif: dict | None = None, gps: dict | None = None,
-                orientation: Optional[int] = None, quality: int = 95) -> Path:
+def write_photo(
+    path: Path,
+    image: np.ndarray,
+    *,
+    exif: dict | None = None,
+    gps: dict | None = None,
+    orientation: int | None = None,
+    quality: int = 95,
+) -> Path:
     """``image`` (grey, or BGR as mapkit holds frames) with the given Exif-IFD and GPS-IFD tags."""
     rgb = image if image.ndim == 2 else image[..., ::-1]
     tags = Image.Exif()
@@ -102,8 +114,15 @@ def write_photo(path: Path, image: np.ndarray, *, exif: dict | None = None, gps:
     return path
 
 
-def write_geotagged_folder(folder: Path, images: Sequence[np.ndarray], latlonalt: np.ndarray, stamps_ns: Sequence[int],
-                           f35mm: Optional[int], *, quality: int = 95) -> Path:
+def write_geotagged_folder(
+    folder: Path,
+    images: Sequence[np.ndarray],
+    latlonalt: np.ndarray,
+    stamps_ns: Sequence[int],
+    f35mm: int | None,
+    *,
+    quality: int = 95,
+) -> Path:
     """A folder of JPEGs ``NNNNNN.jpg`` as a phone writes them: GPS (a NaN latitude: no GPS, a NaN
     altitude: no altitude), DateTimeOriginal in UTC with nanosecond SubSecTimeOriginal and offset
     +00:00, FocalLengthIn35mmFilm (None: none). ``images`` are grey or BGR uint8 arrays."""
@@ -176,12 +195,22 @@ def test_gps_time_and_35mm_focal_read_back_exactly(tmp_path):
 def test_focal_plane_resolution_and_resized_copy(tmp_path):
     # a 4.5 mm lens on a sensor of 2000 px per 0.7 cm (x) and 2100 px per 0.7 cm (y), recorded at 64x48
     # and stored resized to 32x24: fx = 4.5 mm * 2000/7 px/mm / 2 and fy = 4.5 * 2100/7 / 2
-    exif = {**time_tags(T0), TAG_FOCAL_LENGTH: IFDRational(Fraction(9, 2)),
-            TAG_FOCAL_PLANE_X_RESOLUTION: IFDRational(Fraction(2000, 7) * 10),
-            TAG_FOCAL_PLANE_Y_RESOLUTION: IFDRational(Fraction(2100, 7) * 10),
-            TAG_FOCAL_PLANE_RESOLUTION_UNIT: 3, TAG_PIXEL_X_DIMENSION: 64, TAG_PIXEL_Y_DIMENSION: 48}
+    exif = {
+        **time_tags(T0),
+        TAG_FOCAL_LENGTH: IFDRational(Fraction(9, 2)),
+        TAG_FOCAL_PLANE_X_RESOLUTION: IFDRational(Fraction(2000, 7) * 10),
+        TAG_FOCAL_PLANE_Y_RESOLUTION: IFDRational(Fraction(2100, 7) * 10),
+        TAG_FOCAL_PLANE_RESOLUTION_UNIT: 3,
+        TAG_PIXEL_X_DIMENSION: 64,
+        TAG_PIXEL_Y_DIMENSION: 48,
+    }
     for i in range(3):
-        write_photo(tmp_path / f"p{i}.jpg", _image(i), exif={**exif, **time_tags(T0 + i)}, gps=gps_tags(48.0, 11.0 + i * 1e-4, 500.0))
+        write_photo(
+            tmp_path / f"p{i}.jpg",
+            _image(i),
+            exif={**exif, **time_tags(T0 + i)},
+            gps=gps_tags(48.0, 11.0 + i * 1e-4, 500.0),
+        )
     (info,) = PhotoFolder(tmp_path).camera_infos().values()
     assert (info.fx, info.fy) == pytest.approx((4.5 * 2000 / 7 / 2, 4.5 * 2100 / 7 / 2), rel=1e-9)
 
@@ -189,8 +218,13 @@ def test_focal_plane_resolution_and_resized_copy(tmp_path):
 @pytest.mark.parametrize(
     "orientation, upright",
     [
-        (1, lambda a: a), (2, lambda a: a[:, ::-1]), (3, lambda a: a[::-1, ::-1]), (4, lambda a: a[::-1]),
-        (5, lambda a: a.swapaxes(0, 1)), (6, lambda a: np.rot90(a, -1)), (7, lambda a: np.rot90(a, 2).swapaxes(0, 1)),
+        (1, lambda a: a),
+        (2, lambda a: a[:, ::-1]),
+        (3, lambda a: a[::-1, ::-1]),
+        (4, lambda a: a[::-1]),
+        (5, lambda a: a.swapaxes(0, 1)),
+        (6, lambda a: np.rot90(a, -1)),
+        (7, lambda a: np.rot90(a, 2).swapaxes(0, 1)),
         (8, lambda a: np.rot90(a, 1)),
     ],
 )
@@ -198,11 +232,20 @@ def test_orientation_turns_pixels_and_intrinsics_upright(tmp_path, orientation, 
     """Stored pixels turned as EXIF orientation says (1: as stored, 6: the camera was turned 90 degrees
     clockwise, so the stored image is turned clockwise to show it); lossless PNG, so exact."""
     stored = _image(0, 24, 32)
-    exif = {TAG_FOCAL_LENGTH: IFDRational(4), TAG_FOCAL_PLANE_X_RESOLUTION: IFDRational(10),
-            TAG_FOCAL_PLANE_Y_RESOLUTION: IFDRational(12), TAG_FOCAL_PLANE_RESOLUTION_UNIT: 4}
+    exif = {
+        TAG_FOCAL_LENGTH: IFDRational(4),
+        TAG_FOCAL_PLANE_X_RESOLUTION: IFDRational(10),
+        TAG_FOCAL_PLANE_Y_RESOLUTION: IFDRational(12),
+        TAG_FOCAL_PLANE_RESOLUTION_UNIT: 4,
+    }
     for i in range(3):
-        write_photo(tmp_path / f"p{i}.png", stored, exif={**exif, **time_tags(T0 + i)}, gps=gps_tags(1.0, 2.0 + i * 1e-4),
-                    orientation=orientation)
+        write_photo(
+            tmp_path / f"p{i}.png",
+            stored,
+            exif={**exif, **time_tags(T0 + i)},
+            gps=gps_tags(1.0, 2.0 + i * 1e-4),
+            orientation=orientation,
+        )
     log = PhotoFolder(tmp_path)
     frame = next(log.records(StreamKind.IMAGE))
     assert frame.encoding == "bgr8" and not frame.is_loaded
@@ -217,8 +260,12 @@ def test_orientation_turns_pixels_and_intrinsics_upright(tmp_path, orientation, 
 
 def test_tiff_photos_and_images_subfolder(tmp_path):
     for i in range(3):
-        write_photo(tmp_path / "images" / f"t{i}.tif", _image(i)[..., 0], exif=time_tags(T0 + i * 10**8),
-                    gps=gps_tags(10.5, -20.25 - i * 1e-5, 7.0))
+        write_photo(
+            tmp_path / "images" / f"t{i}.tif",
+            _image(i)[..., 0],
+            exif=time_tags(T0 + i * 10**8),
+            gps=gps_tags(10.5, -20.25 - i * 1e-5, 7.0),
+        )
     assert PhotoFolder.detect(tmp_path)
     log = PhotoFolder(tmp_path)
     frames = list(log.records(StreamKind.IMAGE))
@@ -233,7 +280,12 @@ def test_missing_tags_warn_once_per_kind(tmp_path):
     for i in range(6):
         gps = None if i in (1, 4) else gps_tags(48.0 + i * 1e-4, 11.0, None if i == 2 else 500.0 + i)
         write_photo(tmp_path / f"p{i}.jpg", _image(i), exif=time_tags(T0 + i * 10**9, offset_minutes=None), gps=gps)
-    write_photo(tmp_path / "portrait.jpg", _image(0, 32, 24), exif=time_tags(T0 + 10**10, offset_minutes=None), gps=gps_tags(48, 11, 1))
+    write_photo(
+        tmp_path / "portrait.jpg",
+        _image(0, 32, 24),
+        exif=time_tags(T0 + 10**10, offset_minutes=None),
+        gps=gps_tags(48, 11, 1),
+    )
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -261,10 +313,20 @@ def test_missing_tags_warn_once_per_kind(tmp_path):
 
 
 def test_time_from_gps_then_from_names(tmp_path):
-    gps_time = {GPS_DATESTAMP: "2024:05:01", GPS_TIMESTAMP: (IFDRational(12), IFDRational(34), IFDRational(Fraction(5625, 100)))}
+    gps_time = {
+        GPS_DATESTAMP: "2024:05:01",
+        GPS_TIMESTAMP: (IFDRational(12), IFDRational(34), IFDRational(Fraction(5625, 100))),
+    }
     for i in range(3):
-        write_photo(tmp_path / f"g{2 - i}.jpg", _image(i), gps={**gps_tags(1.0, 1.0 + i * 1e-4), **gps_time,
-                                                               GPS_TIMESTAMP: (IFDRational(12), IFDRational(34), IFDRational(56 + i))})
+        write_photo(
+            tmp_path / f"g{2 - i}.jpg",
+            _image(i),
+            gps={
+                **gps_tags(1.0, 1.0 + i * 1e-4),
+                **gps_time,
+                GPS_TIMESTAMP: (IFDRational(12), IFDRational(34), IFDRational(56 + i)),
+            },
+        )
     with pytest.warns(InputWarning, match="3 of 3 photos have no DateTimeOriginal: their time is GPSDateStamp"):
         log = PhotoFolder(tmp_path)
     assert [p.stamp_ns for p in log.photos] == [T0, T0 + 10**9, T0 + 2 * 10**9]
@@ -280,8 +342,12 @@ def test_time_from_gps_then_from_names(tmp_path):
 
 def test_equal_times_get_unique_stamps_in_name_order(tmp_path):
     for name in ("b.jpg", "a.jpg", "c.jpg"):
-        write_photo(tmp_path / name, _image(0), exif={TAG_DATETIME_ORIGINAL: "2024:05:01 12:34:56", TAG_OFFSET_TIME_ORIGINAL: "+00:00"},
-                    gps=gps_tags(1.0, 1.0))
+        write_photo(
+            tmp_path / name,
+            _image(0),
+            exif={TAG_DATETIME_ORIGINAL: "2024:05:01 12:34:56", TAG_OFFSET_TIME_ORIGINAL: "+00:00"},
+            gps=gps_tags(1.0, 1.0),
+        )
     write_photo(tmp_path / "d.jpg", _image(0), exif=time_tags(T0 - 1), gps=gps_tags(1.0, 1.0))
     with pytest.warns(InputWarning, match="2 of 4 photos have the same time as the one before"):
         log = PhotoFolder(tmp_path)
@@ -294,7 +360,10 @@ def test_void_or_zero_gps_is_no_fix_and_no_photos_is_an_error(tmp_path):
     for i in range(4):
         gps = {**(gps_tags(0.0, 0.0) if i == 3 else gps_tags(1.0, 1.0 + i * 1e-4)), GPS_STATUS: "V" if i == 1 else "A"}
         write_photo(tmp_path / f"p{i}.jpg", _image(i), exif=time_tags(T0 + i), gps=gps)
-    with pytest.warns(InputWarning, match=r"2 of 4 photos have no GPS fix \(GPSStatus V \(measurement void\): 1; latitude and longitude 0"):
+    with pytest.warns(
+        InputWarning,
+        match=r"2 of 4 photos have no GPS fix \(GPSStatus V \(measurement void\): 1; latitude and longitude 0",
+    ):
         log = PhotoFolder(tmp_path)
     assert [f.stamp_ns for f in _fixes(log)] == [T0, T0 + 2]
     (tmp_path / "empty").mkdir()
@@ -321,6 +390,7 @@ def test_detect_never_claims_a_folder_of_the_frame_table_reader(tmp_path):
 
 
 # --- real images ------------------------------------------------------------------------------------
+
 
 def test_kitti_frames_geotagged_along_their_poses_read_back(kitti_clip, tmp_path):
     """Eight real KITTI frames as JPEGs, geotagged along the ground-truth poses (camera z forward driving

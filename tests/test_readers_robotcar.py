@@ -95,6 +95,7 @@ def make_drive(root: Path) -> Path:
 
 # --- cameras ------------------------------------------------------------------------------------------
 
+
 def test_cameras_are_demosaiced_with_their_bayer_patterns(tmp_path):
     log = RobotCar(make_drive(tmp_path))
     centre = _records(log, "/robotcar/stereo_centre/image")
@@ -139,6 +140,7 @@ def test_images_without_a_timestamps_file_are_read_in_stamp_order(tmp_path):
 
 # --- GPS, INS, VO ---------------------------------------------------------------------------------------
 
+
 def test_gps_fixes(tmp_path):
     fixes = list(RobotCar(make_drive(tmp_path)).records(StreamKind.GPS))
     assert [f.stamp_ns for f in fixes] == [STAMPS_US[0] * 1000, STAMPS_US[1] * 1000]
@@ -157,7 +159,9 @@ def test_ins_poses_in_the_local_utm_frame(tmp_path):
     assert (origin.epsg, origin.easting_m, origin.northing_m, origin.up_m) == (32630, 500000.0, 5735000.0, 100.0)
 
     # yaw 0 faces north; forward-left-up body: forward -> north, left -> west, up -> up
-    np.testing.assert_allclose(poses[0].parent_from_child, [[0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(
+        poses[0].parent_from_child, [[0, -1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], atol=1e-12
+    )
     # x = easting - e0, y = northing - n0, z = -(down - down0); NED yaw +90 deg faces east
     np.testing.assert_allclose(poses[1].parent_from_child[:3, 3], [3.0, 4.0, 1.5])
     np.testing.assert_allclose(poses[1].parent_from_child[:3, 0], [1.0, 0.0, 0.0], atol=1e-12)
@@ -172,9 +176,15 @@ def test_ins_heading_agrees_with_the_grid_direction_of_travel(tmp_path):
     to_utm = Transformer.from_crs(4326, 32630, always_xy=True)
     lats = 51.75 + 1e-4 * np.arange(4)
     east, north = to_utm.transform(np.full(4, -1.25), lats)
-    rows = [ins_row(STAMPS_US[0] + 50000 * k, lats[k], -1.25, north[k], east[k], -60.0, 0.0, 0.0, 0.0) for k in range(4)]
+    rows = [
+        ins_row(STAMPS_US[0] + 50000 * k, lats[k], -1.25, north[k], east[k], -60.0, 0.0, 0.0, 0.0) for k in range(4)
+    ]
     drive = tmp_path / "drive"
-    write_csv(drive / "gps" / "ins.csv", INS_HEADER, [[repr(float(v)) if isinstance(v, float) else v for v in r] for r in rows])
+    write_csv(
+        drive / "gps" / "ins.csv",
+        INS_HEADER,
+        [[repr(float(v)) if isinstance(v, float) else v for v in r] for r in rows],
+    )
     travel = np.diff(np.column_stack([east, north]), axis=0)
     travel /= np.linalg.norm(travel, axis=1, keepdims=True)
 
@@ -217,6 +227,7 @@ def test_vo_chain_break_warns(tmp_path):
 
 # --- lidar ------------------------------------------------------------------------------------------------
 
+
 def test_lms_scans_lie_in_their_scan_plane(tmp_path):
     scans = list(RobotCar(make_drive(tmp_path)).records(StreamKind.LIDAR))
     assert [s.stamp_ns for s in scans] == [ts * 1000 for ts in STAMPS_US]
@@ -228,7 +239,9 @@ def test_lms_scans_lie_in_their_scan_plane(tmp_path):
 def test_velodyne_binary_planes_and_raw_png_warning(tmp_path):
     drive = make_drive(tmp_path)
     (drive / "velodyne_left").mkdir()
-    planes = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0], [10.0, 11.0, 12.0]], "<f4")  # x, y, z, intensity
+    planes = np.array(
+        [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.0, 8.0, 9.0], [10.0, 11.0, 12.0]], "<f4"
+    )  # x, y, z, intensity
     planes.tofile(drive / "velodyne_left" / f"{STAMPS_US[0]}.bin")
     (drive / "velodyne_right").mkdir()
     cv2.imwrite(str(drive / "velodyne_right" / f"{STAMPS_US[0]}.png"), np.zeros((4, 4), np.uint8))
@@ -241,6 +254,7 @@ def test_velodyne_binary_planes_and_raw_png_warning(tmp_path):
 
 
 # --- errors and layout --------------------------------------------------------------------------------------
+
 
 def test_csv_row_with_a_missing_value_names_file_line_and_column(tmp_path):
     drive = make_drive(tmp_path)

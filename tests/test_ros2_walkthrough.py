@@ -1,4 +1,4 @@
-""""Your own ROS 2 bag in five steps" of docs/your-data.md, run as written on a small synthetic bag, and what a
+""" "Your own ROS 2 bag in five steps" of docs/your-data.md, run as written on a small synthetic bag, and what a
 build does with a sensor the bag's tf does not link to the vehicle.
 
 The bag is the tiny town's drive cut to 70 m (long enough for GPS to fix its heading), recorded as a rosbag2
@@ -32,8 +32,19 @@ BAG = "my-bag"  # the page's placeholder for the user's bag
 WS = "ws-my-bag"
 #: one 70 m drive of the tiny town at 8 m/s, camera at 5 Hz, started at speed (no standstill for kiss-icp to slip on)
 ONE_DRIVE = {
-    "sessions": [{"name": BAG, "role": "train", "date": "2014-06-26", "time": "11:00", "weather": "overcast",
-                  "length_m": 70.0, "speed_mps": 8.0, "lane_offset_m": 0.0, "camera_rate_hz": 5.0}],
+    "sessions": [
+        {
+            "name": BAG,
+            "role": "train",
+            "date": "2014-06-26",
+            "time": "11:00",
+            "weather": "overcast",
+            "length_m": 70.0,
+            "speed_mps": 8.0,
+            "lane_offset_m": 0.0,
+            "camera_rate_hz": 5.0,
+        }
+    ],
     "motion": {"start_from_rest": False},
 }
 #: builds that exercise the extrinsic lookups cheaply: the truth's pose stream as trajectory, no semi-dense map
@@ -42,7 +53,9 @@ FAST = "topics: {poses: /ground_truth/odom}\ntrajectory: {source: poses}\nmap: f
 
 @pytest.fixture(scope="module")
 def town(tmp_path_factory) -> Path:
-    return synthesize(preset="tiny", out=tmp_path_factory.mktemp("ros2-bag") / "town", overrides=ONE_DRIVE, progress=False)
+    return synthesize(
+        preset="tiny", out=tmp_path_factory.mktemp("ros2-bag") / "town", overrides=ONE_DRIVE, progress=False
+    )
 
 
 def _section() -> str:
@@ -57,7 +70,7 @@ def _argv(line: str, bag: Path) -> list[str]:
     """A command of the page with the user's bag (``my-bag``, also in ``my-bag::/topic``) replaced by ``bag``."""
     argv = shlex.split(line)
     assert argv[0] == "mapkit"
-    return [str(bag) + tok[len(BAG):] if tok == BAG or tok.startswith(BAG + "::") else tok for tok in argv[1:]]
+    return [str(bag) + tok[len(BAG) :] if tok == BAG or tok.startswith(BAG + "::") else tok for tok in argv[1:]]
 
 
 def test_the_walkthrough_runs_as_written_on_a_synthetic_bag(town, tmp_path, monkeypatch, capsys):
@@ -81,7 +94,14 @@ def test_the_walkthrough_runs_as_written_on_a_synthetic_bag(town, tmp_path, monk
     assert not [str(w.message) for w in caught if "identity" in str(w.message)]  # every sensor is in the bag's tf
 
     # step 1: the streams the config names, and the GPS summary the page says to read
-    for topic in ("/camera/front/image", "/camera/front/camera_info", "/lidar/points", "/gps/fix", "/imu/data", "/tf_static"):
+    for topic in (
+        "/camera/front/image",
+        "/camera/front/camera_info",
+        "/lidar/points",
+        "/gps/fix",
+        "/imu/data",
+        "/tf_static",
+    ):
         assert topic in out["info"] and topic in files["my-bag.yaml"] + "/tf_static", topic
     covered = re.search(r"GPS /gps/fix: ([\d.]+) m covered, (\d+)/(\d+) fixes", out["info"])
     assert covered and 60 < float(covered.group(1)) < 100 and covered.group(2) == covered.group(3)
@@ -126,6 +146,7 @@ def test_the_walkthrough_runs_as_written_on_a_synthetic_bag(town, tmp_path, monk
 
 # --- a sensor the bag's tf does not link ---------------------------------------------------------------------
 
+
 def _bag_without(src: Path, dst: Path, child: str | None) -> Path:
     """A copy of the rosbag2 folder ``src`` whose ``/tf_static`` lacks the transform to ``child`` (``None``: holds
     no transform at all); every other message byte for byte."""
@@ -147,8 +168,9 @@ def _bag_without(src: Path, dst: Path, child: str | None) -> Path:
             if schema.id not in schemas:
                 schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
             if channel.id not in channels:
-                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding, schemas[schema.id],
-                                                               channel.metadata)
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id], channel.metadata
+                )
             data = message.data
             if channel.topic == "/tf_static":
                 msg = DecoderFactory().decoder_for(channel.message_encoding, schema)(data)
@@ -190,7 +212,11 @@ def test_assume_identity_builds_a_camera_tf_does_not_link_with_one_warning(town,
     bag = _bag_without(session_log(town, BAG), tmp_path / "no-camera-tf", "camera_front")
     said = _build(bag, tmp_path / "ws", FAST + "extrinsics: {assume_identity: [camera_front]}\n")
     assert len(said) == 1, said
-    assert "camera frame 'camera_front'" in said[0] and "'base_link'" in said[0] and "extrinsics.assume_identity" in said[0]
+    assert (
+        "camera frame 'camera_front'" in said[0]
+        and "'base_link'" in said[0]
+        and "extrinsics.assume_identity" in said[0]
+    )
     mount = json.loads(Workspace(tmp_path / "ws").session(bag.name).camera_mount.read_text())
     assert mount["base_frame"] == "base_link" and np.array_equal(mount["base_from_camera"], np.eye(4))
 
@@ -210,7 +236,9 @@ def test_a_gps_antenna_tf_does_not_link_is_one_error_naming_the_frames_and_the_t
 def test_assume_identity_builds_a_gps_antenna_tf_does_not_link_with_one_warning(town, tmp_path):
     """Both lookups of the antenna (the rigid GPS fit and the factor graph) take the identity; it is said once."""
     bag = _bag_without(session_log(town, BAG), tmp_path / "no-gps-tf", "gps")
-    said = _build(bag, tmp_path / "ws", FAST + "imagedb: false\ngeoref: {fuse: true}\nextrinsics: {assume_identity: [gps]}\n")
+    said = _build(
+        bag, tmp_path / "ws", FAST + "imagedb: false\ngeoref: {fuse: true}\nextrinsics: {assume_identity: [gps]}\n"
+    )
     assert len(said) == 1, said
     assert "GPS antenna frame 'gps'" in said[0] and "'base_link'" in said[0] and "extrinsics.assume_identity" in said[0]
     ga = json.loads(Workspace(tmp_path / "ws").session(bag.name).gps_alignment.read_text())

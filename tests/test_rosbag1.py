@@ -26,7 +26,16 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from mapkit.cli import main
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import make_pose, quat_wxyz_to_matrix
-from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, ImuSample, LidarScan, PoseSample, StreamKind
+from mapkit.core.types import (
+    CameraFrame,
+    CameraInfo,
+    FrameTransform,
+    GpsFix,
+    ImuSample,
+    LidarScan,
+    PoseSample,
+    StreamKind,
+)
 from mapkit.io import guess_format, open_log
 from mapkit.io.info import summarize
 from mapkit.io.mcap_log import McapLog, Rosbag2Writer
@@ -53,16 +62,50 @@ def _drive(n: int = 10) -> list[tuple[str, object, dict]]:
         q = np.array([np.cos(0.05 * i), 0, 0, np.sin(0.05 * i)])  # yaw 0.1 i rad
         items += [
             ("/cam/camera_info", CameraInfo("cam", 8, 6, K, "plumb_bob", np.array([0.1, -0.02, 0, 0, 0.003]), t), {}),
-            ("/cam/image", CameraFrame(t, "cam", rng.integers(0, 255, (6, 8, 3), dtype=np.uint8), encoding="rgb8"),
-             {"compress": "png"}),
-            ("/mono/image_raw", CameraFrame(t, "mono", rng.integers(0, 255, (6, 8), dtype=np.uint8), encoding="mono8"), {}),
-            ("/lidar/points", LidarScan(t, "lidar", rng.normal(size=(40, 3)).astype(np.float32), rng.random(40).astype(np.float32),
-                                        np.linspace(0, 0.1, 40).astype(np.float32), np.arange(40, dtype=np.uint16) % 16), {}),
+            (
+                "/cam/image",
+                CameraFrame(t, "cam", rng.integers(0, 255, (6, 8, 3), dtype=np.uint8), encoding="rgb8"),
+                {"compress": "png"},
+            ),
+            (
+                "/mono/image_raw",
+                CameraFrame(t, "mono", rng.integers(0, 255, (6, 8), dtype=np.uint8), encoding="mono8"),
+                {},
+            ),
+            (
+                "/lidar/points",
+                LidarScan(
+                    t,
+                    "lidar",
+                    rng.normal(size=(40, 3)).astype(np.float32),
+                    rng.random(40).astype(np.float32),
+                    np.linspace(0, 0.1, 40).astype(np.float32),
+                    np.arange(40, dtype=np.uint16) % 16,
+                ),
+                {},
+            ),
             ("/imu/data", ImuSample(t, "imu", rng.normal(size=3), rng.normal(size=3), q), {}),
-            ("/odom", PoseSample(t, "odom", "base_link", make_pose(quat_wxyz_to_matrix(q), [i, 0.5 * i, 0]),
-                                 covariance=np.diag(np.arange(1.0, 7.0))), {}),
-            ("/pose", PoseSample(t, "map", "base_link", make_pose(np.eye(3), [0, i, 0])), {"pose_msgtype": "geometry_msgs/PoseStamped"}),
-            ("/tf", FrameTransform(t, "odom", "base_link", make_pose(quat_wxyz_to_matrix(q), [i, 0, 0]), static=False), {}),
+            (
+                "/odom",
+                PoseSample(
+                    t,
+                    "odom",
+                    "base_link",
+                    make_pose(quat_wxyz_to_matrix(q), [i, 0.5 * i, 0]),
+                    covariance=np.diag(np.arange(1.0, 7.0)),
+                ),
+                {},
+            ),
+            (
+                "/pose",
+                PoseSample(t, "map", "base_link", make_pose(np.eye(3), [0, i, 0])),
+                {"pose_msgtype": "geometry_msgs/PoseStamped"},
+            ),
+            (
+                "/tf",
+                FrameTransform(t, "odom", "base_link", make_pose(quat_wxyz_to_matrix(q), [i, 0, 0]), static=False),
+                {},
+            ),
         ]
         if i % 2 == 0:
             cov = None if i == 4 else np.diag([4.0, 4.0, 9.0])
@@ -94,7 +137,9 @@ def _to_ros1(msg, seq: int):
     return cls(**values)
 
 
-def _twins(mcap_folder: Path, out: Path, extra: tuple[str, str, list] | None = None, bz2: bool = False) -> tuple[Path, Path]:
+def _twins(
+    mcap_folder: Path, out: Path, extra: tuple[str, str, list] | None = None, bz2: bool = False
+) -> tuple[Path, Path]:
     """The MCAP folder as a ROS 1 bag (chunks bz2-compressed with ``bz2``, as ``rosbag record --bz2``)
     and as a rosbag2 sqlite3 folder, message by message (with ``extra`` = (topic, ROS 1/2 type,
     [(stamp, ros1 msg, ros2 msg)]) added to both)."""
@@ -103,8 +148,11 @@ def _twins(mcap_folder: Path, out: Path, extra: tuple[str, str, list] | None = N
     w1 = Rosbag1Writer(bag)
     if bz2:
         w1.set_compression(Rosbag1Writer.CompressionFormat.BZ2)
-    with AnyReader([mcap_folder], default_typestore=ROS2) as reader, w1, \
-            Rosbag2SqliteWriter(sq, version=9, storage_plugin=StoragePlugin.SQLITE3) as w2:
+    with (
+        AnyReader([mcap_folder], default_typestore=ROS2) as reader,
+        w1,
+        Rosbag2SqliteWriter(sq, version=9, storage_plugin=StoragePlugin.SQLITE3) as w2,
+    ):
         conns1, conns2 = {}, {}
         for conn in reader.connections:
             conns1[conn.topic] = w1.add_connection(conn.topic, conn.msgtype, typestore=ROS1)
@@ -116,7 +164,10 @@ def _twins(mcap_folder: Path, out: Path, extra: tuple[str, str, list] | None = N
             seq[conn.topic] += 1
         if extra:
             topic, msgtype, msgs = extra
-            c1, c2 = w1.add_connection(topic, msgtype, typestore=ROS1), w2.add_connection(topic, msgtype, typestore=ROS2)
+            c1, c2 = (
+                w1.add_connection(topic, msgtype, typestore=ROS1),
+                w2.add_connection(topic, msgtype, typestore=ROS2),
+            )
             for stamp, m1, m2 in msgs:
                 w1.write(c1, stamp, ROS1.serialize_ros1(m1, msgtype))
                 w2.write(c2, stamp, ROS2.serialize_cdr(m2, msgtype))
@@ -127,7 +178,16 @@ def _canon(record) -> tuple:
     """A record as a comparable tuple; arrays by dtype, shape and bytes (exact equality)."""
     if isinstance(record, CameraFrame):
         img = record.image
-        return ("frame", record.stamp_ns, record.camera, record.encoding, record.source, img.dtype.str, img.shape, img.tobytes())
+        return (
+            "frame",
+            record.stamp_ns,
+            record.camera,
+            record.encoding,
+            record.source,
+            img.dtype.str,
+            img.shape,
+            img.tobytes(),
+        )
     values = []
     for f in dataclasses.fields(record):
         v = getattr(record, f.name)
@@ -158,6 +218,7 @@ def twins(tmp_path_factory) -> dict[str, Path]:
 
 
 # --- the same records as the MCAP twin -----------------------------------------------------------------
+
 
 @pytest.mark.parametrize("kind", ["ros1", "ros1-bz2", "sqlite3"])
 def test_bag_reads_the_same_records_as_its_mcap_twin(twins, kind):
@@ -232,20 +293,22 @@ def test_tf_of_ros1_tf_package_reads_as_tf2(twins, tmp_path):
         for conn, stamp, raw in reader.messages(connections=list(conns.values())):
             w.write(out[conn.topic], stamp, raw)
     got, want = _read(old), _read(twins["mcap"])
-    assert [s for s in got[0]] == [(t, k, "tf2_msgs/TFMessage", c) for t, k, _, c in want[0] if t in ("/tf", "/tf_static")]
+    assert [s for s in got[0]] == [
+        (t, k, "tf2_msgs/TFMessage", c) for t, k, _, c in want[0] if t in ("/tf", "/tf_static")
+    ]
     assert got[2] == {t: want[2][t] for t in ("/tf", "/tf_static")}
 
 
 # --- damaged bags and unknown types -------------------------------------------------------------------
+
 
 def test_a_truncated_bag_is_one_input_error_naming_the_file(twins, tmp_path):
     data = twins["ros1"].read_bytes()
     for keep in (len(data) // 2, len(data) - 40, 20):
         cut = tmp_path / f"cut_{keep}.bag"
         cut.write_bytes(data[:keep])
-        with pytest.raises(InputError, match="could not be read as a ROS 1 bag") as exc:
-            with open_log(cut) as log:
-                list(log.messages())
+        with pytest.raises(InputError, match="could not be read as a ROS 1 bag") as exc, open_log(cut) as log:
+            list(log.messages())
         assert exc.value.path == cut
     not_a_bag = tmp_path / "notes.bag"
     not_a_bag.write_text("hello")
@@ -259,9 +322,8 @@ def test_a_truncated_sqlite3_storage_file_is_one_input_error(twins, tmp_path):
     shutil.copytree(twins["sqlite3"], sq)
     (db,) = sq.glob("*.db3")
     db.write_bytes(db.read_bytes()[: db.stat().st_size // 3])
-    with pytest.raises(InputError, match="could not be read as a rosbag2 folder") as exc:
-        with open_log(sq) as log:
-            list(log.messages())
+    with pytest.raises(InputError, match="could not be read as a rosbag2 folder") as exc, open_log(sq) as log:
+        list(log.messages())
     assert exc.value.path == sq
 
 
@@ -286,9 +348,11 @@ def test_an_unknown_message_type_is_skipped_with_one_warning_per_topic(twins, tm
 
 # --- a synthetic session as a ROS 1 bag -------------------------------------------------------------------
 
-ONE_DRIVE = {"sessions": [{"name": "drive", "role": "train", "weather": "overcast", "length_m": 30.0, "speed_mps": 8.0}],
-             "motion": {"start_from_rest": False},
-             "lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 512}}
+ONE_DRIVE = {
+    "sessions": [{"name": "drive", "role": "train", "weather": "overcast", "length_m": 30.0, "speed_mps": 8.0}],
+    "motion": {"start_from_rest": False},
+    "lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 512},
+}
 
 
 def test_synthetic_session_as_a_ros1_bag_builds_the_same_trajectory(tmp_path, capsys):
@@ -298,8 +362,9 @@ def test_synthetic_session_as_a_ros1_bag_builds_the_same_trajectory(tmp_path, ca
     folder = session_log(town, "drive")
     bag, _ = _twins(folder, tmp_path)
     a, b = summarize(folder), summarize(bag)
-    assert [(r["topic"], r["kind"], r["count"], r.get("start_ns"), r.get("end_ns")) for r in a["streams"]] == \
-        [(r["topic"], r["kind"], r["count"], r.get("start_ns"), r.get("end_ns")) for r in b["streams"]]
+    assert [(r["topic"], r["kind"], r["count"], r.get("start_ns"), r.get("end_ns")) for r in a["streams"]] == [
+        (r["topic"], r["kind"], r["count"], r.get("start_ns"), r.get("end_ns")) for r in b["streams"]
+    ]
     assert a["gps"] == b["gps"]
     assert main(["info", str(bag)]) == 0 and "/lidar/points" in capsys.readouterr().out
     trajectories = []

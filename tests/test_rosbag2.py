@@ -18,7 +18,16 @@ import yaml
 from mapkit.cli import main
 from mapkit.core.errors import InputError, MapkitError
 from mapkit.core.geometry import interpolate_poses, invert_pose, make_pose
-from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, ImuSample, LidarScan, PoseSample, StreamKind
+from mapkit.core.types import (
+    CameraFrame,
+    CameraInfo,
+    FrameTransform,
+    GpsFix,
+    ImuSample,
+    LidarScan,
+    PoseSample,
+    StreamKind,
+)
 from mapkit.io import guess_format, open_log
 from mapkit.io.info import summarize
 from mapkit.io.mcap_log import McapLog, McapWriter, Rosbag2Writer, rosbag2_mcap_files
@@ -31,21 +40,49 @@ def _records(n: int = 12, start: int = T0) -> list[tuple[str, object, dict]]:
     """A small drive of every message type mapkit writes, 10 Hz (GPS 5 Hz)."""
     rng = np.random.default_rng(3)
     items: list[tuple[str, object, dict]] = [
-        ("/tf_static", FrameTransform(start, "base_link", "lidar", make_pose(np.eye(3), [1.2, 0, 1.9]), static=True), {}),
+        (
+            "/tf_static",
+            FrameTransform(start, "base_link", "lidar", make_pose(np.eye(3), [1.2, 0, 1.9]), static=True),
+            {},
+        ),
     ]
     for i in range(n):
         t = start + i * 100_000_000
-        items.append(("/cam/camera_info", CameraInfo("cam", 8, 6, np.array([[5.0, 0, 4], [0, 5, 3], [0, 0, 1]]),
-                                                     "plumb_bob", np.zeros(5), t), {}))
-        items.append(("/cam/image", CameraFrame(t, "cam", rng.integers(0, 255, (6, 8, 3), dtype=np.uint8), encoding="rgb8"),
-                      {"compress": "png"}))
+        items.append(
+            (
+                "/cam/camera_info",
+                CameraInfo("cam", 8, 6, np.array([[5.0, 0, 4], [0, 5, 3], [0, 0, 1]]), "plumb_bob", np.zeros(5), t),
+                {},
+            )
+        )
+        items.append(
+            (
+                "/cam/image",
+                CameraFrame(t, "cam", rng.integers(0, 255, (6, 8, 3), dtype=np.uint8), encoding="rgb8"),
+                {"compress": "png"},
+            )
+        )
         xyz = rng.normal(size=(50, 3)).astype(np.float32)
-        items.append(("/lidar/points", LidarScan(t, "lidar", xyz, rng.random(50).astype(np.float32),
-                                                 np.linspace(0, 0.1, 50).astype(np.float32), np.arange(50) % 16), {}))
+        items.append(
+            (
+                "/lidar/points",
+                LidarScan(
+                    t,
+                    "lidar",
+                    xyz,
+                    rng.random(50).astype(np.float32),
+                    np.linspace(0, 0.1, 50).astype(np.float32),
+                    np.arange(50) % 16,
+                ),
+                {},
+            )
+        )
         items.append(("/imu/data", ImuSample(t, "imu", rng.normal(size=3), rng.normal(size=3)), {}))
         items.append(("/odom", PoseSample(t, "map", "base_link", make_pose(np.eye(3), [i, 0, 0])), {}))
         if i % 2 == 0:
-            items.append(("/gps/fix", GpsFix(t, 49.0 + i * 1e-6, 8.4, 100.0, covariance_enu_m2=np.diag([4.0, 4.0, 9.0])), {}))
+            items.append(
+                ("/gps/fix", GpsFix(t, 49.0 + i * 1e-6, 8.4, 100.0, covariance_enu_m2=np.diag([4.0, 4.0, 9.0])), {})
+            )
     return items
 
 
@@ -76,6 +113,7 @@ def _everything(path: Path) -> tuple[list, list, list]:
 
 # --- writer -----------------------------------------------------------------------------------------
 
+
 def test_rosbag2_folder_layout_and_metadata_come_from_the_writers_counts(tmp_path):
     items = _records()
     folder = _write(Rosbag2Writer(tmp_path / "drive"), items)
@@ -91,8 +129,15 @@ def test_rosbag2_folder_layout_and_metadata_come_from_the_writers_counts(tmp_pat
     assert info["files"][0]["path"] == "drive_0.mcap" and info["compression_mode"] == ""
     topics = {t["topic_metadata"]["name"]: t for t in info["topics_with_message_count"]}
     counts = {k: t["message_count"] for k, t in topics.items()}
-    assert counts == {"/tf_static": 1, "/cam/camera_info": 12, "/cam/image": 12, "/lidar/points": 12, "/imu/data": 12,
-                      "/odom": 12, "/gps/fix": 6}
+    assert counts == {
+        "/tf_static": 1,
+        "/cam/camera_info": 12,
+        "/cam/image": 12,
+        "/lidar/points": 12,
+        "/imu/data": 12,
+        "/odom": 12,
+        "/gps/fix": 6,
+    }
     assert topics["/cam/image"]["topic_metadata"]["type"] == "sensor_msgs/msg/CompressedImage"
     assert topics["/odom"]["topic_metadata"]["type"] == "nav_msgs/msg/Odometry"
     assert {t["topic_metadata"]["serialization_format"] for t in topics.values()} == {"cdr"}
@@ -103,11 +148,10 @@ def test_rosbag2_folder_layout_and_metadata_come_from_the_writers_counts(tmp_pat
 
 def test_rosbag2_writer_is_atomic(tmp_path):
     target = tmp_path / "drive"
-    with pytest.raises(RuntimeError):
-        with Rosbag2Writer(target) as w:
-            w.write("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0))
-            assert not target.exists()  # nothing under the final name while writing
-            raise RuntimeError("crash while writing")
+    with pytest.raises(RuntimeError), Rosbag2Writer(target) as w:
+        w.write("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0))
+        assert not target.exists()  # nothing under the final name while writing
+        raise RuntimeError("crash while writing")
     assert not target.exists() and list(tmp_path.iterdir()) == []
     # a killed run leaves its hidden partial folder: the next writer replaces it
     (tmp_path / ".drive.partial").mkdir()
@@ -115,13 +159,17 @@ def test_rosbag2_writer_is_atomic(tmp_path):
     _write(Rosbag2Writer(target), [("/gps/fix", GpsFix(T0, 49.0, 8.4, 100.0), {})])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive"]
     # writing again replaces a finished folder whole
-    _write(Rosbag2Writer(target), [("/gps/fix", GpsFix(T0, 1.0, 2.0, 3.0), {}), ("/gps/fix", GpsFix(T0 + 1, 1.0, 2.0, 3.0), {})])
+    _write(
+        Rosbag2Writer(target),
+        [("/gps/fix", GpsFix(T0, 1.0, 2.0, 3.0), {}), ("/gps/fix", GpsFix(T0 + 1, 1.0, 2.0, 3.0), {})],
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["drive"]
     with McapLog(target) as log:
         assert [f.lat_deg for f in log.records(StreamKind.GPS)] == [1.0, 1.0]
 
 
 # --- reader -----------------------------------------------------------------------------------------
+
 
 def test_bare_mcap_and_rosbag2_folder_read_identically(tmp_path):
     items = _records()
@@ -141,10 +189,19 @@ def test_split_rosbag2_is_read_in_metadata_order_as_one_log(tmp_path):
     first, second = _records(6), _records(6, start=T0 + 600_000_000)[1:]  # one /tf_static, in the first file
     _write(McapWriter(folder / "split_1.mcap"), second)
     _write(McapWriter(folder / "split_0.mcap"), first)
-    meta = {"rosbag2_bagfile_information": {
-        "version": 9, "storage_identifier": "mcap", "relative_file_paths": ["split_0.mcap", "split_1.mcap"],
-        "duration": {"nanoseconds": 0}, "starting_time": {"nanoseconds_since_epoch": T0}, "message_count": 0,
-        "topics_with_message_count": [], "compression_format": "", "compression_mode": ""}}
+    meta = {
+        "rosbag2_bagfile_information": {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "relative_file_paths": ["split_0.mcap", "split_1.mcap"],
+            "duration": {"nanoseconds": 0},
+            "starting_time": {"nanoseconds_since_epoch": T0},
+            "message_count": 0,
+            "topics_with_message_count": [],
+            "compression_format": "",
+            "compression_mode": "",
+        }
+    }
     (folder / "metadata.yaml").write_text(yaml.safe_dump(meta))
     whole = _write(McapWriter(tmp_path / "whole.mcap"), first + second)
     assert rosbag2_mcap_files(folder) == [folder / "split_0.mcap", folder / "split_1.mcap"]
@@ -157,8 +214,17 @@ def test_rosbag2_folders_mapkit_cannot_read_are_clear_errors(tmp_path):
     sq = tmp_path / "sq"
     sq.mkdir()
     (sq / "sq_0.db3").write_bytes(b"SQLite format 3\x00")
-    (sq / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": {
-        "version": 5, "storage_identifier": "sqlite3", "relative_file_paths": ["sq_0.db3"]}}))
+    (sq / "metadata.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "rosbag2_bagfile_information": {
+                    "version": 5,
+                    "storage_identifier": "sqlite3",
+                    "relative_file_paths": ["sq_0.db3"],
+                }
+            }
+        )
+    )
     assert guess_format(sq) == "rosbag"  # sqlite3 storage goes to the rosbags-based reader (tests/test_rosbag1.py)
     with pytest.raises(InputError, match=r"storage 'sqlite3' is read by the 'rosbag' reader") as exc:
         McapLog(sq)
@@ -194,7 +260,10 @@ def test_session_logs_lists_finished_folders_and_older_bare_logs(tmp_path):
     (sessions / ".c-killed.partial").mkdir()
     (sessions / "b-new.gt.tum").write_text("")
     assert session_logs(tmp_path) == [sessions / "a-old.mcap", sessions / "b-new"]
-    assert session_log(tmp_path, "b-new") == sessions / "b-new" and session_log(tmp_path, "a-old") == sessions / "a-old.mcap"
+    assert (
+        session_log(tmp_path, "b-new") == sessions / "b-new"
+        and session_log(tmp_path, "a-old") == sessions / "a-old.mcap"
+    )
     with pytest.raises(MapkitError, match="no log for session 'c-killed'"):
         session_log(tmp_path, "c-killed")
 
@@ -204,14 +273,18 @@ def test_session_logs_lists_finished_folders_and_older_bare_logs(tmp_path):
 # one 30 m drive (about 4 s, 39 LiDAR sweeps) in the tiny town
 # at speed from the first sweep, with a 32-beam sweep: kiss-icp's default config, which its command
 # line uses, needs a few sweeps to pick up speed and loses track on the preset's sparse 64 x 256 sweep
-ONE_DRIVE = {"sessions": [{"name": "drive", "role": "train", "weather": "overcast", "length_m": 30.0, "speed_mps": 8.0}],
-             "motion": {"start_from_rest": False},
-             "lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 512}}
+ONE_DRIVE = {
+    "sessions": [{"name": "drive", "role": "train", "weather": "overcast", "length_m": 30.0, "speed_mps": 8.0}],
+    "motion": {"start_from_rest": False},
+    "lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 512},
+}
 
 
 @pytest.fixture(scope="module")
 def town(tmp_path_factory) -> Path:
-    return synthesize(preset="tiny", out=tmp_path_factory.mktemp("rosbag2") / "town", overrides=ONE_DRIVE, progress=False)
+    return synthesize(
+        preset="tiny", out=tmp_path_factory.mktemp("rosbag2") / "town", overrides=ONE_DRIVE, progress=False
+    )
 
 
 def test_synthetic_session_is_a_rosbag2_folder(town):
@@ -249,9 +322,15 @@ def test_rosbags_reads_the_synthetic_session_as_mapkit_wrote_it(town):
     ns = lambda m: m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec  # noqa: E731
 
     msgtype, stamp, pc = got["/lidar/points"]
-    assert msgtype == "sensor_msgs/msg/PointCloud2" and ns(pc) == stamp == scan.stamp_ns and pc.header.frame_id == "lidar"
-    fmt = {"names": [f.name for f in pc.fields], "offsets": [f.offset for f in pc.fields],
-           "formats": [{7: "<f4", 4: "<u2"}[f.datatype] for f in pc.fields], "itemsize": pc.point_step}
+    assert (
+        msgtype == "sensor_msgs/msg/PointCloud2" and ns(pc) == stamp == scan.stamp_ns and pc.header.frame_id == "lidar"
+    )
+    fmt = {
+        "names": [f.name for f in pc.fields],
+        "offsets": [f.offset for f in pc.fields],
+        "formats": [{7: "<f4", 4: "<u2"}[f.datatype] for f in pc.fields],
+        "itemsize": pc.point_step,
+    }
     pts = np.frombuffer(pc.data.tobytes(), dtype=np.dtype(fmt), count=pc.width * pc.height)
     np.testing.assert_array_equal(np.stack([pts["x"], pts["y"], pts["z"]], axis=1), scan.points_xyz)
     np.testing.assert_array_equal(pts["intensity"], scan.intensity)
@@ -282,8 +361,14 @@ def test_kiss_icp_command_line_runs_on_the_session_folder(town, tmp_path):
     folder = session_log(town, "drive")
     assert _kiss_icp_cli(), "kiss-icp's command line (kiss_icp_pipeline) comes with mapkit's dependencies"
     env = {k: v for k, v in os.environ.items() if not k.lower().startswith("kiss_icp")}  # its defaults: ./results
-    proc = subprocess.run([_kiss_icp_cli(), "--topic", "/lidar/points", str(folder)], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [_kiss_icp_cli(), "--topic", "/lidar/points", str(folder)],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     # results/<date-time>/ and its results/latest link; the file is named after the bag folder
     (poses_file,) = {p.resolve() for p in (tmp_path / "results").glob("*/drive_poses.npy")}

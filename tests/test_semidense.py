@@ -85,7 +85,9 @@ def cast(world_from_cam: np.ndarray, K: np.ndarray, w: int, h: int) -> tuple[np.
     return best_t, face  # t is the camera depth because rays_cam has z = 1
 
 
-def render(world_from_cam: np.ndarray, gain: float = 1.0, bias: float = 0.0, noise: float = 1.0, seed: int = 0) -> np.ndarray:
+def render(
+    world_from_cam: np.ndarray, gain: float = 1.0, bias: float = 0.0, noise: float = 1.0, seed: int = 0
+) -> np.ndarray:
     """8-bit image of the room (2x2 supersampled), with an exposure change and sensor noise."""
     ss = 2
     K2 = K_SYN.copy()
@@ -93,7 +95,9 @@ def render(world_from_cam: np.ndarray, gain: float = 1.0, bias: float = 0.0, noi
     K2[:2, 2] = K_SYN[:2, 2] * ss + (ss - 1) / 2.0
     t, face = cast(world_from_cam, K2, W_IMG * ss, H_IMG * ss)
     u, v = np.meshgrid(np.arange(W_IMG * ss, dtype=np.float64), np.arange(H_IMG * ss, dtype=np.float64))
-    X = transform_points(world_from_cam, (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K2).T * t[..., None]).reshape(-1, 3)).reshape(u.shape + (3,))
+    X = transform_points(
+        world_from_cam, (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K2).T * t[..., None]).reshape(-1, 3)
+    ).reshape(u.shape + (3,))
     img = np.zeros(u.shape, np.float32)
     for k, (tex, _, _, (s_ax, t_ax)) in enumerate(FACES):
         m = face == k
@@ -141,11 +145,15 @@ def room_map(room):
     poses, images = room
     per_kf: dict[int, KeyframePoints] = {}
     frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
-    sd = build_semidense_map(iter(frames), K_SYN, ROOM_CFG, progress=False, on_keyframe=lambda fid, T, p: per_kf.__setitem__(fid, p))
+    sd = build_semidense_map(
+        iter(frames), K_SYN, ROOM_CFG, progress=False, on_keyframe=lambda fid, T, p: per_kf.__setitem__(fid, p)
+    )
     return sd, per_kf
 
 
-def _visible(points_world: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray = K_SYN, w: int = W_IMG, h: int = H_IMG) -> np.ndarray:
+def _visible(
+    points_world: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray = K_SYN, w: int = W_IMG, h: int = H_IMG
+) -> np.ndarray:
     X = transform_points(invert_pose(world_from_cam), points_world)
     uvw = X @ K.T
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -154,6 +162,7 @@ def _visible(points_world: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray
 
 
 # --- synthetic room: geometry, observations, fusion, texture-less regions ---------------------------------
+
 
 def test_keyframe_points_lie_on_the_known_planes(room_map, room):
     poses, _ = room
@@ -219,9 +228,16 @@ def test_textureless_panel_gets_no_points(room_map, room):
     # candidates: none inside the blank panel (away from its border, where the texture edge is)
     t, face = cast(poses[3], K_SYN, W_IMG, H_IMG)
     u, v = np.meshgrid(np.arange(W_IMG), np.arange(H_IMG))
-    X = transform_points(poses[3], (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K_SYN).T * t[..., None]).reshape(-1, 3)).reshape(H_IMG, W_IMG, 3)
+    X = transform_points(
+        poses[3], (np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K_SYN).T * t[..., None]).reshape(-1, 3)
+    ).reshape(H_IMG, W_IMG, 3)
     right_wall = [k for k, f in enumerate(FACES) if f[1] == 0 and f[2] == 1][0]
-    panel = (face == right_wall) & (X[..., 2] > BLANK_Z[0] + 0.3) & (X[..., 2] < BLANK_Z[1] - 0.3) & (np.abs(X[..., 1]) < 1.0)
+    panel = (
+        (face == right_wall)
+        & (X[..., 2] > BLANK_Z[0] + 0.3)
+        & (X[..., 2] < BLANK_Z[1] - 0.3)
+        & (np.abs(X[..., 1]) < 1.0)
+    )
     assert panel.sum() > 500  # the panel is in view
     cu, cv = select_candidates(images[3], ROOM_CFG)
     assert len(cu) > 3000
@@ -244,7 +260,14 @@ def test_exposure_change_between_frames_is_harmless(room):
     ref = render(poses[4], seed=40)
     dark, bright = render(poses[2], gain=0.6, bias=-10, seed=41), render(poses[6], gain=1.4, bias=10, seed=42)
     mid1, mid2 = render(poses[3], gain=0.8, seed=43), render(poses[5], gain=1.2, seed=44)
-    pts = map_keyframe(ref, poses[4], [(mid1, poses[3]), (mid2, poses[5]), (dark, poses[2]), (bright, poses[6])], K_SYN, ROOM_CFG, neighbour_ids=[3, 5, 2, 6])
+    pts = map_keyframe(
+        ref,
+        poses[4],
+        [(mid1, poses[3]), (mid2, poses[5]), (dark, poses[2]), (bright, poses[6])],
+        K_SYN,
+        ROOM_CFG,
+        neighbour_ids=[3, 5, 2, 6],
+    )
     assert len(pts) > 1500
     rel = distance_to_box(pts.points_world(K_SYN, poses[4])) / pts.depth
     assert np.median(rel) < 0.005
@@ -257,7 +280,9 @@ def test_short_lines_and_periodic_texture_give_no_wrong_points(room):
     near = poses[4].copy()
     near[:3, 3] += [0.0, 0.0, 0.01]
     cfg = ROOM_CFG.model_copy(update={"min_baseline_m": 0.0})
-    assert len(map_keyframe(images[4], poses[4], [(render(near, seed=9), near), (images[4], poses[4])], K_SYN, cfg)) == 0
+    assert (
+        len(map_keyframe(images[4], poses[4], [(render(near, seed=9), near), (images[4], poses[4])], K_SYN, cfg)) == 0
+    )
     # a fronto-parallel wall 5 m away seen by a camera moving sideways: pure horizontal shifts
     depth, baselines = 5.0, (0.0, 0.15, 0.25, 0.4)
     poses_side = [make_pose(np.eye(3), [b, 0, 0]) for b in baselines]
@@ -276,6 +301,7 @@ def test_short_lines_and_periodic_texture_give_no_wrong_points(room):
 
 
 # --- building blocks ---------------------------------------------------------------------------------------
+
 
 def test_greedy_nms_matches_sequential_suppression(rng):
     pts = rng.uniform(0, 1, size=(600, 3))
@@ -316,8 +342,19 @@ def test_save_load_round_trip(room_map, tmp_path):
     assert b"binary_little_endian" in header and b"property double x" in header
     back = SemiDenseMap.load(out)
     assert np.array_equal(back.points_world, sd.points_world)  # float64, bit for bit
-    for name in ("intensity", "sigma_depth", "source_keyframe", "obs_indptr", "obs_frame_ids", "keyframe_ids", "keyframe_stamps_ns", "keyframe_world_from_cam", "K",
-                 "frame_ids", "frame_stamps_ns"):
+    for name in (
+        "intensity",
+        "sigma_depth",
+        "source_keyframe",
+        "obs_indptr",
+        "obs_frame_ids",
+        "keyframe_ids",
+        "keyframe_stamps_ns",
+        "keyframe_world_from_cam",
+        "K",
+        "frame_ids",
+        "frame_stamps_ns",
+    ):
         assert np.array_equal(getattr(back, name), getattr(sd, name)), name
     assert back.image_size_wh == (W_IMG, H_IMG)
     assert back.config == ROOM_CFG
@@ -374,7 +411,11 @@ def test_bad_input_is_reported():
     with pytest.raises(InputError, match="grey image"):
         build_semidense_map(iter([(0, 0, np.zeros((4, 4, 3), np.uint8), np.eye(4))]), K_SYN, progress=False)
     with pytest.raises(InputError, match="differs"):
-        build_semidense_map(iter([(0, 0, np.zeros((8, 8), np.uint8), np.eye(4)), (1, 1, np.zeros((9, 8), np.uint8), np.eye(4))]), K_SYN, progress=False)
+        build_semidense_map(
+            iter([(0, 0, np.zeros((8, 8), np.uint8), np.eye(4)), (1, 1, np.zeros((9, 8), np.uint8), np.eye(4))]),
+            K_SYN,
+            progress=False,
+        )
     with pytest.raises(ValueError):
         SemiDenseConfig(min_depth_m=10.0, max_depth_m=5.0)
     empty = build_semidense_map(iter([]), K_SYN, progress=False)
@@ -382,6 +423,7 @@ def test_bad_input_is_reported():
 
 
 # --- the real KITTI clip -------------------------------------------------------------------------------------
+
 
 def _read_kitti(clip: Path, n: int):
     first = (clip / "calib.txt").read_text().splitlines()[0].split()
@@ -398,7 +440,9 @@ def test_kitti_clip_map_is_consistent_across_frames(kitti_clip):
     K, poses, images = _read_kitti(kitti_clip, 12)
     own = {}
     sd = build_semidense_map(
-        ((i, i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))), K, progress=False,
+        ((i, i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))),
+        K,
+        progress=False,
         on_keyframe=lambda fid, T, p: own.__setitem__(fid, (T, p)),
     )
     assert len(own) == 12  # 1.2 m per frame: every frame is a keyframe
@@ -412,7 +456,14 @@ def test_kitti_clip_map_is_consistent_across_frames(kitti_clip):
 
 def test_accuracy_against_a_mesh_matches_the_known_box(room_map):
     sd, _ = room_map
-    corners = np.array([[x, y, z] for x in (BOX_MIN[0], BOX_MAX[0]) for y in (BOX_MIN[1], BOX_MAX[1]) for z in (BOX_MIN[2], BOX_MAX[2])])
+    corners = np.array(
+        [
+            [x, y, z]
+            for x in (BOX_MIN[0], BOX_MAX[0])
+            for y in (BOX_MIN[1], BOX_MAX[1])
+            for z in (BOX_MIN[2], BOX_MAX[2])
+        ]
+    )
     # 12 triangles of the box (corner index = 4x + 2y + z)
     quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
     tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
@@ -435,6 +486,7 @@ def test_blank_frames_give_an_empty_map_not_a_crash():
 
 
 # --- outlier rejection: one known answer per filter -------------------------------------------------------
+
 
 def _plane_depth(world_from_cam: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Camera depth of the slanted wall z = 8 + 0.2 x (world) along the rays of pixels ``uv`` (N, 2)."""
@@ -463,12 +515,20 @@ def test_multi_view_filter_removes_depths_injected_along_rays(rng):
     uv = uv_all[rng.choice(len(uv_all), 3000, replace=False)]
     z = _plane_depth(kf, uv)
     injected = rng.random(len(z)) < 0.2
-    z[injected] *= np.where(rng.random(injected.sum()) < 0.5, rng.uniform(0.6, 0.85, injected.sum()), rng.uniform(1.2, 1.6, injected.sum()))
+    z[injected] *= np.where(
+        rng.random(injected.sum()) < 0.5, rng.uniform(0.6, 0.85, injected.sum()), rng.uniform(1.2, 1.6, injected.sum())
+    )
     X = np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K_SYN).T * z[:, None]
     cfg = SemiDenseConfig(min_consistent_views=1)
-    keep = multi_view_filter(transform_points(kf, X), views, K_SYN, min_views=cfg.min_consistent_views,
-                             min_agree_over_conflict=cfg.min_agree_over_conflict, rel_tol=cfg.consistency_rel_tol,
-                             pixel_radius=cfg.consistency_pixel_radius)
+    keep = multi_view_filter(
+        transform_points(kf, X),
+        views,
+        K_SYN,
+        min_views=cfg.min_consistent_views,
+        min_agree_over_conflict=cfg.min_agree_over_conflict,
+        rel_tol=cfg.consistency_rel_tol,
+        pixel_radius=cfg.consistency_pixel_radius,
+    )
     assert np.mean(~keep[injected]) >= 0.9  # recall of the injected outliers
     assert np.mean(keep[~injected]) >= 0.9  # the true points stay
 
@@ -481,8 +541,14 @@ def test_multi_view_filter_in_the_mapper_keeps_the_room_accurate(room, room_map)
     raw, fused = {}, {}
     frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
     cfg = ROOM_CFG.model_copy(update={"min_consistent_views": 1})
-    sd = build_semidense_map(iter(frames), K_SYN, cfg, progress=False, on_keyframe=lambda f, T, p: raw.__setitem__(f, p),
-                             on_fused=lambda f, T, p: fused.__setitem__(f, p))
+    sd = build_semidense_map(
+        iter(frames),
+        K_SYN,
+        cfg,
+        progress=False,
+        on_keyframe=lambda f, T, p: raw.__setitem__(f, p),
+        on_fused=lambda f, T, p: fused.__setitem__(f, p),
+    )
     assert sorted(fused) == sorted(raw)
     for f in raw:
         assert set(map(tuple, fused[f].pixels_uv)) <= set(map(tuple, raw[f].pixels_uv))
@@ -501,8 +567,13 @@ def test_four_agreeing_frames_keep_a_subset_with_fewer_stray_points(room, room_m
     sd3, raw3 = room_map
     raw4 = {}
     frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
-    sd4 = build_semidense_map(iter(frames), K_SYN, ROOM_CFG.model_copy(update={"min_agreeing_frames": 4}), progress=False,
-                              on_keyframe=lambda f, T, p: raw4.__setitem__(f, p))
+    sd4 = build_semidense_map(
+        iter(frames),
+        K_SYN,
+        ROOM_CFG.model_copy(update={"min_agreeing_frames": 4}),
+        progress=False,
+        on_keyframe=lambda f, T, p: raw4.__setitem__(f, p),
+    )
     assert sorted(raw4) == sorted(raw3)
     for f, p4 in raw4.items():
         assert (p4.agreed.sum(axis=1) >= 3).all()
@@ -556,7 +627,9 @@ def test_statistical_pass_removes_isolated_points_and_keeps_observations(room_ma
     ``select`` keeps each surviving point's observers."""
     from mapkit.mapping.semidense import statistical_inliers
 
-    wall = np.column_stack([rng.uniform(0, 5, 4000), rng.uniform(0, 3, 4000), np.full(4000, 8.0) + rng.normal(0, 0.01, 4000)])
+    wall = np.column_stack(
+        [rng.uniform(0, 5, 4000), rng.uniform(0, 3, 4000), np.full(4000, 8.0) + rng.normal(0, 0.01, 4000)]
+    )
     air = rng.uniform([0, 0, 1], [5, 3, 7], size=(100, 3))
     keep = statistical_inliers(np.vstack([wall, air]), 20, 2.0)
     assert keep[:4000].mean() >= 0.95 and (~keep[4000:]).mean() >= 0.9
@@ -573,7 +646,9 @@ def test_consistency_breaks_down_by_depth(room_map, room):
     poses, _ = room
     sd, per_kf = room_map
     c = consistency(sd, [(fid, poses[fid], p) for fid, p in per_kf.items()])
-    assert sum(b["pairs"] for b in c["by_depth_m"]) == c["pairs"] == sum(b["pairs"] for b in c["by_keyframe_distance_m"])
+    assert (
+        sum(b["pairs"] for b in c["by_depth_m"]) == c["pairs"] == sum(b["pairs"] for b in c["by_keyframe_distance_m"])
+    )
     assert all(b["p90_rel"] < 0.05 for b in c["by_depth_m"] if b["pairs"] > 100)  # the room: every depth range agrees
 
 
@@ -596,12 +671,25 @@ def test_photometric_filter_removes_depths_moved_along_rays(room, rng):
     uv = np.column_stack([u[pick], v[pick]]).astype(np.int32)
     z = _room_true_depths(poses[k])[uv[:, 1], uv[:, 0]].astype(np.float64)
     moved = rng.random(len(z)) < 0.2
-    z[moved] *= np.where(rng.random(moved.sum()) < 0.5, rng.uniform(0.6, 0.75, moved.sum()), rng.uniform(1.25, 1.4, moved.sum()))
+    z[moved] *= np.where(
+        rng.random(moved.sum()) < 0.5, rng.uniform(0.6, 0.75, moved.sum()), rng.uniform(1.25, 1.4, moved.sum())
+    )
     views = [(poses[i], images[i], _room_true_depths(poses[i])) for i in (2, 3, 4, 6, 7, 8)]
     cfg = SemiDenseConfig(photometric_min_views=1)
-    keep = photometric_filter(poses[k], images[k], uv, z, views, K_SYN, min_views=cfg.photometric_min_views, ncc_min=cfg.photometric_ncc_min,
-                              min_agree_over_conflict=cfg.photometric_min_agree_over_conflict, patch_radius=cfg.photometric_patch_radius,
-                              rel_tol=cfg.consistency_rel_tol, pixel_radius=cfg.consistency_pixel_radius)
+    keep = photometric_filter(
+        poses[k],
+        images[k],
+        uv,
+        z,
+        views,
+        K_SYN,
+        min_views=cfg.photometric_min_views,
+        ncc_min=cfg.photometric_ncc_min,
+        min_agree_over_conflict=cfg.photometric_min_agree_over_conflict,
+        patch_radius=cfg.photometric_patch_radius,
+        rel_tol=cfg.consistency_rel_tol,
+        pixel_radius=cfg.consistency_pixel_radius,
+    )
     # where the views' parallax moves a wrong depth's image by more than a few pixels in most views (not near
     # the focus of expansion of the forward motion), the patch lands on other texture there: rejected
     z_true = _room_true_depths(poses[k])[uv[:, 1], uv[:, 0]].astype(np.float64)
@@ -613,13 +701,25 @@ def test_photometric_filter_removes_depths_moved_along_rays(room, rng):
     shifted = moved & (np.median(shifts, axis=0) > 2)
     assert shifted.sum() > 150
     assert np.mean(~keep[shifted]) >= 0.9  # (5x5 patches of smooth texture are ramps: a few wrong ones still correlate)
-    assert np.mean(~keep[moved]) >= 0.85  # those pushed behind the wall are hidden in every view, so no view speaks for them
+    assert (
+        np.mean(~keep[moved]) >= 0.85
+    )  # those pushed behind the wall are hidden in every view, so no view speaks for them
     assert np.mean(keep[~moved]) >= 0.95
     ncc = photometric_ncc(poses[k], images[k], uv, z, views, K_SYN, patch_radius=2, rel_tol=0.06, pixel_radius=1.5)
     assert np.nanmedian(ncc[~moved]) > 0.9
     # a view whose depths show a surface in front of every point is not asked (the points are hidden there)
     near_wall = np.full((H_IMG, W_IMG), 0.5, np.float32)
-    hidden = photometric_ncc(poses[k], images[k], uv, z, [(poses[4], images[4], near_wall)], K_SYN, patch_radius=2, rel_tol=0.06, pixel_radius=1.5)
+    hidden = photometric_ncc(
+        poses[k],
+        images[k],
+        uv,
+        z,
+        [(poses[4], images[4], near_wall)],
+        K_SYN,
+        patch_radius=2,
+        rel_tol=0.06,
+        pixel_radius=1.5,
+    )
     assert np.isnan(hidden).all()
 
 
@@ -636,7 +736,9 @@ def test_visibility_tells_free_space_violations_from_occlusions(rng):
         depth = _plane_depth(T, uv_all).reshape(H_IMG, W_IMG).astype(np.float32)
         views.append((T, depth))
     kf = np.eye(4)
-    inner = uv_all[(uv_all[:, 0] >= 60) & (uv_all[:, 0] < W_IMG - 60) & (uv_all[:, 1] >= 60) & (uv_all[:, 1] < H_IMG - 60)]
+    inner = uv_all[
+        (uv_all[:, 0] >= 60) & (uv_all[:, 0] < W_IMG - 60) & (uv_all[:, 1] >= 60) & (uv_all[:, 1] < H_IMG - 60)
+    ]
     uv = inner[rng.choice(len(inner), 3000, replace=False)].astype(np.int32)  # inside every view (shifts < 60 px)
     z = _plane_depth(kf, uv.astype(np.float64))
     kind = rng.integers(0, 3, len(z))  # 0 on the wall, 1 in front of it, 2 behind it
@@ -649,10 +751,27 @@ def test_visibility_tells_free_space_violations_from_occlusions(rng):
     assert np.all(free[kind == 1] == 6) and np.all(occluded[kind == 1] == 0) and np.all(agree[kind == 1] == 0)
     assert np.all(occluded[kind == 2] == 6) and np.all(free[kind == 2] == 0) and np.all(agree[kind == 2] == 0)
     # world points of each view's depths (the wall), for the hidden-in-source half of the test
-    walls = [transform_points(T, np.column_stack([uv_all, np.ones(len(uv_all))]) @ np.linalg.inv(K_SYN).T
-                              * d.reshape(-1)[:, None].astype(np.float64)) for T, d in views]
-    keep = free_space_filter(kf, uv, z, X, [(T, d, P) for (T, d), P in zip(views, walls)], K_SYN, (H_IMG, W_IMG),
-                             rel_tol=0.06, pixel_radius=1.5, max_violations=0)
+    walls = [
+        transform_points(
+            T,
+            np.column_stack([uv_all, np.ones(len(uv_all))])
+            @ np.linalg.inv(K_SYN).T
+            * d.reshape(-1)[:, None].astype(np.float64),
+        )
+        for T, d in views
+    ]
+    keep = free_space_filter(
+        kf,
+        uv,
+        z,
+        X,
+        [(T, d, P) for (T, d), P in zip(views, walls)],
+        K_SYN,
+        (H_IMG, W_IMG),
+        rel_tol=0.06,
+        pixel_radius=1.5,
+        max_violations=0,
+    )
     assert np.all(keep[kind == 0]) and not np.any(keep[kind == 1])
     # the points behind the wall are hidden in the keyframe itself by the wall the views saw: rejected as well
     assert np.mean(~keep[kind == 2]) > 0.9
@@ -680,7 +799,7 @@ def test_view_window_votes_within_the_window_also_at_the_end():
     from mapkit.mapping.semidense_fusion import _ViewWindow
 
     window, n = 3, 11
-    vw: "_ViewWindow[int]" = _ViewWindow(window)
+    vw: _ViewWindow[int] = _ViewWindow(window)
     seen = []
     for i in range(n):
         seen.extend(vw.push(i))
@@ -697,10 +816,19 @@ def test_photometric_and_free_space_filters_in_the_mapper(room, room_map):
     sd_off, _ = room_map
     frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
     d_off = distance_to_box(sd_off.points_world)
-    for name, update in (("photometric", {"photometric_min_views": 1}), ("free_space", {"free_space_window_keyframes": 4})):
+    for name, update in (
+        ("photometric", {"photometric_min_views": 1}),
+        ("free_space", {"free_space_window_keyframes": 4}),
+    ):
         raw, fused = {}, {}
-        sd = build_semidense_map(iter(frames), K_SYN, ROOM_CFG.model_copy(update=update), progress=False,
-                                 on_keyframe=lambda f, T, p: raw.__setitem__(f, p), on_fused=lambda f, T, p: fused.__setitem__(f, p))
+        sd = build_semidense_map(
+            iter(frames),
+            K_SYN,
+            ROOM_CFG.model_copy(update=update),
+            progress=False,
+            on_keyframe=lambda f, T, p: raw.__setitem__(f, p),
+            on_fused=lambda f, T, p: fused.__setitem__(f, p),
+        )
         assert sorted(fused) == sorted(raw)
         for f in raw:
             assert set(map(tuple, fused[f].pixels_uv)) <= set(map(tuple, raw[f].pixels_uv))
@@ -718,22 +846,44 @@ def _occlusion_scene():
     uv = np.unique(rng.integers([20, 20], [W_IMG - 20, H_IMG - 20], size=(400, 2)), axis=0)
     Kinv = np.linalg.inv(K_SYN)
     P = np.column_stack([uv, np.ones(len(uv))]) @ Kinv.T * 10.0  # keyframe A at the origin: the map's source
-    poses = {0: np.eye(4), 1: make_pose(np.eye(3), [0.3, 0, 0]), 2: make_pose(np.eye(3), [-0.3, 0, 0]), 3: make_pose(np.eye(3), [0, 0.2, 0])}
+    poses = {
+        0: np.eye(4),
+        1: make_pose(np.eye(3), [0.3, 0, 0]),
+        2: make_pose(np.eye(3), [-0.3, 0, 0]),
+        3: make_pose(np.eye(3), [0, 0.2, 0]),
+    }
 
     def own(fid: int, scale: np.ndarray) -> KeyframePoints:
         X = transform_points(invert_pose(poses[fid]), P)
         pix = np.rint(X[:, :2] / X[:, 2:3] @ K_SYN[:2, :2].T + K_SYN[:2, 2]).astype(np.int32)
         n = len(P)
-        return KeyframePoints(pix, 1.0 / (X[:, 2] * scale), np.full(n, 1e-3), np.zeros(n, np.uint8), np.zeros(0, np.int64),
-                              np.zeros((n, 0), bool), fid)
+        return KeyframePoints(
+            pix,
+            1.0 / (X[:, 2] * scale),
+            np.full(n, 1e-3),
+            np.zeros(n, np.uint8),
+            np.zeros(0, np.int64),
+            np.zeros((n, 0), bool),
+            fid,
+        )
 
     half = np.arange(len(P)) % 2 == 0
     kf = {1: own(1, np.ones(len(P))), 2: own(2, np.ones(len(P))), 3: own(3, np.full(len(P), 0.5))}
     verified = {1: kf[1], 2: kf[2], 3: kf[3].select(half)}
     ids = np.array(sorted(poses))
-    sd = SemiDenseMap(P, np.zeros(len(P), np.uint8), np.full(len(P), 0.01, np.float32), np.zeros(len(P), np.int64),
-                      np.arange(len(P) + 1, dtype=np.int64), np.zeros(len(P), np.int64), ids, ids, np.array([poses[i] for i in ids]),
-                      K_SYN, (W_IMG, H_IMG))
+    sd = SemiDenseMap(
+        P,
+        np.zeros(len(P), np.uint8),
+        np.full(len(P), 0.01, np.float32),
+        np.zeros(len(P), np.int64),
+        np.arange(len(P) + 1, dtype=np.int64),
+        np.zeros(len(P), np.int64),
+        ids,
+        ids,
+        np.array([poses[i] for i in ids]),
+        K_SYN,
+        (W_IMG, H_IMG),
+    )
     return sd, poses, kf, verified, half
 
 
@@ -743,7 +893,9 @@ def test_consistency_tells_occluded_pairs_from_unverified_references():
     pairs left out, the map agrees exactly."""
     sd, poses, kf, verified, half = _occlusion_scene()
     P = sd.points_world
-    c = consistency(sd, [(f, poses[f], p) for f, p in kf.items()], verified=[(f, poses[f], p) for f, p in verified.items()])
+    c = consistency(
+        sd, [(f, poses[f], p) for f, p in kf.items()], verified=[(f, poses[f], p) for f, p in verified.items()]
+    )
     assert c["pairs"] == 3 * len(P)
     assert c["frac_map_farther_5pct"] == pytest.approx(1 / 3)
     fc = c["farther_causes"]
@@ -759,8 +911,12 @@ def test_consistency_breaks_down_along_the_drive():
     pairs occluded and half unverified."""
     sd, poses, kf, verified, half = _occlusion_scene()
     n = len(sd)
-    c = consistency(sd, [(f, poses[f], p) for f, p in kf.items()], verified=[(f, poses[f], p) for f, p in verified.items()],
-                    keyframe_bins=[0, 3, np.inf])
+    c = consistency(
+        sd,
+        [(f, poses[f], p) for f, p in kf.items()],
+        verified=[(f, poses[f], p) for f, p in verified.items()],
+        keyframe_bins=[0, 3, np.inf],
+    )
     src, ref = c["by_source_keyframe"], c["by_reference_keyframe"]
     assert [b["pairs"] for b in src] == [3 * n, 0]
     assert [b["pairs"] for b in ref] == [2 * n, n] and ref[1]["from_frame"] == 3 and ref[1]["to_frame"] is None
@@ -776,9 +932,10 @@ def test_rotation_refinement_recovers_perturbed_rotations(rng):
     frames 1-6 get rotations off by 0.3-0.8 deg (as KITTI's first frames are), the matches are the true
     projections. The epipolar distances go from pixels to nearly zero, and every frame's rotation relative
     to frame 0 comes back within 0.02 deg."""
-    from mapkit.mapping.pose_refine import epipolar_distances_px, refine_rotations
-    from mapkit.core.geometry import rotation_angle_rad
     from scipy.spatial.transform import Rotation
+
+    from mapkit.core.geometry import rotation_angle_rad
+    from mapkit.mapping.pose_refine import epipolar_distances_px, refine_rotations
 
     true = np.array([make_pose(np.eye(3), [0.0, 0.0, 1.2 * i]) for i in range(8)])
     X = rng.uniform([-8, -3, 12], [8, 2, 40], size=(300, 3))
@@ -790,7 +947,10 @@ def test_rotation_refinement_recovers_perturbed_rotations(rng):
     given = true.copy()
     for f in range(1, 7):
         axis = rng.normal(size=3)
-        given[f, :3, :3] = true[f, :3, :3] @ Rotation.from_rotvec(np.radians(rng.uniform(0.3, 0.8)) * axis / np.linalg.norm(axis)).as_matrix()
+        given[f, :3, :3] = (
+            true[f, :3, :3]
+            @ Rotation.from_rotvec(np.radians(rng.uniform(0.3, 0.8)) * axis / np.linalg.norm(axis)).as_matrix()
+        )
     before = np.median(np.concatenate([epipolar_distances_px(K_SYN, given, i, j, a, b) for i, j, a, b in matches]))
     refined = refine_rotations(K_SYN, given, matches)
     after = np.median(np.concatenate([epipolar_distances_px(K_SYN, refined, i, j, a, b) for i, j, a, b in matches]))
@@ -806,8 +966,9 @@ def test_epipolar_derivatives_match_finite_differences(rng, f_px):
     """The refiner's epipolar distances are the pixel distances the fundamental matrix gives (also where fx != fy,
     as in an image resized to another aspect), and its analytic derivatives with respect to each camera's rotation
     are the finite differences of the distance itself (random cameras, random matches)."""
-    from mapkit.mapping.pose_refine import _pair_terms, epipolar_distances_px
     from scipy.spatial.transform import Rotation
+
+    from mapkit.mapping.pose_refine import _pair_terms, epipolar_distances_px
 
     Ri, Rj = Rotation.random(2, random_state=4).as_matrix()
     Ci, Cj = rng.normal(size=3), rng.normal(size=3)
@@ -815,7 +976,9 @@ def test_epipolar_derivatives_match_finite_differences(rng, f_px):
     b = np.column_stack([rng.normal(size=(20, 2)) * 0.4, np.ones(20)])
 
     def terms(Ri, Rj, derivatives=True):
-        return _pair_terms(f_px, np.broadcast_to(Rj.T @ Ri, (20, 3, 3)), np.broadcast_to(Rj.T @ (Ci - Cj), (20, 3)), a, b, derivatives)
+        return _pair_terms(
+            f_px, np.broadcast_to(Rj.T @ Ri, (20, 3, 3)), np.broadcast_to(Rj.T @ (Ci - Cj), (20, 3)), a, b, derivatives
+        )
 
     r, d_i, d_j = terms(Ri, Rj)
     fx, fy = np.broadcast_to(f_px, (2,))
@@ -833,8 +996,9 @@ def test_epipolar_derivatives_match_finite_differences(rng, f_px):
 
 def test_right_jacobians_are_the_first_order_turn(rng):
     """``R0 exp(x + dx)`` is ``R0 exp(x) exp(Jr(x) dx)`` to first order, for rotations of several sizes and at zero."""
-    from mapkit.mapping.pose_refine import _right_jacobians
     from scipy.spatial.transform import Rotation
+
+    from mapkit.mapping.pose_refine import _right_jacobians
 
     x = np.vstack([np.zeros(3), rng.normal(size=(5, 3)) * [[1e-3], [0.01], [0.3], [1.0], [2.5]]])
     Jr = _right_jacobians(x)
@@ -851,9 +1015,10 @@ def test_rotation_solver_agrees_with_scipy_least_squares(rng):
     that scipy's general robust least squares finds for the same Huber cost: pixel epipolar distances computed the
     textbook way (fundamental matrix of the poses, ``epipolar_distances_px``) and the prior, on noisy matches with
     10% wrong ones; every frame's correction agrees within 1e-4 deg."""
-    from mapkit.mapping.pose_refine import _normalised, _solve, epipolar_distances_px
     from scipy.optimize import least_squares
     from scipy.spatial.transform import Rotation
+
+    from mapkit.mapping.pose_refine import _normalised, _solve, epipolar_distances_px
 
     n_frames = 6
     true = np.array([make_pose(np.eye(3), [0.1 * i, 0.0, 1.0 * i]) for i in range(n_frames)])
@@ -863,7 +1028,10 @@ def test_rotation_solver_agrees_with_scipy_least_squares(rng):
     for i in range(n_frames):
         for j in range(i + 1, min(i + 3, n_frames - 1) + 1):
             xi, xj = (transform_points(invert_pose(true[f]), X) @ K_SYN.T for f in (i, j))
-            ui, uj = xi[:, :2] / xi[:, 2:] + rng.normal(0, 0.3, (200, 2)), xj[:, :2] / xj[:, 2:] + rng.normal(0, 0.3, (200, 2))
+            ui, uj = (
+                xi[:, :2] / xi[:, 2:] + rng.normal(0, 0.3, (200, 2)),
+                xj[:, :2] / xj[:, 2:] + rng.normal(0, 0.3, (200, 2)),
+            )
             uj[:20] += rng.uniform(-6, 6, (20, 2))  # wrong matches
             matches.append((i, j, ui, uj))
     free = list(range(n_frames))
@@ -876,12 +1044,24 @@ def test_rotation_solver_agrees_with_scipy_least_squares(rng):
 
     def residuals(x):  # signs do not matter under a Huber loss of squares
         P = poses_at(x)
-        return np.concatenate([epipolar_distances_px(K_SYN, P, i, j, a, b) for i, j, a, b in matches] + [F_PX * x / prior_px])
+        return np.concatenate(
+            [epipolar_distances_px(K_SYN, P, i, j, a, b) for i, j, a, b in matches] + [F_PX * x / prior_px]
+        )
 
-    ref = least_squares(residuals, np.zeros(3 * n_frames), loss="huber", f_scale=huber_px, xtol=1e-12, ftol=1e-12, gtol=1e-12).x
+    ref = least_squares(
+        residuals, np.zeros(3 * n_frames), loss="huber", f_scale=huber_px, xtol=1e-12, ftol=1e-12, gtol=1e-12
+    ).x
     pairs = [(i, j, _normalised(K_SYN, a), _normalised(K_SYN, b)) for i, j, a, b in matches]
-    ours = _solve(F_PX, {f: given[f, :3, :3] for f in free}, {f: given[f, :3, 3] for f in free}, free, pairs, huber_px, prior_px,
-                  step_tol_rad=1e-9)
+    ours = _solve(
+        F_PX,
+        {f: given[f, :3, :3] for f in free},
+        {f: given[f, :3, 3] for f in free},
+        free,
+        pairs,
+        huber_px,
+        prior_px,
+        step_tol_rad=1e-9,
+    )
     assert np.degrees(np.abs(ref - ours.ravel())).max() < 1e-4, np.degrees(np.abs(ref - ours.ravel())).max()
     assert np.degrees(np.abs(ref)).max() > 0.1  # the comparison is not vacuous: both moved the rotations
 
@@ -891,7 +1071,9 @@ def test_sparse_depth_answers_as_the_dense_image(rng):
     from mapkit.mapping.semidense import visibility_views
     from mapkit.mapping.semidense_fusion import SparseDepth
 
-    uv = np.unique(np.column_stack([rng.integers(0, W_IMG, 4000), rng.integers(0, H_IMG, 4000)]), axis=0).astype(np.int32)
+    uv = np.unique(np.column_stack([rng.integers(0, W_IMG, 4000), rng.integers(0, H_IMG, 4000)]), axis=0).astype(
+        np.int32
+    )
     depth = rng.uniform(4.0, 12.0, len(uv))
     dense = np.full((H_IMG, W_IMG), np.nan, np.float32)
     dense[uv[:, 1], uv[:, 0]] = depth
@@ -900,18 +1082,25 @@ def test_sparse_depth_answers_as_the_dense_image(rng):
     assert np.array_equal(sparse.take(lin), dense.ravel()[lin], equal_nan=True)
     T = make_pose(np.eye(3), [0.2, 0.0, 0.1])
     X = rng.uniform([-3, -2, 3], [3, 2, 14], size=(3000, 3))
-    for a, b in zip(visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5), visibility_views(X, [(T, sparse)], K_SYN, 0.06, 1.5)):
+    for a, b in zip(
+        visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5), visibility_views(X, [(T, sparse)], K_SYN, 0.06, 1.5)
+    ):
         assert np.array_equal(a, b)
     assert visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5)[0].sum() > 0  # some agree: the comparison is not vacuous
 
 
-def _perturbed_rotations(poses: np.ndarray, rng: np.random.Generator, frames: range, deg: tuple[float, float]) -> np.ndarray:
+def _perturbed_rotations(
+    poses: np.ndarray, rng: np.random.Generator, frames: range, deg: tuple[float, float]
+) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     out = poses.copy()
     for f in frames:
         axis = rng.normal(size=3)
-        out[f, :3, :3] = poses[f, :3, :3] @ Rotation.from_rotvec(np.radians(rng.uniform(*deg)) * axis / np.linalg.norm(axis)).as_matrix()
+        out[f, :3, :3] = (
+            poses[f, :3, :3]
+            @ Rotation.from_rotvec(np.radians(rng.uniform(*deg)) * axis / np.linalg.norm(axis)).as_matrix()
+        )
     return out
 
 
@@ -937,8 +1126,15 @@ def test_mapper_refines_rotations_that_disagree_with_the_images(room, room_map, 
     err_given = [np.degrees(rotation_angle_rad(given[f, :3, :3].T @ poses[f, :3, :3])) for f in ids]
     R = refined.keyframe_world_from_cam[:, :3, :3]
     err_refined = [np.degrees(rotation_angle_rad(Rf.T @ poses[f, :3, :3])) for f, Rf in zip(ids, R)]
-    err_relative = [np.degrees(rotation_angle_rad((R[0].T @ Rf).T @ (poses[ids[0], :3, :3].T @ poses[f, :3, :3]))) for f, Rf in zip(ids, R)]
-    assert max(err_given) > 0.7 and max(err_relative) < 0.1 and max(err_refined) < 0.25, (err_given, err_relative, err_refined)
+    err_relative = [
+        np.degrees(rotation_angle_rad((R[0].T @ Rf).T @ (poses[ids[0], :3, :3].T @ poses[f, :3, :3])))
+        for f, Rf in zip(ids, R)
+    ]
+    assert max(err_given) > 0.7 and max(err_relative) < 0.1 and max(err_refined) < 0.25, (
+        err_given,
+        err_relative,
+        err_refined,
+    )
     pr = refined.pose_refinement
     assert pr["frames"] == len(poses) and pr["epipolar_px_median_refined"] < 0.5 * pr["epipolar_px_median_given"]
 
@@ -954,8 +1150,11 @@ def test_rotation_refiner_streams_in_order_with_a_bounded_window(room):
 
     poses, images = room
     off5 = _perturbed_rotations(poses, np.random.default_rng(5), range(5, 6), (0.5, 0.5))[5]
-    frames = _LiveImages([np.full_like(im, 128) if i == 5 else im for i, im in enumerate(images)],
-                         [off5 if i == 5 else T for i, T in enumerate(poses)], stamps=[10 * i for i in range(len(poses))])
+    frames = _LiveImages(
+        [np.full_like(im, 128) if i == 5 else im for i, im in enumerate(images)],
+        [off5 if i == 5 else T for i, T in enumerate(poses)],
+        stamps=[10 * i for i in range(len(poses))],
+    )
     refiner = RotationRefiner(K_SYN, max_gap=2, lag=3, features=800)
     out = []
     for fid, stamp, img, T in refiner.stream(frames.stream()):
@@ -963,7 +1162,9 @@ def test_rotation_refiner_streams_in_order_with_a_bounded_window(room):
         del img
     assert [o[0] for o in out] == list(range(len(poses))) and [o[1] for o in out] == [10 * i for i in range(len(poses))]
     assert frames.peak <= 3 + 1
-    assert np.allclose(out[5][2], off5, atol=1e-6)  # the blank frame matches nothing: the prior holds its given rotation
+    assert np.allclose(
+        out[5][2], off5, atol=1e-6
+    )  # the blank frame matches nothing: the prior holds its given rotation
     assert max(c for f, c in refiner.corrections_deg.items() if f != 5) < 0.05  # true poses: nothing to correct
     with pytest.raises(ValueError, match="lag"):
         RotationRefiner(K_SYN, max_gap=3, lag=2)

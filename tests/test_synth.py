@@ -54,8 +54,13 @@ TOPICS = {
 #: what these tests check of a log holds for any length, and the preset's own drives (long enough to
 #: georeference, for the demo's every stage) are checked without rendering them, in
 #: test_tiny_drives_can_be_georeferenced_aligned_and_localized
-SHORT = {"sessions": [{**s, "length_m": 24.0, "camera_rate_hz": None} for s in load_config("tiny").model_dump(mode="json")["sessions"]],
-         "motion": {"start_from_rest": False}, "lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 512}}
+SHORT = {
+    "sessions": [
+        {**s, "length_m": 24.0, "camera_rate_hz": None} for s in load_config("tiny").model_dump(mode="json")["sessions"]
+    ],
+    "motion": {"start_from_rest": False},
+    "lidar": {"beams": 32, "vertical_fov_deg": [-30.67, 10.67], "azimuth_steps": 512},
+}
 
 
 @pytest.fixture(scope="module")
@@ -77,6 +82,7 @@ def _images(mcap: Path) -> list[tuple[int, np.ndarray]]:
 
 # --- configuration ---------------------------------------------------------------------------------
 
+
 def test_presets_load_and_every_value_names_its_source():
     for name in ("tiny", "demo", "places", "benchmark"):
         cfg = load_config(name)
@@ -87,7 +93,10 @@ def test_presets_load_and_every_value_names_its_source():
             if re.match(r"^\s*[A-Za-z_]+:\s*\S", body) or body.strip().startswith("- {"):
                 assert "#" in line, f"{name}.yaml line {lineno} has no source comment: {line!r}"
     demo = load_config("demo")
-    assert len({s.weather for s in demo.sessions} | {"night"}) >= 5 and {s.role for s in demo.sessions} == {"train", "test"}
+    assert len({s.weather for s in demo.sessions} | {"night"}) >= 5 and {s.role for s in demo.sessions} == {
+        "train",
+        "test",
+    }
     bench = load_config("benchmark")
     assert bench.session_plan.n_train + len(bench.sessions) == 59  # MCVL: 59 vehicles
 
@@ -109,9 +118,20 @@ def test_bad_preset_and_bad_field_raise_config_errors_naming_them(tmp_path):
 
 # --- layout and manifest ----------------------------------------------------------------------------
 
+
 def test_output_layout_and_manifest(tiny, world):
-    for f in ("world/mesh.ply", "world/roads.json", "world/origin.json", "world/manifest.json", "world/config.yaml",
-              "metrics.json", "pictures/contact_sheet.png", "pictures/map.png", ".done", "world/.done"):
+    for f in (
+        "world/mesh.ply",
+        "world/roads.json",
+        "world/origin.json",
+        "world/manifest.json",
+        "world/config.yaml",
+        "metrics.json",
+        "pictures/contact_sheet.png",
+        "pictures/map.png",
+        ".done",
+        "world/.done",
+    ):
         assert (tiny / f).is_file(), f
     assert not list(tiny.rglob("*.partial"))
     m = world.manifest
@@ -120,8 +140,21 @@ def test_output_layout_and_manifest(tiny, world):
     assert world.frame.utm_epsg == 32630  # Oxford is in UTM zone 30N
     roles = set()
     for s in m["sessions"]:
-        for key in ("name", "file", "route_node_ids", "length_m", "duration_s", "start_time_ns", "time_of_day", "weather",
-                    "condition", "role", "camera_rate_hz", "lidar_rate_hz", "gps_noise"):
+        for key in (
+            "name",
+            "file",
+            "route_node_ids",
+            "length_m",
+            "duration_s",
+            "start_time_ns",
+            "time_of_day",
+            "weather",
+            "condition",
+            "role",
+            "camera_rate_hz",
+            "lidar_rate_hz",
+            "gps_noise",
+        ):
             assert key in s, key
         roles.add(s["role"])
         # the log is a rosbag2 folder: metadata.yaml beside <name>_0.mcap
@@ -134,7 +167,9 @@ def test_output_layout_and_manifest(tiny, world):
     assert roles == {"train", "test"}
     assert len({s["condition"] for s in m["sessions"]}) == 3
     streets = json.loads((tiny / "metrics.json").read_text())["streets"]
-    assert streets["distinct_m"] <= streets["driven_m"] == pytest.approx(sum(s["length_m"] for s in m["sessions"]), abs=10)
+    assert (
+        streets["distinct_m"] <= streets["driven_m"] == pytest.approx(sum(s["length_m"] for s in m["sessions"]), abs=10)
+    )
     assert session_logs(tiny) == sorted(tiny / s["file"] for s in m["sessions"])
     # the mesh is readable by open3d and is what load_world gives
     import open3d as o3d
@@ -203,7 +238,9 @@ def test_new_road_weight_spreads_planned_routes_over_more_streets():
     town = build_town(cfg0)
 
     def plans(weight: float) -> list:
-        return plan_sessions(load_config("tiny", overrides={"sessions": four, "session_plan": {"new_road_weight": weight}}), town)
+        return plan_sessions(
+            load_config("tiny", overrides={"sessions": four, "session_plan": {"new_road_weight": weight}}), town
+        )
 
     independent, weighted = plans(0.0), plans(4.0)
     assert [p.drive.route_roads for p in independent] == [p.drive.route_roads for p in plan_sessions(cfg0, town)]
@@ -218,6 +255,7 @@ def test_new_road_weight_spreads_planned_routes_over_more_streets():
 
 # --- determinism ------------------------------------------------------------------------------------
 
+
 def test_tiny_is_deterministic(tiny, tmp_path):
     again = synthesize(preset="tiny", out=tmp_path / "again", overrides=SHORT, progress=False)
     for f in ("world/mesh.ply", "world/roads.json", "world/manifest.json"):
@@ -225,7 +263,9 @@ def test_tiny_is_deterministic(tiny, tmp_path):
     for s in load_world(tiny).sessions:
         name = s["name"]
         for suffix in (".gt.tum", ".camera.tum", ".parked_cars.ply"):
-            assert (tiny / "sessions" / f"{name}{suffix}").read_bytes() == (again / "sessions" / f"{name}{suffix}").read_bytes()
+            assert (tiny / "sessions" / f"{name}{suffix}").read_bytes() == (
+                again / "sessions" / f"{name}{suffix}"
+            ).read_bytes()
         a, b = _images(tiny / s["file"]), _images(again / s["file"])
         assert len(a) == len(b) > 10
         for (sa, ia), (sb, ib) in zip(a, b):
@@ -234,8 +274,10 @@ def test_tiny_is_deterministic(tiny, tmp_path):
 
 def test_resume_skips_finished_sessions_and_overwrite_redoes_them(tmp_path):
     cfg = tmp_path / "one.yaml"
-    cfg.write_text("sessions:\n  - {name: only, role: train, time: '12:00', weather: cloudy, length_m: 8.0, speed_mps: 8.0}\n"
-                   "camera: {width: 96, height: 72}\nlidar: {azimuth_steps: 128}\n")
+    cfg.write_text(
+        "sessions:\n  - {name: only, role: train, time: '12:00', weather: cloudy, length_m: 8.0, speed_mps: 8.0}\n"
+        "camera: {width: 96, height: 72}\nlidar: {azimuth_steps: 128}\n"
+    )
     out = synthesize(preset="tiny", out=tmp_path / "t", config=cfg, progress=False)
     mcap = session_log(out, "only") / "only_0.mcap"
     t0 = mcap.stat().st_mtime_ns
@@ -249,13 +291,16 @@ def test_resume_skips_finished_sessions_and_overwrite_redoes_them(tmp_path):
 
 # --- the logs ---------------------------------------------------------------------------------------
 
+
 def test_video_rate_records_every_session_faster_and_keeps_its_own_image_rate(tmp_path):
     """camera.record_rate_hz: the camera records at that rate whatever the session's own rate,
     which the manifest keeps as image_rate_hz (what `mapkit demo --record-rate-hz` maps from and
     sub-samples its image databases to)."""
     one = {**SHORT, "sessions": SHORT["sessions"][:1], "lidar": {"enabled": False}}
     own = load_config("tiny", overrides=one).camera.rate_hz
-    out = synthesize(preset="tiny", out=tmp_path / "video", overrides={**one, "camera": {"record_rate_hz": 2 * own}}, progress=False)
+    out = synthesize(
+        preset="tiny", out=tmp_path / "video", overrides={**one, "camera": {"record_rate_hz": 2 * own}}, progress=False
+    )
     s = load_world(out).sessions[0]
     assert s["camera_rate_hz"] == 2 * own and s["image_rate_hz"] == own
     stamps = np.array([st for st, _ in _images(out / s["file"])])
@@ -287,8 +332,13 @@ def test_topics_types_and_stamps(tiny, world):
     assert n["/ground_truth/odom"] == len(gt_poses(tiny, s["name"])[0])
     log = McapLog(tiny / s["file"])
     scan = next(log.records(StreamKind.LIDAR))
-    assert scan.frame_id == "lidar" and scan.point_time_s is not None and scan.ring is not None and scan.intensity is not None
-    assert 0 <= scan.point_time_s.min() and scan.point_time_s.max() < 1.0 / s["lidar_rate_hz"]
+    assert (
+        scan.frame_id == "lidar"
+        and scan.point_time_s is not None
+        and scan.ring is not None
+        and scan.intensity is not None
+    )
+    assert scan.point_time_s.min() >= 0 and scan.point_time_s.max() < 1.0 / s["lidar_rate_hz"]
     assert scan.ring.max() == world.config.lidar.beams - 1
     gt = next(log.records(StreamKind.POSE))
     assert (gt.parent_frame, gt.child_frame) == ("world", "base_link")
@@ -331,7 +381,9 @@ def test_lidar_points_undistorted_with_their_time_lie_on_the_mesh(tiny, world):
         assert np.median(dist) < 0.01 and np.percentile(dist, 99) < 0.02 and dist.max() < 5 * sigma + 0.002
         # motion distortion is there: the pose at the stamp for every point is centimetres to metres off
         w0 = interpolate_poses(gs, world_from_base, np.array([scan.stamp_ns]))[0][0] @ base_from_lidar
-        raw = scene.compute_distance(o3d.core.Tensor((scan.points_xyz @ w0[:3, :3].T + w0[:3, 3]).astype(np.float32))).numpy()
+        raw = scene.compute_distance(
+            o3d.core.Tensor((scan.points_xyz @ w0[:3, :3].T + w0[:3, 3]).astype(np.float32))
+        ).numpy()
         assert np.percentile(raw, 99) > 0.2
 
 
@@ -354,9 +406,11 @@ def test_pixel_rays_hit_the_mesh_at_the_rendered_depth(tiny, world):
     assert logged.stamp_ns == stamps[k]
     renderer = world.renderer(name)
     gs, gp = gt_poses(tiny, name)
-    wfb = interpolate_poses(gs, gp, stamps[k:k + 1])[0][0]
+    wfb = interpolate_poses(gs, gp, stamps[k : k + 1])[0][0]
     with single_thread_blas():
-        frame = renderer.render_camera(world_from_cam[k], world.conditions(name), np.random.default_rng([s["seed"], 5, k]), wfb)
+        frame = renderer.render_camera(
+            world_from_cam[k], world.conditions(name), np.random.default_rng([s["seed"], 5, k]), wfb
+        )
     ok, buf = cv2.imencode(".jpg", frame.rgb[..., ::-1])
     diff = np.abs(cv2.imdecode(buf, cv2.IMREAD_COLOR).astype(int) - logged.image.astype(int))
     # the pose file rounds to 1 um and 1e-9: a few pixels on edges may change, nothing else
@@ -378,9 +432,18 @@ def test_pixel_rays_hit_the_mesh_at_the_rendered_depth(tiny, world):
 
 
 def test_gps_error_statistics_match_the_configuration():
-    cfg = GpsConfig(rate_hz=1.0, white_sigma_m=2.0, bias_sigma_m=3.0, bias_tau_s=120.0, multipath_rate_hz=0.01,
-                    multipath_duration_s=10.0, multipath_sigma_m=8.0, dropout_rate_hz=0.005, dropout_duration_s=6.0,
-                    vertical_factor=2.0)
+    cfg = GpsConfig(
+        rate_hz=1.0,
+        white_sigma_m=2.0,
+        bias_sigma_m=3.0,
+        bias_tau_s=120.0,
+        multipath_rate_hz=0.01,
+        multipath_duration_s=10.0,
+        multipath_sigma_m=8.0,
+        dropout_rate_hz=0.005,
+        dropout_duration_s=6.0,
+        vertical_factor=2.0,
+    )
     model = GpsErrorModel(cfg)
     n = 400_000
     e = model.simulate(n, np.random.default_rng(3))
@@ -408,7 +471,9 @@ def test_gps_fixes_in_the_log_are_the_antenna_plus_bounded_error(tiny, world):
     gs, gp = gt_poses(tiny, s["name"])
     wfb, _ = interpolate_poses(gs, gp, np.array([f.stamp_ns for f in ok]))
     antenna = (wfb @ extrinsics(world.config)["gps"])[:, :3, 3]
-    enu = world.frame.geodetic_to_enu(np.array([f.lat_deg for f in ok]), np.array([f.lon_deg for f in ok]), np.array([f.alt_m for f in ok]))
+    enu = world.frame.geodetic_to_enu(
+        np.array([f.lat_deg for f in ok]), np.array([f.lon_deg for f in ok]), np.array([f.alt_m for f in ok])
+    )
     err = np.linalg.norm((enu - antenna)[:, :2], axis=1)
     assert err.max() < 40.0 and err.mean() > 0.1
 
@@ -453,6 +518,7 @@ def test_conditions_change_appearance_but_not_geometry(tiny, world):
 
 # --- external trajectories ----------------------------------------------------------------------------
 
+
 def _curve(n=60, dt_s=0.1):
     t = np.arange(n) * dt_s
     x = 8.0 * t
@@ -468,10 +534,14 @@ def test_external_trajectory_drives_a_session_with_the_town_around_it(tmp_path):
     yaw = np.arctan2(np.gradient(y), np.gradient(x))
     stamps = (1_400_000_000 + t) * 1e9
     traj = tmp_path / "drive.tum"
-    write_tum(traj, np.round(stamps).astype(np.int64), make_pose(yaw_rotation(yaw), np.stack([x, y, np.zeros_like(x)], 1)))
+    write_tum(
+        traj, np.round(stamps).astype(np.int64), make_pose(yaw_rotation(yaw), np.stack([x, y, np.zeros_like(x)], 1))
+    )
     cfg = tmp_path / "ext.yaml"
-    cfg.write_text("sessions:\n  - {name: ext, role: train, time: '12:00', weather: sunny, length_m: 30.0, max_duration_s: 2.0}\n"
-                   "camera: {width: 96, height: 72, rate_hz: 5.0}\nlidar: {azimuth_steps: 128}\n")
+    cfg.write_text(
+        "sessions:\n  - {name: ext, role: train, time: '12:00', weather: sunny, length_m: 30.0, max_duration_s: 2.0}\n"
+        "camera: {width: 96, height: 72, rate_hz: 5.0}\nlidar: {azimuth_steps: 128}\n"
+    )
     out = synthesize(preset="tiny", out=tmp_path / "ext", config=cfg, trajectory=traj, progress=False)
     world = load_world(out)
     assert world.session("ext")["trajectory_source"] == "tum:drive.tum"
@@ -499,7 +569,9 @@ def test_external_trajectory_readers(tmp_path):
     csv = tmp_path / "ins.csv"
     lines = ["timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,roll,pitch,yaw"]
     for k, (xx, yy) in enumerate(zip(x, y)):
-        lines.append(f"{1418131260000000 + k * 100000},INS_SOLUTION_GOOD,51.7601,-1.2610,110.0,{5735000 + yy:.4f},{620000 + xx:.4f},-110.0,30U,0,0,0")
+        lines.append(
+            f"{1418131260000000 + k * 100000},INS_SOLUTION_GOOD,51.7601,-1.2610,110.0,{5735000 + yy:.4f},{620000 + xx:.4f},-110.0,30U,0,0,0"
+        )
     csv.write_text("\n".join(lines) + "\n")
     e = read_external_trajectory(csv)
     assert e.origin_latlon == (51.7601, -1.2610)

@@ -111,7 +111,10 @@ def test_lidar_trajectory_without_a_base_in_the_calibration_is_the_scanners(tmp_
     with McapWriter(path) as w:
         w.write_transforms("/tf_static", [FrameTransform(0, "imu", "lidar", BASE_FROM_LIDAR)])
         for i, world_from_base in enumerate(truth):
-            w.write("/lidar/points", LidarScan(T0 + i * 100_000_000, "lidar", _scan(scene, world_from_base @ BASE_FROM_LIDAR)))
+            w.write(
+                "/lidar/points",
+                LidarScan(T0 + i * 100_000_000, "lidar", _scan(scene, world_from_base @ BASE_FROM_LIDAR)),
+            )
     with McapLog(path) as log, warnings.catch_warnings():
         warnings.simplefilter("error", InputWarning)
         traj = estimate_trajectory(log, TrajectoryConfig())
@@ -120,7 +123,9 @@ def test_lidar_trajectory_without_a_base_in_the_calibration_is_the_scanners(tmp_
     expected = invert_pose(lidar[0]) @ lidar  # the scanner's poses from its first
     err_t = np.linalg.norm(traj.world_from_base[:, :3, 3] - expected[:, :3, 3], axis=1)
     travelled = np.linalg.norm(np.diff(expected[:, :3, 3], axis=0), axis=1).sum()
-    assert err_t.max() < 0.02 * travelled, f"max translation error {err_t.max():.3f} m over {travelled:.0f} m"  # as the base's
+    assert err_t.max() < 0.02 * travelled, (
+        f"max translation error {err_t.max():.3f} m over {travelled:.0f} m"
+    )  # as the base's
 
 
 def test_pose_stream_of_a_camera_is_moved_to_the_base(tmp_path):
@@ -201,10 +206,15 @@ def standing_start_towns(tmp_path_factory) -> dict[int, Path]:
     rainy = next(s for s in load_config("tiny").model_dump(mode="json")["sessions"] if s["name"] == "tiny-rainy")
     session = {**rainy, "length_m": 40.0, "follow": None, "follow_shift_m": 0.0, "camera_rate_hz": 0.5}
     root = tmp_path_factory.mktemp("standing-start")
-    return {steps: synthesize(preset="tiny", out=root / f"sweep{steps}", progress=False,
-                              overrides={"sessions": [session], "camera": {"width": 64, "height": 48},
-                                         "lidar": {"azimuth_steps": steps}})
-            for steps in STANDING_START_STEPS}
+    return {
+        steps: synthesize(
+            preset="tiny",
+            out=root / f"sweep{steps}",
+            progress=False,
+            overrides={"sessions": [session], "camera": {"width": 64, "height": 48}, "lidar": {"azimuth_steps": steps}},
+        )
+        for steps in STANDING_START_STEPS
+    }
 
 
 def test_kiss_icp_keeps_the_distance_of_a_standing_start_on_a_fine_enough_sweep(standing_start_towns):

@@ -34,14 +34,26 @@ from mapkit.places.triplets import (  # noqa: E402
     write_shard_hdf5,
 )
 
-CFG = {"n_triplets": 150, "tile_size_m": 40.0, "buffer_m": 8.0, "test_fraction": 0.3, "negative_min_distance_m": 40.0,
-       "negative_pool": 60, "shard_patches": 64, "places_per_cell": 4, "keypoint_fraction": 0.02}
+CFG = {
+    "n_triplets": 150,
+    "tile_size_m": 40.0,
+    "buffer_m": 8.0,
+    "test_fraction": 0.3,
+    "negative_min_distance_m": 40.0,
+    "negative_pool": 60,
+    "shard_patches": 64,
+    "places_per_cell": 4,
+    "keypoint_fraction": 0.02,
+}
 
 
 def make_aligned_street(ws: Path) -> Path:
     """Three sessions of the test street, a few decimetres to metres apart by GPS, then aligned."""
-    make_workspace(ws, street(np.random.default_rng(3)), {"s0": gps_error(1.0, -1.0, 0.2), "s1": gps_error(-1.0, 1.5, -0.2),
-                                                          "s2": gps_error(0.5, 0.5, 0.0)})
+    make_workspace(
+        ws,
+        street(np.random.default_rng(3)),
+        {"s0": gps_error(1.0, -1.0, 0.2), "s1": gps_error(-1.0, 1.5, -0.2), "s2": gps_error(0.5, 0.5, 0.0)},
+    )
     align_workspace(ws, progress=False)
     return ws
 
@@ -89,7 +101,9 @@ def test_batched_patches_are_the_per_place_patches(aligned):
     rng = np.random.default_rng(0)
     kp_session = np.concatenate([np.full(len(s.points) // 50, si) for si, s in enumerate(sessions)])
     kp_index = np.concatenate([rng.choice(len(s.points), len(s.points) // 50, replace=False) for s in sessions])
-    order, chunk = place_chunks(kp_session, kp_index, np.full(len(kp_session), "train", dtype=object), sessions, cfg, rng)
+    order, chunk = place_chunks(
+        kp_session, kp_index, np.full(len(kp_session), "train", dtype=object), sessions, cfg, rng
+    )
     # negatives: patches as mapped
     pick = order[:30]
     centres = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in pick])
@@ -106,7 +120,9 @@ def test_batched_patches_are_the_per_place_patches(aligned):
     shift = {si: np.eye(4) for si in range(len(sessions))}
     for si in shift:
         shift[si][:3, 3] = [0.05 * si, -0.03 * si, 0.0]
-    icp_of = lambda si, a, centre, reach, n_src, n_tgt: Registration(shift[si] @ np.linalg.inv(shift[a]), 1.0, 0.1, 1.0, 0.1)  # noqa: E731
+    icp_of = lambda si, a, centre, reach, n_src, n_tgt: Registration(
+        shift[si] @ np.linalg.inv(shift[a]), 1.0, 0.1, 1.0, 0.1
+    )  # noqa: E731
     n_sets = 0
     for c in np.unique(chunk)[:6]:
         places = order[chunk == c]
@@ -143,7 +159,9 @@ def test_export_positives_negatives_split_and_loader(aligned, tmp_path):
     assert np.all(tab["session"][t[:, 0]] != tab["session"][t[:, 1]])
     assert np.all(np.linalg.norm(tab["enu"][t[:, 0], :2] - tab["enu"][t[:, 1], :2], axis=1) < 1e-9)
     assert np.all(tab["role"][t[:, 2]] == "negative")
-    assert np.linalg.norm(tab["enu"][t[:, 0], :2] - tab["enu"][t[:, 2], :2], axis=1).min() > CFG["negative_min_distance_m"]
+    assert (
+        np.linalg.norm(tab["enu"][t[:, 0], :2] - tab["enu"][t[:, 2], :2], axis=1).min() > CFG["negative_min_distance_m"]
+    )
     # no train patch within the buffer of a test patch
     tr, te = tab["utm"][tab["split"] == "train"], tab["utm"][tab["split"] == "test"]
     if len(tr) and len(te):
@@ -213,7 +231,11 @@ def test_hdf5_shard_round_trip_with_plain_h5py(tmp_path):
         # a plain reader gets the grids back with np.unpackbits
         assert np.unpackbits(f["occupancy"][3], axis=-1, count=32).shape == (32, 32, 32)
     got = read_shard(tmp_path / "s.h5")
-    assert np.array_equal(got["occupancy"], occ) and np.array_equal(got["density_comparison"], dcg) and got["first_id"] == 100
+    assert (
+        np.array_equal(got["occupancy"], occ)
+        and np.array_equal(got["density_comparison"], dcg)
+        and got["first_id"] == 100
+    )
     np.savez(tmp_path / "s.npz", occupancy=occ, density_comparison=dcg, first_id=np.int64(100))
     old = read_shard(tmp_path / "s.npz")
     assert all(np.array_equal(old[k], got[k]) for k in got)
@@ -234,7 +256,9 @@ def test_loader_reads_hdf5_npz_and_version_1_datasets(aligned, tmp_path):
             assert s["sha256"] == sha256_file(folder / s["file"])
     a, b = TripletDataset(h5, verify=True), TripletDataset(npz, verify=True)
     ids = np.arange(a.manifest["patches"])
-    assert np.array_equal(a.grids(ids), b.grids(ids)) and np.array_equal(a.grids(ids, "density_comparison"), b.grids(ids, "density_comparison"))
+    assert np.array_equal(a.grids(ids), b.grids(ids)) and np.array_equal(
+        a.grids(ids, "density_comparison"), b.grids(ids, "density_comparison")
+    )
     # a dataset of the first format (version 1: npz shards, no shard_format) still reads
     m = json.loads((npz / "manifest.json").read_text())
     m["format_version"] = 1
@@ -257,7 +281,9 @@ def test_no_triplets_is_an_error_and_leaves_nothing_finished(aligned, tmp_path, 
     assert not out.exists() and not list(tmp_path.glob(".t.*"))  # no folder, no done-marker, no partial left
     # nothing far enough for a negative: the message names the setting
     with pytest.raises(NoTripletsError, match="negative_min_distance_m"):
-        export_triplets(aligned, out=out, overrides=dict(CFG, negative_min_distance_m=1e5, n_triplets=10), progress=False)
+        export_triplets(
+            aligned, out=out, overrides=dict(CFG, negative_min_distance_m=1e5, n_triplets=10), progress=False
+        )
     # an earlier finished dataset survives a run that makes nothing
     good = export_triplets(aligned, out=out, overrides=dict(CFG, n_triplets=20), progress=False)
     done = (good / DONE_MARKER).read_text()

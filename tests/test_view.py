@@ -55,8 +55,10 @@ def workspace(tmp_path_factory) -> Workspace:
     write_json(ws.origin, FRAME.to_dict())
     rng = np.random.default_rng(0)
     shift = np.array([0.0, 1.0, 0.0])
-    paths = {"a": np.c_[np.arange(201) * 0.5, np.zeros(201), np.zeros(201)],
-             "b": np.c_[np.zeros(151), np.arange(151) * 0.4, np.zeros(151)]}
+    paths = {
+        "a": np.c_[np.arange(201) * 0.5, np.zeros(201), np.zeros(201)],
+        "b": np.c_[np.zeros(151), np.arange(151) * 0.4, np.zeros(151)],
+    }
     write_json(ws.align_done, {"sessions": ["a", "b"]})
     fix_stamps = _fix_stamps()
     for name, xyz in paths.items():
@@ -65,8 +67,18 @@ def workspace(tmp_path_factory) -> Workspace:
         Trajectory(stamps, _poses(xyz), "poses", frame="enu").save(d.georef_trajectory)
         Trajectory(stamps, _poses(xyz + shift), "poses", frame="enu").save(ws.aligned(name).trajectory)
         mark_done(d.georef, "test")
-        write_json(d.gps_alignment, {"georeferenced": True, **FRAME.to_dict(), "rejected_fixes": [
-            {"index": i, "stamp_ns": int(s), "residual_m": 9.0} for i, s in enumerate(fix_stamps) if i in REJECTED]})
+        write_json(
+            d.gps_alignment,
+            {
+                "georeferenced": True,
+                **FRAME.to_dict(),
+                "rejected_fixes": [
+                    {"index": i, "stamp_ns": int(s), "residual_m": 9.0}
+                    for i, s in enumerate(fix_stamps)
+                    if i in REJECTED
+                ],
+            },
+        )
         write_json(d.metrics, {"session": name, "log": str(OXTS) if name == "a" else str(root / "gone")})
         pts = xyz[rng.integers(0, len(xyz), MAP_POINTS[name])] + rng.normal(0, 3, (MAP_POINTS[name], 3))
         atomic_write_ply(d.map / "points.ply", pts, np.full((len(pts), 3), 0.5), frame=FRAME)
@@ -83,8 +95,15 @@ def workspace(tmp_path_factory) -> Workspace:
     rel = [os.path.relpath(d.imagedb / im.relpath, ws.aligned("a").root) for im in ims]
     aligned = np.stack([im.world_from_cam for im in ims])
     aligned[:, :3, 3] += shift
-    write_images_csv(ws.aligned("a").images_csv, [im.image_id for im in ims], [im.stamp_ns for im in ims], ["cam"] * len(ims), rel,
-                     aligned, FRAME)
+    write_images_csv(
+        ws.aligned("a").images_csv,
+        [im.image_id for im in ims],
+        [im.stamp_ns for im in ims],
+        ["cam"] * len(ims),
+        rel,
+        aligned,
+        FRAME,
+    )
     # a `mapkit localize` run and the hits of an evaluation, against a bundle of 10 database images
     run = ws.localize_dir / "run1"
     write_tum(run / "poses_tum.txt", stamps[:50], cams[:50])
@@ -95,12 +114,24 @@ def workspace(tmp_path_factory) -> Workspace:
         w = csv.DictWriter(f, DATABASE_COLUMNS)
         w.writeheader()
         for e in range(10):
-            w.writerow({c: 0 for c in DATABASE_COLUMNS} | {"entry_id": e, "session": "a", "x_m": 10.0 * e, "qw": 1.0, "image": "x.jpg"})
+            w.writerow(
+                {c: 0 for c in DATABASE_COLUMNS}
+                | {"entry_id": e, "session": "a", "x_m": 10.0 * e, "qw": 1.0, "image": "x.jpg"}
+            )
     ids = np.tile(np.arange(3), (len(ims), 1))
     ids[::4, 2] = -1  # fewer hits for some queries
     ws.localize_cache.mkdir(parents=True)
-    np.savez(ws.localize_cache / "hits-a-k3-test.npz", version=1, bundle="test", bundle_path=str(bundle), session="a", top_k=3,
-             images="x", ids=ids, distances=np.zeros(ids.shape, np.float32))
+    np.savez(
+        ws.localize_cache / "hits-a-k3-test.npz",
+        version=1,
+        bundle="test",
+        bundle_path=str(bundle),
+        session="a",
+        top_k=3,
+        images="x",
+        ids=ids,
+        distances=np.zeros(ids.shape, np.float32),
+    )
     return ws
 
 
@@ -151,7 +182,12 @@ def test_map_points_are_decimated_to_the_budget(recording, workspace):
 
     s, data, _ = recording
     counts = {e: len(c["Points3D:positions"][0]) for e, c in data.items() if e.endswith("/map")}
-    assert counts == {"world/build/a/map": 750, "world/align/a/map": 750, "world/build/b/map": 250, "world/align/b/map": 250}
+    assert counts == {
+        "world/build/a/map": 750,
+        "world/align/a/map": 750,
+        "world/build/b/map": 250,
+        "world/align/b/map": 250,
+    }
     assert sum(counts.values()) <= BUDGET and s.points == sum(counts.values())
     # the logged points are points of the map, not new ones
     ply = np.asarray(o3d.io.read_point_cloud(str(workspace.aligned("b").map / "points.ply")).points)
@@ -234,10 +270,17 @@ def test_cli_writes_into_the_workspace_under_its_lock_only(workspace, tmp_path, 
     assert sum(len(c["Points3D:positions"][0]) for e, c in data.items() if e.endswith("/map")) == 98
     assert not any("/gps/" in e for e in data)
 
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom mapkit.core.lock import workspace_lock\n"
-                               f"with workspace_lock({str(workspace.root)!r}, 'mapkit align'):\n"
-                               " print('held', flush=True); time.sleep(60)"],
-                              stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\nfrom mapkit.core.lock import workspace_lock\n"
+            f"with workspace_lock({str(workspace.root)!r}, 'mapkit align'):\n"
+            " print('held', flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         assert main(["view", str(workspace.root), "--no-gps"]) == 2
@@ -259,9 +302,11 @@ def test_spawn_without_a_display_is_refused(workspace, tmp_path, monkeypatch):
 
 
 def test_without_the_sdk_mapkit_works_and_view_says_how_to_install(workspace):
-    code = ("import sys; sys.modules['rerun'] = None\n"
-            "import mapkit.report.view, mapkit.cli\n"
-            f"sys.exit(mapkit.cli.main(['view', {str(workspace.root)!r}, '-o', '/dev/null/x.rrd']))")
+    code = (
+        "import sys; sys.modules['rerun'] = None\n"
+        "import mapkit.report.view, mapkit.cli\n"
+        f"sys.exit(mapkit.cli.main(['view', {str(workspace.root)!r}, '-o', '/dev/null/x.rrd']))"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip() == f"error: {INSTALL_HINT}"
@@ -274,7 +319,9 @@ def test_gps_fixes_saved_by_the_georef_stage_are_drawn_without_the_log(tmp_path)
     write_json(ws.origin, FRAME.to_dict())
     d = ws.session("c")
     stamps = T0 + np.arange(20, dtype=np.int64) * 100_000_000
-    Trajectory(stamps, _poses(np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)]), "poses", frame="enu").save(d.georef_trajectory)
+    Trajectory(stamps, _poses(np.c_[np.arange(20.0), np.zeros(20), np.zeros(20)]), "poses", frame="enu").save(
+        d.georef_trajectory
+    )
     write_json(d.gps_alignment, {"georeferenced": True, **FRAME.to_dict(), "rejected_fixes": []})
     mark_done(d.georef, "test")
     write_json(d.metrics, {"session": "c", "log": str(tmp_path / "gone")})

@@ -12,9 +12,19 @@ from test_dsift import textured_image
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.retrieval.dsift import DsiftConfig, dense_sift
-from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder, assign_nearest, rootsift, vlad, whitening_scales
+from mapkit.retrieval.vlad import (
+    PcaWhitening,
+    VladConfig,
+    VladEncoder,
+    assign_nearest,
+    rootsift,
+    vlad,
+    whitening_scales,
+)
 
-SMALL = dict(dsift=DsiftConfig(region_widths=[16, 24]), num_words=16, kmeans_max_descriptors=20_000, kmeans_iterations=10)
+SMALL = dict(
+    dsift=DsiftConfig(region_widths=[16, 24]), num_words=16, kmeans_max_descriptors=20_000, kmeans_iterations=10
+)
 
 
 def test_rootsift_rows_are_unit_and_give_the_hellinger_kernel(rng):
@@ -46,7 +56,11 @@ def test_vlad_of_a_hand_built_case():
 def test_assignment_is_the_nearest_centroid(rng):
     desc = rng.random((6000, 128)).astype(np.float32)  # more than one assignment block
     centroids = rng.random((32, 128)).astype(np.float32)
-    d2 = (desc.astype(np.float64) ** 2).sum(1)[:, None] - 2 * desc.astype(np.float64) @ centroids.T.astype(np.float64) + (centroids.astype(np.float64) ** 2).sum(1)
+    d2 = (
+        (desc.astype(np.float64) ** 2).sum(1)[:, None]
+        - 2 * desc.astype(np.float64) @ centroids.T.astype(np.float64)
+        + (centroids.astype(np.float64) ** 2).sum(1)
+    )
     best = d2.argmin(1)
     got = assign_nearest(desc, centroids)
     # float32 ties aside, the chosen word is as near as the best one
@@ -82,9 +96,9 @@ def test_pca_dimension_is_capped_by_the_training_set(rng):
 def test_whitening_scales_of_each_form():
     lam = np.array([4.0, 1.0])
     np.testing.assert_allclose(whitening_scales(lam), [0.5, 1.0])  # full: 1 / sqrt(lambda)
-    np.testing.assert_allclose(whitening_scales(lam, power=0.5), [4 ** -0.25, 1.0])
+    np.testing.assert_allclose(whitening_scales(lam, power=0.5), [4**-0.25, 1.0])
     np.testing.assert_allclose(whitening_scales(lam, power=0.0), [1.0, 1.0])  # plain PCA
-    np.testing.assert_allclose(whitening_scales(lam, shrinkage=1.0), [6.5 ** -0.5, 3.5 ** -0.5])  # + 1 x mean 2.5
+    np.testing.assert_allclose(whitening_scales(lam, shrinkage=1.0), [6.5**-0.5, 3.5**-0.5])  # + 1 x mean 2.5
 
 
 @pytest.mark.parametrize("n, dim_in", [(60, 300), (400, 40)])
@@ -93,8 +107,10 @@ def test_power_whitened_training_variances_are_the_eigenvalues_to_one_minus_alph
     pca = PcaWhitening.fit(x, 20, power=0.5)
     y = pca.project(x)
     # directions scaled by lambda^(-1/4): the variance along each becomes lambda^(1/2)
-    np.testing.assert_allclose(np.var(y, axis=0, ddof=1), pca.variances ** 0.5, rtol=2e-3)
-    np.testing.assert_allclose(np.cov(y, rowvar=False), np.diag(pca.variances ** 0.5), atol=2e-3 * pca.variances[0] ** 0.5)
+    np.testing.assert_allclose(np.var(y, axis=0, ddof=1), pca.variances**0.5, rtol=2e-3)
+    np.testing.assert_allclose(
+        np.cov(y, rowvar=False), np.diag(pca.variances**0.5), atol=2e-3 * pca.variances[0] ** 0.5
+    )
     assert pca.describe() == {"dim": 20, "training_vectors": n, "whitening": "power", "power": 0.5, "shrinkage": 0.0}
 
 
@@ -161,7 +177,9 @@ def test_encoder_config_chooses_the_whitening(rng):
         enc = VladEncoder(VladConfig(pca_dim=8, whitening=whitening, whitening_shrinkage=2.0, **SMALL))
         pca = enc.fit_pca(x)
         assert (pca.power, pca.shrinkage, pca.n_train) == (power, shrinkage, 30)
-        np.testing.assert_allclose(np.linalg.norm(pca.projection, axis=1), whitening_scales(pca.variances, power, shrinkage), rtol=1e-4)
+        np.testing.assert_allclose(
+            np.linalg.norm(pca.projection, axis=1), whitening_scales(pca.variances, power, shrinkage), rtol=1e-4
+        )
     assert VladConfig().whitening == "power" and VladConfig().whitening_power == 0.5
     # a saved state without the whitening's power and shrinkage loads as fully whitened
     state = PcaWhitening.fit(x, 8).state_dict()
@@ -169,7 +187,9 @@ def test_encoder_config_chooses_the_whitening(rng):
     assert PcaWhitening.from_state_dict(bare).describe()["whitening"] == "full"
 
 
-def shifted_and_brighter(img: np.ndarray, dx: int = 3, dy: int = 2, gain: float = 1.1, offset: float = 15) -> np.ndarray:
+def shifted_and_brighter(
+    img: np.ndarray, dx: int = 3, dy: int = 2, gain: float = 1.1, offset: float = 15
+) -> np.ndarray:
     m = np.float32([[1, 0, dx], [0, 1, dy]])
     moved = cv2.warpAffine(img, m, (img.shape[1], img.shape[0]), borderMode=cv2.BORDER_REFLECT)
     return np.clip(moved.astype(np.float32) * gain + offset, 0, 255).astype(np.uint8)

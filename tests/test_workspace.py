@@ -95,7 +95,11 @@ def _layout_joins(path: Path, root: Path = PACKAGE.parent) -> list[str]:
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
             for side in (node.left, node.right):
-                if isinstance(side, ast.Constant) and side.value in LAYOUT_NAMES and "# own output folder" not in lines[node.lineno - 1]:
+                if (
+                    isinstance(side, ast.Constant)
+                    and side.value in LAYOUT_NAMES
+                    and "# own output folder" not in lines[node.lineno - 1]
+                ):
                     found.append(f"{path.relative_to(root)}:{node.lineno}: / {side.value!r}")
     return found
 

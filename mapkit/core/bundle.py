@@ -11,9 +11,9 @@ import json
 import os
 import shutil
 import uuid
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from mapkit import __version__
 from mapkit.core.errors import InputError
@@ -45,8 +45,11 @@ def load_manifest(path: Path, what: str, format_version: int) -> dict:
         raise InputError(mpath, f"not valid JSON ({exc})") from None
     version = manifest.get("format_version") if isinstance(manifest, dict) else None
     if version != format_version:
-        raise InputError(mpath, f"unknown bundle format version {version!r}; this mapkit {__version__} reads version {format_version}",
-                         field="format_version")
+        raise InputError(
+            mpath,
+            f"unknown bundle format version {version!r}; this mapkit {__version__} reads version {format_version}",
+            field="format_version",
+        )
     return manifest
 
 
@@ -81,8 +84,12 @@ def is_finished(out: Path, build_hash: str, format_version: int) -> bool:
     if m.get("format_version") != format_version or m.get("build_hash") != build_hash:
         return False
     files = m.get("files") or {}
-    return all((out / f).is_file() and (out / f).stat().st_size == info.get("bytes") and sha256_file(out / f) == info.get("sha256")
-               for f, info in files.items())
+    return all(
+        (out / f).is_file()
+        and (out / f).stat().st_size == info.get("bytes")
+        and sha256_file(out / f) == info.get("sha256")
+        for f, info in files.items()
+    )
 
 
 @contextmanager
@@ -149,4 +156,3 @@ def copy_file(src: Path, dst: Path) -> None:
         if exc.errno in WRITE_ERRNOS:
             raise write_error(dst, exc) from None
         raise
-

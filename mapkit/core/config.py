@@ -8,7 +8,7 @@ description. Unknown keys are errors (a typo must not silently fall back to a de
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Optional, TypeVar
+from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -26,15 +26,15 @@ class MapkitConfig(BaseModel):
 class TopicConfig(MapkitConfig):
     """Which streams of a log to use. ``None`` = detect by message type (every stream of that kind)."""
 
-    images: Optional[list[str]] = Field(None, description="Camera image topics; all image streams if unset.")
-    camera_info: Optional[list[str]] = Field(None, description="CameraInfo topics; all if unset.")
-    gps: Optional[str] = Field(None, description="NavSatFix topic; the only GPS stream if unset.")
-    lidar: Optional[str] = Field(None, description="PointCloud2 topic; the only LiDAR stream if unset.")
-    imu: Optional[str] = Field(None, description="Imu topic; the only IMU stream if unset.")
-    poses: Optional[str] = Field(None, description="Ground-truth/INS pose topic; the only pose stream if unset.")
+    images: list[str] | None = Field(None, description="Camera image topics; all image streams if unset.")
+    camera_info: list[str] | None = Field(None, description="CameraInfo topics; all if unset.")
+    gps: str | None = Field(None, description="NavSatFix topic; the only GPS stream if unset.")
+    lidar: str | None = Field(None, description="PointCloud2 topic; the only LiDAR stream if unset.")
+    imu: str | None = Field(None, description="Imu topic; the only IMU stream if unset.")
+    poses: str | None = Field(None, description="Ground-truth/INS pose topic; the only pose stream if unset.")
 
 
-def load_config(model: type[M], path: M | str | Path | None = None, overrides: Optional[dict[str, Any]] = None) -> M:
+def load_config(model: type[M], path: M | str | Path | None = None, overrides: dict[str, Any] | None = None) -> M:
     """Defaults of ``model``, overlaid by a YAML file (or a config already resolved) and then by ``overrides``."""
     data: dict[str, Any] = {}
     if isinstance(path, model):
@@ -85,7 +85,9 @@ def _commented(model: type[MapkitConfig], value: MapkitConfig, lines: list[str],
             lines.append(f"{pad}{name}:")
             _commented(type(v), v, lines, indent + 1)
         else:
-            dumped = yaml.safe_dump({name: v.value if hasattr(v, "value") else v}, default_flow_style=True, sort_keys=False).strip()
+            dumped = yaml.safe_dump(
+                {name: v.value if hasattr(v, "value") else v}, default_flow_style=True, sort_keys=False
+            ).strip()
             lines.append(f"{pad}{dumped.strip('{}')}")
 
 
@@ -113,14 +115,23 @@ def resolve_topics(log, cfg: TopicConfig) -> dict[StreamKind, list[str]]:
         if topic not in known:
             raise InputError(log.path, f"topic {topic!r} (config topics.{field}) is not in this log", field=field)
         if known[topic] != kind:
-            raise InputError(log.path, f"topic {topic!r} (config topics.{field}) carries {known[topic].value}, not {kind.value}", field=field)
+            raise InputError(
+                log.path,
+                f"topic {topic!r} (config topics.{field}) carries {known[topic].value}, not {kind.value}",
+                field=field,
+            )
         return topic
 
     out: dict[StreamKind, list[str]] = {}
     for kind, field in ((StreamKind.IMAGE, "images"), (StreamKind.CAMERA_INFO, "camera_info")):
         chosen = getattr(cfg, field)
         out[kind] = [check(t, kind, field) for t in chosen] if chosen is not None else by_kind.get(kind, [])
-    for kind, field in ((StreamKind.GPS, "gps"), (StreamKind.LIDAR, "lidar"), (StreamKind.IMU, "imu"), (StreamKind.POSE, "poses")):
+    for kind, field in (
+        (StreamKind.GPS, "gps"),
+        (StreamKind.LIDAR, "lidar"),
+        (StreamKind.IMU, "imu"),
+        (StreamKind.POSE, "poses"),
+    ):
         chosen = getattr(cfg, field)
         if chosen is not None:
             out[kind] = [check(chosen, kind, field)]
@@ -128,7 +139,9 @@ def resolve_topics(log, cfg: TopicConfig) -> dict[StreamKind, list[str]]:
             candidates = by_kind.get(kind, [])
             if len(candidates) > 1:
                 raise InputError(
-                    log.path, f"{len(candidates)} {kind.value} streams ({', '.join(candidates)}): choose one with topics.{field}", field=field
+                    log.path,
+                    f"{len(candidates)} {kind.value} streams ({', '.join(candidates)}): choose one with topics.{field}",
+                    field=field,
                 )
             out[kind] = candidates
     out[StreamKind.TF] = by_kind.get(StreamKind.TF, [])

@@ -41,7 +41,8 @@ import pickle
 import traceback
 import uuid
 from collections import deque
-from typing import Any, Callable, Iterable, Iterator, Literal, Optional, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from typing import Any, Literal
 
 from pydantic import Field
 
@@ -61,14 +62,18 @@ _log = logging.getLogger(__name__)
 class ExecutorConfig(MapkitConfig):
     """Where per-item work runs (``mapkit --executor/--workers/--ray-address``)."""
 
-    kind: ExecutorKind = Field("local", description="'local': this process (workers = 1) or a pool of spawned processes; 'ray': Ray.")
-    workers: Optional[int] = Field(
-        None, ge=1,
+    kind: ExecutorKind = Field(
+        "local", description="'local': this process (workers = 1) or a pool of spawned processes; 'ray': Ray."
+    )
+    workers: int | None = Field(
+        None,
+        ge=1,
         description="Processes (local) or CPUs of a local Ray instance. None = the cores available to this process; "
         "ignored when joining a running Ray cluster, whose size is its own.",
     )
-    address: Optional[str] = Field(
-        None, description="Ray only: a running cluster ('auto' or 'HOST:PORT'); None = start a local instance for this run "
+    address: str | None = Field(
+        None,
+        description="Ray only: a running cluster ('auto' or 'HOST:PORT'); None = start a local instance for this run "
         "(on 127.0.0.1, whatever RAY_ADDRESS says).",
     )
 
@@ -78,12 +83,21 @@ class TaskError(MapkitError):
     of it, ``cause`` the original exception (rebuilt in this process when it ran elsewhere) and
     ``remote_traceback`` the worker's traceback text (empty when it ran here)."""
 
-    def __init__(self, desc: str, index: int, item: str, cause: Optional[BaseException], cause_text: str, remote_traceback: str = ""):
+    def __init__(
+        self,
+        desc: str,
+        index: int,
+        item: str,
+        cause: BaseException | None,
+        cause_text: str,
+        remote_traceback: str = "",
+    ):
         self.index, self.item, self.cause, self.remote_traceback = index, item, cause, remote_traceback
         super().__init__(f"{desc or 'task'} failed on item {index} ({item}): {cause_text}")
 
 
 # --------------------------------------------------------------------------- running one item (in any process)
+
 
 class _NO_SHARED:  # noqa: N801 - a marker; a class, so that it keeps its identity through pickling
     """``map`` was given no shared state: call ``fn(item)``."""
@@ -95,7 +109,7 @@ class _Failure:
     def __init__(self, exc: BaseException, remote: bool):
         self.text = f"{type(exc).__name__}: {exc}"
         self.traceback = "".join(traceback.format_exception(exc)) if remote else ""
-        self.exc: Optional[BaseException] = exc
+        self.exc: BaseException | None = exc
         if remote:
             # rebuilt without calling __init__ (InputError's signature is not its args); dropped if
             # its class or state cannot travel
@@ -106,7 +120,7 @@ class _Failure:
             except Exception:  # noqa: BLE001 - whatever the exception holds, the text still travels
                 self.rebuild = None
 
-    def exception(self) -> Optional[BaseException]:
+    def exception(self) -> BaseException | None:
         if self.exc is None and getattr(self, "rebuild", None) is not None:
             cls, args, state = self.rebuild
             try:
@@ -160,8 +174,8 @@ class Executor:
         progress: bool = False,
         desc: str = "",
         unit: str = "item",
-        label: Optional[Callable[[Any], str]] = None,
-        chunksize: Optional[int] = None,
+        label: Callable[[Any], str] | None = None,
+        chunksize: int | None = None,
     ) -> Iterator:
         """Results of ``fn(item)`` (or ``fn(shared, item)``) in the order of ``items``.
 
@@ -169,8 +183,17 @@ class Executor:
         shortened). ``chunksize`` items travel per task (default: the executor's choice).
         """
         total = len(items) if hasattr(items, "__len__") else None  # type: ignore[arg-type]
-        return self._ordered(fn, iter(items), total, _NO_SHARED if shared is None else shared, progress, desc, unit,
-                             label or _describe, chunksize)
+        return self._ordered(
+            fn,
+            iter(items),
+            total,
+            _NO_SHARED if shared is None else shared,
+            progress,
+            desc,
+            unit,
+            label or _describe,
+            chunksize,
+        )
 
     def _ordered(self, fn, it: Iterator, total, shared, progress, desc, unit, label, chunksize) -> Iterator:
         raise NotImplementedError
@@ -178,7 +201,7 @@ class Executor:
     def close(self) -> None:
         """Release workers or the cluster connection (the executor may not be used afterwards)."""
 
-    def __enter__(self) -> "Executor":
+    def __enter__(self) -> Executor:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -240,10 +263,10 @@ class _ChunkedExecutor(Executor):
 
     in_process = False
 
-    def _default_chunksize(self, total: Optional[int]) -> int:
+    def _default_chunksize(self, total: int | None) -> int:
         return 1
 
-    def _start(self, fn, shared, n_chunks: Optional[int]) -> Any: ...
+    def _start(self, fn, shared, n_chunks: int | None) -> Any: ...
     def _submit(self, state, fn, chunk: list, shared) -> Any: ...
     def _result(self, state, handle) -> list: ...
     def _stop(self, state, pending: deque, failed: bool) -> None: ...
@@ -254,7 +277,9 @@ class _ChunkedExecutor(Executor):
         try:
             pickle.dumps(fn)
         except Exception as exc:  # noqa: BLE001
-            raise ConfigError(f"{desc or 'map'}: {fn!r} cannot be sent to worker processes ({exc}); use a module-level function") from None
+            raise ConfigError(
+                f"{desc or 'map'}: {fn!r} cannot be sent to worker processes ({exc}); use a module-level function"
+            ) from None
         size = max(1, int(chunksize or self._default_chunksize(total)))
         try:
             first = next(it)  # no workers for nothing (an error here has no results before it)
@@ -268,7 +293,7 @@ class _ChunkedExecutor(Executor):
         pending: deque[_Pending] = deque()
         failed = True
         exhausted = False
-        produce_error: Optional[BaseException] = None
+        produce_error: BaseException | None = None
         index = 0
         try:
             while True:
@@ -291,7 +316,9 @@ class _ChunkedExecutor(Executor):
                 head = pending.popleft()
                 results = self._result(state, head)
                 if len(results) != len(head.items) and not isinstance(results[-1], _Failure):
-                    raise MapkitError(f"{desc or 'map'}: a worker returned {len(results)} results for {len(head.items)} items")
+                    raise MapkitError(
+                        f"{desc or 'map'}: a worker returned {len(results)} results for {len(head.items)} items"
+                    )
                 for k, r in enumerate(results):
                     if isinstance(r, _Failure):
                         _raise_failure(r, desc, head.start + k, head.items[k], label)
@@ -364,7 +391,9 @@ class ProcessExecutor(_ChunkedExecutor):
 
         n = self._workers if n_chunks is None else max(1, min(self._workers, n_chunks))
         with _one_thread_env():
-            return mp.get_context("spawn").Pool(n, _process_init, (pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),))
+            return mp.get_context("spawn").Pool(
+                n, _process_init, (pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),)
+            )
 
     def _submit(self, pool, fn, chunk, shared):
         return pool.apply_async(_process_chunk, (fn, chunk))
@@ -385,7 +414,7 @@ class ProcessExecutor(_ChunkedExecutor):
 _RAY_SHARED: dict[str, Any] = {}
 
 
-def _ray_chunk(fn: Callable, items: list, token: Optional[str], shared_box: Optional[list]) -> list:
+def _ray_chunk(fn: Callable, items: list, token: str | None, shared_box: list | None) -> list:
     """Runs in a Ray worker: ``shared`` is fetched from the object store once per worker process."""
     if not _RAY_SHARED.get("configured"):  # BLAS and OpenMP: one thread by the job's environment (see RayExecutor)
         import cv2
@@ -419,7 +448,7 @@ class RayExecutor(_ChunkedExecutor):
 
     kind = "ray"
 
-    def __init__(self, workers: Optional[int] = None, address: Optional[str] = None):
+    def __init__(self, workers: int | None = None, address: str | None = None):
         try:
             import ray
         except ImportError:
@@ -428,16 +457,21 @@ class RayExecutor(_ChunkedExecutor):
         self._owns = False
         runtime_env = {"env_vars": dict(_ONE_THREAD_ENV)}
         if not ray.is_initialized():
-            kwargs: dict[str, Any] = dict(runtime_env=runtime_env, include_dashboard=False, log_to_driver=False,
-                                          configure_logging=False)
+            kwargs: dict[str, Any] = dict(
+                runtime_env=runtime_env, include_dashboard=False, log_to_driver=False, configure_logging=False
+            )
             if address:
                 ray.init(address=address, **kwargs)
             else:
                 # the driver's import path, so that workers find what it finds (a checkout, tests)
                 env = dict(runtime_env["env_vars"], PYTHONPATH=os.pathsep.join(p for p in _import_path() if p))
                 with _ray_loopback_only():
-                    ray.init(address="local", num_cpus=workers, _node_ip_address=_LOOPBACK,
-                             **dict(kwargs, runtime_env={"env_vars": env}))
+                    ray.init(
+                        address="local",
+                        num_cpus=workers,
+                        _node_ip_address=_LOOPBACK,
+                        **dict(kwargs, runtime_env={"env_vars": env}),
+                    )
             self._owns = True
         cpus = int(ray.cluster_resources().get("CPU", 1))
         self._workers = max(1, cpus)
@@ -494,8 +528,11 @@ def _ray_loopback_only() -> Iterator[None]:
 
     saved_env = {k: os.environ.get(k) for k in ("RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")}
     if saved_env["RAY_ADDRESS"]:
-        _log.warning("RAY_ADDRESS=%s is ignored: the local Ray executor starts its own instance "
-                     "(pass --ray-address to join a running cluster)", saved_env["RAY_ADDRESS"])
+        _log.warning(
+            "RAY_ADDRESS=%s is ignored: the local Ray executor starts its own instance "
+            "(pass --ray-address to join a running cluster)",
+            saved_env["RAY_ADDRESS"],
+        )
     saved_flag = getattr(ray_constants, "ENABLE_RAY_CLUSTER", None)
     os.environ.pop("RAY_ADDRESS", None)
     os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
@@ -530,7 +567,7 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-def make_executor(kind: str = "local", workers: Optional[int] = None, address: Optional[str] = None) -> Executor:
+def make_executor(kind: str = "local", workers: int | None = None, address: str | None = None) -> Executor:
     """An executor by name: ``"local"`` (``workers`` = 1: this process; more: a process pool;
     None: one process per available core) or ``"ray"`` (``address`` of a running cluster, or a
     local instance of ``workers`` CPUs)."""
@@ -544,11 +581,11 @@ def make_executor(kind: str = "local", workers: Optional[int] = None, address: O
 
 
 SERIAL = SerialExecutor()
-_default: Optional[Executor] = None
-_owned_default: Optional[Executor] = None
+_default: Executor | None = None
+_owned_default: Executor | None = None
 
 
-def get_executor(workers: Optional[int] = None) -> Executor:
+def get_executor(workers: int | None = None) -> Executor:
     """The executor for a caller that was given none: the process-wide one when it was set
     (:func:`use_executor`, :func:`set_default_executor`), else a local one of ``workers``
     (a stage's ``workers`` setting; None or 1 = this process)."""
@@ -558,7 +595,9 @@ def get_executor(workers: Optional[int] = None) -> Executor:
 
 
 @contextlib.contextmanager
-def use_executor(executor: Executor | str = "local", workers: Optional[int] = None, address: Optional[str] = None) -> Iterator[Executor]:
+def use_executor(
+    executor: Executor | str = "local", workers: int | None = None, address: str | None = None
+) -> Iterator[Executor]:
     """The process-wide default executor for a while: an executor, or one made by name (and then
     closed on exit). The previous default comes back afterwards."""
     global _default
@@ -573,7 +612,7 @@ def use_executor(executor: Executor | str = "local", workers: Optional[int] = No
             ex.close()
 
 
-def set_default_executor(kind: str = "local", workers: Optional[int] = None, address: Optional[str] = None) -> Executor:
+def set_default_executor(kind: str = "local", workers: int | None = None, address: str | None = None) -> Executor:
     """Set the process-wide default executor for the rest of the run (the CLI's ``--executor``,
     ``--workers``, ``--ray-address``); the one this replaces, if made here, is closed, and the
     last one is closed at exit."""
@@ -585,7 +624,7 @@ def set_default_executor(kind: str = "local", workers: Optional[int] = None, add
     return ex
 
 
-def default_executor() -> Optional[Executor]:
+def default_executor() -> Executor | None:
     """The process-wide default when one was set (:func:`use_executor`, :func:`set_default_executor`), else None."""
     return _default
 
@@ -597,6 +636,17 @@ def _close_default() -> None:
 
 
 __all__ = [
-    "Executor", "ExecutorConfig", "SerialExecutor", "ProcessExecutor", "RayExecutor", "TaskError", "SERIAL",
-    "make_executor", "get_executor", "default_executor", "use_executor", "set_default_executor", "available_cores",
+    "Executor",
+    "ExecutorConfig",
+    "SerialExecutor",
+    "ProcessExecutor",
+    "RayExecutor",
+    "TaskError",
+    "SERIAL",
+    "make_executor",
+    "get_executor",
+    "default_executor",
+    "use_executor",
+    "set_default_executor",
+    "available_cores",
 ]

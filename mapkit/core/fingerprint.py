@@ -86,14 +86,21 @@ def log_fingerprint(log: str | Path, watch: bool = True) -> dict[str, Any]:
         again = _stats(log)
         if again != stats:
             grown = sum(s for s, _ in again.values()) - sum(s for s, _ in stats.values())
-            raise InputError(log, f"is still being written (it changed by {grown:+d} bytes in {WATCH_S:g} s): build it once "
-                             "the copy or recording has finished", field="mtime")
+            raise InputError(
+                log,
+                f"is still being written (it changed by {grown:+d} bytes in {WATCH_S:g} s): build it once "
+                "the copy or recording has finished",
+                field="mtime",
+            )
     by_size = sorted(stats, key=lambda r: -stats[r][0])
     sampled = set(by_size[:SAMPLED_FILES]) | {r for r in stats if Path(r).suffix.lower() in TEXT_SUFFIXES}
     files = {}
     for rel, (size, mtime) in stats.items():
-        files[rel] = ({"bytes": size, "sample_sha256": sampled_sha256(log / rel if rel else log, size)} if rel in sampled
-                      else {"bytes": size, "mtime_ns": mtime})
+        files[rel] = (
+            {"bytes": size, "sample_sha256": sampled_sha256(log / rel if rel else log, size)}
+            if rel in sampled
+            else {"bytes": size, "mtime_ns": mtime}
+        )
     return {"bytes": sum(s for s, _ in stats.values()), "files": files}
 
 
@@ -102,7 +109,11 @@ def describe_change(old: dict[str, Any], new: dict[str, Any]) -> str:
     of, nf = old.get("files", {}), new.get("files", {})
     changed = sorted(r for r in set(of) | set(nf) if of.get(r) != nf.get(r))
     if changed == [""]:
-        return f"the file changed ({of[''].get('bytes')} -> {nf[''].get('bytes')} bytes)" if "" in of and "" in nf else "the file changed"
+        return (
+            f"the file changed ({of[''].get('bytes')} -> {nf[''].get('bytes')} bytes)"
+            if "" in of and "" in nf
+            else "the file changed"
+        )
     return f"{len(changed)} file(s) changed ({', '.join(changed[:3])}{', ...' if len(changed) > 3 else ''})"
 
 

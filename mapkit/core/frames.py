@@ -36,7 +36,11 @@ class FrameTree:
             return np.eye(4)
         if target not in self._edges or source not in self._edges:
             missing = target if target not in self._edges else source
-            raise InputError(None, f"no extrinsic calibration for frame {missing!r} (known frames: {sorted(self.frames)})", field="tf")
+            raise InputError(
+                None,
+                f"no extrinsic calibration for frame {missing!r} (known frames: {sorted(self.frames)})",
+                field="tf",
+            )
         # breadth-first search from target; accumulate target_from_x along the way
         seen = {target: np.eye(4)}
         queue = deque([target])

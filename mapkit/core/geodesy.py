@@ -35,9 +35,9 @@ rotate and scale it), so no offset could honestly describe one; ``enu_pipeline``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
-from typing import Optional, Sequence
 
 import numpy as np
 from pyproj import CRS, Transformer
@@ -93,7 +93,7 @@ class UtmProjection:
         return np.asarray(lat), np.asarray(lon)
 
     @classmethod
-    def for_point(cls, lat_deg: float, lon_deg: float) -> "UtmProjection":
+    def for_point(cls, lat_deg: float, lon_deg: float) -> UtmProjection:
         return cls(utm_epsg_for(lat_deg, lon_deg))
 
 
@@ -124,18 +124,27 @@ def crs_info(epsg: int) -> dict:
         raise InputError(None, f"EPSG:{epsg} ({crs.name}) is neither geographic, projected nor geocentric", field="crs")
     units = [a.unit_name for a in crs.axis_info]
     if kind != "geographic" and any(u not in ("metre", "meter") for u in units):
-        raise InputError(None, f"EPSG:{epsg} ({crs.name}) has axes in {units}; mapkit writes metric CRSs only", field="crs")
-    return {"epsg": int(epsg), "kind": kind, "name": crs.name, "is_3d": len(crs.axis_info) == 3,
-            "units": ("deg", "deg", "m") if kind == "geographic" else ("m", "m", "m")}
+        raise InputError(
+            None, f"EPSG:{epsg} ({crs.name}) has axes in {units}; mapkit writes metric CRSs only", field="crs"
+        )
+    return {
+        "epsg": int(epsg),
+        "kind": kind,
+        "name": crs.name,
+        "is_3d": len(crs.axis_info) == 3,
+        "units": ("deg", "deg", "m") if kind == "geographic" else ("m", "m", "m"),
+    }
 
 
-def parse_crs(spec: "str | int", frame: Optional["LocalFrame"] = None) -> int:
+def parse_crs(spec: str | int, frame: LocalFrame | None = None) -> int:
     """An EPSG code from ``utm`` (the frame's declared zone), ``ecef`` (4978), ``wgs84`` (4979),
     ``EPSG:n`` or ``n``."""
     text = str(spec).strip().lower()
     if text == "utm":
         if frame is None:
-            raise InputError(None, "'utm' needs a georeferenced workspace (its origin.json names the zone)", field="crs")
+            raise InputError(
+                None, "'utm' needs a georeferenced workspace (its origin.json names the zone)", field="crs"
+            )
         epsg = int(frame.utm_epsg)
     elif text == "ecef":
         epsg = EPSG_WGS84_ECEF
@@ -162,7 +171,9 @@ def ecef_from_enu_rotations(lat_deg, lon_deg) -> np.ndarray:
 
 
 def geodetic_to_ecef(lat_deg, lon_deg, alt_m) -> np.ndarray:
-    x, y, z = _TO_ECEF.transform(np.asarray(lon_deg, np.float64), np.asarray(lat_deg, np.float64), np.asarray(alt_m, np.float64))
+    x, y, z = _TO_ECEF.transform(
+        np.asarray(lon_deg, np.float64), np.asarray(lat_deg, np.float64), np.asarray(alt_m, np.float64)
+    )
     return np.stack([x, y, z], axis=-1)
 
 
@@ -278,10 +289,12 @@ class LocalFrame:
     @property
     def enu_pipeline(self) -> str:
         """A PROJ pipeline from WGS84 (lon, lat, ellipsoidal height) to this local ENU frame."""
-        return ("+proj=pipeline +step +proj=cart +ellps=WGS84 +step +proj=topocentric +ellps=WGS84 "
-                f"+lat_0={self.lat0_deg!r} +lon_0={self.lon0_deg!r} +h_0={self.alt0_m!r}")
+        return (
+            "+proj=pipeline +step +proj=cart +ellps=WGS84 +step +proj=topocentric +ellps=WGS84 "
+            f"+lat_0={self.lat0_deg!r} +lon_0={self.lon0_deg!r} +h_0={self.alt0_m!r}"
+        )
 
-    def to_frame(self, other: "LocalFrame") -> np.ndarray:
+    def to_frame(self, other: LocalFrame) -> np.ndarray:
         """``other_from_self``: the exact rigid transform between two ENU tangent frames (via ECEF)."""
         R = other.ecef_from_enu_rotation.T @ self.ecef_from_enu_rotation
         t = other.ecef_from_enu_rotation.T @ (self._ecef0 - other._ecef0)
@@ -299,7 +312,7 @@ class LocalFrame:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "LocalFrame":
+    def from_dict(cls, d: dict) -> LocalFrame:
         o = d["origin_wgs84"]
         return cls(float(o["lat_deg"]), float(o["lon_deg"]), float(o.get("alt_m", 0.0)), int(d["utm_crs_epsg"]))
 
@@ -307,7 +320,7 @@ class LocalFrame:
 PLY_CRS_CONVENTION = 1
 
 
-def ply_crs_comments(frame: Optional[LocalFrame], crs_epsg: Optional[int] = None) -> list[str]:
+def ply_crs_comments(frame: LocalFrame | None, crs_epsg: int | None = None) -> list[str]:
     """The header comments (without ``comment ``) stating the frame of a PLY's x, y, z: the local
     ENU frame of ``frame`` when ``crs_epsg`` is None, else EPSG ``crs_epsg``; ``frame`` (the
     workspace origin) is recorded either way when known. See the module doc."""
@@ -323,28 +336,37 @@ def ply_crs_comments(frame: Optional[LocalFrame], crs_epsg: Optional[int] = None
         units = info["units"]
     out.append("units " + (units[0] if len(set(units)) == 1 else " ".join(units)))
     if frame is not None:
-        out += [f"origin_lat_deg {float(frame.lat0_deg)!r}", f"origin_lon_deg {float(frame.lon0_deg)!r}",
-                f"origin_alt_m {float(frame.alt0_m)!r}", f"origin_crs EPSG:{EPSG_WGS84_GEODETIC_3D}",
-                f"utm_crs EPSG:{int(frame.utm_epsg)}", f"enu_pipeline {frame.enu_pipeline}"]
+        out += [
+            f"origin_lat_deg {float(frame.lat0_deg)!r}",
+            f"origin_lon_deg {float(frame.lon0_deg)!r}",
+            f"origin_alt_m {float(frame.alt0_m)!r}",
+            f"origin_crs EPSG:{EPSG_WGS84_GEODETIC_3D}",
+            f"utm_crs EPSG:{int(frame.utm_epsg)}",
+            f"enu_pipeline {frame.enu_pipeline}",
+        ]
     return out
 
 
-def frame_from_ply_comments(comments: Sequence[str]) -> tuple[Optional[LocalFrame], Optional[int], dict[str, str]]:
+def frame_from_ply_comments(comments: Sequence[str]) -> tuple[LocalFrame | None, int | None, dict[str, str]]:
     """(workspace frame or None, EPSG of x, y, z or None for local ENU / unspecified, all key-value
     pairs) from a PLY header's comments (with or without the leading ``comment ``)."""
     kv: dict[str, str] = {}
     for c in comments:
         c = c.strip()
         if c.startswith("comment "):
-            c = c[len("comment "):]
+            c = c[len("comment ") :]
         key, _, value = c.partition(" ")
         if key and key not in kv:
             kv[key] = value.strip()
     frame = None
     if all(k in kv for k in ("origin_lat_deg", "origin_lon_deg", "origin_alt_m")):
         utm = kv.get("utm_crs", "")
-        frame = LocalFrame(float(kv["origin_lat_deg"]), float(kv["origin_lon_deg"]), float(kv["origin_alt_m"]),
-                           int(utm.split(":")[1]) if utm.upper().startswith("EPSG:") else None)
+        frame = LocalFrame(
+            float(kv["origin_lat_deg"]),
+            float(kv["origin_lon_deg"]),
+            float(kv["origin_alt_m"]),
+            int(utm.split(":")[1]) if utm.upper().startswith("EPSG:") else None,
+        )
     crs = kv.get("crs", "")
     epsg = int(crs.split(":")[1]) if crs.upper().startswith("EPSG:") else None
     return frame, epsg, kv

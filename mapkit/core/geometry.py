@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 # --- quaternions and rotations ------------------------------------------------------------------
 
+
 def quat_wxyz_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
     q = np.asarray(q_wxyz, dtype=np.float64)
     return Rotation.from_quat(q[..., [1, 2, 3, 0]]).as_matrix()
@@ -49,6 +50,7 @@ def average_rotations(R: np.ndarray, weights: np.ndarray | None = None) -> np.nd
 
 
 # --- SE(3) ----------------------------------------------------------------------------------------
+
 
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrix [v]x of a 3-vector, (3, 3), or of each of a stack of them, (..., 3) -> (..., 3, 3):
@@ -99,6 +101,7 @@ def is_rotation(R: np.ndarray, atol: float = 1e-6) -> bool:
 
 # --- Sim(3) ---------------------------------------------------------------------------------------
 
+
 def make_sim3(scale: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     S = make_pose(R, t)
     S[:3, :3] *= scale
@@ -147,6 +150,7 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True, weights: 
 
 
 # --- time -----------------------------------------------------------------------------------------
+
 
 def associate(stamps_a_ns: np.ndarray, stamps_b_ns: np.ndarray, max_dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
     """Nearest-timestamp association, one-to-one, of two sorted stamp arrays.

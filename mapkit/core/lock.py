@@ -21,9 +21,9 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Optional
 
 from mapkit.core.errors import MapkitError
 
@@ -41,16 +41,17 @@ class WorkspaceBusy(MapkitError):
         self.holder = holder
         who = describe_holder(holder)
         waited = f" after waiting {waited_s:.0f} s" if waited_s > 0 else ""
-        super().__init__(f"{lock_path.parent}: the workspace is being written by {who}{waited}; "
-                         "wait for it to finish (or pass --wait SECONDS), then run again")
+        super().__init__(
+            f"{lock_path.parent}: the workspace is being written by {who}{waited}; "
+            "wait for it to finish (or pass --wait SECONDS), then run again"
+        )
 
 
 def describe_holder(holder: dict) -> str:
     if not holder:
         return "another process (no holder recorded)"
     cmd = holder.get("command") or "?"
-    return (f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} ({cmd}), "
-            f"since {holder.get('started', '?')}")
+    return f"pid {holder.get('pid', '?')} on {holder.get('host', '?')} ({cmd}), since {holder.get('started', '?')}"
 
 
 def read_holder(lock_path: Path) -> dict:
@@ -67,8 +68,9 @@ def _command_line() -> str:
 
 
 @contextmanager
-def workspace_lock(root: str | os.PathLike, command: Optional[str] = None, wait_s: float = 0.0,
-                   poll_s: float = 0.2) -> Iterator[Path]:
+def workspace_lock(
+    root: str | os.PathLike, command: str | None = None, wait_s: float = 0.0, poll_s: float = 0.2
+) -> Iterator[Path]:
     """Hold the workspace's write lock for the ``with`` block (the folder is created if need be).
 
     Raises :class:`WorkspaceBusy` naming the holder when another process holds it for longer
@@ -104,8 +106,12 @@ def workspace_lock(root: str | os.PathLike, command: Optional[str] = None, wait_
                 if waited >= wait_s:
                     raise WorkspaceBusy(path, read_holder(path), waited) from None
                 time.sleep(min(poll_s, max(wait_s - waited, 0.01)))
-        holder = {"pid": os.getpid(), "host": socket.gethostname(), "command": command or _command_line(),
-                  "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        holder = {
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "command": command or _command_line(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        }
         os.ftruncate(fd, 0)
         os.pwrite(fd, json.dumps(holder).encode(), 0)
     except BaseException:

@@ -29,9 +29,10 @@ import shutil
 import tempfile
 import warnings
 import zipfile
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator, Optional, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -66,8 +67,10 @@ def write_error(path: Path, exc: OSError) -> WriteError:
         free = f"{shutil.disk_usage(where).free / 1e6:.1f} MB free on {where}"
     except OSError:
         free = "free space unknown"
-    return WriteError(f"{path}: could not be written ({exc.strerror or exc}; {free}); nothing was renamed into place: "
-                      "make room (or fix the mount) and re-run the command, which resumes")
+    return WriteError(
+        f"{path}: could not be written ({exc.strerror or exc}; {free}); nothing was renamed into place: "
+        "make room (or fix the mount) and re-run the command, which resumes"
+    )
 
 
 @contextmanager
@@ -118,8 +121,10 @@ def _check_written(tmp: Path, path: Path) -> None:
             with h5py.File(tmp, "r"):
                 pass
     except (ValueError, zipfile.BadZipFile, OSError) as exc:
-        raise WriteError(f"{path}: the file written does not read back ({exc}; {tmp.stat().st_size} bytes on disk); "
-                         "not renamed into place (a full disk?)") from None
+        raise WriteError(
+            f"{path}: the file written does not read back ({exc}; {tmp.stat().st_size} bytes on disk); "
+            "not renamed into place (a full disk?)"
+        ) from None
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
@@ -135,8 +140,14 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     return Path(path)
 
 
-def atomic_write_ply(path: str | Path, points: np.ndarray, colors: Optional[np.ndarray] = None,
-                     frame: Optional["LocalFrame"] = None, crs_epsg: Optional[int] = None, comments: Sequence[str] = ()) -> Path:
+def atomic_write_ply(
+    path: str | Path,
+    points: np.ndarray,
+    colors: np.ndarray | None = None,
+    frame: LocalFrame | None = None,
+    crs_epsg: int | None = None,
+    comments: Sequence[str] = (),
+) -> Path:
     """A binary little-endian PLY point cloud (float64 x, y, z; optional RGB in [0, 1], stored as
     uchar), written atomically: the file only appears, under its name, complete.
 
@@ -184,7 +195,9 @@ def atomic_write_ply(path: str | Path, points: np.ndarray, colors: Optional[np.n
             os.fsync(f.fileno())
             size = os.fstat(f.fileno()).st_size
         if size != expected:
-            raise WriteError(f"{path}: wrote {size} bytes, expected {expected} ({n} points); not renamed into place (a full disk?)")
+            raise WriteError(
+                f"{path}: wrote {size} bytes, expected {expected} ({n} points); not renamed into place (a full disk?)"
+            )
     return path
 
 
@@ -238,7 +251,7 @@ def config_hash(obj: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def read_marker(folder: str | Path) -> Optional[dict]:
+def read_marker(folder: str | Path) -> dict | None:
     """The ``.done`` record of a stage folder, None when there is none (or it does not parse: not finished)."""
     try:
         record = json.loads((Path(folder) / DONE_MARKER).read_text())
@@ -247,7 +260,9 @@ def read_marker(folder: str | Path) -> Optional[dict]:
     return record if isinstance(record, dict) else None
 
 
-def is_done(folder: str | Path, cfg_hash: str | None = None, *, inputs: Optional[dict] = None, verify: bool = False) -> bool:
+def is_done(
+    folder: str | Path, cfg_hash: str | None = None, *, inputs: dict | None = None, verify: bool = False
+) -> bool:
     """Whether ``folder`` holds a finished stage made with ``cfg_hash`` from ``inputs``.
 
     ``inputs`` are compared with the marker's record of them, when it has one (a marker written
@@ -258,7 +273,11 @@ def is_done(folder: str | Path, cfg_hash: str | None = None, *, inputs: Optional
     if record is None or (cfg_hash is not None and record.get("config_hash") != cfg_hash):
         return False
     if inputs is not None and "inputs" in record and record["inputs"] != json.loads(to_json(inputs)):
-        changed = sorted(k for k in set(inputs) | set(record["inputs"]) if json.loads(to_json(inputs.get(k))) != record["inputs"].get(k))
+        changed = sorted(
+            k
+            for k in set(inputs) | set(record["inputs"])
+            if json.loads(to_json(inputs.get(k))) != record["inputs"].get(k)
+        )
         logger.info("%s: inputs changed (%s); the stage runs again", folder, ", ".join(changed))
         return False
     if verify:
@@ -270,8 +289,9 @@ def is_done(folder: str | Path, cfg_hash: str | None = None, *, inputs: Optional
     return True
 
 
-def mark_done(folder: str | Path, cfg_hash: str, *, inputs: Optional[dict] = None, outputs: bool | Sequence[str] = (),
-              **info: Any) -> None:
+def mark_done(
+    folder: str | Path, cfg_hash: str, *, inputs: dict | None = None, outputs: bool | Sequence[str] = (), **info: Any
+) -> None:
     """Finish a stage: its marker records ``cfg_hash``, ``inputs`` (JSON) and the size and SHA-256 of
     ``outputs`` (paths relative to ``folder``, a folder standing for its files; True: every file in it)."""
     folder = Path(folder)
@@ -283,7 +303,7 @@ def mark_done(folder: str | Path, cfg_hash: str, *, inputs: Optional[dict] = Non
     write_json(folder / DONE_MARKER, {**record, **info})
 
 
-def stage_digest(folder: str | Path) -> Optional[str]:
+def stage_digest(folder: str | Path) -> str | None:
     """What a downstream stage records of an upstream one: a hash of its marker's output record (of
     its config hash and inputs for a marker without one), so that a re-made upstream output
     invalidates what was made from it. None when the stage has not finished."""
@@ -319,7 +339,7 @@ def reset_stage(folder: str | Path) -> Path:
     return folder
 
 
-def progress_bar(total: Optional[int], enabled: Optional[bool], desc: str, unit: str, leave: bool = True):
+def progress_bar(total: int | None, enabled: bool | None, desc: str, unit: str, leave: bool = True):
     """The one progress bar of mapkit: tqdm on stderr for long work (``update``/``close``).
 
     ``enabled``: shown or silent; None shows it when stderr is a terminal (so logs and CI output

@@ -8,9 +8,10 @@ frames and units: ``parent_from_child`` maps points of the child frame into the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Callable, Optional, Union
+from typing import Union
 
 import numpy as np
 
@@ -80,11 +81,11 @@ class CameraFrame:
         self,
         stamp_ns: int,
         camera: str,
-        image: Optional[np.ndarray] = None,
+        image: np.ndarray | None = None,
         *,
-        loader: Optional[Callable[[], np.ndarray]] = None,
+        loader: Callable[[], np.ndarray] | None = None,
         encoding: str = "mono8",
-        source: Optional[str] = None,
+        source: str | None = None,
     ):
         if image is None and loader is None:
             raise ValueError("CameraFrame needs an image or a loader")
@@ -137,7 +138,7 @@ class GpsFix:
     lon_deg: float
     alt_m: float
     status: int = GpsStatus.FIX
-    covariance_enu_m2: Optional[np.ndarray] = None
+    covariance_enu_m2: np.ndarray | None = None
     frame_id: str = "gps"
 
     @property
@@ -159,9 +160,9 @@ class LidarScan:
     stamp_ns: int
     frame_id: str
     points_xyz: np.ndarray  # (N, 3) float32 or float64, metres in frame_id
-    intensity: Optional[np.ndarray] = None  # (N,)
-    point_time_s: Optional[np.ndarray] = None  # (N,) seconds relative to stamp_ns
-    ring: Optional[np.ndarray] = None  # (N,) beam index
+    intensity: np.ndarray | None = None  # (N,)
+    point_time_s: np.ndarray | None = None  # (N,) seconds relative to stamp_ns
+    ring: np.ndarray | None = None  # (N,) beam index
 
     def __len__(self) -> int:
         return int(self.points_xyz.shape[0])
@@ -173,7 +174,7 @@ class ImuSample:
     frame_id: str
     angular_velocity_rad_s: np.ndarray  # (3,)
     linear_acceleration_m_s2: np.ndarray  # (3,)
-    orientation_quat_wxyz: Optional[np.ndarray] = None  # (4,) or None when not estimated
+    orientation_quat_wxyz: np.ndarray | None = None  # (4,) or None when not estimated
 
 
 @dataclass
@@ -184,7 +185,7 @@ class PoseSample:
     parent_frame: str
     child_frame: str
     parent_from_child: np.ndarray  # 4x4 SE(3)
-    covariance: Optional[np.ndarray] = None  # 6x6 (x, y, z, rx, ry, rz) when known
+    covariance: np.ndarray | None = None  # 6x6 (x, y, z, rx, ry, rz) when known
     source: str = "pose"  # "ground_truth", "ins", "odometry", ...
 
 
@@ -233,4 +234,4 @@ class StreamInfo:
     topic: str
     kind: StreamKind
     msgtype: str
-    count: Optional[int] = None
+    count: int | None = None

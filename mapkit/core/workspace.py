@@ -38,7 +38,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional, Union
+from typing import Literal
 
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
@@ -172,7 +172,7 @@ class AlignedDirs:
 class Workspace:
     """A mapkit workspace folder. Cheap to make: nothing is read until asked for."""
 
-    def __init__(self, root: Union[str, os.PathLike, "Workspace"]):
+    def __init__(self, root: str | os.PathLike | Workspace):
         self.root = Path(root.root if isinstance(root, Workspace) else root)
 
     def __repr__(self) -> str:
@@ -181,7 +181,7 @@ class Workspace:
     def __fspath__(self) -> str:
         return str(self.root)
 
-    def lock(self, command: Optional[str] = None, wait_s: float = 0.0):
+    def lock(self, command: str | None = None, wait_s: float = 0.0):
         """The workspace's write lock, a context manager (:func:`mapkit.core.lock.workspace_lock`)."""
         return workspace_lock(self.root, command, wait_s)
 
@@ -212,7 +212,7 @@ class Workspace:
     def eval_build_md(self) -> Path:
         return self.root / "eval_build.md"
 
-    def frame(self) -> Optional[LocalFrame]:
+    def frame(self) -> LocalFrame | None:
         """The workspace's local frame; None while no session is georeferenced."""
         if not self.origin.is_file():
             return None
@@ -236,7 +236,7 @@ class Workspace:
     def session(self, name: str) -> SessionDirs:
         return SessionDirs(self.sessions_dir / name)
 
-    def session_names(self, stage: Optional[Stage] = None) -> list[str]:
+    def session_names(self, stage: Stage | None = None) -> list[str]:
         """Sessions in the workspace, sorted; with ``stage``, only those whose stage finished."""
         if not self.sessions_dir.is_dir():
             return []

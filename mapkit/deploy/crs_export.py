@@ -31,14 +31,22 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, Optional, Sequence
+from typing import Literal
 
 import numpy as np
 
 from mapkit.core.errors import InputError, InputWarning
-from mapkit.core.geodesy import EPSG_WGS84_GEODETIC_3D, LocalFrame, crs_info, frame_from_ply_comments, parse_crs, ply_crs_comments
+from mapkit.core.geodesy import (
+    EPSG_WGS84_GEODETIC_3D,
+    LocalFrame,
+    crs_info,
+    frame_from_ply_comments,
+    parse_crs,
+    ply_crs_comments,
+)
 from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from mapkit.core.runio import atomic_write_ply, atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
@@ -57,7 +65,7 @@ class PlyHeader:
     """A PLY file's header: ``format`` (e.g. ``binary_little_endian``), ``comments`` (without
     ``comment ``), ``elements`` ({name: count}) and ``properties`` ({element: [(type, name)]})."""
 
-    format: Optional[str] = None
+    format: str | None = None
     comments: list[str] = field(default_factory=list)
     elements: dict[str, int] = field(default_factory=dict)
     properties: dict[str, list[tuple[str, str]]] = field(default_factory=dict)
@@ -93,7 +101,7 @@ def read_ply_header(path: str | Path) -> PlyHeader:
     raise InputError(path, "PLY header has no end_header line")
 
 
-def ply_georef(path: str | Path) -> tuple[Optional[LocalFrame], Optional[int], dict[str, str]]:
+def ply_georef(path: str | Path) -> tuple[LocalFrame | None, int | None, dict[str, str]]:
     """(workspace frame, EPSG code of x, y, z or None for local ENU, all header key-values)."""
     return frame_from_ply_comments(read_ply_header(path).comments)
 
@@ -120,7 +128,9 @@ def _header_lines(frame: LocalFrame, epsg: int) -> list[str]:
     return [f"# {c}" for c in ["generator mapkit", *ply_crs_comments(frame, epsg)]]
 
 
-def write_crs_trajectory(path: str | Path, stamps_ns: np.ndarray, enu_from_base: np.ndarray, frame: LocalFrame, epsg: int) -> Path:
+def write_crs_trajectory(
+    path: str | Path, stamps_ns: np.ndarray, enu_from_base: np.ndarray, frame: LocalFrame, epsg: int
+) -> Path:
     """A trajectory in EPSG ``epsg``: TUM for a metric CRS, CSV for a geographic one (module doc)."""
     epsg = int(epsg)
     xyz, R = poses_to_crs(frame, enu_from_base, epsg)
@@ -137,7 +147,9 @@ def write_crs_trajectory(path: str | Path, stamps_ns: np.ndarray, enu_from_base:
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def read_crs_trajectory(path: str | Path, frame: Optional[LocalFrame] = None, epsg: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
+def read_crs_trajectory(
+    path: str | Path, frame: LocalFrame | None = None, epsg: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(stamps_ns, enu_from_base) of a file from :func:`write_crs_trajectory`, in ``frame`` (by
     default the one its header names; a CSV carries no header, so give ``frame``; ``epsg``
     defaults to the header's, or 4979 for a CSV)."""
@@ -168,13 +180,17 @@ def read_crs_trajectory(path: str | Path, frame: Optional[LocalFrame] = None, ep
 # --- a workspace ----------------------------------------------------------------------------------
 
 
-def _session_sources(ws: Workspace, ws_frame: LocalFrame, name: str, source: Source, aligned: set[str]) -> tuple[str, LocalFrame, Path, Path]:
+def _session_sources(
+    ws: Workspace, ws_frame: LocalFrame, name: str, source: Source, aligned: set[str]
+) -> tuple[str, LocalFrame, Path, Path]:
     """(which, session frame, trajectory folder, map PLY) of one session."""
     al = ws.aligned(name)
     use_aligned = source == "aligned" or (source == "auto" and name in aligned)
     if use_aligned:
         if name not in aligned or not al.trajectory.is_dir():
-            raise InputError(al.root, f"session {name!r} is not in a finished `mapkit align` of this workspace", field="session")
+            raise InputError(
+                al.root, f"session {name!r} is not in a finished `mapkit align` of this workspace", field="session"
+            )
         return "aligned", ws_frame, al.trajectory, al.map / "points.ply"
     sdir = ws.session(name)
     ga_path = sdir.gps_alignment
@@ -182,7 +198,11 @@ def _session_sources(ws: Workspace, ws_frame: LocalFrame, name: str, source: Sou
         raise InputError(sdir.root, f"session {name!r} has no georef stage (run mapkit build)", field="session")
     ga = json.loads(ga_path.read_text())
     if not ga.get("georeferenced"):
-        raise InputError(ga_path, f"session {name!r} is not georeferenced ({ga.get('reason', 'no reason given')}): it has no CRS", field="session")
+        raise InputError(
+            ga_path,
+            f"session {name!r} is not georeferenced ({ga.get('reason', 'no reason given')}): it has no CRS",
+            field="session",
+        )
     return "built", LocalFrame.from_dict(ga), sdir.enu_trajectory, sdir.map / "points.ply"
 
 
@@ -192,8 +212,16 @@ def _read_points(path: Path) -> np.ndarray:
     return np.asarray(o3d.io.read_point_cloud(str(path), format="ply").points, np.float64)
 
 
-def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", sessions: Optional[Sequence[str]] = None,
-               trajectory: bool = True, map: bool = True, merged: bool = False, source: Source = "auto") -> dict:
+def export_crs(
+    workspace: str | Path,
+    out: str | Path,
+    crs: str | int = "utm",
+    sessions: Sequence[str] | None = None,
+    trajectory: bool = True,
+    map: bool = True,
+    merged: bool = False,
+    source: Source = "auto",
+) -> dict:
     """Write sessions' trajectories and maps (and the merged map) of ``workspace`` in ``crs``
     (``utm``, ``ecef``, ``wgs84``, ``EPSG:<code>``) under ``out``; returns the manifest, also
     written to ``out/export.json``. ``sessions``: default all georeferenced ones; ``source``:
@@ -207,8 +235,12 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
     maps_skipped = None
     if geographic and (map or merged):
         if not trajectory:
-            raise InputError(None, f"EPSG:{epsg} ({info['name']}) is geographic: maps are written in a metric CRS only "
-                             "(utm, ecef or a projected EPSG code)", field="crs")
+            raise InputError(
+                None,
+                f"EPSG:{epsg} ({info['name']}) is geographic: maps are written in a metric CRS only "
+                "(utm, ecef or a projected EPSG code)",
+                field="crs",
+            )
         maps_skipped = f"EPSG:{epsg} is geographic: maps are written in a metric CRS only"
         map = merged = False
     aligned = set(ws.aligned_sessions())
@@ -229,8 +261,14 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
             chosen = [n for n in names if georeferenced(n)]
         else:
             chosen = [n for n in names if n in aligned or georeferenced(n)]
-    manifest: dict = {"crs_epsg": epsg, "crs_name": info["name"], "crs_kind": info["kind"], "workspace_frame": ws_frame.to_dict(),
-                      "z": "WGS84 ellipsoidal height (m)", "sessions": {}}
+    manifest: dict = {
+        "crs_epsg": epsg,
+        "crs_name": info["name"],
+        "crs_kind": info["kind"],
+        "workspace_frame": ws_frame.to_dict(),
+        "z": "WGS84 ellipsoidal height (m)",
+        "sessions": {},
+    }
     if maps_skipped:
         manifest["maps_skipped"] = maps_skipped
     for name in chosen:
@@ -242,23 +280,38 @@ def export_crs(workspace: str | Path, out: str | Path, crs: str | int = "utm", s
             traj = Trajectory.load(traj_dir)
             path = out / name / ("trajectory.csv" if geographic else "trajectory.tum")
             write_crs_trajectory(path, traj.stamps_ns, traj.world_from_base, frame, epsg)
-            entry["trajectory"] = {"file": path.relative_to(out).as_posix(), "from": traj_dir.relative_to(ws.root).as_posix(), "poses": len(traj)}
+            entry["trajectory"] = {
+                "file": path.relative_to(out).as_posix(),
+                "from": traj_dir.relative_to(ws.root).as_posix(),
+                "poses": len(traj),
+            }
         if map:
             if map_ply.is_file():
                 pts = _read_points(map_ply)
                 path = out / name / "map.ply"
                 atomic_write_ply(path, frame.enu_to_crs(pts, epsg), frame=frame, crs_epsg=epsg)
-                entry["map"] = {"file": path.relative_to(out).as_posix(), "from": map_ply.relative_to(ws.root).as_posix(), "points": len(pts)}
+                entry["map"] = {
+                    "file": path.relative_to(out).as_posix(),
+                    "from": map_ply.relative_to(ws.root).as_posix(),
+                    "points": len(pts),
+                }
             else:
-                warnings.warn(f"{map_ply}: no such file (session {name!r} built without a map?); its map is not exported",
-                              InputWarning, stacklevel=2)
+                warnings.warn(
+                    f"{map_ply}: no such file (session {name!r} built without a map?); its map is not exported",
+                    InputWarning,
+                    stacklevel=2,
+                )
                 entry["map"] = None
         manifest["sessions"][name] = entry
     if merged:
         tiles = ws.tiles_dir
         pts, _, _, _ = load_tiles(tiles)
         atomic_write_ply(out / "merged_map.ply", ws_frame.enu_to_crs(pts, epsg), frame=ws_frame, crs_epsg=epsg)
-        manifest["merged_map"] = {"file": "merged_map.ply", "from": tiles.relative_to(ws.root).as_posix(), "points": len(pts)}
+        manifest["merged_map"] = {
+            "file": "merged_map.ply",
+            "from": tiles.relative_to(ws.root).as_posix(),
+            "points": len(pts),
+        }
     if not manifest["sessions"] and "merged_map" not in manifest:
         raise InputError(ws.root, "nothing to export: no georeferenced session chosen", field="sessions")
     write_json(out / "export.json", manifest)

@@ -16,9 +16,10 @@ checksum, and returns the loaded indexes by name.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any
 
 from mapkit import __version__
 from mapkit.core.bundle import MANIFEST, building, copy_file, load_manifest
@@ -57,7 +58,7 @@ def find_indexes(workspace: str | Path) -> dict[str, Path]:
     return found
 
 
-def _index_entry(name: str, src: Path, origin: Optional[dict]) -> dict:
+def _index_entry(name: str, src: Path, origin: dict | None) -> dict:
     m = json.loads((src / MANIFEST).read_text())
     kind = m.get("kind")
     load = _loader(kind)
@@ -73,7 +74,9 @@ def _index_entry(name: str, src: Path, origin: Optional[dict]) -> dict:
     else:
         sessions = list(m.get("session_names") or [])
         frame = origin
-        params = {k: cfg.get(k) for k in ("kind", "keypoint_fraction", "pca_dim", "nbld", "m2dp", "cnn_model") if k in cfg}
+        params = {
+            k: cfg.get(k) for k in ("kind", "keypoint_fraction", "pca_dim", "nbld", "m2dp", "cnn_model") if k in cfg
+        }
         entries = (m.get("counts") or {}).get("entries")
     return {
         "path": name,
@@ -88,7 +91,7 @@ def _index_entry(name: str, src: Path, origin: Optional[dict]) -> dict:
     }
 
 
-def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Sequence[str]] = None) -> Path:
+def export_bundles(workspace: str | Path, out: str | Path, names: Sequence[str] | None = None) -> Path:
     """Copy the finished indexes of ``workspace`` into ``out`` with a top-level manifest; returns ``out``.
     ``names`` selects folders of ``WORKSPACE/indexes`` (default all).
     The export is built beside ``out`` and renamed into place, so ``out`` is always whole."""
@@ -100,8 +103,12 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
             raise InputError(ws.indexes_dir, f"no finished index named {missing}; found {sorted(found)}")
         found = {n: found[n] for n in names}
     if not found:
-        raise InputError(ws.indexes_dir, "no finished index to export (run `mapkit index vlad` or `mapkit index structure` first)")
-    origin = json.loads(ws.origin.read_text()) if ws.origin.is_file() else None  # as written: the export states it verbatim
+        raise InputError(
+            ws.indexes_dir, "no finished index to export (run `mapkit index vlad` or `mapkit index structure` first)"
+        )
+    origin = (
+        json.loads(ws.origin.read_text()) if ws.origin.is_file() else None
+    )  # as written: the export states it verbatim
     entries = {name: _index_entry(name, src, origin) for name, src in found.items()}
     with building(out) as tmp:
         for name, src in found.items():
@@ -122,12 +129,20 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Optional[Seque
 
 
 def _readme(entries: dict) -> str:
-    lines = ["mapkit deployment bundle", "", "Load and verify everything in Python:", "",
-             "    from mapkit.deploy.export import load_bundle",
-             "    bundle = load_bundle('THIS_FOLDER')   # bundle['vlad'], bundle['structure-nbld'], ...", "",
-             "Indexes:"]
+    lines = [
+        "mapkit deployment bundle",
+        "",
+        "Load and verify everything in Python:",
+        "",
+        "    from mapkit.deploy.export import load_bundle",
+        "    bundle = load_bundle('THIS_FOLDER')   # bundle['vlad'], bundle['structure-nbld'], ...",
+        "",
+        "Indexes:",
+    ]
     for name, e in entries.items():
-        lines.append(f"  {name}: {e['kind']} ({e['descriptor']}), {e['entries']} entries, sessions {', '.join(e['source_sessions'])}")
+        lines.append(
+            f"  {name}: {e['kind']} ({e['descriptor']}), {e['entries']} entries, sessions {', '.join(e['source_sessions'])}"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -157,7 +172,9 @@ def load_bundle(path: str | Path, verify: bool = True) -> Bundle:
         if not (sub / MANIFEST).is_file():
             raise InputError(sub, f"index {name!r} listed in {mpath} is missing")
         if sha256_file(sub / MANIFEST) != e.get("manifest_sha256"):
-            raise InputError(sub / MANIFEST, f"index {name!r} differs from the one the export lists", field="manifest_sha256")
+            raise InputError(
+                sub / MANIFEST, f"index {name!r} differs from the one the export lists", field="manifest_sha256"
+            )
         load = _loader(e.get("kind"))
         if load is None:
             raise InputError(mpath, f"index {name!r} has unknown kind {e.get('kind')!r}", field="kind")

@@ -23,13 +23,21 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 import numpy as np
 
 from mapkit.core.errors import ConfigError, InputError, MapkitError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad, sim3_scale, transform_points, transform_poses, umeyama
+from mapkit.core.geometry import (
+    interpolate_poses,
+    invert_pose,
+    rotation_angle_rad,
+    sim3_scale,
+    transform_points,
+    transform_poses,
+    umeyama,
+)
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
@@ -54,9 +62,18 @@ from mapkit.multisession.align import PairResult, _support_points
 Alignment = Literal["auto", "se3", "sim3", "none"]
 
 
-def evaluate_build(workspace: str | Path | Workspace, truth: str | Path, *, session: Optional[str] = None,
-                   truth_topic: Optional[str] = None, truth_times: Optional[Path] = None, time_offset_s: float = 0.0,
-                   max_dt_s: float = 0.02, align: Alignment = "auto", segment_m: float = 100.0) -> dict:
+def evaluate_build(
+    workspace: str | Path | Workspace,
+    truth: str | Path,
+    *,
+    session: str | None = None,
+    truth_topic: str | None = None,
+    truth_times: Path | None = None,
+    time_offset_s: float = 0.0,
+    max_dt_s: float = 0.02,
+    align: Alignment = "auto",
+    segment_m: float = 100.0,
+) -> dict:
     """A built workspace against ``truth``; writes ``eval_build.json`` and ``eval_build.md`` into it.
 
     ``truth`` is a synthetic town folder (every session the town knows, or ``session``), or a true
@@ -70,22 +87,28 @@ def evaluate_build(workspace: str | Path | Workspace, truth: str | Path, *, sess
     path, topic = split_log_topic(truth, truth_topic)
     if is_town(path):
         if topic is not None or truth_times is not None:
-            raise InputError(path, "is a synthetic town, which holds every session's truth; a truth topic or --truth-times "
-                             "is for a log or a KITTI poses file")
+            raise InputError(
+                path,
+                "is a synthetic town, which holds every session's truth; a truth topic or --truth-times "
+                "is for a log or a KITTI poses file",
+            )
         return _evaluate_town(ws, path, session)
     name = _truth_session(ws, session)
     est, est_info = _session_estimate(ws.session(name))
     t = read_truth(path, topic=topic, times=truth_times, time_offset_s=time_offset_s, body_frame=est.body_frame)
     if align == "auto":
         align = "se3" if est_info["metric"] else "sim3"
-    r = {"estimate": est_info, **compare_trajectories(est.stamps_ns, est.world_from_base, t, max_dt_s, align, segment_m)}
+    r = {
+        "estimate": est_info,
+        **compare_trajectories(est.stamps_ns, est.world_from_base, t, max_dt_s, align, segment_m),
+    }
     results: dict = {"workspace": str(ws.root), "truth": t.source, "truth_kind": t.kind, "sessions": {name: r}}
     write_json(ws.eval_build_json, results)
     atomic_write_text(ws.eval_build_md, format_eval(results))
     return results
 
 
-def _evaluate_town(ws: Workspace, truth: Path, session: Optional[str]) -> dict:
+def _evaluate_town(ws: Workspace, truth: Path, session: str | None) -> dict:
     """Every session of the workspace that the town knows (or ``session`` only), against its truth."""
     import open3d as o3d
 
@@ -101,35 +124,47 @@ def _evaluate_town(ws: Workspace, truth: Path, session: Optional[str]) -> dict:
             gt_stamps, gt_world_from_base = session_truth(truth, name)
         except (FileNotFoundError, MapkitError):
             continue
-        results["sessions"][name] = _evaluate_session(ws, ws.session(name), truth, mesh, town_to_ws, ws_frame,
-                                                      gt_stamps, town_to_ws @ gt_world_from_base)
+        results["sessions"][name] = _evaluate_session(
+            ws, ws.session(name), truth, mesh, town_to_ws, ws_frame, gt_stamps, town_to_ws @ gt_world_from_base
+        )
     write_json(ws.eval_build_json, results)
     atomic_write_text(ws.eval_build_md, format_eval(results))
     return results
 
 
-def _truth_session(ws: Workspace, session: Optional[str]) -> str:
+def _truth_session(ws: Workspace, session: str | None) -> str:
     """The session one true trajectory belongs to: ``session``, or the workspace's only one."""
     names = ws.session_names()
     if session is not None:
         if session not in names:
-            raise InputError(ws.root, f"has no session {session!r}; its sessions: {', '.join(names) or 'none'}", field="--session")
+            raise InputError(
+                ws.root, f"has no session {session!r}; its sessions: {', '.join(names) or 'none'}", field="--session"
+            )
         return session
     if len(names) == 1:
         return names[0]
     if not names:
         raise InputError(ws.root, "holds no sessions (run mapkit build first)")
-    raise InputError(ws.root, f"has {len(names)} sessions ({', '.join(names)}); name the one the truth belongs to with --session",
-                     field="--session")
+    raise InputError(
+        ws.root,
+        f"has {len(names)} sessions ({', '.join(names)}); name the one the truth belongs to with --session",
+        field="--session",
+    )
 
 
 def _session_estimate(s: SessionDirs) -> tuple[Trajectory, dict]:
     """The trajectory to evaluate: the georef stage's (in the workspace's ENU frame when
     georeferenced), else the odometry's; and what it is, for the report."""
-    georeferenced = s.gps_alignment.is_file() and bool(json.loads(s.gps_alignment.read_text()).get("georeferenced", False))
+    georeferenced = s.gps_alignment.is_file() and bool(
+        json.loads(s.gps_alignment.read_text()).get("georeferenced", False)
+    )
     if s.enu_trajectory.is_dir():
-        folder, which = s.enu_trajectory, "the georef stage's trajectory" + (" (the factor graph's)" if s.enu_trajectory == s.fused_trajectory else "") + (" (GPS-aligned, workspace ENU)" if georeferenced else
-                                                                                 " (not georeferenced: the odometry's frame)")
+        folder, which = (
+            s.enu_trajectory,
+            "the georef stage's trajectory"
+            + (" (the factor graph's)" if s.enu_trajectory == s.fused_trajectory else "")
+            + (" (GPS-aligned, workspace ENU)" if georeferenced else " (not georeferenced: the odometry's frame)"),
+        )
     elif s.trajectory.is_dir():
         folder, which = s.trajectory, "the odometry trajectory (before GPS alignment)"
     else:
@@ -137,16 +172,31 @@ def _session_estimate(s: SessionDirs) -> tuple[Trajectory, dict]:
     est = Trajectory.load(folder)
     # structure from motion has no scale until GPS gives it one
     metric = georeferenced or not est.source.startswith("camera")
-    return est, {"trajectory": which, "folder": str(folder), "source": est.source, "frame": est.frame, "body_frame": est.body_frame,
-                 "poses": len(est), "span_s": _span_s(est.stamps_ns), "georeferenced": georeferenced, "metric": metric}
+    return est, {
+        "trajectory": which,
+        "folder": str(folder),
+        "source": est.source,
+        "frame": est.frame,
+        "body_frame": est.body_frame,
+        "poses": len(est),
+        "span_s": _span_s(est.stamps_ns),
+        "georeferenced": georeferenced,
+        "metric": metric,
+    }
 
 
 def _span_s(stamps_ns: np.ndarray) -> list[float]:
     return [int(stamps_ns[0]) * 1e-9, int(stamps_ns[-1]) * 1e-9]
 
 
-def compare_trajectories(est_stamps_ns: np.ndarray, est_poses: np.ndarray, truth: TruthTrajectory, max_dt_s: float = 0.02,
-                         align: Literal["se3", "sim3", "none"] = "se3", segment_m: float = 100.0) -> dict:
+def compare_trajectories(
+    est_stamps_ns: np.ndarray,
+    est_poses: np.ndarray,
+    truth: TruthTrajectory,
+    max_dt_s: float = 0.02,
+    align: Literal["se3", "sim3", "none"] = "se3",
+    segment_m: float = 100.0,
+) -> dict:
     """An estimated trajectory against a true one in a frame of its own.
 
     Stamps are paired by :func:`~mapkit.evaluation.truth.associate_truth` within ``max_dt_s``.
@@ -162,29 +212,54 @@ def compare_trajectories(est_stamps_ns: np.ndarray, est_poses: np.ndarray, truth
     max_dt_ns = int(round(max_dt_s * 1e9))
     ts, te = truth.stamps_ns, est_stamps_ns
     if ts[0] > te[-1] + max_dt_ns or ts[-1] < te[0] - max_dt_ns:
-        raise InputError(truth.source, f"its stamps ({ts[0] * 1e-9:.3f} to {ts[-1] * 1e-9:.3f} s) do not overlap the session's "
-                         f"({te[0] * 1e-9:.3f} to {te[-1] * 1e-9:.3f} s){_clock_hint(ts, te)}", field="time")
+        raise InputError(
+            truth.source,
+            f"its stamps ({ts[0] * 1e-9:.3f} to {ts[-1] * 1e-9:.3f} s) do not overlap the session's "
+            f"({te[0] * 1e-9:.3f} to {te[-1] * 1e-9:.3f} s){_clock_hint(ts, te)}",
+            field="time",
+        )
     a = associate_truth(te, ts, truth.world_from_body, max_dt_ns)
     if len(a.est_index) < 3:
-        raise InputError(truth.source, f"only {len(a.est_index)} of the session's {len(te)} poses have a true pose within {max_dt_s} s "
-                         f"(truth {ts[0] * 1e-9:.3f} to {ts[-1] * 1e-9:.3f} s, {len(ts)} poses); at least 3 are needed "
-                         f"(a larger --max-dt?){_clock_hint(ts, te)}", field="time")
+        raise InputError(
+            truth.source,
+            f"only {len(a.est_index)} of the session's {len(te)} poses have a true pose within {max_dt_s} s "
+            f"(truth {ts[0] * 1e-9:.3f} to {ts[-1] * 1e-9:.3f} s, {len(ts)} poses); at least 3 are needed "
+            f"(a larger --max-dt?){_clock_hint(ts, te)}",
+            field="time",
+        )
     est = np.asarray(est_poses, np.float64)[a.est_index]
     gt = a.truth_poses
     out: dict = {
-        "truth": {"kind": truth.kind, "source": truth.source, "frame": truth.frame, "body_frame": truth.body_frame,
-                  "stamps": truth.stamps, "poses": len(truth), "span_s": _span_s(ts)},
-        "association": {"max_dt_s": max_dt_s, "estimated_poses": len(te), "associated": len(a.est_index),
-                        "interpolated": a.interpolated, "nearest": a.nearest,
-                        "nearest_dt_median_s": float(np.median(a.nearest_dt_s)) if len(a.nearest_dt_s) else None,
-                        "nearest_dt_max_s": float(a.nearest_dt_s.max()) if len(a.nearest_dt_s) else None},
+        "truth": {
+            "kind": truth.kind,
+            "source": truth.source,
+            "frame": truth.frame,
+            "body_frame": truth.body_frame,
+            "stamps": truth.stamps,
+            "poses": len(truth),
+            "span_s": _span_s(ts),
+        },
+        "association": {
+            "max_dt_s": max_dt_s,
+            "estimated_poses": len(te),
+            "associated": len(a.est_index),
+            "interpolated": a.interpolated,
+            "nearest": a.nearest,
+            "nearest_dt_median_s": float(np.median(a.nearest_dt_s)) if len(a.nearest_dt_s) else None,
+            "nearest_dt_max_s": float(a.nearest_dt_s.max()) if len(a.nearest_dt_s) else None,
+        },
     }
     S = np.eye(4) if align == "none" else umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=align == "sim3")
     aligned = transform_poses(S, est)
     scale = sim3_scale(S)
-    out["alignment"] = {"mode": align, "truth_from_estimate": S, "scale": scale,
-                        "rotation_deg": float(np.degrees(rotation_angle_rad(S[:3, :3] / scale))),
-                        "translation": [float(x) for x in S[:3, 3]], "straight_path": _straight(est[:, :3, 3])}
+    out["alignment"] = {
+        "mode": align,
+        "truth_from_estimate": S,
+        "scale": scale,
+        "rotation_deg": float(np.degrees(rotation_angle_rad(S[:3, :3] / scale))),
+        "translation": [float(x) for x in S[:3, 3]],
+        "straight_path": _straight(est[:, :3, 3]),
+    }
     out["ate"] = _pose_errors(aligned, gt, enu=align == "none")
     out["rpe"] = relative_errors(aligned, gt, segment_m)
     return out
@@ -196,8 +271,10 @@ def _clock_hint(truth_ns: np.ndarray, est_ns: np.ndarray) -> str:
     if truth_relative == est_relative:
         return ""
     side = "the truth's" if truth_relative else "the session's"
-    return (f"; {side} stamps look relative to the drive's start: --truth-time-offset {(est_ns[0] - truth_ns[0]) * 1e-9:.6f} "
-            "would start both together")
+    return (
+        f"; {side} stamps look relative to the drive's start: --truth-time-offset {(est_ns[0] - truth_ns[0]) * 1e-9:.6f} "
+        "would start both together"
+    )
 
 
 #: stamps below this (about 11.6 days) count from a drive's start, not from the epoch
@@ -216,8 +293,15 @@ def _pose_errors(est: np.ndarray, gt: np.ndarray, enu: bool) -> dict:
     err = est[:, :3, 3] - gt[:, :3, 3]
     d = np.linalg.norm(err, axis=1)
     rot = np.degrees(rotation_angle_rad(np.swapaxes(gt[:, :3, :3], 1, 2) @ est[:, :3, :3]))
-    r = {"poses": len(d), "rmse_m": float(np.sqrt(np.mean(d**2))), "mean_m": float(d.mean()), "median_m": float(np.median(d)),
-         "max_m": float(d.max()), "rotation_rmse_deg": float(np.sqrt(np.mean(rot**2))), "rotation_median_deg": float(np.median(rot))}
+    r = {
+        "poses": len(d),
+        "rmse_m": float(np.sqrt(np.mean(d**2))),
+        "mean_m": float(d.mean()),
+        "median_m": float(np.median(d)),
+        "max_m": float(d.max()),
+        "rotation_rmse_deg": float(np.sqrt(np.mean(rot**2))),
+        "rotation_median_deg": float(np.median(rot)),
+    }
     if enu:
         r["horizontal_rmse_m"] = float(np.sqrt(np.mean(np.sum(err[:, :2] ** 2, axis=1))))
         r["vertical_rmse_m"] = float(np.sqrt(np.mean(err[:, 2] ** 2)))
@@ -242,18 +326,31 @@ def relative_errors(est: np.ndarray, gt: np.ndarray, segment_m: float) -> dict:
     length = along[j] - along[i]
     t_pct = np.linalg.norm(E[:, :3, 3], axis=1) / length * 100.0
     r_deg = np.degrees(rotation_angle_rad(E[:, :3, :3])) / length * 100.0
-    r.update(translation_percent_mean=float(t_pct.mean()), translation_percent_median=float(np.median(t_pct)),
-             rotation_deg_per_100m_mean=float(r_deg.mean()))
+    r.update(
+        translation_percent_mean=float(t_pct.mean()),
+        translation_percent_median=float(np.median(t_pct)),
+        rotation_deg_per_100m_mean=float(r_deg.mean()),
+    )
     return r
 
 
-def _evaluate_session(ws: Workspace, s: SessionDirs, truth: Path, mesh, town_to_ws: np.ndarray, ws_frame: LocalFrame,
-                      gt_stamps: np.ndarray, gt_ws: np.ndarray) -> dict:
+def _evaluate_session(
+    ws: Workspace,
+    s: SessionDirs,
+    truth: Path,
+    mesh,
+    town_to_ws: np.ndarray,
+    ws_frame: LocalFrame,
+    gt_stamps: np.ndarray,
+    gt_ws: np.ndarray,
+) -> dict:
     """One session's entry of ``eval_build.json``: trajectory and map against the truth, absolute
     figures only when the session is georeferenced (they mean nothing otherwise)."""
     georeferenced = s.gps_alignment.is_file() and json.loads(s.gps_alignment.read_text()).get("georeferenced", False)
-    r: dict = {"georeferenced": bool(georeferenced),
-               "trajectory_used": "factor graph" if s.enu_trajectory == s.fused_trajectory else "rigid GPS fit"}
+    r: dict = {
+        "georeferenced": bool(georeferenced),
+        "trajectory_used": "factor graph" if s.enu_trajectory == s.fused_trajectory else "rigid GPS fit",
+    }
     est = Trajectory.load(s.enu_trajectory) if s.enu_trajectory.is_dir() else None  # what the map was made with
     fix = None
     if est is not None:
@@ -276,7 +373,9 @@ def _evaluate_session(ws: Workspace, s: SessionDirs, truth: Path, mesh, town_to_
 
 
 def _errors(stamps, poses, gt_stamps, gt_poses) -> dict:
-    return {k: v for k, v in trajectory_errors(stamps, poses, gt_stamps, gt_poses).items() if k != "per_pose_translation_m"}
+    return {
+        k: v for k, v in trajectory_errors(stamps, poses, gt_stamps, gt_poses).items() if k != "per_pose_translation_m"
+    }
 
 
 def _gps_error(ws: Workspace, name: str, gt_stamps, gt_ws, frame: LocalFrame) -> dict:
@@ -297,7 +396,11 @@ def _gps_error(ws: Workspace, name: str, gt_stamps, gt_ws, frame: LocalFrame) ->
     enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
     gt, ok = interpolate_poses(gt_stamps, gt_ws, stamps)
     d = np.linalg.norm(enu[ok, :2] - gt[:, :2, 3], axis=1)
-    return {"fixes": int(ok.sum()), "horizontal_rmse_m": float(np.sqrt(np.mean(d**2))), "horizontal_median_m": float(np.median(d))}
+    return {
+        "fixes": int(ok.sum()),
+        "horizontal_rmse_m": float(np.sqrt(np.mean(d**2))),
+        "horizontal_median_m": float(np.median(d)),
+    }
 
 
 def format_eval(results: dict) -> str:
@@ -328,14 +431,20 @@ def format_eval(results: dict) -> str:
 def format_trajectory_eval(results: dict) -> str:
     """Per session: what was compared with what (frames, stamps, alignment), then the errors."""
     kinds = {"tum": "a TUM trajectory file", "kitti": "a KITTI poses file", "topic": "a pose topic of a log"}
-    modes = {"se3": "a rigid SE(3) Umeyama fit of the estimated positions to the true ones (the truth is in a frame of its own; evo -a)",
-             "sim3": "a Sim(3) Umeyama fit, scale included (a camera-only trajectory has no metric scale; evo -as)",
-             "none": "none: the truth is taken to be in the workspace's ENU frame (absolute figures)"}
+    modes = {
+        "se3": "a rigid SE(3) Umeyama fit of the estimated positions to the true ones (the truth is in a frame of its own; evo -a)",
+        "sim3": "a Sim(3) Umeyama fit, scale included (a camera-only trajectory has no metric scale; evo -as)",
+        "none": "none: the truth is taken to be in the workspace's ENU frame (absolute figures)",
+    }
     lines: list[str] = []
     f = lambda v, p=3: "" if v is None else f"{v:.{p}f}"  # noqa: E731
     for name, r in results["sessions"].items():
         e, t, a, al, ate, rpe = r["estimate"], r["truth"], r["association"], r["alignment"], r["ate"], r["rpe"]
-        dt = (f" (|dt| median {f(a['nearest_dt_median_s'], 4)} s, max {f(a['nearest_dt_max_s'], 4)} s)" if a["nearest"] else "")
+        dt = (
+            f" (|dt| median {f(a['nearest_dt_median_s'], 4)} s, max {f(a['nearest_dt_max_s'], 4)} s)"
+            if a["nearest"]
+            else ""
+        )
         S = np.asarray(al["truth_from_estimate"], np.float64)
         lines += [
             f"## Session {name} against {kinds.get(t['kind'], t['kind'])}",
@@ -347,13 +456,22 @@ def format_trajectory_eval(results: dict) -> str:
             f"- Association: {a['associated']} of {a['estimated_poses']} estimated poses; {a['interpolated']} interpolated between "
             f"true poses within {a['max_dt_s']} s on both sides, {a['nearest']} paired with the nearest true pose within "
             f"{a['max_dt_s']} s{dt}; the others have no true pose that close and are not compared.",
-            f"- Alignment: {modes[al['mode']]}" + ("" if al["mode"] == "none" else
-                                                   f": rotation {al['rotation_deg']:.3f} deg, translation "
-                                                   f"({', '.join(f'{x:.3f}' for x in S[:3, 3])}), scale {al['scale']:.6f}") + "."
-            + (" The path is nearly straight: the fit's roll about it is arbitrary (position errors are not affected)."
-               if al["straight_path"] and al["mode"] != "none" else ""),
-            f"- Rotation errors: both are poses of {e['body_frame']}." if t["body_frame"] == e["body_frame"] else
-            f"- Rotation errors compare {e['body_frame']} with the truth's body frame as they are: a fixed rotation between "
+            f"- Alignment: {modes[al['mode']]}"
+            + (
+                ""
+                if al["mode"] == "none"
+                else f": rotation {al['rotation_deg']:.3f} deg, translation "
+                f"({', '.join(f'{x:.3f}' for x in S[:3, 3])}), scale {al['scale']:.6f}"
+            )
+            + "."
+            + (
+                " The path is nearly straight: the fit's roll about it is arbitrary (position errors are not affected)."
+                if al["straight_path"] and al["mode"] != "none"
+                else ""
+            ),
+            f"- Rotation errors: both are poses of {e['body_frame']}."
+            if t["body_frame"] == e["body_frame"]
+            else f"- Rotation errors compare {e['body_frame']} with the truth's body frame as they are: a fixed rotation between "
             "the two counts as error.",
             "",
             "| ATE RMSE m | mean m | median m | max m | rotation RMSE deg "
@@ -409,8 +527,9 @@ class _SessionError:
         return self.tree.query(xy)[1]
 
 
-def evaluate_align(workspace: str | Path | Workspace, truth: str | Path, max_points_per_pair: int = 5000,
-                   overlap_m: float = 25.0) -> dict:
+def evaluate_align(
+    workspace: str | Path | Workspace, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0
+) -> dict:
     """Inter-session misalignment of the same true surface, after GPS alone and after ``mapkit align``.
 
     A session's map puts a true point x at E(x) x, with E = T_est T_gt^-1 of the session's pose
@@ -433,12 +552,15 @@ def evaluate_align(workspace: str | Path | Workspace, truth: str | Path, max_poi
     out["consistency"] = _consistency(ws, sess)
     out["gps_bias_bound"] = _bias_bound(traj)
     write_json(ws.eval_align_json, out)
-    atomic_write_text(ws.eval_align_md,
-                      "# Multi-session alignment against the synthetic truth\n\n" + format_align_truth(out) + "\n")
+    atomic_write_text(
+        ws.eval_align_md, "# Multi-session alignment against the synthetic truth\n\n" + format_align_truth(out) + "\n"
+    )
     return out
 
 
-def _session_errors(ws: Workspace, truth: Path, names: list[str], town_to_ws: np.ndarray) -> tuple[dict[str, _SessionError], dict]:
+def _session_errors(
+    ws: Workspace, truth: Path, names: list[str], town_to_ws: np.ndarray
+) -> tuple[dict[str, _SessionError], dict]:
     """Each aligned session's error field, and its absolute trajectory errors (as it stands and
     with the offset removed) before (``gps``) and after (``aligned``) alignment."""
     from scipy.spatial import cKDTree
@@ -459,8 +581,9 @@ def _session_errors(ws: Workspace, truth: Path, names: list[str], town_to_ws: np
     return sess, traj
 
 
-def _pair_misalignment(sess: dict[str, _SessionError], names: list[str], max_points_per_pair: int, overlap_m: float,
-                       pairs: dict) -> dict:
+def _pair_misalignment(
+    sess: dict[str, _SessionError], names: list[str], max_points_per_pair: int, overlap_m: float, pairs: dict
+) -> dict:
     """Fills ``pairs`` with the misalignment of every session pair that overlaps (50 points at
     least), sampled on the first session's map points; returns the pooled figures."""
     rng = np.random.default_rng(0)
@@ -488,9 +611,12 @@ def _pair_misalignment(sess: dict[str, _SessionError], names: list[str], max_poi
                 res[when] = np.linalg.norm(xa - xb, axis=1)
             all_b.append(res["before"])
             all_a.append(res["after"])
-            pairs[f"{na} / {nb}"] = {"points": int(len(pts)), "before_median_m": float(np.median(res["before"])),
-                                     "after_median_m": float(np.median(res["after"])),
-                                     "after_p90_m": float(np.percentile(res["after"], 90))}
+            pairs[f"{na} / {nb}"] = {
+                "points": int(len(pts)),
+                "before_median_m": float(np.median(res["before"])),
+                "after_median_m": float(np.median(res["after"])),
+                "after_p90_m": float(np.percentile(res["after"], 90)),
+            }
     per_pair_after = [v["after_median_m"] for v in pairs.values()]
     return {
         "before_median_m": float(np.median(np.concatenate(all_b))) if all_b else None,
@@ -547,11 +673,19 @@ def _consistency(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
             e = E[:3, :3] @ c + E[:3, 3] - c
             d2.append(float(e @ np.linalg.solve(cov, e)))
         if d2:
-            per[name] = {"submaps": len(d2), "inside_95": float(np.mean(np.asarray(d2) <= CHI2_95_3DOF)), "nees_mean": float(np.mean(d2))}
+            per[name] = {
+                "submaps": len(d2),
+                "inside_95": float(np.mean(np.asarray(d2) <= CHI2_95_3DOF)),
+                "nees_mean": float(np.mean(d2)),
+            }
             d2_all += d2
     a = np.asarray(d2_all)
-    return {"submaps": int(len(a)), "inside_95": float(np.mean(a <= CHI2_95_3DOF)) if len(a) else None,
-            "nees_mean": float(a.mean()) if len(a) else None, "sessions": per}
+    return {
+        "submaps": int(len(a)),
+        "inside_95": float(np.mean(a <= CHI2_95_3DOF)) if len(a) else None,
+        "nees_mean": float(a.mean()) if len(a) else None,
+        "sessions": per,
+    }
 
 
 def _bias_bound(traj: dict) -> dict:
@@ -565,45 +699,77 @@ def _bias_bound(traj: dict) -> dict:
     gps = np.array([e["gps"]["mean_offset_enu_m"] for e in traj.values()])
     allowed = float(np.linalg.norm(gps.mean(axis=0)[:2]))
     after = np.array([e["aligned"]["horizontal_rmse_m"] for e in traj.values()])
-    return {"sessions": len(gps), "mean_gps_bias_enu_m": gps.mean(axis=0).tolist(), "allowed_horizontal_m": allowed,
-            "aligned_horizontal_rmse_median_m": float(np.median(after)),
-            "ratio_median": float(np.median(after) / allowed) if allowed > 0 else None}
+    return {
+        "sessions": len(gps),
+        "mean_gps_bias_enu_m": gps.mean(axis=0).tolist(),
+        "allowed_horizontal_m": allowed,
+        "aligned_horizontal_rmse_median_m": float(np.median(after)),
+        "ratio_median": float(np.median(after) / allowed) if allowed > 0 else None,
+    }
 
 
 def format_align_truth(t: dict) -> str:
     """The Markdown of :func:`evaluate_align`'s result: misalignment per session pair before and
     after alignment, the accepted registrations' true errors, each session's trajectory error."""
-    lines = ["| session pair | overlap points | misalignment median m, GPS alone | after refinement |", "|---|---|---|---|"]
+    lines = [
+        "| session pair | overlap points | misalignment median m, GPS alone | after refinement |",
+        "|---|---|---|---|",
+    ]
     for k, v in t["pairs"].items():
         lines.append(f"| {k} | {v['points']} | {v['before_median_m']:.3f} | {v['after_median_m']:.3f} |")
     lines.append("")
-    lines.append(f"Overall median: {t['before_median_m']:.3f} m -> {t['after_median_m']:.3f} m. "
-                 f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of {t['accepted_pairs']} "
-                 f"(max {t['accepted_pair_true_error_max_m']:.2f} m).")
+    lines.append(
+        f"Overall median: {t['before_median_m']:.3f} m -> {t['after_median_m']:.3f} m. "
+        f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of {t['accepted_pairs']} "
+        f"(max {t['accepted_pair_true_error_max_m']:.2f} m)."
+    )
     if t.get("trajectories"):
-        lines += ["", "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up), "
-                  "and with that offset removed by a rigid yaw-only fit to truth (3D / horizontal / vertical RMSE):", "",
-                  "| session | GPS alignment alone | after mapkit align | offset removed, GPS alone | offset removed, after align |",
-                  "|---|---|---|---|---|"]
+        lines += [
+            "",
+            "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up), "
+            "and with that offset removed by a rigid yaw-only fit to truth (3D / horizontal / vertical RMSE):",
+            "",
+            "| session | GPS alignment alone | after mapkit align | offset removed, GPS alone | offset removed, after align |",
+            "|---|---|---|---|---|",
+        ]
         for name, e in t["trajectories"].items():
-            cells = [f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, ({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
-                     for w in ("gps", "aligned")]
-            cells += [f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m"
-                      for o in (e[w].get("offset_removed") for w in ("gps", "aligned")) if o]
+            cells = [
+                f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, ({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
+                for w in ("gps", "aligned")
+            ]
+            cells += [
+                f"{o['ate_rmse_m']:.2f} / {o['horizontal_rmse_m']:.2f} / {o['vertical_rmse_m']:.2f} m"
+                for o in (e[w].get("offset_removed") for w in ("gps", "aligned"))
+                if o
+            ]
             lines.append("| " + " | ".join([name, *cells]) + " |")
     b = t.get("gps_bias_bound")
     if b:
-        lines += ["", f"GPS bound: the frame cannot beat the mean of the {b['sessions']} sessions' GPS biases "
-                  f"({', '.join(f'{x:.2f}' for x in b['mean_gps_bias_enu_m'])} m east, north, up; {b['allowed_horizontal_m']:.2f} m horizontally). "
-                  f"Median horizontal RMSE after alignment {b['aligned_horizontal_rmse_median_m']:.2f} m: "
-                  + (f"{b['ratio_median']:.2f}x the bound." if b["ratio_median"] is not None else "the bound is zero.")]
+        lines += [
+            "",
+            f"GPS bound: the frame cannot beat the mean of the {b['sessions']} sessions' GPS biases "
+            f"({', '.join(f'{x:.2f}' for x in b['mean_gps_bias_enu_m'])} m east, north, up; {b['allowed_horizontal_m']:.2f} m horizontally). "
+            f"Median horizontal RMSE after alignment {b['aligned_horizontal_rmse_median_m']:.2f} m: "
+            + (f"{b['ratio_median']:.2f}x the bound." if b["ratio_median"] is not None else "the bound is zero."),
+        ]
     c = t.get("consistency")
     if c and c.get("submaps"):
-        lines += ["", f"Covariance consistency: {100 * c['inside_95']:.0f}% of {c['submaps']} submap centres lie inside their 95% "
-                  f"position ellipsoids (mean NEES {c['nees_mean']:.2f}; 3 expected): "
-                  + ", ".join(f"{n} {100 * v['inside_95']:.0f}%" for n, v in c["sessions"].items()) + "."]
+        lines += [
+            "",
+            f"Covariance consistency: {100 * c['inside_95']:.0f}% of {c['submaps']} submap centres lie inside their 95% "
+            f"position ellipsoids (mean NEES {c['nees_mean']:.2f}; 3 expected): "
+            + ", ".join(f"{n} {100 * v['inside_95']:.0f}%" for n, v in c["sessions"].items())
+            + ".",
+        ]
     return "\n".join(lines)
 
 
-__all__ = ["compare_trajectories", "evaluate_align", "evaluate_build", "format_align_truth", "format_eval", "format_trajectory_eval",
-           "relative_errors"]
+__all__ = [
+    "compare_trajectories",
+    "evaluate_align",
+    "evaluate_build",
+    "format_align_truth",
+    "format_eval",
+    "format_trajectory_eval",
+    "relative_errors",
+]

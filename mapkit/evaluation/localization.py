@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -41,14 +41,24 @@ def hit_recall(index, ids: np.ndarray, gt_positions: np.ndarray, radius_m: float
     valid = ids >= 0
     pos = index.world_from_cam[np.where(valid, ids, 0), :3, 3]
     d = np.where(valid, np.linalg.norm(pos - gt_positions[:, None, :], axis=-1), np.inf)
-    out = {f"recall_at_{n}": float(np.mean(d[:, :n].min(axis=1) <= radius_m)) for n in sorted({1, min(5, ids.shape[1]), ids.shape[1]})}
+    out = {
+        f"recall_at_{n}": float(np.mean(d[:, :n].min(axis=1) <= radius_m))
+        for n in sorted({1, min(5, ids.shape[1]), ids.shape[1]})
+    }
     return {**out, "recall_radius_m": radius_m}
 
 
-def evaluate_localization(workspace: str | Path | Workspace, truth: str | Path, bundle: str | Path | None = None,
-                          test_sessions: Optional[list[str]] = None, config: str | Path | None = None,
-                          overrides: Optional[dict] = None, out: str | Path | None = None, progress: bool = True,
-                          cache_dir: str | Path | None = None) -> dict:
+def evaluate_localization(
+    workspace: str | Path | Workspace,
+    truth: str | Path,
+    bundle: str | Path | None = None,
+    test_sessions: list[str] | None = None,
+    config: str | Path | None = None,
+    overrides: dict | None = None,
+    out: str | Path | None = None,
+    progress: bool = True,
+    cache_dir: str | Path | None = None,
+) -> dict:
     """MCVL's protocol on a synthetic town: training sessions build the index (``bundle``, built
     into ``WORKSPACE/indexes/vlad`` from the town's training sessions if not given), test sessions
     are queries. Writes ``eval_localize.json``, ``.md`` and one PNG per sequence into ``out``
@@ -68,30 +78,49 @@ def evaluate_localization(workspace: str | Path | Workspace, truth: str | Path, 
     atomic_write_text(out / "config.yaml", dump_config(cfg))
     town = town_sessions(truth)
     if not town:
-        raise InputError(truth / "world" / "manifest.json", "no sessions listed: not a synthetic town folder?", field="sessions")
+        raise InputError(
+            truth / "world" / "manifest.json", "no sessions listed: not a synthetic town folder?", field="sessions"
+        )
     built = ws.session_names("imagedb")
     train = [n for n in built if town.get(n, {}).get("role") == "train"]
     tests = test_sessions or [n for n in built if town.get(n, {}).get("role") == "test"]
     if bundle is None:  # `mapkit eval localize WS --truth TOWN` without --bundle: the town's training sessions
-        bundle = build_vlad_index(ws.root, overrides={"train_sessions": train, "database_sessions": train}, progress=progress)
+        bundle = build_vlad_index(
+            ws.root, overrides={"train_sessions": train, "database_sessions": train}, progress=progress
+        )
     index = VladIndex.load(bundle)
     clash = sorted(set(tests) & (set(index.database_sessions) | set(index.train_sessions)))
     if clash:
-        raise InputError(Path(bundle) / "manifest.json", f"test session(s) {clash} are in the index: they cannot be queries", field="sessions")
+        raise InputError(
+            Path(bundle) / "manifest.json",
+            f"test session(s) {clash} are in the index: they cannot be queries",
+            field="sessions",
+        )
     ws_frame = ws.require_frame()
     results: dict = {"bundle": str(bundle), "train_sessions": index.train_sessions, "sessions": {}}
     timings: dict = {}
     for name in tests:
-        results["sessions"][name], timings[name] = _localize_session(ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out,
-                                                                     cache_dir, progress)
+        results["sessions"][name], timings[name] = _localize_session(
+            ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out, cache_dir, progress
+        )
     write_json(out / "eval_localize.json", results)
     write_timings(out, sessions=timings)
     atomic_write_text(out / "eval_localize.md", format_localization(results))
     return results
 
 
-def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, cfg: LocalizeConfig, ws_frame: LocalFrame, town_entry: dict, out: Path,
-                      cache_dir: str | Path | None, progress: bool) -> tuple[dict, dict]:
+def _localize_session(
+    ws: Workspace,
+    truth: Path,
+    name: str,
+    index: VladIndex,
+    cfg: LocalizeConfig,
+    ws_frame: LocalFrame,
+    town_entry: dict,
+    out: Path,
+    cache_dir: str | Path | None,
+    progress: bool,
+) -> tuple[dict, dict]:
     """One test session through retrieval and the filter: its row of Table II and its recall, and
     its timings (a run record); draws its track against the truth into ``out/<name>.png``."""
     from mapkit.evaluation.truth import truth_camera_poses_at
@@ -116,30 +145,46 @@ def _localize_session(ws: Workspace, truth: Path, name: str, index: VladIndex, c
     e_fil = pose_errors(r.filter_position, r.filter_rotation, gt[:, :3, 3], gt[:, :3, :3])
     entry = {
         "condition": town_entry.get("condition") or town_entry.get("weather"),
-        "queries": len(paths), "retrieval": e_ret.summary(), "filter": e_fil.summary(),
+        "queries": len(paths),
+        "retrieval": e_ret.summary(),
+        "filter": e_fil.summary(),
         **hit_recall(index, ids, gt[:, :3, 3]),
     }
-    timings = {"seconds": wall, "hits_from_cache": cached, "seconds_per_query": wall / max(1, len(paths)),
-               "retrieval_s_per_query": t_retrieve / max(1, len(paths)), "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths))}
+    timings = {
+        "seconds": wall,
+        "hits_from_cache": cached,
+        "seconds_per_query": wall / max(1, len(paths)),
+        "retrieval_s_per_query": t_retrieve / max(1, len(paths)),
+        "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths)),
+    }
     write_run_trajectories(out / name, imgs.table["stamp_ns"][ok], r)  # the estimates, for evo and mapkit view
-    localization_track(out / f"{name}.png", gt[:, :3, 3], r.retrieval_position, r.filter_position,
-                       f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
-                       f"{entry['retrieval']['median_translation_m']:.1f} m, filter "
-                       f"{entry['filter']['median_translation_m']:.1f} m)")
+    localization_track(
+        out / f"{name}.png",
+        gt[:, :3, 3],
+        r.retrieval_position,
+        r.filter_position,
+        f"{name}: MCVL on {len(paths)} queries (median error: retrieval "
+        f"{entry['retrieval']['median_translation_m']:.1f} m, filter "
+        f"{entry['filter']['median_translation_m']:.1f} m)",
+    )
     return entry, timings
 
 
 def format_localization(results: dict) -> str:
     """Table II of the MCVL paper: per test sequence, mean and median errors of retrieval alone
     and of the filter; then how often the top-1, top-5 and top-k hold the right place."""
-    lines = ["| sequence | condition | queries | retrieval mean m / deg | retrieval median m / deg | MCVL mean m / deg | MCVL median m / deg | recall@1 / @5 / @k |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| sequence | condition | queries | retrieval mean m / deg | retrieval median m / deg | MCVL mean m / deg | MCVL median m / deg | recall@1 / @5 / @k |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     f = lambda s, k: "" if s.get(k) is None else f"{s[k]:.2f}"  # noqa: E731
     for name, r in results["sessions"].items():
         a, b = r["retrieval"], r["filter"]
-        at = sorted((int(k[len("recall_at_"):]), v) for k, v in r.items() if k.startswith("recall_at_"))
+        at = sorted((int(k[len("recall_at_") :]), v) for k, v in r.items() if k.startswith("recall_at_"))
         recall = " / ".join(f"{v:.2f}" for _, v in at)
-        lines.append(f"| {name} | {r.get('condition') or ''} | {r['queries']} | {f(a, 'mean_translation_m')} / {f(a, 'mean_rotation_deg')} | "
-                     f"{f(a, 'median_translation_m')} / {f(a, 'median_rotation_deg')} | {f(b, 'mean_translation_m')} / {f(b, 'mean_rotation_deg')} | "
-                     f"{f(b, 'median_translation_m')} / {f(b, 'median_rotation_deg')} | {recall} |")
+        lines.append(
+            f"| {name} | {r.get('condition') or ''} | {r['queries']} | {f(a, 'mean_translation_m')} / {f(a, 'mean_rotation_deg')} | "
+            f"{f(a, 'median_translation_m')} / {f(a, 'median_rotation_deg')} | {f(b, 'mean_translation_m')} / {f(b, 'mean_rotation_deg')} | "
+            f"{f(b, 'median_translation_m')} / {f(b, 'median_rotation_deg')} | {recall} |"
+        )
     return "\n".join(lines) + "\n"

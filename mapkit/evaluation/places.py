@@ -55,9 +55,10 @@ import json
 import logging
 import time
 import warnings
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Literal, Optional, Sequence
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -71,8 +72,21 @@ from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import _save
 from mapkit.mapping.semidense import SemiDenseMap
-from mapkit.places.index_structure import StructureIndex, StructureIndexConfig, build_structure_index, map_checksum, session_descriptors
-from mapkit.places.triplets import TripletConfig, load_aligned_sessions, split_of, tile_split, tiles_from_manifest, tiles_to_manifest
+from mapkit.places.index_structure import (
+    StructureIndex,
+    StructureIndexConfig,
+    build_structure_index,
+    map_checksum,
+    session_descriptors,
+)
+from mapkit.places.triplets import (
+    TripletConfig,
+    load_aligned_sessions,
+    split_of,
+    tile_split,
+    tiles_from_manifest,
+    tiles_to_manifest,
+)
 from mapkit.retrieval.index_vlad import VladIndex, read_session_images
 
 log = logging.getLogger(__name__)
@@ -84,25 +98,37 @@ METHOD_LABELS = {"nbld": "NBLD", "m2dp": "M2DP", "cnn": "CNN", "vlad": "VLAD"}
 class PlacesEvalConfig(MapkitConfig):
     """The evaluation protocol of Sec. 5.2."""
 
-    radius_m: float = Field(25.0, gt=0, description="r_e: a match within this distance of the query's true position is right (Sec. 5.2: 25 m).")
-    query_stride: int = Field(2, ge=1, description="Every n-th keyframe of the query session is a query (mapkit's choice, for speed).")
+    radius_m: float = Field(
+        25.0,
+        gt=0,
+        description="r_e: a match within this distance of the query's true position is right (Sec. 5.2: 25 m).",
+    )
+    query_stride: int = Field(
+        2, ge=1, description="Every n-th keyframe of the query session is a query (mapkit's choice, for speed)."
+    )
     structure: StructureIndexConfig = Field(
         default_factory=StructureIndexConfig,
         description="The structure index (kind and database_sessions are set per method and pair; 5 % keypoints, PCA to 25).",
     )
     max_image_gap_s: float = Field(
-        1.0, gt=0,
+        1.0,
+        gt=0,
         description="VLAD: a query keyframe whose nearest image is farther than this in time has no image query (counted as no match).",
     )
     vlad_workers: int = Field(1, ge=1, description="Processes encoding VLAD query images.")
-    vlad_encodings_dir: Optional[str] = Field(
-        None, description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize --cache-dir`): "
-        "images already encoded there with the same bundle are not encoded again.")
-    descriptor_cache_dir: Optional[str] = Field(
-        None, description="A folder of structure descriptors shared with index builds (the demo shares WORKSPACE/indexes/cache): "
-        "maps already described there with the same parameters are not described again; default: this evaluation's cache/.")
+    vlad_encodings_dir: str | None = Field(
+        None,
+        description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize --cache-dir`): "
+        "images already encoded there with the same bundle are not encoded again.",
+    )
+    descriptor_cache_dir: str | None = Field(
+        None,
+        description="A folder of structure descriptors shared with index builds (the demo shares WORKSPACE/indexes/cache): "
+        "maps already described there with the same parameters are not described again; default: this evaluation's cache/.",
+    )
     bootstrap: int = Field(
-        500, ge=0,
+        500,
+        ge=0,
         description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = none). "
         "Not in the paper; ~100 queries per pair make differences of a few hundredths noise.",
     )
@@ -116,9 +142,11 @@ class PlacesEvalConfig(MapkitConfig):
         "'none': no split, every query is scored (the all-places figures become the headline). A held-out query lies in a test "
         "tile, not within the buffer of a training tile. All-places figures are reported as well.",
     )
-    triplets_dir: Optional[str] = Field(
-        None, description="The triplet dataset (mapkit triplets) whose tiles split the places when split = triplets; default: "
-        "the CNN model's training dataset when it still exists, else WORKSPACE/triplets.")
+    triplets_dir: str | None = Field(
+        None,
+        description="The triplet dataset (mapkit triplets) whose tiles split the places when split = triplets; default: "
+        "the CNN model's training dataset when it still exists, else WORKSPACE/triplets.",
+    )
 
 
 # --------------------------------------------------------------------------- pure computations
@@ -163,7 +191,15 @@ def pr_curve(scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray) -> 
     with np.errstate(invalid="ignore", divide="ignore"):
         precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
         recall = tp / n_reach if n_reach else np.zeros(len(tp))
-    return {"thresholds": s_sorted[last], "precision": precision, "recall": recall, "tp": tp, "fp": fp, "fn": fn, "reachable": n_reach}
+    return {
+        "thresholds": s_sorted[last],
+        "precision": precision,
+        "recall": recall,
+        "tp": tp,
+        "fp": fp,
+        "fn": fn,
+        "reachable": n_reach,
+    }
 
 
 def pr_auc(recall: np.ndarray, precision: np.ndarray) -> float:
@@ -182,10 +218,17 @@ def best_f1(curve: dict) -> dict:
         return {"f1": 0.0, "precision": None, "recall": 0.0, "threshold": None}
     f1 = np.where(p + r > 0, 2 * p * r / np.maximum(p + r, 1e-12), 0.0)
     i = int(np.argmax(f1))
-    return {"f1": float(f1[i]), "precision": float(p[i]), "recall": float(r[i]), "threshold": float(curve["thresholds"][i])}
+    return {
+        "f1": float(f1[i]),
+        "precision": float(p[i]),
+        "recall": float(r[i]),
+        "threshold": float(curve["thresholds"][i]),
+    }
 
 
-def bootstrap_auc(scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray, n: int = 500, seed: int = 0) -> np.ndarray:
+def bootstrap_auc(
+    scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray, n: int = 500, seed: int = 0
+) -> np.ndarray:
     """(n,) AUCs of queries resampled with replacement. The resamples depend only on the number
     of queries and ``seed``, so two methods scored on the same queries are resampled alike
     (paired comparison)."""
@@ -200,8 +243,9 @@ def bootstrap_auc(scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray
     return out
 
 
-def score_queries(query_pos: np.ndarray, matched_pos: np.ndarray, has_match: np.ndarray, db_pos: np.ndarray,
-                  radius_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def score_queries(
+    query_pos: np.ndarray, matched_pos: np.ndarray, has_match: np.ndarray, db_pos: np.ndarray, radius_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(correct, reachable, error_m) of queries: matched place within ``radius_m`` of the query's
     true position; some database place within it; the distance of the match (NaN without one)."""
     q = np.asarray(query_pos, np.float64).reshape(-1, 3)
@@ -225,14 +269,16 @@ def score_queries(query_pos: np.ndarray, matched_pos: np.ndarray, has_match: np.
 class _Truth:
     """Positions of a session's frames at given stamps: aligned (as given) or the synthetic town's."""
 
-    def __init__(self, workspace: Workspace, truth: Optional[Path]):
+    def __init__(self, workspace: Workspace, truth: Path | None):
         self.truth = truth
         self.ws_frame = Workspace(workspace).frame() if truth is not None else None
         self._cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     @property
     def source(self) -> str:
-        return "synthetic town (true camera positions)" if self.truth is not None else "aligned keyframe / image positions"
+        return (
+            "synthetic town (true camera positions)" if self.truth is not None else "aligned keyframe / image positions"
+        )
 
     def positions(self, session: str, stamps_ns: np.ndarray, aligned_pos: np.ndarray) -> np.ndarray:
         """(n, 3) positions: ``aligned_pos`` without a town, else the true camera positions
@@ -254,7 +300,7 @@ class _Truth:
         return out
 
 
-def _conditions(truth: Optional[Path]) -> dict[str, dict]:
+def _conditions(truth: Path | None) -> dict[str, dict]:
     from mapkit.evaluation.truth import town_sessions
 
     keys = ("condition", "season", "weather", "date", "time_of_day", "exposure_ev", "role")
@@ -277,13 +323,13 @@ class PlaceSplit:
 
     source: str  # "triplets", "tiles" or "none"
     tiles: dict = field(default_factory=dict)
-    tile_size_m: Optional[float] = None
-    buffer_m: Optional[float] = None
-    test_fraction: Optional[float] = None
-    seed: Optional[int] = None
-    frame: Optional[LocalFrame] = None
-    dataset: Optional[str] = None  # the triplet dataset folder the tiles come from
-    dataset_config_hash: Optional[str] = None
+    tile_size_m: float | None = None
+    buffer_m: float | None = None
+    test_fraction: float | None = None
+    seed: int | None = None
+    frame: LocalFrame | None = None
+    dataset: str | None = None  # the triplet dataset folder the tiles come from
+    dataset_config_hash: str | None = None
     notes: list = field(default_factory=list)  # why this source (fallbacks), what to beware of
 
     def labels(self, enu: np.ndarray) -> np.ndarray:
@@ -306,20 +352,34 @@ class PlaceSplit:
     def to_dict(self) -> dict:
         """What ``places.json`` records of the split: its source and parameters, and the tiles in
         the triplet manifest's form (``utm_min`` corner, ``split``)."""
-        return {"source": self.source, "dataset": self.dataset, "dataset_config_hash": self.dataset_config_hash,
-                "tile_size_m": self.tile_size_m, "buffer_m": self.buffer_m, "test_fraction": self.test_fraction, "seed": self.seed,
-                "utm_crs_epsg": None if self.frame is None else int(self.frame.utm_epsg), "tile_counts": self.tile_counts,
-                "notes": list(self.notes), "tiles": tiles_to_manifest(self.tiles, self.tile_size_m) if self.tiles else []}
+        return {
+            "source": self.source,
+            "dataset": self.dataset,
+            "dataset_config_hash": self.dataset_config_hash,
+            "tile_size_m": self.tile_size_m,
+            "buffer_m": self.buffer_m,
+            "test_fraction": self.test_fraction,
+            "seed": self.seed,
+            "utm_crs_epsg": None if self.frame is None else int(self.frame.utm_epsg),
+            "tile_counts": self.tile_counts,
+            "notes": list(self.notes),
+            "tiles": tiles_to_manifest(self.tiles, self.tile_size_m) if self.tiles else [],
+        }
 
     def describe(self) -> str:
         """One sentence for ``places.md``: which tiles, from where, with which buffer."""
         if self.source == "none":
             return "no geographic split (split = none, or no UTM frame): the headline figures are over all queries"
         n = self.tile_counts
-        where = f"the triplet dataset {self.dataset}" if self.source == "triplets" else \
-            f"tiles drawn as mapkit triplets draws them (seed {self.seed}, {100 * self.test_fraction:g} % test)"
-        return (f"held-out queries lie in test tiles of {where}: UTM tiles of {self.tile_size_m:g} m, {n['test']} test and "
-                f"{n['train']} training, and not within {self.buffer_m:g} m of a training tile")
+        where = (
+            f"the triplet dataset {self.dataset}"
+            if self.source == "triplets"
+            else f"tiles drawn as mapkit triplets draws them (seed {self.seed}, {100 * self.test_fraction:g} % test)"
+        )
+        return (
+            f"held-out queries lie in test tiles of {where}: UTM tiles of {self.tile_size_m:g} m, {n['test']} test and "
+            f"{n['train']} training, and not within {self.buffer_m:g} m of a training tile"
+        )
 
 
 def split_from_dataset(folder: str | Path, frame: LocalFrame) -> PlaceSplit:
@@ -333,27 +393,45 @@ def split_from_dataset(folder: str | Path, frame: LocalFrame) -> PlaceSplit:
     tcfg = load_config(TripletConfig, folder / "config.yaml")
     epsg = (man.get("frame") or {}).get("utm_crs_epsg")
     if epsg is not None and int(epsg) != int(frame.utm_epsg):
-        raise InputError(mpath, f"the dataset's tiles are in EPSG:{epsg}, the workspace's frame in EPSG:{frame.utm_epsg}",
-                         field="frame")
+        raise InputError(
+            mpath,
+            f"the dataset's tiles are in EPSG:{epsg}, the workspace's frame in EPSG:{frame.utm_epsg}",
+            field="frame",
+        )
     tile = float(tcfg.tile_size_m)
     try:
         tiles = tiles_from_manifest(man.get("tiles") or [], tile)
     except ValueError as exc:
         raise InputError(mpath, f"{exc} (config.yaml's tile_size_m)", field="tiles") from None
-    return PlaceSplit("triplets", tiles, tile, float(tcfg.buffer_m), float(tcfg.test_fraction), int(man.get("seed", tcfg.seed)),
-                      frame, str(folder.resolve()), man.get("config_hash"))
+    return PlaceSplit(
+        "triplets",
+        tiles,
+        tile,
+        float(tcfg.buffer_m),
+        float(tcfg.test_fraction),
+        int(man.get("seed", tcfg.seed)),
+        frame,
+        str(folder.resolve()),
+        man.get("config_hash"),
+    )
 
 
-def split_from_points(utm_xy: np.ndarray, frame: LocalFrame, tcfg: Optional[TripletConfig] = None) -> PlaceSplit:
+def split_from_points(utm_xy: np.ndarray, frame: LocalFrame, tcfg: TripletConfig | None = None) -> PlaceSplit:
     """Tiles drawn over mapped points ``utm_xy`` (n, 2) by :func:`~mapkit.places.triplets.tile_split`
     with ``tcfg``'s tile size, test fraction, seed and buffer (default: TripletConfig's defaults)."""
     tcfg = tcfg or TripletConfig()
     tiles = tile_split(np.asarray(utm_xy, np.float64).reshape(-1, 2), tcfg.tile_size_m, tcfg.test_fraction, tcfg.seed)
-    return PlaceSplit("tiles", tiles, float(tcfg.tile_size_m), float(tcfg.buffer_m), float(tcfg.test_fraction), int(tcfg.seed), frame)
+    return PlaceSplit(
+        "tiles", tiles, float(tcfg.tile_size_m), float(tcfg.buffer_m), float(tcfg.test_fraction), int(tcfg.seed), frame
+    )
 
 
-def tiles_split_of_workspace(ws: Workspace, frame: LocalFrame, tcfg: Optional[TripletConfig] = None,
-                             fallback_maps: Callable[[], Sequence[SemiDenseMap]] = list) -> PlaceSplit:
+def tiles_split_of_workspace(
+    ws: Workspace,
+    frame: LocalFrame,
+    tcfg: TripletConfig | None = None,
+    fallback_maps: Callable[[], Sequence[SemiDenseMap]] = list,
+) -> PlaceSplit:
     """The split ``mapkit triplets`` with ``tcfg`` would draw: :func:`split_from_points` over the
     same sample of points (every session's merged aligned points, at most ~20k of each, see
     ``_Keypoints.draw`` in :mod:`mapkit.places.triplets`). Without a finished alignment, over
@@ -373,7 +451,9 @@ def tiles_split_of_workspace(ws: Workspace, frame: LocalFrame, tcfg: Optional[Tr
     return split
 
 
-def resolve_split(ws: Workspace, cfg: PlacesEvalConfig, fallback_maps: Callable[[], Sequence[SemiDenseMap]] = list) -> PlaceSplit:
+def resolve_split(
+    ws: Workspace, cfg: PlacesEvalConfig, fallback_maps: Callable[[], Sequence[SemiDenseMap]] = list
+) -> PlaceSplit:
     """The split ``cfg.split`` asks for, with its fallbacks said in ``notes`` (and warned when
     the CNN's held-out figures could include places it trained on):
 
@@ -403,7 +483,9 @@ def resolve_split(ws: Workspace, cfg: PlacesEvalConfig, fallback_maps: Callable[
                 if model_ds and model_ds.get("path") and found[0] != Path(model_ds["path"]):
                     notes.append(f"the CNN model's training dataset {model_ds['path']} is gone; tiles of {found[0]}")
             else:
-                notes.append(f"no triplet dataset ({', '.join(str(c) for c in candidates)}): tiles drawn with TripletConfig's defaults")
+                notes.append(
+                    f"no triplet dataset ({', '.join(str(c) for c in candidates)}): tiles drawn with TripletConfig's defaults"
+                )
     if split is None:
         split = tiles_split_of_workspace(ws, frame, None, fallback_maps)
     split.notes = notes + split.notes
@@ -411,14 +493,16 @@ def resolve_split(ws: Workspace, cfg: PlacesEvalConfig, fallback_maps: Callable[
         # the model's manifest records its dataset's tiles: they must be the split's, else the
         # held-out queries may lie where the CNN trained
         if model_ds["tiles"] != tiles_to_manifest(split.tiles, split.tile_size_m):
-            note = ("the CNN model was trained on a triplet dataset whose tiles differ from the split's: its held-out figures "
-                    "may include places it trained on (set triplets_dir to the model's dataset)")
+            note = (
+                "the CNN model was trained on a triplet dataset whose tiles differ from the split's: its held-out figures "
+                "may include places it trained on (set triplets_dir to the model's dataset)"
+            )
             warnings.warn(f"places: {note}", InputWarning, stacklevel=3)
             split.notes.append(note)
     return split
 
 
-def _model_dataset(cfg: PlacesEvalConfig) -> Optional[dict]:
+def _model_dataset(cfg: PlacesEvalConfig) -> dict | None:
     """What the CNN model's manifest records of its training dataset (path, config hash, tiles), or None."""
     if cfg.structure.cnn_model is None:
         return None
@@ -446,7 +530,14 @@ class VladBaseline:
 
     name = "vlad"
 
-    def __init__(self, bundle: str | Path, workspace: str | Path, cache_dir: Optional[Path] = None, workers: int = 1, progress: bool = False):
+    def __init__(
+        self,
+        bundle: str | Path,
+        workspace: str | Path,
+        cache_dir: Path | None = None,
+        workers: int = 1,
+        progress: bool = False,
+    ):
         self.index = VladIndex.load(bundle)
         self.ws = Path(workspace)
         self.cache_dir = cache_dir
@@ -470,8 +561,13 @@ class VladBaseline:
         s = self.images(session)
         if not len(rows):
             return np.zeros((0, self.index.dim), np.float32)
-        return self.index.encode_files([s.image_paths[r] for r in rows], self.progress, f"vlad {session}",
-                                       cache_dir=self.cache_dir, workers=self.workers)
+        return self.index.encode_files(
+            [s.image_paths[r] for r in rows],
+            self.progress,
+            f"vlad {session}",
+            cache_dir=self.cache_dir,
+            workers=self.workers,
+        )
 
     def database(self, session: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vectors (n, D), stamps_ns (n,), positions (n, 3)) of the session's database images."""
@@ -529,12 +625,12 @@ class _Scored:
     correct: np.ndarray  # (n,) bool
     reachable: np.ndarray  # (n,) bool
     error_m: np.ndarray  # (n,), NaN without a match
-    keypoints: Optional[np.ndarray] = None  # (n,) structure: query keypoints the frame observed
-    votes: Optional[np.ndarray] = None  # (n,) structure: v(d) of the best place
-    has_image: Optional[np.ndarray] = None  # (n,) VLAD: an image within max_image_gap_s
-    image_gap_s: Optional[np.ndarray] = None  # (n,) VLAD: time to the nearest image
+    keypoints: np.ndarray | None = None  # (n,) structure: query keypoints the frame observed
+    votes: np.ndarray | None = None  # (n,) structure: v(d) of the best place
+    has_image: np.ndarray | None = None  # (n,) VLAD: an image within max_image_gap_s
+    image_gap_s: np.ndarray | None = None  # (n,) VLAD: time to the nearest image
 
-    def summary(self, n_boot: int, mask: Optional[np.ndarray] = None) -> dict:
+    def summary(self, n_boot: int, mask: np.ndarray | None = None) -> dict:
         """The figures of the queries in ``mask`` (all by default): :func:`_summary`, then the
         method's per-query statistics over the same queries."""
         k = np.ones(len(self.score), bool) if mask is None else np.asarray(mask, bool)
@@ -543,14 +639,22 @@ class _Scored:
         if self.keypoints is not None:
             t = r["best_f1"]["threshold"]
             kp, v = self.keypoints[k], self.votes[k]
-            r.update({"lambda_v_best_f1": None if t is None else t - 1.0,  # integer votes: v >= t  <=>  v > t - 1
-                      "keypoints_per_query_mean": float(np.mean(kp)) if len(kp) else None,
-                      "keypoints_per_query_median": float(np.median(kp)) if len(kp) else None,
-                      "votes_median": float(np.median(v)) if len(v) else None})
+            r.update(
+                {
+                    "lambda_v_best_f1": None if t is None else t - 1.0,  # integer votes: v >= t  <=>  v > t - 1
+                    "keypoints_per_query_mean": float(np.mean(kp)) if len(kp) else None,
+                    "keypoints_per_query_median": float(np.median(kp)) if len(kp) else None,
+                    "votes_median": float(np.median(v)) if len(v) else None,
+                }
+            )
         if self.has_image is not None:
             ok = self.has_image[k]
-            r.update({"queries_without_image": int((~ok).sum()),
-                      "image_gap_s_max": float(np.max(self.image_gap_s[k][ok])) if np.any(ok) else None})
+            r.update(
+                {
+                    "queries_without_image": int((~ok).sum()),
+                    "image_gap_s_max": float(np.max(self.image_gap_s[k][ok])) if np.any(ok) else None,
+                }
+            )
         return r
 
 
@@ -593,7 +697,7 @@ def evaluate_places(
     truth: str | Path | None = None,
     vlad_bundle: str | Path | None = None,
     config: PlacesEvalConfig | str | Path | None = None,
-    overrides: Optional[dict] = None,
+    overrides: dict | None = None,
     progress: bool = False,
     appearance=None,
 ) -> dict:
@@ -624,15 +728,28 @@ def evaluate_places(
     cond = _conditions(truth)
     maps = _Maps(ws, cfg.structure.prefer_aligned_maps)
     split = resolve_split(ws, cfg, lambda: [maps(n)[0] for n in sorted({s for p in pairs for s in p})])
-    vlad, vlad_note = (appearance, None) if appearance is not None or "vlad" not in methods else \
-        _vlad_baseline(ws, vlad_bundle, cfg, cache, progress)
+    vlad, vlad_note = (
+        (appearance, None)
+        if appearance is not None or "vlad" not in methods
+        else _vlad_baseline(ws, vlad_bundle, cfg, cache, progress)
+    )
 
     results: dict = {
-        "workspace": str(ws.root), "truth": None if truth is None else str(truth), "ground_truth": gt.source,
-        "radius_m": cfg.radius_m, "query_stride": cfg.query_stride, "methods": list(methods), "config": cfg.model_dump(mode="json"),
-        "vlad_bundle": None if vlad is None else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
-        "vlad_note": vlad_note, "headline": "all_places" if split.source == "none" else "held_out", "split": split.to_dict(),
-        "split_description": split.describe(), "pairs": [],
+        "workspace": str(ws.root),
+        "truth": None if truth is None else str(truth),
+        "ground_truth": gt.source,
+        "radius_m": cfg.radius_m,
+        "query_stride": cfg.query_stride,
+        "methods": list(methods),
+        "config": cfg.model_dump(mode="json"),
+        "vlad_bundle": None
+        if vlad is None
+        else str(getattr(getattr(vlad, "index", None), "path", type(vlad).__name__)),
+        "vlad_note": vlad_note,
+        "headline": "all_places" if split.source == "none" else "held_out",
+        "split": split.to_dict(),
+        "split_description": split.describe(),
+        "pairs": [],
         "maps": map_densities(maps, sorted({s for p in pairs for s in p})),
     }
     if "cnn" in methods and cfg.structure.cnn_model is not None:
@@ -642,8 +759,11 @@ def evaluate_places(
     rows: list[list] = []
     timings: dict = {}
     for db, query in pairs:
-        results["pairs"].append(_eval_pair(ws, db, query, methods, cfg, gt, cond, vlad, vlad_note, maps, split, out, cache,
-                                           progress, rows, timings))
+        results["pairs"].append(
+            _eval_pair(
+                ws, db, query, methods, cfg, gt, cond, vlad, vlad_note, maps, split, out, cache, progress, rows, timings
+            )
+        )
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
@@ -668,12 +788,16 @@ def _check_methods(methods: Sequence[str], cfg: PlacesEvalConfig) -> None:
         from mapkit.places.index_structure import _DESCRIBERS
 
         if "cnn" not in _DESCRIBERS:
-            raise InputError(None, "method cnn needs a trained model: set structure.cnn_model to a mapkit train output folder",
-                             field="structure.cnn_model")
+            raise InputError(
+                None,
+                "method cnn needs a trained model: set structure.cnn_model to a mapkit train output folder",
+                field="structure.cnn_model",
+            )
 
 
-def _vlad_baseline(ws: Workspace, vlad_bundle: str | Path | None, cfg: PlacesEvalConfig, cache: Path,
-                   progress: bool) -> tuple[Optional[VladBaseline], Optional[str]]:
+def _vlad_baseline(
+    ws: Workspace, vlad_bundle: str | Path | None, cfg: PlacesEvalConfig, cache: Path, progress: bool
+) -> tuple[VladBaseline | None, str | None]:
     """(the VLAD baseline, None), or (None, why not) with a warning when there is no bundle."""
     bundle = Path(vlad_bundle) if vlad_bundle is not None else ws.vlad_index
     if not (bundle / "manifest.json").is_file():
@@ -685,7 +809,9 @@ def _vlad_baseline(ws: Workspace, vlad_bundle: str | Path | None, cfg: PlacesEva
     return VladBaseline(bundle, ws.root, encodings, cfg.vlad_workers, progress), None
 
 
-def _pair_queries(maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth, split: PlaceSplit) -> tuple[_Queries, str]:
+def _pair_queries(
+    maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth, split: PlaceSplit
+) -> tuple[_Queries, str]:
     """The pair's queries, and where the query session's map came from (``align`` or ``build``)."""
     qmap, _, qsrc = maps(query)
     kf_ids = np.asarray(qmap.keyframe_ids, np.int64)
@@ -699,14 +825,31 @@ def _pair_queries(maps: _Maps, query: str, cfg: PlacesEvalConfig, gt: _Truth, sp
 
 def no_held_out_note(query: str, counts: dict, split: PlaceSplit) -> str:
     """Why a pair has no held-out figures: where its queries lie instead."""
-    return (f"no held-out query: none of the {sum(counts.values())} queries of {query!r} lies in a test tile outside the "
-            f"{split.buffer_m:g} m buffer ({counts['train']} in training tiles, {counts['buffer']} in buffer strips); "
-            "see the all-places figures")
+    return (
+        f"no held-out query: none of the {sum(counts.values())} queries of {query!r} lies in a test tile outside the "
+        f"{split.buffer_m:g} m buffer ({counts['train']} in training tiles, {counts['buffer']} in buffer strips); "
+        "see the all-places figures"
+    )
 
 
-def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: PlacesEvalConfig, gt: _Truth, cond: dict,
-               vlad, vlad_note: Optional[str], maps: _Maps, split: PlaceSplit, out: Path, cache: Path, progress: bool,
-               rows: list[list], timings: dict) -> dict:
+def _eval_pair(
+    ws: Workspace,
+    db: str,
+    query: str,
+    methods: Sequence[str],
+    cfg: PlacesEvalConfig,
+    gt: _Truth,
+    cond: dict,
+    vlad,
+    vlad_note: str | None,
+    maps: _Maps,
+    split: PlaceSplit,
+    out: Path,
+    cache: Path,
+    progress: bool,
+    rows: list[list],
+    timings: dict,
+) -> dict:
     """One pair's entry of ``places.json``: every method on the same queries, scored over the
     held-out queries (``methods``, the headline; all queries when there is no split) and over all
     (``all_places``), each with the paired bootstrap comparison of the methods' AUCs; appends the
@@ -718,15 +861,26 @@ def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: 
     note = no_held_out_note(query, counts, split) if scoped and not held.any() else None
     if note:
         warnings.warn(f"places {query} to {db}: {note}", InputWarning, stacklevel=3)
-    entry = {"database": db, "query": query, "conditions": {"database": cond.get(db), "query": cond.get(query)},
-             "queries": int(held.sum()) if scoped else int(len(q.ids)), "queries_without_truth": q.without_truth,
-             "query_map_source": qsrc, "scope": "held_out" if scoped else "all_places",
-             "held_out_queries": int(held.sum()) if scoped else None, "query_split": counts, "held_out_note": note,
-             "methods": {}, "all_places": {"queries": int(len(q.ids)), "methods": {}}}
+    entry = {
+        "database": db,
+        "query": query,
+        "conditions": {"database": cond.get(db), "query": cond.get(query)},
+        "queries": int(held.sum()) if scoped else int(len(q.ids)),
+        "queries_without_truth": q.without_truth,
+        "query_map_source": qsrc,
+        "scope": "held_out" if scoped else "all_places",
+        "held_out_queries": int(held.sum()) if scoped else None,
+        "query_split": counts,
+        "held_out_note": note,
+        "methods": {},
+        "all_places": {"queries": int(len(q.ids)), "methods": {}},
+    }
     for method in methods:
         t0 = time.perf_counter()
         if method in STRUCTURE_METHODS:
-            facts, scored = _eval_structure(method, ws, db, query, q.ids, q.positions, cfg, gt, out, cache, maps, progress)
+            facts, scored = _eval_structure(
+                method, ws, db, query, q.ids, q.positions, cfg, gt, out, cache, maps, progress
+            )
         elif vlad is not None and query in (getattr(vlad, "train_sessions", None) or ()):
             # a whitening learned on n images with n - 1 dimensions maps its training images to
             # (nearly) orthogonal vectors: two training sessions cannot be compared (measured on
@@ -752,10 +906,14 @@ def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: 
             entry["methods"][method] = {**scored.summary(cfg.bootstrap, held), **facts}
         rows += _query_rows(db, query, method, q, scored)
     # paired bootstrap (the same resamples of the same queries for every method)
-    for block in ((entry, entry["all_places"]) if scoped else (entry["all_places"],)):
+    for block in (entry, entry["all_places"]) if scoped else (entry["all_places"],):
         boots = {m: r.pop("_boot") for m, r in block["methods"].items() if "_boot" in r}
-        block["p_auc_above"] = {f"{a}>{b}": float(np.mean(boots[a] > boots[b])) for a in boots for b in boots
-                                if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])}
+        block["p_auc_above"] = {
+            f"{a}>{b}": float(np.mean(boots[a] > boots[b]))
+            for a in boots
+            for b in boots
+            if a != b and len(boots[a]) and len(boots[a]) == len(boots[b])
+        }
     if not scoped:
         entry["p_auc_above"] = entry["all_places"]["p_auc_above"]
     return entry
@@ -763,10 +921,25 @@ def _eval_pair(ws: Workspace, db: str, query: str, methods: Sequence[str], cfg: 
 
 def _query_rows(db: str, query: str, method: str, q: _Queries, s: _Scored) -> list[list]:
     """Rows of ``queries.csv`` (:data:`_QUERY_COLUMNS`) of one pair and method."""
-    return [[db, query, method, int(q.ids[i]), int(q.stamps_ns[i]), *np.round(q.positions[i], 3), *np.round(s.matched_pos[i], 3),
-             s.score[i], int(s.correct[i]), int(s.reachable[i]), None if np.isnan(s.error_m[i]) else round(float(s.error_m[i]), 2),
-             q.split[i], int(q.split[i] == "test"), None if s.keypoints is None else int(s.keypoints[i])]
-            for i in range(len(q.ids))]
+    return [
+        [
+            db,
+            query,
+            method,
+            int(q.ids[i]),
+            int(q.stamps_ns[i]),
+            *np.round(q.positions[i], 3),
+            *np.round(s.matched_pos[i], 3),
+            s.score[i],
+            int(s.correct[i]),
+            int(s.reachable[i]),
+            None if np.isnan(s.error_m[i]) else round(float(s.error_m[i]), 2),
+            q.split[i],
+            int(q.split[i] == "test"),
+            None if s.keypoints is None else int(s.keypoints[i]),
+        ]
+        for i in range(len(q.ids))
+    ]
 
 
 def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
@@ -780,8 +953,9 @@ def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
     return {
         "available": True,
         "auc": pr_auc(curve["recall"], curve["precision"]) if defined else None,
-        "auc_undefined": None if defined else
-        f"none of the {len(scores)} queries has a database place within r_e: recall and AUC undefined",
+        "auc_undefined": None
+        if defined
+        else f"none of the {len(scores)} queries has a database place within r_e: recall and AUC undefined",
         "auc_ci90": [float(np.percentile(boot, 5)), float(np.percentile(boot, 95))] if len(boot) else None,
         "_boot": boot,
         "reachable": int(curve["reachable"]),
@@ -795,8 +969,20 @@ def _summary(scores, correct, reachable, err, n_boot: int) -> dict:
     }
 
 
-def _eval_structure(kind, ws: Workspace, db, query, q_ids, q_pos, cfg: PlacesEvalConfig, gt: _Truth, out: Path, cache: Path,
-                    maps: _Maps, progress) -> tuple[dict, _Scored]:
+def _eval_structure(
+    kind,
+    ws: Workspace,
+    db,
+    query,
+    q_ids,
+    q_pos,
+    cfg: PlacesEvalConfig,
+    gt: _Truth,
+    out: Path,
+    cache: Path,
+    maps: _Maps,
+    progress,
+) -> tuple[dict, _Scored]:
     """(the facts of the method that do not depend on which queries are summarised, every query scored)."""
     scfg = cfg.structure.model_copy(update={"kind": kind, "database_sessions": [db]})
     cache = Path(cfg.descriptor_cache_dir) if cfg.descriptor_cache_dir else cache
@@ -819,13 +1005,23 @@ def _eval_structure(kind, ws: Workspace, db, query, q_ids, q_pos, cfg: PlacesEva
     has = m.best_frame >= 0
     matched_pos = np.where(has[:, None], all_pos[np.maximum(m.best_frame, 0)], np.nan)
     correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
-    scored = _Scored(matched_pos, np.where(has, m.best_votes.astype(np.float64), -np.inf), correct, reachable, err,
-                     keypoints=np.asarray(m.n_keypoints, np.int64), votes=np.asarray(m.best_votes, np.int64))
+    scored = _Scored(
+        matched_pos,
+        np.where(has, m.best_votes.astype(np.float64), -np.inf),
+        correct,
+        reachable,
+        err,
+        keypoints=np.asarray(m.n_keypoints, np.int64),
+        votes=np.asarray(m.best_votes, np.int64),
+    )
     facts = {
-        "database_entries": len(idx), "database_frames": int(np.sum(fr["pose_source"][rows] > 0)),
+        "database_entries": len(idx),
+        "database_frames": int(np.sum(fr["pose_source"][rows] > 0)),
         "query_keypoints": int(len(prep.keypoints)),
-        "query_describe_s": describe_s, "query_match_and_vote_s": (time.perf_counter() - t0) - describe_s,
-        "vote_ms_per_frame": 1e3 * vote_s / max(len(m), 1), "index": str(bundle),
+        "query_describe_s": describe_s,
+        "query_match_and_vote_s": (time.perf_counter() - t0) - describe_s,
+        "vote_ms_per_frame": 1e3 * vote_s / max(len(m), 1),
+        "index": str(bundle),
     }
     return facts, scored
 
@@ -848,12 +1044,32 @@ def _eval_vlad(vlad, db, query, q_stamps, q_pos, cfg: PlacesEvalConfig, gt: _Tru
     has = best >= 0
     matched_pos = np.where(has[:, None], db_pos[np.maximum(best, 0)] if len(db_pos) else np.nan, np.nan)
     correct, reachable, err = score_queries(q_pos, matched_pos, has, db_pos, cfg.radius_m)
-    scored = _Scored(matched_pos, scores, correct, reachable, err, has_image=ok, image_gap_s=np.asarray(gap_s, np.float64))
+    scored = _Scored(
+        matched_pos, scores, correct, reachable, err, has_image=ok, image_gap_s=np.asarray(gap_s, np.float64)
+    )
     return {"database_images": int(len(db_vec)), "encode_and_load_s": encode_s}, scored
 
 
-_QUERY_COLUMNS = ["database", "query", "method", "query_frame_id", "stamp_ns", "x_m", "y_m", "z_m", "match_x_m", "match_y_m", "match_z_m",
-                  "score", "correct", "reachable", "error_m", "split", "held_out", "keypoints"]
+_QUERY_COLUMNS = [
+    "database",
+    "query",
+    "method",
+    "query_frame_id",
+    "stamp_ns",
+    "x_m",
+    "y_m",
+    "z_m",
+    "match_x_m",
+    "match_y_m",
+    "match_z_m",
+    "score",
+    "correct",
+    "reachable",
+    "error_m",
+    "split",
+    "held_out",
+    "keypoints",
+]
 
 
 def _write_queries_csv(path: Path, rows: list[list]) -> None:
@@ -867,7 +1083,7 @@ def _write_queries_csv(path: Path, rows: list[list]) -> None:
 # --------------------------------------------------------------------------- reporting
 
 
-def _cond_label(c: Optional[dict]) -> str:
+def _cond_label(c: dict | None) -> str:
     if not c:
         return ""
     parts = [c.get("condition"), c.get("season")]
@@ -885,7 +1101,10 @@ def _held_out(results: dict) -> bool:
 def _scopes(results: dict) -> list[tuple[str, str]]:
     """The tables to show, headline first: (key, title)."""
     if _held_out(results):
-        return [("held_out", "Held-out places (the headline)"), ("all_places", "All places (training tiles and buffer strips too)")]
+        return [
+            ("held_out", "Held-out places (the headline)"),
+            ("all_places", "All places (training tiles and buffer strips too)"),
+        ]
     return [("all_places", "All places")]
 
 
@@ -913,13 +1132,21 @@ def _maps_table(results: dict) -> list[str]:
     if not maps:
         return []
     f = lambda v, d=0: "" if v is None else f"{v:,.{d}f}"  # noqa: E731
-    lines = ["| pair | query: keyframes / points / per 100 m | database: keyframes / points / per 100 m | density query / database |",
-             "|---|---|---|---|"]
+    lines = [
+        "| pair | query: keyframes / points / per 100 m | database: keyframes / points / per 100 m | density query / database |",
+        "|---|---|---|---|",
+    ]
     for p in results["pairs"]:
         q, d = maps.get(p["query"], {}), maps.get(p["database"], {})
-        ratio = (q["points_per_100m"] / d["points_per_100m"]) if q.get("points_per_100m") and d.get("points_per_100m") else None
-        lines.append(f"| {p['query']} to {p['database']} | {f(q.get('keyframes'))} / {f(q.get('points'))} / {f(q.get('points_per_100m'))} "
-                     f"| {f(d.get('keyframes'))} / {f(d.get('points'))} / {f(d.get('points_per_100m'))} | {f(ratio, 2)} |")
+        ratio = (
+            (q["points_per_100m"] / d["points_per_100m"])
+            if q.get("points_per_100m") and d.get("points_per_100m")
+            else None
+        )
+        lines.append(
+            f"| {p['query']} to {p['database']} | {f(q.get('keyframes'))} / {f(q.get('points'))} / {f(q.get('points_per_100m'))} "
+            f"| {f(d.get('keyframes'))} / {f(d.get('points'))} / {f(d.get('points_per_100m'))} | {f(ratio, 2)} |"
+        )
     return lines
 
 
@@ -933,10 +1160,22 @@ def format_places(results: dict) -> str:
     lines += ["", "## Operating points and keypoints", ""] + _best_f1_table(results) + [""] + _keypoints_table(results)
     lines += [""] + _bootstrap_table(results)
     if results.get("maps"):
-        lines += ["", "## Map densities", "", "The semi-dense maps compared, points per 100 m of their keyframes' path:", ""] + _maps_table(results)
-    notes = [f"{p['query']} to {p['database']}: {p['held_out_note']}" for p in results["pairs"] if p.get("held_out_note")]
-    notes += [f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}" for p in results["pairs"]
-              for m, r in p["methods"].items() if not r.get("available") and r.get("note") and r["note"] != p.get("held_out_note")]
+        lines += [
+            "",
+            "## Map densities",
+            "",
+            "The semi-dense maps compared, points per 100 m of their keyframes' path:",
+            "",
+        ] + _maps_table(results)
+    notes = [
+        f"{p['query']} to {p['database']}: {p['held_out_note']}" for p in results["pairs"] if p.get("held_out_note")
+    ]
+    notes += [
+        f"{p['query']} to {p['database']}, {METHOD_LABELS.get(m, m)}: {r['note']}"
+        for p in results["pairs"]
+        for m, r in p["methods"].items()
+        if not r.get("available") and r.get("note") and r["note"] != p.get("held_out_note")
+    ]
     if notes:
         lines += ["", "Not evaluated:", ""] + [f"- {n}" for n in dict.fromkeys(notes)]
     undefined: dict[str, list[str]] = {}  # one line per pair, scope and reason, naming the methods
@@ -947,7 +1186,9 @@ def format_places(results: dict) -> str:
                     key = f"{p['query']} to {p['database']}, {title.split(' (')[0].lower()}: {r['auc_undefined']}"
                     undefined.setdefault(key, []).append(METHOD_LABELS.get(m, m))
     if undefined:
-        lines += ["", "AUC undefined (n/a in the tables):", ""] + [f"- {k} ({', '.join(v)})" for k, v in undefined.items()]
+        lines += ["", "AUC undefined (n/a in the tables):", ""] + [
+            f"- {k} ({', '.join(v)})" for k, v in undefined.items()
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -967,17 +1208,24 @@ def _protocol(results: dict) -> list[str]:
         "VLAD: top-1 database image of the database session; minus its squared distance swept.",
     ]
     if results.get("split_description"):
-        lines += ["", f"Held-out places (the paper's geographic split, Sec. 5.1): {results['split_description']}. "
-                  "The database is the database session's whole map (places of training tiles stay in it as distractors)."
-                  + "".join(f" Note: {n}." for n in split.get("notes") or [])]
+        lines += [
+            "",
+            f"Held-out places (the paper's geographic split, Sec. 5.1): {results['split_description']}. "
+            "The database is the database session's whole map (places of training tiles stay in it as distractors)."
+            + "".join(f" Note: {n}." for n in split.get("notes") or []),
+        ]
     return lines
 
 
 def _auc_table(results: dict, scope: str = "held_out") -> list[str]:
     """Table 2 over one scope's queries: the AUC of every method per pair, the best one in bold."""
     methods = results["methods"]
-    head = ["Sequence pair (query to database)", "conditions (query / database)"] + [METHOD_LABELS.get(m, m) for m in methods]
-    with_held = scope == "all_places" and _held_out(results)  # the all-places table says how many of its queries are held out
+    head = ["Sequence pair (query to database)", "conditions (query / database)"] + [
+        METHOD_LABELS.get(m, m) for m in methods
+    ]
+    with_held = scope == "all_places" and _held_out(
+        results
+    )  # the all-places table says how many of its queries are held out
     head += ["queries", "reachable"] + (["held out"] if with_held else [])
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in results["pairs"]:
@@ -987,9 +1235,17 @@ def _auc_table(results: dict, scope: str = "held_out") -> list[str]:
         cells = []
         for m in methods:
             a = aucs[m]
-            cells.append("n/a" if a is None else (f"**{a:.3f}**" if a == best and sum(x == best for x in aucs.values()) == 1 else f"{a:.3f}"))
+            cells.append(
+                "n/a"
+                if a is None
+                else (f"**{a:.3f}**" if a == best and sum(x == best for x in aucs.values()) == 1 else f"{a:.3f}")
+            )
         reach = [v.get("reachable") for v in b["methods"].values() if v.get("available")]
-        cond = f"{_cond_label(p['conditions']['query'])} / {_cond_label(p['conditions']['database'])}" if p["conditions"]["query"] else ""
+        cond = (
+            f"{_cond_label(p['conditions']['query'])} / {_cond_label(p['conditions']['database'])}"
+            if p["conditions"]["query"]
+            else ""
+        )
         extra = [str(p.get("held_out_queries"))] if with_held else []
         cells += [str(b["queries"]), str(reach[0] if reach else "")] + extra
         lines.append(f"| {p['query']} to {p['database']} | {cond} | " + " | ".join(cells) + " |")
@@ -997,9 +1253,13 @@ def _auc_table(results: dict, scope: str = "held_out") -> list[str]:
 
 
 def _best_f1_table(results: dict) -> list[str]:
-    lines = ["Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
-             "VLAD: minus the squared distance):", "",
-             "| pair | places | method | F1 | precision | recall | threshold | top-1 right of reachable |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
+        "VLAD: minus the squared distance):",
+        "",
+        "| pair | places | method | F1 | precision | recall | threshold | top-1 right of reachable |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for p in results["pairs"]:
         for scope, _ in _scopes(results):
             for m in results["methods"]:
@@ -1009,8 +1269,10 @@ def _best_f1_table(results: dict) -> list[str]:
                 b = r["best_f1"]
                 prec = "" if b["precision"] is None else f"{b['precision']:.2f}"
                 thr = "" if b["threshold"] is None else f"{b['threshold']:.3g}"
-                lines.append(f"| {p['query']} to {p['database']} | {scope.replace('_', '-')} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | "
-                             f"{prec} | {b['recall']:.2f} | {thr} | {r['top1_correct_of_reachable']:.2f} |")
+                lines.append(
+                    f"| {p['query']} to {p['database']} | {scope.replace('_', '-')} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | "
+                    f"{prec} | {b['recall']:.2f} | {thr} | {r['top1_correct_of_reachable']:.2f} |"
+                )
     return lines
 
 
@@ -1036,11 +1298,17 @@ def _keypoints_table(results: dict) -> list[str]:
 def _bootstrap_table(results: dict) -> list[str]:
     methods = results["methods"]
     scope = _scopes(results)[0][0]
-    lines = [f"AUC ({scope.replace('_', '-')} queries), 90 % bootstrap interval over the queries, and how often (paired resamples) "
-             "each structure method's AUC is above VLAD's:", "",
-             "| pair | " + " | ".join(METHOD_LABELS.get(m, m) for m in methods) + " | " +
-             " | ".join(f"P({METHOD_LABELS.get(m, m)} > VLAD)" for m in methods if m != "vlad") + " |",
-             "|" + "---|" * (1 + len(methods) + sum(m != "vlad" for m in methods))]
+    lines = [
+        f"AUC ({scope.replace('_', '-')} queries), 90 % bootstrap interval over the queries, and how often (paired resamples) "
+        "each structure method's AUC is above VLAD's:",
+        "",
+        "| pair | "
+        + " | ".join(METHOD_LABELS.get(m, m) for m in methods)
+        + " | "
+        + " | ".join(f"P({METHOD_LABELS.get(m, m)} > VLAD)" for m in methods if m != "vlad")
+        + " |",
+        "|" + "---|" * (1 + len(methods) + sum(m != "vlad" for m in methods)),
+    ]
     for p in results["pairs"]:
         b = _block(p, scope)
         cells = []
@@ -1074,11 +1342,20 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
                     continue
                 c = r["curve"]
                 auc = "n/a" if r.get("auc") is None else f"{r['auc']:.2f}"
-                label = f"{METHOD_LABELS.get(m, m)} (AUC {auc})" if scope == _scopes(results)[0][0] else \
-                    f"{METHOD_LABELS.get(m, m)}, all places ({auc})"
-                ax.step(np.r_[0.0, c["recall"]], np.r_[c["precision"][:1] if c["precision"] else [1.0], c["precision"]], where="pre",
-                        color=colours[k % len(colours)], lw=1.6 if scope == "held_out" or not _held_out(results) else 0.8,
-                        ls="-" if scope == "held_out" or not _held_out(results) else "--", label=label)
+                label = (
+                    f"{METHOD_LABELS.get(m, m)} (AUC {auc})"
+                    if scope == _scopes(results)[0][0]
+                    else f"{METHOD_LABELS.get(m, m)}, all places ({auc})"
+                )
+                ax.step(
+                    np.r_[0.0, c["recall"]],
+                    np.r_[c["precision"][:1] if c["precision"] else [1.0], c["precision"]],
+                    where="pre",
+                    color=colours[k % len(colours)],
+                    lw=1.6 if scope == "held_out" or not _held_out(results) else 0.8,
+                    ls="-" if scope == "held_out" or not _held_out(results) else "--",
+                    label=label,
+                )
         ax.set_xlim(0, 1)
         ax.set_ylim(0, 1.02)
         ax.set_xlabel("recall")
@@ -1094,6 +1371,26 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
     return _save(plt, fig, path)
 
 
-__all__ = ["PlacesEvalConfig", "table1_counts", "pr_curve", "pr_auc", "best_f1", "score_queries", "VladBaseline", "nearest_l2",
-           "nearest_stamp", "bootstrap_auc", "evaluate_places", "format_places", "plot_pr_curves", "PlaceSplit", "split_from_dataset",
-           "map_densities", "split_from_points", "tiles_split_of_workspace", "resolve_split", "query_split_counts", "no_held_out_note"]
+__all__ = [
+    "PlacesEvalConfig",
+    "table1_counts",
+    "pr_curve",
+    "pr_auc",
+    "best_f1",
+    "score_queries",
+    "VladBaseline",
+    "nearest_l2",
+    "nearest_stamp",
+    "bootstrap_auc",
+    "evaluate_places",
+    "format_places",
+    "plot_pr_curves",
+    "PlaceSplit",
+    "split_from_dataset",
+    "map_densities",
+    "split_from_points",
+    "tiles_split_of_workspace",
+    "resolve_split",
+    "query_split_counts",
+    "no_held_out_note",
+]

@@ -19,8 +19,8 @@ Two protocols:
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -30,7 +30,14 @@ from mapkit.core.runio import atomic_path, atomic_write_text, write_json, write_
 from mapkit.core.threads import single_thread_blas
 from mapkit.core.workspace import Workspace
 from mapkit.evaluation.truth import town_sessions, truth_camera_poses_at
-from mapkit.retrieval.index_vlad import VladIndex, _faiss_threads, _same_frame, encode_images, read_image, read_session_images
+from mapkit.retrieval.index_vlad import (
+    VladIndex,
+    _faiss_threads,
+    _same_frame,
+    encode_images,
+    read_image,
+    read_session_images,
+)
 from mapkit.retrieval.vlad import VladConfig, VladEncoder
 
 DEFAULT_KS = (1, 5, 20)
@@ -39,8 +46,13 @@ DEFAULT_KS = (1, 5, 20)
 # --------------------------------------------------------------------------- pure computations
 
 
-def recall_at_k(query_positions: np.ndarray, database_positions: np.ndarray, retrieved_ids: np.ndarray,
-                ks: Sequence[int] = DEFAULT_KS, radius_m: float = 25.0) -> dict:
+def recall_at_k(
+    query_positions: np.ndarray,
+    database_positions: np.ndarray,
+    retrieved_ids: np.ndarray,
+    ks: Sequence[int] = DEFAULT_KS,
+    radius_m: float = 25.0,
+) -> dict:
     """Recall@k of ranked retrievals: a query is a hit at k when one of its first k retrieved
     database positions is within ``radius_m`` of its own position (3-D Euclidean).
 
@@ -84,7 +96,7 @@ def rotation_error_deg(R_gt: np.ndarray, R_est: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
 
 
-def self_retrieval(vectors: np.ndarray, exclude: int = 2, positions: Optional[np.ndarray] = None) -> dict:
+def self_retrieval(vectors: np.ndarray, exclude: int = 2, positions: np.ndarray | None = None) -> dict:
     """Every vector's nearest neighbour (L2) among the others, skipping itself and its ``exclude``
     neighbours on each side in sequence order; the gap distribution of the matches.
 
@@ -194,7 +206,7 @@ def evaluate_retrieval(
     radius_m: float = 25.0,
     ks: Sequence[int] = DEFAULT_KS,
     out: str | Path | None = None,
-    workers: Optional[int] = None,
+    workers: int | None = None,
     progress: bool = True,
 ) -> dict:
     """Recall@k and the measurement's error for query sessions; writes ``eval_retrieval.json``,
@@ -210,8 +222,11 @@ def evaluate_retrieval(
     used = set(idx.database_sessions) | set(idx.train_sessions)
     clash = [n for n in query_sessions if n in used]
     if clash:
-        raise InputError(bundle / "manifest.json", f"query session(s) {clash} are in the bundle's database or training set: "
-                         "they cannot measure retrieval", field="sessions")
+        raise InputError(
+            bundle / "manifest.json",
+            f"query session(s) {clash} are in the bundle's database or training set: they cannot measure retrieval",
+            field="sessions",
+        )
     if not query_sessions:
         raise InputError(ws.root, "no query session given", field="query_sessions")
     ws_frame = ws.frame()
@@ -222,15 +237,24 @@ def evaluate_retrieval(
     workers = idx.cfg.workers if workers is None else workers
 
     results: dict = {
-        "bundle": str(bundle), "workspace": str(ws.root), "truth": None if truth is None else str(truth), "radius_m": radius_m,
-        "ks": ks, "top_k": idx.cfg.top_k, "mean_shift_bandwidth_m": idx.cfg.mean_shift_bandwidth_m,
-        "database_sessions": idx.database_sessions, "database_images": len(idx), "dim": idx.dim, "sessions": {},
+        "bundle": str(bundle),
+        "workspace": str(ws.root),
+        "truth": None if truth is None else str(truth),
+        "radius_m": radius_m,
+        "ks": ks,
+        "top_k": idx.cfg.top_k,
+        "mean_shift_bandwidth_m": idx.cfg.mean_shift_bandwidth_m,
+        "database_sessions": idx.database_sessions,
+        "database_images": len(idx),
+        "dim": idx.dim,
+        "sessions": {},
     }
     rows: list[list] = []
     per_session: dict[str, dict] = {}
     for name in query_sessions:
-        results["sessions"][name], per_session[name] = _query_session(ws, idx, name, truth, ws_frame, town.get(name, {}), ks,
-                                                                      radius_m, workers, progress, rows)
+        results["sessions"][name], per_session[name] = _query_session(
+            ws, idx, name, truth, ws_frame, town.get(name, {}), ks, radius_m, workers, progress, rows
+        )
     # per condition and overall, pooled over queries
     by_cond: dict[str, list[str]] = {}
     for n, r in results["sessions"].items():
@@ -247,8 +271,19 @@ def evaluate_retrieval(
     return results
 
 
-def _query_session(ws: Workspace, idx: VladIndex, name: str, truth: Optional[Path], ws_frame: Optional[LocalFrame], info: dict,
-                   ks: list[int], radius_m: float, workers: int, progress: bool, rows: list[list]) -> tuple[dict, dict]:
+def _query_session(
+    ws: Workspace,
+    idx: VladIndex,
+    name: str,
+    truth: Path | None,
+    ws_frame: LocalFrame | None,
+    info: dict,
+    ks: list[int],
+    radius_m: float,
+    workers: int,
+    progress: bool,
+    rows: list[list],
+) -> tuple[dict, dict]:
     """One query session against the bundle: (its entry of ``eval_retrieval.json``, its arrays for
     pooling and :func:`plot_retrieval`); appends its rows of the queries CSV to ``rows``."""
     K = max(max(ks), idx.cfg.top_k)
@@ -279,18 +314,45 @@ def _query_session(ws: Workspace, idx: VladIndex, name: str, truth: Optional[Pat
         z_pos.append(z.translation)
     t_err, r_err, z_pos = np.asarray(t_err), np.asarray(r_err), np.asarray(z_pos).reshape(-1, 3)
     r = {
-        "condition": info.get("condition"), "weather": info.get("weather"), "role": info.get("role"),
-        "queries": int(len(keep)), "images_without_truth": int(len(s) - len(keep)), "pose_source": s.pose_source,
-        "truth_source": truth_source, "reachable": rec["reachable"], "recall": rec["recall"],
+        "condition": info.get("condition"),
+        "weather": info.get("weather"),
+        "role": info.get("role"),
+        "queries": int(len(keep)),
+        "images_without_truth": int(len(s) - len(keep)),
+        "pose_source": s.pose_source,
+        "truth_source": truth_source,
+        "reachable": rec["reachable"],
+        "recall": rec["recall"],
         "recall_curve": [float(x) for x in rec["curve"]],
         "measurement": _stats(t_err, r_err),
     }
-    arrays = {"timings": {"encode_s_per_image": encode_s / len(keep), "search_ms_per_query": 1e3 * search_s / len(keep)},
-              "q": q_pos, "top1": db_pos[ids[:, 0]], "hit1": rec["first_hit_rank"] == 1, "z": z_pos,
-              "curve": rec["curve"], "t_err": t_err, "r_err": r_err, "first": rec["first_hit_rank"]}
+    arrays = {
+        "timings": {"encode_s_per_image": encode_s / len(keep), "search_ms_per_query": 1e3 * search_s / len(keep)},
+        "q": q_pos,
+        "top1": db_pos[ids[:, 0]],
+        "hit1": rec["first_hit_rank"] == 1,
+        "z": z_pos,
+        "curve": rec["curve"],
+        "t_err": t_err,
+        "r_err": r_err,
+        "first": rec["first_hit_rank"],
+    }
     for i, j in enumerate(keep):
-        rows.append([name, int(s.table["image_id"][j]), int(s.table["stamp_ns"][j]), *q_pos[i], int(ids[i, 0]), *db_pos[ids[i, 0]],
-                     float(np.linalg.norm(db_pos[ids[i, 0]] - q_pos[i])), int(rec["first_hit_rank"][i]), *z_pos[i], t_err[i], r_err[i]])
+        rows.append(
+            [
+                name,
+                int(s.table["image_id"][j]),
+                int(s.table["stamp_ns"][j]),
+                *q_pos[i],
+                int(ids[i, 0]),
+                *db_pos[ids[i, 0]],
+                float(np.linalg.norm(db_pos[ids[i, 0]] - q_pos[i])),
+                int(rec["first_hit_rank"][i]),
+                *z_pos[i],
+                t_err[i],
+                r_err[i],
+            ]
+        )
     return r, arrays
 
 
@@ -299,13 +361,34 @@ def _pooled(per_session: dict[str, dict], names: list[str], ks: list[int]) -> di
     first = np.concatenate([per_session[n]["first"] for n in names])
     t = np.concatenate([per_session[n]["t_err"] for n in names])
     rr = np.concatenate([per_session[n]["r_err"] for n in names])
-    return {"sessions": names, "queries": int(len(first)),
-            "recall": {int(k): float(np.mean((first >= 1) & (first <= k))) for k in ks}, "measurement": _stats(t, rr)}
+    return {
+        "sessions": names,
+        "queries": int(len(first)),
+        "recall": {int(k): float(np.mean((first >= 1) & (first <= k))) for k in ks},
+        "measurement": _stats(t, rr),
+    }
 
 
 def _write_queries_csv(path: Path, rows: list[list]) -> None:
-    head = ["session", "image_id", "stamp_ns", "true_x_m", "true_y_m", "true_z_m", "top1_entry", "top1_x_m", "top1_y_m", "top1_z_m",
-            "top1_distance_m", "first_hit_rank", "z_x_m", "z_y_m", "z_z_m", "z_translation_error_m", "z_rotation_error_deg"]
+    head = [
+        "session",
+        "image_id",
+        "stamp_ns",
+        "true_x_m",
+        "true_y_m",
+        "true_z_m",
+        "top1_entry",
+        "top1_x_m",
+        "top1_y_m",
+        "top1_z_m",
+        "top1_distance_m",
+        "first_hit_rank",
+        "z_x_m",
+        "z_y_m",
+        "z_z_m",
+        "z_translation_error_m",
+        "z_rotation_error_deg",
+    ]
     lines = [",".join(head)]
     for r in rows:
         lines.append(",".join(f"{v:.3f}" if isinstance(v, float) else str(v) for v in r))
@@ -321,19 +404,25 @@ def format_retrieval(results: dict) -> str:
         f"Hit: one of the top k within {results['radius_m']:g} m of the query's true position. Measurement: mean shift "
         f"(bandwidth {results['mean_shift_bandwidth_m']:g} m) over the top {results['top_k']}.",
         "",
-        "| session | condition | queries | reachable | " + " | ".join(f"recall@{k}" for k in ks)
+        "| session | condition | queries | reachable | "
+        + " | ".join(f"recall@{k}" for k in ks)
         + " | z median m | z median deg | z within 5 m |",
         "|---|---|---|---|" + "---|" * len(ks) + "---|---|---|",
     ]
     for n, r in results["sessions"].items():
         m = r["measurement"]
-        lines.append(f"| {n} | {r['condition'] or ''} | {r['queries']} | {f(r['reachable'])} | "
-                     + " | ".join(f(r["recall"][k] if k in r["recall"] else r["recall"][str(k)]) for k in ks)
-                     + f" | {f(m.get('median_translation_m'), 1)} | {f(m.get('median_rotation_deg'), 1)} | {f(m.get('fraction_within_5m'))} |")
+        lines.append(
+            f"| {n} | {r['condition'] or ''} | {r['queries']} | {f(r['reachable'])} | "
+            + " | ".join(f(r["recall"][k] if k in r["recall"] else r["recall"][str(k)]) for k in ks)
+            + f" | {f(m.get('median_translation_m'), 1)} | {f(m.get('median_rotation_deg'), 1)} | {f(m.get('fraction_within_5m'))} |"
+        )
     a = results["all"]
-    lines.append(f"| **all** | | {a['queries']} | | " + " | ".join(f(a["recall"][k]) for k in ks)
-                 + f" | {f(a['measurement'].get('median_translation_m'), 1)} | {f(a['measurement'].get('median_rotation_deg'), 1)} "
-                 f"| {f(a['measurement'].get('fraction_within_5m'))} |")
+    lines.append(
+        f"| **all** | | {a['queries']} | | "
+        + " | ".join(f(a["recall"][k]) for k in ks)
+        + f" | {f(a['measurement'].get('median_translation_m'), 1)} | {f(a['measurement'].get('median_rotation_deg'), 1)} "
+        f"| {f(a['measurement'].get('fraction_within_5m'))} |"
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -374,5 +463,12 @@ def plot_retrieval(path: Path, per_session: dict, results: dict, db_pos: np.ndar
     return path
 
 
-__all__ = ["recall_at_k", "rotation_error_deg", "self_retrieval", "self_retrieval_kitti", "evaluate_retrieval", "format_retrieval",
-           "plot_retrieval"]
+__all__ = [
+    "recall_at_k",
+    "rotation_error_deg",
+    "self_retrieval",
+    "self_retrieval_kitti",
+    "evaluate_retrieval",
+    "format_retrieval",
+    "plot_retrieval",
+]

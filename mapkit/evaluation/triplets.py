@@ -45,8 +45,11 @@ def evaluate_triplets(dataset: str | Path, workspace: str | Path, truth: str | P
         if len(tr):
             offsets.append(np.linalg.norm(true_pt[tr[:, 0]] - true_pt[tr[:, 1]], axis=1))
     off = np.concatenate(offsets) if offsets else np.zeros(0)
-    res = {"positive_pairs": int(len(off)), "fraction_below_0.5m": float((off < 0.5).mean()) if len(off) else None,
-           "offset_median_m": float(np.median(off)) if len(off) else None,
-           "offset_p90_m": float(np.percentile(off, 90)) if len(off) else None}
+    res = {
+        "positive_pairs": int(len(off)),
+        "fraction_below_0.5m": float((off < 0.5).mean()) if len(off) else None,
+        "offset_median_m": float(np.median(off)) if len(off) else None,
+        "offset_p90_m": float(np.percentile(off, 90)) if len(off) else None,
+    }
     write_json(Path(dataset) / "eval_triplets.json", res)
     return res

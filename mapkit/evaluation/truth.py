@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -26,9 +25,11 @@ from mapkit.mapping.trajectory import trajectory_from_poses
 from mapkit.synth import camera_poses, gt_poses, parked_cars_path, town_frame
 
 #: what ``--truth`` may be, for the error that names anything else
-TRUTH_KINDS = ("a TUM trajectory file (8 numbers a line: stamp tx ty tz qx qy qz qw, stamp in seconds), "
-               "a KITTI poses file (12 numbers a line, with times.txt beside it or --truth-times), "
-               "a log with a pose topic (LOG::/topic or --truth-topic), or a synthetic town folder")
+TRUTH_KINDS = (
+    "a TUM trajectory file (8 numbers a line: stamp tx ty tz qx qy qz qw, stamp in seconds), "
+    "a KITTI poses file (12 numbers a line, with times.txt beside it or --truth-times), "
+    "a log with a pose topic (LOG::/topic or --truth-topic), or a synthetic town folder"
+)
 
 
 @dataclass
@@ -60,19 +61,27 @@ def is_town(truth: str | Path) -> bool:
     return True
 
 
-def split_log_topic(truth: str | Path, topic: Optional[str]) -> tuple[Path, Optional[str]]:
+def split_log_topic(truth: str | Path, topic: str | None) -> tuple[Path, str | None]:
     """``LOG::/topic`` to (LOG, /topic); a path without ``::`` keeps ``topic`` (both given is an error)."""
     text = str(truth)
     if "::" not in text or Path(text).exists():
         return Path(text), topic
     log, _, inline = text.rpartition("::")
     if topic is not None and topic != inline:
-        raise InputError(log, f"two truth topics given: {inline!r} (in --truth) and {topic!r} (--truth-topic)", field="topic")
+        raise InputError(
+            log, f"two truth topics given: {inline!r} (in --truth) and {topic!r} (--truth-topic)", field="topic"
+        )
     return Path(log), inline
 
 
-def read_truth(truth: str | Path, *, topic: Optional[str] = None, times: Optional[Path] = None, time_offset_s: float = 0.0,
-               body_frame: str = "base_link") -> TruthTrajectory:
+def read_truth(
+    truth: str | Path,
+    *,
+    topic: str | None = None,
+    times: Path | None = None,
+    time_offset_s: float = 0.0,
+    body_frame: str = "base_link",
+) -> TruthTrajectory:
     """A true trajectory from a TUM file, a KITTI poses file, or a pose topic of a log.
 
     A pose topic's poses are moved to ``body_frame`` (the estimate's) through the log's extrinsics
@@ -91,10 +100,19 @@ def read_truth(truth: str | Path, *, topic: Optional[str] = None, times: Optiona
         ncols = _columns(path)
         if ncols == 8:
             if times is not None:
-                raise InputError(times, f"--truth-times is for a KITTI poses file, and {path} is a TUM file (it has its own stamps)")
+                raise InputError(
+                    times, f"--truth-times is for a KITTI poses file, and {path} is a TUM file (it has its own stamps)"
+                )
             stamps, poses = read_tum(path)
-            t = TruthTrajectory(stamps, poses, "tum", str(path), "its own (TUM file)", "not stated by the file",
-                                "the TUM file's first column (s)")
+            t = TruthTrajectory(
+                stamps,
+                poses,
+                "tum",
+                str(path),
+                "its own (TUM file)",
+                "not stated by the file",
+                "the TUM file's first column (s)",
+            )
         elif ncols == 12:
             t = _read_kitti(path, times)
         else:
@@ -127,24 +145,34 @@ def _columns(path: Path) -> int:
     raise InputError(path, "holds no poses")
 
 
-def _read_kitti(path: Path, times: Optional[Path]) -> TruthTrajectory:
+def _read_kitti(path: Path, times: Path | None) -> TruthTrajectory:
     """KITTI poses with the stamps of ``times`` or of ``times.txt`` beside them, line by line."""
     poses = read_kitti_poses(path)
     times = times if times is not None else path.with_name("times.txt")
     if not times.is_file():
-        raise InputError(path, f"KITTI poses carry no stamps: expected {times.name} beside them (one time in seconds a line, "
-                         "as KITTI odometry's) or --truth-times FILE")
+        raise InputError(
+            path,
+            f"KITTI poses carry no stamps: expected {times.name} beside them (one time in seconds a line, "
+            "as KITTI odometry's) or --truth-times FILE",
+        )
     stamps = read_stamp_lines(times, seconds_to_ns, "times")
     if len(stamps) != len(poses):
         raise InputError(times, f"has {len(stamps)} times for the {len(poses)} poses of {path}")
     if np.any(np.diff(stamps) <= 0):
         i = int(np.nonzero(np.diff(stamps) <= 0)[0][0]) + 2
         raise InputError(times, f"times do not increase at line {i}", field=f"line {i}")
-    return TruthTrajectory(stamps, poses, "kitti", str(path), "its own (KITTI poses: the first pose's body frame)",
-                           "not stated by the file", f"{times} (line i is pose i)")
+    return TruthTrajectory(
+        stamps,
+        poses,
+        "kitti",
+        str(path),
+        "its own (KITTI poses: the first pose's body frame)",
+        "not stated by the file",
+        f"{times} (line i is pose i)",
+    )
 
 
-def _read_topic(path: Path, topic: Optional[str], body_frame: str) -> TruthTrajectory:
+def _read_topic(path: Path, topic: str | None, body_frame: str) -> TruthTrajectory:
     try:
         guess_format(path)
     except InputError as exc:
@@ -153,16 +181,28 @@ def _read_topic(path: Path, topic: Optional[str], body_frame: str) -> TruthTraje
         pose_topics = log.topics_of(StreamKind.POSE)
         if topic is None:
             if len(pose_topics) != 1:
-                raise InputError(path, f"has {len(pose_topics)} pose topics ({', '.join(pose_topics) or 'none'}); name the true one "
-                                 "with LOG::/topic or --truth-topic", field="topic")
+                raise InputError(
+                    path,
+                    f"has {len(pose_topics)} pose topics ({', '.join(pose_topics) or 'none'}); name the true one "
+                    "with LOG::/topic or --truth-topic",
+                    field="topic",
+                )
             topic = pose_topics[0]
         if topic not in pose_topics:
-            raise InputError(path, f"has no pose topic {topic!r}; its pose topics: {', '.join(pose_topics) or 'none'}", field="topic")
+            raise InputError(
+                path, f"has no pose topic {topic!r}; its pose topics: {', '.join(pose_topics) or 'none'}", field="topic"
+            )
         frame = next((p.parent_frame for p in log.records(StreamKind.POSE, topic=topic)), "")
         traj = trajectory_from_poses(log, topic, body_frame)
-    return TruthTrajectory(traj.stamps_ns, traj.world_from_base, "topic", f"{path}::{topic}",
-                           f"its own ({frame or 'unnamed'}, the pose messages' parent frame)", traj.body_frame,
-                           "the pose messages' header stamps")
+    return TruthTrajectory(
+        traj.stamps_ns,
+        traj.world_from_base,
+        "topic",
+        f"{path}::{topic}",
+        f"its own ({frame or 'unnamed'}, the pose messages' parent frame)",
+        traj.body_frame,
+        "the pose messages' header stamps",
+    )
 
 
 @dataclass
@@ -176,7 +216,9 @@ class Association:
     nearest_dt_s: np.ndarray  # |t_est - t_truth| of the nearest-stamp pairs
 
 
-def associate_truth(est_stamps_ns: np.ndarray, truth_stamps_ns: np.ndarray, truth_poses: np.ndarray, max_dt_ns: int) -> Association:
+def associate_truth(
+    est_stamps_ns: np.ndarray, truth_stamps_ns: np.ndarray, truth_poses: np.ndarray, max_dt_ns: int
+) -> Association:
     """Truth at the estimate's stamps: interpolated (linear position, slerp rotation) where truth
     poses lie within ``max_dt_ns`` on both sides of the stamp (the truth is dense there), else the
     nearest truth pose within ``max_dt_ns`` (an equal stamp included), one-to-one; estimated poses
@@ -210,7 +252,7 @@ def ws_from_town(truth: Path, ws_frame: LocalFrame) -> np.ndarray:
     return town_frame(truth).to_frame(ws_frame)
 
 
-def town_sessions(truth: Optional[Path]) -> dict[str, dict]:
+def town_sessions(truth: Path | None) -> dict[str, dict]:
     """The town manifest's entry of every session (role, condition, ...), by name; {} without one."""
     if truth is None:
         return {}
@@ -220,7 +262,7 @@ def town_sessions(truth: Optional[Path]) -> dict[str, dict]:
     return {s["name"]: s for s in json.loads(p.read_text()).get("sessions", [])}
 
 
-def truth_camera_poses(truth: Path, name: str, ws_frame: Optional[LocalFrame]) -> tuple[np.ndarray, np.ndarray]:
+def truth_camera_poses(truth: Path, name: str, ws_frame: LocalFrame | None) -> tuple[np.ndarray, np.ndarray]:
     """(stamps_ns, world_from_camera) of a town session's true camera, in the workspace's frame
     (the town's own when ``ws_frame`` is None)."""
 
@@ -258,6 +300,6 @@ def error_transforms(est_stamps, est_poses, gt_stamps, gt_ws) -> tuple[np.ndarra
     return est[:, :3, 3], E
 
 
-def truth_camera_poses_at(truth: Path, name: str, ws_frame: Optional[LocalFrame], stamps_ns: np.ndarray):
+def truth_camera_poses_at(truth: Path, name: str, ws_frame: LocalFrame | None, stamps_ns: np.ndarray):
     """True camera poses (world_from_camera, workspace ENU) at ``stamps_ns`` and their validity mask."""
     return interpolate_poses(*truth_camera_poses(truth, name, ws_frame), stamps_ns)

@@ -54,10 +54,15 @@ def guess_format(path: str | Path) -> str:
             return "rosbag"
         if path.name == ROSBAG2_METADATA and is_rosbag2(path.parent):
             return _rosbag2_reader(path.parent)
-        if is_mcap(path) or path.suffix == ".mcap":  # McapLog reads a file whose leading magic is damaged, or says why not
+        if (
+            is_mcap(path) or path.suffix == ".mcap"
+        ):  # McapLog reads a file whose leading magic is damaged, or says why not
             return "mcap"
-        raise InputError(path, "is a file but not an MCAP log or a ROS 1 .bag (folders are read as rosbag2, KITTI, RobotCar, "
-                               "photo or generic layouts)")
+        raise InputError(
+            path,
+            "is a file but not an MCAP log or a ROS 1 .bag (folders are read as rosbag2, KITTI, RobotCar, "
+            "photo or generic layouts)",
+        )
     from mapkit.io.mcap_log import is_rosbag2
 
     if is_rosbag2(path):
@@ -69,8 +74,11 @@ def guess_format(path: str | Path) -> str:
             continue
         if cls.detect(path):
             return name
-    raise InputError(path, "folder layout not recognised as a rosbag2 bag (metadata.yaml), KITTI odometry, KITTI raw, Oxford RobotCar, "
-                           "a geotagged photo folder or a generic image folder (a ROS 1 bag is a .bag file: give the file)")
+    raise InputError(
+        path,
+        "folder layout not recognised as a rosbag2 bag (metadata.yaml), KITTI odometry, KITTI raw, Oxford RobotCar, "
+        "a geotagged photo folder or a generic image folder (a ROS 1 bag is a .bag file: give the file)",
+    )
 
 
 def open_log(path: str | Path, format: str | None = None, **kwargs) -> DriveLog:

@@ -15,8 +15,8 @@ import warnings
 import zlib
 from abc import ABC, abstractmethod
 from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Optional
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.types import CameraInfo, FrameTransform, Message, StreamInfo, StreamKind
@@ -24,7 +24,17 @@ from mapkit.core.types import CameraInfo, FrameTransform, Message, StreamInfo, S
 MAX_WARNINGS_PER_STREAM = 5
 #: what parsers and decoders raise on damaged bytes (numpy's LinAlgError and UnicodeDecodeError are ValueErrors,
 #: decimal's Overflow an ArithmeticError); a programming error (TypeError, AttributeError, ...) is not among them
-DATA_ERRORS = (ValueError, KeyError, IndexError, struct.error, ArithmeticError, MemoryError, EOFError, OSError, zlib.error)
+DATA_ERRORS = (
+    ValueError,
+    KeyError,
+    IndexError,
+    struct.error,
+    ArithmeticError,
+    MemoryError,
+    EOFError,
+    OSError,
+    zlib.error,
+)
 
 
 class DriveLog(ABC):
@@ -45,7 +55,7 @@ class DriveLog(ABC):
         """The streams in the log (counts where known without a full read)."""
 
     @abstractmethod
-    def _iter_messages(self, topics: Optional[set[str]]) -> Iterator[Message]:
+    def _iter_messages(self, topics: set[str] | None) -> Iterator[Message]:
         """Messages of the given topics (all if None), in (approximately) increasing time."""
 
     # --- provided ---------------------------------------------------------------------------------
@@ -69,7 +79,7 @@ class DriveLog(ABC):
             yield msg
         self._warn_suppressed()
 
-    def stamps(self, topics: Optional[set[str]] = None) -> Iterator[tuple[str, int]]:
+    def stamps(self, topics: set[str] | None = None) -> Iterator[tuple[str, int]]:
         """(topic, stamp_ns) of every message, in read order, duplicates and disorder included.
 
         Readers that can read stamps without decoding payloads override this; ``mapkit info``
@@ -78,7 +88,7 @@ class DriveLog(ABC):
         for msg in self._guarded(self._iter_messages(topics)):
             yield msg.topic, msg.stamp_ns
 
-    def records(self, kind: StreamKind | str, topic: Optional[str] = None) -> Iterator:
+    def records(self, kind: StreamKind | str, topic: str | None = None) -> Iterator:
         """The records of one kind (optionally of one topic of that kind), in time order."""
         kind = StreamKind(kind)
         if topic is not None:
@@ -86,8 +96,12 @@ class DriveLog(ABC):
             if stream is not None and stream.kind != kind:
                 from mapkit.core.errors import InputError
 
-                raise InputError(self.path, f"topic {topic!r} carries {stream.kind.value}, not {kind.value}", field="topic")
-        for msg in self.messages(kinds=None if topic is not None else [kind], topics=None if topic is None else [topic]):
+                raise InputError(
+                    self.path, f"topic {topic!r} carries {stream.kind.value}, not {kind.value}", field="topic"
+                )
+        for msg in self.messages(
+            kinds=None if topic is not None else [kind], topics=None if topic is None else [topic]
+        ):
             yield msg.record
 
     def camera_infos(self) -> dict[str, CameraInfo]:
@@ -127,7 +141,7 @@ class DriveLog(ABC):
     def _guarded(self, messages: Iterator[Message]) -> Iterator[Message]:
         """``messages``, with a ``DATA_ERRORS`` exception turned into an ``InputError`` naming the file and the
         last message read (readers name line or byte themselves; this is the net under them)."""
-        last: Optional[Message] = None
+        last: Message | None = None
         while True:
             try:
                 msg = next(messages)
@@ -135,14 +149,16 @@ class DriveLog(ABC):
                 return
             except DATA_ERRORS as exc:
                 where = "before the first message" if last is None else f"after message {last.index} of {last.topic}"
-                raise InputError(self.path, f"could not be read {where} ({type(exc).__name__}: {str(exc)[:200]})") from exc
+                raise InputError(
+                    self.path, f"could not be read {where} ({type(exc).__name__}: {str(exc)[:200]})"
+                ) from exc
             last = msg
             yield msg
 
     def _count_of(self, kind: StreamKind) -> int:
         return sum(1 for s in self.streams() if s.kind == kind)
 
-    def _select_topics(self, kinds, topics) -> Optional[set[str]]:
+    def _select_topics(self, kinds, topics) -> set[str] | None:
         if kinds is None and topics is None:
             return None
         wanted: set[str] = set()
@@ -176,7 +192,9 @@ class DriveLog(ABC):
         self._warned[topic] += 1
         if self._warned[topic] <= MAX_WARNINGS_PER_STREAM:
             extra = f" ({detail})" if detail else ""
-            warnings.warn(f"{self.path}: topic {topic} message {index}: {reason}{extra}; skipped", InputWarning, stacklevel=3)
+            warnings.warn(
+                f"{self.path}: topic {topic} message {index}: {reason}{extra}; skipped", InputWarning, stacklevel=3
+            )
 
     def _warn_suppressed(self) -> None:
         for topic, n in self._warned.items():

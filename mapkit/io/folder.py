@@ -40,10 +40,10 @@ import heapq
 import json
 import warnings
 from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -79,7 +79,7 @@ MSGTYPE = {
 }
 
 
-def stream_info(topic: str, kind: StreamKind, count: Optional[int] = None) -> StreamInfo:
+def stream_info(topic: str, kind: StreamKind, count: int | None = None) -> StreamInfo:
     return StreamInfo(topic, kind, MSGTYPE[kind], count)
 
 
@@ -89,8 +89,11 @@ def undecodable(path: Path, expected: str) -> InputError:
         try:
             line.decode("utf-8")
         except UnicodeDecodeError as exc:
-            return InputError(path, f"line {lineno}: byte 0x{line[exc.start]:02x} at column {exc.start + 1} is not UTF-8 text ({expected})",
-                              field=f"line {lineno}")
+            return InputError(
+                path,
+                f"line {lineno}: byte 0x{line[exc.start]:02x} at column {exc.start + 1} is not UTF-8 text ({expected})",
+                field=f"line {lineno}",
+            )
     return InputError(path, f"is not UTF-8 text ({expected})")
 
 
@@ -140,6 +143,7 @@ def read_stamp_lines(path: Path, parse: Callable[[str], int], what: str) -> np.n
 
 # --- images -----------------------------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class ImageLayout:
     """Size and pixel layout of a decoded image; one camera keeps one layout."""
@@ -149,7 +153,7 @@ class ImageLayout:
     encoding: str
 
     @classmethod
-    def of(cls, img: np.ndarray) -> "ImageLayout":
+    def of(cls, img: np.ndarray) -> ImageLayout:
         h, w = img.shape[:2]
         channels = 1 if img.ndim == 2 else img.shape[2]
         depth = {np.dtype(np.uint8): "8", np.dtype(np.uint16): "16"}.get(img.dtype)
@@ -178,7 +182,7 @@ def read_image(path: Path) -> np.ndarray:
 ImageConvert = Callable[[np.ndarray], np.ndarray]
 
 
-def probe_image(path: Path, convert: Optional[ImageConvert] = None) -> ImageLayout:
+def probe_image(path: Path, convert: ImageConvert | None = None) -> ImageLayout:
     """Layout of one image after ``convert``: decodes it once (the first image of a camera)."""
     img = read_image(path)
     return ImageLayout.of(img if convert is None else convert(img))
@@ -188,11 +192,11 @@ def probe_image(path: Path, convert: Optional[ImageConvert] = None) -> ImageLayo
 PROBE_TRIES = 10
 
 
-def probe_images(paths: Iterable[Path], convert: Optional[ImageConvert] = None) -> ImageLayout:
+def probe_images(paths: Iterable[Path], convert: ImageConvert | None = None) -> ImageLayout:
     """Layout of the first image among ``paths`` that decodes; the damaged ones before it are skipped with a
     warning naming them (their frames fail again when read, and are skipped there). After ``PROBE_TRIES``
     failures the first error is raised."""
-    first_error: Optional[InputError] = None
+    first_error: InputError | None = None
     for n, path in enumerate(paths):
         if n == PROBE_TRIES:
             break
@@ -209,7 +213,7 @@ def probe_images(paths: Iterable[Path], convert: Optional[ImageConvert] = None) 
 
 
 def lazy_frame(
-    stamp_ns: int, camera: str, path: Path, layout: ImageLayout, convert: Optional[ImageConvert] = None
+    stamp_ns: int, camera: str, path: Path, layout: ImageLayout, convert: ImageConvert | None = None
 ) -> CameraFrame:
     """A frame that decodes ``path`` on first access and checks it has its camera's layout."""
 
@@ -226,6 +230,7 @@ def lazy_frame(
 
 
 # --- CSV tables ------------------------------------------------------------------------------------
+
 
 class CsvTable:
     """A CSV file with a header line, read row by row with the ``csv`` module.
@@ -248,7 +253,9 @@ class CsvTable:
         missing = [c for c in required if c not in self._index]
         if missing:
             raise InputError(
-                self.path, f"header has no column {', '.join(map(repr, missing))} (columns: {', '.join(self.columns)})", field="header"
+                self.path,
+                f"header has no column {', '.join(map(repr, missing))} (columns: {', '.join(self.columns)})",
+                field="header",
             )
 
     @contextmanager
@@ -267,20 +274,20 @@ class CsvTable:
     def column_index(self, column: str) -> int:
         return self._index[column]
 
-    def first_row(self) -> Optional["CsvRow"]:
+    def first_row(self) -> CsvRow | None:
         rows = self.rows()
         try:
             return next(rows, None)
         finally:
             rows.close()  # releases the file now, not when the generator is collected
 
-    def rows(self) -> Iterator["CsvRow"]:
+    def rows(self) -> Iterator[CsvRow]:
         with open(self.path, newline="", encoding="utf-8") as f:
             reader = csv.reader(f)
             with self._errors_named(reader):
                 yield from self._rows_of(reader)
 
-    def _rows_of(self, reader) -> Iterator["CsvRow"]:
+    def _rows_of(self, reader) -> Iterator[CsvRow]:
         n = len(self.columns)
         next(reader, None)
         for values in reader:
@@ -394,7 +401,7 @@ class FolderLayoutLog(DriveLog):
         self._add([stream_info(topic, StreamKind.TF, len(transforms))], iterate)
 
     def _add_records(
-        self, topic: str, kind: StreamKind, records: Callable[[], Iterator[Record]], count: Optional[int] = None
+        self, topic: str, kind: StreamKind, records: Callable[[], Iterator[Record]], count: int | None = None
     ) -> None:
         """One topic whose records ``records()`` yields in time order."""
 
@@ -411,10 +418,10 @@ class FolderLayoutLog(DriveLog):
         frames: Callable[[], Iterable[tuple[int, Path]]],
         layout: ImageLayout,
         *,
-        info: Optional[CameraInfo] = None,
-        info_topic: Optional[str] = None,
-        count: Optional[int] = None,
-        convert: Optional[ImageConvert] = None,
+        info: CameraInfo | None = None,
+        info_topic: str | None = None,
+        count: int | None = None,
+        convert: ImageConvert | None = None,
     ) -> None:
         """A camera from (stamp, image path) pairs; with ``info``, one CameraInfo per frame (as ROS)."""
         infos = [stream_info(info_topic, StreamKind.CAMERA_INFO, count)] if info is not None and info_topic else []
@@ -434,7 +441,7 @@ class FolderLayoutLog(DriveLog):
     def streams(self) -> list[StreamInfo]:
         return [info for s in self._sources for info in s.infos]
 
-    def _iter_messages(self, topics: Optional[set[str]]) -> Iterator[Message]:
+    def _iter_messages(self, topics: set[str] | None) -> Iterator[Message]:
         def wanted(topic: str) -> bool:
             return topics is None or topic in topics
 
@@ -468,7 +475,9 @@ def _all_or_none(table: CsvTable, group: Sequence[str], name: str) -> bool:
     present = [c for c in group if table.has(c)]
     if present and len(present) != len(group):
         missing = [c for c in group if not table.has(c)]
-        raise InputError(table.path, f"{name} columns need all of {', '.join(group)}; missing {', '.join(missing)}", field="header")
+        raise InputError(
+            table.path, f"{name} columns need all of {', '.join(group)}; missing {', '.join(missing)}", field="header"
+        )
     return bool(present)
 
 
@@ -477,7 +486,7 @@ class _Intrinsics:
     K: np.ndarray
     D: np.ndarray
     distortion_model: str
-    size: Optional[tuple[int, int]]  # (width, height) when the file states it
+    size: tuple[int, int] | None  # (width, height) when the file states it
 
 
 def _intrinsics_from_mapping(d: object, path: Path) -> _Intrinsics:
@@ -500,7 +509,7 @@ def _intrinsics_from_mapping(d: object, path: Path) -> _Intrinsics:
     return _Intrinsics(K, D, str(d.get("distortion_model", "plumb_bob")), size)
 
 
-def _read_intrinsics_file(folder: Path) -> Optional[_Intrinsics]:
+def _read_intrinsics_file(folder: Path) -> _Intrinsics | None:
     json_path, yaml_path = folder / "intrinsics.json", folder / "camera.yaml"
     if json_path.is_file():
         try:
@@ -527,7 +536,12 @@ class FolderLog(FolderLayoutLog):
     format_name = "folder"
 
     def __init__(
-        self, path: str | Path, *, frames_csv: str | Path | None = None, camera: str = "camera", topic_prefix: str = "/folder"
+        self,
+        path: str | Path,
+        *,
+        frames_csv: str | Path | None = None,
+        camera: str = "camera",
+        topic_prefix: str = "/folder",
     ):
         super().__init__(path)
         self.camera = camera
@@ -535,7 +549,9 @@ class FolderLog(FolderLayoutLog):
         self.table = CsvTable(self._find_csv(frames_csv), required=("image",))
         self.time_column = next((c for c in TIME_COLUMNS if self.table.has(c)), None)
         if self.time_column is None:
-            raise InputError(self.table.path, f"header names no time column (one of {', '.join(TIME_COLUMNS)})", field="header")
+            raise InputError(
+                self.table.path, f"header names no time column (one of {', '.join(TIME_COLUMNS)})", field="header"
+            )
         self.has_gps = _all_or_none(self.table, GPS_COLUMNS, "GPS")
         self.has_pose = _all_or_none(self.table, POSE_COLUMNS, "pose")
         self._intrinsics_in_columns = _all_or_none(self.table, INTRINSICS_COLUMNS, "intrinsics")
@@ -620,7 +636,7 @@ class FolderLog(FolderLayoutLog):
         assert intr is not None
         return CameraInfo(self.camera, w, h, intr.K, intr.distortion_model, intr.D, stamp_ns)
 
-    def _gps(self, row: CsvRow, stamp_ns: int) -> Optional[GpsFix]:
+    def _gps(self, row: CsvRow, stamp_ns: int) -> GpsFix | None:
         if row.is_empty("lat") and row.is_empty("lon"):
             return None
         alt = row.number("alt") if self.table.has("alt") and not row.is_empty("alt") else float("nan")
@@ -632,7 +648,7 @@ class FolderLog(FolderLayoutLog):
             cov = np.eye(3) * sigma**2
         return GpsFix(stamp_ns, row.number("lat"), row.number("lon"), alt, GpsStatus.FIX, cov)
 
-    def _pose(self, row: CsvRow, stamp_ns: int) -> Optional[PoseSample]:
+    def _pose(self, row: CsvRow, stamp_ns: int) -> PoseSample | None:
         if all(row.is_empty(c) for c in POSE_COLUMNS):
             return None
         v = [row.number(c) for c in POSE_COLUMNS]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections import Counter, defaultdict
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import numpy as np
 
@@ -18,7 +18,7 @@ from mapkit.core.types import GpsFix, GpsStatus, StreamKind
 from mapkit.io import open_log
 
 
-def summarize(path: str | Path, format: Optional[str] = None, progress: bool = False) -> dict[str, Any]:
+def summarize(path: str | Path, format: str | None = None, progress: bool = False) -> dict[str, Any]:
     """A JSON-ready summary of a log: streams with counts, rates and spans; GPS distance and quality."""
     with open_log(path, format=format) as log:
         streams = log.streams()
@@ -98,7 +98,9 @@ def format_summary(summary: dict[str, Any]) -> str:
     """A fixed-width table for people."""
     lines = [f"{summary['log']}  ({summary['format']}, {summary['messages_read']} messages)"]
     if summary.get("truncated_at_byte") is not None:
-        lines.append(f"  ! log damaged near byte {summary['truncated_at_byte']}: the damaged part is skipped (the warnings say what)")
+        lines.append(
+            f"  ! log damaged near byte {summary['truncated_at_byte']}: the damaged part is skipped (the warnings say what)"
+        )
     header = f"  {'topic':<34} {'type':<30} {'count':>7} {'rate Hz':>8} {'span s':>9}"
     lines += [header, "  " + "-" * (len(header) - 2)]
     for s in summary["streams"]:
@@ -121,5 +123,5 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _bar(total: Optional[int], enabled: bool):
+def _bar(total: int | None, enabled: bool):
     return progress_bar(total, enabled, "scanning", "msg", leave=False)

@@ -37,19 +37,30 @@ from __future__ import annotations
 
 import calendar
 import warnings
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from functools import partial
 from pathlib import Path
-from typing import Callable, Iterator, Literal, Optional, Sequence
+from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import invert_pose, make_pose, matrix_to_quat_wxyz
-from mapkit.core.types import CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, Message, PoseSample, StreamKind
+from mapkit.core.types import (
+    CameraInfo,
+    FrameTransform,
+    GpsFix,
+    GpsStatus,
+    ImuSample,
+    LidarScan,
+    Message,
+    PoseSample,
+    StreamKind,
+)
 from mapkit.io.folder import (
     FolderLayoutLog,
     ImageLayout,
@@ -77,10 +88,7 @@ ODOMETRY_CAMERA_FOLDERS: dict[int, tuple[str, ...]] = {
 ODOMETRY_CALIB_ORDER = ("P0", "P1", "P2", "P3", "Tr")
 
 #: columns of a KITTI raw OXTS record (devkit readme, ``dataformat.txt``)
-OXTS_FIELDS = (
-    "lat lon alt roll pitch yaw vn ve vf vl vu ax ay az af al au wx wy wz wf wl wu "
-    "pos_accuracy vel_accuracy navstat numsats posmode velmode orimode"
-).split()
+OXTS_FIELDS = ["lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu", "ax", "ay", "az", "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu", "pos_accuracy", "vel_accuracy", "navstat", "numsats", "posmode", "velmode", "orimode"]
 _OXTS = {name: i for i, name in enumerate(OXTS_FIELDS)}
 
 #: IMU axes of an OXTS record: the vehicle body (rotates with roll and pitch) or the level frame
@@ -111,6 +119,7 @@ _LISTED = 5
 
 # --- shared parsing ------------------------------------------------------------------------------
 
+
 def _undecodable(path: Path) -> InputError:
     return undecodable(path, "KITTI writes ASCII")
 
@@ -140,7 +149,7 @@ class CalibFile:
     entries: dict[str, tuple[int, str]]  # name -> (line number, value text)
 
     @classmethod
-    def read(cls, path: Path, unlabelled: Sequence[str] = ()) -> "CalibFile":
+    def read(cls, path: Path, unlabelled: Sequence[str] = ()) -> CalibFile:
         """Lines without a ``name:`` take the names in ``unlabelled`` in order (odometry calib.txt
         files are sometimes stored without labels)."""
         entries: dict[str, tuple[int, str]] = {}
@@ -170,9 +179,13 @@ class CalibFile:
         try:
             values = np.array([float(p) for p in text.split()], dtype=np.float64)
         except ValueError:
-            raise InputError(self.path, f"line {lineno} ({name}): a value is not a number: {text[:80]!r}", field=f"line {lineno}") from None
+            raise InputError(
+                self.path, f"line {lineno} ({name}): a value is not a number: {text[:80]!r}", field=f"line {lineno}"
+            ) from None
         if len(values) != count:
-            raise InputError(self.path, f"line {lineno} ({name}) has {len(values)} numbers, expected {count}", field=f"line {lineno}")
+            raise InputError(
+                self.path, f"line {lineno} ({name}) has {len(values)} numbers, expected {count}", field=f"line {lineno}"
+            )
         if not np.all(np.isfinite(values)):
             raise InputError(self.path, f"line {lineno} ({name}) has a non-finite value", field=f"line {lineno}")
         return values
@@ -184,7 +197,7 @@ class CalibFile:
         lineno = self.entries[name][0]
         return InputError(self.path, f"line {lineno} ({name}) {what}", field=f"line {lineno}")
 
-    def rotation(self, name: str, R: Optional[np.ndarray] = None) -> np.ndarray:
+    def rotation(self, name: str, R: np.ndarray | None = None) -> np.ndarray:
         """The 3x3 rotation of entry ``name`` (or ``R``, read from it), checked to be one."""
         R = self.matrix(name, 3, 3) if R is None else R
         problem = rotation_problem(R)
@@ -209,8 +222,11 @@ class CalibFile:
         if not s[-1] > 1e-9 * s[0]:
             raise self._bad(name, "has a singular left 3x3 block: not a camera matrix")
         if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1], atol=1e-6)):
-            raise self._bad(name, f"is not a rectified camera matrix (fx {K[0, 0]:g}, fy {K[1, 1]:g}, last row {K[2].tolist()} "
-                                  "should be positive, positive, [0, 0, 1])")
+            raise self._bad(
+                name,
+                f"is not a rectified camera matrix (fx {K[0, 0]:g}, fy {K[1, 1]:g}, last row {K[2].tolist()} "
+                "should be positive, positive, [0, 0, 1])",
+            )
         return M
 
 
@@ -228,7 +244,7 @@ def screen_poses(stamps_ns: np.ndarray, poses: np.ndarray) -> list[str]:
     """Per pose, why it is physically impossible ("" when it is not): a rotation that is not one, or a
     move from the last accepted pose faster than ``MAX_SPEED_MPS``."""
     reasons: list[str] = []
-    last: Optional[tuple[int, np.ndarray]] = None
+    last: tuple[int, np.ndarray] | None = None
     for stamp, T in zip(stamps_ns.tolist(), poses):
         problem = rotation_problem(T[:3, :3])
         if not problem and last is not None:
@@ -252,8 +268,7 @@ def rejection_summary(path: Path, what: str, total: int, rejected: dict[str, str
     """One warning's text: how many of ``total`` were rejected, why, and the first few by name."""
     listed = "; ".join(f"{where}: {why}" for where, why in list(rejected.items())[:_LISTED])
     more = f"; and {len(rejected) - _LISTED} more" if len(rejected) > _LISTED else ""
-    return (f"{path}: {len(rejected)} of {total} {what} rejected as physically impossible "
-            f"and skipped: {listed}{more}")
+    return f"{path}: {len(rejected)} of {total} {what} rejected as physically impossible and skipped: {listed}{more}"
 
 
 def read_stamps(path: Path, parse: Callable[[str], int], what: str) -> np.ndarray:
@@ -281,7 +296,9 @@ def kitti_datetime_ns(text: str) -> int:
 
 def camera_0_from_rectified_cameras(projections: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
     """``camera_0_from_camera_i`` of rectified cameras from their 3x4 projection matrices."""
-    t = {i: np.linalg.solve(P[:, :3], P[:, 3]) for i, P in projections.items()}  # P[:, :3] checked invertible on reading
+    t = {
+        i: np.linalg.solve(P[:, :3], P[:, 3]) for i, P in projections.items()
+    }  # P[:, :3] checked invertible on reading
     t0 = t.get(0, np.zeros(3))
     return {i: make_pose(np.eye(3), t0 - ti) for i, ti in t.items()}
 
@@ -290,7 +307,9 @@ def read_velodyne_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(xyz (N, 3) float32, reflectance (N,)) of a KITTI scan; non-finite points are dropped."""
     raw = np.fromfile(path, dtype="<f4")
     if raw.size % 4:
-        raise InputError(path, f"{raw.size * 4} bytes is not a whole number of 16-byte points (x, y, z, reflectance as float32)")
+        raise InputError(
+            path, f"{raw.size * 4} bytes is not a whole number of 16-byte points (x, y, z, reflectance as float32)"
+        )
     points = raw.reshape(-1, 4)
     valid = np.isfinite(points).all(axis=1)
     if not valid.all():
@@ -316,6 +335,7 @@ def _require_same_count(path: Path, what: str, n: int, other: str, m: int) -> No
 
 
 # --- odometry -------------------------------------------------------------------------------------
+
 
 class KittiOdometry(FolderLayoutLog):
     """A KITTI odometry sequence folder: camera folders (``image_0/`` or ``image_l/``, ...), or
@@ -357,7 +377,9 @@ class KittiOdometry(FolderLayoutLog):
             self._frames_what = "scans in velodyne/"
         else:
             what = "and lidar=False" if not lidar and _holds_numbered(scan_dir, ".bin") else "or velodyne/*.bin"
-            raise InputError(self.path, f"no image_0/ or image_l/ folder {what}: nothing to read as a KITTI odometry sequence")
+            raise InputError(
+                self.path, f"no image_0/ or image_l/ folder {what}: nothing to read as a KITTI odometry sequence"
+            )
 
         self.calib = self._read_calib()
         self.projections = self._projections()
@@ -423,10 +445,12 @@ class KittiOdometry(FolderLayoutLog):
                 found[i] = folder
         if found and 0 not in found:
             names = ", ".join(f"{f.name}/" for f in found.values())
-            raise InputError(self.path, f"has {names} but no image_0/ or image_l/ folder: not a KITTI odometry sequence")
+            raise InputError(
+                self.path, f"has {names} but no image_0/ or image_l/ folder: not a KITTI odometry sequence"
+            )
         return found
 
-    def _read_calib(self) -> Optional[CalibFile]:
+    def _read_calib(self) -> CalibFile | None:
         path = self.calib_path
         if not path.is_file():
             if not self.image_dirs:
@@ -443,7 +467,9 @@ class KittiOdometry(FolderLayoutLog):
         for i, folder in self.image_dirs.items():
             assert self.calib is not None  # required with images
             if f"P{i}" not in self.calib:
-                raise InputError(self.calib.path, f"missing calibration: no P{i} for the images in {folder.name}/", field=f"P{i}")
+                raise InputError(
+                    self.calib.path, f"missing calibration: no P{i} for the images in {folder.name}/", field=f"P{i}"
+                )
             projections[i] = self.calib.camera_matrix(f"P{i}", 4)
         return projections
 
@@ -460,15 +486,18 @@ class KittiOdometry(FolderLayoutLog):
         _require_same_count(path, "times", len(stamps), self._frames_what, n)
         return stamps
 
-    def _read_poses(self, n: int) -> Optional[np.ndarray]:
+    def _read_poses(self, n: int) -> np.ndarray | None:
         path = self.path / "poses.txt"
         if not path.is_file():
             return None
         with decode_errors_named(path):
             poses = read_kitti_poses(path)
             # read_kitti_poses skips blank and comment lines: the line number of each pose, for messages
-            linenos = [k for k, line in enumerate(read_text(path).splitlines(), start=1)
-                       if line.strip() and not line.strip().startswith("#")]
+            linenos = [
+                k
+                for k, line in enumerate(read_text(path).splitlines(), start=1)
+                if line.strip() and not line.strip().startswith("#")
+            ]
         _require_same_count(path, "poses", len(poses), self._frames_what, n)
         reasons = screen_poses(self.stamps_ns, poses)
         self.pose_accepted = np.array([not r for r in reasons], dtype=bool)
@@ -493,6 +522,7 @@ class KittiOdometry(FolderLayoutLog):
 
 
 # --- raw ------------------------------------------------------------------------------------------
+
 
 class KittiRaw(FolderLayoutLog):
     """A KITTI raw drive folder (``2011_09_26_drive_0001_sync/``: image_0X/, oxts/, velodyne_points/).
@@ -535,7 +565,7 @@ class KittiRaw(FolderLayoutLog):
         lidar: bool = True,
         imu_axes: str = "body",
         oxts_origin: OxtsOrigin = "first_position",
-        rectified: Optional[bool] = None,
+        rectified: bool | None = None,
         topic_prefix: str = "/kitti",
     ):
         super().__init__(path)
@@ -548,13 +578,17 @@ class KittiRaw(FolderLayoutLog):
         self.rectified = (not self.path.name.endswith("_extract")) if rectified is None else rectified
         prefix = topic_prefix.rstrip("/")
 
-        cameras = {i: self.path / f"image_{i:02d}" for i in range(4) if (self.path / f"image_{i:02d}" / "data").is_dir()}
+        cameras = {
+            i: self.path / f"image_{i:02d}" for i in range(4) if (self.path / f"image_{i:02d}" / "data").is_dir()
+        }
         camera_files = {i: self._stamped_files(folder, ".png") for i, folder in cameras.items()}
         oxts = self._stamped_files(self.path / "oxts", ".txt") if (self.path / "oxts" / "data").is_dir() else None
         velodyne_dir = self.path / "velodyne_points"
         velodyne = self._stamped_files(velodyne_dir, ".bin") if lidar and (velodyne_dir / "data").is_dir() else None
         if not camera_files and oxts is None and velodyne is None:
-            raise InputError(self.path, "no image_0X/data, oxts/data or velodyne_points/data folder: not a KITTI raw drive")
+            raise InputError(
+                self.path, "no image_0X/data, oxts/data or velodyne_points/data folder: not a KITTI raw drive"
+            )
 
         stamp_arrays = [s for s, _ in camera_files.values()] + [f[0] for f in (oxts, velodyne) if f is not None]
         first = min((int(s[0]) for s in stamp_arrays if len(s)), default=0)
@@ -599,16 +633,20 @@ class KittiRaw(FolderLayoutLog):
         stamps_path = folder / "timestamps.txt"
         stamps = read_stamps(stamps_path, kitti_datetime_ns, "timestamps")
         paths = sorted(p for p in (folder / "data").iterdir() if p.suffix == suffix)
-        _require_same_count(stamps_path, "timestamps", len(stamps), f"{suffix} files in {folder.name}/data/", len(paths))
+        _require_same_count(
+            stamps_path, "timestamps", len(stamps), f"{suffix} files in {folder.name}/data/", len(paths)
+        )
         return stamps, paths
 
-    def _calib(self, name: str) -> Optional[CalibFile]:
+    def _calib(self, name: str) -> CalibFile | None:
         for folder in (self.path, self.path.parent):
             if (folder / name).is_file():
                 return CalibFile.read(folder / name)
         return None
 
-    def _camera_info(self, camera: str, i: int, layout: ImageLayout, cam_to_cam: CalibFile, stamp_ns: int) -> CameraInfo:
+    def _camera_info(
+        self, camera: str, i: int, layout: ImageLayout, cam_to_cam: CalibFile, stamp_ns: int
+    ) -> CameraInfo:
         if self.rectified:
             K = cam_to_cam.camera_matrix(f"P_rect_{i:02d}", 4)[:, :3]
             D = np.zeros(5)
@@ -617,7 +655,7 @@ class KittiRaw(FolderLayoutLog):
             D = cam_to_cam.numbers(f"D_{i:02d}", 5)
         return CameraInfo(camera, layout.width, layout.height, K, "plumb_bob", D, stamp_ns)
 
-    def _extrinsics(self, stamp_ns: int, cameras: list[int], cam_to_cam: Optional[CalibFile]) -> list[FrameTransform]:
+    def _extrinsics(self, stamp_ns: int, cameras: list[int], cam_to_cam: CalibFile | None) -> list[FrameTransform]:
         """The tree imu -> velodyne -> camera_0 -> camera_i, as far as the calibration files go."""
         out: list[FrameTransform] = []
         imu_to_velo = self._calib("calib_imu_to_velo.txt")
@@ -636,7 +674,9 @@ class KittiRaw(FolderLayoutLog):
             camera_0_from_camera_i = camera_0_from_rectified_cameras(projections)
         else:
             rect_0_from_camera_0 = np.eye(4)
-            camera_0_from_camera_i = {i: invert_pose(cam_to_cam.rigid(f"R_{i:02d}", f"T_{i:02d}")) for i in sorted({0, *cameras})}
+            camera_0_from_camera_i = {
+                i: invert_pose(cam_to_cam.rigid(f"R_{i:02d}", f"T_{i:02d}")) for i in sorted({0, *cameras})
+            }
         if velo_to_cam is not None:
             camera_0_from_velodyne = rect_0_from_camera_0 @ velo_to_cam.rigid("R", "T")
             out.append(FrameTransform(stamp_ns, "velodyne", "camera_0", invert_pose(camera_0_from_velodyne)))
@@ -657,7 +697,7 @@ class KittiRaw(FolderLayoutLog):
         def iterate(wanted: Wanted) -> Iterator[Message]:
             want_gps, want_imu, want_pose = wanted(gps_topic), wanted(imu_topic), wanted(pose_topic)
             scale, origin_from_mercator = 1.0, np.eye(4)
-            last: Optional[tuple[int, np.ndarray]] = None  # stamp and position of the last accepted record
+            last: tuple[int, np.ndarray] | None = None  # stamp and position of the last accepted record
             rejected: dict[str, str] = {}
             for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths)):
                 v = read_oxts_record(path)
@@ -669,7 +709,9 @@ class KittiRaw(FolderLayoutLog):
                     problem = "" if last is None else too_fast(*last, stamp, mercator[:3, 3])
                 if problem:
                     rejected[f"{path.name} line 1"] = problem
-                    for topic in (t for t, w in ((gps_topic, want_gps), (imu_topic, want_imu), (pose_topic, want_pose)) if w):
+                    for topic in (
+                        t for t, w in ((gps_topic, want_gps), (imu_topic, want_imu), (pose_topic, want_pose)) if w
+                    ):
                         self.skipped[(topic, "physically impossible OXTS record")] += 1
                     continue
                 if last is None:
@@ -680,15 +722,21 @@ class KittiRaw(FolderLayoutLog):
                     yield Message(pose_topic, StreamKind.POSE, i, pose)
                 if want_gps:
                     cov = np.eye(3) * v[_OXTS["pos_accuracy"]] ** 2
-                    fix = GpsFix(stamp, v[_OXTS["lat"]], v[_OXTS["lon"]], v[_OXTS["alt"]], GpsStatus.FIX, cov, frame_id="imu")
+                    fix = GpsFix(
+                        stamp, v[_OXTS["lat"]], v[_OXTS["lon"]], v[_OXTS["alt"]], GpsStatus.FIX, cov, frame_id="imu"
+                    )
                     yield Message(gps_topic, StreamKind.GPS, i, fix)
                 if want_imu:
                     # the level frame turns with heading only
                     roll, pitch = (0.0, 0.0) if level else (v[_OXTS["roll"]], v[_OXTS["pitch"]])
                     q_wxyz = matrix_to_quat_wxyz(enu_from_rpy(roll, pitch, v[_OXTS["yaw"]]))
-                    yield Message(imu_topic, StreamKind.IMU, i, ImuSample(stamp, imu_frame, v[rate_idx], v[accel_idx], q_wxyz))
+                    yield Message(
+                        imu_topic, StreamKind.IMU, i, ImuSample(stamp, imu_frame, v[rate_idx], v[accel_idx], q_wxyz)
+                    )
             if rejected:
-                warnings.warn(rejection_summary(paths[0].parent, "OXTS records", len(paths), rejected), InputWarning, stacklevel=2)
+                warnings.warn(
+                    rejection_summary(paths[0].parent, "OXTS records", len(paths), rejected), InputWarning, stacklevel=2
+                )
 
         n = len(paths)
         kinds = {gps_topic: StreamKind.GPS, imu_topic: StreamKind.IMU, pose_topic: StreamKind.POSE}
@@ -764,12 +812,18 @@ def read_oxts_record(path: Path) -> np.ndarray:
     lineno, line = lines[0]
     parts = line.split()
     if len(parts) != len(OXTS_FIELDS):
-        raise InputError(path, f"line {lineno} has {len(parts)} values, expected {len(OXTS_FIELDS)}", field=f"line {lineno}")
+        raise InputError(
+            path, f"line {lineno} has {len(parts)} values, expected {len(OXTS_FIELDS)}", field=f"line {lineno}"
+        )
     try:
         values = np.array([float(p) for p in parts])
     except ValueError:
-        raise InputError(path, f"line {lineno} has a value that is not a number: {line[:80]!r}", field=f"line {lineno}") from None
+        raise InputError(
+            path, f"line {lineno} has a value that is not a number: {line[:80]!r}", field=f"line {lineno}"
+        ) from None
     bad = np.nonzero(~np.isfinite(values))[0]
     if len(bad):
-        raise InputError(path, f"line {lineno}: {OXTS_FIELDS[bad[0]]} is not finite", field=f"line {lineno}, {OXTS_FIELDS[bad[0]]}")
+        raise InputError(
+            path, f"line {lineno}: {OXTS_FIELDS[bad[0]]} is not finite", field=f"line {lineno}, {OXTS_FIELDS[bad[0]]}"
+        )
     return values

@@ -24,10 +24,11 @@ import struct
 import warnings
 import zlib
 from collections import Counter
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path, PurePosixPath
-from typing import Any, Callable, Iterator, Optional
+from typing import Any
 
 import lz4.frame
 import yaml
@@ -122,7 +123,9 @@ def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
     if not rel:
         raise InputError(meta_path, "lists no storage files", field="relative_file_paths")
     if not isinstance(rel, list) or not all(isinstance(p, str) and p and "\0" not in p for p in rel):
-        raise InputError(meta_path, f"relative_file_paths is not a list of file names: {str(rel)[:80]}", field="relative_file_paths")
+        raise InputError(
+            meta_path, f"relative_file_paths is not a list of file names: {str(rel)[:80]}", field="relative_file_paths"
+        )
     storage = str(info.get("storage_identifier") or "").strip().lower()
     if not storage:  # old bags may leave it out: the file suffix tells
         suffixes = {PurePosixPath(str(p)).suffix for p in rel}
@@ -142,14 +145,19 @@ def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
             field="storage_identifier",
         )
     if str(info.get("compression_mode") or "").strip().lower() not in ("", "none"):
-        raise InputError(meta_path, f"compressed rosbag2 ({info.get('compression_mode')} mode, "
-                         f"{info.get('compression_format')!r}) cannot be read; decompress it with `ros2 bag convert`",
-                         field="compression_mode")
+        raise InputError(
+            meta_path,
+            f"compressed rosbag2 ({info.get('compression_mode')} mode, "
+            f"{info.get('compression_format')!r}) cannot be read; decompress it with `ros2 bag convert`",
+            field="compression_mode",
+        )
     # versions before 4 wrote paths relative to the bag's parent folder: the file name is what counts
     files = [folder / PurePosixPath(str(p).replace("\\", "/")).name for p in rel]
     missing = [f.name for f in files if not f.is_file()]
     if missing:
-        raise InputError(folder, f"storage files listed in {ROSBAG2_METADATA} are missing: {missing}", field="relative_file_paths")
+        raise InputError(
+            folder, f"storage files listed in {ROSBAG2_METADATA} are missing: {missing}", field="relative_file_paths"
+        )
     return files
 
 
@@ -166,15 +174,29 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")
 _FOOTER = struct.Struct("<BQQQI")
 _COMPRESSIONS = ("", "zstd", "lz4")
 _KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
-_SUMMARY_RECORDS = {Opcode.SCHEMA: Schema, Opcode.CHANNEL: Channel, Opcode.CHUNK_INDEX: ChunkIndex, Opcode.STATISTICS: Statistics}
+_SUMMARY_RECORDS = {
+    Opcode.SCHEMA: Schema,
+    Opcode.CHANNEL: Channel,
+    Opcode.CHUNK_INDEX: ChunkIndex,
+    Opcode.STATISTICS: Statistics,
+}
 #: what damaged bytes make the record parsers and decompressors raise
-_PARSE_ERRORS = (McapError, EOFError, ValueError, struct.error, OverflowError, MemoryError, RuntimeError, zstandard.ZstdError)
+_PARSE_ERRORS = (
+    McapError,
+    EOFError,
+    ValueError,
+    struct.error,
+    OverflowError,
+    MemoryError,
+    RuntimeError,
+    zstandard.ZstdError,
+)
 
 
 class _Damage(Exception):
     """A part of an MCAP file that cannot be read; ``offset`` is the file byte where it starts (None: nowhere in particular)."""
 
-    def __init__(self, offset: Optional[int], what: str):
+    def __init__(self, offset: int | None, what: str):
         super().__init__(what)
         self.offset = offset
         self.what = what
@@ -189,7 +211,7 @@ class _Segment:
     start_ns: int  # log time of its first message
     chunk: bool
     #: channels with messages in the chunk (from its chunk index), None where unknown
-    channel_ids: Optional[frozenset[int]] = None
+    channel_ids: frozenset[int] | None = None
 
 
 @dataclass(frozen=True)
@@ -217,7 +239,7 @@ def _records(buf, start: int, end: int, where: Callable[[int], int]) -> Iterator
             body = pos + _RECORD_HEAD.size
             if length > end - body:
                 raise _Damage(where(pos), f"a record claims {length} bytes, {end - body} are left")
-            with view[body:body + length] as record:
+            with view[body : body + length] as record:
                 yield op, record
             pos = body + length
     finally:
@@ -237,8 +259,13 @@ def _message(body: bytes | memoryview, offset: int) -> McapMessage:
     if len(body) < _MESSAGE_HEAD.size:
         raise _Damage(offset, f"a message record of {len(body)} bytes is shorter than its fixed fields")
     channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(body)
-    return McapMessage(channel_id=channel_id, log_time=log_time, data=bytes(body[_MESSAGE_HEAD.size:]), publish_time=publish_time,
-                       sequence=sequence)
+    return McapMessage(
+        channel_id=channel_id,
+        log_time=log_time,
+        data=bytes(body[_MESSAGE_HEAD.size :]),
+        publish_time=publish_time,
+        sequence=sequence,
+    )
 
 
 def _decompress(compression: str, data: bytes, size: int, offset: int) -> bytes:
@@ -285,12 +312,12 @@ class _McapFile:
             self._map = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
-        self.statistics: Optional[Statistics] = None
+        self.statistics: Statistics | None = None
         self.segments: list[_Segment] = []
         #: the summary was read and checked (its channels and counts are trusted)
         self.summary_ok = False
         #: why the summary was not used, when the file has one that is damaged
-        self.summary_problem: Optional[str] = None
+        self.summary_problem: str | None = None
         #: damage found while locating records (each costs the messages in it)
         self.damage: list[_Damage] = []
         # definitions from a damaged summary, used only for ids no chunk defines
@@ -315,7 +342,7 @@ class _McapFile:
         index points at a chunk record of the length it gives). A damaged summary still lends its schemas
         and channels to messages whose own definitions are lost with a damaged chunk."""
         footer_at = self.size - len(MCAP_MAGIC) - _FOOTER.size
-        if footer_at < len(MCAP_MAGIC) or self._map[self.size - len(MCAP_MAGIC):] != MCAP_MAGIC:
+        if footer_at < len(MCAP_MAGIC) or self._map[self.size - len(MCAP_MAGIC) :] != MCAP_MAGIC:
             self.damage.append(_Damage(self.size, "the file ends without a footer (truncated)"))
             return
         op, length, summary_start, _, crc = _FOOTER.unpack_from(self._map, footer_at)
@@ -345,11 +372,16 @@ class _McapFile:
         except _Damage as exc:
             problem = f"the summary is damaged ({exc.what})"
         segments = [
-            _Segment(ci.chunk_start_offset, ci.chunk_length - _RECORD_HEAD.size, ci.message_start_time, True,
-                     frozenset(ci.message_index_offsets) or None)
+            _Segment(
+                ci.chunk_start_offset,
+                ci.chunk_length - _RECORD_HEAD.size,
+                ci.message_start_time,
+                True,
+                frozenset(ci.message_index_offsets) or None,
+            )
             for ci in indexes
         ]
-        if problem is None and crc and zlib.crc32(self._map[summary_start:footer_at + _FOOTER.size - 4]) != crc:
+        if problem is None and crc and zlib.crc32(self._map[summary_start : footer_at + _FOOTER.size - 4]) != crc:
             problem = f"the summary section (bytes {summary_start} to {self.size}) fails its CRC"
         if problem is None and not crc:  # nothing vouches for the chunk index: check where it points
             try:
@@ -364,7 +396,7 @@ class _McapFile:
         self.schemas, self.channels, self.statistics, self.segments = schemas, channels, statistics, segments
         self.summary_ok = True
 
-    def _chunk_at(self, offset: int, length: Optional[int] = None) -> _ChunkHead:
+    def _chunk_at(self, offset: int, length: int | None = None) -> _ChunkHead:
         """The fields of the chunk record at ``offset`` (checked for shape, not content); ``_Damage`` if none is there."""
         m = self._map
         if not len(MCAP_MAGIC) <= offset <= self.size - _RECORD_HEAD.size:
@@ -384,7 +416,7 @@ class _McapFile:
         (name_len,) = struct.unpack_from("<I", m, body + _CHUNK_HEAD.size)
         if name_len > max(map(len, _COMPRESSIONS)) or body_len < fixed + name_len + 8:
             raise _Damage(offset, "the chunk's compression field is damaged")
-        name = bytes(m[body + fixed:body + fixed + name_len])
+        name = bytes(m[body + fixed : body + fixed + name_len])
         (data_len,) = struct.unpack_from("<Q", m, body + fixed + name_len)
         if fixed + name_len + 8 + data_len != body_len:
             raise _Damage(offset, f"the chunk's fields do not add up to its length of {body_len} bytes")
@@ -392,7 +424,7 @@ class _McapFile:
             raise _Damage(offset, f"unknown chunk compression {name!r}")
         return _ChunkHead(start, size, crc, name.decode(), body + fixed + name_len + 8, data_len)
 
-    def _next_chunk(self, start: int) -> Optional[int]:
+    def _next_chunk(self, start: int) -> int | None:
         """The offset of the next well-formed chunk record at or after ``start``, if any."""
         pos = start
         while True:
@@ -422,7 +454,7 @@ class _McapFile:
                     head = self._chunk_at(pos)
                     self.segments.append(_Segment(pos, length, head.start_ns, True))
                 elif op == Opcode.MESSAGE:
-                    log_time = _message(bytes(self._map[body:body + min(length, _MESSAGE_HEAD.size)]), pos).log_time
+                    log_time = _message(bytes(self._map[body : body + min(length, _MESSAGE_HEAD.size)]), pos).log_time
                     self.segments.append(_Segment(pos, length, log_time, False))
                 elif op in (Opcode.SCHEMA, Opcode.CHANNEL):
                     self._define(_parse(op, bytes(self._map[body:end]), pos))
@@ -446,16 +478,19 @@ class _McapFile:
             self.channels.setdefault(rec.id, rec)
 
     # --- reading ----------------------------------------------------------------------------------
-    def _load(self, seg: _Segment) -> tuple[list[McapMessage], Optional[_Damage]]:
+    def _load(self, seg: _Segment) -> tuple[list[McapMessage], _Damage | None]:
         """The messages of one segment, defining the schemas and channels in it; on damage part-way, the
         messages before it and the damage."""
         body = seg.offset + _RECORD_HEAD.size
         if not seg.chunk:
-            return [_message(bytes(self._map[body:body + seg.length]), seg.offset)], None
+            return [_message(bytes(self._map[body : body + seg.length]), seg.offset)], None
         head = self._chunk_at(seg.offset, seg.length)
         if head.uncompressed_size > MAX_CHUNK_BYTES:
-            raise _Damage(seg.offset, f"the chunk claims {head.uncompressed_size} bytes uncompressed (more than {MAX_CHUNK_BYTES})")
-        compressed = bytes(self._map[head.data_at:head.data_at + head.data_len])
+            raise _Damage(
+                seg.offset,
+                f"the chunk claims {head.uncompressed_size} bytes uncompressed (more than {MAX_CHUNK_BYTES})",
+            )
+        compressed = bytes(self._map[head.data_at : head.data_at + head.data_len])
         self._release(head.data_at, head.data_at + head.data_len)
         try:
             data = _decompress(head.compression, compressed, head.uncompressed_size, seg.offset)
@@ -483,7 +518,9 @@ class _McapFile:
             if end > first:
                 self._map.madvise(mmap.MADV_DONTNEED, first, end - first)
 
-    def raw(self, topics: Optional[set[str]], on_damage: Callable[[_Damage], None]) -> Iterator[tuple[Any, Any, McapMessage]]:
+    def raw(
+        self, topics: set[str] | None, on_damage: Callable[[_Damage], None]
+    ) -> Iterator[tuple[Any, Any, McapMessage]]:
         """(schema, channel, message) in log-time order; damaged segments go to ``on_damage`` and are skipped."""
         segments = sorted(self.segments, key=lambda s: (s.start_ns, s.offset))
         wanted_ids = None
@@ -516,7 +553,11 @@ class _McapFile:
                 unknown[message.channel_id] += 1
                 continue
             if topics is None or channel.topic in topics:
-                yield self.schemas.get(channel.schema_id) or self._fallback_schemas.get(channel.schema_id), channel, message
+                yield (
+                    self.schemas.get(channel.schema_id) or self._fallback_schemas.get(channel.schema_id),
+                    channel,
+                    message,
+                )
         for cid, n in unknown.items():
             on_damage(_Damage(None, f"{n} messages of channel {cid} skipped: its channel record is lost"))
 
@@ -532,7 +573,7 @@ class _McapFile:
             counts.update(m.channel_id for m in messages)
         return counts
 
-    def channel_list(self) -> list[tuple[str, str, Optional[int]]]:
+    def channel_list(self) -> list[tuple[str, str, int | None]]:
         """(topic, schema name, count) of every channel."""
         if self.summary_ok and self.channels:
             counts = self.statistics.channel_message_counts if self.statistics else {}
@@ -541,7 +582,10 @@ class _McapFile:
             counts = self.count_messages()
             lent = {cid: c for cid, c in self._fallback_channels.items() if counts.get(cid)}
             channels, schemas = {**lent, **self.channels}, {**self._fallback_schemas, **self.schemas}
-        return [(c.topic, schemas[c.schema_id].name if c.schema_id in schemas else "", counts.get(cid)) for cid, c in channels.items()]
+        return [
+            (c.topic, schemas[c.schema_id].name if c.schema_id in schemas else "", counts.get(cid))
+            for cid, c in channels.items()
+        ]
 
 
 class McapLog(DriveLog):
@@ -566,8 +610,12 @@ class McapLog(DriveLog):
             if not is_mcap(f):
                 if not _mcap_with_damaged_magic(f):
                     raise InputError(f, "not an MCAP file (bad magic bytes)")
-                warnings.warn(f"{f}: the MCAP magic bytes at its start are damaged; read as MCAP all the same (its header "
-                              "record or closing magic says it is one)", InputWarning, stacklevel=2)
+                warnings.warn(
+                    f"{f}: the MCAP magic bytes at its start are damaged; read as MCAP all the same (its header "
+                    "record or closing magic says it is one)",
+                    InputWarning,
+                    stacklevel=2,
+                )
         #: the MCAP files read, in order (one for a bare ``.mcap``)
         self.files: list[Path] = files
         self._parts: list[_McapFile] = []
@@ -577,13 +625,13 @@ class McapLog(DriveLog):
         except (OSError, ValueError) as exc:
             self.close()
             raise InputError(f, f"could not be opened ({exc})") from None
-        self._streams: Optional[list[StreamInfo]] = None
+        self._streams: list[StreamInfo] | None = None
         #: byte offset of the first damage met (in ``truncated_file``, the earliest there), else None; reading goes on after it
-        self.truncated_at: Optional[int] = None
-        self.truncated_file: Optional[Path] = None
+        self.truncated_at: int | None = None
+        self.truncated_file: Path | None = None
         #: (file, byte offset or None, what) of every damaged part met, once each
-        self.damage: list[tuple[Path, Optional[int], str]] = []
-        self._reported: set[tuple[Path, Optional[int], str]] = set()
+        self.damage: list[tuple[Path, int | None, str]] = []
+        self._reported: set[tuple[Path, int | None, str]] = set()
 
     def close(self) -> None:
         for part in self._parts:
@@ -602,7 +650,7 @@ class McapLog(DriveLog):
         if self._streams is not None:
             return self._streams
         types: dict[str, str] = {}
-        counts: dict[str, Optional[int]] = {}
+        counts: dict[str, int | None] = {}
         for part in self._parts:
             for topic, t, n in part.channel_list():
                 types.setdefault(topic, t)
@@ -611,13 +659,15 @@ class McapLog(DriveLog):
                 else:
                     counts[topic] = (counts.get(topic) or 0) + n
         self._streams = [
-            StreamInfo(topic, ros2.KIND_OF_MSGTYPE.get(ros2.short_type(t), StreamKind.OTHER), ros2.short_type(t), counts[topic])
+            StreamInfo(
+                topic, ros2.KIND_OF_MSGTYPE.get(ros2.short_type(t), StreamKind.OTHER), ros2.short_type(t), counts[topic]
+            )
             for topic, t in sorted(types.items())
         ]
         return self._streams
 
     # --- raw iteration ----------------------------------------------------------------------------
-    def _raw(self, topics: Optional[set[str]]) -> Iterator[tuple[_McapFile, Any, Any, Any]]:
+    def _raw(self, topics: set[str] | None) -> Iterator[tuple[_McapFile, Any, Any, Any]]:
         """(file, schema, channel, message) of every message, file after file."""
         for part in self._parts:
             if part.summary_problem is not None:
@@ -633,10 +683,14 @@ class McapLog(DriveLog):
             return
         if self.truncated_at is None or (part.path == self.truncated_file and damage.offset < self.truncated_at):
             self.truncated_at, self.truncated_file = damage.offset, part.path
-        self._warn_once(part, damage.offset, f"log is truncated or corrupt near byte {damage.offset} of {part.size} ({damage.what}); "
-                                             "the messages there are skipped, intact chunks after it are read")
+        self._warn_once(
+            part,
+            damage.offset,
+            f"log is truncated or corrupt near byte {damage.offset} of {part.size} ({damage.what}); "
+            "the messages there are skipped, intact chunks after it are read",
+        )
 
-    def _warn_once(self, part: _McapFile, offset: Optional[int], what: str) -> None:
+    def _warn_once(self, part: _McapFile, offset: int | None, what: str) -> None:
         key = (part.path, offset, what)
         if key in self._reported:
             return
@@ -644,18 +698,19 @@ class McapLog(DriveLog):
         self.damage.append(key)
         warnings.warn(f"{part.path}: {what}", InputWarning, stacklevel=4)
 
-    def stamps(self, topics: Optional[set[str]] = None) -> Iterator[tuple[str, int]]:
+    def stamps(self, topics: set[str] | None = None) -> Iterator[tuple[str, int]]:
         """(topic, header stamp in ns) of every message, without decoding payloads."""
         for _, schema, channel, message in self._raw(topics):
             header_first = (
-                schema is not None and channel.message_encoding == "cdr"
+                schema is not None
+                and channel.message_encoding == "cdr"
                 and ros2.short_type(schema.name) in ros2.HEADER_FIRST
             )
             stamp = ros2.header_stamp_from_cdr(message.data) if header_first else None
             yield channel.topic, message.log_time if stamp is None else stamp
 
     # --- decoded iteration ------------------------------------------------------------------------
-    def _iter_messages(self, topics: Optional[set[str]]) -> Iterator[Message]:
+    def _iter_messages(self, topics: set[str] | None) -> Iterator[Message]:
         kinds = {s.topic: s.kind for s in self.streams()}
         index: Counter[str] = Counter()
         for part, schema, channel, message in self._raw(topics):
@@ -666,6 +721,7 @@ class McapLog(DriveLog):
             if kind == StreamKind.OTHER or schema is None:
                 continue
             msgtype = ros2.short_type(schema.name)
+
             def decode() -> list:
                 decoder = part.decoders.decoder_for(channel.message_encoding, schema)
                 if decoder is None:
@@ -694,10 +750,15 @@ def offered_qos(topic: str) -> dict:
     so that a player re-publishes it to late subscribers."""
     static = topic.rstrip("/").endswith("tf_static")
     return {
-        "history": "keep_last", "depth": 1 if static else 10, "reliability": "reliable",
+        "history": "keep_last",
+        "depth": 1 if static else 10,
+        "reliability": "reliable",
         "durability": "transient_local" if static else "volatile",
-        "deadline": dict(_QOS_INFINITE), "lifespan": dict(_QOS_INFINITE), "liveliness": "automatic",
-        "liveliness_lease_duration": dict(_QOS_INFINITE), "avoid_ros_namespace_conventions": False,
+        "deadline": dict(_QOS_INFINITE),
+        "lifespan": dict(_QOS_INFINITE),
+        "liveliness": "automatic",
+        "liveliness_lease_duration": dict(_QOS_INFINITE),
+        "avoid_ros_namespace_conventions": False,
     }
 
 
@@ -743,8 +804,8 @@ class McapWriter:
         #: topic -> messages written
         self.topic_counts: Counter[str] = Counter()
         #: smallest and largest log time written (ns), None before the first message
-        self.first_log_ns: Optional[int] = None
-        self.last_log_ns: Optional[int] = None
+        self.first_log_ns: int | None = None
+        self.last_log_ns: int | None = None
 
     def _schema(self, msgtype: str):
         if msgtype not in self._schemas:
@@ -757,17 +818,23 @@ class McapWriter:
         if inner is None or not isinstance(ids, dict) or topic in ids:
             return  # another mcap_ros2 version: its own registration, without QoS, still makes a valid log
         qos = yaml.safe_dump([offered_qos(topic)], sort_keys=False).strip()
-        ids[topic] = inner.register_channel(topic=topic, message_encoding="cdr", schema_id=schema.id,
-                                            metadata={"offered_qos_profiles": qos})
+        ids[topic] = inner.register_channel(
+            topic=topic, message_encoding="cdr", schema_id=schema.id, metadata={"offered_qos_profiles": qos}
+        )
 
-    def _put(self, topic: str, msgtype: str, payload: dict, stamp_ns: int, log_time_ns: Optional[int]) -> None:
+    def _put(self, topic: str, msgtype: str, payload: dict, stamp_ns: int, log_time_ns: int | None) -> None:
         log_time = int(stamp_ns if log_time_ns is None else log_time_ns)
         schema = self._schema(msgtype)
         if topic not in self.topic_types:
             self._register_channel(topic, schema)
             self.topic_types[topic] = schema.name
         self._writer.write_message(
-            topic, schema, payload, log_time=log_time, publish_time=log_time, sequence=self._sequence[topic],
+            topic,
+            schema,
+            payload,
+            log_time=log_time,
+            publish_time=log_time,
+            sequence=self._sequence[topic],
         )
         self._sequence[topic] += 1
         self.topic_counts[topic] += 1
@@ -780,8 +847,8 @@ class McapWriter:
         topic: str,
         record: Any,
         *,
-        log_time_ns: Optional[int] = None,
-        compress: Optional[str] = None,
+        log_time_ns: int | None = None,
+        compress: str | None = None,
         pose_msgtype: str = "nav_msgs/Odometry",
     ) -> None:
         """Write one record; its message type follows from the record type."""
@@ -804,7 +871,9 @@ class McapWriter:
             raise TypeError(f"cannot write {type(record).__name__} to MCAP")
         self._put(topic, msgtype, payload, record.stamp_ns, log_time_ns)
 
-    def write_transforms(self, topic: str, transforms: list[FrameTransform], *, log_time_ns: Optional[int] = None) -> None:
+    def write_transforms(
+        self, topic: str, transforms: list[FrameTransform], *, log_time_ns: int | None = None
+    ) -> None:
         """One ``tf2_msgs/TFMessage`` holding several transforms (``/tf_static`` for extrinsics)."""
         if not transforms:
             raise ValueError("write_transforms needs at least one transform")
@@ -833,7 +902,7 @@ class McapWriter:
             self._tmp.unlink(missing_ok=True)
             self._closed = True
 
-    def __enter__(self) -> "McapWriter":
+    def __enter__(self) -> McapWriter:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
@@ -854,8 +923,15 @@ class Rosbag2Writer(McapWriter):
     partial folder is removed if writing fails, or by the next writer of the same folder.
     """
 
-    def __init__(self, folder: str | Path, *, compression: str = "zstd", chunk_size: int = 4 << 20,
-                 ros_distro: str = ROSBAG2_ROS_DISTRO, custom_data: Optional[dict[str, str]] = None):
+    def __init__(
+        self,
+        folder: str | Path,
+        *,
+        compression: str = "zstd",
+        chunk_size: int = 4 << 20,
+        ros_distro: str = ROSBAG2_ROS_DISTRO,
+        custom_data: dict[str, str] | None = None,
+    ):
         self.path = Path(folder)
         if not self.path.name or self.path.name in (".", ".."):
             raise ValueError(f"a rosbag2 folder needs a name, not {str(folder)!r}")
@@ -875,7 +951,9 @@ class Rosbag2Writer(McapWriter):
         topics = [
             {
                 "topic_metadata": {
-                    "name": topic, "type": msgtype, "serialization_format": "cdr",
+                    "name": topic,
+                    "type": msgtype,
+                    "serialization_format": "cdr",
                     "offered_qos_profiles": [offered_qos(topic)],
                     "type_description_hash": "",  # RIHS01 hashes are not computed
                 },
@@ -894,12 +972,14 @@ class Rosbag2Writer(McapWriter):
                 "compression_format": "",
                 "compression_mode": "",
                 "relative_file_paths": [self.file_name],
-                "files": [{
-                    "path": self.file_name,
-                    "starting_time": {"nanoseconds_since_epoch": start},
-                    "duration": {"nanoseconds": duration},
-                    "message_count": int(self.count),
-                }],
+                "files": [
+                    {
+                        "path": self.file_name,
+                        "starting_time": {"nanoseconds_since_epoch": start},
+                        "duration": {"nanoseconds": duration},
+                        "message_count": int(self.count),
+                    }
+                ],
                 "custom_data": self.custom_data or None,
                 "ros_distro": self.ros_distro,
             }
@@ -909,7 +989,10 @@ class Rosbag2Writer(McapWriter):
         if self._closed:
             return self.path
         self._finish_file()
-        atomic_write_text(self._tmp_folder / ROSBAG2_METADATA, yaml.safe_dump(self.metadata(), sort_keys=False, default_flow_style=False))
+        atomic_write_text(
+            self._tmp_folder / ROSBAG2_METADATA,
+            yaml.safe_dump(self.metadata(), sort_keys=False, default_flow_style=False),
+        )
         _fsync_dir(self._tmp_folder)
         old = None
         if self.path.exists() or self.path.is_symlink():  # a folder cannot replace a non-empty one: swap
@@ -932,5 +1015,5 @@ class Rosbag2Writer(McapWriter):
             shutil.rmtree(self._tmp_folder, ignore_errors=True)
             self._closed = True
 
-    def __enter__(self) -> "Rosbag2Writer":
+    def __enter__(self) -> Rosbag2Writer:
         return self

@@ -51,11 +51,11 @@ import re
 import struct
 import warnings
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from fractions import Fraction
 from pathlib import Path
-from typing import Iterator, Optional
 
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
@@ -75,7 +75,15 @@ DEFAULT_FOCAL_FACTOR = 1.2  # COLMAP's prior focal length without EXIF: 1.2 * ma
 DEFAULT_UERE_M = 5.0  # metres of horizontal error per unit of GPSDOP
 NAME_ONLY_SPACING_NS = 1_000_000_000
 # what Pillow raises on a file it cannot open or a corrupt EXIF block
-_UNREADABLE = (OSError, UnidentifiedImageError, ValueError, SyntaxError, KeyError, struct.error, Image.DecompressionBombError)
+_UNREADABLE = (
+    OSError,
+    UnidentifiedImageError,
+    ValueError,
+    SyntaxError,
+    KeyError,
+    struct.error,
+    Image.DecompressionBombError,
+)
 
 # EXIF tag numbers (EXIF 2.32 / CIPA DC-008); Pillow >= 9.1 has no named constants for all of them
 TAG_ORIENTATION = 0x0112
@@ -101,7 +109,8 @@ _OFFSET = re.compile(r"^([+-])(\d{2}):(\d{2})$")
 
 # --- tag values --------------------------------------------------------------------------------------
 
-def _fraction(value) -> Optional[Fraction]:
+
+def _fraction(value) -> Fraction | None:
     """An EXIF number (Pillow's IFDRational, int, float or (num, den)) exactly, None if not a finite number."""
     try:
         if isinstance(value, tuple) and len(value) == 2:
@@ -123,7 +132,7 @@ def _text(value) -> str:
     return str(value).strip().strip("\x00").strip() if value is not None else ""
 
 
-def _degrees(value, ref, positive: str, negative: str) -> tuple[Optional[float], bool]:
+def _degrees(value, ref, positive: str, negative: str) -> tuple[float | None, bool]:
     """Signed degrees of a (deg, min, sec) tag and its reference letter; (None, _) if unusable,
     and whether the reference letter was missing (then the value is taken as ``positive``)."""
     parts = value if isinstance(value, (tuple, list)) else (value,)
@@ -139,7 +148,7 @@ def _degrees(value, ref, positive: str, negative: str) -> tuple[Optional[float],
     return float(-deg if letter == negative else deg), letter == ""
 
 
-def _first_byte(value) -> Optional[int]:
+def _first_byte(value) -> int | None:
     if isinstance(value, (bytes, bytearray)):
         return value[0] if value else None
     if isinstance(value, (tuple, list)):
@@ -150,7 +159,7 @@ def _first_byte(value) -> Optional[int]:
         return None
 
 
-def _exif_time_ns(exif: dict) -> tuple[Optional[int], bool]:
+def _exif_time_ns(exif: dict) -> tuple[int | None, bool]:
     """(UTC ns, True) from DateTimeOriginal with OffsetTimeOriginal; (clock ns read as UTC, False) without
     an offset; (None, False) when absent or unreadable (cameras with an unset clock write blanks or zeros)."""
     text = _text(exif.get(TAG_DATETIME_ORIGINAL))
@@ -169,7 +178,7 @@ def _exif_time_ns(exif: dict) -> tuple[Optional[int], bool]:
     return ns - offset_s * 1_000_000_000, True
 
 
-def _gps_time_ns(gps: dict) -> Optional[int]:
+def _gps_time_ns(gps: dict) -> int | None:
     """UTC ns from GPSDateStamp and GPSTimeStamp (hours, minutes, seconds as rationals)."""
     try:
         day = datetime.strptime(_text(gps.get(GPS_DATESTAMP)).replace("-", ":"), "%Y:%m:%d")
@@ -185,7 +194,7 @@ def _gps_time_ns(gps: dict) -> Optional[int]:
     return calendar.timegm(day.timetuple()) * 1_000_000_000 + round(seconds * 1_000_000_000)
 
 
-def _focal_px(exif: dict, width: int, height: int) -> Optional[tuple[float, float]]:
+def _focal_px(exif: dict, width: int, height: int) -> tuple[float, float] | None:
     """(fx, fy) in pixels of the stored (not yet rotated) image, None without the tags for it."""
     f35 = _fraction(exif.get(TAG_FOCAL_LENGTH_35MM))
     if f35 is not None and f35 > 0:
@@ -241,14 +250,14 @@ class _Tags:
     path: Path
     size: tuple[int, int]  # upright (width, height)
     mode: str
-    time_ns: Optional[int] = None
+    time_ns: int | None = None
     time_kind: str = "none"  # "utc" (with offset), "local" (no offset), "gps" (GPS date and time), "none"
-    latlon: Optional[tuple[float, float]] = None
+    latlon: tuple[float, float] | None = None
     gps_problem: str = ""  # why a photo with GPS tags has no fix
     ref_missing: bool = False
-    alt_m: Optional[float] = None
-    sigma_m: Optional[float] = None
-    focal_px: Optional[tuple[float, float]] = None  # upright (fx, fy)
+    alt_m: float | None = None
+    sigma_m: float | None = None
+    focal_px: tuple[float, float] | None = None  # upright (fx, fy)
 
 
 def _read_tags(path: Path, uere_m: float) -> _Tags:
@@ -305,10 +314,11 @@ class Photo:
     path: Path
     stamp_ns: int
     info: CameraInfo
-    fix: Optional[GpsFix]
+    fix: GpsFix | None
 
 
 # --- the reader ------------------------------------------------------------------------------------
+
 
 def _photo_files(image_dir: Path, suffixes: tuple[str, ...]) -> list[Path]:
     return sorted(p for p in image_dir.iterdir() if p.suffix.lower() in suffixes and p.is_file())
@@ -336,7 +346,9 @@ class PhotoFolder(FolderLayoutLog):
 
     format_name = "photos"
 
-    def __init__(self, path: str | Path, *, camera: str = "camera", topic_prefix: str = "/photos", uere_m: float = DEFAULT_UERE_M):
+    def __init__(
+        self, path: str | Path, *, camera: str = "camera", topic_prefix: str = "/photos", uere_m: float = DEFAULT_UERE_M
+    ):
         super().__init__(path)
         self.camera = camera
         self.image_dir = self.path / "images" if (self.path / "images").is_dir() else self.path
@@ -350,7 +362,10 @@ class PhotoFolder(FolderLayoutLog):
             except _UNREADABLE:
                 unreadable.append(p)
         if unreadable:
-            self._warn(f"skipped {len(unreadable)} of {len(files)} files that Pillow cannot read: {_names(unreadable)}", stacklevel=3)
+            self._warn(
+                f"skipped {len(unreadable)} of {len(files)} files that Pillow cannot read: {_names(unreadable)}",
+                stacklevel=3,
+            )
         if not tags:
             raise InputError(self.image_dir, "holds no photo Pillow can read")
         self.photos = self._photos(self._keep_one_size(self._order(tags)))
@@ -392,27 +407,35 @@ class PhotoFolder(FolderLayoutLog):
         n = len(tags)
         timeless = [t for t in tags if t.time_ns is None]
         if timeless:
-            self._warn(f"{len(timeless)} of {n} photos have no time (DateTimeOriginal or GPSDateStamp+GPSTimeStamp): "
-                       f"{_names([t.path for t in timeless])}; all photos are ordered by file name, 1 s apart")
+            self._warn(
+                f"{len(timeless)} of {n} photos have no time (DateTimeOriginal or GPSDateStamp+GPSTimeStamp): "
+                f"{_names([t.path for t in timeless])}; all photos are ordered by file name, 1 s apart"
+            )
             ordered = sorted(tags, key=lambda t: t.path.name)
             for i, t in enumerate(ordered):
                 t.time_ns = i * NAME_ONLY_SPACING_NS
             return ordered
         local = sum(t.time_kind == "local" for t in tags)
         if local:
-            self._warn(f"{local} of {n} photos have DateTimeOriginal without OffsetTimeOriginal: their stamps are the "
-                       "camera's local clock read as UTC")
+            self._warn(
+                f"{local} of {n} photos have DateTimeOriginal without OffsetTimeOriginal: their stamps are the "
+                "camera's local clock read as UTC"
+            )
         from_gps = sum(t.time_kind == "gps" for t in tags)
         if from_gps:
-            self._warn(f"{from_gps} of {n} photos have no DateTimeOriginal: their time is GPSDateStamp+GPSTimeStamp (UTC)")
+            self._warn(
+                f"{from_gps} of {n} photos have no DateTimeOriginal: their time is GPSDateStamp+GPSTimeStamp (UTC)"
+            )
         ordered = sorted(tags, key=lambda t: (t.time_ns, t.path.name))
         nudged = 0
         for prev, t in zip(ordered, ordered[1:]):
             if t.time_ns <= prev.time_ns:
                 t.time_ns, nudged = prev.time_ns + 1, nudged + 1
         if nudged:
-            self._warn(f"{nudged} of {n} photos have the same time as the one before: each is stamped 1 ns after it, "
-                       "in file name order")
+            self._warn(
+                f"{nudged} of {n} photos have the same time as the one before: each is stamped 1 ns after it, "
+                "in file name order"
+            )
         return ordered
 
     def _keep_one_size(self, tags: list[_Tags]) -> list[_Tags]:
@@ -422,7 +445,9 @@ class PhotoFolder(FolderLayoutLog):
         other = [t.path for t in tags if (t.size, t.mode) != keep]
         if other:
             (w, h), mode = keep
-            self._warn(f"skipped {len(other)} of {len(tags)} photos that are not {w}x{h} {mode} like the others: {_names(other)}")
+            self._warn(
+                f"skipped {len(other)} of {len(tags)} photos that are not {w}x{h} {mode} like the others: {_names(other)}"
+            )
         return [t for t in tags if (t.size, t.mode) == keep]
 
     def _photos(self, tags: list[_Tags]) -> list[Photo]:
@@ -431,32 +456,45 @@ class PhotoFolder(FolderLayoutLog):
         (w, h) = tags[0].size
         no_focal = sum(t.focal_px is None for t in tags)
         if no_focal:
-            self._warn(f"{no_focal} of {n} photos have no focal length (FocalLengthIn35mmFilm, or FocalLength with "
-                       f"FocalPlaneX/YResolution): fx = fy = {DEFAULT_FOCAL_FACTOR} * max(width, height) = "
-                       f"{DEFAULT_FOCAL_FACTOR * max(w, h):.1f} px assumed")
+            self._warn(
+                f"{no_focal} of {n} photos have no focal length (FocalLengthIn35mmFilm, or FocalLength with "
+                f"FocalPlaneX/YResolution): fx = fy = {DEFAULT_FOCAL_FACTOR} * max(width, height) = "
+                f"{DEFAULT_FOCAL_FACTOR * max(w, h):.1f} px assumed"
+            )
         focals = {round(t.focal_px[0], 1) for t in tags if t.focal_px is not None}
         if len(focals) > 1:
-            self._warn(f"the photos have {len(focals)} different focal lengths ({min(focals)} to {max(focals)} px): "
-                       "each photo's camera_info carries its own, but a single camera model is refined from them")
+            self._warn(
+                f"the photos have {len(focals)} different focal lengths ({min(focals)} to {max(focals)} px): "
+                "each photo's camera_info carries its own, but a single camera model is refined from them"
+            )
 
         geotagged = [t for t in tags if t.latlon is not None]
         if len(geotagged) < n:
             problems = Counter(t.gps_problem for t in tags if t.latlon is None)
             why = "; ".join(f"{k}: {c}" for k, c in problems.items() if k)
-            self._warn(f"{n - len(geotagged)} of {n} photos have no GPS fix" + (f" ({why})" if why else "")
-                       + ": their images are read, without a fix")
+            self._warn(
+                f"{n - len(geotagged)} of {n} photos have no GPS fix"
+                + (f" ({why})" if why else "")
+                + ": their images are read, without a fix"
+            )
         if any(t.ref_missing for t in geotagged):
-            self._warn(f"{sum(t.ref_missing for t in geotagged)} of {len(geotagged)} geotagged photos have no "
-                       "GPSLatitudeRef/GPSLongitudeRef: taken as north/east")
+            self._warn(
+                f"{sum(t.ref_missing for t in geotagged)} of {len(geotagged)} geotagged photos have no "
+                "GPSLatitudeRef/GPSLongitudeRef: taken as north/east"
+            )
         alts = [t.alt_m for t in geotagged if t.alt_m is not None]
         fill_alt = float(np.median(alts)) if alts else 0.0
         if len(alts) < len(geotagged):
-            self._warn(f"{len(geotagged) - len(alts)} of {len(geotagged)} geotagged photos have no GPSAltitude: "
-                       f"{fill_alt:.2f} m ({'the median of the others' if alts else 'no photo has one'}) is used")
+            self._warn(
+                f"{len(geotagged) - len(alts)} of {len(geotagged)} geotagged photos have no GPSAltitude: "
+                f"{fill_alt:.2f} m ({'the median of the others' if alts else 'no photo has one'}) is used"
+            )
         no_sigma = sum(t.sigma_m is None for t in geotagged)
         if no_sigma:
-            self._warn(f"{no_sigma} of {len(geotagged)} geotagged photos have no GPS accuracy (GPSHPositioningError "
-                       "or GPSDOP): their fixes carry no covariance")
+            self._warn(
+                f"{no_sigma} of {len(geotagged)} geotagged photos have no GPS accuracy (GPSHPositioningError "
+                "or GPSDOP): their fixes carry no covariance"
+            )
 
         photos = []
         for t in tags:
@@ -486,7 +524,9 @@ class PhotoFolder(FolderLayoutLog):
 
     def _iterate(self, wanted: Wanted) -> Iterator[Message]:
         t = self.topics
-        want_info, want_image, want_gps = (wanted(t[k]) for k in (StreamKind.CAMERA_INFO, StreamKind.IMAGE, StreamKind.GPS))
+        want_info, want_image, want_gps = (
+            wanted(t[k]) for k in (StreamKind.CAMERA_INFO, StreamKind.IMAGE, StreamKind.GPS)
+        )
         n_fix = 0
         for i, photo in enumerate(self.photos):
             if want_info:

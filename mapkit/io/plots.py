@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -47,7 +46,7 @@ def trajectory_over_gps(
     gps_enu: np.ndarray,
     inliers: np.ndarray,
     title: str,
-    truth_enu: Optional[np.ndarray] = None,
+    truth_enu: np.ndarray | None = None,
 ) -> Path:
     """The GPS-aligned trajectory over the fixes it was fitted to (used and rejected): ENU metres."""
     plt, fig, ax = _figure()
@@ -56,7 +55,14 @@ def trajectory_over_gps(
     ax.plot(traj_enu[:, 0], traj_enu[:, 1], "b-", lw=1.2, label="trajectory (aligned)")
     ax.scatter(gps_enu[inliers, 0], gps_enu[inliers, 1], s=6, c="g", label=f"GPS used ({int(inliers.sum())})")
     if (~inliers).any():
-        ax.scatter(gps_enu[~inliers, 0], gps_enu[~inliers, 1], s=18, c="r", marker="x", label=f"GPS rejected ({int((~inliers).sum())})")
+        ax.scatter(
+            gps_enu[~inliers, 0],
+            gps_enu[~inliers, 1],
+            s=18,
+            c="r",
+            marker="x",
+            label=f"GPS rejected ({int((~inliers).sum())})",
+        )
     _frame_equal(ax, np.vstack([traj_enu[:, :2], gps_enu[:, :2]]))
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
@@ -66,8 +72,15 @@ def trajectory_over_gps(
     return _save(plt, fig, path)
 
 
-def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray], title: str, max_points: int = 300_000,
-                 axes: tuple[str, str] = ("east", "north"), units: str = "m") -> Path:
+def map_top_view(
+    path: Path,
+    points: np.ndarray,
+    traj_enu: np.ndarray | None,
+    title: str,
+    max_points: int = 300_000,
+    axes: tuple[str, str] = ("east", "north"),
+    units: str = "m",
+) -> Path:
     """Map points seen from above, coloured by height, with the trajectory. ``axes`` names the
     horizontal axes (east/north once georeferenced) and ``units`` their unit ("m", or "arbitrary
     units" for a reconstruction that is not)."""
@@ -82,7 +95,11 @@ def map_top_view(path: Path, points: np.ndarray, traj_enu: Optional[np.ndarray],
     if traj_enu is not None and len(traj_enu):
         ax.plot(traj_enu[:, 0], traj_enu[:, 1], "r-", lw=0.8, label="trajectory")
         ax.legend(loc="best", fontsize=8)
-    extent = [a for a in (points[:, :2] if len(points) else None, None if traj_enu is None else traj_enu[:, :2]) if a is not None and len(a)]
+    extent = [
+        a
+        for a in (points[:, :2] if len(points) else None, None if traj_enu is None else traj_enu[:, :2])
+        if a is not None and len(a)
+    ]
     if extent:
         _frame_equal(ax, np.vstack(extent))
     ax.set_xlabel(f"{axes[0]} [{units}]")
@@ -137,7 +154,13 @@ def align_histograms(path: Path, pairs, lambda_icp_m: float, min_fitness: float)
     for ax, v, thr, label in ((a1, rmse, lambda_icp_m, "RMSE after ICP [m]"), (a2, fit, min_fitness, "fitness")):
         ok = np.isfinite(v)
         bins = np.linspace(0, max(float(np.nanmax(v[ok])) if ok.any() else 1.0, thr * 1.5), 40)
-        ax.hist([v[ok & acc], v[ok & ~acc]], bins=bins, stacked=True, color=["tab:green", "tab:red"], label=["accepted", "rejected"])
+        ax.hist(
+            [v[ok & acc], v[ok & ~acc]],
+            bins=bins,
+            stacked=True,
+            color=["tab:green", "tab:red"],
+            label=["accepted", "rejected"],
+        )
         ax.axvline(thr, color="k", ls="--", lw=1, label=f"threshold {thr:g}")
         ax.set_xlabel(label)
         ax.set_ylabel("pairs")
@@ -158,7 +181,9 @@ def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
     for split in ("train", "test"):
         t = dataset.triplets(split)
         if len(t):
-            rows.extend((split, r) for r in t[np.random.default_rng(seed).choice(len(t), min(n, len(t)), replace=False)])
+            rows.extend(
+                (split, r) for r in t[np.random.default_rng(seed).choice(len(t), min(n, len(t)), replace=False)]
+            )
     rows = rows[:n]
     fig, axes = plt.subplots(len(rows), 3, figsize=(7.5, 2.6 * len(rows)), dpi=100, squeeze=False)
     names = dataset.manifest["sessions"]
@@ -175,7 +200,9 @@ def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
     return _save(plt, fig, path)
 
 
-def localization_track(path: Path, truth_xyz: np.ndarray, retrieval_xyz: np.ndarray, filter_xyz: np.ndarray, title: str) -> Path:
+def localization_track(
+    path: Path, truth_xyz: np.ndarray, retrieval_xyz: np.ndarray, filter_xyz: np.ndarray, title: str
+) -> Path:
     """Estimated against true trajectory of one query sequence (MCVL's Fig. 5): retrieval alone
     as points, the particle filter as a line."""
     plt, fig, ax = _figure((8, 8))

@@ -46,11 +46,11 @@ from __future__ import annotations
 
 import re
 import warnings
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from itertools import islice
 from pathlib import Path
-from typing import Callable, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -146,7 +146,7 @@ def _stamp_ns(row: CsvRow, column: str) -> int:
     return row.stamp_ns(column, 1000)
 
 
-def _microseconds(text: str) -> Optional[int]:
+def _microseconds(text: str) -> int | None:
     """A RobotCar stamp (ASCII digits, microseconds) as int64 ns; None when ``text`` is not one."""
     if not (text.isascii() and text.isdigit()) or len(text) > 19:
         return None
@@ -154,7 +154,7 @@ def _microseconds(text: str) -> Optional[int]:
     return stamp if stamp <= MAX_STAMP_NS else None
 
 
-def _read_lidar(path: Path, layout: str) -> tuple[np.ndarray, Optional[np.ndarray]]:
+def _read_lidar(path: Path, layout: str) -> tuple[np.ndarray, np.ndarray | None]:
     """(xyz, reflectance) of one RobotCar scan file (SDK build_pointcloud.py and velodyne.py)."""
     if layout == "velodyne":
         raw = np.fromfile(path, dtype="<f4")
@@ -190,7 +190,9 @@ class RobotCar(FolderLayoutLog):
 
     format_name = "robotcar"
 
-    def __init__(self, path: str | Path, *, demosaic: bool = True, grid_convergence: bool = True, topic_prefix: str = "/robotcar"):
+    def __init__(
+        self, path: str | Path, *, demosaic: bool = True, grid_convergence: bool = True, topic_prefix: str = "/robotcar"
+    ):
         super().__init__(path)
         prefix = topic_prefix.rstrip("/")
         self.grid_convergence = grid_convergence
@@ -206,7 +208,8 @@ class RobotCar(FolderLayoutLog):
         self.vo_table = CsvTable(vo, VO_COLUMNS) if vo.is_file() else None
         if not self.cameras and self.gps_table is None and self.ins_table is None:
             raise InputError(
-                self.path, "no camera images (stereo/centre, mono_left, ...) and no gps/gps.csv or gps/ins.csv: nothing to read"
+                self.path,
+                "no camera images (stereo/centre, mono_left, ...) and no gps/gps.csv or gps/ins.csv: nothing to read",
             )
         if self.gps_table is not None:
             self._add_records(f"{prefix}/gps/fix", StreamKind.GPS, self._gps_fixes)
@@ -225,7 +228,9 @@ class RobotCar(FolderLayoutLog):
         return path.is_dir() and any((path / m).exists() for m in markers)
 
     # --- sensors stored as one file per stamp --------------------------------------------------------
-    def _stamped_files(self, topic: str, folder: Path, stamps_file: Path, suffix: str) -> Callable[[], Iterator[tuple[int, Path]]]:
+    def _stamped_files(
+        self, topic: str, folder: Path, stamps_file: Path, suffix: str
+    ) -> Callable[[], Iterator[tuple[int, Path]]]:
         """(stamp ns, path) of each file: from the timestamps file if there is one, else the folder."""
 
         def listed() -> Iterator[tuple[int, Path]]:
@@ -249,13 +254,17 @@ class RobotCar(FolderLayoutLog):
             stamps = {p: _microseconds(p.stem) for p in paths}
             for p, stamp in stamps.items():
                 if stamp is None:
-                    raise InputError(p, f"file name is not a timestamp in microseconds ({folder.name}/<timestamp_us>{suffix})")
+                    raise InputError(
+                        p, f"file name is not a timestamp in microseconds ({folder.name}/<timestamp_us>{suffix})"
+                    )
             for p in sorted(paths, key=stamps.__getitem__):
                 yield stamps[p], p
 
         return listed if stamps_file.is_file() else on_disk
 
-    def _add_robotcar_camera(self, prefix: str, name: str, folder: Path, stamps_file: Path, convert: Optional[ImageConvert]) -> bool:
+    def _add_robotcar_camera(
+        self, prefix: str, name: str, folder: Path, stamps_file: Path, convert: ImageConvert | None
+    ) -> bool:
         if not folder.is_dir():
             return False
         topic = f"{prefix}/{name}/image"
@@ -292,7 +301,9 @@ class RobotCar(FolderLayoutLog):
     def _gps_fixes(self) -> Iterator[GpsFix]:
         assert self.gps_table is not None
         for row in self.gps_table.rows():
-            sigmas_enu = np.array([row.number("longitude_sigma"), row.number("latitude_sigma"), row.number("altitude_sigma")])
+            sigmas_enu = np.array(
+                [row.number("longitude_sigma"), row.number("latitude_sigma"), row.number("altitude_sigma")]
+            )
             yield GpsFix(
                 _stamp_ns(row, "timestamp"),
                 row.number("latitude"),
@@ -310,7 +321,9 @@ class RobotCar(FolderLayoutLog):
         if row is None:
             raise InputError(self.ins_table.path, "holds no rows")
         hemisphere = 32600 if row.number("latitude") >= 0 else 32700
-        return UtmOrigin(hemisphere + _utm_zone(row), row.number("easting"), row.number("northing"), -row.number("down"))
+        return UtmOrigin(
+            hemisphere + _utm_zone(row), row.number("easting"), row.number("northing"), -row.number("down")
+        )
 
     def _ins_poses(self) -> Iterator[PoseSample]:
         assert self.ins_table is not None
@@ -320,7 +333,9 @@ class RobotCar(FolderLayoutLog):
             for row in chunk:
                 zone = _utm_zone(row)
                 if zone != origin.zone:
-                    raise row.error("utm_zone", f"zone {zone} differs from the first row's {origin.zone}; utm_local spans one zone")
+                    raise row.error(
+                        "utm_zone", f"zone {zone} differs from the first row's {origin.zone}; utm_local spans one zone"
+                    )
             columns = ("easting", "northing", "down", "roll", "pitch", "yaw", "latitude", "longitude")
             v = np.array([[row.number(c) for c in columns] for row in chunk])
             enu = v[:, :3] * np.array([1.0, 1.0, -1.0])
@@ -332,7 +347,7 @@ class RobotCar(FolderLayoutLog):
     def _vo_poses(self) -> Iterator[PoseSample]:
         assert self.vo_table is not None
         vo_origin_from_vehicle_frd = np.eye(4)
-        previous_stamp: Optional[int] = None
+        previous_stamp: int | None = None
         breaks: list[int] = []
         for chunk in _chunks(self.vo_table.rows()):
             v = np.array([[row.number(c) for c in VO_COLUMNS[2:]] for row in chunk])

@@ -11,7 +11,7 @@ names its fields alike except CameraInfo's ``D``/``K``, and its header's extra `
 from __future__ import annotations
 
 import struct
-from typing import Any, Optional
+from typing import Any
 
 import cv2
 import numpy as np
@@ -141,17 +141,21 @@ HEADER_FIRST = frozenset(t for t in KIND_OF_MSGTYPE if t != "tf2_msgs/TFMessage"
 
 # --- helpers --------------------------------------------------------------------------------------
 
+
 def _header(stamp_ns: int, frame_id: str) -> dict:
     if stamp_ns < 0:
         raise ValueError(f"negative timestamp {stamp_ns} cannot be written as builtin_interfaces/Time")
-    return {"stamp": {"sec": int(stamp_ns // 1_000_000_000), "nanosec": int(stamp_ns % 1_000_000_000)}, "frame_id": frame_id}
+    return {
+        "stamp": {"sec": int(stamp_ns // 1_000_000_000), "nanosec": int(stamp_ns % 1_000_000_000)},
+        "frame_id": frame_id,
+    }
 
 
 def stamp_ns_of(header: Any) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
-def header_stamp_from_cdr(data: bytes) -> Optional[int]:
+def header_stamp_from_cdr(data: bytes) -> int | None:
     """The ``header.stamp`` of a CDR message whose first field is a std_msgs/Header, undecoded."""
     if len(data) < 12:
         return None
@@ -199,7 +203,9 @@ _IMAGE_DTYPES = {
 }
 
 
-def image_to_msg(frame: CameraFrame, *, compress: Optional[str] = None, frame_id: Optional[str] = None) -> tuple[str, dict]:
+def image_to_msg(
+    frame: CameraFrame, *, compress: str | None = None, frame_id: str | None = None
+) -> tuple[str, dict]:
     """(msgtype, message dict) of a frame: raw ``Image`` or, with ``compress``, ``CompressedImage``."""
     img = np.ascontiguousarray(frame.image)
     header = _header(frame.stamp_ns, frame_id or frame.camera)
@@ -227,7 +233,7 @@ def image_to_msg(frame: CameraFrame, *, compress: Optional[str] = None, frame_id
     }
 
 
-def image_from_msg(msg: Any, msgtype: str, source: str, camera: Optional[str] = None) -> CameraFrame:
+def image_from_msg(msg: Any, msgtype: str, source: str, camera: str | None = None) -> CameraFrame:
     stamp = stamp_ns_of(msg.header)
     cam = camera or msg.header.frame_id or source.split("#")[0]
     if msgtype == "sensor_msgs/CompressedImage":
@@ -251,15 +257,19 @@ def image_from_msg(msg: Any, msgtype: str, source: str, camera: Optional[str] = 
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     itemsize = dt.itemsize * channels
     if len(msg.data) < step * h or step < w * itemsize:
-        raise InputError(None, f"image {source}: {len(msg.data)} bytes for {h}x{w} {enc} with step {step}", field="data")
+        raise InputError(
+            None, f"image {source}: {len(msg.data)} bytes for {h}x{w} {enc} with step {step}", field="data"
+        )
     rows = np.frombuffer(msg.data, np.uint8, count=step * h).reshape(h, step)[:, : w * itemsize]
     img = np.ascontiguousarray(rows).view(dt).reshape((h, w) if channels == 1 else (h, w, channels))
     if dt.byteorder == ">":
         img = img.astype(dt.newbyteorder("="))
-    return CameraFrame(stamp, cam, img, encoding="mono8" if enc == "8UC1" else ("mono16" if enc == "16UC1" else enc), source=source)
+    return CameraFrame(
+        stamp, cam, img, encoding="mono8" if enc == "8UC1" else ("mono16" if enc == "16UC1" else enc), source=source
+    )
 
 
-def camera_info_to_msg(info: CameraInfo, frame_id: Optional[str] = None) -> dict:
+def camera_info_to_msg(info: CameraInfo, frame_id: str | None = None) -> dict:
     K = np.asarray(info.K, np.float64)
     P = np.zeros((3, 4))
     P[:3, :3] = K
@@ -297,6 +307,7 @@ def camera_info_from_msg(msg: Any, source: str) -> CameraInfo:
 
 
 # --- GPS ------------------------------------------------------------------------------------------
+
 
 def gps_to_msg(fix: GpsFix) -> dict:
     if fix.covariance_enu_m2 is None:
@@ -358,7 +369,12 @@ def lidar_to_msg(scan: LidarScan) -> dict:
     if scan.ring is not None:
         arr["ring"] = scan.ring
     fields = [
-        {"name": name, "offset": int(dt.fields[name][1]), "datatype": _DTYPE_POINTFIELD[np.dtype(t).str[1:]], "count": 1}
+        {
+            "name": name,
+            "offset": int(dt.fields[name][1]),
+            "datatype": _DTYPE_POINTFIELD[np.dtype(t).str[1:]],
+            "count": 1,
+        }
         for name, t in cols
     ]
     return {
@@ -386,7 +402,9 @@ def lidar_from_msg(msg: Any, source: str) -> LidarScan:
     formats, offsets, fnames = [], [], []
     for f in msg.fields:
         if f.datatype not in _POINTFIELD_DTYPES:
-            raise InputError(None, f"point cloud {source}: field {f.name!r} has unknown datatype {f.datatype}", field="fields")
+            raise InputError(
+                None, f"point cloud {source}: field {f.name!r} has unknown datatype {f.datatype}", field="fields"
+            )
         code = order + _POINTFIELD_DTYPES[f.datatype]
         formats.append(code if f.count <= 1 else (code, (int(f.count),)))
         offsets.append(int(f.offset))
@@ -394,7 +412,9 @@ def lidar_from_msg(msg: Any, source: str) -> LidarScan:
     dt = np.dtype({"names": fnames, "formats": formats, "offsets": offsets, "itemsize": int(msg.point_step)})
     need = n * int(msg.point_step)
     if len(msg.data) < need:
-        raise InputError(None, f"point cloud {source}: {len(msg.data)} bytes for {n} points of {msg.point_step}", field="data")
+        raise InputError(
+            None, f"point cloud {source}: {len(msg.data)} bytes for {n} points of {msg.point_step}", field="data"
+        )
     if int(msg.height) > 1 and int(msg.row_step) != int(msg.width) * int(msg.point_step):
         rows = np.frombuffer(msg.data, np.uint8, count=int(msg.row_step) * int(msg.height)).reshape(int(msg.height), -1)
         buf = np.ascontiguousarray(rows[:, : int(msg.width) * int(msg.point_step)]).tobytes()
@@ -426,7 +446,9 @@ def _xyz_of(arr: np.ndarray, dt: np.dtype, buf, n: int) -> np.ndarray:
     (tx, ox), (ty, oy), (tz, oz) = (dt.fields[c][:2] for c in "xyz")
     if tx == ty == tz and tx.shape == () and oy == ox + tx.itemsize and oz == oy + tx.itemsize:
         # an opaque 3*itemsize block per point copies 2x faster than numpy's strided (N, 3) loop
-        block = np.dtype({"names": ["xyz"], "formats": [f"V{3 * tx.itemsize}"], "offsets": [ox], "itemsize": dt.itemsize})
+        block = np.dtype(
+            {"names": ["xyz"], "formats": [f"V{3 * tx.itemsize}"], "offsets": [ox], "itemsize": dt.itemsize}
+        )
         xyz = np.frombuffer(buf, dtype=block, count=n)["xyz"].copy().view(tx).reshape(n, 3)
         return xyz.astype(np.float32, copy=False)
     return np.stack([arr["x"], arr["y"], arr["z"]], axis=-1).astype(np.float32, copy=False)
@@ -446,6 +468,7 @@ def _relative_time_s(t: np.ndarray, name: str, stamp_ns: int) -> np.ndarray:
 
 
 # --- IMU, poses, transforms -----------------------------------------------------------------------
+
 
 def imu_to_msg(s: ImuSample) -> dict:
     unknown = s.orientation_quat_wxyz is None
@@ -488,8 +511,12 @@ def pose_from_msg(msg: Any, msgtype: str, topic: str, default_child: str = "base
     if msgtype == "nav_msgs/Odometry":
         cov = np.asarray(msg.pose.covariance, np.float64).reshape(6, 6)
         return PoseSample(
-            stamp_ns_of(msg.header), msg.header.frame_id, msg.child_frame_id or default_child,
-            _pose_of(msg.pose.pose), covariance=None if not cov.any() else cov, source=topic,
+            stamp_ns_of(msg.header),
+            msg.header.frame_id,
+            msg.child_frame_id or default_child,
+            _pose_of(msg.pose.pose),
+            covariance=None if not cov.any() else cov,
+            source=topic,
         )
     return PoseSample(stamp_ns_of(msg.header), msg.header.frame_id, default_child, _pose_of(msg.pose), source=topic)
 

@@ -17,8 +17,9 @@ import sqlite3
 import struct
 import warnings
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator, Optional
+from typing import Any
 
 import apsw
 from rosbags.highlevel import AnyReader, AnyReaderError
@@ -38,8 +39,22 @@ ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 #: ROS 1 types read as their ROS 2 twin (same fields): tf's message before tf2
 ALIASES = {"tf/tfMessage": "tf2_msgs/TFMessage"}
 # what rosbags (and the storage libraries under it) raise on a bag it cannot read
-_READ_ERRORS = (AnyReaderError, Rosbag1Error, Rosbag2Error, TypesysError, SerdeError, apsw.Error, sqlite3.Error,
-                OSError, EOFError, ValueError, struct.error, KeyError, IndexError, AssertionError)
+_READ_ERRORS = (
+    AnyReaderError,
+    Rosbag1Error,
+    Rosbag2Error,
+    TypesysError,
+    SerdeError,
+    apsw.Error,
+    sqlite3.Error,
+    OSError,
+    EOFError,
+    ValueError,
+    struct.error,
+    KeyError,
+    IndexError,
+    AssertionError,
+)
 
 
 def is_rosbag1(path: str | Path) -> bool:
@@ -50,13 +65,13 @@ def is_rosbag1(path: str | Path) -> bool:
         return False
 
 
-def msgtype_of(name: Optional[str]) -> str:
+def msgtype_of(name: str | None) -> str:
     """``pkg/msg/Type`` as rosbags names it -> the ``pkg/Type`` of ``ros2.KIND_OF_MSGTYPE``."""
     short = ros2.short_type(name or "")
     return ALIASES.get(short, short)
 
 
-def header_stamp_from_ros1(data: bytes | memoryview) -> Optional[int]:
+def header_stamp_from_ros1(data: bytes | memoryview) -> int | None:
     """The ``header.stamp`` of a ROS 1 message whose first field is a std_msgs/Header, undecoded:
     little-endian uint32 seq, then uint32 sec and nsec."""
     if len(data) < 12:
@@ -89,7 +104,7 @@ class RosbagLog(DriveLog):
         #: True for a ROS 1 bag, False for a rosbag2 folder
         self.is_ros1 = default == Stores.ROS1_NOETIC
         standard = get_typestore(default)
-        self._reader: Optional[AnyReader] = None
+        self._reader: AnyReader | None = None
         try:
             self._reader = AnyReader([self.path], default_typestore=standard)
             self._reader.open()
@@ -102,14 +117,18 @@ class RosbagLog(DriveLog):
 
     def _error(self, exc: BaseException) -> InputError:
         what = "ROS 1 bag" if self.is_ros1 else "rosbag2 folder"
-        return InputError(self.path, f"could not be read as a {what} (truncated or corrupt?): {type(exc).__name__}: {exc}")
+        return InputError(
+            self.path, f"could not be read as a {what} (truncated or corrupt?): {type(exc).__name__}: {exc}"
+        )
 
     def _top_up_types(self, default: Any) -> None:
         """Standard types the bag does not define itself (a rosbag2 bag may store no definitions)."""
         have = self._reader.typestore.fielddefs
         if all(c.msgtype in have for c in self._reader.connections):
             return
-        self._reader.typestore.register({name: fields for name, fields in default.fielddefs.items() if name not in have})
+        self._reader.typestore.register(
+            {name: fields for name, fields in default.fielddefs.items() if name not in have}
+        )
 
     def _read_streams(self) -> list[StreamInfo]:
         out = []
@@ -128,7 +147,7 @@ class RosbagLog(DriveLog):
         return self._streams
 
     # --- raw iteration ----------------------------------------------------------------------------
-    def _raw(self, topics: Optional[set[str]], known_only: bool) -> Iterator[tuple[Any, str, int, bytes]]:
+    def _raw(self, topics: set[str] | None, known_only: bool) -> Iterator[tuple[Any, str, int, bytes]]:
         """(connection, pkg/Type, record time ns, raw bytes) of the messages of ``topics`` (all if None),
         in record-time order; with ``known_only``, topics of other types are left out with a warning."""
         kinds = {s.topic: s.kind for s in self._streams}
@@ -137,8 +156,11 @@ class RosbagLog(DriveLog):
             unknown = {t for t in wanted if kinds.get(t) == StreamKind.OTHER}
             for topic in sorted(unknown - self._warned_unknown):
                 mtype = next(s.msgtype for s in self._streams if s.topic == topic) or "several types"
-                warnings.warn(f"{self.path}: topic {topic} ({mtype}) is not a message type mapkit reads; skipped",
-                              InputWarning, stacklevel=4)
+                warnings.warn(
+                    f"{self.path}: topic {topic} ({mtype}) is not a message type mapkit reads; skipped",
+                    InputWarning,
+                    stacklevel=4,
+                )
             self._warned_unknown |= unknown
             wanted -= unknown
         conns = [c for c in self._reader.connections if c.topic in wanted]
@@ -154,7 +176,7 @@ class RosbagLog(DriveLog):
                 raise self._error(exc) from None
             yield conn, msgtype_of(conn.msgtype), t, raw
 
-    def stamps(self, topics: Optional[set[str]] = None) -> Iterator[tuple[str, int]]:
+    def stamps(self, topics: set[str] | None = None) -> Iterator[tuple[str, int]]:
         """(topic, header stamp in ns) of every message, other types included, without deserialising
         payloads; the record time where a message has no header first (tf), as the MCAP reader does
         with its log time."""
@@ -164,7 +186,7 @@ class RosbagLog(DriveLog):
             yield conn.topic, t if stamp is None else stamp
 
     # --- decoded iteration ------------------------------------------------------------------------
-    def _iter_messages(self, topics: Optional[set[str]]) -> Iterator[Message]:
+    def _iter_messages(self, topics: set[str] | None) -> Iterator[Message]:
         kinds = {s.topic: s.kind for s in self._streams}
         index: Counter[str] = Counter()
         for conn, msgtype, _, raw in self._raw(topics, known_only=True):
@@ -172,6 +194,7 @@ class RosbagLog(DriveLog):
             i = index[topic]
             index[topic] += 1
             records = self._records_or_skip(
-                topic, i, lambda: ros2.records_from_msg(self._reader.deserialize(raw, conn.msgtype), msgtype, topic, i))
+                topic, i, lambda: ros2.records_from_msg(self._reader.deserialize(raw, conn.msgtype), msgtype, topic, i)
+            )
             for rec in records:
                 yield Message(topic, kinds[topic], i, rec)

@@ -28,7 +28,9 @@ def seconds_to_ns(text: str) -> int:
         value = Decimal(text.strip())
     except InvalidOperation:
         raise ValueError(f"{text!r} is not a number of seconds") from None
-    if not value.is_finite() or abs(value) >= _MAX_SECONDS:  # a huge exponent would overflow the context or build a huge integer
+    if (
+        not value.is_finite() or abs(value) >= _MAX_SECONDS
+    ):  # a huge exponent would overflow the context or build a huge integer
         raise ValueError(f"{text.strip()[:40]!r} is not a finite number of seconds within +-{_MAX_SECONDS:.3g}")
     return int((value * _NS_PER_S).to_integral_value(rounding=ROUND_HALF_EVEN))
 
@@ -43,11 +45,17 @@ def _rows(path: Path, ncols: tuple[int, ...]) -> list[tuple[int, list[float]]]:
             continue
         parts = s.replace(",", " ").split()
         if len(parts) not in ncols:
-            raise InputError(path, f"line {lineno} has {len(parts)} values, expected {' or '.join(map(str, ncols))}", field=f"line {lineno}")
+            raise InputError(
+                path,
+                f"line {lineno} has {len(parts)} values, expected {' or '.join(map(str, ncols))}",
+                field=f"line {lineno}",
+            )
         try:
             vals = [float(p) for p in parts]
         except ValueError:
-            raise InputError(path, f"line {lineno} has a value that is not a number: {s[:80]!r}", field=f"line {lineno}") from None
+            raise InputError(
+                path, f"line {lineno} has a value that is not a number: {s[:80]!r}", field=f"line {lineno}"
+            ) from None
         if not np.all(np.isfinite(vals)):
             raise InputError(path, f"line {lineno} has a non-finite value", field=f"line {lineno}")
         rows.append((lineno, vals))
@@ -66,7 +74,11 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     norms = np.linalg.norm(q_wxyz, axis=1)
     bad = np.nonzero(np.abs(norms - 1.0) > 1e-3)[0]
     if len(bad):
-        raise InputError(path, f"line {rows[bad[0]][0]} has a quaternion of norm {norms[bad[0]]:.4f}", field=f"line {rows[bad[0]][0]}")
+        raise InputError(
+            path,
+            f"line {rows[bad[0]][0]} has a quaternion of norm {norms[bad[0]]:.4f}",
+            field=f"line {rows[bad[0]][0]}",
+        )
     if np.any(np.diff(stamps) <= 0):
         i = int(np.nonzero(np.diff(stamps) <= 0)[0][0]) + 1
         raise InputError(path, f"line {rows[i][0]}: timestamps do not increase", field=f"line {rows[i][0]}")
@@ -78,7 +90,9 @@ def write_tum(path: str | Path, stamps_ns: np.ndarray, world_from_body: np.ndarr
     t = world_from_body[:, :3, 3]
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for s, ti, qi in zip(np.asarray(stamps_ns, np.int64), t, q):
-        lines.append(f"{s // 1_000_000_000}.{s % 1_000_000_000:09d} {ti[0]:.6f} {ti[1]:.6f} {ti[2]:.6f} {qi[1]:.9f} {qi[2]:.9f} {qi[3]:.9f} {qi[0]:.9f}")
+        lines.append(
+            f"{s // 1_000_000_000}.{s % 1_000_000_000:09d} {ti[0]:.6f} {ti[1]:.6f} {ti[2]:.6f} {qi[1]:.9f} {qi[2]:.9f} {qi[3]:.9f} {qi[0]:.9f}"
+        )
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
 

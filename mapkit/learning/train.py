@@ -35,7 +35,7 @@ import logging
 import os
 import time
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -44,7 +44,16 @@ from mapkit import __version__
 from mapkit.core.bundle import write_manifest
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, write_json, write_timings
+from mapkit.core.runio import (
+    atomic_path,
+    atomic_write_text,
+    config_hash,
+    is_done,
+    mark_done,
+    progress_bar,
+    write_json,
+    write_timings,
+)
 from mapkit.io.plots import training_curve
 from mapkit.places.cnn import (
     MODEL_FORMAT_VERSION,
@@ -74,33 +83,74 @@ class TrainConfig(MapkitConfig):
     """Triplet training of the CNN descriptor. Paper values (semi-dense paper, Sec. 4.2) are the
     defaults where it gives one."""
 
-    model: CnnConfig = Field(default_factory=CnnConfig, description="The network (Sec. 3.3.2, Fig. 3c) and its input form.")
+    model: CnnConfig = Field(
+        default_factory=CnnConfig, description="The network (Sec. 3.3.2, Fig. 3c) and its input form."
+    )
     batch_triplets: int = Field(25, ge=1, description="Triplets per SGD batch B (Sec. 4.2: 25).")
-    triplet_set: int = Field(20_000, ge=1, description="Cardinality of the triplet set T, drawn from the dataset's train split "
-                             "(Sec. 4.2: 20,000; all train triplets when the split has fewer).")
-    margin: float = Field(0.5, gt=0, description="Margin m of the triplet loss, Eq. (1) (a tunable hyperparameter in the paper, no value "
-                          "given); descriptors are unit vectors, so distances lie in [0, 2].")
-    epochs: int = Field(4, ge=1, description="Passes over T (not in the paper). 4 x 20,000 triplets take about an hour on 2 CPU cores "
-                        "at the ~22 triplets/s of bench/bench_cnn.py; the demo budget used a 2,000-triplet set for 5 epochs. Growing it "
-                        "on a finished run continues training from its last checkpoint.")
+    triplet_set: int = Field(
+        20_000,
+        ge=1,
+        description="Cardinality of the triplet set T, drawn from the dataset's train split "
+        "(Sec. 4.2: 20,000; all train triplets when the split has fewer).",
+    )
+    margin: float = Field(
+        0.5,
+        gt=0,
+        description="Margin m of the triplet loss, Eq. (1) (a tunable hyperparameter in the paper, no value "
+        "given); descriptors are unit vectors, so distances lie in [0, 2].",
+    )
+    epochs: int = Field(
+        4,
+        ge=1,
+        description="Passes over T (not in the paper). 4 x 20,000 triplets take about an hour on 2 CPU cores "
+        "at the ~22 triplets/s of bench/bench_cnn.py; the demo budget used a 2,000-triplet set for 5 epochs. Growing it "
+        "on a finished run continues training from its last checkpoint.",
+    )
     hard_negatives: bool = Field(True, description="Hard-negative cycling (Sec. 4.2, Fig. 4b); off for the ablation.")
-    hard_every_epochs: int = Field(2, ge=1, description="K: hard triplets replace part of T every K epochs (Sec. 4.2: K = 2).")
-    hard_fraction: float = Field(0.05, gt=0, le=1, description="Fraction of T replaced by hard triplets each cycle (Sec. 4.2: 5 %).")
-    hard_neighbours: int = Field(10, ge=1, description="X3 is taken among this many nearest neighbours of X1 in descriptor space "
-                                 "(Sec. 4.2: 'one of the nearest neighbours'; the nearest true non-match among them).")
-    hard_pool: Optional[int] = Field(None, ge=2, description="Train patches described as X3 candidates per cycle; None = every patch of "
-                                     "the train split (the paper: 'from the same training dataset').")
-    negative_min_distance_m: float = Field(100.0, gt=0, description="A true non-match lies farther than this from the anchor in UTM "
-                                           "(mapkit triplets' negatives use the same distance).")
-    optimizer: Literal["adam", "sgd"] = Field("adam", description="The paper trains with SGD (Sec. 4.2) and gives no rate; Adam (a "
-                                              "stochastic gradient method with per-weight steps) converges in the short CPU budget.")
+    hard_every_epochs: int = Field(
+        2, ge=1, description="K: hard triplets replace part of T every K epochs (Sec. 4.2: K = 2)."
+    )
+    hard_fraction: float = Field(
+        0.05, gt=0, le=1, description="Fraction of T replaced by hard triplets each cycle (Sec. 4.2: 5 %)."
+    )
+    hard_neighbours: int = Field(
+        10,
+        ge=1,
+        description="X3 is taken among this many nearest neighbours of X1 in descriptor space "
+        "(Sec. 4.2: 'one of the nearest neighbours'; the nearest true non-match among them).",
+    )
+    hard_pool: int | None = Field(
+        None,
+        ge=2,
+        description="Train patches described as X3 candidates per cycle; None = every patch of "
+        "the train split (the paper: 'from the same training dataset').",
+    )
+    negative_min_distance_m: float = Field(
+        100.0,
+        gt=0,
+        description="A true non-match lies farther than this from the anchor in UTM "
+        "(mapkit triplets' negatives use the same distance).",
+    )
+    optimizer: Literal["adam", "sgd"] = Field(
+        "adam",
+        description="The paper trains with SGD (Sec. 4.2) and gives no rate; Adam (a "
+        "stochastic gradient method with per-weight steps) converges in the short CPU budget.",
+    )
     lr: float = Field(1e-3, gt=0, description="Learning rate (not in the paper).")
     momentum: float = Field(0.9, ge=0, lt=1, description="Momentum of SGD (optimizer sgd only).")
     weight_decay: float = Field(0.0, ge=0, description="L2 weight decay.")
-    test_triplets: int = Field(1000, ge=0, description="Test-split triplets scored after each epoch (accuracy, margins); 0 = none.")
-    describe_batch: int = Field(256, ge=1, description="Patches per forward pass when describing (hard mining, test metrics).")
-    seed: int = Field(0, description="Seed of the initial weights, the triplet set draw, batch order and hard-triplet draws.")
-    threads: int = Field(2, ge=1, description="torch.set_num_threads (the machine's cores; results are reproducible for a fixed value).")
+    test_triplets: int = Field(
+        1000, ge=0, description="Test-split triplets scored after each epoch (accuracy, margins); 0 = none."
+    )
+    describe_batch: int = Field(
+        256, ge=1, description="Patches per forward pass when describing (hard mining, test metrics)."
+    )
+    seed: int = Field(
+        0, description="Seed of the initial weights, the triplet set draw, batch order and hard-triplet draws."
+    )
+    threads: int = Field(
+        2, ge=1, description="torch.set_num_threads (the machine's cores; results are reproducible for a fixed value)."
+    )
     keep_checkpoints: int = Field(2, ge=1, description="Checkpoints kept (the newest).")
 
 
@@ -139,8 +189,16 @@ def patch_xy(dataset, ids: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- hard negatives (pure numpy)
 
 
-def hard_negatives(anchor_desc: np.ndarray, anchor_xy: np.ndarray, anchor_ids: np.ndarray, cand_desc: np.ndarray, cand_xy: np.ndarray,
-                   cand_ids: np.ndarray, k: int, min_distance_m: float) -> np.ndarray:
+def hard_negatives(
+    anchor_desc: np.ndarray,
+    anchor_xy: np.ndarray,
+    anchor_ids: np.ndarray,
+    cand_desc: np.ndarray,
+    cand_xy: np.ndarray,
+    cand_ids: np.ndarray,
+    k: int,
+    min_distance_m: float,
+) -> np.ndarray:
     """For each anchor, the candidate id that is among its ``k`` nearest neighbours in descriptor
     space (L2) and a true non-match (farther than ``min_distance_m`` in UTM), the nearest such; -1
     when none of the k is. The anchor itself is never its own neighbour (Sec. 4.2's hard triplets)."""
@@ -166,8 +224,6 @@ def hard_negatives(anchor_desc: np.ndarray, anchor_xy: np.ndarray, anchor_ids: n
 
 
 # --------------------------------------------------------------------------- training
-
-
 
 
 def _rng(seed: int, epoch: int, stream: int) -> np.random.Generator:
@@ -205,19 +261,37 @@ def _test_metrics(model, grids: PackedGrids, triplets: np.ndarray, cfg: TrainCon
     d = {i: desc[np.searchsorted(ids, triplets[:, i])] for i in range(3)}
     pos = np.linalg.norm(d[0] - d[1], axis=1)
     neg = np.linalg.norm(d[0] - d[2], axis=1)
-    return {"test_accuracy": float(np.mean(pos < neg)), "test_margin_mean": float(np.mean(neg - pos)),
-            "test_margin_median": float(np.median(neg - pos)), "test_pos_dist": float(np.mean(pos)), "test_neg_dist": float(np.mean(neg)),
-            "test_loss": float(np.mean(np.maximum(pos + cfg.margin - neg, 0.0) ** 2)), "test_triplets": int(len(triplets))}
+    return {
+        "test_accuracy": float(np.mean(pos < neg)),
+        "test_margin_mean": float(np.mean(neg - pos)),
+        "test_margin_median": float(np.median(neg - pos)),
+        "test_pos_dist": float(np.mean(pos)),
+        "test_neg_dist": float(np.mean(neg)),
+        "test_loss": float(np.mean(np.maximum(pos + cfg.margin - neg, 0.0) ** 2)),
+        "test_triplets": int(len(triplets)),
+    }
 
 
-def _cycle_hard(model, grids: PackedGrids, train_all: np.ndarray, tset: np.ndarray, cand_ids: np.ndarray, cand_xy: np.ndarray,
-                cfg: TrainConfig, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+def _cycle_hard(
+    model,
+    grids: PackedGrids,
+    train_all: np.ndarray,
+    tset: np.ndarray,
+    cand_ids: np.ndarray,
+    cand_xy: np.ndarray,
+    cfg: TrainConfig,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, dict]:
     """Replace ``hard_fraction`` of the triplet set by hard triplets (Sec. 4.2). The anchors and
     their matching patches are random positive pairs of the train split; the candidates X3 are
     described with the current weights."""
     t0 = time.perf_counter()
     n_rep = max(1, int(round(cfg.hard_fraction * len(tset))))
-    pool = cand_ids if cfg.hard_pool is None or cfg.hard_pool >= len(cand_ids) else np.sort(rng.choice(cand_ids, cfg.hard_pool, replace=False))
+    pool = (
+        cand_ids
+        if cfg.hard_pool is None or cfg.hard_pool >= len(cand_ids)
+        else np.sort(rng.choice(cand_ids, cfg.hard_pool, replace=False))
+    )
     pairs = train_all[rng.choice(len(train_all), n_rep, replace=len(train_all) < n_rep), :2]
     need = np.union1d(pool, pairs[:, 0])
     desc = torch_describe(model, grids.get(need), cfg.model.form, cfg.describe_batch)
@@ -226,19 +300,36 @@ def _cycle_hard(model, grids: PackedGrids, train_all: np.ndarray, tset: np.ndarr
     xy_of = dict(zip(cand_ids.tolist(), range(len(cand_ids))))
     pool_xy = cand_xy[[xy_of[i] for i in pool]]
     anchor_xy = cand_xy[[xy_of[i] for i in pairs[:, 0]]]
-    neg = hard_negatives(desc[anchor_rows], anchor_xy, pairs[:, 0], desc[pool_rows], pool_xy, pool, cfg.hard_neighbours,
-                         cfg.negative_min_distance_m)
+    neg = hard_negatives(
+        desc[anchor_rows],
+        anchor_xy,
+        pairs[:, 0],
+        desc[pool_rows],
+        pool_xy,
+        pool,
+        cfg.hard_neighbours,
+        cfg.negative_min_distance_m,
+    )
     ok = neg >= 0
     hard = np.c_[pairs[ok], neg[ok]]
     rows = rng.choice(len(tset), len(hard), replace=False)
     new = tset.copy()
     new[rows] = hard
-    return new, {"hard_triplets": int(len(hard)), "hard_wanted": int(n_rep), "hard_candidates": int(len(pool)),
-                 "hard_mining_s": time.perf_counter() - t0}
+    return new, {
+        "hard_triplets": int(len(hard)),
+        "hard_wanted": int(n_rep),
+        "hard_candidates": int(len(pool)),
+        "hard_mining_s": time.perf_counter() - t0,
+    }
 
 
-def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None = None, overrides: Optional[dict] = None,
-              progress: bool = False) -> Path:
+def train_cnn(
+    dataset,
+    out: str | Path,
+    config: TrainConfig | str | Path | None = None,
+    overrides: dict | None = None,
+    progress: bool = False,
+) -> Path:
     """Train the CNN descriptor on a triplet dataset (folder or ``TripletDataset``); returns ``out``.
 
     Resumes from the last checkpoint in ``out`` written with the same configuration (all fields
@@ -253,8 +344,13 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
     if cfg.model.grid != ds.grid:
         raise ConfigError(f"model.grid is {cfg.model.grid} but the triplet dataset's grids are {ds.grid}^3")
     out = Path(out)
-    resume_hash = config_hash({"config": cfg.model_dump(mode="json", exclude=_RESUME_FREE), "dataset": ds.manifest.get("config_hash"),
-                               "dataset_files": ds.manifest.get("files")})
+    resume_hash = config_hash(
+        {
+            "config": cfg.model_dump(mode="json", exclude=_RESUME_FREE),
+            "dataset": ds.manifest.get("config_hash"),
+            "dataset_files": ds.manifest.get("files"),
+        }
+    )
     full_hash = config_hash({"resume": resume_hash, "epochs": cfg.epochs})
     if is_done(out, full_hash) and (out / ONNX_FILE).is_file():
         return out
@@ -268,7 +364,11 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
         raise InputError(ds.folder, "the triplet dataset has no train triplets", field="triplets")
     init_rng = _rng(cfg.seed, 0, 0)
     tset = train_all[np.sort(init_rng.choice(len(train_all), min(cfg.triplet_set, len(train_all)), replace=False))]
-    test_t = test_all[np.sort(init_rng.choice(len(test_all), min(cfg.test_triplets, len(test_all)), replace=False))] if len(test_all) else test_all
+    test_t = (
+        test_all[np.sort(init_rng.choice(len(test_all), min(cfg.test_triplets, len(test_all)), replace=False))]
+        if len(test_all)
+        else test_all
+    )
     train_ids = np.unique(train_all)
     train_xy = patch_xy(ds, train_ids)
     grids = PackedGrids(ds, np.union1d(train_ids, np.unique(test_t)), cfg.model.form)
@@ -280,12 +380,16 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
     all_ckpts = _checkpoints(out)
     ckpts = [c for c in all_ckpts if int(c.stem.split("-")[1]) <= cfg.epochs]
     if all_ckpts and not ckpts:
-        raise ConfigError(f"{out} holds checkpoints beyond epoch {cfg.epochs} only; train into another folder or raise epochs")
+        raise ConfigError(
+            f"{out} holds checkpoints beyond epoch {cfg.epochs} only; train into another folder or raise epochs"
+        )
     if ckpts:
         state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)
         if state.get("resume_hash") != resume_hash:
-            raise ConfigError(f"{out} holds checkpoints of another training configuration or dataset; train into another folder "
-                              f"or remove {out / CHECKPOINTS}")
+            raise ConfigError(
+                f"{out} holds checkpoints of another training configuration or dataset; train into another folder "
+                f"or remove {out / CHECKPOINTS}"
+            )
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         tset = np.asarray(state["triplet_set"], np.int64)
@@ -321,49 +425,109 @@ def train_cnn(dataset, out: str | Path, config: TrainConfig | str | Path | None 
             opt.step()
             losses.append(float(loss.detach()) * n)
             with torch.no_grad():
-                active += int(((d[:n] - d[n : 2 * n]).norm(dim=1) + cfg.margin - (d[:n] - d[2 * n :]).norm(dim=1) > 0).sum())
+                active += int(
+                    ((d[:n] - d[n : 2 * n]).norm(dim=1) + cfg.margin - (d[:n] - d[2 * n :]).norm(dim=1) > 0).sum()
+                )
             bar.update(n)
         bar.close()
         train_s, train_cpu_s = time.perf_counter() - t0, time.process_time() - c0
-        row.update({"loss": float(np.sum(losses) / len(order)), "active_fraction": active / len(order), "train_s": train_s,
-                    "train_cpu_s": train_cpu_s,  # CPU time of this process (all threads): steadier than wall on a shared machine
-                    "triplets_per_s": len(order) / train_s if train_s > 0 else None})
+        row.update(
+            {
+                "loss": float(np.sum(losses) / len(order)),
+                "active_fraction": active / len(order),
+                "train_s": train_s,
+                "train_cpu_s": train_cpu_s,  # CPU time of this process (all threads): steadier than wall on a shared machine
+                "triplets_per_s": len(order) / train_s if train_s > 0 else None,
+            }
+        )
         row.update(_test_metrics(model, grids, test_t, cfg))
-        row["wall_s"] = (history[-1]["wall_s"] if history else 0.0) + time.perf_counter() - t0 + row.get("hard_mining_s", 0.0)
+        row["wall_s"] = (
+            (history[-1]["wall_s"] if history else 0.0) + time.perf_counter() - t0 + row.get("hard_mining_s", 0.0)
+        )
         history.append(row)
         if progress:
-            log.info("epoch %d: loss %.4f, test accuracy %.3f, %.1f triplets/s", epoch, row["loss"], row.get("test_accuracy", float("nan")),
-                     row["triplets_per_s"])
-        _save_checkpoint(torch, out, epoch, {"epoch": epoch, "resume_hash": resume_hash, "model": model.state_dict(),
-                                             "optimizer": opt.state_dict(), "triplet_set": tset, "history": history}, cfg.keep_checkpoints)
+            log.info(
+                "epoch %d: loss %.4f, test accuracy %.3f, %.1f triplets/s",
+                epoch,
+                row["loss"],
+                row.get("test_accuracy", float("nan")),
+                row["triplets_per_s"],
+            )
+        _save_checkpoint(
+            torch,
+            out,
+            epoch,
+            {
+                "epoch": epoch,
+                "resume_hash": resume_hash,
+                "model": model.state_dict(),
+                "optimizer": opt.state_dict(),
+                "triplet_set": tset,
+                "history": history,
+            },
+            cfg.keep_checkpoints,
+        )
 
     # the deployable model: torch state dict, ONNX, metrics, curve, manifest last
-    with atomic_path(out / TORCH_FILE) as tmp:
-        with open(tmp, "wb") as f:
-            torch.save({"state_dict": model.state_dict(), "model_config": cfg.model.model_dump(mode="json"),
-                        "train_config": cfg.model_dump(mode="json")}, f)
+    with atomic_path(out / TORCH_FILE) as tmp, open(tmp, "wb") as f:
+        torch.save(
+            {
+                "state_dict": model.state_dict(),
+                "model_config": cfg.model.model_dump(mode="json"),
+                "train_config": cfg.model_dump(mode="json"),
+            },
+            f,
+        )
     export_onnx(model, cfg.model, out / ONNX_FILE)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
     total_wall = history[-1]["wall_s"] if history else 0.0
     epochs = [{k: v for k, v in r.items() if k not in EPOCH_TIMINGS} for r in history]
-    metrics = {"epochs": epochs, "final": epochs[-1] if epochs else {}, "train_triplets_available": int(len(train_all)),
-               "triplet_set": int(len(tset)), "test_triplets": int(len(test_t)), "threads": cfg.threads,
-               "torch_version": torch.__version__}
+    metrics = {
+        "epochs": epochs,
+        "final": epochs[-1] if epochs else {},
+        "train_triplets_available": int(len(train_all)),
+        "triplet_set": int(len(tset)),
+        "test_triplets": int(len(test_t)),
+        "threads": cfg.threads,
+        "torch_version": torch.__version__,
+    }
     write_json(out / "metrics.json", metrics)
-    write_timings(out, epochs=[{k: r[k] for k in EPOCH_TIMINGS if k in r} for r in history],
-                  triplets_per_s_mean=float(np.mean([r["triplets_per_s"] for r in history])) if history else None,
-                  wall_s_training=total_wall, wall_s_this_call=time.perf_counter() - t_start)
+    write_timings(
+        out,
+        epochs=[{k: r[k] for k in EPOCH_TIMINGS if k in r} for r in history],
+        triplets_per_s_mean=float(np.mean([r["triplets_per_s"] for r in history])) if history else None,
+        wall_s_training=total_wall,
+        wall_s_this_call=time.perf_counter() - t_start,
+    )
 
-    training_curve(out / "training_curve.png", history, title=f"CNN descriptor, {cfg.model.form}, hard negatives "
-                   f"{'on' if cfg.hard_negatives else 'off'}")
+    training_curve(
+        out / "training_curve.png",
+        history,
+        title=f"CNN descriptor, {cfg.model.form}, hard negatives {'on' if cfg.hard_negatives else 'off'}",
+    )
     manifest = {
-        "format_version": MODEL_FORMAT_VERSION, "kind": "mapkit cnn descriptor", "mapkit_version": __version__,
-        "config_hash": full_hash, "resume_hash": resume_hash, "config": cfg.model_dump(mode="json"),
-        "model_config": cfg.model.model_dump(mode="json"), "domain": ds.manifest["domain"], "epochs": len(history),
+        "format_version": MODEL_FORMAT_VERSION,
+        "kind": "mapkit cnn descriptor",
+        "mapkit_version": __version__,
+        "config_hash": full_hash,
+        "resume_hash": resume_hash,
+        "config": cfg.model_dump(mode="json"),
+        "model_config": cfg.model.model_dump(mode="json"),
+        "domain": ds.manifest["domain"],
+        "epochs": len(history),
         "hard_negatives": cfg.hard_negatives,
-        "onnx": {"file": ONNX_FILE, "input": "grids (n, C, g, g, g) float32 0/1", "output": "descriptors (n, dim) float32, unit L2 norm"},
-        "dataset": {"path": str(ds.folder.resolve()), "config_hash": ds.manifest.get("config_hash"), "sessions": ds.manifest.get("sessions"),
-                    "tiles": ds.manifest.get("tiles"), "triplets": ds.manifest.get("triplets")},
+        "onnx": {
+            "file": ONNX_FILE,
+            "input": "grids (n, C, g, g, g) float32 0/1",
+            "output": "descriptors (n, dim) float32, unit L2 norm",
+        },
+        "dataset": {
+            "path": str(ds.folder.resolve()),
+            "config_hash": ds.manifest.get("config_hash"),
+            "sessions": ds.manifest.get("sessions"),
+            "tiles": ds.manifest.get("tiles"),
+            "triplets": ds.manifest.get("triplets"),
+        },
     }
     write_manifest(out, manifest)
     mark_done(out, full_hash)

@@ -29,7 +29,7 @@ import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -57,21 +57,26 @@ DEFAULT_BASE_FROM_CAMERA: tuple[Row4, Row4, Row4, Row4] = (
 
 class LocalizeConfig(MapkitConfig):
     mcl: MclConfig = MclConfig()
-    base_from_camera: Optional[tuple[Row4, Row4, Row4, Row4]] = Field(
+    base_from_camera: tuple[Row4, Row4, Row4, Row4] | None = Field(
         None,
         description="The rig's camera mount, a rigid 4x4 base_from_camera (base: x forward, y left, z up; camera: optical x right, "
-                    "y down, z forward). The filter runs on the base pose, whose third Euler angle is the heading (MCVL Sec. IV-A's "
-                    "covariances assume it); the database's camera poses are converted through this and the estimates back. None "
-                    "(default): the mount the bundle recorded from its database sessions (mapkit build writes it), else a camera "
-                    "looking straight ahead at the base origin (mapkit choice). A mount pitched a few degrees or offset from the true "
-                    "one only tilts or shifts the base the filter tracks (the round trip back to the camera is exact); a camera turned "
-                    "about its optical axis or looking steeply down needs its true mount.",
+        "y down, z forward). The filter runs on the base pose, whose third Euler angle is the heading (MCVL Sec. IV-A's "
+        "covariances assume it); the database's camera poses are converted through this and the estimates back. None "
+        "(default): the mount the bundle recorded from its database sessions (mapkit build writes it), else a camera "
+        "looking straight ahead at the base origin (mapkit choice). A mount pitched a few degrees or offset from the true "
+        "one only tilts or shifts the base the filter tracks (the round trip back to the camera is exact); a camera turned "
+        "about its optical axis or looking steeply down needs its true mount.",
     )
     top_k: int = Field(20, ge=1, description="Retrieved database images per query (MCVL IV-A: R = 20).")
-    bandwidth_m: float = Field(5.0, gt=0, description="Mean-shift bandwidth over the retrieved translations (m; the authors' code).")
-    odometry: bool = Field(False, description="Beyond the paper: drive the motion model by the query session's own trajectory "
-                           "(its relative camera motion between queries, turned into the base's through base_from_camera) instead "
-                           "of eqs. 1-2. Sets mcl.odometry.enabled.")
+    bandwidth_m: float = Field(
+        5.0, gt=0, description="Mean-shift bandwidth over the retrieved translations (m; the authors' code)."
+    )
+    odometry: bool = Field(
+        False,
+        description="Beyond the paper: drive the motion model by the query session's own trajectory "
+        "(its relative camera motion between queries, turned into the base's through base_from_camera) instead "
+        "of eqs. 1-2. Sets mcl.odometry.enabled.",
+    )
     seed: int = Field(0, description="Seed of the particle filter.")
 
     @field_validator("base_from_camera")
@@ -127,8 +132,14 @@ def write_run_trajectories(out: Path, stamps_ns: np.ndarray, r: LocalizationRun)
     return out
 
 
-def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] = None, progress: bool = False,
-                  hits: Optional[tuple[np.ndarray, np.ndarray]] = None) -> LocalizationRun:
+def run_localizer(
+    index,
+    images,
+    cfg: LocalizeConfig,
+    odometry: list | None = None,
+    progress: bool = False,
+    hits: tuple[np.ndarray, np.ndarray] | None = None,
+) -> LocalizationRun:
     """Retrieval alone and the filter over a sequence of images (arrays or files).
 
     ``hits`` = ``(ids, distances)`` (n, top_k) already retrieved for the images (e.g. from
@@ -152,18 +163,32 @@ def run_localizer(index, images, cfg: LocalizeConfig, odometry: Optional[list] =
     bar = progress_bar(n, progress, "localize", "query")
     for t, im in enumerate(images):
         t0 = time.perf_counter()
-        h = index.query(im, cfg.top_k) if hits is None else index.hits(hits[0][t, :cfg.top_k], hits[1][t, :cfg.top_k])
-        z = index.measurement_from_hits(h) if cfg.bandwidth_m == index.cfg.mean_shift_bandwidth_m else _measure(h, cfg.bandwidth_m)
+        h = index.query(im, cfg.top_k) if hits is None else index.hits(hits[0][t, : cfg.top_k], hits[1][t, : cfg.top_k])
+        z = (
+            index.measurement_from_hits(h)
+            if cfg.bandwidth_m == index.cfg.mean_shift_bandwidth_m
+            else _measure(h, cfg.bandwidth_m)
+        )
         t1 = time.perf_counter()
-        hyp = (mount.hypotheses_to_base(PoseHypotheses.from_retrieval(h.translations, h.world_from_cam[:, :3, :3], h.distances,
-                                                                      mh.hit_weighting, mh.hit_weight_scale))
-               if mh.enabled else None)
-        odo = None if odometry is None or not loc.initialized or odometry[t] is None else mount.odometry_to_base(odometry[t])
+        hyp = (
+            mount.hypotheses_to_base(
+                PoseHypotheses.from_retrieval(
+                    h.translations, h.world_from_cam[:, :3, :3], h.distances, mh.hit_weighting, mh.hit_weight_scale
+                )
+            )
+            if mh.enabled
+            else None
+        )
+        odo = (
+            None
+            if odometry is None or not loc.initialized or odometry[t] is None
+            else mount.odometry_to_base(odometry[t])
+        )
         est = loc.step(mount.measurement_to_base(z), odo, hyp)
         seconds["retrieval"] += t1 - t0
         seconds["filter"] += time.perf_counter() - t1
         z_pos[t], z_rot[t], sizes[t] = z.translation, z.rotation, z.cluster_size
-        all_ids[t, :len(h)] = h.ids
+        all_ids[t, : len(h)] = h.ids
         if est is not None:
             f_pos[t], f_rot[t] = mount.to_camera(est.position, est.rotation)
         bar.update(1)
@@ -202,8 +227,9 @@ def _images_digest(images: list) -> str:
     return h.hexdigest()[:16]
 
 
-def query_all(index, images, top_k: int, progress: bool = False, label: str = "query",
-              vector_cache: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
+def query_all(
+    index, images, top_k: int, progress: bool = False, label: str = "query", vector_cache: str | Path | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Retrieved ids (n, top_k; -1 pads when the index is smaller) and squared L2 distances of every image."""
     n = len(images)
     ids, dist = np.full((n, top_k), -1, np.int64), np.full((n, top_k), np.inf, np.float32)
@@ -221,8 +247,9 @@ def query_all(index, images, top_k: int, progress: bool = False, label: str = "q
     return ids, dist
 
 
-def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | None, session: str,
-                     progress: bool = False) -> tuple[np.ndarray, np.ndarray, bool]:
+def cached_query_all(
+    index, images: list, top_k: int, cache_dir: str | Path | None, session: str, progress: bool = False
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """:func:`query_all` through a cache file ``hits-<session>-k<top_k>-<bundle fingerprint>.npz``.
 
     A cached file is used only if it names the same bundle fingerprint, session, top_k and query
@@ -237,21 +264,42 @@ def cached_query_all(index, images: list, top_k: int, cache_dir: str | Path | No
     if path.is_file():
         try:
             with np.load(path, allow_pickle=False) as f:
-                ok = (int(f["version"]) == HITS_CACHE_VERSION and str(f["bundle"]) == fp and str(f["session"]) == session
-                      and int(f["top_k"]) == top_k and str(f["images"]) == img_digest and f["ids"].shape == (len(images), top_k))
+                ok = (
+                    int(f["version"]) == HITS_CACHE_VERSION
+                    and str(f["bundle"]) == fp
+                    and str(f["session"]) == session
+                    and int(f["top_k"]) == top_k
+                    and str(f["images"]) == img_digest
+                    and f["ids"].shape == (len(images), top_k)
+                )
                 if ok:
                     return f["ids"].astype(np.int64), f["distances"].astype(np.float32), True
         except (OSError, KeyError, ValueError):
             pass  # unreadable or from another version: recompute below
     ids, dist = query_all(index, images, top_k, progress, session, vector_cache=cache_dir)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        np.savez(f, version=HITS_CACHE_VERSION, bundle=fp, bundle_path=str(Path(index.path).resolve()), session=session,
-                 top_k=top_k, images=img_digest, ids=ids, distances=dist)
+        np.savez(
+            f,
+            version=HITS_CACHE_VERSION,
+            bundle=fp,
+            bundle_path=str(Path(index.path).resolve()),
+            session=session,
+            top_k=top_k,
+            images=img_digest,
+            ids=ids,
+            distances=dist,
+        )
     return ids, dist, False
 
 
-def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: str | Path | None = None,
-                 camera: Optional[str] = None, progress: bool = True) -> Path:
+def localize_log(
+    bundle: str | Path,
+    log: str | Path,
+    out: str | Path,
+    config: str | Path | None = None,
+    camera: str | None = None,
+    progress: bool = True,
+) -> Path:
     """Run the localizer on the camera images of a drive log against a VLAD bundle; writes the
     filter's and retrieval's camera poses as TUM files, the resolved config and metrics."""
 
@@ -263,17 +311,26 @@ def localize_log(bundle: str | Path, log: str | Path, out: str | Path, config: s
     with open_log(log) as lg:
         frames = [f for f in lg.records(StreamKind.IMAGE) if camera is None or f.camera == camera]
         if not frames:
-            raise InputError(log, "no camera images" + (f" from camera {camera!r}" if camera else ""), field="topics.images")
+            raise InputError(
+                log, "no camera images" + (f" from camera {camera!r}" if camera else ""), field="topics.images"
+            )
         cams = {f.camera for f in frames}
         if len(cams) > 1:
-            raise InputError(log, f"images of {len(cams)} cameras ({sorted(cams)}): choose one with --camera", field="camera")
+            raise InputError(
+                log, f"images of {len(cams)} cameras ({sorted(cams)}): choose one with --camera", field="camera"
+            )
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         t0 = time.perf_counter()
         r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
     write_run_trajectories(out, stamps, r)
-    write_json(out / "metrics.json", {"bundle": str(bundle), "log": str(log), "queries": len(stamps),
-                                      "frame": "workspace ENU of the bundle (world_from_camera)"})
+    write_json(
+        out / "metrics.json",
+        {
+            "bundle": str(bundle),
+            "log": str(log),
+            "queries": len(stamps),
+            "frame": "workspace ENU of the bundle (world_from_camera)",
+        },
+    )
     write_timings(out, seconds=time.perf_counter() - t0, filter_ms_per_step=1000 * r.filter_s / len(stamps))
     return out
-
-

@@ -54,8 +54,9 @@ the particles instead of their mean; resampling only when the effective sample s
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Literal, Optional, Sequence
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, NonNegativeFloat, PositiveFloat, PositiveInt
@@ -72,6 +73,7 @@ Var6 = tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat, Positiv
 
 # --- configuration ------------------------------------------------------------------------------------
 
+
 class OdometryMotionConfig(MapkitConfig):
     """BEYOND THE PAPER: motion from odometry (relative pose between consecutive frames) plus noise.
 
@@ -79,25 +81,40 @@ class OdometryMotionConfig(MapkitConfig):
     (eqs. 1-2) is used for the others.
     """
 
-    enabled: bool = Field(False, description="Beyond the paper (MCVL uses eqs. 1-2 only): drive the motion model by odometry when the caller supplies it.")
+    enabled: bool = Field(
+        False,
+        description="Beyond the paper (MCVL uses eqs. 1-2 only): drive the motion model by odometry when the caller supplies it.",
+    )
     translation_sigma_m: Var3 = Field(
-        (0.2, 0.2, 0.05), description="Beyond the paper (mapkit choice): std of the noise added to the odometry translation, per step, in the base frame: x forward, y left, z up (m)."
+        (0.2, 0.2, 0.05),
+        description="Beyond the paper (mapkit choice): std of the noise added to the odometry translation, per step, in the base frame: x forward, y left, z up (m).",
     )
     rotation_sigma_rad: Var3 = Field(
-        (0.002, 0.002, 0.01), description="Beyond the paper (mapkit choice): std of the noise added to the odometry rotation, per step, as XYZ Euler angles of the base: roll, pitch, heading (rad)."
+        (0.002, 0.002, 0.01),
+        description="Beyond the paper (mapkit choice): std of the noise added to the odometry rotation, per step, as XYZ Euler angles of the base: roll, pitch, heading (rad).",
     )
 
 
 class RecoveryConfig(MapkitConfig):
     """BEYOND THE PAPER: lost-track recovery by re-injecting particles around the measurement."""
 
-    enabled: bool = Field(False, description="Beyond the paper (MCVL has no recovery): re-inject particles when the measurement stays far from all of them.")
-    distance_m: PositiveFloat = Field(
-        25.0, description="Beyond the paper (mapkit choice, ~11 sigma of the position part of Sigma_o): the track counts as lost at a step when no particle is this close to the measured position (m)."
+    enabled: bool = Field(
+        False,
+        description="Beyond the paper (MCVL has no recovery): re-inject particles when the measurement stays far from all of them.",
     )
-    consecutive_steps: PositiveInt = Field(3, description="Beyond the paper (mapkit choice): re-inject after this many lost steps in a row (one outlier retrieval must not reset the filter).")
+    distance_m: PositiveFloat = Field(
+        25.0,
+        description="Beyond the paper (mapkit choice, ~11 sigma of the position part of Sigma_o): the track counts as lost at a step when no particle is this close to the measured position (m).",
+    )
+    consecutive_steps: PositiveInt = Field(
+        3,
+        description="Beyond the paper (mapkit choice): re-inject after this many lost steps in a row (one outlier retrieval must not reset the filter).",
+    )
     fraction: float = Field(
-        0.2, gt=0.0, le=1.0, description="Beyond the paper (mapkit choice): share of the particles replaced by draws from the initial distribution around the measurement."
+        0.2,
+        gt=0.0,
+        le=1.0,
+        description="Beyond the paper (mapkit choice): share of the particles replaced by draws from the initial distribution around the measurement.",
     )
 
 
@@ -112,27 +129,50 @@ class MultiHypothesisConfig(MapkitConfig):
     collecting weight over the steps.
     """
 
-    enabled: bool = Field(False, description="Beyond the paper (MCVL weighs by the largest mean-shift cluster, eq. 3): weigh by a mixture over all retrieved poses.")
-    kernel_position_cov_m2: Optional[Var3] = Field(
-        None, description="Beyond the paper: diagonal position covariance of each hit's kernel, m^2; None = the position part of Sigma_o (MCVL Sec. IV-A)."
+    enabled: bool = Field(
+        False,
+        description="Beyond the paper (MCVL weighs by the largest mean-shift cluster, eq. 3): weigh by a mixture over all retrieved poses.",
     )
-    kernel_rotation_sigma_rad: Optional[PositiveFloat] = Field(
-        None, description="Beyond the paper: std of the (isotropic, geodesic) rotation part of each hit's kernel, rad; None = the square root of Sigma_o's largest Euler variance (MCVL Sec. IV-A: the heading's, 1e-3 rad^2)."
+    kernel_position_cov_m2: Var3 | None = Field(
+        None,
+        description="Beyond the paper: diagonal position covariance of each hit's kernel, m^2; None = the position part of Sigma_o (MCVL Sec. IV-A).",
+    )
+    kernel_rotation_sigma_rad: PositiveFloat | None = Field(
+        None,
+        description="Beyond the paper: std of the (isotropic, geodesic) rotation part of each hit's kernel, rad; None = the square root of Sigma_o's largest Euler variance (MCVL Sec. IV-A: the heading's, 1e-3 rad^2).",
     )
     hit_weighting: Literal["uniform", "rank", "distance"] = Field(
-        "uniform", description="Beyond the paper (mapkit choice): prior weight pi_j of the hits: equal, exp(-rank/scale), or exp(-(d_j - d_0)/scale) for descriptor distances d."
+        "uniform",
+        description="Beyond the paper (mapkit choice): prior weight pi_j of the hits: equal, exp(-rank/scale), or exp(-(d_j - d_0)/scale) for descriptor distances d.",
     )
-    hit_weight_scale: PositiveFloat = Field(5.0, description="Beyond the paper: the scale of hit_weighting 'rank' (ranks) or 'distance' (squared L2 between unit descriptors).")
+    hit_weight_scale: PositiveFloat = Field(
+        5.0,
+        description="Beyond the paper: the scale of hit_weighting 'rank' (ranks) or 'distance' (squared L2 between unit descriptors).",
+    )
     floor: float = Field(
-        0.05, gt=0.0, lt=1.0, description="Beyond the paper (mapkit choice): uniform floor of the likelihood for 'every hit is wrong', relative to a kernel's peak of 1."
+        0.05,
+        gt=0.0,
+        lt=1.0,
+        description="Beyond the paper (mapkit choice): uniform floor of the likelihood for 'every hit is wrong', relative to a kernel's peak of 1.",
     )
-    init_from_hits: bool = Field(True, description="Beyond the paper: draw the initial particles from the mixture over the first query's hits (MCVL: a Gaussian around the first z_t).")
+    init_from_hits: bool = Field(
+        True,
+        description="Beyond the paper: draw the initial particles from the mixture over the first query's hits (MCVL: a Gaussian around the first z_t).",
+    )
     reinject_below: float = Field(
-        0.0, ge=0.0, lt=1.0, description="Beyond the paper: count a step as lost when the cloud's support on its best hit, max_j sum_i w_i K_ij (see cloud_support), is below this (0 = never re-inject)."
+        0.0,
+        ge=0.0,
+        lt=1.0,
+        description="Beyond the paper: count a step as lost when the cloud's support on its best hit, max_j sum_i w_i K_ij (see cloud_support), is below this (0 = never re-inject).",
     )
-    reinject_consecutive_steps: PositiveInt = Field(3, description="Beyond the paper: re-inject after this many lost steps in a row.")
+    reinject_consecutive_steps: PositiveInt = Field(
+        3, description="Beyond the paper: re-inject after this many lost steps in a row."
+    )
     reinject_fraction: float = Field(
-        0.1, gt=0.0, le=1.0, description="Beyond the paper: share of the particles, the least likely under the current hits, replaced by draws from the mixture over those hits."
+        0.1,
+        gt=0.0,
+        le=1.0,
+        description="Beyond the paper: share of the particles, the least likely under the current hits, replaced by draws from the mixture over those hits.",
     )
 
 
@@ -145,35 +185,63 @@ class MclConfig(MapkitConfig):
     """
 
     n_particles: PositiveInt = Field(1000, description="Number of particles N (MCVL Sec. IV-A: fixed to 1000).")
-    init_position_cov_m2: Var3 = Field((10.0, 10.0, 10.0), description="Diagonal covariance of the initial positions around the first measurement, m^2 (MCVL Sec. IV-A).")
-    init_euler_cov_rad2: Var3 = Field((0.001, 0.001, 1.0), description="Diagonal covariance of the initial Euler angles (roll, pitch, heading of the base) around the first measurement, rad^2 (MCVL Sec. IV-A: large on the heading only).")
-    velocity_mean_m: Vec3 = Field((0.1, 0.1, 0.01), description="mu_v, mean linear velocity per step, m (MCVL Sec. IV-A; world frame as in eq. 2, x east, y north, z up in mapkit's ENU).")
+    init_position_cov_m2: Var3 = Field(
+        (10.0, 10.0, 10.0),
+        description="Diagonal covariance of the initial positions around the first measurement, m^2 (MCVL Sec. IV-A).",
+    )
+    init_euler_cov_rad2: Var3 = Field(
+        (0.001, 0.001, 1.0),
+        description="Diagonal covariance of the initial Euler angles (roll, pitch, heading of the base) around the first measurement, rad^2 (MCVL Sec. IV-A: large on the heading only).",
+    )
+    velocity_mean_m: Vec3 = Field(
+        (0.1, 0.1, 0.01),
+        description="mu_v, mean linear velocity per step, m (MCVL Sec. IV-A; world frame as in eq. 2, x east, y north, z up in mapkit's ENU).",
+    )
     velocity_cov_m2: Var3 = Field((1.0, 1.0, 0.01), description="Sigma_v diagonal, m^2 per step (MCVL Sec. IV-A).")
     velocity_frame: Literal["world", "body"] = Field(
-        "world", description="Frame of v: 'world' adds it to r as eq. 2 does (MCVL Sec. III-A); 'body' rotates it by the particle's base orientation first, x forward (mapkit option)."
+        "world",
+        description="Frame of v: 'world' adds it to r as eq. 2 does (MCVL Sec. III-A); 'body' rotates it by the particle's base orientation first, x forward (mapkit option).",
     )
-    angular_velocity_mean_rad: Vec3 = Field((0.001, 0.00001, 0.01), description="mu_psi, mean Euler increment per step, rad: roll, pitch, heading of the base, composed in the base frame (MCVL Sec. IV-A, eq. 2).")
-    angular_velocity_cov_rad2: Var3 = Field((0.0001, 0.00001, 0.01), description="Sigma_psi diagonal, rad^2 per step: roll, pitch, heading (MCVL Sec. IV-A; the authors' code draws the second angle with std 1e-5, i.e. variance 1e-10).")
+    angular_velocity_mean_rad: Vec3 = Field(
+        (0.001, 0.00001, 0.01),
+        description="mu_psi, mean Euler increment per step, rad: roll, pitch, heading of the base, composed in the base frame (MCVL Sec. IV-A, eq. 2).",
+    )
+    angular_velocity_cov_rad2: Var3 = Field(
+        (0.0001, 0.00001, 0.01),
+        description="Sigma_psi diagonal, rad^2 per step: roll, pitch, heading (MCVL Sec. IV-A; the authors' code draws the second angle with std 1e-5, i.e. variance 1e-10).",
+    )
     measurement_cov: Var6 = Field(
-        (5.0, 5.0, 5.0, 0.0001, 0.0001, 0.001), description="Sigma_o diagonal: position m^2, then the base's roll, pitch, heading rad^2 (MCVL Sec. IV-A, eq. 3; the authors' code uses (20, 20, 20, 0.001, 0.001, 0.01) on the 10 km RobotCar route)."
+        (5.0, 5.0, 5.0, 0.0001, 0.0001, 0.001),
+        description="Sigma_o diagonal: position m^2, then the base's roll, pitch, heading rad^2 (MCVL Sec. IV-A, eq. 3; the authors' code uses (20, 20, 20, 0.001, 0.001, 0.01) on the 10 km RobotCar route).",
     )
-    odometry: OdometryMotionConfig = Field(default_factory=OdometryMotionConfig, description="Beyond the paper: odometry-driven motion model (off).")
-    recovery: RecoveryConfig = Field(default_factory=RecoveryConfig, description="Beyond the paper: lost-track recovery (off).")
+    odometry: OdometryMotionConfig = Field(
+        default_factory=OdometryMotionConfig, description="Beyond the paper: odometry-driven motion model (off)."
+    )
+    recovery: RecoveryConfig = Field(
+        default_factory=RecoveryConfig, description="Beyond the paper: lost-track recovery (off)."
+    )
     multi_hypothesis: MultiHypothesisConfig = Field(
-        default_factory=MultiHypothesisConfig, description="Beyond the paper: mixture measurement model over the top-k retrieved poses (off)."
+        default_factory=MultiHypothesisConfig,
+        description="Beyond the paper: mixture measurement model over the top-k retrieved poses (off).",
     )
     estimate: Literal["mean", "mode"] = Field(
-        "mean", description="Pose estimate: 'mean' of the weighted particles (MCVL Sec. III-C); 'mode' = beyond the paper: the mean of the particles within mode_radius_m of the densest place."
+        "mean",
+        description="Pose estimate: 'mean' of the weighted particles (MCVL Sec. III-C); 'mode' = beyond the paper: the mean of the particles within mode_radius_m of the densest place.",
     )
     mode_radius_m: PositiveFloat = Field(
-        10.0, description="Beyond the paper (mapkit choice: ~4.5 position stds of Sigma_o, narrower than the tens of metres between wrong hypotheses): radius of the 'mode' estimate and its grid cell, m."
+        10.0,
+        description="Beyond the paper (mapkit choice: ~4.5 position stds of Sigma_o, narrower than the tens of metres between wrong hypotheses): radius of the 'mode' estimate and its grid cell, m.",
     )
     resample_min_ess_fraction: float = Field(
-        1.0, gt=0.0, le=1.0, description="Resample when the effective sample size is at most this share of N; 1 = every step (MCVL Algorithm 1); below 1, beyond the paper: weights carry over the steps in between."
+        1.0,
+        gt=0.0,
+        le=1.0,
+        description="Resample when the effective sample size is at most this share of N; 1 = every step (MCVL Algorithm 1); below 1, beyond the paper: weights carry over the steps in between.",
     )
 
 
 # --- particles and estimates --------------------------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class Particles:
@@ -186,12 +254,12 @@ class Particles:
     rotations: np.ndarray
 
     @classmethod
-    def from_euler(cls, positions: np.ndarray, euler: np.ndarray) -> "Particles":
+    def from_euler(cls, positions: np.ndarray, euler: np.ndarray) -> Particles:
         # through the matrix, so that the stored angles are canonical (b in [-pi/2, pi/2])
         return cls.from_rotations(positions, matrix_from_euler(euler))
 
     @classmethod
-    def from_rotations(cls, positions: np.ndarray, rotations: np.ndarray) -> "Particles":
+    def from_rotations(cls, positions: np.ndarray, rotations: np.ndarray) -> Particles:
         # the matrices are kept as given, not rebuilt from the angles (that would cost a third of a
         # step): products of rotations stay orthonormal to rounding, which grows ~1e-16 per step
         R = np.asarray(rotations, dtype=np.float64)
@@ -200,9 +268,11 @@ class Particles:
     def __len__(self) -> int:
         return len(self.positions)
 
-    def take(self, indices: np.ndarray) -> "Particles":
+    def take(self, indices: np.ndarray) -> Particles:
         # np.take: a third of the time of fancy indexing for (N, 3, 3) rows
-        return Particles(np.take(self.positions, indices, 0), np.take(self.euler, indices, 0), np.take(self.rotations, indices, 0))
+        return Particles(
+            np.take(self.positions, indices, 0), np.take(self.euler, indices, 0), np.take(self.rotations, indices, 0)
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,7 +323,7 @@ class CameraMount:
         object.__setattr__(self, "base_from_camera", T)
 
     @classmethod
-    def forward(cls, translation_m: Sequence[float] = (0.0, 0.0, 0.0)) -> "CameraMount":
+    def forward(cls, translation_m: Sequence[float] = (0.0, 0.0, 0.0)) -> CameraMount:
         """A camera looking straight ahead (:data:`FORWARD_CAMERA_ROTATION`) at ``translation_m`` in the base."""
         return cls(make_pose(FORWARD_CAMERA_ROTATION, np.asarray(translation_m, dtype=np.float64)))
 
@@ -289,10 +359,15 @@ class CameraMount:
     def odometry_to_base(self, camera_prev_from_curr: np.ndarray) -> np.ndarray:
         """The camera's relative motion ``cam_{t-1} <- cam_t`` (4, 4) as the base's,
         ``base_from_camera @ T @ camera_from_base``."""
-        return self.base_from_camera @ np.asarray(camera_prev_from_curr, dtype=np.float64) @ invert_pose(self.base_from_camera)
+        return (
+            self.base_from_camera
+            @ np.asarray(camera_prev_from_curr, dtype=np.float64)
+            @ invert_pose(self.base_from_camera)
+        )
 
 
 # --- the functional core ------------------------------------------------------------------------------
+
 
 def wrap_angle(x: np.ndarray) -> np.ndarray:
     """Angles wrapped to (-pi, pi]."""
@@ -300,7 +375,9 @@ def wrap_angle(x: np.ndarray) -> np.ndarray:
     return x + (2.0 * np.pi) * np.floor((np.pi - x) * (0.5 / np.pi))  # 4x faster than np.mod here
 
 
-def init_particles(measurement: Measurement, cfg: MclConfig, rng: np.random.Generator, n: Optional[int] = None) -> Particles:
+def init_particles(
+    measurement: Measurement, cfg: MclConfig, rng: np.random.Generator, n: int | None = None
+) -> Particles:
     """Particles drawn from a Gaussian around a measurement (MCVL Sec. IV-A)."""
     n = cfg.n_particles if n is None else n
     noise = rng.standard_normal((n, 6))
@@ -310,7 +387,7 @@ def init_particles(measurement: Measurement, cfg: MclConfig, rng: np.random.Gene
 
 
 def predict(
-    particles: Particles, cfg: MclConfig, rng: np.random.Generator, odometry_prev_from_curr: Optional[np.ndarray] = None
+    particles: Particles, cfg: MclConfig, rng: np.random.Generator, odometry_prev_from_curr: np.ndarray | None = None
 ) -> Particles:
     """Move every particle one step.
 
@@ -363,7 +440,7 @@ def weigh(particles: Particles, measurement: Measurement, cfg: MclConfig) -> np.
     return w / w.sum()
 
 
-def sus_resample(weights: np.ndarray, rng: np.random.Generator, n: Optional[int] = None) -> np.ndarray:
+def sus_resample(weights: np.ndarray, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
     """Indices drawn by stochastic universal sampling (Baker 1987; MCVL Sec. III-C).
 
     One uniform offset ``u ~ U[0, 1/n)`` and ``n`` equally spaced pointers ``u + k/n`` on the
@@ -391,7 +468,9 @@ def chordal_mean_rotation(rotations: np.ndarray, weights: np.ndarray) -> np.ndar
     return U @ D @ Vt
 
 
-def estimate(particles: Particles, weights: Optional[np.ndarray] = None, measured: bool = True, reinjected: int = 0) -> Estimate:
+def estimate(
+    particles: Particles, weights: np.ndarray | None = None, measured: bool = True, reinjected: int = 0
+) -> Estimate:
     """Weighted mean position and chordal mean rotation of the particles (equal weights if None)."""
     n = len(particles)
     w = np.full(n, 1.0 / n) if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
@@ -401,7 +480,9 @@ def estimate(particles: Particles, weights: Optional[np.ndarray] = None, measure
     return Estimate(position, R, euler_from_matrix(R), std, float(1.0 / (w @ w)), measured, reinjected)
 
 
-def reinject(particles: Particles, measurement: Measurement, cfg: MclConfig, rng: np.random.Generator, fraction: float) -> tuple[Particles, int]:
+def reinject(
+    particles: Particles, measurement: Measurement, cfg: MclConfig, rng: np.random.Generator, fraction: float
+) -> tuple[Particles, int]:
     """BEYOND THE PAPER: replace a random ``fraction`` of the particles by initial draws around the measurement."""
     n = len(particles)
     k = min(n, max(1, int(round(fraction * n))))
@@ -414,15 +495,22 @@ def reinject(particles: Particles, measurement: Measurement, cfg: MclConfig, rng
 
 # --- BEYOND THE PAPER: the multi-hypothesis measurement model ----------------------------------------
 
+
 def _kernel(cfg: MclConfig) -> tuple[np.ndarray, float]:
     """Position variances (3,) m^2 and rotation variance rad^2 of each hit's kernel."""
     mh = cfg.multi_hypothesis
-    pos = np.asarray(cfg.measurement_cov[:3] if mh.kernel_position_cov_m2 is None else mh.kernel_position_cov_m2, dtype=np.float64)
-    rot = float(max(cfg.measurement_cov[3:])) if mh.kernel_rotation_sigma_rad is None else mh.kernel_rotation_sigma_rad**2
+    pos = np.asarray(
+        cfg.measurement_cov[:3] if mh.kernel_position_cov_m2 is None else mh.kernel_position_cov_m2, dtype=np.float64
+    )
+    rot = (
+        float(max(cfg.measurement_cov[3:])) if mh.kernel_rotation_sigma_rad is None else mh.kernel_rotation_sigma_rad**2
+    )
     return pos, rot
 
 
-def kernel_matrix(particles: Particles, hypotheses: PoseHypotheses, position_var_m2: np.ndarray, rotation_var_rad2: float) -> np.ndarray:
+def kernel_matrix(
+    particles: Particles, hypotheses: PoseHypotheses, position_var_m2: np.ndarray, rotation_var_rad2: float
+) -> np.ndarray:
     """``K[i, j] = exp(-1/2 d_ij^T S^-1 d_ij - (3 - tr(R_i^T H_j)) / (2 s_R^2))`` (N, k), in (0, 1].
 
     ``d_ij`` is particle i's position minus hypothesis j's, ``S = diag(position_var_m2)``.
@@ -468,7 +556,9 @@ def cloud_support(weights: np.ndarray, kernel: np.ndarray) -> float:
     return float(np.max(weights @ kernel))
 
 
-def sample_hypotheses(hypotheses: PoseHypotheses, cfg: MclConfig, rng: np.random.Generator, n: Optional[int] = None) -> Particles:
+def sample_hypotheses(
+    hypotheses: PoseHypotheses, cfg: MclConfig, rng: np.random.Generator, n: int | None = None
+) -> Particles:
     """``n`` particles drawn from the mixture: a hypothesis by SUS on ``pi`` (each gets
     ``floor(n pi_j)`` or ``ceil(n pi_j)`` particles), then its kernel's Gaussian noise (rotation
     noise in the body frame)."""
@@ -487,7 +577,9 @@ def _replace(particles: Particles, idx: np.ndarray, fresh: Particles) -> Particl
     return Particles(pos, eul, rot)
 
 
-def mode_estimate(particles: Particles, weights: Optional[np.ndarray], radius_m: float, measured: bool = True, reinjected: int = 0) -> Estimate:
+def mode_estimate(
+    particles: Particles, weights: np.ndarray | None, radius_m: float, measured: bool = True, reinjected: int = 0
+) -> Estimate:
     """BEYOND THE PAPER: the pose of the densest place of a multimodal cloud.
 
     The weighted particles are binned on a horizontal grid of ``radius_m`` cells; from the weighted mean of
@@ -517,6 +609,7 @@ def mode_estimate(particles: Particles, weights: Optional[np.ndarray], radius_m:
 
 # --- the localizer ------------------------------------------------------------------------------------
 
+
 class MonteCarloLocalizer:
     """MCVL's Algorithm 1 over a query sequence, one :meth:`step` per frame.
 
@@ -525,21 +618,21 @@ class MonteCarloLocalizer:
     particles, and resamples by SUS; without one it only predicts.
     """
 
-    def __init__(self, cfg: Optional[MclConfig] = None, seed: Optional[int] = 0):
+    def __init__(self, cfg: MclConfig | None = None, seed: int | None = 0):
         self.cfg = cfg if cfg is not None else MclConfig()
         self.rng = np.random.default_rng(seed)
-        self._particles: Optional[Particles] = None
-        self._log_w: Optional[np.ndarray] = None  # carried log-weights; None = equal (just resampled)
+        self._particles: Particles | None = None
+        self._log_w: np.ndarray | None = None  # carried log-weights; None = equal (just resampled)
         self._lost_steps = 0
 
     @property
-    def particles(self) -> Optional[Particles]:
+    def particles(self) -> Particles | None:
         """The current particles (equally weighted unless ``resample_min_ess_fraction`` < 1, see
         :attr:`weights`); None before the first measurement."""
         return self._particles
 
     @property
-    def weights(self) -> Optional[np.ndarray]:
+    def weights(self) -> np.ndarray | None:
         """Normalised weights of :attr:`particles` (equal after a resampling); None before the first measurement."""
         if self._particles is None:
             return None
@@ -552,13 +645,17 @@ class MonteCarloLocalizer:
     def initialized(self) -> bool:
         return self._particles is not None
 
-    def _estimate(self, particles: Particles, w: Optional[np.ndarray], measured: bool, reinjected: int = 0) -> Estimate:
+    def _estimate(self, particles: Particles, w: np.ndarray | None, measured: bool, reinjected: int = 0) -> Estimate:
         if self.cfg.estimate == "mode":
             return mode_estimate(particles, w, self.cfg.mode_radius_m, measured, reinjected)
         return estimate(particles, w, measured, reinjected)
 
-    def step(self, measurement: Optional[Measurement] = None, odometry: Optional[np.ndarray] = None,
-             hypotheses: Optional[PoseHypotheses] = None) -> Optional[Estimate]:
+    def step(
+        self,
+        measurement: Measurement | None = None,
+        odometry: np.ndarray | None = None,
+        hypotheses: PoseHypotheses | None = None,
+    ) -> Estimate | None:
         """Advance one frame. ``odometry`` is the 4x4 ``prev_from_curr`` body motion since the last
         step (needs ``cfg.odometry.enabled``). ``hypotheses`` are the retrieved poses for the
         multi-hypothesis model (needs ``cfg.multi_hypothesis.enabled``; without them that model
@@ -567,7 +664,9 @@ class MonteCarloLocalizer:
         if odometry is not None and not cfg.odometry.enabled:
             raise ConfigError("odometry was given to the MCL filter but its config has odometry.enabled = false")
         if hypotheses is not None and not mh.enabled:
-            raise ConfigError("retrieved hypotheses were given to the MCL filter but its config has multi_hypothesis.enabled = false")
+            raise ConfigError(
+                "retrieved hypotheses were given to the MCL filter but its config has multi_hypothesis.enabled = false"
+            )
         if mh.enabled and hypotheses is None and measurement is not None:
             hypotheses = PoseHypotheses.from_measurement(measurement)
         observed = measurement is not None or hypotheses is not None
@@ -645,11 +744,11 @@ class FilterTrack:
 
 
 def run_filter(
-    measurements: Sequence[Optional[Measurement]],
-    cfg: Optional[MclConfig] = None,
-    seed: Optional[int] = 0,
-    odometry: Optional[Sequence[Optional[np.ndarray]]] = None,
-    hypotheses: Optional[Sequence[Optional[PoseHypotheses]]] = None,
+    measurements: Sequence[Measurement | None],
+    cfg: MclConfig | None = None,
+    seed: int | None = 0,
+    odometry: Sequence[np.ndarray | None] | None = None,
+    hypotheses: Sequence[PoseHypotheses | None] | None = None,
 ) -> FilterTrack:
     """Run :class:`MonteCarloLocalizer` over a sequence (None = no measurement at that step).
 
@@ -671,7 +770,11 @@ def run_filter(
     reinjected = np.zeros(T, np.int64)
     valid = np.zeros(T, bool)
     for t, z in enumerate(measurements):
-        est = loc.step(z, None if odometry is None or not loc.initialized else odometry[t], None if hypotheses is None else hypotheses[t])
+        est = loc.step(
+            z,
+            None if odometry is None or not loc.initialized else odometry[t],
+            None if hypotheses is None else hypotheses[t],
+        )
         if est is None:
             continue
         pos[t], rot[t], eul[t], std[t], n_eff[t] = est.position, est.rotation, est.euler, est.position_std_m, est.n_eff
@@ -680,6 +783,7 @@ def run_filter(
 
 
 # --- evaluation ---------------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class PoseErrors:
@@ -692,7 +796,13 @@ class PoseErrors:
         ok = np.isfinite(self.translation_m) & np.isfinite(self.rotation_deg)
         t, r = self.translation_m[ok], self.rotation_deg[ok]
         if not ok.any():
-            return {"frames": 0, "mean_translation_m": None, "median_translation_m": None, "mean_rotation_deg": None, "median_rotation_deg": None}
+            return {
+                "frames": 0,
+                "mean_translation_m": None,
+                "median_translation_m": None,
+                "mean_rotation_deg": None,
+                "median_rotation_deg": None,
+            }
         return {
             "frames": int(ok.sum()),
             "mean_translation_m": float(t.mean()),
@@ -702,7 +812,9 @@ class PoseErrors:
         }
 
 
-def pose_errors(est_positions: np.ndarray, est_rotations: np.ndarray, gt_positions: np.ndarray, gt_rotations: np.ndarray) -> PoseErrors:
+def pose_errors(
+    est_positions: np.ndarray, est_rotations: np.ndarray, gt_positions: np.ndarray, gt_rotations: np.ndarray
+) -> PoseErrors:
     """Translation error ``||c_est - c_gt||`` and orientation error ``|alpha|`` per frame, with
     ``2 cos|alpha| = trace(R_gt^-1 R_est) - 1`` (MCVL Sec. IV; the paper's text drops the -1).
 

@@ -11,8 +11,8 @@ consecutive samples. The paper's values stay the default; an estimate is a label
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 
@@ -35,13 +35,19 @@ class MotionEstimate:
         return {"mcl": {"velocity_mean_m": list(self.velocity_mean_m), "velocity_cov_m2": list(self.velocity_cov_m2)}}
 
     def to_dict(self) -> dict:
-        return {"velocity_mean_m": list(self.velocity_mean_m), "velocity_cov_m2": list(self.velocity_cov_m2),
-                "rate_hz": self.rate_hz, "steps": self.steps, "drives": self.drives,
-                "source": "training drives' base trajectories sampled at the query rate (MCVL Sec. III-A: estimated from training data)"}
+        return {
+            "velocity_mean_m": list(self.velocity_mean_m),
+            "velocity_cov_m2": list(self.velocity_cov_m2),
+            "rate_hz": self.rate_hz,
+            "steps": self.steps,
+            "drives": self.drives,
+            "source": "training drives' base trajectories sampled at the query rate (MCVL Sec. III-A: estimated from training data)",
+        }
 
 
-def estimate_motion_model(trajectories: Iterable[tuple[np.ndarray, np.ndarray]], rate_hz: float,
-                          min_variance_m2: float = 1e-4) -> MotionEstimate:
+def estimate_motion_model(
+    trajectories: Iterable[tuple[np.ndarray, np.ndarray]], rate_hz: float, min_variance_m2: float = 1e-4
+) -> MotionEstimate:
     """mu_v and Sigma_v of the paper's random walk from ``(stamps_ns, world_from_base)`` drives.
 
     Each drive is sampled every ``1 / rate_hz`` seconds over its span (poses interpolated), and
@@ -62,12 +68,17 @@ def estimate_motion_model(trajectories: Iterable[tuple[np.ndarray, np.ndarray]],
         steps.append(np.diff(sampled[:, :3, 3], axis=0))
         drives += 1
     if not steps or sum(len(s) for s in steps) < 2:
-        raise InputError(None, f"no training drive spans a step of {1 / rate_hz:.3g} s: cannot estimate the motion model",
-                         field="train_sessions")
+        raise InputError(
+            None,
+            f"no training drive spans a step of {1 / rate_hz:.3g} s: cannot estimate the motion model",
+            field="train_sessions",
+        )
     d = np.concatenate(steps)
     mean = d.mean(axis=0)
     var = np.maximum(d.var(axis=0), min_variance_m2)
-    return MotionEstimate(tuple(float(x) for x in mean), tuple(float(x) for x in var), float(rate_hz), int(len(d)), drives)
+    return MotionEstimate(
+        tuple(float(x) for x in mean), tuple(float(x) for x in var), float(rate_hz), int(len(d)), drives
+    )
 
 
 __all__ = ["MotionEstimate", "estimate_motion_model"]

@@ -33,12 +33,13 @@ import json
 import logging
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import replace
 from fnmatch import fnmatchcase
 from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Iterator, Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
@@ -51,7 +52,15 @@ from mapkit.core.fingerprint import describe_change, log_fingerprint
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses, transform_points, transform_poses
 from mapkit.core.runio import (
-    atomic_path, atomic_write_text, config_hash, is_done, mark_done, read_timings, reset_stage, stage_digest, write_json,
+    atomic_path,
+    atomic_write_text,
+    config_hash,
+    is_done,
+    mark_done,
+    read_timings,
+    reset_stage,
+    stage_digest,
+    write_json,
     write_timings,
 )
 from mapkit.core.types import CameraFrame, CameraInfo, GpsFix, StreamKind
@@ -59,7 +68,14 @@ from mapkit.core.workspace import SessionDirs, Workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
 from mapkit.io.plots import map_top_view, trajectory_over_gps
-from mapkit.mapping.factor_graph import FactorGraphConfig, FusedTrajectory, GpsObservations, ImuObservations, fuse_session, loop_counts
+from mapkit.mapping.factor_graph import (
+    FactorGraphConfig,
+    FusedTrajectory,
+    GpsObservations,
+    ImuObservations,
+    fuse_session,
+    loop_counts,
+)
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
@@ -72,27 +88,43 @@ logger = logging.getLogger(__name__)
 
 class GeorefConfig(MapkitConfig):
     mode: Literal["auto", "yaw_scale", "sim3", "yaw", "given"] = Field(
-        "auto", description="'auto' (default): 'yaw' for metric trajectories (LiDAR odometry, INS poses), 'sim3' for "
+        "auto",
+        description="'auto' (default): 'yaw' for metric trajectories (LiDAR odometry, INS poses), 'sim3' for "
         "camera-only ones. 'yaw': gravity-aware yaw + translation, the trajectory keeps its own scale. 'yaw_scale': "
         "also a scale from GPS (the issue's model; on the demo sessions GPS chose scales 0.9961-1.0046 where "
         "kiss-icp's own is 1.0003-1.0010 against truth). 'sim3': all 7 parameters. 'given': the trajectory (a pose "
         "stream) is already in the ENU frame at `origin`, GPS is not used.",
     )
-    origin: Optional[tuple[float, float, float]] = Field(
-        None, description="(lat deg, lon deg, alt m) of the pose stream's ENU frame; only with mode 'given'.")
-    inlier_sigmas: float = Field(3.37, gt=0, allow_inf_nan=False,
-                                 description="Gate on the sigma-normalised residual (chi-square 3 dof, 99%).")
-    vertical_sigma_factor: float = Field(2.0, gt=0, allow_inf_nan=False,
-                                         description="GPS height sigma as a multiple of its horizontal sigma.")
-    min_inlier_threshold_m: float = Field(2.0, ge=0, allow_inf_nan=False, description="The horizontal gate is never tighter than this.")
-    max_pose_gap_s: float = Field(1.0, gt=0, allow_inf_nan=False,
-                                  description="A fix between trajectory poses further apart than this is not used.")
-    strict: bool = Field(False, description="Fail instead of building the session unreferenced when GPS cannot place it, "
-                         "and when a camera-only drive is too straight for GPS to fix its roll and the cameras give no up hint.")
-    fuse: bool = Field(False, description="Also fuse the odometry, GPS and the IMU on a factor graph (mapping/factor_graph.py, "
-                       "GPS with its bias state, the IMU preintegrated): georef/trajectory_fused/ and its per-pose covariances beside "
-                       "trajectory_enu/; the map and image database then use it. Metric trajectories only. Off by default: it needs "
-                       "an IMU stream to keep its height, and the rigid GPS fit needs none.")
+    origin: tuple[float, float, float] | None = Field(
+        None, description="(lat deg, lon deg, alt m) of the pose stream's ENU frame; only with mode 'given'."
+    )
+    inlier_sigmas: float = Field(
+        3.37, gt=0, allow_inf_nan=False, description="Gate on the sigma-normalised residual (chi-square 3 dof, 99%)."
+    )
+    vertical_sigma_factor: float = Field(
+        2.0, gt=0, allow_inf_nan=False, description="GPS height sigma as a multiple of its horizontal sigma."
+    )
+    min_inlier_threshold_m: float = Field(
+        2.0, ge=0, allow_inf_nan=False, description="The horizontal gate is never tighter than this."
+    )
+    max_pose_gap_s: float = Field(
+        1.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="A fix between trajectory poses further apart than this is not used.",
+    )
+    strict: bool = Field(
+        False,
+        description="Fail instead of building the session unreferenced when GPS cannot place it, "
+        "and when a camera-only drive is too straight for GPS to fix its roll and the cameras give no up hint.",
+    )
+    fuse: bool = Field(
+        False,
+        description="Also fuse the odometry, GPS and the IMU on a factor graph (mapping/factor_graph.py, "
+        "GPS with its bias state, the IMU preintegrated): georef/trajectory_fused/ and its per-pose covariances beside "
+        "trajectory_enu/; the map and image database then use it. Metric trajectories only. Off by default: it needs "
+        "an IMU stream to keep its height, and the rigid GPS fit needs none.",
+    )
     factor_graph: FactorGraphConfig = FactorGraphConfig()
 
 
@@ -106,7 +138,9 @@ class ExtrinsicsConfig(MapkitConfig):
 
 
 class ImageDbStageConfig(ImageDbConfig):
-    enabled: bool = Field(True, description="Write the image database (stage 4); `imagedb: false` is short for `enabled: false`.")
+    enabled: bool = Field(
+        True, description="Write the image database (stage 4); `imagedb: false` is short for `enabled: false`."
+    )
 
     @field_validator("min_spacing_m")
     @classmethod
@@ -122,12 +156,20 @@ class BuildConfig(MapkitConfig):
     georef: GeorefConfig = GeorefConfig()
     imagedb: ImageDbStageConfig = ImageDbStageConfig()
     extrinsics: ExtrinsicsConfig = ExtrinsicsConfig()
-    semidense: SemiDenseConfig = Field(default_factory=SemiDenseConfig, description="Semi-dense mapping (stage 3), "
-                                       "checked with the rest of the config before any stage runs.")
-    map: bool = Field(True, description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
-                      "database without triangulated points, all that image retrieval and MCVL need.")
-    camera: Optional[str] = Field(None, description="Camera (frame id) to map with; if unset, the first one (by name) with "
-                                  "intrinsics, of those on topics.images when that is set.")
+    semidense: SemiDenseConfig = Field(
+        default_factory=SemiDenseConfig,
+        description="Semi-dense mapping (stage 3), checked with the rest of the config before any stage runs.",
+    )
+    map: bool = Field(
+        True,
+        description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
+        "database without triangulated points, all that image retrieval and MCVL need.",
+    )
+    camera: str | None = Field(
+        None,
+        description="Camera (frame id) to map with; if unset, the first one (by name) with "
+        "intrinsics, of those on topics.images when that is set.",
+    )
 
     sessions: dict[str, dict] = Field(
         default_factory=dict,
@@ -153,10 +195,12 @@ class BuildConfig(MapkitConfig):
                 raise ValueError(f"sessions.{pattern}.{'.'.join(str(p) for p in err['loc'])}: {err['msg']}") from None
         return self
 
-    def _merged(self, override: dict) -> "BuildConfig":
-        return BuildConfig.model_validate(deep_merge(self.model_dump(mode="json", exclude_unset=True, exclude={"sessions"}), override))
+    def _merged(self, override: dict) -> BuildConfig:
+        return BuildConfig.model_validate(
+            deep_merge(self.model_dump(mode="json", exclude_unset=True, exclude={"sessions"}), override)
+        )
 
-    def for_session(self, name: str) -> "BuildConfig":
+    def for_session(self, name: str) -> BuildConfig:
         """The config session ``name`` is built with: this one with the overrides of every pattern of
         ``sessions`` that matches the name, in order (itself when none does)."""
         matching = [o for pattern, o in self.sessions.items() if fnmatchcase(name, pattern)]
@@ -201,8 +245,14 @@ def session_name(log_path: str | Path) -> str:
 class SessionBuilder:
     """Runs the stages of one session; each stage method returns its output folder."""
 
-    def __init__(self, log_path: str | Path, workspace: str | Path | Workspace, cfg: BuildConfig, progress: bool = True,
-                 name: Optional[str] = None):
+    def __init__(
+        self,
+        log_path: str | Path,
+        workspace: str | Path | Workspace,
+        cfg: BuildConfig,
+        progress: bool = True,
+        name: str | None = None,
+    ):
         self.log_path = Path(log_path)
         self.ws = Workspace(workspace)
         self.workspace = self.ws.root
@@ -213,14 +263,14 @@ class SessionBuilder:
         self.dir = self.dirs.root
         self.metrics: dict = {"session": self.name, "log": str(self.log_path), "stages": {}}
         self.timings: dict[str, float] = {}  # wall seconds of each stage in this run (the session's timings.json)
-        self._log: Optional[DriveLog] = None
-        self._camera_choice: Optional[tuple[str, list[str], CameraInfo]] = None
+        self._log: DriveLog | None = None
+        self._camera_choice: tuple[str, list[str], CameraInfo] | None = None
         self._mounts: dict[str, np.ndarray] = {}  # trajectory body frame -> base_from_camera
-        self._sensor_mounts: Optional[SensorMounts] = None
-        self._enu_trajectory: Optional[Trajectory] = None
-        self._fixes: Optional[tuple[list[str], list[GpsFix], Optional[GpsScreen]]] = None
+        self._sensor_mounts: SensorMounts | None = None
+        self._enu_trajectory: Trajectory | None = None
+        self._fixes: tuple[list[str], list[GpsFix], GpsScreen | None] | None = None
         self._undecodable = 0  # frames whose image did not decode, in the current pass over the log
-        self._log_fp: Optional[dict] = None
+        self._log_fp: dict | None = None
         self._finished: set[Path] = set()  # stage folders found finished (outputs verified) in this run
 
     @property
@@ -266,8 +316,12 @@ class SessionBuilder:
         """Mark a stage finished, unless its log changed while the stage read it (then nothing is marked)."""
         now = log_fingerprint(self.log_path, watch=False)
         if now != inputs["log"]:
-            raise InputError(self.log_path, f"changed while the {out.name} stage read it ({describe_change(inputs['log'], now)}); "
-                             "the stage is not marked finished: build again once the log is complete", field="mtime")
+            raise InputError(
+                self.log_path,
+                f"changed while the {out.name} stage read it ({describe_change(inputs['log'], now)}); "
+                "the stage is not marked finished: build again once the log is complete",
+                field="mtime",
+            )
         mark_done(out, h, inputs=inputs, outputs=True)
         self._finished.add(out)
 
@@ -283,9 +337,16 @@ class SessionBuilder:
             return
         named = self.cfg.camera is not None or self.cfg.topics.images is not None
         if named and not topics.get(StreamKind.IMAGE):
-            asked = f"camera {self.cfg.camera!r}" if self.cfg.camera is not None else f"topics.images {self.cfg.topics.images}"
-            raise InputError(self.log_path, f"has no image stream, but the config asks for {asked} to map with",
-                             field="camera" if self.cfg.camera is not None else "topics.images")
+            asked = (
+                f"camera {self.cfg.camera!r}"
+                if self.cfg.camera is not None
+                else f"topics.images {self.cfg.topics.images}"
+            )
+            raise InputError(
+                self.log_path,
+                f"has no image stream, but the config asks for {asked} to map with",
+                field="camera" if self.cfg.camera is not None else "topics.images",
+            )
         if topics.get(StreamKind.IMAGE):
             self._camera()
 
@@ -298,10 +359,16 @@ class SessionBuilder:
             return out
         t0 = time.perf_counter()
         reset_stage(out)
-        traj = estimate_trajectory(self.log, self.cfg.trajectory, self.cfg.topics, progress=self.progress, mounts=self.mounts)
+        traj = estimate_trajectory(
+            self.log, self.cfg.trajectory, self.cfg.topics, progress=self.progress, mounts=self.mounts
+        )
         traj.save(out)
-        m = {"source": traj.source, "poses": len(traj), "duration_s": (int(traj.stamps_ns[-1]) - int(traj.stamps_ns[0])) * 1e-9,
-             **_length(traj)}
+        m = {
+            "source": traj.source,
+            "poses": len(traj),
+            "duration_s": (int(traj.stamps_ns[-1]) - int(traj.stamps_ns[0])) * 1e-9,
+            **_length(traj),
+        }
         write_json(out / "metrics.json", m)
         write_timings(out, seconds=time.perf_counter() - t0)
         self._mark(out, h, inputs)
@@ -323,8 +390,13 @@ class SessionBuilder:
         enu_from_map = np.eye(4) if al is None else al.enu_from_map
         result["enu_from_map"] = enu_from_map
         # the aligned trajectory: rigid poses in ENU (the similarity's scale goes into positions)
-        aligned = Trajectory(traj.stamps_ns, transform_poses(enu_from_map, traj.world_from_base), traj.source, frame="enu" if al is not None else traj.frame,
-                             body_frame=traj.body_frame)
+        aligned = Trajectory(
+            traj.stamps_ns,
+            transform_poses(enu_from_map, traj.world_from_base),
+            traj.source,
+            frame="enu" if al is not None else traj.frame,
+            body_frame=traj.body_frame,
+        )
         aligned.save(self.dirs.georef_trajectory)
         result.update(_length(aligned, georeferenced=al is not None))
         fused_timings: dict = {}
@@ -333,8 +405,14 @@ class SessionBuilder:
             fused_timings = {f"fused_{k}": result["fused"].pop(k) for k in FUSED_TIMINGS if k in result["fused"]}
         if al is None:  # a picture of what there is, in the trajectory's own frame and units
             xyz, axes = _top_view_positions(traj)
-            map_top_view(out / "trajectory_top_view.png", np.zeros((0, 3)), xyz, f"{self.name}: trajectory, NOT georeferenced",
-                         axes=axes, units="m" if result["units"] == "m" else "arbitrary units")
+            map_top_view(
+                out / "trajectory_top_view.png",
+                np.zeros((0, 3)),
+                xyz,
+                f"{self.name}: trajectory, NOT georeferenced",
+                axes=axes,
+                units="m" if result["units"] == "m" else "arbitrary units",
+            )
         write_json(self.dirs.gps_alignment, result)
         write_timings(out, seconds=time.perf_counter() - t0, **fused_timings)
         self._mark(out, h, inputs)
@@ -355,16 +433,24 @@ class SessionBuilder:
             screen.warn(str(self.log_path))
         if len(fixes) < 3:
             result["reason"] = "no GPS stream" if not gps_topics else f"{len(fixes)} valid GPS fixes"
-            warnings.warn(f"{self.log_path}: {result['reason']}; the map is built in the trajectory's local frame "
-                          "and is NOT georeferenced", InputWarning, stacklevel=3)
+            warnings.warn(
+                f"{self.log_path}: {result['reason']}; the map is built in the trajectory's local frame "
+                "and is NOT georeferenced",
+                InputWarning,
+                stacklevel=3,
+            )
             return None, None
         frame = self._workspace_frame(LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m))
         stamps = np.array([f.stamp_ns for f in fixes], np.int64)
-        gps_enu = frame.geodetic_to_enu([f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes])
+        gps_enu = frame.geodetic_to_enu(
+            [f.lat_deg for f in fixes], [f.lon_deg for f in fixes], [f.alt_m for f in fixes]
+        )
         sigma = np.array([f.horizontal_sigma_m for f in fixes])
         base_from_gps = self.mounts.base_from(traj.body_frame, fixes[0].frame_id, "GPS antenna", without_tf_ok=True)
         g = self.cfg.georef
-        antenna, ok = associate_fixes(traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(g.max_pose_gap_s * 1e9))
+        antenna, ok = associate_fixes(
+            traj.stamps_ns, traj.world_from_base, stamps, base_from_gps, int(g.max_pose_gap_s * 1e9)
+        )
         # structure from motion has no gravity and no scale: only a full Sim3 can place it. A metric
         # trajectory keeps its scale under 'auto': GPS over a drive of a few hundred metres, with a
         # bias that drifts over minutes, estimates scale worse than LiDAR odometry measures it.
@@ -378,9 +464,17 @@ class SessionBuilder:
             mode = "yaw" if g.mode == "auto" else g.mode
         try:
             al = align_to_gps(
-                antenna, gps_enu[ok], sigma[ok], stamps[ok], mode=mode, inlier_sigmas=g.inlier_sigmas,
-                vertical_sigma_factor=g.vertical_sigma_factor, min_inlier_threshold_m=g.min_inlier_threshold_m,
-                up_map=up_map, strict=g.strict, source=str(self.log_path),
+                antenna,
+                gps_enu[ok],
+                sigma[ok],
+                stamps[ok],
+                mode=mode,
+                inlier_sigmas=g.inlier_sigmas,
+                vertical_sigma_factor=g.vertical_sigma_factor,
+                min_inlier_threshold_m=g.min_inlier_threshold_m,
+                up_map=up_map,
+                strict=g.strict,
+                source=str(self.log_path),
             )
         except InputError as exc:
             if g.strict:
@@ -388,16 +482,27 @@ class SessionBuilder:
             result["reason"] = exc.what
             warnings.warn(f"{exc}; the session is NOT georeferenced", InputWarning, stacklevel=3)
             return None, None
-        result.update(georeferenced=True, **frame.to_dict(), alignment=al.stats(), rejected_fixes=al.rejected,
-                      fixes_total=len(fixes), fixes_outside_trajectory=int((~ok).sum()))
+        result.update(
+            georeferenced=True,
+            **frame.to_dict(),
+            alignment=al.stats(),
+            rejected_fixes=al.rejected,
+            fixes_total=len(fixes),
+            fixes_outside_trajectory=int((~ok).sum()),
+        )
         inlier = np.zeros(len(fixes), bool)
         inlier[np.nonzero(ok)[0][al.inliers]] = True
         with atomic_path(self.dirs.gps_fixes) as tmp, open(tmp, "wb") as f:
             np.savez(f, stamps_ns=stamps, enu=gps_enu, sigma_m=sigma, associated=ok, inlier=inlier)
 
         traj_enu = transform_points(al.enu_from_map, traj.world_from_base[:, :3, 3])
-        trajectory_over_gps(out / "trajectory_over_gps.png", traj_enu, gps_enu[ok], al.inliers,
-                            f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)")
+        trajectory_over_gps(
+            out / "trajectory_over_gps.png",
+            traj_enu,
+            gps_enu[ok],
+            al.inliers,
+            f"{self.name}: trajectory over GPS ({al.mode}, RMSE {al.stats()['residual_rmse_m']:.2f} m)",
+        )
         return al, frame
 
     def _fuse(self, traj: Trajectory, enu_from_map: np.ndarray) -> dict:
@@ -406,23 +511,41 @@ class SessionBuilder:
         with np.load(self.dirs.gps_fixes) as f:
             fixes = {k: f[k] for k in ("stamps_ns", "enu", "sigma_m")}
         _, kept, _ = self._screened_fixes()
-        gps = GpsObservations(fixes["stamps_ns"], fixes["enu"], fixes["sigma_m"],
-                              self.mounts.base_from(traj.body_frame, kept[0].frame_id, "GPS antenna", without_tf_ok=True))
+        gps = GpsObservations(
+            fixes["stamps_ns"],
+            fixes["enu"],
+            fixes["sigma_m"],
+            self.mounts.base_from(traj.body_frame, kept[0].frame_id, "GPS antenna", without_tf_ok=True),
+        )
         imu = None
         imu_topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMU, [])
         if imu_topics:
             samples = list(self.log.records(StreamKind.IMU, topic=imu_topics[0]))
             if len(samples) >= 2:
-                imu = ImuObservations.from_samples(samples, self.mounts.base_from(traj.body_frame, samples[0].frame_id, "IMU"))
-        fuse = partial(fuse_session, traj.stamps_ns, traj.world_from_base, gps, None, self.cfg.georef.factor_graph,
-                       enu_from_odom=enu_from_map, source=str(self.log_path), imu=imu)
+                imu = ImuObservations.from_samples(
+                    samples, self.mounts.base_from(traj.body_frame, samples[0].frame_id, "IMU")
+                )
+        fuse = partial(
+            fuse_session,
+            traj.stamps_ns,
+            traj.world_from_base,
+            gps,
+            None,
+            self.cfg.georef.factor_graph,
+            enu_from_odom=enu_from_map,
+            source=str(self.log_path),
+            imu=imu,
+        )
         fused, loop_stats = fuse(), {}
         if self.cfg.georef.factor_graph.loop_closures:
             fused, loop_stats = self._close_loops(traj, fused, fuse)
-        Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu",
-                   body_frame=traj.body_frame).save(self.dirs.fused_trajectory)
+        Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu", body_frame=traj.body_frame).save(
+            self.dirs.fused_trajectory
+        )
         with atomic_path(self.dirs.fused_covariances) as tmp, open(tmp, "wb") as f:
-            np.savez(f, stamps_ns=fused.stamps_ns, covariances=fused.covariances, georef_covariance=fused.georef_covariance)
+            np.savez(
+                f, stamps_ns=fused.stamps_ns, covariances=fused.covariances, georef_covariance=fused.georef_covariance
+            )
         return {**fused.stats, **loop_stats, "imu": "preintegrated" if imu is not None else "no IMU stream"}
 
     def _close_loops(self, traj: Trajectory, fused: FusedTrajectory, fuse) -> tuple[FusedTrajectory, dict]:
@@ -435,10 +558,15 @@ class SessionBuilder:
         t0 = time.perf_counter()
         cfg = self.cfg.georef.factor_graph
         candidates = propose_loops(fused.enu_from_base, fused.keyframes, cfg)
-        scans = read_scans(self.log.records(StreamKind.LIDAR, topic=topics[0]), traj.stamps_ns, fused.enu_from_base,
-                           scans_needed(candidates, len(traj.stamps_ns), cfg),
-                           partial(self.mounts.base_from, traj.body_frame, what="LiDAR", without_tf_ok=True), cfg,
-                           source=f"{self.log_path} {topics[0]}")
+        scans = read_scans(
+            self.log.records(StreamKind.LIDAR, topic=topics[0]),
+            traj.stamps_ns,
+            fused.enu_from_base,
+            scans_needed(candidates, len(traj.stamps_ns), cfg),
+            partial(self.mounts.base_from, traj.body_frame, what="LiDAR", without_tf_ok=True),
+            cfg,
+            source=f"{self.log_path} {topics[0]}",
+        )
         checks = verify_loops(candidates, scans, fused.enu_from_base, cfg)
         loops = loop_closures(checks, traj.stamps_ns)
         stats = loop_counts(loops)
@@ -452,19 +580,29 @@ class SessionBuilder:
         its frame is ENU at ``georef.origin``; placed exactly (through ECEF) in the workspace frame."""
         g = self.cfg.georef
         if g.origin is None:
-            raise InputError(self.ws.build_config, "georef mode 'given' needs the pose stream's ENU origin",
-                             field="georef.origin")
+            raise InputError(
+                self.ws.build_config, "georef mode 'given' needs the pose stream's ENU origin", field="georef.origin"
+            )
         if not traj.source.startswith("poses"):
-            raise InputError(self.log_path, f"georef mode 'given' needs a pose-stream trajectory, not {traj.source!r}",
-                             field="trajectory.source")
+            raise InputError(
+                self.log_path,
+                f"georef mode 'given' needs a pose-stream trajectory, not {traj.source!r}",
+                field="trajectory.source",
+            )
         given = LocalFrame(*g.origin)
         frame = self._workspace_frame(given)
         al = SimpleNamespace(enu_from_map=given.to_frame(frame))
-        result.update(georeferenced=True, **frame.to_dict(), alignment={"mode": "given", "origin": list(g.origin)},
-                      rejected_fixes=[], fixes_total=0, fixes_outside_trajectory=0)
+        result.update(
+            georeferenced=True,
+            **frame.to_dict(),
+            alignment={"mode": "given", "origin": list(g.origin)},
+            rejected_fixes=[],
+            fixes_total=0,
+            fixes_outside_trajectory=0,
+        )
         return al, frame
 
-    def proposed_frame(self) -> Optional[LocalFrame]:
+    def proposed_frame(self) -> LocalFrame | None:
         """The workspace frame this session would set if it were the first one georeferenced: at its
         first fix that passed screening (a wild fix never becomes the origin)."""
         g = self.cfg.georef
@@ -473,7 +611,7 @@ class SessionBuilder:
         _, fixes, _ = self._screened_fixes()
         return None if not fixes else LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m)
 
-    def _screened_fixes(self) -> tuple[list[str], list[GpsFix], Optional[GpsScreen]]:
+    def _screened_fixes(self) -> tuple[list[str], list[GpsFix], GpsScreen | None]:
         """(GPS topics, the fixes of the first that pass :func:`screen_fixes`, the screening), read once.
 
         A fix without altitude (NaN: a frame table without ``alt``, a photo without GPSAltitude) takes
@@ -491,9 +629,12 @@ class SessionBuilder:
                     fill = float(np.median(alt[~missing])) if (~missing).any() else 0.0
                     fixes = [replace(f, alt_m=fill) if m else f for f, m in zip(fixes, missing)]
                     screen.altitude_filled = int(missing.sum())
-                    warnings.warn(f"{self.log_path}: {int(missing.sum())} of {len(fixes)} GPS fixes have no altitude; "
-                                  f"{fill:.2f} m ({'the median of the others' if (~missing).any() else 'none has one'}) is used",
-                                  InputWarning, stacklevel=3)
+                    warnings.warn(
+                        f"{self.log_path}: {int(missing.sum())} of {len(fixes)} GPS fixes have no altitude; "
+                        f"{fill:.2f} m ({'the median of the others' if (~missing).any() else 'none has one'}) is used",
+                        InputWarning,
+                        stacklevel=3,
+                    )
                 self._fixes = (gps_topics, fixes, screen)
         return self._fixes
 
@@ -505,7 +646,7 @@ class SessionBuilder:
         write_json(self.ws.origin, proposed.to_dict())
         return proposed
 
-    def frame(self) -> Optional[LocalFrame]:
+    def frame(self) -> LocalFrame | None:
         """The session's local frame (the workspace's), None when it is not georeferenced."""
         self.georef()
         d = json.loads(self.dirs.gps_alignment.read_text())
@@ -533,13 +674,21 @@ class SessionBuilder:
         if not image_topics:
             raise InputError(self.log_path, "has no image stream to map from", field="topics.images")
         if not infos:
-            raise InputError(self.log_path, "has no camera intrinsics (CameraInfo / calibration); a map cannot be built", field="camera_info")
+            raise InputError(
+                self.log_path,
+                "has no camera intrinsics (CameraInfo / calibration); a map cannot be built",
+                field="camera_info",
+            )
         name = self.cfg.camera
         if name is None:
             on_topics = self._cameras_on(image_topics) if self.cfg.topics.images is not None else set(infos)
             name = next((c for c in sorted(infos) if c in on_topics), sorted(infos)[0])
         if name not in infos:
-            raise InputError(self.log_path, f"camera {name!r} has no intrinsics; cameras with intrinsics: {sorted(infos)}", field="camera")
+            raise InputError(
+                self.log_path,
+                f"camera {name!r} has no intrinsics; cameras with intrinsics: {sorted(infos)}",
+                field="camera",
+            )
         self._camera_choice = (name, image_topics, infos[name])
         return self._camera_choice
 
@@ -583,8 +732,12 @@ class SessionBuilder:
                 yield index, frame, poses[0] @ base_from_cam
             index += 1
         if self._undecodable > 5:
-            warnings.warn(f"{self.log.path}: {self._undecodable} frames of {name} could not be decoded and were skipped "
-                          "(the first 5 are named above)", InputWarning, stacklevel=2)
+            warnings.warn(
+                f"{self.log.path}: {self._undecodable} frames of {name} could not be decoded and were skipped "
+                "(the first 5 are named above)",
+                InputWarning,
+                stacklevel=2,
+            )
 
     def decodes(self, frame: CameraFrame, index: int) -> bool:
         """Whether the frame's image decodes (it is then cached on the frame); a warning names the
@@ -614,8 +767,13 @@ class SessionBuilder:
         smap.save(out, frame=frame)
         traj = self.enu_trajectory()
 
-        map_top_view(out / "top_view.png", smap.points_world, traj.world_from_base[:, :3, 3],
-                     f"{self.name}: semi-dense map, {len(smap.points_world)} points", axes=_plot_axes(frame))
+        map_top_view(
+            out / "top_view.png",
+            smap.points_world,
+            traj.world_from_base[:, :3, 3],
+            f"{self.name}: semi-dense map, {len(smap.points_world)} points",
+            axes=_plot_axes(frame),
+        )
         m = {"points": int(len(smap.points_world)), "crs": None if frame is None else frame.to_dict()}
         m.update(smap.stats())
         write_json(out / "metrics.json", m)
@@ -635,8 +793,10 @@ class SessionBuilder:
         reset_stage(out)
         name, _, info = self._camera()
         body = self.enu_trajectory().body_frame
-        write_json(self.dirs.camera_mount, {"camera": name, "base_frame": body,
-                                            "base_from_camera": self.base_from_camera(body).tolist()})
+        write_json(
+            self.dirs.camera_mount,
+            {"camera": name, "base_frame": body, "base_from_camera": self.base_from_camera(body).tolist()},
+        )
         writer = ImageDbWriter(out, self.cfg.imagedb, {name: info})
         metric = self.metric()
         # a spacing in metres means nothing at a reconstruction's arbitrary scale: every registered frame is kept
@@ -647,7 +807,9 @@ class SessionBuilder:
         last, last_ns, last_stored_ns = None, None, None
         db_id_of_frame: dict[int, int] = {}
         for i, frame, T in self.posed_frames(decode=False):  # only the frames kept are decoded
-            in_db = last is None or (np.linalg.norm(T[:3, 3] - last) >= min_spacing and frame.stamp_ns - last_ns >= min_interval_ns)
+            in_db = last is None or (
+                np.linalg.norm(T[:3, 3] - last) >= min_spacing and frame.stamp_ns - last_ns >= min_interval_ns
+            )
             if not in_db and not (dbc.training_frames and frame.stamp_ns - last_stored_ns >= training_interval_ns):
                 continue
             if not self.decodes(frame, i):
@@ -661,8 +823,10 @@ class SessionBuilder:
         if dbc.training_frames:
             m["training_frames"] = len(writer.training)
         if not metric:
-            m["note"] = ("not georeferenced: poses (images.csv x_m/y_m/z_m, colmap/) are in the reconstruction's arbitrary "
-                         "units, and imagedb.min_spacing_m was not applied")
+            m["note"] = (
+                "not georeferenced: poses (images.csv x_m/y_m/z_m, colmap/) are in the reconstruction's arbitrary "
+                "units, and imagedb.min_spacing_m was not applied"
+            )
         if not with_map:
             writer.close(self.frame())
             write_json(out / "metrics.json", {**m, "map": False})
@@ -687,15 +851,17 @@ class SessionBuilder:
         """Whether the session's poses are in metres: georeferenced, or a metric source (LiDAR, poses)."""
         return not _camera_only(self.enu_trajectory()) or self.frame() is not None
 
-    def skip_reason(self, stage: str) -> Optional[str]:
+    def skip_reason(self, stage: str) -> str | None:
         """Why an image stage (``semidense``, ``imagedb``) does not run for this session, or None."""
         if stage in SKIPPED_BY_CONFIG and not (self.cfg.map if stage == "semidense" else self.cfg.imagedb.enabled):
             return SKIPPED_BY_CONFIG[stage]
         if not resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMAGE):
             return "the log has no image stream" + ("" if self.cfg.topics.images is None else " on topics.images")
         if stage == "semidense" and not self.metric():
-            return ("the camera-only trajectory is not georeferenced: its scale is arbitrary and the mapper's parameters "
-                    "are in metres")
+            return (
+                "the camera-only trajectory is not georeferenced: its scale is arbitrary and the mapper's parameters "
+                "are in metres"
+            )
         return None
 
     def run(self) -> dict:
@@ -716,8 +882,12 @@ class SessionBuilder:
             stage_metrics = json.loads(m_path.read_text()) if m_path.is_file() else {}
             if folder == self.dirs.georef:
                 ga = json.loads(self.dirs.gps_alignment.read_text())
-                stage_metrics = {"georeferenced": ga["georeferenced"], **{k: ga[k] for k in ("reason", "units") if k in ga},
-                                 **{k: v for k, v in ga.items() if k.startswith("length_")}, **ga.get("alignment", {})}
+                stage_metrics = {
+                    "georeferenced": ga["georeferenced"],
+                    **{k: ga[k] for k in ("reason", "units") if k in ga},
+                    **{k: v for k, v in ga.items() if k.startswith("length_")},
+                    **ga.get("alignment", {}),
+                }
             self.timings[stage.__name__] = time.perf_counter() - s0
             self.metrics["stages"][stage.__name__] = stage_metrics
         self.timings["total"] = time.perf_counter() - t0
@@ -759,7 +929,7 @@ def _top_view_positions(traj: Trajectory) -> tuple[np.ndarray, tuple[str, str]]:
     return xyz @ Rotation.from_rotvec(rotvec).as_matrix().T, ("x (levelled by the cameras' up)", "y")
 
 
-def _plot_axes(frame: Optional[LocalFrame]) -> tuple[str, str]:
+def _plot_axes(frame: LocalFrame | None) -> tuple[str, str]:
     """Axis names of a top view: east/north in a georeferenced session, the odometry's x/y otherwise."""
     return ("east", "north") if frame is not None else ("x (trajectory frame)", "y (trajectory frame)")
 
@@ -771,8 +941,13 @@ def _log_bytes(log: Path) -> int:
     return sum(p.stat().st_size for p in log.rglob("*") if p.is_file()) if log.is_dir() else 0
 
 
-def build(logs: list[str | Path], workspace: str | Path | Workspace, config: Optional[str | Path] = None,
-          progress: bool = True, executor: Optional[Executor] = None) -> Path:
+def build(
+    logs: list[str | Path],
+    workspace: str | Path | Workspace,
+    config: str | Path | None = None,
+    progress: bool = True,
+    executor: Executor | None = None,
+) -> Path:
     """Build every log into a session of ``workspace``; returns the workspace.
 
     With an executor of several workers (``executor``, else :func:`mapkit.core.executor.get_executor`)
@@ -786,13 +961,19 @@ def build(logs: list[str | Path], workspace: str | Path | Workspace, config: Opt
     for log in logs:
         name = session_name(log)
         if name in names:
-            raise InputError(log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session")
+            raise InputError(
+                log, f"gives the same session name {name!r} as {names[name]}: rename one of the logs", field="session"
+            )
         names[name] = log
     cfg = load_config(BuildConfig, config)
     for pattern in cfg.sessions:
         if not any(fnmatchcase(name, pattern) for name in names):
-            warnings.warn(f"{config}: sessions.{pattern} matches none of this build's sessions {sorted(names)}; its settings "
-                          "are not used", InputWarning, stacklevel=2)
+            warnings.warn(
+                f"{config}: sessions.{pattern} matches none of this build's sessions {sorted(names)}; its settings "
+                "are not used",
+                InputWarning,
+                stacklevel=2,
+            )
     builders = [SessionBuilder(log, workspace, cfg, progress=progress) for log in logs]
     for b in builders:  # nothing is written before every log passed its checks
         try:
@@ -817,8 +998,9 @@ def _build_parallel(logs: list[Path], ws: Workspace, cfg: BuildConfig, ex: Execu
     order = sorted(range(len(logs)), key=lambda i: -_log_bytes(logs[i]))  # the largest log first
     done: dict[int, dict] = {}
     try:
-        for m, i in zip(ex.map(_build_task, [logs[i] for i in order], shared=(ws, cfg), desc="build",
-                               label=lambda p: str(p)), order):
+        for m, i in zip(
+            ex.map(_build_task, [logs[i] for i in order], shared=(ws, cfg), desc="build", label=lambda p: str(p)), order
+        ):
             done[i] = m
             if progress:
                 logger.info("built %s: %.1f s", m["session"], _session_seconds(ws, m["session"]))
@@ -858,9 +1040,11 @@ def format_build_summary(workspace: str | Path | Workspace) -> str:
     ``au`` (a camera-only session that is not georeferenced: the reconstruction's arbitrary units)."""
     ws = Workspace(workspace)
     m = json.loads(ws.metrics.read_text())
-    rows = [f"workspace {ws.root}",
-            f"  {'session':<24} {'traj src':<22} {'length m':>11} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} "
-            f"{'points':>9} {'images':>7} {'time s':>7}"]
+    rows = [
+        f"workspace {ws.root}",
+        f"  {'session':<24} {'traj src':<22} {'length m':>11} {'georef':>7} {'GPS rmse m':>10} {'rejected':>8} "
+        f"{'points':>9} {'images':>7} {'time s':>7}",
+    ]
     for name, s in m["sessions"].items():
         st = s["stages"]
         tr, ge, mp, db = st.get("trajectory", {}), st.get("georef", {}), st.get("semidense", {}), st.get("imagedb", {})
@@ -874,7 +1058,11 @@ def format_build_summary(workspace: str | Path | Workspace) -> str:
         )
         if ge.get("reason"):
             rows.append(f"    not georeferenced: {ge['reason']}")
-        rows.extend(f"    {stage} skipped: {st[stage]['skipped']}" for stage in ("semidense", "imagedb") if "skipped" in st.get(stage, {}))
+        rows.extend(
+            f"    {stage} skipped: {st[stage]['skipped']}"
+            for stage in ("semidense", "imagedb")
+            if "skipped" in st.get(stage, {})
+        )
         if db.get("pose_units", "m") != "m":
             rows.append(f"    imagedb poses in {db['pose_units']}")
     return "\n".join(rows)

@@ -84,7 +84,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -102,142 +102,271 @@ DOWNWEIGHTED_SIGMAS = 3.0 * np.sqrt(6.0)
 
 class FactorGraphConfig(MapkitConfig):
     keyframe_distance_m: float = Field(1.0, description="A keyframe every this many metres driven.")
-    keyframe_interval_s: float = Field(0.5, description="... or every this many seconds, whichever comes first (standing still).")
+    keyframe_interval_s: float = Field(
+        0.5, description="... or every this many seconds, whichever comes first (standing still)."
+    )
     # kiss-icp's error as the sum of a random walk of its frame in the distance driven and a per-pose jitter that does not
     # accumulate (scan-to-map registration: the next scan is registered to the map, not to this pose). Per base axis:
     # rotation about x (roll), y (pitch), z (yaw); translation along x (forward), y (left), z (up). Defaults: kiss-icp on
     # tiny-sunny at 512 columns, fitted against the truth by bench/factor_graph_budget.py (robust spread over 0.5-32 m steps,
     # start and final braking left out); tiny-night and tiny-rainy, not used for the choice, fit within a factor 1.6.
     odom_rotation_walk_rad_per_sqrt_m: tuple[float, float, float] = Field(
-        (1.6e-4, 6e-5, 9e-5), description="Odometry drift, rotation per axis: sigma over d metres = this * sqrt(d).")
+        (1.6e-4, 6e-5, 9e-5), description="Odometry drift, rotation per axis: sigma over d metres = this * sqrt(d)."
+    )
     odom_translation_walk_m_per_sqrt_m: tuple[float, float, float] = Field(
-        (0.007, 0.008, 0.002), description="Odometry drift, translation per axis: sigma over d metres = this * sqrt(d).")
+        (0.007, 0.008, 0.002), description="Odometry drift, translation per axis: sigma over d metres = this * sqrt(d)."
+    )
     odom_rotation_jitter_rad: tuple[float, float, float] = Field(
-        (2.2e-4, 1.8e-4, 4.5e-4), description="Odometry registration noise of one pose, rotation per axis (white).")
+        (2.2e-4, 1.8e-4, 4.5e-4), description="Odometry registration noise of one pose, rotation per axis (white)."
+    )
     odom_translation_jitter_m: tuple[float, float, float] = Field(
-        (0.017, 0.015, 0.003), description="Odometry registration noise of one pose, translation per axis (white).")
+        (0.017, 0.015, 0.003), description="Odometry registration noise of one pose, translation per axis (white)."
+    )
     gps_robust: Literal["cauchy", "huber", "none"] = Field(
-        "cauchy", description="Robust loss on GPS fixes: Cauchy (redescending: multipath jumps of several metres barely pull), Huber, or none.")
-    gps_robust_k: float = Field(2.0, description="The loss's scale in sigmas (Cauchy: 2.385 is the 95%-efficiency choice; 2 cuts harder).")
-    gps_white_min_sigma_m: float = Field(0.5, description="Floor of a fix's white-noise sigma (horizontal) once the bias variance is taken out.")
-    gps_unknown_sigma_m: float = Field(2.5, description="Reported horizontal sigma assumed for fixes without a covariance.")
-    gps_vertical_sigma_factor: float = Field(2.0, description="GNSS vertical sigma as a multiple of the horizontal (white and bias).")
+        "cauchy",
+        description="Robust loss on GPS fixes: Cauchy (redescending: multipath jumps of several metres barely pull), Huber, or none.",
+    )
+    gps_robust_k: float = Field(
+        2.0, description="The loss's scale in sigmas (Cauchy: 2.385 is the 95%-efficiency choice; 2 cuts harder)."
+    )
+    gps_white_min_sigma_m: float = Field(
+        0.5, description="Floor of a fix's white-noise sigma (horizontal) once the bias variance is taken out."
+    )
+    gps_unknown_sigma_m: float = Field(
+        2.5, description="Reported horizontal sigma assumed for fixes without a covariance."
+    )
+    gps_vertical_sigma_factor: float = Field(
+        2.0, description="GNSS vertical sigma as a multiple of the horizontal (white and bias)."
+    )
     gps_bias: bool = Field(True, description="Estimate a slowly varying GPS bias (random walk between bias nodes).")
-    gps_bias_sigma_m: float = Field(2.0, description="Horizontal standard deviation of the GPS bias (consumer GNSS: metres; synth tiny: 2 m).")
-    gps_bias_tau_s: float = Field(300.0, description="Correlation time of the bias (ionosphere, satellite geometry: minutes).")
+    gps_bias_sigma_m: float = Field(
+        2.0, description="Horizontal standard deviation of the GPS bias (consumer GNSS: metres; synth tiny: 2 m)."
+    )
+    gps_bias_tau_s: float = Field(
+        300.0, description="Correlation time of the bias (ionosphere, satellite geometry: minutes)."
+    )
     bias_interval_s: float = Field(5.0, description="A bias node every this many seconds.")
-    gravity_sigma_rad: float = Field(0.003, description="White noise of one up-direction observation (accelerometer noise and "
-                                     "odometry acceleration over the averaging window).")
-    gravity_bias_sigma_rad: float = Field(0.002, description="Constant tilt of the measured up vector: accelerometer bias / g "
-                                          "(consumer MEMS: 0.02 m/s^2, synth tiny's accel_bias_m_s2) plus mount calibration.")
-    gravity_robust_k: float = Field(2.0, description="Cauchy loss on gravity factors, in sigmas: windows where the odometry's speed "
-                                    "is wrong (kiss-icp slipping) give a tilted up and are down-weighted.")
+    gravity_sigma_rad: float = Field(
+        0.003,
+        description="White noise of one up-direction observation (accelerometer noise and "
+        "odometry acceleration over the averaging window).",
+    )
+    gravity_bias_sigma_rad: float = Field(
+        0.002,
+        description="Constant tilt of the measured up vector: accelerometer bias / g "
+        "(consumer MEMS: 0.02 m/s^2, synth tiny's accel_bias_m_s2) plus mount calibration.",
+    )
+    gravity_robust_k: float = Field(
+        2.0,
+        description="Cauchy loss on gravity factors, in sigmas: windows where the odometry's speed "
+        "is wrong (kiss-icp slipping) give a tilted up and are down-weighted.",
+    )
     odom_robust: Literal["huber", "cauchy", "none"] = Field(
-        "cauchy", description="Robust loss on the odometry's drift and jitter factors: a registration that slipped (kiss-icp locking "
+        "cauchy",
+        description="Robust loss on the odometry's drift and jitter factors: a registration that slipped (kiss-icp locking "
         "onto too little motion from standstill, or along a corridor of flat facades) gives way to the IMU and GPS. Cauchy, not Huber: "
         "a slip of metres is hundreds of sigmas, and Huber's bounded but constant pull still drags the speed around it (tiny-sunny, "
-        "bench/factor_graph_budget.py: error across its braking slip 1.16 m with Huber, 0.26 m with Cauchy, both at k = 2).")
-    odom_robust_k: float = Field(2.0, description="The odometry loss's scale, in sigmas (chosen on tiny-sunny from 1, 1.5, 2, 3 "
-                                 "and 5: smaller cuts kiss-icp's systematic pitch drift harder but takes more iterations).")
-    odom_slip_sigmas: float = Field(4.03, description="A keyframe step whose translation the solution moves by more than this many "
-                                    "sigmas of the odometry model is off the odometry (chi-square, 3 dof, 99.9%).")
-    odom_slip_min_m: float = Field(0.3, description="A run of steps off the odometry is reported as a slip when the solution moves "
-                                   "the odometry's motion across it by more than this (less is kiss-icp's heavy-tailed registration "
-                                   "noise: tiny-sunny, RMS 0.034 m against a robust spread of 0.022 m over 1 m steps).")
+        "bench/factor_graph_budget.py: error across its braking slip 1.16 m with Huber, 0.26 m with Cauchy, both at k = 2).",
+    )
+    odom_robust_k: float = Field(
+        2.0,
+        description="The odometry loss's scale, in sigmas (chosen on tiny-sunny from 1, 1.5, 2, 3 "
+        "and 5: smaller cuts kiss-icp's systematic pitch drift harder but takes more iterations).",
+    )
+    odom_slip_sigmas: float = Field(
+        4.03,
+        description="A keyframe step whose translation the solution moves by more than this many "
+        "sigmas of the odometry model is off the odometry (chi-square, 3 dof, 99.9%).",
+    )
+    odom_slip_min_m: float = Field(
+        0.3,
+        description="A run of steps off the odometry is reported as a slip when the solution moves "
+        "the odometry's motion across it by more than this (less is kiss-icp's heavy-tailed registration "
+        "noise: tiny-sunny, RMS 0.034 m against a robust spread of 0.022 m over 1 m steps).",
+    )
     imu_gyro_noise_density: float = Field(
-        2.4e-4, description="Gyro white noise, rad/s/sqrt(Hz) (continuous time; per-sample sigma = this * sqrt(rate)). "
-        "ADIS16448 datasheet (the EuRoC / VI-sensor MEMS IMU): 0.0135 deg/s/sqrt(Hz).")
+        2.4e-4,
+        description="Gyro white noise, rad/s/sqrt(Hz) (continuous time; per-sample sigma = this * sqrt(rate)). "
+        "ADIS16448 datasheet (the EuRoC / VI-sensor MEMS IMU): 0.0135 deg/s/sqrt(Hz).",
+    )
     imu_accel_noise_density: float = Field(
-        2.3e-3, description="Accelerometer white noise, m/s^2/sqrt(Hz). ADIS16448 datasheet: 0.23 mg/sqrt(Hz).")
+        2.3e-3, description="Accelerometer white noise, m/s^2/sqrt(Hz). ADIS16448 datasheet: 0.23 mg/sqrt(Hz)."
+    )
     imu_gyro_random_walk: float = Field(
-        4.0e-6, description="Gyro bias random walk, rad/s^2/sqrt(Hz). Kalibr's example IMU file (ADIS16448).")
+        4.0e-6, description="Gyro bias random walk, rad/s^2/sqrt(Hz). Kalibr's example IMU file (ADIS16448)."
+    )
     imu_accel_random_walk: float = Field(
-        2.0e-4, description="Accelerometer bias random walk, m/s^3/sqrt(Hz). Kalibr's example IMU file (ADIS16448).")
+        2.0e-4, description="Accelerometer bias random walk, m/s^3/sqrt(Hz). Kalibr's example IMU file (ADIS16448)."
+    )
     imu_gyro_bias_sigma: float = Field(
-        0.005, description="Prior sigma of the gyro's turn-on bias, rad/s (mapkit choice: about 0.3 deg/s, loose for consumer MEMS; "
-        "the drive refines it).")
+        0.005,
+        description="Prior sigma of the gyro's turn-on bias, rad/s (mapkit choice: about 0.3 deg/s, loose for consumer MEMS; "
+        "the drive refines it).",
+    )
     imu_accel_bias_sigma: float = Field(
-        0.1, description="Prior sigma of the accelerometer's turn-on bias, m/s^2 (mapkit choice: about 10 mg, loose for consumer MEMS).")
-    imu_gravity_m_s2: float = Field(9.80665, description="Magnitude of gravity (standard gravity; a local difference of mm/s^2 goes "
-                                    "into the accelerometer bias).")
-    imu_max_gap_s: float = Field(0.1, description="Keyframe intervals where IMU samples are further apart than this get no IMU "
-                                 "factor (a dropout).")
+        0.1,
+        description="Prior sigma of the accelerometer's turn-on bias, m/s^2 (mapkit choice: about 10 mg, loose for consumer MEMS).",
+    )
+    imu_gravity_m_s2: float = Field(
+        9.80665,
+        description="Magnitude of gravity (standard gravity; a local difference of mm/s^2 goes "
+        "into the accelerometer bias).",
+    )
+    imu_max_gap_s: float = Field(
+        0.1,
+        description="Keyframe intervals where IMU samples are further apart than this get no IMU factor (a dropout).",
+    )
     # the car's non-holonomic constraint: without it the graph's height drifts on a flat road. Its sigma is fitted on
     # tiny-sunny's truth only; tiny-night and tiny-rainy were not used for the choice
     nhc_sigma_m_s: float = Field(
-        0.005, ge=0, description="With the IMU preintegrated: a car's rear axle rolls, it does not slide. Between consecutive "
+        0.005,
+        ge=0,
+        description="With the IMU preintegrated: a car's rear axle rolls, it does not slide. Between consecutive "
         "keyframes the base moves along the chord of its arc, at half the odometry's heading change from its earlier heading; "
         "its displacement across that chord is zero with sigma = this times the keyframes' time apart, m/s (0: off). The base "
         "frame's origin is taken for the rear axle's centre: a base elsewhere (the car's centre, the front axle) moves "
         "sideways in every turn. Synthetic town, tiny-sunny: the truth's displacement across the chord of the odometry's "
         "heading change, rms 0.0047 m/s times dt (robust spread 0.0019; the truth's own, with its heading: 0.0025, lane "
-        "wander); eight other synthetic drives, not used for the choice: 0.0039-0.0059.")
-    nhc_robust_k: float = Field(2.0, gt=0, description="Cauchy loss on those factors, in sigmas (a skid; the odometry's heading "
-                                "change off where it slips).")
-    first_attitude_sigma_rad: float = Field(0.2, description="Weak prior on the first keyframe's attitude (the initial guess's).")
+        "wander); eight other synthetic drives, not used for the choice: 0.0039-0.0059.",
+    )
+    nhc_robust_k: float = Field(
+        2.0,
+        gt=0,
+        description="Cauchy loss on those factors, in sigmas (a skid; the odometry's heading "
+        "change off where it slips).",
+    )
+    first_attitude_sigma_rad: float = Field(
+        0.2, description="Weak prior on the first keyframe's attitude (the initial guess's)."
+    )
     max_pose_gap_s: float = Field(1.0, description="A fix between odometry poses further apart than this is not used.")
     max_iterations: int = Field(100, description="Levenberg-Marquardt iterations.")
     # loop closures (mapping/loop_closure.py): proposed by position, verified by ICP of local maps. Gates and floors set on
     # two synthetic loop drives (tiny preset's town generated around a 294 m rounded rectangle driven from rest a lap and 30 m
     # on, LiDAR at 10 and 5 Hz) and on ICP of sweeps ray cast in the tiny town; tests/test_loop_closure.py's end-to-end drive
     # (another town and route) was not used for any choice
-    loop_closures: bool = Field(True, description="Close loops where the session revisits a place (mapkit build: logs with "
-                                "a LiDAR stream; the graph takes the accepted ones as robust between factors).")
-    loop_radius_m: float = Field(6.0, gt=0, description="Propose keyframe pairs whose positions lie this close horizontally "
-                                 "(two lanes apart, 3.5 m, plus the GPS-fused estimate's error where the drive comes back, "
-                                 "1.4-2.3 m on the synthetic loops); the odometry's drift over the distance driven "
-                                 "between them is added (loop_proposal_sigmas).")
-    loop_proposal_sigmas: float = Field(3.0, gt=0, description="... plus this many sigmas of the odometry model's horizontal "
-                                        "drift over the distance driven between the pair (odom_*_walk).")
-    loop_min_travel_m: float = Field(50.0, gt=0, description="A pair is a loop only when this much was driven between them: "
-                                     "closer keyframes are the same pass, which the odometry already ties (mapkit choice: half "
-                                     "the LiDAR's useful range).")
-    loop_min_separation_m: float = Field(10.0, gt=0, description="At most one candidate (the nearest) per this much route on "
-                                         "either pass: neighbouring pairs see the same scene and add cost, not information.")
-    loop_local_scans: int = Field(2, ge=0, description="A keyframe's local map: its scan and this many on each side, placed "
-                                  "(and deskewed) with the fused trajectory (synthetic loop, ICP's edges against the truth: "
-                                  "2-7 cm and 0.02-0.33 deg with 2, 4-20 cm with 5: the placement's own errors grow with the "
-                                  "span; 0 leaves single sweeps, 3-14 cm).")
-    loop_local_radius_m: float = Field(40.0, gt=0, description="Local maps keep points within this horizontal distance of their "
-                                       "keyframe (the scene both passes see; far returns are sparse and noisy).")
-    loop_min_range_m: float = Field(2.0, ge=0, description="Returns closer to the scanner than this are dropped (the vehicle "
-                                    "body; kiss-icp's min_range).")
-    loop_icp_voxels_m: tuple[float, ...] = Field((1.0, 0.5, 0.2), description="Voxel size of each coarse-to-fine ICP level.")
+    loop_closures: bool = Field(
+        True,
+        description="Close loops where the session revisits a place (mapkit build: logs with "
+        "a LiDAR stream; the graph takes the accepted ones as robust between factors).",
+    )
+    loop_radius_m: float = Field(
+        6.0,
+        gt=0,
+        description="Propose keyframe pairs whose positions lie this close horizontally "
+        "(two lanes apart, 3.5 m, plus the GPS-fused estimate's error where the drive comes back, "
+        "1.4-2.3 m on the synthetic loops); the odometry's drift over the distance driven "
+        "between them is added (loop_proposal_sigmas).",
+    )
+    loop_proposal_sigmas: float = Field(
+        3.0,
+        gt=0,
+        description="... plus this many sigmas of the odometry model's horizontal "
+        "drift over the distance driven between the pair (odom_*_walk).",
+    )
+    loop_min_travel_m: float = Field(
+        50.0,
+        gt=0,
+        description="A pair is a loop only when this much was driven between them: "
+        "closer keyframes are the same pass, which the odometry already ties (mapkit choice: half "
+        "the LiDAR's useful range).",
+    )
+    loop_min_separation_m: float = Field(
+        10.0,
+        gt=0,
+        description="At most one candidate (the nearest) per this much route on "
+        "either pass: neighbouring pairs see the same scene and add cost, not information.",
+    )
+    loop_local_scans: int = Field(
+        2,
+        ge=0,
+        description="A keyframe's local map: its scan and this many on each side, placed "
+        "(and deskewed) with the fused trajectory (synthetic loop, ICP's edges against the truth: "
+        "2-7 cm and 0.02-0.33 deg with 2, 4-20 cm with 5: the placement's own errors grow with the "
+        "span; 0 leaves single sweeps, 3-14 cm).",
+    )
+    loop_local_radius_m: float = Field(
+        40.0,
+        gt=0,
+        description="Local maps keep points within this horizontal distance of their "
+        "keyframe (the scene both passes see; far returns are sparse and noisy).",
+    )
+    loop_min_range_m: float = Field(
+        2.0,
+        ge=0,
+        description="Returns closer to the scanner than this are dropped (the vehicle body; kiss-icp's min_range).",
+    )
+    loop_icp_voxels_m: tuple[float, ...] = Field(
+        (1.0, 0.5, 0.2), description="Voxel size of each coarse-to-fine ICP level."
+    )
     loop_icp_max_correspondence_m: tuple[float, ...] = Field(
-        (4.0, 1.5, 0.5), description="Largest correspondence distance of each level; the first bounds the error of the "
-        "estimate ICP can pull in.")
+        (4.0, 1.5, 0.5),
+        description="Largest correspondence distance of each level; the first bounds the error of the "
+        "estimate ICP can pull in.",
+    )
     loop_icp_iterations: int = Field(30, ge=1, description="ICP iterations per level.")
-    loop_eval_distance_m: float = Field(0.3, gt=0, description="Correspondence distance at which overlap (fitness), RMSE and "
-                                        "conditioning are measured (the fine level).")
-    loop_min_points: int = Field(1000, ge=10, description="A local map with fewer points (after the fine voxel) is not "
-                                 "registered.")
-    loop_min_fitness: float = Field(0.5, ge=0, le=1, description="Accept only when this fraction of one local map lies within "
-                                    "loop_eval_distance_m of the other's surfaces (one place seen twice: 0.90-0.99 on the "
-                                    "synthetic loops; another place ICP fitted anyway: 0.41-0.64).")
-    loop_max_rmse_m: float = Field(0.08, gt=0, description="... and their point-to-plane RMSE over those is below this "
-                                   "(one place: 0.016-0.052 m; another place: 0.073-0.086 m).")
-    loop_min_constraint: float = Field(0.03, gt=0, le=1, description="... and every direction of translation is held: the "
-                                       "smallest eigenvalue of the point-to-plane Hessian's translation block (rotation "
-                                       "marginalised) per correspondence, at least this; between 0 (a street of flat "
-                                       "facades holds nothing along itself) and 1/3 (one place: 0.06-0.12; another place: "
-                                       "0.008-0.025).")
-    loop_max_correction_m: float = Field(4.0, gt=0, description="Reject when ICP moves the pair's relative position further "
-                                         "than this from the estimate (the first level's reach).")
+    loop_eval_distance_m: float = Field(
+        0.3,
+        gt=0,
+        description="Correspondence distance at which overlap (fitness), RMSE and "
+        "conditioning are measured (the fine level).",
+    )
+    loop_min_points: int = Field(
+        1000, ge=10, description="A local map with fewer points (after the fine voxel) is not registered."
+    )
+    loop_min_fitness: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="Accept only when this fraction of one local map lies within "
+        "loop_eval_distance_m of the other's surfaces (one place seen twice: 0.90-0.99 on the "
+        "synthetic loops; another place ICP fitted anyway: 0.41-0.64).",
+    )
+    loop_max_rmse_m: float = Field(
+        0.08,
+        gt=0,
+        description="... and their point-to-plane RMSE over those is below this "
+        "(one place: 0.016-0.052 m; another place: 0.073-0.086 m).",
+    )
+    loop_min_constraint: float = Field(
+        0.03,
+        gt=0,
+        le=1,
+        description="... and every direction of translation is held: the "
+        "smallest eigenvalue of the point-to-plane Hessian's translation block (rotation "
+        "marginalised) per correspondence, at least this; between 0 (a street of flat "
+        "facades holds nothing along itself) and 1/3 (one place: 0.06-0.12; another place: "
+        "0.008-0.025).",
+    )
+    loop_max_correction_m: float = Field(
+        4.0,
+        gt=0,
+        description="Reject when ICP moves the pair's relative position further "
+        "than this from the estimate (the first level's reach).",
+    )
     loop_max_rotation_deg: float = Field(5.0, gt=0, description="... or turns it by more than this.")
-    loop_floor_rotation_rad: float = Field(0.003, gt=0, description="Added to a loop edge's rotation sigma per axis: its "
-                                           "local maps are placed with an estimate whose errors over their span no support "
-                                           "removes (synthetic loop: ICP's edges off the truth by 0.02-0.33 deg).")
-    loop_floor_translation_m: float = Field(0.05, gt=0, description="... and to its translation sigma per axis (synthetic "
-                                            "loop: 2-7 cm).")
-    loop_robust_k: float = Field(4.0, gt=0, description="Cauchy loss on the loop factors, in sigmas of the edge's covariance. "
-                                 "Far out a Cauchy factor pulls with k^2 / (its residual) whatever its sigma, so a loop holds "
-                                 "when the rest of the graph lies within about 2k of its own sigmas of it, and gives way "
-                                 "beyond. Chosen from 2, 3, 4, 5 and 10 on two synthetic loop drives (tiny preset, 294 m "
-                                 "rounded rectangle, LiDAR at 10 and 5 Hz), where the graph without loops is 3-7 of its "
-                                 "sigmas off at the revisit (median error of the motion between the passes 1.52 / 2.48 m): "
-                                 "2 left 0.77 / -, 3 0.10 / 1.70, 4 0.12 / 0.22, 5 0.12 / 0.19 m; and on "
-                                 "tests/test_loop_closure.py's GPS-held drive, where a loop 12 m off across the road moves "
-                                 "the solution 0.44 m with 3, 0.80 m with 4, and one 5 m off wins with 4.")
+    loop_floor_rotation_rad: float = Field(
+        0.003,
+        gt=0,
+        description="Added to a loop edge's rotation sigma per axis: its "
+        "local maps are placed with an estimate whose errors over their span no support "
+        "removes (synthetic loop: ICP's edges off the truth by 0.02-0.33 deg).",
+    )
+    loop_floor_translation_m: float = Field(
+        0.05, gt=0, description="... and to its translation sigma per axis (synthetic loop: 2-7 cm)."
+    )
+    loop_robust_k: float = Field(
+        4.0,
+        gt=0,
+        description="Cauchy loss on the loop factors, in sigmas of the edge's covariance. "
+        "Far out a Cauchy factor pulls with k^2 / (its residual) whatever its sigma, so a loop holds "
+        "when the rest of the graph lies within about 2k of its own sigmas of it, and gives way "
+        "beyond. Chosen from 2, 3, 4, 5 and 10 on two synthetic loop drives (tiny preset, 294 m "
+        "rounded rectangle, LiDAR at 10 and 5 Hz), where the graph without loops is 3-7 of its "
+        "sigmas off at the revisit (median error of the motion between the passes 1.52 / 2.48 m): "
+        "2 left 0.77 / -, 3 0.10 / 1.70, 4 0.12 / 0.22, 5 0.12 / 0.19 m; and on "
+        "tests/test_loop_closure.py's GPS-held drive, where a loop 12 m off across the road moves "
+        "the solution 0.44 m with 3, 0.80 m with 4, and one 5 m off wins with 4.",
+    )
 
 
 @dataclass
@@ -268,10 +397,14 @@ class ImuObservations:
     base_from_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
 
     @classmethod
-    def from_samples(cls, samples: list, base_from_imu: np.ndarray) -> "ImuObservations":
+    def from_samples(cls, samples: list, base_from_imu: np.ndarray) -> ImuObservations:
         """From a log's ``ImuSample`` records (``DriveLog.records(StreamKind.IMU)``) and the IMU's mount."""
-        return cls(np.array([s.stamp_ns for s in samples], np.int64), np.stack([s.angular_velocity_rad_s for s in samples]),
-                   np.stack([s.linear_acceleration_m_s2 for s in samples]), np.asarray(base_from_imu, np.float64))
+        return cls(
+            np.array([s.stamp_ns for s in samples], np.int64),
+            np.stack([s.angular_velocity_rad_s for s in samples]),
+            np.stack([s.linear_acceleration_m_s2 for s in samples]),
+            np.asarray(base_from_imu, np.float64),
+        )
 
 
 @dataclass
@@ -305,7 +438,9 @@ class FusedTrajectory:
     georef_covariance: np.ndarray  # 6x6 of the keyframe at the drive's middle: how well the session is tied to ENU
     gps_inliers: np.ndarray  # (n fixes used,) whitened residual below GPS_INLIER_SIGMAS at the solution
     stats: dict
-    solution: object = None  # the graph's solved gtsam.Values: where a re-solve of the same keyframes starts (``start``)
+    solution: object = (
+        None  # the graph's solved gtsam.Values: where a re-solve of the same keyframes starts (``start``)
+    )
 
     def position_sigmas_m(self) -> np.ndarray:
         """(N, 3) standard deviations of east, north, up."""
@@ -315,9 +450,17 @@ class FusedTrajectory:
 # --- gravity -----------------------------------------------------------------------------------------
 
 
-def gravity_from_imu(imu_stamps_ns: np.ndarray, gyro_rad_s: np.ndarray, accel_m_s2: np.ndarray, base_from_imu: np.ndarray,
-                     stamps_ns: np.ndarray, world_from_base: np.ndarray, query_ns: np.ndarray, window_s: float = 1.0,
-                     speed_baseline_s: float = 1.0) -> GravityObservations:
+def gravity_from_imu(
+    imu_stamps_ns: np.ndarray,
+    gyro_rad_s: np.ndarray,
+    accel_m_s2: np.ndarray,
+    base_from_imu: np.ndarray,
+    stamps_ns: np.ndarray,
+    world_from_base: np.ndarray,
+    query_ns: np.ndarray,
+    window_s: float = 1.0,
+    speed_baseline_s: float = 1.0,
+) -> GravityObservations:
     """Up in the base frame at ``query_ns``: the accelerometer's specific force less the car's own acceleration.
 
     The specific force is ``f = a + R^T g up`` (body frame). A car does not slide: its base (the
@@ -338,13 +481,20 @@ def gravity_from_imu(imu_stamps_ns: np.ndarray, gyro_rad_s: np.ndarray, accel_m_
     p = world_from_base[:, :3, 3]
 
     def speed(t: np.ndarray) -> np.ndarray:
-        ends = np.stack([np.interp(np.concatenate([t - hb, t + hb]).astype(np.float64), stamps.astype(np.float64), p[:, k])
-                         for k in range(3)], axis=1).reshape(2, len(t), 3)
+        ends = np.stack(
+            [
+                np.interp(np.concatenate([t - hb, t + hb]).astype(np.float64), stamps.astype(np.float64), p[:, k])
+                for k in range(3)
+            ],
+            axis=1,
+        ).reshape(2, len(t), 3)
         return np.linalg.norm(ends[1] - ends[0], axis=1) / (2 * hb * 1e-9)
 
     v_imu = speed(imu_t.clip(stamps[0] + hb, stamps[-1] - hb))
     # per sample: centripetal v w_z (lateral) and the lever arm's w x (w x r)
-    a_turn = np.column_stack([np.zeros(len(imu_t)), v_imu * w_b[:, 2], np.zeros(len(imu_t))]) + np.cross(w_b, np.cross(w_b, r))
+    a_turn = np.column_stack([np.zeros(len(imu_t)), v_imu * w_b[:, 2], np.zeros(len(imu_t))]) + np.cross(
+        w_b, np.cross(w_b, r)
+    )
     csum = lambda x: np.vstack([np.zeros(x.shape[1]), np.cumsum(x, axis=0)])  # noqa: E731
     cf, ca, cw = csum(f_b), csum(a_turn), csum(w_b)
     lo, hi = np.searchsorted(imu_t, q - half), np.searchsorted(imu_t, q + half, side="right")
@@ -403,7 +553,9 @@ def _gravity_error(up_meas: np.ndarray):
 # --- the graph ---------------------------------------------------------------------------------------
 
 
-def select_keyframes(stamps_ns: np.ndarray, world_from_base: np.ndarray, distance_m: float, interval_s: float) -> np.ndarray:
+def select_keyframes(
+    stamps_ns: np.ndarray, world_from_base: np.ndarray, distance_m: float, interval_s: float
+) -> np.ndarray:
     """Indices of keyframes: the first pose, every pose ``distance_m`` or ``interval_s`` past the last keyframe, the last pose."""
     p = world_from_base[:, :3, 3]
     keys = [0]
@@ -446,15 +598,24 @@ def _drift_covariance(rel: np.ndarray, cfg: FactorGraphConfig) -> np.ndarray:
     """6x6 covariance (base frame, gtsam's tangent order) of the odometry frame's drift over one step: a random walk
     in the distance driven (a step counts at least 1 cm, so that standing still is not a singular constraint)."""
     d = max(float(np.linalg.norm(rel[:3, 3])), 0.01)
-    return np.diag(np.concatenate([cfg.odom_rotation_walk_rad_per_sqrt_m, cfg.odom_translation_walk_m_per_sqrt_m]) ** 2 * d)
+    return np.diag(
+        np.concatenate([cfg.odom_rotation_walk_rad_per_sqrt_m, cfg.odom_translation_walk_m_per_sqrt_m]) ** 2 * d
+    )
 
 
 def _odom_loss(gtsam, noise, cfg: FactorGraphConfig):
     return _robust(gtsam, noise, cfg.odom_robust, cfg.odom_robust_k)
 
 
-def _add_nhc(gtsam, graph, odom_rel: list[np.ndarray], kf_stamps: np.ndarray, state_from_base: np.ndarray, cfg: FactorGraphConfig,
-             X) -> int:
+def _add_nhc(
+    gtsam,
+    graph,
+    odom_rel: list[np.ndarray],
+    kf_stamps: np.ndarray,
+    state_from_base: np.ndarray,
+    cfg: FactorGraphConfig,
+    X,
+) -> int:
     """The non-holonomic constraint over each keyframe step: the base's displacement, in the earlier keyframe's base axes,
     has no component across the chord direction (half the odometry's heading change ``dpsi`` from the x axis), within
     ``nhc_sigma_m_s * dt``; nothing else about the step is said (the information is that one direction, moved into the
@@ -470,22 +631,36 @@ def _add_nhc(gtsam, graph, odom_rel: list[np.ndarray], kf_stamps: np.ndarray, st
         half = 0.5 * float(np.arctan2(rel[1, 0], rel[0, 0]))
         across = np.array([-np.sin(half), np.cos(half), 0.0])  # across the chord, in keyframe k's base axes
         meas = rel.copy()
-        meas[:3, 3] = np.array([np.cos(half), np.sin(half), 0.0]) * float(np.hypot(rel[0, 3], rel[1, 3])) + [0.0, 0.0, rel[2, 3]]
+        meas[:3, 3] = np.array([np.cos(half), np.sin(half), 0.0]) * float(np.hypot(rel[0, 3], rel[1, 3])) + [
+            0.0,
+            0.0,
+            rel[2, 3],
+        ]
         m = rel[:3, :3].T @ across  # the between factor's translation error is in the measured pose's axes
         info = np.zeros((6, 6))
         info[3:, 3:] = np.outer(m, m) / (cfg.nhc_sigma_m_s * dt) ** 2  # base tangent (rotation, translation)
         # in the state frame; a negligible information on the other five directions keeps it positive definite
         info = Ad_bs.T @ info @ Ad_bs + 1e-8 * np.eye(6)
         noise = _robust(gtsam, gtsam.noiseModel.Gaussian.Information(0.5 * (info + info.T)), "cauchy", cfg.nhc_robust_k)
-        graph.add(gtsam.BetweenFactorPose3(X(k), X(k + 1), gtsam.Pose3(state_from_base @ meas @ base_from_state), noise))
+        graph.add(
+            gtsam.BetweenFactorPose3(X(k), X(k + 1), gtsam.Pose3(state_from_base @ meas @ base_from_state), noise)
+        )
     return len(odom_rel)
 
 
-def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: Optional[GpsObservations] = None,
-                 gravity: Optional[GravityObservations] = None, cfg: Optional[FactorGraphConfig] = None,
-                 enu_from_odom: Optional[np.ndarray] = None, source: str = "session", *,
-                 imu: Optional[ImuObservations] = None, loops: Optional[LoopClosures] = None,
-                 start: Optional[FusedTrajectory] = None) -> FusedTrajectory:
+def fuse_session(
+    stamps_ns: np.ndarray,
+    world_from_base_odom: np.ndarray,
+    gps: GpsObservations | None = None,
+    gravity: GravityObservations | None = None,
+    cfg: FactorGraphConfig | None = None,
+    enu_from_odom: np.ndarray | None = None,
+    source: str = "session",
+    *,
+    imu: ImuObservations | None = None,
+    loops: LoopClosures | None = None,
+    start: FusedTrajectory | None = None,
+) -> FusedTrajectory:
     """Fuse one session's odometry with GPS and the IMU (preintegrated, or its gravity direction); poses of the base in ENU.
 
     ``enu_from_odom`` is the initial guess (a rigid transform); by default the robust rigid GPS fit
@@ -565,21 +740,29 @@ def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: O
         jitter_factors.append(graph.size())
         graph.add(gtsam.BetweenFactorPose3(E(k), X(k), gtsam.Pose3(), jitter_noise))
     for k, rel in enumerate(odom_rel):
-        noise = _odom_loss(gtsam, gtsam.noiseModel.Gaussian.Covariance(Ad_sb @ _drift_covariance(rel, cfg) @ Ad_sb.T), cfg)
+        noise = _odom_loss(
+            gtsam, gtsam.noiseModel.Gaussian.Covariance(Ad_sb @ _drift_covariance(rel, cfg) @ Ad_sb.T), cfg
+        )
         chain_factors.append(graph.size())
         graph.add(gtsam.BetweenFactorPose3(E(k), E(k + 1), gtsam.Pose3(state_from_base @ rel @ base_from_state), noise))
-    if imu is not None and cfg.nhc_sigma_m_s > 0:  # without the IMU it changed nothing measurable (tiny town: height drift,
+    if (
+        imu is not None and cfg.nhc_sigma_m_s > 0
+    ):  # without the IMU it changed nothing measurable (tiny town: height drift,
         # ATE within 0.01 m) and cost time
         stats["nhc_factors"] = _add_nhc(gtsam, graph, odom_rel, stamps[kf], state_from_base, cfg, X)
     loop_factors = _add_loops(gtsam, graph, edges, stamps, kf, state_from_base, cfg, X)
 
     if fixes is None:
-        graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+        graph.add(
+            gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
+        )
     else:
         a = cfg.first_attitude_sigma_rad
         prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, a, a, 1e3, 1e3, 1e3]))
         graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), prior))
-        n_bias = _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, gps.base_from_antenna, state_from_base, cfg, X, B)
+        n_bias = _add_gps(
+            gtsam, graph, values, fixes, stamps, odom, kf, gps.base_from_antenna, state_from_base, cfg, X, B
+        )
         stats["gps_bias_nodes"] = n_bias
     imu_runs: list[list[int]] = []
     if imu is not None:
@@ -590,7 +773,9 @@ def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: O
     else:
         stats["imu"] = "not used: no IMU"
         if gravity is not None and len(gravity.stamps_ns):
-            stats["gravity_factors"] = _add_gravity(gtsam, graph, values, gravity, stamps, kf, state_from_base, cfg, X, G)
+            stats["gravity_factors"] = _add_gravity(
+                gtsam, graph, values, gravity, stamps, kf, state_from_base, cfg, X, G
+            )
 
     if start is not None and start.solution is not None and np.array_equal(start.keyframes, kf):
         values.update(start.solution)
@@ -600,8 +785,12 @@ def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: O
     params.setLinearSolverType("MULTIFRONTAL_QR")  # the IMU makes the system stiff (condition 1e13): Cholesky loses it
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = optimizer.optimize()
-    stats.update(iterations=int(optimizer.iterations()), error_initial=float(graph.error(values)),
-                 error_final=float(graph.error(result)), solve_s=time.perf_counter() - t_start)
+    stats.update(
+        iterations=int(optimizer.iterations()),
+        error_initial=float(graph.error(values)),
+        error_final=float(graph.error(result)),
+        solve_s=time.perf_counter() - t_start,
+    )
 
     kf_state = np.stack([result.atPose3(X(k)).matrix() for k in range(len(kf))])
     kf_poses = kf_state @ state_from_base
@@ -611,10 +800,12 @@ def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: O
     marginals = gtsam.ISAM2(isam_params)
     marginals.update(graph, result)
     Ad_bs = _adjoint(base_from_state)  # right perturbation of the state pose, seen on the base pose
-    kf_cov = np.stack([_world_cov(Ad_bs @ marginals.marginalCovariance(X(k)) @ Ad_bs.T, kf_poses[k, :3, :3])
-                       for k in range(len(kf))])
-    stats["end_minus_start_sigma_enu_m"] = _relative_sigma(gtsam, marginals, X(0), X(len(kf) - 1), kf_poses[0], kf_poses[-1],
-                                                           Ad_bs).tolist()
+    kf_cov = np.stack(
+        [_world_cov(Ad_bs @ marginals.marginalCovariance(X(k)) @ Ad_bs.T, kf_poses[k, :3, :3]) for k in range(len(kf))]
+    )
+    stats["end_minus_start_sigma_enu_m"] = _relative_sigma(
+        gtsam, marginals, X(0), X(len(kf) - 1), kf_poses[0], kf_poses[-1], Ad_bs
+    ).tolist()
     poses, covs = _densify(stamps, odom, kf, kf_poses, kf_cov)
     if imu_runs:  # between keyframes the IMU knows the motion (the odometry may be slipping there)
         _densify_imu(poses, stamps, kf, imu_runs, imu, result, state_from_base, cfg)
@@ -624,13 +815,20 @@ def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: O
         stats.update(gps="used", gps_fixes_outliers=int((~inliers).sum()))
         if cfg.gps_bias:
             b = np.stack([result.atPoint3(B(j)) for j in range(stats["gps_bias_nodes"])])
-            stats["gps_bias_enu_m"] = {"mean": b.mean(axis=0).tolist(), "min": b.min(axis=0).tolist(), "max": b.max(axis=0).tolist()}
+            stats["gps_bias_enu_m"] = {
+                "mean": b.mean(axis=0).tolist(),
+                "min": b.min(axis=0).tolist(),
+                "max": b.max(axis=0).tolist(),
+            }
     if "gravity_factors" in stats:
         stats["gravity_tilt_bias_rad"] = result.atPoint3(G).tolist()
     if imu_runs:
         C = lambda i: gtsam.symbol("c", i)  # noqa: E731
         bias = [result.atConstantBias(C(r[-1])) for r in imu_runs]
-        stats["imu_bias_end"] = {"gyro_rad_s": bias[-1].gyroscope().tolist(), "accel_m_s2": bias[-1].accelerometer().tolist()}
+        stats["imu_bias_end"] = {
+            "gyro_rad_s": bias[-1].gyroscope().tolist(),
+            "accel_m_s2": bias[-1].accelerometer().tolist(),
+        }
     stats.update(_slips(graph, result, chain_factors, jitter_factors, odom, kf, kf_poses, stamps[kf], cfg))
     if loops is not None:
         stats.update(_loop_stats(graph, result, loop_factors, edges, loops, stamps[kf], kf_poses, cfg))
@@ -639,7 +837,9 @@ def fuse_session(stamps_ns: np.ndarray, world_from_base_odom: np.ndarray, gps: O
     return FusedTrajectory(stamps, poses, covs, kf, kf_cov[mid], inliers, stats, result)
 
 
-def _relative_sigma(gtsam, isam, key_a: int, key_b: int, pose_a: np.ndarray, pose_b: np.ndarray, Ad_bs: np.ndarray) -> np.ndarray:
+def _relative_sigma(
+    gtsam, isam, key_a: int, key_b: int, pose_a: np.ndarray, pose_b: np.ndarray, Ad_bs: np.ndarray
+) -> np.ndarray:
     """Standard deviations (ENU, m) of the last keyframe's base position minus the first's, from their joint marginal: how
     far the solution's own uncertainty lets the drive's end move against its start (its height drift, say)."""
     cov = isam.jointMarginalCovariance([key_a, key_b]).fullMatrix()
@@ -648,8 +848,17 @@ def _relative_sigma(gtsam, isam, key_a: int, key_b: int, pose_a: np.ndarray, pos
     return np.sqrt(np.diag(J @ cov @ J.T))
 
 
-def _slips(graph, result, chain_factors: list, jitter_factors: list, odom: np.ndarray, kf: np.ndarray, kf_poses: np.ndarray,
-           kf_stamps: np.ndarray, cfg: FactorGraphConfig) -> dict:
+def _slips(
+    graph,
+    result,
+    chain_factors: list,
+    jitter_factors: list,
+    odom: np.ndarray,
+    kf: np.ndarray,
+    kf_poses: np.ndarray,
+    kf_stamps: np.ndarray,
+    cfg: FactorGraphConfig,
+) -> dict:
     """Where the solution left the odometry. Keyframe steps whose translation the solution moves by more than
     ``odom_slip_sigmas`` (3-dof chi-square) of the model's step spread (jitter at both ends plus the walk) are merged into
     spans, whichever factor gave way (the drift chain for a lasting loss, the jitter for a few poses); a span is a slip
@@ -672,9 +881,13 @@ def _slips(graph, result, chain_factors: list, jitter_factors: list, odom: np.nd
             spans.append([float(t[a]), float(t[b])])
             moved.append(float(np.linalg.norm(diff)))
     whitened = lambda idx: np.array([float(np.linalg.norm(_whitened(graph.at(i), result))) for i in idx])  # noqa: E731
-    return {"odom_slips": len(spans), "odom_slip_m": moved, "odom_slip_spans_s": spans,
-            "odom_drift_downweighted": int((whitened(chain_factors) > DOWNWEIGHTED_SIGMAS).sum()),
-            "odom_jitter_downweighted": int((whitened(jitter_factors) > DOWNWEIGHTED_SIGMAS).sum())}
+    return {
+        "odom_slips": len(spans),
+        "odom_slip_m": moved,
+        "odom_slip_spans_s": spans,
+        "odom_drift_downweighted": int((whitened(chain_factors) > DOWNWEIGHTED_SIGMAS).sum()),
+        "odom_jitter_downweighted": int((whitened(jitter_factors) > DOWNWEIGHTED_SIGMAS).sum()),
+    }
 
 
 # --- loop closures -----------------------------------------------------------------------------------
@@ -688,12 +901,22 @@ def _with_loop_keyframes(kf: np.ndarray, stamps: np.ndarray, edges: list[LoopEdg
     idx = np.clip(np.searchsorted(stamps, ends), 0, len(stamps) - 1)
     bad = stamps[idx] != ends
     if bad.any():
-        raise InputError(source, f"loop closure at stamp {int(ends[bad][0])} is not a pose of the odometry", field="loops")
+        raise InputError(
+            source, f"loop closure at stamp {int(ends[bad][0])} is not a pose of the odometry", field="loops"
+        )
     return np.union1d(kf, idx)
 
 
-def _add_loops(gtsam, graph, edges: list[LoopEdge], stamps: np.ndarray, kf: np.ndarray, state_from_base: np.ndarray,
-               cfg: FactorGraphConfig, X) -> list[int]:
+def _add_loops(
+    gtsam,
+    graph,
+    edges: list[LoopEdge],
+    stamps: np.ndarray,
+    kf: np.ndarray,
+    state_from_base: np.ndarray,
+    cfg: FactorGraphConfig,
+    X,
+) -> list[int]:
     """A between factor of the state poses per loop edge (the base's relative pose and covariance moved to the state frame,
     as the odometry's) under a Cauchy loss; returns their indices in the graph."""
     Ad_sb = _adjoint(state_from_base)
@@ -704,13 +927,27 @@ def _add_loops(gtsam, graph, edges: list[LoopEdge], stamps: np.ndarray, kf: np.n
         cov = Ad_sb @ np.asarray(e.covariance, np.float64) @ Ad_sb.T
         noise = _robust(gtsam, gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T)), "cauchy", cfg.loop_robust_k)
         out.append(graph.size())
-        graph.add(gtsam.BetweenFactorPose3(X(key[int(e.stamp_a_ns)]), X(key[int(e.stamp_b_ns)]),
-                                           gtsam.Pose3(state_from_base @ e.a_from_b @ base_from_state), noise))
+        graph.add(
+            gtsam.BetweenFactorPose3(
+                X(key[int(e.stamp_a_ns)]),
+                X(key[int(e.stamp_b_ns)]),
+                gtsam.Pose3(state_from_base @ e.a_from_b @ base_from_state),
+                noise,
+            )
+        )
     return out
 
 
-def _loop_stats(graph, result, loop_factors: list[int], edges: list[LoopEdge], loops: LoopClosures, kf_stamps: np.ndarray,
-                kf_poses: np.ndarray, cfg: FactorGraphConfig) -> dict:
+def _loop_stats(
+    graph,
+    result,
+    loop_factors: list[int],
+    edges: list[LoopEdge],
+    loops: LoopClosures,
+    kf_stamps: np.ndarray,
+    kf_poses: np.ndarray,
+    cfg: FactorGraphConfig,
+) -> dict:
     """Candidates, accepted and rejected (by reason) loop closures, and each edge's residual at the solution: how far
     (m, deg; base b's frame) the solution's relative pose is from the edge's, and in sigmas of its covariance (before the loss)."""
     key = {int(s): k for k, s in enumerate(kf_stamps)}
@@ -718,11 +955,19 @@ def _loop_stats(graph, result, loop_factors: list[int], edges: list[LoopEdge], l
     for i, e in zip(loop_factors, edges):
         a, b = kf_poses[key[int(e.stamp_a_ns)]], kf_poses[key[int(e.stamp_b_ns)]]
         off = invert_pose(e.a_from_b) @ invert_pose(a) @ b
-        residuals.append({"stamps_ns": [int(e.stamp_a_ns), int(e.stamp_b_ns)], "translation_m": float(np.linalg.norm(off[:3, 3])),
-                          "rotation_deg": float(np.degrees(rotation_angle_rad(off[:3, :3]))),
-                          "sigmas": float(np.linalg.norm(_whitened(graph.at(i), result)))})
-    out = {**loop_counts(loops), "loop_residuals": residuals,
-           "loop_downweighted": int(sum(r["sigmas"] > DOWNWEIGHTED_SIGMAS for r in residuals))}
+        residuals.append(
+            {
+                "stamps_ns": [int(e.stamp_a_ns), int(e.stamp_b_ns)],
+                "translation_m": float(np.linalg.norm(off[:3, 3])),
+                "rotation_deg": float(np.degrees(rotation_angle_rad(off[:3, :3]))),
+                "sigmas": float(np.linalg.norm(_whitened(graph.at(i), result))),
+            }
+        )
+    out = {
+        **loop_counts(loops),
+        "loop_residuals": residuals,
+        "loop_downweighted": int(sum(r["sigmas"] > DOWNWEIGHTED_SIGMAS for r in residuals)),
+    }
     if loops.edges and not cfg.loop_closures:
         out["loops"] = "not used: loop_closures is off"
     return out
@@ -733,8 +978,11 @@ def loop_counts(loops: LoopClosures) -> dict:
     by_reason: dict[str, int] = {}
     for r in loops.rejected:
         by_reason[r] = by_reason.get(r, 0) + 1
-    return {"loop_candidates": len(loops.edges) + len(loops.rejected), "loop_accepted": len(loops.edges),
-            "loop_rejected_by_reason": by_reason}
+    return {
+        "loop_candidates": len(loops.edges) + len(loops.rejected),
+        "loop_accepted": len(loops.edges),
+        "loop_rejected_by_reason": by_reason,
+    }
 
 
 def _merge_spans(spans: list) -> list[list]:
@@ -768,7 +1016,9 @@ def _check_imu(imu: ImuObservations, source: str) -> ImuObservations:
         raise InputError(source, f"IMU samples: {len(t)} stamps, gyro {w.shape}, accel {f.shape}", field="imu")
     ok = np.isfinite(w).all(axis=1) & np.isfinite(f).all(axis=1)
     if not ok.all():
-        warnings.warn(f"{source}: {int((~ok).sum())} IMU samples with non-finite values skipped", InputWarning, stacklevel=3)
+        warnings.warn(
+            f"{source}: {int((~ok).sum())} IMU samples with non-finite values skipped", InputWarning, stacklevel=3
+        )
     t, w, f = t[ok], w[ok], f[ok]
     if len(t) < 2 or np.any(np.diff(t) <= 0):
         raise InputError(source, "the IMU needs at least 2 samples with increasing stamps", field="imu")
@@ -808,8 +1058,9 @@ def preintegrate(imu: ImuObservations, t_from_ns: int, t_to_ns: int, params, bia
     return pim
 
 
-def _add_imu(gtsam, graph, values, imu: ImuObservations, kf_stamps: np.ndarray, initial_poses: np.ndarray,
-             cfg: FactorGraphConfig) -> list[list[int]]:
+def _add_imu(
+    gtsam, graph, values, imu: ImuObservations, kf_stamps: np.ndarray, initial_poses: np.ndarray, cfg: FactorGraphConfig
+) -> list[list[int]]:
     """A CombinedImuFactor between consecutive keyframes the IMU covers without a gap; velocity (``v``) and bias (``c``)
     states at their keyframes, a bias prior at the start of every covered run. Returns the runs (keyframe indices)."""
     X = lambda i: gtsam.symbol("x", i)  # noqa: E731
@@ -842,7 +1093,9 @@ def _add_imu(gtsam, graph, values, imu: ImuObservations, kf_stamps: np.ndarray, 
     p = initial_poses[:, :3, 3]
     ts = (kf_stamps - kf_stamps[0]) * 1e-9
     vel = np.gradient(p, ts, axis=0) if len(ts) > 1 else np.zeros_like(p)
-    bias_prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([cfg.imu_accel_bias_sigma] * 3 + [cfg.imu_gyro_bias_sigma] * 3))
+    bias_prior = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([cfg.imu_accel_bias_sigma] * 3 + [cfg.imu_gyro_bias_sigma] * 3)
+    )
     zero = gtsam.imuBias.ConstantBias()
     for run in runs:
         for k in run:
@@ -858,8 +1111,9 @@ def _add_imu(gtsam, graph, values, imu: ImuObservations, kf_stamps: np.ndarray, 
 # --- GPS and gravity ---------------------------------------------------------------------------------
 
 
-def _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, base_from_antenna, state_from_base, cfg: FactorGraphConfig,
-             X, B) -> int:
+def _add_gps(
+    gtsam, graph, values, fixes, stamps, odom, kf, base_from_antenna, state_from_base, cfg: FactorGraphConfig, X, B
+) -> int:
     """GPS factors on the nearest keyframe (the odometry's motion to the fix time in the lever arm) and the bias chain;
     returns the number of bias nodes (0 without a bias)."""
     f_stamps, f_enu, f_sig, _ = fixes
@@ -874,7 +1128,9 @@ def _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, base_from_antenna, s
         n_bias = max(2, int(np.ceil((t1 - t0) * 1e-9 / cfg.bias_interval_s)) + 1)
         node_t = np.linspace(t0, t1, n_bias)
         sb = cfg.gps_bias_sigma_m
-        graph.add(gtsam.PriorFactorPoint3(B(0), np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(np.array([sb, sb, vf * sb]))))
+        graph.add(
+            gtsam.PriorFactorPoint3(B(0), np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(np.array([sb, sb, vf * sb])))
+        )
         dt = (node_t[1] - node_t[0]) * 1e-9
         # Gauss-Markov increment over dt: sigma^2 (1 - exp(-2 dt / tau))
         s_step = sb * np.sqrt(1.0 - np.exp(-2.0 * dt / cfg.gps_bias_tau_s))
@@ -890,7 +1146,9 @@ def _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, base_from_antenna, s
         k = int(near[i])
         lever = (state_from_base @ invert_pose(odom[kf[k]]) @ odom_at_fix[i] @ base_from_antenna)[:3, 3]
         sw = np.sqrt(white_var[i])
-        noise = _robust(gtsam, gtsam.noiseModel.Diagonal.Sigmas(np.array([sw, sw, vf * sw])), cfg.gps_robust, cfg.gps_robust_k)
+        noise = _robust(
+            gtsam, gtsam.noiseModel.Diagonal.Sigmas(np.array([sw, sw, vf * sw])), cfg.gps_robust, cfg.gps_robust_k
+        )
         if n_bias:
             u = (f_stamps[i] - f_stamps.min()) / max(1, int(f_stamps.max() - f_stamps.min())) * (n_bias - 1)
             j = min(int(u), n_bias - 2)
@@ -902,19 +1160,25 @@ def _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, base_from_antenna, s
     return n_bias
 
 
-def _add_gravity(gtsam, graph, values, gravity: GravityObservations, stamps, kf, state_from_base, cfg: FactorGraphConfig,
-                 X, G) -> int:
+def _add_gravity(
+    gtsam, graph, values, gravity: GravityObservations, stamps, kf, state_from_base, cfg: FactorGraphConfig, X, G
+) -> int:
     """Up-direction factors on the keyframe nearest each observation (within half a keyframe interval), sharing the tilt bias."""
     kf_stamps = stamps[kf]
     g_stamps = np.asarray(gravity.stamps_ns, np.int64)
     j = np.clip(np.searchsorted(g_stamps, kf_stamps), 1, max(1, len(g_stamps) - 1))
-    j = np.where(np.abs(g_stamps[j - 1] - kf_stamps) <= np.abs(g_stamps[np.minimum(j, len(g_stamps) - 1)] - kf_stamps),
-                 j - 1, np.minimum(j, len(g_stamps) - 1))
+    j = np.where(
+        np.abs(g_stamps[j - 1] - kf_stamps) <= np.abs(g_stamps[np.minimum(j, len(g_stamps) - 1)] - kf_stamps),
+        j - 1,
+        np.minimum(j, len(g_stamps) - 1),
+    )
     close = np.abs(g_stamps[j] - kf_stamps) <= int(cfg.keyframe_interval_s * 0.5e9)
     values.insert(G, np.zeros(3))
     graph.add(gtsam.PriorFactorPoint3(G, np.zeros(3), gtsam.noiseModel.Isotropic.Sigma(3, cfg.gravity_bias_sigma_rad)))
-    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.gravity_robust_k),
-                                           gtsam.noiseModel.Isotropic.Sigma(3, cfg.gravity_sigma_rad))
+    noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.gravity_robust_k),
+        gtsam.noiseModel.Isotropic.Sigma(3, cfg.gravity_sigma_rad),
+    )
     R_sb = state_from_base[:3, :3]
     for k in np.nonzero(close)[0]:
         up = R_sb @ np.asarray(gravity.up_base[j[k]], np.float64)
@@ -935,8 +1199,16 @@ def _gps_residual_sigmas(graph, result) -> np.ndarray:
     return np.asarray(r)
 
 
-def _densify_imu(poses: np.ndarray, stamps: np.ndarray, kf: np.ndarray, runs: list[list[int]], imu: ImuObservations, result,
-                 state_from_base: np.ndarray, cfg: FactorGraphConfig) -> None:
+def _densify_imu(
+    poses: np.ndarray,
+    stamps: np.ndarray,
+    kf: np.ndarray,
+    runs: list[list[int]],
+    imu: ImuObservations,
+    result,
+    state_from_base: np.ndarray,
+    cfg: FactorGraphConfig,
+) -> None:
     """Poses between keyframes of an IMU-covered interval, in place: the IMU's prediction from the earlier keyframe's
     solved state (pose, velocity, bias), with the small mismatch left at the later keyframe spread over the interval."""
     import gtsam
@@ -971,11 +1243,26 @@ def _densify(stamps, odom, kf, kf_poses, kf_cov) -> tuple[np.ndarray, np.ndarray
         from_b = kf_poses[k + 1] @ invert_pose(odom[b]) @ odom[i]
         w = float((stamps[i] - stamps[a]) / (stamps[b] - stamps[a]))
         both = np.stack([from_a, from_b])
-        poses[i] = interpolate_poses(np.array([0, 1_000_000], np.int64), both, np.array([int(round(w * 1e6))], np.int64))[0][0]
+        poses[i] = interpolate_poses(
+            np.array([0, 1_000_000], np.int64), both, np.array([int(round(w * 1e6))], np.int64)
+        )[0][0]
         covs[i] = (1 - w) * kf_cov[k] + w * kf_cov[k + 1]
     poses[:, 3] = np.array([0.0, 0.0, 0.0, 1.0])
     return poses, covs
 
 
-__all__ = ["FactorGraphConfig", "FusedTrajectory", "GpsObservations", "GravityObservations", "ImuObservations", "LoopClosures",
-           "LoopEdge", "fuse_session", "gravity_from_imu", "imu_params", "loop_counts", "preintegrate", "select_keyframes"]
+__all__ = [
+    "FactorGraphConfig",
+    "FusedTrajectory",
+    "GpsObservations",
+    "GravityObservations",
+    "ImuObservations",
+    "LoopClosures",
+    "LoopEdge",
+    "fuse_session",
+    "gravity_from_imu",
+    "imu_params",
+    "loop_counts",
+    "preintegrate",
+    "select_keyframes",
+]

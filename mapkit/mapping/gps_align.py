@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -46,13 +46,15 @@ class GpsAlignment:
     stamps_ns: np.ndarray  # (N,) stamps of the associated fixes
     rejected: list[dict] = field(default_factory=list)  # index, stamp, reason, residual
     notes: list[str] = field(default_factory=list)
-    free_scale: Optional[float] = None  # in ``yaw`` mode: the scale a ``yaw_scale`` fit of the inliers gives
+    free_scale: float | None = None  # in ``yaw`` mode: the scale a ``yaw_scale`` fit of the inliers gives
     extent_m: float = float("nan")  # the trajectory's extent along its main axis where GPS overlaps it, in GPS metres
     # what fixed the rotation about the direction of travel: the frame's own gravity (yaw modes), GPS
     # (the path bends enough), the up hint, or nothing (reported as unobservable)
     gravity: Gravity = "level frame"
-    roll_sigma_deg: Optional[float] = None  # sim3: predicted 1-sigma of that roll from GPS alone (fix sigmas, geometry); <= 180
-    up_tilt_deg: Optional[float] = None  # sim3 with an up hint: angle between the hint, once aligned, and ENU up
+    roll_sigma_deg: float | None = (
+        None  # sim3: predicted 1-sigma of that roll from GPS alone (fix sigmas, geometry); <= 180
+    )
+    up_tilt_deg: float | None = None  # sim3 with an up hint: angle between the hint, once aligned, and ENU up
 
     @property
     def scale(self) -> float:
@@ -88,7 +90,7 @@ def associate_fixes(
     traj_stamps_ns: np.ndarray,
     world_from_base: np.ndarray,
     fix_stamps_ns: np.ndarray,
-    base_from_antenna: Optional[np.ndarray] = None,
+    base_from_antenna: np.ndarray | None = None,
     max_gap_ns: int = 1_000_000_000,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Antenna positions in the trajectory frame at each fix time, and which fixes got one.
@@ -137,8 +139,13 @@ def _roll_from_up(T: np.ndarray, src: np.ndarray, dst: np.ndarray, w: np.ndarray
     return make_sim3(s, R, mu_d - s * R @ mu_s)
 
 
-def fit_transform(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None, mode: Mode = "yaw_scale",
-                  up_src: Optional[np.ndarray] = None) -> np.ndarray:
+def fit_transform(
+    src: np.ndarray,
+    dst: np.ndarray,
+    w: np.ndarray | None = None,
+    mode: Mode = "yaw_scale",
+    up_src: np.ndarray | None = None,
+) -> np.ndarray:
     """Weighted least-squares ``dst_from_src``: ``sim3``, or gravity-aware ``yaw_scale`` / ``yaw`` (rigid, 4 DoF).
 
     ``up_src`` (``sim3`` only): a unit vector of the source frame that is roughly up; it fixes the
@@ -199,8 +206,8 @@ def roll_sigma_rad(p_map: np.ndarray, metres_per_unit: float, sigma_m: float) ->
 def align_to_gps(
     p_map: np.ndarray,
     p_enu: np.ndarray,
-    sigma_m: Optional[np.ndarray] = None,
-    stamps_ns: Optional[np.ndarray] = None,
+    sigma_m: np.ndarray | None = None,
+    stamps_ns: np.ndarray | None = None,
     mode: Mode = "yaw_scale",
     inlier_sigmas: float = 3.37,
     vertical_sigma_factor: float = 2.0,
@@ -208,7 +215,7 @@ def align_to_gps(
     ransac_iters: int = 300,
     min_extent_m: float = 20.0,
     max_roll_sigma_deg: float = 2.0,
-    up_map: Optional[np.ndarray] = None,
+    up_map: np.ndarray | None = None,
     strict: bool = False,
     seed: int = 0,
     source: str = "gps",
@@ -242,8 +249,10 @@ def align_to_gps(
     extent = extent_map * metres_per_unit
     if extent < min_extent_m:
         raise InputError(
-            source, f"the trajectory spans {extent:.1f} m (GPS metres) where GPS overlaps it; at least {min_extent_m:.0f} m "
-            "are needed to observe heading and scale", field="gps",
+            source,
+            f"the trajectory spans {extent:.1f} m (GPS metres) where GPS overlaps it; at least {min_extent_m:.0f} m "
+            "are needed to observe heading and scale",
+            field="gps",
         )
     sig = np.full(n, np.nan) if sigma_m is None else np.asarray(sigma_m, np.float64).copy()
     known = np.isfinite(sig) & (sig > 0)
@@ -260,8 +269,10 @@ def align_to_gps(
         roll_sigma = min(float(np.degrees(roll_sigma_rad(p_map, metres_per_unit, float(np.median(sig_v))))), 180.0)
         gravity = "gps"
         if roll_sigma > max_roll_sigma_deg:
-            msg = (f"the drive is too straight for GPS to fix the rotation about its direction of travel (predicted "
-                   f"sigma {roll_sigma:.1f} deg > {max_roll_sigma_deg:g} deg)")
+            msg = (
+                f"the drive is too straight for GPS to fix the rotation about its direction of travel (predicted "
+                f"sigma {roll_sigma:.1f} deg > {max_roll_sigma_deg:g} deg)"
+            )
             if up_map is not None:
                 up = np.asarray(up_map, np.float64) / np.linalg.norm(up_map)
                 gravity = "up hint"
@@ -270,8 +281,11 @@ def align_to_gps(
                 raise InputError(source, msg, field="gps")
             else:
                 gravity = "unobservable"
-                warnings.warn(f"{source}: {msg}; kept the full Sim3, whose roll about the path is unobservable",
-                              InputWarning, stacklevel=2)
+                warnings.warn(
+                    f"{source}: {msg}; kept the full Sim3, whose roll about the path is unobservable",
+                    InputWarning,
+                    stacklevel=2,
+                )
                 notes.append(msg + "; roll about the path axis unobservable (full Sim3 kept)")
 
     def normalised(T: np.ndarray) -> np.ndarray:
@@ -316,8 +330,13 @@ def align_to_gps(
     u = normalised(T)
     res = np.linalg.norm(transform_points(T, p_map) - p_enu, axis=1)
     rejected = [
-        {"index": int(i), "stamp_ns": int(stamps[i]), "residual_m": float(res[i]), "residual_sigmas": float(u[i]),
-         "reason": "residual above threshold (outlier or multipath jump)"}
+        {
+            "index": int(i),
+            "stamp_ns": int(stamps[i]),
+            "residual_m": float(res[i]),
+            "residual_sigmas": float(u[i]),
+            "reason": "residual above threshold (outlier or multipath jump)",
+        }
         for i in np.nonzero(~inl)[0]
     ]
     free_scale = None

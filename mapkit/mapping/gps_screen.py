@@ -48,19 +48,33 @@ class GpsScreen:
         return len(self.kept) + sum(self.rejected.values())
 
     def summary(self) -> dict:
-        return {"fixes": self.total, "kept": len(self.kept), "rejected": dict(self.rejected),
-                "rejected_examples_stamp_ns": self.examples, "altitude_filled": self.altitude_filled}
+        return {
+            "fixes": self.total,
+            "kept": len(self.kept),
+            "rejected": dict(self.rejected),
+            "rejected_examples_stamp_ns": self.examples,
+            "altitude_filled": self.altitude_filled,
+        }
 
     def warn(self, source: str) -> None:
         """One warning naming the counts of each reason (nothing when every fix was kept)."""
         if self.rejected:
             what = "; ".join(f"{n} {reason}" for reason, n in self.rejected.items())
-            warnings.warn(f"{source}: {sum(self.rejected.values())} of {self.total} GPS fixes rejected before "
-                          f"georeferencing: {what}", InputWarning, stacklevel=2)
+            warnings.warn(
+                f"{source}: {sum(self.rejected.values())} of {self.total} GPS fixes rejected before "
+                f"georeferencing: {what}",
+                InputWarning,
+                stacklevel=2,
+            )
 
 
-def screen_fixes(fixes: list[GpsFix], max_speed_mps: float = 70.0, max_altitude_dev_m: float = 300.0,
-                 null_island_deg: float = 1e-3, slack_m: float = 10.0) -> GpsScreen:
+def screen_fixes(
+    fixes: list[GpsFix],
+    max_speed_mps: float = 70.0,
+    max_altitude_dev_m: float = 300.0,
+    null_island_deg: float = 1e-3,
+    slack_m: float = 10.0,
+) -> GpsScreen:
     """Remove fixes no drive could have produced (see the module docstring); keeps time order.
 
     ``max_speed_mps`` (70 m/s, 250 km/h) bounds the vehicle's speed; ``slack_m`` plus three times a

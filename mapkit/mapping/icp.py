@@ -10,9 +10,9 @@ triplet cells (:func:`mapkit.places.triplets.register_cell`) and a session's loo
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator, Optional, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -31,10 +31,14 @@ class IcpClouds:
     target_normals: np.ndarray  # (M, 3)
 
 
-def icp_coarse_to_fine(level: Callable[[float], Optional[IcpClouds]], voxel_sizes_m: Sequence[float],
-                       max_correspondence_m: Sequence[float], max_iterations: int,
-                       relative_change: float = OPEN3D_RELATIVE_CHANGE,
-                       initial: Optional[np.ndarray] = None) -> tuple[np.ndarray, Optional[IcpClouds]]:
+def icp_coarse_to_fine(
+    level: Callable[[float], IcpClouds | None],
+    voxel_sizes_m: Sequence[float],
+    max_correspondence_m: Sequence[float],
+    max_iterations: int,
+    relative_change: float = OPEN3D_RELATIVE_CHANGE,
+    initial: np.ndarray | None = None,
+) -> tuple[np.ndarray, IcpClouds | None]:
     """Point-to-plane ICP over the levels (voxel size, correspondence distance), each starting from
     the transform of the one before (the first from ``initial``, default the identity).
     ``level(voxel)`` gives a level's clouds, or None when there are too few points: ICP stops
@@ -55,12 +59,17 @@ def icp_coarse_to_fine(level: Callable[[float], Optional[IcpClouds]], voxel_size
         tgt = o3d.geometry.PointCloud(vec(clouds.target))
         tgt.normals = vec(clouds.target_normals)
         with open3d_one_thread():  # the same pair gives the same transform to the bit on every run
-            T = np.asarray(reg.registration_icp(src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(), criteria).transformation)
+            T = np.asarray(
+                reg.registration_icp(
+                    src, tgt, max_d, T, reg.TransformationEstimationPointToPlane(), criteria
+                ).transformation
+            )
     return T, clouds
 
 
-def point_to_plane(moved: np.ndarray, target: np.ndarray, target_normals: np.ndarray,
-                   max_distance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def point_to_plane(
+    moved: np.ndarray, target: np.ndarray, target_normals: np.ndarray, max_distance: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """How registered points sit on a target's surfaces: ``hit`` (N,) whether a target point lies within
     ``max_distance`` of each of ``moved`` (source points already transformed), ``j`` the nearest target
     point of each hit, and the hits' signed point-to-plane residuals along that point's normal. What ICP's

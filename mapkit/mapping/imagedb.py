@@ -20,7 +20,7 @@ import io
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -34,28 +34,58 @@ from mapkit.core.runio import atomic_write_bytes, atomic_write_text
 from mapkit.core.types import CameraInfo
 
 CSV_COLUMNS = [
-    "image_id", "stamp_ns", "camera", "image", "lat_deg", "lon_deg", "alt_m", "easting_m", "northing_m", "up_m",
-    "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz", "utm_epsg",
+    "image_id",
+    "stamp_ns",
+    "camera",
+    "image",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "easting_m",
+    "northing_m",
+    "up_m",
+    "x_m",
+    "y_m",
+    "z_m",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "utm_epsg",
 ]
 
 
 class ImageDbConfig(MapkitConfig):
     min_spacing_m: float = Field(
-        0.5, description="Keep a frame when the camera moved this far since the last kept one (MCVL sub-sampled its training sequences to 2 Hz; spacing is rate-independent)."
+        0.5,
+        description="Keep a frame when the camera moved this far since the last kept one (MCVL sub-sampled its training sequences to 2 Hz; spacing is rate-independent).",
     )
     min_interval_s: float = Field(
-        0.0, ge=0, description="... and at least this long after the last kept one (s; 0 = no time limit). MCVL's database is its "
-        "training drives sub-sampled to 2 Hz (Sec. IV-B): 0.5 with a faster camera. A tenth of it is slack for stamp jitter."
+        0.0,
+        ge=0,
+        description="... and at least this long after the last kept one (s; 0 = no time limit). MCVL's database is its "
+        "training drives sub-sampled to 2 Hz (Sec. IV-B): 0.5 with a faster camera. A tenth of it is slack for stamp jitter.",
     )
     training_frames: bool = Field(
-        False, description="Also store the frames the database skips (training/ and training.csv, at most one per "
-        "training_interval_s): images the retrieval encoder (vocabulary, PCA-whitening) learns from beside the database's."
+        False,
+        description="Also store the frames the database skips (training/ and training.csv, at most one per "
+        "training_interval_s): images the retrieval encoder (vocabulary, PCA-whitening) learns from beside the database's.",
     )
-    training_interval_s: float = Field(0.0, ge=0, description="A skipped frame becomes a training frame at least this long after the last frame stored (s).")
-    downscale: int = Field(1, ge=1, le=8, description="Store images downscaled by this integer factor (intrinsics scaled too).")
-    image_format: Literal["png", "jpg"] = Field("jpg", description="Stored image format; jpg at quality 95 keeps databases small.")
+    training_interval_s: float = Field(
+        0.0,
+        ge=0,
+        description="A skipped frame becomes a training frame at least this long after the last frame stored (s).",
+    )
+    downscale: int = Field(
+        1, ge=1, le=8, description="Store images downscaled by this integer factor (intrinsics scaled too)."
+    )
+    image_format: Literal["png", "jpg"] = Field(
+        "jpg", description="Stored image format; jpg at quality 95 keeps databases small."
+    )
     jpeg_quality: int = Field(95, ge=50, le=100)
-    max_track_points: int = Field(500_000, description="At most this many map points go into the COLMAP reconstruction.")
+    max_track_points: int = Field(
+        500_000, description="At most this many map points go into the COLMAP reconstruction."
+    )
 
 
 @dataclass
@@ -86,7 +116,9 @@ def scaled_info(info: CameraInfo, factor: int) -> CameraInfo:
     # pixel centres: (x + 0.5) / f - 0.5
     K[0, 2] = (info.K[0, 2] + 0.5) / factor - 0.5
     K[1, 2] = (info.K[1, 2] + 0.5) / factor - 0.5
-    return CameraInfo(info.camera, info.width // factor, info.height // factor, K, info.distortion_model, info.D, info.stamp_ns)
+    return CameraInfo(
+        info.camera, info.width // factor, info.height // factor, K, info.distortion_model, info.D, info.stamp_ns
+    )
 
 
 class ImageDbWriter:
@@ -100,13 +132,24 @@ class ImageDbWriter:
         self.training: list[DbImage] = []  # frames the database skipped, kept for encoder training
         (self.folder / "images").mkdir(parents=True, exist_ok=True)
 
-    def add(self, stamp_ns: int, camera: str, image: np.ndarray, world_from_cam: np.ndarray, encoding: str = "mono8",
-            training: bool = False) -> DbImage:
+    def add(
+        self,
+        stamp_ns: int,
+        camera: str,
+        image: np.ndarray,
+        world_from_cam: np.ndarray,
+        encoding: str = "mono8",
+        training: bool = False,
+    ) -> DbImage:
         """Store one image: a database image, or with ``training`` a training frame (not in the database)."""
         if camera not in self.infos:
             raise InputError(None, f"camera {camera!r} has no intrinsics (CameraInfo)", field="camera_info")
         if self.cfg.downscale > 1:
-            image = cv2.resize(image, (image.shape[1] // self.cfg.downscale, image.shape[0] // self.cfg.downscale), interpolation=cv2.INTER_AREA)
+            image = cv2.resize(
+                image,
+                (image.shape[1] // self.cfg.downscale, image.shape[0] // self.cfg.downscale),
+                interpolation=cv2.INTER_AREA,
+            )
         if image.ndim == 3 and encoding.startswith("rgb"):
             image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
         ext = self.cfg.image_format
@@ -123,10 +166,10 @@ class ImageDbWriter:
 
     def close(
         self,
-        frame: Optional[LocalFrame],
-        points_world: Optional[np.ndarray] = None,
-        point_observers: Optional[tuple[np.ndarray, np.ndarray]] = None,
-        point_colors: Optional[np.ndarray] = None,
+        frame: LocalFrame | None,
+        points_world: np.ndarray | None = None,
+        point_observers: tuple[np.ndarray, np.ndarray] | None = None,
+        point_colors: np.ndarray | None = None,
     ) -> Path:
         """Write ``images.csv`` (and ``training.csv`` when training frames are kept) and the COLMAP
         reconstruction ``colmap/``.
@@ -137,12 +180,19 @@ class ImageDbWriter:
         self._write_colmap(points_world, point_observers, point_colors)
         return self.folder
 
-    def _write_csv(self, frame: Optional[LocalFrame]) -> None:
+    def _write_csv(self, frame: LocalFrame | None) -> None:
         tables = [("images.csv", self.images)] + ([("training.csv", self.training)] if self.cfg.training_frames else [])
         for name, images in tables:
             T = np.stack([im.world_from_cam for im in images]) if images else np.zeros((0, 4, 4))
-            write_images_csv(self.folder / name, [im.image_id for im in images], [im.stamp_ns for im in images],
-                             [im.camera for im in images], [im.relpath for im in images], T, frame)
+            write_images_csv(
+                self.folder / name,
+                [im.image_id for im in images],
+                [im.stamp_ns for im in images],
+                [im.camera for im in images],
+                [im.relpath for im in images],
+                T,
+                frame,
+            )
 
     def _write_colmap(self, points_world, observers, colors) -> None:
         import pycolmap
@@ -151,8 +201,11 @@ class ImageDbWriter:
         cam_ids: dict[str, int] = {}
         for i, (name, info) in enumerate(sorted(self.infos.items()), start=1):
             cam = pycolmap.Camera(
-                model="PINHOLE", width=info.width, height=info.height,
-                params=[info.fx, info.fy, info.cx, info.cy], camera_id=i,
+                model="PINHOLE",
+                width=info.width,
+                height=info.height,
+                params=[info.fx, info.fy, info.cx, info.cy],
+                camera_id=i,
             )
             rec.add_camera_with_trivial_rig(cam)
             cam_ids[name] = i
@@ -215,8 +268,9 @@ class ImageDbWriter:
         return keypoints, [tracks[i] for i in keep], np.asarray(keep, dtype=np.int64)
 
 
-def write_images_csv(path: str | Path, image_ids, stamps_ns, cameras, relpaths, world_from_cam: np.ndarray,
-                     frame: Optional[LocalFrame]) -> Path:
+def write_images_csv(
+    path: str | Path, image_ids, stamps_ns, cameras, relpaths, world_from_cam: np.ndarray, frame: LocalFrame | None
+) -> Path:
     """The database table (``CSV_COLUMNS``), atomically: local ENU pose, WGS84 and UTM position."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
@@ -233,12 +287,28 @@ def write_images_csv(path: str | Path, image_ids, stamps_ns, cameras, relpaths, 
         utm = np.full((len(xyz), 3), np.nan)
         epsg = ""
     for i in range(len(T)):
-        w.writerow([
-            int(image_ids[i]), int(stamps_ns[i]), cameras[i], relpaths[i],
-            f"{lat[i]:.9f}", f"{lon[i]:.9f}", f"{alt[i]:.4f}", f"{utm[i, 0]:.4f}", f"{utm[i, 1]:.4f}", f"{utm[i, 2]:.4f}",
-            f"{xyz[i, 0]:.4f}", f"{xyz[i, 1]:.4f}", f"{xyz[i, 2]:.4f}",
-            f"{q[i, 0]:.9f}", f"{q[i, 1]:.9f}", f"{q[i, 2]:.9f}", f"{q[i, 3]:.9f}", epsg,
-        ])
+        w.writerow(
+            [
+                int(image_ids[i]),
+                int(stamps_ns[i]),
+                cameras[i],
+                relpaths[i],
+                f"{lat[i]:.9f}",
+                f"{lon[i]:.9f}",
+                f"{alt[i]:.4f}",
+                f"{utm[i, 0]:.4f}",
+                f"{utm[i, 1]:.4f}",
+                f"{utm[i, 2]:.4f}",
+                f"{xyz[i, 0]:.4f}",
+                f"{xyz[i, 1]:.4f}",
+                f"{xyz[i, 2]:.4f}",
+                f"{q[i, 0]:.9f}",
+                f"{q[i, 1]:.9f}",
+                f"{q[i, 2]:.9f}",
+                f"{q[i, 3]:.9f}",
+                epsg,
+            ]
+        )
     return atomic_write_text(path, buf.getvalue())
 
 
@@ -272,4 +342,3 @@ def read_images_csv(path: str | Path) -> dict[str, np.ndarray]:
         else:
             out[c] = np.asarray([float(v) for v in vals], dtype=np.float64)
     return out
-

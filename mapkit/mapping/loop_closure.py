@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Callable, Iterable, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -80,8 +80,8 @@ class LoopCheck:
     candidate: LoopCandidate
     reason: LoopReason
     detail: str = ""
-    a_from_b: Optional[np.ndarray] = None
-    covariance: Optional[np.ndarray] = None  # 6x6, gtsam's Pose3 tangent (rotation, translation) in base b's frame
+    a_from_b: np.ndarray | None = None
+    covariance: np.ndarray | None = None  # 6x6, gtsam's Pose3 tangent (rotation, translation) in base b's frame
     fitness: float = 0.0
     rmse_m: float = float("nan")
     constraint: float = 0.0  # smallest eigenvalue of the translation Hessian per correspondence
@@ -99,15 +99,27 @@ class LoopCheck:
 
     def to_dict(self, stamps_ns: np.ndarray) -> dict:
         c = self.candidate
-        return {"stamps_ns": [int(stamps_ns[c.a]), int(stamps_ns[c.b])], "distance_m": c.distance_m, "travel_m": c.travel_m,
-                "accepted": self.accepted, "reason": self.text, "fitness": self.fitness, "rmse_m": self.rmse_m,
-                "constraint": self.constraint, "correction_m": self.correction_m, "correction_deg": self.correction_deg}
+        return {
+            "stamps_ns": [int(stamps_ns[c.a]), int(stamps_ns[c.b])],
+            "distance_m": c.distance_m,
+            "travel_m": c.travel_m,
+            "accepted": self.accepted,
+            "reason": self.text,
+            "fitness": self.fitness,
+            "rmse_m": self.rmse_m,
+            "constraint": self.constraint,
+            "correction_m": self.correction_m,
+            "correction_deg": self.correction_deg,
+        }
 
 
 def loop_closures(checks: list[LoopCheck], stamps_ns: np.ndarray) -> LoopClosures:
     """What the factor graph takes: the accepted checks as edges, the others' reasons."""
-    edges = [LoopEdge(int(stamps_ns[c.candidate.a]), int(stamps_ns[c.candidate.b]), c.a_from_b, c.covariance)
-             for c in checks if c.accepted]
+    edges = [
+        LoopEdge(int(stamps_ns[c.candidate.a]), int(stamps_ns[c.candidate.b]), c.a_from_b, c.covariance)
+        for c in checks
+        if c.accepted
+    ]
     return LoopClosures(edges, [c.reason.value for c in checks if not c.accepted])
 
 
@@ -136,7 +148,9 @@ def propose_loops(world_from_base: np.ndarray, keyframes: np.ndarray, cfg: Facto
     a, b = kf[pairs.min(axis=1)], kf[pairs.max(axis=1)]
     dist = np.linalg.norm(p[a, :2] - p[b, :2], axis=1)
     driven = travel[b] - travel[a]
-    ok = (driven > cfg.loop_min_travel_m) & (dist <= cfg.loop_radius_m + cfg.loop_proposal_sigmas * horizontal_drift_sigma_m(driven, cfg))
+    ok = (driven > cfg.loop_min_travel_m) & (
+        dist <= cfg.loop_radius_m + cfg.loop_proposal_sigmas * horizontal_drift_sigma_m(driven, cfg)
+    )
     taken = np.zeros((0, 2))  # (route position of a, of b) of the pairs kept
     out = []
     for k in np.nonzero(ok)[0][np.argsort(dist[ok], kind="stable")]:
@@ -159,8 +173,15 @@ def scans_needed(candidates: list[LoopCandidate], n_poses: int, cfg: FactorGraph
 # --- local maps --------------------------------------------------------------------------------------
 
 
-def read_scans(scans: Iterable[LidarScan], stamps_ns: np.ndarray, world_from_base: np.ndarray, needed: np.ndarray,
-               base_from_lidar: Callable[[str], np.ndarray], cfg: FactorGraphConfig, source: str = "log") -> dict[int, np.ndarray]:
+def read_scans(
+    scans: Iterable[LidarScan],
+    stamps_ns: np.ndarray,
+    world_from_base: np.ndarray,
+    needed: np.ndarray,
+    base_from_lidar: Callable[[str], np.ndarray],
+    cfg: FactorGraphConfig,
+    source: str = "log",
+) -> dict[int, np.ndarray]:
     """The ``needed`` poses' scans (pose index -> points in the frame of ``world_from_base``, the trajectory that places
     them, float32), read in one pass that stops after the last one. A scan belongs to the pose stamped at its sweep's last
     point (kiss-icp deskewed it to there: its points are deskewed here with the trajectory) or at its header stamp (not
@@ -181,13 +202,16 @@ def read_scans(scans: Iterable[LidarScan], stamps_ns: np.ndarray, world_from_bas
         out[k] = pts.astype(np.float32)
     missing = sorted(want - set(out))
     if missing:
-        warnings.warn(f"{source}: no LiDAR scan found for {len(missing)} of the {len(want)} poses the loop closures' local "
-                      f"maps need (first at stamp {int(stamps[missing[0]])}); those maps are made without them", InputWarning,
-                      stacklevel=2)
+        warnings.warn(
+            f"{source}: no LiDAR scan found for {len(missing)} of the {len(want)} poses the loop closures' local "
+            f"maps need (first at stamp {int(stamps[missing[0]])}); those maps are made without them",
+            InputWarning,
+            stacklevel=2,
+        )
     return out
 
 
-def _pose_of_scan(scan: LidarScan, stamps: np.ndarray) -> tuple[Optional[int], bool]:
+def _pose_of_scan(scan: LidarScan, stamps: np.ndarray) -> tuple[int | None, bool]:
     """(pose index, deskewed) of the odometry pose a scan gave: at its last point's time, else at its header stamp."""
     t = scan.point_time_s
     end = scan.stamp_ns + int(round(float(np.max(t)) * 1e9)) if t is not None and len(t) else scan.stamp_ns
@@ -199,18 +223,27 @@ def _pose_of_scan(scan: LidarScan, stamps: np.ndarray) -> tuple[Optional[int], b
     return None, False
 
 
-def _in_world(scan: LidarScan, k: int, deskew: bool, stamps: np.ndarray, world_from_base: np.ndarray,
-              base_from_lidar: np.ndarray, cfg: FactorGraphConfig) -> np.ndarray:
+def _in_world(
+    scan: LidarScan,
+    k: int,
+    deskew: bool,
+    stamps: np.ndarray,
+    world_from_base: np.ndarray,
+    base_from_lidar: np.ndarray,
+    cfg: FactorGraphConfig,
+) -> np.ndarray:
     """A scan's points in the trajectory's world frame; each at its firing time when ``deskew`` (the sweep runs from the
     previous pose to this one, as kiss-icp's constant-velocity deskewing has it)."""
     pts = np.asarray(scan.points_xyz, np.float64)
     keep = np.linalg.norm(pts, axis=1) >= cfg.loop_min_range_m
     pts = pts[keep]
-    if not deskew or k == 0 or stamps[k] - stamps[k - 1] > 2 * (stamps[k] - scan.stamp_ns):  # no pose at the sweep's start
+    if (
+        not deskew or k == 0 or stamps[k] - stamps[k - 1] > 2 * (stamps[k] - scan.stamp_ns)
+    ):  # no pose at the sweep's start
         return transform_points(world_from_base[k] @ base_from_lidar, pts)
     t_ns = scan.stamp_ns + np.round(np.asarray(scan.point_time_s, np.float64)[keep] * 1e9).astype(np.int64)
     fire, which = np.unique(np.clip(t_ns, stamps[k - 1], stamps[k]), return_inverse=True)
-    poses, _ = interpolate_poses(stamps[k - 1:k + 1], world_from_base[k - 1:k + 1], fire)
+    poses, _ = interpolate_poses(stamps[k - 1 : k + 1], world_from_base[k - 1 : k + 1], fire)
     world_from_lidar = poses @ base_from_lidar
     return np.einsum("nij,nj->ni", world_from_lidar[which, :3, :3], pts) + world_from_lidar[which, :3, 3]
 
@@ -237,25 +270,32 @@ def _pcd(points: np.ndarray, voxel: float, normals: bool):
     return pc
 
 
-def register_local_maps(source: np.ndarray, target: np.ndarray, target_from_source: np.ndarray,
-                        cfg: FactorGraphConfig) -> tuple[np.ndarray, Optional[IcpClouds]]:
+def register_local_maps(
+    source: np.ndarray, target: np.ndarray, target_from_source: np.ndarray, cfg: FactorGraphConfig
+) -> tuple[np.ndarray, IcpClouds | None]:
     """Point-to-plane ICP of ``source`` onto ``target`` over the ``loop_icp_*`` levels (mapkit's one ICP loop,
     :func:`mapkit.mapping.icp.icp_coarse_to_fine`, open3d on one thread so that a run repeats bit for bit); returns the
     transform and the fine level's clouds (None when a level had fewer than 10 points)."""
 
-    def level(voxel: float) -> Optional[IcpClouds]:
+    def level(voxel: float) -> IcpClouds | None:
         src, tgt = _pcd(source, voxel, False), _pcd(target, voxel, True)
         if len(src.points) < 10 or len(tgt.points) < 10:
             return None
         return IcpClouds(np.asarray(src.points), np.asarray(tgt.points), np.asarray(tgt.normals))
 
     with open3d_one_thread():
-        return icp_coarse_to_fine(level, cfg.loop_icp_voxels_m, cfg.loop_icp_max_correspondence_m, cfg.loop_icp_iterations,
-                                  initial=target_from_source)
+        return icp_coarse_to_fine(
+            level,
+            cfg.loop_icp_voxels_m,
+            cfg.loop_icp_max_correspondence_m,
+            cfg.loop_icp_iterations,
+            initial=target_from_source,
+        )
 
 
-def support(source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, T: np.ndarray,
-            max_distance: float) -> tuple[float, float, np.ndarray, int]:
+def support(
+    source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, T: np.ndarray, max_distance: float
+) -> tuple[float, float, np.ndarray, int]:
     """How ``T`` fits ``source`` onto ``target``: (fitness: the fraction of source points with a target point within
     ``max_distance``; point-to-plane RMSE over those; the 6x6 point-to-plane Hessian over those, for the right perturbation
     ``T exp(xi)`` (xi = rotation, translation, in the source's frame); how many)."""
@@ -276,8 +316,9 @@ def translation_constraint(H: np.ndarray, n: int) -> float:
     return float(np.linalg.eigvalsh(S)[0] / n)
 
 
-def verify_loop(candidate: LoopCandidate, scans: dict[int, np.ndarray], world_from_base: np.ndarray,
-                cfg: FactorGraphConfig) -> LoopCheck:
+def verify_loop(
+    candidate: LoopCandidate, scans: dict[int, np.ndarray], world_from_base: np.ndarray, cfg: FactorGraphConfig
+) -> LoopCheck:
     """ICP of b's local map onto a's from the relative pose of ``world_from_base`` (the estimate the scans were placed
     with by :func:`read_scans`), judged by the gates of ``cfg`` (module notes)."""
     t0 = time.perf_counter()
@@ -287,8 +328,10 @@ def verify_loop(candidate: LoopCandidate, scans: dict[int, np.ndarray], world_fr
         return check(LoopReason.SCANS_MISSING, f"no scan at keyframe {'a' if a not in scans else 'b'}")
     guess = invert_pose(world_from_base[a]) @ world_from_base[b]
     # the fine level's voxels once: the coarser levels are made from them
-    src, tgt = (np.asarray(_pcd(local_map(scans, k, world_from_base, cfg), cfg.loop_icp_voxels_m[-1], False).points)
-                for k in (b, a))
+    src, tgt = (
+        np.asarray(_pcd(local_map(scans, k, world_from_base, cfg), cfg.loop_icp_voxels_m[-1], False).points)
+        for k in (b, a)
+    )
     if min(len(src), len(tgt)) < cfg.loop_min_points:
         return check(LoopReason.TOO_FEW_POINTS, f"{min(len(src), len(tgt))} points < {cfg.loop_min_points}")
     T, fine = register_local_maps(src, tgt, guess, cfg)
@@ -296,15 +339,21 @@ def verify_loop(candidate: LoopCandidate, scans: dict[int, np.ndarray], world_fr
         return check(LoopReason.TOO_FEW_POINTS, "fewer than 10 points at an ICP level")
     fitness, rmse, H, n = support(fine.source, fine.target, fine.target_normals, T, cfg.loop_eval_distance_m)
     off = invert_pose(guess) @ T
-    measured = dict(a_from_b=T, fitness=fitness, rmse_m=rmse, constraint=translation_constraint(H, n),
-                    correction_m=float(np.linalg.norm(off[:3, 3])), correction_deg=float(np.degrees(rotation_angle_rad(off[:3, :3]))))
+    measured = dict(
+        a_from_b=T,
+        fitness=fitness,
+        rmse_m=rmse,
+        constraint=translation_constraint(H, n),
+        correction_m=float(np.linalg.norm(off[:3, 3])),
+        correction_deg=float(np.degrees(rotation_angle_rad(off[:3, :3]))),
+    )
     verdict = _gate(measured, cfg)
     if verdict is not None:
         return check(*verdict, **measured)
     return check(LoopReason.ACCEPTED, "", covariance=edge_covariance(H, rmse, cfg), **measured)
 
 
-def _gate(m: dict, cfg: FactorGraphConfig) -> Optional[tuple[LoopReason, str]]:
+def _gate(m: dict, cfg: FactorGraphConfig) -> tuple[LoopReason, str] | None:
     """The first gate a registration fails, with the figures, or None."""
     if m["fitness"] < cfg.loop_min_fitness:
         return LoopReason.FITNESS, f"fitness {m['fitness']:.2f} < {cfg.loop_min_fitness}"
@@ -325,12 +374,26 @@ def edge_covariance(H: np.ndarray, rmse_m: float, cfg: FactorGraphConfig) -> np.
     return rmse_m**2 * np.linalg.inv(H) + np.diag(floor)
 
 
-def verify_loops(candidates: list[LoopCandidate], scans: dict[int, np.ndarray], world_from_base: np.ndarray,
-                 cfg: FactorGraphConfig) -> list[LoopCheck]:
+def verify_loops(
+    candidates: list[LoopCandidate], scans: dict[int, np.ndarray], world_from_base: np.ndarray, cfg: FactorGraphConfig
+) -> list[LoopCheck]:
     """:func:`verify_loop` for every candidate, in order."""
     return [verify_loop(c, scans, world_from_base, cfg) for c in candidates]
 
 
-__all__ = ["LoopCandidate", "LoopCheck", "LoopReason", "horizontal_drift_sigma_m", "local_map", "loop_closures",
-           "propose_loops", "read_scans", "register_local_maps", "scans_needed", "support", "translation_constraint",
-           "verify_loop", "verify_loops"]
+__all__ = [
+    "LoopCandidate",
+    "LoopCheck",
+    "LoopReason",
+    "horizontal_drift_sigma_m",
+    "local_map",
+    "loop_closures",
+    "propose_loops",
+    "read_scans",
+    "register_local_maps",
+    "scans_needed",
+    "support",
+    "translation_constraint",
+    "verify_loop",
+    "verify_loops",
+]

@@ -29,8 +29,8 @@ when ``SemiDenseConfig.refine_rotations`` is on.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, Optional, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -41,14 +41,18 @@ from mapkit.core.geometry import skew
 Matches = Sequence[tuple[int, int, np.ndarray, np.ndarray]]
 
 
-def epipolar_distances_px(K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: np.ndarray, xj: np.ndarray) -> np.ndarray:
+def epipolar_distances_px(
+    K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: np.ndarray, xj: np.ndarray
+) -> np.ndarray:
     """(n,) distances (px) of the pixels ``xj`` of frame j from the epipolar lines of their matches ``xi`` in
     frame i under ``poses`` (world_from_cam, indexable by frame id)."""
     Ki = np.linalg.inv(K)
     rel = np.linalg.inv(poses[j]) @ poses[i]  # cam_j from cam_i
     F = Ki.T @ skew(rel[:3, 3]) @ rel[:3, :3] @ Ki
     lines = np.column_stack([xi, np.ones(len(xi))]) @ F.T
-    return np.abs((np.column_stack([xj, np.ones(len(xj))]) * lines).sum(1)) / np.maximum(np.hypot(lines[:, 0], lines[:, 1]), 1e-12)
+    return np.abs((np.column_stack([xj, np.ones(len(xj))]) * lines).sum(1)) / np.maximum(
+        np.hypot(lines[:, 0], lines[:, 1]), 1e-12
+    )
 
 
 def _right_jacobians(x: np.ndarray) -> np.ndarray:
@@ -72,8 +76,9 @@ def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0], axis=-1)
 
 
-def _pair_terms(f_px: float | Sequence[float], M: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray,
-                derivatives: bool = True) -> tuple[np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:
+def _pair_terms(
+    f_px: float | Sequence[float], M: np.ndarray, t: np.ndarray, a: np.ndarray, b: np.ndarray, derivatives: bool = True
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Signed epipolar distances (n,) in px of the matches ``b`` (frame j) from the lines of ``a`` (frame i; both
     normalised homogeneous (n, 3)), and their derivatives (n, 3) with respect to right perturbations of Ri and Rj
     (``Ri exp(d)``), given each row's M = Rj^T Ri (n, 3, 3) and t = Rj^T (Ci - Cj) (n, 3), for a camera of focal
@@ -104,13 +109,24 @@ def _huber(r: np.ndarray, delta: float) -> tuple[float, np.ndarray]:
     """The Huber cost (r^2 inside delta, 2 delta |r| - delta^2 outside) summed, and the IRLS weights min(1, delta/|r|)."""
     ar = np.abs(r)
     inside = ar <= delta
-    return float(np.where(inside, r * r, 2 * delta * ar - delta * delta).sum()), np.where(inside, 1.0, delta / np.maximum(ar, 1e-300))
+    return float(np.where(inside, r * r, 2 * delta * ar - delta * delta).sum()), np.where(
+        inside, 1.0, delta / np.maximum(ar, 1e-300)
+    )
 
 
-def _solve(f_px: float | Sequence[float], R0: dict[int, np.ndarray], C: dict[int, np.ndarray], free: list[int],
-           pairs: list[tuple[int, int, np.ndarray, np.ndarray]], huber_px: float, prior_px: float | np.ndarray,
-           prior_at: Optional[np.ndarray] = None, x0: Optional[np.ndarray] = None, max_iterations: int = 50,
-           step_tol_rad: float = 1e-6) -> np.ndarray:
+def _solve(
+    f_px: float | Sequence[float],
+    R0: dict[int, np.ndarray],
+    C: dict[int, np.ndarray],
+    free: list[int],
+    pairs: list[tuple[int, int, np.ndarray, np.ndarray]],
+    huber_px: float,
+    prior_px: float | np.ndarray,
+    prior_at: np.ndarray | None = None,
+    x0: np.ndarray | None = None,
+    max_iterations: int = 50,
+    step_tol_rad: float = 1e-6,
+) -> np.ndarray:
     """Rotation corrections (len(free), 3) of the ``free`` frames (``R = R0 @ exp(x)``), each held by a prior at
     ``prior_at`` (default: no correction) of ``prior_px`` px per 1/f rad (a number, or one per frame; f the mean of
     fx and fy).
@@ -129,7 +145,9 @@ def _solve(f_px: float | Sequence[float], R0: dict[int, np.ndarray], C: dict[int
     pairs = [p for p in pairs if p[0] in col and p[1] in col and len(p[2])]
     centre = np.zeros((n, 3)) if prior_at is None else np.asarray(prior_at, float).reshape(-1, 3)
     f_mean = float(np.mean(f_px))
-    w_prior = np.repeat(f_mean / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3)  # px of residual per rad of correction
+    w_prior = np.repeat(
+        f_mean / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3
+    )  # px of residual per rad of correction
     # every pair's matches stacked: each row knows its pair (seg), each pair its two frames (pi, pj)
     pi = np.array([col[p[0]] for p in pairs], int)
     pj = np.array([col[p[1]] for p in pairs], int)
@@ -163,7 +181,7 @@ def _solve(f_px: float | Sequence[float], R0: dict[int, np.ndarray], C: dict[int
         # contiguous), then turned into x by the frames' right Jacobians (d = Jr(x) dx) and added into H and g
         D = np.concatenate([d_i, d_j], axis=1)
         Dw = D * w[:, None]
-        S = np.stack([Dw[s0:s0 + k].T @ D[s0:s0 + k] for s0, k in zip(starts, counts)])  # (pairs, 6, 6)
+        S = np.stack([Dw[s0 : s0 + k].T @ D[s0 : s0 + k] for s0, k in zip(starts, counts)])  # (pairs, 6, 6)
         G = np.add.reduceat(Dw * r[:, None], starts)  # (pairs, 6)
         Jr = _right_jacobians(x)
         T = np.zeros((len(pairs), 6, 6))
@@ -172,7 +190,7 @@ def _solve(f_px: float | Sequence[float], R0: dict[int, np.ndarray], C: dict[int
         G = np.einsum("qki,qk->qi", T, G)
         blocks = H.reshape(n, 3, n, 3).transpose(0, 2, 1, 3)  # a view: blocks[k, l] is H's (k, l) 3x3 block
         for (rk, ck), (rs, cs) in (((pi, pi), (0, 0)), ((pi, pj), (0, 3)), ((pj, pi), (3, 0)), ((pj, pj), (3, 3))):
-            np.add.at(blocks, (rk, ck), S[:, rs:rs + 3, cs:cs + 3])
+            np.add.at(blocks, (rk, ck), S[:, rs : rs + 3, cs : cs + 3])
         np.add.at(g.reshape(n, 3), pi, G[:, :3])
         np.add.at(g.reshape(n, 3), pj, G[:, 3:])
         return cost, H, g
@@ -201,7 +219,9 @@ def _normalised(K: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.column_stack([uv, np.ones(len(uv))]) @ np.linalg.inv(K).T
 
 
-def refine_rotations(K: np.ndarray, poses: np.ndarray, matches: Matches, huber_px: float = 1.0, prior_px: float = 1.0) -> np.ndarray:
+def refine_rotations(
+    K: np.ndarray, poses: np.ndarray, matches: Matches, huber_px: float = 1.0, prior_px: float = 1.0
+) -> np.ndarray:
     """``poses`` (N, 4, 4 world_from_cam) with the rotations of the matched frames re-estimated from ``matches``,
     positions held: every frame at once (a bundle adjustment of rotations only)."""
     ids = sorted({f for i, j, _, _ in matches for f in (i, j)})
@@ -223,7 +243,7 @@ class _Frame:
     gray: np.ndarray
     given: np.ndarray  # 4x4 world_from_cam as handed in
     uv: np.ndarray  # (n, 2) keypoints
-    keys: Optional[np.ndarray]  # what matches the keypoints across frames: track ids (n,), or SIFT descriptors (n, 128)
+    keys: np.ndarray | None  # what matches the keypoints across frames: track ids (n,), or SIFT descriptors (n, 128)
     x: np.ndarray = field(default_factory=lambda: np.zeros(3))  # rotation correction so far
 
 
@@ -259,17 +279,19 @@ class RotationRefiner:
     _before: list = field(default_factory=list)
     _after: list = field(default_factory=list)
     # the tracker's state: the last frame's (grey, corners, track ids), reset by each stream; the next track id
-    _last: Optional[tuple] = field(default=None, init=False, repr=False)
+    _last: tuple | None = field(default=None, init=False, repr=False)
     _next_track: int = field(default=0, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.lag < self.max_gap:
-            raise ValueError(f"lag ({self.lag}) must be at least max_gap ({self.max_gap}): a frame's matches must all be in the window")
+            raise ValueError(
+                f"lag ({self.lag}) must be at least max_gap ({self.max_gap}): a frame's matches must all be in the window"
+            )
         if self.matcher not in ("tracks", "sift"):
             raise ValueError(f"matcher must be 'tracks' or 'sift', not {self.matcher!r}")
         self.K = np.asarray(self.K, np.float64)
 
-    def _features(self, gray: np.ndarray) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    def _features(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Keypoints (n, 2) of a new frame and their keys (track ids or SIFT descriptors)."""
         import cv2
 
@@ -291,14 +313,24 @@ class RotationRefiner:
         uv, ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
         prev = self._last
         if prev is not None and len(prev[1]) and prev[0].shape == g.shape:
-            lk = dict(winSize=(self.track_window_px, self.track_window_px), maxLevel=3,
-                      criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))
+            lk = dict(
+                winSize=(self.track_window_px, self.track_window_px),
+                maxLevel=3,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+            )
             p_gray, p_uv, p_ids = prev
             fwd, ok_f, _ = cv2.calcOpticalFlowPyrLK(p_gray, g, p_uv, None, **lk)
             back, ok_b, _ = cv2.calcOpticalFlowPyrLK(g, p_gray, fwd, None, **lk)
             h, w = g.shape
-            ok = ((ok_f[:, 0] == 1) & (ok_b[:, 0] == 1) & (np.linalg.norm(back - p_uv, axis=1) < self.track_fb_px)
-                  & (fwd[:, 0] >= 0) & (fwd[:, 1] >= 0) & (fwd[:, 0] <= w - 1) & (fwd[:, 1] <= h - 1))
+            ok = (
+                (ok_f[:, 0] == 1)
+                & (ok_b[:, 0] == 1)
+                & (np.linalg.norm(back - p_uv, axis=1) < self.track_fb_px)
+                & (fwd[:, 0] >= 0)
+                & (fwd[:, 1] >= 0)
+                & (fwd[:, 0] <= w - 1)
+                & (fwd[:, 1] <= h - 1)
+            )
             uv, ids = fwd[ok].reshape(-1, 2), p_ids[ok]
         if len(uv) < self.features:
             mask = np.full(g.shape, 255, np.uint8)
@@ -306,15 +338,20 @@ class RotationRefiner:
                 cv2.circle(mask, (int(x), int(y)), self.track_min_distance_px, 0, -1)
             new = cv2.goodFeaturesToTrack(g, self.features - len(uv), 0.01, self.track_min_distance_px, mask=mask)
             if new is not None:
-                new = cv2.cornerSubPix(g, new.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1),
-                                       (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01)).reshape(-1, 2)
+                new = cv2.cornerSubPix(
+                    g,
+                    new.astype(np.float32).reshape(-1, 1, 2),
+                    (5, 5),
+                    (-1, -1),
+                    (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.01),
+                ).reshape(-1, 2)
                 first = self._next_track
                 self._next_track = first + len(new)
                 uv, ids = np.vstack([uv, new]), np.concatenate([ids, np.arange(first, first + len(new))])
         self._last = (g, uv.astype(np.float32), ids)
         return uv.astype(np.float64), ids
 
-    def _match(self, a: _Frame, b: _Frame) -> Optional[tuple[np.ndarray, np.ndarray]]:
+    def _match(self, a: _Frame, b: _Frame) -> tuple[np.ndarray, np.ndarray] | None:
         if a.keys is None or b.keys is None or len(a.keys) < 2 or len(b.keys) < 2:
             return None
         if np.linalg.norm(a.given[:3, 3] - b.given[:3, 3]) < self.min_baseline_m:
@@ -325,14 +362,18 @@ class RotationRefiner:
         else:  # the tracks seen in both frames
             _, ia, ib = np.intersect1d(a.keys, b.keys, assume_unique=True, return_indices=True)
         ua, ub = a.uv[ia].reshape(-1, 2), b.uv[ib].reshape(-1, 2)
-        if len(ua):  # matches far from the given epipolar lines are wrong (repeated facades), not signs of a rotation error
+        if len(
+            ua
+        ):  # matches far from the given epipolar lines are wrong (repeated facades), not signs of a rotation error
             near = epipolar_distances_px(self.K, {0: a.given, 1: b.given}, 0, 1, ua, ub) <= self.gate_px
             ua, ub = ua[near], ub[near]
         if len(ua) < self.min_matches:
             return None
         return _normalised(self.K, ua), _normalised(self.K, ub)
 
-    def stream(self, frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
+    def stream(
+        self, frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]]
+    ) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
         f_px = (float(self.K[0, 0]), float(self.K[1, 1]))
         self._last = None  # a new stream's first frame is not tracked from another stream's last
         # the window: up to ``lag`` frames already handed on (features dropped), then those still waiting; a frame is
@@ -356,8 +397,17 @@ class RotationRefiner:
             # frames handed on are held at their final rotations (anchor_px), the others at their given ones (prior_px)
             at = np.array([final.get(f.frame_id, np.zeros(3)) for f in window])
             px = np.array([self.anchor_px if f.frame_id in final else self.prior_px for f in window])
-            x = _solve(f_px, {f.frame_id: f.given[:3, :3] for f in window}, {f.frame_id: f.given[:3, 3] for f in window}, ids,
-                       [(i, j, a, b) for (i, j), (a, b) in pairs.items()], self.huber_px, px, at, np.concatenate([f.x for f in window]))
+            x = _solve(
+                f_px,
+                {f.frame_id: f.given[:3, :3] for f in window},
+                {f.frame_id: f.given[:3, 3] for f in window},
+                ids,
+                [(i, j, a, b) for (i, j), (a, b) in pairs.items()],
+                self.huber_px,
+                px,
+                at,
+                np.concatenate([f.x for f in window]),
+            )
             for f, xi in zip(window, x):
                 f.x = xi  # warm start of the next window
             fr = window[done]
@@ -381,7 +431,7 @@ class RotationRefiner:
         for frame_id, stamp_ns, gray, world_from_cam in frames:
             uv, keys = self._features(np.asarray(gray))
             fr = _Frame(int(frame_id), int(stamp_ns), gray, np.asarray(world_from_cam, np.float64), uv, keys)
-            for prev in list(window)[max(done, len(window) - self.max_gap):]:
+            for prev in list(window)[max(done, len(window) - self.max_gap) :]:
                 m = self._match(prev, fr)
                 if m is not None:
                     pairs[(prev.frame_id, fr.frame_id)] = m
@@ -392,12 +442,18 @@ class RotationRefiner:
         while len(window) > done:
             yield hand_on()
 
-    def _score(self, fi: _Frame, fj: _Frame, xi: np.ndarray, xj: np.ndarray, na: np.ndarray, nb: np.ndarray, pose) -> None:
+    def _score(
+        self, fi: _Frame, fj: _Frame, xi: np.ndarray, xj: np.ndarray, na: np.ndarray, nb: np.ndarray, pose
+    ) -> None:
         """Median epipolar distances (px) of the pair (i, j) under the given and the refined rotations."""
         i, j = fi.frame_id, fj.frame_id
         uv_i, uv_j = (na @ self.K.T)[:, :2], (nb @ self.K.T)[:, :2]
-        self._before.append(float(np.median(epipolar_distances_px(self.K, {i: fi.given, j: fj.given}, i, j, uv_i, uv_j))))
-        self._after.append(float(np.median(epipolar_distances_px(self.K, {i: pose(fi, xi), j: pose(fj, xj)}, i, j, uv_i, uv_j))))
+        self._before.append(
+            float(np.median(epipolar_distances_px(self.K, {i: fi.given, j: fj.given}, i, j, uv_i, uv_j)))
+        )
+        self._after.append(
+            float(np.median(epipolar_distances_px(self.K, {i: pose(fi, xi), j: pose(fj, xj)}, i, j, uv_i, uv_j)))
+        )
 
     def report(self) -> dict:
         c = np.array(list(self.corrections_deg.values()))
@@ -409,4 +465,3 @@ class RotationRefiner:
             "epipolar_px_median_given": float(np.median(self._before)) if self._before else None,
             "epipolar_px_median_refined": float(np.median(self._after)) if self._after else None,
         }
-

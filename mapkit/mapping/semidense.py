@@ -47,9 +47,10 @@ the world; ``K`` is the 3x3 pinhole matrix of the (undistorted) images; inverse 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Literal, Optional, Sequence
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -104,80 +105,283 @@ class SemiDenseConfig(MapkitConfig):
     """Parameters of semi-dense mapping; defaults from DSO and LSD-SLAM where they have one."""
 
     # --- candidate selection (DSO) ---
-    block_size: int = Field(32, ge=4, description="Side (px) of the blocks whose median gradient sets the threshold (DSO candidate selection: 32x32).")
-    gradient_threshold_add: float = Field(7.0, ge=0, description="Added to the block median of |gradient| (grey levels per px, central differences) to make the threshold (DSO: g_th = 7, setting_minGradHistAdd).")
-    cell_size: int = Field(2, ge=1, description="Keep the strongest candidate per cell of this side (px). DSO picks one per d x d cell with d tuned for ~2000 points; 2 keeps semi-dense density (LSD-SLAM uses every pixel) at a quarter of the cost.")
-    max_candidates: Optional[int] = Field(None, ge=1, description="Keep at most this many candidates per keyframe (strongest gradient relative to threshold first); None = no cap.")
+    block_size: int = Field(
+        32,
+        ge=4,
+        description="Side (px) of the blocks whose median gradient sets the threshold (DSO candidate selection: 32x32).",
+    )
+    gradient_threshold_add: float = Field(
+        7.0,
+        ge=0,
+        description="Added to the block median of |gradient| (grey levels per px, central differences) to make the threshold (DSO: g_th = 7, setting_minGradHistAdd).",
+    )
+    cell_size: int = Field(
+        2,
+        ge=1,
+        description="Keep the strongest candidate per cell of this side (px). DSO picks one per d x d cell with d tuned for ~2000 points; 2 keeps semi-dense density (LSD-SLAM uses every pixel) at a quarter of the cost.",
+    )
+    max_candidates: int | None = Field(
+        None,
+        ge=1,
+        description="Keep at most this many candidates per keyframe (strongest gradient relative to threshold first); None = no cap.",
+    )
     # --- epipolar search ---
-    min_depth_m: float = Field(1.0, gt=0, description="Nearest depth searched (m), in the keyframe and every neighbour. A vehicle camera sees nothing closer than its own bonnet.")
-    max_depth_m: float = Field(100.0, gt=0, description="Farthest depth searched (m). Beyond ~100 m, baselines of a few metres cannot reach max_rel_sigma anyway.")
-    search_samples: int = Field(32, ge=8, description="Samples of the first (full-range) search along the epipolar line, at <= 1 px of the pyramid level it runs on.")
-    full_range_attempts: int = Field(1, ge=1, description="Full-range searches tried per candidate (nearest neighbours first) before giving it up; sky and repetitive texture would otherwise pay for a full search in every neighbour.")
-    prior_search_samples: int = Field(12, ge=5, description="Samples of a search within +-search_sigmas of an existing estimate.")
-    pyramid_levels: int = Field(4, ge=1, le=6, description="Pyramid levels for coarse-to-fine search of long epipolar lines (level l samples every 2^l px); 4 covers lines up to 8*(search_samples-1) px at one level-pixel per sample.")
-    search_sigmas: float = Field(3.0, gt=0, description="Half-width (in sigmas) of the search around an existing estimate (LSD-SLAM: STEREO_EPL_VAR_FAC = 2; 3 leaves slack for underestimated sigmas).")
-    min_search_half_width_px: float = Field(2.0, ge=0.5, description="A prior search covers at least +-this many pixels, so the cost curve has a shape to fit.")
-    min_epipolar_length_px: float = Field(2.0, ge=0, description="Skip a full-range search whose epipolar segment (whole depth range, inside the image) is shorter than this: no parallax (LSD-SLAM: MIN_EPL_LENGTH_SQUARED = 1^2 px; 2 px because the pattern itself spans 4).")
-    min_gradient_epipolar_cos: float = Field(0.3, ge=0, le=1, description="Skip a neighbour when |cos| of the angle between the image gradient and the epipolar line is below this: the line runs along the edge (LSD-SLAM MIN_EPL_ANGLE_SQUARED = 0.3^2).")
-    max_cost: float = Field(0.3, gt=0, le=2, description="Largest accepted 1 - ZNCC over the 8-pixel pattern (ZNCC >= 0.7).")
-    ambiguity_ratio: Optional[float] = Field(None, gt=0, le=1, description="Second-best ratio test of a full-range search (as Lowe's ratio and LSD-SLAM's second-best check): ambiguous (rejected) when another local minimum, more than 2 level-pixels away, scores at least this fraction of the best's ZNCC. None = off (only ambiguity_margin).")
-    ambiguity_margin: float = Field(0.1, ge=0, description="A full-range search is ambiguous (rejected) when another local minimum, more than 2 level-pixels away, costs less than best + this (in 1 - ZNCC). LSD-SLAM asks the second-best SSD to be 1.5x the best; a ratio is meaningless for ZNCC costs near 0, hence a margin.")
-    image_noise_sigma: float = Field(4.0, gt=0, description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: cameraPixelNoise2 = 4^2).")
-    min_sigma_px: float = Field(0.25, gt=0, description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block matching (parabola bias, 'pixel locking').")
+    min_depth_m: float = Field(
+        1.0,
+        gt=0,
+        description="Nearest depth searched (m), in the keyframe and every neighbour. A vehicle camera sees nothing closer than its own bonnet.",
+    )
+    max_depth_m: float = Field(
+        100.0,
+        gt=0,
+        description="Farthest depth searched (m). Beyond ~100 m, baselines of a few metres cannot reach max_rel_sigma anyway.",
+    )
+    search_samples: int = Field(
+        32,
+        ge=8,
+        description="Samples of the first (full-range) search along the epipolar line, at <= 1 px of the pyramid level it runs on.",
+    )
+    full_range_attempts: int = Field(
+        1,
+        ge=1,
+        description="Full-range searches tried per candidate (nearest neighbours first) before giving it up; sky and repetitive texture would otherwise pay for a full search in every neighbour.",
+    )
+    prior_search_samples: int = Field(
+        12, ge=5, description="Samples of a search within +-search_sigmas of an existing estimate."
+    )
+    pyramid_levels: int = Field(
+        4,
+        ge=1,
+        le=6,
+        description="Pyramid levels for coarse-to-fine search of long epipolar lines (level l samples every 2^l px); 4 covers lines up to 8*(search_samples-1) px at one level-pixel per sample.",
+    )
+    search_sigmas: float = Field(
+        3.0,
+        gt=0,
+        description="Half-width (in sigmas) of the search around an existing estimate (LSD-SLAM: STEREO_EPL_VAR_FAC = 2; 3 leaves slack for underestimated sigmas).",
+    )
+    min_search_half_width_px: float = Field(
+        2.0,
+        ge=0.5,
+        description="A prior search covers at least +-this many pixels, so the cost curve has a shape to fit.",
+    )
+    min_epipolar_length_px: float = Field(
+        2.0,
+        ge=0,
+        description="Skip a full-range search whose epipolar segment (whole depth range, inside the image) is shorter than this: no parallax (LSD-SLAM: MIN_EPL_LENGTH_SQUARED = 1^2 px; 2 px because the pattern itself spans 4).",
+    )
+    min_gradient_epipolar_cos: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description="Skip a neighbour when |cos| of the angle between the image gradient and the epipolar line is below this: the line runs along the edge (LSD-SLAM MIN_EPL_ANGLE_SQUARED = 0.3^2).",
+    )
+    max_cost: float = Field(
+        0.3, gt=0, le=2, description="Largest accepted 1 - ZNCC over the 8-pixel pattern (ZNCC >= 0.7)."
+    )
+    ambiguity_ratio: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="Second-best ratio test of a full-range search (as Lowe's ratio and LSD-SLAM's second-best check): ambiguous (rejected) when another local minimum, more than 2 level-pixels away, scores at least this fraction of the best's ZNCC. None = off (only ambiguity_margin).",
+    )
+    ambiguity_margin: float = Field(
+        0.1,
+        ge=0,
+        description="A full-range search is ambiguous (rejected) when another local minimum, more than 2 level-pixels away, costs less than best + this (in 1 - ZNCC). LSD-SLAM asks the second-best SSD to be 1.5x the best; a ratio is meaningless for ZNCC costs near 0, hence a margin.",
+    )
+    image_noise_sigma: float = Field(
+        4.0,
+        gt=0,
+        description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: cameraPixelNoise2 = 4^2).",
+    )
+    min_sigma_px: float = Field(
+        0.25,
+        gt=0,
+        description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block matching (parabola bias, 'pixel locking').",
+    )
     # --- acceptance ---
-    min_agreeing_frames: int = Field(3, ge=2, description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation: it cleans each keyframe's own depths, but with the fusion filters on the map itself hardly changes.")
-    agree_sigmas: float = Field(3.0, gt=0, description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% of a Gaussian).")
-    max_rel_sigma: float = Field(0.02, gt=0, description="Largest accepted sigma(depth)/depth (= sigma(rho)/rho) of a fused point.")
-    max_sigma_depth_m: float = Field(0.3, gt=0, description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a median of 0.15 m.")
-    max_sigma_inv_depth: Optional[float] = Field(None, gt=0, description="Depth-filter convergence: largest accepted sigma of inverse depth (1/m) after fusing a candidate's observations, before it enters the map (LSD-SLAM keeps a pixel's hypothesis out of use until its inverse-depth variance has shrunk; SVO's depth filter calls a seed converged below a fixed sigma). None = off.")
+    min_agreeing_frames: int = Field(
+        3,
+        ge=2,
+        description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation: it cleans each keyframe's own depths, but with the fusion filters on the map itself hardly changes.",
+    )
+    agree_sigmas: float = Field(
+        3.0,
+        gt=0,
+        description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% of a Gaussian).",
+    )
+    max_rel_sigma: float = Field(
+        0.02, gt=0, description="Largest accepted sigma(depth)/depth (= sigma(rho)/rho) of a fused point."
+    )
+    max_sigma_depth_m: float = Field(
+        0.3,
+        gt=0,
+        description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a median of 0.15 m.",
+    )
+    max_sigma_inv_depth: float | None = Field(
+        None,
+        gt=0,
+        description="Depth-filter convergence: largest accepted sigma of inverse depth (1/m) after fusing a candidate's observations, before it enters the map (LSD-SLAM keeps a pixel's hypothesis out of use until its inverse-depth variance has shrunk; SVO's depth filter calls a seed converged below a fixed sigma). None = off.",
+    )
     # --- keyframes and neighbours ---
-    keyframe_spacing_m: float = Field(1.0, gt=0, description="A frame becomes a keyframe after this much motion since the last keyframe (m).")
-    keyframe_rotation_deg: float = Field(10.0, gt=0, description="... or after this much rotation since the last keyframe (deg).")
-    neighbour_window_frames: int = Field(3, ge=1, description="Neighbours are the frames up to this many before and after a keyframe (streaming window of 2n+1 images).")
-    min_baseline_m: float = Field(0.1, ge=0, description="Neighbours closer than this to the keyframe are not used (no parallax).")
-    max_baseline_m: float = Field(10.0, gt=0, description="Neighbours farther than this from the keyframe are not used (little overlap).")
+    keyframe_spacing_m: float = Field(
+        1.0, gt=0, description="A frame becomes a keyframe after this much motion since the last keyframe (m)."
+    )
+    keyframe_rotation_deg: float = Field(
+        10.0, gt=0, description="... or after this much rotation since the last keyframe (deg)."
+    )
+    neighbour_window_frames: int = Field(
+        3,
+        ge=1,
+        description="Neighbours are the frames up to this many before and after a keyframe (streaming window of 2n+1 images).",
+    )
+    min_baseline_m: float = Field(
+        0.1, ge=0, description="Neighbours closer than this to the keyframe are not used (no parallax)."
+    )
+    max_baseline_m: float = Field(
+        10.0, gt=0, description="Neighbours farther than this from the keyframe are not used (little overlap)."
+    )
     # --- camera rotations refined against the images ---
-    refine_rotations: bool = Field(False, description="Refine every frame's camera rotation on its given position before mapping: correspondences with the frames up to refine_max_gap_frames on (tracked corners, or SIFT: refine_matcher), their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.116 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.")
-    refine_max_gap_frames: int = Field(3, ge=1, description="... frames matched with each frame, forward (3: the neighbour window).")
-    refine_lag_frames: int = Field(6, ge=1, description="... a frame's rotation is solved with this many frames before and after it, and handed to the mapper this many frames late (>= refine_max_gap_frames).")
+    refine_rotations: bool = Field(
+        False,
+        description="Refine every frame's camera rotation on its given position before mapping: correspondences with the frames up to refine_max_gap_frames on (tracked corners, or SIFT: refine_matcher), their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.116 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.",
+    )
+    refine_max_gap_frames: int = Field(
+        3, ge=1, description="... frames matched with each frame, forward (3: the neighbour window)."
+    )
+    refine_lag_frames: int = Field(
+        6,
+        ge=1,
+        description="... a frame's rotation is solved with this many frames before and after it, and handed to the mapper this many frames late (>= refine_max_gap_frames).",
+    )
     refine_huber_px: float = Field(1.0, gt=0, description="... Huber scale (px) of the epipolar distances.")
-    refine_prior_px: float = Field(1.0, gt=0, description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).")
-    refine_anchor_px: float = Field(0.1, gt=0, description="... frames already handed on stay in the window held at their final rotations by a prior of this many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median 0.317 against 0.392 m); scored on the KITTI clip.")
-    refine_gate_px: float = Field(10.0, gt=0, description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).")
-    refine_matcher: Literal["tracks", "sift"] = Field("tracks", description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test. On the KITTI clip both give rotations as good (median distance of independent SIFT matches to the refined epipolar lines: frames 25-50, given 0.305 px, SIFT 0.207, tracks 0.204) and the tracks' refiner takes a tenth of SIFT's CPU time (python3 bench/rotation_refine_matchers.py).")
-    refine_features: int = Field(600, ge=50, description="... corners tracked per frame (tracks), or SIFT features per frame (sift).")
-    refine_lowe_ratio: float = Field(0.7, gt=0, le=1, description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on repeated facades).")
-    refine_min_matches: int = Field(30, ge=8, description="... a pair of frames with fewer matches is left out (the prior holds a frame with none).")
+    refine_prior_px: float = Field(
+        1.0,
+        gt=0,
+        description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).",
+    )
+    refine_anchor_px: float = Field(
+        0.1,
+        gt=0,
+        description="... frames already handed on stay in the window held at their final rotations by a prior of this many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median 0.317 against 0.392 m); scored on the KITTI clip.",
+    )
+    refine_gate_px: float = Field(
+        10.0,
+        gt=0,
+        description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).",
+    )
+    refine_matcher: Literal["tracks", "sift"] = Field(
+        "tracks",
+        description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test. On the KITTI clip both give rotations as good (median distance of independent SIFT matches to the refined epipolar lines: frames 25-50, given 0.305 px, SIFT 0.207, tracks 0.204) and the tracks' refiner takes a tenth of SIFT's CPU time (python3 bench/rotation_refine_matchers.py).",
+    )
+    refine_features: int = Field(
+        600, ge=50, description="... corners tracked per frame (tracks), or SIFT features per frame (sift)."
+    )
+    refine_lowe_ratio: float = Field(
+        0.7,
+        gt=0,
+        le=1,
+        description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on repeated facades).",
+    )
+    refine_min_matches: int = Field(
+        30, ge=8, description="... a pair of frames with fewer matches is left out (the prior holds a frame with none)."
+    )
     # --- fusion ---
-    fusion_radius_m: float = Field(0.05, gt=0, description="No two map points closer than this (m): the better-measured point absorbs the other's observations. Below the 0.15 m accuracy goal.")
-    fusion_window_keyframes: int = Field(10, ge=1, description="A point stays open for fusion until this many keyframes pass without it absorbing a new observation.")
+    fusion_radius_m: float = Field(
+        0.05,
+        gt=0,
+        description="No two map points closer than this (m): the better-measured point absorbs the other's observations. Below the 0.15 m accuracy goal.",
+    )
+    fusion_window_keyframes: int = Field(
+        10,
+        ge=1,
+        description="A point stays open for fusion until this many keyframes pass without it absorbing a new observation.",
+    )
     # --- outlier rejection at fusion ---
-    min_consistent_views: int = Field(0, ge=0, description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes have their own depth within consistency_rel_tol at its reprojection. 0 = off (the default; 1 with the defaults below is the setting chosen on the clip's first half, and with free_space_window_keyframes = 25 the recommended one: configs/build/clean-maps.yaml).")
-    consistency_rel_tol: float = Field(0.06, gt=0, description="Relative depth tolerance |z - z_other| / z_other of the multi-view consistency test (COLMAP: filter_max_depth_diff = 0.01 on dense depth maps; 0.06 chosen on the first half of the KITTI clip, where 0.01-0.06 were tried).")
-    consistency_pixel_radius: float = Field(1.5, gt=0, description="A reprojected depth is compared with the other keyframe's depths within this radius (px): semi-dense candidates are one per cell, so the same edge may sit a pixel off.")
-    min_agree_over_conflict: float = Field(2.0, ge=0, description="... and only where the agreeing views number at least this times the views whose depths there contradict it (stability-based fusion, Merrell et al. ICCV 2007: support against free-space violations and occlusions; 2 chosen on the first half of the KITTI clip among 0, 1, 1.5, 2). 0 = agreement alone decides.")
-    consistency_window_keyframes: int = Field(12, ge=1, description="Keyframes before and after a keyframe that vote on its depths; a keyframe enters fusion this many keyframes late (memory: 2n+1 sparse depth images).")
-    photometric_min_views: int = Field(0, ge=0, description="Photometric consistency (as DSO's point activation and COLMAP's photometric term): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes that see it unoccluded show its patch with NCC >= photometric_ncc_min, and they number at least photometric_min_agree_over_conflict times those whose NCC falls below. 0 = off (measured alone it cleans less than the geometric test at the same point count on the KITTI clip: bench/semidense_kitti_clip.py --ablation).")
-    photometric_ncc_min: float = Field(0.5, ge=-1, le=1, description="... NCC of the (2 photometric_patch_radius + 1)^2 patch, lifted at the depth (fronto-parallel) and sampled in the other keyframe, that counts as agreement (0.5 chosen on the first half of the KITTI clip among 0.5, 0.7, 0.8: the setting with the lowest 90th percentile that keeps half the points).")
-    photometric_min_agree_over_conflict: float = Field(1.0, ge=0, description="... agreeing keyframes at least this times the disagreeing ones (1 chosen on the first half of the KITTI clip among 0.5, 1, 2).")
-    photometric_patch_radius: int = Field(2, ge=1, le=5, description="Half-side (px) of the patch the photometric test compares: 2 = 5x5, the extent of DSO's 8-pixel pattern.")
-    free_space_window_keyframes: int = Field(0, ge=0, description="Visibility test after the geometric and photometric ones (free-space carving as in TSDF fusion; Merrell et al.'s stability-based fusion, ICCV 2007): a depth is rejected when more than free_space_max_violations of the keyframes up to this many before and after it either see through it (it floats in front of a surface their checked depths hold at its reprojection) or saw a surface that would hide it in its own keyframe. 0 = off; 25 (twice the consistency window: the clip's 26-frame first half is too short to choose it on) is the setting measured. Keyframes enter fusion this many keyframes later again (memory: 2n+1 sparse keyframe depths).")
-    free_space_max_violations: int = Field(0, ge=0, description="... violating keyframes tolerated (0: one violation rejects; chosen on the first half of the KITTI clip among 0, 1, 2).")
-    outlier_neighbours: int = Field(0, ge=0, description="Final statistical outlier pass over the fused map (open3d remove_statistical_outlier): neighbours whose mean distance is compared. 0 = off.")
-    outlier_std_ratio: float = Field(2.0, gt=0, description="... a point goes when its mean neighbour distance exceeds the map's mean by this many standard deviations (the PCL/open3d tutorial value).")
+    min_consistent_views: int = Field(
+        0,
+        ge=0,
+        description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes have their own depth within consistency_rel_tol at its reprojection. 0 = off (the default; 1 with the defaults below is the setting chosen on the clip's first half, and with free_space_window_keyframes = 25 the recommended one: configs/build/clean-maps.yaml).",
+    )
+    consistency_rel_tol: float = Field(
+        0.06,
+        gt=0,
+        description="Relative depth tolerance |z - z_other| / z_other of the multi-view consistency test (COLMAP: filter_max_depth_diff = 0.01 on dense depth maps; 0.06 chosen on the first half of the KITTI clip, where 0.01-0.06 were tried).",
+    )
+    consistency_pixel_radius: float = Field(
+        1.5,
+        gt=0,
+        description="A reprojected depth is compared with the other keyframe's depths within this radius (px): semi-dense candidates are one per cell, so the same edge may sit a pixel off.",
+    )
+    min_agree_over_conflict: float = Field(
+        2.0,
+        ge=0,
+        description="... and only where the agreeing views number at least this times the views whose depths there contradict it (stability-based fusion, Merrell et al. ICCV 2007: support against free-space violations and occlusions; 2 chosen on the first half of the KITTI clip among 0, 1, 1.5, 2). 0 = agreement alone decides.",
+    )
+    consistency_window_keyframes: int = Field(
+        12,
+        ge=1,
+        description="Keyframes before and after a keyframe that vote on its depths; a keyframe enters fusion this many keyframes late (memory: 2n+1 sparse depth images).",
+    )
+    photometric_min_views: int = Field(
+        0,
+        ge=0,
+        description="Photometric consistency (as DSO's point activation and COLMAP's photometric term): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes that see it unoccluded show its patch with NCC >= photometric_ncc_min, and they number at least photometric_min_agree_over_conflict times those whose NCC falls below. 0 = off (measured alone it cleans less than the geometric test at the same point count on the KITTI clip: bench/semidense_kitti_clip.py --ablation).",
+    )
+    photometric_ncc_min: float = Field(
+        0.5,
+        ge=-1,
+        le=1,
+        description="... NCC of the (2 photometric_patch_radius + 1)^2 patch, lifted at the depth (fronto-parallel) and sampled in the other keyframe, that counts as agreement (0.5 chosen on the first half of the KITTI clip among 0.5, 0.7, 0.8: the setting with the lowest 90th percentile that keeps half the points).",
+    )
+    photometric_min_agree_over_conflict: float = Field(
+        1.0,
+        ge=0,
+        description="... agreeing keyframes at least this times the disagreeing ones (1 chosen on the first half of the KITTI clip among 0.5, 1, 2).",
+    )
+    photometric_patch_radius: int = Field(
+        2,
+        ge=1,
+        le=5,
+        description="Half-side (px) of the patch the photometric test compares: 2 = 5x5, the extent of DSO's 8-pixel pattern.",
+    )
+    free_space_window_keyframes: int = Field(
+        0,
+        ge=0,
+        description="Visibility test after the geometric and photometric ones (free-space carving as in TSDF fusion; Merrell et al.'s stability-based fusion, ICCV 2007): a depth is rejected when more than free_space_max_violations of the keyframes up to this many before and after it either see through it (it floats in front of a surface their checked depths hold at its reprojection) or saw a surface that would hide it in its own keyframe. 0 = off; 25 (twice the consistency window: the clip's 26-frame first half is too short to choose it on) is the setting measured. Keyframes enter fusion this many keyframes later again (memory: 2n+1 sparse keyframe depths).",
+    )
+    free_space_max_violations: int = Field(
+        0,
+        ge=0,
+        description="... violating keyframes tolerated (0: one violation rejects; chosen on the first half of the KITTI clip among 0, 1, 2).",
+    )
+    outlier_neighbours: int = Field(
+        0,
+        ge=0,
+        description="Final statistical outlier pass over the fused map (open3d remove_statistical_outlier): neighbours whose mean distance is compared. 0 = off.",
+    )
+    outlier_std_ratio: float = Field(
+        2.0,
+        gt=0,
+        description="... a point goes when its mean neighbour distance exceeds the map's mean by this many standard deviations (the PCL/open3d tutorial value).",
+    )
 
     @model_validator(mode="after")
-    def _check(self) -> "SemiDenseConfig":
+    def _check(self) -> SemiDenseConfig:
         if self.max_depth_m <= self.min_depth_m:
             raise ValueError(f"max_depth_m ({self.max_depth_m}) must exceed min_depth_m ({self.min_depth_m})")
         if self.max_baseline_m <= self.min_baseline_m:
             raise ValueError("max_baseline_m must exceed min_baseline_m")
         if self.refine_lag_frames < self.refine_max_gap_frames:
-            raise ValueError(f"refine_lag_frames ({self.refine_lag_frames}) must be at least refine_max_gap_frames ({self.refine_max_gap_frames})")
+            raise ValueError(
+                f"refine_lag_frames ({self.refine_lag_frames}) must be at least refine_max_gap_frames ({self.refine_max_gap_frames})"
+            )
         return self
 
 
 # --- results ---------------------------------------------------------------------------------------
+
 
 @dataclass
 class KeyframePoints:
@@ -217,10 +421,18 @@ class KeyframePoints:
         img[self.pixels_uv[:, 1], self.pixels_uv[:, 0]] = self.depth
         return img
 
-    def select(self, keep: np.ndarray) -> "KeyframePoints":
+    def select(self, keep: np.ndarray) -> KeyframePoints:
         """The points where ``keep`` (N,) is true."""
-        return KeyframePoints(self.pixels_uv[keep], self.inv_depth[keep], self.sigma_inv_depth[keep], self.intensity[keep],
-                              self.neighbour_ids, self.agreed[keep], self.frame_id, dict(self.stats))
+        return KeyframePoints(
+            self.pixels_uv[keep],
+            self.inv_depth[keep],
+            self.sigma_inv_depth[keep],
+            self.intensity[keep],
+            self.neighbour_ids,
+            self.agreed[keep],
+            self.frame_id,
+            dict(self.stats),
+        )
 
 
 @dataclass
@@ -238,11 +450,11 @@ class SemiDenseMap:
     keyframe_world_from_cam: np.ndarray  # (F, 4, 4)
     K: np.ndarray  # (3, 3)
     image_size_wh: tuple[int, int]
-    config: Optional[SemiDenseConfig] = None
+    config: SemiDenseConfig | None = None
     #: every frame the map was built from, keyframe or not: (T,) ids and their stamps, so that a
     #: frame's pose can be interpolated between keyframes over time (absent in maps saved before)
-    frame_ids: Optional[np.ndarray] = None
-    frame_stamps_ns: Optional[np.ndarray] = None
+    frame_ids: np.ndarray | None = None
+    frame_stamps_ns: np.ndarray | None = None
     #: points each outlier filter of the fusion removed, by name (not saved: the build's metrics hold it)
     rejected: dict = field(default_factory=dict)
     #: what the rotation refinement did (frames, corrections, epipolar distances before and after; not saved either)
@@ -251,15 +463,21 @@ class SemiDenseMap:
     def __len__(self) -> int:
         return int(len(self.points_world))
 
-    def select(self, keep: np.ndarray) -> "SemiDenseMap":
+    def select(self, keep: np.ndarray) -> SemiDenseMap:
         """The map restricted to the points where ``keep`` (N,) is true, with their observations."""
         keep = np.asarray(keep, bool)
         c = self.obs_counts
         sel_obs = np.repeat(keep, c)
         return replace(
-            self, points_world=self.points_world[keep], intensity=self.intensity[keep], sigma_depth=self.sigma_depth[keep],
-            source_keyframe=self.source_keyframe[keep], obs_indptr=np.r_[0, np.cumsum(c[keep])].astype(np.int64),
-            obs_frame_ids=self.obs_frame_ids[sel_obs], rejected=dict(self.rejected), pose_refinement=dict(self.pose_refinement),
+            self,
+            points_world=self.points_world[keep],
+            intensity=self.intensity[keep],
+            sigma_depth=self.sigma_depth[keep],
+            source_keyframe=self.source_keyframe[keep],
+            obs_indptr=np.r_[0, np.cumsum(c[keep])].astype(np.int64),
+            obs_frame_ids=self.obs_frame_ids[sel_obs],
+            rejected=dict(self.rejected),
+            pose_refinement=dict(self.pose_refinement),
         )
 
     def observations(self, i: int) -> np.ndarray:
@@ -276,7 +494,11 @@ class SemiDenseMap:
 
     def stats(self) -> dict:
         c = self.obs_counts
-        path_m = float(np.linalg.norm(np.diff(self.keyframe_world_from_cam[:, :3, 3], axis=0), axis=1).sum()) if len(self.keyframe_ids) > 1 else 0.0
+        path_m = (
+            float(np.linalg.norm(np.diff(self.keyframe_world_from_cam[:, :3, 3], axis=0), axis=1).sum())
+            if len(self.keyframe_ids) > 1
+            else 0.0
+        )
         return {
             "points": len(self),
             "keyframes": int(len(self.keyframe_ids)),
@@ -297,23 +519,34 @@ class SemiDenseMap:
         folder.mkdir(parents=True, exist_ok=True)
         grey = np.repeat(self.intensity.astype(np.float64)[:, None] / 255.0, 3, axis=1)
         atomic_write_ply(folder / "points.ply", self.points_world, grey, frame=frame)
-        with atomic_path(folder / "observations.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(
-                    f,
-                    obs_indptr=self.obs_indptr, obs_frame_ids=self.obs_frame_ids, source_keyframe=self.source_keyframe,
-                    sigma_depth=self.sigma_depth, intensity=self.intensity, keyframe_ids=self.keyframe_ids,
-                    keyframe_stamps_ns=self.keyframe_stamps_ns, keyframe_world_from_cam=self.keyframe_world_from_cam,
-                    K=self.K, image_size_wh=np.asarray(self.image_size_wh, np.int64),
-                    **({} if self.frame_ids is None else {"frame_ids": np.asarray(self.frame_ids, np.int64),
-                                                          "frame_stamps_ns": np.asarray(self.frame_stamps_ns, np.int64)}),
-                )
+        with atomic_path(folder / "observations.npz") as tmp, open(tmp, "wb") as f:
+            np.savez(
+                f,
+                obs_indptr=self.obs_indptr,
+                obs_frame_ids=self.obs_frame_ids,
+                source_keyframe=self.source_keyframe,
+                sigma_depth=self.sigma_depth,
+                intensity=self.intensity,
+                keyframe_ids=self.keyframe_ids,
+                keyframe_stamps_ns=self.keyframe_stamps_ns,
+                keyframe_world_from_cam=self.keyframe_world_from_cam,
+                K=self.K,
+                image_size_wh=np.asarray(self.image_size_wh, np.int64),
+                **(
+                    {}
+                    if self.frame_ids is None
+                    else {
+                        "frame_ids": np.asarray(self.frame_ids, np.int64),
+                        "frame_stamps_ns": np.asarray(self.frame_stamps_ns, np.int64),
+                    }
+                ),
+            )
         if self.config is not None:
             atomic_write_text(folder / "config.yaml", dump_config(self.config))
         return folder
 
     @classmethod
-    def load(cls, folder: str | Path) -> "SemiDenseMap":
+    def load(cls, folder: str | Path) -> SemiDenseMap:
         import open3d as o3d
         import yaml
 
@@ -325,20 +558,32 @@ class SemiDenseMap:
         with np.load(folder / "observations.npz") as z:
             d = {k: z[k] for k in z.files}
         if len(d["obs_indptr"]) != len(pts) + 1:
-            raise InputError(folder / "observations.npz", f"{len(d['obs_indptr']) - 1} points, but points.ply has {len(pts)}")
+            raise InputError(
+                folder / "observations.npz", f"{len(d['obs_indptr']) - 1} points, but points.ply has {len(pts)}"
+            )
         cfg = None
         if (folder / "config.yaml").is_file():
             cfg = SemiDenseConfig.model_validate(yaml.safe_load((folder / "config.yaml").read_text()))
         return cls(
-            points_world=pts, intensity=d["intensity"], sigma_depth=d["sigma_depth"], source_keyframe=d["source_keyframe"],
-            obs_indptr=d["obs_indptr"], obs_frame_ids=d["obs_frame_ids"], keyframe_ids=d["keyframe_ids"],
-            keyframe_stamps_ns=d["keyframe_stamps_ns"], keyframe_world_from_cam=d["keyframe_world_from_cam"],
-            K=d["K"], image_size_wh=tuple(int(x) for x in d["image_size_wh"]), config=cfg,
-            frame_ids=d.get("frame_ids"), frame_stamps_ns=d.get("frame_stamps_ns"),
+            points_world=pts,
+            intensity=d["intensity"],
+            sigma_depth=d["sigma_depth"],
+            source_keyframe=d["source_keyframe"],
+            obs_indptr=d["obs_indptr"],
+            obs_frame_ids=d["obs_frame_ids"],
+            keyframe_ids=d["keyframe_ids"],
+            keyframe_stamps_ns=d["keyframe_stamps_ns"],
+            keyframe_world_from_cam=d["keyframe_world_from_cam"],
+            K=d["K"],
+            image_size_wh=tuple(int(x) for x in d["image_size_wh"]),
+            config=cfg,
+            frame_ids=d.get("frame_ids"),
+            frame_stamps_ns=d.get("frame_stamps_ns"),
         )
 
 
 # --- one keyframe ------------------------------------------------------------------------------------------
+
 
 def _accepted(rho: np.ndarray, sigma: np.ndarray, agreed: np.ndarray, cfg: SemiDenseConfig) -> np.ndarray:
     """Candidates whose depth enough frames agree on, inside the depth range and sharp enough."""
@@ -348,7 +593,8 @@ def _accepted(rho: np.ndarray, sigma: np.ndarray, agreed: np.ndarray, cfg: SemiD
         return (
             np.isfinite(rho)
             & (n_frames >= cfg.min_agreeing_frames)
-            & (rho >= rho_min) & (rho <= rho_max)
+            & (rho >= rho_min)
+            & (rho <= rho_max)
             & (sigma <= cfg.max_rel_sigma * rho)
             & (sigma <= cfg.max_sigma_depth_m * rho**2)
             & (sigma <= (np.inf if cfg.max_sigma_inv_depth is None else cfg.max_sigma_inv_depth))
@@ -360,12 +606,12 @@ def map_keyframe(
     ref_world_from_cam: np.ndarray,
     neighbours: Sequence[tuple[np.ndarray, np.ndarray]],
     K: np.ndarray,
-    cfg: Optional[SemiDenseConfig] = None,
+    cfg: SemiDenseConfig | None = None,
     *,
     frame_id: int = -1,
-    neighbour_ids: Optional[Sequence[int]] = None,
-    ref_pyramid: Optional[_Pyramid] = None,
-    neighbour_pyramids: Optional[Sequence[_Pyramid]] = None,
+    neighbour_ids: Sequence[int] | None = None,
+    ref_pyramid: _Pyramid | None = None,
+    neighbour_pyramids: Sequence[_Pyramid] | None = None,
 ) -> KeyframePoints:
     """Semi-dense depths of one keyframe from neighbouring frames of known pose.
 
@@ -381,7 +627,11 @@ def map_keyframe(
         raise ValueError(f"map_keyframe needs a (H, W) grey image, got shape {ref_image.shape}")
     ids = np.asarray(neighbour_ids if neighbour_ids is not None else np.arange(len(neighbours)), np.int64)
     ref_pyr = ref_pyramid or _Pyramid(ref_image, cfg.pyramid_levels)
-    nb_pyrs = list(neighbour_pyramids) if neighbour_pyramids is not None else [_Pyramid(img, cfg.pyramid_levels) for img, _ in neighbours]
+    nb_pyrs = (
+        list(neighbour_pyramids)
+        if neighbour_pyramids is not None
+        else [_Pyramid(img, cfg.pyramid_levels) for img, _ in neighbours]
+    )
     for (img, _), pyr in zip(neighbours, nb_pyrs):
         if pyr.shape != ref_pyr.shape:
             raise ValueError(f"neighbour image shape {pyr.shape} differs from the keyframe's {ref_pyr.shape}")
@@ -412,7 +662,9 @@ def map_keyframe(
         ia = np.nonzero(usable & ~has & (attempts < cfg.full_range_attempts))[0]
         n_full += len(ia)
         if len(ia):
-            r = searcher.trace(ia, np.full(len(ia), rho_min), np.full(len(ia), rho_max), nb, tgt, cfg.search_samples, True)
+            r = searcher.trace(
+                ia, np.full(len(ia), rho_min), np.full(len(ia), rho_max), nb, tgt, cfg.search_samples, True
+            )
             attempts[ia[r.searched]] += 1  # a line outside this neighbour's view is no attempt
             k = ia[r.ok]
             rho[k], var[k] = r.rho[r.ok], r.sigma_rho[r.ok] ** 2
@@ -447,13 +699,18 @@ def map_keyframe(
         agreed=agreed[keep],
         frame_id=int(frame_id),
         stats={
-            "candidates": int(n_cand), "with_estimate": int(np.isfinite(rho).sum()), "accepted": int(keep.sum()),
-            "neighbours_searched": n_searched, "full_range_searches": n_full, "prior_searches": n_prior,
+            "candidates": int(n_cand),
+            "with_estimate": int(np.isfinite(rho).sum()),
+            "accepted": int(keep.sum()),
+            "neighbours_searched": n_searched,
+            "full_range_searches": n_full,
+            "prior_searches": n_prior,
         },
     )
 
 
 # --- the map of a drive ---------------------------------------------------------------------------------
+
 
 @dataclass
 class _Buffered:
@@ -462,7 +719,7 @@ class _Buffered:
     image: np.ndarray
     world_from_cam: np.ndarray
     is_keyframe: bool
-    pyramid: Optional[_Pyramid] = None
+    pyramid: _Pyramid | None = None
 
 
 @dataclass
@@ -475,8 +732,8 @@ class _KeyframeTask:
     world_from_cam: np.ndarray
     neighbours: list[tuple[np.ndarray, np.ndarray]]
     neighbour_ids: list[int]
-    pyramid: Optional[_Pyramid] = None
-    neighbour_pyramids: Optional[list[_Pyramid]] = None
+    pyramid: _Pyramid | None = None
+    neighbour_pyramids: list[_Pyramid] | None = None
 
 
 @dataclass
@@ -486,19 +743,32 @@ class _Checked:
     frame_id: int
     world_from_cam: np.ndarray
     points: KeyframePoints
-    depth: Optional[np.ndarray | SparseDepth]  # own depths: (H, W) float32, NaN elsewhere, while voting; sparse while carving
-    image: Optional[np.ndarray] = None  # (H, W) grey keyframe image, for the photometric test
-    xyz: Optional[np.ndarray] = None  # (N, 3) world points of ``points``, once they passed the voting filters
+    depth: np.ndarray | SparseDepth | None  # own depths: (H, W) float32, NaN elsewhere, while voting; sparse while carving
+    image: np.ndarray | None = None  # (H, W) grey keyframe image, for the photometric test
+    xyz: np.ndarray | None = None  # (N, 3) world points of ``points``, once they passed the voting filters
 
 
-def _map_keyframe_task(shared: tuple[np.ndarray, SemiDenseConfig], t: _KeyframeTask) -> tuple[int, int, np.ndarray, KeyframePoints]:
+def _map_keyframe_task(
+    shared: tuple[np.ndarray, SemiDenseConfig], t: _KeyframeTask
+) -> tuple[int, int, np.ndarray, KeyframePoints]:
     K, cfg = shared
-    pts = map_keyframe(t.image, t.world_from_cam, t.neighbours, K, cfg, frame_id=t.frame_id, neighbour_ids=t.neighbour_ids,
-                       ref_pyramid=t.pyramid, neighbour_pyramids=t.neighbour_pyramids)
+    pts = map_keyframe(
+        t.image,
+        t.world_from_cam,
+        t.neighbours,
+        K,
+        cfg,
+        frame_id=t.frame_id,
+        neighbour_ids=t.neighbour_ids,
+        ref_pyramid=t.pyramid,
+        neighbour_pyramids=t.neighbour_pyramids,
+    )
     return t.frame_id, t.stamp_ns, t.world_from_cam, pts
 
 
-def _checked_frame(frame_id: int, gray, world_from_cam, image_shape: Optional[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+def _checked_frame(
+    frame_id: int, gray, world_from_cam, image_shape: tuple[int, int] | None
+) -> tuple[np.ndarray, np.ndarray]:
     """(grey image, pose) of one input frame, or an error naming the frame: a (H, W) image of the
     first frame's shape and a finite 4x4 pose."""
     gray = np.asarray(gray)
@@ -508,11 +778,13 @@ def _checked_frame(frame_id: int, gray, world_from_cam, image_shape: Optional[tu
     if T.shape != (4, 4) or not np.isfinite(T).all():
         raise InputError(None, f"frame {frame_id}: world_from_cam must be a finite 4x4 matrix")
     if image_shape is not None and gray.shape != image_shape:
-        raise InputError(None, f"frame {frame_id}: image shape {gray.shape} differs from the first frame's {image_shape}")
+        raise InputError(
+            None, f"frame {frame_id}: image shape {gray.shape} differs from the first frame's {image_shape}"
+        )
     return gray, T
 
 
-def _is_keyframe(last_kf: Optional[np.ndarray], world_from_cam: np.ndarray, cfg: SemiDenseConfig) -> bool:
+def _is_keyframe(last_kf: np.ndarray | None, world_from_cam: np.ndarray, cfg: SemiDenseConfig) -> bool:
     """The first frame, and a frame that moved or turned enough since the last keyframe."""
     if last_kf is None:
         return True
@@ -524,11 +796,11 @@ def _is_keyframe(last_kf: Optional[np.ndarray], world_from_cam: np.ndarray, cfg:
 def build_semidense_map(
     frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]],
     K: np.ndarray,
-    cfg: Optional[SemiDenseConfig] = None,
+    cfg: SemiDenseConfig | None = None,
     progress: bool = True,
-    on_keyframe: Optional[Callable[[int, np.ndarray, KeyframePoints], None]] = None,
-    executor: Optional[Executor] = None,
-    on_fused: Optional[Callable[[int, np.ndarray, KeyframePoints], None]] = None,
+    on_keyframe: Callable[[int, np.ndarray, KeyframePoints], None] | None = None,
+    executor: Executor | None = None,
+    on_fused: Callable[[int, np.ndarray, KeyframePoints], None] | None = None,
 ) -> SemiDenseMap:
     """Semi-dense map of a drive from ``(frame_id, stamp_ns, gray (H, W), world_from_cam 4x4)``.
 
@@ -552,21 +824,38 @@ def build_semidense_map(
     fuser = _Fuser(cfg.fusion_radius_m, cfg.fusion_window_keyframes)
     kf_ids, kf_stamps, kf_poses = [], [], []
     all_ids, all_stamps = [], []
-    image_shape: Optional[tuple[int, int]] = None
+    image_shape: tuple[int, int] | None = None
     total = len(frames) if hasattr(frames, "__len__") else None  # type: ignore[arg-type]
     refiner = None
     if cfg.refine_rotations:
-        refiner = RotationRefiner(K, max_gap=cfg.refine_max_gap_frames, lag=cfg.refine_lag_frames, huber_px=cfg.refine_huber_px,
-                                  prior_px=cfg.refine_prior_px, anchor_px=cfg.refine_anchor_px, gate_px=cfg.refine_gate_px, matcher=cfg.refine_matcher, features=cfg.refine_features, lowe_ratio=cfg.refine_lowe_ratio,
-                                  min_matches=cfg.refine_min_matches, min_baseline_m=cfg.min_baseline_m)
+        refiner = RotationRefiner(
+            K,
+            max_gap=cfg.refine_max_gap_frames,
+            lag=cfg.refine_lag_frames,
+            huber_px=cfg.refine_huber_px,
+            prior_px=cfg.refine_prior_px,
+            anchor_px=cfg.refine_anchor_px,
+            gate_px=cfg.refine_gate_px,
+            matcher=cfg.refine_matcher,
+            features=cfg.refine_features,
+            lowe_ratio=cfg.refine_lowe_ratio,
+            min_matches=cfg.refine_min_matches,
+            min_baseline_m=cfg.min_baseline_m,
+        )
         frames = refiner.stream(frames)
     bar = progress_bar(total, progress, desc="semi-dense", unit="frame")
 
     def task(window: deque[_Buffered], center: int) -> _KeyframeTask:
         kf = window[center]
         nbs = [f for k, f in enumerate(window) if k != center and abs(k - center) <= W]
-        t = _KeyframeTask(kf.frame_id, kf.stamp_ns, kf.image, kf.world_from_cam, [(f.image, f.world_from_cam) for f in nbs],
-                          [f.frame_id for f in nbs])
+        t = _KeyframeTask(
+            kf.frame_id,
+            kf.stamp_ns,
+            kf.image,
+            kf.world_from_cam,
+            [(f.image, f.world_from_cam) for f in nbs],
+            [f.frame_id for f in nbs],
+        )
         if cfg.photometric_min_views > 0:
             kf_images[kf.frame_id] = kf.image
         if executor.in_process:  # a frame's pyramid serves every keyframe whose window holds it
@@ -579,7 +868,7 @@ def build_semidense_map(
     def keyframe_tasks() -> Iterator[_KeyframeTask]:
         nonlocal image_shape
         window: deque[_Buffered] = deque()
-        last_kf: Optional[np.ndarray] = None
+        last_kf: np.ndarray | None = None
         for frame_id, stamp_ns, gray, world_from_cam in frames:
             bar.update(1)
             gray, T = _checked_frame(frame_id, gray, world_from_cam, image_shape)
@@ -609,48 +898,84 @@ def build_semidense_map(
     check_free = cfg.free_space_window_keyframes > 0
     voting: _ViewWindow[_Checked] = _ViewWindow(cfg.consistency_window_keyframes if check_views or check_photo else 0)
     carving: _ViewWindow[_Checked] = _ViewWindow(cfg.free_space_window_keyframes)
-    rejected = {name: 0 for name, on in (("multi_view", check_views), ("photometric", check_photo), ("free_space", check_free)) if on}
+    rejected = {
+        name: 0
+        for name, on in (("multi_view", check_views), ("photometric", check_photo), ("free_space", check_free))
+        if on
+    }
     kf_images: dict[int, np.ndarray] = {}  # keyframe images on their way to the photometric test
 
     def vote(item: _Checked, others: list[_Checked]) -> Iterator[tuple[_Checked, list[_Checked]]]:
         pts = item.points
         keep = np.ones(len(pts), bool)
         if check_views:
-            keep = multi_view_filter(pts.points_world(K, item.world_from_cam), [(o.world_from_cam, o.depth) for o in others], K,
-                                     min_views=cfg.min_consistent_views, min_agree_over_conflict=cfg.min_agree_over_conflict,
-                                     rel_tol=cfg.consistency_rel_tol, pixel_radius=cfg.consistency_pixel_radius)
+            keep = multi_view_filter(
+                pts.points_world(K, item.world_from_cam),
+                [(o.world_from_cam, o.depth) for o in others],
+                K,
+                min_views=cfg.min_consistent_views,
+                min_agree_over_conflict=cfg.min_agree_over_conflict,
+                rel_tol=cfg.consistency_rel_tol,
+                pixel_radius=cfg.consistency_pixel_radius,
+            )
             rejected["multi_view"] += int((~keep).sum())
         if check_photo:
             sub = np.nonzero(keep)[0]
-            ok = photometric_filter(item.world_from_cam, item.image, pts.pixels_uv[sub], pts.depth[sub],
-                                    [(o.world_from_cam, o.image, o.depth) for o in others], K, min_views=cfg.photometric_min_views,
-                                    ncc_min=cfg.photometric_ncc_min, min_agree_over_conflict=cfg.photometric_min_agree_over_conflict,
-                                    patch_radius=cfg.photometric_patch_radius, rel_tol=cfg.consistency_rel_tol,
-                                    pixel_radius=cfg.consistency_pixel_radius)
+            ok = photometric_filter(
+                item.world_from_cam,
+                item.image,
+                pts.pixels_uv[sub],
+                pts.depth[sub],
+                [(o.world_from_cam, o.image, o.depth) for o in others],
+                K,
+                min_views=cfg.photometric_min_views,
+                ncc_min=cfg.photometric_ncc_min,
+                min_agree_over_conflict=cfg.photometric_min_agree_over_conflict,
+                patch_radius=cfg.photometric_patch_radius,
+                rel_tol=cfg.consistency_rel_tol,
+                pixel_radius=cfg.consistency_pixel_radius,
+            )
             rejected["photometric"] += int((~ok).sum())
             keep[sub[~ok]] = False
         pts = pts.select(keep) if not keep.all() else pts
         sparse = SparseDepth(pts.pixels_uv, pts.depth, image_shape) if check_free else None
-        checked = _Checked(item.frame_id, item.world_from_cam, pts, sparse, xyz=pts.points_world(K, item.world_from_cam))
+        checked = _Checked(
+            item.frame_id, item.world_from_cam, pts, sparse, xyz=pts.points_world(K, item.world_from_cam)
+        )
         yield from carving.push(checked)
 
     def fuse(item: _Checked, others: list[_Checked]) -> None:
         pts, world_from_cam, xyz = item.points, item.world_from_cam, item.xyz
         if check_free:
-            keep = free_space_filter(world_from_cam, pts.pixels_uv, pts.depth, xyz,
-                                     [(o.world_from_cam, o.depth, o.xyz) for o in others], K,
-                                     image_shape, rel_tol=cfg.consistency_rel_tol, pixel_radius=cfg.consistency_pixel_radius,
-                                     max_violations=cfg.free_space_max_violations)
+            keep = free_space_filter(
+                world_from_cam,
+                pts.pixels_uv,
+                pts.depth,
+                xyz,
+                [(o.world_from_cam, o.depth, o.xyz) for o in others],
+                K,
+                image_shape,
+                rel_tol=cfg.consistency_rel_tol,
+                pixel_radius=cfg.consistency_pixel_radius,
+                max_violations=cfg.free_space_max_violations,
+            )
             rejected["free_space"] += int((~keep).sum())
             pts, xyz = pts.select(keep), xyz[keep]
         if on_fused is not None:
             on_fused(item.frame_id, world_from_cam, pts)
         obs_pt = np.concatenate([np.arange(len(pts)), np.nonzero(pts.agreed)[0]])
-        obs_fid = np.concatenate([np.full(len(pts), item.frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]])
+        obs_fid = np.concatenate(
+            [np.full(len(pts), item.frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]]
+        )
         fuser.add(xyz, pts.sigma_depth, pts.intensity, item.frame_id, obs_pt, obs_fid)
 
-    results = executor.map(_map_keyframe_task, keyframe_tasks(), shared=(K, cfg), desc="semi-dense keyframes",
-                           label=lambda t: f"keyframe {t.frame_id}")
+    results = executor.map(
+        _map_keyframe_task,
+        keyframe_tasks(),
+        shared=(K, cfg),
+        desc="semi-dense keyframes",
+        label=lambda t: f"keyframe {t.frame_id}",
+    )
     try:
         for frame_id, stamp_ns, world_from_cam, pts in results:
             if on_keyframe is not None:
@@ -664,7 +989,9 @@ def build_semidense_map(
                 for item, others in vote(*ready):
                     fuse(item, others)
             if progress:
-                bar.set_postfix(keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done))
+                bar.set_postfix(
+                    keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done)
+                )
         for ready in voting.flush():
             for item, others in vote(*ready):
                 fuse(item, others)
@@ -703,6 +1030,7 @@ def build_semidense_map(
 
 # --- cross-frame consistency -------------------------------------------------------------------------------
 
+
 @dataclass
 class _Pairs:
     """(map point, other keyframe) pairs of :func:`consistency`, one entry each."""
@@ -716,14 +1044,18 @@ class _Pairs:
     projected: int  # map points that projected into another keyframe's image
 
 
-def _pairs(sd_map: SemiDenseMap, keyframes: Iterable[tuple[int, np.ndarray, KeyframePoints]], max_pixel_distance: float) -> _Pairs:
+def _pairs(
+    sd_map: SemiDenseMap, keyframes: Iterable[tuple[int, np.ndarray, KeyframePoints]], max_pixel_distance: float
+) -> _Pairs:
     """Every map point reprojected into every keyframe but its source, against that keyframe's own
     depth at the nearest pixel (within ``max_pixel_distance``, chosen by image distance only)."""
     K = sd_map.K
     w, h = sd_map.image_size_wh
     kf_centre = dict(zip(sd_map.keyframe_ids.tolist(), sd_map.keyframe_world_from_cam[:, :3, 3]))
     src_centre = np.array([kf_centre.get(int(s), np.full(3, np.nan)) for s in sd_map.source_keyframe]).reshape(-1, 3)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("point", "frame_id", "signed_rel", "baseline_m", "own_depth", "own_pixel")}
+    parts: dict[str, list[np.ndarray]] = {
+        k: [] for k in ("point", "frame_id", "signed_rel", "baseline_m", "own_depth", "own_pixel")
+    }
     projected = 0
     offsets = [(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
     for fid, world_from_cam, pts in keyframes:
@@ -759,8 +1091,10 @@ def _pairs(sd_map: SemiDenseMap, keyframes: Iterable[tuple[int, np.ndarray, Keyf
             parts["baseline_m"].append(np.linalg.norm(src_centre[sel[m]] - world_from_cam[:3, 3], axis=1))
             parts["own_depth"].append(best_z[m])
             parts["own_pixel"].append(best_px[m])
-    cat = {k: np.concatenate(v) if v else np.zeros(0, np.int64 if k in ("point", "frame_id", "own_pixel") else np.float64)
-           for k, v in parts.items()}
+    cat = {
+        k: np.concatenate(v) if v else np.zeros(0, np.int64 if k in ("point", "frame_id", "own_pixel") else np.float64)
+        for k, v in parts.items()
+    }
     return _Pairs(**cat, projected=projected)
 
 
@@ -769,9 +1103,15 @@ def _figures(r: np.ndarray) -> dict:
     a = np.abs(r)
     if len(r) == 0:
         return {"pairs": 0, "median_rel": None}
-    return {"pairs": int(len(r)), "median_rel": float(np.median(a)), "p75_rel": float(np.percentile(a, 75)),
-            "p90_rel": float(np.percentile(a, 90)), "frac_below_5pct": float(np.mean(a < 0.05)),
-            "frac_map_nearer_5pct": float(np.mean(r < -0.05)), "frac_map_farther_5pct": float(np.mean(r > 0.05))}
+    return {
+        "pairs": int(len(r)),
+        "median_rel": float(np.median(a)),
+        "p75_rel": float(np.percentile(a, 75)),
+        "p90_rel": float(np.percentile(a, 90)),
+        "frac_below_5pct": float(np.mean(a < 0.05)),
+        "frac_map_nearer_5pct": float(np.mean(r < -0.05)),
+        "frac_map_farther_5pct": float(np.mean(r > 0.05)),
+    }
 
 
 def consistency(
@@ -781,9 +1121,9 @@ def consistency(
     max_pixel_distance: float = 1.0,
     baseline_bins_m: Sequence[float] = (0.0, 2.0, 5.0, 10.0, np.inf),
     depth_bins_m: Sequence[float] = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf),
-    verified: Optional[Iterable[tuple[int, np.ndarray, KeyframePoints]]] = None,
+    verified: Iterable[tuple[int, np.ndarray, KeyframePoints]] | None = None,
     min_confirming: int = 2,
-    keyframe_bins: Optional[Sequence[float]] = None,
+    keyframe_bins: Sequence[float] | None = None,
 ) -> dict:
     """How well map points agree with the depths other keyframes estimated on their own.
 
@@ -816,7 +1156,11 @@ def consistency(
     """
     w, h = sd_map.image_size_wh
     p = _pairs(sd_map, keyframes, max_pixel_distance)
-    out: dict[str, Any] = {"pairs": int(len(p.signed_rel)), "frames": int(len(np.unique(p.frame_id))), "projected": p.projected}
+    out: dict[str, Any] = {
+        "pairs": int(len(p.signed_rel)),
+        "frames": int(len(np.unique(p.frame_id))),
+        "projected": p.projected,
+    }
     if len(p.signed_rel) == 0:
         return {**out, "median_rel": None}
     r = p.signed_rel
@@ -833,29 +1177,43 @@ def consistency(
     if verified is None:
         return out
     ver_kf = list(verified)
-    ver_pixels = {int(fid): set((pts.pixels_uv[:, 1].astype(np.int64) * w + pts.pixels_uv[:, 0]).tolist()) for fid, _, pts in ver_kf}
+    ver_pixels = {
+        int(fid): set((pts.pixels_uv[:, 1].astype(np.int64) * w + pts.pixels_uv[:, 0]).tolist())
+        for fid, _, pts in ver_kf
+    }
     v = _pairs(sd_map, ver_kf, max_pixel_distance)
     confirming = np.bincount(v.point[np.abs(v.signed_rel) <= 0.05], minlength=len(sd_map))
 
     def occluded(pairs: _Pairs, ref_verified: np.ndarray) -> np.ndarray:
         return (pairs.signed_rel > 0.05) & ref_verified & (confirming[pairs.point] >= min_confirming)
 
-    ref_ok = np.array([px in ver_pixels.get(int(f), ()) for f, px in zip(p.frame_id.tolist(), p.own_pixel.tolist())], bool)
+    ref_ok = np.array(
+        [px in ver_pixels.get(int(f), ()) for f, px in zip(p.frame_id.tolist(), p.own_pixel.tolist())], bool
+    )
     farther = r > 0.05
     occ = occluded(p, ref_ok)
-    out["farther_causes"] = {"reference_unverified": float(np.mean(farther & ~ref_ok)), "occluded": float(np.mean(occ)),
-                             "unexplained": float(np.mean(farther & ref_ok & ~occ)), "min_confirming": min_confirming}
+    out["farther_causes"] = {
+        "reference_unverified": float(np.mean(farther & ~ref_ok)),
+        "occluded": float(np.mean(occ)),
+        "unexplained": float(np.mean(farther & ref_ok & ~occ)),
+        "min_confirming": min_confirming,
+    }
     if keyframe_bins is not None:
         for key, fid in (("by_source_keyframe", src_fid), ("by_reference_keyframe", p.frame_id)):
             for b in out[key]:
                 sel = (fid >= b["from_frame"]) & (fid < (np.inf if b["to_frame"] is None else b["to_frame"]))
                 n = max(int(sel.sum()), 1)
-                b["farther_causes"] = {"reference_unverified": float((sel & farther & ~ref_ok).sum() / n),
-                                       "occluded": float((sel & occ).sum() / n), "unexplained": float((sel & farther & ref_ok & ~occ).sum() / n)}
+                b["farther_causes"] = {
+                    "reference_unverified": float((sel & farther & ~ref_ok).sum() / n),
+                    "occluded": float((sel & occ).sum() / n),
+                    "unexplained": float((sel & farther & ref_ok & ~occ).sum() / n),
+                }
     occ_v = occluded(v, np.ones(len(v.signed_rel), bool))
     out["verified_reference"] = _figures(v.signed_rel)
-    out["verified_visible"] = {**_figures(v.signed_rel[~occ_v]),
-                               "by_keyframe_distance_m": _binned(v.signed_rel[~occ_v], v.baseline_m[~occ_v], baseline_bins_m)}
+    out["verified_visible"] = {
+        **_figures(v.signed_rel[~occ_v]),
+        "by_keyframe_distance_m": _binned(v.signed_rel[~occ_v], v.baseline_m[~occ_v], baseline_bins_m),
+    }
     return out
 
 
@@ -867,10 +1225,15 @@ def _binned(signed_rel: np.ndarray, key: np.ndarray, bins: Sequence[float], unit
         sel = (key >= lo) & (key < hi)
         a, r = np.abs(signed_rel[sel]), signed_rel[sel]
         some = bool(sel.any())
-        out.append({
-            f"from_{unit}": float(lo), f"to_{unit}": float(hi) if np.isfinite(hi) else None, "pairs": int(sel.sum()),
-            "median_rel": float(np.median(a)) if some else None, "p90_rel": float(np.percentile(a, 90)) if some else None,
-            "frac_below_5pct": float(np.mean(a < 0.05)) if some else None,
-            "frac_map_farther_5pct": float(np.mean(r > 0.05)) if some else None,
-        })
+        out.append(
+            {
+                f"from_{unit}": float(lo),
+                f"to_{unit}": float(hi) if np.isfinite(hi) else None,
+                "pairs": int(sel.sum()),
+                "median_rel": float(np.median(a)) if some else None,
+                "p90_rel": float(np.percentile(a, 90)) if some else None,
+                "frac_below_5pct": float(np.mean(a < 0.05)) if some else None,
+                "frac_map_farther_5pct": float(np.mean(r > 0.05)) if some else None,
+            }
+        )
     return out

@@ -15,7 +15,7 @@ against :class:`CandidateParams`, the fields they read, so that this module need
 
 from __future__ import annotations
 
-from typing import Optional, Protocol
+from typing import Protocol
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -32,7 +32,7 @@ class CandidateParams(Protocol):
     block_size: int
     gradient_threshold_add: float
     cell_size: int
-    max_candidates: Optional[int]
+    max_candidates: int | None
 
 
 def image_gradients(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,7 +58,9 @@ def gradient_threshold(grad_mag: np.ndarray, cfg: CandidateParams) -> np.ndarray
     return np.repeat(np.repeat(smoothed, bs, axis=0), bs, axis=1)[:H, :W].astype(np.float32)
 
 
-def select_candidates(gray: np.ndarray, cfg: CandidateParams, border: int = PATTERN_RADIUS + 1) -> tuple[np.ndarray, np.ndarray]:
+def select_candidates(
+    gray: np.ndarray, cfg: CandidateParams, border: int = PATTERN_RADIUS + 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (u, v) whose gradient beats the region-adaptive threshold, one per ``cell_size`` cell."""
     gx, gy = image_gradients(gray)
     mag = np.hypot(gx, gy)

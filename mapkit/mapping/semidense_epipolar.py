@@ -37,7 +37,13 @@ import cv2
 import numpy as np
 
 from mapkit.core.geometry import invert_pose
-from mapkit.mapping.semidense_candidates import PATTERN_DSO8, PATTERN_RADIUS, CandidateParams, image_gradients, select_candidates
+from mapkit.mapping.semidense_candidates import (
+    PATTERN_DSO8,
+    PATTERN_RADIUS,
+    CandidateParams,
+    image_gradients,
+    select_candidates,
+)
 
 _BAD_COST = 4.0  # any cost above the worst ZNCC cost (2): marks invalid samples
 _CHUNK = 4096  # candidates per vectorised block: bounds memory at ~100 MB for 32 samples x 8 taps
@@ -59,6 +65,7 @@ class SearchParams(CandidateParams, Protocol):
 
 # --- image pyramid sampled in one remap call ---------------------------------------------------------
 
+
 def _remap(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     """Bilinear samples of ``img`` at float positions of any shape (cv2.remap caps rows/cols < 32767)."""
     shape = mx.shape
@@ -72,7 +79,14 @@ def _remap(img: np.ndarray, mx: np.ndarray, my: np.ndarray) -> np.ndarray:
     fx[:n] = mx.ravel()
     fy[:n] = my.ravel()
     fx[n:] = fy[n:] = -1e4
-    out = cv2.remap(img, fx.reshape(rows, cols), fy.reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    out = cv2.remap(
+        img,
+        fx.reshape(rows, cols),
+        fy.reshape(rows, cols),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=np.nan,
+    )
     return out.ravel()[:n].reshape(shape)
 
 
@@ -120,6 +134,7 @@ def _normalise_patterns(vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 # --- epipolar geometry and search -----------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class _Neighbour:
     """Geometry of one neighbour relative to the keyframe: K X_k ~ KRKi [u v 1] + rho K t."""
@@ -132,7 +147,9 @@ class _Neighbour:
     pattern_da: np.ndarray  # (P, 3): change of K R K^-1 [u v 1] per pattern offset (level 0)
 
 
-def _neighbour_geometry(index: int, ref_world_from_cam: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray) -> _Neighbour:
+def _neighbour_geometry(
+    index: int, ref_world_from_cam: np.ndarray, world_from_cam: np.ndarray, K: np.ndarray
+) -> _Neighbour:
     cam_from_ref = invert_pose(world_from_cam) @ ref_world_from_cam
     R, t = cam_from_ref[:3, :3], cam_from_ref[:3, 3]
     centre_in_ref = -R.T @ t
@@ -158,7 +175,15 @@ def _project(a: np.ndarray, b: np.ndarray, rho: np.ndarray) -> np.ndarray:
 class _Searcher:
     """Searches one set of candidates of one keyframe along epipolar lines of one neighbour."""
 
-    def __init__(self, ref_u: np.ndarray, ref_v: np.ndarray, ref_norm: np.ndarray, ref_std: np.ndarray, max_level: np.ndarray, cfg: SearchParams):
+    def __init__(
+        self,
+        ref_u: np.ndarray,
+        ref_v: np.ndarray,
+        ref_norm: np.ndarray,
+        ref_std: np.ndarray,
+        max_level: np.ndarray,
+        cfg: SearchParams,
+    ):
         self.u = ref_u.astype(np.float64)
         self.v = ref_v.astype(np.float64)
         self.ref_norm = ref_norm  # (M, L, P) zero-mean unit-norm pattern per level
@@ -166,13 +191,30 @@ class _Searcher:
         self.max_level = max_level  # (M,) deepest level whose ref pattern lies inside the image
         self.cfg = cfg
 
-    def trace(self, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray, nb: _Neighbour, target: _Pyramid, samples: int, full_range: bool) -> _TraceResult:
+    def trace(
+        self,
+        idx: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        nb: _Neighbour,
+        target: _Pyramid,
+        samples: int,
+        full_range: bool,
+    ) -> _TraceResult:
         n = len(idx)
-        out = _TraceResult(np.full(n, np.nan), np.full(n, np.inf), np.full(n, _BAD_COST), np.zeros(n, bool), np.zeros(n, bool))
+        out = _TraceResult(
+            np.full(n, np.nan), np.full(n, np.inf), np.full(n, _BAD_COST), np.zeros(n, bool), np.zeros(n, bool)
+        )
         for s in range(0, n, _CHUNK):
             sl = slice(s, s + _CHUNK)
             r = self._trace_chunk(idx[sl], lo[sl], hi[sl], nb, target, samples, full_range)
-            out.rho[sl], out.sigma_rho[sl], out.cost[sl], out.ok[sl], out.searched[sl] = r.rho, r.sigma_rho, r.cost, r.ok, r.searched
+            out.rho[sl], out.sigma_rho[sl], out.cost[sl], out.ok[sl], out.searched[sl] = (
+                r.rho,
+                r.sigma_rho,
+                r.cost,
+                r.ok,
+                r.searched,
+            )
         return out
 
     def _trace_chunk(self, idx, lo, hi, nb: _Neighbour, target: _Pyramid, S: int, full_range: bool) -> _TraceResult:
@@ -197,15 +239,27 @@ class _Searcher:
             # a second local minimum, beyond 2 level-pixels, nearly as good: ambiguous
             interior = np.zeros_like(cost, dtype=bool)
             interior[:, 1:-1] = (cost[:, 1:-1] <= cost[:, :-2]) & (cost[:, 1:-1] <= cost[:, 2:])
-            far = np.abs(s_samples - s_samples[rows, best][:, None]) > 2.0 * (2.0 ** level)[:, None]
+            far = np.abs(s_samples - s_samples[rows, best][:, None]) > 2.0 * (2.0**level)[:, None]
             second = np.where(interior & far, cost, _BAD_COST).min(axis=1)
             valid &= second >= best_cost + cfg.ambiguity_margin
             if cfg.ambiguity_ratio is not None:  # ZNCC = 1 - cost; no second minimum scores -3
                 valid &= (1.0 - second) < cfg.ambiguity_ratio * (1.0 - best_cost)
 
         centre, h, (c_minus, c_zero, c_plus), valid = self._refine(
-            idx, a, b, nb, target, P0, direction, L, valid, level, step, s_samples[rows, best],
-            (cost[rows, np.maximum(best - 1, 0)], best_cost, cost[rows, np.minimum(best + 1, S - 1)]))
+            idx,
+            a,
+            b,
+            nb,
+            target,
+            P0,
+            direction,
+            L,
+            valid,
+            level,
+            step,
+            s_samples[rows, best],
+            (cost[rows, np.maximum(best - 1, 0)], best_cost, cost[rows, np.minimum(best + 1, S - 1)]),
+        )
 
         # sub-pixel: parabola through the three costs around the minimum
         curv = c_minus - 2.0 * c_zero + c_plus
@@ -272,7 +326,7 @@ class _Searcher:
         L = np.linalg.norm(seg, axis=1)
         valid &= L > 1e-3
         if full_range:
-            valid &= L >= cfg.min_epipolar_length_px
+            valid &= cfg.min_epipolar_length_px <= L
         direction = seg / np.maximum(L, 1e-9)[:, None]
         P0[~valid], direction[~valid], L[~valid] = 0.0, 1.0, 1.0  # keep the arithmetic finite
         return P0, direction, L, valid
@@ -296,7 +350,11 @@ class _Searcher:
             rt = np.arange(len(t))
             edge = (j == 0) | (j == len(offsets) - 1)
             centre[t] = s_ref[rt, j]
-            c_minus[t], c_zero[t], c_plus[t] = c[rt, np.maximum(j - 1, 0)], c[rt, j], c[rt, np.minimum(j + 1, len(offsets) - 1)]
+            c_minus[t], c_zero[t], c_plus[t] = (
+                c[rt, np.maximum(j - 1, 0)],
+                c[rt, j],
+                c[rt, np.minimum(j + 1, len(offsets) - 1)],
+            )
             valid[t[edge]] = False
             todo[t] = valid[t] & ((level[t] > 0) | (h[t] > 0.5))
         return centre, h, (c_minus, c_zero, c_plus), valid
@@ -353,7 +411,9 @@ class _Searcher:
             inv = np.reciprocal(Hm[..., 2 * P :])
             x = np.multiply(Hm[..., :P], inv).reshape(m, n * P)
             y = np.multiply(Hm[..., P : 2 * P], inv, out=inv).reshape(m, n * P)
-        vals = cv2.remap(target.atlas, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).reshape(m, n, P)
+        vals = cv2.remap(
+            target.atlas, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
+        ).reshape(m, n, P)
         # ZNCC; the keyframe pattern is zero-mean and unit-norm, so only the target's sums are needed
         Wt = np.empty((m, P, 2), f32)
         Wt[..., 0] = self.ref_norm[idx, level]
@@ -369,7 +429,10 @@ class _Searcher:
 
 # --- a keyframe's candidates, ready to search ------------------------------------------------------------
 
-def _candidate_searcher(ref_image: np.ndarray, ref_pyr: _Pyramid, cfg: SearchParams) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Searcher]:
+
+def _candidate_searcher(
+    ref_image: np.ndarray, ref_pyr: _Pyramid, cfg: SearchParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, _Searcher]:
     """The keyframe's candidates (u, v), their gradients (N, 2), and a searcher holding their
     patterns on every pyramid level (a candidate searches only levels whose pattern is inside)."""
     u, v = select_candidates(ref_image, cfg)
@@ -385,4 +448,3 @@ def _candidate_searcher(ref_image: np.ndarray, ref_pyr: _Pyramid, cfg: SearchPar
     ref_norm, norms = _normalise_patterns(np.nan_to_num(ref_vals))
     ref_std = norms[:, 0] / math.sqrt(PATTERN_DSO8.shape[0])
     return u, v, g, _Searcher(u, v, ref_norm.astype(np.float32), ref_std, np.maximum(max_level, 0), cfg)
-

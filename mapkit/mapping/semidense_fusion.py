@@ -31,7 +31,8 @@ Step 5 of the semi-dense mapper (:mod:`mapkit.mapping.semidense`):
 from __future__ import annotations
 
 from collections import deque
-from typing import Generic, Iterator, Optional, Sequence, TypeVar
+from collections.abc import Iterator, Sequence
+from typing import Generic, TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -65,8 +66,9 @@ def _take(depth, lin: np.ndarray) -> np.ndarray:
     return depth.take(lin) if isinstance(depth, SparseDepth) else np.take(depth.ravel(), lin)
 
 
-def _project(world_from_cam: np.ndarray, K: np.ndarray, points_world: np.ndarray, shape: tuple[int, int],
-             margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _project(
+    world_from_cam: np.ndarray, K: np.ndarray, points_world: np.ndarray, shape: tuple[int, int], margin: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(index, x, y, z) of the points in front of a camera whose projection lies inside its (H, W)
     image grown by ``margin`` px; z is the depth in that camera."""
     h, w = shape
@@ -81,8 +83,9 @@ def _project(world_from_cam: np.ndarray, K: np.ndarray, points_world: np.ndarray
     return idx[inside], x[inside], y[inside], z[inside]
 
 
-def _depth_evidence(depth, x: np.ndarray, y: np.ndarray, z: np.ndarray, rel_tol: float,
-                    pixel_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _depth_evidence(
+    depth, x: np.ndarray, y: np.ndarray, z: np.ndarray, rel_tol: float, pixel_radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What a view's depth image (dense (H, W) or :class:`SparseDepth`) says about points projected at
     ``x, y`` with depth ``z``: three (n,)
     bool, ``seen`` (some depth within ``pixel_radius``), ``agree`` (one of them within ``rel_tol``
@@ -109,8 +112,13 @@ def _depth_evidence(depth, x: np.ndarray, y: np.ndarray, z: np.ndarray, rel_tol:
     return seen, agree, behind
 
 
-def visibility_views(points_world: np.ndarray, views: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
-                     rel_tol: float, pixel_radius: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def visibility_views(
+    points_world: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    rel_tol: float,
+    pixel_radius: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per point, how many ``views`` agree with its depth, see it hidden behind a nearer surface, and
     see through it: three (N,) int.
 
@@ -136,8 +144,13 @@ def visibility_views(points_world: np.ndarray, views: Sequence[tuple[np.ndarray,
     return agree_n, occluded_n, free_n
 
 
-def consistent_views(points_world: np.ndarray, views: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray,
-                     rel_tol: float, pixel_radius: float) -> tuple[np.ndarray, np.ndarray]:
+def consistent_views(
+    points_world: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    rel_tol: float,
+    pixel_radius: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """How many ``views`` agree on each point's depth, and how many contradict it: two (N,) int.
 
     As :func:`visibility_views`; a view contradicts a point when it holds depths near the point's
@@ -148,8 +161,15 @@ def consistent_views(points_world: np.ndarray, views: Sequence[tuple[np.ndarray,
     return agree, occluded + free
 
 
-def hidden_in_source(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray,
-                     surfaces_world: Sequence[np.ndarray], K: np.ndarray, shape: tuple[int, int], rel_tol: float) -> np.ndarray:
+def hidden_in_source(
+    source_world_from_cam: np.ndarray,
+    pixels_uv: np.ndarray,
+    depth: np.ndarray,
+    surfaces_world: Sequence[np.ndarray],
+    K: np.ndarray,
+    shape: tuple[int, int],
+    rel_tol: float,
+) -> np.ndarray:
     """(N,) int: for each of a keyframe's depths (``pixels_uv`` (N, 2) int, ``depth`` (N,) m), how many
     of the other keyframes' surfaces (``surfaces_world``, one (M_k, 3) array of world points per
     keyframe) put a point on the same pixel of this keyframe nearer than ``depth / (1 + rel_tol)``.
@@ -179,9 +199,18 @@ def hidden_in_source(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, d
     return count
 
 
-def photometric_ncc(source_world_from_cam: np.ndarray, source_image: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray,
-                    views: Sequence[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]], K: np.ndarray, *, patch_radius: int,
-                    rel_tol: float, pixel_radius: float) -> np.ndarray:
+def photometric_ncc(
+    source_world_from_cam: np.ndarray,
+    source_image: np.ndarray,
+    pixels_uv: np.ndarray,
+    depth: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+    K: np.ndarray,
+    *,
+    patch_radius: int,
+    rel_tol: float,
+    pixel_radius: float,
+) -> np.ndarray:
     """(N, V) NCC of each keyframe depth's patch with its image in each view; NaN where not compared.
 
     The depths are a keyframe's (``pixels_uv`` (N, 2) int in ``source_image``, ``depth`` (N,) m); a
@@ -210,7 +239,9 @@ def photometric_ncc(source_world_from_cam: np.ndarray, source_image: np.ndarray,
     a_norm = np.sqrt((a * a).sum(axis=1))
     pu, pv = pu.astype(np.float32), pv.astype(np.float32)
     zc = depth.astype(np.float32)[:, None]
-    centre_world = transform_points(source_world_from_cam, (np.column_stack([pixels_uv, np.ones(n)]) @ Kinv.T) * depth[:, None])
+    centre_world = transform_points(
+        source_world_from_cam, (np.column_stack([pixels_uv, np.ones(n)]) @ Kinv.T) * depth[:, None]
+    )
     for k, (world_from_cam, image, view_depth) in enumerate(views):
         # a tap lifted at the centre's depth z, in the view: z K R K^-1 [u v 1] + K t (columnwise: no BLAS on thin arrays)
         view_from_src = invert_pose(world_from_cam) @ source_world_from_cam
@@ -237,23 +268,51 @@ def photometric_ncc(source_world_from_cam: np.ndarray, source_image: np.ndarray,
     return out
 
 
-def multi_view_filter(points_world: np.ndarray, views: Sequence[tuple[np.ndarray, np.ndarray]], K: np.ndarray, *, min_views: int,
-                      min_agree_over_conflict: float, rel_tol: float, pixel_radius: float) -> np.ndarray:
+def multi_view_filter(
+    points_world: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    K: np.ndarray,
+    *,
+    min_views: int,
+    min_agree_over_conflict: float,
+    rel_tol: float,
+    pixel_radius: float,
+) -> np.ndarray:
     """(N,) bool: the points at least ``min_views`` views agree with (:func:`consistent_views`), by
     at least ``min_agree_over_conflict`` times as many views as contradict them."""
     agree, conflict = consistent_views(points_world, views, K, rel_tol, pixel_radius)
     return (agree >= min_views) & (agree >= min_agree_over_conflict * conflict)
 
 
-def photometric_filter(source_world_from_cam: np.ndarray, source_image: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray,
-                       views: Sequence[tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]], K: np.ndarray, *, min_views: int,
-                       ncc_min: float, min_agree_over_conflict: float, patch_radius: int, rel_tol: float,
-                       pixel_radius: float) -> np.ndarray:
+def photometric_filter(
+    source_world_from_cam: np.ndarray,
+    source_image: np.ndarray,
+    pixels_uv: np.ndarray,
+    depth: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+    K: np.ndarray,
+    *,
+    min_views: int,
+    ncc_min: float,
+    min_agree_over_conflict: float,
+    patch_radius: int,
+    rel_tol: float,
+    pixel_radius: float,
+) -> np.ndarray:
     """(N,) bool: the keyframe depths whose patch at least ``min_views`` views show with NCC >= ``ncc_min``
     (:func:`photometric_ncc`; views that do not see a depth, or see it hidden, are not asked), by at
     least ``min_agree_over_conflict`` times as many views as show something else there."""
-    ncc = photometric_ncc(source_world_from_cam, source_image, pixels_uv, depth, views, K, patch_radius=patch_radius,
-                          rel_tol=rel_tol, pixel_radius=pixel_radius)
+    ncc = photometric_ncc(
+        source_world_from_cam,
+        source_image,
+        pixels_uv,
+        depth,
+        views,
+        K,
+        patch_radius=patch_radius,
+        rel_tol=rel_tol,
+        pixel_radius=pixel_radius,
+    )
     compared = np.isfinite(ncc)
     with np.errstate(invalid="ignore"):
         agree = (ncc >= ncc_min).sum(axis=1)
@@ -261,9 +320,19 @@ def photometric_filter(source_world_from_cam: np.ndarray, source_image: np.ndarr
     return (agree >= min_views) & (agree >= min_agree_over_conflict * conflict)
 
 
-def free_space_filter(source_world_from_cam: np.ndarray, pixels_uv: np.ndarray, depth: np.ndarray, points_world: np.ndarray,
-                      views: Sequence[tuple[np.ndarray, np.ndarray | SparseDepth, np.ndarray]], K: np.ndarray, shape: tuple[int, int], *,
-                      rel_tol: float, pixel_radius: float, max_violations: int) -> np.ndarray:
+def free_space_filter(
+    source_world_from_cam: np.ndarray,
+    pixels_uv: np.ndarray,
+    depth: np.ndarray,
+    points_world: np.ndarray,
+    views: Sequence[tuple[np.ndarray, np.ndarray | SparseDepth, np.ndarray]],
+    K: np.ndarray,
+    shape: tuple[int, int],
+    *,
+    rel_tol: float,
+    pixel_radius: float,
+    max_violations: int,
+) -> np.ndarray:
     """(N,) bool: a keyframe's depths (``pixels_uv``, ``depth``, and as ``points_world``) that at most
     ``max_violations`` of the ``views`` contradict on visibility. A view is ``(world_from_cam, depth
     image (H, W) or :class:`SparseDepth`, its depths as world points (M, 3))``; it contradicts a depth when it sees through
@@ -380,9 +449,13 @@ class _Fuser:
     @staticmethod
     def _empty() -> dict:
         return {
-            "xyz": np.zeros((0, 3)), "sigma": np.zeros(0, np.float32), "intensity": np.zeros(0, np.uint8),
-            "source": np.zeros(0, np.int64), "touched": np.zeros(0, np.int64),
-            "obs_pt": np.zeros(0, np.int64), "obs_fid": np.zeros(0, np.int64),
+            "xyz": np.zeros((0, 3)),
+            "sigma": np.zeros(0, np.float32),
+            "intensity": np.zeros(0, np.uint8),
+            "source": np.zeros(0, np.int64),
+            "touched": np.zeros(0, np.int64),
+            "obs_pt": np.zeros(0, np.int64),
+            "obs_fid": np.zeros(0, np.int64),
         }
 
     def add(self, xyz, sigma, intensity, source_id: int, obs_pt, obs_fid) -> None:
@@ -402,10 +475,13 @@ class _Fuser:
         first[1:] = (pt[1:] != pt[:-1]) | (fid[1:] != fid[:-1])
         pairs = np.column_stack([pt[first], fid[first]])
         merged = {
-            "xyz": xyz_all[keep], "sigma": sigma_all[keep],
+            "xyz": xyz_all[keep],
+            "sigma": sigma_all[keep],
             "intensity": np.concatenate([o["intensity"], intensity])[keep],
             "source": np.concatenate([o["source"], np.full(len(xyz), source_id, np.int64)])[keep],
-            "touched": touched[keep], "obs_pt": pairs[:, 0], "obs_fid": pairs[:, 1],
+            "touched": touched[keep],
+            "obs_pt": pairs[:, 0],
+            "obs_fid": pairs[:, 1],
         }
         self.open = merged
         self.counter += 1

@@ -12,9 +12,10 @@ Sources, chosen by ``TrajectoryConfig.source``:
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator, Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -33,22 +34,35 @@ class KissIcpOptions(MapkitConfig):
     """kiss-icp's parameters, checked here: kiss-icp itself fails on a zero voxel or a negative range
     with a traceback from its C++ core, after the log has been opened."""
 
-    max_range_m: float = Field(100.0, gt=0, allow_inf_nan=False,
-                               description="kiss-icp data.max_range; its voxel size is max_range/100 unless set.")
-    min_range_m: float = Field(2.0, ge=0, allow_inf_nan=False, description="kiss-icp data.min_range: drops returns from the vehicle body.")
+    max_range_m: float = Field(
+        100.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="kiss-icp data.max_range; its voxel size is max_range/100 unless set.",
+    )
+    min_range_m: float = Field(
+        2.0, ge=0, allow_inf_nan=False, description="kiss-icp data.min_range: drops returns from the vehicle body."
+    )
     deskew: bool = Field(True, description="Motion compensation from per-point times (kiss-icp's own).")
-    voxel_size_m: Optional[float] = Field(None, gt=0, allow_inf_nan=False,
-                                          description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).")
-    max_points_per_voxel: int = Field(20, ge=1, description="kiss-icp mapping.max_points_per_voxel: points kept per voxel of its local map.")
+    voxel_size_m: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="kiss-icp mapping.voxel_size; None = max_range/100 (kiss-icp's rule).",
+    )
+    max_points_per_voxel: int = Field(
+        20, ge=1, description="kiss-icp mapping.max_points_per_voxel: points kept per voxel of its local map."
+    )
     max_threads: int = Field(
-        1, ge=0,
+        1,
+        ge=0,
         description="kiss-icp registration.max_num_threads; 0 = all cores. With one thread kiss-icp gives the same poses "
-                    "to the bit on every run; with more, its correspondences are summed in a varying order. kiss-icp "
-                    "fixes the count once per process (a TBB global control): the first kiss-icp of a process decides.",
+        "to the bit on every run; with more, its correspondences are summed in a varying order. kiss-icp "
+        "fixes the count once per process (a TBB global control): the first kiss-icp of a process decides.",
     )
 
     @model_validator(mode="after")
-    def _ranges(self) -> "KissIcpOptions":
+    def _ranges(self) -> KissIcpOptions:
         if self.min_range_m >= self.max_range_m:
             raise ValueError(f"min_range_m ({self.min_range_m}) must be below max_range_m ({self.max_range_m})")
         return self
@@ -57,13 +71,17 @@ class KissIcpOptions(MapkitConfig):
 class CameraSfmOptions(MapkitConfig):
     max_images: int = Field(400, description="Images given to pycolmap (evenly sub-sampled in time beyond this).")
     max_image_size: int = Field(1024, description="pycolmap SIFT extraction's max_image_size (px).")
-    sequential_overlap: int = Field(10, description="pycolmap sequential matching: each image is matched with this many next ones.")
+    sequential_overlap: int = Field(
+        10, description="pycolmap sequential matching: each image is matched with this many next ones."
+    )
     max_threads: int = Field(-1, description="pycolmap threads; -1 = all cores.")
     init_min_tri_angle_deg: float = Field(
-        4.0, description="Initial pair's triangulation angle (COLMAP's 16 suits photo collections; a forward-moving car sees less)."
+        4.0,
+        description="Initial pair's triangulation angle (COLMAP's 16 suits photo collections; a forward-moving car sees less).",
     )
     init_max_forward_motion: float = Field(
-        1.0, description="COLMAP rejects initial pairs moving along the view axis above this (0.95): a front camera only does that."
+        1.0,
+        description="COLMAP rejects initial pairs moving along the view axis above this (0.95): a front camera only does that.",
     )
 
 
@@ -97,14 +115,19 @@ class Trajectory:
         write_kitti_poses(folder / "poses_kitti.txt", self.world_from_base)
         t0 = int(self.stamps_ns[0])
         atomic_write_text(folder / "times.txt", "".join(f"{(s - t0) * 1e-9:.9f}\n" for s in self.stamps_ns))
-        with atomic_path(folder / "trajectory.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, stamps_ns=self.stamps_ns, world_from_base=self.world_from_base, source=self.source,
-                         frame=self.frame, body_frame=self.body_frame)
+        with atomic_path(folder / "trajectory.npz") as tmp, open(tmp, "wb") as f:
+            np.savez(
+                f,
+                stamps_ns=self.stamps_ns,
+                world_from_base=self.world_from_base,
+                source=self.source,
+                frame=self.frame,
+                body_frame=self.body_frame,
+            )
         return folder
 
     @classmethod
-    def load(cls, folder: str | Path) -> "Trajectory":
+    def load(cls, folder: str | Path) -> Trajectory:
         folder = Path(folder)
         npz = folder / "trajectory.npz"
         if npz.is_file():
@@ -127,14 +150,16 @@ class SensorMounts:
     orientation matters, still needs its extrinsic or the config's word.
     """
 
-    def __init__(self, transforms: Iterable[FrameTransform], source: str | Path | None, assume_identity: Iterable[str] = ()):
+    def __init__(
+        self, transforms: Iterable[FrameTransform], source: str | Path | None, assume_identity: Iterable[str] = ()
+    ):
         self.tree = FrameTree(list(transforms))
         self.source = source
         self.assume_identity = frozenset(assume_identity)
         self._assumed: set[tuple[str, str]] = set()  # (base, frame) pairs already taken as one, and said so
 
     @classmethod
-    def of(cls, log: DriveLog, assume_identity: Iterable[str] = ()) -> "SensorMounts":
+    def of(cls, log: DriveLog, assume_identity: Iterable[str] = ()) -> SensorMounts:
         return cls(log.transforms(), log.path, assume_identity)
 
     def base_from(self, base: str, frame: str, what: str, *, without_tf_ok: bool = False) -> np.ndarray:
@@ -147,16 +172,25 @@ class SensorMounts:
             pass
         allowed = frame in self.assume_identity
         if not allowed and not (without_tf_ok and not self.tree.frames):
-            raise InputError(self.source, f"tf does not link the {what} frame {frame!r} to {base!r} "
-                             f"({self._holds(base, frame)}): record that transform in /tf_static, or list {frame!r} in "
-                             f"the build config's extrinsics.assume_identity to take the {what} as mounted at {base!r}",
-                             field="tf")
+            raise InputError(
+                self.source,
+                f"tf does not link the {what} frame {frame!r} to {base!r} "
+                f"({self._holds(base, frame)}): record that transform in /tf_static, or list {frame!r} in "
+                f"the build config's extrinsics.assume_identity to take the {what} as mounted at {base!r}",
+                field="tf",
+            )
         if (base, frame) not in self._assumed:
             self._assumed.add((base, frame))
-            why = ("as extrinsics.assume_identity allows: tf does not link them" if allowed
-                   else "the log holds no extrinsics (tf) at all")
-            warnings.warn(f"{self.source}: the {what} frame {frame!r} is taken as {base!r} (identity {base}_from_{frame}), {why}",
-                          InputWarning, stacklevel=3)
+            why = (
+                "as extrinsics.assume_identity allows: tf does not link them"
+                if allowed
+                else "the log holds no extrinsics (tf) at all"
+            )
+            warnings.warn(
+                f"{self.source}: the {what} frame {frame!r} is taken as {base!r} (identity {base}_from_{frame}), {why}",
+                InputWarning,
+                stacklevel=3,
+            )
         return np.eye(4)
 
     def _holds(self, base: str, frame: str) -> str:
@@ -170,7 +204,9 @@ class SensorMounts:
                 said.append(f"{f!r} is not in it")
                 continue
             linked = [g for g in frames if g != f and self._linked(f, g)]
-            said.append(f"{f!r} is linked to {', '.join(map(repr, linked))}" if linked else f"{f!r} is linked to nothing")
+            said.append(
+                f"{f!r} is linked to {', '.join(map(repr, linked))}" if linked else f"{f!r} is linked to nothing"
+            )
         return f"the log's tf holds {', '.join(map(repr, frames))}; " + ", ".join(said)
 
     def _linked(self, a: str, b: str) -> bool:
@@ -181,7 +217,9 @@ class SensorMounts:
             return False
 
 
-def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str, mounts: Optional[SensorMounts] = None) -> Trajectory:
+def trajectory_from_poses(
+    log: DriveLog, topic: str, base_frame: str, mounts: SensorMounts | None = None
+) -> Trajectory:
     """A pose stream as the trajectory; a stream of another body frame is moved to the base (``mounts``: the log's
     sensor mounts with the build's policy, else its tf alone)."""
     stamps, poses = [], []
@@ -191,7 +229,9 @@ def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str, mounts: Op
         poses.append(p.parent_from_child)
         child = p.child_frame
     if len(stamps) < 2:
-        raise InputError(log.path, f"pose topic {topic} has {len(stamps)} poses; a trajectory needs at least 2", field=topic)
+        raise InputError(
+            log.path, f"pose topic {topic} has {len(stamps)} poses; a trajectory needs at least 2", field=topic
+        )
     child = child or base_frame
     mounts = mounts or SensorMounts.of(log)
     tree = mounts.tree
@@ -202,15 +242,18 @@ def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str, mounts: Op
         # no calibration ties the pose's frame to the base (KITTI odometry: poses are camera_0's);
         # the trajectory is then of that frame, and later lookups start from it
         world_from_base, body = np.stack(poses), child
-    return Trajectory(np.asarray(stamps, np.int64), world_from_base, source=f"poses:{topic}", frame="world", body_frame=body)
+    return Trajectory(
+        np.asarray(stamps, np.int64), world_from_base, source=f"poses:{topic}", frame="world", body_frame=body
+    )
 
 
 def _scans(log: DriveLog, topic: str) -> Iterator:
     yield from log.records(StreamKind.LIDAR, topic=topic)
 
 
-def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False,
-                          mounts: Optional[SensorMounts] = None) -> Trajectory:
+def trajectory_from_lidar(
+    log: DriveLog, topic: str, cfg: TrajectoryConfig, progress: bool = False, mounts: SensorMounts | None = None
+) -> Trajectory:
     """kiss-icp odometry on one LiDAR stream, reported for the base frame (placed by ``mounts``, else by the log's tf).
 
     kiss-icp deskews each sweep to the time of its last point (``exp((t_norm - 1) * omega)``),
@@ -241,7 +284,11 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
             t = np.zeros(0)
             end_ns = scan.stamp_ns
         if len(pts) < 100:
-            warnings.warn(f"{log.path}: {topic} scan at {scan.stamp_ns} has {len(pts)} points; skipped", InputWarning, stacklevel=2)
+            warnings.warn(
+                f"{log.path}: {topic} scan at {scan.stamp_ns} has {len(pts)} points; skipped",
+                InputWarning,
+                stacklevel=2,
+            )
             continue
         odometry.register_frame(pts, t)
         stamps.append(end_ns)
@@ -249,7 +296,9 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
         bar.update(1)
     bar.close()
     if len(stamps) < 2:
-        raise InputError(log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic)
+        raise InputError(
+            log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic
+        )
     mounts = mounts or SensorMounts.of(log)
     tree = mounts.tree
     body = cfg.base_frame
@@ -262,8 +311,13 @@ def trajectory_from_lidar(log: DriveLog, topic: str, cfg: TrajectoryConfig, prog
     # world := the base frame at the first scan
     world_from_base = base_from_lidar @ np.stack(lidar0_from_lidar) @ invert_pose(base_from_lidar)
     order = np.argsort(stamps, kind="stable")
-    return Trajectory(np.asarray(stamps, np.int64)[order], world_from_base[order], source=f"lidar:{topic}", frame="odom",
-                      body_frame=body)
+    return Trajectory(
+        np.asarray(stamps, np.int64)[order],
+        world_from_base[order],
+        source=f"lidar:{topic}",
+        frame="odom",
+        body_frame=body,
+    )
 
 
 def _progress(log: DriveLog, topic: str, enabled: bool):
@@ -284,25 +338,34 @@ def choose_source(log: DriveLog, cfg: TrajectoryConfig, topics: dict[StreamKind,
 
 
 def estimate_trajectory(
-    log: DriveLog, cfg: TrajectoryConfig, topic_cfg: TopicConfig | None = None, progress: bool = False,
-    mounts: Optional[SensorMounts] = None,
+    log: DriveLog,
+    cfg: TrajectoryConfig,
+    topic_cfg: TopicConfig | None = None,
+    progress: bool = False,
+    mounts: SensorMounts | None = None,
 ) -> Trajectory:
     topics = resolve_topics(log, topic_cfg or TopicConfig())
     source = choose_source(log, cfg, topics)
     if source == "lidar":
         if not topics.get(StreamKind.LIDAR):
-            raise InputError(log.path, "trajectory.source is lidar but the log has no LiDAR stream", field="trajectory.source")
+            raise InputError(
+                log.path, "trajectory.source is lidar but the log has no LiDAR stream", field="trajectory.source"
+            )
         return trajectory_from_lidar(log, topics[StreamKind.LIDAR][0], cfg, progress, mounts)
     if source == "poses":
         if not topics.get(StreamKind.POSE):
-            raise InputError(log.path, "trajectory.source is poses but the log has no pose stream", field="trajectory.source")
+            raise InputError(
+                log.path, "trajectory.source is poses but the log has no pose stream", field="trajectory.source"
+            )
         return trajectory_from_poses(log, topics[StreamKind.POSE][0], cfg.base_frame, mounts)
     if not topics.get(StreamKind.IMAGE):
-        raise InputError(log.path, "trajectory.source is camera but the log has no image stream", field="trajectory.source")
+        raise InputError(
+            log.path, "trajectory.source is camera but the log has no image stream", field="trajectory.source"
+        )
     return trajectory_from_camera(log, topics[StreamKind.IMAGE][0], cfg, progress)
 
 
-def camera_up_hint(world_from_cam: np.ndarray, min_agreement: float = 0.5) -> Optional[np.ndarray]:
+def camera_up_hint(world_from_cam: np.ndarray, min_agreement: float = 0.5) -> np.ndarray | None:
     """The cameras' mean up (-y of the optical frame: x right, y down, z forward) in the trajectory's
     frame, as a unit vector: roughly the world's up when the cameras are mounted (or held) roughly
     level. None when the cameras disagree (the mean of their unit up vectors is shorter than
@@ -341,10 +404,16 @@ def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, pro
             cv2.imwrite(str(tmp / "images" / name), frame.gray())
             stamps[name] = frame.stamp_ns
         if camera not in infos:
-            raise InputError(log.path, f"camera {camera!r} has no intrinsics; camera-only trajectories need them", field="camera_info")
+            raise InputError(
+                log.path,
+                f"camera {camera!r} has no intrinsics; camera-only trajectories need them",
+                field="camera_info",
+            )
         info = infos[camera]
         if len(stamps) < 3:
-            raise InputError(log.path, f"{len(stamps)} images on {topic}: too few for structure from motion", field=topic)
+            raise InputError(
+                log.path, f"{len(stamps)} images on {topic}: too few for structure from motion", field=topic
+            )
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"
         reader.camera_params = f"{info.fx},{info.fy},{info.cx},{info.cy}"
@@ -352,8 +421,14 @@ def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, pro
         extraction.max_image_size = o.max_image_size
         extraction.num_threads = o.max_threads
         db = tmp / "database.db"
-        pycolmap.extract_features(db, tmp / "images", camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        pycolmap.extract_features(
+            db,
+            tmp / "images",
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = o.sequential_overlap
         pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
@@ -369,11 +444,22 @@ def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, pro
     if not recs:
         raise InputError(log.path, f"pycolmap could not reconstruct the camera path from {topic}", field=topic)
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
-    regs = sorted((stamps[im.name], np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]])))
-                  for im in rec.images.values() if im.has_pose)
+    regs = sorted(
+        (stamps[im.name], np.linalg.inv(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]])))
+        for im in rec.images.values()
+        if im.has_pose
+    )
     if len(regs) < 0.5 * len(stamps):
-        warnings.warn(f"{log.path}: pycolmap registered {len(regs)} of {len(stamps)} images; the trajectory has gaps",
-                      InputWarning, stacklevel=2)
+        warnings.warn(
+            f"{log.path}: pycolmap registered {len(regs)} of {len(stamps)} images; the trajectory has gaps",
+            InputWarning,
+            stacklevel=2,
+        )
     world_from_cam = np.stack([T for _, T in regs])
-    return Trajectory(np.array([s for s, _ in regs], np.int64), world_from_cam, source=f"camera:{topic}",
-                      frame="sfm", body_frame=camera)
+    return Trajectory(
+        np.array([s for s, _ in regs], np.int64),
+        world_from_cam,
+        source=f"camera:{topic}",
+        frame="sfm",
+        body_frame=camera,
+    )

@@ -39,7 +39,6 @@ import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -52,7 +51,15 @@ from mapkit.core.fingerprint import check_file
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import (
-    atomic_write_text, config_hash, is_done, mark_done, read_marker, stage_digest, verify_file, write_json, write_timings,
+    atomic_write_text,
+    config_hash,
+    is_done,
+    mark_done,
+    read_marker,
+    stage_digest,
+    verify_file,
+    write_json,
+    write_timings,
 )
 from mapkit.core.workspace import AlignedDirs, SessionDirs, Workspace
 from mapkit.io.plots import align_histograms, align_pairs_map
@@ -82,25 +89,74 @@ _SubmapClouds = SubmapClouds
 _support_points = support_points
 
 __all__ = [
-    "ALIGN_FORMAT_VERSION", "AlignConfig", "Edge", "GraphConfig", "IcpConfig", "PairResult", "PoseGraph", "Reason", "Registration",
-    "SessionData", "Verdict", "align_workspace", "aligned_sessions", "apply_correction_points", "apply_correction_poses",
-    "candidate_pairs", "correction_at", "cut_submaps", "decide", "evaluate_alignment", "format_align_qa",
-    "load_session", "load_tiles", "register_clouds", "register_pair", "session_offsets", "write_tiles",
+    "ALIGN_FORMAT_VERSION",
+    "AlignConfig",
+    "Edge",
+    "GraphConfig",
+    "IcpConfig",
+    "PairResult",
+    "PoseGraph",
+    "Reason",
+    "Registration",
+    "SessionData",
+    "Verdict",
+    "align_workspace",
+    "aligned_sessions",
+    "apply_correction_points",
+    "apply_correction_poses",
+    "candidate_pairs",
+    "correction_at",
+    "cut_submaps",
+    "decide",
+    "evaluate_alignment",
+    "format_align_qa",
+    "load_session",
+    "load_tiles",
+    "register_clouds",
+    "register_pair",
+    "session_offsets",
+    "write_tiles",
 ]
 
 
 class AlignConfig(MapkitConfig):
-    submap_length_m: float = Field(50.0, gt=0, description="Submaps are cut every this much driving (m). mapkit choice: each submap gets one rigid "
-                                   "correction, so shorter submaps follow the GPS error more closely and longer ones hold more points to register.")
-    overlap_radius_m: float = Field(35.0, gt=0, description="Submaps of different sessions whose trajectory centres lie within this distance (m) are registered.")
-    crop_radius_m: float = Field(40.0, gt=0, description="Both clouds of a pair are cropped to this horizontal radius around the pair centre (m).")
-    target_neighbours: int = Field(1, ge=0, description="The target cloud also includes this many neighbouring submaps on each side, so the source is fully covered.")
-    min_points: int = Field(1000, ge=10, description="A submap with fewer points (after cropping) is not registered: a few hundred points "
-                            "fit a wall in many places, and such a pair can be accepted metres off.")
+    submap_length_m: float = Field(
+        50.0,
+        gt=0,
+        description="Submaps are cut every this much driving (m). mapkit choice: each submap gets one rigid "
+        "correction, so shorter submaps follow the GPS error more closely and longer ones hold more points to register.",
+    )
+    overlap_radius_m: float = Field(
+        35.0,
+        gt=0,
+        description="Submaps of different sessions whose trajectory centres lie within this distance (m) are registered.",
+    )
+    crop_radius_m: float = Field(
+        40.0,
+        gt=0,
+        description="Both clouds of a pair are cropped to this horizontal radius around the pair centre (m).",
+    )
+    target_neighbours: int = Field(
+        1,
+        ge=0,
+        description="The target cloud also includes this many neighbouring submaps on each side, so the source is fully covered.",
+    )
+    min_points: int = Field(
+        1000,
+        ge=10,
+        description="A submap with fewer points (after cropping) is not registered: a few hundred points "
+        "fit a wall in many places, and such a pair can be accepted metres off.",
+    )
     icp: IcpConfig = IcpConfig()
     graph: GraphConfig = GraphConfig()
-    freeze_existing: bool = Field(True, description="When sessions are added, keep the corrections of sessions aligned before fixed (their outputs do not change); false re-solves all.")
-    merge_unverified: bool = Field(False, description="Put submaps that overlap other sessions but have no accepted registration into the merged map.")
+    freeze_existing: bool = Field(
+        True,
+        description="When sessions are added, keep the corrections of sessions aligned before fixed (their outputs do not change); false re-solves all.",
+    )
+    merge_unverified: bool = Field(
+        False,
+        description="Put submaps that overlap other sessions but have no accepted registration into the merged map.",
+    )
     tile_size_m: float = Field(100.0, gt=0, description="Side of the UTM tiles of the merged map (m).")
 
     @field_validator("icp")
@@ -110,8 +166,10 @@ class AlignConfig(MapkitConfig):
         check_levels(icp.voxel_sizes_m, "voxel_sizes_m")
         check_levels(icp.max_correspondence_m, "max_correspondence_m")
         if len(icp.voxel_sizes_m) != len(icp.max_correspondence_m):
-            raise ValueError(f"{len(icp.voxel_sizes_m)} voxel_sizes_m but {len(icp.max_correspondence_m)} max_correspondence_m "
-                             "(one per level)")
+            raise ValueError(
+                f"{len(icp.voxel_sizes_m)} voxel_sizes_m but {len(icp.max_correspondence_m)} max_correspondence_m "
+                "(one per level)"
+            )
         return icp
 
 
@@ -132,7 +190,9 @@ def _register_task(shared: tuple[list[SubmapClouds], AlignConfig], pair: tuple[i
     clouds, cfg = shared
     ia, i, ib, j = pair
     with open3d_one_thread():
-        return register_pair(clouds[ia], i, clouds[ib], j, cfg.icp, cfg.crop_radius_m, cfg.target_neighbours, cfg.min_points)
+        return register_pair(
+            clouds[ia], i, clouds[ib], j, cfg.icp, cfg.crop_radius_m, cfg.target_neighbours, cfg.min_points
+        )
 
 
 # --- the registration cache ------------------------------------------------------------------------
@@ -145,8 +205,16 @@ def _pair_key(a: SessionData, i: int, b: SessionData, j: int, cfg: AlignConfig) 
     """What a registration depends on; the acceptance thresholds are not part of it (a cached
     registration is judged again under the current thresholds)."""
     icp = {k: v for k, v in cfg.icp.model_dump().items() if k not in _DECISION_FIELDS}
-    return config_hash({"a": [a.name, a.map_hash, i], "b": [b.name, b.map_hash, j], "len": cfg.submap_length_m,
-                        "crop": cfg.crop_radius_m, "nb": cfg.target_neighbours, "icp": icp})
+    return config_hash(
+        {
+            "a": [a.name, a.map_hash, i],
+            "b": [b.name, b.map_hash, j],
+            "len": cfg.submap_length_m,
+            "crop": cfg.crop_radius_m,
+            "nb": cfg.target_neighbours,
+            "icp": icp,
+        }
+    )
 
 
 def _load_pair_cache(path: Path) -> dict[str, PairResult]:
@@ -164,12 +232,17 @@ def _save_pair_cache(path: Path, cache: dict[str, PairResult]) -> None:
     write_json(path, {"format_version": ALIGN_FORMAT_VERSION, "pairs": {k: v.to_dict() for k, v in cache.items()}})
 
 
-
 # --- the stage -------------------------------------------------------------------------------------
 
 
-def align_workspace(workspace: str | Path, config: str | Path | None = None, overrides: Optional[dict] = None,
-                    progress: bool = True, sessions: Optional[list[str]] = None, executor: Optional[Executor] = None) -> Path:
+def align_workspace(
+    workspace: str | Path,
+    config: str | Path | None = None,
+    overrides: dict | None = None,
+    progress: bool = True,
+    sessions: list[str] | None = None,
+    executor: Executor | None = None,
+) -> Path:
     """Align every built session of ``workspace``; returns ``WORKSPACE/align``.
 
     Submap pairs are registered on ``executor`` (default: :func:`mapkit.core.executor.get_executor`),
@@ -179,7 +252,9 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     ws = Workspace(workspace)
     cfg = load_config(AlignConfig, config, overrides)
     if not ws.origin.is_file():
-        raise InputError(ws.origin, "no such file: the workspace has no georeferenced session to align (run mapkit build first)")
+        raise InputError(
+            ws.origin, "no such file: the workspace has no georeferenced session to align (run mapkit build first)"
+        )
     ws_frame = ws.frame()
     out = ws.align_dir
     out.mkdir(parents=True, exist_ok=True)
@@ -193,13 +268,20 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     for s in data:
         _identify_map(s, ws.session(s.name))
     if len(data) < 2:
-        raise InputError(ws.root, f"{len(data)} alignable session(s); multi-session alignment needs at least two built, "
-                         "georeferenced sessions with a semi-dense map (the warnings above say why each was skipped)")
+        raise InputError(
+            ws.root,
+            f"{len(data)} alignable session(s); multi-session alignment needs at least two built, "
+            "georeferenced sessions with a semi-dense map (the warnings above say why each was skipped)",
+        )
     run_hash = config_hash({"cfg": cfg, "sessions": [[s.name, s.map_hash] for s in data]})
-    inputs = {s.name: {stage: stage_digest(ws.session(s.name).stage(stage)) for stage in ("georef", "map")} for s in data}
+    inputs = {
+        s.name: {stage: stage_digest(ws.session(s.name).stage(stage)) for stage in ("georef", "map")} for s in data
+    }
     if is_done(out, run_hash, inputs=inputs):
         return out
-    finished = (read_marker(out) or {}).get("outputs") or {}  # what the last finished run wrote (frozen sessions keep theirs)
+    finished = (read_marker(out) or {}).get(
+        "outputs"
+    ) or {}  # what the last finished run wrote (frozen sessions keep theirs)
     ws.align_done.unlink(missing_ok=True)
 
     regs = _register_pairs(out / "registrations.json", data, cfg, executor, progress)  # 1. registrations
@@ -213,10 +295,17 @@ def align_workspace(workspace: str | Path, config: str | Path | None = None, ove
     qa["graph"] = {"isam2_updates": sol.updates, "sessions_solved": sol.solved}
     qa["registration"] = {"pairs": len(regs.results), "registered_this_run": regs.fresh}
     write_json(out / "metrics.json", qa)
-    write_timings(out, seconds=time.perf_counter() - t0, graph_seconds=sol.seconds, seconds_registering=regs.seconds,
-                  pairs_per_s=regs.fresh / regs.seconds if regs.seconds > 0 else None)
+    write_timings(
+        out,
+        seconds=time.perf_counter() - t0,
+        graph_seconds=sol.seconds,
+        seconds_registering=regs.seconds,
+        pairs_per_s=regs.fresh / regs.seconds if regs.seconds > 0 else None,
+    )
     atomic_write_text(out / "qa.md", format_align_qa(qa))
-    mark_done(out, run_hash, inputs=inputs, outputs=["sessions", "tiles", "pairs.json"], sessions=[s.name for s in data])
+    mark_done(
+        out, run_hash, inputs=inputs, outputs=["sessions", "tiles", "pairs.json"], sessions=[s.name for s in data]
+    )
     return out
 
 
@@ -226,7 +315,12 @@ def _verify_built(dirs: SessionDirs) -> None:
     the file. Sessions that are not fully built are left to :func:`load_session`'s warning."""
     if not (dirs.has("georef") and dirs.has("map")):
         return
-    for path in (dirs.map / "points.ply", dirs.map / "observations.npz", dirs.gps_alignment, *sorted(dirs.enu_trajectory.glob("*.npz"))):
+    for path in (
+        dirs.map / "points.ply",
+        dirs.map / "observations.npz",
+        dirs.gps_alignment,
+        *sorted(dirs.enu_trajectory.glob("*.npz")),
+    ):
         verify_file(path, f"mapkit build (session {dirs.name})")
 
 
@@ -246,17 +340,22 @@ class _Registrations:
     seconds: float  # time spent registering them (summed over workers)
 
 
-def _register_pairs(cache_path: Path, data: list[SessionData], cfg: AlignConfig, executor: Optional[Executor],
-                    progress: bool) -> _Registrations:
+def _register_pairs(
+    cache_path: Path, data: list[SessionData], cfg: AlignConfig, executor: Executor | None, progress: bool
+) -> _Registrations:
     """Every candidate pair registered (cached by content: a new session only registers its own
     pairs) and judged under the current gates; the cache keeps the registrations."""
     cache = _load_pair_cache(cache_path)
     cands = candidate_pairs(data, cfg.overlap_radius_m)
     keys = [_pair_key(data[ia], i, data[ib], j, cfg) for ia, i, ib, j in cands]
-    cached: list[Optional[PairResult]] = []
+    cached: list[PairResult | None] = []
     for key in keys:
         r = cache.get(key)
-        if r is not None and r.verdict.reason is Reason.NOT_REGISTERED and min(r.source_points, r.target_points) >= cfg.min_points:
+        if (
+            r is not None
+            and r.verdict.reason is Reason.NOT_REGISTERED
+            and min(r.source_points, r.target_points) >= cfg.min_points
+        ):
             r = None  # skipped under a stricter min_points than today's
         cached.append(r)
     todo = [n for n, r in enumerate(cached) if r is None]
@@ -265,8 +364,14 @@ def _register_pairs(cache_path: Path, data: list[SessionData], cfg: AlignConfig,
     fresh, seconds = 0, 0.0
     clouds = [SubmapClouds(s.name, s.points, s.submap_of_point, s.centres) for s in data]
     registered = (executor or get_executor()).map(
-        _register_task, [cands[n] for n in todo], shared=(clouds, cfg), progress=progress, desc="ICP of submap pairs", unit="pair",
-        label=lambda c: f"{data[c[0]].name} submap {c[1]} onto {data[c[2]].name} submap {c[3]}")
+        _register_task,
+        [cands[n] for n in todo],
+        shared=(clouds, cfg),
+        progress=progress,
+        desc="ICP of submap pairs",
+        unit="pair",
+        label=lambda c: f"{data[c[0]].name} submap {c[1]} onto {data[c[2]].name} submap {c[3]}",
+    )
     for n, r in zip(todo, registered):  # in candidate order, whichever executor ran them
         r.key = keys[n]
         cache[keys[n]] = cached[n] = r
@@ -274,17 +379,25 @@ def _register_pairs(cache_path: Path, data: list[SessionData], cfg: AlignConfig,
         seconds += r.seconds
         if fresh % 25 == 0:
             _save_pair_cache(cache_path, cache)  # an interrupted run keeps what it registered
-    results = [_judge(copy.deepcopy(r), cfg) for r in cached]  # copies: the graph may reject them, the cache keeps the registration
+    results = [
+        _judge(copy.deepcopy(r), cfg) for r in cached
+    ]  # copies: the graph may reject them, the cache keeps the registration
     _save_pair_cache(cache_path, cache)
     return _Registrations(results, fresh, seconds)
 
 
 def _judge(r: PairResult, cfg: AlignConfig) -> PairResult:
     """``r`` with its verdict under the current gates (a cached registration was judged under the gates of the run that cached it)."""
-    if r.source_points >= cfg.min_points and r.target_points >= cfg.min_points and r.verdict.reason is not Reason.NOT_REGISTERED:
+    if (
+        r.source_points >= cfg.min_points
+        and r.target_points >= cfg.min_points
+        and r.verdict.reason is not Reason.NOT_REGISTERED
+    ):
         r.verdict, _ = decide(r.registration(), cfg.icp, r.centre)
     else:
-        r.verdict = Verdict.of(Reason.TOO_FEW_POINTS, f"{r.source_points} source, {r.target_points} target; need {cfg.min_points}")
+        r.verdict = Verdict.of(
+            Reason.TOO_FEW_POINTS, f"{r.source_points} source, {r.target_points} target; need {cfg.min_points}"
+        )
     return r
 
 
@@ -297,7 +410,7 @@ class _Nodes:
     centres: np.ndarray  # (n, 3)
 
     @classmethod
-    def of(cls, data: list[SessionData]) -> "_Nodes":
+    def of(cls, data: list[SessionData]) -> _Nodes:
         offsets = np.cumsum([0] + [s.n_submaps for s in data])
         node_of = {(s.name, k): offsets[si] + k for si, s in enumerate(data) for k in range(s.n_submaps)}
         return cls(offsets, node_of, np.concatenate([s.centres for s in data]))
@@ -314,7 +427,9 @@ class _Solution:
     frozen: frozenset[str] = frozenset()  # those others: their corrections are the earlier run's
 
 
-def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results: list[PairResult], cfg: AlignConfig) -> _Solution:
+def _solve_graph(
+    ws: Workspace, data: list[SessionData], nodes: _Nodes, results: list[PairResult], cfg: AlignConfig
+) -> _Solution:
     """Corrections of all submaps and their covariances; ICP edges that disagree with the rest after
     a solve are rejected (their pairs' verdicts say so) and removed from the graph."""
     t0 = time.perf_counter()
@@ -326,12 +441,18 @@ def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results:
     for si, s in enumerate(data):
         if s.name in prev:
             fixed[offsets[si] : offsets[si + 1]] = True
-            x0[offsets[si] : offsets[si + 1]], cov0[offsets[si] : offsets[si + 1]] = prev[s.name].x, prev[s.name].covariance
+            x0[offsets[si] : offsets[si + 1]], cov0[offsets[si] : offsets[si + 1]] = (
+                prev[s.name].x,
+                prev[s.name].covariance,
+            )
     # start every free session at its robust session-level offset, so that the Cauchy kernel below
     # judges ICP edges from inside the right basin (a session 8 m off would otherwise see all of its
     # correct registrations as outliers against its prior)
-    init = session_offsets([r for r in results if r.accepted], [s.name for s in data],
-                           {s.name: prev[s.name].x[:, 3:].mean(axis=0) for s in data if s.name in prev})
+    init = session_offsets(
+        [r for r in results if r.accepted],
+        [s.name for s in data],
+        {s.name: prev[s.name].x[:, 3:].mean(axis=0) for s in data if s.name in prev},
+    )
     for si, s in enumerate(data):
         if s.name not in prev:
             x0[offsets[si] : offsets[si + 1], 3:] = init[s.name]
@@ -349,7 +470,17 @@ def _solve_graph(ws: Workspace, data: list[SessionData], nodes: _Nodes, results:
             continue
         a, b = nodes.node_of[tuple(r.source)], nodes.node_of[tuple(r.target)]
         direction = data[session_index[r.source[0]]].directions[r.source[1]]
-        graph.add(Edge("icp", a, b, support_points(r.centre, direction, cfg.graph.lever_m), r.target_from_source, cfg.graph.icp_sigma_m, pi))
+        graph.add(
+            Edge(
+                "icp",
+                a,
+                b,
+                support_points(r.centre, direction, cfg.graph.lever_m),
+                r.target_from_source,
+                cfg.graph.icp_sigma_m,
+                pi,
+            )
+        )
     active = [e for e in graph.edges if e.kind == "icp"]
     x = graph.solve()
     for _ in range(cfg.graph.max_rounds - 1):
@@ -375,8 +506,9 @@ def _frame_covariance(fixed: np.ndarray, cov0: np.ndarray, edges: list[Edge], ac
     """(6, 6) covariance of the frozen sessions' frame as the new ones see it: the mean covariance
     of the frozen nodes that an edge in the graph ties to a free node (zeros if none)."""
     kept = {id(e) for e in active}
-    anchors = {e.a if fixed[e.a] else e.b for e in edges
-               if fixed[e.a] != fixed[e.b] and (e.kind != "icp" or id(e) in kept)}
+    anchors = {
+        e.a if fixed[e.a] else e.b for e in edges if fixed[e.a] != fixed[e.b] and (e.kind != "icp" or id(e) in kept)
+    }
     return cov0[sorted(anchors)].mean(axis=0) if anchors else np.zeros((6, 6))
 
 
@@ -398,10 +530,13 @@ def _require_a_verified_pair(ws: Workspace, results: list[PairResult]) -> None:
     if any(r.accepted for r in results):
         return
     why = Counter(r.verdict.headline for r in results)
-    raise InputError(ws.root, f"0 of {len(results)} candidate submap pairs verified by ICP"
-                     + (f" ({', '.join(f'{k}: {v}' for k, v in sorted(why.items()))})" if why else "")
-                     + "; the sessions share no mapped surface that registers: drive the same streets in at least two "
-                     "sessions (more overlap, longer drives), or relax the icp gates of the align config")
+    raise InputError(
+        ws.root,
+        f"0 of {len(results)} candidate submap pairs verified by ICP"
+        + (f" ({', '.join(f'{k}: {v}' for k, v in sorted(why.items()))})" if why else "")
+        + "; the sessions share no mapped surface that registers: drive the same streets in at least two "
+        "sessions (more overlap, longer drives), or relax the icp gates of the align config",
+    )
 
 
 def aligned_sessions(workspace: str | Path) -> list[str]:
@@ -418,7 +553,7 @@ class _Previous:
 
     x: np.ndarray
     covariance: np.ndarray
-    bias: Optional[tuple[np.ndarray, np.ndarray]]
+    bias: tuple[np.ndarray, np.ndarray] | None
 
 
 def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConfig) -> dict[str, _Previous]:
@@ -429,22 +564,38 @@ def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConf
         if not p.is_file():
             continue
         d = json.loads(p.read_text())
-        if d.get("map_hash") != s.map_hash or d.get("config_hash") != config_hash(cfg) or len(d["submaps"]) != s.n_submaps:
+        if (
+            d.get("map_hash") != s.map_hash
+            or d.get("config_hash") != config_hash(cfg)
+            or len(d["submaps"]) != s.n_submaps
+        ):
             continue
         if not any(sm["status"] == "verified" for sm in d["submaps"]):
             continue  # nothing confirmed it then: align it afresh with the new company
         bias = d.get("gps_bias")
-        prev[s.name] = _Previous(np.array([sm["correction"] for sm in d["submaps"]], np.float64),
-                                 np.array([sm.get("covariance", np.zeros((6, 6)).tolist()) for sm in d["submaps"]], np.float64),
-                                 (np.asarray(bias["enu_m"]), np.asarray(bias["covariance_m2"])) if bias else None)
+        prev[s.name] = _Previous(
+            np.array([sm["correction"] for sm in d["submaps"]], np.float64),
+            np.array([sm.get("covariance", np.zeros((6, 6)).tolist()) for sm in d["submaps"]], np.float64),
+            (np.asarray(bias["enu_m"]), np.asarray(bias["covariance_m2"])) if bias else None,
+        )
     if len(prev) == len(data):
         return {}  # no new session (a changed threshold, say): solve everything again
     return prev
 
 
-def _write_outputs(ws: Workspace, data: list[SessionData], sol: _Solution, offsets: np.ndarray, status: np.ndarray,
-                   n_cand: np.ndarray, n_acc: np.ndarray, results: list[PairResult], cfg: AlignConfig, ws_frame: LocalFrame,
-                   finished: dict) -> dict:
+def _write_outputs(
+    ws: Workspace,
+    data: list[SessionData],
+    sol: _Solution,
+    offsets: np.ndarray,
+    status: np.ndarray,
+    n_cand: np.ndarray,
+    n_acc: np.ndarray,
+    results: list[PairResult],
+    cfg: AlignConfig,
+    ws_frame: LocalFrame,
+    finished: dict,
+) -> dict:
     """Every session's refined outputs, pairs.json, the merged map's tiles and the QA pictures; returns the QA summary.
     ``finished``: the output records of the last finished run (its marker's), by which a frozen session's
     trajectory, map and image table are kept instead of written again when they are still those files."""
@@ -455,15 +606,33 @@ def _write_outputs(ws: Workspace, data: list[SessionData], sol: _Solution, offse
         nodes = slice(offsets[si], offsets[si + 1])
         bias = sol.biases.get(s.name)
         keep_files = s.name in sol.frozen and _outputs_intact(ws, s.name, finished)
-        pts, keep, qa["sessions"][s.name] = _write_session(ws, s, sol.x[nodes], sol.covariance[nodes], bias, status[nodes], n_cand[nodes],
-                                                           n_acc[nodes], cfg, ws_frame, keep_files)
+        pts, keep, qa["sessions"][s.name] = _write_session(
+            ws,
+            s,
+            sol.x[nodes],
+            sol.covariance[nodes],
+            bias,
+            status[nodes],
+            n_cand[nodes],
+            n_acc[nodes],
+            cfg,
+            ws_frame,
+            keep_files,
+        )
         merged_pts.append(pts[keep])
         merged_sid.append(np.full(int(keep.sum()), si, np.int16))
         merged_idx.append(np.flatnonzero(keep).astype(np.int64))
     qa["pairs"] = _pair_summary(results)
     write_json(out / "pairs.json", {"format_version": ALIGN_FORMAT_VERSION, "pairs": [r.to_dict() for r in results]})
-    qa["tiles"] = write_tiles(ws.tiles_dir, np.concatenate(merged_pts), np.concatenate(merged_sid), np.concatenate(merged_idx),
-                              [s.name for s in data], ws_frame, cfg.tile_size_m)
+    qa["tiles"] = write_tiles(
+        ws.tiles_dir,
+        np.concatenate(merged_pts),
+        np.concatenate(merged_sid),
+        np.concatenate(merged_idx),
+        [s.name for s in data],
+        ws_frame,
+        cfg.tile_size_m,
+    )
 
     align_pairs_map(out / "pairs_map.png", data, results)
     align_histograms(out / "icp_histograms.png", results, cfg.icp.lambda_icp_m, cfg.icp.min_fitness)
@@ -480,9 +649,19 @@ def _outputs_intact(ws: Workspace, name: str, finished: dict) -> bool:
     return all(check_file(ws.align_dir / rel, rec) is None for rel, rec in recorded.items())
 
 
-def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarray, bias: Optional[tuple[np.ndarray, np.ndarray]],
-                   st: np.ndarray, n_cand: np.ndarray, n_acc: np.ndarray, cfg: AlignConfig,
-                   ws_frame: LocalFrame, keep_files: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+def _write_session(
+    ws: Workspace,
+    s: SessionData,
+    xs: np.ndarray,
+    cov: np.ndarray,
+    bias: tuple[np.ndarray, np.ndarray] | None,
+    st: np.ndarray,
+    n_cand: np.ndarray,
+    n_acc: np.ndarray,
+    cfg: AlignConfig,
+    ws_frame: LocalFrame,
+    keep_files: bool = False,
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """Session ``s`` under its submaps' corrections ``xs`` (covariances ``cov``, GPS bias ``bias``):
     trajectory, map, image table and submaps.json in ``align/sessions/<name>``. Returns its
     corrected points, those that go into the merged map (not unverified, unless merge_unverified)
@@ -513,21 +692,46 @@ def _write_session(ws: Workspace, s: SessionData, xs: np.ndarray, cov: np.ndarra
         T = np.eye(4)
         T[:3, :3] = Rk
         T[:3, 3] = s.centres[k] + xs[k, 3:] - Rk @ s.centres[k]
-        submaps.append({"index": k, "arc_m": [float(s.submap_edges_m[k]), float(s.submap_edges_m[k + 1])],
-                        "centre_enu": s.centres[k].tolist(), "correction": xs[k].tolist(), "corrected_from_built": T.tolist(),
-                        "covariance": cov[k].tolist(), "position_sigma_enu_m": sigma[k].tolist(),
-                        "status": str(st[k]), "pairs": int(n_cand[k]), "pairs_accepted": int(n_acc[k]),
-                        "points": int((s.submap_of_point == k).sum())})
-    doc = {"session": s.name, "map_hash": s.map_hash, "config_hash": config_hash(cfg), "frame": ws_frame.to_dict(), "submaps": submaps,
-           "covariance_axes": "rotation (rad) about east, north, up; translation (m) east, north, up; at each submap's centre"}
+        submaps.append(
+            {
+                "index": k,
+                "arc_m": [float(s.submap_edges_m[k]), float(s.submap_edges_m[k + 1])],
+                "centre_enu": s.centres[k].tolist(),
+                "correction": xs[k].tolist(),
+                "corrected_from_built": T.tolist(),
+                "covariance": cov[k].tolist(),
+                "position_sigma_enu_m": sigma[k].tolist(),
+                "status": str(st[k]),
+                "pairs": int(n_cand[k]),
+                "pairs_accepted": int(n_acc[k]),
+                "points": int((s.submap_of_point == k).sum()),
+            }
+        )
+    doc = {
+        "session": s.name,
+        "map_hash": s.map_hash,
+        "config_hash": config_hash(cfg),
+        "frame": ws_frame.to_dict(),
+        "submaps": submaps,
+        "covariance_axes": "rotation (rad) about east, north, up; translation (m) east, north, up; at each submap's centre",
+    }
     if bias is not None:
-        doc["gps_bias"] = {"enu_m": bias[0].tolist(), "covariance_m2": bias[1].tolist(), "sigma_enu_m": np.sqrt(np.diag(bias[1])).tolist()}
+        doc["gps_bias"] = {
+            "enu_m": bias[0].tolist(),
+            "covariance_m2": bias[1].tolist(),
+            "sigma_enu_m": np.sqrt(np.diag(bias[1])).tolist(),
+        }
     write_json(dirs.submaps, doc)
     keep = np.isin(s.submap_of_point, np.flatnonzero((st != "unverified") | cfg.merge_unverified))
     summary = {
-        "submaps": s.n_submaps, "verified": int((st == "verified").sum()), "unverified": int((st == "unverified").sum()),
-        "no_overlap": int((st == "no overlap").sum()), "points": len(pts), "points_merged": int(keep.sum()),
-        "correction_median_m": float(np.median(move)), "correction_max_m": float(move.max()),
+        "submaps": s.n_submaps,
+        "verified": int((st == "verified").sum()),
+        "unverified": int((st == "unverified").sum()),
+        "no_overlap": int((st == "no overlap").sum()),
+        "points": len(pts),
+        "points_merged": int(keep.sum()),
+        "correction_median_m": float(np.median(move)),
+        "correction_max_m": float(move.max()),
         "position_sigma_median_m": np.median(sigma, axis=0).tolist(),
         "merged": bool(keep.any()),
         "outputs_kept": keep_files,
@@ -542,13 +746,20 @@ def _pair_summary(results: list[PairResult]) -> dict:
     reasons: dict[str, int] = {}
     for r in rej:
         reasons[r.verdict.reason.tally] = reasons.get(r.verdict.reason.tally, 0) + 1
-    return {"candidates": len(results), "accepted": len(acc), "rejected": len(rej), "rejected_by_reason": reasons,
-            "rmse_accepted_median_m": float(np.median([r.rmse_m for r in acc])) if acc else None,
-            "fitness_accepted_median": float(np.median([r.fitness for r in acc])) if acc else None,
-            "correction_accepted_median_m": float(np.median([r.correction_m for r in acc])) if acc else None}
+    return {
+        "candidates": len(results),
+        "accepted": len(acc),
+        "rejected": len(rej),
+        "rejected_by_reason": reasons,
+        "rmse_accepted_median_m": float(np.median([r.rmse_m for r in acc])) if acc else None,
+        "fitness_accepted_median": float(np.median([r.fitness for r in acc])) if acc else None,
+        "correction_accepted_median_m": float(np.median([r.correction_m for r in acc])) if acc else None,
+    }
 
 
-def _write_refined_images(s: SessionData, refined_poses: np.ndarray, src: Path, dirs: AlignedDirs, ws_frame: LocalFrame) -> None:
+def _write_refined_images(
+    s: SessionData, refined_poses: np.ndarray, src: Path, dirs: AlignedDirs, ws_frame: LocalFrame
+) -> None:
     """The session's image database table ``src`` with refined camera poses (``images.csv`` of
     ``dirs``, paths relative to it): each image moves with the correction of the trajectory at its stamp."""
     import os
@@ -561,11 +772,16 @@ def _write_refined_images(s: SessionData, refined_poses: np.ndarray, src: Path, 
     after, _ = interpolate_poses(s.stamps_ns, refined_poses, tab["stamp_ns"])  # same stamps, same mask
     keep = np.flatnonzero(ok)
     if len(keep) < len(tab["stamp_ns"]):
-        warnings.warn(f"{src}: {len(tab['stamp_ns']) - len(keep)} images outside the trajectory's time span left out of the refined table",
-                      InputWarning, stacklevel=4)
+        warnings.warn(
+            f"{src}: {len(tab['stamp_ns']) - len(keep)} images outside the trajectory's time span left out of the refined table",
+            InputWarning,
+            stacklevel=4,
+        )
     refined = after @ np.linalg.inv(before) @ cams[ok]
     rel = [os.path.relpath(src.parent / p, dirs.root) for p in tab["image"][keep]]
-    write_images_csv(dirs.images_csv, tab["image_id"][keep], tab["stamp_ns"][keep], list(tab["camera"][keep]), rel, refined, ws_frame)
+    write_images_csv(
+        dirs.images_csv, tab["image_id"][keep], tab["stamp_ns"][keep], list(tab["camera"][keep]), rel, refined, ws_frame
+    )
 
 
 def format_align_qa(qa: dict) -> str:
@@ -580,8 +796,8 @@ def format_align_qa(qa: dict) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for name, s in qa["sessions"].items():
-        lines.append(f"| {name} | {s['submaps']} | {s['verified']} | {s['unverified']} | {s['no_overlap']} | "
-                     f"{s['points_merged']}/{s['points']} | {s['correction_median_m']:.2f} | {s['correction_max_m']:.2f} |")
+        lines.append(
+            f"| {name} | {s['submaps']} | {s['verified']} | {s['unverified']} | {s['no_overlap']} | "
+            f"{s['points_merged']}/{s['points']} | {s['correction_median_m']:.2f} | {s['correction_max_m']:.2f} |"
+        )
     return "\n".join(lines) + "\n"
-
-

@@ -11,7 +11,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from mapkit.multisession.submaps import SessionData, position_at_arc
 
 
-def correction_at(s: SessionData, x_session: np.ndarray, arc_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def correction_at(
+    s: SessionData, x_session: np.ndarray, arc_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rotation (M, 3, 3), centre (M, 3) and translation (M, 3) of the correction at ``arc_m``,
     blended between the submaps' corrections by distance driven (slerp / linear)."""
     edges = s.submap_edges_m
@@ -49,4 +51,3 @@ def apply_correction_poses(s: SessionData, x_session: np.ndarray) -> np.ndarray:
     out[:, :3, :3] = R @ s.poses[:, :3, :3]
     out[:, :3, 3] = np.einsum("mij,mj->mi", R, s.poses[:, :3, 3] - c) + c + t
     return out
-

@@ -17,7 +17,6 @@ about ``gps_bias_sigma_m / sqrt(N)``, not to the GPS noise averaged over thousan
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import numpy as np
 from pydantic import Field
@@ -29,26 +28,60 @@ from mapkit.multisession.registration import PairResult
 
 
 class GraphConfig(MapkitConfig):
-    gps_bias_sigma_m: list[float] = Field([2.0, 2.0, 4.0], min_length=3, max_length=3,
-                                          description="Prior on each session's GPS bias, east/north/up (m): the offset all fixes "
-                                          "of one drive share (a receiver's bias wanders over minutes). 2 m horizontal, twice "
-                                          "that vertical: a consumer receiver's order, and the synthetic town's GPS model.")
-    gps_submap_sigma_m: float = Field(1.0, gt=0, description="How far one submap's correction may depart from its session's "
-                                      "bias (m): what the session's rigid GPS fit leaves along the drive.")
+    gps_bias_sigma_m: list[float] = Field(
+        [2.0, 2.0, 4.0],
+        min_length=3,
+        max_length=3,
+        description="Prior on each session's GPS bias, east/north/up (m): the offset all fixes "
+        "of one drive share (a receiver's bias wanders over minutes). 2 m horizontal, twice "
+        "that vertical: a consumer receiver's order, and the synthetic town's GPS model.",
+    )
+    gps_submap_sigma_m: float = Field(
+        1.0,
+        gt=0,
+        description="How far one submap's correction may depart from its session's "
+        "bias (m): what the session's rigid GPS fit leaves along the drive.",
+    )
     prior_sigma_deg: float = Field(3.0, gt=0, description="Prior on each submap's rotation correction (deg).")
-    odometry_sigma_m: float = Field(0.10, gt=0, description="How much two consecutive submaps of a session may disagree at their boundary (m), "
-                                    "on a trajectory of kiss-icp fitted rigidly to GPS (the build's default).")
-    odometry_sigma_fused_m: float = Field(0.02, gt=0, description="... on the factor graph's trajectory (georef.fuse: IMU, GPS and "
-                                          "kiss-icp), which holds a drive together better: 0.02 chosen on the tiny town among 0.10, "
-                                          "0.05, 0.02, 0.01 (misalignment with the four-level ICP 0.085 -> 0.074 m). On the demo, "
-                                          "where it was scored, it did not carry over: 0.053 m at 0.10, 0.058 m at 0.02 (docs/accuracy.md).")
-    icp_sigma_m: float = Field(0.10, gt=0, description="Uncertainty of an accepted ICP registration at its support points (m).")
-    lever_m: float = Field(10.0, gt=0, description="Support points of an edge lie this far from its centre, so rotations are constrained too (m).")
-    robust_scale: float = Field(3.0, gt=0, description="Cauchy kernel width, in sigmas (Mahalanobis), of every edge factor.")
-    reject_sigmas: float = Field(6.0, gt=0, description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and its factor removed from the graph.")
+    odometry_sigma_m: float = Field(
+        0.10,
+        gt=0,
+        description="How much two consecutive submaps of a session may disagree at their boundary (m), "
+        "on a trajectory of kiss-icp fitted rigidly to GPS (the build's default).",
+    )
+    odometry_sigma_fused_m: float = Field(
+        0.02,
+        gt=0,
+        description="... on the factor graph's trajectory (georef.fuse: IMU, GPS and "
+        "kiss-icp), which holds a drive together better: 0.02 chosen on the tiny town among 0.10, "
+        "0.05, 0.02, 0.01 (misalignment with the four-level ICP 0.085 -> 0.074 m). On the demo, "
+        "where it was scored, it did not carry over: 0.053 m at 0.10, 0.058 m at 0.02 (docs/accuracy.md).",
+    )
+    icp_sigma_m: float = Field(
+        0.10, gt=0, description="Uncertainty of an accepted ICP registration at its support points (m)."
+    )
+    lever_m: float = Field(
+        10.0,
+        gt=0,
+        description="Support points of an edge lie this far from its centre, so rotations are constrained too (m).",
+    )
+    robust_scale: float = Field(
+        3.0, gt=0, description="Cauchy kernel width, in sigmas (Mahalanobis), of every edge factor."
+    )
+    reject_sigmas: float = Field(
+        6.0,
+        gt=0,
+        description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and its factor removed from the graph.",
+    )
     max_rounds: int = Field(3, ge=1, description="Solve / reject rounds.")
-    relinearize_threshold: float = Field(1e-3, gt=0, description="iSAM2 relinearises a variable whose update exceeds this (rad or m).")
-    max_updates: int = Field(20, ge=1, description="iSAM2 updates after the last factor was added, until the estimate moves less than the threshold.")
+    relinearize_threshold: float = Field(
+        1e-3, gt=0, description="iSAM2 relinearises a variable whose update exceeds this (rad or m)."
+    )
+    max_updates: int = Field(
+        20,
+        ge=1,
+        description="iSAM2 updates after the last factor was added, until the estimate moves less than the threshold.",
+    )
 
 
 @dataclass
@@ -59,7 +92,7 @@ class Edge:
     support: np.ndarray  # (P, 3) support points in a's current frame
     target_from_source: np.ndarray  # (4, 4): a's current frame -> b's current frame
     sigma_m: float
-    pair: Optional[int] = None  # index into the pair list (ICP edges)
+    pair: int | None = None  # index into the pair list (ICP edges)
 
 
 def support_points(centre: np.ndarray, direction: np.ndarray, lever: float) -> np.ndarray:
@@ -69,7 +102,16 @@ def support_points(centre: np.ndarray, direction: np.ndarray, lever: float) -> n
     d = d / max(np.linalg.norm(d), 1e-9)
     lateral = np.array([-d[1], d[0], 0.0])
     up = np.array([0.0, 0.0, 1.0])
-    return np.stack([centre, centre + lever * d, centre - lever * d, centre + lever * lateral, centre - lever * lateral, centre + 0.5 * lever * up])
+    return np.stack(
+        [
+            centre,
+            centre + lever * d,
+            centre - lever * d,
+            centre + lever * lateral,
+            centre - lever * lateral,
+            centre + 0.5 * lever * up,
+        ]
+    )
 
 
 def _apply_node(x: np.ndarray, centres: np.ndarray, node: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -118,8 +160,14 @@ class PoseGraph:
     each); by default every node is its own session.
     """
 
-    def __init__(self, centres: np.ndarray, cfg: GraphConfig, fixed: Optional[np.ndarray] = None, initial: Optional[np.ndarray] = None,
-                 session_of: Optional[np.ndarray] = None):
+    def __init__(
+        self,
+        centres: np.ndarray,
+        cfg: GraphConfig,
+        fixed: np.ndarray | None = None,
+        initial: np.ndarray | None = None,
+        session_of: np.ndarray | None = None,
+    ):
         self.centres = np.asarray(centres, np.float64)
         self.cfg = cfg
         n = len(self.centres)
@@ -168,8 +216,10 @@ class PoseGraph:
         else:
             this, other, meas = e.b, e.a, np.linalg.inv(M)
             local = e.support @ e.target_from_source[:3, :3].T + e.target_from_source[:3, 3] - self.centres[e.b]
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_scale),
-                                               gtsam.noiseModel.Gaussian.Information(support_information(local, e.sigma_m)))
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_scale),
+            gtsam.noiseModel.Gaussian.Information(support_information(local, e.sigma_m)),
+        )
         X = lambda k: gtsam.symbol("x", int(k))  # noqa: E731
         if self.fixed[other]:
             return gtsam.PriorFactorPose3(X(this), self._pose(self.x0, other).compose(gtsam.Pose3(meas)), noise)
@@ -186,8 +236,14 @@ class PoseGraph:
         if nodes:
             b = gtsam.symbol("b", s)
             values.insert(b, -x_init[nodes, 3:].mean(axis=0))
-            graph.add(gtsam.PriorFactorPoint3(b, np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(self.cfg.gps_bias_sigma_m, float))))
-            rot_prior = gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, np.radians(self.cfg.prior_sigma_deg)), np.full(3, 1e4)])
+            graph.add(
+                gtsam.PriorFactorPoint3(
+                    b, np.zeros(3), gtsam.noiseModel.Diagonal.Sigmas(np.asarray(self.cfg.gps_bias_sigma_m, float))
+                )
+            )
+            rot_prior = gtsam.noiseModel.Diagonal.Sigmas(
+                np.r_[np.full(3, np.radians(self.cfg.prior_sigma_deg)), np.full(3, 1e4)]
+            )
             gps = gtsam.noiseModel.Isotropic.Sigma(3, self.cfg.gps_submap_sigma_m)
             for k in nodes:
                 xk = gtsam.symbol("x", k)
@@ -203,7 +259,7 @@ class PoseGraph:
 
     # -- solving -----------------------------------------------------------------------------------
 
-    def solve(self, edges: Optional[list[Edge]] = None) -> np.ndarray:
+    def solve(self, edges: list[Edge] | None = None) -> np.ndarray:
         """Corrections (n, 6) = [rotation vector, translation at the centre], sessions added one
         iSAM2 update at a time (each with the edges to the sessions already in)."""
         import gtsam
@@ -224,7 +280,7 @@ class PoseGraph:
                 continue
             res = self._isam.update(graph, values)
             self.updates += 1
-            for e, idx in zip(owned, list(res.getNewFactorsIndices())[graph.size() - len(owned):]):
+            for e, idx in zip(owned, list(res.getNewFactorsIndices())[graph.size() - len(owned) :]):
                 self._factor_of[id(e)] = int(idx)
         return self._converge()
 
@@ -292,7 +348,7 @@ class PoseGraph:
         return np.sqrt(np.mean(d**2, axis=1)) / sigma
 
     @staticmethod
-    def _stack(edges: list[Edge]) -> Optional[tuple]:
+    def _stack(edges: list[Edge]) -> tuple | None:
         """Node indices, support points in both frames and sigmas of ``edges``, as arrays."""
         if not edges:
             return None
@@ -307,15 +363,27 @@ class PoseGraph:
 # --- session offsets -------------------------------------------------------------------------------
 
 
-def session_offsets(pairs: list[PairResult], names: list[str], fixed: Optional[dict[str, np.ndarray]] = None,
-                    iterations: int = 10, huber_m: float = 0.5) -> dict[str, np.ndarray]:
+def session_offsets(
+    pairs: list[PairResult],
+    names: list[str],
+    fixed: dict[str, np.ndarray] | None = None,
+    iterations: int = 10,
+    huber_m: float = 0.5,
+) -> dict[str, np.ndarray]:
     """One translation per session from the accepted registrations: o_a - o_b = d_ab, where d_ab
     moves source a onto target b at the pair centre; iteratively reweighted (Huber) least squares,
     sessions in ``fixed`` held, otherwise the mean offset is zero (the GPS frame on average)."""
     fixed = fixed or {}
     idx = {n: k for k, n in enumerate(names)}
-    rows = [(idx[p.source[0]], idx[p.target[0]], p.target_from_source[:3, :3] @ p.centre + p.target_from_source[:3, 3] - p.centre)
-            for p in pairs if p.source[0] in idx and p.target[0] in idx]
+    rows = [
+        (
+            idx[p.source[0]],
+            idx[p.target[0]],
+            p.target_from_source[:3, :3] @ p.centre + p.target_from_source[:3, 3] - p.centre,
+        )
+        for p in pairs
+        if p.source[0] in idx and p.target[0] in idx
+    ]
     out = {n: np.asarray(fixed.get(n, np.zeros(3)), np.float64) for n in names}
     if not rows:
         return out

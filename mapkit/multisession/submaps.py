@@ -12,7 +12,6 @@ import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Union
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -59,7 +58,7 @@ def position_at_arc(arc: np.ndarray, positions: np.ndarray, s: np.ndarray) -> np
     return np.stack([np.interp(s, arc, positions[:, k]) for k in range(3)], axis=-1)
 
 
-def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m: float) -> Optional[SessionData]:
+def load_session(sdir: SessionDirs | Path, ws_frame: LocalFrame, length_m: float) -> SessionData | None:
     """A built session (its folders, or their root) in the workspace frame, or None (with a
     warning) if it cannot be aligned."""
 
@@ -68,12 +67,20 @@ def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m:
     if not dirs.has("georef") or not dirs.has("map"):
         stages = json.loads(dirs.metrics.read_text()).get("stages", {}) if dirs.metrics.is_file() else {}
         skipped = (stages.get("semidense") or {}).get("skipped")
-        what = f"has no semi-dense map (skipped at build: {skipped})" if skipped else "is not fully built (georef and map stages)"
+        what = (
+            f"has no semi-dense map (skipped at build: {skipped})"
+            if skipped
+            else "is not fully built (georef and map stages)"
+        )
         warnings.warn(f"{dirs.root}: session {what}; skipped", InputWarning, stacklevel=2)
         return None
     ga = json.loads(ga_path.read_text())
     if not ga.get("georeferenced"):
-        warnings.warn(f"{ga_path}: session is not georeferenced ({ga.get('reason', 'no reason given')}); skipped", InputWarning, stacklevel=2)
+        warnings.warn(
+            f"{ga_path}: session is not georeferenced ({ga.get('reason', 'no reason given')}); skipped",
+            InputWarning,
+            stacklevel=2,
+        )
         return None
     traj = Trajectory.load(dirs.enu_trajectory)
     smap = SemiDenseMap.load(dirs.map)
@@ -85,8 +92,19 @@ def load_session(sdir: Union[SessionDirs, Path], ws_frame: LocalFrame, length_m:
     src_stamp = np.array([kf_stamp[int(k)] for k in smap.source_keyframe], np.float64) if len(pts) else np.zeros(0)
     point_arc = np.interp(src_stamp, traj.stamps_ns.astype(np.float64), arc)
     done = json.loads((dirs.map / DONE_MARKER).read_text())
-    s = SessionData(dirs.name, traj.stamps_ns, poses, arc, pts, point_arc, dirs.map, done.get("config_hash", ""),
-                    smap=smap, ws_from_session=ws_from_session, fused=dirs.fused_trajectory.is_dir())
+    s = SessionData(
+        dirs.name,
+        traj.stamps_ns,
+        poses,
+        arc,
+        pts,
+        point_arc,
+        dirs.map,
+        done.get("config_hash", ""),
+        smap=smap,
+        ws_from_session=ws_from_session,
+        fused=dirs.fused_trajectory.is_dir(),
+    )
     cut_submaps(s, length_m)
     return s
 
@@ -98,7 +116,9 @@ def cut_submaps(s: SessionData, length_m: float) -> None:
     n = max(1, int(np.floor(total / length_m)))
     if total - n * length_m >= 0.5 * length_m:
         n += 1
-    edges = np.linspace(0.0, total, n + 1) if n * length_m > total else np.concatenate([np.arange(n) * length_m, [total]])
+    edges = (
+        np.linspace(0.0, total, n + 1) if n * length_m > total else np.concatenate([np.arange(n) * length_m, [total]])
+    )
     s.submap_of_point = np.clip(np.searchsorted(edges, s.point_arc_m, side="right") - 1, 0, n - 1)
     mids = 0.5 * (edges[:-1] + edges[1:])
     P = s.poses[:, :3, 3]
@@ -136,7 +156,7 @@ def candidate_pairs(sessions: list[SessionData], radius_m: float) -> list[tuple[
     return sorted(out)
 
 
-def submap_points(s: Union[SessionData, "SubmapClouds"], idx: int, neighbours: int = 0) -> np.ndarray:
+def submap_points(s: SessionData | SubmapClouds, idx: int, neighbours: int = 0) -> np.ndarray:
     """Points of submap ``idx`` and of ``neighbours`` submaps on each side of it."""
     lo, hi = idx - neighbours, idx + neighbours
     return s.points[(s.submap_of_point >= lo) & (s.submap_of_point <= hi)]
@@ -151,4 +171,3 @@ class SubmapClouds:
     points: np.ndarray
     submap_of_point: np.ndarray
     centres: np.ndarray
-

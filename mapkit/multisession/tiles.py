@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -16,8 +15,15 @@ from mapkit.core.runio import atomic_path, atomic_write_ply, sha256_file, write_
 ALIGN_FORMAT_VERSION = 1
 
 
-def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, point_index: np.ndarray, names: list[str],
-                frame: LocalFrame, tile_m: float) -> dict:
+def write_tiles(
+    folder: Path,
+    points_enu: np.ndarray,
+    session_id: np.ndarray,
+    point_index: np.ndarray,
+    names: list[str],
+    frame: LocalFrame,
+    tile_m: float,
+) -> dict:
     """The merged map as UTM tiles: ``E{easting}_N{northing}.ply`` holding UTM coordinates of the
     workspace's zone (float64 easting, northing, WGS84 ellipsoidal height; the EPSG code and the
     workspace origin in the PLY header), ``.npz`` (session and point index of every point, so
@@ -26,9 +32,17 @@ def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, po
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("E*_N*.*"):
         old.unlink()
-    manifest = {"format_version": ALIGN_FORMAT_VERSION, "tile_size_m": tile_m, "utm_crs_epsg": frame.utm_epsg,
-                "frame": frame.to_dict(), "points_frame": "utm", "points_crs_epsg": int(frame.utm_epsg),
-                "points_z": "WGS84 ellipsoidal height (m)", "sessions": names, "tiles": []}
+    manifest = {
+        "format_version": ALIGN_FORMAT_VERSION,
+        "tile_size_m": tile_m,
+        "utm_crs_epsg": frame.utm_epsg,
+        "frame": frame.to_dict(),
+        "points_frame": "utm",
+        "points_crs_epsg": int(frame.utm_epsg),
+        "points_z": "WGS84 ellipsoidal height (m)",
+        "sessions": names,
+        "tiles": [],
+    }
     if len(points_enu) == 0:
         write_json(folder / "tiles.json", manifest)
         return {"tiles": 0, "points": 0}
@@ -44,18 +58,26 @@ def write_tiles(folder: Path, points_enu: np.ndarray, session_id: np.ndarray, po
         e, n = (int(v) for v in key_sorted[s0])
         stem = f"E{e * int(tile_m)}_N{n * int(tile_m)}"
         atomic_write_ply(folder / f"{stem}.ply", utm[sel], frame=frame, crs_epsg=int(frame.utm_epsg))
-        with atomic_path(folder / f"{stem}.npz") as tmp:
-            with open(tmp, "wb") as f:
-                np.savez_compressed(f, session_id=session_id[sel], point_index=point_index[sel])
-        tiles.append({"name": stem, "utm_min": [e * tile_m, n * tile_m], "utm_max": [(e + 1) * tile_m, (n + 1) * tile_m],
-                      "points": int(len(sel)), "ply_sha256": sha256_file(folder / f"{stem}.ply"),
-                      "npz_sha256": sha256_file(folder / f"{stem}.npz")})
+        with atomic_path(folder / f"{stem}.npz") as tmp, open(tmp, "wb") as f:
+            np.savez_compressed(f, session_id=session_id[sel], point_index=point_index[sel])
+        tiles.append(
+            {
+                "name": stem,
+                "utm_min": [e * tile_m, n * tile_m],
+                "utm_max": [(e + 1) * tile_m, (n + 1) * tile_m],
+                "points": int(len(sel)),
+                "ply_sha256": sha256_file(folder / f"{stem}.ply"),
+                "npz_sha256": sha256_file(folder / f"{stem}.npz"),
+            }
+        )
     manifest["tiles"] = tiles
     write_json(folder / "tiles.json", manifest)
     return {"tiles": len(tiles), "points": int(len(points_enu))}
 
 
-def load_tiles(folder: str | Path, bounds_utm: Optional[tuple[float, float, float, float]] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+def load_tiles(
+    folder: str | Path, bounds_utm: tuple[float, float, float, float] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """Points (workspace ENU), session ids, point indices and session names of the merged map,
     optionally only of the tiles meeting ``bounds_utm`` = (e_min, n_min, e_max, n_max). Tiles in
     UTM (``points_crs_epsg`` in tiles.json) are converted back to ENU; tiles written before mapkit
@@ -68,10 +90,16 @@ def load_tiles(folder: str | Path, bounds_utm: Optional[tuple[float, float, floa
         raise InputError(manifest_path, "no such file (not a merged map folder?)")
     m = json.loads(manifest_path.read_text())
     if m.get("format_version") != ALIGN_FORMAT_VERSION:
-        raise InputError(manifest_path, f"format version {m.get('format_version')!r}; this mapkit reads {ALIGN_FORMAT_VERSION}", field="format_version")
+        raise InputError(
+            manifest_path,
+            f"format version {m.get('format_version')!r}; this mapkit reads {ALIGN_FORMAT_VERSION}",
+            field="format_version",
+        )
     crs = m.get("points_crs_epsg")
     if crs is not None and "frame" not in m:
-        raise InputError(manifest_path, f"tiles in EPSG:{crs} but no workspace frame to bring them back to ENU", field="frame")
+        raise InputError(
+            manifest_path, f"tiles in EPSG:{crs} but no workspace frame to bring them back to ENU", field="frame"
+        )
     pts, sid, idx = [], [], []
     for t in m["tiles"]:
         if bounds_utm is not None:

@@ -31,9 +31,9 @@ import logging
 import os
 import time
 import traceback
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
-from typing import Callable, Iterator, Optional
 
 import yaml
 
@@ -66,8 +66,17 @@ logger = logging.getLogger(__name__)
 #: (docs/results/main-job.json, tiny.json, places.json: the median over their runs, rounded); the demo
 #: prints it when a stage starts, so that a user knows what to expect. tests/test_docs.py holds it to the records.
 EXPECTED_SECONDS: dict[str, dict[str, int]] = {
-    "tiny": {"synth": 35, "build": 55, "align": 8, "triplets": 4, "index_vlad": 10, "index_structure": 8, "localize": 4,
-             "places": 14, "view": 3},
+    "tiny": {
+        "synth": 35,
+        "build": 55,
+        "align": 8,
+        "triplets": 4,
+        "index_vlad": 10,
+        "index_structure": 8,
+        "localize": 4,
+        "places": 14,
+        "view": 3,
+    },
     "demo": {},
     "places": {},
 }
@@ -77,7 +86,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min"
 
 
-def _cpu_ticks() -> Optional[tuple[int, int]]:
+def _cpu_ticks() -> tuple[int, int] | None:
     """(busy, total) CPU ticks of the whole machine since boot, from /proc/stat; None elsewhere."""
     try:
         with open("/proc/stat") as f:
@@ -96,16 +105,32 @@ class _Skip(Exception):
 class Demo:
     """The state of one demo run: where things are, what each stage found, how long it took."""
 
-    def __init__(self, out: Path, preset: str, seed: Optional[int], workers: int, train_cnn: bool, progress: bool,
-                 log: Callable[[str], None], record_rate_hz: Optional[float] = None, synth_overrides: Optional[dict] = None):
+    def __init__(
+        self,
+        out: Path,
+        preset: str,
+        seed: int | None,
+        workers: int,
+        train_cnn: bool,
+        progress: bool,
+        log: Callable[[str], None],
+        record_rate_hz: float | None = None,
+        synth_overrides: dict | None = None,
+    ):
         self.out, self.preset, self.seed, self.workers = Path(out), preset, seed, workers
         self.record_rate_hz, self.synth_overrides = record_rate_hz, synth_overrides
         self.train_cnn, self.progress, self.log = train_cnn, progress, log
         self.town = self.out / "town"
         self.ws = Workspace(self.out / "workspace")
         self.bundles = self.out / "bundles"
-        self.metrics: dict = {"mapkit_version": __version__, "preset": preset, "seed": seed, "workers": workers,
-                              "record_rate_hz": record_rate_hz, "stages": {}}
+        self.metrics: dict = {
+            "mapkit_version": __version__,
+            "preset": preset,
+            "seed": seed,
+            "workers": workers,
+            "record_rate_hz": record_rate_hz,
+            "stages": {},
+        }
         self.timings: dict = {"stages": {}}  # wall-clock figures: the run record (timings.json), apart from the metrics
         self.sections: list[Section] = []
         self.roles: dict[str, dict] = {}
@@ -138,8 +163,10 @@ class Demo:
         self.metrics["stages"][name] = record
         self.timings["stages"][name] = timing
         self.sections.append(sec)
-        self.log(f"[demo] {name}: {record['status']} in {sec.seconds:.0f} s" + (f" ({record.get('reason') or record.get('error')})"
-                                                                                   if record["status"] != "ok" else ""))
+        self.log(
+            f"[demo] {name}: {record['status']} in {sec.seconds:.0f} s"
+            + (f" ({record.get('reason') or record.get('error')})" if record["status"] != "ok" else "")
+        )
 
     def ok(self, *names: str) -> bool:
         return all(self.metrics["stages"].get(n, {}).get("status") == "ok" for n in names)
@@ -150,7 +177,7 @@ class Demo:
             raise _Skip(f"needs the {', '.join(bad)} stage(s), which did not finish")
 
     @property
-    def cnn_model(self) -> Optional[Path]:
+    def cnn_model(self) -> Path | None:
         """The trained CNN (``WORKSPACE/cnn``) when there is one."""
         p = self.ws.cnn_dir
         return p if (p / "model.onnx").is_file() else None
@@ -158,12 +185,15 @@ class Demo:
     def structure_kinds(self) -> list[str]:
         return ["nbld", "m2dp"] + (["cnn"] if self.cnn_model is not None else [])
 
-    def structure_overrides(self, kind: str) -> Optional[dict]:
+    def structure_overrides(self, kind: str) -> dict | None:
         return {"cnn_model": str(self.cnn_model)} if kind == "cnn" else None
 
     def places_overrides(self) -> dict:
         # the localization stage's encodings, and the structure index stage's descriptors: nothing is described twice
-        ov: dict = {"vlad_encodings_dir": str(_localize_cache(self.ws)), "descriptor_cache_dir": str(self.ws.descriptor_cache)}
+        ov: dict = {
+            "vlad_encodings_dir": str(_localize_cache(self.ws)),
+            "descriptor_cache_dir": str(self.ws.descriptor_cache),
+        }
         if self.cnn_model is not None:
             ov["structure"] = {"cnn_model": str(self.cnn_model)}
         return ov
@@ -188,13 +218,18 @@ def _synth(d: Demo) -> None:
         synthesize(preset=d.preset, out=d.town, seed=d.seed, overrides=overrides or None)
         d.roles = town_sessions(d.town)
         rows = ["| session | role | condition | camera Hz (recorded / images) |", "|---|---|---|---|"]
-        rows += [f"| {n} | {s.get('role', '')} | {_condition(s)} | {s.get('camera_rate_hz', '')} / "
-                 f"{s.get('image_rate_hz', s.get('camera_rate_hz', ''))} |" for n, s in sorted(d.roles.items())]
+        rows += [
+            f"| {n} | {s.get('role', '')} | {_condition(s)} | {s.get('camera_rate_hz', '')} / "
+            f"{s.get('image_rate_hz', s.get('camera_rate_hz', ''))} |"
+            for n, s in sorted(d.roles.items())
+        ]
         streets = json.loads((d.town / "metrics.json").read_text()).get("streets") or {}
         d.metrics["streets"] = streets
         if streets:
-            rows.append(f"\nDriven {streets['driven_m'] / 1000:.1f} km; distinct streets {streets['distinct_m'] / 1000:.1f} km, "
-                        f"{streets['distinct_train_m'] / 1000:.1f} km of them by training drives (where held-out places can lie).")
+            rows.append(
+                f"\nDriven {streets['driven_m'] / 1000:.1f} km; distinct streets {streets['distinct_m'] / 1000:.1f} km, "
+                f"{streets['distinct_train_m'] / 1000:.1f} km of them by training drives (where held-out places can lie)."
+            )
         sec.md("\n".join(rows))
         sec.picture(d.town / "pictures" / "map.png", "the town: streets, buildings and the drives", 560)
         sec.picture(d.town / "pictures" / "contact_sheet.png", "one camera frame per session", 560)
@@ -229,7 +264,9 @@ def demo_build_config(out: Path, roles: dict[str, dict]) -> Path:
     maps are made from every image, retrieval and the localizer see the images they would without
     video."""
     base = preset_path("build", "demo")
-    faster = {n: s for n, s in roles.items() if s.get("image_rate_hz") and s["camera_rate_hz"] > s["image_rate_hz"] * 1.001}
+    faster = {
+        n: s for n, s in roles.items() if s.get("image_rate_hz") and s["camera_rate_hz"] > s["image_rate_hz"] * 1.001
+    }
     if not faster:
         return base
     data = yaml.safe_load(base.read_text()) or {}
@@ -240,9 +277,12 @@ def demo_build_config(out: Path, roles: dict[str, dict]) -> Path:
         sessions[name] = deep_merge(sessions.get(name, {}), {"imagedb": {"min_interval_s": round(interval, 6)}})
     data["sessions"] = sessions
     path = out / "build_config_video.yaml"
-    atomic_write_text(path, "# configs/build/demo.yaml with each session's image database at its own image rate: the town's\n"
-                            "# cameras record faster (camera.record_rate_hz) and the maps use every image (mapkit demo).\n"
-                      + yaml.safe_dump(data, sort_keys=False))
+    atomic_write_text(
+        path,
+        "# configs/build/demo.yaml with each session's image database at its own image rate: the town's\n"
+        "# cameras record faster (camera.record_rate_hz) and the maps use every image (mapkit demo).\n"
+        + yaml.safe_dump(data, sort_keys=False),
+    )
     return path
 
 
@@ -250,8 +290,10 @@ def _align(d: Demo) -> None:
     with d.stage("align", "Multi-session map (mapkit align)") as sec:
         d.need("build")
         if len(d.metrics.get("georeferenced", [])) < 2:
-            raise _Skip(f"{len(d.metrics.get('georeferenced', []))} georeferenced session(s); alignment needs two "
-                        "(a drive too short or too straight for GPS to fix its heading is not georeferenced: see eval_build)")
+            raise _Skip(
+                f"{len(d.metrics.get('georeferenced', []))} georeferenced session(s); alignment needs two "
+                "(a drive too short or too straight for GPS to fix its heading is not georeferenced: see eval_build)"
+            )
         out = align_workspace(d.ws.root, progress=d.progress)
         d.metrics["eval_align"] = evaluate_align(d.ws, d.town)
         sec.md_file(out / "qa.md")
@@ -275,7 +317,11 @@ def _figures(*groups: tuple[str, dict]) -> str:
     """A two-column Markdown table of the scalar figures of metric dicts, each key with its prefix."""
     rows = ["| figure | value |", "|---|---|"]
     for prefix, m in groups:
-        rows += [f"| {prefix}{k} | {f'{v:.4g}' if isinstance(v, float) else v} |" for k, v in m.items() if not isinstance(v, (dict, list))]
+        rows += [
+            f"| {prefix}{k} | {f'{v:.4g}' if isinstance(v, float) else v} |"
+            for k, v in m.items()
+            if not isinstance(v, (dict, list))
+        ]
     return "\n".join(rows)
 
 
@@ -302,13 +348,18 @@ def _index_vlad(d: Demo) -> None:
         train = d.train_sessions
         if not train:
             raise _Skip("the town has no training session")
-        out = build_vlad_index(d.ws.root, overrides={"train_sessions": train, "database_sessions": train, "workers": d.workers,
-                                                "vlad": DEMO_VLAD}, progress=d.progress)
+        out = build_vlad_index(
+            d.ws.root,
+            overrides={"train_sessions": train, "database_sessions": train, "workers": d.workers, "vlad": DEMO_VLAD},
+            progress=d.progress,
+        )
         m = json.loads((out / "metrics.json").read_text())
         d.metrics["index_vlad"] = m
-        sec.md(f"Database and training sessions: {', '.join(train)}. Dense SIFT on images halved first, as the MCVL "
-               "authors' released code does (the library's default is the paper's text, full resolution).\n\n"
-               + _figures(("", m)))
+        sec.md(
+            f"Database and training sessions: {', '.join(train)}. Dense SIFT on images halved first, as the MCVL "
+            "authors' released code does (the library's default is the paper's text, full resolution).\n\n"
+            + _figures(("", m))
+        )
 
 
 def _index_structure(d: Demo) -> None:
@@ -318,8 +369,14 @@ def _index_structure(d: Demo) -> None:
         rows = ["| descriptor | entries | frames | dim | seconds |", "|---|---|---|---|---|"]
         for kind in d.structure_kinds():
             t0 = time.perf_counter()
-            out = build_structure_index(d.ws.root, kind, sessions=train, overrides=d.structure_overrides(kind),
-                                        cache_dir=d.ws.descriptor_cache, progress=d.progress)
+            out = build_structure_index(
+                d.ws.root,
+                kind,
+                sessions=train,
+                overrides=d.structure_overrides(kind),
+                cache_dir=d.ws.descriptor_cache,
+                progress=d.progress,
+            )
             man = json.loads((out / "manifest.json").read_text())
             c = man["counts"]
             rows.append(f"| {kind} | {c['entries']} | {c['frames']} | {c['dim']} | {time.perf_counter() - t0:.0f} |")
@@ -336,10 +393,17 @@ def _localize(d: Demo) -> None:
         d.metrics["localize"] = {}
         for name, cfg in runs.items():
             out = d.ws.localize_dir / name
-            r = evaluate_localization(d.ws, d.town, bundle=d.ws.vlad_index, config=cfg, out=out, cache_dir=cache,
-                                      progress=d.progress)
-            d.metrics["localize"][name] = {n: {k: s.get(k) for k in ("retrieval", "filter", "queries")} for n, s in r["sessions"].items()}
-            label = "the paper's defaults (MCVL Sec. IV-A)" if cfg is None else f"preset `configs/localize/{cfg.name}` (beyond the paper)"
+            r = evaluate_localization(
+                d.ws, d.town, bundle=d.ws.vlad_index, config=cfg, out=out, cache_dir=cache, progress=d.progress
+            )
+            d.metrics["localize"][name] = {
+                n: {k: s.get(k) for k in ("retrieval", "filter", "queries")} for n, s in r["sessions"].items()
+            }
+            label = (
+                "the paper's defaults (MCVL Sec. IV-A)"
+                if cfg is None
+                else f"preset `configs/localize/{cfg.name}` (beyond the paper)"
+            )
             sec.md(f"#### Filter with {label}")
             sec.md_file(out / "eval_localize.md", drop_title=False)
             for n in d.test_sessions:
@@ -350,8 +414,10 @@ def places_pairs(roles: dict[str, dict], map_points: dict[str, int]) -> list[tup
     """Session pairs (database, query) mixing conditions: each test session against two training
     sessions with maps, the one whose streets it retraces (its ``follows``) first, then the fullest
     maps; and each later test session against the first."""
-    train = sorted((n for n, s in roles.items() if s.get("role") == "train" and map_points.get(n, 0) > 0),
-                   key=lambda n: (-map_points[n], n))
+    train = sorted(
+        (n for n, s in roles.items() if s.get("role") == "train" and map_points.get(n, 0) > 0),
+        key=lambda n: (-map_points[n], n),
+    )
     tests = sorted(n for n, s in roles.items() if s.get("role") == "test" and map_points.get(n, 0) > 0)
     pairs = []
     for q in tests:
@@ -371,9 +437,19 @@ def _places(d: Demo) -> None:
             raise _Skip("no pair of a training and a test session with maps")
         methods = list(d.structure_kinds()) + ["vlad"]
         out = d.ws.places_eval_dir
-        r = evaluate_places(d.ws, pairs, methods, out=out, truth=d.town, vlad_bundle=d.ws.vlad_index,
-                            overrides=d.places_overrides(), progress=d.progress)
-        d.metrics["places"] = {f"{p['database']}:{p['query']}": {m: v.get("auc") for m, v in p["methods"].items()} for p in r["pairs"]}
+        r = evaluate_places(
+            d.ws,
+            pairs,
+            methods,
+            out=out,
+            truth=d.town,
+            vlad_bundle=d.ws.vlad_index,
+            overrides=d.places_overrides(),
+            progress=d.progress,
+        )
+        d.metrics["places"] = {
+            f"{p['database']}:{p['query']}": {m: v.get("auc") for m, v in p["methods"].items()} for p in r["pairs"]
+        }
         sec.md_file(out / "places.md")
         sec.picture(out / "pr_curves.png", "precision-recall curves", 1000)
 
@@ -412,10 +488,12 @@ def _view(d: Demo) -> None:
             raise _Skip("the viewer extra (rerun-sdk) is not installed")
         s = write_recording(d.ws, budget_points=VIEW_BUDGET_POINTS, progress=d.progress)
         png = render_top_view(s.path, d.out / "view_top.png")
-        sec.md(f"`{s.path}` ({s.bytes / 1e6:.1f} MB, {s.seconds:.0f} s): open it with `rerun {s.path}` (the viewer extra). "
-               f"{s.points:,} of {sum(s.map_points_total.values()):,} map points in {len(s.map_points)} maps, "
-               f"{sum(s.images.values())} thumbnails at their poses, {sum(s.gps_fixes.values())} GPS fixes, the localizer's "
-               "estimates over time. Its top view, drawn from the recording:")
+        sec.md(
+            f"`{s.path}` ({s.bytes / 1e6:.1f} MB, {s.seconds:.0f} s): open it with `rerun {s.path}` (the viewer extra). "
+            f"{s.points:,} of {sum(s.map_points_total.values()):,} map points in {len(s.map_points)} maps, "
+            f"{sum(s.images.values())} thumbnails at their poses, {sum(s.gps_fixes.values())} GPS fixes, the localizer's "
+            "estimates over time. Its top view, drawn from the recording:"
+        )
         sec.picture(png, "the recording from above", 900)
         d.metrics["view"] = {"path": str(s.path), "points": s.points}
 
@@ -437,7 +515,9 @@ def _train_cnn(d: Demo) -> None:
 
         out = train_cnn(d.ws.triplets_dir, d.ws.cnn_dir, overrides=CNN_DEMO_BUDGET, progress=d.progress)
         sec.picture(out / "training_curve.png", "training curve", 640)
-        d.metrics["train_cnn"] = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
+        d.metrics["train_cnn"] = (
+            json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() else {}
+        )
 
 
 #: Files of a run that are records of the run itself, not results: they differ between two runs of the
@@ -449,12 +529,32 @@ RUN_RECORDS = {
     "view.rrd": "Rerun stamps every row it records with a time-based id",
 }
 
-STAGES = (_synth, _build, _align, _triplets, _train_cnn, _index_vlad, _index_structure, _localize, _places, _export, _view)
+STAGES = (
+    _synth,
+    _build,
+    _align,
+    _triplets,
+    _train_cnn,
+    _index_vlad,
+    _index_structure,
+    _localize,
+    _places,
+    _export,
+    _view,
+)
 
 
-def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Optional[int] = None, workers: int = 2,
-             train_cnn: bool = False, progress: bool = False, log: Callable[[str], None] = logger.info,
-             record_rate_hz: Optional[float] = None, synth_overrides: Optional[dict] = None) -> dict:
+def run_demo(
+    out: str | Path = "mapkit-demo",
+    preset: str = "demo",
+    seed: int | None = None,
+    workers: int = 2,
+    train_cnn: bool = False,
+    progress: bool = False,
+    log: Callable[[str], None] = logger.info,
+    record_rate_hz: float | None = None,
+    synth_overrides: dict | None = None,
+) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
     the paths of the report and the bundle. ``log`` takes the stage lines ("[demo] build: ok in
     12 s"); by default they go to this module's logger at INFO (the CLI shows them on stderr).
@@ -468,14 +568,19 @@ def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Option
     d.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ex = default_executor()  # `mapkit --executor ray demo` set one; else a local pool of `workers`
-    with d.ws.lock(command="mapkit demo"), \
-            (nullcontext(ex) if ex is not None else use_executor("local", workers=workers)) as ex:
+    with (
+        d.ws.lock(command="mapkit demo"),
+        nullcontext(ex) if ex is not None else use_executor("local", workers=workers) as ex,
+    ):
         d.metrics["executor"] = {"kind": ex.kind, "workers": ex.workers}
         for stage in STAGES:
             try:
                 stage(d)
             except Exception:  # a bug in one stage: keep its traceback in the report, stop the chain
-                d.metrics.setdefault("stages", {})[stage.__name__.strip("_")] = {"status": "crashed", "traceback": traceback.format_exc()}
+                d.metrics.setdefault("stages", {})[stage.__name__.strip("_")] = {
+                    "status": "crashed",
+                    "traceback": traceback.format_exc(),
+                }
                 _finish(d, time.perf_counter() - t0)
                 raise
     return _finish(d, time.perf_counter() - t0)
@@ -484,8 +589,11 @@ def run_demo(out: str | Path = "mapkit-demo", preset: str = "demo", seed: Option
 def _docs_line(d: Demo) -> str:
     """Where to read on: the documentation (the checkout's docs/, when mapkit runs from one) and the recording."""
     docs = Path(__file__).resolve().parents[2] / "docs" / "index.md"
-    parts = [f"Documentation: `{docs}` (a site with `mkdocs build --strict`)" if docs.is_file() else
-             "Documentation: the docs/ folder of mapkit's source"]
+    parts = [
+        f"Documentation: `{docs}` (a site with `mkdocs build --strict`)"
+        if docs.is_file()
+        else "Documentation: the docs/ folder of mapkit's source"
+    ]
     if d.ok("view"):
         parts.append(f"3D: `rerun {d.ws.recording}`")
     return "; ".join(parts) + "."
@@ -495,12 +603,18 @@ def _finish(d: Demo, seconds: float) -> dict:
     d.timings["seconds_total"] = round(seconds, 1)
     d.metrics["report"] = str(d.out / "report.html")
     rows = [f"| stage | status | seconds | cores busy (of {os.cpu_count()}) |", "|---|---|---|---|"]
-    rows += [f"| {n} | {s['status']}{' (' + s['reason'] + ')' if s.get('reason') else ''} | {t.get('seconds', '')} "
-             f"| {t.get('cores_busy', '')} |" for n, s in d.metrics["stages"].items() for t in [d.timings["stages"].get(n, {})]]
+    rows += [
+        f"| {n} | {s['status']}{' (' + s['reason'] + ')' if s.get('reason') else ''} | {t.get('seconds', '')} "
+        f"| {t.get('cores_busy', '')} |"
+        for n, s in d.metrics["stages"].items()
+        for t in [d.timings["stages"].get(n, {})]
+    ]
     ex = d.metrics.get("executor", {})
-    intro = (f"mapkit {__version__}, synthetic town preset `{d.preset}`, executor {ex.get('kind', 'local')} with "
-             f"{ex.get('workers', d.workers)} worker(s). "
-             f"Whole run: **{seconds / 60:.1f} min** wall time. {_docs_line(d)}\n\n" + "\n".join(rows))
+    intro = (
+        f"mapkit {__version__}, synthetic town preset `{d.preset}`, executor {ex.get('kind', 'local')} with "
+        f"{ex.get('workers', d.workers)} worker(s). "
+        f"Whole run: **{seconds / 60:.1f} min** wall time. {_docs_line(d)}\n\n" + "\n".join(rows)
+    )
     write_report(d.out / "report.html", f"mapkit demo: {d.preset} town", intro, d.sections)
     atomic_write_text(d.out / "timings.md", "\n".join(rows) + "\n")
     write_json(d.out / "metrics.json", d.metrics)

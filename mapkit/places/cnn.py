@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import threading
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -48,7 +48,7 @@ CHANNELS = {"occupancy": 1, "density_comparison": 3}
 INSTALL_HINT = (
     "torch is not installed; it is an optional extra of mapkit. Install the CPU build first, "
     "`pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu` (on the project's machines "
-    "`pip install torch==2.13.0` installs that CPU build offline), then `pip install -e \".[learning]\"`"
+    '`pip install torch==2.13.0` installs that CPU build offline), then `pip install -e ".[learning]"`'
 )
 
 _L2_POOL_EPS = 1e-12  # inside the square root of the L2 pooling: finite gradients where a window is all zero
@@ -58,10 +58,19 @@ class CnnConfig(MapkitConfig):
     """The architecture of Fig. 3(c). The paper fixes the input (32^3, 1 or 3 channels), the
     layer types and the 512-d output; the sizes below are mapkit's."""
 
-    form: Form = Field("occupancy", description="Input grid: binary occupancy (1 channel) or binary density comparison (3 channels) "
-                       "(Sec. 3.3.2; the paper reports both as 'barely distinguishable').")
-    grid: int = Field(32, ge=4, description="Voxels per axis (Sec. 3.3.2: 32x32x32); must match the triplet dataset's grid.")
-    conv1_channels: int = Field(8, ge=1, description="Channels of the first 3D convolution (not in the paper; mapkit's choice for CPU training).")
+    form: Form = Field(
+        "occupancy",
+        description="Input grid: binary occupancy (1 channel) or binary density comparison (3 channels) "
+        "(Sec. 3.3.2; the paper reports both as 'barely distinguishable').",
+    )
+    grid: int = Field(
+        32, ge=4, description="Voxels per axis (Sec. 3.3.2: 32x32x32); must match the triplet dataset's grid."
+    )
+    conv1_channels: int = Field(
+        8,
+        ge=1,
+        description="Channels of the first 3D convolution (not in the paper; mapkit's choice for CPU training).",
+    )
     conv1_kernel: int = Field(5, ge=1, description="Kernel of the first convolution (odd; 'same' padding).")
     conv1_stride: int = Field(2, ge=1, description="Stride of the first convolution (32^3 -> 16^3).")
     conv2_channels: int = Field(16, ge=1, description="Channels of the second 3D convolution (not in the paper).")
@@ -71,11 +80,13 @@ class CnnConfig(MapkitConfig):
     dim: int = Field(512, ge=1, description="Descriptor dimension (Sec. 3.3.2, Fig. 3c: 512).")
 
     @model_validator(mode="after")
-    def _check(self) -> "CnnConfig":
+    def _check(self) -> CnnConfig:
         if self.conv1_kernel % 2 == 0 or self.conv2_kernel % 2 == 0:
             raise ValueError("convolution kernels must be odd ('same' padding)")
         if self.grid % (self.conv1_stride * self.pool):
-            raise ValueError(f"grid {self.grid} must be a multiple of conv1_stride * pool = {self.conv1_stride * self.pool}")
+            raise ValueError(
+                f"grid {self.grid} must be a multiple of conv1_stride * pool = {self.conv1_stride * self.pool}"
+            )
         return self
 
     @property
@@ -116,7 +127,9 @@ def _module_class():
         def __init__(self, cfg: CnnConfig):
             super().__init__()
             self.pool = cfg.pool
-            self.conv1 = nn.Conv3d(cfg.channels, cfg.conv1_channels, cfg.conv1_kernel, cfg.conv1_stride, cfg.conv1_kernel // 2)
+            self.conv1 = nn.Conv3d(
+                cfg.channels, cfg.conv1_channels, cfg.conv1_kernel, cfg.conv1_stride, cfg.conv1_kernel // 2
+            )
             self.conv2 = nn.Conv3d(cfg.conv1_channels, cfg.conv2_channels, cfg.conv2_kernel, 1, cfg.conv2_kernel // 2)
             self.fc1 = nn.Linear(cfg.flat_features, cfg.hidden)
             self.fc2 = nn.Linear(cfg.hidden, cfg.dim)
@@ -133,7 +146,7 @@ def _module_class():
     return PatchCNN
 
 
-def build_model(cfg: CnnConfig | None = None, seed: Optional[int] = None):
+def build_model(cfg: CnnConfig | None = None, seed: int | None = None):
     """A new (untrained) network; ``seed`` fixes its initial weights."""
     torch = require_torch()
     cfg = cfg or CnnConfig()
@@ -191,8 +204,16 @@ def export_onnx(model, cfg: CnnConfig, path: str | Path) -> Path:
     example = torch.zeros((2, cfg.channels, cfg.grid, cfg.grid, cfg.grid), dtype=torch.float32)
     with atomic_path(path) as tmp, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exporter's deprecation notices
-        torch.onnx.export(model, (example,), str(tmp), dynamo=False, input_names=[ONNX_INPUT], output_names=[ONNX_OUTPUT],
-                          dynamic_axes={ONNX_INPUT: {0: "n"}, ONNX_OUTPUT: {0: "n"}}, opset_version=ONNX_OPSET)
+        torch.onnx.export(
+            model,
+            (example,),
+            str(tmp),
+            dynamo=False,
+            input_names=[ONNX_INPUT],
+            output_names=[ONNX_OUTPUT],
+            dynamic_axes={ONNX_INPUT: {0: "n"}, ONNX_OUTPUT: {0: "n"}},
+            opset_version=ONNX_OPSET,
+        )
     model.train(was_training)
     return path
 
@@ -219,7 +240,9 @@ def read_model_manifest(folder: str | Path) -> dict:
     folder = Path(folder)
     mpath = folder / "manifest.json"
     if not mpath.is_file():
-        raise InputError(folder, "not a trained CNN folder (no manifest.json; train one with mapkit train)", field="cnn_model")
+        raise InputError(
+            folder, "not a trained CNN folder (no manifest.json; train one with mapkit train)", field="cnn_model"
+        )
     m = json.loads(mpath.read_text())
     if m.get("format_version") != MODEL_FORMAT_VERSION or m.get("kind") != "mapkit cnn descriptor":
         raise InputError(mpath, f"not a CNN model manifest of format {MODEL_FORMAT_VERSION}", field="format_version")
@@ -227,14 +250,16 @@ def read_model_manifest(folder: str | Path) -> dict:
     if onnx_info is None or not (folder / ONNX_FILE).is_file():
         raise InputError(folder / ONNX_FILE, "missing (the model folder has no ONNX export)")
     if sha256_file(folder / ONNX_FILE) != onnx_info["sha256"]:
-        raise InputError(folder / ONNX_FILE, "checksum mismatch: the file changed since the model was written", field="sha256")
+        raise InputError(
+            folder / ONNX_FILE, "checksum mismatch: the file changed since the model was written", field="sha256"
+        )
     return m
 
 
 class OnnxDescriber:
     """A trained model run by onnxruntime: voxel grids -> L2-normalised float32 descriptors."""
 
-    def __init__(self, folder: str | Path, threads: Optional[int] = None):
+    def __init__(self, folder: str | Path, threads: int | None = None):
         import onnxruntime as ort
 
         self.folder = Path(folder)
@@ -250,11 +275,15 @@ class OnnxDescriber:
 
     def describe_grids(self, grids: np.ndarray, batch: int = 256) -> np.ndarray:
         """(n, dim) descriptors of unpacked grids ((n, g, g, g) or (n, 3, g, g, g), 0/1)."""
-        out = [self.session.run([ONNX_OUTPUT], {ONNX_INPUT: grids_to_input(grids[k : k + batch], self.cfg.form)})[0]
-               for k in range(0, len(grids), batch)]
+        out = [
+            self.session.run([ONNX_OUTPUT], {ONNX_INPUT: grids_to_input(grids[k : k + batch], self.cfg.form)})[0]
+            for k in range(0, len(grids), batch)
+        ]
         return np.concatenate(out).astype(np.float32) if out else np.zeros((0, self.cfg.dim), np.float32)
 
-    def describe(self, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.ndarray, tree=None, batch: int = 256) -> np.ndarray:
+    def describe(
+        self, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.ndarray, tree=None, batch: int = 256
+    ) -> np.ndarray:
         """(M, dim) descriptors of the patches about ``keypoints`` (M, 3) in the cloud ``points``:
         extracted in the model's cubic domain, yaw-normalised towards ``observer_dirs`` (from
         keypoint to first observer, Sec. 3.2), voxelised (Sec. 3.3.2), run in batches."""
@@ -292,7 +321,9 @@ def describe_cnn(points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.nd
     """The structure index's describer of kind ``cnn`` (``mapkit.places.index_structure._describe``):
     runs the ONNX model of ``cfg.cnn_model``."""
     if getattr(cfg, "cnn_model", None) is None:
-        raise ConfigError("the cnn descriptor needs a trained model: set structure index config cnn_model to a mapkit train output folder")
+        raise ConfigError(
+            "the cnn descriptor needs a trained model: set structure index config cnn_model to a mapkit train output folder"
+        )
     return onnx_describer(cfg.cnn_model).describe(points, keypoints, observer_dirs, tree)
 
 
@@ -300,11 +331,34 @@ def model_fingerprint(folder: str | Path) -> dict:
     """What an index records of the model it was built with: folder, ONNX sha256, form, grid,
     domain, training dataset and epochs (from the model's manifest)."""
     m = read_model_manifest(folder)
-    return {"path": str(Path(folder).resolve()), "onnx_sha256": m["files"][ONNX_FILE]["sha256"], "config_hash": m.get("config_hash"),
-            "form": m["model_config"]["form"], "grid": m["model_config"]["grid"], "domain": m["domain"],
-            "dataset": m.get("dataset", {}).get("path"), "epochs": m.get("epochs"), "hard_negatives": m.get("hard_negatives")}
+    return {
+        "path": str(Path(folder).resolve()),
+        "onnx_sha256": m["files"][ONNX_FILE]["sha256"],
+        "config_hash": m.get("config_hash"),
+        "form": m["model_config"]["form"],
+        "grid": m["model_config"]["grid"],
+        "domain": m["domain"],
+        "dataset": m.get("dataset", {}).get("path"),
+        "epochs": m.get("epochs"),
+        "hard_negatives": m.get("hard_negatives"),
+    }
 
 
-__all__ = ["CnnConfig", "CHANNELS", "INSTALL_HINT", "require_torch", "build_model", "triplet_loss", "grids_to_input", "torch_describe",
-           "export_onnx", "load_torch_model", "read_model_manifest", "OnnxDescriber", "onnx_describer", "describe_cnn",
-           "model_fingerprint", "CNN_DOMAIN"]
+__all__ = [
+    "CnnConfig",
+    "CHANNELS",
+    "INSTALL_HINT",
+    "require_torch",
+    "build_model",
+    "triplet_loss",
+    "grids_to_input",
+    "torch_describe",
+    "export_onnx",
+    "load_torch_model",
+    "read_model_manifest",
+    "OnnxDescriber",
+    "onnx_describer",
+    "describe_cnn",
+    "model_fingerprint",
+    "CNN_DOMAIN",
+]

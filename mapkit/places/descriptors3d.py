@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -60,27 +60,42 @@ from mapkit.places.patches import (
 
 _NBLD_CHUNK_POINTS = 1 << 16  # patch points per block (NBLD works on ~10 arrays of this length)
 _NBLD_CHUNK_PATCHES = 1 << 14  # ... and patches per block (bounds the bincount output)
-_M2DP_CHUNK_POINTS = 1 << 12  # patch points per block; x 61 planes: float32 work arrays of ~1 MiB (larger blocks: no faster)
+_M2DP_CHUNK_POINTS = (
+    1 << 12
+)  # patch points per block; x 61 planes: float32 work arrays of ~1 MiB (larger blocks: no faster)
 _M2DP_CHUNK_PATCHES = 256  # ... and patches per block and per batched singular-vector solve
-_M2DP_FRAME_POINTS = 1 << 18  # patch points per block put into the PCA frame / scaled at once (float64 temporaries of ~10 MiB)
+_M2DP_FRAME_POINTS = (
+    1 << 18
+)  # patch points per block put into the PCA frame / scaled at once (float64 temporaries of ~10 MiB)
 _M2DP_PCA_LOOP_POINTS = 256  # patches of at least this many points get their PCA frame one at a time
 
 
 class NBLDConfig(MapkitConfig):
     """NBLD (Cieslewski et al. 2016) on the domain of the semi-dense paper."""
 
-    domain: PatchDomain = Field(NBLD_DOMAIN, description="Finite vertical cylinder; r = 10 m, h = 20 m from the semi-dense paper (Fig. 6 caption).")
-    n_azimuth: int = Field(8, ge=2, description="Azimuthal sectors n_a, from the patch x-axis counter-clockwise (mapkit's choice: 45 deg sectors).")
+    domain: PatchDomain = Field(
+        NBLD_DOMAIN,
+        description="Finite vertical cylinder; r = 10 m, h = 20 m from the semi-dense paper (Fig. 6 caption).",
+    )
+    n_azimuth: int = Field(
+        8,
+        ge=2,
+        description="Azimuthal sectors n_a, from the patch x-axis counter-clockwise (mapkit's choice: 45 deg sectors).",
+    )
     n_radial: int = Field(3, ge=1, description="Rings n_r of equal width (mapkit's choice).")
     # 8 x 3 x 8 = 192 cells: a patch of 500-3000 points has ~3-15 points per cell on average
-    n_vertical: int = Field(8, ge=1, description="Layers n_z of equal height: 2.5 m layers (mapkit's choice, measured: the paper "
-                            "gives no counts). Chosen on the tiny town's 3 pairs (mean AUC 0.199 against 0.154 with 4 layers; "
-                            "8x2x2 0.125, 8x3x6 0.098, 16x3x8 0.171); on the demo's 8 pairs, not used to choose, held-out mean "
-                            "AUC 0.308 against 0.217 with 4 layers, all places 0.179 against 0.127. Facades and trees differ by "
-                            "height more than by azimuth at this radius.")
+    n_vertical: int = Field(
+        8,
+        ge=1,
+        description="Layers n_z of equal height: 2.5 m layers (mapkit's choice, measured: the paper "
+        "gives no counts). Chosen on the tiny town's 3 pairs (mean AUC 0.199 against 0.154 with 4 layers; "
+        "8x2x2 0.125, 8x3x6 0.098, 16x3x8 0.171); on the demo's 8 pairs, not used to choose, held-out mean "
+        "AUC 0.308 against 0.217 with 4 layers, all places 0.179 against 0.127. Facades and trees differ by "
+        "height more than by azimuth at this radius.",
+    )
 
     @model_validator(mode="after")
-    def _check(self) -> "NBLDConfig":
+    def _check(self) -> NBLDConfig:
         if self.domain.kind != "cylinder":
             raise ValueError(f"NBLD needs a finite cylinder domain, got {self.domain.kind}")
         return self
@@ -119,34 +134,52 @@ class M2DPConfig(MapkitConfig):
     :func:`m2dp_reference` on each patch.
     """
 
-    domain: PatchDomain = Field(M2DP_DOMAIN, description="Infinite vertical cylinder; r = 10 m (the semi-dense paper leaves r open). "
-                                "It bounds the patch in any case; with radius = domain it is also the grid's radius.")
-    n_plane_azimuths: int = Field(4, ge=1, description="p: plane-normal azimuths, linearly spaced over [-pi/2, pi/2] (M2DP default 4).")
-    n_plane_elevations: int = Field(16, ge=1, description="q: plane-normal elevations, linearly spaced over [0, pi/2] (M2DP default 16).")
-    n_radial: int = Field(8, ge=1, description="l: rings per plane, outer radii r * (i / l)^2 as in the original (M2DP default 8).")
+    domain: PatchDomain = Field(
+        M2DP_DOMAIN,
+        description="Infinite vertical cylinder; r = 10 m (the semi-dense paper leaves r open). "
+        "It bounds the patch in any case; with radius = domain it is also the grid's radius.",
+    )
+    n_plane_azimuths: int = Field(
+        4, ge=1, description="p: plane-normal azimuths, linearly spaced over [-pi/2, pi/2] (M2DP default 4)."
+    )
+    n_plane_elevations: int = Field(
+        16, ge=1, description="q: plane-normal elevations, linearly spaced over [0, pi/2] (M2DP default 16)."
+    )
+    n_radial: int = Field(
+        8, ge=1, description="l: rings per plane, outer radii r * (i / l)^2 as in the original (M2DP default 8)."
+    )
     n_angular: int = Field(16, ge=1, description="t: sectors per plane over [-pi, pi) (M2DP default 16).")
     radius: Literal["domain", "farthest"] = Field(
-        "domain", description="Grid radius r: the patch domain's radius, points beyond it left out (default; the semi-dense paper's "
-        "domain), or the distance of the patch's farthest point, every point on the grid (M2DP.m).")
+        "domain",
+        description="Grid radius r: the patch domain's radius, points beyond it left out (default; the semi-dense paper's "
+        "domain), or the distance of the patch's farthest point, every point on the grid (M2DP.m).",
+    )
     normalise_axes: bool = Field(
-        True, description="Normalise each plane's in-plane axes (default: metric in-plane coordinates), or leave them at length "
-        "sqrt(1 - n_x^2) as M2DP.m does.")
+        True,
+        description="Normalise each plane's in-plane axes (default: metric in-plane coordinates), or leave them at length "
+        "sqrt(1 - n_x^2) as M2DP.m does.",
+    )
     frame: Literal["yaw", "pca"] = Field(
-        "yaw", description="The patch's yaw-normalised frame about its keypoint (default, Sec. 3.2 of the semi-dense paper), or "
-        "centred on its mean and rotated onto its principal axes (M2DP.m).")
-    max_points: Optional[int] = Field(
-        None, ge=16, description="Thin each patch to about this many points before describing it (thin_patches: a fixed "
+        "yaw",
+        description="The patch's yaw-normalised frame about its keypoint (default, Sec. 3.2 of the semi-dense paper), or "
+        "centred on its mean and rotated onto its principal axes (M2DP.m).",
+    )
+    max_points: int | None = Field(
+        None,
+        ge=16,
+        description="Thin each patch to about this many points before describing it (thin_patches: a fixed "
         "pseudo-random choice of map points); None = every point, as M2DP and the semi-dense paper do (default). M2DP's cost "
-        "is linear in the points; the singular vectors barely move when a dense patch is thinned.")
+        "is linear in the points; the singular vectors barely move when a dense patch is thinned.",
+    )
 
     @model_validator(mode="after")
-    def _check(self) -> "M2DPConfig":
+    def _check(self) -> M2DPConfig:
         if self.domain.kind == "cube":
             raise ValueError("M2DP needs a cylinder domain (its polar grid has the cylinder's radius)")
         return self
 
     @classmethod
-    def authors(cls, **overrides) -> "M2DPConfig":
+    def authors(cls, **overrides) -> M2DPConfig:
         """The settings of the authors' ``M2DP.m``: farthest-point radius, unnormalised in-plane
         axes, centred PCA frame (``overrides``: any other field, e.g. the domain)."""
         return cls(**{"radius": "farthest", "normalise_axes": False, "frame": "pca", **overrides})
@@ -163,7 +196,12 @@ class M2DPConfig(MapkitConfig):
 class StructureDescriptorConfig(MapkitConfig):
     """Hand-crafted structure descriptors of Sec. 3.3.1 and their PCA (Sec. 5.2)."""
 
-    keypoint_fraction: float = Field(0.05, gt=0, le=1, description="Fraction of map points drawn as keypoints by the caller of describe() (Sec. 3.2: a random five percent).")
+    keypoint_fraction: float = Field(
+        0.05,
+        gt=0,
+        le=1,
+        description="Fraction of map points drawn as keypoints by the caller of describe() (Sec. 3.2: a random five percent).",
+    )
     nbld: NBLDConfig = Field(default_factory=NBLDConfig, description="NBLD parameters.")
     m2dp: M2DPConfig = Field(default_factory=M2DPConfig, description="M2DP parameters.")
     pca_dim: int = Field(25, ge=1, description="Dimensions kept by PCA before matching (Sec. 5.2: 25).")
@@ -171,13 +209,14 @@ class StructureDescriptorConfig(MapkitConfig):
 
 # --- NBLD -------------------------------------------------------------------------------------------
 
+
 def nbld_cell_volumes(cfg: NBLDConfig) -> np.ndarray:
     """(n_radial,) volume (m^3) of one cell of each ring: annular sector times layer height."""
     edges = np.linspace(0.0, cfg.domain.radius, cfg.n_radial + 1)
     return math.pi * np.diff(edges**2) / cfg.n_azimuth * (cfg.domain.height / cfg.n_vertical)
 
 
-def nbld_counts(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[NBLDConfig] = None) -> np.ndarray:
+def nbld_counts(points_normalised: np.ndarray, indptr: np.ndarray, cfg: NBLDConfig | None = None) -> np.ndarray:
     """(M, n_radial, n_azimuth, n_vertical) point counts of the NBLD cells of each patch.
 
     Ring i covers radii [i, i + 1) * r / n_r; sector j azimuths [j, j + 1) * 2 pi / n_a counted
@@ -195,7 +234,9 @@ def nbld_counts(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional
     out = np.zeros((m, nr, na, nz), np.int64)
     # float32 / int32 throughout: numpy's float64 arctan2 is not vectorised, and the narrower
     # types halve the memory traffic of these ~20 passes
-    for k0, k1 in patch_blocks(indptr, _NBLD_CHUNK_POINTS, min(_NBLD_CHUNK_PATCHES, (1 << 31) // cells)):  # int32 cell ids
+    for k0, k1 in patch_blocks(
+        indptr, _NBLD_CHUNK_POINTS, min(_NBLD_CHUNK_PATCHES, (1 << 31) // cells)
+    ):  # int32 cell ids
         a, b = indptr[k0], indptr[k1]
         x, y, z = np.ascontiguousarray(pts[a:b].T, dtype=np.float32)
         rho2 = x * x
@@ -225,7 +266,7 @@ def nbld_counts(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional
     return out
 
 
-def nbld_bits_from_counts(counts: np.ndarray, cfg: Optional[NBLDConfig] = None) -> np.ndarray:
+def nbld_bits_from_counts(counts: np.ndarray, cfg: NBLDConfig | None = None) -> np.ndarray:
     """(M, 3, n_r, n_a, n_z) uint8 NBLD bits from cell counts (M, n_r, n_a, n_z).
 
     Channel 0 (radial): the cell is denser than the cell of the next ring outwards; the outer
@@ -247,7 +288,9 @@ def nbld_bits_from_counts(counts: np.ndarray, cfg: Optional[NBLDConfig] = None) 
     return out
 
 
-def nbld_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[NBLDConfig] = None, packed: bool = False) -> np.ndarray:
+def nbld_patches(
+    points_normalised: np.ndarray, indptr: np.ndarray, cfg: NBLDConfig | None = None, packed: bool = False
+) -> np.ndarray:
     """NBLD of many yaw-normalised patches: (M, 3 n_r n_a n_z) float32 0/1, or packed uint8.
 
     Bit order is that of :func:`nbld_bits_from_counts` flattened in C order (channel, ring,
@@ -260,6 +303,7 @@ def nbld_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optiona
 
 
 # --- M2DP -------------------------------------------------------------------------------------------
+
 
 def _plane_axes(p: int, q: int, normalise: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normals and in-plane x- and y-axes (each (p q, 3)) of the M2DP planes, azimuth-major."""
@@ -277,7 +321,7 @@ def _plane_axes(p: int, q: int, normalise: bool) -> tuple[np.ndarray, np.ndarray
     return normal, ax, ay
 
 
-def m2dp_planes(cfg: Optional[M2DPConfig] = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def m2dp_planes(cfg: M2DPConfig | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Normals and in-plane axes (each (p q, 3)) of the M2DP planes, azimuth-major.
 
     Plane (i, j) has the normal (cos e_j cos a_i, cos e_j sin a_i, sin e_j) with azimuth a_i and
@@ -320,7 +364,9 @@ def m2dp_pca_frame(points: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     ones = np.ones(int(counts.max(initial=0)))
     for k in big:
         a, b = indptr[k], indptr[k + 1]
-        c = np.subtract(pts[a:b], (ones[: b - a] @ pts[a:b]) / (b - a), out=centred[a:b])  # a dot: ~10x numpy's mean(axis=0) on (n, 3)
+        c = np.subtract(
+            pts[a:b], (ones[: b - a] @ pts[a:b]) / (b - a), out=centred[a:b]
+        )  # a dot: ~10x numpy's mean(axis=0) on (n, 3)
         np.matmul(c.T, c, out=S[k])
     if len(small):
         cs = counts[small]
@@ -392,7 +438,9 @@ def m2dp_reference(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, 
     return np.concatenate([u, v]) * (1.0 if v.sum() >= 0 else -1.0)
 
 
-def m2dp_signature_matrices(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[M2DPConfig] = None) -> np.ndarray:
+def m2dp_signature_matrices(
+    points_normalised: np.ndarray, indptr: np.ndarray, cfg: M2DPConfig | None = None
+) -> np.ndarray:
     """(M, p q, l t) float32 point counts of each patch on the M2DP planes' polar grids.
 
     On each plane, the in-plane angle theta in [-pi, pi] falls into sector
@@ -487,8 +535,12 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     per_plane = (L + 1) * cols  # rings 0 .. l (outside), sector columns 0 .. t + 1
     n_bins = Pu * per_plane
     if L + 1 > 255 or cols > 255 or n_bins > 1 << 16:  # rings and sectors are uint8, bin ids uint16
-        raise InputError(None, f"M2DP grid of {P} planes x {L} rings x {T} sectors is too fine (at most 254 rings and 253 sectors, "
-                         "65,536 bins over the distinct planes)", field="m2dp")
+        raise InputError(
+            None,
+            f"M2DP grid of {P} planes x {L} rings x {T} sectors is too fine (at most 254 rings and 253 sectors, "
+            "65,536 bins over the distinct planes)",
+            field="m2dp",
+        )
     one_byte = per_plane <= 256
     farthest = cfg.radius == "farthest"
     # in-plane axes scaled by l^2 / r: the in-plane radius is then rho l^2 / r, whose square root
@@ -510,7 +562,9 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     plane_off[:] = np.arange(Pu, dtype=np.uint16) * per_plane
     dist2 = np.einsum("ij,ij->i", pts, pts)
     if not np.all(dist2 < 1e60):  # NaN, inf, or beyond float32's range once projected
-        raise InputError(None, "M2DP patch points must be finite (and within 1e30 m of their keypoint)", field="points_normalised")
+        raise InputError(
+            None, "M2DP patch points must be finite (and within 1e30 m of their keypoint)", field="points_normalised"
+        )
     for k0, k1, p, flat in _m2dp_point_blocks(pts, indptr, cfg):
         a, b = indptr[k0], indptr[k1]
         n = int(b - a)
@@ -598,7 +652,7 @@ def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 6
     return u * sign, v * sign
 
 
-def m2dp_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: Optional[M2DPConfig] = None) -> np.ndarray:
+def m2dp_patches(points_normalised: np.ndarray, indptr: np.ndarray, cfg: M2DPConfig | None = None) -> np.ndarray:
     """M2DP of many yaw-normalised patches: (M, p q + l t) float32, [u1, v1] as in the original.
 
     Grid radius, in-plane axes and frame as ``cfg`` sets them (:class:`M2DPConfig`); with
@@ -644,14 +698,15 @@ def thin_patches(indptr: np.ndarray, indices: np.ndarray, max_points: int) -> tu
 
 # --- the whole chain ----------------------------------------------------------------------------------
 
+
 def describe(
     kind: Literal["nbld", "m2dp"],
     points: np.ndarray,
     keypoints: np.ndarray,
     observer_dirs: np.ndarray,
-    cfg: Optional[StructureDescriptorConfig] = None,
+    cfg: StructureDescriptorConfig | None = None,
     *,
-    tree: Optional[cKDTree] = None,
+    tree: cKDTree | None = None,
 ) -> np.ndarray:
     """Descriptors (M, D) float32 of the patches about ``keypoints`` (M, 3) in the map ``points``.
 
@@ -688,6 +743,7 @@ def describe(
 
 # --- PCA --------------------------------------------------------------------------------------------
 
+
 class DescriptorPCA:
     """Mean-centred projection onto the leading principal axes of a descriptor set (Sec. 3.4)."""
 
@@ -695,20 +751,29 @@ class DescriptorPCA:
         self.mean = np.asarray(mean, np.float64)
         self.components = np.asarray(components, np.float64)  # (dim, D), orthonormal rows
         self.explained_variance = np.asarray(explained_variance, np.float64)  # (dim,)
-        if self.components.ndim != 2 or self.components.shape[1] != len(self.mean) or len(self.explained_variance) != len(self.components):
-            raise InputError(None, f"inconsistent PCA arrays: mean {self.mean.shape}, components {self.components.shape}, variance {self.explained_variance.shape}")
+        if (
+            self.components.ndim != 2
+            or self.components.shape[1] != len(self.mean)
+            or len(self.explained_variance) != len(self.components)
+        ):
+            raise InputError(
+                None,
+                f"inconsistent PCA arrays: mean {self.mean.shape}, components {self.components.shape}, variance {self.explained_variance.shape}",
+            )
 
     @property
     def dim(self) -> int:
         return int(len(self.components))
 
     @classmethod
-    def fit(cls, X: np.ndarray, dim: int = 25) -> "DescriptorPCA":
+    def fit(cls, X: np.ndarray, dim: int = 25) -> DescriptorPCA:
         """Principal axes of descriptors ``X`` (n, D); each axis signed so that its largest
         coefficient is positive (a deterministic basis for a given X)."""
         X = np.asarray(X, np.float64)
         if X.ndim != 2 or len(X) < 2:
-            raise InputError(None, f"PCA needs at least 2 descriptors as an (n, D) array, got shape {X.shape}", field="X")
+            raise InputError(
+                None, f"PCA needs at least 2 descriptors as an (n, D) array, got shape {X.shape}", field="X"
+            )
         if not 1 <= dim <= X.shape[1]:
             raise InputError(None, f"PCA dim must be in [1, {X.shape[1]}], got {dim}", field="dim")
         mean = X.mean(axis=0)
@@ -739,7 +804,7 @@ class DescriptorPCA:
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "DescriptorPCA":
+    def load(cls, path: str | Path) -> DescriptorPCA:
         path = Path(path)
         if not path.is_file():
             raise InputError(path, "no such PCA file")

@@ -47,9 +47,10 @@ from __future__ import annotations
 import os
 import time
 import zlib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal, Optional, Sequence
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -90,19 +91,25 @@ class StructureIndexConfig(StructureDescriptorConfig):
     Sec. 5.2) and the NBLD / M2DP parameters from ``StructureDescriptorConfig``."""
 
     kind: Kind = Field(
-        "nbld", description="Descriptor: nbld or m2dp (Sec. 3.3.1); cnn (Sec. 3.3.2) with cnn_model set, or a describer registered "
-        "with register_describer."
+        "nbld",
+        description="Descriptor: nbld or m2dp (Sec. 3.3.1); cnn (Sec. 3.3.2) with cnn_model set, or a describer registered "
+        "with register_describer.",
     )
-    cnn_model: Optional[str] = Field(
-        None, description="kind cnn: a trained model folder (mapkit train); its model.onnx is run with onnxruntime (no torch needed)."
+    cnn_model: str | None = Field(
+        None,
+        description="kind cnn: a trained model folder (mapkit train); its model.onnx is run with onnxruntime (no torch needed).",
     )
-    database_sessions: Optional[list[str]] = Field(None, description="Sessions indexed. None = every session of the workspace with a map.")
+    database_sessions: list[str] | None = Field(
+        None, description="Sessions indexed. None = every session of the workspace with a map."
+    )
     prefer_aligned_maps: bool = Field(
-        True, description="Index WORKSPACE/align/sessions/<name>/map where mapkit align finished, else the session's own map."
+        True,
+        description="Index WORKSPACE/align/sessions/<name>/map where mapkit align finished, else the session's own map.",
     )
     seed: int = Field(0, description="Seed of the keypoint draw; each session's draw is seeded by (seed, crc32(name)).")
     lambda_v: float = Field(
-        0.0, ge=0,
+        0.0,
+        ge=0,
         description="Vote threshold lambda_v: a match is accepted when v(d) > lambda_v (Sec. 3.4). The paper sweeps it for its PR "
         "curves and gives no operating value; 0 accepts any voted frame. `mapkit eval places` reports the value of best F1.",
     )
@@ -122,7 +129,7 @@ def register_describer(kind: str, fn: Callable) -> None:
     _DESCRIBERS[kind] = fn
 
 
-def _describer(kind: str, cfg: StructureIndexConfig) -> Optional[Callable]:
+def _describer(kind: str, cfg: StructureIndexConfig) -> Callable | None:
     """The describer of a kind beyond nbld/m2dp: the ONNX model of ``cfg.cnn_model`` for cnn when
     set (mapkit.places.cnn, imported only then), else a registered one."""
     if kind == "cnn" and cfg.cnn_model is not None:
@@ -132,12 +139,16 @@ def _describer(kind: str, cfg: StructureIndexConfig) -> Optional[Callable]:
     return _DESCRIBERS.get(kind)
 
 
-def _describe(kind: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.ndarray, cfg: StructureIndexConfig, tree) -> np.ndarray:
+def _describe(
+    kind: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.ndarray, cfg: StructureIndexConfig, tree
+) -> np.ndarray:
     if kind in ("nbld", "m2dp"):
         return describe(kind, points, keypoints, observer_dirs, cfg, tree=tree)
     fn = _describer(kind, cfg)
     if fn is None:
-        raise ConfigError(f"structure descriptor {kind!r} is not available: no describer registered (register_describer)")
+        raise ConfigError(
+            f"structure descriptor {kind!r} is not available: no describer registered (register_describer)"
+        )
     return np.asarray(fn(points, keypoints, observer_dirs, cfg, tree), np.float32)
 
 
@@ -168,10 +179,16 @@ def _describe_task(shared: _DescribeShared, chunk: tuple[np.ndarray, np.ndarray]
 def _descriptor_params(cfg: StructureIndexConfig, kind: str) -> dict:
     """What a session's raw descriptors depend on (besides the map)."""
     sub = {"nbld": cfg.nbld, "m2dp": cfg.m2dp}.get(kind)
-    params = {"kind": kind, "keypoint_fraction": cfg.keypoint_fraction, "seed": cfg.seed,
-              "descriptor": None if sub is None else sub.model_dump(mode="json")}
+    params = {
+        "kind": kind,
+        "keypoint_fraction": cfg.keypoint_fraction,
+        "seed": cfg.seed,
+        "descriptor": None if sub is None else sub.model_dump(mode="json"),
+    }
     if kind == "cnn" and cfg.cnn_model is not None:
-        params["cnn_onnx_sha256"] = _cnn_model_info(cfg)["onnx_sha256"]  # a retrained model invalidates cached descriptors
+        params["cnn_onnx_sha256"] = _cnn_model_info(cfg)[
+            "onnx_sha256"
+        ]  # a retrained model invalidates cached descriptors
     return params
 
 
@@ -217,12 +234,14 @@ def keypoint_rng(seed: int, name: str) -> np.random.Generator:
 def session_keypoints(smap, name: str, fraction: float = 0.05, seed: int = 0) -> SessionKeypoints:
     """A random ``fraction`` of the map's points (seeded by ``seed`` and ``name``) as keypoints."""
     idx = select_keypoints(len(smap.points_world), fraction, keypoint_rng(seed, name))
-    obs_pos = first_observer_positions(idx, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids, smap.keyframe_world_from_cam[:, :3, 3])
+    obs_pos = first_observer_positions(
+        idx, smap.obs_indptr, smap.obs_frame_ids, smap.keyframe_ids, smap.keyframe_world_from_cam[:, :3, 3]
+    )
     ptr, fids = _csr_rows(np.asarray(smap.obs_indptr, np.int64), np.asarray(smap.obs_frame_ids, np.int64), idx)
     return SessionKeypoints(name, idx, np.asarray(smap.points_world, np.float64)[idx], obs_pos, ptr, fids)
 
 
-def session_frames(smap, frame_stamps: Optional[tuple[np.ndarray, np.ndarray]] = None) -> dict[str, np.ndarray]:
+def session_frames(smap, frame_stamps: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """The frame table of a map: every frame id in its observation lists or its keyframes, sorted.
 
     Keyframes keep their pose and stamp. A frame between two keyframes is posed by interpolating
@@ -291,7 +310,12 @@ def map_checksum(folder: Path) -> str:
 
 
 def session_descriptors(
-    smap, name: str, kind: str, cfg: StructureIndexConfig, cache_dir: str | Path | None = None, map_sha: Optional[str] = None,
+    smap,
+    name: str,
+    kind: str,
+    cfg: StructureIndexConfig,
+    cache_dir: str | Path | None = None,
+    map_sha: str | None = None,
     progress: bool = False,
 ) -> tuple[SessionKeypoints, np.ndarray, float]:
     """A session's keypoints and their raw descriptors (K, D) float32, and the seconds spent describing.
@@ -312,13 +336,21 @@ def session_descriptors(
     t0 = time.perf_counter()
     shared = _DescribeShared(kind, np.asarray(smap.points_world, np.float64), cfg)
     dirs = kps.observer_positions - kps.positions
-    chunks = [(kps.positions[k0:k0 + _DESCRIBE_CHUNK], dirs[k0:k0 + _DESCRIBE_CHUNK]) for k0 in range(0, max(len(kps), 1), _DESCRIBE_CHUNK)]
+    chunks = [
+        (kps.positions[k0 : k0 + _DESCRIBE_CHUNK], dirs[k0 : k0 + _DESCRIBE_CHUNK])
+        for k0 in range(0, max(len(kps), 1), _DESCRIBE_CHUNK)
+    ]
     # a describer registered at run time exists in this process only: it cannot run in workers
     executor = get_executor() if kind in ("nbld", "m2dp") or (kind == "cnn" and cfg.cnn_model is not None) else SERIAL
     parts = []
     bar = progress_bar(len(kps), progress, f"{kind} {name}", "patch")
-    for part in executor.map(_describe_task, chunks, shared=shared, desc=f"describe {kind} {name}",
-                             label=lambda c: f"{len(c[0])} keypoints from {c[0][:1].round(1).tolist()}"):
+    for part in executor.map(
+        _describe_task,
+        chunks,
+        shared=shared,
+        desc=f"describe {kind} {name}",
+        label=lambda c: f"{len(c[0])} keypoints from {c[0][:1].round(1).tolist()}",
+    ):
         parts.append(part)
         bar.update(len(part))
     bar.close()
@@ -337,11 +369,11 @@ def session_descriptors(
 
 def build_structure_index(
     workspace: str | Path,
-    kind: Optional[str] = None,
+    kind: str | None = None,
     out: str | Path | None = None,
-    sessions: Optional[Sequence[str]] = None,
+    sessions: Sequence[str] | None = None,
     config: StructureIndexConfig | str | Path | None = None,
-    overrides: Optional[dict] = None,
+    overrides: dict | None = None,
     cache_dir: str | Path | None = None,
     progress: bool = False,
 ) -> Path:
@@ -374,8 +406,12 @@ def build_structure_index(
     described = _describe_sessions(ws, cfg, names, dirs, shas, cache_dir, progress)
     raw_all = np.concatenate(described.raws) if described.raws else np.zeros((0, 0), np.float32)
     if len(raw_all) < 2:
-        raise InputError(ws.root, f"{len(raw_all)} keypoint(s) in sessions {names}: an index needs at least 2; add sessions with "
-                         "fuller maps or raise keypoint_fraction", field="database_sessions")
+        raise InputError(
+            ws.root,
+            f"{len(raw_all)} keypoint(s) in sessions {names}: an index needs at least 2; add sessions with "
+            "fuller maps or raise keypoint_fraction",
+            field="database_sessions",
+        )
 
     t0 = time.perf_counter()
     pca = DescriptorPCA.fit(raw_all, min(cfg.pca_dim, raw_all.shape[1]))
@@ -384,9 +420,18 @@ def build_structure_index(
     t_index = time.perf_counter() - t0
 
     entries, frames = _entries_and_frames(described.keypoints, described.frames)
-    metrics = {"sessions": {n: {"patches": t["patches"]} for n, t in described.timings.items()}, "entries": int(len(vectors)),
-               "pca_explained_variance_fraction": float(pca.explained_variance.sum() / max(np.var(raw_all, axis=0, ddof=1).sum(), 1e-12))}
-    timings = {"sessions": described.timings, "pca_s_and_index_s": t_index, "seconds_total": time.perf_counter() - t_start}
+    metrics = {
+        "sessions": {n: {"patches": t["patches"]} for n, t in described.timings.items()},
+        "entries": int(len(vectors)),
+        "pca_explained_variance_fraction": float(
+            pca.explained_variance.sum() / max(np.var(raw_all, axis=0, ddof=1).sum(), 1e-12)
+        ),
+    }
+    timings = {
+        "sessions": described.timings,
+        "pca_s_and_index_s": t_index,
+        "seconds_total": time.perf_counter() - t_start,
+    }
     manifest = {
         "format_version": FORMAT_VERSION,
         "kind": "mapkit structure index",
@@ -398,8 +443,13 @@ def build_structure_index(
         "source_workspace": str(ws.root.resolve()),
         "session_names": names,
         "sessions": described.info,
-        "counts": {"entries": int(len(vectors)), "frames": int(len(frames["frame_id"])), "references": int(len(entries["ref_frame"])),
-                   "raw_dim": int(raw_all.shape[1]), "dim": int(pca.dim)},
+        "counts": {
+            "entries": int(len(vectors)),
+            "frames": int(len(frames["frame_id"])),
+            "references": int(len(entries["ref_frame"])),
+            "raw_dim": int(raw_all.shape[1]),
+            "dim": int(pca.dim),
+        },
         "index": {"faiss": "IndexFlatL2", "metric": "squared L2", "dim": int(pca.dim), "ntotal": int(index.ntotal)},
     }
     with building(out) as tmp:
@@ -426,22 +476,39 @@ def _database_sessions(ws: Workspace, cfg: StructureIndexConfig) -> list[str]:
         raise ConfigError(f"database_sessions lists a session twice: {names}")
     missing = [n for n in names if n not in available]
     if missing:
-        raise InputError(ws.root, f"no semi-dense map for session(s) {missing}; the workspace has {available}", field="database_sessions")
+        raise InputError(
+            ws.root,
+            f"no semi-dense map for session(s) {missing}; the workspace has {available}",
+            field="database_sessions",
+        )
     if cfg.kind not in ("nbld", "m2dp") and _describer(cfg.kind, cfg) is None:
-        raise ConfigError(f"structure descriptor {cfg.kind!r} is not available: "
-                          + ("set cnn_model to a trained model folder (mapkit train) or " if cfg.kind == "cnn" else "")
-                          + "register a describer (register_describer)")
+        raise ConfigError(
+            f"structure descriptor {cfg.kind!r} is not available: "
+            + ("set cnn_model to a trained model folder (mapkit train) or " if cfg.kind == "cnn" else "")
+            + "register a describer (register_describer)"
+        )
     return names
 
 
-def _build_hash(cfg: StructureIndexConfig, names: list[str], dirs: dict[str, tuple[Path, str]], shas: dict[str, str],
-                cnn_info: Optional[dict]) -> str:
+def _build_hash(
+    cfg: StructureIndexConfig,
+    names: list[str],
+    dirs: dict[str, tuple[Path, str]],
+    shas: dict[str, str],
+    cnn_info: dict | None,
+) -> str:
     """What the bundle depends on: the config (not its query-time settings), the maps (source and checksum), the CNN model."""
     # cnn_model only enters the hash of a cnn index: nbld / m2dp bundles of earlier versions stay valid
     hashed = cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS | (set() if cfg.kind == "cnn" else {"cnn_model"}))
-    return config_hash({"format_version": FORMAT_VERSION, "config": hashed,
-                        "sessions": names, "maps": {n: [dirs[n][1], shas[n]] for n in names},
-                        **({"cnn_onnx_sha256": cnn_info["onnx_sha256"]} if cnn_info else {})})
+    return config_hash(
+        {
+            "format_version": FORMAT_VERSION,
+            "config": hashed,
+            "sessions": names,
+            "maps": {n: [dirs[n][1], shas[n]] for n in names},
+            **({"cnn_onnx_sha256": cnn_info["onnx_sha256"]} if cnn_info else {}),
+        }
+    )
 
 
 @dataclass
@@ -455,32 +522,55 @@ class _Described:
     timings: dict[str, dict]
 
 
-def _describe_sessions(ws: Workspace, cfg: StructureIndexConfig, names: list[str], dirs: dict[str, tuple[Path, str]],
-                       shas: dict[str, str], cache_dir: str | Path | None, progress: bool) -> _Described:
+def _describe_sessions(
+    ws: Workspace,
+    cfg: StructureIndexConfig,
+    names: list[str],
+    dirs: dict[str, tuple[Path, str]],
+    shas: dict[str, str],
+    cache_dir: str | Path | None,
+    progress: bool,
+) -> _Described:
     """Each session's keypoints described (or read from ``cache_dir``) and its frame table."""
 
     out = _Described([], [], [], {}, {})
     for n in names:
         smap = SemiDenseMap.load(dirs[n][0])
         if len(smap.points_world) == 0:  # no keypoint to describe: fail before any bundle is written
-            raise InputError(dirs[n][0], f"session {n!r} has an empty semi-dense map (0 points, 0 keypoints to describe): "
-                             "leave it out of database_sessions, or rebuild it with a longer or textured drive", field="database_sessions")
+            raise InputError(
+                dirs[n][0],
+                f"session {n!r} has an empty semi-dense map (0 points, 0 keypoints to describe): "
+                "leave it out of database_sessions, or rebuild it with a longer or textured drive",
+                field="database_sessions",
+            )
         kps, raw, secs = session_descriptors(smap, n, cfg.kind, cfg, cache_dir, shas[n], progress)
         frames = session_frames(smap)
         out.raws.append(raw)
         out.keypoints.append(kps)
         out.frames.append(frames)
-        out.timings[n] = {"patches": len(kps), "describe_s": secs, "patches_per_s": len(kps) / secs if secs > 0 else None,
-                          "cached": secs == 0.0}
-        out.info[n] = {"map": os.path.relpath(dirs[n][0], ws.root), "map_source": dirs[n][1], "map_checksum": shas[n],
-                       "map_points": int(len(smap.points_world)), "keypoints": int(len(kps)), "frames": int(len(frames["frame_id"])),
-                       "keyframes": int(np.sum(frames["pose_source"] == POSE_KEYFRAME)),
-                       "frames_interpolated": int(np.sum(frames["pose_source"] == POSE_INTERPOLATED)),
-                       "frames_without_pose": int(np.sum(frames["pose_source"] == POSE_NONE))}
+        out.timings[n] = {
+            "patches": len(kps),
+            "describe_s": secs,
+            "patches_per_s": len(kps) / secs if secs > 0 else None,
+            "cached": secs == 0.0,
+        }
+        out.info[n] = {
+            "map": os.path.relpath(dirs[n][0], ws.root),
+            "map_source": dirs[n][1],
+            "map_checksum": shas[n],
+            "map_points": int(len(smap.points_world)),
+            "keypoints": int(len(kps)),
+            "frames": int(len(frames["frame_id"])),
+            "keyframes": int(np.sum(frames["pose_source"] == POSE_KEYFRAME)),
+            "frames_interpolated": int(np.sum(frames["pose_source"] == POSE_INTERPOLATED)),
+            "frames_without_pose": int(np.sum(frames["pose_source"] == POSE_NONE)),
+        }
     return out
 
 
-def _entries_and_frames(kp_list: list[SessionKeypoints], frame_tables: list[dict[str, np.ndarray]]) -> tuple[dict, dict]:
+def _entries_and_frames(
+    kp_list: list[SessionKeypoints], frame_tables: list[dict[str, np.ndarray]]
+) -> tuple[dict, dict]:
     """The bundle's entry table (keypoints, with their observers as rows of the frame table) and
     the frame table: every session's, concatenated in order."""
     sess_of_entry = np.concatenate([np.full(len(k), i, np.int32) for i, k in enumerate(kp_list)])
@@ -498,7 +588,10 @@ def _entries_and_frames(kp_list: list[SessionKeypoints], frame_tables: list[dict
     }
     frames = {
         "session": np.concatenate([np.full(len(f["frame_id"]), i, np.int32) for i, f in enumerate(frame_tables)]),
-        **{c: np.concatenate([f[c] for f in frame_tables]) for c in ("frame_id", "stamp_ns", "world_from_cam", "pose_source")},
+        **{
+            c: np.concatenate([f[c] for f in frame_tables])
+            for c in ("frame_id", "stamp_ns", "world_from_cam", "pose_source")
+        },
     }
     return entries, frames
 
@@ -581,9 +674,9 @@ class PlaceMatch:
     frame: int
     votes: int
     accepted: bool
-    session: Optional[str]
-    frame_id: Optional[int]
-    world_from_cam: Optional[np.ndarray]
+    session: str | None
+    frame_id: int | None
+    world_from_cam: np.ndarray | None
     top_frames: np.ndarray
     top_votes: np.ndarray
     n_keypoints: int
@@ -592,7 +685,16 @@ class PlaceMatch:
 class StructureIndex:
     """A loaded structure index: describe query keypoints, match, vote for database frames."""
 
-    def __init__(self, path: Path, manifest: dict, cfg: StructureIndexConfig, pca: DescriptorPCA, index, entries: dict, frames: dict):
+    def __init__(
+        self,
+        path: Path,
+        manifest: dict,
+        cfg: StructureIndexConfig,
+        pca: DescriptorPCA,
+        index,
+        entries: dict,
+        frames: dict,
+    ):
         self.path = Path(path)
         self.manifest = manifest
         self.cfg = cfg
@@ -606,13 +708,15 @@ class StructureIndex:
     # ---- loading
 
     @classmethod
-    def load(cls, path: str | Path, verify: bool = True) -> "StructureIndex":
+    def load(cls, path: str | Path, verify: bool = True) -> StructureIndex:
         """Read a bundle; checks its format version and (``verify``) every file's sha256."""
         import faiss
 
         path = Path(path)
         mpath = path / MANIFEST
-        manifest = read_manifest(path, "structure index", FORMAT_VERSION, (INDEX_FILE, PCA_FILE, ENTRIES_FILE, FRAMES_FILE), verify)
+        manifest = read_manifest(
+            path, "structure index", FORMAT_VERSION, (INDEX_FILE, PCA_FILE, ENTRIES_FILE, FRAMES_FILE), verify
+        )
         try:
             cfg = StructureIndexConfig.model_validate(manifest["config"])
         except Exception as exc:  # noqa: BLE001 - pydantic's error, reported against the manifest
@@ -624,17 +728,32 @@ class StructureIndex:
         with np.load(path / FRAMES_FILE) as z:
             frames = {k: z[k] for k in z.files}
         n, F = len(entries["point_index"]), len(frames["frame_id"])
-        if index.ntotal != n or len(entries["ref_indptr"]) != n + 1 or entries["ref_indptr"][-1] != len(entries["ref_frame"]):
-            raise InputError(path / ENTRIES_FILE, f"{n} entries for an index of {index.ntotal} vectors, or a broken reference CSR",
-                             field="ref_indptr")
+        if (
+            index.ntotal != n
+            or len(entries["ref_indptr"]) != n + 1
+            or entries["ref_indptr"][-1] != len(entries["ref_frame"])
+        ):
+            raise InputError(
+                path / ENTRIES_FILE,
+                f"{n} entries for an index of {index.ntotal} vectors, or a broken reference CSR",
+                field="ref_indptr",
+            )
         if len(entries["ref_frame"]) and (entries["ref_frame"].min() < 0 or entries["ref_frame"].max() >= F):
-            raise InputError(path / ENTRIES_FILE, f"frame references outside the frame table of {F} rows", field="ref_frame")
+            raise InputError(
+                path / ENTRIES_FILE, f"frame references outside the frame table of {F} rows", field="ref_frame"
+            )
         if index.d != pca.dim:
-            raise InputError(path / INDEX_FILE, f"index dimension {index.d} differs from the PCA's {pca.dim}", field="dim")
+            raise InputError(
+                path / INDEX_FILE, f"index dimension {index.d} differs from the PCA's {pca.dim}", field="dim"
+            )
         if cfg.kind == "cnn" and cfg.cnn_model is not None and "cnn_model" in manifest:
             now = _cnn_model_info(cfg)["onnx_sha256"]  # queries run the model at cnn_model: it must be the one indexed
             if now != manifest["cnn_model"]["onnx_sha256"]:
-                raise InputError(Path(cfg.cnn_model) / "model.onnx", "differs from the model this index was built with", field="cnn_model")
+                raise InputError(
+                    Path(cfg.cnn_model) / "model.onnx",
+                    "differs from the model this index was built with",
+                    field="cnn_model",
+                )
         return cls(path, manifest, cfg, pca, index, entries, frames)
 
     # ---- facts
@@ -660,7 +779,9 @@ class StructureIndex:
 
     # ---- queries
 
-    def describe(self, points_world: np.ndarray, keypoint_positions: np.ndarray, observer_positions: np.ndarray, tree=None) -> np.ndarray:
+    def describe(
+        self, points_world: np.ndarray, keypoint_positions: np.ndarray, observer_positions: np.ndarray, tree=None
+    ) -> np.ndarray:
         """(K, dim) PCA'd descriptors of keypoints in a cloud (the index's descriptor and config)."""
         pts = np.asarray(points_world, np.float64)
         kp = np.asarray(keypoint_positions, np.float64).reshape(-1, 3)
@@ -680,14 +801,20 @@ class StructureIndex:
         """(F,) vote vector of matched entries (Sec. 3.4)."""
         return vote_counts(entry_ids, self.entries["ref_indptr"], self.entries["ref_frame"], self.n_frames)
 
-    def query_frame(self, points_world: np.ndarray, keypoint_positions: np.ndarray, observer_positions: np.ndarray,
-                    tree=None, lambda_v: Optional[float] = None) -> PlaceMatch:
+    def query_frame(
+        self,
+        points_world: np.ndarray,
+        keypoint_positions: np.ndarray,
+        observer_positions: np.ndarray,
+        tree=None,
+        lambda_v: float | None = None,
+    ) -> PlaceMatch:
         """The match of one query frame from the keypoints it observed (positions (K, 3) in the
         cloud ``points_world``, with their first observers' positions)."""
         entry, _ = self.nearest(self.describe(points_world, keypoint_positions, observer_positions, tree))
         return self._place_match(self.votes(entry), len(entry), lambda_v)
 
-    def _place_match(self, v: np.ndarray, n_keypoints: int, lambda_v: Optional[float]) -> PlaceMatch:
+    def _place_match(self, v: np.ndarray, n_keypoints: int, lambda_v: float | None) -> PlaceMatch:
         lam = self.cfg.lambda_v if lambda_v is None else lambda_v
         v = np.where(self._votable, v, 0)
         k = min(self.cfg.top_frames, len(v))
@@ -698,19 +825,34 @@ class StructureIndex:
         if len(top) == 0:
             return PlaceMatch(-1, 0, False, None, None, None, top, tv, n_keypoints)
         b = int(top[0])
-        return PlaceMatch(b, int(tv[0]), bool(tv[0] > lam), self.session_names[int(self.frames["session"][b])],
-                          int(self.frames["frame_id"][b]), self.frames["world_from_cam"][b], top, tv, n_keypoints)
+        return PlaceMatch(
+            b,
+            int(tv[0]),
+            bool(tv[0] > lam),
+            self.session_names[int(self.frames["session"][b])],
+            int(self.frames["frame_id"][b]),
+            self.frames["world_from_cam"][b],
+            top,
+            tv,
+            n_keypoints,
+        )
 
-    def prepare_query(self, query_map, name: str = "query", raw_descriptors: Optional[np.ndarray] = None) -> QueryKeypoints:
+    def prepare_query(
+        self, query_map, name: str = "query", raw_descriptors: np.ndarray | None = None
+    ) -> QueryKeypoints:
         """Draw the query session's keypoints (the index's fraction, seeded by the index's seed and
         ``name``), describe them in the query map (or take ``raw_descriptors`` of exactly those
         keypoints, e.g. from ``session_descriptors``) and match each to its nearest database entry."""
         kps = session_keypoints(query_map, name, self.cfg.keypoint_fraction, self.cfg.seed)
         if raw_descriptors is None:
             pts = np.asarray(query_map.points_world, np.float64)
-            raw_descriptors = _describe(self.kind, pts, kps.positions, kps.observer_positions - kps.positions, self.cfg, xy_tree(pts))
+            raw_descriptors = _describe(
+                self.kind, pts, kps.positions, kps.observer_positions - kps.positions, self.cfg, xy_tree(pts)
+            )
         if len(raw_descriptors) != len(kps):
-            raise InputError(None, f"{len(raw_descriptors)} descriptors for {len(kps)} query keypoints", field="raw_descriptors")
+            raise InputError(
+                None, f"{len(raw_descriptors)} descriptors for {len(kps)} query keypoints", field="raw_descriptors"
+            )
         desc = self.pca.transform(raw_descriptors) if len(kps) else np.zeros((0, self.pca.dim), np.float32)
         entry, dist = self.nearest(desc)
         return QueryKeypoints(kps, desc, entry, dist)
@@ -729,7 +871,9 @@ class StructureIndex:
         hit = (sorted_ids[pos] == kps.obs_frame_ids) if n else np.zeros(len(kp_of_obs), bool)
         rows, kp = order[pos[hit]], kp_of_obs[hit]
         n_kp = np.bincount(rows, minlength=n)
-        r, f, v = vote_many(rows, query.matched_entry[kp], self.entries["ref_indptr"], self.entries["ref_frame"], self.n_frames)
+        r, f, v = vote_many(
+            rows, query.matched_entry[kp], self.entries["ref_indptr"], self.entries["ref_frame"], self.n_frames
+        )
         keep = self._votable[f]
         r, f, v = r[keep], f[keep], v[keep]
         # rank within each row (the triples are sorted by row, then votes descending)
@@ -748,7 +892,21 @@ class StructureIndex:
 
 
 __all__ = [
-    "FORMAT_VERSION", "StructureIndexConfig", "StructureIndex", "SessionKeypoints", "QueryKeypoints", "FrameMatches", "PlaceMatch",
-    "build_structure_index", "session_keypoints", "session_frames", "session_descriptors", "session_map_dir", "session_names",
-    "vote_counts", "vote_many", "register_describer", "keypoint_rng",
+    "FORMAT_VERSION",
+    "StructureIndexConfig",
+    "StructureIndex",
+    "SessionKeypoints",
+    "QueryKeypoints",
+    "FrameMatches",
+    "PlaceMatch",
+    "build_structure_index",
+    "session_keypoints",
+    "session_frames",
+    "session_descriptors",
+    "session_map_dir",
+    "session_names",
+    "vote_counts",
+    "vote_many",
+    "register_describer",
+    "keypoint_rng",
 ]

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 from itertools import chain
-from typing import Literal, Optional
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -60,12 +60,14 @@ class PatchDomain(MapkitConfig):
     """
 
     kind: Literal["cylinder", "cylinder_inf", "cube"] = Field(..., description="Shape of the domain.")
-    radius: Optional[float] = Field(None, gt=0, description="Cylinder radius (m); cylinder and cylinder_inf.")
-    height: Optional[float] = Field(None, gt=0, description="Cylinder height (m), centred on the keypoint; cylinder only.")
-    half_size: Optional[float] = Field(None, gt=0, description="Half the cube's edge (m); cube only.")
+    radius: float | None = Field(None, gt=0, description="Cylinder radius (m); cylinder and cylinder_inf.")
+    height: float | None = Field(
+        None, gt=0, description="Cylinder height (m), centred on the keypoint; cylinder only."
+    )
+    half_size: float | None = Field(None, gt=0, description="Half the cube's edge (m); cube only.")
 
     @model_validator(mode="after")
-    def _check(self) -> "PatchDomain":
+    def _check(self) -> PatchDomain:
         need = {"cylinder": {"radius", "height"}, "cylinder_inf": {"radius"}, "cube": {"half_size"}}[self.kind]
         given = {k for k in ("radius", "height", "half_size") if getattr(self, k) is not None}
         if given != need:
@@ -114,7 +116,8 @@ CNN_DOMAIN = PatchDomain(kind="cube", half_size=10.0)
 
 # --- keypoints and extraction ---------------------------------------------------------------------
 
-def select_keypoints(n_points: int, fraction: float = 0.05, rng: Optional[np.random.Generator] = None) -> np.ndarray:
+
+def select_keypoints(n_points: int, fraction: float = 0.05, rng: np.random.Generator | None = None) -> np.ndarray:
     """Indices of a random ``fraction`` of ``n_points`` map points, ascending (Sec. 3.2: 5 %).
 
     At least one keypoint is drawn from a non-empty map.
@@ -134,7 +137,7 @@ def xy_tree(points: np.ndarray) -> cKDTree:
 
 
 def extract_patches(
-    points: np.ndarray, keypoints: np.ndarray, domain: PatchDomain, tree: Optional[cKDTree] = None
+    points: np.ndarray, keypoints: np.ndarray, domain: PatchDomain, tree: cKDTree | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Map points of each keypoint's patch Gamma, as CSR ``(indptr (M+1,), indices (nnz,))``.
 
@@ -149,7 +152,11 @@ def extract_patches(
     if tree is None:
         tree = xy_tree(points)
     elif tree.m != 2 or tree.n != len(points):
-        raise InputError(None, f"tree must be xy_tree(points) (2-D over {len(points)} points), got {tree.m}-D over {tree.n}", field="tree")
+        raise InputError(
+            None,
+            f"tree must be xy_tree(points) (2-D over {len(points)} points), got {tree.m}-D over {tree.n}",
+            field="tree",
+        )
     m = len(keypoints)
     if m == 0:
         return np.zeros(1, np.int64), np.zeros(0, np.int64)
@@ -183,7 +190,7 @@ def keypoint_blocks(tree: cKDTree, keypoints: np.ndarray, domain: PatchDomain, m
     yield from patch_blocks(ends, max_points)
 
 
-def patch_blocks(indptr: np.ndarray, max_points: int, max_patches: Optional[int] = None):
+def patch_blocks(indptr: np.ndarray, max_points: int, max_patches: int | None = None):
     """Consecutive patch ranges ``(k0, k1)`` of at most ``max_points`` points (one patch at
     least) and at most ``max_patches`` patches."""
     m = len(indptr) - 1
@@ -207,6 +214,7 @@ def gather_local(points: np.ndarray, keypoints: np.ndarray, indptr: np.ndarray, 
 
 # --- yaw normalisation ----------------------------------------------------------------------------
 
+
 def yaw_normalise(
     points_local_centered: np.ndarray, observer_dir_xy: np.ndarray, min_horizontal_norm: float = MIN_HORIZONTAL_NORM
 ) -> tuple[float, np.ndarray]:
@@ -216,12 +224,17 @@ def yaw_normalise(
     direction from the keypoint towards its first observer. See :func:`yaw_normalise_patches`.
     """
     pts = _as_points(points_local_centered, "points_local_centered")
-    yaw, out = yaw_normalise_patches(pts, np.array([0, len(pts)], np.int64), np.asarray(observer_dir_xy, np.float64)[None, :2], min_horizontal_norm)
+    yaw, out = yaw_normalise_patches(
+        pts, np.array([0, len(pts)], np.int64), np.asarray(observer_dir_xy, np.float64)[None, :2], min_horizontal_norm
+    )
     return float(yaw[0]), out
 
 
 def yaw_normalise_patches(
-    points_local: np.ndarray, indptr: np.ndarray, observer_dirs_xy: np.ndarray, min_horizontal_norm: float = MIN_HORIZONTAL_NORM
+    points_local: np.ndarray,
+    indptr: np.ndarray,
+    observer_dirs_xy: np.ndarray,
+    min_horizontal_norm: float = MIN_HORIZONTAL_NORM,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Yaw angles (M,) and normalised points (nnz, 3) of many patches (Sec. 3.2, after [4]).
 
@@ -253,7 +266,9 @@ def yaw_normalise_patches(
     return yaw, out
 
 
-def _yaw_block(pts: np.ndarray, indptr: np.ndarray, obs: np.ndarray, min_horizontal_norm: float, out: np.ndarray) -> np.ndarray:
+def _yaw_block(
+    pts: np.ndarray, indptr: np.ndarray, obs: np.ndarray, min_horizontal_norm: float, out: np.ndarray
+) -> np.ndarray:
     """Yaws of the patches of one block; writes their normalised points into ``out``."""
     m = len(indptr) - 1
     counts = np.diff(indptr)
@@ -292,7 +307,9 @@ def _yaw_block(pts: np.ndarray, indptr: np.ndarray, obs: np.ndarray, min_horizon
     return yaw
 
 
-def first_observer_frames(point_indices: np.ndarray, obs_indptr: np.ndarray, obs_frame_ids: np.ndarray, frame_ids: np.ndarray) -> np.ndarray:
+def first_observer_frames(
+    point_indices: np.ndarray, obs_indptr: np.ndarray, obs_frame_ids: np.ndarray, frame_ids: np.ndarray
+) -> np.ndarray:
     """(K,) id of the first frame with a known position that observed each of ``point_indices``.
 
     ``obs_indptr``/``obs_frame_ids`` are the observation CSR of a
@@ -328,7 +345,11 @@ def first_observer_frames(point_indices: np.ndarray, obs_indptr: np.ndarray, obs
 
 
 def first_observer_positions(
-    point_indices: np.ndarray, obs_indptr: np.ndarray, obs_frame_ids: np.ndarray, frame_ids: np.ndarray, frame_positions: np.ndarray
+    point_indices: np.ndarray,
+    obs_indptr: np.ndarray,
+    obs_frame_ids: np.ndarray,
+    frame_ids: np.ndarray,
+    frame_positions: np.ndarray,
 ) -> np.ndarray:
     """(K, 3) position of the first frame that observed each of ``point_indices`` (see
     :func:`first_observer_frames`); ``frame_positions`` (F, 3) go with ``frame_ids`` (F,)."""
@@ -340,6 +361,7 @@ def first_observer_positions(
 
 
 # --- voxel grids ----------------------------------------------------------------------------------
+
 
 def voxel_counts(points_normalised: np.ndarray, indptr: np.ndarray, domain: PatchDomain, grid: int = 32) -> np.ndarray:
     """(M, grid, grid, grid) int32 point counts of each patch over the domain's bounding box.
@@ -394,7 +416,9 @@ def density_comparison(counts: np.ndarray) -> np.ndarray:
     return out
 
 
-def voxelise(points_normalised: np.ndarray, domain: PatchDomain = CNN_DOMAIN, grid: int = 32) -> tuple[np.ndarray, np.ndarray]:
+def voxelise(
+    points_normalised: np.ndarray, domain: PatchDomain = CNN_DOMAIN, grid: int = 32
+) -> tuple[np.ndarray, np.ndarray]:
     """Binary occupancy (g, g, g) and density-comparison grid (3, g, g, g), uint8, of one patch.
 
     Sec. 3.3.2: the points of the (normalised) domain in a regular grid; see
@@ -406,7 +430,11 @@ def voxelise(points_normalised: np.ndarray, domain: PatchDomain = CNN_DOMAIN, gr
 
 
 def voxelise_patches(
-    points_normalised: np.ndarray, indptr: np.ndarray, domain: PatchDomain = CNN_DOMAIN, grid: int = 32, packed: bool = False
+    points_normalised: np.ndarray,
+    indptr: np.ndarray,
+    domain: PatchDomain = CNN_DOMAIN,
+    grid: int = 32,
+    packed: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Occupancy (M, g, g, g) and density comparison (M, 3, g, g, g) grids of many patches, uint8.
 
@@ -433,7 +461,7 @@ def voxel_grids(
     observer_dirs_xy: np.ndarray,
     domain: PatchDomain = CNN_DOMAIN,
     grid: int = 32,
-    tree: Optional[cKDTree] = None,
+    tree: cKDTree | None = None,
     packed: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CNN inputs of the patches about ``keypoints`` (M, 3): extract, normalise yaw, voxelise.
@@ -454,7 +482,9 @@ def voxel_grids(
     yaw = np.empty(m)
     for k0, k1 in keypoint_blocks(tree, keypoints, domain):
         indptr, indices = extract_patches(points, keypoints[k0:k1], domain, tree)
-        yaw[k0:k1], normalised = yaw_normalise_patches(gather_local(points, keypoints[k0:k1], indptr, indices), indptr, obs[k0:k1])
+        yaw[k0:k1], normalised = yaw_normalise_patches(
+            gather_local(points, keypoints[k0:k1], indptr, indices), indptr, obs[k0:k1]
+        )
         occ[k0:k1], dcg[k0:k1] = voxelise_patches(normalised, indptr, domain, grid, packed)
     return occ, dcg, yaw
 

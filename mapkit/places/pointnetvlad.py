@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import pickle
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -56,10 +55,29 @@ from mapkit.core.bundle import building
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
 from mapkit.places.pointnetvlad_config import PointNetVladConfig
-from mapkit.places.triplets import SPLITS, NoTripletsError, TripletConfig, TripletDataset, export_triplets, load_aligned_sessions
+from mapkit.places.triplets import (
+    SPLITS,
+    NoTripletsError,
+    TripletConfig,
+    TripletDataset,
+    export_triplets,
+    load_aligned_sessions,
+)
 
-__all__ = ["PointNetVladConfig", "export_pointnetvlad", "export_triplets_pointnetvlad", "evaluation_sets", "load_cloud",
-           "normalise_cloud", "patch_clouds", "query_dict", "read_queries", "remove_ground", "sample_cloud", "unique_stamps"]
+__all__ = [
+    "PointNetVladConfig",
+    "export_pointnetvlad",
+    "export_triplets_pointnetvlad",
+    "evaluation_sets",
+    "load_cloud",
+    "normalise_cloud",
+    "patch_clouds",
+    "query_dict",
+    "read_queries",
+    "remove_ground",
+    "sample_cloud",
+    "unique_stamps",
+]
 
 PNV_FORMAT_VERSION = 2  # 2: integer timestamps, zero-mean clouds scaled as PointNetVLAD's, evaluation pickles
 QUERY_FILES = {"train": "training_queries_baseline.pickle", "test": "test_queries_baseline.pickle"}
@@ -68,11 +86,19 @@ LOCATIONS_CSV = "pointcloud_locations.csv"
 
 
 def evaluation_files(cfg: PointNetVladConfig) -> dict[str, str]:
-    return {"database": f"{cfg.evaluation_prefix}_evaluation_database.pickle", "query": f"{cfg.evaluation_prefix}_evaluation_query.pickle"}
+    return {
+        "database": f"{cfg.evaluation_prefix}_evaluation_database.pickle",
+        "query": f"{cfg.evaluation_prefix}_evaluation_query.pickle",
+    }
 
 
-def export_triplets_pointnetvlad(workspace: str | Path, out: str | Path | None = None, config: str | Path | None = None,
-                                 overrides: Optional[dict] = None, progress: bool = True) -> Path:
+def export_triplets_pointnetvlad(
+    workspace: str | Path,
+    out: str | Path | None = None,
+    config: str | Path | None = None,
+    overrides: dict | None = None,
+    progress: bool = True,
+) -> Path:
     """:func:`mapkit.places.triplets.export_triplets`, then, when the config's ``pointnetvlad.enabled``,
     :func:`export_pointnetvlad` into ``DATASET/<pointnetvlad.folder>`` (what ``mapkit triplets``
     runs). Each stage is skipped when already done with the same settings."""
@@ -83,8 +109,14 @@ def export_triplets_pointnetvlad(workspace: str | Path, out: str | Path | None =
     return folder
 
 
-def export_pointnetvlad(dataset: str | Path, workspace: str | Path, out: str | Path | None = None,
-                        config: PointNetVladConfig | str | Path | None = None, overrides: Optional[dict] = None, seed: int = 0) -> Path:
+def export_pointnetvlad(
+    dataset: str | Path,
+    workspace: str | Path,
+    out: str | Path | None = None,
+    config: PointNetVladConfig | str | Path | None = None,
+    overrides: dict | None = None,
+    seed: int = 0,
+) -> Path:
     """Write the PointNetVLAD layout of the triplet dataset ``dataset`` (made from ``workspace``);
     returns its folder (default ``DATASET/<config.folder>``). Re-running with the same config and
     dataset does nothing. No cloud to write is a :class:`~mapkit.places.triplets.NoTripletsError`."""
@@ -94,14 +126,23 @@ def export_pointnetvlad(dataset: str | Path, workspace: str | Path, out: str | P
     dataset, workspace = Path(dataset), Path(workspace)
     ds = TripletDataset(dataset)
     out = Path(out) if out is not None else dataset / cfg.folder
-    h = config_hash({"cfg": cfg.model_dump(mode="json", exclude={"enabled"}), "seed": seed, "format": PNV_FORMAT_VERSION,
-                     "dataset": ds.manifest["config_hash"], "patches": ds.manifest["patches"]})
+    h = config_hash(
+        {
+            "cfg": cfg.model_dump(mode="json", exclude={"enabled"}),
+            "seed": seed,
+            "format": PNV_FORMAT_VERSION,
+            "dataset": ds.manifest["config_hash"],
+            "patches": ds.manifest["patches"],
+        }
+    )
     if is_done(out, h):
         return out
     names = list(ds.manifest["sessions"])
     t = ds.table
     if len(t["patch_id"]) == 0:
-        raise NoTripletsError(dataset / "manifest.json", "the triplet dataset holds no patch: nothing to write in PointNetVLAD's layout")
+        raise NoTripletsError(
+            dataset / "manifest.json", "the triplet dataset holds no patch: nothing to write in PointNetVLAD's layout"
+        )
     sessions, _ = load_aligned_sessions(workspace, names)
     by_name = {s.name: s for s in sessions}
     domain = PatchDomain(**ds.manifest["domain"])
@@ -112,7 +153,9 @@ def export_pointnetvlad(dataset: str | Path, workspace: str | Path, out: str | P
         rows = np.flatnonzero(t["session"] == k)
         if len(rows):
             stamps[rows] = unique_stamps(by_name[name].frame_stamps_ns(t["frame"][rows]), t["patch_id"][rows])
-    files = np.array([f"{names[int(s)]}/{CLOUD_FOLDER}/{int(ts)}.bin" for s, ts in zip(t["session"], stamps)], dtype=object)
+    files = np.array(
+        [f"{names[int(s)]}/{CLOUD_FOLDER}/{int(ts)}.bin" for s, ts in zip(t["session"], stamps)], dtype=object
+    )
     written = np.zeros(n, bool)
     centroid, scale = np.zeros((n, 3)), np.zeros(n)
     final = out
@@ -136,24 +179,41 @@ def export_pointnetvlad(dataset: str | Path, workspace: str | Path, out: str | P
                     np.ascontiguousarray(pts, "<f8").tofile(out / files[row])
                     written[row] = True
         if not written.any():
-            raise NoTripletsError(dataset, f"no PointNetVLAD cloud written: all {n} patches are empty"
-                                  + (f" once the ground (within ground_distance_m={cfg.ground_distance_m:g}) is removed; "
-                                     "set ground_distance_m to null to keep it" if cfg.ground_distance_m is not None else ""))
+            raise NoTripletsError(
+                dataset,
+                f"no PointNetVLAD cloud written: all {n} patches are empty"
+                + (
+                    f" once the ground (within ground_distance_m={cfg.ground_distance_m:g}) is removed; "
+                    "set ground_distance_m to null to keep it"
+                    if cfg.ground_distance_m is not None
+                    else ""
+                ),
+            )
         # the CSVs, and positions as their scripts read them back from the CSVs
         order, ne = _write_locations(out, names, t, files, stamps, written, centroid, scale)
         counts = {}
         rng = np.random.default_rng(seed)
         for split in SPLITS:
             rows = order[t["split"][order] == split]
-            queries = query_dict(ne[rows, 0], ne[rows, 1], cfg.positive_distance_m, cfg.negative_distance_m, cfg.max_negatives, rng)
+            queries = query_dict(
+                ne[rows, 0], ne[rows, 1], cfg.positive_distance_m, cfg.negative_distance_m, cfg.max_negatives, rng
+            )
             for key, row in enumerate(rows):
-                queries[key].update({"query": str(files[row]), "patch_id": int(t["patch_id"][row]), "session": names[int(t["session"][row])]})
+                queries[key].update(
+                    {
+                        "query": str(files[row]),
+                        "patch_id": int(t["patch_id"][row]),
+                        "session": names[int(t["session"][row])],
+                    }
+                )
             _pickle(out / QUERY_FILES[split], queries)
             counts[split] = len(rows)
             del queries
         runs = [k for k in range(len(names)) if np.any(written & (t["session"] == k))]
         run_rows = [order[t["session"][order] == k] for k in runs]
-        database, query = evaluation_sets([ne[r] for r in run_rows], [t["split"][r] == "test" for r in run_rows], cfg.evaluation_distance_m)
+        database, query = evaluation_sets(
+            [ne[r] for r in run_rows], [t["split"][r] == "test" for r in run_rows], cfg.evaluation_distance_m
+        )
         for sets in (database, query):
             for i, entries in enumerate(sets):
                 for entry in entries.values():
@@ -162,26 +222,39 @@ def export_pointnetvlad(dataset: str | Path, workspace: str | Path, out: str | P
         ev = evaluation_files(cfg)
         _pickle(out / ev["database"], database)
         _pickle(out / ev["query"], query)
-        write_json(out / "manifest.json", {
-            "format_version": PNV_FORMAT_VERSION, "layout": "PointNetVLAD (github.com/mikacuy/pointnetvlad)",
-            "dataset": ".." if final.parent == dataset else str(dataset),
-            "dataset_config_hash": ds.manifest["config_hash"], "seed": seed, "config_hash": h, "queries": counts,
-            "runs": [names[k] for k in runs], "evaluation_queries": int(sum(len(q) for q in query)),
-            "thresholds_m": {"positive": cfg.positive_distance_m, "negative": cfg.negative_distance_m, "evaluation": cfg.evaluation_distance_m},
-            "patches_left_out": int((~written).sum()), "points_per_cloud": cfg.points, "dtype": "float64, x y z interleaved (points, 3)",
-            "file_names": "<session>/pointcloud_patches/<timestamp>.bin, timestamp = first observer keyframe's time (ns), made unique per session",
-            "normalisation": "ground plane removed, centred on the centroid, scaled to a mean distance of 0.5, within [-1, 1]; "
-                             "metric point = point / scale + centroid (pointcloud_locations.csv), in the patch's yaw-normalised frame",
-            "files": {f: sha256_file(out / f) for f in (*QUERY_FILES.values(), *ev.values(), LOCATIONS_CSV)},
-        })
+        write_json(
+            out / "manifest.json",
+            {
+                "format_version": PNV_FORMAT_VERSION,
+                "layout": "PointNetVLAD (github.com/mikacuy/pointnetvlad)",
+                "dataset": ".." if final.parent == dataset else str(dataset),
+                "dataset_config_hash": ds.manifest["config_hash"],
+                "seed": seed,
+                "config_hash": h,
+                "queries": counts,
+                "runs": [names[k] for k in runs],
+                "evaluation_queries": int(sum(len(q) for q in query)),
+                "thresholds_m": {
+                    "positive": cfg.positive_distance_m,
+                    "negative": cfg.negative_distance_m,
+                    "evaluation": cfg.evaluation_distance_m,
+                },
+                "patches_left_out": int((~written).sum()),
+                "points_per_cloud": cfg.points,
+                "dtype": "float64, x y z interleaved (points, 3)",
+                "file_names": "<session>/pointcloud_patches/<timestamp>.bin, timestamp = first observer keyframe's time (ns), made unique per session",
+                "normalisation": "ground plane removed, centred on the centroid, scaled to a mean distance of 0.5, within [-1, 1]; "
+                "metric point = point / scale + centroid (pointcloud_locations.csv), in the patch's yaw-normalised frame",
+                "files": {f: sha256_file(out / f) for f in (*QUERY_FILES.values(), *ev.values(), LOCATIONS_CSV)},
+            },
+        )
         mark_done(out, h)
     return final
 
 
 def _pickle(path: Path, obj) -> None:
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
 
 
 def unique_stamps(stamps_ns: np.ndarray, tiebreak: np.ndarray) -> np.ndarray:
@@ -199,8 +272,14 @@ def unique_stamps(stamps_ns: np.ndarray, tiebreak: np.ndarray) -> np.ndarray:
     return out
 
 
-def remove_ground(points: np.ndarray, distance: float, max_tilt_deg: float, rng: np.random.Generator, hypotheses: int = 128,
-                  score_points: int = 1024) -> np.ndarray:
+def remove_ground(
+    points: np.ndarray,
+    distance: float,
+    max_tilt_deg: float,
+    rng: np.random.Generator,
+    hypotheses: int = 128,
+    score_points: int = 1024,
+) -> np.ndarray:
     """``points`` without those within ``distance`` of their dominant near-horizontal plane
     (RANSAC: planes through three of the lower half's points, normals within ``max_tilt_deg`` of
     vertical, scored on up to ``score_points`` of the points), as PointNetVLAD removed the road
@@ -282,8 +361,14 @@ def sample_cloud(points: np.ndarray, n: int, rng: np.random.Generator) -> np.nda
     return np.concatenate([points, points[rng.choice(len(points), n - len(points))]])
 
 
-def query_dict(northing: np.ndarray, easting: np.ndarray, positive_m: float, negative_m: float, max_negatives: Optional[int],
-               rng: np.random.Generator) -> dict[int, dict]:
+def query_dict(
+    northing: np.ndarray,
+    easting: np.ndarray,
+    positive_m: float,
+    negative_m: float,
+    max_negatives: int | None,
+    rng: np.random.Generator,
+) -> dict[int, dict]:
     """PointNetVLAD's query dictionary of one split, without the file names: key k (0..n-1) to
     its position, the keys within ``positive_m`` (itself left out) and those farther than
     ``negative_m`` (at most ``max_negatives``, drawn at random), both ascending lists."""
@@ -307,12 +392,18 @@ def query_dict(northing: np.ndarray, easting: np.ndarray, positive_m: float, neg
         neg = np.flatnonzero(~excluded)
         if max_negatives is not None and len(neg) > max_negatives:
             neg = np.sort(rng.choice(neg, max_negatives, replace=False))
-        out[k] = {"northing": float(ne[k, 0]), "easting": float(ne[k, 1]), "positives": list(map(pick, pos[pos != k].tolist())),
-                  "negatives": list(map(pick, neg.tolist()))}
+        out[k] = {
+            "northing": float(ne[k, 0]),
+            "easting": float(ne[k, 1]),
+            "positives": list(map(pick, pos[pos != k].tolist())),
+            "negatives": list(map(pick, neg.tolist())),
+        }
     return out
 
 
-def evaluation_sets(positions: list[np.ndarray], is_query: list[np.ndarray], radius_m: float) -> tuple[list[dict], list[dict]]:
+def evaluation_sets(
+    positions: list[np.ndarray], is_query: list[np.ndarray], radius_m: float
+) -> tuple[list[dict], list[dict]]:
     """PointNetVLAD's evaluation sets (generate_test_sets.py) of runs whose clouds lie at
     ``positions[i]`` ((n_i, 2) northing, easting): per run a database of all its clouds and a
     query set of those flagged in ``is_query[i]``, both key -> ``{"row", "northing", "easting"}``
@@ -323,9 +414,15 @@ def evaluation_sets(positions: list[np.ndarray], is_query: list[np.ndarray], rad
 
     database, query = [], []
     for ne, q in zip(positions, is_query):
-        database.append({k: {"row": k, "northing": float(ne[k, 0]), "easting": float(ne[k, 1])} for k in range(len(ne))})
-        query.append({key: {"row": int(k), "northing": float(ne[k, 0]), "easting": float(ne[k, 1])}
-                      for key, k in enumerate(np.flatnonzero(q))})
+        database.append(
+            {k: {"row": k, "northing": float(ne[k, 0]), "easting": float(ne[k, 1])} for k in range(len(ne))}
+        )
+        query.append(
+            {
+                key: {"row": int(k), "northing": float(ne[k, 0]), "easting": float(ne[k, 1])}
+                for key, k in enumerate(np.flatnonzero(q))
+            }
+        )
     trees = [cKDTree(np.asarray(ne, np.float64).reshape(-1, 2)) for ne in positions]
     for j, qs in enumerate(query):
         if not qs:
@@ -340,8 +437,16 @@ def evaluation_sets(positions: list[np.ndarray], is_query: list[np.ndarray], rad
     return database, query
 
 
-def _write_locations(out: Path, names: list[str], t: dict, files: np.ndarray, stamps: np.ndarray, written: np.ndarray,
-                     centroid: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _write_locations(
+    out: Path,
+    names: list[str],
+    t: dict,
+    files: np.ndarray,
+    stamps: np.ndarray,
+    written: np.ndarray,
+    centroid: np.ndarray,
+    scale: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """PointNetVLAD's per-run CSVs (``timestamp,northing,easting``, by timestamp), one per
     session, and one of all clouds with their split, set, centroid and scale. Returns the
     written rows in the CSVs' order (sessions in order, each by timestamp) and every row's
@@ -350,7 +455,9 @@ def _write_locations(out: Path, names: list[str], t: dict, files: np.ndarray, st
     utm = t["utm"]
     ne = np.full((len(files), 2), np.nan)
     order = []
-    rows_all = ["file,timestamp,northing,easting,split,role,set_id,patch_id,session,centroid_x_m,centroid_y_m,centroid_z_m,scale"]
+    rows_all = [
+        "file,timestamp,northing,easting,split,role,set_id,patch_id,session,centroid_x_m,centroid_y_m,centroid_z_m,scale"
+    ]
     for k, name in enumerate(names):
         rows = np.flatnonzero(written & (t["session"] == k))
         if len(rows) == 0:
@@ -363,8 +470,10 @@ def _write_locations(out: Path, names: list[str], t: dict, files: np.ndarray, st
             ne[i] = float(n_txt), float(e_txt)
             lines.append(f"{int(stamps[i])},{n_txt},{e_txt}")
             c = centroid[i]
-            rows_all.append(f"{files[i]},{int(stamps[i])},{n_txt},{e_txt},{t['split'][i]},{t['role'][i]},{int(t['set_id'][i])},"
-                            f"{int(t['patch_id'][i])},{name},{float(c[0])!r},{float(c[1])!r},{float(c[2])!r},{float(scale[i])!r}")  # repr: exact round trip
+            rows_all.append(
+                f"{files[i]},{int(stamps[i])},{n_txt},{e_txt},{t['split'][i]},{t['role'][i]},{int(t['set_id'][i])},"
+                f"{int(t['patch_id'][i])},{name},{float(c[0])!r},{float(c[1])!r},{float(c[2])!r},{float(scale[i])!r}"
+            )  # repr: exact round trip
         atomic_write_text(out / name / LOCATIONS_CSV, "\n".join(lines) + "\n")
     atomic_write_text(out / LOCATIONS_CSV, "\n".join(rows_all) + "\n")
     return (np.concatenate(order) if order else np.zeros(0, np.int64)), ne

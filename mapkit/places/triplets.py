@@ -28,9 +28,10 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Literal, Optional, Union
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
@@ -40,14 +41,25 @@ from mapkit.core.bundle import building
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import (atomic_path, atomic_write_text, config_hash, is_done, mark_done, progress_bar, sha256_file, stage_digest,
-                               verify_file, write_json, write_timings)
+from mapkit.core.runio import (
+    atomic_path,
+    atomic_write_text,
+    config_hash,
+    is_done,
+    mark_done,
+    progress_bar,
+    sha256_file,
+    stage_digest,
+    verify_file,
+    write_json,
+    write_timings,
+)
 from mapkit.core.workspace import Workspace
 from mapkit.io.plots import triplet_examples
-from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine
-from mapkit.multisession.registration import IcpConfig, Registration, about_centre, evaluate_alignment
+from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.multisession.align import check_levels
+from mapkit.multisession.registration import IcpConfig, Registration, about_centre, evaluate_alignment
 from mapkit.multisession.tiles import load_tiles
 from mapkit.places.patches import (
     CNN_DOMAIN,
@@ -74,42 +86,83 @@ class NoTripletsError(InputError):
 
 
 class TripletConfig(MapkitConfig):
-    domain: PatchDomain = Field(CNN_DOMAIN, description="Patch domain: the CNN's 20x20x20 m cube (semi-dense paper, Fig. 6 caption).")
+    domain: PatchDomain = Field(
+        CNN_DOMAIN, description="Patch domain: the CNN's 20x20x20 m cube (semi-dense paper, Fig. 6 caption)."
+    )
     grid: int = Field(32, ge=4, description="Voxels per axis (semi-dense paper, section 3.3.2: 32x32x32).")
-    keypoint_fraction: float = Field(0.05, gt=0, le=1, description="Keypoints: a random 5% of map points (semi-dense paper, section 3.2).")
+    keypoint_fraction: float = Field(
+        0.05, gt=0, le=1, description="Keypoints: a random 5% of map points (semi-dense paper, section 3.2)."
+    )
     n_triplets: int = Field(20_000, ge=1, description="Triplets to export (the paper's triplet set has 20,000).")
-    seen_radius_m: float = Field(0.5, gt=0, description="A session saw a place when one of its map points lies this close to it.")
+    seen_radius_m: float = Field(
+        0.5, gt=0, description="A session saw a place when one of its map points lies this close to it."
+    )
     min_patch_points: int = Field(200, ge=1, description="A session's patch needs at least this many points.")
-    icp_voxel_sizes_m: list[float] = Field([0.3], description="ICP levels aligning the members' local clouds (m); one fine level, since "
-                                           "mapkit align has already brought the sessions within a few decimetres.")
+    icp_voxel_sizes_m: list[float] = Field(
+        [0.3],
+        description="ICP levels aligning the members' local clouds (m); one fine level, since "
+        "mapkit align has already brought the sessions within a few decimetres.",
+    )
     icp_max_correspondence_m: list[float] = Field([0.6], description="Correspondence distance per ICP level (m).")
-    icp_cell_m: float = Field(10.0, gt=0, description="Places are drawn cell by cell (cells of this size, m) with one anchor session per "
-                              "cell, and one ICP per session and cell serves all of the cell's places. The paper aligns per place; "
-                              "within 10 m the transform is the same and the export is ten times faster.")
+    icp_cell_m: float = Field(
+        10.0,
+        gt=0,
+        description="Places are drawn cell by cell (cells of this size, m) with one anchor session per "
+        "cell, and one ICP per session and cell serves all of the cell's places. The paper aligns per place; "
+        "within 10 m the transform is the same and the export is ten times faster.",
+    )
     places_per_cell: int = Field(20, ge=1, description="Places drawn from a cell before moving to the next.")
-    lambda_icp_m: float = Field(0.40, gt=0, description="lambda_ICP: a member whose point-to-plane RMSE after ICP exceeds this is rejected "
-                                "(semi-dense paper, section 4.1; no value given there: mapkit align's default).")
+    lambda_icp_m: float = Field(
+        0.40,
+        gt=0,
+        description="lambda_ICP: a member whose point-to-plane RMSE after ICP exceeds this is rejected "
+        "(semi-dense paper, section 4.1; no value given there: mapkit align's default).",
+    )
     min_fitness: float = Field(0.3, ge=0, le=1, description="A member whose ICP fitness is below this is rejected.")
     max_members: int = Field(8, ge=2, description="At most this many sessions per place.")
-    negative_min_distance_m: float = Field(100.0, gt=0, description="Negatives lie farther than this from the anchor (semi-dense paper, section 4.1: \"far away\", no value given; mapkit choice: 100 m, five patch widths).")
+    negative_min_distance_m: float = Field(
+        100.0,
+        gt=0,
+        description='Negatives lie farther than this from the anchor (semi-dense paper, section 4.1: "far away", no value given; mapkit choice: 100 m, five patch widths).',
+    )
     negative_pool: int = Field(2000, ge=10, description="Negative patches drawn per split and shared by its triplets.")
-    tile_size_m: float = Field(200.0, gt=0, description="Side of the UTM tiles assigned to train or test (a few blocks of a town; "
-                               "the buffer strips take less of a larger tile).")
+    tile_size_m: float = Field(
+        200.0,
+        gt=0,
+        description="Side of the UTM tiles assigned to train or test (a few blocks of a town; "
+        "the buffer strips take less of a larger tile).",
+    )
     test_fraction: float = Field(0.25, gt=0, lt=1, description="Fraction of tiles held out for testing.")
-    buffer_m: float = Field(30.0, ge=0, description="No keypoint within this distance of a tile of the other split (> a patch's reach, 14 m).")
+    buffer_m: float = Field(
+        30.0,
+        ge=0,
+        description="No keypoint within this distance of a tile of the other split (> a patch's reach, 14 m).",
+    )
     shard_patches: int = Field(4096, ge=16, description="Patches per shard file.")
-    shard_format: Literal["hdf5", "npz"] = Field("hdf5", description="Shard files: HDF5 (patches-NNNNN.h5: datasets occupancy and "
-                                                 "density_comparison, chunked by 16 whole grids, gzip level 1, metadata in attributes) "
-                                                 "or compressed NumPy (patches-NNNNN.npz, read by np.load alone).")
-    icp_relative_change: float = Field(1e-4, gt=0, description="ICP stops when its fitness and RMSE change by less than this "
-                                       "fraction between iterations. open3d's default is 1e-6; measured on a synthetic town's cells, "
-                                       "1e-4 saves a third of the ICP time and moves no registration by more than 0.16 m at 16 m "
-                                       "from the cell centre (99% by less than 0.10 m) nor changes any acceptance decision.")
-    pointnetvlad: PointNetVladConfig = Field(PointNetVladConfig(), description="Also export the dataset in PointNetVLAD's "
-                                             "training layout (mapkit.places.pointnetvlad), from the same patches, positions and split; "
-                                             "a stage of its own after the dataset (not part of its config hash).")
+    shard_format: Literal["hdf5", "npz"] = Field(
+        "hdf5",
+        description="Shard files: HDF5 (patches-NNNNN.h5: datasets occupancy and "
+        "density_comparison, chunked by 16 whole grids, gzip level 1, metadata in attributes) "
+        "or compressed NumPy (patches-NNNNN.npz, read by np.load alone).",
+    )
+    icp_relative_change: float = Field(
+        1e-4,
+        gt=0,
+        description="ICP stops when its fitness and RMSE change by less than this "
+        "fraction between iterations. open3d's default is 1e-6; measured on a synthetic town's cells, "
+        "1e-4 saves a third of the ICP time and moves no registration by more than 0.16 m at 16 m "
+        "from the cell centre (99% by less than 0.10 m) nor changes any acceptance decision.",
+    )
+    pointnetvlad: PointNetVladConfig = Field(
+        PointNetVladConfig(),
+        description="Also export the dataset in PointNetVLAD's "
+        "training layout (mapkit.places.pointnetvlad), from the same patches, positions and split; "
+        "a stage of its own after the dataset (not part of its config hash).",
+    )
     seed: int = Field(0, description="Seed of every random choice: the same seed and inputs give the same dataset.")
-    sessions: Optional[list[str]] = Field(None, description="Sessions to use; all merged sessions of the alignment if unset.")
+    sessions: list[str] | None = Field(
+        None, description="Sessions to use; all merged sessions of the alignment if unset."
+    )
 
     @field_validator("icp_voxel_sizes_m", "icp_max_correspondence_m")
     @classmethod
@@ -119,10 +172,12 @@ class TripletConfig(MapkitConfig):
         return values
 
     @model_validator(mode="after")
-    def _icp_levels(self) -> "TripletConfig":
+    def _icp_levels(self) -> TripletConfig:
         if len(self.icp_voxel_sizes_m) != len(self.icp_max_correspondence_m):
-            raise ValueError(f"{len(self.icp_voxel_sizes_m)} icp_voxel_sizes_m but {len(self.icp_max_correspondence_m)} "
-                             "icp_max_correspondence_m (one per level)")
+            raise ValueError(
+                f"{len(self.icp_voxel_sizes_m)} icp_voxel_sizes_m but {len(self.icp_max_correspondence_m)} "
+                "icp_max_correspondence_m (one per level)"
+            )
         return self
 
 
@@ -179,13 +234,22 @@ class GridIndex:
 class SessionPoints:
     """One aligned session: its merged map points, their first observers, and spatial indexes."""
 
-    def __init__(self, name: str, points: np.ndarray, observer_pos: np.ndarray, observer_frame: np.ndarray,
-                 keyframe_ids: Optional[np.ndarray] = None, keyframe_stamps_ns: Optional[np.ndarray] = None):
+    def __init__(
+        self,
+        name: str,
+        points: np.ndarray,
+        observer_pos: np.ndarray,
+        observer_frame: np.ndarray,
+        keyframe_ids: np.ndarray | None = None,
+        keyframe_stamps_ns: np.ndarray | None = None,
+    ):
         self.name = name
         self.points = points
         self.observer_pos = observer_pos
         self.observer_frame = observer_frame
-        self.keyframe_ids = keyframe_ids  # with keyframe_stamps_ns: the time of each observer frame (PointNetVLAD's file names)
+        self.keyframe_ids = (
+            keyframe_ids  # with keyframe_stamps_ns: the time of each observer frame (PointNetVLAD's file names)
+        )
         self.keyframe_stamps_ns = keyframe_stamps_ns
         self.grid = GridIndex(points[:, :2], 5.0)
         self.tree3 = cKDTree(points)
@@ -199,8 +263,11 @@ class SessionPoints:
         order = np.argsort(self.keyframe_ids, kind="stable")
         pos = np.minimum(np.searchsorted(self.keyframe_ids[order], frames), max(len(order) - 1, 0))
         if len(frames) and (len(order) == 0 or np.any(self.keyframe_ids[order][pos] != frames)):
-            raise InputError(None, f"session {self.name}: frames {sorted(set(frames.tolist()) - set(self.keyframe_ids.tolist()))[:5]} "
-                             "are not keyframes of its map")
+            raise InputError(
+                None,
+                f"session {self.name}: frames {sorted(set(frames.tolist()) - set(self.keyframe_ids.tolist()))[:5]} "
+                "are not keyframes of its map",
+            )
         return np.asarray(self.keyframe_stamps_ns, np.int64)[order][pos]
 
     def around_indices(self, centre: np.ndarray, r: float) -> np.ndarray:
@@ -211,7 +278,9 @@ class SessionPoints:
         """Points within horizontal distance ``r`` of ``centre``."""
         return self.points[self.around_indices(centre, r)]
 
-    def icp_level(self, voxel: float, normal_radius: Optional[float] = None, normal_max_nn: int = 30) -> tuple[np.ndarray, Optional[np.ndarray], GridIndex]:
+    def icp_level(
+        self, voxel: float, normal_radius: float | None = None, normal_max_nn: int = 30
+    ) -> tuple[np.ndarray, np.ndarray | None, GridIndex]:
         """The whole session voxel-downsampled for ICP, its normals (when ``normal_radius`` is
         given) and a grid over it, built once: every cell's registration then crops it instead
         of downsampling and estimating normals again (the normals of a crop's border points
@@ -231,14 +300,18 @@ class SessionPoints:
         return self._icp_levels[key]
 
 
-def load_aligned_sessions(workspace: Union[str, Path, Workspace], names: Optional[list[str]] = None) -> tuple[list[SessionPoints], LocalFrame]:
+def load_aligned_sessions(
+    workspace: str | Path | Workspace, names: list[str] | None = None
+) -> tuple[list[SessionPoints], LocalFrame]:
     """The merged points of every session (or of ``names``) of a finished ``mapkit align``, and the workspace frame."""
 
     ws = Workspace(workspace)
     if not ws.align_done.is_file():
         raise InputError(ws.align_dir, "no finished multi-session alignment here (run mapkit align first)")
     frame = ws.require_frame()
-    for p in sorted(ws.tiles_dir.rglob("*")):  # each checked against what align recorded: no truncated cloud is cut into patches
+    for p in sorted(
+        ws.tiles_dir.rglob("*")
+    ):  # each checked against what align recorded: no truncated cloud is cut into patches
         if p.is_file():
             verify_file(p, "mapkit align")
     _, sid, idx, tile_names = load_tiles(ws.tiles_dir)
@@ -315,7 +388,9 @@ def split_of(utm_xy: np.ndarray, tiles: dict[tuple[int, int], str], tile_m: floa
     inv = inv.ravel()
     code = {"train": 1, "test": 2}
 
-    def label(di: int, dj: int, missing: int) -> np.ndarray:  # per point, the code of a neighbouring tile (looked up per tile)
+    def label(
+        di: int, dj: int, missing: int
+    ) -> np.ndarray:  # per point, the code of a neighbouring tile (looked up per tile)
         return np.array([code.get(tiles.get((int(a) + di, int(b) + dj)), missing) for a, b in uniq], np.int8)[inv]
 
     own = label(0, 0, 1)  # a tile without a label is a training tile
@@ -337,14 +412,18 @@ def split_of(utm_xy: np.ndarray, tiles: dict[tuple[int, int], str], tile_m: floa
 # --- patches ------------------------------------------------------------------------------------------
 
 
-def places_by_cell(kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, rng: np.random.Generator) -> np.ndarray:
+def places_by_cell(
+    kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, rng: np.random.Generator
+) -> np.ndarray:
     """Every usable keypoint, in the order places are drawn: in rounds over the cells (in random
     order), each round taking the next ``places_per_cell`` keypoints of each cell, one anchor
     session at a time (so a cell's ICPs serve many places)."""
     return place_chunks(kp_session, kp_index, kp_split, sessions, cfg, rng)[0]
 
 
-def place_chunks(kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def place_chunks(
+    kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`places_by_cell`'s order, and per place the number of its chunk: the up to
     ``places_per_cell`` consecutive places of one cell that one round takes (their patches are
     made together)."""
@@ -360,8 +439,15 @@ def place_chunks(kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, r
     chunks_per_cell = []
     for c in rng.permutation(int(cell_id.max()) + 1):
         members = valid[cell_id == c]
-        ordered = np.concatenate([rng.permutation(members[kp_session[members] == a]) for a in rng.permutation(np.unique(kp_session[members]))])
-        chunks_per_cell.append([ordered[k : k + cfg.places_per_cell] for k in range(0, len(ordered), cfg.places_per_cell)])
+        ordered = np.concatenate(
+            [
+                rng.permutation(members[kp_session[members] == a])
+                for a in rng.permutation(np.unique(kp_session[members]))
+            ]
+        )
+        chunks_per_cell.append(
+            [ordered[k : k + cfg.places_per_cell] for k in range(0, len(ordered), cfg.places_per_cell)]
+        )
     rounds = max(len(ch) for ch in chunks_per_cell)
     chunks = [ch[r] for r in range(rounds) for ch in chunks_per_cell if r < len(ch)]
     return np.concatenate(chunks), np.repeat(np.arange(len(chunks)), [len(c) for c in chunks])
@@ -385,20 +471,30 @@ def make_patches(clouds: list[np.ndarray], centres: np.ndarray, observers: np.nd
     return make_patches_csr(points, np.concatenate([[0], np.cumsum(counts)]), centres, observers, cfg)
 
 
-def make_patches_csr(points: np.ndarray, indptr: np.ndarray, centres: np.ndarray, observers: np.ndarray, cfg: TripletConfig):
+def make_patches_csr(
+    points: np.ndarray, indptr: np.ndarray, centres: np.ndarray, observers: np.ndarray, cfg: TripletConfig
+):
     """:func:`make_patches` of patches already cut: the points of patch ``k`` (in the patch
     domain about ``centres[k]``) are ``points[indptr[k]:indptr[k + 1]]``."""
     indptr = np.asarray(indptr, np.int64)
     counts = np.diff(indptr)
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     local = points - np.repeat(centres, counts, axis=0)
-    yaw, normalised = yaw_normalise_patches(local, indptr, np.asarray(observers, np.float64).reshape(-1, 3)[:, :2] - centres[:, :2])
+    yaw, normalised = yaw_normalise_patches(
+        local, indptr, np.asarray(observers, np.float64).reshape(-1, 3)[:, :2] - centres[:, :2]
+    )
     occ, dcg = voxelise_patches(normalised, indptr, cfg.domain, cfg.grid, packed=True)
     return occ, dcg, yaw, counts
 
 
-def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarray, reach: float, icp: IcpConfig,
-                  relative_change: float) -> Registration:
+def register_cell(
+    source: SessionPoints,
+    target: SessionPoints,
+    centre: np.ndarray,
+    reach: float,
+    icp: IcpConfig,
+    relative_change: float,
+) -> Registration:
     """Point-to-plane ICP of ``source``'s points within ``reach`` (horizontally) of ``centre`` onto
     ``target``'s: :func:`mapkit.mapping.icp.icp_coarse_to_fine`, the loop of
     :func:`~mapkit.multisession.registration.register_clouds` (same levels, normals, correspondence
@@ -407,7 +503,7 @@ def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarr
     :func:`~mapkit.multisession.registration.evaluate_alignment` scores (no structure-only figures).
     ``relative_change``: ICP stops when fitness and RMSE change by less than this (open3d's criteria)."""
 
-    def level(voxel: float) -> Optional[IcpClouds]:
+    def level(voxel: float) -> IcpClouds | None:
         sp, _, sg = source.icp_level(voxel)
         tp, tn, tg = target.icp_level(voxel, icp.normal_radius_factor * voxel, icp.normal_max_nn)
         si, ti = sg.disc(sp, centre, reach), tg.disc(tp, centre, reach)
@@ -415,10 +511,14 @@ def register_cell(source: SessionPoints, target: SessionPoints, centre: np.ndarr
             return None
         return IcpClouds(sp[si] - centre, tp[ti] - centre, tn[ti])  # centre-relative: rotations pivot about the cell
 
-    T, clouds = icp_coarse_to_fine(level, icp.voxel_sizes_m, icp.max_correspondence_m, icp.max_iterations, relative_change)
+    T, clouds = icp_coarse_to_fine(
+        level, icp.voxel_sizes_m, icp.max_correspondence_m, icp.max_iterations, relative_change
+    )
     if clouds is None:
         return Registration.failed()
-    ev = evaluate_alignment(clouds.source, clouds.target, T, icp.voxel_sizes_m[-1], icp, clouds.target_normals, structure=False)
+    ev = evaluate_alignment(
+        clouds.source, clouds.target, T, icp.voxel_sizes_m[-1], icp, clouds.target_normals, structure=False
+    )
     if ev["fitness"] == 0.0:  # no correspondence: no fit
         return Registration.failed()
     return Registration(about_centre(T, centre), **ev)
@@ -435,8 +535,15 @@ class ChunkSets:
     batch; the patches are those :func:`make_patches` cuts from each member's local cloud.
     """
 
-    def __init__(self, places: np.ndarray, sessions: list[SessionPoints], kp_session: np.ndarray, kp_index: np.ndarray,
-                 cfg: TripletConfig, icp_of: Callable[..., Registration]):
+    def __init__(
+        self,
+        places: np.ndarray,
+        sessions: list[SessionPoints],
+        kp_session: np.ndarray,
+        kp_index: np.ndarray,
+        cfg: TripletConfig,
+        icp_of: Callable[..., Registration],
+    ):
         d = cfg.domain
         crop = d.patch_radius + 2.0
         P = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in places]).reshape(-1, 3)
@@ -460,10 +567,12 @@ class ChunkSets:
             cloud_idx[si] = sessions[si].around_indices(centre, reach)
             xy = sessions[si].points[cloud_idx[si], :2]
             dx, dy = xy[None, :, 0] - P[rows, None, 0], xy[None, :, 1] - P[rows, None, 1]
-            raw_in[si] = dx * dx + dy * dy <= crop * crop  # (rows, n): the local cloud ``around(p, crop)`` of each place
+            raw_in[si] = (
+                dx * dx + dy * dy <= crop * crop
+            )  # (rows, n): the local cloud ``around(p, crop)`` of each place
         n_raw = {si: m.sum(axis=1) for si, m in raw_in.items()}
         self.n_icp = 0
-        self.result: dict[int, Optional[dict]] = {}
+        self.result: dict[int, dict | None] = {}
         self.rejected: dict[int, int] = {}
         members: dict[int, list] = {}
         transforms: dict[tuple, dict] = {}
@@ -515,12 +624,18 @@ class ChunkSets:
                 _, pi, T, _ = next(m for m in members[k] if m[0] == si)
                 centres[sl] = P[k]
                 obs[sl] = T[:3, :3] @ sessions[si].observer_pos[pi] + T[:3, 3]
-            self.occ, self.dcg, self.yaw, self.npts = make_patches_csr(np.concatenate(parts_pts)[order], indptr, centres, obs, cfg)
+            self.occ, self.dcg, self.yaw, self.npts = make_patches_csr(
+                np.concatenate(parts_pts)[order], indptr, centres, obs, cfg
+            )
         for k, mem in members.items():
             sl = np.array([slot_of[(k, m[0])] for m in mem])
             self.result[int(places[k])] = {
-                "slots": sl, "session": np.array([m[0] for m in mem]), "frame": np.array([sessions[m[0]].observer_frame[m[1]] for m in mem]),
-                "centre": np.repeat(P[k][None], len(mem), axis=0), "rmse": np.array([m[3] for m in mem]), "transform": np.array([m[2] for m in mem]),
+                "slots": sl,
+                "session": np.array([m[0] for m in mem]),
+                "frame": np.array([sessions[m[0]].observer_frame[m[1]] for m in mem]),
+                "centre": np.repeat(P[k][None], len(mem), axis=0),
+                "rmse": np.array([m[3] for m in mem]),
+                "transform": np.array([m[2] for m in mem]),
             }
 
     def get(self, j: int):
@@ -532,7 +647,9 @@ class ChunkSets:
         return res, self.rejected[int(j)]
 
 
-def mapped_patches(sessions: list[SessionPoints], sess: np.ndarray, centres: np.ndarray, domain: PatchDomain) -> tuple[np.ndarray, np.ndarray]:
+def mapped_patches(
+    sessions: list[SessionPoints], sess: np.ndarray, centres: np.ndarray, domain: PatchDomain
+) -> tuple[np.ndarray, np.ndarray]:
     """Each keypoint's patch as its session mapped it (no ICP), as CSR ``(points, indptr)``: the
     points that :func:`make_patches` keeps of the keypoint's local cloud (the disc of the patch
     radius), in the same order. Batched per session."""
@@ -540,7 +657,12 @@ def mapped_patches(sessions: list[SessionPoints], sess: np.ndarray, centres: np.
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     r = domain.patch_radius
     pts_of, counts = [None] * len(centres), np.zeros(len(centres), np.int64)
-    blocks = [(si, k[b : b + 64]) for si in np.unique(sess) for k in [np.flatnonzero(sess == si)] for b in range(0, len(k), 64)]
+    blocks = [
+        (si, k[b : b + 64])
+        for si in np.unique(sess)
+        for k in [np.flatnonzero(sess == si)]
+        for b in range(0, len(k), 64)
+    ]
     for si, k in blocks:  # 64 patches at a time bound the candidates' memory
         s = sessions[si]
         indptr, idx = s.grid.candidates_many(centres[k, :2], r)
@@ -565,7 +687,7 @@ class ShardWriter:
     compressed); :attr:`shards` lists them as the manifest does (file, first id, patches, bytes,
     sha256)."""
 
-    def __init__(self, folder: Path, size: int, fmt: str = "hdf5", grid: Optional[int] = None):
+    def __init__(self, folder: Path, size: int, fmt: str = "hdf5", grid: int | None = None):
         if fmt not in SHARD_FORMATS:
             raise ValueError(f"shard format {fmt!r}: expected one of {SHARD_FORMATS}")
         self.folder, self.size, self.format, self.grid = folder, size, fmt, grid
@@ -594,12 +716,21 @@ class ShardWriter:
             name = f"patches-{len(self.shards):05d}{SHARD_SUFFIX[self.format]}"
             with atomic_path(self.folder / name) as tmp:
                 if self.format == "hdf5":
-                    write_shard_hdf5(tmp, occ[:take], dcg[:take], first, self.grid if self.grid is not None else occ.shape[1])
+                    write_shard_hdf5(
+                        tmp, occ[:take], dcg[:take], first, self.grid if self.grid is not None else occ.shape[1]
+                    )
                 else:
                     _savez_fast(tmp, occupancy=occ[:take], density_comparison=dcg[:take], first_id=np.int64(first))
             path = self.folder / name
-            self.shards.append({"file": name, "first_id": int(first), "patches": int(take), "bytes": path.stat().st_size,
-                                "sha256": sha256_file(path)})
+            self.shards.append(
+                {
+                    "file": name,
+                    "first_id": int(first),
+                    "patches": int(take),
+                    "bytes": path.stat().st_size,
+                    "sha256": sha256_file(path),
+                }
+            )
             occ, dcg, first = occ[take:], dcg[take:], first + take
         self.buf_occ, self.buf_dcg, self.buffered = [], [], 0
 
@@ -614,19 +745,30 @@ def write_shard_hdf5(path: Path, occ: np.ndarray, dcg: np.ndarray, first_id: int
 
     n = len(occ)
     with h5py.File(path, "w", track_order=True) as f:
-        f.attrs.update({"format": "mapkit triplet patches", "format_version": TRIPLETS_FORMAT_VERSION, "first_id": int(first_id),
-                        "patches": int(n), "grid": int(grid), "packing": "bits of the last axis packed, np.packbits (big bit order)",
-                        "ids": "patch id = first_id + row"})
-        for name, a, what in (("occupancy", occ, "(n, g, g, ceil(g/8)) occupancy grids"),
-                              ("density_comparison", dcg, "(n, 3, g, g, ceil(g/8)); channel a = density above the +a neighbour's")):
+        f.attrs.update(
+            {
+                "format": "mapkit triplet patches",
+                "format_version": TRIPLETS_FORMAT_VERSION,
+                "first_id": int(first_id),
+                "patches": int(n),
+                "grid": int(grid),
+                "packing": "bits of the last axis packed, np.packbits (big bit order)",
+                "ids": "patch id = first_id + row",
+            }
+        )
+        for name, a, what in (
+            ("occupancy", occ, "(n, g, g, ceil(g/8)) occupancy grids"),
+            ("density_comparison", dcg, "(n, 3, g, g, ceil(g/8)); channel a = density above the +a neighbour's"),
+        ):
             a = np.ascontiguousarray(a, np.uint8)
             chunks = (max(1, min(SHARD_CHUNK_PATCHES, n)),) + a.shape[1:] if n else None
-            ds = f.create_dataset(name, data=a, chunks=chunks, compression="gzip" if n else None,
-                                  compression_opts=1 if n else None)
+            ds = f.create_dataset(
+                name, data=a, chunks=chunks, compression="gzip" if n else None, compression_opts=1 if n else None
+            )
             ds.attrs.update({"layout": what, "grid": int(grid), "unpack": "np.unpackbits(x, axis=-1, count=grid)"})
 
 
-def read_shard(path: str | Path, fmt: Optional[str] = None) -> dict[str, np.ndarray]:
+def read_shard(path: str | Path, fmt: str | None = None) -> dict[str, np.ndarray]:
     """The packed grids of one shard, HDF5 or npz (``fmt``, else by the file's suffix):
     ``{"occupancy", "density_comparison", "first_id"}``. Training code reading a dataset goes
     through :class:`TripletDataset` (or this) and so reads either format."""
@@ -637,10 +779,17 @@ def read_shard(path: str | Path, fmt: Optional[str] = None) -> dict[str, np.ndar
             import h5py
 
             with h5py.File(path, "r") as f:
-                return {"occupancy": f["occupancy"][()], "density_comparison": f["density_comparison"][()],
-                        "first_id": np.int64(f.attrs["first_id"])}
+                return {
+                    "occupancy": f["occupancy"][()],
+                    "density_comparison": f["density_comparison"][()],
+                    "first_id": np.int64(f.attrs["first_id"]),
+                }
         with np.load(path, allow_pickle=False) as z:
-            return {"occupancy": z["occupancy"], "density_comparison": z["density_comparison"], "first_id": np.int64(z["first_id"])}
+            return {
+                "occupancy": z["occupancy"],
+                "density_comparison": z["density_comparison"],
+                "first_id": np.int64(z["first_id"]),
+            }
     except (OSError, KeyError, ValueError) as exc:
         raise InputError(path, f"unreadable {fmt} shard ({type(exc).__name__}: {exc})") from None
 
@@ -659,8 +808,13 @@ def _savez_fast(path: Path, **arrays: np.ndarray) -> None:
 # --- the export ---------------------------------------------------------------------------------------
 
 
-def export_triplets(workspace: str | Path, out: str | Path | None = None, config: str | Path | None = None,
-                    overrides: Optional[dict] = None, progress: bool = True) -> Path:
+def export_triplets(
+    workspace: str | Path,
+    out: str | Path | None = None,
+    config: str | Path | None = None,
+    overrides: dict | None = None,
+    progress: bool = True,
+) -> Path:
     """Export a triplet dataset from an aligned workspace; returns its folder (default
     ``WORKSPACE/triplets``). Re-running with the same config and inputs does nothing. An export
     that would make no triplet raises :class:`NoTripletsError` and leaves any earlier dataset in
@@ -670,7 +824,9 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
     cfg = load_config(TripletConfig, config, overrides)
     out = Path(out) if out is not None else ws.triplets_dir
     # the PointNetVLAD layout is a stage of its own (mapkit.places.pointnetvlad): its settings do not change the dataset
-    h = config_hash({"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": ws.align_record().get("config_hash")})
+    h = config_hash(
+        {"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": ws.align_record().get("config_hash")}
+    )
     inputs = {"align": stage_digest(ws.align_dir)}  # a re-made alignment (other maps, same config) makes a new dataset
     if is_done(out, h, inputs=inputs):
         return out
@@ -679,7 +835,9 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
     final = out
     with building(final) as out:  # a partial folder, renamed into place last: an earlier dataset survives a failure
         atomic_write_text(out / "config.yaml", dump_config(cfg))
-        rng = np.random.default_rng(cfg.seed)  # drawn from in this order: keypoints, negatives, places, each triplet's negative
+        rng = np.random.default_rng(
+            cfg.seed
+        )  # drawn from in this order: keypoints, negatives, places, each triplet's negative
         kp = _Keypoints.draw(sessions, frame, cfg, rng)
         shards = ShardWriter(out, cfg.shard_patches, cfg.shard_format, cfg.grid)
         table = _PatchTable()
@@ -688,11 +846,18 @@ def export_triplets(workspace: str | Path, out: str | Path | None = None, config
             raise NoTripletsError(ws.align_dir, _no_triplets_reason(cfg, kp.split, pools, _Counts()))
         places = _Places(sessions, kp, pools, cfg, rng, shards, table)
         places.make_triplets(progress)
-        if places.counts.triplets == 0:  # raised inside the partial folder: nothing is renamed into place or marked done
+        if (
+            places.counts.triplets == 0
+        ):  # raised inside the partial folder: nothing is renamed into place or marked done
             raise NoTripletsError(ws.align_dir, _no_triplets_reason(cfg, kp.split, pools, places.counts))
         shards.flush()
-        log.info("%d triplets from %d places (%d tried, %d ICP registrations)", places.counts.triplets, places.counts.sets,
-                 places.counts.tried, places.counts.icp)
+        log.info(
+            "%d triplets from %d places (%d tried, %d ICP registrations)",
+            places.counts.triplets,
+            places.counts.sets,
+            places.counts.tried,
+            places.counts.icp,
+        )
         _write_dataset(out, ws, h, cfg, sessions, frame, kp.tiles, shards, table, places, t0)
         mark_done(out, h, inputs=inputs)
     return final
@@ -708,12 +873,18 @@ class _Keypoints:
     split: np.ndarray  # (K,) "train", "test" or "" (in a buffer strip)
 
     @classmethod
-    def draw(cls, sessions: list[SessionPoints], frame: LocalFrame, cfg: TripletConfig, rng: np.random.Generator) -> "_Keypoints":
-        all_utm = np.concatenate([frame.enu_to_utm(s.points[:: max(1, len(s.points) // 20000)])[:, :2] for s in sessions])
+    def draw(
+        cls, sessions: list[SessionPoints], frame: LocalFrame, cfg: TripletConfig, rng: np.random.Generator
+    ) -> _Keypoints:
+        all_utm = np.concatenate(
+            [frame.enu_to_utm(s.points[:: max(1, len(s.points) // 20000)])[:, :2] for s in sessions]
+        )
         tiles = tile_split(all_utm, cfg.tile_size_m, cfg.test_fraction, cfg.seed)
         kp_session, kp_index, kp_split = [], [], []
         for si, s in enumerate(sessions):
-            k = np.sort(rng.choice(len(s.points), max(1, int(round(cfg.keypoint_fraction * len(s.points)))), replace=False))
+            k = np.sort(
+                rng.choice(len(s.points), max(1, int(round(cfg.keypoint_fraction * len(s.points)))), replace=False)
+            )
             kp_session.append(np.full(len(k), si))
             kp_index.append(k)
             kp_split.append(split_of(frame.enu_to_utm(s.points[k])[:, :2], tiles, cfg.tile_size_m, cfg.buffer_m))
@@ -723,7 +894,19 @@ class _Keypoints:
 class _PatchTable:
     """The per-patch table (patches.npz, patches.csv), filled as patches are made."""
 
-    COLUMNS = ("patch_id", "set_id", "split", "role", "session", "frame", "enu", "yaw", "points", "icp_rmse_m", "transform")
+    COLUMNS = (
+        "patch_id",
+        "set_id",
+        "split",
+        "role",
+        "session",
+        "frame",
+        "enu",
+        "yaw",
+        "points",
+        "icp_rmse_m",
+        "transform",
+    )
 
     def __init__(self):
         self.columns: dict[str, list] = {k: [] for k in self.COLUMNS}
@@ -749,8 +932,14 @@ class _PatchTable:
         return {k: v[order] for k, v in tab.items()}
 
 
-def _negative_pools(sessions: list[SessionPoints], kp: _Keypoints, cfg: TripletConfig, rng: np.random.Generator,
-                    shards: "ShardWriter", table: _PatchTable) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _negative_pools(
+    sessions: list[SessionPoints],
+    kp: _Keypoints,
+    cfg: TripletConfig,
+    rng: np.random.Generator,
+    shards: ShardWriter,
+    table: _PatchTable,
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per split, (patch ids, centres) of random keypoints' patches as mapped (no ICP needed), shared by its triplets."""
     pools = {}
     for split in SPLITS:
@@ -765,8 +954,19 @@ def _negative_pools(sessions: list[SessionPoints], kp: _Keypoints, cfg: TripletC
         occ, dcg, yaw, npts = make_patches_csr(*mapped_patches(sessions, sess, centres, cfg.domain), centres, obs, cfg)
         ok = npts >= cfg.min_patch_points
         ids = shards.add(occ[ok], dcg[ok])
-        table.record(ids, -1, split, "negative", sess[ok], frames[ok], centres[ok], yaw[ok], npts[ok],
-                     np.zeros(ok.sum()), np.repeat(np.eye(4)[None], ok.sum(), axis=0))
+        table.record(
+            ids,
+            -1,
+            split,
+            "negative",
+            sess[ok],
+            frames[ok],
+            centres[ok],
+            yaw[ok],
+            npts[ok],
+            np.zeros(ok.sum()),
+            np.repeat(np.eye(4)[None], ok.sum(), axis=0),
+        )
         pools[split] = (ids, centres[ok])
     return pools
 
@@ -788,11 +988,33 @@ class _Places:
     """The places in the order they are drawn (:func:`place_chunks`), their correspondence sets
     made a chunk (one cell's places of a round) at a time, and the triplets of each."""
 
-    def __init__(self, sessions: list[SessionPoints], kp: _Keypoints, pools: dict, cfg: TripletConfig, rng: np.random.Generator,
-                 shards: "ShardWriter", table: _PatchTable):
-        self.sessions, self.kp, self.pools, self.cfg, self.rng, self.shards, self.table = sessions, kp, pools, cfg, rng, shards, table
-        self.icp = IcpConfig(voxel_sizes_m=cfg.icp_voxel_sizes_m, max_correspondence_m=cfg.icp_max_correspondence_m, max_iterations=20,
-                             lambda_icp_m=cfg.lambda_icp_m, min_fitness=cfg.min_fitness, min_structure_fitness=0.0)
+    def __init__(
+        self,
+        sessions: list[SessionPoints],
+        kp: _Keypoints,
+        pools: dict,
+        cfg: TripletConfig,
+        rng: np.random.Generator,
+        shards: ShardWriter,
+        table: _PatchTable,
+    ):
+        self.sessions, self.kp, self.pools, self.cfg, self.rng, self.shards, self.table = (
+            sessions,
+            kp,
+            pools,
+            cfg,
+            rng,
+            shards,
+            table,
+        )
+        self.icp = IcpConfig(
+            voxel_sizes_m=cfg.icp_voxel_sizes_m,
+            max_correspondence_m=cfg.icp_max_correspondence_m,
+            max_iterations=20,
+            lambda_icp_m=cfg.lambda_icp_m,
+            min_fitness=cfg.min_fitness,
+            min_structure_fitness=0.0,
+        )
         self.order, self.chunk_of = place_chunks(kp.session, kp.index, kp.split, sessions, cfg, rng)
         self.used = np.zeros(len(self.order), bool)
         self.counts = _Counts()
@@ -834,8 +1056,11 @@ class _Places:
         key = (si, a, *np.floor(centre[:2] / cfg.icp_cell_m).astype(int).tolist())
         if key not in self._icp_cache:
             ok = min(n_src, n_tgt) >= cfg.min_patch_points
-            self._icp_cache[key] = (register_cell(self.sessions[si], self.sessions[a], centre, reach, self.icp, cfg.icp_relative_change)
-                                    if ok else Registration.failed())
+            self._icp_cache[key] = (
+                register_cell(self.sessions[si], self.sessions[a], centre, reach, self.icp, cfg.icp_relative_change)
+                if ok
+                else Registration.failed()
+            )
             self.counts.icp += 1
         return self._icp_cache[key]
 
@@ -845,7 +1070,10 @@ class _Places:
         c = self.chunk_of[pos]
         if self._chunk != c or int(self.order[pos]) not in self._sets.result:
             todo = np.union1d(np.flatnonzero((self.chunk_of == c) & ~self.used), [pos])
-            self._chunk, self._sets = c, ChunkSets(self.order[todo], self.sessions, self.kp.session, self.kp.index, self.cfg, self.icp_of)
+            self._chunk, self._sets = (
+                c,
+                ChunkSets(self.order[todo], self.sessions, self.kp.session, self.kp.index, self.cfg, self.icp_of),
+            )
         return self._sets
 
     def _one_place(self, pos: int, split: str) -> int:
@@ -869,8 +1097,19 @@ class _Places:
             return 0
         ids = self.shards.add(res["occ"][ok], res["dcg"][ok])
         set_rmse = float(max(res["rmse"][ok]))
-        self.table.record(ids, n.sets, split, "positive", res["session"][ok], res["frame"][ok], res["centre"][ok], res["yaw"][ok],
-                          res["points"][ok], np.full(ok.sum(), set_rmse), res["transform"][ok])
+        self.table.record(
+            ids,
+            n.sets,
+            split,
+            "positive",
+            res["session"][ok],
+            res["frame"][ok],
+            res["centre"][ok],
+            res["yaw"][ok],
+            res["points"][ok],
+            np.full(ok.sum(), set_rmse),
+            res["transform"][ok],
+        )
         ii, jj = np.triu_indices(len(ids), 1)
         ii, jj = ii[: cfg.n_triplets - n.triplets], jj[: cfg.n_triplets - n.triplets]
         neg = pool_ids[self.rng.choice(far, len(ii))]
@@ -879,39 +1118,80 @@ class _Places:
         return len(ii)
 
 
-def _write_dataset(out: Path, ws: Workspace, h: str, cfg: TripletConfig, sessions: list[SessionPoints], frame: LocalFrame,
-                   tiles: dict, shards: "ShardWriter", table: _PatchTable, places: _Places, t0: float) -> None:
+def _write_dataset(
+    out: Path,
+    ws: Workspace,
+    h: str,
+    cfg: TripletConfig,
+    sessions: list[SessionPoints],
+    frame: LocalFrame,
+    tiles: dict,
+    shards: ShardWriter,
+    table: _PatchTable,
+    places: _Places,
+    t0: float,
+) -> None:
     """The patch table, the triplets, the manifest, the metrics and the examples picture (all but the marker)."""
     tab = table.arrays()
     utm = frame.enu_to_utm(tab["enu"]) if len(tab["enu"]) else np.zeros((0, 3))
     names = [s.name for s in sessions]
-    with atomic_path(out / "patches.npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, patch_id=tab["patch_id"], set_id=tab["set_id"], split=tab["split"].astype(str),
-                                role=tab["role"].astype(str), session=tab["session"], frame=tab["frame"], enu=tab["enu"], utm=utm,
-                                yaw=tab["yaw"], points=tab["points"], icp_rmse_m=tab["icp_rmse_m"], transform=tab["transform"])
+    with atomic_path(out / "patches.npz") as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(
+            f,
+            patch_id=tab["patch_id"],
+            set_id=tab["set_id"],
+            split=tab["split"].astype(str),
+            role=tab["role"].astype(str),
+            session=tab["session"],
+            frame=tab["frame"],
+            enu=tab["enu"],
+            utm=utm,
+            yaw=tab["yaw"],
+            points=tab["points"],
+            icp_rmse_m=tab["icp_rmse_m"],
+            transform=tab["transform"],
+        )
     _write_patches_csv(out / "patches.csv", tab, utm, names, cfg)
     counts = {}
     for split in SPLITS:
         t = np.concatenate(places.triplets[split]) if places.triplets[split] else np.zeros((0, 3), np.int64)
-        with atomic_path(out / f"triplets_{split}.npy") as tmp:
-            with open(tmp, "wb") as f:
-                np.save(f, t.astype(np.int64))
+        with atomic_path(out / f"triplets_{split}.npy") as tmp, open(tmp, "wb") as f:
+            np.save(f, t.astype(np.int64))
         counts[split] = int(len(t))
     seconds = time.perf_counter() - t0
     manifest = {
-        "format_version": TRIPLETS_FORMAT_VERSION, "workspace": str(ws.root), "sessions": names, "seed": cfg.seed,
-        "config_hash": h, "frame": frame.to_dict(), "domain": cfg.domain.model_dump(), "grid": cfg.grid,
-        "grids": {"occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
-                  "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's"},
+        "format_version": TRIPLETS_FORMAT_VERSION,
+        "workspace": str(ws.root),
+        "sessions": names,
+        "seed": cfg.seed,
+        "config_hash": h,
+        "frame": frame.to_dict(),
+        "domain": cfg.domain.model_dump(),
+        "grid": cfg.grid,
+        "grids": {
+            "occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
+            "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's",
+        },
         "tiles": tiles_to_manifest(tiles, cfg.tile_size_m),
-        "shard_format": cfg.shard_format, "shards": shards.shards, "patches": int(shards.n), "triplets": counts,
-        "files": {n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")},
+        "shard_format": cfg.shard_format,
+        "shards": shards.shards,
+        "patches": int(shards.n),
+        "triplets": counts,
+        "files": {
+            n: sha256_file(out / n) for n in ("patches.npz", "patches.csv", "triplets_train.npy", "triplets_test.npy")
+        },
     }
     write_json(out / "manifest.json", manifest)
     n = places.counts
-    metrics = {"triplets": counts, "quota": places.quota, "patches": int(shards.n), "places": n.sets, "places_tried": n.tried,
-               "members_rejected_by_icp": n.rejected_members, "icp_registrations": n.icp}
+    metrics = {
+        "triplets": counts,
+        "quota": places.quota,
+        "patches": int(shards.n),
+        "places": n.sets,
+        "places_tried": n.tried,
+        "members_rejected_by_icp": n.rejected_members,
+        "icp_registrations": n.icp,
+    }
     write_json(out / "metrics.json", metrics)
     write_timings(out, seconds=seconds, triplets_per_s=sum(counts.values()) / seconds if seconds > 0 else None)
 
@@ -925,22 +1205,28 @@ def _no_triplets_reason(cfg: TripletConfig, kp_split: np.ndarray, pools: dict, n
     tried, why, rejected = n.tried, n.why, n.rejected_members
     head = f"no triplets made ({tried} places tried"
     if not np.any(kp_split != ""):
-        return (f"{head}): every keypoint lies within buffer_m={cfg.buffer_m:g} of a tile of the other split; "
-                f"lower buffer_m or raise tile_size_m ({cfg.tile_size_m:g})")
+        return (
+            f"{head}): every keypoint lies within buffer_m={cfg.buffer_m:g} of a tile of the other split; "
+            f"lower buffer_m or raise tile_size_m ({cfg.tile_size_m:g})"
+        )
     if not any(len(ids) for ids, _ in pools.values()):
-        return (f"{head}): no negative patch holds min_patch_points={cfg.min_patch_points} points; lower min_patch_points "
-                "or map more densely")
-    reasons = (f"{head}: {why['no_set']} seen by fewer than two sessions agreeing by ICP ({rejected} members rejected), "
-               f"{why['small_patches']} with fewer than two patches of min_patch_points={cfg.min_patch_points} points, "
-               f"{why['no_far_negative']} without a negative farther than negative_min_distance_m={cfg.negative_min_distance_m:g})")
+        return (
+            f"{head}): no negative patch holds min_patch_points={cfg.min_patch_points} points; lower min_patch_points "
+            "or map more densely"
+        )
+    reasons = (
+        f"{head}: {why['no_set']} seen by fewer than two sessions agreeing by ICP ({rejected} members rejected), "
+        f"{why['small_patches']} with fewer than two patches of min_patch_points={cfg.min_patch_points} points, "
+        f"{why['no_far_negative']} without a negative farther than negative_min_distance_m={cfg.negative_min_distance_m:g})"
+    )
     worst = max(why, key=why.get) if tried else "no_set"
     advice = {
         "no_set": f"too few overlapping places between sessions: drive the same streets in two sessions, raise seen_radius_m "
-                  f"({cfg.seen_radius_m:g}) or lambda_icp_m ({cfg.lambda_icp_m:g}), or lower min_fitness ({cfg.min_fitness:g})",
+        f"({cfg.seen_radius_m:g}) or lambda_icp_m ({cfg.lambda_icp_m:g}), or lower min_fitness ({cfg.min_fitness:g})",
         "small_patches": f"lower min_patch_points ({cfg.min_patch_points}) or map more densely (the patch radius is "
-                         f"{cfg.domain.patch_radius:g} m)",
+        f"{cfg.domain.patch_radius:g} m)",
         "no_far_negative": f"lower negative_min_distance_m ({cfg.negative_min_distance_m:g}) below the extent of each split's map, "
-                           f"or raise tile_size_m ({cfg.tile_size_m:g})",
+        f"or raise tile_size_m ({cfg.tile_size_m:g})",
     }[worst]
     return f"{reasons}; {advice}"
 
@@ -951,13 +1237,42 @@ def _write_patches_csv(path: Path, tab: dict, utm: np.ndarray, names: list[str],
 
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["patch_id", "set_id", "split", "role", "session", "first_observer_frame", "easting_m", "northing_m", "up_m",
-                "yaw_rad", "domain", "points", "icp_rmse_m"])
+    w.writerow(
+        [
+            "patch_id",
+            "set_id",
+            "split",
+            "role",
+            "session",
+            "first_observer_frame",
+            "easting_m",
+            "northing_m",
+            "up_m",
+            "yaw_rad",
+            "domain",
+            "points",
+            "icp_rmse_m",
+        ]
+    )
     dom = f"{cfg.domain.kind}:{cfg.domain.patch_radius:g}"
     for i in range(len(tab["patch_id"])):
-        w.writerow([int(tab["patch_id"][i]), int(tab["set_id"][i]), tab["split"][i], tab["role"][i], names[int(tab["session"][i])],
-                    int(tab["frame"][i]), f"{utm[i, 0]:.3f}", f"{utm[i, 1]:.3f}", f"{utm[i, 2]:.3f}", f"{tab['yaw'][i]:.6f}", dom,
-                    int(tab["points"][i]), f"{tab['icp_rmse_m'][i]:.4f}"])
+        w.writerow(
+            [
+                int(tab["patch_id"][i]),
+                int(tab["set_id"][i]),
+                tab["split"][i],
+                tab["role"][i],
+                names[int(tab["session"][i])],
+                int(tab["frame"][i]),
+                f"{utm[i, 0]:.3f}",
+                f"{utm[i, 1]:.3f}",
+                f"{utm[i, 2]:.3f}",
+                f"{tab['yaw'][i]:.6f}",
+                dom,
+                int(tab["points"][i]),
+                f"{tab['icp_rmse_m'][i]:.4f}",
+            ]
+        )
     atomic_write_text(path, buf.getvalue())
 
 
@@ -974,12 +1289,20 @@ class TripletDataset:
             raise InputError(mpath, "no such file (not a triplet dataset folder?)")
         self.manifest = json.loads(mpath.read_text())
         if self.manifest.get("format_version") not in READABLE_FORMAT_VERSIONS:
-            raise InputError(mpath, f"format version {self.manifest.get('format_version')!r}; this mapkit reads "
-                             f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}", field="format_version")
+            raise InputError(
+                mpath,
+                f"format version {self.manifest.get('format_version')!r}; this mapkit reads "
+                f"{', '.join(map(str, READABLE_FORMAT_VERSIONS))}",
+                field="format_version",
+            )
         # version 1 datasets have npz shards and no shard_format
         self.shard_format = self.manifest.get("shard_format", "npz")
         if self.shard_format not in SHARD_FORMATS:
-            raise InputError(mpath, f"shard format {self.shard_format!r}; this mapkit reads {', '.join(SHARD_FORMATS)}", field="shard_format")
+            raise InputError(
+                mpath,
+                f"shard format {self.shard_format!r}; this mapkit reads {', '.join(SHARD_FORMATS)}",
+                field="shard_format",
+            )
         if verify:
             for s in self.manifest["shards"]:
                 if sha256_file(self.folder / s["file"]) != s["sha256"]:
@@ -1015,10 +1338,15 @@ class TripletDataset:
             if out is None:
                 out = np.empty((len(ids),) + g.shape[1:], np.uint8)
             out[sel] = g
-        return out if out is not None else np.zeros((0,) + ((3,) if form == "density_comparison" else ()) + (self.grid,) * 3, np.uint8)
+        return (
+            out
+            if out is not None
+            else np.zeros((0,) + ((3,) if form == "density_comparison" else ()) + (self.grid,) * 3, np.uint8)
+        )
 
-    def batches(self, batch_size: int = 32, split: str = "train", form: str = "occupancy", shuffle: bool = True,
-                seed: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    def batches(
+        self, batch_size: int = 32, split: str = "train", form: str = "occupancy", shuffle: bool = True, seed: int = 0
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(X1, X2, X3) batches of unpacked grids."""
         t = self.triplets(split)
         order = np.random.default_rng(seed).permutation(len(t)) if shuffle else np.arange(len(t))
@@ -1031,7 +1359,9 @@ class TripletDataset:
         try:
             import torch
         except ImportError:
-            raise InputError(None, "torch is not installed: pip install torch==2.13.0 (the CPU build), then the learning extra") from None
+            raise InputError(
+                None, "torch is not installed: pip install torch==2.13.0 (the CPU build), then the learning extra"
+            ) from None
         ds = self
 
         class _Triplets(torch.utils.data.Dataset):
@@ -1046,5 +1376,3 @@ class TripletDataset:
                 return tuple(torch.from_numpy(g[c][None] if form == "occupancy" else g[c]) for c in range(3))
 
         return _Triplets()
-
-

@@ -11,9 +11,9 @@ from __future__ import annotations
 import base64
 import html
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence, Union
 
 from mapkit.core.runio import atomic_write_text
 
@@ -22,7 +22,7 @@ from mapkit.core.runio import atomic_write_text
 class Picture:
     path: Path
     caption: str = ""
-    width: Optional[int] = None  # CSS pixels; None = up to the page width
+    width: int | None = None  # CSS pixels; None = up to the page width
 
 
 @dataclass
@@ -30,14 +30,14 @@ class Section:
     """One stage of the report: a title, Markdown text and pictures, in order."""
 
     title: str
-    blocks: list[Union[str, Picture]] = field(default_factory=list)
-    seconds: Optional[float] = None
+    blocks: list[str | Picture] = field(default_factory=list)
+    seconds: float | None = None
 
-    def md(self, text: str) -> "Section":
+    def md(self, text: str) -> Section:
         self.blocks.append(text)
         return self
 
-    def md_file(self, path: Path, drop_title: bool = True) -> "Section":
+    def md_file(self, path: Path, drop_title: bool = True) -> Section:
         if Path(path).is_file():
             text = Path(path).read_text()
             if drop_title:
@@ -47,7 +47,7 @@ class Section:
             self.blocks.append(f"(`{Path(path).name}` was not written)")
         return self
 
-    def picture(self, path: Path, caption: str = "", width: Optional[int] = None) -> "Section":
+    def picture(self, path: Path, caption: str = "", width: int | None = None) -> Section:
         if Path(path).is_file():
             self.blocks.append(Picture(Path(path), caption, width))
         return self
@@ -103,8 +103,12 @@ def markdown_to_html(text: str) -> str:
             out.append("<ul>" + "".join(f"<li>{_inline(t)}</li>" for t in items) + "</ul>")
             continue
         para = []
-        while i < len(lines) and lines[i].strip() and not lines[i].lstrip().startswith(("|", "#")) \
-                and not re.match(r"^\s*[-*]\s+", lines[i]):
+        while (
+            i < len(lines)
+            and lines[i].strip()
+            and not lines[i].lstrip().startswith(("|", "#"))
+            and not re.match(r"^\s*[-*]\s+", lines[i])
+        ):
             para.append(lines[i].strip())
             i += 1
         out.append(f"<p>{_inline(' '.join(para))}</p>")
@@ -132,9 +136,12 @@ nav a{margin-right:1em}
 def render(title: str, intro: str, sections: Sequence[Section]) -> str:
     """The whole page as a string."""
     anchors = [re.sub(r"[^a-z0-9]+", "-", s.title.lower()).strip("-") for s in sections]
-    parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
-             f"<h1>{html.escape(title)}</h1>", markdown_to_html(intro),
-             "<nav>" + "".join(f'<a href="#{a}">{html.escape(s.title)}</a>' for a, s in zip(anchors, sections)) + "</nav>"]
+    parts = [
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        markdown_to_html(intro),
+        "<nav>" + "".join(f'<a href="#{a}">{html.escape(s.title)}</a>' for a, s in zip(anchors, sections)) + "</nav>",
+    ]
     for a, s in zip(anchors, sections):
         t = f' <span class="time">{s.seconds:.0f} s</span>' if s.seconds is not None else ""
         parts.append(f'<h2 id="{a}">{html.escape(s.title)}{t}</h2>')

@@ -29,9 +29,10 @@ import logging
 import os
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, Optional
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,8 +53,21 @@ INSTALL_HINT = "mapkit view needs the Rerun SDK: pip install 'mapkit[viewer]' (o
 APPLICATION_ID = "mapkit"
 TIMELINE = "drive_time"
 #: session colours (matplotlib's tab10), RGB
-PALETTE = np.array([[31, 119, 180], [255, 127, 14], [44, 160, 44], [214, 39, 40], [148, 103, 189], [140, 86, 75],
-                    [227, 119, 194], [127, 127, 127], [188, 189, 34], [23, 190, 207]], np.uint8)
+PALETTE = np.array(
+    [
+        [31, 119, 180],
+        [255, 127, 14],
+        [44, 160, 44],
+        [214, 39, 40],
+        [148, 103, 189],
+        [140, 86, 75],
+        [227, 119, 194],
+        [127, 127, 127],
+        [188, 189, 34],
+        [23, 190, 207],
+    ],
+    np.uint8,
+)
 #: distance (m) at which a camera's image plane is drawn: visible at the scale of a street
 IMAGE_PLANE_M = 3.0
 
@@ -132,17 +146,26 @@ def _seconds(stamps_ns: np.ndarray, t0_ns: int) -> np.ndarray:
 class _Writer:
     """Logs one workspace into a recording stream, counting what it logs."""
 
-    def __init__(self, rec: "rr.RecordingStream", ws: Workspace, summary: RecordingSummary):
+    def __init__(self, rec: rr.RecordingStream, ws: Workspace, summary: RecordingSummary):
         self.rr = _rerun()
         self.rec, self.ws, self.summary = rec, ws, summary
 
-    def trajectory(self, entity: str, stamps_ns: np.ndarray, world_from_body: np.ndarray, colour: np.ndarray, t0_ns: int) -> None:
+    def trajectory(
+        self, entity: str, stamps_ns: np.ndarray, world_from_body: np.ndarray, colour: np.ndarray, t0_ns: int
+    ) -> None:
         """A line strip of the whole path (static) and the body's pose over ``drive_time``."""
         rr = self.rr
         P = np.asarray(world_from_body, np.float64)
-        self.rec.log(f"{entity}/trajectory", rr.LineStrips3D([P[:, :3, 3]], colors=[colour], radii=rr.Radius.ui_points(2.0)), static=True)
-        self.rec.send_columns(f"{entity}/vehicle", indexes=[rr.TimeColumn(TIMELINE, duration=_seconds(stamps_ns, t0_ns))],
-                              columns=rr.Transform3D.columns(translation=P[:, :3, 3], quaternion=_xyzw(P[:, :3, :3])))
+        self.rec.log(
+            f"{entity}/trajectory",
+            rr.LineStrips3D([P[:, :3, 3]], colors=[colour], radii=rr.Radius.ui_points(2.0)),
+            static=True,
+        )
+        self.rec.send_columns(
+            f"{entity}/vehicle",
+            indexes=[rr.TimeColumn(TIMELINE, duration=_seconds(stamps_ns, t0_ns))],
+            columns=rr.Transform3D.columns(translation=P[:, :3, 3], quaternion=_xyzw(P[:, :3, :3])),
+        )
         self.rec.log(f"{entity}/vehicle", rr.TransformAxes3D(2.0), static=True)
         self.summary.poses[f"{entity}/trajectory"] = len(P)
 
@@ -155,7 +178,9 @@ class _Writer:
         grey = np.asarray(cloud.colors, np.float64)[:, 0] if cloud.has_colors() else np.full(len(pts), 0.7)
         idx = np.sort(rng.choice(len(pts), size=min(keep, len(pts)), replace=False))
         colours = (m.colour[None, :] * (0.35 + 0.65 * grey[idx, None])).astype(np.uint8)
-        self.rec.log(m.entity, self.rr.Points3D(pts[idx], colors=colours, radii=self.rr.Radius.ui_points(1.5)), static=True)
+        self.rec.log(
+            m.entity, self.rr.Points3D(pts[idx], colors=colours, radii=self.rr.Radius.ui_points(1.5)), static=True
+        )
         self.summary.map_points[m.entity] = len(idx)
         self.summary.map_points_total[m.entity] = len(pts)
 
@@ -179,13 +204,18 @@ class _Writer:
         K_thumb[:2, :2] *= scale
         K_thumb[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5  # pixel centres
         cam = f"{entity}/camera"
-        self.rec.log(cam, rr.Pinhole(image_from_camera=K_thumb, resolution=[width_px, height_px], image_plane_distance=IMAGE_PLANE_M),
-                     static=True)
+        self.rec.log(
+            cam,
+            rr.Pinhole(image_from_camera=K_thumb, resolution=[width_px, height_px], image_plane_distance=IMAGE_PLANE_M),
+            static=True,
+        )
         logged = 0
         for i in keep:
             image = cv2.imread(str(imgs.image_paths[i]), cv2.IMREAD_COLOR)
             if image is None:  # a database folder copied without some images: draw the rest
-                warnings.warn(f"{imgs.image_paths[i]}: unreadable image; left out of the recording", InputWarning, stacklevel=2)
+                warnings.warn(
+                    f"{imgs.image_paths[i]}: unreadable image; left out of the recording", InputWarning, stacklevel=2
+                )
                 continue
             thumb = cv2.resize(image, (width_px, height_px), interpolation=cv2.INTER_AREA)
             ok, jpg = cv2.imencode(".jpg", thumb, [cv2.IMWRITE_JPEG_QUALITY, 80])
@@ -199,7 +229,7 @@ class _Writer:
         self.rec.reset_time()
         self.summary.images[cam] = logged
 
-    def gps(self, entity: str, name: str, frame: "LocalFrame") -> None:
+    def gps(self, entity: str, name: str, frame: LocalFrame) -> None:
         """The session's GPS fixes in ENU, the rejected ones apart: those the georef stage saved
         (``georef/gps_fixes.npz``, after screening), else, for a session without that file, read again
         from the session's log with the rejections of ``gps_alignment.json``."""
@@ -216,10 +246,16 @@ class _Writer:
             ga = json.loads(self.ws.session(name).gps_alignment.read_text())
             rejected = np.isin(stamps, [int(r["stamp_ns"]) for r in ga.get("rejected_fixes", [])])
         rr = self.rr
-        self.rec.log(f"{entity}/gps/fixes", rr.Points3D(enu[~rejected], colors=[[40, 200, 80]], radii=rr.Radius.ui_points(3.0)),
-                     static=True)
-        self.rec.log(f"{entity}/gps/rejected", rr.Points3D(enu[rejected], colors=[[230, 30, 30]], radii=rr.Radius.ui_points(4.0)),
-                     static=True)
+        self.rec.log(
+            f"{entity}/gps/fixes",
+            rr.Points3D(enu[~rejected], colors=[[40, 200, 80]], radii=rr.Radius.ui_points(3.0)),
+            static=True,
+        )
+        self.rec.log(
+            f"{entity}/gps/rejected",
+            rr.Points3D(enu[rejected], colors=[[230, 30, 30]], radii=rr.Radius.ui_points(4.0)),
+            static=True,
+        )
         self.summary.gps_fixes[f"{entity}/gps/fixes"] = int((~rejected).sum())
         self.summary.gps_fixes[f"{entity}/gps/rejected"] = int(rejected.sum())
 
@@ -248,8 +284,11 @@ class _Writer:
             session, ids = str(f["session"]), f["ids"].astype(np.int64)
             bundle = Path(str(f["bundle_path"])) if "bundle_path" in f.files else None
         if bundle is None or not (bundle / DATABASE_CSV).is_file():
-            warnings.warn(f"{hits}: its bundle's database.csv is not found ({bundle}); retrieved poses left out", InputWarning,
-                          stacklevel=2)
+            warnings.warn(
+                f"{hits}: its bundle's database.csv is not found ({bundle}); retrieved poses left out",
+                InputWarning,
+                stacklevel=2,
+            )
             return
         db = read_database_csv(bundle / DATABASE_CSV)
         xyz = np.stack([db["x_m"], db["y_m"], db["z_m"]], axis=1)
@@ -258,18 +297,25 @@ class _Writer:
         except InputError:
             stamps = np.zeros(0, np.int64)
         if len(stamps) != len(ids):
-            warnings.warn(f"{hits}: {len(ids)} queries but session {session!r} has {len(stamps)} images; retrieved poses left out",
-                          InputWarning, stacklevel=2)
+            warnings.warn(
+                f"{hits}: {len(ids)} queries but session {session!r} has {len(stamps)} images; retrieved poses left out",
+                InputWarning,
+                stacklevel=2,
+            )
             return
         rr = self.rr
         valid = ids >= 0
         pos = xyz[ids[valid]]
         self.rec.send_columns(
-            f"{entity}/{session}/retrieved", indexes=[rr.TimeColumn(TIMELINE, duration=_seconds(stamps, stamps[0]))],
+            f"{entity}/{session}/retrieved",
+            indexes=[rr.TimeColumn(TIMELINE, duration=_seconds(stamps, stamps[0]))],
             columns=rr.Points3D.columns(positions=pos).partition(valid.sum(axis=1)),
         )
-        self.rec.log(f"{entity}/{session}/retrieved", rr.Points3D.from_fields(colors=[[250, 120, 0]], radii=rr.Radius.ui_points(4.0)),
-                     static=True)
+        self.rec.log(
+            f"{entity}/{session}/retrieved",
+            rr.Points3D.from_fields(colors=[[250, 120, 0]], radii=rr.Radius.ui_points(4.0)),
+            static=True,
+        )
         self.summary.poses[f"{entity}/{session}/retrieved"] = len(ids)
 
 
@@ -279,7 +325,9 @@ def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int,
 
     folder = ws.session(name).imagedb / "colmap"
     if not (folder / "cameras.bin").is_file():
-        raise InputError(folder, f"session {name!r}: the image database has no COLMAP cameras (run mapkit build)", field="cameras")
+        raise InputError(
+            folder, f"session {name!r}: the image database has no COLMAP cameras (run mapkit build)", field="cameras"
+        )
     cams = list(pycolmap.Reconstruction(str(folder)).cameras.values())
     if not cams:
         raise InputError(folder / "cameras.bin", "no camera", field="cameras")
@@ -287,7 +335,7 @@ def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int,
     return np.asarray(c.calibration_matrix(), np.float64), (int(c.width), int(c.height))
 
 
-def _gps_fixes(ws: Workspace, name: str) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+def _gps_fixes(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """(stamps, lat, lon, alt) of the fixes in the session's log (the path its metrics.json records),
     or None, with a warning, when the log is gone or has no GPS."""
     import yaml
@@ -299,8 +347,12 @@ def _gps_fixes(ws: Workspace, name: str) -> Optional[tuple[np.ndarray, np.ndarra
     dirs = ws.session(name)
     log_path = json.loads(dirs.metrics.read_text()).get("log") if dirs.metrics.is_file() else None
     if not log_path or not Path(log_path).exists():
-        warnings.warn(f"session {name!r}: its log ({log_path}) is not found, and the build saves no GPS positions; "
-                      "GPS fixes left out", InputWarning, stacklevel=3)
+        warnings.warn(
+            f"session {name!r}: its log ({log_path}) is not found, and the build saves no GPS positions; "
+            "GPS fixes left out",
+            InputWarning,
+            stacklevel=3,
+        )
         return None
     topics = TopicConfig()
     if dirs.config.is_file():
@@ -310,8 +362,12 @@ def _gps_fixes(ws: Workspace, name: str) -> Optional[tuple[np.ndarray, np.ndarra
         fixes = [f for f in lg.records(StreamKind.GPS, topic=gps[0]) if f.has_fix] if gps else []
     if not fixes:
         return None
-    return (np.array([f.stamp_ns for f in fixes], np.int64), np.array([f.lat_deg for f in fixes]),
-            np.array([f.lon_deg for f in fixes]), np.array([f.alt_m for f in fixes]))
+    return (
+        np.array([f.stamp_ns for f in fixes], np.int64),
+        np.array([f.lat_deg for f in fixes]),
+        np.array([f.lon_deg for f in fixes]),
+        np.array([f.alt_m for f in fixes]),
+    )
 
 
 def _localize_runs(folder: Path) -> Iterator[Path]:
@@ -322,9 +378,18 @@ def _localize_runs(folder: Path) -> Iterator[Path]:
     yield from sorted(p.parent for p in folder.rglob("poses_tum.txt"))
 
 
-def write_recording(workspace: str | Path | Workspace, out: str | Path | None = None, budget_points: int = 2_000_000,
-                    image_spacing_m: float = 10.0, thumbnail_width_px: int = 320, localize: str | Path | None = None,
-                    gps: bool = True, spawn: bool = False, seed: int = 0, progress: bool = True) -> RecordingSummary:
+def write_recording(
+    workspace: str | Path | Workspace,
+    out: str | Path | None = None,
+    budget_points: int = 2_000_000,
+    image_spacing_m: float = 10.0,
+    thumbnail_width_px: int = 320,
+    localize: str | Path | None = None,
+    gps: bool = True,
+    spawn: bool = False,
+    seed: int = 0,
+    progress: bool = True,
+) -> RecordingSummary:
     """Write a Rerun recording of ``workspace`` to ``out`` (default ``WORKSPACE/view.rrd``, replaced atomically).
 
     Every session's trajectory and map (``mapkit build``; and the aligned ones under ``world/align``
@@ -346,7 +411,9 @@ def write_recording(workspace: str | Path | Workspace, out: str | Path | None = 
     names = ws.session_names("georef")
     summary = RecordingSummary(out, 0, 0.0)
     if not names:
-        raise InputError(ws.sessions_dir, "no session has a georeferenced trajectory (run mapkit build)", field="sessions")
+        raise InputError(
+            ws.sessions_dir, "no session has a georeferenced trajectory (run mapkit build)", field="sessions"
+        )
     maps = []
     for i, name in enumerate(names):
         for source, folder in (("build", ws.session(name).map), ("align", ws.aligned(name).map)):
@@ -378,27 +445,45 @@ def write_recording(workspace: str | Path | Workspace, out: str | Path | None = 
                     w.map(m, q, rng)
             bar.update(1)
         for run in runs:
-            w.localize_run(run, f"world/localize/{run.relative_to(loc_folder).as_posix() if run != loc_folder else run.name}")
+            w.localize_run(
+                run, f"world/localize/{run.relative_to(loc_folder).as_posix() if run != loc_folder else run.name}"
+            )
             bar.update(1)
         for h in hits:
             w.retrieved(h, "world/localize/hits")
             bar.update(1)
         bar.close()
         summary.notes += _missing_notes(frame, gps, runs, hits)
-        rec.log("notes", rr.TextDocument(_notes_markdown(ws, summary, budget_points, image_spacing_m), media_type="text/markdown"),
-                static=True)
+        rec.log(
+            "notes",
+            rr.TextDocument(_notes_markdown(ws, summary, budget_points, image_spacing_m), media_type="text/markdown"),
+            static=True,
+        )
         rec.send_blueprint(_blueprint(sorted(summary.images)))
         rec.flush()
         rec.disconnect()
     summary.bytes = out.stat().st_size
     summary.seconds = time.perf_counter() - t_start
-    log.info("recording written to %s (%.1f MB, %d map points, %d thumbnails)", out, summary.bytes / 1e6, summary.points,
-             sum(summary.images.values()))
+    log.info(
+        "recording written to %s (%.1f MB, %d map points, %d thumbnails)",
+        out,
+        summary.bytes / 1e6,
+        summary.points,
+        sum(summary.images.values()),
+    )
     return summary
 
 
-def _session(w: _Writer, name: str, i: int, frame: Optional["LocalFrame"], aligned: bool, gps: bool, spacing_m: float,
-             width_px: int) -> None:
+def _session(
+    w: _Writer,
+    name: str,
+    i: int,
+    frame: LocalFrame | None,
+    aligned: bool,
+    gps: bool,
+    spacing_m: float,
+    width_px: int,
+) -> None:
     """One session: its built (and aligned) trajectory, GPS fixes and thumbnails."""
     from mapkit.mapping.trajectory import Trajectory
 
@@ -406,7 +491,11 @@ def _session(w: _Writer, name: str, i: int, frame: Optional["LocalFrame"], align
     traj = Trajectory.load(dirs.enu_trajectory)
     if traj.frame != "enu":
         w.summary.notes.append(f"session {name}: not georeferenced; drawn in its own frame")
-        warnings.warn(f"session {name!r} is not georeferenced: drawn in its own frame, not the workspace's", InputWarning, stacklevel=3)
+        warnings.warn(
+            f"session {name!r} is not georeferenced: drawn in its own frame, not the workspace's",
+            InputWarning,
+            stacklevel=3,
+        )
     t0 = int(traj.stamps_ns[0])
     w.trajectory(f"world/build/{name}", traj.stamps_ns, traj.world_from_base, _colour(i), t0)
     if aligned:
@@ -419,28 +508,36 @@ def _session(w: _Writer, name: str, i: int, frame: Optional["LocalFrame"], align
         w.images(f"world/{source}/{name}", name, spacing_m, width_px, t0, prefer_aligned=source == "align")
 
 
-def _missing_notes(frame: Optional["LocalFrame"], gps: bool, runs: list[Path], hits: list[Path]) -> list[str]:
+def _missing_notes(frame: LocalFrame | None, gps: bool, runs: list[Path], hits: list[Path]) -> list[str]:
     """What the recording cannot show, and why (its notes panel and the command's output)."""
     notes = []
     if gps:
-        notes.append("GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for a session "
-                     "without that file, read again from the session's log")
+        notes.append(
+            "GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for a session "
+            "without that file, read again from the session's log"
+        )
     if frame is None:
         notes.append("the workspace is not georeferenced (no origin.json): no GPS fixes")
     notes.append("particle clouds: no localizer run saves its particles; not drawn")
     if hits and not runs:
-        notes.append("no localizer estimates (poses_tum.txt) were found: only the retrieved database poses of the cached hits "
-                     "are drawn (mapkit eval localize writes each test session's estimates)")
+        notes.append(
+            "no localizer estimates (poses_tum.txt) were found: only the retrieved database poses of the cached hits "
+            "are drawn (mapkit eval localize writes each test session's estimates)"
+        )
     return notes
 
 
 def _notes_markdown(ws: Workspace, s: RecordingSummary, budget: int, spacing_m: float) -> str:
     """The recording's ``notes`` document: frame, timeline, what the budget kept, what is missing."""
     total = sum(s.map_points_total.values())
-    lines = [f"# mapkit workspace `{ws.root.name}`", "",
-             f"Local ENU frame of the workspace; timeline `{TIMELINE}`: seconds since each session's first pose.", "",
-             f"- map points: {s.points:,} of {total:,} (budget {budget:,}, each map sampled uniformly to its share)",
-             f"- thumbnails: {sum(s.images.values())} (one per {spacing_m:g} m of camera travel)"]
+    lines = [
+        f"# mapkit workspace `{ws.root.name}`",
+        "",
+        f"Local ENU frame of the workspace; timeline `{TIMELINE}`: seconds since each session's first pose.",
+        "",
+        f"- map points: {s.points:,} of {total:,} (budget {budget:,}, each map sampled uniformly to its share)",
+        f"- thumbnails: {sum(s.images.values())} (one per {spacing_m:g} m of camera travel)",
+    ]
     lines += [f"- {n}" for n in s.notes]
     return "\n".join(lines) + "\n"
 
@@ -452,8 +549,11 @@ def _blueprint(cameras: list[str]):
     side = [rrb.TextDocumentView(origin="notes", name="notes")]
     if cameras:
         side.append(rrb.Tabs(*[rrb.Spatial2DView(origin=c, name=c.split("/")[2]) for c in cameras]))
-    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(origin="world", name="workspace (local ENU)"), rrb.Vertical(*side),
-                                        column_shares=[3, 1]))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="workspace (local ENU)"), rrb.Vertical(*side), column_shares=[3, 1]
+        )
+    )
 
 
 def _check_display() -> None:
@@ -461,8 +561,10 @@ def _check_display() -> None:
     import sys
 
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise MapkitError("--spawn: no display here (DISPLAY / WAYLAND_DISPLAY unset); write the .rrd and open it with "
-                          "`rerun FILE.rrd` on a machine with one")
+        raise MapkitError(
+            "--spawn: no display here (DISPLAY / WAYLAND_DISPLAY unset); write the .rrd and open it with "
+            "`rerun FILE.rrd` on a machine with one"
+        )
 
 
 # --------------------------------------------------------------------------- reading a recording back
@@ -535,8 +637,15 @@ def render_top_view(recording: str | Path, png: str | Path, max_points: int = 40
             xyz = np.asarray(c["LineStrips3D:strips"][0][0], np.float64)
             colour = _rgba(c.get("LineStrips3D:colors", [None])[0], 1)[0]
             built = "/build/" in entity
-            ax.plot(xyz[:, 0], xyz[:, 1], "--" if built else "-", color=colour, lw=0.8 if built else 1.4, zorder=3,
-                    label=entity.removeprefix("world/").removesuffix("/trajectory"))
+            ax.plot(
+                xyz[:, 0],
+                xyz[:, 1],
+                "--" if built else "-",
+                color=colour,
+                lw=0.8 if built else 1.4,
+                zorder=3,
+                label=entity.removeprefix("world/").removesuffix("/trajectory"),
+            )
         elif entity.endswith("/camera") and "Transform3D:translation" in c:
             xyz = _xy(c["Transform3D:translation"])
             ax.plot(xyz[:, 0], xyz[:, 1], "^", ms=2.5, color="k", alpha=0.35, zorder=2.5)
@@ -546,7 +655,15 @@ def render_top_view(recording: str | Path, png: str | Path, max_points: int = 40
         elif "/gps/" in entity and "Points3D:positions" in c:
             xyz = _xy(c["Points3D:positions"])
             rejected = entity.endswith("rejected")
-            ax.plot(xyz[:, 0], xyz[:, 1], "x" if rejected else ".", ms=3, color="red" if rejected else "green", alpha=0.7, zorder=2)
+            ax.plot(
+                xyz[:, 0],
+                xyz[:, 1],
+                "x" if rejected else ".",
+                ms=3,
+                color="red" if rejected else "green",
+                alpha=0.7,
+                zorder=2,
+            )
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     if pts:  # the maps' extent, without the empty margins an equal-aspect square would add
@@ -555,8 +672,11 @@ def render_top_view(recording: str | Path, png: str | Path, max_points: int = 40
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
     ax.set_aspect("equal", adjustable="box")
-    ax.set_title(f"{Path(recording).name}: maps, trajectories (dashed: built, solid: aligned), GPS fixes "
-                 "(rejected: x), thumbnails (^), retrieved database poses (orange)", fontsize=9)
+    ax.set_title(
+        f"{Path(recording).name}: maps, trajectories (dashed: built, solid: aligned), GPS fixes "
+        "(rejected: x), thumbnails (^), retrieved database poses (orange)",
+        fontsize=9,
+    )
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=6, loc="best", markerscale=2)
     with atomic_path(png) as tmp:

@@ -52,9 +52,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
-from typing import Iterator, Literal, NamedTuple, Optional
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -78,13 +79,15 @@ class DsiftConfig(MapkitConfig):
         description="Descriptor region widths (px), one per scale; 4x4 bins of width/4 px each (MCVL Sec. IV-A: 16, 24, 32, 40; "
         "= vl_phow Sizes 4 6 8 10).",
     )
-    step: int = Field(2, ge=1, description="Grid spacing (px) of the frame centres (MCVL Sec. IV-A: 2; vl_phow Step 2).")
-    magnif: Optional[float] = Field(
+    step: int = Field(
+        2, ge=1, description="Grid spacing (px) of the frame centres (MCVL Sec. IV-A: 2; vl_phow Step 2)."
+    )
+    magnif: float | None = Field(
         6.0,
         gt=0,
         description="Each scale is pre-smoothed by a Gaussian of sigma = bin size / magnif (vl_phow Magnif 6); None = no smoothing.",
     )
-    window_sigma_bins: Optional[float] = Field(
+    window_sigma_bins: float | None = Field(
         2.0,
         gt=0,
         description="Sigma of the Gaussian window over the 4x4 bins, in bins (SIFT: half the descriptor width = 2, as in Lowe "
@@ -104,13 +107,15 @@ class DsiftConfig(MapkitConfig):
     phow_window_size: float = Field(
         1.5, gt=0, description="Mode 'phow': sigma of the Gaussian window, in bins (vl_phow WindowSize 1.5)."
     )
-    phow_contrast_threshold: Optional[float] = Field(
+    phow_contrast_threshold: float | None = Field(
         0.005,
         ge=0,
         description="Mode 'phow': descriptors whose contrast (VLFeat's frame norm: windowed histogram mass per pixel of the "
         "frame, grey levels in [0, 1]) is below this are zeroed (vl_phow ContrastThreshold 0.005); None = keep all.",
     )
-    clamp: float = Field(0.2, gt=0, le=1, description="SIFT normalisation: L2, clamp at this value, L2 again (Lowe 2004: 0.2).")
+    clamp: float = Field(
+        0.2, gt=0, le=1, description="SIFT normalisation: L2, clamp at this value, L2 again (Lowe 2004: 0.2)."
+    )
     half_resolution: bool = Field(
         False,
         description="Halve the image (area average) before extracting. False = the paper's text (Sec. IV-A); the authors' released "
@@ -154,7 +159,7 @@ class ScaleGrid:
     def count(self) -> int:
         return self.num_x * self.num_y
 
-    def centres_xy(self, row0: int = 0, row1: Optional[int] = None) -> np.ndarray:
+    def centres_xy(self, row0: int = 0, row1: int | None = None) -> np.ndarray:
         """(n, 2) float32 frame centres of frame rows ``row0:row1`` (row-major, as the descriptors)."""
         row1 = self.num_y if row1 is None else row1
         half = 1.5 * self.bin_size  # centre of the 4 bin centres
@@ -256,7 +261,7 @@ def _gradient(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-def binned_maps(gray: np.ndarray, grid: ScaleGrid, magnif: Optional[float]) -> tuple[np.ndarray, int]:
+def binned_maps(gray: np.ndarray, grid: ScaleGrid, magnif: float | None) -> tuple[np.ndarray, int]:
     """Spatially binned orientation maps of one scale, decimated to the bin-centre lattice.
 
     Returns ``(maps, g)``: ``maps[o, r, c]`` (planar, float32) is orientation ``o`` binned around
@@ -293,7 +298,7 @@ def binned_maps(gray: np.ndarray, grid: ScaleGrid, magnif: Optional[float]) -> t
     return maps, g
 
 
-def _window_weights(sigma_bins: Optional[float]) -> np.ndarray:
+def _window_weights(sigma_bins: float | None) -> np.ndarray:
     """(16,) Gaussian weight of each spatial bin (value at the bin centre), row-major."""
     if sigma_bins is None:
         return np.ones(NUM_SPATIAL_BINS * NUM_SPATIAL_BINS, np.float32)
@@ -336,7 +341,9 @@ def frame_contrast(histograms: np.ndarray, bin_size: int) -> np.ndarray:
     return mass
 
 
-def _low_contrast_frames(maps: np.ndarray, grid: ScaleGrid, g: int, weights: np.ndarray, threshold: float) -> np.ndarray:
+def _low_contrast_frames(
+    maps: np.ndarray, grid: ScaleGrid, g: int, weights: np.ndarray, threshold: float
+) -> np.ndarray:
     """(num_y, num_x) bool: frames of ``grid`` whose ``frame_contrast`` is below ``threshold``.
 
     A frame's contrast is the sum of its windowed histogram, so the 8 orientation maps are summed
@@ -354,7 +361,11 @@ def _low_contrast_frames(maps: np.ndarray, grid: ScaleGrid, g: int, weights: np.
         r = by + i * hb
         for j in range(NUM_SPATIAL_BINS):
             c = bx + j * hb
-            np.multiply(mass[r : r + (ny - 1) * hs + 1 : hs, c : c + (nx - 1) * hs + 1 : hs], weights[i * NUM_SPATIAL_BINS + j], out=term)
+            np.multiply(
+                mass[r : r + (ny - 1) * hs + 1 : hs, c : c + (nx - 1) * hs + 1 : hs],
+                weights[i * NUM_SPATIAL_BINS + j],
+                out=term,
+            )
             contrast += term
     contrast *= np.float32(s * s / ((NUM_SPATIAL_BINS - 1) * s + 1) ** 2)  # as frame_contrast
     return contrast < threshold
@@ -415,7 +426,7 @@ def iter_histogram_blocks(
             yield HistogramBlock(grid, row0, row1, histograms)
 
 
-def sift_normalize(histograms: np.ndarray, clamp: float = 0.2, out: Optional[np.ndarray] = None) -> np.ndarray:
+def sift_normalize(histograms: np.ndarray, clamp: float = 0.2, out: np.ndarray | None = None) -> np.ndarray:
     """SIFT normalisation of rows: L2, clamp at ``clamp``, L2 again (Lowe 2004). Zero rows stay zero."""
     if out is None:
         out = np.array(histograms, dtype=np.float32, copy=True)
@@ -429,7 +440,7 @@ def sift_normalize(histograms: np.ndarray, clamp: float = 0.2, out: Optional[np.
     return out
 
 
-def dense_sift(image: np.ndarray, cfg: Optional[DsiftConfig] = None) -> DenseSift:
+def dense_sift(image: np.ndarray, cfg: DsiftConfig | None = None) -> DenseSift:
     """Dense SIFT of a grey or BGR image: keypoints (N, 2) xy, scale index (N,), descriptors (N, 128).
 
     Scales come one after the other (in ``cfg.region_widths`` order), each row-major over its grid.

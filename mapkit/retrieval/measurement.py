@@ -33,6 +33,7 @@ EULER_SEQUENCE = "XYZ"
 # Written out instead of scipy's Rotation.from_euler/as_euler: those cost ~1.6 ms / 0.6 ms for 1,000
 # rotations on the target machine (scipy 1.17), more than a whole filter step's budget.
 
+
 def matrix_from_euler(euler: np.ndarray) -> np.ndarray:
     """``R = Rx(a) @ Ry(b) @ Rz(c)`` for Euler angles (..., 3) -> (..., 3, 3); scipy ``"XYZ"``."""
     e = np.asarray(euler, dtype=np.float64)
@@ -70,6 +71,7 @@ def euler_from_matrix(R: np.ndarray) -> np.ndarray:
 
 # --- the measurement ----------------------------------------------------------------------------------
 
+
 @dataclass(frozen=True, eq=False)
 class Measurement:
     """One noisy pose measurement ``z_t`` (section III-B), from a cluster of retrieved poses.
@@ -89,7 +91,7 @@ class Measurement:
     members: np.ndarray
 
     @classmethod
-    def from_pose(cls, translation: np.ndarray, rotation: np.ndarray) -> "Measurement":
+    def from_pose(cls, translation: np.ndarray, rotation: np.ndarray) -> Measurement:
         """A measurement from one pose (e.g. a GPS/INS fix or a synthetic test), no clustering."""
         R = np.asarray(rotation, dtype=np.float64)
         return cls(
@@ -257,16 +259,29 @@ class PoseHypotheses:
 
     def __post_init__(self):
         k = len(self.translations)
-        if k == 0 or self.translations.shape != (k, 3) or self.rotations.shape != (k, 3, 3) or self.weights.shape != (k,):
-            raise ValueError(f"hypotheses need (k, 3) translations, (k, 3, 3) rotations and (k,) weights with k >= 1, got "
-                             f"{self.translations.shape}, {self.rotations.shape}, {self.weights.shape}")
+        if (
+            k == 0
+            or self.translations.shape != (k, 3)
+            or self.rotations.shape != (k, 3, 3)
+            or self.weights.shape != (k,)
+        ):
+            raise ValueError(
+                f"hypotheses need (k, 3) translations, (k, 3, 3) rotations and (k,) weights with k >= 1, got "
+                f"{self.translations.shape}, {self.rotations.shape}, {self.weights.shape}"
+            )
 
     def __len__(self) -> int:
         return len(self.translations)
 
     @classmethod
-    def from_retrieval(cls, translations: np.ndarray, rotations: np.ndarray, distances: np.ndarray | None = None,
-                       weighting: HitWeighting = "uniform", scale: float = 1.0) -> "PoseHypotheses":
+    def from_retrieval(
+        cls,
+        translations: np.ndarray,
+        rotations: np.ndarray,
+        distances: np.ndarray | None = None,
+        weighting: HitWeighting = "uniform",
+        scale: float = 1.0,
+    ) -> PoseHypotheses:
         """From retrieved poses in rank order; rotations as matrices or ``wxyz`` quaternions.
         Hypotheses of weight 0 (padding, non-finite distance) are dropped."""
         X = np.asarray(translations, dtype=np.float64).reshape(-1, 3)
@@ -279,6 +294,6 @@ class PoseHypotheses:
         return cls(X[keep], _as_matrices(rotations, n)[keep], w[keep] / w[keep].sum())
 
     @classmethod
-    def from_measurement(cls, measurement: Measurement) -> "PoseHypotheses":
+    def from_measurement(cls, measurement: Measurement) -> PoseHypotheses:
         """One hypothesis: the measurement's pose."""
         return cls(measurement.translation[None].copy(), measurement.rotation[None].copy(), np.ones(1))

@@ -36,9 +36,10 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Literal, Optional
+from typing import Literal
 
 import numpy as np
 import scipy.linalg
@@ -48,7 +49,14 @@ from pydantic import Field, ValidationError
 from mapkit.core.config import MapkitConfig
 from mapkit.core.errors import ConfigError, InputError, InputWarning
 from mapkit.core.runio import atomic_path, atomic_write_text
-from mapkit.retrieval.dsift import DESCRIPTOR_DIM, DsiftConfig, StepTimer, iter_histogram_blocks, null_timer, prepare_image
+from mapkit.retrieval.dsift import (
+    DESCRIPTOR_DIM,
+    DsiftConfig,
+    StepTimer,
+    iter_histogram_blocks,
+    null_timer,
+    prepare_image,
+)
 
 Pooling = Literal["sum", "intra"]
 Whitening = Literal["full", "power", "shrinkage"]
@@ -67,8 +75,12 @@ class VladConfig(MapkitConfig):
         description="'sum': residuals summed per word, then L2 (the paper's text, Sec. III-B); 'intra': each word's block "
         "L2-normalised, then L2 (the authors' released code).",
     )
-    pca_dim: int = Field(4096, ge=1, description="Output dimension after PCA (MCVL Sec. IV-A: 4096); capped at n_train - 1.")
-    whiten: bool = Field(True, description="Whiten after PCA (MCVL Sec. III-B/IV-A: PCA, whitening, L2); False = plain PCA.")
+    pca_dim: int = Field(
+        4096, ge=1, description="Output dimension after PCA (MCVL Sec. IV-A: 4096); capped at n_train - 1."
+    )
+    whiten: bool = Field(
+        True, description="Whiten after PCA (MCVL Sec. III-B/IV-A: PCA, whitening, L2); False = plain PCA."
+    )
     whitening: Whitening = Field(
         "power",
         description="How principal components are scaled: 'full' = 1/sqrt(eigenvalue) (the paper's [33], sound when PCA learns on "
@@ -80,12 +92,18 @@ class VladConfig(MapkitConfig):
         "0.411/0.852/0.938, shrinkage 1 0.402/0.823/0.933.",
     )
     whitening_power: float = Field(
-        0.5, ge=0, le=1,
+        0.5,
+        ge=0,
+        le=1,
         description="alpha of 'power' whitening: 1 = full whitening, 0 = plain PCA. 0.5 halves the full scaling's range in log "
         "terms; on the tiny town 0.25 (recall@1 0.459) and plain PCA (0.455) edged it (0.411), within the +-0.034 standard error "
-        "of 209 queries, and 0.75 trailed (0.364): 0.5 keeps part of the damping of dominant components the paper whitens for.")
+        "of 209 queries, and 0.75 trailed (0.364): 0.5 keeps part of the damping of dominant components the paper whitens for.",
+    )
     whitening_shrinkage: float = Field(
-        1.0, ge=0, description="Fraction of the mean kept eigenvalue added to every eigenvalue by 'shrinkage' whitening.")
+        1.0,
+        ge=0,
+        description="Fraction of the mean kept eigenvalue added to every eigenvalue by 'shrinkage' whitening.",
+    )
     kmeans_max_descriptors: int = Field(
         200_000,
         ge=1,
@@ -99,7 +117,7 @@ class VladConfig(MapkitConfig):
 # --------------------------------------------------------------------------- RootSIFT
 
 
-def rootsift(desc: np.ndarray, out: Optional[np.ndarray] = None) -> np.ndarray:
+def rootsift(desc: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """RootSIFT of rows: L1-normalise, then elementwise square root (zero rows stay zero).
 
     Rows must be non-negative (SIFT histograms). The result rows have unit L2 norm.
@@ -161,7 +179,9 @@ class VladAccumulator:
             words = self.assign(desc)
         with timer("aggregate"):
             # one-hot (K x n) in CSC form, built without sorting: column i holds a 1 at row words[i]
-            onehot = scipy.sparse.csc_matrix((np.ones(n, np.float32), words, np.arange(n + 1)), shape=(len(self.sums), n))
+            onehot = scipy.sparse.csc_matrix(
+                (np.ones(n, np.float32), words, np.arange(n + 1)), shape=(len(self.sums), n)
+            )
             self.sums += onehot @ desc
             self.counts += np.bincount(words, minlength=len(self.counts))
 
@@ -199,7 +219,9 @@ def assign_nearest(desc: np.ndarray, centroids: np.ndarray) -> np.ndarray:
     """Index of the nearest centroid (L2) of every row of ``desc``."""
     acc = VladAccumulator(centroids)
     desc = np.asarray(desc, dtype=np.float32)
-    return np.concatenate([acc.assign(desc[a : a + _ASSIGN_BLOCK]) for a in range(0, len(desc), _ASSIGN_BLOCK)] or [np.zeros(0, np.int64)])
+    return np.concatenate(
+        [acc.assign(desc[a : a + _ASSIGN_BLOCK]) for a in range(0, len(desc), _ASSIGN_BLOCK)] or [np.zeros(0, np.int64)]
+    )
 
 
 # --------------------------------------------------------------------------- vocabulary
@@ -253,7 +275,14 @@ def kmeans(samples: np.ndarray, k: int, iterations: int = 25, seed: int = 0) -> 
     samples = np.ascontiguousarray(samples, dtype=np.float32)
     if len(samples) < k:
         raise InputError(None, f"k-means needs at least {k} descriptors (one per word), got {len(samples)}")
-    km = faiss.Kmeans(samples.shape[1], k, niter=iterations, seed=seed, verbose=False, max_points_per_centroid=math.ceil(len(samples) / k) + 1)
+    km = faiss.Kmeans(
+        samples.shape[1],
+        k,
+        niter=iterations,
+        seed=seed,
+        verbose=False,
+        max_points_per_centroid=math.ceil(len(samples) / k) + 1,
+    )
     km.train(samples)
     return np.ascontiguousarray(km.centroids, dtype=np.float32)
 
@@ -290,7 +319,9 @@ class PcaWhitening:
         return self.projection.shape[0]
 
     @classmethod
-    def fit(cls, vectors: np.ndarray, dim: int, whiten: bool = True, power: float = 1.0, shrinkage: float = 0.0) -> "PcaWhitening":
+    def fit(
+        cls, vectors: np.ndarray, dim: int, whiten: bool = True, power: float = 1.0, shrinkage: float = 0.0
+    ) -> PcaWhitening:
         """Learn from training vectors (n, D). ``dim`` is capped at the rank n - 1 with a warning.
 
         ``power`` (alpha) and ``shrinkage`` (beta) regularise the whitening (see
@@ -308,7 +339,11 @@ class PcaWhitening:
         n, big_d = x.shape
         cap = min(dim, n - 1, big_d)
         if cap < dim:
-            warnings.warn(f"PCA dimension capped from {dim} to {cap}: {n} training vectors of dimension {big_d}", InputWarning, stacklevel=2)
+            warnings.warn(
+                f"PCA dimension capped from {dim} to {cap}: {n} training vectors of dimension {big_d}",
+                InputWarning,
+                stacklevel=2,
+            )
         mean = x.mean(axis=0, dtype=np.float64).astype(np.float32)
         xc = x - mean
         if n <= big_d:
@@ -327,8 +362,11 @@ class PcaWhitening:
             evals, evecs = evals[keep], evecs[:, keep]
             directions = evecs.T.astype(np.float32)
         if len(evals) < cap:
-            warnings.warn(f"PCA dimension capped from {cap} to {len(evals)}: the training vectors span only that many dimensions",
-                          InputWarning, stacklevel=2)
+            warnings.warn(
+                f"PCA dimension capped from {cap} to {len(evals)}: the training vectors span only that many dimensions",
+                InputWarning,
+                stacklevel=2,
+            )
         # deterministic signs: the largest-magnitude coordinate of each direction is positive
         flip = np.sign(directions[np.arange(len(directions)), np.abs(directions).argmax(axis=1)])
         directions *= flip[:, None]
@@ -351,7 +389,7 @@ class PcaWhitening:
         y /= np.maximum(norm, _TINY)
         return y
 
-    def rewhitened(self, whiten: bool, power: float = 1.0, shrinkage: float = 0.0) -> tuple["PcaWhitening", np.ndarray]:
+    def rewhitened(self, whiten: bool, power: float = 1.0, shrinkage: float = 0.0) -> tuple[PcaWhitening, np.ndarray]:
         """The same PCA with another whitening, and the factor (d,) that takes this one's outputs to
         the new one's before the L2 (:meth:`rescale`). Exact: the whitening only scales the principal
         directions, and the L2 at the end removes the scale of a whole vector."""
@@ -359,9 +397,13 @@ class PcaWhitening:
             raise ConfigError(f"whitening power must be in [0, 1] and shrinkage >= 0, got {power} and {shrinkage}")
         if not whiten:
             power, shrinkage = 0.0, 0.0  # plain PCA: every scale 1, as whitening_scales gives for alpha = 0
-        ratio = whitening_scales(self.variances, power, shrinkage) / whitening_scales(self.variances, self.power, self.shrinkage)
+        ratio = whitening_scales(self.variances, power, shrinkage) / whitening_scales(
+            self.variances, self.power, self.shrinkage
+        )
         projection = (self.projection.astype(np.float64) * ratio[:, None]).astype(np.float32)
-        return PcaWhitening(self.mean, projection, self.variances, whiten, float(power), float(shrinkage), self.n_train), ratio
+        return PcaWhitening(
+            self.mean, projection, self.variances, whiten, float(power), float(shrinkage), self.n_train
+        ), ratio
 
     @staticmethod
     def rescale(vectors: np.ndarray, ratio: np.ndarray) -> np.ndarray:
@@ -371,22 +413,49 @@ class PcaWhitening:
         return y.astype(np.float32)
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"mean": self.mean, "projection": self.projection, "variances": self.variances, "whiten": np.array(self.whiten),
-                "power": np.array(self.power), "shrinkage": np.array(self.shrinkage), "n_train": np.array(self.n_train)}
+        return {
+            "mean": self.mean,
+            "projection": self.projection,
+            "variances": self.variances,
+            "whiten": np.array(self.whiten),
+            "power": np.array(self.power),
+            "shrinkage": np.array(self.shrinkage),
+            "n_train": np.array(self.n_train),
+        }
 
     @classmethod
-    def from_state_dict(cls, state: dict[str, np.ndarray]) -> "PcaWhitening":
+    def from_state_dict(cls, state: dict[str, np.ndarray]) -> PcaWhitening:
         """Arrays of ``state_dict``; encoders saved before the regularised whitening (no ``power``) were fully whitened."""
         whiten = bool(state["whiten"])
         power = float(state["power"]) if "power" in state else (1.0 if whiten else 0.0)
-        return cls(state["mean"], state["projection"], state["variances"], whiten, power,
-                   float(state.get("shrinkage", 0.0)), int(state.get("n_train", 0)))
+        return cls(
+            state["mean"],
+            state["projection"],
+            state["variances"],
+            whiten,
+            power,
+            float(state.get("shrinkage", 0.0)),
+            int(state.get("n_train", 0)),
+        )
 
     def describe(self) -> dict:
         """What the whitening is, for a manifest: dimension, training vectors, how directions were scaled."""
-        mode = "none" if not self.whiten else "full" if self.power == 1.0 and self.shrinkage == 0.0 else \
-            "shrinkage" if self.shrinkage > 0 else "power"
-        return {"dim": self.dim, "training_vectors": self.n_train, "whitening": mode, "power": self.power, "shrinkage": self.shrinkage}
+        mode = (
+            "none"
+            if not self.whiten
+            else "full"
+            if self.power == 1.0 and self.shrinkage == 0.0
+            else "shrinkage"
+            if self.shrinkage > 0
+            else "power"
+        )
+        return {
+            "dim": self.dim,
+            "training_vectors": self.n_train,
+            "whitening": mode,
+            "power": self.power,
+            "shrinkage": self.shrinkage,
+        }
 
 
 def whitening_scales(variances: np.ndarray, power: float = 1.0, shrinkage: float = 0.0) -> np.ndarray:
@@ -432,12 +501,19 @@ class VladEncoder:
     MODEL_FILE = "vlad_encoder.npz"
     CONFIG_FILE = "config.json"
 
-    def __init__(self, cfg: Optional[VladConfig] = None, vocabulary: Optional[np.ndarray] = None, pca: Optional[PcaWhitening] = None):
+    def __init__(
+        self,
+        cfg: VladConfig | None = None,
+        vocabulary: np.ndarray | None = None,
+        pca: PcaWhitening | None = None,
+    ):
         self.cfg = cfg or VladConfig()
         self.vocabulary = None if vocabulary is None else np.ascontiguousarray(vocabulary, dtype=np.float32)
         self.pca = pca
         if self.vocabulary is not None and self.vocabulary.shape != (self.cfg.num_words, DESCRIPTOR_DIM):
-            raise ConfigError(f"vocabulary has shape {self.vocabulary.shape}, config wants ({self.cfg.num_words}, {DESCRIPTOR_DIM})")
+            raise ConfigError(
+                f"vocabulary has shape {self.vocabulary.shape}, config wants ({self.cfg.num_words}, {DESCRIPTOR_DIM})"
+            )
 
     @property
     def raw_dim(self) -> int:
@@ -445,11 +521,13 @@ class VladEncoder:
 
     # ---- training
 
-    def fit(self, images: Iterable[np.ndarray], progress: bool = False) -> "VladEncoder":
+    def fit(self, images: Iterable[np.ndarray], progress: bool = False) -> VladEncoder:
         """Learn the vocabulary, then the PCA-whitening, from ``images`` (read twice: pass a list or
         another re-iterable collection, not a one-shot iterator)."""
         if iter(images) is images:
-            raise TypeError("fit reads the images twice: pass a list or another re-iterable collection, not an iterator")
+            raise TypeError(
+                "fit reads the images twice: pass a list or another re-iterable collection, not an iterator"
+            )
         self.fit_vocabulary(images, progress=progress)
         raw = np.stack([self.encode_raw(im) for im in _progress(images, progress, "VLAD")])
         self.fit_pca(raw)
@@ -468,12 +546,14 @@ class VladEncoder:
     def fit_pca(self, raw_vlads: np.ndarray) -> PcaWhitening:
         """PCA (+ whitening, as ``cfg.whitening`` says) on training VLADs (n, K * 128) from ``encode_raw``."""
         power, shrinkage = whitening_parameters(self.cfg)
-        self.pca = PcaWhitening.fit(raw_vlads, self.cfg.pca_dim, whiten=self.cfg.whiten, power=power, shrinkage=shrinkage)
+        self.pca = PcaWhitening.fit(
+            raw_vlads, self.cfg.pca_dim, whiten=self.cfg.whiten, power=power, shrinkage=shrinkage
+        )
         return self.pca
 
     # ---- encoding
 
-    def encode_raw(self, image: np.ndarray, timer: Optional[StepTimer] = None) -> np.ndarray:
+    def encode_raw(self, image: np.ndarray, timer: StepTimer | None = None) -> np.ndarray:
         """(K * 128,) float32 VLAD of an image, before PCA. ``timer`` collects per-step seconds."""
         if self.vocabulary is None:
             raise ConfigError("the encoder has no vocabulary: fit or load it first")
@@ -486,12 +566,15 @@ class VladEncoder:
                 desc = _rootsift_from_histograms(blk.histograms, self.cfg.dsift.clamp)
             acc.add(desc, timer)
         if acc.counts.sum() == 0:
-            raise InputError(None, f"image of shape {gray.shape} is smaller than the largest descriptor region "
-                             f"({max(self.cfg.dsift.region_widths)} px): no dense SIFT frame fits")
+            raise InputError(
+                None,
+                f"image of shape {gray.shape} is smaller than the largest descriptor region "
+                f"({max(self.cfg.dsift.region_widths)} px): no dense SIFT frame fits",
+            )
         with timer("pool"):
             return acc.result(self.cfg.pooling)
 
-    def encode(self, image: np.ndarray, timer: Optional[StepTimer] = None) -> np.ndarray:
+    def encode(self, image: np.ndarray, timer: StepTimer | None = None) -> np.ndarray:
         """(pca.dim,) float32 unit vector of an image: VLAD, PCA-whitening, L2."""
         if self.pca is None:
             raise ConfigError("the encoder has no PCA: fit or load it first")
@@ -509,14 +592,13 @@ class VladEncoder:
         arrays = {"vocabulary": self.vocabulary}
         if self.pca is not None:
             arrays.update({f"pca_{k}": v for k, v in self.pca.state_dict().items()})
-        with atomic_path(folder / self.MODEL_FILE) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, **arrays)
+        with atomic_path(folder / self.MODEL_FILE) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **arrays)
         atomic_write_text(folder / self.CONFIG_FILE, self.cfg.model_dump_json(indent=2) + "\n")
         return folder
 
     @classmethod
-    def load(cls, folder: str | Path) -> "VladEncoder":
+    def load(cls, folder: str | Path) -> VladEncoder:
         folder = Path(folder)
         cfg_path, model_path = folder / cls.CONFIG_FILE, folder / cls.MODEL_FILE
         for p in (cfg_path, model_path):

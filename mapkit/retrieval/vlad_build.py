@@ -24,7 +24,6 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -73,25 +72,45 @@ def _chosen_sessions(ws: Workspace, cfg: VladIndexConfig) -> tuple[list[str], li
     available = ws.sessions_with_images()
     unscaled = {n: u for n in available if (u := _pose_units(ws, n)) != "m"}
     if unscaled and cfg.database_sessions is None:
-        warnings.warn(f"{ws.sessions_dir}: session(s) {sorted(unscaled)} left out of the index: their image poses are in "
-                      "arbitrary units (camera-only, not georeferenced), and the index's radii and the localizer are in metres",
-                      InputWarning, stacklevel=3)
-    db_names = list(cfg.database_sessions) if cfg.database_sessions is not None else [n for n in available if n not in unscaled]
+        warnings.warn(
+            f"{ws.sessions_dir}: session(s) {sorted(unscaled)} left out of the index: their image poses are in "
+            "arbitrary units (camera-only, not georeferenced), and the index's radii and the localizer are in metres",
+            InputWarning,
+            stacklevel=3,
+        )
+    db_names = (
+        list(cfg.database_sessions)
+        if cfg.database_sessions is not None
+        else [n for n in available if n not in unscaled]
+    )
     train_names = list(cfg.train_sessions) if cfg.train_sessions is not None else db_names
     for field, names in (("database_sessions", db_names), ("train_sessions", train_names)):
         missing = [n for n in names if n not in available]
         if missing:
-            raise InputError(ws.sessions_dir, f"no image database for session(s) {missing}; the workspace has {available}", field=field)
+            raise InputError(
+                ws.sessions_dir,
+                f"no image database for session(s) {missing}; the workspace has {available}",
+                field=field,
+            )
         if len(set(names)) != len(names):
             raise ConfigError(f"{field} lists a session twice: {names}")
     bad = [n for n in db_names if n in unscaled]
     if bad:
-        raise InputError(ws.sessions_dir, f"session(s) {bad} have image poses in {unscaled[bad[0]]}; a database needs poses in "
-                         "metres (georeference them: GPS over a longer stretch)", field="database_sessions")
+        raise InputError(
+            ws.sessions_dir,
+            f"session(s) {bad} have image poses in {unscaled[bad[0]]}; a database needs poses in "
+            "metres (georeference them: GPS over a longer stretch)",
+            field="database_sessions",
+        )
     if not db_names:
-        why = (f"the image poses of {sorted(unscaled)} are in arbitrary units" if unscaled else
-               "a log without images, or `imagedb: false`, builds none")
-        raise InputError(ws.sessions_dir, f"no session with a metric image database to index ({why})", field="database_sessions")
+        why = (
+            f"the image poses of {sorted(unscaled)} are in arbitrary units"
+            if unscaled
+            else "a log without images, or `imagedb: false`, builds none"
+        )
+        raise InputError(
+            ws.sessions_dir, f"no session with a metric image database to index ({why})", field="database_sessions"
+        )
     if not train_names:
         raise ConfigError("train_sessions is empty: the vocabulary and PCA need training images")
     return db_names, train_names
@@ -107,43 +126,65 @@ def _pose_units(ws: Workspace, name: str) -> str:
         return "m"
 
 
-def _read_sessions(ws: Workspace, cfg: VladIndexConfig, db_names: list[str], train_names: list[str]) -> dict[str, SessionImages]:
+def _read_sessions(
+    ws: Workspace, cfg: VladIndexConfig, db_names: list[str], train_names: list[str]
+) -> dict[str, SessionImages]:
     """The image tables of the database and training sessions; fails before any bundle is written
     when there is nothing to index or to learn from."""
     sessions = {n: read_session_images(ws, n, cfg.prefer_aligned_poses) for n in dict.fromkeys(db_names + train_names)}
-    for n, s in sessions.items():  # an image table edited since its stage wrote it is refused, naming the stage to re-run
-        verify_file(s.csv_path, "mapkit align" if ws.align_dir in Path(s.csv_path).parents else f"mapkit build (session {n})")
+    for (
+        n,
+        s,
+    ) in sessions.items():  # an image table edited since its stage wrote it is refused, naming the stage to re-run
+        verify_file(
+            s.csv_path, "mapkit align" if ws.align_dir in Path(s.csv_path).parents else f"mapkit build (session {n})"
+        )
         if s.training_csv is not None and cfg.training_frames and n in train_names:
             verify_file(s.training_csv, f"mapkit build (session {n})")
     for field, names, least in (("database_sessions", db_names, 1), ("train_sessions", train_names, 2)):
         n_images = sum(len(sessions[n]) for n in names)
         if n_images < least:
-            raise InputError(ws.sessions_dir, f"{n_images} image(s) in the image databases of {field} {names} (at least {least} "
-                             "needed): rebuild them with a longer drive or a smaller imagedb.min_spacing_m, or name other sessions",
-                             field=field)
+            raise InputError(
+                ws.sessions_dir,
+                f"{n_images} image(s) in the image databases of {field} {names} (at least {least} "
+                "needed): rebuild them with a longer drive or a smaller imagedb.min_spacing_m, or name other sessions",
+                field=field,
+            )
     return sessions
 
 
-def _build_hash(cfg: VladIndexConfig, db_names: list[str], train_names: list[str], sessions: dict[str, SessionImages],
-                frame: Optional[LocalFrame]) -> str:
+def _build_hash(
+    cfg: VladIndexConfig,
+    db_names: list[str],
+    train_names: list[str],
+    sessions: dict[str, SessionImages],
+    frame: LocalFrame | None,
+) -> str:
     """What the bundle's vectors and index depend on: the config (not its query-time settings), the
     sessions and their tables (by checksum), the frame."""
     inputs = {n: [s.pose_source, sha256_file(s.csv_path)] for n, s in sessions.items()}
     for n in train_names:  # the training frames count only where they are learned from: bundles without any stay valid
         if cfg.training_frames and sessions[n].training_paths:
             inputs[n].append(sha256_file(sessions[n].training_csv))
-    return config_hash({"format_version": FORMAT_VERSION, "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
-                        "database": db_names, "train": train_names, "tables": inputs,
-                        "frame": None if frame is None else frame.to_dict()})
+    return config_hash(
+        {
+            "format_version": FORMAT_VERSION,
+            "config": cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS),
+            "database": db_names,
+            "train": train_names,
+            "tables": inputs,
+            "frame": None if frame is None else frame.to_dict(),
+        }
+    )
 
 
 def build_vlad_index(
     workspace: str | Path,
     out: str | Path | None = None,
     config: VladIndexConfig | str | Path | None = None,
-    overrides: Optional[dict] = None,
+    overrides: dict | None = None,
     progress: bool = True,
-    executor: Optional[Executor] = None,
+    executor: Executor | None = None,
     reuse: str | Path | None = None,
 ) -> Path:
     """Build the VLAD index bundle of ``workspace``; returns its folder (default ``WORKSPACE/indexes/vlad``).
@@ -179,8 +220,19 @@ def build_vlad_index(
         raise InputError(out, "exists and is not a VLAD index bundle (no manifest.json): refusing to replace it")
 
     with building(out) as tmp:
-        metrics, manifest = _build_into(tmp, ws, cfg, sessions, db_names, train_names, frame, build_hash, progress,
-                                        executor or get_executor(cfg.workers), None if reuse is None else Path(reuse))
+        metrics, manifest = _build_into(
+            tmp,
+            ws,
+            cfg,
+            sessions,
+            db_names,
+            train_names,
+            frame,
+            build_hash,
+            progress,
+            executor or get_executor(cfg.workers),
+            None if reuse is None else Path(reuse),
+        )
         timings = metrics.pop("timings")
         write_json(tmp / "metrics.json", metrics)
         write_timings(tmp, **timings, seconds_total=time.perf_counter() - t_start)
@@ -202,8 +254,14 @@ class _Learned:
     vocab_descriptors: int
 
 
-def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], train_names: list[str], executor: Executor,
-                   progress: bool, timings: dict[str, float]) -> _Learned:
+def _learn_encoder(
+    cfg: VladIndexConfig,
+    sessions: dict[str, SessionImages],
+    train_names: list[str],
+    executor: Executor,
+    progress: bool,
+    timings: dict[str, float],
+) -> _Learned:
     """1. vocabulary (k-means on descriptors drawn evenly from the vocabulary images), 2. PCA-whitening
     on the raw VLADs of the training images (every image of the training sessions, uniformly subsampled):
     their database images and, with ``training_frames``, the frames kept beside the database."""
@@ -234,12 +292,18 @@ def _learn_encoder(cfg: VladIndexConfig, sessions: dict[str, SessionImages], tra
     return _Learned(encoder, train_sel, raw_train, len(vocab_sel), n_descriptors)
 
 
-def _training_selection(cfg: VladIndexConfig, sessions: dict[str, SessionImages], train_names: list[str]) -> tuple[list[Ref], list[Ref]]:
+def _training_selection(
+    cfg: VladIndexConfig, sessions: dict[str, SessionImages], train_names: list[str]
+) -> tuple[list[Ref], list[Ref]]:
     """The PCA's training images and, among them, the vocabulary's: uniform, seeded subsets (the same on every run)."""
     extra = {n: len(sessions[n].training_paths) if cfg.training_frames else 0 for n in train_names}
     train_refs = [(n, i) for n in train_names for i in range(len(sessions[n]) + extra[n])]
     if len(train_refs) < 2:
-        raise InputError(sessions[train_names[0]].csv_path, f"{len(train_refs)} training image(s): the PCA needs at least 2", field="train_sessions")
+        raise InputError(
+            sessions[train_names[0]].csv_path,
+            f"{len(train_refs)} training image(s): the PCA needs at least 2",
+            field="train_sessions",
+        )
     train_sel = [train_refs[i] for i in _uniform_subset(len(train_refs), cfg.max_training_images, cfg.seed, 1)]
     return train_sel, [train_sel[i] for i in _uniform_subset(len(train_sel), cfg.max_vocabulary_images, cfg.seed, 2)]
 
@@ -247,24 +311,46 @@ def _training_selection(cfg: VladIndexConfig, sessions: dict[str, SessionImages]
 _WHITENING_FIELDS = ("whiten", "whitening", "whitening_power", "whitening_shrinkage")
 
 
-def _rewhiten(reuse: Path, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str], train_names: list[str],
-              frame: Optional[LocalFrame], timings: dict[str, float]) -> tuple[_Learned, np.ndarray]:
+def _rewhiten(
+    reuse: Path,
+    cfg: VladIndexConfig,
+    sessions: dict[str, SessionImages],
+    db_names: list[str],
+    train_names: list[str],
+    frame: LocalFrame | None,
+    timings: dict[str, float],
+) -> tuple[_Learned, np.ndarray]:
     """The encoder and database vectors of the bundle ``reuse`` under ``cfg``'s whitening (see ``build_vlad_index``)."""
     t0 = time.perf_counter()
-    manifest = read_manifest(reuse, "VLAD index", FORMAT_VERSION, (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"), True)
+    manifest = read_manifest(
+        reuse, "VLAD index", FORMAT_VERSION, (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"), True
+    )
     old = VladIndexConfig.model_validate(manifest["config"])
-    as_old = cfg.model_copy(update={"vlad": cfg.vlad.model_copy(update={k: getattr(old.vlad, k) for k in _WHITENING_FIELDS})})
-    if manifest.get("added_sessions") or manifest.get("build_hash") != _build_hash(as_old, db_names, train_names, sessions, frame):
-        raise InputError(reuse / MANIFEST, "was built from other sessions, images or settings than this index's (only the whitening "
-                         "may differ); build this one from the images instead", field="reuse")
+    as_old = cfg.model_copy(
+        update={"vlad": cfg.vlad.model_copy(update={k: getattr(old.vlad, k) for k in _WHITENING_FIELDS})}
+    )
+    if manifest.get("added_sessions") or manifest.get("build_hash") != _build_hash(
+        as_old, db_names, train_names, sessions, frame
+    ):
+        raise InputError(
+            reuse / MANIFEST,
+            "was built from other sessions, images or settings than this index's (only the whitening "
+            "may differ); build this one from the images instead",
+            field="reuse",
+        )
     encoder = VladEncoder.load(reuse / ENCODER_DIR)
     pca, ratio = encoder.pca.rewhitened(cfg.vlad.whiten, *whitening_parameters(cfg.vlad))
     vectors = read_vectors(reuse)  # read_manifest above checked every listed file's sha256
     train_sel, vocab_sel = _training_selection(cfg, sessions, train_names)
     old_metrics = reuse / "metrics.json"
     n_desc = json.loads(old_metrics.read_text()).get("vocabulary_descriptors", 0) if old_metrics.is_file() else 0
-    learned = _Learned(VladEncoder(cfg.vlad, encoder.vocabulary, pca), train_sel, np.zeros((0, encoder.raw_dim), np.float32),
-                       len(vocab_sel), n_desc)
+    learned = _Learned(
+        VladEncoder(cfg.vlad, encoder.vocabulary, pca),
+        train_sel,
+        np.zeros((0, encoder.raw_dim), np.float32),
+        len(vocab_sel),
+        n_desc,
+    )
     timings["rewhiten_s"] = time.perf_counter() - t0
     return learned, PcaWhitening.rescale(vectors, ratio)
 
@@ -275,33 +361,48 @@ def _warn_small_pca(cfg: VladIndexConfig, encoder: VladEncoder, n_train: int) ->
     dim = encoder.pca.dim
     if dim >= cfg.vlad.pca_dim:
         return
-    note = (f"PCA dimension capped from {cfg.vlad.pca_dim} to {dim}: {n_train} training images (name more train_sessions or "
-            "raise max_training_images for more)")
+    note = (
+        f"PCA dimension capped from {cfg.vlad.pca_dim} to {dim}: {n_train} training images (name more train_sessions or "
+        "raise max_training_images for more)"
+    )
     if cfg.vlad.whiten and cfg.vlad.whitening == "full" and dim >= n_train - 1:
-        note += ("; full whitening in n - 1 dimensions makes the n training images equidistant (a database learned on returns "
-                 "ties): vlad.whitening 'power' or 'shrinkage' regularises it")
+        note += (
+            "; full whitening in n - 1 dimensions makes the n training images equidistant (a database learned on returns "
+            "ties): vlad.whitening 'power' or 'shrinkage' regularises it"
+        )
     warnings.warn(note, InputWarning, stacklevel=5)  # the caller of build_vlad_index
 
 
-def _encode_database(learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str], executor: Executor,
-                     progress: bool, timings: dict[str, float]) -> tuple[np.ndarray, int, int]:
+def _encode_database(
+    learned: _Learned,
+    sessions: dict[str, SessionImages],
+    db_names: list[str],
+    executor: Executor,
+    progress: bool,
+    timings: dict[str, float],
+) -> tuple[np.ndarray, int, int]:
     """3. (N, D) vectors of the database images: the training raws projected again, the rest encoded.
     Returns (vectors, images reused from training, images encoded here)."""
     t0 = time.perf_counter()
     encoder = learned.encoder
     db_refs = [(n, i) for n in db_names for i in range(len(sessions[n]))]
     if not db_refs:
-        raise InputError(sessions[db_names[0]].csv_path, "the database sessions hold no image", field="database_sessions")
+        raise InputError(
+            sessions[db_names[0]].csv_path, "the database sessions hold no image", field="database_sessions"
+        )
     vectors = np.zeros((len(db_refs), encoder.pca.dim), np.float32)
     row_of_train = {r: k for k, r in enumerate(learned.train_sel)}
     reused = [j for j, r in enumerate(db_refs) if r in row_of_train]
     for a in range(0, len(reused), _PCA_BATCH):
         js = reused[a : a + _PCA_BATCH]
         vectors[js] = encoder.pca.transform(learned.raw_train[[row_of_train[db_refs[j]] for j in js]])
-    learned.raw_train = np.zeros((0, encoder.raw_dim), np.float32)  # up to 64 KiB per training image: freed before encoding more
+    learned.raw_train = np.zeros(
+        (0, encoder.raw_dim), np.float32
+    )  # up to 64 KiB per training image: freed before encoding more
     todo = [j for j, r in enumerate(db_refs) if r not in row_of_train]
-    vectors[todo] = encode_images(encoder, [_path_of(sessions, db_refs[j]) for j in todo], progress=progress, desc="database",
-                                  executor=executor)
+    vectors[todo] = encode_images(
+        encoder, [_path_of(sessions, db_refs[j]) for j in todo], progress=progress, desc="database", executor=executor
+    )
     timings["encode_database_s"] = time.perf_counter() - t0
     return vectors, len(reused), len(todo)
 
@@ -310,9 +411,19 @@ def _path_of(sessions: dict[str, SessionImages], ref: Ref) -> str:
     return str(sessions[ref[0]].path(ref[1]))
 
 
-def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str],
-                train_names: list[str], frame: Optional[LocalFrame], build_hash: str, progress: bool,
-                executor: Executor, reuse: Optional[Path] = None) -> tuple[dict, dict]:
+def _build_into(
+    tmp: Path,
+    ws: Workspace,
+    cfg: VladIndexConfig,
+    sessions: dict[str, SessionImages],
+    db_names: list[str],
+    train_names: list[str],
+    frame: LocalFrame | None,
+    build_hash: str,
+    progress: bool,
+    executor: Executor,
+    reuse: Path | None = None,
+) -> tuple[dict, dict]:
     """Learn, encode (or re-whiten ``reuse``'s) and write everything but metrics.json and the manifest into ``tmp``; returns both."""
     timings: dict[str, float] = {}
     if reuse is None:
@@ -350,11 +461,23 @@ def _build_into(tmp: Path, ws: Workspace, cfg: VladIndexConfig, sessions: dict[s
         # a run record, not a result: the caller moves it to timings.json
         "timings": {**timings, "images_encoded_per_s": n_encoded / encode_s if encode_s > 0 else None},
     }
-    return metrics, _manifest(ws, cfg, sessions, db_names, train_names, frame, build_hash, learned, index_info, len(vectors))
+    return metrics, _manifest(
+        ws, cfg, sessions, db_names, train_names, frame, build_hash, learned, index_info, len(vectors)
+    )
 
 
-def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionImages], db_names: list[str], train_names: list[str],
-              frame: Optional[LocalFrame], build_hash: str, learned: _Learned, index_info: dict, entries: int) -> dict:
+def _manifest(
+    ws: Workspace,
+    cfg: VladIndexConfig,
+    sessions: dict[str, SessionImages],
+    db_names: list[str],
+    train_names: list[str],
+    frame: LocalFrame | None,
+    build_hash: str,
+    learned: _Learned,
+    index_info: dict,
+    entries: int,
+) -> dict:
     """The bundle's manifest, without the file checksums (``write_manifest`` adds them)."""
     encoder = learned.encoder
     train_count = {n: sum(1 for r in learned.train_sel if r[0] == n) for n in train_names}
@@ -370,7 +493,9 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
         "train_sessions": train_names,
         # each database session's camera mount (base_from_camera), so that a localizer can put its
         # filter on the vehicle pose the way the database was recorded
-        "camera_mounts": {n: sessions[n].base_from_camera.tolist() for n in db_names if sessions[n].base_from_camera is not None},
+        "camera_mounts": {
+            n: sessions[n].base_from_camera.tolist() for n in db_names if sessions[n].base_from_camera is not None
+        },
         "sessions": {
             n: {
                 "images": len(s) if n in db_names else 0,
@@ -384,9 +509,14 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
             for n, s in sessions.items()
         },
         "added_sessions": [],
-        "vlad": {"raw_dim": encoder.raw_dim, "dim": encoder.pca.dim, "pca_dim_requested": cfg.vlad.pca_dim,
-                 "training_images": len(learned.train_sel), "vocabulary_images": learned.vocab_images,
-                 "pca": _pca_record(cfg, learned, sessions, db_names)},
+        "vlad": {
+            "raw_dim": encoder.raw_dim,
+            "dim": encoder.pca.dim,
+            "pca_dim_requested": cfg.vlad.pca_dim,
+            "training_images": len(learned.train_sel),
+            "vocabulary_images": learned.vocab_images,
+            "pca": _pca_record(cfg, learned, sessions, db_names),
+        },
         "index": index_info,
         "entries": entries,
     }
@@ -395,7 +525,9 @@ def _manifest(ws: Workspace, cfg: VladIndexConfig, sessions: dict[str, SessionIm
 # --------------------------------------------------------------------------- the index and the config
 
 
-def _pca_record(cfg: VladIndexConfig, learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str]) -> dict:
+def _pca_record(
+    cfg: VladIndexConfig, learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str]
+) -> dict:
     """What the PCA-whitening learned on and how it scales its directions, for the manifest and metrics:
     training vectors per session, how many of them are database images and how many training frames, output dimension (asked
     for and got: at most n - 1), whitening (mode, power, shrinkage)."""
@@ -408,9 +540,15 @@ def _pca_record(cfg: VladIndexConfig, learned: _Learned, sessions: dict[str, Ses
         training_frames += is_frame
         in_database += name in db_names and not is_frame
     n = len(learned.train_sel)
-    return {**pca.describe(), "training_vectors": n, "dim_requested": cfg.vlad.pca_dim, "rank_limited": pca.dim >= n - 1,
-            "training_sessions": per_session, "training_vectors_in_database": in_database,
-            "training_vectors_from_training_frames": training_frames}
+    return {
+        **pca.describe(),
+        "training_vectors": n,
+        "dim_requested": cfg.vlad.pca_dim,
+        "rank_limited": pca.dim >= n - 1,
+        "training_sessions": per_session,
+        "training_vectors_in_database": in_database,
+        "training_vectors_from_training_frames": training_frames,
+    }
 
 
 def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
@@ -421,12 +559,22 @@ def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
     if cfg.index == "flat":
         index = faiss.IndexFlatL2(d)
         index.add(vectors)
-        return index, {"kind": "flat", "faiss": "IndexFlatL2", "dim": d, "metric": "squared L2", "ntotal": int(index.ntotal)}
+        return index, {
+            "kind": "flat",
+            "faiss": "IndexFlatL2",
+            "dim": d,
+            "metric": "squared L2",
+            "ntotal": int(index.ntotal),
+        }
     ivf = cfg.ivf
     cap = max(1, n // 39)
     nlist = min(ivf.nlist or max(1, round(4 * math.sqrt(n))), cap)
     if ivf.nlist is not None and nlist < ivf.nlist:
-        warnings.warn(f"IVF nlist capped from {ivf.nlist} to {nlist}: {n} database vectors (39 per list)", InputWarning, stacklevel=3)
+        warnings.warn(
+            f"IVF nlist capped from {ivf.nlist} to {nlist}: {n} database vectors (39 per list)",
+            InputWarning,
+            stacklevel=3,
+        )
     quantizer = faiss.IndexFlatL2(d)
     if ivf.pq_m is None:
         index = faiss.IndexIVFFlat(quantizer, d, nlist, faiss.METRIC_L2)
@@ -435,15 +583,26 @@ def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
         if d % ivf.pq_m:
             raise ConfigError(f"ivf.pq_m = {ivf.pq_m} does not divide the vector dimension {d}")
         if n < 2**ivf.pq_bits:
-            raise ConfigError(f"IVF-PQ with {ivf.pq_bits}-bit codes needs at least {2 ** ivf.pq_bits} database vectors, got {n}")
+            raise ConfigError(
+                f"IVF-PQ with {ivf.pq_bits}-bit codes needs at least {2**ivf.pq_bits} database vectors, got {n}"
+            )
         index = faiss.IndexIVFPQ(quantizer, d, nlist, ivf.pq_m, ivf.pq_bits)
         kind = "IndexIVFPQ"
     train = vectors[_uniform_subset(n, ivf.max_training_vectors, cfg.seed, 3)]
     index.train(np.ascontiguousarray(train))
     index.add(vectors)
     index.nprobe = min(ivf.nprobe, nlist)
-    info = {"kind": "ivf", "faiss": kind, "dim": d, "metric": "squared L2", "ntotal": int(index.ntotal), "nlist": nlist,
-            "nprobe": int(index.nprobe), "pq_m": ivf.pq_m, "pq_bits": ivf.pq_bits if ivf.pq_m else None}
+    info = {
+        "kind": "ivf",
+        "faiss": kind,
+        "dim": d,
+        "metric": "squared L2",
+        "ntotal": int(index.ntotal),
+        "nlist": nlist,
+        "nprobe": int(index.nprobe),
+        "pq_m": ivf.pq_m,
+        "pq_bits": ivf.pq_bits if ivf.pq_m else None,
+    }
     return index, info
 
 

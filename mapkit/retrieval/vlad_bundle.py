@@ -13,7 +13,7 @@ import os
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -34,9 +34,26 @@ VECTORS_FILE = "vectors.npy"
 ENCODER_DIR = "encoder"
 
 DATABASE_COLUMNS = [
-    "entry_id", "session", "image_id", "stamp_ns", "camera", "image",
-    "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz",
-    "easting_m", "northing_m", "up_m", "lat_deg", "lon_deg", "alt_m", "utm_epsg",
+    "entry_id",
+    "session",
+    "image_id",
+    "stamp_ns",
+    "camera",
+    "image",
+    "x_m",
+    "y_m",
+    "z_m",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "easting_m",
+    "northing_m",
+    "up_m",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "utm_epsg",
 ]
 
 #: settings that change neither the vectors nor the index: a new value rewrites the config, no rebuild
@@ -49,32 +66,39 @@ _QUERY_TIME_FIELDS = {"workers", "top_k", "mean_shift_bandwidth_m"}
 class IvfConfig(MapkitConfig):
     """Inverted-file index for large databases (faiss IndexIVFFlat, or IndexIVFPQ with ``pq_m``)."""
 
-    nlist: Optional[int] = Field(
-        None, ge=1,
+    nlist: int | None = Field(
+        None,
+        ge=1,
         description="Inverted lists (coarse centroids). None = 4 sqrt(N) (faiss's guideline); always capped at N / 39 so that "
         "k-means has the 39 training points per list faiss asks for.",
     )
     nprobe: int = Field(
-        16, ge=1,
+        16,
+        ge=1,
         description="Lists visited per query. With 1024 lists over 100k 4096-D vectors on one core: 14 ms per query and recall@20 "
         "0.999 of the exact top-20, against 107 ms exact (bench/bench_vlad_query.py, road-clustered synthetic vectors).",
     )
-    pq_m: Optional[int] = Field(
-        None, ge=1,
+    pq_m: int | None = Field(
+        None,
+        ge=1,
         description="None = IVF-Flat (exact distances inside the visited lists). m = IVF-PQ with m sub-quantizers (m bytes per "
         "vector at 8 bits; must divide the dimension): for city scale, at a recall cost measured by the benchmark.",
     )
     pq_bits: int = Field(8, ge=1, le=16, description="Bits per PQ sub-quantizer code.")
     max_training_vectors: int = Field(
-        200_000, ge=1, description="The coarse quantizer (and PQ) train on a uniform sample of at most this many database vectors."
+        200_000,
+        ge=1,
+        description="The coarse quantizer (and PQ) train on a uniform sample of at most this many database vectors.",
     )
 
 
 class VladIndexConfig(MapkitConfig):
     """The VLAD retrieval index; defaults are MCVL's (Sec. III-B, IV-A) where the paper gives one."""
 
-    vlad: VladConfig = Field(default_factory=VladConfig, description="The observation encoder (see mapkit.retrieval.vlad).")
-    train_sessions: Optional[list[str]] = Field(
+    vlad: VladConfig = Field(
+        default_factory=VladConfig, description="The observation encoder (see mapkit.retrieval.vlad)."
+    )
+    train_sessions: list[str] | None = Field(
         None,
         description="Sessions whose images train the vocabulary and PCA. None = the database sessions (the PCA then learns on the "
         "database itself, which is why vlad.whitening is regularised by default). Sessions beyond the database give the PCA "
@@ -87,29 +111,38 @@ class VladIndexConfig(MapkitConfig):
         "the same drives add dimensions to the PCA, not new appearance, and gave no retrieval gain on the synthetic town. "
         "Drives of other days named in train_sessions are the other way.",
     )
-    database_sessions: Optional[list[str]] = Field(None, description="Sessions whose images are indexed. None = every session in the workspace.")
+    database_sessions: list[str] | None = Field(
+        None, description="Sessions whose images are indexed. None = every session in the workspace."
+    )
     prefer_aligned_poses: bool = Field(
         True,
         description="Take camera poses from WORKSPACE/align (multi-session refinement) for sessions it finished, else from the "
         "session's GPS-aligned imagedb.",
     )
-    index: Literal["flat", "ivf"] = Field("flat", description="'flat': exact search (faiss IndexFlatL2); 'ivf': approximate, for city scale.")
+    index: Literal["flat", "ivf"] = Field(
+        "flat", description="'flat': exact search (faiss IndexFlatL2); 'ivf': approximate, for city scale."
+    )
     ivf: IvfConfig = Field(default_factory=IvfConfig, description="IVF settings (used when index = 'ivf').")
     top_k: int = Field(20, ge=1, description="Images retrieved per query, R (MCVL Sec. IV-A: 20).")
-    mean_shift_bandwidth_m: float = Field(5.0, gt=0, description="Radius of the flat mean-shift kernel over retrieved translations (m; the authors' code: 5).")
+    mean_shift_bandwidth_m: float = Field(
+        5.0,
+        gt=0,
+        description="Radius of the flat mean-shift kernel over retrieved translations (m; the authors' code: 5).",
+    )
     max_training_images: int = Field(
-        5000, ge=2,
+        5000,
+        ge=2,
         description="PCA trains on a uniform sample of at most this many training images (not in the paper; the 4096-D PCA of "
         "Sec. IV-A needs more than 4096; fewer cap the dimension at n - 1).",
     )
     max_vocabulary_images: int = Field(
-        250, ge=1,
+        250,
+        ge=1,
         description="The k-means descriptor sample (vlad.kmeans_max_descriptors) is drawn evenly from at most this many of the "
         "training images (not in the paper; ~800 descriptors per image at the defaults).",
     )
     workers: int = Field(1, ge=1, description="Processes encoding images (1 = in this process).")
     seed: int = Field(0, description="Seed of the image subsamples.")
-
 
 
 # --------------------------------------------------------------------------- workspace sessions
@@ -126,8 +159,10 @@ class SessionImages:
     image_paths: list[Path]  # readable paths
     workspace_paths: list[str]  # relative to the workspace, as written to database.csv
     world_from_cam: np.ndarray  # (n, 4, 4) local ENU
-    base_from_camera: Optional[np.ndarray] = None  # (4, 4) the camera's mount, when the build recorded it
-    training_csv: Optional[Path] = None  # the frames the database skipped, kept for encoder training (imagedb.training_frames)
+    base_from_camera: np.ndarray | None = None  # (4, 4) the camera's mount, when the build recorded it
+    training_csv: Path | None = (
+        None  # the frames the database skipped, kept for encoder training (imagedb.training_frames)
+    )
 
     def __len__(self) -> int:
         """Database images (training frames not counted)."""
@@ -164,11 +199,20 @@ def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool =
     paths = [csv_path.parent / p for p in table["image"]]
     rel = [os.path.relpath(p, ws.root) for p in paths]
     training_csv = ws.session(name).training_csv
-    return SessionImages(name, source, csv_path, table, paths, rel, images_world_from_cam(table), read_camera_mount(ws, name),
-                         training_csv if training_csv.is_file() else None)
+    return SessionImages(
+        name,
+        source,
+        csv_path,
+        table,
+        paths,
+        rel,
+        images_world_from_cam(table),
+        read_camera_mount(ws, name),
+        training_csv if training_csv.is_file() else None,
+    )
 
 
-def read_camera_mount(workspace: str | Path, name: str) -> Optional[np.ndarray]:
+def read_camera_mount(workspace: str | Path, name: str) -> np.ndarray | None:
     """Session ``name``'s camera mount ``base_from_camera`` (4, 4) as ``mapkit build`` recorded it;
     None for image databases built before it was recorded."""
     path = Workspace(workspace).session(name).camera_mount
@@ -186,7 +230,7 @@ def read_camera_mount(workspace: str | Path, name: str) -> Optional[np.ndarray]:
 # --------------------------------------------------------------------------- the database table
 
 
-def _write_index(folder: Path, index, vectors: Optional[np.ndarray]) -> None:
+def _write_index(folder: Path, index, vectors: np.ndarray | None) -> None:
     import faiss
 
     faiss.write_index(index, str(folder / INDEX_FILE))
@@ -207,7 +251,9 @@ def read_vectors(folder: Path, index=None) -> np.ndarray:
     return index.reconstruct_n(0, index.ntotal)
 
 
-def _database_table(names: list[str], sessions: dict[str, SessionImages], frame: Optional[LocalFrame], first_id: int = 0) -> dict[str, Any]:
+def _database_table(
+    names: list[str], sessions: dict[str, SessionImages], frame: LocalFrame | None, first_id: int = 0
+) -> dict[str, Any]:
     cols: dict[str, list] = {c: [] for c in DATABASE_COLUMNS}
     T_all = []
     for n in names:
@@ -237,17 +283,39 @@ def _database_table(names: list[str], sessions: dict[str, SessionImages], frame:
         "stamp_ns": np.asarray(cols["stamp_ns"], np.int64),
         "camera": np.asarray(cols["camera"], dtype=object),
         "image": np.asarray(cols["image"], dtype=object),
-        "x_m": xyz[:, 0], "y_m": xyz[:, 1], "z_m": xyz[:, 2],
-        "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
-        "easting_m": utm[:, 0], "northing_m": utm[:, 1], "up_m": utm[:, 2],
-        "lat_deg": np.asarray(lat, np.float64), "lon_deg": np.asarray(lon, np.float64), "alt_m": np.asarray(alt, np.float64),
+        "x_m": xyz[:, 0],
+        "y_m": xyz[:, 1],
+        "z_m": xyz[:, 2],
+        "qw": q[:, 0],
+        "qx": q[:, 1],
+        "qy": q[:, 2],
+        "qz": q[:, 3],
+        "easting_m": utm[:, 0],
+        "northing_m": utm[:, 1],
+        "up_m": utm[:, 2],
+        "lat_deg": np.asarray(lat, np.float64),
+        "lon_deg": np.asarray(lon, np.float64),
+        "alt_m": np.asarray(alt, np.float64),
         "utm_epsg": np.full(n_all, epsg, np.int64),
     }
     return out
 
 
-_FORMATS = {"x_m": ".4f", "y_m": ".4f", "z_m": ".4f", "qw": ".9f", "qx": ".9f", "qy": ".9f", "qz": ".9f",
-            "easting_m": ".4f", "northing_m": ".4f", "up_m": ".4f", "lat_deg": ".9f", "lon_deg": ".9f", "alt_m": ".4f"}
+_FORMATS = {
+    "x_m": ".4f",
+    "y_m": ".4f",
+    "z_m": ".4f",
+    "qw": ".9f",
+    "qx": ".9f",
+    "qy": ".9f",
+    "qz": ".9f",
+    "easting_m": ".4f",
+    "northing_m": ".4f",
+    "up_m": ".4f",
+    "lat_deg": ".9f",
+    "lon_deg": ".9f",
+    "alt_m": ".4f",
+}
 
 
 def _write_database_csv(path: Path, table: dict[str, Any]) -> None:
@@ -284,8 +352,10 @@ def _concat_tables(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> dict[s
     return {c: np.concatenate([np.asarray(a[c]), np.asarray(b[c])]) for c in DATABASE_COLUMNS}
 
 
-
-
 def _same_frame(a: LocalFrame, b: LocalFrame) -> bool:
-    return (abs(a.lat0_deg - b.lat0_deg) < 1e-9 and abs(a.lon0_deg - b.lon0_deg) < 1e-9 and abs(a.alt0_m - b.alt0_m) < 1e-4
-            and int(a.utm_epsg) == int(b.utm_epsg))
+    return (
+        abs(a.lat0_deg - b.lat0_deg) < 1e-9
+        and abs(a.lon0_deg - b.lon0_deg) < 1e-9
+        and abs(a.alt0_m - b.alt0_m) < 1e-4
+        and int(a.utm_epsg) == int(b.utm_epsg)
+    )

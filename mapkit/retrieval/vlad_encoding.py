@@ -10,8 +10,8 @@ whichever executor ran.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Optional, Sequence
 
 import cv2
 import numpy as np
@@ -62,8 +62,15 @@ def _map(fn, items: Sequence, encoder: VladEncoder, executor: Executor, progress
     """
     shared = VladEncoder(encoder.cfg, encoder.vocabulary)
     try:
-        yield from executor.map(fn, items, shared=shared, progress=progress and len(items) > 0, desc=desc, unit="img",
-                                label=lambda item: str(item[0] if isinstance(item, tuple) else item))
+        yield from executor.map(
+            fn,
+            items,
+            shared=shared,
+            progress=progress and len(items) > 0,
+            desc=desc,
+            unit="img",
+            label=lambda item: str(item[0] if isinstance(item, tuple) else item),
+        )
     except TaskError as exc:
         if isinstance(exc.cause, InputError) and exc.cause.path is not None:
             raise exc.cause from None
@@ -92,8 +99,12 @@ def _file_key(path: str | Path) -> str:
 
 
 def encode_images(
-    encoder: VladEncoder, paths: Sequence[str | Path], workers: int = 1, progress: bool = False, desc: str = "encode",
-    executor: Optional[Executor] = None,
+    encoder: VladEncoder,
+    paths: Sequence[str | Path],
+    workers: int = 1,
+    progress: bool = False,
+    desc: str = "encode",
+    executor: Executor | None = None,
 ) -> np.ndarray:
     """(n, D) float32 encodings of image files (dense RootSIFT, VLAD, PCA-whitening, L2).
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
 
 import numpy as np
 
@@ -75,7 +75,15 @@ class Hits:
 class VladIndex:
     """A loaded VLAD bundle: encode images, retrieve the top-k database images, measure the pose."""
 
-    def __init__(self, path: Path, manifest: dict, cfg: VladIndexConfig, encoder: VladEncoder, index, database: dict[str, np.ndarray]):
+    def __init__(
+        self,
+        path: Path,
+        manifest: dict,
+        cfg: VladIndexConfig,
+        encoder: VladEncoder,
+        index,
+        database: dict[str, np.ndarray],
+    ):
         self.path = Path(path)
         self.manifest = manifest
         self.cfg = cfg
@@ -86,7 +94,7 @@ class VladIndex:
         self.frame = LocalFrame.from_dict(manifest["frame"]) if manifest.get("frame") else None
 
     @property
-    def base_from_camera(self) -> Optional[np.ndarray]:
+    def base_from_camera(self) -> np.ndarray | None:
         """The database camera's mount (4, 4) when every database session recorded the same one; else None."""
         mounts = [np.asarray(m, np.float64) for m in (self.manifest.get("camera_mounts") or {}).values()]
         if not mounts or len(mounts) < len(self.manifest.get("database_sessions", [])):
@@ -98,14 +106,19 @@ class VladIndex:
     # ---- loading
 
     @classmethod
-    def load(cls, path: str | Path, verify: bool = True) -> "VladIndex":
+    def load(cls, path: str | Path, verify: bool = True) -> VladIndex:
         """Read a bundle; checks its format version and (``verify``) every file's sha256."""
         import faiss
 
         path = Path(path)
         mpath = path / MANIFEST
-        manifest = read_manifest(path, "VLAD index", FORMAT_VERSION,
-                                 (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"), verify)
+        manifest = read_manifest(
+            path,
+            "VLAD index",
+            FORMAT_VERSION,
+            (DATABASE_CSV, INDEX_FILE, f"{ENCODER_DIR}/{VladEncoder.MODEL_FILE}"),
+            verify,
+        )
         try:
             cfg = VladIndexConfig.model_validate(manifest["config"])
         except Exception as exc:  # noqa: BLE001 - pydantic's error, reported against the manifest
@@ -117,7 +130,11 @@ class VladIndex:
         database = read_database_csv(path / DATABASE_CSV)
         n = len(database["entry_id"])
         if index.ntotal != n or not np.array_equal(database["entry_id"], np.arange(n)):
-            raise InputError(path / DATABASE_CSV, f"{n} rows (ids 0..n-1 expected) for an index of {index.ntotal} vectors", field="entry_id")
+            raise InputError(
+                path / DATABASE_CSV,
+                f"{n} rows (ids 0..n-1 expected) for an index of {index.ntotal} vectors",
+                field="entry_id",
+            )
         if encoder.pca is None or index.d != encoder.pca.dim:
             raise InputError(path / INDEX_FILE, f"index dimension {index.d} differs from the encoder's", field="dim")
         return cls(path, manifest, cfg, encoder, index, database)
@@ -157,7 +174,7 @@ class VladIndex:
             return a.astype(np.float32)
         return self.encode(a)
 
-    def search(self, vectors: np.ndarray, k: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
+    def search(self, vectors: np.ndarray, k: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Batch search: (distances (n, k) squared L2, ids (n, k)); ids -1 pad when k > len(self)."""
         q = np.ascontiguousarray(np.atleast_2d(vectors), np.float32)
         if q.shape[1] != self.dim:
@@ -181,8 +198,14 @@ class VladIndex:
             stamps_ns=db["stamp_ns"][ids],
         )
 
-    def encode_files(self, paths: Sequence[str | Path], progress: bool = False, desc: str = "encode",
-                     cache_dir: str | Path | None = None, workers: Optional[int] = None) -> np.ndarray:
+    def encode_files(
+        self,
+        paths: Sequence[str | Path],
+        progress: bool = False,
+        desc: str = "encode",
+        cache_dir: str | Path | None = None,
+        workers: int | None = None,
+    ) -> np.ndarray:
         """(n, D) encodings of image files, on the run's executor (see :func:`encode_images`).
 
         With ``cache_dir``, encodings are kept in ``encodings-<build hash>.npz`` there, keyed by
@@ -214,12 +237,12 @@ class VladIndex:
             out[i] = have[k]
         return out
 
-    def query(self, image_or_vector, k: Optional[int] = None) -> Hits:
+    def query(self, image_or_vector, k: int | None = None) -> Hits:
         """The top ``k`` (default ``top_k`` = 20) database images of an image, image file or encoded vector."""
         dist, ids = self.search(self._as_vector(image_or_vector)[None], k)
         return self.hits(ids[0], dist[0])
 
-    def measurement(self, image_or_vector, k: Optional[int] = None) -> Measurement:
+    def measurement(self, image_or_vector, k: int | None = None) -> Measurement:
         """MCVL's measurement z_t (Sec. III-B): mean shift over the top-k translations, the largest
         cluster's mean translation and rotation (camera pose, local ENU)."""
         return self.measurement_from_hits(self.query(image_or_vector, k))
@@ -227,7 +250,9 @@ class VladIndex:
     def measurement_from_hits(self, hits: Hits) -> Measurement:
         if len(hits) == 0:
             raise InputError(self.path, "the index is empty: no measurement")
-        return mean_shift_measurement(hits.translations, hits.world_from_cam[:, :3, :3], bandwidth=self.cfg.mean_shift_bandwidth_m)
+        return mean_shift_measurement(
+            hits.translations, hits.world_from_cam[:, :3, :3], bandwidth=self.cfg.mean_shift_bandwidth_m
+        )
 
     def vectors(self) -> np.ndarray:
         """(N, D) float32 database vectors: from vectors.npy, or reconstructed exactly from a flat index."""
@@ -235,7 +260,9 @@ class VladIndex:
 
     # ---- growing
 
-    def add_session(self, workspace: str | Path, name: str, progress: bool = False, executor: Optional[Executor] = None) -> "VladIndex":
+    def add_session(
+        self, workspace: str | Path, name: str, progress: bool = False, executor: Executor | None = None
+    ) -> VladIndex:
         """Append a session's images (encoded with this bundle's vocabulary and PCA, not relearned).
 
         The grown bundle is written beside this one and renamed into place; ``self`` then holds it.
@@ -246,11 +273,19 @@ class VladIndex:
             raise InputError(mpath, f"session {name!r} is already in the index", field="sessions")
         frame = ws.frame()
         mine = self.manifest.get("frame")
-        if (frame is None) != (mine is None) or (frame is not None and not _same_frame(frame, LocalFrame.from_dict(mine))):
-            raise InputError(ws.origin, "the workspace's local frame differs from the bundle's: its poses would not match", field="frame")
+        if (frame is None) != (mine is None) or (
+            frame is not None and not _same_frame(frame, LocalFrame.from_dict(mine))
+        ):
+            raise InputError(
+                ws.origin,
+                "the workspace's local frame differs from the bundle's: its poses would not match",
+                field="frame",
+            )
         s = read_session_images(ws, name, self.cfg.prefer_aligned_poses)
         t0 = time.perf_counter()
-        new = encode_images(self.encoder, [str(p) for p in s.image_paths], self.cfg.workers, progress, f"add {name}", executor)
+        new = encode_images(
+            self.encoder, [str(p) for p in s.image_paths], self.cfg.workers, progress, f"add {name}", executor
+        )
         encode_s = time.perf_counter() - t0
         table = _database_table([name], {name: s}, frame, first_id=len(self))
         database = _concat_tables(self.database, table)
@@ -265,24 +300,39 @@ class VladIndex:
                 rel = p.relative_to(self.path)
                 if p.is_file() and rel.as_posix() not in rewritten:
                     copy_file(p, tmp / rel)
-            vectors = np.concatenate([np.load(self.path / VECTORS_FILE), new]) if (self.path / VECTORS_FILE).is_file() else None
+            vectors = (
+                np.concatenate([np.load(self.path / VECTORS_FILE), new])
+                if (self.path / VECTORS_FILE).is_file()
+                else None
+            )
             _write_index(tmp, index, vectors)
             _write_database_csv(tmp / DATABASE_CSV, database)
-            metrics = json.loads((self.path / "metrics.json").read_text()) if (self.path / "metrics.json").is_file() else {}
+            metrics = (
+                json.loads((self.path / "metrics.json").read_text()) if (self.path / "metrics.json").is_file() else {}
+            )
             metrics.setdefault("added_sessions", {})[name] = {"images": len(s)}
             write_json(tmp / "metrics.json", metrics)
             timings = read_timings(self.path)
-            timings.setdefault("added_sessions", {})[name] = {"encode_s": encode_s,
-                                                              "images_encoded_per_s": len(s) / encode_s if encode_s > 0 else None}
+            timings.setdefault("added_sessions", {})[name] = {
+                "encode_s": encode_s,
+                "images_encoded_per_s": len(s) / encode_s if encode_s > 0 else None,
+            }
             write_timings(tmp, **timings)
             manifest = json.loads(json.dumps(self.manifest))
             manifest["sessions"][name] = {
-                "images": len(s), "training_images": 0, "database": True, "training": False, "pose_source": s.pose_source,
-                "images_csv": os.path.relpath(s.csv_path, ws.root), "images_csv_sha256": sha256_file(s.csv_path),
+                "images": len(s),
+                "training_images": 0,
+                "database": True,
+                "training": False,
+                "pose_source": s.pose_source,
+                "images_csv": os.path.relpath(s.csv_path, ws.root),
+                "images_csv_sha256": sha256_file(s.csv_path),
                 "source_workspace": str(ws.root.resolve()),
             }
             manifest["database_sessions"] = list(manifest["database_sessions"]) + [name]
-            manifest["added_sessions"] = list(manifest.get("added_sessions", [])) + [{"session": name, "images": len(s)}]
+            manifest["added_sessions"] = list(manifest.get("added_sessions", [])) + [
+                {"session": name, "images": len(s)}
+            ]
             manifest["entries"] = int(index.ntotal)
             manifest["index"]["ntotal"] = int(index.ntotal)
             write_manifest(tmp, manifest)

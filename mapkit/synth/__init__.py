@@ -75,8 +75,20 @@ from mapkit.synth.sensors import GpsErrorModel, extrinsics, intrinsics
 from mapkit.synth.world import RoadGraph, read_ply, read_roads
 
 __all__ = [
-    "synthesize", "load_world", "gt_poses", "camera_poses", "World", "load_config", "SynthConfig", "PRESETS",
-    "GpsErrorModel", "extrinsics", "intrinsics", "session_log", "session_logs", "street_coverage",
+    "synthesize",
+    "load_world",
+    "gt_poses",
+    "camera_poses",
+    "World",
+    "load_config",
+    "SynthConfig",
+    "PRESETS",
+    "GpsErrorModel",
+    "extrinsics",
+    "intrinsics",
+    "session_log",
+    "session_logs",
+    "street_coverage",
 ]
 
 #: how a session's log is written; part of the output hashes, so that a town written with bare
@@ -117,19 +129,45 @@ def session_logs(path: str | Path) -> list[Path]:
     return [found[k] for k in sorted(found)]
 
 
-def _world_hash(cfg: SynthConfig, trajectory_digest: Optional[str]) -> str:
-    return config_hash({"format_version": FORMAT_VERSION, "seed": cfg.seed, "origin": cfg.origin, "town": cfg.town,
-                        "trajectory": trajectory_digest})
+def _world_hash(cfg: SynthConfig, trajectory_digest: str | None) -> str:
+    return config_hash(
+        {
+            "format_version": FORMAT_VERSION,
+            "seed": cfg.seed,
+            "origin": cfg.origin,
+            "town": cfg.town,
+            "trajectory": trajectory_digest,
+        }
+    )
 
 
 def _session_hash(cfg: SynthConfig, world_hash: str, index: int, session) -> str:
-    return config_hash({"world": world_hash, "index": index, "session": session, "camera": cfg.camera, "lidar": cfg.lidar,
-                        "gps": cfg.gps, "imu": cfg.imu, "motion": cfg.motion, "log": SESSION_LOG_LAYOUT})
+    return config_hash(
+        {
+            "world": world_hash,
+            "index": index,
+            "session": session,
+            "camera": cfg.camera,
+            "lidar": cfg.lidar,
+            "gps": cfg.gps,
+            "imu": cfg.imu,
+            "motion": cfg.motion,
+            "log": SESSION_LOG_LAYOUT,
+        }
+    )
 
 
-def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[int] = None, config: Optional[Path] = None,
-               trajectory: Optional[Path] = None, overwrite: bool = False, *, progress: Optional[bool] = None,
-               overrides: Optional[dict] = None) -> Path:
+def synthesize(
+    preset: str = "tiny",
+    out: Path = Path("synth"),
+    seed: int | None = None,
+    config: Path | None = None,
+    trajectory: Path | None = None,
+    overwrite: bool = False,
+    *,
+    progress: bool | None = None,
+    overrides: dict | None = None,
+) -> Path:
     """Generate a town and its sessions into ``out``; returns ``out``.
 
     ``trajectory`` (TUM, KITTI poses or RobotCar INS CSV) makes the first session follow it, with
@@ -147,7 +185,9 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
         external = read_external_trajectory(Path(trajectory))
         digest = sha256_file(trajectory)
         if not cfg.sessions:
-            raise ConfigError(f"--trajectory needs at least one session in `sessions` to drive it (preset {preset!r} has none)")
+            raise ConfigError(
+                f"--trajectory needs at least one session in `sessions` to drive it (preset {preset!r} has none)"
+            )
         if external.origin_latlon is not None:
             lat, lon = external.origin_latlon
             cfg = cfg.model_copy(update={"origin": cfg.origin.model_copy(update={"lat_deg": lat, "lon_deg": lon})})
@@ -165,10 +205,16 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
         timing["session_planning_s"] = time.perf_counter() - t
         world_dir = out / "world"
         manifest = {
-            "format_version": FORMAT_VERSION, "generator": "mapkit.synth", "preset": cfg.preset, "seed": cfg.seed,
-            "config_hash": full_hash, "world_hash": w_hash, "frame": "world = ENU at the origin (origin.json)",
+            "format_version": FORMAT_VERSION,
+            "generator": "mapkit.synth",
+            "preset": cfg.preset,
+            "seed": cfg.seed,
+            "config_hash": full_hash,
+            "world_hash": w_hash,
+            "frame": "world = ENU at the origin (origin.json)",
             "base_link": "x forward, y left, z up; on the road surface under the rear axle centre",
-            "anchor": town.anchor, "world": town.summary(),
+            "anchor": town.anchor,
+            "world": town.summary(),
             "sessions": [p.manifest_entry(cfg) for p in plans],
         }
         if external is not None:
@@ -219,19 +265,29 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
     lid_s = sum(t["lidar_render_s"] for t in session_timings.values())
     order = {p.name: k for k, p in enumerate(plans)}
     metrics = {
-        "format_version": FORMAT_VERSION, "preset": cfg.preset, "seed": cfg.seed, "config_hash": full_hash,
+        "format_version": FORMAT_VERSION,
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "config_hash": full_hash,
         "world": town.summary(),
         "rendered": {
-            "sessions": len(rendered), "camera_frames": cam, "lidar_scans": lid,
-            "image_size": [cfg.camera.width, cfg.camera.height], "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
+            "sessions": len(rendered),
+            "camera_frames": cam,
+            "lidar_scans": lid,
+            "image_size": [cfg.camera.width, cfg.camera.height],
+            "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
         },
         "sessions": sorted(session_metrics, key=lambda m: order.get(m.get("name"), 0)),
         "streets": street_coverage(plans),
     }
     write_json(out / "metrics.json", metrics)
-    write_timings(out, **{k: round(v, 3) for k, v in timing.items()},
-                  camera_frames_per_s=round(cam / cam_s, 3) if cam_s else None,
-                  lidar_scans_per_s=round(lid / lid_s, 3) if lid_s else None, sessions=session_timings)
+    write_timings(
+        out,
+        **{k: round(v, 3) for k, v in timing.items()},
+        camera_frames_per_s=round(cam / cam_s, 3) if cam_s else None,
+        lidar_scans_per_s=round(lid / lid_s, 3) if lid_s else None,
+        sessions=session_timings,
+    )
     mark_done(out, full_hash)
     return out
 
@@ -239,7 +295,7 @@ def synthesize(preset: str = "tiny", out: Path = Path("synth"), seed: Optional[i
 _WORKER: dict = {}
 
 
-def _worker_init(cfg_json: str, trajectory: Optional[str], progress: Optional[bool], nthreads: int) -> None:
+def _worker_init(cfg_json: str, trajectory: str | None, progress: bool | None, nthreads: int) -> None:
     from mapkit.synth.sessions import plan_sessions, read_external_trajectory
     from mapkit.synth.world import build_town
 
@@ -253,8 +309,14 @@ def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
     from mapkit.synth.sessions import write_session
 
     with single_thread_blas():
-        m = write_session(_WORKER["town"], _WORKER["plans"][index], _WORKER["cfg"], Path(out), _WORKER["progress"],
-                          nthreads=_WORKER["nthreads"])
+        m = write_session(
+            _WORKER["town"],
+            _WORKER["plans"][index],
+            _WORKER["cfg"],
+            Path(out),
+            _WORKER["progress"],
+            nthreads=_WORKER["nthreads"],
+        )
     mark_done(Path(marker), cfg_hash, metrics={k: v for k, v in m.items() if k != "timings_s"})
     return m
 
@@ -292,8 +354,12 @@ def _render_parallel(cfg: SynthConfig, trajectory, out: Path, todo: list, worker
     # (demo preset, the sessions' render seconds in timings.json); a test drive's 4 Hz camera doubles its cost
     lidar_rate = cfg.lidar.rate_hz if cfg.lidar.enabled else 0.0
     todo = sorted(todo, key=lambda x: -x[0].drive.duration_s * (0.17 * x[0].camera_rate_hz + 0.02 * lidar_rate + 0.1))
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
-                             initargs=(cfg.model_dump_json(), None if trajectory is None else str(trajectory), progress, nthreads)) as ex:
+    with ProcessPoolExecutor(
+        workers,
+        mp_context=ctx,
+        initializer=_worker_init,
+        initargs=(cfg.model_dump_json(), None if trajectory is None else str(trajectory), progress, nthreads),
+    ) as ex:
         futures = [ex.submit(_worker_render, p.index, str(out), h, str(marker)) for p, h, marker in todo]
         return [f.result() for f in futures]
 
@@ -312,8 +378,16 @@ def _pictures(out: Path, town, plans) -> None:
 
     from mapkit.synth.pictures import draw_contact_sheet, draw_map
 
-    routes = [{"name": p.name, "role": p.config.role, "condition": p.conditions.label, "time": p.local_start.strftime("%H:%M"),
-               "xy": p.drive.world_from_base[::10, :2, 3]} for p in plans]
+    routes = [
+        {
+            "name": p.name,
+            "role": p.config.role,
+            "condition": p.conditions.label,
+            "time": p.local_start.strftime("%H:%M"),
+            "xy": p.drive.world_from_base[::10, :2, 3],
+        }
+        for p in plans
+    ]
     draw_map(town, routes, out / "pictures" / "map.png")
     frames = []
     for p in plans:
@@ -324,11 +398,15 @@ def _pictures(out: Path, town, plans) -> None:
                 caption = f"{p.name} ({p.config.role}) {p.local_start:%Y-%m-%d %H:%M}\n{p.conditions.label}, {p.conditions.season}"
                 frames.append((caption, img[..., ::-1]))
     if frames:
-        draw_contact_sheet(frames, out / "pictures" / "contact_sheet.png",
-                           f"The same place (star on the map) seen by {len(frames)} sessions")
+        draw_contact_sheet(
+            frames,
+            out / "pictures" / "contact_sheet.png",
+            f"The same place (star on the map) seen by {len(frames)} sessions",
+        )
 
 
 # --- reading back ----------------------------------------------------------------------------------
+
 
 @dataclass
 class World:
@@ -386,8 +464,10 @@ class World:
             ext_xy = _external_xy(read_external_trajectory(Path(self.sessions[0]["trajectory_file"])))
         town = build_town(self.config, ext_xy)
         if town.geometry.n_triangles != len(self.mesh_arrays[1]):
-            raise MapkitError(f"{self.path}: regenerating the town gave {town.geometry.n_triangles} triangles, "
-                              f"mesh.ply has {len(self.mesh_arrays[1])} (another mapkit version?)")
+            raise MapkitError(
+                f"{self.path}: regenerating the town gave {town.geometry.n_triangles} triangles, "
+                f"mesh.ply has {len(self.mesh_arrays[1])} (another mapkit version?)"
+            )
         return town
 
     def renderer(self, session: str, town=None):
@@ -406,10 +486,22 @@ class World:
         from mapkit.synth.appearance import make_conditions
 
         s = self.session(session)
-        sc = next(x for x in self.config.sessions if x.name == session) if any(x.name == session for x in self.config.sessions) else None
+        sc = (
+            next(x for x in self.config.sessions if x.name == session)
+            if any(x.name == session for x in self.config.sessions)
+            else None
+        )
         local = dt.datetime.fromisoformat(s["start_time_local"])
-        return make_conditions(s["weather"], local, self.frame.lat0_deg, self.frame.lon0_deg, exposure_ev=s["exposure_ev"],
-                               white_balance_k=s["white_balance_k"], season=sc.season if sc else None, seed=int(s["seed"]))
+        return make_conditions(
+            s["weather"],
+            local,
+            self.frame.lat0_deg,
+            self.frame.lon0_deg,
+            exposure_ev=s["exposure_ev"],
+            white_balance_k=s["white_balance_k"],
+            season=sc.season if sc else None,
+            seed=int(s["seed"]),
+        )
 
 
 def load_world(path: str | Path) -> World:

@@ -34,6 +34,7 @@ def dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 # --- sun -----------------------------------------------------------------------------------------
 
+
 def sun_position(utc: dt.datetime, lat_deg: float, lon_deg: float) -> tuple[float, float]:
     """(azimuth from north, clockwise; elevation) in degrees, to about 0.1 deg (NOAA low precision)."""
     jd = utc.timestamp() / 86400.0 + 2440587.5
@@ -54,8 +55,17 @@ def sun_position(utc: dt.datetime, lat_deg: float, lon_deg: float) -> tuple[floa
 
 def season_of(date: dt.date, lat_deg: float) -> str:
     m = date.month if lat_deg >= 0 else (date.month + 5) % 12 + 1
-    return {12: "winter", 1: "winter", 2: "winter", 3: "spring", 4: "spring", 5: "spring",
-            6: "summer", 7: "summer", 8: "summer"}.get(m, "autumn")
+    return {
+        12: "winter",
+        1: "winter",
+        2: "winter",
+        3: "spring",
+        4: "spring",
+        5: "spring",
+        6: "summer",
+        7: "summer",
+        8: "summer",
+    }.get(m, "autumn")
 
 
 def kelvin_rgb(k: float) -> np.ndarray:
@@ -89,7 +99,12 @@ FOLIAGE = {
     "autumn": ((0.6, 0.28, 0.05), (0.5, 0.12, 0.04)),
     "winter": ((0.22, 0.18, 0.15), (0.28, 0.24, 0.2)),
 }
-GRASS = {"spring": (0.2, 0.38, 0.1), "summer": (0.16, 0.3, 0.07), "autumn": (0.3, 0.3, 0.1), "winter": (0.22, 0.22, 0.14)}
+GRASS = {
+    "spring": (0.2, 0.38, 0.1),
+    "summer": (0.16, 0.3, 0.07),
+    "autumn": (0.3, 0.3, 0.1),
+    "winter": (0.22, 0.22, 0.14),
+}
 
 
 @dataclass
@@ -127,10 +142,16 @@ class Conditions:
 
     def to_dict(self) -> dict:
         return {
-            "weather": self.weather, "season": self.season, "label": self.label,
-            "sun_elevation_deg": round(self.sun_elevation_deg, 2), "sun_azimuth_deg": round(self.sun_azimuth_deg, 2),
-            "fog_visibility_m": self.fog_visibility_m, "wetness": self.wetness, "snow_cover": self.snow_cover,
-            "night": round(self.night, 3), "exposure_gain": round(self.exposure_gain, 4),
+            "weather": self.weather,
+            "season": self.season,
+            "label": self.label,
+            "sun_elevation_deg": round(self.sun_elevation_deg, 2),
+            "sun_azimuth_deg": round(self.sun_azimuth_deg, 2),
+            "fog_visibility_m": self.fog_visibility_m,
+            "wetness": self.wetness,
+            "snow_cover": self.snow_cover,
+            "night": round(self.night, 3),
+            "exposure_gain": round(self.exposure_gain, 4),
             "white_balance_gains": [round(float(x), 4) for x in self.white_balance],
         }
 
@@ -140,9 +161,17 @@ def smoothstep(e0: float, e1: float, x):
     return t * t * (3 - 2 * t)
 
 
-def make_conditions(weather: str, local_time: dt.datetime, lat_deg: float, lon_deg: float, *,
-                    exposure_ev: float = 0.0, white_balance_k: float = 5500.0, season: str | None = None,
-                    seed: int = 0) -> Conditions:
+def make_conditions(
+    weather: str,
+    local_time: dt.datetime,
+    lat_deg: float,
+    lon_deg: float,
+    *,
+    exposure_ev: float = 0.0,
+    white_balance_k: float = 5500.0,
+    season: str | None = None,
+    seed: int = 0,
+) -> Conditions:
     """Conditions of a session at ``local_time`` (timezone-aware) under ``weather``."""
     az, el = sun_position(local_time.astimezone(dt.timezone.utc), lat_deg, lon_deg)
     season = season or season_of(local_time.date(), lat_deg)
@@ -168,7 +197,9 @@ def make_conditions(weather: str, local_time: dt.datetime, lat_deg: float, lon_d
     zen = zen + night_zen * night
     hor = hor + night_hor * night
     ambient = (0.55 * zen + 0.45 * hor) * (1.2 if weather in ("sunny", "clear") else 1.0)
-    cloud_rgb = (f32(0.9, 0.9, 0.92) * (0.5 + 0.5 * sun_vis) * (1 - 0.3 * rain)) * level + f32(0.02, 0.018, 0.016) * night
+    cloud_rgb = (f32(0.9, 0.9, 0.92) * (0.5 + 0.5 * sun_vis) * (1 - 0.3 * rain)) * level + f32(
+        0.02, 0.018, 0.016
+    ) * night
     fog_rgb = (0.7 * hor + 0.1 * ambient).astype(F32)
     if snow:
         grass = f32(0.85, 0.86, 0.9)
@@ -176,20 +207,42 @@ def make_conditions(weather: str, local_time: dt.datetime, lat_deg: float, lon_d
         grass = f32(*GRASS[season])
     key = float(np.dot(sun_rgb * 0.6 + ambient, f32(0.2126, 0.7152, 0.0722)))
     # auto exposure toward mid-grey, limited by the sensor's maximum gain (night stays dark)
-    gain = min(1.6 / max(key, 1e-6), MAX_GAIN) * 2.0 ** exposure_ev
+    gain = min(1.6 / max(key, 1e-6), MAX_GAIN) * 2.0**exposure_ev
     wb = 1.0 / kelvin_rgb(white_balance_k) * kelvin_rgb(5500.0)
     label = ("night" if night > 0.5 else ("dusk" if day < 0.8 else "day")) + f"-{weather}"
     return Conditions(
-        weather=weather, season=season, sun_dir_enu=sun_dir, sun_elevation_deg=el, sun_azimuth_deg=az,
-        sun_rgb=sun_rgb, sky_zenith_rgb=zen.astype(F32), sky_horizon_rgb=hor.astype(F32), ambient_rgb=ambient.astype(F32),
-        cloud_cover=cloud, cloud_rgb=cloud_rgb.astype(F32), fog_visibility_m=fog_vis, fog_rgb=fog_rgb,
-        wetness=wet, rain=rain, snow_cover=snow, snowfall=snowfall, night=night,
-        lamp_rgb=f32(1.0, 0.72, 0.42) * 1.0, foliage_rgb=FOLIAGE[season], grass_rgb=grass,
-        exposure_gain=gain, white_balance=wb.astype(F32), read_noise=0.0025, shot_noise=0.0015, seed=seed, label=label,
+        weather=weather,
+        season=season,
+        sun_dir_enu=sun_dir,
+        sun_elevation_deg=el,
+        sun_azimuth_deg=az,
+        sun_rgb=sun_rgb,
+        sky_zenith_rgb=zen.astype(F32),
+        sky_horizon_rgb=hor.astype(F32),
+        ambient_rgb=ambient.astype(F32),
+        cloud_cover=cloud,
+        cloud_rgb=cloud_rgb.astype(F32),
+        fog_visibility_m=fog_vis,
+        fog_rgb=fog_rgb,
+        wetness=wet,
+        rain=rain,
+        snow_cover=snow,
+        snowfall=snowfall,
+        night=night,
+        lamp_rgb=f32(1.0, 0.72, 0.42) * 1.0,
+        foliage_rgb=FOLIAGE[season],
+        grass_rgb=grass,
+        exposure_gain=gain,
+        white_balance=wb.astype(F32),
+        read_noise=0.0025,
+        shot_noise=0.0015,
+        seed=seed,
+        label=label,
     )
 
 
 # --- noise ---------------------------------------------------------------------------------------
+
 
 def hash01(*ints: np.ndarray) -> np.ndarray:
     """A float32 in [0, 1) per element from integer lattice coordinates (a murmur-style mix)."""
@@ -220,7 +273,9 @@ class NoiseTexture:
             i0 = np.floor(ix).astype(int)
             f = ix - i0
             f = f * f * (3 - 2 * f)
-            lat = hash01(*np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij"), np.full((cells, cells), seed + cells)).astype(np.float64)
+            lat = hash01(
+                *np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij"), np.full((cells, cells), seed + cells)
+            ).astype(np.float64)
             a = lat[i0 % cells][:, i0 % cells]
             b = lat[(i0 + 1) % cells][:, i0 % cells]
             c = lat[i0 % cells][:, (i0 + 1) % cells]
@@ -283,6 +338,7 @@ def hsv_rgb(h: np.ndarray, s: float, v: float) -> np.ndarray:
 
 # --- sky -----------------------------------------------------------------------------------------
 
+
 def sky_radiance(d: np.ndarray, c: Conditions) -> np.ndarray:
     """Radiance (n, 3) of the sky seen along unit directions ``d`` (n, 3) (ENU)."""
     z = np.clip(d[:, 2], -0.2, 1.0)
@@ -309,6 +365,7 @@ def sky_radiance(d: np.ndarray, c: Conditions) -> np.ndarray:
 
 # --- materials ------------------------------------------------------------------------------------
 
+
 @dataclass
 class TriangleTable:
     """Per-triangle attributes the shading looks up by triangle id."""
@@ -325,7 +382,16 @@ class Hits:
     __slots__ = ("p", "n", "d", "rng_m", "footprint", "mat", "tri", "table", "_uv", "_aux")
 
     def __init__(self, p, n, d, rng_m, footprint, mat, tri, table: TriangleTable):
-        self.p, self.n, self.d, self.rng_m, self.footprint, self.mat, self.tri, self.table = p, n, d, rng_m, footprint, mat, tri, table
+        self.p, self.n, self.d, self.rng_m, self.footprint, self.mat, self.tri, self.table = (
+            p,
+            n,
+            d,
+            rng_m,
+            footprint,
+            mat,
+            tri,
+            table,
+        )
         self._uv = None
         self._aux = None
 
@@ -358,9 +424,18 @@ class Hits:
     def __len__(self) -> int:
         return len(self.tri)
 
-    def take(self, idx) -> "Hits":
+    def take(self, idx) -> Hits:
         """The hits at ``idx`` (a slice gives views, without copying)."""
-        return Hits(self.p[idx], self.n[idx], self.d[idx], self.rng_m[idx], self.footprint[idx], self.mat[idx], self.tri[idx], self.table)
+        return Hits(
+            self.p[idx],
+            self.n[idx],
+            self.d[idx],
+            self.rng_m[idx],
+            self.footprint[idx],
+            self.mat[idx],
+            self.tri[idx],
+            self.table,
+        )
 
     def material_slices(self) -> list[tuple[int, slice]]:
         """(material, slice) runs; hits are sorted by material (the renderer sorts them)."""
@@ -398,7 +473,13 @@ def _road(h: Hits, c: Conditions | None):
     alat = np.abs(lat)
     park_edge = w - 2.3
     near_end = (s < s0 + 5.2) | (s > s1 - 5.2)
-    cand = (alat < 0.3) | (np.abs(alat - park_edge) < 0.3) | (alat > park_edge) | near_end | ((kind == 2) & (np.abs(alat - 3.6) < 0.3))
+    cand = (
+        (alat < 0.3)
+        | (np.abs(alat - park_edge) < 0.3)
+        | (alat > park_edge)
+        | near_end
+        | ((kind == 2) & (np.abs(alat - 3.6) < 0.3))
+    )
     ci = np.flatnonzero(cand)
     paint = np.zeros(len(u), F32)
     yellow = np.zeros(len(u), F32)
@@ -412,11 +493,16 @@ def _road(h: Hits, c: Conditions | None):
         m = np.maximum(m, line_mask(al - pe, 0.06, f) * (k >= 1))
         ticks = (al > pe) & (al < ww - 0.2) & (k >= 1)
         m = np.maximum(m, ticks * line_mask(((sl - c0 + 3.0) % 6.0) - 3.0, 0.06, f))
-        zebra_zone = (((xa > 0) & (sl > c0 + 0.5) & (sl < c0 + 3.5)) | ((xb > 0) & (sl < c1 - 0.5) & (sl > c1 - 3.5))) & (al < ww - 0.4)
+        zebra_zone = (
+            ((xa > 0) & (sl > c0 + 0.5) & (sl < c0 + 3.5)) | ((xb > 0) & (sl < c1 - 0.5) & (sl > c1 - 3.5))
+        ) & (al < ww - 0.4)
         fz = fade(1.0, f)
         stripes = (((la + 50.0) % 1.0) < 0.5) * fz + 0.5 * (1 - fz)
         m = np.maximum(m, zebra_zone * stripes)
-        stop = (((xb > 0) & (la < 0) & (sl > c1 - 5.1) & (sl < c1 - 4.6)) | ((xa > 0) & (la > 0) & (sl > c0 + 4.6) & (sl < c0 + 5.1))) & (al < pe)
+        stop = (
+            ((xb > 0) & (la < 0) & (sl > c1 - 5.1) & (sl < c1 - 4.6))
+            | ((xa > 0) & (la > 0) & (sl > c0 + 4.6) & (sl < c0 + 5.1))
+        ) & (al < pe)
         m = np.maximum(m, stop.astype(F32))
         paint[ci] = m * (0.7 + 0.6 * grain[ci] * patch[ci])
         yellow[ci] = np.maximum(line_mask(la - 0.13, 0.06, f), line_mask(la + 0.13, 0.06, f)) * (k == 2)
@@ -441,7 +527,10 @@ def _sidewalk(h: Hits):
     tile = 1.2
     i, j = np.floor(s / tile), np.floor(lat / tile)
     var = 0.9 + 0.2 * hash01(i, j, np.full_like(i, 3)) * fade(tile, h.footprint)
-    grout = np.maximum(line_mask(((s + 0.6) % tile) - 0.6, 0.02, h.footprint), line_mask(((lat + 60.6) % tile) - 0.6, 0.02, h.footprint))
+    grout = np.maximum(
+        line_mask(((s + 0.6) % tile) - 0.6, 0.02, h.footprint),
+        line_mask(((lat + 60.6) % tile) - 0.6, 0.02, h.footprint),
+    )
     v = 0.42 * var * (1 - 0.4 * grout) * (0.9 + 0.2 * NOISE(h.p[:, 0], h.p[:, 1], 6.0))
     return (v[:, None] * f32(1.0, 0.98, 0.95)[None]).astype(F32)
 
@@ -567,7 +656,7 @@ def _roof(h: Hits):
 
 
 def _foliage(h: Hits, c: Conditions | None):
-    f1, f2 = (FOLIAGE["summer"] if c is None else c.foliage_rgb)
+    f1, f2 = FOLIAGE["summer"] if c is None else c.foliage_rgb
     th = h.aux[:, 0]
     mixw = th[:, None]
     col = f32(*f1)[None] * (1 - mixw) + f32(*f2)[None] * mixw
@@ -585,7 +674,13 @@ def _sign(h: Hits):
     r = np.sqrt(x * x + y * y)
     t = h.aux[:, 0].astype(int)
     col = np.tile(f32(0.45, 0.45, 0.45), (len(x), 1))
-    red, white, blue, yellow, black = f32(0.7, 0.05, 0.04), f32(0.85, 0.85, 0.85), f32(0.04, 0.15, 0.6), f32(0.85, 0.65, 0.05), f32(0.03, 0.03, 0.03)
+    red, white, blue, yellow, black = (
+        f32(0.7, 0.05, 0.04),
+        f32(0.85, 0.85, 0.85),
+        f32(0.04, 0.15, 0.6),
+        f32(0.85, 0.65, 0.05),
+        f32(0.03, 0.03, 0.03),
+    )
     disc = r < 0.33
     s0 = (t == 0) & disc
     col[s0] = red
@@ -595,7 +690,9 @@ def _sign(h: Hits):
     col[s1 & (r > 0.25)] = red
     s2 = (t == 2) & disc
     col[s2] = blue
-    col[s2 & (((np.abs(x) < 0.05) & (y < 0.12) & (y > -0.2)) | ((y > 0.05) & (y < 0.22) & (np.abs(x) < (0.22 - y))))] = white
+    col[
+        s2 & (((np.abs(x) < 0.05) & (y < 0.12) & (y > -0.2)) | ((y > 0.05) & (y < 0.22) & (np.abs(x) < (0.22 - y))))
+    ] = white
     dia = np.abs(x) + np.abs(y)
     s3 = (t == 3) & (dia < 0.34)
     col[s3] = yellow
@@ -615,12 +712,31 @@ def _fence(h: Hits):
 
 
 FLAT = {
-    Mat.CURB: (0.5, 0.5, 0.48), Mat.TRUNK: (0.22, 0.16, 0.1), Mat.POLE: (0.3, 0.31, 0.32), Mat.LAMP: (0.35, 0.35, 0.33),
-    Mat.CAR_GLASS: (0.03, 0.035, 0.04), Mat.CAR_WHEEL: (0.03, 0.03, 0.03), Mat.HILL: (0.12, 0.2, 0.1),
+    Mat.CURB: (0.5, 0.5, 0.48),
+    Mat.TRUNK: (0.22, 0.16, 0.1),
+    Mat.POLE: (0.3, 0.31, 0.32),
+    Mat.LAMP: (0.35, 0.35, 0.33),
+    Mat.CAR_GLASS: (0.03, 0.035, 0.04),
+    Mat.CAR_WHEEL: (0.03, 0.03, 0.03),
+    Mat.HILL: (0.12, 0.2, 0.1),
 }
-REFLECTIVITY = {Mat.GROUND: 0.25, Mat.JUNCTION: 0.08, Mat.SIDEWALK: 0.3, Mat.CURB: 0.35, Mat.ROOF: 0.2, Mat.TRUNK: 0.3,
-                Mat.FOLIAGE: 0.4, Mat.POLE: 0.45, Mat.LAMP: 0.5, Mat.SIGN: 0.95, Mat.FENCE: 0.3, Mat.CAR_BODY: 0.35,
-                Mat.CAR_GLASS: 0.05, Mat.CAR_WHEEL: 0.05, Mat.HILL: 0.2}
+REFLECTIVITY = {
+    Mat.GROUND: 0.25,
+    Mat.JUNCTION: 0.08,
+    Mat.SIDEWALK: 0.3,
+    Mat.CURB: 0.35,
+    Mat.ROOF: 0.2,
+    Mat.TRUNK: 0.3,
+    Mat.FOLIAGE: 0.4,
+    Mat.POLE: 0.45,
+    Mat.LAMP: 0.5,
+    Mat.SIGN: 0.95,
+    Mat.FENCE: 0.3,
+    Mat.CAR_BODY: 0.35,
+    Mat.CAR_GLASS: 0.05,
+    Mat.CAR_WHEEL: 0.05,
+    Mat.HILL: 0.2,
+}
 
 
 def surface(h: Hits, styles: np.ndarray, c: Conditions | None) -> Surface:
@@ -703,6 +819,7 @@ def surface(h: Hits, styles: np.ndarray, c: Conditions | None) -> Surface:
 
 
 # --- camera response -------------------------------------------------------------------------------
+
 
 def tone_lut(size: int = 4096, max_in: float = 4.0) -> np.ndarray:
     """8-bit sRGB of linear values 0..max_in: a soft-shoulder curve, then the sRGB transfer."""

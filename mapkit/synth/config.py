@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import datetime as dt
 from pathlib import Path
-from typing import Any, Literal, Optional
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -93,7 +93,7 @@ class CameraConfig(_Model):
     # rate (its camera_rate_hz, else rate_hz) stays its image rate, the rate of its image database
     # and queries (manifest: image_rate_hz), so that maps can be made from every image, as DSO
     # consumes video (semi-dense paper Sec. 3), while retrieval sees the same images as without it.
-    record_rate_hz: Optional[float] = Field(None, gt=0)
+    record_rate_hz: float | None = Field(None, gt=0)
     compression: Literal["jpeg", "png", "raw"] = "jpeg"
     mount: MountConfig = MountConfig(xyz_m=(1.6, 0.0, 1.55), rpy_deg=(0.0, 3.0, 0.0))
 
@@ -148,19 +148,19 @@ class MotionConfig(_Model):
 class SessionConfig(_Model):
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
     role: Literal["train", "test"] = "train"
-    date: Optional[dt.date] = None
+    date: dt.date | None = None
     time: str = Field("12:00", pattern=r"^([01]\d|2[0-3]):[0-5]\d$")
     weather: Weather = "clear"
     length_m: float = Field(500.0, gt=0)
-    max_duration_s: Optional[float] = Field(None, gt=0)
+    max_duration_s: float | None = Field(None, gt=0)
     speed_mps: float = Field(10.0, gt=0, le=40)
     lane_offset_m: float = Field(0.0, ge=-1.0, le=1.0)
     exposure_ev: float = Field(0.0, ge=-6, le=6)
     white_balance_k: float = Field(5500.0, ge=1500, le=12000)
-    camera_rate_hz: Optional[float] = Field(None, gt=0)
-    season: Optional[Season] = None
-    trajectory: Optional[Path] = None
-    follow: Optional[str] = None
+    camera_rate_hz: float | None = Field(None, gt=0)
+    season: Season | None = None
+    trajectory: Path | None = None
+    follow: str | None = None
     follow_shift_m: float = 0.0
 
 
@@ -175,7 +175,7 @@ class SessionPlanConfig(_Model):
     lane_offset_m: tuple[float, float] = (-0.5, 0.5)
     night_exposure_ev: float = -1.0
     dates: tuple[dt.date, ...] = ()
-    camera_rate_hz: Optional[float] = None
+    camera_rate_hz: float | None = None
     # Planned routes (listed or drawn) steer away from roads earlier sessions planned: a road driven
     # n times is exp(-new_road_weight * n) times less likely at each junction. 0 = independent walks.
     new_road_weight: float = Field(0.0, ge=0)
@@ -206,7 +206,7 @@ class SynthConfig(_Model):
         return v
 
     @model_validator(mode="after")
-    def _some_session(self) -> "SynthConfig":
+    def _some_session(self) -> SynthConfig:
         if not self.sessions and self.session_plan.n_train == 0:
             raise ValueError("no sessions: give `sessions` or `session_plan.n_train`")
         seen: set[str] = set()
@@ -218,6 +218,7 @@ class SynthConfig(_Model):
 
 
 # --- loading --------------------------------------------------------------------------------------
+
 
 def presets_dir() -> Path:
     """The folder of the synth presets: ``configs/synth`` of the source tree, installed with the package."""
@@ -238,8 +239,6 @@ def _read_yaml(path: Path, what: str) -> dict:
     return data
 
 
-
-
 def validate(data: dict, source: str) -> SynthConfig:
     try:
         return SynthConfig.model_validate(data)
@@ -256,8 +255,12 @@ def preset_dict(name: str) -> dict:
     return _read_yaml(preset_path("synth", name), f"preset {name!r}:")
 
 
-def load_config(preset: str = "tiny", config: Optional[Path] = None, seed: Optional[int] = None,
-                overrides: Optional[dict[str, Any]] = None) -> SynthConfig:
+def load_config(
+    preset: str = "tiny",
+    config: Path | None = None,
+    seed: int | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> SynthConfig:
     """The resolved configuration: preset, then the user's YAML, then ``overrides``, then ``seed``."""
     data = preset_dict(preset)
     data["preset"] = preset
@@ -271,7 +274,9 @@ def load_config(preset: str = "tiny", config: Optional[Path] = None, seed: Optio
         data["seed"] = int(seed)
     cfg = validate(data, source)
     if cfg.format_version != FORMAT_VERSION:
-        raise ConfigError(f"{source}: field `format_version`: {cfg.format_version} is not supported (expected {FORMAT_VERSION})")
+        raise ConfigError(
+            f"{source}: field `format_version`: {cfg.format_version} is not supported (expected {FORMAT_VERSION})"
+        )
     return cfg
 
 

@@ -24,9 +24,8 @@ def _figure(figsize):
 
 def _save(fig, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            fig.savefig(f, format="png", bbox_inches="tight")
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        fig.savefig(f, format="png", bbox_inches="tight")
     return path
 
 
@@ -43,8 +42,11 @@ def draw_map(town: Town, routes: list[dict], path: Path) -> Path:
     fig = _figure((11, 10))
     ax = fig.add_subplot(1, 1, 1)
     ax.set_facecolor((0.86, 0.9, 0.82))
-    for mats, colour in (((Mat.SIDEWALK,), (0.78, 0.78, 0.76)), ((Mat.ROAD, Mat.JUNCTION), (0.35, 0.35, 0.37)),
-                         ((Mat.ROOF,), (0.62, 0.5, 0.45))):
+    for mats, colour in (
+        ((Mat.SIDEWALK,), (0.78, 0.78, 0.76)),
+        ((Mat.ROAD, Mat.JUNCTION), (0.35, 0.35, 0.37)),
+        ((Mat.ROOF,), (0.62, 0.5, 0.45)),
+    ):
         tri = _triangles_xy(town, mats)
         ax.add_collection(PolyCollection(tri, facecolors=[colour], edgecolors="none", zorder=1))
     g = town.geometry
@@ -61,17 +63,29 @@ def draw_map(town: Town, routes: list[dict], path: Path) -> Path:
         ax.scatter(town.lamps_xyz[:, 0], town.lamps_xyz[:, 1], s=4, c=[(0.95, 0.75, 0.1)], zorder=3, linewidths=0)
     deg = town.roads.degree()
     dead = np.flatnonzero(deg == 1)
-    ax.scatter(town.roads.nodes_xy[dead, 0], town.roads.nodes_xy[dead, 1], s=25, marker="x", c="k", zorder=4, label="dead end")
+    ax.scatter(
+        town.roads.nodes_xy[dead, 0], town.roads.nodes_xy[dead, 1], s=25, marker="x", c="k", zorder=4, label="dead end"
+    )
     import matplotlib.cm as cm
 
     cmap = cm.get_cmap("tab10") if hasattr(cm, "get_cmap") else __import__("matplotlib").colormaps["tab10"]
     for k, r in enumerate(routes):
         xy = r["xy"]
         style = "-" if r["role"] == "train" else "--"
-        ax.plot(xy[:, 0], xy[:, 1], style, lw=2.0, color=cmap(k % 10), zorder=5, label=f"{r['name']} ({r['role']}): {r['condition']} {r['time']}")
+        ax.plot(
+            xy[:, 0],
+            xy[:, 1],
+            style,
+            lw=2.0,
+            color=cmap(k % 10),
+            zorder=5,
+            label=f"{r['name']} ({r['role']}): {r['condition']} {r['time']}",
+        )
         ax.plot(xy[0, 0], xy[0, 1], "o", color=cmap(k % 10), ms=5, zorder=6)
     a = town.anchor
-    ax.plot(a["xy"][0], a["xy"][1], "*", ms=18, color="magenta", markeredgecolor="k", zorder=7, label="contact-sheet place")
+    ax.plot(
+        a["xy"][0], a["xy"][1], "*", ms=18, color="magenta", markeredgecolor="k", zorder=7, label="contact-sheet place"
+    )
     ext = max(town.extent_m)
     ax.set_xlim(-town.extent_m[0], town.extent_m[0])
     ax.set_ylim(-town.extent_m[1], town.extent_m[1])
@@ -84,8 +98,11 @@ def draw_map(town: Town, routes: list[dict], path: Path) -> Path:
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     f = town.frame
-    ax.set_title(f"mapkit synthetic town (seed {town.config.seed}): origin {f.lat0_deg:.5f}, {f.lon0_deg:.5f}, "
-                 f"UTM EPSG:{f.utm_epsg}; grid 100 m", fontsize=10)
+    ax.set_title(
+        f"mapkit synthetic town (seed {town.config.seed}): origin {f.lat0_deg:.5f}, {f.lon0_deg:.5f}, "
+        f"UTM EPSG:{f.utm_epsg}; grid 100 m",
+        fontsize=10,
+    )
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     return _save(fig, path)
 

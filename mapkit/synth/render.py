@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Optional
 
 import cv2
 import numpy as np
@@ -58,8 +57,14 @@ class LidarSweep:
 class Renderer:
     """A scene (static town plus one session's parked cars) and the sensors that look at it."""
 
-    def __init__(self, town: Town, parked: Optional[Geometry], camera: CameraConfig, lidar: LidarConfig,
-                 nthreads: Optional[int] = None):
+    def __init__(
+        self,
+        town: Town,
+        parked: Geometry | None,
+        camera: CameraConfig,
+        lidar: LidarConfig,
+        nthreads: int | None = None,
+    ):
         import open3d as o3d
 
         self._o3d = o3d
@@ -70,14 +75,19 @@ class Renderer:
         self.tri_offset = np.zeros(len(parts), np.int64)
         off = 0
         for k, g in enumerate(parts):
-            self.scene.add_triangles(o3d.core.Tensor(g.vertices.astype(np.float32)), o3d.core.Tensor(g.triangles.astype(np.uint32)))
+            self.scene.add_triangles(
+                o3d.core.Tensor(g.vertices.astype(np.float32)), o3d.core.Tensor(g.triangles.astype(np.uint32))
+            )
             self.tri_offset[k] = off
             off += g.n_triangles
         cat = Geometry.concat(parts) if len(parts) > 1 else parts[0]
         self.material = cat.material
         # origin, axis_u, axis_v, aux packed per triangle: one gather per material slice
-        self.table = TriangleTable(np.ascontiguousarray(np.concatenate([cat.origin, cat.axis_u, cat.axis_v, cat.aux], axis=1), F32),
-                                   cat.style.astype(np.int64), cat.object_id)
+        self.table = TriangleTable(
+            np.ascontiguousarray(np.concatenate([cat.origin, cat.axis_u, cat.axis_v, cat.aux], axis=1), F32),
+            cat.style.astype(np.int64),
+            cat.object_id,
+        )
         # open3d's default (0) oversubscribes a small machine; one thread per available core is faster
         self.nthreads = nthreads or available_cores()
         # camera
@@ -95,7 +105,9 @@ class Renderer:
         el = np.radians(np.linspace(lidar.vertical_fov_deg[0], lidar.vertical_fov_deg[1], lidar.beams))
         az = np.pi - 2 * np.pi * np.arange(lidar.azimuth_steps) / lidar.azimuth_steps  # clockwise from behind
         ce, se = np.cos(el)[None, :], np.sin(el)[None, :]
-        self.lidar_dirs = np.stack([ce * np.cos(az)[:, None], ce * np.sin(az)[:, None], np.broadcast_to(se, (len(az), len(el)))], -1).astype(F32)  # (A, B, 3)
+        self.lidar_dirs = np.stack(
+            [ce * np.cos(az)[:, None], ce * np.sin(az)[:, None], np.broadcast_to(se, (len(az), len(el)))], -1
+        ).astype(F32)  # (A, B, 3)
         self.lidar_col_time_s = np.arange(lidar.azimuth_steps) / lidar.azimuth_steps / lidar.rate_hz
 
     # --- ray casting ----------------------------------------------------------------------------
@@ -116,8 +128,15 @@ class Renderer:
         order = np.argsort(self.material[tri], kind="stable")
         return idx[order], tri[order]
 
-    def _hits(self, origin_rows: np.ndarray, dirs: np.ndarray, out: dict, idx: np.ndarray, tri: np.ndarray,
-              footprint_per_m: float) -> Hits:
+    def _hits(
+        self,
+        origin_rows: np.ndarray,
+        dirs: np.ndarray,
+        out: dict,
+        idx: np.ndarray,
+        tri: np.ndarray,
+        footprint_per_m: float,
+    ) -> Hits:
         t = out["t_hit"][idx]
         d = dirs[idx]
         p = origin_rows + d * t[:, None]
@@ -128,8 +147,13 @@ class Renderer:
         return Hits(p, nrm, d, t, t * (F32(footprint_per_m) / cos_i), self.material[tri], tri, self.table)
 
     # --- camera ---------------------------------------------------------------------------------
-    def render_camera(self, world_from_camera: np.ndarray, cond: Conditions, rng: np.random.Generator,
-                      world_from_base: Optional[np.ndarray] = None) -> CameraRender:
+    def render_camera(
+        self,
+        world_from_camera: np.ndarray,
+        cond: Conditions,
+        rng: np.random.Generator,
+        world_from_base: np.ndarray | None = None,
+    ) -> CameraRender:
         R = world_from_camera[:3, :3].astype(F32)
         o = world_from_camera[:3, 3]
         d = self.rays_cam @ R.T
@@ -161,7 +185,7 @@ class Renderer:
         sigma += F32(cond.read_noise * g_rel) ** 2
         np.sqrt(sigma, out=sigma)
         start = int(rng.integers(0, len(self._noise_bank) - linear.size))
-        sigma *= self._noise_bank[start:start + linear.size].reshape(linear.shape)
+        sigma *= self._noise_bank[start : start + linear.size].reshape(linear.shape)
         linear += sigma
         img = to_srgb8(linear).reshape(self.H, self.W, 3)
         if cond.rain > 0 or cond.weather == "foggy":
@@ -169,7 +193,9 @@ class Renderer:
         range_m = t_hit.reshape(self.H, self.W)  # open3d reports inf where a ray hits nothing
         mat = np.zeros(len(d), np.uint8)
         mat[idx] = h.mat
-        return CameraRender(img, range_m, range_m * self.rays_cam[:, 2].reshape(self.H, self.W), mat.reshape(self.H, self.W))
+        return CameraRender(
+            img, range_m, range_m * self.rays_cam[:, 2].reshape(self.H, self.W), mat.reshape(self.H, self.W)
+        )
 
     def _shadow_rays(self, p: np.ndarray, n: np.ndarray, sun: np.ndarray) -> np.ndarray:
         rays = np.empty((len(p), 6), F32)
@@ -185,7 +211,7 @@ class Renderer:
             vis[li] = ~self._shadow_rays(h.p[li], h.n[li], sun)
         return vis
 
-    def _shade(self, h: Hits, s, c: Conditions, world_from_base: Optional[np.ndarray]) -> np.ndarray:
+    def _shade(self, h: Hits, s, c: Conditions, world_from_base: np.ndarray | None) -> np.ndarray:
         n = h.n
         # sky light on the upper hemisphere plus light bounced off the ground, linear in n_z
         bounce = (c.ambient_rgb * 0.5 + c.sun_rgb * 0.15) * 0.35
@@ -232,8 +258,8 @@ class Renderer:
             dy = lamp[1] - cols[1]
             r2 = dx * dx + dy * dy
             near = None
-            if (r2 < LAMP_REACH_M ** 2).mean() < 0.5:
-                near = np.flatnonzero(r2 < F32(LAMP_REACH_M ** 2))
+            if (r2 < LAMP_REACH_M**2).mean() < 0.5:
+                near = np.flatnonzero(r2 < F32(LAMP_REACH_M**2))
                 dx, dy, r2 = dx[near], dy[near], r2[near]
             px, py, pz, nx, ny, nz = cols if near is None else [x[near] for x in cols]
             dz = lamp[2] - pz
@@ -276,7 +302,9 @@ class Renderer:
             f = (vx * fwd[0] + vy * fwd[1] + vz * fwd[2]) * inv
             lat = (vx * left[0] + vy * left[1] + vz * left[2]) * inv
             down = -(vx * up[0] + vy * up[1] + vz * up[2]) * inv
-            beam = np.exp(-(((down - F32(0.026)) * F32(1 / 0.045)) ** 2) - (lat / np.maximum(f, F32(0.05)) * F32(1 / 0.45)) ** 2)
+            beam = np.exp(
+                -(((down - F32(0.026)) * F32(1 / 0.045)) ** 2) - (lat / np.maximum(f, F32(0.05)) * F32(1 / 0.45)) ** 2
+            )
             beam *= (f > 0) & (down > -0.01)
             cosl = np.maximum(-(vx * nx + vy * ny + vz * nz) * inv, F32(0))
             acc += HEADLIGHT_INTENSITY * beam * cosl / (d2 + 1.0)
@@ -296,7 +324,9 @@ class Renderer:
             y0 = rng.uniform(-0.2 * H, H, n)
             length = rng.uniform(12, 40, n) * scale
             ang = np.radians(rng.normal(100, 4, n))
-            pts = np.stack([np.stack([x0, y0], 1), np.stack([x0 + length * np.cos(ang), y0 + length * np.sin(ang)], 1)], 1)
+            pts = np.stack(
+                [np.stack([x0, y0], 1), np.stack([x0 + length * np.cos(ang), y0 + length * np.sin(ang)], 1)], 1
+            )
             cv2.polylines(layer, list(np.round(pts * 16).astype(np.int32)), False, 1.0, 1, cv2.LINE_AA, 4)
             layer *= 0.6
         if c.snowfall > 0:
@@ -331,7 +361,9 @@ class Renderer:
         dirs_l = self.lidar_dirs.reshape(-1, 3)[idx].astype(np.float64)
         pts = (dirs_l * r[:, None]).astype(F32)
         col = idx // B
-        return LidarSweep(pts, intensity, self.lidar_col_time_s[col].astype(F32), (idx % B).astype(np.uint16), r.astype(F32))
+        return LidarSweep(
+            pts, intensity, self.lidar_col_time_s[col].astype(F32), (idx % B).astype(np.uint16), r.astype(F32)
+        )
 
 
 def ground_truth_mesh_scene(vertices: np.ndarray, triangles: np.ndarray):
@@ -339,7 +371,9 @@ def ground_truth_mesh_scene(vertices: np.ndarray, triangles: np.ndarray):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(triangles, np.uint32)))
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(triangles, np.uint32))
+    )
     return scene
 
 

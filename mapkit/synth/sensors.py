@@ -64,6 +64,7 @@ def pixel_rays_camera(K: np.ndarray, width: int, height: int) -> np.ndarray:
 
 # --- GPS --------------------------------------------------------------------------------------------
 
+
 @dataclass
 class GpsErrorSeries:
     """A simulated error series at the receiver rate, ENU metres, by component."""
@@ -102,8 +103,8 @@ class GpsErrorModel:
     def covariance_enu_m2(self) -> np.ndarray:
         """What the receiver reports: white plus bias variance (it does not know about multipath)."""
         c = self.cfg
-        h = c.white_sigma_m ** 2 + c.bias_sigma_m ** 2
-        return np.diag([h, h, h * c.vertical_factor ** 2])
+        h = c.white_sigma_m**2 + c.bias_sigma_m**2
+        return np.diag([h, h, h * c.vertical_factor**2])
 
     @property
     def expected_dropout_fraction(self) -> float:
@@ -140,6 +141,7 @@ class GpsErrorModel:
 
 
 # --- IMU --------------------------------------------------------------------------------------------
+
 
 def imu_from_poses(stamps_ns: np.ndarray, world_from_imu: np.ndarray, cfg: ImuConfig, rng: np.random.Generator):
     """Angular velocity and specific force in the IMU frame from evenly spaced poses.

@@ -18,7 +18,6 @@ import datetime as dt
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import numpy as np
@@ -28,7 +27,16 @@ from scipy.spatial.transform import Rotation
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import interpolate_poses, make_pose
 from mapkit.core.runio import progress_bar
-from mapkit.core.types import CameraFrame, CameraInfo, FrameTransform, GpsFix, GpsStatus, ImuSample, LidarScan, PoseSample
+from mapkit.core.types import (
+    CameraFrame,
+    CameraInfo,
+    FrameTransform,
+    GpsFix,
+    GpsStatus,
+    ImuSample,
+    LidarScan,
+    PoseSample,
+)
 from mapkit.io.mcap_log import Rosbag2Writer
 from mapkit.io.trajectory import read_kitti_poses, read_tum, write_tum
 from mapkit.synth import session_log_relpath
@@ -62,6 +70,7 @@ ROUTE_MARGIN_M = 150.0  # planned beyond the session's window, so that followers
 
 # --- routes ----------------------------------------------------------------------------------------
 
+
 def _heading_at(g: RoadGraph, road_id: int, start: int, at_start: bool, lookahead: float = 8.0) -> np.ndarray:
     road = g.roads[road_id]
     poly = g.oriented(road, start)
@@ -75,8 +84,17 @@ def _heading_at(g: RoadGraph, road_id: int, start: int, at_start: bool, lookahea
     return d / max(np.linalg.norm(d), 1e-9)
 
 
-def _walk(g: RoadGraph, in_road: int, came_from: int, node: int, target_m: float, rng: np.random.Generator,
-          used: set[int], driven: Optional[dict[int, int]] = None, new_road_weight: float = 0.0) -> tuple[list[int], list[int]]:
+def _walk(
+    g: RoadGraph,
+    in_road: int,
+    came_from: int,
+    node: int,
+    target_m: float,
+    rng: np.random.Generator,
+    used: set[int],
+    driven: dict[int, int] | None = None,
+    new_road_weight: float = 0.0,
+) -> tuple[list[int], list[int]]:
     """Nodes and roads of a random walk from ``node`` (arrived on ``in_road``), about ``target_m`` long.
     A road earlier sessions drove ``n`` times (``driven``) is ``exp(-new_road_weight * n)`` times
     less likely to be taken."""
@@ -109,8 +127,15 @@ def _walk(g: RoadGraph, in_road: int, came_from: int, node: int, target_m: float
     return nodes, roads
 
 
-def plan_route(g: RoadGraph, anchor: dict, before_m: float, after_m: float, rng: np.random.Generator,
-               driven: Optional[dict[int, int]] = None, new_road_weight: float = 0.0) -> tuple[list[int], list[int]]:
+def plan_route(
+    g: RoadGraph,
+    anchor: dict,
+    before_m: float,
+    after_m: float,
+    rng: np.random.Generator,
+    driven: dict[int, int] | None = None,
+    new_road_weight: float = 0.0,
+) -> tuple[list[int], list[int]]:
     """(nodes, roads) of a route through the anchor road (a -> b), about ``before_m``/``after_m``
     of road before and after it; ``driven``/``new_road_weight``: see :func:`_walk`."""
     a, b, rid = anchor["from_node"], anchor["to_node"], anchor["road"]
@@ -125,7 +150,7 @@ def plan_route(g: RoadGraph, anchor: dict, before_m: float, after_m: float, rng:
 def _bezier(p0: np.ndarray, c: np.ndarray, p2: np.ndarray, step: float = 0.5) -> np.ndarray:
     L = np.linalg.norm(c - p0) + np.linalg.norm(p2 - c)
     t = np.linspace(0, 1, max(3, int(L / step) + 1))[:, None]
-    return (1 - t) ** 2 * p0 + 2 * t * (1 - t) * c + t ** 2 * p2
+    return (1 - t) ** 2 * p0 + 2 * t * (1 - t) * c + t**2 * p2
 
 
 def _trim(poly: np.ndarray, s0: float, s1: float, step: float = 0.5) -> np.ndarray:
@@ -163,6 +188,7 @@ def _resample_uniform(pts: np.ndarray, ds: float) -> tuple[np.ndarray, np.ndarra
 
 # --- motion ----------------------------------------------------------------------------------------
 
+
 @dataclass
 class Drive:
     """Ground-truth motion of a session: base_link in the world frame at the GT rate."""
@@ -174,7 +200,7 @@ class Drive:
     route_nodes: list[int]
     route_roads: list[int]
     source: str
-    plan: Optional[tuple] = None  # (route nodes, roads, split) a following session reuses
+    plan: tuple | None = None  # (route nodes, roads, split) a following session reuses
 
     @property
     def duration_s(self) -> float:
@@ -190,8 +216,16 @@ class Drive:
         return poses
 
 
-def poses_from_profile(xy: np.ndarray, heading: np.ndarray, s: np.ndarray, v: np.ndarray, kappa: np.ndarray,
-                       start_ns: int, cfg: SynthConfig, max_duration_s: Optional[float]) -> tuple[np.ndarray, np.ndarray]:
+def poses_from_profile(
+    xy: np.ndarray,
+    heading: np.ndarray,
+    s: np.ndarray,
+    v: np.ndarray,
+    kappa: np.ndarray,
+    start_ns: int,
+    cfg: SynthConfig,
+    max_duration_s: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Sample a path with a speed profile at the GT rate: (stamps_ns, world_from_base)."""
     ds = np.diff(s)
     v_mid = np.maximum((v[1:] + v[:-1]) / 2, 1e-3)
@@ -204,7 +238,7 @@ def poses_from_profile(xy: np.ndarray, heading: np.ndarray, s: np.ndarray, v: np
     x, y = np.interp(sk, s, xy[:, 0]), np.interp(sk, s, xy[:, 1])
     yaw = np.interp(sk, s, heading)
     vk = np.interp(sk, s, v)
-    a_lat = vk ** 2 * np.interp(sk, s, kappa)
+    a_lat = vk**2 * np.interp(sk, s, kappa)
     a_long = np.interp(sk, s, np.gradient(v, s) * v) if len(s) > 1 else np.zeros_like(sk)
     roll = np.radians(cfg.motion.roll_per_lateral_accel_deg) * a_lat
     pitch = -np.radians(cfg.motion.pitch_per_accel_deg) * a_long
@@ -213,7 +247,9 @@ def poses_from_profile(xy: np.ndarray, heading: np.ndarray, s: np.ndarray, v: np
     return start_ns + k.astype(np.int64) * step_ns, poses
 
 
-def speed_profile(s: np.ndarray, kappa: np.ndarray, v_max: float, cfg: SynthConfig, rng: np.random.Generator) -> np.ndarray:
+def speed_profile(
+    s: np.ndarray, kappa: np.ndarray, v_max: float, cfg: SynthConfig, rng: np.random.Generator
+) -> np.ndarray:
     m = cfg.motion
     wobble = 1.0 - 0.08 * (1 + np.sin(2 * np.pi * s / rng.uniform(150, 400) + rng.uniform(0, 2 * np.pi))) / 2
     v = np.minimum(v_max * wobble, np.sqrt(m.max_lateral_accel_m_s2 / np.maximum(np.abs(kappa), 1e-6)))
@@ -227,8 +263,15 @@ def speed_profile(s: np.ndarray, kappa: np.ndarray, v_max: float, cfg: SynthConf
     return v
 
 
-def drive_route(town: Town, sc: SessionConfig, cfg: SynthConfig, start_ns: int, rng: np.random.Generator,
-                follow: Optional[tuple[list[int], list[int], float]] = None, driven: Optional[dict[int, int]] = None) -> Drive:
+def drive_route(
+    town: Town,
+    sc: SessionConfig,
+    cfg: SynthConfig,
+    start_ns: int,
+    rng: np.random.Generator,
+    follow: tuple[list[int], list[int], float] | None = None,
+    driven: dict[int, int] | None = None,
+) -> Drive:
     """A route through the anchor (or along another session's route: ``follow`` = its nodes, roads
     and split), driven in the right-hand lane and cropped to the session's length; ``driven``:
     how often earlier sessions planned each road (``session_plan.new_road_weight`` steers away)."""
@@ -255,7 +298,10 @@ def drive_route(town: Town, sc: SessionConfig, cfg: SynthConfig, start_ns: int, 
     path = np.stack([gaussian_filter1d(path[:, k], 2.0, mode="nearest") for k in range(2)], 1)
     xy, s = _resample_uniform(path, 0.25)
     # crop around the anchor: the anchor point sits at ``split`` of the session's length
-    a_xy = np.array(anchor["xy"]) - np.array([-np.sin(anchor["heading_rad"]), np.cos(anchor["heading_rad"])]) * DRIVE_LANE_CENTER_M
+    a_xy = (
+        np.array(anchor["xy"])
+        - np.array([-np.sin(anchor["heading_rad"]), np.cos(anchor["heading_rad"])]) * DRIVE_LANE_CENTER_M
+    )
     s_anchor = s[int(np.argmin(np.linalg.norm(xy - a_xy, axis=1)))]
     s0 = max(0.0, s_anchor - split * sc.length_m)
     s1 = min(s[-1], s0 + sc.length_m)
@@ -273,18 +319,21 @@ def _drive_from_path(xy, s, sc, cfg, start_ns, rng, nodes, roads, g, source) -> 
     v = speed_profile(s, kappa, sc.speed_mps, cfg, rng)
     stamps, poses = poses_from_profile(xy, heading, s, v, kappa, start_ns, cfg, sc.max_duration_s)
     driven = poses[:, :2, 3]
-    touched = [n for n in nodes if np.min(np.linalg.norm(driven - g.nodes_xy[n], axis=1)) < g.junction_radius_m[n] + 8.0]
+    touched = [
+        n for n in nodes if np.min(np.linalg.norm(driven - g.nodes_xy[n], axis=1)) < g.junction_radius_m[n] + 8.0
+    ]
     length = float(np.linalg.norm(np.diff(driven, axis=0), axis=1).sum())
     return Drive(stamps, poses, driven, length, touched, roads, source)
 
 
 # --- external trajectories --------------------------------------------------------------------------
 
+
 @dataclass
 class ExternalPath:
     stamps_ns: np.ndarray  # relative to the first pose
     xy: np.ndarray  # (N, 2) metres, x east, y north (or the file's planar axes)
-    origin_latlon: Optional[tuple[float, float]]
+    origin_latlon: tuple[float, float] | None
     source: str
 
 
@@ -296,9 +345,15 @@ def read_external_trajectory(path: Path) -> ExternalPath:
     if not path.is_file():
         raise InputError(path, "no such trajectory file")
     first = path.read_text().lstrip().splitlines()[0] if path.stat().st_size else ""
-    if path.suffix.lower() == ".csv" or (first and not first[0].isdigit() and not first.startswith("#") and "," in first):
+    if path.suffix.lower() == ".csv" or (
+        first and not first[0].isdigit() and not first.startswith("#") and "," in first
+    ):
         return _read_robotcar(path)
-    ncols = len(next((ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")), "").replace(",", " ").split())
+    ncols = len(
+        next((ln for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("#")), "")
+        .replace(",", " ")
+        .split()
+    )
     if ncols == 8:
         stamps, T = read_tum(path)
         return ExternalPath(stamps - stamps[0], T[:, :2, 3], None, f"tum:{path.name}")
@@ -314,7 +369,9 @@ def read_external_trajectory(path: Path) -> ExternalPath:
             stamps = np.arange(len(T), dtype=np.int64) * 100_000_000
         p = T[:, :3, 3]
         return ExternalPath(stamps - stamps[0], np.stack([p[:, 2], -p[:, 0]], 1), None, f"kitti:{path.name}")
-    raise InputError(path, f"not a TUM (8 values), KITTI (12 values) or RobotCar CSV trajectory ({ncols} values a line)")
+    raise InputError(
+        path, f"not a TUM (8 values), KITTI (12 values) or RobotCar CSV trajectory ({ncols} values a line)"
+    )
 
 
 def _read_robotcar(path: Path) -> ExternalPath:
@@ -375,6 +432,7 @@ def drive_external(ext: ExternalPath, sc: SessionConfig, cfg: SynthConfig, start
 
 # --- plans ------------------------------------------------------------------------------------------
 
+
 @dataclass
 class SessionPlan:
     index: int
@@ -427,9 +485,15 @@ class SessionPlan:
             "imu_rate_hz": cfg.imu.rate_hz if cfg.imu.enabled else None,
             "ground_truth_rate_hz": cfg.motion.ground_truth_rate_hz,
             "gps_noise": {
-                "white_sigma_m": g.white_sigma_m, "vertical_factor": g.vertical_factor, "bias_sigma_m": g.bias_sigma_m,
-                "bias_tau_s": g.bias_tau_s, "multipath_rate_hz": g.multipath_rate_hz, "multipath_duration_s": g.multipath_duration_s,
-                "multipath_sigma_m": g.multipath_sigma_m, "dropout_rate_hz": g.dropout_rate_hz, "dropout_duration_s": g.dropout_duration_s,
+                "white_sigma_m": g.white_sigma_m,
+                "vertical_factor": g.vertical_factor,
+                "bias_sigma_m": g.bias_sigma_m,
+                "bias_tau_s": g.bias_tau_s,
+                "multipath_rate_hz": g.multipath_rate_hz,
+                "multipath_duration_s": g.multipath_duration_s,
+                "multipath_sigma_m": g.multipath_sigma_m,
+                "dropout_rate_hz": g.dropout_rate_hz,
+                "dropout_duration_s": g.dropout_duration_s,
             },
             "seed": self.seed,
         }
@@ -452,13 +516,22 @@ def auto_sessions(cfg: SynthConfig, rng: np.random.Generator) -> list[SessionCon
         date = dates[k % len(dates)]
         lt = _local_datetime(date, f"{hh:02d}:{mm:02d}", cfg.origin.timezone)
         from mapkit.synth.appearance import sun_position
+
         _, el = sun_position(lt.astimezone(dt.timezone.utc), cfg.origin.lat_deg, cfg.origin.lon_deg)
-        out.append(SessionConfig(
-            name=f"train-{k + 1:03d}", role="train", date=date, time=f"{hh:02d}:{mm:02d}", weather=weathers[k],
-            length_m=float(rng.uniform(*p.length_m)), speed_mps=float(rng.uniform(*p.speed_mps)),
-            lane_offset_m=float(rng.uniform(*p.lane_offset_m)), exposure_ev=p.night_exposure_ev if el < -6 else 0.0,
-            camera_rate_hz=p.camera_rate_hz,
-        ))
+        out.append(
+            SessionConfig(
+                name=f"train-{k + 1:03d}",
+                role="train",
+                date=date,
+                time=f"{hh:02d}:{mm:02d}",
+                weather=weathers[k],
+                length_m=float(rng.uniform(*p.length_m)),
+                speed_mps=float(rng.uniform(*p.speed_mps)),
+                lane_offset_m=float(rng.uniform(*p.lane_offset_m)),
+                exposure_ev=p.night_exposure_ev if el < -6 else 0.0,
+                camera_rate_hz=p.camera_rate_hz,
+            )
+        )
     return out
 
 
@@ -466,12 +539,14 @@ def _local_datetime(date: dt.date, hhmm: str, tz: str) -> dt.datetime:
     try:
         zone = ZoneInfo(tz)
     except (ZoneInfoNotFoundError, ValueError):
-        raise ConfigError(f"field `origin.timezone`: unknown time zone {tz!r} (an IANA name such as Europe/London)") from None
+        raise ConfigError(
+            f"field `origin.timezone`: unknown time zone {tz!r} (an IANA name such as Europe/London)"
+        ) from None
     hh, mm = (int(x) for x in hhmm.split(":"))
     return dt.datetime(date.year, date.month, date.day, hh, mm, tzinfo=zone)
 
 
-def plan_sessions(cfg: SynthConfig, town: Town, external: Optional[ExternalPath] = None) -> list[SessionPlan]:
+def plan_sessions(cfg: SynthConfig, town: Town, external: ExternalPath | None = None) -> list[SessionPlan]:
     rng_auto = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x5E55]))
     sessions = list(cfg.sessions) + auto_sessions(cfg, rng_auto)
     plans = []
@@ -481,8 +556,16 @@ def plan_sessions(cfg: SynthConfig, town: Town, external: Optional[ExternalPath]
         rng = np.random.default_rng(seed)
         local = _local_datetime(sc.date or cfg.origin.date, sc.time, cfg.origin.timezone)
         start_ns = int(local.timestamp()) * 1_000_000_000 + int(rng.integers(0, 1_000_000_000))
-        cond = make_conditions(sc.weather, local, cfg.origin.lat_deg, cfg.origin.lon_deg, exposure_ev=sc.exposure_ev,
-                               white_balance_k=sc.white_balance_k, season=sc.season, seed=seed)
+        cond = make_conditions(
+            sc.weather,
+            local,
+            cfg.origin.lat_deg,
+            cfg.origin.lon_deg,
+            exposure_ev=sc.exposure_ev,
+            white_balance_k=sc.white_balance_k,
+            season=sc.season,
+            seed=seed,
+        )
         if (sc.trajectory is not None) or (external is not None and i == 0):
             ext = external if sc.trajectory is None else read_external_trajectory(sc.trajectory)
             drive = drive_external(ext, sc, cfg, start_ns, town)
@@ -491,7 +574,9 @@ def plan_sessions(cfg: SynthConfig, town: Town, external: Optional[ExternalPath]
             if sc.follow is not None:
                 leader = next(p for p in plans if p.name == sc.follow)
                 if leader.drive.plan is None:
-                    raise ConfigError(f"session {sc.name!r} cannot follow {sc.follow!r}: it drives an external trajectory")
+                    raise ConfigError(
+                        f"session {sc.name!r} cannot follow {sc.follow!r}: it drives an external trajectory"
+                    )
                 follow = leader.drive.plan
             drive = drive_route(town, sc, cfg, start_ns, rng, follow, driven)
             for r in set(drive.route_roads):
@@ -499,11 +584,14 @@ def plan_sessions(cfg: SynthConfig, town: Town, external: Optional[ExternalPath]
         if len(drive.stamps_ns) < 2:
             raise ConfigError(f"session {sc.name!r}: its drive is shorter than one ground-truth step")
         own_rate = sc.camera_rate_hz or cfg.camera.rate_hz
-        plans.append(SessionPlan(i, sc, local, start_ns, cond, drive, cfg.camera.record_rate_hz or own_rate, seed, own_rate))
+        plans.append(
+            SessionPlan(i, sc, local, start_ns, cond, drive, cfg.camera.record_rate_hz or own_rate, seed, own_rate)
+        )
     return plans
 
 
 # --- writing a session -------------------------------------------------------------------------------
+
 
 def _stamps(start_ns: int, end_ns: int, rate_hz: float, margin_ns: int = 0) -> np.ndarray:
     step = 1e9 / rate_hz
@@ -531,8 +619,14 @@ def session_parked_cars(town: Town, seed: int):
     return parked_cars(town, session_rngs(seed)[0])
 
 
-def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path, progress: Optional[bool] = None,
-                  nthreads: Optional[int] = None) -> dict:
+def write_session(
+    town: Town,
+    plan: SessionPlan,
+    cfg: SynthConfig,
+    out_dir: Path,
+    progress: bool | None = None,
+    nthreads: int | None = None,
+) -> dict:
     """Render and write one session: its log (a rosbag2 folder with MCAP storage), ground-truth files,
     parked cars and anchor picture."""
     import cv2
@@ -553,7 +647,11 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     start, end = int(drive.stamps_ns[0]), int(drive.stamps_ns[-1])
     lidar_period_ns = int(round(1e9 / cfg.lidar.rate_hz))
     cam_ns = _stamps(start, end, plan.camera_rate_hz)
-    lidar_ns = _stamps(start, end, cfg.lidar.rate_hz, margin_ns=lidar_period_ns) if cfg.lidar.enabled else np.zeros(0, np.int64)
+    lidar_ns = (
+        _stamps(start, end, cfg.lidar.rate_hz, margin_ns=lidar_period_ns)
+        if cfg.lidar.enabled
+        else np.zeros(0, np.int64)
+    )
     gps_ns = _stamps(start, end, cfg.gps.rate_hz)
     imu_ns = _stamps(start, end, cfg.imu.rate_hz) if cfg.imu.enabled else np.zeros(0, np.int64)
     world_from_cam = drive.poses_at(cam_ns) @ ex[FRAME_CAMERA] if len(cam_ns) else np.zeros((0, 4, 4))
@@ -583,35 +681,64 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     bar = progress_bar(len(cam_ns) + len(lidar_ns), progress, f"{name} ({plan.conditions.label})", "frame", leave=False)
     log_dir = out_dir / session_log_relpath(name)
     with Rosbag2Writer(log_dir) as w:
-        w.add_metadata("mapkit.synth", {"session": name, "condition": plan.conditions.label, "weather": plan.config.weather,
-                                         "start_time_local": plan.local_start.isoformat(), "seed": plan.seed,
-                                         "world_frame": "ENU at the origin in world/origin.json"})
+        w.add_metadata(
+            "mapkit.synth",
+            {
+                "session": name,
+                "condition": plan.conditions.label,
+                "weather": plan.config.weather,
+                "start_time_local": plan.local_start.isoformat(),
+                "seed": plan.seed,
+                "world_frame": "ENU at the origin in world/origin.json",
+            },
+        )
         w.write_transforms(TOPIC_TF_STATIC, [FrameTransform(start, FRAME_BASE, k, v) for k, v in ex.items()])
         for j in order:
             kind, i, stamp = int(order_kind[j]), int(index[j]), int(stamps[j])
             if kind == 1:
-                w.write(TOPIC_GROUND_TRUTH, PoseSample(stamp, FRAME_WORLD, FRAME_BASE, drive.world_from_base[i], source="ground_truth"))
+                w.write(
+                    TOPIC_GROUND_TRUTH,
+                    PoseSample(stamp, FRAME_WORLD, FRAME_BASE, drive.world_from_base[i], source="ground_truth"),
+                )
             elif kind == 2:
                 w.write(TOPIC_IMU, ImuSample(stamp, FRAME_IMU, gyro[i], accel[i], None))
             elif kind == 3:
                 ok = bool(err.valid[i])
-                w.write(TOPIC_GPS, GpsFix(stamp, float(lat[i]) if ok else float("nan"), float(lon[i]) if ok else float("nan"),
-                                          float(alt[i]) if ok else float("nan"), GpsStatus.FIX if ok else GpsStatus.NO_FIX,
-                                          cov if ok else None, FRAME_GPS))
+                w.write(
+                    TOPIC_GPS,
+                    GpsFix(
+                        stamp,
+                        float(lat[i]) if ok else float("nan"),
+                        float(lon[i]) if ok else float("nan"),
+                        float(alt[i]) if ok else float("nan"),
+                        GpsStatus.FIX if ok else GpsStatus.NO_FIX,
+                        cov if ok else None,
+                        FRAME_GPS,
+                    ),
+                )
             elif kind == 4:
                 tt = time.perf_counter()
                 col_ns = stamp + np.round(renderer.lidar_col_time_s * 1e9).astype(np.int64)
-                sweep = renderer.scan_lidar(drive.poses_at(col_ns) @ ex[FRAME_LIDAR],
-                                            np.random.default_rng([plan.seed, 4, i]))
+                sweep = renderer.scan_lidar(
+                    drive.poses_at(col_ns) @ ex[FRAME_LIDAR], np.random.default_rng([plan.seed, 4, i])
+                )
                 render_s["lidar"] += time.perf_counter() - tt
-                w.write(TOPIC_LIDAR, LidarScan(stamp, FRAME_LIDAR, sweep.points_xyz, sweep.intensity, sweep.time_s, sweep.ring))
+                w.write(
+                    TOPIC_LIDAR,
+                    LidarScan(stamp, FRAME_LIDAR, sweep.points_xyz, sweep.intensity, sweep.time_s, sweep.ring),
+                )
                 bar.update(1)
             else:
                 tt = time.perf_counter()
                 wfb = drive.poses_at(np.array([stamp]))[0]
-                frame = renderer.render_camera(world_from_cam[i], plan.conditions, np.random.default_rng([plan.seed, 5, i]), wfb)
+                frame = renderer.render_camera(
+                    world_from_cam[i], plan.conditions, np.random.default_rng([plan.seed, 5, i]), wfb
+                )
                 render_s["camera"] += time.perf_counter() - tt
-                w.write(TOPIC_CAMERA_INFO, CameraInfo(info.camera, info.width, info.height, K, info.distortion_model, info.D, stamp))
+                w.write(
+                    TOPIC_CAMERA_INFO,
+                    CameraInfo(info.camera, info.width, info.height, K, info.distortion_model, info.D, stamp),
+                )
                 w.write(TOPIC_IMAGE, CameraFrame(stamp, FRAME_CAMERA, frame.rgb, encoding="rgb8"), compress=compress)
                 if i == keep_frame:
                     from mapkit.core.runio import atomic_path
@@ -626,14 +753,22 @@ def write_session(town: Town, plan: SessionPlan, cfg: SynthConfig, out_dir: Path
     (sess_dir / f"{name}.mcap").unlink(missing_ok=True)  # the bare log of a town written before rosbag2 folders
     wall = time.perf_counter() - t0
     return {
-        "name": name, "camera_frames": int(len(cam_ns)), "lidar_scans": int(len(lidar_ns)), "gps_fixes": int(len(gps_ns)),
-        "gps_fixes_without_fix": int((~err.valid).sum()), "imu_samples": int(len(imu_ns)),
+        "name": name,
+        "camera_frames": int(len(cam_ns)),
+        "lidar_scans": int(len(lidar_ns)),
+        "gps_fixes": int(len(gps_ns)),
+        "gps_fixes_without_fix": int((~err.valid).sum()),
+        "imu_samples": int(len(imu_ns)),
         "ground_truth_poses": int(len(drive.stamps_ns)),
         "parked_cars": int(len(np.unique(parked.object_id[parked.material == Mat.CAR_BODY]))),
-        "anchor_frame": keep_frame, "mcap_bytes": int(sum(f.stat().st_size for f in log_dir.glob("*.mcap"))),
+        "anchor_frame": keep_frame,
+        "mcap_bytes": int(sum(f.stat().st_size for f in log_dir.glob("*.mcap"))),
         # how long it took: a run record (the caller moves it to the town's timings.json)
-        "timings_s": {"wall_s": round(wall, 3), "camera_render_s": round(render_s["camera"], 3),
-                      "lidar_render_s": round(render_s["lidar"], 3)},
+        "timings_s": {
+            "wall_s": round(wall, 3),
+            "camera_render_s": round(render_s["camera"], 3),
+            "lidar_render_s": round(render_s["lidar"], 3),
+        },
     }
 
 

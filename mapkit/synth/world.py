@@ -19,7 +19,6 @@ from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -54,7 +53,16 @@ class Mat(IntEnum):
 
 #: meaning of the eight ``aux`` numbers per material (the rest are zero)
 AUX = {
-    Mat.ROAD: ("s_at_origin_m", "road_length_m", "half_width_m", "kind", "s_start_m", "s_end_m", "crosswalk_a", "crosswalk_b"),
+    Mat.ROAD: (
+        "s_at_origin_m",
+        "road_length_m",
+        "half_width_m",
+        "kind",
+        "s_start_m",
+        "s_end_m",
+        "crosswalk_a",
+        "crosswalk_b",
+    ),
     Mat.SIDEWALK: ("s_at_origin_m",),
     Mat.WALL: ("wall_length_m", "eave_height_m", "floor_height_m", "is_front", "r", "g", "b", "building_hash"),
     Mat.ROOF: ("pitched", "", "", "", "r", "g", "b", "building_hash"),
@@ -68,6 +76,7 @@ ROAD_KINDS = {"lane": 0, "street": 1, "avenue": 2, "track": 3}
 
 
 # --- triangle soup with attributes ----------------------------------------------------------------
+
 
 @dataclass
 class Geometry:
@@ -88,12 +97,17 @@ class Geometry:
         return int(len(self.triangles))
 
     @staticmethod
-    def concat(parts: list["Geometry"]) -> "Geometry":
+    def concat(parts: list[Geometry]) -> Geometry:
         offsets = np.cumsum([0] + [len(p.vertices) for p in parts])[:-1]
         return Geometry(
             np.concatenate([p.vertices for p in parts]) if parts else np.zeros((0, 3)),
-            np.concatenate([p.triangles + o for p, o in zip(parts, offsets)]).astype(np.int32) if parts else np.zeros((0, 3), np.int32),
-            *[np.concatenate([getattr(p, k) for p in parts]) for k in ("material", "object_id", "style", "origin", "axis_u", "axis_v", "aux")],
+            np.concatenate([p.triangles + o for p, o in zip(parts, offsets)]).astype(np.int32)
+            if parts
+            else np.zeros((0, 3), np.int32),
+            *[
+                np.concatenate([getattr(p, k) for p in parts])
+                for k in ("material", "object_id", "style", "origin", "axis_u", "axis_v", "aux")
+            ],
         )
 
 
@@ -103,8 +117,19 @@ class MeshBuilder:
     def __init__(self) -> None:
         self.parts: list[Geometry] = []
 
-    def add(self, vertices: np.ndarray, triangles: np.ndarray, material, *, object_id=-1, style=0,
-            origin=(0.0, 0.0, 0.0), axis_u=(1.0, 0.0, 0.0), axis_v=(0.0, 1.0, 0.0), aux=None) -> None:
+    def add(
+        self,
+        vertices: np.ndarray,
+        triangles: np.ndarray,
+        material,
+        *,
+        object_id=-1,
+        style=0,
+        origin=(0.0, 0.0, 0.0),
+        axis_u=(1.0, 0.0, 0.0),
+        axis_v=(0.0, 1.0, 0.0),
+        aux=None,
+    ) -> None:
         tris = np.asarray(triangles, np.int32).reshape(-1, 3)
         n = len(tris)
         if n == 0:
@@ -120,12 +145,19 @@ class MeshBuilder:
                 a = np.concatenate([a, np.zeros((a.shape[0], width - a.shape[1]), dtype)], axis=1)
             return np.broadcast_to(a, (n, width)).astype(dtype)
 
-        self.parts.append(Geometry(
-            np.asarray(vertices, np.float64).reshape(-1, 3), tris,
-            rows(material, None, np.uint8), rows(object_id, None, np.int32), rows(style, None, np.int16),
-            rows(origin, 3, np.float32), rows(axis_u, 3, np.float32), rows(axis_v, 3, np.float32),
-            rows(np.zeros(8) if aux is None else aux, 8, np.float32),
-        ))
+        self.parts.append(
+            Geometry(
+                np.asarray(vertices, np.float64).reshape(-1, 3),
+                tris,
+                rows(material, None, np.uint8),
+                rows(object_id, None, np.int32),
+                rows(style, None, np.int16),
+                rows(origin, 3, np.float32),
+                rows(axis_u, 3, np.float32),
+                rows(axis_v, 3, np.float32),
+                rows(np.zeros(8) if aux is None else aux, 8, np.float32),
+            )
+        )
 
     def build(self) -> Geometry:
         return Geometry.concat(self.parts)
@@ -144,7 +176,9 @@ def _orient(vertices: np.ndarray, tris: np.ndarray, want_normal: np.ndarray) -> 
 # --- boxes (vectorised) ---------------------------------------------------------------------------
 
 # corners of a unit box around the origin of its bottom face: x, y in {-1, 1}, z in {0, 1}
-_BOX_CORNERS = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], float)
+_BOX_CORNERS = np.array(
+    [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], float
+)
 # walls as quads (bottom-left, bottom-right, top-right, top-left seen from outside): +x, +y, -x, -y; then the top
 _BOX_QUADS = np.array([[1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7], [0, 1, 5, 4], [4, 5, 6, 7]])
 _BOX_FACE_NORMALS = np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0], [0, 0, 1]], float)
@@ -184,13 +218,23 @@ def box_faces(b: Boxes, faces: tuple[int, ...] = (0, 1, 2, 3, 4)):
         u = (bb - a) / np.maximum(width, 1e-9)[:, None]
         tall = np.linalg.norm(d - a, axis=1)
         v = (d - a) / np.maximum(tall, 1e-9)[:, None]
-        out.append(dict(triangles=tris, normal=np.repeat(normal, 2, axis=0), origin=np.repeat(a, 2, axis=0),
-                        axis_u=np.repeat(u, 2, axis=0), axis_v=np.repeat(v, 2, axis=0), width=width, tall=tall))
+        out.append(
+            dict(
+                triangles=tris,
+                normal=np.repeat(normal, 2, axis=0),
+                origin=np.repeat(a, 2, axis=0),
+                axis_u=np.repeat(u, 2, axis=0),
+                axis_v=np.repeat(v, 2, axis=0),
+                width=width,
+                tall=tall,
+            )
+        )
     return verts.reshape(-1, 3), out
 
 
-def add_boxes(mb: MeshBuilder, b: Boxes, material: Mat | dict, *, object_id=None, style=None, aux=None,
-              faces=(0, 1, 2, 3, 4)) -> None:
+def add_boxes(
+    mb: MeshBuilder, b: Boxes, material: Mat | dict, *, object_id=None, style=None, aux=None, faces=(0, 1, 2, 3, 4)
+) -> None:
     """Add boxes; ``material`` may map face index to material; per-box arrays repeat per triangle."""
     if len(b.height) == 0:
         return
@@ -200,10 +244,21 @@ def add_boxes(mb: MeshBuilder, b: Boxes, material: Mat | dict, *, object_id=None
         mat = material.get(f, material.get("default")) if isinstance(material, dict) else material
         if mat is None:
             continue
-        per = lambda x, default: default if x is None else (np.repeat(np.asarray(x), 2, axis=0) if np.ndim(x) >= 1 and len(x) == n else x)  # noqa: E731
+        per = lambda x, default: (
+            default if x is None else (np.repeat(np.asarray(x), 2, axis=0) if np.ndim(x) >= 1 and len(x) == n else x)
+        )  # noqa: E731
         aux_f = aux(f, fd) if callable(aux) else aux
-        mb.add(verts, fd["triangles"], mat, object_id=per(object_id, -1), style=per(style, 0),
-               origin=fd["origin"], axis_u=fd["axis_u"], axis_v=fd["axis_v"], aux=per(aux_f, None))
+        mb.add(
+            verts,
+            fd["triangles"],
+            mat,
+            object_id=per(object_id, -1),
+            style=per(style, 0),
+            origin=fd["origin"],
+            axis_u=fd["axis_u"],
+            axis_v=fd["axis_v"],
+            aux=per(aux_f, None),
+        )
 
 
 def instances(template_v: np.ndarray, template_t: np.ndarray, pos: np.ndarray, scale: np.ndarray, yaw: np.ndarray):
@@ -219,6 +274,7 @@ def instances(template_v: np.ndarray, template_t: np.ndarray, pos: np.ndarray, s
 
 
 # --- road graph -----------------------------------------------------------------------------------
+
 
 @dataclass
 class Road:
@@ -274,21 +330,35 @@ class RoadGraph:
         return {
             "frame": "world ENU (metres)",
             "nodes": [
-                {"id": i, "xy": [round(float(x), 4), round(float(y), 4)], "degree": int(deg[i]),
-                 "junction_radius_m": round(float(self.junction_radius_m[i]), 3)}
+                {
+                    "id": i,
+                    "xy": [round(float(x), 4), round(float(y), 4)],
+                    "degree": int(deg[i]),
+                    "junction_radius_m": round(float(self.junction_radius_m[i]), 3),
+                }
                 for i, (x, y) in enumerate(self.nodes_xy)
             ],
             "edges": [
-                {"id": r.id, "a": r.a, "b": r.b, "kind": r.kind, "half_width_m": r.half_width_m,
-                 "length_m": round(r.length_m, 3), "polyline": np.round(r.polyline, 4).tolist()}
+                {
+                    "id": r.id,
+                    "a": r.a,
+                    "b": r.b,
+                    "kind": r.kind,
+                    "half_width_m": r.half_width_m,
+                    "length_m": round(r.length_m, 3),
+                    "polyline": np.round(r.polyline, 4).tolist(),
+                }
                 for r in self.roads
             ],
         }
 
     @classmethod
-    def from_json(cls, d: dict) -> "RoadGraph":
+    def from_json(cls, d: dict) -> RoadGraph:
         nodes = np.array([n["xy"] for n in d["nodes"]], float).reshape(-1, 2)
-        roads = [Road(e["id"], e["a"], e["b"], e["kind"], float(e["half_width_m"]), np.array(e["polyline"], float)) for e in d["edges"]]
+        roads = [
+            Road(e["id"], e["a"], e["b"], e["kind"], float(e["half_width_m"]), np.array(e["polyline"], float))
+            for e in d["edges"]
+        ]
         g = cls(nodes, roads)
         g.junction_radius_m = np.array([n.get("junction_radius_m", 0.0) for n in d["nodes"]], float)
         return g
@@ -377,7 +447,7 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
             del edges[e]
 
     def angle_ok(node: int, direction: np.ndarray, min_deg: float = 38.0) -> bool:
-        for (a, b) in edges:
+        for a, b in edges:
             if node in (a, b):
                 other = b if a == node else a
                 d = nodes_xy[other] - nodes_xy[node]
@@ -427,7 +497,9 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
     for k in rng.permutation(len(boundary))[:n_outer]:
         i, j = boundary[k]
         c = node_id[i, j]
-        out = np.array([-1.0 if i == 0 else (1.0 if i == nx - 1 else 0.0), -1.0 if j == 0 else (1.0 if j == ny - 1 else 0.0)])
+        out = np.array(
+            [-1.0 if i == 0 else (1.0 if i == nx - 1 else 0.0), -1.0 if j == 0 else (1.0 if j == ny - 1 else 0.0)]
+        )
         if degrees()[c] > 3:
             continue
         tip = nodes_xy[c] + out * 0.4 * min(bx, by)
@@ -447,16 +519,27 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
     roads = []
     for (a, b), kind in sorted(edges.items()):
         pa, pb = nodes_xy[a], nodes_xy[b]
-        lattice = a < node_id.size and b < node_id.size and abs(np.subtract(*[np.argwhere(node_id == n)[0] for n in (a, b)])).sum() == 1
+        lattice = (
+            a < node_id.size
+            and b < node_id.size
+            and abs(np.subtract(*[np.argwhere(node_id == n)[0] for n in (a, b)])).sum() == 1
+        )
         poly = np.array([pa, pb])
-        if kind == "street" and lattice and rng.random() < town.curve_fraction and not any(c in busy_cells for c in cells_of(a, b)):
+        if (
+            kind == "street"
+            and lattice
+            and rng.random() < town.curve_fraction
+            and not any(c in busy_cells for c in cells_of(a, b))
+        ):
             f = np.linspace(0, 1, 25)
             L = np.linalg.norm(pb - pa)
             t = (pb - pa) / L
             nrm = np.array([-t[1], t[0]])
             amp = town.curve_amplitude * L * rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0)
             poly = pa + np.outer(f, pb - pa) + np.outer(amp * np.sin(np.pi * f) ** 2, nrm)
-        hw = {"avenue": town.avenue_half_width_m, "street": town.street_half_width_m, "lane": town.lane_half_width_m}[kind]
+        hw = {"avenue": town.avenue_half_width_m, "street": town.street_half_width_m, "lane": town.lane_half_width_m}[
+            kind
+        ]
         roads.append(Road(len(roads), int(a), int(b), kind, float(hw), poly))
     g = RoadGraph(nodes_xy, roads)
     compute_junction_radii(g, town.sidewalk_width_m)
@@ -504,10 +587,11 @@ def compute_junction_radii(g: RoadGraph, sidewalk_width_m: float) -> None:
 
 # --- road surfaces --------------------------------------------------------------------------------
 
+
 def _resample(poly: np.ndarray, s0: float, s1: float, max_step: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """Points of a polyline between arc lengths s0 and s1 (its own vertices kept), and their s."""
     S = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
-    inner = S[(S > s0) & (S < s1)]
+    inner = S[(s0 < S) & (s1 > S)]
     s = np.concatenate([[s0], inner, [s1]])
     # always densify: long thin triangles (a 50 m kerb face is 0.15 m tall) hurt ray and distance queries
     s = np.unique(np.concatenate([s, np.linspace(s0, s1, max(2, int(np.ceil((s1 - s0) / max_step)) + 1))]))
@@ -516,8 +600,18 @@ def _resample(poly: np.ndarray, s0: float, s1: float, max_step: float = 4.0) -> 
     return np.stack([x, y], axis=1), s
 
 
-def _strip(mb: MeshBuilder, pts: np.ndarray, s: np.ndarray, lat0: float, lat1: float, z: float, material: Mat,
-           aux_fn, object_id: int = -1, normal_sign: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def _strip(
+    mb: MeshBuilder,
+    pts: np.ndarray,
+    s: np.ndarray,
+    lat0: float,
+    lat1: float,
+    z: float,
+    material: Mat,
+    aux_fn,
+    object_id: int = -1,
+    normal_sign: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """A horizontal strip between lateral offsets lat0 < lat1 along a polyline (mitred joints)."""
     d = np.gradient(pts, axis=0)
     t = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
@@ -559,7 +653,9 @@ def _wall_strip(mb: MeshBuilder, line: np.ndarray, z0: float, z1: float, facing:
     f3 = np.concatenate([facing, np.zeros((len(facing), 1))], axis=1)
     tris = _orient(V, tris, np.concatenate([f3, f3]))
     seg = np.diff(line, axis=0)
-    u = np.concatenate([seg / np.maximum(np.linalg.norm(seg, axis=1, keepdims=True), 1e-9), np.zeros((m - 1, 1))], axis=1)
+    u = np.concatenate(
+        [seg / np.maximum(np.linalg.norm(seg, axis=1, keepdims=True), 1e-9), np.zeros((m - 1, 1))], axis=1
+    )
     origin = np.concatenate([line[:-1], np.full((m - 1, 1), z0)], axis=1)
     mb.add(V, tris, material, origin=np.concatenate([origin, origin]), axis_u=np.concatenate([u, u]), axis_v=(0, 0, 1))
 
@@ -577,10 +673,29 @@ def road_surfaces(mb: MeshBuilder, g: RoadGraph, town: TownConfig) -> None:
         pts, s = _resample(road.polyline, s0, s1)
         kind = ROAD_KINDS[road.kind]
         xa, xb = float(deg[road.a] >= 3), float(deg[road.b] >= 3)
-        _strip(mb, pts, s, -w, w, ROAD_Z, Mat.ROAD,
-               lambda ss: np.stack([ss, np.full_like(ss, L), np.full_like(ss, w), np.full_like(ss, kind),
-                                    np.full_like(ss, s0), np.full_like(ss, s1), np.full_like(ss, xa), np.full_like(ss, xb)], 1),
-               object_id=road.id)
+        _strip(
+            mb,
+            pts,
+            s,
+            -w,
+            w,
+            ROAD_Z,
+            Mat.ROAD,
+            lambda ss: np.stack(
+                [
+                    ss,
+                    np.full_like(ss, L),
+                    np.full_like(ss, w),
+                    np.full_like(ss, kind),
+                    np.full_like(ss, s0),
+                    np.full_like(ss, s1),
+                    np.full_like(ss, xa),
+                    np.full_like(ss, xb),
+                ],
+                1,
+            ),
+            object_id=road.id,
+        )
         # sidewalks on both sides, with a curb face toward the road and a low face toward the ground
         q0, q1 = g.sidewalk_radius_m[road.a], L - g.sidewalk_radius_m[road.b]
         if q1 - q0 < 1.0:
@@ -651,6 +766,7 @@ def _convex_hull(p: np.ndarray) -> np.ndarray:
 
 
 # --- occupancy (what is already built on) ---------------------------------------------------------
+
 
 class Occupancy:
     """A 0.5 m grid over the town: 0 free, -1 road or sidewalk, k > 0 building/prop k."""
@@ -758,13 +874,43 @@ def building_styles(n: int, rng: np.random.Generator) -> np.ndarray:
         shop = float(rng.random() < 0.55)
         roof = np.array([(0.35, 0.17, 0.12), (0.22, 0.23, 0.26), (0.42, 0.3, 0.22)][int(rng.integers(3))])
         sign_hue = rng.uniform(0, 1)
-        rows.append([PATTERNS.index(pattern), *col, floor_h, spacing, win_w, win_h, *frame, shop, *roof, sign_hue,
-                     rng.uniform(0.2, 0.5)])
+        rows.append(
+            [
+                PATTERNS.index(pattern),
+                *col,
+                floor_h,
+                spacing,
+                win_w,
+                win_h,
+                *frame,
+                shop,
+                *roof,
+                sign_hue,
+                rng.uniform(0.2, 0.5),
+            ]
+        )
     return np.array(rows, np.float32)
 
 
-STYLE_COLUMNS = ("pattern", "r", "g", "b", "floor_h", "spacing", "win_w", "win_h", "frame_r", "frame_g", "frame_b",
-                 "shop", "roof_r", "roof_g", "roof_b", "sign_hue", "lit_fraction")
+STYLE_COLUMNS = (
+    "pattern",
+    "r",
+    "g",
+    "b",
+    "floor_h",
+    "spacing",
+    "win_w",
+    "win_h",
+    "frame_r",
+    "frame_g",
+    "frame_b",
+    "shop",
+    "roof_r",
+    "roof_g",
+    "roof_b",
+    "sign_hue",
+    "lit_fraction",
+)
 
 
 @dataclass
@@ -836,6 +982,7 @@ def longest_straight_m(g: RoadGraph) -> float:
 
 # --- props ----------------------------------------------------------------------------------------
 
+
 def _tree_templates(rng: np.random.Generator, n_variants: int = 4):
     import open3d as o3d
 
@@ -858,7 +1005,7 @@ def _outward(V: np.ndarray, T: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return _orient(V, T, c - centres)
 
 
-def build_town(cfg: SynthConfig, trajectory_xy: Optional[np.ndarray] = None) -> Town:
+def build_town(cfg: SynthConfig, trajectory_xy: np.ndarray | None = None) -> Town:
     """Generate the whole town from ``cfg.seed`` (and around an external path, if given)."""
     town = cfg.town
     ss = np.random.SeedSequence([cfg.seed, 0x70_77_4E])
@@ -887,7 +1034,9 @@ def build_town(cfg: SynthConfig, trajectory_xy: Optional[np.ndarray] = None) -> 
     geom = mb.build()
     frame = LocalFrame(cfg.origin.lat_deg, cfg.origin.lon_deg, cfg.origin.alt_m)
     anchor = choose_anchor(g)
-    return Town(cfg, frame, g, geom, styles, lamps, slots, n_buildings, n_trees, (float(half[0]), float(half[1])), anchor)
+    return Town(
+        cfg, frame, g, geom, styles, lamps, slots, n_buildings, n_trees, (float(half[0]), float(half[1])), anchor
+    )
 
 
 def choose_anchor(g: RoadGraph) -> dict:
@@ -905,12 +1054,19 @@ def choose_anchor(g: RoadGraph) -> dict:
         best = max(g.roads, key=lambda r: r.length_m)
     s = 0.45 * best.length_m
     xy, t = best.point_at(np.array([s]))
-    return {"road": best.id, "from_node": best.a, "to_node": best.b, "s_m": round(s, 3),
-            "xy": [float(xy[0, 0]), float(xy[0, 1])], "heading_rad": float(np.arctan2(t[0, 1], t[0, 0]))}
+    return {
+        "road": best.id,
+        "from_node": best.a,
+        "to_node": best.b,
+        "s_m": round(s, 3),
+        "xy": [float(xy[0, 0]), float(xy[0, 1])],
+        "heading_rad": float(np.arctan2(t[0, 1], t[0, 0])),
+    }
 
 
-def _buildings(mb: MeshBuilder, g: RoadGraph, town: TownConfig, styles: np.ndarray, occ: Occupancy,
-               rng: np.random.Generator) -> tuple[int, list]:
+def _buildings(
+    mb: MeshBuilder, g: RoadGraph, town: TownConfig, styles: np.ndarray, occ: Occupancy, rng: np.random.Generator
+) -> tuple[int, list]:
     bc = town.buildings
     boxes: list[tuple] = []  # (center xy, half (2,), yaw, height, style, building id, pitched, front face index)
     fences: list[tuple[Road, float, float, float]] = []  # (road, side, s from, s to)
@@ -994,7 +1150,15 @@ def _buildings(mb: MeshBuilder, g: RoadGraph, town: TownConfig, styles: np.ndarr
         return np.stack([L, eave, styles[style, 4], (front == f).astype(float), col[:, 0], col[:, 1], col[:, 2], bh], 1)
 
     b = Boxes(centre, half, height=eave - GROUND_Z, yaw=yaw)
-    add_boxes(mb, b, {0: Mat.WALL, 1: Mat.WALL, 2: Mat.WALL, 3: Mat.WALL}, object_id=bids, style=style, aux=wall_aux, faces=(0, 1, 2, 3))
+    add_boxes(
+        mb,
+        b,
+        {0: Mat.WALL, 1: Mat.WALL, 2: Mat.WALL, 3: Mat.WALL},
+        object_id=bids,
+        style=style,
+        aux=wall_aux,
+        faces=(0, 1, 2, 3),
+    )
     roof_col = styles[style, 12:15]
     flat = ~pitched
     if flat.any():
@@ -1004,8 +1168,20 @@ def _buildings(mb: MeshBuilder, g: RoadGraph, town: TownConfig, styles: np.ndarr
         flat_aux[:, 7] = bh[flat]
         add_boxes(mb, bf, Mat.ROOF, object_id=bids[flat], style=style[flat], aux=flat_aux, faces=(4,))
     if pitched.any():
-        _pitched_roofs(mb, centre[pitched], half[pitched], yaw[pitched], eave[pitched], roof_pitch[pitched],
-                       bids[pitched], style[pitched], roof_col[pitched], bh[pitched], col[pitched], styles)
+        _pitched_roofs(
+            mb,
+            centre[pitched],
+            half[pitched],
+            yaw[pitched],
+            eave[pitched],
+            roof_pitch[pitched],
+            bids[pitched],
+            style[pitched],
+            roof_col[pitched],
+            bh[pitched],
+            col[pitched],
+            styles,
+        )
     return int(len(np.unique(bids))), fences
 
 
@@ -1019,10 +1195,26 @@ def _pitched_roofs(mb, centre, half, yaw, eave, rise, bids, style, roof_col, bh,
     hx, hy = half[:, 0:1], half[:, 1:2]
     p = lambda a, b, z=0.0: base + ex * (a * hx) + ey * (b * hy) + np.array([0, 0, 1.0]) * z  # noqa: E731
     # eave corners 0..3, ridge ends 4, 5
-    V = np.stack([p(-1, -1), p(1, -1), p(1, 1), p(-1, 1), p(-1, 0) + np.c_[0 * rise, 0 * rise, rise], p(1, 0) + np.c_[0 * rise, 0 * rise, rise]], 1)
+    V = np.stack(
+        [
+            p(-1, -1),
+            p(1, -1),
+            p(1, 1),
+            p(-1, 1),
+            p(-1, 0) + np.c_[0 * rise, 0 * rise, rise],
+            p(1, 0) + np.c_[0 * rise, 0 * rise, rise],
+        ],
+        1,
+    )
     off = (np.arange(n) * 6)[:, None]
-    slopes = np.concatenate([np.stack([off[:, 0] + 0, off[:, 0] + 1, off[:, 0] + 5], 1), np.stack([off[:, 0] + 0, off[:, 0] + 5, off[:, 0] + 4], 1),
-                             np.stack([off[:, 0] + 2, off[:, 0] + 3, off[:, 0] + 4], 1), np.stack([off[:, 0] + 2, off[:, 0] + 4, off[:, 0] + 5], 1)])
+    slopes = np.concatenate(
+        [
+            np.stack([off[:, 0] + 0, off[:, 0] + 1, off[:, 0] + 5], 1),
+            np.stack([off[:, 0] + 0, off[:, 0] + 5, off[:, 0] + 4], 1),
+            np.stack([off[:, 0] + 2, off[:, 0] + 3, off[:, 0] + 4], 1),
+            np.stack([off[:, 0] + 2, off[:, 0] + 4, off[:, 0] + 5], 1),
+        ]
+    )
     Vf = V.reshape(-1, 3)
     slopes = _orient(Vf, slopes, np.tile(np.array([0, 0, 1.0]), (len(slopes), 1)))
     idx4 = np.concatenate([np.arange(n)] * 4)
@@ -1038,9 +1230,24 @@ def _pitched_roofs(mb, centre, half, yaw, eave, rise, bids, style, roof_col, bh,
     origin = np.concatenate([V[:, 0], V[:, 0], V[:, 2], V[:, 2]])
     axis_u = np.concatenate([ex, ex, -ex, -ex])
     aux = np.stack([np.ones(n), 0 * bh, 0 * bh, 0 * bh, roof_col[:, 0], roof_col[:, 1], roof_col[:, 2], bh], 1)[idx4]
-    mb.add(Vf, slopes, Mat.ROOF, object_id=bids[idx4], style=style[idx4], origin=origin, axis_u=axis_u, axis_v=axis_v, aux=aux)
+    mb.add(
+        Vf,
+        slopes,
+        Mat.ROOF,
+        object_id=bids[idx4],
+        style=style[idx4],
+        origin=origin,
+        axis_u=axis_u,
+        axis_v=axis_v,
+        aux=aux,
+    )
     # gables: wall material, facade frame continuing the walls below (v up)
-    gables = np.concatenate([np.stack([off[:, 0] + 1, off[:, 0] + 2, off[:, 0] + 5], 1), np.stack([off[:, 0] + 3, off[:, 0] + 0, off[:, 0] + 4], 1)])
+    gables = np.concatenate(
+        [
+            np.stack([off[:, 0] + 1, off[:, 0] + 2, off[:, 0] + 5], 1),
+            np.stack([off[:, 0] + 3, off[:, 0] + 0, off[:, 0] + 4], 1),
+        ]
+    )
     want = np.concatenate([ex, -ex])
     gables = _orient(Vf, gables, want)
     idx2 = np.concatenate([np.arange(n)] * 2)
@@ -1049,7 +1256,17 @@ def _pitched_roofs(mb, centre, half, yaw, eave, rise, bids, style, roof_col, bh,
     g_u = np.concatenate([ey, -ey])
     L = 2 * half[:, 1]
     aux_w = np.stack([L, eave, styles[style, 4], 0 * L, wall_col[:, 0], wall_col[:, 1], wall_col[:, 2], bh], 1)[idx2]
-    mb.add(Vf, gables, Mat.WALL, object_id=bids[idx2], style=style[idx2], origin=g_origin, axis_u=g_u, axis_v=(0, 0, 1), aux=aux_w)
+    mb.add(
+        Vf,
+        gables,
+        Mat.WALL,
+        object_id=bids[idx2],
+        style=style[idx2],
+        origin=g_origin,
+        axis_u=g_u,
+        axis_v=(0, 0, 1),
+        aux=aux_w,
+    )
 
 
 def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fences: list, rng: np.random.Generator):
@@ -1114,18 +1331,29 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
         n = len(base)
         yaw = np.arctan2(d[:, 1], d[:, 0])
         h = 7.0
-        add_boxes(mb, Boxes(np.c_[base, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.09), np.full(n, h), yaw), Mat.POLE, faces=(0, 1, 2, 3))
+        add_boxes(
+            mb,
+            Boxes(np.c_[base, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.09), np.full(n, h), yaw),
+            Mat.POLE,
+            faces=(0, 1, 2, 3),
+        )
         arm_c = base + d * 0.8
-        add_boxes(mb, Boxes(np.c_[arm_c, np.full(n, h - 0.12)], np.tile([0.85, 0.06], (n, 1)), np.full(n, 0.12), yaw), Mat.POLE)
+        add_boxes(
+            mb,
+            Boxes(np.c_[arm_c, np.full(n, h - 0.12)], np.tile([0.85, 0.06], (n, 1)), np.full(n, 0.12), yaw),
+            Mat.POLE,
+        )
         head = base + d * 1.55
-        add_boxes(mb, Boxes(np.c_[head, np.full(n, h - 0.3)], np.tile([0.35, 0.17], (n, 1)), np.full(n, 0.18), yaw), Mat.LAMP)
+        add_boxes(
+            mb, Boxes(np.c_[head, np.full(n, h - 0.3)], np.tile([0.35, 0.17], (n, 1)), np.full(n, 0.18), yaw), Mat.LAMP
+        )
         lamps_xyz = np.c_[head, np.full(n, h - 0.4)]
     # trees
     canopies, CT, TV, TT = _tree_templates(rng)
     tp = np.concatenate(tree_pos) if tree_pos else np.zeros((0, 2))
     # park trees on free land
     lo = np.array([occ.x0, occ.y0])
-    area_ha = occ.nx * occ.ny * occ.res ** 2 / 1e4
+    area_ha = occ.nx * occ.ny * occ.res**2 / 1e4
     n_cand = int(area_ha * town.park_trees_per_ha * 3)
     if n_cand:
         cand = lo + rng.uniform(0, 1, (n_cand, 2)) * np.array([occ.nx, occ.ny]) * occ.res
@@ -1142,7 +1370,9 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
         variant = rng.integers(len(canopies), size=n_trees)
         base_z = np.full(n_trees, town.sidewalk_height_m)
         base_z[occ.free_at(tp)] = GROUND_Z  # park trees stand on the ground
-        tv, tt = instances(TV, TT, np.c_[tp, base_z], np.c_[np.full(n_trees, 0.22), np.full(n_trees, 0.22), trunk_h + rz * 0.5], yaw)
+        tv, tt = instances(
+            TV, TT, np.c_[tp, base_z], np.c_[np.full(n_trees, 0.22), np.full(n_trees, 0.22), trunk_h + rz * 0.5], yaw
+        )
         tt = _outward(tv, tt, np.repeat(np.c_[tp, base_z + 1.0], len(TT), axis=0))
         mb.add(tv, tt, Mat.TRUNK, object_id=np.repeat(np.arange(n_trees), len(TT)))
         hashes = ((np.arange(n_trees) * 2654435761) % 1000003) / 1000003.0
@@ -1160,10 +1390,20 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
         sd = np.array(sign_dir)
         n = len(sp)
         yaw = np.arctan2(sd[:, 1], sd[:, 0]) + np.pi / 2  # plate's local -y faces along sd
-        add_boxes(mb, Boxes(np.c_[sp, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.04), np.full(n, 2.2), yaw), Mat.POLE, faces=(0, 1, 2, 3))
+        add_boxes(
+            mb,
+            Boxes(np.c_[sp, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.04), np.full(n, 2.2), yaw),
+            Mat.POLE,
+            faces=(0, 1, 2, 3),
+        )
         kind = rng.integers(0, 4, n).astype(float)
-        add_boxes(mb, Boxes(np.c_[sp, np.full(n, 2.0)], np.tile([0.35, 0.02], (n, 1)), np.full(n, 0.7), yaw),
-                  {3: Mat.SIGN, "default": Mat.POLE}, aux=kind[:, None], style=kind.astype(int))
+        add_boxes(
+            mb,
+            Boxes(np.c_[sp, np.full(n, 2.0)], np.tile([0.35, 0.02], (n, 1)), np.full(n, 0.7), yaw),
+            {3: Mat.SIGN, "default": Mat.POLE},
+            aux=kind[:, None],
+            style=kind.astype(int),
+        )
     # fences along lot gaps
     segs = []
     for road, side, s0, s1 in fences:
@@ -1174,7 +1414,17 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
         segs.append((q, float(rng.integers(0, 2))))
     if segs:
         posts = np.concatenate([q for q, _ in segs])
-        add_boxes(mb, Boxes(np.c_[posts, np.full(len(posts), GROUND_Z)], np.full((len(posts), 2), 0.05), np.full(len(posts), 1.4), np.zeros(len(posts))), Mat.FENCE, aux=np.zeros((len(posts), 1)))
+        add_boxes(
+            mb,
+            Boxes(
+                np.c_[posts, np.full(len(posts), GROUND_Z)],
+                np.full((len(posts), 2), 0.05),
+                np.full(len(posts), 1.4),
+                np.zeros(len(posts)),
+            ),
+            Mat.FENCE,
+            aux=np.zeros((len(posts), 1)),
+        )
         pc, ph, py, pk = [], [], [], []
         for q, kind in segs:
             a, b = q[:-1], q[1:]
@@ -1185,8 +1435,12 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
             py.append(np.arctan2(d[:, 1], d[:, 0]))
             pk.append(np.full(len(L), kind))
         n = sum(len(x) for x in pc)
-        add_boxes(mb, Boxes(np.c_[np.concatenate(pc), np.full(n, 0.05)], np.concatenate(ph), np.full(n, 1.2), np.concatenate(py)), Mat.FENCE,
-                  aux=np.concatenate(pk)[:, None])
+        add_boxes(
+            mb,
+            Boxes(np.c_[np.concatenate(pc), np.full(n, 0.05)], np.concatenate(ph), np.full(n, 1.2), np.concatenate(py)),
+            Mat.FENCE,
+            aux=np.concatenate(pk)[:, None],
+        )
     slots_arr = np.concatenate(slots) if slots else np.zeros((0, 4))
     return lamps_xyz, n_trees, slots_arr
 
@@ -1234,13 +1488,23 @@ def _value_noise_np(xy: np.ndarray, seed: int) -> np.ndarray:
 
 # --- parked cars (per session) --------------------------------------------------------------------
 
-CAR_COLOURS = np.array([
-    (0.8, 0.8, 0.82), (0.05, 0.05, 0.06), (0.5, 0.52, 0.55), (0.6, 0.05, 0.04), (0.05, 0.15, 0.45),
-    (0.9, 0.9, 0.88), (0.25, 0.3, 0.25), (0.7, 0.55, 0.1), (0.3, 0.32, 0.36), (0.55, 0.6, 0.7),
-])
+CAR_COLOURS = np.array(
+    [
+        (0.8, 0.8, 0.82),
+        (0.05, 0.05, 0.06),
+        (0.5, 0.52, 0.55),
+        (0.6, 0.05, 0.04),
+        (0.05, 0.15, 0.45),
+        (0.9, 0.9, 0.88),
+        (0.25, 0.3, 0.25),
+        (0.7, 0.55, 0.1),
+        (0.3, 0.32, 0.36),
+        (0.55, 0.6, 0.7),
+    ]
+)
 
 
-def parked_cars(town: Town, rng: np.random.Generator, occupancy: Optional[float] = None) -> Geometry:
+def parked_cars(town: Town, rng: np.random.Generator, occupancy: float | None = None) -> Geometry:
     """A session's parked cars: each parking slot taken with the town's occupancy probability."""
     slots = town.parking_slots
     p = town.config.town.parked_car_occupancy if occupancy is None else occupancy
@@ -1259,28 +1523,53 @@ def parked_cars(town: Town, rng: np.random.Generator, occupancy: Optional[float]
     colour = CAR_COLOURS[rng.integers(len(CAR_COLOURS), size=n)] * rng.uniform(0.85, 1.1, (n, 1))
     ids = np.arange(n)
     body_h = rng.uniform(0.65, 0.8, n)
-    add_boxes(mb, Boxes(np.c_[xy, np.full(n, 0.3)], np.c_[length / 2, width / 2], body_h, yaw), Mat.CAR_BODY, object_id=ids, aux=colour)
+    add_boxes(
+        mb,
+        Boxes(np.c_[xy, np.full(n, 0.3)], np.c_[length / 2, width / 2], body_h, yaw),
+        Mat.CAR_BODY,
+        object_id=ids,
+        aux=colour,
+    )
     cab_len = length * rng.uniform(0.45, 0.55, n)
     cab = xy - fwd * (0.08 * length)[:, None]
-    add_boxes(mb, Boxes(np.c_[cab, 0.3 + body_h], np.c_[cab_len / 2, width / 2 - 0.08], rng.uniform(0.45, 0.55, n), yaw),
-              {4: Mat.CAR_BODY, "default": Mat.CAR_GLASS}, object_id=ids, aux=colour)
+    add_boxes(
+        mb,
+        Boxes(np.c_[cab, 0.3 + body_h], np.c_[cab_len / 2, width / 2 - 0.08], rng.uniform(0.45, 0.55, n), yaw),
+        {4: Mat.CAR_BODY, "default": Mat.CAR_GLASS},
+        object_id=ids,
+        aux=colour,
+    )
     wheels = []
     for sx in (-1, 1):
         for sy in (-1, 1):
             wheels.append(xy + fwd * (sx * (length / 2 - 0.75))[:, None] + left * (sy * (width / 2 - 0.12))[:, None])
     wc = np.concatenate(wheels)
     nw = len(wc)
-    add_boxes(mb, Boxes(np.c_[wc, np.zeros(nw)], np.tile([0.33, 0.12], (nw, 1)), np.full(nw, 0.62), np.tile(yaw, 4)), Mat.CAR_WHEEL)
+    add_boxes(
+        mb,
+        Boxes(np.c_[wc, np.zeros(nw)], np.tile([0.33, 0.12], (nw, 1)), np.full(nw, 0.62), np.tile(yaw, 4)),
+        Mat.CAR_WHEEL,
+    )
     return mb.build()
 
 
 def _empty_geometry() -> Geometry:
     z = np.zeros
-    return Geometry(z((0, 3)), z((0, 3), np.int32), z(0, np.uint8), z(0, np.int32), z(0, np.int16),
-                    z((0, 3), np.float32), z((0, 3), np.float32), z((0, 3), np.float32), z((0, 8), np.float32))
+    return Geometry(
+        z((0, 3)),
+        z((0, 3), np.int32),
+        z(0, np.uint8),
+        z(0, np.int32),
+        z(0, np.int16),
+        z((0, 3), np.float32),
+        z((0, 3), np.float32),
+        z((0, 3), np.float32),
+        z((0, 8), np.float32),
+    )
 
 
 # --- roads around an external path ----------------------------------------------------------------
+
 
 def roads_around_path(town: TownConfig, path_xy: np.ndarray, rng: np.random.Generator) -> RoadGraph:
     """A procedural town over the path's extent, with the path as one road (the vehicle in its
@@ -1331,7 +1620,7 @@ def _dist_to_polyline(p: np.ndarray, poly: np.ndarray) -> np.ndarray:
     L2 = np.maximum((d * d).sum(1), 1e-12)
     out = np.full(len(p), np.inf)
     for k0 in range(0, len(a), 512):
-        A, D, LL = a[k0:k0 + 512], d[k0:k0 + 512], L2[k0:k0 + 512]
+        A, D, LL = a[k0 : k0 + 512], d[k0 : k0 + 512], L2[k0 : k0 + 512]
         t = np.clip(((p[:, None, :] - A[None]) * D[None]).sum(-1) / LL[None], 0, 1)
         q = A[None] + t[..., None] * D[None]
         out = np.minimum(out, np.linalg.norm(p[:, None, :] - q, axis=-1).min(axis=1))
@@ -1350,7 +1639,7 @@ def _simplify(poly: np.ndarray, tol: float) -> np.ndarray:
         a, b = poly[i], poly[j]
         d = b - a
         L = np.linalg.norm(d)
-        seg = poly[i + 1:j] - a
+        seg = poly[i + 1 : j] - a
         dist = np.abs(seg[:, 0] * d[1] - seg[:, 1] * d[0]) / L if L > 1e-9 else np.linalg.norm(seg, axis=1)
         k = int(np.argmax(dist))
         if dist[k] > tol:
@@ -1360,6 +1649,7 @@ def _simplify(poly: np.ndarray, tol: float) -> np.ndarray:
 
 
 # --- writing and reading --------------------------------------------------------------------------
+
 
 def write_ply(path: Path, g: Geometry) -> Path:
     """Binary little-endian PLY: double vertices, faces with their material and object id."""
@@ -1376,11 +1666,10 @@ def write_ply(path: Path, g: Geometry) -> Path:
     f["v"] = g.triangles
     f["m"] = g.material
     f["o"] = g.object_id
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            fh.write(hdr.encode())
-            fh.write(np.ascontiguousarray(g.vertices, "<f8").tobytes())
-            fh.write(f.tobytes())
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        fh.write(hdr.encode())
+        fh.write(np.ascontiguousarray(g.vertices, "<f8").tobytes())
+        fh.write(f.tobytes())
     return Path(path)
 
 

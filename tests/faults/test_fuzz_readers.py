@@ -37,7 +37,9 @@ def _load_bench():
 
 fz = _load_bench()
 
-SETTINGS = settings(max_examples=60, deadline=None, derandomize=True, database=None, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(
+    max_examples=60, deadline=None, derandomize=True, database=None, suppress_health_check=[HealthCheck.too_slow]
+)
 
 #: tokens of a numeric text file: real numbers in any spelling, the hard ones, and short arbitrary text
 TOKEN = st.one_of(
@@ -135,8 +137,11 @@ def test_kitti_poses_never_crash(clean, k, row):
 
 
 @SETTINGS
-@given(record=st.one_of(st.lists(TOKEN, min_size=28, max_size=31).map(" ".join), LINE), k=st.integers(0, 5),
-       stamp=st.one_of(st.none(), st.text(max_size=40)))
+@given(
+    record=st.one_of(st.lists(TOKEN, min_size=28, max_size=31).map(" ".join), LINE),
+    k=st.integers(0, 5),
+    stamp=st.one_of(st.none(), st.text(max_size=40)),
+)
 def test_kitti_raw_oxts_records_never_crash(clean, record, k, stamp):
     root = _copy(clean["raw"].parents[1])
     drive = root / clean["raw"].relative_to(clean["raw"].parents[1])
@@ -155,8 +160,12 @@ CELL = st.one_of(TOKEN, st.sampled_from(["0001.jpg", "0002.png", "", "../frames.
 
 
 @SETTINGS
-@given(row=st.one_of(st.lists(CELL, min_size=14, max_size=18).map(lambda cells: _encoded(",".join(cells))), st.binary(max_size=120)),
-       k=st.integers(1, 6))
+@given(
+    row=st.one_of(
+        st.lists(CELL, min_size=14, max_size=18).map(lambda cells: _encoded(",".join(cells))), st.binary(max_size=120)
+    ),
+    k=st.integers(1, 6),
+)
 def test_folder_csv_rows_never_crash(clean, row, k):
     root = _copy(clean["folder"])
     try:
@@ -173,8 +182,10 @@ def test_seeded_campaign_over_whole_logs_never_crashes_nor_loses_intact_chunks(t
     bursts and truncations, ROS 1 bag damage, KITTI and folder text, impossible poses, corrupt images)."""
     tallies = fz.campaign(seconds=float("inf"), seed=23, base=tmp_path / "clean", max_inputs=15)
     assert len(tallies) == 17 and all(t.tried == 15 for t in tallies.values())
-    bad = {name: {k: t.examples[k] for k in ("crash", "silent loss", "intact data lost") if k in t.outcomes}
-           for name, t in tallies.items()}
+    bad = {
+        name: {k: t.examples[k] for k in ("crash", "silent loss", "intact data lost") if k in t.outcomes}
+        for name, t in tallies.items()
+    }
     assert not any(bad.values()), bad
     # the damage is seen: every summary flip and truncation warns, and every MCAP input reads everything it can
     for compression in ("zstd", "none"):

@@ -22,7 +22,10 @@ def _drive(n: int = 120, speed: float = 15.0, noise: float = 2.0, seed: int = 0)
     enu = np.c_[400 * np.sin(theta), 400 * (1 - np.cos(theta)), np.zeros(n)] + rng.normal(0, noise, (n, 3))
     lat, lon, alt = FRAME.enu_to_geodetic(enu)
     cov = np.eye(3) * noise**2
-    return [GpsFix(T0 + i * 1_000_000_000, float(lat[i]), float(lon[i]), float(alt[i]), GpsStatus.FIX, cov) for i in range(n)]
+    return [
+        GpsFix(T0 + i * 1_000_000_000, float(lat[i]), float(lon[i]), float(alt[i]), GpsStatus.FIX, cov)
+        for i in range(n)
+    ]
 
 
 def _moved(f: GpsFix, east_m: float, north_m: float = 0.0, up_m: float = 0.0) -> GpsFix:
@@ -32,8 +35,14 @@ def _moved(f: GpsFix, east_m: float, north_m: float = 0.0, up_m: float = 0.0) ->
 
 
 def _replace(fix: GpsFix, **kw) -> GpsFix:
-    d = dict(stamp_ns=fix.stamp_ns, lat_deg=fix.lat_deg, lon_deg=fix.lon_deg, alt_m=fix.alt_m, status=fix.status,
-             covariance_enu_m2=fix.covariance_enu_m2)
+    d = dict(
+        stamp_ns=fix.stamp_ns,
+        lat_deg=fix.lat_deg,
+        lon_deg=fix.lon_deg,
+        alt_m=fix.alt_m,
+        status=fix.status,
+        covariance_enu_m2=fix.covariance_enu_m2,
+    )
     d.update(kw)
     return GpsFix(**d)
 
@@ -60,7 +69,9 @@ def test_each_fault_removed_and_counted(bad_first):
         30: _replace(fixes[30], alt_m=fixes[30].alt_m + 1500.0),
         50: _moved(fixes[50], 1000.0),  # one fix 1 km off, 1 s after a good one
         # three fixes in a row 2 km off (a multipath burst): consistent with each other, not with the drive
-        70: _moved(fixes[70], -2000.0), 71: _moved(fixes[71], -2000.0), 72: _moved(fixes[72], -2000.0),
+        70: _moved(fixes[70], -2000.0),
+        71: _moved(fixes[71], -2000.0),
+        72: _moved(fixes[72], -2000.0),
     }
     if bad_first:
         bad[0] = _moved(fixes[0], 0.0, 5000.0)

@@ -8,9 +8,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 import pytest
 
@@ -53,9 +53,8 @@ def _holder(ws: Path, tmp_path: Path, seconds: float) -> Iterator[subprocess.Pop
 def test_second_writer_is_refused_naming_the_holder(tmp_path):
     ws = tmp_path / "ws"
     with _holder(ws, tmp_path, 30) as proc:
-        with pytest.raises(WorkspaceBusy) as err:
-            with workspace_lock(ws, command="mapkit align"):
-                pytest.fail("took a lock another process holds")
+        with pytest.raises(WorkspaceBusy) as err, workspace_lock(ws, command="mapkit align"):
+            pytest.fail("took a lock another process holds")
         msg = str(err.value)
         assert f"pid {proc.pid}" in msg and "mapkit build test-holder" in msg and str(ws) in msg
         assert read_holder(ws / ".lock")["pid"] == proc.pid
@@ -63,10 +62,9 @@ def test_second_writer_is_refused_naming_the_holder(tmp_path):
 
 def test_waiter_gets_the_lock_when_the_holder_finishes(tmp_path):
     ws = tmp_path / "ws"
-    with _holder(ws, tmp_path, 1.0) as proc:
-        with Workspace(ws).lock(command="waiter", wait_s=60):
-            assert read_holder(ws / ".lock")["command"] == "waiter"
-            assert proc.wait(timeout=30) == 0  # the holder released it by finishing (its exit may trail the release)
+    with _holder(ws, tmp_path, 1.0) as proc, Workspace(ws).lock(command="waiter", wait_s=60):
+        assert read_holder(ws / ".lock")["command"] == "waiter"
+        assert proc.wait(timeout=30) == 0  # the holder released it by finishing (its exit may trail the release)
 
 
 def test_killed_holder_leaves_no_stale_lock(tmp_path):
@@ -89,8 +87,16 @@ def test_reentrant_in_one_process_and_released_after(tmp_path):
     assert not holds_lock(ws)
     assert read_holder(ws / ".lock") == {}
     # released: another process takes it at once
-    out = subprocess.run([sys.executable, "-c", "import sys\nfrom mapkit.core.lock import workspace_lock\n"
-                          "with workspace_lock(sys.argv[1]): print('ok')", str(ws)], capture_output=True, text=True)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys\nfrom mapkit.core.lock import workspace_lock\nwith workspace_lock(sys.argv[1]): print('ok')",
+            str(ws),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
@@ -106,7 +112,9 @@ def test_second_cli_writer_refuses_with_one_line_and_writes_nothing(tmp_path, ca
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"pid {proc.pid}" in err[0] and "being written" in err[0]
         assert sorted(p.name for p in ws.iterdir()) == before  # no build_config.yaml, no sessions/
-    with _holder(ws, tmp_path, 1.0) as proc:  # waiting: the lock is taken after the holder ends, then the build reports its own error
+    with _holder(
+        ws, tmp_path, 1.0
+    ) as proc:  # waiting: the lock is taken after the holder ends, then the build reports its own error
         assert main(["--wait", "60", "build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
         assert "no-such.mcap: no such" in capsys.readouterr().err
         assert proc.wait(timeout=30) == 0

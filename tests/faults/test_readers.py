@@ -61,8 +61,9 @@ def _read(path: Path, fmt: str | None = None):
 
 # --- MCAP -----------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
-def mcap_log(tmp_path_factory) -> tuple[Path, "fz.McapLayout"]:
+def mcap_log(tmp_path_factory) -> tuple[Path, fz.McapLayout]:
     path = fz.write_mcap(tmp_path_factory.mktemp("mcap") / "drive.mcap")
     return path, fz.mcap_layout(path)
 
@@ -99,7 +100,7 @@ def test_a_damaged_first_chunk_keeps_every_chunk_after_it(mcap_log, tmp_path):
     path, layout = mcap_log
     data = bytearray(path.read_bytes())
     start, end, lost = layout.chunks[0]
-    data[start + 40:start + 104] = bytes(64)  # inside the first chunk's compressed records
+    data[start + 40 : start + 104] = bytes(64)  # inside the first chunk's compressed records
     seen, texts = _read(_damaged(tmp_path, bytes(data)))
     assert seen == layout.messages - lost
     assert any(f"near byte {start} of" in t and "intact chunks after it are read" in t for t in texts), texts
@@ -109,9 +110,9 @@ def test_a_broken_chunk_length_without_summary_is_stepped_over(mcap_log, tmp_pat
     """No summary (the file is cut before it) and a chunk's length field broken: the linear scan finds the next chunk.
     (A chunk defining channels is the exception: without a summary, its channels' later messages cannot be read.)"""
     path, layout = mcap_log
-    data = bytearray(path.read_bytes()[:layout.summary_start])
+    data = bytearray(path.read_bytes()[: layout.summary_start])
     start, _, lost = layout.chunks[5]
-    data[start + 1:start + 9] = struct.pack("<Q", 2**62)  # the chunk claims 4 EiB
+    data[start + 1 : start + 9] = struct.pack("<Q", 2**62)  # the chunk claims 4 EiB
     seen, texts = _read(_damaged(tmp_path, bytes(data)))
     assert seen == layout.messages - lost
     assert any(f"near byte {start} of" in t for t in texts), texts
@@ -152,6 +153,7 @@ def test_truncation_keeps_every_complete_chunk(mcap_log, tmp_path, keep):
 
 # --- ROS 1 ----------------------------------------------------------------------------------------
 
+
 def test_a_truncated_ros1_bag_is_one_clean_error(tmp_path):
     bag = fz.write_rosbag1(tmp_path / "drive.bag")
     bag.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
@@ -161,6 +163,7 @@ def test_a_truncated_ros1_bag_is_one_clean_error(tmp_path):
 
 
 # --- KITTI ----------------------------------------------------------------------------------------
+
 
 def _odometry(tmp_path: Path) -> Path:
     return fz.write_kitti_odometry(tmp_path / "seq")
@@ -233,7 +236,10 @@ def _raw_oxts(tmp_path: Path) -> Path:
 def test_impossible_oxts_records_are_rejected_with_counts(tmp_path):
     drive = _raw_oxts(tmp_path)
     files = sorted((drive / "oxts" / "data").iterdir())
-    for path, lat_shift in ((files[2], 0.01), (files[4], 1000.0)):  # 0.01 deg: 1.1 km within 0.1 s; then no latitude at all
+    for path, lat_shift in (
+        (files[2], 0.01),
+        (files[4], 1000.0),
+    ):  # 0.01 deg: 1.1 km within 0.1 s; then no latitude at all
         v = path.read_text().split()
         v[0] = repr(float(v[0]) + lat_shift)
         path.write_text(" ".join(v) + "\n")
@@ -268,9 +274,10 @@ def test_stamp_beyond_int64_nanoseconds_names_its_line(tmp_path):
 
 # --- images and folder tables ---------------------------------------------------------------------
 
+
 def _corrupt(path: Path) -> None:
     data = bytearray(path.read_bytes())
-    data[len(data) // 2:] = bytes(len(data) - len(data) // 2)
+    data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)
     path.write_bytes(bytes(data))
 
 
@@ -329,6 +336,7 @@ def test_kitti_image_folder_with_a_corrupt_frame_reads_the_others(tmp_path):
 
 # --- the net under every reader -------------------------------------------------------------------
 
+
 def test_a_data_error_that_slips_out_of_a_reader_becomes_an_input_error(tmp_path):
     """What a reader fails to name itself still reaches the user as one InputError naming the file, cause kept."""
     from mapkit.core.types import GpsFix, Message, StreamInfo
@@ -343,6 +351,8 @@ def test_a_data_error_that_slips_out_of_a_reader_becomes_an_input_error(tmp_path
             np.linalg.solve(np.zeros((3, 3)), np.ones(3))  # LinAlgError, a ValueError
 
     log = Broken(tmp_path / "drive.log")
-    with pytest.raises(InputError, match=r"could not be read after message 0 of /gps \(LinAlgError: Singular matrix\)") as exc:
+    with pytest.raises(
+        InputError, match=r"could not be read after message 0 of /gps \(LinAlgError: Singular matrix\)"
+    ) as exc:
         list(log.messages())
     assert exc.value.path == tmp_path / "drive.log" and isinstance(exc.value.__cause__, np.linalg.LinAlgError)

@@ -121,7 +121,9 @@ def test_a_replaced_log_is_rebuilt_and_an_unchanged_one_is_not(tmp_path, full_lo
     _imageless_log(log, yaw_deg=80.0)  # another drive under the same name
     ws = _build(_settled(log), tmp_path / "ws")
     assert traj_marker.stat().st_mtime_ns != first
-    assert json.loads(ws.session("drive").gps_alignment.read_text())["alignment"]["yaw_deg"] == pytest.approx(80.0, abs=0.5)
+    assert json.loads(ws.session("drive").gps_alignment.read_text())["alignment"]["yaw_deg"] == pytest.approx(
+        80.0, abs=0.5
+    )
 
 
 def test_markers_of_older_workspaces_stay_valid_for_their_config(tmp_path):
@@ -157,7 +159,9 @@ def aligned_inputs(tmp_path) -> Path:
     from test_align import gps_error
 
     ws = tmp_path / "ws"
-    make_workspace(ws, street_points(np.random.default_rng(1)), {"s0": gps_error(1.0, -1.0, 0.0), "s1": gps_error(-1.0, 1.0, 0.0)})
+    make_workspace(
+        ws, street_points(np.random.default_rng(1)), {"s0": gps_error(1.0, -1.0, 0.0), "s1": gps_error(-1.0, 1.0, 0.0)}
+    )
     for name in ("s0", "s1"):
         for stage in ("georef", "map"):
             mark_done(ws / "sessions" / name / stage, "test", outputs=True)
@@ -171,7 +175,9 @@ def test_a_truncated_points_ply_is_one_error_in_align(aligned_inputs):
     ply = aligned_inputs / "sessions" / "s1" / "map" / "points.ply"
     data = ply.read_bytes()
     ply.write_bytes(data[: len(data) // 3])
-    with pytest.raises(InputError, match=r"points\.ply.*has \d+ bytes where its stage wrote \d+: re-run mapkit build \(session s1\)"):
+    with pytest.raises(
+        InputError, match=r"points\.ply.*has \d+ bytes where its stage wrote \d+: re-run mapkit build \(session s1\)"
+    ):
         align_workspace(aligned_inputs, progress=False)
     assert not (aligned_inputs / "align" / DONE_MARKER).exists()
     ply.write_bytes(data[:-8] + b"\x00" * 8)  # same size, other content
@@ -220,7 +226,9 @@ def test_disk_full_is_one_line_and_nothing_is_renamed_into_place(tmp_path, monke
     log = _settled(_imageless_log(tmp_path / "logs" / "drive.mcap"))
     _patch_disk_full(monkeypatch, after_bytes=200)
     target = tmp_path / "points.ply"
-    with pytest.raises(WriteError, match=r"points\.ply: could not be written \(No space left on device; [\d.]+ MB free on "):
+    with pytest.raises(
+        WriteError, match=r"points\.ply: could not be written \(No space left on device; [\d.]+ MB free on "
+    ):
         atomic_write_ply(target, np.zeros((1000, 3)))
     with pytest.raises(WriteError, match=r"m\.json: could not be written"):
         write_json(tmp_path / "m.json", {"x": list(range(1000))})
@@ -245,12 +253,11 @@ def test_a_short_npz_write_is_not_renamed_into_place(tmp_path, monkeypatch):
     from mapkit.core.runio import atomic_path
 
     target = tmp_path / "observations.npz"
-    with pytest.raises(WriteError, match="does not read back"):
-        with atomic_path(target) as tmp:
-            with open(tmp, "wb") as f:
-                np.savez(f, a=np.arange(100_000))
-            with open(tmp, "r+b") as f:
-                f.truncate(os.path.getsize(tmp) // 2)
+    with pytest.raises(WriteError, match="does not read back"), atomic_path(target) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, a=np.arange(100_000))
+        with open(tmp, "r+b") as f:
+            f.truncate(os.path.getsize(tmp) // 2)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -273,14 +280,17 @@ def test_an_edited_export_is_restored_and_the_index_untouched(tmp_path):
     assert not is_finished(export, "h", 1)  # same size, other content
 
 
-@pytest.mark.parametrize("overrides, field", [
-    ({"trajectory": {"kiss_icp": {"voxel_size_m": 0}}}, "trajectory.kiss_icp.voxel_size_m"),
-    ({"trajectory": {"kiss_icp": {"voxel_size_m": -0.5}}}, "trajectory.kiss_icp.voxel_size_m"),
-    ({"trajectory": {"kiss_icp": {"max_range_m": -5}}}, "trajectory.kiss_icp.max_range_m"),
-    ({"georef": {"inlier_sigmas": float("nan")}}, "georef.inlier_sigmas"),
-    ({"imagedb": {"min_spacing_m": -1}}, "imagedb.min_spacing_m"),
-    ({"topics": {"images": ["/no/such/camera"]}}, "images"),
-])
+@pytest.mark.parametrize(
+    "overrides, field",
+    [
+        ({"trajectory": {"kiss_icp": {"voxel_size_m": 0}}}, "trajectory.kiss_icp.voxel_size_m"),
+        ({"trajectory": {"kiss_icp": {"voxel_size_m": -0.5}}}, "trajectory.kiss_icp.voxel_size_m"),
+        ({"trajectory": {"kiss_icp": {"max_range_m": -5}}}, "trajectory.kiss_icp.max_range_m"),
+        ({"georef": {"inlier_sigmas": float("nan")}}, "georef.inlier_sigmas"),
+        ({"imagedb": {"min_spacing_m": -1}}, "imagedb.min_spacing_m"),
+        ({"topics": {"images": ["/no/such/camera"]}}, "images"),
+    ],
+)
 def test_a_bad_build_config_is_named_before_anything_is_written(tmp_path, full_log, overrides, field):
     import yaml
 
@@ -295,10 +305,13 @@ def test_a_bad_build_config_is_named_before_anything_is_written(tmp_path, full_l
     assert not (tmp_path / "ws").exists()
 
 
-@pytest.mark.parametrize("command, overrides, field", [
-    ("align", {"icp": {"voxel_sizes_m": [1.0, 0.0, 0.25]}}, "icp"),
-    ("triplets", {"icp_voxel_sizes_m": [-0.3]}, "icp_voxel_sizes_m"),
-])
+@pytest.mark.parametrize(
+    "command, overrides, field",
+    [
+        ("align", {"icp": {"voxel_sizes_m": [1.0, 0.0, 0.25]}}, "icp"),
+        ("triplets", {"icp_voxel_sizes_m": [-0.3]}, "icp_voxel_sizes_m"),
+    ],
+)
 def test_a_bad_align_or_triplets_config_is_named_before_anything_is_written(tmp_path, command, overrides, field):
     ws = tmp_path / "ws"
     write_json(ws / "origin.json", {"lat_deg": 49.0, "lon_deg": 8.4, "alt_m": 110.0})
@@ -320,8 +333,13 @@ def small_disk(tmp_path):
 
     disk = tmp_path / "disk"
     disk.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)],
-                                           capture_output=True).returncode != 0:
+    if (
+        os.geteuid() != 0
+        or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)], capture_output=True
+        ).returncode
+        != 0
+    ):
         pytest.skip("mounting a small tmpfs needs root (the patched writer above covers the non-root case)")
     yield disk, lambda: subprocess.run(["mount", "-o", "remount,size=2m", str(disk)], check=True)
     subprocess.run(["umount", str(disk)], check=True)
@@ -364,7 +382,9 @@ def test_a_tampered_export_is_restored_by_re_export_and_the_index_is_untouched(t
     index = build_vlad_index(ws, config=small_config(), progress=False)
     before = {p.relative_to(index): p.read_bytes() for p in index.rglob("*") if p.is_file()}
     export = export_bundles(ws, tmp_path / "export")
-    vectors = max((p for p in (export / "vlad").rglob("*") if p.is_file() and p.name != MANIFEST), key=lambda p: p.stat().st_size)
+    vectors = max(
+        (p for p in (export / "vlad").rglob("*") if p.is_file() and p.name != MANIFEST), key=lambda p: p.stat().st_size
+    )
     assert vectors.stat().st_nlink == 1
     with open(vectors, "r+b") as f:  # same size, other bytes
         f.seek(vectors.stat().st_size // 2)
