@@ -24,8 +24,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapkit.core.runio import read_timings  # noqa: E402
-from mapkit.multisession.align import align_workspace  # noqa: E402
+from mapkit.core.runio import read_timings
+from mapkit.multisession.align import align_workspace
 
 
 def run(workspace: Path, counts: list[int]) -> dict:
@@ -70,7 +70,8 @@ def run(workspace: Path, counts: list[int]) -> dict:
         r["pairs_ratio"] = r["pairs"] / max(1, base["pairs"])
         r["quadratic_ratio"] = (r["sessions"] / base["sessions"]) ** 2
         print(
-            f"{base['sessions']} -> {r['sessions']} sessions: time x{r['time_ratio']:.2f}, overlapping pairs x{r['pairs_ratio']:.2f}, "
+            f"{base['sessions']} -> {r['sessions']} sessions: time x{r['time_ratio']:.2f}, overlapping pairs "
+            f"x{r['pairs_ratio']:.2f}, "
             f"sessions^2 x{r['quadratic_ratio']:.1f}"
         )
     return {"benchmark": "align", "workspace": str(workspace), "rows": rows}

@@ -28,8 +28,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapkit.core.runio import read_timings  # noqa: E402
-from mapkit.multisession.align import align_workspace  # noqa: E402
+from mapkit.core.runio import read_timings
+from mapkit.multisession.align import align_workspace
 
 
 def _workspace(src: Path, names: list[str]) -> Path:
@@ -87,7 +87,7 @@ def run(workspace: Path, repeat: int = 1, added: str | None = None) -> dict:
         "first_n_minus_1_s": t_first,
         "add_one_s": t_add,
         "ratio": med_add / med_all,
-        "ratios": [a / b for a, b in zip(t_add, t_all)],
+        "ratios": [a / b for a, b in zip(t_add, t_all, strict=True)],
         "pairs_scratch": m_all["registration"]["pairs"],
         "pairs_registered_adding": reg["registered_this_run"],
         "pair_share": reg["registered_this_run"] / m_all["registration"]["pairs"],
@@ -97,16 +97,18 @@ def run(workspace: Path, repeat: int = 1, added: str | None = None) -> dict:
         "sessions_kept_adding": sum(bool(v.get("outputs_kept")) for v in m_add["sessions"].values()),
     }
     print(
-        f"all {len(names)} sessions from scratch: median {med_all:.1f} s of {len(t_all)} ({r['pairs_scratch']} submap pairs registered, "
-        f"graph {r['graph_scratch_s']:.2f} s)"
+        f"all {len(names)} sessions from scratch: median {med_all:.1f} s of {len(t_all)} "
+        f"({r['pairs_scratch']} submap pairs registered, graph {r['graph_scratch_s']:.2f} s)"
     )
     print(
-        f"adding {names[-1]} to the other {len(names) - 1}: median {med_add:.1f} s of {len(t_add)} ({r['pairs_registered_adding']} pairs "
-        f"registered, {r['pair_share']:.0%} of all; {r['sessions_solved_adding']} session solved, graph {r['graph_add_s']:.2f} s; "
+        f"adding {names[-1]} to the other {len(names) - 1}: median {med_add:.1f} s of {len(t_add)} "
+        f"({r['pairs_registered_adding']} pairs registered, {r['pair_share']:.0%} of all; "
+        f"{r['sessions_solved_adding']} session solved, graph {r['graph_add_s']:.2f} s; "
         f"{r['sessions_kept_adding']} frozen sessions' files kept)"
     )
     print(
-        f"add one / from scratch: x{r['ratio']:.2f} (each run: {', '.join(f'x{x:.2f}' for x in r['ratios'])}; target < 0.33)"
+        f"add one / from scratch: x{r['ratio']:.2f} "
+        f"(each run: {', '.join(f'x{x:.2f}' for x in r['ratios'])}; target < 0.33)"
     )
     return r
 

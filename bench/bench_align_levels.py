@@ -25,8 +25,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapkit.core.runio import read_timings  # noqa: E402
-from mapkit.multisession.align import align_workspace  # noqa: E402
+from mapkit.core.runio import read_timings
+from mapkit.multisession.align import align_workspace
 
 #: the first three levels alone (the baseline): voxel sizes and correspondence distances, m
 THREE_LEVELS = {"voxel_sizes_m": [1.0, 0.5, 0.25], "max_correspondence_m": [4.0, 1.5, 0.6]}

@@ -24,7 +24,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.common import report  # noqa: E402
+from bench.common import report  # noqa: E402 (after sys.path points at this checkout)
 
 
 def _make_town(out: Path, length_m: float = 150.0) -> Path:

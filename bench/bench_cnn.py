@@ -16,8 +16,8 @@ exceed the wall time):
    ONNX) on a synthetic street, patches per second, and the share of it spent in voxel grids.
 
 Grids are the real demo triplet dataset's when ``--dataset`` exists (default
-``runs/main/workspace/triplets``, what the README's main job writes), else random 32^3 grids of the same fill (~5 %). Run from the
-repository root (keep other load low)::
+``runs/main/workspace/triplets``, what the README's main job writes), else random 32^3 grids of the
+same fill (~5 %). Run from the repository root (keep other load low)::
 
     python3 bench/bench_cnn.py
     python3 bench/bench_cnn.py --form density_comparison --threads 2
@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_wall_and_cpu, report  # noqa: E402
+from bench.common import best_wall_and_cpu, report  # noqa: E402 (after sys.path points at this checkout)
 
 
 def _grids(dataset: Path, n: int, form: str, seed: int) -> np.ndarray:
@@ -242,7 +242,8 @@ def main() -> None:
     report(
         "Describe throughput (inference on 32^3 grids)",
         rows,
-        f"speedup_vs_torch_wall: onnxruntime over torch eager, same weights and grids; max |ONNX - torch| = {diff:.2e}.",
+        "speedup_vs_torch_wall: onnxruntime over torch eager, same weights and grids; max |ONNX - torch| = "
+        f"{diff:.2e}.",
     )
     report("Index describer on a synthetic street", bench_index_describer(torch, args.form, args.patches, args.repeat))
     print(f"\nbench seconds: {time.perf_counter() - t0:.1f}")

@@ -45,7 +45,13 @@ Run from the repository root (keep other load low; the machine has 2 cores share
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
+import sys
+import time
+from functools import partial
+from pathlib import Path
 
 for _var in (
     "OMP_NUM_THREADS",
@@ -56,22 +62,16 @@ for _var in (
 ):
     os.environ[_var] = "1"
 
-import argparse  # noqa: E402
-import math  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2  # noqa: E402 (after the thread count is pinned)
+import numpy as np  # noqa: E402 (after the thread count is pinned)
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_wall_and_cpu, report  # noqa: E402
-from mapkit.places import descriptors3d as d3  # noqa: E402
-from mapkit.places import patches as pa  # noqa: E402
+from bench.common import best_wall_and_cpu, report  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.places import descriptors3d as d3  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.places import patches as pa  # noqa: E402 (after sys.path points at this checkout)
 
 cv2.setNumThreads(1)  # M2DP's binning and counting are OpenCV's
 
@@ -223,15 +223,15 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
     ):
         indptr, normalised = prepare(points, keypoints, observer_dirs, sub.domain, tree)
         sizes = np.diff(indptr)
-        t_desc, c_desc = best_wall_and_cpu(lambda: fast(normalised, indptr, sub), args.repeat)
+        t_desc, c_desc = best_wall_and_cpu(partial(fast, normalised, indptr, sub), args.repeat)
         desc = fast(normalised, indptr, sub)
         nb = min(args.baseline, m)
         patches = [normalised[indptr[k] : indptr[k + 1]] for k in range(nb)]
-        t_loop = best_wall_and_cpu(lambda: loop(patches, sub), 1)[1] / nb * m
+        t_loop = best_wall_and_cpu(partial(loop, patches, sub), 1)[1] / nb * m
         ref = loop(patches, sub)
         agree = float(np.mean(ref != desc[:nb])) if kind == "NBLD" else float(np.abs(ref - desc[:nb]).max())
         t_chain, c_chain = best_wall_and_cpu(
-            lambda: d3.describe(kind.lower(), points, keypoints, observer_dirs, chain_cfg, tree=tree), args.repeat
+            partial(d3.describe, kind.lower(), points, keypoints, observer_dirs, chain_cfg, tree=tree), args.repeat
         )
         rows.append(
             {
@@ -289,7 +289,9 @@ def run(label: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np
                 "patches/s (wall)": m / t,
                 "loop patches/s (cpu)": "",
                 "speed-up (cpu)": "",
-                "loop vs fast": f"vs exact: cosine of u1, v1 median {np.median(cos):.4f}, 5th pct {np.percentile(cos, 5):.4f}",
+                "loop vs fast": (
+                    f"vs exact: cosine of u1, v1 median {np.median(cos):.4f}, 5th pct {np.percentile(cos, 5):.4f}"
+                ),
             }
         )
     # CNN voxel grids: extraction, yaw normalisation and voxelisation per patch, the stages
@@ -389,15 +391,16 @@ def main() -> None:
     note = (
         f"Goal: >= {GOAL_PATCHES_PER_S:.0f} patches/s per descriptor on one core (synthetic street, CPU time): "
         + ", ".join(f"{k}: {'met' if v else 'MISSED'}" for k, v in goal.items())
-        + f". points/patch = 5th percentile / median / 95th percentile. Load average when done: {os.getloadavg()[0]:.1f}"
+        + ". points/patch = 5th percentile / median / 95th percentile. "
+        f"Load average when done: {os.getloadavg()[0]:.1f}"
         + " (2 cores; CPU time excludes waiting for the core, not sharing its caches)."
     )
     fast = [r for r in rows if r["map"] == "synthetic street" and r["what"].endswith("descriptor")]
     speed = {r["what"]: r["patches/s (cpu)"] for r in fast}
     note += (
         f" M2DP with the authors' settings (M2DPConfig.authors(): PCA frame, farthest-point radius, unnormalised axes) "
-        f"runs at {speed['M2DP(authors) descriptor'] / speed['M2DP descriptor']:.2f} x the default's patches/s (CPU); its loop "
-        "baseline is m2dp_reference per patch."
+        f"runs at {speed['M2DP(authors) descriptor'] / speed['M2DP descriptor']:.2f} x the default's patches/s (CPU); "
+        "its loop baseline is m2dp_reference per patch."
     )
     report(
         "structure descriptors, one core",

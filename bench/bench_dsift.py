@@ -32,27 +32,26 @@ or a synthetic texture where the clip is absent. Run from the repository root::
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import sys
+import time
+from pathlib import Path
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"  # before numpy: single-threaded BLAS
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2  # noqa: E402 (after the thread count is pinned)
+import numpy as np  # noqa: E402 (after the thread count is pinned)
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_of, report, self_peak_rss_mb  # noqa: E402
-from mapkit.retrieval.dsift import DsiftConfig, StepTimer, dense_sift, opencv_keypoint_size  # noqa: E402
-from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder  # noqa: E402
+from bench.common import best_of, report, self_peak_rss_mb  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.dsift import DsiftConfig, StepTimer, dense_sift, opencv_keypoint_size  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder  # noqa: E402 (after sys.path points at this checkout)
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 DEFAULT_PHOW_REFERENCE = ROOT.parent / "shared" / "data" / "vlfeat-phow-reference" / "phow_kitti000000_640x480.npz"
@@ -117,7 +116,7 @@ def opencv_comparison(
     ours = desc[np.concatenate(picks)]
     cos = (ours * ref).sum(1) / np.maximum(np.linalg.norm(ours, axis=1) * np.linalg.norm(ref, axis=1), 1e-12)
     per_desc = max(t_subset - t_fixed, 1e-9) / len(subset)
-    cos_by_scale = {w: float(np.median(c)) for w, c in zip(cfg.region_widths, np.split(cos, len(picks)))}
+    cos_by_scale = {w: float(np.median(c)) for w, c in zip(cfg.region_widths, np.split(cos, len(picks)), strict=True)}
     return {
         "n": len(subset),
         "t_fixed_s": t_fixed,
@@ -133,7 +132,7 @@ def opencv_comparison(
 def opencv_full_grid(img: np.ndarray, cfg: DsiftConfig, kp: np.ndarray, scale: np.ndarray, desc: np.ndarray) -> dict:
     """One run of OpenCV's SIFT over every frame (KeyPoint construction not timed)."""
     sizes = [opencv_keypoint_size(w) for w in cfg.region_widths]
-    kps = [cv2.KeyPoint(x, y, sizes[s], 0) for (x, y), s in zip(kp.tolist(), scale.tolist())]
+    kps = [cv2.KeyPoint(x, y, sizes[s], 0) for (x, y), s in zip(kp.tolist(), scale.tolist(), strict=True)]
     t0 = time.perf_counter()
     _, ref = cv2.SIFT_create().compute(img, kps)
     t = time.perf_counter() - t0
@@ -359,7 +358,8 @@ def main() -> None:
         "dense SIFT vs OpenCV SIFT at the same upright keypoints",
         rows,
         f"OpenCV/mapkit per-descriptor time ratio: {ocv['per_desc_s'] / ours_per_desc:.0f}x "
-        f"(OpenCV timed on {ocv['n']} keypoints: {ocv['t_subset_s']:.3f} s, of which {ocv['t_fixed_s']:.3f} s scale space). "
+        f"(OpenCV timed on {ocv['n']} keypoints: {ocv['t_subset_s']:.3f} s, "
+        f"of which {ocv['t_fixed_s']:.3f} s scale space). "
         f"Cosine of the descriptors: median {ocv['cos_median']:.4f}, 10th percentile {ocv['cos_p10']:.4f}; "
         f"median per region width {ocv['cos_by_width']}"
         + (f"; over the full grid: median {ocv_full['cos_median']:.4f}." if ocv_full else "."),
@@ -403,8 +403,8 @@ def main() -> None:
                 {"mode": name, **{k: (f"{v:.6f}" if k.startswith("cos") else v) for k, v in vlref[name].items()}}
                 for name in ("mapkit", "phow")
             ],
-            "cosine: each mode's descriptors before any zeroing vs VLFeat's before zeroing; zero mask: frames zeroed by the "
-            "contrast threshold in both or in neither.",
+            "cosine: each mode's descriptors before any zeroing vs VLFeat's before zeroing; "
+            "zero mask: frames zeroed by the contrast threshold in both or in neither.",
         )
 
     fq = faiss_query(args.faiss_db, cfg.pca_dim, 20, 20, 64) if args.faiss_db else None

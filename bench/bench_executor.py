@@ -1,13 +1,13 @@
 """VLAD database encoding on each executor: in this process, a local pool of 2 processes, Ray on 2 CPUs.
 
 The images are the synthetic ``tiny`` town's camera images (made and built into a workspace on the
-first run, kept in ``--cache``, by default in the system's temporary folder) or any workspace's (``--workspace``). The encoder has the paper's
-settings (128 words, 16384-D raw VLAD); its vocabulary is learnt from the first images and its PCA
-from their raw VLADs, outside the timing. Timed: ``encode_images`` of every image (dense RootSIFT,
-VLAD, PCA, L2) on each executor, in the same run; reported are images per second, the ratio to
-this process, and whether the vectors equal this process's bit for bit. Pool and Ray start-up are
-part of the time (a pool is spawned per map; Ray's workers are warmed up once beforehand, as a
-long run would have them).
+first run, kept in ``--cache``, by default in the system's temporary folder) or any workspace's
+(``--workspace``). The encoder has the paper's settings (128 words, 16384-D raw VLAD); its
+vocabulary is learnt from the first images and its PCA from their raw VLADs, outside the timing.
+Timed: ``encode_images`` of every image (dense RootSIFT, VLAD, PCA, L2) on each executor, in the
+same run; reported are images per second, the ratio to this process, and whether the vectors equal
+this process's bit for bit. Pool and Ray start-up are part of the time (a pool is spawned per map;
+Ray's workers are warmed up once beforehand, as a long run would have them).
 
 Run from the repository root (Ray: ``pip install -e ".[distributed]"``; skipped without it)::
 
@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_of, report  # noqa: E402
+from bench.common import best_of, report  # noqa: E402 (after sys.path points at this checkout)
 
 
 def tiny_workspace(cache: Path) -> Path:
@@ -110,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, ex in executors.items():
         out: dict = {}
         seconds = best_of(
-            lambda: out.__setitem__("v", encode_images(encoder, paths, progress=False, executor=ex)), args.repeat
+            lambda out=out, ex=ex: out.__setitem__("v", encode_images(encoder, paths, progress=False, executor=ex)),
+            args.repeat,
         )
         if reference is None:
             reference, serial_s = out["v"], seconds

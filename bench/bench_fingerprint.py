@@ -27,7 +27,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from mapkit.core.fingerprint import log_fingerprint, sha256_file  # noqa: E402
+from mapkit.core.fingerprint import log_fingerprint, sha256_file
 
 
 def best_of(fn, repeat: int) -> float:

@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_of, peak_rss_mb_of, report, self_peak_rss_mb  # noqa: E402
+from bench.common import best_of, peak_rss_mb_of, report, self_peak_rss_mb  # noqa: E402 (after sys.path points at this checkout)
 
 # numpy, mcap and mapkit are imported inside functions, and the logs are written in a child
 # process: ``peak_rss_mb_of`` reports the larger of the child's peak and the *parent's* (Linux
@@ -556,12 +556,14 @@ def summarise(out: dict) -> None:
     note = "\n".join(
         [
             f"Each mode runs in {out['rounds']} fresh processes interleaved with the other modes, each timing "
-            f"{out['repeat']} reads; the best read is shown, and the highest peak RSS. The page cache was warmed by one "
-            f"read of both logs first, so every mode reads from memory. open_rss_MB: a process importing and opening "
-            f"the log without reading it. peak_rss_MB is bench.common.peak_rss_mb_of, floored by the measuring "
+            f"{out['repeat']} reads; the best read is shown, and the highest peak RSS. "
+            "The page cache was warmed by one read of both logs first, so every mode reads from memory. "
+            "open_rss_MB: a process importing and opening the log without reading it. "
+            f"peak_rss_MB is bench.common.peak_rss_mb_of, floored by the measuring "
             f"process's own peak ({out['parent_rss_mb']:.0f} MB); own_hwm_MB is the child's VmHWM, a cross-check.",
-            f"Throughput, like for like: mapkit (no CRC) / mcap-decoded = {full_ratio:.2f}x wall ({cpu_ratio:.2f}x CPU) "
-            f"on the full log, {by['mapkit-nocrc', 'quarter']['x_mcap_decoded']:.2f}x on the quarter log; "
+            f"Throughput, like for like: mapkit (no CRC) / mcap-decoded = {full_ratio:.2f}x wall "
+            f"({cpu_ratio:.2f}x CPU) on the full log, "
+            f"{by['mapkit-nocrc', 'quarter']['x_mcap_decoded']:.2f}x on the quarter log; "
             f"mapkit (default, CRCs checked) / mcap-decoded+crc = {crc_ratio:.2f}x; "
             f"mapkit (default) / mcap-decoded = {by['mapkit', 'full']['x_mcap_decoded']:.2f}x; "
             f"mapkit / mcap-raw = {by['mapkit', 'full']['x_mcap_raw']:.2f}x. "

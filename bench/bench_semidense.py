@@ -1,11 +1,11 @@
 """Speed of semi-dense mapping at 640x480 against two baselines measured in the same run.
 
 Also the cost of the outlier filters: the end-to-end run is timed with every filter off
-(``FILTERS_OFF``), with the recommended ones on (``FILTERS_ON``) and with every
-fusion filter on (multi-view, photometric, free space: ``FILTERS_FUSION_ALL``), and with the recommended ones
-and the camera-rotation refinement (``refine_rotations``; with its default tracked corners, and with SIFT
-matching: 3,000 features, Lowe's ratio test), in turn, best of ``--repeat`` each in wall and CPU time; goal: ``FILTERS_ON``, and
-``FILTERS_ON`` with the refinement, within 1.3x of off.
+(``FILTERS_OFF``), with the recommended ones on (``FILTERS_ON``) and with every fusion filter on
+(multi-view, photometric, free space: ``FILTERS_FUSION_ALL``), and with the recommended ones and the
+camera-rotation refinement (``refine_rotations``; with its default tracked corners, and with SIFT
+matching: 3,000 features, Lowe's ratio test), in turn, best of ``--repeat`` each in wall and CPU
+time; goal: ``FILTERS_ON``, and ``FILTERS_ON`` with the refinement, within 1.3x of off.
 
 Goal: at least 2 keyframes per second at 640x480 on the 2-core machine. The frames are
 real: the KITTI clip beside the project, resized to 640x480 (the camera matrix is scaled with
@@ -43,10 +43,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_of, report  # noqa: E402
-from bench.semidense_kitti_clip import DEFAULT_CLIP, FILTERS_ALONE, FILTERS_OFF, FILTERS_ON, read_clip_geometry  # noqa: E402
-from mapkit.core.geometry import invert_pose  # noqa: E402
-from mapkit.mapping.semidense import PATTERN_DSO8, SemiDenseConfig, build_semidense_map, map_keyframe, select_candidates  # noqa: E402
+from bench.common import best_of, report  # noqa: E402 (after sys.path points at this checkout)
+from bench.semidense_kitti_clip import DEFAULT_CLIP, FILTERS_ALONE, FILTERS_OFF, FILTERS_ON, read_clip_geometry  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.geometry import invert_pose  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.semidense import PATTERN_DSO8, SemiDenseConfig, build_semidense_map, map_keyframe, select_candidates  # noqa: E402 (after sys.path points at this checkout)
 
 GOAL_KEYFRAMES_PER_S = 2.0
 GOAL_FILTER_SLOWDOWN = 1.3  # mapkit goal: mapping with the outlier filters within 1.3x of the time without
@@ -99,14 +99,14 @@ def naive_full_search(
 
     def zncc(a, b):
         ma, mb = sum(a) / len(a), sum(b) / len(b)
-        num = sum((x - ma) * (y - mb) for x, y in zip(a, b))
+        num = sum((x - ma) * (y - mb) for x, y in zip(a, b, strict=True))
         da = sum((x - ma) ** 2 for x in a) ** 0.5
         db = sum((y - mb) ** 2 for y in b) ** 0.5
         return num / (da * db) if da > 0 and db > 0 else 0.0
 
     rho_min, rho_max = 1.0 / cfg.max_depth_m, 1.0 / cfg.min_depth_m
     best = []
-    for u, v in zip(us.tolist(), vs.tolist()):
+    for u, v in zip(us.tolist(), vs.tolist(), strict=True):
         ref_vals = [ref_f[int(v + dv), int(u + du)] for du, dv in PATTERN_DSO8]
         best_cost, best_rho = 9.0, float("nan")
         for k in range(cfg.search_samples):
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     # 1. end to end, and one keyframe alone
     def end_to_end():
         return build_semidense_map(
-            ((i, i, img, T) for i, (img, T) in enumerate(zip(images, poses))), K, cfg, progress=False
+            ((i, i, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))), K, cfg, progress=False
         )
 
     t_e2e = best_of(end_to_end, repeat=max(1, args.repeat - 1))
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(args.repeat):
         for k, c in filter_cfgs.items():
             t0, c0 = time.perf_counter(), time.process_time()
-            frames = ((i, i, img, T) for i, (img, T) in enumerate(zip(images, poses)))
+            frames = ((i, i, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True)))
             filter_pts[k] = len(build_semidense_map(frames, K, c, progress=False))
             filter_t[k] = [min(filter_t[k][0], time.perf_counter() - t0), min(filter_t[k][1], time.process_time() - c0)]
     slow_wall, slow_cpu = filter_t["on"][0] / filter_t["off"][0], filter_t["on"][1] / filter_t["off"][1]
@@ -183,7 +183,10 @@ def main(argv: list[str] | None = None) -> int:
         for i in range(c - cfg.neighbour_window_frames, c + cfg.neighbour_window_frames + 1)
         if i != c and 0 <= i < len(images)
     ]
-    one = lambda: map_keyframe(images[c], poses[c], [(images[i], poses[i]) for i in nb], K, cfg)  # noqa: E731
+
+    def one():
+        return map_keyframe(images[c], poses[c], [(images[i], poses[i]) for i in nb], K, cfg)
+
     cpu0 = time.process_time()
     t_kf = best_of(one, repeat=args.repeat)
     cpu_kf = (time.process_time() - cpu0) / args.repeat
@@ -229,7 +232,9 @@ def main(argv: list[str] | None = None) -> int:
             "time_vs_map_keyframe": 1.0,
         },
         {
-            "method": f"naive per-pixel loop ({len(sub)} candidates, scaled to {n_full} full + {n_prior} prior searches)",
+            "method": (
+                f"naive per-pixel loop ({len(sub)} candidates, scaled to {n_full} full + {n_prior} prior searches)"
+            ),
             "s_per_keyframe": t_naive_kf,
             "keyframes_per_s": 1.0 / t_naive_kf,
             "time_vs_map_keyframe": t_naive_kf / t_kf,
@@ -245,20 +250,25 @@ def main(argv: list[str] | None = None) -> int:
         "semi-dense mapping at 640x480",
         rows,
         ratio_note=(
-            f"keyframe {c}: {pts.stats['candidates']} candidates, {n_full} full-range and {n_prior} prior epipolar searches, {len(pts)} accepted depths; "
+            f"keyframe {c}: {pts.stats['candidates']} candidates, {n_full} full-range and {n_prior} prior epipolar "
+            f"searches, {len(pts)} accepted depths; "
             f"map_keyframe CPU time {cpu_kf:.3f} s (both cores) per {t_kf:.3f} s wall.\n"
             f"end to end: {len(sd.keyframe_ids)} keyframes, {len(sd)} fused points in {t_e2e:.2f} s.\n"
-            f"speed-up over the naive loop: {t_naive_kf / t_kf:.0f}x; mapkit keyframe vs one SGBM pair: {t_kf / t_sgbm:.2f}x the time.\n"
+            f"speed-up over the naive loop: {t_naive_kf / t_kf:.0f}x; mapkit keyframe vs one SGBM pair: "
+            f"{t_kf / t_sgbm:.2f}x the time.\n"
             f"goal >= {GOAL_KEYFRAMES_PER_S} keyframes/s end to end: "
             f"{'met' if kfs_e2e >= GOAL_KEYFRAMES_PER_S else 'NOT met'} ({kfs_e2e:.2f})\n"
-            f"outlier filters on ({FILTERS_ON}) / off, end to end: {slow_wall:.2f}x the wall time, {slow_cpu:.2f}x the CPU time "
-            f"(goal <= {GOAL_FILTER_SLOWDOWN}x: {'met' if max(slow_wall, slow_cpu) <= GOAL_FILTER_SLOWDOWN else 'NOT met'}); "
+            f"outlier filters on ({FILTERS_ON}) / off, end to end: {slow_wall:.2f}x the wall time, "
+            f"{slow_cpu:.2f}x the CPU time (goal <= {GOAL_FILTER_SLOWDOWN}x: "
+            f"{'met' if max(slow_wall, slow_cpu) <= GOAL_FILTER_SLOWDOWN else 'NOT met'}); "
             f"all fusion tests / off: {filter_t['all fusion tests'][0] / filter_t['off'][0]:.2f}x wall, "
             f"{filter_t['all fusion tests'][1] / filter_t['off'][1]:.2f}x CPU; "
             f"recommended filters with the rotation refinement (refine_rotations, tracked corners) / off: "
             f"{refine_wall:.2f}x wall, {refine_cpu:.2f}x CPU "
-            f"(goal <= {GOAL_FILTER_SLOWDOWN}x: {'met' if max(refine_wall, refine_cpu) <= GOAL_FILTER_SLOWDOWN else 'NOT met'}); "
-            f"with SIFT matching instead: {filter_t['on + rotation refinement, SIFT'][0] / filter_t['off'][0]:.2f}x wall, "
+            f"(goal <= {GOAL_FILTER_SLOWDOWN}x: "
+            f"{'met' if max(refine_wall, refine_cpu) <= GOAL_FILTER_SLOWDOWN else 'NOT met'}); "
+            f"with SIFT matching instead: {filter_t['on + rotation refinement, SIFT'][0] / filter_t['off'][0]:.2f}x "
+            "wall, "
             f"{filter_t['on + rotation refinement, SIFT'][1] / filter_t['off'][1]:.2f}x CPU"
         ),
     )

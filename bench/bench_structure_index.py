@@ -13,9 +13,10 @@
    each a database descriptor plus Gaussian noise of ``--query-noise`` times the spectrum's
    spread (0.7: at the demo's database size this puts the nearest neighbour at 0.23 of the mean
    squared distance between database descriptors, as measured for test-snowy's NBLD queries
-   against train-sunny; a kd-tree is the faster the closer the queries lie). Timed through the library (``StructureIndex.nearest``
-   = faiss IndexFlatL2 k=1, ``StructureIndex.votes`` = CSR gather + np.bincount, and the batched
-   ``vote_frames`` over many frames), against in the same run:
+   against train-sunny; a kd-tree is the faster the closer the queries lie). Timed through the
+   library (``StructureIndex.nearest`` = faiss IndexFlatL2 k=1, ``StructureIndex.votes`` = CSR
+   gather + np.bincount, and the batched ``vote_frames`` over many frames), against in the same
+   run:
    - nearest neighbours with scipy's cKDTree (exact), build time printed separately;
    - voting with a Python loop over the matched entries' references (a dict counter).
    The two nearest-neighbour searches are checked to agree, and the two votings to be equal.
@@ -30,7 +31,14 @@ Run from the repository root::
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import sys
+import time
+from collections import Counter
+from functools import partial
+from pathlib import Path
 
 for _var in (
     "OMP_NUM_THREADS",
@@ -41,23 +49,16 @@ for _var in (
 ):
     os.environ[_var] = "1"
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from collections import Counter  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np  # noqa: E402 (after the thread count is pinned)
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import best_wall_and_cpu, report  # noqa: E402
-from mapkit.places import descriptors3d as d3  # noqa: E402
-from mapkit.places import patches as pa  # noqa: E402
-from mapkit.places.index_structure import (  # noqa: E402
+from bench.common import best_wall_and_cpu, report  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.places import descriptors3d as d3  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.places import patches as pa  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.places.index_structure import (  # noqa: E402 (after sys.path points at this checkout)
     POSE_KEYFRAME,
     QueryKeypoints,
     SessionKeypoints,
@@ -112,7 +113,7 @@ def bench_describe(args) -> list[dict]:
         cfg = d3.StructureDescriptorConfig()
         sub = cfg.nbld if kind == "nbld" else cfg.m2dp
         ptr, _ = pa.extract_patches(points, kp, sub.domain, tree)
-        wall, cpu = best_wall_and_cpu(lambda: d3.describe(kind, points, kp, dirs, cfg, tree=tree), args.repeat)
+        wall, cpu = best_wall_and_cpu(partial(d3.describe, kind, points, kp, dirs, cfg, tree=tree), args.repeat)
         rows.append(
             {
                 "descriptor": kind.upper(),

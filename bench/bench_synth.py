@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import best_of, report  # noqa: E402
+from bench.common import best_of, report
 
 
 def render_speed(frames: int, repeat: int) -> list[dict]:
@@ -63,14 +63,14 @@ def render_speed(frames: int, repeat: int) -> list[dict]:
             wfl = [plan.drive.poses_at(c) @ ex["lidar"] for c in col]
             wfc = wfb @ ex["camera_front"]
 
-            def full():
+            def full(r=r, plan=plan, st=st, wfb=wfb, wfl=wfl, wfc=wfc):
                 for i in range(frames):
                     f = r.render_camera(wfc[i], plan.conditions, np.random.default_rng(i), wfb[i])
                     cv2.imencode(".jpg", f.rgb[..., ::-1])
                     sw = r.scan_lidar(wfl[i], np.random.default_rng(i))
                     ros2.lidar_to_msg(LidarScan(int(st[i]), "lidar", sw.points_xyz, sw.intensity, sw.time_s, sw.ring))
 
-            def bare():
+            def bare(r=r, plan=plan, wfl=wfl, wfc=wfc):
                 for i in range(frames):
                     d = r.rays_cam @ wfc[i][:3, :3].T.astype(F32)
                     o = wfc[i][:3, 3].astype(F32)

@@ -40,16 +40,18 @@ def run_one(workspace: Path, n: int, overrides: dict, module_file: Path | None =
         )
     with tempfile.TemporaryDirectory(prefix="bench-triplets-") as tmp:
         code = (
-            f"import sys, json, warnings, resource; sys.path.insert(0, {str(ROOT)!r}); warnings.simplefilter('ignore')\n"
+            "import sys, json, warnings, resource; "
+            f"sys.path.insert(0, {str(ROOT)!r}); warnings.simplefilter('ignore')\n"
             + load
-            + f"out = export_triplets({str(workspace)!r}, out={tmp + '/t'!r}, overrides={dict(overrides, n_triplets=n)!r}, progress=False)\n"
+            + f"out = export_triplets({str(workspace)!r}, out={tmp + '/t'!r}, "
+            f"overrides={dict(overrides, n_triplets=n)!r}, progress=False)\n"
             "print('METRICS', open(out / 'metrics.json').read().replace(chr(10), ' '))\n"
             "ru = resource.getrusage(resource.RUSAGE_SELF)\n"
             "print('CPU_S', ru.ru_utime + ru.ru_stime)\n"
         )
         wrapper = (
-            code
-            + "\nhwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM:')][0].split()[1]\nprint('PEAK_RSS_KB', hwm)\n"
+            code + "\nhwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM:')][0].split()[1]\n"
+            "print('PEAK_RSS_KB', hwm)\n"
         )
         proc = subprocess.run([sys.executable, "-c", wrapper], capture_output=True, text=True, check=True)
         metrics = peak = cpu = None

@@ -23,25 +23,24 @@ Run from the repository root (takes ~5 min, ~6 GB)::
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
+import sys
+import time
+from pathlib import Path
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"  # before numpy and faiss: one core
 
-import argparse  # noqa: E402
-import json  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import faiss  # noqa: E402
-import numpy as np  # noqa: E402
+import faiss  # noqa: E402 (after the thread count is pinned)
+import numpy as np  # noqa: E402 (after the thread count is pinned)
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import report, self_peak_rss_mb  # noqa: E402
+from bench.common import report, self_peak_rss_mb  # noqa: E402 (after sys.path points at this checkout)
 
 faiss.omp_set_num_threads(1)
 
@@ -115,7 +114,7 @@ class Rerank:
 
 
 def recall_vs(exact_ids: np.ndarray, ids: np.ndarray) -> float:
-    return float(np.mean([len(np.intersect1d(a, b)) / exact_ids.shape[1] for a, b in zip(exact_ids, ids)]))
+    return float(np.mean([len(np.intersect1d(a, b)) / exact_ids.shape[1] for a, b in zip(exact_ids, ids, strict=True)]))
 
 
 def main() -> None:
@@ -142,7 +141,8 @@ def main() -> None:
     t0 = time.perf_counter()
     db, q = roads_of_vectors(args.n, args.dim, args.roads, args.step, args.noise, args.queries, rng)
     print(
-        f"data: {len(db)} x {db.shape[1]} float32 ({db.nbytes / 2**30:.2f} GiB), {len(q)} queries, {time.perf_counter() - t0:.1f} s",
+        f"data: {len(db)} x {db.shape[1]} float32 ({db.nbytes / 2**30:.2f} GiB), {len(q)} queries, "
+        f"{time.perf_counter() - t0:.1f} s",
         flush=True,
     )
 
@@ -156,8 +156,9 @@ def main() -> None:
     cos20 = np.einsum("ij,ij->i", q, db[exact[:, -1]])
     cos_rand = np.einsum("ij,ij->i", q, db[rng.integers(0, len(db), len(q))])
     print(
-        f"cosine query-nn1 {np.median(cos1):.3f}, query-nn20 {np.median(cos20):.3f}, query-random {np.median(cos_rand):.3f} "
-        f"(medians); exact top-20 on the query's road: {np.mean(exact // (args.n // args.roads) == exact[:, :1] // (args.n // args.roads)):.2f}, "
+        f"cosine query-nn1 {np.median(cos1):.3f}, query-nn20 {np.median(cos20):.3f}, "
+        f"query-random {np.median(cos_rand):.3f} (medians); exact top-20 on the query's road: "
+        f"{np.mean(exact // (args.n // args.roads) == exact[:, :1] // (args.n // args.roads)):.2f}, "
         f"spanning {np.median(exact.max(1) - exact.min(1)):.0f} consecutive images (median)",
         flush=True,
     )

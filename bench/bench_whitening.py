@@ -31,28 +31,27 @@ and build, the encoding here ~4 min on one core)::
 
 from __future__ import annotations
 
+import argparse
 import os
+import sys
+import warnings
+from pathlib import Path
 
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"  # before numpy and faiss: one core
 
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import warnings  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np  # noqa: E402 (after the thread count is pinned)
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import report  # noqa: E402
-from mapkit.core.workspace import Workspace  # noqa: E402
-from mapkit.evaluation.retrieval import recall_at_k  # noqa: E402
-from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder  # noqa: E402
-from mapkit.retrieval.vlad_bundle import read_session_images  # noqa: E402
-from mapkit.retrieval.vlad_encoding import read_image  # noqa: E402
+from bench.common import report  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.workspace import Workspace  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.evaluation.retrieval import recall_at_k  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.vlad import PcaWhitening, VladConfig, VladEncoder  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.vlad_bundle import read_session_images  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.vlad_encoding import read_image  # noqa: E402 (after sys.path points at this checkout)
 
 KS = (1, 5, 20)
 VARIANTS = [
@@ -163,7 +162,9 @@ def main() -> None:
     report(
         f"Pooled over the {len(sessions)} splits (baseline: full whitening, the paper's)",
         summary,
-        ratio_note=f"best recall@1: {best['whitening']} ({best['recall@1']:.3f} against {summary[1]['recall@1']:.3f} full)",
+        ratio_note=(
+            f"best recall@1: {best['whitening']} ({best['recall@1']:.3f} against {summary[1]['recall@1']:.3f} full)"
+        ),
         headline={
             "mapkit": f"recall@1 {best['recall@1']:.3f} ({best['whitening']})",
             "baseline": f"recall@1 {summary[1]['recall@1']:.3f} (full whitening)",

@@ -29,7 +29,8 @@ test-split triplet accuracy of the training run's last epoch, training wall and 
 ratio to the default's (seed 0) in the same run. Output folder::
 
     runs/<variant>-s<seed>/      the trained model (mapkit train's folder; a finished run is not trained again)
-    places/<variant>-s<seed>/    mapkit eval places of that model (reused when it scored the same model on the same pairs)
+    places/<variant>-s<seed>/    mapkit eval places of that model (reused when it scored the same model on
+                                 the same pairs)
     places/m2dp/                 the reference
     cnn_choices.json             every figure; cnn_choices.md the tables
 
@@ -61,7 +62,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.common import report  # noqa: E402
+from bench.common import report  # noqa: E402 (after sys.path points at this checkout)
 
 #: each variant's TrainConfig overrides (the default is TrainConfig's own values)
 VARIANTS: dict[str, dict] = {
@@ -119,9 +120,7 @@ def dataset_negative_distance(triplets: Path) -> float:
     return load_config(TripletConfig, triplets / "config.yaml").negative_min_distance_m
 
 
-def _same_eval(
-    folder: Path, pairs: list[tuple[str, str]], methods: list[str], fingerprint: dict | None
-) -> dict | None:
+def _same_eval(folder: Path, pairs: list[tuple[str, str]], methods: list[str], fingerprint: dict | None) -> dict | None:
     """The results in ``folder`` when they scored ``methods`` on ``pairs`` (with the model of ``fingerprint``)."""
     f = folder / "places.json"
     if not f.is_file():
@@ -145,7 +144,8 @@ def evaluate(
     out: Path,
     model: Path | None = None,
 ) -> dict:
-    """``mapkit eval places`` of one method into ``out`` (reused when already there), held out by ``triplets``' tiles."""
+    """``mapkit eval places`` of one method into ``out`` (reused when already there), held out by ``triplets``'
+    tiles."""
     from mapkit.evaluation.places import evaluate_places
 
     fp = None
@@ -324,8 +324,8 @@ def markdown(result: dict) -> str:
         lines.append(
             f"| {r['variant']} | {r['seed']} | "
             + " | ".join(_f(r["auc_per_pair"].get(p)) for p in pairs)
-            + f" | {_f(r['auc_mean'])} | {_f(r['auc_all_places_mean'])} | {_f(r['test_accuracy'])} | {r['train_wall_s']:.0f} "
-            f"| {r['train_cpu_s']:.0f} |"
+            + f" | {_f(r['auc_mean'])} | {_f(r['auc_all_places_mean'])} | {_f(r['test_accuracy'])} | "
+            f"{r['train_wall_s']:.0f} | {r['train_cpu_s']:.0f} |"
         )
     if result["runs"]:
         q = result["runs"][0]["held_out_queries"]
@@ -338,9 +338,9 @@ def markdown(result: dict) -> str:
     ]
     for s in result["summary"]:
         lines.append(
-            f"| {s['variant']} | {s['seeds']} | {_f(s['auc_mean'])} | {s['auc_by_seed']} | {_f(s['spread'])} | {_f(s['sd'])} | "
-            f"{_f(s['auc_all_places'])} | {_f(s['test_accuracy'])} | {s['train_wall_s']:.0f} | {s['train_cpu_s']:.0f} | "
-            f"{_f(s['cpu_ratio_to_default'], 2)} |"
+            f"| {s['variant']} | {s['seeds']} | {_f(s['auc_mean'])} | {s['auc_by_seed']} | {_f(s['spread'])} | "
+            f"{_f(s['sd'])} | {_f(s['auc_all_places'])} | {_f(s['test_accuracy'])} | {s['train_wall_s']:.0f} | "
+            f"{s['train_cpu_s']:.0f} | {_f(s['cpu_ratio_to_default'], 2)} |"
         )
     lines += ["", "Best of each group (seed 0): " + ", ".join(f"{g} {v}" for g, v in result["best_of_groups"].items())]
     return "\n".join(lines) + "\n"

@@ -41,7 +41,7 @@ def compare(a: Path, b: Path, step: int) -> list[str]:
             fa = list(la.records("image"))[::step]
             fb = list(lb.records("image"))[::step]
             same = len(fa) == len(fb) and all(
-                x.stamp_ns == y.stamp_ns and np.array_equal(x.image, y.image) for x, y in zip(fa, fb)
+                x.stamp_ns == y.stamp_ns and np.array_equal(x.image, y.image) for x, y in zip(fa, fb, strict=True)
             )
             print(f"{log_a.stem}: {len(fa)} images compared, {'identical' if same else 'DIFFERENT'}")
             if not same:

@@ -116,7 +116,8 @@ def errors(stamps, poses, gt_stamps, gt_ws, covs=None) -> dict:
 
 
 def max_h_error(fused, gt_stamps, gt_ws, mask) -> float:
-    """Largest horizontal error of the fused poses in ``mask`` after the yaw-only rigid fit of the whole drive to truth."""
+    """Largest horizontal error of the fused poses in ``mask`` after the yaw-only rigid fit of the whole drive to
+    truth."""
     gt, ok = interpolate_poses(gt_stamps, gt_ws, fused.stamps_ns)
     p = fused.enu_from_base[ok, :3, 3]
     fix = fit_transform(p, gt[:, :3, 3], mode="yaw")
@@ -128,11 +129,11 @@ def max_h_error(fused, gt_stamps, gt_ws, mask) -> float:
 def odometry_noise_fit(
     odom: Trajectory, gt_stamps, gt_ws, steps_m=(0.5, 1, 2, 4, 8, 16, 32), skip_s: float = 3.0
 ) -> dict:
-    """kiss-icp's error against truth as FactorGraphConfig models it: per-pose white jitter plus a random walk in the
-    distance driven. For each step length d, the robust (MAD) spread of the relative-motion error per axis (base frame:
-    rotation roll/pitch/yaw, translation x/y/z) is fitted by var(d) = 2 jitter^2 + walk^2 d (non-negative least squares).
-    The first and last ``skip_s`` are left out: starting from rest and the final braking are where kiss-icp slips,
-    which the robust loss handles, not the Gaussian."""
+    """kiss-icp's error against truth as FactorGraphConfig models it: per-pose white jitter plus a random walk in
+    the distance driven. For each step length d, the robust (MAD) spread of the relative-motion error per axis (base
+    frame: rotation roll/pitch/yaw, translation x/y/z) is fitted by var(d) = 2 jitter^2 + walk^2 d (non-negative
+    least squares). The first and last ``skip_s`` are left out: starting from rest and the final braking are where
+    kiss-icp slips, which the robust loss handles, not the Gaussian."""
     from scipy.optimize import nnls
     from scipy.spatial.transform import Rotation
 
@@ -162,11 +163,11 @@ def odometry_noise_fit(
 
 
 def nhc_fit(odom: Trajectory, gt_stamps, gt_ws, cfg: FactorGraphConfig) -> dict:
-    """The non-holonomic constraint as FactorGraphConfig models it, against the truth: at the graph's keyframes, the true
-    base's displacement across the chord of the odometry's heading change (half of it from the earlier keyframe's x axis),
-    per second of the step (rms and robust spread, m/s); ``nhc_sigma_m_s``'s default is tiny-sunny's rms. Also the same
-    with the truth's own heading change (what the car does: lane wander) and with the odometry's displacement (what
-    kiss-icp's steps say, its sideways errors included)."""
+    """The non-holonomic constraint as FactorGraphConfig models it, against the truth: at the graph's keyframes, the
+    true base's displacement across the chord of the odometry's heading change (half of it from the earlier
+    keyframe's x axis), per second of the step (rms and robust spread, m/s); ``nhc_sigma_m_s``'s default is
+    tiny-sunny's rms. Also the same with the truth's own heading change (what the car does: lane wander) and with
+    the odometry's displacement (what kiss-icp's steps say, its sideways errors included)."""
     from mapkit.mapping.factor_graph import select_keyframes
 
     kf = select_keyframes(odom.stamps_ns, odom.world_from_base, cfg.keyframe_distance_m, cfg.keyframe_interval_s)
@@ -191,7 +192,8 @@ def nhc_fit(odom: Trajectory, gt_stamps, gt_ws, cfg: FactorGraphConfig) -> dict:
 def town_imu_config(town: Path) -> dict:
     """FactorGraphConfig fields for the town's simulated IMU: white noise as densities (sigma / sqrt(rate)), its
     constant per-session biases' sigmas as the bias priors. The biases are constant there, but the random walk stays
-    the library's (a trace over a drive; much less makes the bias chain's information 1e15 and the marginals singular)."""
+    the library's (a trace over a drive; much less makes the bias chain's information 1e15 and the marginals
+    singular)."""
     c = yaml.safe_load((town / "world" / "config.yaml").read_text()).get("imu") or {}
     if not c.get("enabled", False):
         return {}
@@ -205,7 +207,8 @@ def town_imu_config(town: Path) -> dict:
 
 
 def slip_spans(odom: Trajectory, gt_stamps, gt_ws, slip_m: float, window_s: float = 1.0) -> list[tuple[int, int]]:
-    """Stamp spans (ns) where the odometry's relative motion over ``window_s`` misses the truth's by more than ``slip_m``."""
+    """Stamp spans (ns) where the odometry's relative motion over ``window_s`` misses the truth's by more than
+    ``slip_m``."""
     gt, ok = interpolate_poses(gt_stamps, gt_ws, odom.stamps_ns)
     st, est = odom.stamps_ns[ok], odom.world_from_base[ok]
     w = int(window_s * 1e9)
@@ -345,37 +348,42 @@ def main() -> None:
                 + (f"{100 * r['inside_95_3d']:.0f}% (NEES {r['nees_mean']:.1f}) |" if "inside_95_3d" in r else " |")
             )
     print(
-        "| session | trajectory | ATE h m | ATE v m | ATE h m, offset removed | ATE v m, offset removed | height drift m "
-        "(graph: its own 1σ, end minus start) | height p2p m | pitch err mean / rms deg | inside 95% ellipse |"
+        "| session | trajectory | ATE h m | ATE v m | ATE h m, offset removed | ATE v m, offset removed "
+        "| height drift m (graph: its own 1σ, end minus start) | height p2p m | pitch err mean / rms deg "
+        "| inside 95% ellipse |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     print()
     print(
-        "| session | graph s (IMU or gravity + solve + marginals) | sensor read s | trajectory stage s | ratio | keyframes "
-        "| GPS outliers (> 3.37 sigma) | georef sigma ENU m |"
+        "| session | graph s (IMU or gravity + solve + marginals) | sensor read s | trajectory stage s | ratio "
+        "| keyframes | GPS outliers (> 3.37 sigma) | georef sigma ENU m |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for name, r in out.items():
         st = r["stats"]
         print(
-            f"| {name} | {r['seconds_graph']:.2f} | {r['seconds_read_sensors']:.2f} | {r['seconds_trajectory_stage']:.1f} | "
-            f"{100 * r['seconds_graph'] / r['seconds_trajectory_stage']:.1f}% | {st['keyframes']} | "
-            f"{st.get('gps_fixes_outliers', '')} of {st.get('gps_fixes', '')} | {', '.join(f'{x:.2f}' for x in r['georef_sigma_enu_m'])} |"
+            f"| {name} | {r['seconds_graph']:.2f} | {r['seconds_read_sensors']:.2f} | "
+            f"{r['seconds_trajectory_stage']:.1f} | {100 * r['seconds_graph'] / r['seconds_trajectory_stage']:.1f}% | "
+            f"{st['keyframes']} | {st.get('gps_fixes_outliers', '')} of {st.get('gps_fixes', '')} | "
+            f"{', '.join(f'{x:.2f}' for x in r['georef_sigma_enu_m'])} |"
         )
     print()
     print(
         "| session | kiss-icp jitter rot roll/pitch/yaw rad | trans x/y/z m | walk rot rad/sqrt(m) | trans m/sqrt(m) |"
     )
     print("|---|---|---|---|---|")
+
+    def f(v):
+        return ", ".join(f"{x:.1e}" for x in v)
+
     for name, r in out.items():
         j, w = r["odometry_noise_fit"]["jitter"], r["odometry_noise_fit"]["walk_per_sqrt_m"]
-        f = lambda v: ", ".join(f"{x:.1e}" for x in v)  # noqa: E731
         print(f"| {name} | {f(j[:3])} | {f(j[3:])} | {f(w[:3])} | {f(w[3:])} |")
     print()
     print(
-        "| session | across the chord, m/s: model (odometry's heading, true displacement) rms / robust | the truth's own "
-        f"| the odometry's own | nhc_sigma_m_s = {cfg.nhc_sigma_m_s} |"
+        "| session | across the chord, m/s: model (odometry's heading, true displacement) rms / robust "
+        f"| the truth's own | the odometry's own | nhc_sigma_m_s = {cfg.nhc_sigma_m_s} |"
     )
     print("|---|---|---|---|---|")
     for name, r in out.items():
@@ -386,15 +394,15 @@ def main() -> None:
         )
     print()
     print(
-        f"| session | slip span s (1 s motion > {args.slip_m} m off) | kiss-icp displacement err m | rigid fit m | graph m "
-        "| graph max h err inside, offset removed m |"
+        f"| session | slip span s (1 s motion > {args.slip_m} m off) | kiss-icp displacement err m | rigid fit m "
+        "| graph m | graph max h err inside, offset removed m |"
     )
     print("|---|---|---|---|---|---|")
     print("\n".join(slip_rows))
     print()
     print(
-        "| session | slips the graph found: span s (metres it moved the odometry) | drift / jitter factors down-weighted "
-        "| IMU bias at the end: gyro rad/s; accel m/s^2 |"
+        "| session | slips the graph found: span s (metres it moved the odometry) "
+        "| drift / jitter factors down-weighted | IMU bias at the end: gyro rad/s; accel m/s^2 |"
     )
     print("|---|---|---|---|")
     for name, r in out.items():
@@ -408,23 +416,26 @@ def main() -> None:
             )
         )
         found = ", ".join(
-            f"{a:.1f}-{b_:.1f} ({m:.2f})" for (a, b_), m in zip(st["odom_slip_spans_s"], st["odom_slip_m"])
+            f"{a:.1f}-{b_:.1f} ({m:.2f})" for (a, b_), m in zip(st["odom_slip_spans_s"], st["odom_slip_m"], strict=True)
         )
         print(
-            f"| {name} | {found} | {st['odom_drift_downweighted']} / {st['odom_jitter_downweighted']} of {st['keyframes']} | {bias} |"
+            f"| {name} | {found} | {st['odom_drift_downweighted']} / {st['odom_jitter_downweighted']} of "
+            f"{st['keyframes']} | {bias} |"
         )
     total_graph = sum(r["seconds_graph"] for r in out.values())
     total_traj = sum(r["seconds_trajectory_stage"] for r in out.values())
     print()
     print(
-        "| session | GPS fixes' mean error ENU m (the session's bias draw) | chi-square under the bias model (95%: 7.81) |"
+        "| session | GPS fixes' mean error ENU m (the session's bias draw) "
+        "| chi-square under the bias model (95%: 7.81) |"
     )
     print("|---|---|---|")
     for name, r in out.items():
         g = r["gps_mean_error"]
         print(f"| {name} | {', '.join(f'{v:+.2f}' for v in g['mean_enu_m'])} | {g['chi2_under_bias_model']:.1f} |")
     print(
-        f"\ngraph / trajectory stage, all sessions: {total_graph:.2f} s / {total_traj:.1f} s = {100 * total_graph / total_traj:.1f}%"
+        f"\ngraph / trajectory stage, all sessions: {total_graph:.2f} s / {total_traj:.1f} s = "
+        f"{100 * total_graph / total_traj:.1f}%"
     )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

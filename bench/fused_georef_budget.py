@@ -1,4 +1,5 @@
-"""The rigid GPS fit against the factor graph (``georef: {fuse: true}``) on one straight synthetic drive, as the map sees them.
+"""The rigid GPS fit against the factor graph (``georef: {fuse: true}``) on one straight synthetic drive, as the map
+sees them.
 
     python bench/fused_georef_budget.py [--out DIR] [--set KEY=VALUE ...]
 
@@ -26,21 +27,24 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_build_synth import OVERRIDES  # noqa: E402
+from test_build_synth import OVERRIDES  # noqa: E402 (after sys.path points at this checkout's tests)
 
-from mapkit.core.geometry import interpolate_poses, invert_pose  # noqa: E402
-from mapkit.core.workspace import Workspace  # noqa: E402
-from mapkit.evaluation.evaluate import evaluate_build  # noqa: E402
-from mapkit.evaluation.truth import session_truth, ws_from_town  # noqa: E402
-from mapkit.mapping.build import build  # noqa: E402
-from mapkit.mapping.trajectory import Trajectory  # noqa: E402
-from mapkit.synth import session_log, synthesize  # noqa: E402
+from mapkit.core.geometry import interpolate_poses, invert_pose  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.workspace import Workspace  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.evaluation.evaluate import evaluate_build  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.evaluation.truth import session_truth, ws_from_town  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.build import build  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.trajectory import Trajectory  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.synth import session_log, synthesize  # noqa: E402 (after sys.path points at this checkout)
 
 
 def score(traj: Trajectory, stamps: np.ndarray, truth: np.ndarray) -> dict:
     gt, ok = interpolate_poses(stamps, truth, traj.stamps_ns)
     est = traj.world_from_base[ok]
-    rel = lambda T: invert_pose(T[:-1]) @ T[1:]  # noqa: E731
+
+    def rel(T):
+        return invert_pose(T[:-1]) @ T[1:]
+
     step = invert_pose(rel(gt)) @ rel(est)
     d = est[:, :3, 3] - gt[:, :3, 3]
     d -= d.mean(axis=0)
@@ -61,8 +65,8 @@ def main() -> None:
         nargs="*",
         default=[],
         metavar="KEY=VALUE",
-        help="FactorGraphConfig overrides for the fused build (YAML values), e.g. nhc_sigma_m_s=0 for the graph without "
-        "the non-holonomic constraint",
+        help="FactorGraphConfig overrides for the fused build (YAML values), e.g. nhc_sigma_m_s=0 for the graph "
+        "without the non-holonomic constraint",
     )
     args = ap.parse_args()
     root = args.out or Path(tempfile.mkdtemp(prefix="mapkit-fused-"))
@@ -87,7 +91,8 @@ def main() -> None:
         s = score(Trajectory.load(traj_dir), stamps, truth)
         m = evaluate_build(ws, town)["sessions"]["drive"]["map_local"]
         rows.append(
-            f"| {label} | {s['step_mm']:.1f} | {s['roll_deg']:+.3f} / {s['pitch_deg']:+.3f} | {s['ate_offset_removed_m']:.3f} | "
+            f"| {label} | {s['step_mm']:.1f} | {s['roll_deg']:+.3f} / {s['pitch_deg']:+.3f} | "
+            f"{s['ate_offset_removed_m']:.3f} | "
             f"{m['median_distance_m']:.3f} / {m['fraction_within_0.5m']:.3f} |"
         )
     print(

@@ -79,7 +79,8 @@ class Read:
 
 
 def read_log(path: Path, fmt: str) -> Read:
-    """Every message of the log at ``path``, images decoded; decode failures of a frame skipped as a build skips them."""
+    """Every message of the log at ``path``, images decoded; decode failures of a frame skipped as a build skips
+    them."""
     out = Read()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -89,9 +90,9 @@ def read_log(path: Path, fmt: str) -> Read:
                     record = msg.record
                     if isinstance(record, CameraFrame):
                         try:
-                            record.image
+                            _ = record.image  # decodes the frame
                         except InputError as exc:
-                            warnings.warn(f"frame skipped: {exc}", InputWarning)
+                            warnings.warn(f"frame skipped: {exc}", InputWarning, stacklevel=2)
                             continue
                     out.messages.add((msg.topic, int(getattr(record, "stamp_ns", 0))))
         except Exception as exc:  # noqa: BLE001 - the campaign classes whatever escapes
@@ -261,7 +262,8 @@ def write_folder(root: Path, n: int = 6) -> Path:
         name = f"{i:04d}.{'png' if i % 2 == 0 else 'jpg'}"
         cv2.imwrite(str(root / "images" / name), rng.integers(0, 255, (24, 32, 3), dtype=np.uint8))
         rows.append(
-            f"{name},{1.7e9 + 0.1 * i:.3f},{49.0 + i * 1e-5},8.4,110.0,{i}.0,0.0,0.0,1.0,0.0,0.0,0.0,30.0,30.0,16.0,12.0"
+            f"{name},{1.7e9 + 0.1 * i:.3f},{49.0 + i * 1e-5},8.4,110.0,{i}.0,"
+            "0.0,0.0,1.0,0.0,0.0,0.0,30.0,30.0,16.0,12.0"
         )
     (root / "frames.csv").write_text("\n".join(rows) + "\n")
     return root

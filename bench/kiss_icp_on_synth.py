@@ -33,11 +33,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import report  # noqa: E402
-from mapkit.core.geometry import interpolate_poses, invert_pose, umeyama  # noqa: E402
-from mapkit.core.types import StreamKind  # noqa: E402
-from mapkit.io.mcap_log import McapLog  # noqa: E402
-from mapkit.synth import gt_poses, load_world, synthesize  # noqa: E402
+from bench.common import report
+from mapkit.core.geometry import interpolate_poses, invert_pose, umeyama
+from mapkit.core.types import StreamKind
+from mapkit.io.mcap_log import McapLog
+from mapkit.synth import gt_poses, load_world, synthesize
 
 
 def lidar_times(mcap: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -131,7 +131,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--no-patch",
         action="store_true",
-        help="run kiss_icp_pipeline unpatched on bare .mcap logs (fails on kiss-icp 1.3.0; folders never need the patch)",
+        help=(
+            "run kiss_icp_pipeline unpatched on bare .mcap logs (fails on kiss-icp 1.3.0; folders never need the patch)"
+        ),
     )
     args = ap.parse_args(argv)
     if shutil.which("kiss_icp_pipeline") is None:

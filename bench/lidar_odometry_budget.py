@@ -32,13 +32,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import report  # noqa: E402
-from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad  # noqa: E402
-from mapkit.evaluation.truth import session_truth  # noqa: E402
-from mapkit.io import open_log  # noqa: E402
-from mapkit.mapping.gps_align import fit_transform  # noqa: E402
-from mapkit.mapping.trajectory import TrajectoryConfig, trajectory_from_lidar  # noqa: E402
-from mapkit.synth import load_world, session_log, synthesize  # noqa: E402
+from bench.common import report
+from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad
+from mapkit.evaluation.truth import session_truth
+from mapkit.io import open_log
+from mapkit.mapping.gps_align import fit_transform
+from mapkit.mapping.trajectory import TrajectoryConfig, trajectory_from_lidar
+from mapkit.synth import load_world, session_log, synthesize
 
 #: the sweep layouts compared: 1.4 deg columns, on which kiss-icp slips on the flat road, and the presets' 0.7 deg
 LAYOUTS = {"coarse": {"lidar": {"azimuth_steps": 256}}, "default": {"lidar": {"azimuth_steps": 512}}}
@@ -127,7 +127,8 @@ def main(argv=None) -> int:
             steps = world.config.lidar.azimuth_steps
             if steps != overrides["lidar"]["azimuth_steps"]:
                 raise SystemExit(
-                    f"{town}: its sweep has {steps} columns; the {label} layout has {overrides['lidar']['azimuth_steps']}"
+                    f"{town}: its sweep has {steps} columns; the {label} layout has "
+                    f"{overrides['lidar']['azimuth_steps']}"
                 )
             for name in args.session or [s["name"] for s in world.sessions]:
                 row = {"layout": f"{label} ({world.config.lidar.beams} x {steps})", **session_row(town, name, cfg)}

@@ -27,14 +27,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from test_loop_closure import loop_route, revisit_error_m  # noqa: E402
+from test_loop_closure import loop_route, revisit_error_m  # noqa: E402 (after sys.path points at this checkout's tests)
 
-from mapkit.core.geometry import interpolate_poses  # noqa: E402
-from mapkit.core.workspace import Workspace  # noqa: E402
-from mapkit.evaluation.truth import session_truth, ws_from_town  # noqa: E402
-from mapkit.mapping.build import build  # noqa: E402
-from mapkit.mapping.trajectory import Trajectory  # noqa: E402
-from mapkit.synth import session_log, synthesize  # noqa: E402
+from mapkit.core.geometry import interpolate_poses  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.workspace import Workspace  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.evaluation.truth import session_truth, ws_from_town  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.build import build  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.trajectory import Trajectory  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.synth import session_log, synthesize  # noqa: E402 (after sys.path points at this checkout)
 
 
 def score(ws: Path, town: Path) -> dict:
@@ -82,7 +82,8 @@ def main() -> None:
     if not (town / "world").is_dir():
         loop_route(root / "loop.tum", tuple(args.size), args.extra, args.speed)
         (root / "synth.yaml").write_text(
-            f"seed: {args.seed}\nsessions:\n  - {{name: loop, role: train, time: '12:00', weather: sunny, length_m: 400.0, "
+            f"seed: {args.seed}\nsessions:\n"
+            "  - {name: loop, role: train, time: '12:00', weather: sunny, length_m: 400.0, "
             f"camera_rate_hz: 0.2}}\ncamera: {{width: 64, height: 48}}\nlidar: {{rate_hz: {args.lidar_hz}}}\n"
         )
         synthesize(preset="tiny", out=town, config=root / "synth.yaml", trajectory=root / "loop.tum", progress=False)
@@ -106,7 +107,8 @@ def main() -> None:
         loops = "-" if r["loops"] is None else str(r["loops"])
         loop_s = "-" if r["loop_s"] is None else f"{r['loop_s']:.1f}"
         print(
-            f"| {label} | {r['ate_m']:.3f} | {r['ate_local_m']:.3f} | {r['revisit_m']:.3f} | {r['height_spread_m']:.3f} | "
+            f"| {label} | {r['ate_m']:.3f} | {r['ate_local_m']:.3f} | {r['revisit_m']:.3f} | "
+            f"{r['height_spread_m']:.3f} | "
             f"{r['georef_s']:.1f} | {loops} | {loop_s} |"
         )
     print(

@@ -88,7 +88,8 @@ def _mark_finished(builder, stages: tuple[str, ...]) -> None:
 
     The workspace's own markers are not enough: a workspace built by another version of mapkit may
     hash a config section differently (a field added to it changes its hash; with ``georef.fuse`` the
-    georef stage hashes the factor graph's section), and the builder would run the stage again, writing the estimated trajectory over the variant's."""
+    georef stage hashes the factor graph's section), and the builder would run the stage again,
+    writing the estimated trajectory over the variant's."""
     from mapkit.core.runio import mark_done, read_marker
     from mapkit.mapping.build import _stage_hash
 
@@ -266,8 +267,8 @@ def main(argv: list[str] | None = None) -> int:
         ratio = f"{r['median_distance_m'] / base['median_distance_m']:.2f}" if base else ""
         per100 = f"{r['points_per_100m']:.0f}" if r.get("points_per_100m") is not None else ""
         print(
-            f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {per100} | {r['median_distance_m']:.3f} | "
-            f"{r['fraction_within_0.5m']:.3f} | {ratio} |"
+            f"| {r['variant']} | {r['position_rmse_m']:.3f} | {r['points']} | {per100} | "
+            f"{r['median_distance_m']:.3f} | {r['fraction_within_0.5m']:.3f} | {ratio} |"
         )
     if a.json:
         a.json.write_text(json.dumps({"session": name, "rows": rows}, indent=2))

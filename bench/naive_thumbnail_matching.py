@@ -21,10 +21,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.common import report  # noqa: E402
-from mapkit.core.types import StreamKind  # noqa: E402
-from mapkit.io.mcap_log import McapLog  # noqa: E402
-from mapkit.synth import camera_poses, load_world  # noqa: E402
+from bench.common import report
+from mapkit.core.types import StreamKind
+from mapkit.io.mcap_log import McapLog
+from mapkit.synth import camera_poses, load_world
 
 THUMB = (32, 24)
 RADIUS_M = 25.0
@@ -41,7 +41,7 @@ def thumbnails(out: Path, session: str, size=THUMB) -> tuple[np.ndarray, np.ndar
         stamps.append(frame.stamp_ns)
     log.close()
     cs, wfc = camera_poses(out, session)
-    pos = dict(zip(cs.tolist(), wfc[:, :2, 3]))
+    pos = dict(zip(cs.tolist(), wfc[:, :2, 3], strict=True))
     return np.array(thumbs), np.array([pos[s] for s in stamps])
 
 
@@ -122,7 +122,8 @@ def main(argv=None) -> int:
     pairs = [tuple(p.split(":", 1)) for p in args.pair] if args.pair else None
     rows, overall = evaluate(args.dir, pairs)
     report(
-        f"Naive nearest neighbour on {THUMB[0]}x{THUMB[1]} grayscale thumbnails across conditions (found within {RADIUS_M:.0f} m)",
+        f"Naive nearest neighbour on {THUMB[0]}x{THUMB[1]} grayscale thumbnails across conditions (found within "
+        f"{RADIUS_M:.0f} m)",
         rows,
         f"overall: {overall:.3f} of the queries found (raw pixels); the goal is under 0.5",
     )

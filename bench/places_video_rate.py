@@ -4,10 +4,11 @@ The paper's point clouds come from DSO run on the full-rate image stream (Sec. 3
 its drives from images at MCVL's rates (4 Hz). This bench runs the main job (``mapkit demo``)
 twice on the same town and the same drives, once at the preset's camera rates and once with every
 camera recording video (``--rate``, RobotCar's Bumblebee XB3: 16 Hz) and the maps made from every
-image; image databases and queries keep the preset's rates in both runs (:func:`mapkit.pipelines.demo.demo_build_config`).
-It prints, side by side: each session's map density (keyframes, points, points per 100 m of the
-keyframes' path), the place-recognition AUC of every pair and method (held-out places first, then
-all places) and the stage times. The baseline is the preset-rate run; ratios are video over it.
+image; image databases and queries keep the preset's rates in both runs
+(:func:`mapkit.pipelines.demo.demo_build_config`). It prints, side by side: each session's map
+density (keyframes, points, points per 100 m of the keyframes' path), the place-recognition AUC of
+every pair and method (held-out places first, then all places) and the stage times. The baseline is
+the preset-rate run; ratios are video over it.
 
 A subset of the demo's drives keeps it to about an hour on 2 cores (``--sessions``; a session that
 follows another needs it listed too)::

@@ -27,8 +27,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mapkit.places import descriptors3d as d3  # noqa: E402
-from mapkit.retrieval.dsift import DsiftConfig, dense_sift  # noqa: E402
+from mapkit.places import descriptors3d as d3  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.dsift import DsiftConfig, dense_sift  # noqa: E402 (after sys.path points at this checkout)
 
 DATA = Path(__import__("os").environ.get("MAPKIT_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"M2DP against M2DP.m: 1 - cos = {result['m2dp']['one_minus_cos']:.1e} ({result['m2dp']['points']} points)")
     d = result["dsift"]
     print(
-        f"dense SIFT (phow) against vl_phow: median cosine {d['median_cosine']:.6f}, 5th percentile {d['p05_cosine']:.6f} over "
+        f"dense SIFT (phow) against vl_phow: median cosine {d['median_cosine']:.6f}, 5th percentile "
+        f"{d['p05_cosine']:.6f} over "
         f"{d['frames_compared']} frames; zeroing agrees on {100 * d['zeroing_agrees']:.2f} %"
     )
     if a.out:

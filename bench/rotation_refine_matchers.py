@@ -30,11 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from bench.bench_semidense import load_frames  # noqa: E402
-from bench.common import best_wall_and_cpu, report  # noqa: E402
-from bench.semidense_kitti_clip import DEFAULT_CLIP, feature_matches  # noqa: E402
-from mapkit.core.geometry import rotation_angle_rad  # noqa: E402
-from mapkit.mapping.pose_refine import RotationRefiner, epipolar_distances_px  # noqa: E402
+from bench.bench_semidense import load_frames  # noqa: E402 (after sys.path points at this checkout)
+from bench.common import best_wall_and_cpu, report  # noqa: E402 (after sys.path points at this checkout)
+from bench.semidense_kitti_clip import DEFAULT_CLIP, feature_matches  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.geometry import rotation_angle_rad  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.pose_refine import RotationRefiner, epipolar_distances_px  # noqa: E402 (after sys.path points at this checkout)
 
 #: (label, RotationRefiner keywords); the first is the baseline of the ratios
 SETTINGS = [
@@ -47,7 +47,8 @@ SETTINGS = [
 
 
 def check_px(K: np.ndarray, poses: np.ndarray, matches) -> float:
-    """Median over the pairs of the median distance (px) of their matches (within 10 px) to the epipolar lines of ``poses``."""
+    """Median over the pairs of the median distance (px) of their matches (within 10 px) to the epipolar lines of
+    ``poses``."""
     per_pair = []
     for i, j, a, b in matches:
         d = epipolar_distances_px(K, poses, i, j, a, b)
@@ -79,7 +80,12 @@ def main() -> int:
         def run(kw=kw, label=label):
             r = RotationRefiner(K, **kw)
             refined[label] = np.array(
-                [T for _, _, _, T in r.stream((i, i, im, T) for i, (im, T) in enumerate(zip(images, poses)))]
+                [
+                    T
+                    for _, _, _, T in r.stream(
+                        (i, i, im, T) for i, (im, T) in enumerate(zip(images, poses, strict=True))
+                    )
+                ]
             )
 
         wall, cpu = best_wall_and_cpu(run, repeat=args.repeat)
@@ -89,9 +95,12 @@ def main() -> int:
     for row in rows:
         row["cpu_vs_sift"] = row["cpu_s"] / base["cpu_s"]
         R = refined[row["matcher"]][:, :3, :3]
-        row["max_deg_from_sift"] = max(float(np.degrees(rotation_angle_rad(a.T @ b))) for a, b in zip(R, R0))
+        row["max_deg_from_sift"] = max(
+            float(np.degrees(rotation_angle_rad(a.T @ b))) for a, b in zip(R, R0, strict=True)
+        )
     report(
-        f"rotation refinement matchers, KITTI frames {args.first_frame}-{args.first_frame + len(images) - 1} at 640x480",
+        "rotation refinement matchers, "
+        f"KITTI frames {args.first_frame}-{args.first_frame + len(images) - 1} at 640x480",
         rows,
         ratio_note=(
             f"check: median distance (px) of independent SIFT matches (1-3 frames apart) to the epipolar lines; "

@@ -178,7 +178,8 @@ def _align(p: Printed) -> tuple[str, str, str]:
     rows = p.obj("benchmark", "align")["rows"]
     a, b = rows[0], rows[-1]
     return (
-        f"{_f(b['pairs_per_s'])} submap pairs/s; {a['sessions']} -> {b['sessions']} sessions: time x{_f(b['time_ratio'])}",
+        f"{_f(b['pairs_per_s'])} submap pairs/s; {a['sessions']} -> {b['sessions']} sessions: time "
+        f"x{_f(b['time_ratio'])}",
         f"overlapping pairs x{_f(b['pairs_ratio'])}, sessions^2 x{_f(b['quadratic_ratio'])}",
         f"{_f(b['time_ratio'] / b['pairs_ratio'])} (time growth / pair growth)",
     )
@@ -200,8 +201,10 @@ def _build(p: Printed) -> tuple[str, str, str]:
 def _cnn(p: Printed) -> tuple[str, str, str]:
     train, desc = p.table("Training throughput"), p.table("Describe throughput")
     return (
-        f"train {_f(train[0]['triplets_per_s_wall'])} triplets/s; describe {_f(desc[0]['patches_per_s_wall'])} patches/s (ONNX)",
-        f"one triplet per step {_f(train[1]['triplets_per_s_wall'])}/s; torch eager {_f(desc[1]['patches_per_s_wall'])}/s",
+        f"train {_f(train[0]['triplets_per_s_wall'])} triplets/s; describe {_f(desc[0]['patches_per_s_wall'])} "
+        "patches/s (ONNX)",
+        f"one triplet per step {_f(train[1]['triplets_per_s_wall'])}/s; torch eager "
+        f"{_f(desc[1]['patches_per_s_wall'])}/s",
         f"{_f(train[0]['speedup_vs_naive_wall'])} / {_f(desc[0]['speedup_vs_torch_wall'])}",
     )
 
@@ -250,7 +253,8 @@ def _structure_index(p: Printed) -> tuple[str, str, str]:
     d = ", ".join(f"{r['descriptor']} {_f(r['patches_per_s_cpu'])}" for r in s["describe"])
     q = s["query"]
     return (
-        f"describe() {d} patches/s; query {_f(q[0]['ms_per_frame_cpu'])} ms/frame ({q[0]['db_descriptors']} descriptors)",
+        f"describe() {d} patches/s; query {_f(q[0]['ms_per_frame_cpu'])} ms/frame ({q[0]['db_descriptors']} "
+        "descriptors)",
         f"cKDTree {_f(q[2]['ms_per_frame_cpu'])} ms/frame",
         f"{_f(s['checks']['ratio_cKDTree_over_faiss_per_frame_cpu'])} (query speed-up)",
     )
@@ -258,7 +262,10 @@ def _structure_index(p: Printed) -> tuple[str, str, str]:
 
 def _synth(p: Printed) -> tuple[str, str, str]:
     rows = p.table("Synthetic town: camera frames")
-    mean = lambda k: sum(r[k] for r in rows) / len(rows)  # noqa: E731
+
+    def mean(k):
+        return sum(r[k] for r in rows) / len(rows)
+
     return (
         f"{_f(mean('fps_camera_plus_lidar'))} frames/s with their LiDAR sweep",
         f"bare ray casts {_f(mean('fps_bare_ray_casts'))} frames/s",

@@ -1,4 +1,5 @@
-"""Semi-dense map of the real KITTI clip with its given poses: cross-frame consistency, with and without outlier rejection.
+"""Semi-dense map of the real KITTI clip with its given poses: cross-frame consistency, with and without outlier
+rejection.
 
 Runs ``mapkit.mapping.semidense.build_semidense_map`` over the 51-frame KITTI odometry clip beside the
 project (left grey camera, exact poses) twice in one process: once with every
@@ -59,17 +60,17 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from mapkit.core.config import load_config  # noqa: E402
-from mapkit.core.runio import write_json  # noqa: E402
-from mapkit.mapping.pose_refine import epipolar_distances_px, refine_rotations  # noqa: E402
-from mapkit.mapping.semidense import (
+from mapkit.core.config import load_config  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.runio import write_json  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.pose_refine import epipolar_distances_px, refine_rotations  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.semidense import (  # noqa: E402 (after sys.path points at this checkout)
     KeyframePoints,
     SemiDenseConfig,
     SemiDenseMap,
     build_semidense_map,
     consistency,
     multi_view_filter,
-)  # noqa: E402
+)
 
 DEFAULT_CLIP = ROOT.parent / "shared" / "data" / "kitti-odometry-clip"
 DEFAULT_OUT = Path("/tmp/mapkit-semidense-kitti")
@@ -141,7 +142,10 @@ def feature_matches(
     """(i, j, pixels in i (n, 2), pixels in j (n, 2)) of SIFT matches passing Lowe's ratio test, for every
     pair of ``frames`` at most ``max_gap`` apart; ``images`` are paths or grey images already read."""
     sift = cv2.SIFT_create(nfeatures=3000)
-    grey = lambda im: im if isinstance(im, np.ndarray) else cv2.imread(str(im), cv2.IMREAD_GRAYSCALE)  # noqa: E731
+
+    def grey(im):
+        return im if isinstance(im, np.ndarray) else cv2.imread(str(im), cv2.IMREAD_GRAYSCALE)
+
     feats = {i: sift.detectAndCompute(grey(images[i]), None) for i in frames}
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     out = []
@@ -213,7 +217,10 @@ class Run:
         """The consistency figures against this run's own keyframe depths (``raw``: the headline figure, with
         the farther pairs told apart against ``verified``, and broken down along the drive by ``keyframe_bins``)
         and against those that entered fusion (``filtered``)."""
-        as_list = lambda d: [(fid, T, pts) for fid, (T, pts) in d.items()]  # noqa: E731
+
+        def as_list(d):
+            return [(fid, T, pts) for fid, (T, pts) in d.items()]
+
         self.consistency = {
             "raw": consistency(
                 self.map,
@@ -335,12 +342,13 @@ def rejected_picture(
     panels = (
         (f"kept: {len(kept)} points of the filtered map", [(kept, "0.25")]),
         (
-            f"rejected: {len(gone)} points of the unfiltered map ({len(unfiltered)}) with no kept point within {REJECTED_RADIUS_M} m",
+            f"rejected: {len(gone)} points of the unfiltered map ({len(unfiltered)}) with no kept point within "
+            f"{REJECTED_RADIUS_M} m",
             [(gone, "tab:red")],
         ),
         ("both (kept drawn over rejected)", [(gone, "tab:red"), (kept, "0.25")]),
     )
-    for ax, (title, layers) in zip(axes, panels):
+    for ax, (title, layers) in zip(axes, panels, strict=True):
         for X, colour in layers:
             ax.scatter(X[:, 2], -X[:, 0], s=0.15, c=colour, rasterized=True)
         ax.plot(poses[:, 2, 3], -poses[:, 0, 3], "-", color="tab:blue", lw=1.5, label="camera path (given poses)")
@@ -511,26 +519,32 @@ def main(argv: list[str] | None = None) -> int:
             head = f"| {name} | {len(r.map)} | {st['points_per_100m']:.0f} | {r.seconds:.1f} | {ref} | "
             print(head + " | ".join(_summary_rows(r.consistency[ref])) + " |")
     print(
-        f"\npoints before / after the filters: {len(base.map)} / {len(new.map)} ({100 * len(new.map) / max(len(base.map), 1):.0f} %); "
+        f"\npoints before / after the filters: {len(base.map)} / {len(new.map)} "
+        f"({100 * len(new.map) / max(len(base.map), 1):.0f} %); "
         f"removed (no kept point within {REJECTED_RADIUS_M} m): {int(gone.sum())}; "
         f"filtered run took {metrics['speed_ratio_filtered_over_unfiltered']:.2f}x the unfiltered one's time"
     )
     print(f"rejected by the fusion filters (filtered run): {new.map.rejected}")
     print(
-        "\nWhere the pairs with the map > 5 % farther come from (shares of all pairs, raw reference): the keyframe's own depth"
+        "\nWhere the pairs with the map > 5 % farther come from (shares of all pairs, raw reference): "
+        "the keyframe's own depth"
     )
     print(
-        "there failed its multi-view test (reference unverified); it passed and the map point agrees with >= 2 other keyframes'"
+        "there failed its multi-view test (reference unverified); "
+        "it passed and the map point agrees with >= 2 other keyframes'"
     )
     print(
-        "verified depths (occluded: the keyframe cannot see the point); the rest (unexplained). Then the figures against one fixed"
+        "verified depths (occluded: the keyframe cannot see the point); the rest (unexplained). "
+        "Then the figures against one fixed"
     )
     print(
-        "reference for all runs, the unfiltered run's keyframe depths that pass the multi-view test (verified), with and without"
+        "reference for all runs, the unfiltered run's keyframe depths that pass the multi-view test (verified), "
+        "with and without"
     )
     print("the occluded pairs.\n")
     print(
-        "| run | points | farther | ref. unverified | occluded | unexplained | verified ref.: median / p90 / farther / nearer "
+        "| run | points | farther | ref. unverified | occluded | unexplained "
+        "| verified ref.: median / p90 / farther / nearer "
         "| verified, occluded excluded: median / p90 / farther / nearer |"
     )
     print("|---|---|---|---|---|---|---|---|")
@@ -538,8 +552,9 @@ def main(argv: list[str] | None = None) -> int:
         c = r.consistency["raw"]
         fc = c["farther_causes"]
         print(
-            f"| {name} | {len(r.map)} | {100 * c['frac_map_farther_5pct']:.1f} % | {100 * fc['reference_unverified']:.1f} % | "
-            f"{100 * fc['occluded']:.1f} % | {100 * fc['unexplained']:.1f} % | {_four(c['verified_reference'])} | {_four(c['verified_visible'])} |"
+            f"| {name} | {len(r.map)} | {100 * c['frac_map_farther_5pct']:.1f} % | "
+            f"{100 * fc['reference_unverified']:.1f} % | {100 * fc['occluded']:.1f} % | "
+            f"{100 * fc['unexplained']:.1f} % | {_four(c['verified_reference'])} | {_four(c['verified_visible'])} |"
         )
     for key, label in (
         ("by_depth_m", "keyframe's own depth"),
@@ -583,8 +598,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             fc = b["farther_causes"]
             row.append(
-                f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} % ({b['pairs']}); "
-                f"{100 * fc['reference_unverified']:.1f} / {100 * fc['occluded']:.1f} / {100 * fc['unexplained']:.1f}"
+                f"{100 * b['median_rel']:.2f} / {100 * b['p90_rel']:.1f} / {100 * b['frac_map_farther_5pct']:.1f} % "
+                f"({b['pairs']}); {100 * fc['reference_unverified']:.1f} / {100 * fc['occluded']:.1f} / "
+                f"{100 * fc['unexplained']:.1f}"
             )
         hi = min(int(lo) + KEYFRAME_RANGE, frames.stop) - 1
         print(f"| {int(lo)}-{hi} | " + " | ".join(row) + " |")
@@ -593,12 +609,16 @@ def main(argv: list[str] | None = None) -> int:
     if beyond and beyond[0]["pairs"]:
         share = beyond[0]["pairs"] / new.consistency["raw"]["pairs"]
         print(
-            f"\nfiltered run: {100 * share:.1f} % of the pairs are keyframes >= {HALF_CLIP_M:.0f} m apart (none on a half clip), "
-            f"{100 * beyond[0]['frac_map_farther_5pct']:.0f} % of them farther"
+            f"\nfiltered run: {100 * share:.1f} % of the pairs are keyframes >= {HALF_CLIP_M:.0f} m apart "
+            f"(none on a half clip), {100 * beyond[0]['frac_map_farther_5pct']:.0f} % of them farther"
         )
+    mapped_on = (
+        "rotations re-estimated: mapped on the refined poses" if refined is not None else "mapped on the given poses"
+    )
     print(
-        f"\nGiven poses against the images ({'rotations re-estimated: mapped on the refined poses' if refined is not None else 'mapped on the given poses'}; "
-        f"{pose_seconds:.0f} s): median distance (px) of SIFT matches from the epipolar lines, frames 1 and {POSE_CHECK_GAP} apart\n"
+        f"\nGiven poses against the images ({mapped_on}; "
+        f"{pose_seconds:.0f} s): median distance (px) of SIFT matches from the epipolar lines, frames 1 and "
+        f"{POSE_CHECK_GAP} apart\n"
     )
     cols = ["given_px_gap1", f"given_px_gap{POSE_CHECK_GAP}"] + (
         ["refined_px_gap1", f"refined_px_gap{POSE_CHECK_GAP}", "rotation_change_deg"] if refined is not None else []
@@ -615,13 +635,15 @@ def main(argv: list[str] | None = None) -> int:
     pr = new.map.pose_refinement
     if pr:
         print(
-            f"\nThe mapper's own rotation refinement (refine_rotations, window of {cfg.refine_lag_frames} frames either side): {pr['frames']} frames, "
+            "\nThe mapper's own rotation refinement "
+            f"(refine_rotations, window of {cfg.refine_lag_frames} frames either side): {pr['frames']} frames, "
             f"correction median {pr['correction_deg_median']:.3f} deg, max {pr['correction_deg_max']:.3f} deg; "
             f"matched pairs' median epipolar distance {pr['epipolar_px_median_given']:.2f} px given, "
             f"{pr['epipolar_px_median_refined']:.2f} px refined"
         )
     print(
-        f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, semidense_kitti.png, semidense_rejected.png"
+        f"\nwrote {args.out}/points.ply, observations.npz, config.yaml, metrics.json, "
+        "semidense_kitti.png, semidense_rejected.png"
     )
     return 0
 

@@ -36,6 +36,7 @@ import re
 import statistics
 import sys
 from collections.abc import Callable, Iterable
+from functools import partial
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -177,17 +178,24 @@ def machine() -> str:
     """This machine, as records state it: cores, memory, CPU model, OS."""
     cpu = ""
     try:
-        cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
+        cpu = next(
+            ln.split(":", 1)[1].strip()
+            for ln in Path("/proc/cpuinfo").read_text().splitlines()
+            if ln.startswith("model name")
+        )
     except (OSError, StopIteration):
         cpu = platform.processor()
     try:
         mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
     except (ValueError, OSError, AttributeError):
         mem = float("nan")
-    return f"{os.cpu_count()} cores, {mem:.0f} GB, {cpu}, {platform.system()} {platform.release()}, Python {platform.python_version()}"
+    return (
+        f"{os.cpu_count()} cores, {mem:.0f} GB, {cpu}, {platform.system()} {platform.release()}, Python "
+        f"{platform.python_version()}"
+    )
 
 
-def collect(name: str, sources: list[Path], command: str) -> Path:
+def collect(name: str, sources: list[Path], command: str, note: str = "") -> Path:
     """Write the record ``docs/results/NAME.json`` from ``sources`` (run folders, or one JSON file)."""
     if name in ("first-run", "references", "mcvl-benchmark", "benchmarks", "robustness"):
         data = json.loads(sources[0].read_text())
@@ -198,6 +206,8 @@ def collect(name: str, sources: list[Path], command: str) -> Path:
         if len(presets) != 1:
             raise SystemExit(f"runs of different presets: {sorted(map(str, presets))}")
         record = {"name": name, "command": command, "preset": presets.pop(), "runs": runs}
+    if note:
+        record["note"] = note
     record.setdefault("measured", dt.date.today().isoformat())
     record.setdefault("machine", machine())
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -228,6 +238,11 @@ def spread(values: Iterable[float | None], fmt: str = "{:.3f}") -> str:
     if len(vals) == 1 or max(vals) == min(vals):
         return fmt.format(med)
     return f"{fmt.format(med)} ({fmt.format(min(vals))}-{fmt.format(max(vals))})"
+
+
+def spread_of(per_run: list[dict | None], key: str, fmt: str = "{:.3f}") -> str:
+    """``spread`` of one entry over the runs; a run without the record counts as missing."""
+    return spread([x[key] if x else None for x in per_run], fmt)
 
 
 def verdict(differences: list[float | None]) -> str:
@@ -354,7 +369,7 @@ def render_claims() -> str:
         if any(_mean_auc(r, "cnn") is not None for r in runs):
             hand = [max(_mean_auc(r, "nbld") or 0, _mean_auc(r, "m2dp") or 0) for r in runs]
             cnn = [_mean_auc(r, "cnn") for r in runs]
-            rel = [(c - h) / h if c is not None and h else None for c, h in zip(cnn, hand)]
+            rel = [(c - h) / h if c is not None and h else None for c, h in zip(cnn, hand, strict=True)]
             rows.append(
                 [
                     "learned (3D CNN) above hand-crafted",
@@ -373,7 +388,9 @@ def render_claims() -> str:
                     f"MCVL filter below retrieval alone ({n})",
                     f"mean error {spread(fil, '{:.1f}')} m vs {spread(ret, '{:.1f}')} m",
                     "Table II: below",
-                    verdict([r - f if r is not None and f is not None else None for r, f in zip(ret, fil)]),
+                    verdict(
+                        [r - f if r is not None and f is not None else None for r, f in zip(ret, fil, strict=True)]
+                    ),
                     cmd,
                 ]
             )
@@ -427,7 +444,7 @@ def render_places_mcvl() -> str:
     for cfg in sorted({c for r in runs for c in r["localize"]}):
         for n in sorted({s for r in runs for s in r["localize"][cfg]}):
             v = [r["localize"][cfg].get(n) for r in runs]
-            f = lambda k: spread([x[k] if x else None for x in v], "{:.1f}")  # noqa: E731
+            f = partial(spread_of, v, fmt="{:.1f}")
             rows.append(
                 [n, cfg, f("retrieval_mean_m"), f("retrieval_median_m"), f("filter_mean_m"), f("filter_median_m")]
             )
@@ -453,7 +470,7 @@ def render_maps() -> str:
     rows = []
     for n in sorted({s for r in runs for s in r["maps"]}):
         v = [r["maps"].get(n) for r in runs]
-        f = lambda k, fmt="{:.3f}": spread([x[k] if x else None for x in v], fmt)  # noqa: E731
+        f = partial(spread_of, v)
         rows.append([n, f("median_m"), f("within_0.5m", "{:.2f}"), f("points_per_100m", "{:.0f}"), f("ate_m")])
     return (
         table(
@@ -516,6 +533,7 @@ def _stages(name: str) -> str:
         + f"\n\n{len(runs)} runs of `{rec['command']}`"
         + (f" ({driven / 1000:.1f} km driven)" if driven else "")
         + f", measured {rec['measured']} on {rec['machine']}."
+        + (f" {rec['note']}" if rec.get("note") else "")
     )
 
 
@@ -546,6 +564,27 @@ def render_references() -> str:
     ]
     return (
         table(["check", "agreement"], rows) + f"\n\nMeasured {refs['measured']} by `python3 bench/reference_checks.py`."
+    )
+
+
+def render_benchmarks() -> str:
+    """The table of bench/run_all.py: each benchmark, what it measures, mapkit against its baseline in the same run."""
+    rec = record("benchmarks")
+    rows = [
+        [
+            f"`{r['name']}`",
+            r["what"],
+            r["mapkit"] or "",
+            r["baseline"] or "",
+            r["ratio"] or "",
+            r["status"] + (f": {r['detail']}" if r["status"] != "ok" and r.get("detail") else ""),
+        ]
+        for r in rec["results"]
+    ]
+    mode = " --quick" if rec.get("quick") else ""
+    return (
+        table(["benchmark", "what is measured", "mapkit", "baseline (same run)", "ratio", "status"], rows)
+        + f"\n\n`python3 bench/run_all.py{mode}`, measured {rec['measured']} on {rec['machine']}."
     )
 
 
@@ -589,7 +628,8 @@ def render_mcvl_benchmark() -> str:
             ],
             rows,
         )
-        + f"\n\nOne run (seed {rec.get('seed', 7)}) of `{rec['command']}`, measured {rec['measured']} on {rec['machine']}."
+        + f"\n\nOne run (seed {rec.get('seed', 7)}) of `{rec['command']}`, measured {rec['measured']} on "
+        f"{rec['machine']}."
     )
 
 
@@ -682,6 +722,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "tiny-stages": lambda: _stages("tiny"),
     "places-stages": lambda: _stages("places"),
     "robustness": render_robustness,
+    "benchmarks": render_benchmarks,
     "mcvl-benchmark": render_mcvl_benchmark,
     "scaling-units": render_scaling_units,
     "scaling-projection": render_scaling_projection,
@@ -743,6 +784,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("name")
     c.add_argument("sources", nargs="+", type=Path)
     c.add_argument("--command", default="", help="the command that made each run, as the docs should show it")
+    c.add_argument("--note", default="", help="how the runs were made, as a reader should know it")
     sub.add_parser("render", help="fill every figures block of README.md and docs/")
     sub.add_parser("check", help="exit 1 when a block is not its rendering")
     cmp_ = sub.add_parser("compare", help="a fresh run's figures beside a record's spread")
@@ -750,7 +792,7 @@ def main(argv: list[str] | None = None) -> int:
     cmp_.add_argument("run", type=Path)
     a = ap.parse_args(argv)
     if a.cmd == "collect":
-        print(collect(a.name, a.sources, a.command))
+        print(collect(a.name, a.sources, a.command, a.note))
     elif a.cmd == "render":
         for p in render_pages():
             print(f"rendered {p.relative_to(ROOT)}")

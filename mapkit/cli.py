@@ -11,7 +11,7 @@ import logging
 import sys
 import warnings
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeGuard
 
 import typer
 
@@ -20,6 +20,7 @@ from mapkit.core.errors import ConfigError, InputWarning, MapkitError
 
 if TYPE_CHECKING:
     from mapkit.core.config import MapkitConfig
+    from mapkit.deploy.crs_export import Source
 
 app = typer.Typer(
     name="mapkit",
@@ -163,9 +164,7 @@ def synth(
     config: Path | None = typer.Option(
         None, "--config", "-c", help="YAML overriding the preset (e.g. configs/synth/benchmark-camera.yaml)."
     ),
-    trajectory: Path | None = typer.Option(
-        None, help="Drive one session along this TUM / KITTI / RobotCar INS file."
-    ),
+    trajectory: Path | None = typer.Option(None, help="Drive one session along this TUM / KITTI / RobotCar INS file."),
     overwrite: bool = typer.Option(False, help="Regenerate outputs that already exist."),
     record_rate_hz: float | None = typer.Option(
         None,
@@ -215,9 +214,7 @@ def align(
     workspace: Path = typer.Argument(
         ..., help="A workspace made by `mapkit build` (two or more georeferenced sessions)."
     ),
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."
-    ),
+    config: Path | None = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."),
 ) -> None:
     """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""
     from mapkit.multisession.align import align_workspace
@@ -248,11 +245,11 @@ def export_crs(
         "auto", "--source", help="auto (aligned where `mapkit align` holds the session), aligned or built."
     ),
 ) -> None:
-    """Write trajectories (TUM, or CSV lat/lon) and maps (PLY) of a workspace in a chosen CRS, for GIS tools, CloudCompare, evo."""
+    """Write trajectories (TUM, or CSV lat/lon) and maps (PLY) of a workspace in a chosen CRS, for GIS tools, CloudCompare, evo."""  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
     from mapkit.deploy.crs_export import export_crs as run_export
 
     parts = {w.strip() for w in what.split(",") if w.strip()}
-    if not parts <= {"trajectory", "map"} or source not in ("auto", "aligned", "built"):
+    if not parts <= {"trajectory", "map"} or not _is_source(source):
         raise MapkitError(
             f"--what {what!r} (expected trajectory and/or map) / --source {source!r} (expected auto, aligned or built)"
         )
@@ -265,11 +262,15 @@ def export_crs(
         map="map" in parts,
         merged=merged,
         source=source,
-    )  # type: ignore[arg-type]
+    )
     typer.echo(
         f"EPSG:{m['crs_epsg']} ({m['crs_name']}): {len(m['sessions'])} session(s)"
         f"{', merged map' if 'merged_map' in m else ''} written to {out} (see export.json)"
     )
+
+
+def _is_source(value: str) -> TypeGuard[Source]:
+    return value in ("auto", "aligned", "built")
 
 
 @app.command()
@@ -299,8 +300,8 @@ def triplets(
     if truth is not None:
         typer.echo(json.dumps(evaluate_triplets(folder, workspace, truth), indent=2))
     typer.echo(
-        f"written to {folder}: patches-*.h5 (or .npz), patches.csv, triplets_train.npy, triplets_test.npy, manifest.json, examples.png"
-        + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else "")
+        f"written to {folder}: patches-*.h5 (or .npz), patches.csv, triplets_train.npy, triplets_test.npy, "
+        "manifest.json, examples.png" + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else "")
     )
 
 
@@ -346,7 +347,8 @@ def view(
     gps: bool = typer.Option(
         True,
         "--gps/--no-gps",
-        help="Draw the GPS fixes the georef stage used (its georef/gps_fixes.npz; where a session has none, read again from its log).",
+        help="Draw the GPS fixes the georef stage used (its georef/gps_fixes.npz; where a session has none, read again "
+        "from its log).",
     ),
     spawn: bool = typer.Option(False, "--spawn", help="Also open the Rerun viewer on it (needs a display)."),
     png: Path | None = typer.Option(
@@ -358,7 +360,7 @@ def view(
     Kept to a budget whatever the workspace's size: at most --budget-points map points (default 2 M), one thumbnail per 10 m.
 
     Open it with `rerun FILE.rrd`. Needs the viewer extra (the rerun-sdk package).
-    """
+    """  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
     from contextlib import nullcontext
 
     from mapkit.core.workspace import Workspace
@@ -381,9 +383,9 @@ def view(
             progress=sys.stderr.isatty(),
         )
     typer.echo(
-        f"{s.path}: {s.bytes / 1e6:.1f} MB in {s.seconds:.1f} s; {s.points:,} of {sum(s.map_points_total.values()):,} map points "
-        f"in {len(s.map_points)} map(s), {sum(s.images.values())} thumbnails, {sum(s.gps_fixes.values())} GPS fixes, "
-        f"{sum(e.endswith('/trajectory') for e in s.poses)} trajectories"
+        f"{s.path}: {s.bytes / 1e6:.1f} MB in {s.seconds:.1f} s; {s.points:,} of {sum(s.map_points_total.values()):,} "
+        f"map points in {len(s.map_points)} map(s), {sum(s.images.values())} thumbnails, {sum(s.gps_fixes.values())} "
+        f"GPS fixes, {sum(e.endswith('/trajectory') for e in s.poses)} trajectories"
     )
     for note in s.notes:
         typer.echo(f"note: {note}")
@@ -397,9 +399,7 @@ def train(
     out: Path = typer.Option(
         ..., "--out", "-o", help="Model folder: checkpoints, model.pt, model.onnx, manifest, curve."
     ),
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="YAML overriding `mapkit config defaults train`."
-    ),
+    config: Path | None = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults train`."),
 ) -> None:
     """Train the 3D CNN patch descriptor with the triplet loss and hard-negative cycling (learning extra)."""
     from mapkit.learning.train import train_cnn
@@ -514,7 +514,7 @@ def index_structure(
         None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."
     ),
 ) -> None:
-    """Structure index of a workspace's maps (NBLD, M2DP or a trained CNN's patch descriptors) with keypoint-to-frame voting, as a deployable bundle."""
+    """Structure index of a workspace's maps (NBLD, M2DP or a trained CNN's patch descriptors) with keypoint-to-frame voting, as a deployable bundle."""  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
     from mapkit.places.index_structure import build_structure_index
 
     overrides = {"cnn_model": str(model)} if model is not None else None
@@ -566,9 +566,9 @@ def eval_build(
     """Trajectory error (and map accuracy against the synthetic town) of a built workspace against ground truth.
 
     A true trajectory is in a frame of its own: the estimate is aligned to it first (SE(3) or Sim(3), as evo's -a / -as).
-    """
+    """  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
     from mapkit.core.workspace import Workspace
-    from mapkit.evaluation.evaluate import evaluate_build, format_eval
+    from mapkit.evaluation.evaluate import as_alignment, evaluate_build, format_eval
 
     r = evaluate_build(
         workspace,
@@ -578,7 +578,7 @@ def eval_build(
         truth_times=truth_times,
         time_offset_s=truth_time_offset,
         max_dt_s=max_dt,
-        align=align,
+        align=as_alignment(align),
         segment_m=segment,
     )
     typer.echo(format_eval(r), nl=False)
@@ -629,24 +629,21 @@ def eval_places(
     cnn_model: Path | None = typer.Option(
         None, "--cnn-model", help="A trained CNN folder (`mapkit train`) for the cnn method."
     ),
-    truth: Path | None = typer.Option(
-        None, "--truth", help="Synthetic town: true positions (else the aligned poses)."
-    ),
+    truth: Path | None = typer.Option(None, "--truth", help="Synthetic town: true positions (else the aligned poses)."),
     vlad_bundle: Path | None = typer.Option(None, "--vlad-bundle", help="VLAD bundle for the image baseline."),
     out: Path | None = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places)."),
-    config: Path | None = typer.Option(
-        None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."
-    ),
+    config: Path | None = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."),
 ) -> None:
     """Place recognition precision/recall and AUC per session pair (the semi-dense paper's Table 2)."""
     from mapkit.core.errors import ConfigError
     from mapkit.evaluation.places import evaluate_places, format_places
 
-    pairs = []
+    pairs: list[tuple[str, str]] = []
     for p in pair:
         if p.count(":") != 1:
             raise ConfigError(f"--pair {p!r}: expected DATABASE:QUERY")
-        pairs.append(tuple(p.split(":")))
+        database, query = p.split(":")
+        pairs.append((database, query))
     overrides = {"structure": {"cnn_model": str(cnn_model)}} if cnn_model is not None else None
     r = evaluate_places(
         workspace, pairs, method, out, truth, vlad_bundle, config, overrides=overrides, progress=sys.stderr.isatty()
@@ -666,7 +663,8 @@ def eval_localize(
         None,
         "--config",
         "-c",
-        help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/, installed as mapkit/configs/localize/).",
+        help="YAML overriding `mapkit config defaults localize` (presets: configs/localize/, installed as "
+        "mapkit/configs/localize/).",
     ),
     out: Path | None = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/localize)."),
     cache_dir: Path | None = typer.Option(

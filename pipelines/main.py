@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's mapkit, whatever is installed
 
-from mapkit.pipelines.demo import run_demo  # noqa: E402
+from mapkit.pipelines.demo import run_demo
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,7 +32,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--preset",
         default="demo",
-        help="synthetic town preset: demo (default), tiny (every stage on a small town), places (the papers' claims) or benchmark",
+        help=(
+            "synthetic town preset: demo (default), tiny (every stage on a small town), places (the papers' claims) "
+            "or benchmark"
+        ),
     )
     ap.add_argument("--out", type=Path, default=Path("runs/main"), help="output folder (default runs/main)")
     ap.add_argument("--seed", type=int, default=None)

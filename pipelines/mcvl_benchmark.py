@@ -34,15 +34,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # this checkout's mapkit, whatever is installed
 
-from mapkit.core.executor import use_executor  # noqa: E402
-from mapkit.core.runio import atomic_write_text, write_json  # noqa: E402
-from mapkit.core.workspace import Workspace  # noqa: E402
-from mapkit.evaluation.localization import evaluate_localization  # noqa: E402
-from mapkit.localization.motion import estimate_motion_model  # noqa: E402
-from mapkit.mapping.build import build  # noqa: E402
-from mapkit.mapping.trajectory import Trajectory  # noqa: E402
-from mapkit.retrieval.index_vlad import build_vlad_index  # noqa: E402
-from mapkit.synth import session_logs, synthesize  # noqa: E402
+from mapkit.core.executor import use_executor  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.runio import atomic_write_text, write_json  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.workspace import Workspace  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.evaluation.localization import evaluate_localization  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.localization.motion import estimate_motion_model  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.build import build  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.mapping.trajectory import Trajectory  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.retrieval.index_vlad import build_vlad_index  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.synth import session_logs, synthesize  # noqa: E402 (after sys.path points at this checkout)
 
 CONFIGS = ROOT / "configs"
 RUNS = {
@@ -97,7 +97,8 @@ def run(
             ),
         )
         metrics["index_vlad"] = json.loads((bundle / "metrics.json").read_text())
-        # the same vocabulary, PCA and images with the paper's full whitening: the vectors re-scaled, nothing encoded again
+        # the same vocabulary, PCA and images with the paper's full whitening:
+        # the vectors re-scaled, nothing encoded again
         full = timed(
             "index_vlad_full_whitening",
             lambda: build_vlad_index(
@@ -145,7 +146,8 @@ def run(
     write_json(out / "metrics.json", metrics)
     rows = ["| stage | seconds |", "|---|---|"] + [f"| {k} | {v['seconds']} |" for k, v in metrics["stages"].items()]
     text = [
-        f"# MCVL benchmark, preset {preset} (Sec. IV-B scale with the benchmark preset): {len(train)} training drives, {len(roles) - len(train)} test sequences",
+        f"# MCVL benchmark, preset {preset} (Sec. IV-B scale with the benchmark preset): {len(train)} training drives, "
+        f"{len(roles) - len(train)} test sequences",
         "",
         "\n".join(rows),
         "",
@@ -154,9 +156,13 @@ def run(
     ]
     labels = {
         "paper": "paper: MCVL Sec. IV-A defaults (PCA with mapkit's default power-law whitening)",
-        "paper-full-whitening": "paper: MCVL Sec. IV-A defaults with the paper's full PCA-whitening (to compare with the default's)",
-        "paper-estimated-motion": "paper, mu_v and Sigma_v estimated from the training drives at {:g} Hz: mu_v = {}, Sigma_v = {} "
-        "(MCVL Sec. III-A permits it; not the paper's values)",
+        "paper-full-whitening": (
+            "paper: MCVL Sec. IV-A defaults with the paper's full PCA-whitening (to compare with the default's)"
+        ),
+        "paper-estimated-motion": (
+            "paper, mu_v and Sigma_v estimated from the training drives at {:g} Hz: mu_v = {}, Sigma_v = {} "
+            "(MCVL Sec. III-A permits it; not the paper's values)"
+        ),
         "odometry-multihypothesis": "beyond the paper: odometry-driven multi-hypothesis preset",
     }
     m = metrics.get("estimated_motion", {})

@@ -268,7 +268,7 @@ def test_pose_graph_covariances_are_consistent_with_its_gps_model():
         x = g.solve()
         cov = g.covariances()
         e = x[:, 3:] - true_t
-        d2 += [float(ei @ np.linalg.solve(c[3:, 3:], ei)) for ei, c in zip(e, cov)]
+        d2 += [float(ei @ np.linalg.solve(c[3:, 3:], ei)) for ei, c in zip(e, cov, strict=True)]
         sig.append(np.sqrt(cov[0, 3, 3]))
     inside = np.mean(np.asarray(d2) <= 7.815)
     assert 0.90 <= inside <= 0.99, inside

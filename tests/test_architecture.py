@@ -96,7 +96,8 @@ def backward_edges(root: Path) -> list[str]:
                 continue
             if RUNGS[theirs] > RUNGS[mine]:
                 bad.append(
-                    f"{path.relative_to(root.parent)}:{line}: {mine} (rung {RUNGS[mine]}) imports {target} (rung {RUNGS[theirs]})"
+                    f"{path.relative_to(root.parent)}:{line}: {mine} (rung {RUNGS[mine]}) imports {target} (rung "
+                    f"{RUNGS[theirs]})"
                 )
             elif any({mine, theirs} <= group for group in SIBLINGS):
                 bad.append(f"{path.relative_to(root.parent)}:{line}: sibling {mine} imports {target}")

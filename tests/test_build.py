@@ -263,9 +263,11 @@ def test_a_log_without_images_builds_its_trajectory_and_georef_and_skips_the_ima
     # a later stage that needs a map names why this session has none
     from mapkit.multisession.align import align_workspace
 
-    with pytest.warns(InputWarning, match=r"has no semi-dense map \(skipped at build: the log has no image stream\)"):
-        with pytest.raises(InputError, match="0 alignable session"):
-            align_workspace(tmp_path / "ws", progress=False)
+    with (
+        pytest.warns(InputWarning, match=r"has no semi-dense map \(skipped at build: the log has no image stream\)"),
+        pytest.raises(InputError, match="0 alignable session"),
+    ):
+        align_workspace(tmp_path / "ws", progress=False)
 
 
 def test_wild_gps_fixes_are_screened_before_one_can_become_the_origin(tmp_path):
@@ -362,7 +364,8 @@ def test_a_per_session_pattern_that_matches_no_session_is_a_warning_naming_it(tm
     log = _two_camera_log(tmp_path / "test-y.mcap", front_grey=60, rear_grey=190)
     cfg = tmp_path / "c.yaml"
     cfg.write_text(
-        "trajectory:\n  source: poses\nmap: false\nimagedb: false\nsessions:\n  'trian-*':\n    imagedb:\n      min_interval_s: 0.5\n"
+        "trajectory:\n  source: poses\nmap: false\nimagedb: false\n"
+        "sessions:\n  'trian-*':\n    imagedb:\n      min_interval_s: 0.5\n"
     )
     with pytest.warns(InputWarning, match=r"sessions\.trian-\* matches none of this build's sessions \['test-y'\]"):
         build([log], tmp_path / "ws", config=cfg, progress=False)

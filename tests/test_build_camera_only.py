@@ -15,7 +15,7 @@ import warnings
 import cv2
 import numpy as np
 import pytest
-from test_readers_photos import write_geotagged_folder  # noqa: E402  (JPEGs with EXIF tags, as a phone writes them)
+from test_readers_photos import write_geotagged_folder  # JPEGs with EXIF tags, as a phone writes them
 
 from mapkit.core.errors import InputWarning, MapkitError
 from mapkit.core.geodesy import LocalFrame
@@ -148,9 +148,10 @@ def test_camera_only_map_is_in_metres(walk):
 
 
 def test_unreferenced_camera_only_session_says_arbitrary_units_and_skips_the_map(kitti_clip, tmp_path):
-    """12 frames, 13 m (14 m by the noisy GPS): too short for GPS to fix the scale. The session is built, not georeferenced,
-    with every length in the reconstruction's units and saying so; the metre-based mapper does not
-    run; the image database keeps every registered frame (a spacing in metres means nothing here)."""
+    """12 frames, 13 m (14 m by the noisy GPS): too short for GPS to fix the scale. The session is
+    built, not georeferenced, with every length in the reconstruction's units and saying so; the
+    metre-based mapper does not run; the image database keeps every registered frame (a spacing in
+    metres means nothing here)."""
     log = _folder_log(kitti_clip, tmp_path / "short", 12)
     (tmp_path / "build.yaml").write_text(CONFIG)
     with pytest.warns(InputWarning) as caught:
@@ -181,7 +182,10 @@ def test_unreferenced_camera_only_session_says_arbitrary_units_and_skips_the_map
     # later stages: the index refuses poses in arbitrary units instead of mixing them with metre radii
     from mapkit.retrieval.index_vlad import build_vlad_index
 
-    with pytest.warns(
-        InputWarning, match=r"\['short'\] left out of the index: their image poses are in arbitrary units"
-    ), pytest.raises(MapkitError, match="no session with a metric image database"):
+    with (
+        pytest.warns(
+            InputWarning, match=r"\['short'\] left out of the index: their image poses are in arbitrary units"
+        ),
+        pytest.raises(MapkitError, match="no session with a metric image database"),
+    ):
         build_vlad_index(w, progress=False)

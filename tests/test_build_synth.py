@@ -154,7 +154,10 @@ def test_fused_georeferencing_writes_poses_with_covariances_and_the_map_uses_the
     def step_errors_mm(traj: Trajectory) -> np.ndarray:
         gt, ok = interpolate_poses(stamps, truth, traj.stamps_ns)
         est = traj.world_from_base[ok]
-        rel = lambda T: invert_pose(T[:-1]) @ T[1:]  # noqa: E731
+
+        def rel(T):
+            return invert_pose(T[:-1]) @ T[1:]
+
         return 1000 * np.linalg.norm((invert_pose(rel(gt)) @ rel(est))[:, :3, 3], axis=1)
 
     rigid_mm, fused_mm = step_errors_mm(Trajectory.load(s.georef_trajectory)), step_errors_mm(fused)

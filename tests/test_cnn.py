@@ -17,12 +17,12 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from mapkit.cli import config_model
-from mapkit.core.config import load_config  # noqa: E402
-from mapkit.core.errors import ConfigError, InputError  # noqa: E402
-from mapkit.core.runio import read_timings, write_json  # noqa: E402
-from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402
-from mapkit.places.cnn import (  # noqa: E402
+from mapkit.cli import config_model  # noqa: E402 (after importorskip: without torch the file is skipped)
+from mapkit.core.config import load_config  # noqa: E402 (after importorskip: without torch the file is skipped)
+from mapkit.core.errors import ConfigError, InputError  # noqa: E402 (after importorskip: without torch the file is skipped)
+from mapkit.core.runio import read_timings, write_json  # noqa: E402 (after importorskip: without torch the file is skipped)
+from mapkit.learning.train import TrainConfig, hard_negatives, train_cnn  # noqa: E402 (after importorskip: without torch the file is skipped)
+from mapkit.places.cnn import (  # noqa: E402 (after importorskip: without torch the file is skipped)
     CnnConfig,
     OnnxDescriber,
     build_model,
@@ -34,8 +34,8 @@ from mapkit.places.cnn import (  # noqa: E402
     torch_describe,
     triplet_loss,
 )
-from mapkit.places.patches import CNN_DOMAIN, density_comparison, pack_bits  # noqa: E402
-from mapkit.places.triplets import TripletDataset  # noqa: E402
+from mapkit.places.patches import CNN_DOMAIN, density_comparison, pack_bits  # noqa: E402 (after importorskip: without torch the file is skipped)
+from mapkit.places.triplets import TripletDataset  # noqa: E402 (after importorskip: without torch the file is skipped)
 
 TINY = CnnConfig(grid=8, conv1_channels=3, conv1_kernel=3, conv2_channels=4, hidden=16, dim=8)
 TINY_TRAIN = {

@@ -23,7 +23,8 @@ DOCS = REPO / "docs"
 
 
 def _commands() -> list[list[str]]:
-    """Every command path of the typer app, e.g. ["mapkit", "eval", "build"], walked independently of the site's hook."""
+    """Every command path of the typer app, e.g. ["mapkit", "eval", "build"], walked independently of the site's
+    hook."""
     import typer
 
     from mapkit.cli import app
@@ -218,3 +219,26 @@ def test_worked_example_kitti_odometry(tmp_path, monkeypatch, capsys, kitti_clip
         _run(lines, files, tmp_path, monkeypatch)
     out = capsys.readouterr().out
     assert "kitti-odometry" in out and "/kitti/camera_0/image" in out and "/kitti/ground_truth" in out
+
+
+def test_the_demo_expects_the_stage_times_its_records_measured():
+    """`mapkit demo` tells a user what to expect of each stage (EXPECTED_SECONDS): within a third of the
+    median the docs' records measured on 2 cores, for every stage that takes more than a few seconds."""
+    from mapkit.pipelines.demo import EXPECTED_SECONDS
+
+    sys.path.insert(0, str(DOCS))
+    try:
+        import figures
+    finally:
+        sys.path.remove(str(DOCS))
+    checked = 0
+    for preset, name in (("demo", "main-job"), ("tiny", "tiny"), ("places", "places")):
+        runs = figures.record(name)["runs"]
+        for stage in runs[0]["stages_s"]:
+            median = sorted(r["stages_s"][stage] for r in runs)[len(runs) // 2]
+            if median < 5:
+                continue
+            expected = EXPECTED_SECONDS[preset].get(stage)
+            assert expected is not None and abs(expected - median) <= median / 3, (preset, stage, expected, median)
+            checked += 1
+    assert checked >= 15

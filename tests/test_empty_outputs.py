@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_align import FRAME, gps_error, make_workspace, street  # noqa: E402  (the synthetic street of boxes)
-from test_index_structure import street_map  # noqa: E402
+from test_align import FRAME, gps_error, make_workspace, street  # the synthetic street of boxes
+from test_index_structure import street_map
 
 from mapkit.core.errors import InputError, MapkitError
 from mapkit.core.runio import write_json

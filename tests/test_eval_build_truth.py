@@ -163,7 +163,7 @@ def test_pose_topic_of_a_log_is_interpolated_where_dense(tmp_path):
     truth_poses = moved(RIGID, drive(truth_t))
     log = tmp_path / "truth.mcap"
     with McapWriter(log) as w:
-        for t, T in zip(truth_t, truth_poses):
+        for t, T in zip(truth_t, truth_poses, strict=True):
             w.write("/gt/pose", PoseSample(T0_NS + int(round(t * 1e9)), "map", "base_link", T))
             w.write("/ins/pose", PoseSample(T0_NS + int(round(t * 1e9)), "map", "base_link", np.eye(4)))
     with pytest.raises(InputError, match=r"2 pose topics \(/gt/pose, /ins/pose\)"):

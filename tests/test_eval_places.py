@@ -10,9 +10,9 @@ import warnings
 
 import numpy as np
 import pytest
-from test_index_structure import make_street_workspace  # noqa: E402
-from test_triplets import CFG as TRIPLETS_CFG  # noqa: E402
-from test_triplets import make_aligned_street  # noqa: E402
+from test_index_structure import make_street_workspace
+from test_triplets import CFG as TRIPLETS_CFG
+from test_triplets import make_aligned_street
 
 from mapkit.core.config import dump_config
 from mapkit.core.errors import InputError, InputWarning

@@ -165,7 +165,7 @@ def test_a_consumer_done_after_the_last_result_lets_the_pool_close(monkeypatch):
     )
     items = list(range(6))
     g = ProcessExecutor(2).map(slow_square, items)
-    assert [r for _, r in zip(items, g)] == [x * x for x in items]
+    assert [r for _, r in zip(items, g, strict=False)] == [x * x for x in items]
     g.close()
     g = ProcessExecutor(2).map(slow_square, items)  # abandoned half-way: what is in flight is killed
     next(g)
@@ -205,9 +205,11 @@ def test_ray_missing_says_how_to_install(monkeypatch):
 # --------------------------------------------------------------------------- real mapkit work: serial == process pool
 
 
-def test_semidense_keyframes_serial_equals_process_pool(room):  # noqa: F811
+def test_semidense_keyframes_serial_equals_process_pool(room):  # noqa: F811 (the module fixture imported from test_semidense, requested by name)
     poses, images = room
-    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    frames = [
+        (i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))
+    ]
     maps = {
         kind: build_semidense_map(iter(frames), K_SYN, ROOM_CFG, progress=False, executor=EXECUTORS[kind]())
         for kind in EXECUTORS
@@ -238,7 +240,7 @@ def test_icp_of_submap_pairs_serial_equals_process_pool():
     pairs = [(0, 0, 1, 0), (1, 0, 2, 0)]
     shared = (clouds, AlignConfig())
     got = {kind: list(EXECUTORS[kind]().map(_register_task, pairs, shared=shared)) for kind in EXECUTORS}
-    for a, b in zip(got["serial"], got["process"]):
+    for a, b in zip(got["serial"], got["process"], strict=True):
         np.testing.assert_array_equal(a.target_from_source, b.target_from_source)
         assert (a.fitness, a.rmse_m, a.structure_rmse_m, a.accepted) == (
             b.fitness,
@@ -357,7 +359,7 @@ def _processes_of(ray_tmp: Path) -> list[int]:
     pids = []
     for d in filter(str.isdigit, os.listdir("/proc")):
         try:
-            if mark in open(f"/proc/{d}/environ", "rb").read().split(b"\0"):
+            if mark in Path(f"/proc/{d}/environ").read_bytes().split(b"\0"):
                 pids.append(int(d))
         except OSError:
             continue

@@ -73,11 +73,12 @@ def drifted_odometry(
     trans_jitter=0.0,
     forward_scale: np.ndarray | None = None,
 ):
-    """The truth's relative motions, each rotated by a drift proportional to its length (plus random-walk
-    noise, per axis) and scaled, chained from the identity (the odometry's frame is the first pose's); then each
-    pose moved by white jitter. ``forward_scale[i]`` scales step i's motion along the base's x (a slip along the road)."""
+    """The truth's relative motions, each rotated by a drift proportional to its length (plus random-walk noise,
+    per axis) and scaled, chained from the identity (the odometry's frame is the first pose's); then each pose
+    moved by white jitter. ``forward_scale[i]`` scales step i's motion along the base's x (a slip along the
+    road)."""
     out = [np.eye(4)]
-    for i, (a, b) in enumerate(zip(truth[:-1], truth[1:])):
+    for i, (a, b) in enumerate(zip(truth[:-1], truth[1:], strict=True)):
         rel = invert_pose(a) @ b
         d = float(np.linalg.norm(rel[:3, 3]))
         rv = np.array([roll_rad_per_m, pitch_rad_per_m, 0.0]) * d
@@ -101,8 +102,9 @@ def drifted_odometry(
     return out
 
 
-def gps_fixes(stamps, truth, rng, bias=np.zeros(3), outliers: int = 0, white: float = 1.5, rate_hz: float = 2.0):
-    """Fixes at ``rate_hz``: true position + bias + white noise (vertical twice the horizontal); ``outliers`` of them moved 25 m."""
+def gps_fixes(stamps, truth, rng, bias=(0.0, 0.0, 0.0), outliers: int = 0, white: float = 1.5, rate_hz: float = 2.0):
+    """Fixes at ``rate_hz``: true position + bias + white noise (vertical twice the horizontal); ``outliers`` of
+    them moved 25 m."""
     step = int(round(10 / rate_hz))
     idx = np.arange(0, len(stamps), step)
     enu = truth[idx, :3, 3] + bias + rng.standard_normal((len(idx), 3)) * white * np.array([1, 1, 2])
@@ -161,7 +163,10 @@ def test_pitch_fixed_by_gravity():
     odom = drifted_odometry(truth, pitch_rad_per_m=np.radians(0.01))
     gps, _ = gps_fixes(stamps, truth, np.random.default_rng(4))
     fused = fuse_session(stamps, odom, gps, true_gravity(stamps, truth), LOOSE)
-    pitch = lambda P: np.degrees(np.arcsin(P[:, 2, 0]))  # noqa: E731
+
+    def pitch(P):
+        return np.degrees(np.arcsin(P[:, 2, 0]))
+
     assert np.max(np.abs(pitch(odom) - pitch(truth))) > 1.0
     assert np.max(np.abs(pitch(fused.enu_from_base) - pitch(truth))) < 0.1
 
@@ -309,7 +314,7 @@ def braking_drive(duration_s: float = 36.0, brake_at_s: float = 25.0):
 
 
 def imu_from_truth(
-    stamps, world_from_base, rng, accel_bias=np.zeros(3), gyro_bias=np.zeros(3), cfg=None
+    stamps, world_from_base, rng, accel_bias=(0.0, 0.0, 0.0), gyro_bias=(0.0, 0.0, 0.0), cfg=None
 ) -> ImuObservations:
     """What an IMU at IMU_MOUNT samples on this drive: central differences of its true pose (rate and specific force
     over the two neighbouring intervals), plus the constant biases and white noise at the configured densities."""
@@ -340,8 +345,8 @@ def motion_error(stamps, poses, truth, a_ns: int, b_ns: int) -> float:
 def slipping_session(
     seed: int = 11,
     slip_m: float = 4.0,
-    accel_bias=np.array([0.02, -0.015, 0.02]),
-    gyro_bias=np.array([5e-4, -3e-4, 4e-4]),
+    accel_bias=(0.02, -0.015, 0.02),
+    gyro_bias=(5e-4, -3e-4, 4e-4),
 ):
     """The braking drive's 10 Hz odometry (the model's own walk and jitter) losing ``slip_m`` along the road over
     26-27.5 s while braking, GPS with a 1 m bias, and the IMU."""
@@ -413,12 +418,15 @@ def test_imu_bridges_a_slip():
 
     fused = fuse_session(stamps, odom, gps, None, imu=imu)
     assert motion_error(stamps, fused.enu_from_base, truth, SLIP_A_NS, SLIP_B_NS) < 0.2
-    shape_error = lambda P: transform_points(fit_transform(P, truth[:, :3, 3], mode="yaw"), P) - truth[:, :3, 3]  # noqa: E731
+
+    def shape_error(P):
+        return transform_points(fit_transform(P, truth[:, :3, 3], mode="yaw"), P) - truth[:, :3, 3]
+
     assert np.max(np.linalg.norm(shape_error(odom[:, :3, 3])[:, :2], axis=1)) > 2.0
     assert np.max(np.linalg.norm(shape_error(fused.enu_from_base[:, :3, 3])[:, :2], axis=1)) < 0.35
     e = fused_errors(fused, truth)
     spans = fused.stats["odom_slip_spans_s"]
-    hits = [m for (a, b), m in zip(spans, fused.stats["odom_slip_m"]) if a < 27.5 and b > 26.0]
+    hits = [m for (a, b), m in zip(spans, fused.stats["odom_slip_m"], strict=True) if a < 27.5 and b > 26.0]
     assert len(hits) == 1 and 3.5 < hits[0] < 4.5
     # covariances honest where it matters: the true position inside the 95% ellipse over the slip
     i = np.searchsorted(stamps, [SLIP_A_NS, SLIP_B_NS])
@@ -432,9 +440,10 @@ def test_imu_bridges_a_slip():
 
 
 def test_imu_bias_recovered():
-    """Biases 5 times the synthetic town's sigmas (accel 0.1, -0.06, 0.08 m/s^2; gyro 0.0025, -0.0015, 0.002 rad/s) are
-    recovered within 0.015 m/s^2 and 3e-4 rad/s, an eighth of them or better, on the loop (its turns separate the
-    accelerometer's bias from tilt; the odometry's rotation drift bounds the gyro's: seeds 11-14 within 0.008 and 1.6e-4)."""
+    """Biases 5 times the synthetic town's sigmas (accel 0.1, -0.06, 0.08 m/s^2; gyro 0.0025, -0.0015, 0.002 rad/s)
+    are recovered within 0.015 m/s^2 and 3e-4 rad/s, an eighth of them or better, on the loop (its turns separate
+    the accelerometer's bias from tilt; the odometry's rotation drift bounds the gyro's: seeds 11-14 within 0.008
+    and 1.6e-4)."""
     accel_bias = np.array([0.1, -0.06, 0.08])
     gyro_bias = np.array([0.0025, -0.0015, 0.002])
     stamps, truth, odom, gps, imu = slipping_session(seed=12, slip_m=0.0, accel_bias=accel_bias, gyro_bias=gyro_bias)
@@ -500,7 +509,7 @@ def test_flat_road_keeps_its_height_when_the_odometry_crabs_in_a_turn():
     stamps100, truth100 = flat_turning_drive()
     stamps, truth = stamps100[::10], truth100[::10]
     odom = [np.eye(4)]
-    for a, b in zip(truth[:-1], truth[1:]):
+    for a, b in zip(truth[:-1], truth[1:], strict=True):
         rel = invert_pose(a) @ b
         if abs(np.arctan2(rel[1, 0], rel[0, 0])) > 0.01:  # turning
             rel[:3, 3] = Rotation.from_euler("z", -1.0, degrees=True).as_matrix() @ rel[:3, 3]

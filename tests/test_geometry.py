@@ -89,7 +89,7 @@ def test_associate_is_one_to_one_and_respects_max_dt():
     a = np.array([0, 100, 200, 300, 1000], dtype=np.int64)
     b = np.array([98, 104, 305, 2000], dtype=np.int64)
     ia, ib = g.associate(a, b, max_dt_ns=10)
-    pairs = set(zip(ia.tolist(), ib.tolist()))
+    pairs = set(zip(ia.tolist(), ib.tolist(), strict=True))
     # 100 -> 98 (2 ns) wins over 104; 300 -> 305; 0, 200, 1000 have nothing within 10 ns
     assert pairs == {(1, 0), (3, 2)}
 

@@ -23,7 +23,7 @@ def test_colmap_and_csv_round_trip(tmp_path, rng):
     w = ImageDbWriter(tmp_path / "db", ImageDbConfig(image_format="png"), {"cam": info})
     poses = _poses()
     imgs = [rng.integers(0, 255, (480, 640), dtype=np.uint8) for _ in poses]
-    for i, (T, img) in enumerate(zip(poses, imgs)):
+    for i, (T, img) in enumerate(zip(poses, imgs, strict=True)):
         w.add(1_000 + i, "cam", img, T)
     # a point 10 m ahead of the first camera, seen by images 1 and 2
     p = np.array([[10.0, 0.0, 1.5]])

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_align import STREET_M, street  # noqa: E402  (the street of boxes: fronts, side walls, poles, ground)
+from test_align import STREET_M, street  # the street of boxes: fronts, side walls, poles, ground
 
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import make_pose, yaw_rotation
@@ -126,10 +126,10 @@ def test_vote_counts_equal_hand_computed_votes():
     assert vote_counts(np.zeros(0, np.int64), ref_indptr, ref_frame, 5).tolist() == [0] * 5
     # two query frames at once: frame 0 matched entries 0, 1; frame 1 matched entries 1, 2, 2
     r, f, n = vote_many(np.array([0, 0, 1, 1, 1]), np.array([0, 1, 1, 2, 2]), ref_indptr, ref_frame, 5)
-    got = {(int(a), int(b)): int(c) for a, b, c in zip(r, f, n)}
+    got = {(int(a), int(b)): int(c) for a, b, c in zip(r, f, n, strict=True)}
     assert got == {(0, 0): 1, (0, 1): 2, (0, 2): 1, (0, 3): 1, (1, 1): 1, (1, 2): 1, (1, 3): 3}
     # sorted by row, then votes descending, then frame: the first triple of a row is its best frame
-    assert list(zip(r.tolist(), f.tolist())) == [(0, 1), (0, 0), (0, 2), (0, 3), (1, 3), (1, 1), (1, 2)]
+    assert list(zip(r.tolist(), f.tolist(), strict=True)) == [(0, 1), (0, 0), (0, 2), (0, 3), (1, 3), (1, 1), (1, 2)]
 
 
 def test_session_frames_interpolates_non_key_frames():

@@ -3,6 +3,7 @@ follows it, driven by the query session's relative motion."""
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -118,7 +119,7 @@ class _CountingIndex:
     def __init__(self, folder, build_hash="abc"):
         self.path = folder
         self.manifest = {"build_hash": build_hash}
-        (folder / "manifest.json").write_text('{"build_hash": "%s", "files": {}}' % build_hash)
+        (folder / "manifest.json").write_text(json.dumps({"build_hash": build_hash, "files": {}}))
         self.calls = 0
         self.world_from_cam = np.tile(np.eye(4), (30, 1, 1))
         self.world_from_cam[:, 0, 3] = 10.0 * np.arange(30)
@@ -226,7 +227,7 @@ def test_localize_log_writes_tum_poses_a_reader_takes_back(tmp_path):
     stamps = 1_000_000_000 + np.arange(PLACES, dtype=np.int64) * 250_000_000
     log = tmp_path / "query.mcap"
     with McapWriter(log) as w:
-        for stamp, path in zip(stamps, imgs.image_paths):
+        for stamp, path in zip(stamps, imgs.image_paths, strict=True):
             gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
             w.write("/camera/image", CameraFrame(int(stamp), "camera", gray, encoding="mono8"), compress="png")
     config = tmp_path / "localize.yaml"

@@ -59,8 +59,9 @@ def drifting_odometry(truth: np.ndarray, yaw_rad_per_m: float, climb_m_per_m: fl
 
 @pytest.fixture(scope="module")
 def loop_drive():
-    """(stamps, truth, odometry, GPS, a, b): a lap and 80 m of the loop at 1 m a pose; poses a and b are a lap apart.
-    The odometry turns 0.005 deg/m too much and climbs 1 cm/m (2.1 deg and 4.2 m over the drive), within LOOSE's model."""
+    """(stamps, truth, odometry, GPS, a, b): a lap and 80 m of the loop at 1 m a pose; poses a and b are a lap
+    apart. The odometry turns 0.005 deg/m too much and climbs 1 cm/m (2.1 deg and 4.2 m over the drive), within
+    LOOSE's model."""
     stamps, truth = true_drive(length_m=LAP_M + 80.0)
     odom = drifting_odometry(truth, np.radians(0.005), 0.01)
     gps, _ = gps_fixes(stamps, truth, np.random.default_rng(5), bias=np.array([0.8, -0.6, 0.5]))
@@ -217,9 +218,9 @@ def street(tmp_path_factory):
 def render_pass(
     street, first_ns: int, n: int, move: np.ndarray, stamp0_ns: int
 ) -> tuple[list[LidarScan], np.ndarray, np.ndarray]:
-    """``n`` sweeps at 10 Hz along the truth from ``first_ns``, the vehicle moved by ``move`` (world frame), stamped from
-    ``stamp0_ns``: (scans as a log holds them, the pose stamps kiss-icp would give them (each sweep's last point), the
-    unmoved true poses there, which is where an estimate that does not know of ``move`` puts them)."""
+    """``n`` sweeps at 10 Hz along the truth from ``first_ns``, the vehicle moved by ``move`` (world frame), stamped
+    from ``stamp0_ns``: (scans as a log holds them, the pose stamps kiss-icp would give them (each sweep's last
+    point), the unmoved true poses there, which is where an estimate that does not know of ``move`` puts them)."""
     renderer, gt_stamps, truth, base_from_lidar = street
     col_ns = np.round(renderer.lidar_col_time_s * 1e9).astype(np.int64)
     sweep_ns = 100_000_000

@@ -333,9 +333,8 @@ def test_undecodable_message_is_skipped_with_its_index(tmp_path):
         w.write_message("/cam", schema, good, log_time=1)
         w.write_message("/cam", schema, bad, log_time=2)
         w.finish()
-    with pytest.warns(InputWarning, match=r"/cam message 1: could not be decoded"):
-        with McapLog(tmp_path / "u.mcap") as log:
-            frames = list(log.records(StreamKind.IMAGE))
+    with pytest.warns(InputWarning, match=r"/cam message 1: could not be decoded"), McapLog(tmp_path / "u.mcap") as log:
+        frames = list(log.records(StreamKind.IMAGE))
     assert len(frames) == 1 and frames[0].image.tolist() == [[1, 2], [3, 4]]
 
 

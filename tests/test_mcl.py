@@ -1,6 +1,5 @@
 """The MCVL particle filter against hand-computed cases and synthetic tracks with known truth."""
 
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -76,13 +75,17 @@ def test_motion_model_keeps_rotations_valid_over_many_steps():
 
 
 def test_eq2_composes_the_increment_in_the_body_frame():
-    # noiseless: psi = mu_psi exactly, so R_t = R_{t-1} R(mu_psi), i.e. phi(Omega_t) = phi(psi) phi(Omega_{t-1}) with phi = R^T
+    # noiseless: psi = mu_psi exactly, so R_t = R_{t-1} R(mu_psi),
+    # i.e. phi(Omega_t) = phi(psi) phi(Omega_{t-1}) with phi = R^T
     cfg = _noiseless(angular_velocity_mean_rad=(0.2, 0.0, 0.0))
     R0 = yaw_rotation(np.pi / 2)
     p = Particles.from_rotations(np.zeros((1, 3)), R0[None])
     q = predict(p, cfg, np.random.default_rng(0))
     np.testing.assert_allclose(q.rotations[0], R0 @ matrix_from_euler([0.2, 0, 0]), atol=1e-12)
-    phi = lambda e: matrix_from_euler(e).T  # noqa: E731  the paper's DCM
+
+    def phi(e):  # the paper's DCM
+        return matrix_from_euler(e).T
+
     np.testing.assert_allclose(phi(q.euler[0]), phi([0.2, 0, 0]) @ phi(p.euler[0]), atol=1e-12)
     # the body x axis (now world +y) is the roll axis: a world-frame increment would differ
     assert not np.allclose(q.rotations[0], matrix_from_euler([0.2, 0, 0]) @ R0, atol=1e-3)

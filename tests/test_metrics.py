@@ -28,7 +28,7 @@ def test_trajectory_errors_of_a_known_offset():
     est[:, 1, 3] += 0.5  # half a metre to the left everywhere
     est[:, :3, :3] = est[:, :3, :3] @ yaw_rotation(np.radians(2.0))
     r = trajectory_errors(
-        stamps[:-1] + 5 * 10**8, np.stack([(a + b) / 2 for a, b in zip(est[:-1], est[1:])]), stamps, gt
+        stamps[:-1] + 5 * 10**8, np.stack([(a + b) / 2 for a, b in zip(est[:-1], est[1:], strict=True)]), stamps, gt
     )
     # mid-way poses: compare against interpolated truth (the averaged rotations are close enough)
     assert r["poses_compared"] == 10

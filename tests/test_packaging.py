@@ -183,7 +183,8 @@ def test_a_checkout_reads_its_own_configs_even_with_another_installed(tmp_path):
     shutil.copytree(ROOT / "configs", copy / "configs")
     (copy / "configs" / "synth" / "probe.yaml").write_text("seed: 1\n")
     code = (
-        "import sys; sys.path.insert(0, sys.argv[1]); import mapkit; from mapkit.core.presets import configs_dir, preset_path; "
+        "import sys; sys.path.insert(0, sys.argv[1]); import mapkit; "
+        "from mapkit.core.presets import configs_dir, preset_path; "
         "print(mapkit.__file__); print(configs_dir()); print(preset_path('synth', 'probe'))"
     )
     r = subprocess.run([sys.executable, "-c", code, str(copy)], capture_output=True, text=True, cwd=tmp_path)

@@ -213,7 +213,7 @@ def test_keypoint_blocks_cover_all_keypoints_within_the_budget(rng):
     tree = pa.xy_tree(points)
     blocks = list(pa.keypoint_blocks(tree, keypoints, pa.NBLD_DOMAIN, max_points=500))
     assert blocks[0][0] == 0 and blocks[-1][1] == 40
-    assert all(a1 == b0 for (_, a1), (b0, _) in zip(blocks, blocks[1:]))
+    assert all(a1 == b0 for (_, a1), (b0, _) in zip(blocks, blocks[1:], strict=False))
     lengths = tree.query_ball_point(keypoints[:, :2], 10.0, return_length=True)
     assert all(lengths[k0:k1].sum() <= 500 or k1 - k0 == 1 for k0, k1 in blocks)
     assert len(blocks) > 1

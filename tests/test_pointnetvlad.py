@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_triplets import make_aligned_street  # noqa: E402
+from test_triplets import make_aligned_street
 
-from mapkit.places.patches import PatchDomain  # noqa: E402
-from mapkit.places.pointnetvlad import (  # noqa: E402
+from mapkit.places.patches import PatchDomain
+from mapkit.places.pointnetvlad import (
     PointNetVladConfig,
     export_pointnetvlad,
     export_triplets_pointnetvlad,
@@ -28,7 +28,7 @@ from mapkit.places.pointnetvlad import (  # noqa: E402
     remove_ground,
     unique_stamps,
 )
-from mapkit.places.triplets import TripletDataset  # noqa: E402
+from mapkit.places.triplets import TripletDataset
 
 CFG = {
     "n_triplets": 120,
@@ -185,7 +185,10 @@ def test_their_scripts_find_every_file_and_the_pickles_hold(exported):
 
 
 def test_triplets_does_not_import_pointnetvlad():
-    code = "import sys, mapkit.places.triplets; assert 'mapkit.places.pointnetvlad' not in sys.modules; import mapkit.places.pointnetvlad"
+    code = (
+        "import sys, mapkit.places.triplets; assert 'mapkit.places.pointnetvlad' not in sys.modules; "
+        "import mapkit.places.pointnetvlad"
+    )
     subprocess.run([sys.executable, "-c", code], check=True)
 
 

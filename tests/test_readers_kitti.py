@@ -607,7 +607,7 @@ def test_lidar_only_odometry_folder_reads_scans_poses_and_extrinsic(tmp_path, rn
     }
     scans = _records(log, "/kitti/velodyne/points")
     assert [s.stamp_ns for s in scans] == TIMES_NS
-    for scan, pts in zip(scans, written["scans"]):
+    for scan, pts in zip(scans, written["scans"], strict=True):
         np.testing.assert_array_equal(scan.points_xyz, pts[:, :3])
         np.testing.assert_array_equal(scan.intensity, pts[:, 3])
     gt = _records(log, "/kitti/ground_truth")

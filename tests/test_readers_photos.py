@@ -176,7 +176,7 @@ def test_gps_time_and_35mm_focal_read_back_exactly(tmp_path):
     assert [f.stamp_ns for f in frames] == [t[4] for t in truth]
     fixes = _fixes(log)
     assert [f.stamp_ns for f in fixes] == [t[4] for t in truth]
-    for fix, (_, lat, lon, alt, *_rest) in zip(fixes, truth):
+    for fix, (_, lat, lon, alt, *_rest) in zip(fixes, truth, strict=True):
         assert abs(fix.lat_deg - lat) < 1e-7 and abs(fix.lon_deg - lon) < 1e-7
         assert fix.alt_m == pytest.approx(alt, abs=1e-9)
     assert fixes[0].horizontal_sigma_m == pytest.approx(3.5)

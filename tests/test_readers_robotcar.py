@@ -17,7 +17,10 @@ from mapkit.io.robotcar import RobotCar
 STAMPS_US = [1418381798076682, 1418381798139182, 1418381798201682]
 BGR = (50, 100, 200)
 
-GPS_HEADER = "timestamp,num_satellites,latitude,longitude,altitude,latitude_sigma,longitude_sigma,altitude_sigma,northing,easting,down,utm_zone"
+GPS_HEADER = (
+    "timestamp,num_satellites,latitude,longitude,altitude,latitude_sigma,longitude_sigma,altitude_sigma,"
+    "northing,easting,down,utm_zone"
+)
 INS_HEADER = (
     "timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,"
     "velocity_north,velocity_east,velocity_down,roll,pitch,yaw"
@@ -33,14 +36,14 @@ def bayer_mosaic(bgr: tuple[int, int, int], pattern: str, shape=(8, 10)) -> np.n
     """What a Bayer sensor records of a uniform colour; ``pattern`` reads the 2x2 tile row by row."""
     value = {"B": bgr[0], "G": bgr[1], "R": bgr[2]}
     mosaic = np.zeros(shape, np.uint8)
-    for letter, (dy, dx) in zip(pattern, [(0, 0), (0, 1), (1, 0), (1, 1)]):
+    for letter, (dy, dx) in zip(pattern, [(0, 0), (0, 1), (1, 0), (1, 1)], strict=True):
         mosaic[dy::2, dx::2] = value[letter]
     return mosaic
 
 
 def write_camera(drive: Path, folder: str, stamps_file: str, images: list[np.ndarray], stamps_us=STAMPS_US) -> None:
     (drive / folder).mkdir(parents=True, exist_ok=True)
-    for ts, img in zip(stamps_us, images):
+    for ts, img in zip(stamps_us, images, strict=True):
         cv2.imwrite(str(drive / folder / f"{ts}.png"), img)
     (drive / stamps_file).write_text("".join(f"{ts} 1\n" for ts in stamps_us))
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_docs import DOCS, _worked_example  # noqa: E402  (the docs-test block convention of your-data.md)
+from test_docs import DOCS, _worked_example  # the docs-test block convention of your-data.md
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import interpolate_poses

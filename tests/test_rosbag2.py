@@ -319,7 +319,9 @@ def test_rosbags_reads_the_synthetic_session_as_mapkit_wrote_it(town):
             got[conn.topic] = (conn.msgtype, stamp, msg)
             if len(got) == 3:
                 break
-    ns = lambda m: m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec  # noqa: E731
+
+    def ns(m):
+        return m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
 
     msgtype, stamp, pc = got["/lidar/points"]
     assert (

@@ -133,7 +133,9 @@ def distance_to_box(points: np.ndarray) -> np.ndarray:
 def room():
     poses = trajectory()
     gains = 1.0 + 0.15 * np.sin(np.arange(len(poses)) * 1.7)  # auto-exposure flicker of +-15%
-    images = [render(T, gain=g, bias=5.0 * (g - 1.0), seed=i) for i, (T, g) in enumerate(zip(poses, gains))]
+    images = [
+        render(T, gain=g, bias=5.0 * (g - 1.0), seed=i) for i, (T, g) in enumerate(zip(poses, gains, strict=True))
+    ]
     return poses, images
 
 
@@ -144,7 +146,9 @@ ROOM_CFG = SemiDenseConfig(keyframe_spacing_m=0.55, fusion_radius_m=0.03)
 def room_map(room):
     poses, images = room
     per_kf: dict[int, KeyframePoints] = {}
-    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    frames = [
+        (i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))
+    ]
     sd = build_semidense_map(
         iter(frames), K_SYN, ROOM_CFG, progress=False, on_keyframe=lambda fid, T, p: per_kf.__setitem__(fid, p)
     )
@@ -292,7 +296,7 @@ def test_short_lines_and_periodic_texture_give_no_wrong_points(room):
     stripes = np.tile(((np.arange(W_IMG + 40) // 4) % 2 * 120 + 60).astype(np.uint8), (H_IMG, 1))  # period 8 px
     for wall, periodic in ((textured, False), (stripes, True)):
         views = [wall[:, int(round(F_PX * b / depth)) :][:, :W_IMG].copy() for b in baselines]
-        pts = map_keyframe(views[0], poses_side[0], list(zip(views[1:], poses_side[1:])), K_SYN, ROOM_CFG)
+        pts = map_keyframe(views[0], poses_side[0], list(zip(views[1:], poses_side[1:], strict=True)), K_SYN, ROOM_CFG)
         if periodic:  # lines span several periods: the full-range search must find no unambiguous match
             assert pts.stats["with_estimate"] < 0.1 * pts.stats["candidates"]
         else:
@@ -440,7 +444,7 @@ def test_kitti_clip_map_is_consistent_across_frames(kitti_clip):
     K, poses, images = _read_kitti(kitti_clip, 12)
     own = {}
     sd = build_semidense_map(
-        ((i, i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))),
+        ((i, i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))),
         K,
         progress=False,
         on_keyframe=lambda fid, T, p: own.__setitem__(fid, (T, p)),
@@ -539,7 +543,9 @@ def test_multi_view_filter_in_the_mapper_keeps_the_room_accurate(room, room_map)
     poses, images = room
     sd_off, _ = room_map
     raw, fused = {}, {}
-    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    frames = [
+        (i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))
+    ]
     cfg = ROOM_CFG.model_copy(update={"min_consistent_views": 1})
     sd = build_semidense_map(
         iter(frames),
@@ -566,7 +572,9 @@ def test_four_agreeing_frames_keep_a_subset_with_fewer_stray_points(room, room_m
     poses, images = room
     sd3, raw3 = room_map
     raw4 = {}
-    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    frames = [
+        (i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))
+    ]
     sd4 = build_semidense_map(
         iter(frames),
         K_SYN,
@@ -577,8 +585,8 @@ def test_four_agreeing_frames_keep_a_subset_with_fewer_stray_points(room, room_m
     assert sorted(raw4) == sorted(raw3)
     for f, p4 in raw4.items():
         assert (p4.agreed.sum(axis=1) >= 3).all()
-        at3 = {tuple(uv): rho for uv, rho in zip(raw3[f].pixels_uv.tolist(), raw3[f].inv_depth)}
-        assert all(at3.get(tuple(uv)) == rho for uv, rho in zip(p4.pixels_uv.tolist(), p4.inv_depth))
+        at3 = {tuple(uv): rho for uv, rho in zip(raw3[f].pixels_uv.tolist(), raw3[f].inv_depth, strict=True)}
+        assert all(at3.get(tuple(uv)) == rho for uv, rho in zip(p4.pixels_uv.tolist(), p4.inv_depth, strict=True))
     assert sum(len(p) for p in raw4.values()) < sum(len(p) for p in raw3.values())
     stray3, stray4 = ((distance_to_box(sd.points_world) > 0.3).sum() for sd in (sd3, sd4))
     assert stray3 > 20 and stray4 < 0.5 * stray3
@@ -598,7 +606,7 @@ def test_ratio_test_rejects_matches_on_repeated_texture(room):
 
     def run(wall, cfg):
         views = [wall[:, int(round(F_PX * b / depth)) :][:, :W_IMG].copy() for b in baselines]
-        return map_keyframe(views[0], poses_side[0], list(zip(views[1:], poses_side[1:])), K_SYN, cfg)
+        return map_keyframe(views[0], poses_side[0], list(zip(views[1:], poses_side[1:], strict=True)), K_SYN, cfg)
 
     loose, strict = run(stripes, no_margin), run(stripes, ratio)
     assert loose.stats["with_estimate"] > 0.3 * loose.stats["candidates"]  # ambiguity gets through without a test
@@ -765,7 +773,7 @@ def test_visibility_tells_free_space_violations_from_occlusions(rng):
         uv,
         z,
         X,
-        [(T, d, P) for (T, d), P in zip(views, walls)],
+        [(T, d, P) for (T, d), P in zip(views, walls, strict=True)],
         K_SYN,
         (H_IMG, W_IMG),
         rel_tol=0.06,
@@ -814,7 +822,9 @@ def test_photometric_and_free_space_filters_in_the_mapper(room, room_map):
     keyframe's depths, the map says how many each test removed, and it keeps the room accurate."""
     poses, images = room
     sd_off, _ = room_map
-    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses))]
+    frames = [
+        (i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, poses, strict=True))
+    ]
     d_off = distance_to_box(sd_off.points_world)
     for name, update in (
         ("photometric", {"photometric_min_views": 1}),
@@ -826,8 +836,8 @@ def test_photometric_and_free_space_filters_in_the_mapper(room, room_map):
             K_SYN,
             ROOM_CFG.model_copy(update=update),
             progress=False,
-            on_keyframe=lambda f, T, p: raw.__setitem__(f, p),
-            on_fused=lambda f, T, p: fused.__setitem__(f, p),
+            on_keyframe=lambda f, T, p, raw=raw: raw.__setitem__(f, p),
+            on_fused=lambda f, T, p, fused=fused: fused.__setitem__(f, p),
         )
         assert sorted(fused) == sorted(raw)
         for f in raw:
@@ -928,10 +938,10 @@ def test_consistency_breaks_down_along_the_drive():
 
 
 def test_rotation_refinement_recovers_perturbed_rotations(rng):
-    """All frames at once (bench/semidense_kitti_clip.py --refine-rotations): a straight drive of 8 frames 1.2 m apart past random points;
-    frames 1-6 get rotations off by 0.3-0.8 deg (as KITTI's first frames are), the matches are the true
-    projections. The epipolar distances go from pixels to nearly zero, and every frame's rotation relative
-    to frame 0 comes back within 0.02 deg."""
+    """All frames at once (bench/semidense_kitti_clip.py --refine-rotations): a straight drive of 8
+    frames 1.2 m apart past random points; frames 1-6 get rotations off by 0.3-0.8 deg (as KITTI's first
+    frames are), the matches are the true projections. The epipolar distances go from pixels to nearly
+    zero, and every frame's rotation relative to frame 0 comes back within 0.02 deg."""
     from scipy.spatial.transform import Rotation
 
     from mapkit.core.geometry import rotation_angle_rad
@@ -1003,7 +1013,7 @@ def test_right_jacobians_are_the_first_order_turn(rng):
     x = np.vstack([np.zeros(3), rng.normal(size=(5, 3)) * [[1e-3], [0.01], [0.3], [1.0], [2.5]]])
     Jr = _right_jacobians(x)
     h = 1e-7
-    for xk, J in zip(x, Jr):
+    for xk, J in zip(x, Jr, strict=True):
         for k in range(3):
             dx = h * np.eye(3)[k]
             turn = Rotation.from_rotvec(xk).inv() * Rotation.from_rotvec(xk + dx)  # exp(x)^-1 exp(x + dx)
@@ -1083,7 +1093,9 @@ def test_sparse_depth_answers_as_the_dense_image(rng):
     T = make_pose(np.eye(3), [0.2, 0.0, 0.1])
     X = rng.uniform([-3, -2, 3], [3, 2, 14], size=(3000, 3))
     for a, b in zip(
-        visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5), visibility_views(X, [(T, sparse)], K_SYN, 0.06, 1.5)
+        visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5),
+        visibility_views(X, [(T, sparse)], K_SYN, 0.06, 1.5),
+        strict=True,
     ):
         assert np.array_equal(a, b)
     assert visibility_views(X, [(T, dense)], K_SYN, 0.06, 1.5)[0].sum() > 0  # some agree: the comparison is not vacuous
@@ -1107,15 +1119,17 @@ def _perturbed_rotations(
 @pytest.mark.parametrize("matcher", ["tracks", "sift"])
 def test_mapper_refines_rotations_that_disagree_with_the_images(room, room_map, matcher):
     """The room's images with poses whose rotations are off by 0.3-0.8 deg (frames 1-10, as KITTI's first frames
-    are): the mapper's own refinement (refine_rotations, with either matcher) brings every keyframe's rotation back within 0.1 deg of the
-    truth relative to frame 0 (0.25 deg absolute: a common roll about the drive is invisible to the epipolar lines and the
-    prior averages it), keeps the given positions, and the map is as accurate as on the true poses; without it the map
-    is worse."""
+    are): the mapper's own refinement (refine_rotations, with either matcher) brings every keyframe's rotation back
+    within 0.1 deg of the truth relative to frame 0 (0.25 deg absolute: a common roll about the drive is invisible
+    to the epipolar lines and the prior averages it), keeps the given positions, and the map is as accurate as on
+    the true poses; without it the map is worse."""
     from mapkit.core.geometry import rotation_angle_rad
 
     poses, images = room
     given = _perturbed_rotations(poses, np.random.default_rng(3), range(1, 11), (0.3, 0.8))
-    frames = [(i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, given))]
+    frames = [
+        (i, 1_000_000_000 + i * 100_000_000, img, T) for i, (img, T) in enumerate(zip(images, given, strict=True))
+    ]
     plain = build_semidense_map(iter(frames), K_SYN, ROOM_CFG, progress=False)
     cfg = ROOM_CFG.model_copy(update={"refine_rotations": True, "refine_matcher": matcher, "refine_features": 1500})
     refined = build_semidense_map(iter(frames), K_SYN, cfg, progress=False)
@@ -1125,10 +1139,10 @@ def test_mapper_refines_rotations_that_disagree_with_the_images(room, room_map, 
     assert np.allclose(refined.keyframe_world_from_cam[:, :3, 3], given[ids, :3, 3])
     err_given = [np.degrees(rotation_angle_rad(given[f, :3, :3].T @ poses[f, :3, :3])) for f in ids]
     R = refined.keyframe_world_from_cam[:, :3, :3]
-    err_refined = [np.degrees(rotation_angle_rad(Rf.T @ poses[f, :3, :3])) for f, Rf in zip(ids, R)]
+    err_refined = [np.degrees(rotation_angle_rad(Rf.T @ poses[f, :3, :3])) for f, Rf in zip(ids, R, strict=True)]
     err_relative = [
         np.degrees(rotation_angle_rad((R[0].T @ Rf).T @ (poses[ids[0], :3, :3].T @ poses[f, :3, :3])))
-        for f, Rf in zip(ids, R)
+        for f, Rf in zip(ids, R, strict=True)
     ]
     assert max(err_given) > 0.7 and max(err_relative) < 0.1 and max(err_refined) < 0.25, (
         err_given,

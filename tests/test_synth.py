@@ -191,7 +191,7 @@ def test_road_graph_is_a_town_not_a_grid():
     assert longest_straight_m(town.roads) > 800
     g = town.geometry
     walls = g.material == Mat.WALL
-    style_of_building = {int(o): int(s) for o, s in zip(g.object_id[walls], g.style[walls])}
+    style_of_building = {int(o): int(s) for o, s in zip(g.object_id[walls], g.style[walls], strict=True)}
     assert len(style_of_building) > 500
     counts = np.bincount(list(style_of_building.values()))
     assert (counts > 10).sum() >= 8  # every style appears on many buildings (and so on many streets)
@@ -244,7 +244,10 @@ def test_new_road_weight_spreads_planned_routes_over_more_streets():
 
     independent, weighted = plans(0.0), plans(4.0)
     assert [p.drive.route_roads for p in independent] == [p.drive.route_roads for p in plan_sessions(cfg0, town)]
-    distinct = lambda ps: len(set().union(*(set(p.drive.route_roads) for p in ps)))  # noqa: E731
+
+    def distinct(ps):
+        return len(set().union(*(set(p.drive.route_roads) for p in ps)))
+
     assert distinct(weighted) > distinct(independent), (distinct(weighted), distinct(independent))
     assert all(town.anchor["road"] in p.drive.route_roads for p in weighted)  # every route still drives the anchor road
     # the street length synth reports (metrics.json "streets"): 4 drives of 250 m, more of it distinct when spread
@@ -268,7 +271,7 @@ def test_tiny_is_deterministic(tiny, tmp_path):
             ).read_bytes()
         a, b = _images(tiny / s["file"]), _images(again / s["file"])
         assert len(a) == len(b) > 10
-        for (sa, ia), (sb, ib) in zip(a, b):
+        for (sa, ia), (sb, ib) in zip(a, b, strict=True):
             assert sa == sb and np.array_equal(ia, ib)
 
 
@@ -561,16 +564,17 @@ def test_external_trajectory_readers(tmp_path):
     t, x, y = _curve(20)
     kitti = tmp_path / "poses.txt"
     # KITTI camera frame: x right, y down, z forward; ground motion in x-z
-    rows = [f"1 0 0 {-yy:.6f} 0 1 0 0 0 0 1 {xx:.6f}" for xx, yy in zip(x, y)]
+    rows = [f"1 0 0 {-yy:.6f} 0 1 0 0 0 0 1 {xx:.6f}" for xx, yy in zip(x, y, strict=True)]
     kitti.write_text("\n".join(rows) + "\n")
     e = read_external_trajectory(kitti)
     np.testing.assert_allclose(e.xy, np.stack([x, y], 1), atol=1e-6)
     assert e.stamps_ns[1] == 100_000_000
     csv = tmp_path / "ins.csv"
     lines = ["timestamp,ins_status,latitude,longitude,altitude,northing,easting,down,utm_zone,roll,pitch,yaw"]
-    for k, (xx, yy) in enumerate(zip(x, y)):
+    for k, (xx, yy) in enumerate(zip(x, y, strict=True)):
         lines.append(
-            f"{1418131260000000 + k * 100000},INS_SOLUTION_GOOD,51.7601,-1.2610,110.0,{5735000 + yy:.4f},{620000 + xx:.4f},-110.0,30U,0,0,0"
+            f"{1418131260000000 + k * 100000},INS_SOLUTION_GOOD,51.7601,-1.2610,110.0,"
+            f"{5735000 + yy:.4f},{620000 + xx:.4f},-110.0,30U,0,0,0"
         )
     csv.write_text("\n".join(lines) + "\n")
     e = read_external_trajectory(csv)

@@ -68,7 +68,7 @@ def _truth(n=40):
     step = np.minimum(1.5, 0.15 * np.arange(1, n + 1))  # pulling away from a stop
     x = np.cumsum(np.r_[0, step[:-1] * np.cos(yaw[:-1])])
     y = np.cumsum(np.r_[0, step[:-1] * np.sin(yaw[:-1])])
-    return np.stack([make_pose(yaw_rotation(a), [xi, yi, 0.0]) for a, xi, yi in zip(yaw, x, y)])
+    return np.stack([make_pose(yaw_rotation(a), [xi, yi, 0.0]) for a, xi, yi in zip(yaw, x, y, strict=True)])
 
 
 @pytest.fixture(scope="module")

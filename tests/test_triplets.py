@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_align import gps_error, make_workspace, street  # noqa: E402
+from test_align import gps_error, make_workspace, street
 
-from mapkit.core.errors import InputError, MapkitError  # noqa: E402
-from mapkit.core.runio import DONE_MARKER, sha256_file  # noqa: E402
-from mapkit.multisession.align import align_workspace  # noqa: E402
-from mapkit.multisession.registration import Registration  # noqa: E402
-from mapkit.places.triplets import (  # noqa: E402
+from mapkit.core.errors import InputError, MapkitError
+from mapkit.core.runio import DONE_MARKER, sha256_file
+from mapkit.multisession.align import align_workspace
+from mapkit.multisession.registration import Registration
+from mapkit.places.triplets import (
     ChunkSets,
     GridIndex,
     NoTripletsError,
@@ -109,20 +109,21 @@ def test_batched_patches_are_the_per_place_patches(aligned):
     centres = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in pick])
     obs = np.array([sessions[kp_session[j]].observer_pos[kp_index[j]] for j in pick])
     pts, indptr = mapped_patches(sessions, kp_session[pick], centres, cfg.domain)
-    clouds = [sessions[kp_session[j]].around(c, cfg.domain.patch_radius) for j, c in zip(pick, centres)]
+    clouds = [sessions[kp_session[j]].around(c, cfg.domain.patch_radius) for j, c in zip(pick, centres, strict=True)]
     ref = make_patches(clouds, centres, obs, cfg)
     assert np.array_equal(np.diff(indptr), ref[3]) and ref[3].min() > 0
     from mapkit.places.triplets import make_patches_csr
 
     got = make_patches_csr(pts, indptr, centres, obs, cfg)
-    assert all(np.array_equal(a, b) for a, b in zip(got, ref))
+    assert all(np.array_equal(a, b) for a, b in zip(got, ref, strict=True))
     # correspondence sets: a chunk's members, moved by known transforms
     shift = {si: np.eye(4) for si in range(len(sessions))}
     for si in shift:
         shift[si][:3, 3] = [0.05 * si, -0.03 * si, 0.0]
-    icp_of = lambda si, a, centre, reach, n_src, n_tgt: Registration(
-        shift[si] @ np.linalg.inv(shift[a]), 1.0, 0.1, 1.0, 0.1
-    )  # noqa: E731
+
+    def icp_of(si, a, centre, reach, n_src, n_tgt):
+        return Registration(shift[si] @ np.linalg.inv(shift[a]), 1.0, 0.1, 1.0, 0.1)
+
     n_sets = 0
     for c in np.unique(chunk)[:6]:
         places = order[chunk == c]
@@ -135,7 +136,7 @@ def test_batched_patches_are_the_per_place_patches(aligned):
             n_sets += 1
             p = sessions[kp_session[j]].points[kp_index[j]]
             clouds, obs = [], []
-            for si, T, f in zip(res["session"], res["transform"], res["frame"]):
+            for si, T, f in zip(res["session"], res["transform"], res["frame"], strict=True):
                 s = sessions[si]
                 clouds.append(s.around(p, cfg.domain.patch_radius + 2.0) @ T[:3, :3].T + T[:3, 3])
                 pi = kp_index[j] if si == kp_session[j] else s.tree3.query(p)[1]
@@ -175,8 +176,14 @@ def test_export_positives_negatives_split_and_loader(aligned, tmp_path):
     assert x1.shape == (8, 32, 32, 32) and x1.dtype == np.uint8 and set(np.unique(x1)) <= {0, 1}
     assert x1.sum() > 100 and x2.sum() > 100
     # the same place from two sessions overlaps far more than an anchor and its negative
-    inter = lambda a, b: (a & b).sum() / max(1, (a | b).sum())  # noqa: E731
-    assert np.mean([inter(a, b) for a, b in zip(x1, x2)]) > np.mean([inter(a, c) for a, c in zip(x1, x3)]) + 0.1
+
+    def inter(a, b):
+        return (a & b).sum() / max(1, (a | b).sum())
+
+    assert (
+        np.mean([inter(a, b) for a, b in zip(x1, x2, strict=True)])
+        > np.mean([inter(a, c) for a, c in zip(x1, x3, strict=True)]) + 0.1
+    )
     dcg = ds.grids(t[:2, 0], "density_comparison")
     assert dcg.shape == (2, 3, 32, 32, 32)
     m = json.loads((out / "manifest.json").read_text())

@@ -23,7 +23,7 @@ from mapkit.retrieval.vlad_bundle import DATABASE_COLUMNS
 
 pytest.importorskip("rerun", reason="rerun-sdk (the viewer extra) is not installed")
 
-from mapkit.report.view import INSTALL_HINT, point_quotas, read_recording, render_top_view, write_recording  # noqa: E402
+from mapkit.report.view import INSTALL_HINT, point_quotas, read_recording, render_top_view, write_recording
 
 #: a real GPS log: the OXTS records of KITTI raw drive 0001 (108 fixes), the origin is its first fix
 SHARED_DATA = Path(os.environ.get("MAPKIT_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
@@ -38,9 +38,11 @@ K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
 EAST_CAMERA = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
 
 
-def _poses(xyz: np.ndarray, R: np.ndarray = np.eye(3)) -> np.ndarray:
+def _poses(xyz: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
+    """Poses at ``xyz``, all with rotation ``R`` (the identity if None)."""
     T = np.tile(np.eye(4), (len(xyz), 1, 1))
-    T[:, :3, :3] = R
+    if R is not None:
+        T[:, :3, :3] = R
     T[:, :3, 3] = xyz
     return T
 

@@ -132,9 +132,10 @@ def places_with_background(seed: int, places: int = 20, dim: int = 400):
 
 
 def test_full_whitening_on_its_own_n_vectors_makes_them_equidistant_regularised_does_not():
-    """Fully whitened in the n - 1 dimensions they span, n vectors are the corners of a regular simplex,
-    so after L2 every pair is at squared distance 2n / (n - 1) and the database the PCA learned on,
-    searched against itself, returns only ties (684 images: all at 2.0029). Regularised whitening keeps the structure."""
+    """Fully whitened in the n - 1 dimensions they span, n vectors are the corners of a regular
+    simplex, so after L2 every pair is at squared distance 2n / (n - 1) and the database the PCA
+    learned on, searched against itself, returns only ties (684 images: all at 2.0029). Regularised
+    whitening keeps the structure."""
     db, _ = places_with_background(0)
     n, places = len(db), len(db) // 2
     same_place = np.r_[np.arange(places) + places, np.arange(places)]

@@ -16,12 +16,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import open3d as o3d  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import open3d as o3d
 
-from mapkit.core.workspace import Workspace  # noqa: E402
-from mapkit.io.trajectory import read_tum  # noqa: E402
+from mapkit.core.workspace import Workspace
+from mapkit.io.trajectory import read_tum
 
 
 def draw(workspace: Path, out: Path, max_points: int = 60_000, seed: int = 0) -> Path:

@@ -42,7 +42,8 @@ def load_config(model: type[M], path: M | str | Path | None = None, overrides: d
             return path
         data, path = path.model_dump(), None
     elif path is not None:
-        path = Path(path)
+        # mypy cannot narrow by ``isinstance(path, model)`` with ``model: type[M]``: path is a str or Path here
+        path = Path(path)  # type: ignore[arg-type]
         if not path.is_file():
             raise ConfigError(f"{path}: no such config file")
         try:

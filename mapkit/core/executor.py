@@ -38,10 +38,11 @@ import itertools
 import logging
 import os
 import pickle
+import sys
 import traceback
 import uuid
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from typing import Any, Literal
 
 from pydantic import Field
@@ -114,20 +115,26 @@ class _Failure:
             # rebuilt without calling __init__ (InputError's signature is not its args); dropped if
             # its class or state cannot travel
             self.exc = None
-            self.rebuild = (type(exc), exc.args, dict(getattr(exc, "__dict__", {})))
+            self.rebuild: tuple[type[BaseException], tuple[Any, ...], dict[str, Any]] | None = (
+                type(exc),
+                exc.args,
+                dict(getattr(exc, "__dict__", {})),
+            )
             try:
                 pickle.loads(pickle.dumps(self.rebuild))
             except Exception:  # noqa: BLE001 - whatever the exception holds, the text still travels
                 self.rebuild = None
 
     def exception(self) -> BaseException | None:
-        if self.exc is None and getattr(self, "rebuild", None) is not None:
-            cls, args, state = self.rebuild
+        rebuild = getattr(self, "rebuild", None)
+        if self.exc is None and rebuild is not None:
+            cls, args, state = rebuild
             try:
                 exc = cls.__new__(cls, *args)
                 exc.args = args
                 exc.__dict__.update(state)
-                exc.add_note(f"raised in a worker:\n{self.traceback}")
+                if sys.version_info >= (3, 11):  # exceptions have notes from Python 3.11 on
+                    exc.add_note(f"raised in a worker:\n{self.traceback}")
             except Exception:  # noqa: BLE001 - the text names it anyway
                 return None
             self.exc = exc
@@ -176,7 +183,7 @@ class Executor:
         unit: str = "item",
         label: Callable[[Any], str] | None = None,
         chunksize: int | None = None,
-    ) -> Iterator:
+    ) -> Generator[Any, None, None]:
         """Results of ``fn(item)`` (or ``fn(shared, item)``) in the order of ``items``.
 
         ``label(item)`` describes a failed item in the :class:`TaskError` (default: its repr,
@@ -195,7 +202,9 @@ class Executor:
             chunksize,
         )
 
-    def _ordered(self, fn, it: Iterator, total, shared, progress, desc, unit, label, chunksize) -> Iterator:
+    def _ordered(
+        self, fn, it: Iterator, total, shared, progress, desc, unit, label, chunksize
+    ) -> Generator[Any, None, None]:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -227,7 +236,9 @@ class SerialExecutor(Executor):
     def __init__(self, single_thread_blas: bool = True):
         self.single_thread_blas = single_thread_blas
 
-    def _ordered(self, fn, it, total, shared, progress, desc, unit, label, chunksize):
+    def _ordered(
+        self, fn, it: Iterator, total, shared, progress, desc, unit, label, chunksize
+    ) -> Generator[Any, None, None]:
         from mapkit.core.runio import progress_bar
         from mapkit.core.threads import single_thread_blas
 
@@ -266,12 +277,21 @@ class _ChunkedExecutor(Executor):
     def _default_chunksize(self, total: int | None) -> int:
         return 1
 
-    def _start(self, fn, shared, n_chunks: int | None) -> Any: ...
-    def _submit(self, state, fn, chunk: list, shared) -> Any: ...
-    def _result(self, state, handle) -> list: ...
-    def _stop(self, state, pending: deque, failed: bool) -> None: ...
+    def _start(self, fn, shared, n_chunks: int | None) -> Any:
+        raise NotImplementedError
 
-    def _ordered(self, fn, it, total, shared, progress, desc, unit, label, chunksize):
+    def _submit(self, state, fn, chunk: list, shared) -> Any:
+        raise NotImplementedError
+
+    def _result(self, state, handle) -> list:
+        raise NotImplementedError
+
+    def _stop(self, state, pending: deque, failed: bool) -> None:
+        raise NotImplementedError
+
+    def _ordered(
+        self, fn, it: Iterator, total, shared, progress, desc, unit, label, chunksize
+    ) -> Generator[Any, None, None]:
         from mapkit.core.runio import progress_bar
 
         try:
@@ -421,6 +441,7 @@ def _ray_chunk(fn: Callable, items: list, token: str | None, shared_box: list | 
 
         cv2.setNumThreads(1)
         _RAY_SHARED["configured"] = True
+    shared: Any
     if token is None:
         shared = _NO_SHARED
     elif _RAY_SHARED.get("token") == token:
@@ -428,6 +449,7 @@ def _ray_chunk(fn: Callable, items: list, token: str | None, shared_box: list | 
     else:
         import ray
 
+        assert shared_box is not None  # _start gives a box with every token
         shared = ray.get(shared_box[0])
         _RAY_SHARED.update(token=token, value=shared)  # only the latest: a finished map's state is let go
     return _run_items(fn, items, shared, remote=True)
@@ -601,8 +623,10 @@ def use_executor(
     """The process-wide default executor for a while: an executor, or one made by name (and then
     closed on exit). The previous default comes back afterwards."""
     global _default
-    made = not isinstance(executor, Executor)
-    ex = make_executor(executor, workers, address) if made else executor
+    if isinstance(executor, Executor):
+        made, ex = False, executor
+    else:
+        made, ex = True, make_executor(executor, workers, address)
     before, _default = _default, ex
     try:
         yield ex

@@ -118,7 +118,8 @@ def describe_change(old: dict[str, Any], new: dict[str, Any]) -> str:
 
 
 def record_files(folder: Path, rels: list[str]) -> dict[str, dict[str, Any]]:
-    """Size and SHA-256 of the files ``rels`` (paths relative to ``folder``; a folder stands for every file under it)."""
+    """Size and SHA-256 of the files ``rels`` (paths relative to ``folder``; a folder stands for every
+    file under it)."""
     out: dict[str, dict[str, Any]] = {}
     for rel in rels:
         p = folder / rel

@@ -183,7 +183,7 @@ def ecef_to_geodetic(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return np.asarray(lat), np.asarray(lon), np.asarray(alt)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, init=False)
 class LocalFrame:
     """A local ENU tangent frame at a WGS84 origin, with the UTM zone the map declares.
 
@@ -193,12 +193,15 @@ class LocalFrame:
 
     lat0_deg: float
     lon0_deg: float
-    alt0_m: float = 0.0
-    utm_epsg: int | None = None
+    alt0_m: float
+    utm_epsg: int
 
-    def __post_init__(self):
-        if self.utm_epsg is None:
-            object.__setattr__(self, "utm_epsg", utm_epsg_for(self.lat0_deg, self.lon0_deg))
+    def __init__(self, lat0_deg: float, lon0_deg: float, alt0_m: float = 0.0, utm_epsg: int | None = None):
+        """``utm_epsg``: the zone the map declares; by default the one of the origin."""
+        object.__setattr__(self, "lat0_deg", lat0_deg)
+        object.__setattr__(self, "lon0_deg", lon0_deg)
+        object.__setattr__(self, "alt0_m", alt0_m)
+        object.__setattr__(self, "utm_epsg", utm_epsg_for(lat0_deg, lon0_deg) if utm_epsg is None else utm_epsg)
 
     @cached_property
     def _ecef0(self) -> np.ndarray:

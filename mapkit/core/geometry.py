@@ -8,6 +8,7 @@ matrices named ``a_from_b``; stacks of them have shape (N, 4, 4).
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation, Slerp
 
 # --- quaternions and rotations ------------------------------------------------------------------
@@ -62,7 +63,7 @@ def skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
-def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def make_pose(R: ArrayLike, t: ArrayLike) -> np.ndarray:
     """Stack rotation(s) (..., 3, 3) and translation(s) (..., 3) into homogeneous (..., 4, 4)."""
     R = np.asarray(R, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)

@@ -49,7 +49,8 @@ DONE_MARKER = ".done"
 TIMINGS = "timings.json"
 _UMASK = os.umask(0)
 os.umask(_UMASK)
-# errors of the storage, not of the program: reported as one line (a full disk, a quota, a read-only mount, a failing device)
+# errors of the storage, not of the program: reported as one line
+# (a full disk, a quota, a read-only mount, a failing device)
 WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO}
 
 

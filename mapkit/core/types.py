@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Union
 
 import numpy as np
 
@@ -143,7 +142,7 @@ class GpsFix:
 
     @property
     def has_fix(self) -> bool:
-        return self.status >= GpsStatus.FIX and np.isfinite([self.lat_deg, self.lon_deg]).all()
+        return self.status >= GpsStatus.FIX and bool(np.isfinite([self.lat_deg, self.lon_deg]).all())
 
     @property
     def horizontal_sigma_m(self) -> float:
@@ -200,7 +199,7 @@ class FrameTransform:
     static: bool = True
 
 
-Record = Union[CameraFrame, CameraInfo, GpsFix, LidarScan, ImuSample, PoseSample, FrameTransform]
+Record = CameraFrame | CameraInfo | GpsFix | LidarScan | ImuSample | PoseSample | FrameTransform
 
 KIND_OF_RECORD: dict[type, StreamKind] = {
     CameraFrame: StreamKind.IMAGE,

@@ -85,7 +85,8 @@ class SessionDirs:
 
     @property
     def fused_trajectory(self) -> Path:
-        """The factor graph's trajectory (workspace ENU; ``georef.fuse``), a :class:`~mapkit.mapping.trajectory.Trajectory` folder."""
+        """The factor graph's trajectory (workspace ENU; ``georef.fuse``), a
+        :class:`~mapkit.mapping.trajectory.Trajectory` folder."""
         return self.georef / "trajectory_fused"
 
     @property
@@ -97,8 +98,8 @@ class SessionDirs:
 
     @property
     def fused_covariances(self) -> Path:
-        """Per pose of the fused trajectory: ``stamps_ns`` and ``covariances`` (N, 6, 6: rotation in ENU axes rad, position
-        ENU m), and ``georef_covariance`` (6, 6: how well the session is tied to ENU)."""
+        """Per pose of the fused trajectory: ``stamps_ns`` and ``covariances`` (N, 6, 6: rotation in ENU axes rad,
+        position ENU m), and ``georef_covariance`` (6, 6: how well the session is tied to ENU)."""
         return self.georef / "trajectory_fused_covariances.npz"
 
     @property
@@ -173,7 +174,7 @@ class Workspace:
     """A mapkit workspace folder. Cheap to make: nothing is read until asked for."""
 
     def __init__(self, root: str | os.PathLike | Workspace):
-        self.root = Path(root.root if isinstance(root, Workspace) else root)
+        self.root: Path = Path(root.root if isinstance(root, Workspace) else root)
 
     def __repr__(self) -> str:
         return f"Workspace({str(self.root)!r})"

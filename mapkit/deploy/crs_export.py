@@ -138,11 +138,11 @@ def write_crs_trajectory(
     stamps = [f"{s // 1_000_000_000}.{s % 1_000_000_000:09d}" for s in np.asarray(stamps_ns, np.int64)]
     if crs_info(epsg)["kind"] == "geographic":
         lines = [",".join(CSV_COLUMNS)]
-        for st, (lon, lat, h), qi in zip(stamps, xyz, q):
+        for st, (lon, lat, h), qi in zip(stamps, xyz, q, strict=True):
             lines.append(f"{st},{lat:.10f},{lon:.10f},{h:.6f},{qi[1]:.9f},{qi[2]:.9f},{qi[3]:.9f},{qi[0]:.9f}")
     else:
         lines = _header_lines(frame, epsg) + ["# timestamp tx ty tz qx qy qz qw"]
-        for st, t, qi in zip(stamps, xyz, q):
+        for st, t, qi in zip(stamps, xyz, q, strict=True):
             lines.append(f"{st} {t[0]:.6f} {t[1]:.6f} {t[2]:.6f} {qi[1]:.9f} {qi[2]:.9f} {qi[3]:.9f} {qi[0]:.9f}")
     return atomic_write_text(path, "\n".join(lines) + "\n")
 
@@ -209,7 +209,9 @@ def _session_sources(
 def _read_points(path: Path) -> np.ndarray:
     import open3d as o3d
 
-    return np.asarray(o3d.io.read_point_cloud(str(path), format="ply").points, np.float64)
+    # open3d's stub says os.PathLike; its binding takes a str path as well
+    cloud = o3d.io.read_point_cloud(str(path), format="ply")  # type: ignore[arg-type]
+    return np.asarray(cloud.points, np.float64)
 
 
 def export_crs(

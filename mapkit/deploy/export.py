@@ -47,7 +47,7 @@ def _loader(kind: str):
     return None
 
 
-def find_indexes(workspace: str | Path) -> dict[str, Path]:
+def find_indexes(workspace: str | Path | Workspace) -> dict[str, Path]:
     """Finished index bundles under ``WORKSPACE/indexes`` (``vlad``, ``structure-nbld``, ...), by folder name."""
     root = Workspace(workspace).indexes_dir
     found = {}
@@ -141,7 +141,8 @@ def _readme(entries: dict) -> str:
     ]
     for name, e in entries.items():
         lines.append(
-            f"  {name}: {e['kind']} ({e['descriptor']}), {e['entries']} entries, sessions {', '.join(e['source_sessions'])}"
+            f"  {name}: {e['kind']} ({e['descriptor']}), {e['entries']} entries, sessions "
+            f"{', '.join(e['source_sessions'])}"
         )
     return "\n".join(lines) + "\n"
 

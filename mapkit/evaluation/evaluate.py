@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeGuard
 
 import numpy as np
 
@@ -62,6 +62,17 @@ from mapkit.multisession.align import PairResult, _support_points
 Alignment = Literal["auto", "se3", "sim3", "none"]
 
 
+def _is_alignment(value: str) -> TypeGuard[Alignment]:
+    return value in ("auto", "se3", "sim3", "none")
+
+
+def as_alignment(value: str) -> Alignment:
+    """``value`` (e.g. the command line's ``--align``) as an :data:`Alignment`; a ConfigError otherwise."""
+    if not _is_alignment(value):
+        raise ConfigError(f"--align {value!r}: expected auto, se3, sim3 or none")
+    return value
+
+
 def evaluate_build(
     workspace: str | Path | Workspace,
     truth: str | Path,
@@ -81,8 +92,7 @@ def evaluate_build(
     a log's pose topic (``LOG::/topic`` or ``truth_topic``). See :func:`compare_trajectories` for
     ``max_dt_s``, ``align`` and ``segment_m``.
     """
-    if align not in ("auto", "se3", "sim3", "none"):
-        raise ConfigError(f"--align {align!r}: expected auto, se3, sim3 or none")
+    as_alignment(align)
     ws = Workspace(workspace)
     path, topic = split_log_topic(truth, truth_topic)
     if is_town(path):
@@ -114,7 +124,8 @@ def _evaluate_town(ws: Workspace, truth: Path, session: str | None) -> dict:
 
     ws_frame = ws.require_frame("nothing to compare with truth")
     town_to_ws = ws_from_town(truth, ws_frame)
-    mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))
+    # open3d's stub says os.PathLike; its binding takes a str path as well
+    mesh = o3d.io.read_triangle_mesh(str(truth / "world" / "mesh.ply"))  # type: ignore[arg-type]
     if not mesh.has_triangles():
         raise InputError(truth / "world" / "mesh.ply", "holds no triangles")
     mesh.transform(town_to_ws)
@@ -272,8 +283,8 @@ def _clock_hint(truth_ns: np.ndarray, est_ns: np.ndarray) -> str:
         return ""
     side = "the truth's" if truth_relative else "the session's"
     return (
-        f"; {side} stamps look relative to the drive's start: --truth-time-offset {(est_ns[0] - truth_ns[0]) * 1e-9:.6f} "
-        "would start both together"
+        f"; {side} stamps look relative to the drive's start: --truth-time-offset "
+        f"{(est_ns[0] - truth_ns[0]) * 1e-9:.6f} would start both together"
     )
 
 
@@ -408,8 +419,9 @@ def format_eval(results: dict) -> str:
     if results.get("truth_kind", "town") != "town":
         return format_trajectory_eval(results)
     lines = [
-        "| session | georef. | ATE RMSE m | horizontal RMSE m | mean offset ENU m | ATE RMSE m, offset removed | GPS alone horiz. RMSE m "
-        "| rot median deg | map points | to mesh, as georeferenced: median m / within 0.5 m | to mesh, offset removed: median m / within 0.5 m "
+        "| session | georef. | ATE RMSE m | horizontal RMSE m | mean offset ENU m | ATE RMSE m, offset removed "
+        "| GPS alone horiz. RMSE m | rot median deg | map points "
+        "| to mesh, as georeferenced: median m / within 0.5 m | to mesh, offset removed: median m / within 0.5 m "
         "| points / 100 m |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -418,12 +430,13 @@ def format_eval(results: dict) -> str:
         t, g, m, ml = r.get("trajectory", {}), r.get("gps_alone", {}), r.get("map", {}), r.get("map_local", {})
         off = t.get("mean_offset_enu_m")
         lines.append(
-            f"| {name} | {'yes' if r.get('georeferenced') else 'NO'} | {f(t.get('ate_rmse_m'))} | {f(t.get('horizontal_rmse_m'))} | "
-            f"{'' if off is None else ', '.join(f'{x:.1f}' for x in off)} | {f(r.get('trajectory_local', {}).get('ate_rmse_m'))} | "
-            f"{f(g.get('horizontal_rmse_m'))} | "
+            f"| {name} | {'yes' if r.get('georeferenced') else 'NO'} | {f(t.get('ate_rmse_m'))} | "
+            f"{f(t.get('horizontal_rmse_m'))} | {'' if off is None else ', '.join(f'{x:.1f}' for x in off)} | "
+            f"{f(r.get('trajectory_local', {}).get('ate_rmse_m'))} | {f(g.get('horizontal_rmse_m'))} | "
             f"{f((t or r.get('trajectory_local', {})).get('rotation_median_deg'))} | {ml.get('points', '')} | "
             f"{f(m.get('median_distance_m'), 3)} / {f(m.get('fraction_within_0.5m'), 3)} | "
-            f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | {f(ml.get('points_per_100m'), 0)} |"
+            f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | "
+            f"{f(ml.get('points_per_100m'), 0)} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -432,7 +445,8 @@ def format_trajectory_eval(results: dict) -> str:
     """Per session: what was compared with what (frames, stamps, alignment), then the errors."""
     kinds = {"tum": "a TUM trajectory file", "kitti": "a KITTI poses file", "topic": "a pose topic of a log"}
     modes = {
-        "se3": "a rigid SE(3) Umeyama fit of the estimated positions to the true ones (the truth is in a frame of its own; evo -a)",
+        "se3": "a rigid SE(3) Umeyama fit of the estimated positions to the true ones (the truth is in a frame of its "
+        "own; evo -a)",
         "sim3": "a Sim(3) Umeyama fit, scale included (a camera-only trajectory has no metric scale; evo -as)",
         "none": "none: the truth is taken to be in the workspace's ENU frame (absolute figures)",
     }
@@ -453,9 +467,10 @@ def format_trajectory_eval(results: dict) -> str:
             f"{e['span_s'][0]:.3f} to {e['span_s'][1]:.3f} s.",
             f"- Truth: `{t['source']}`, {t['poses']} poses (body frame: {t['body_frame']}; frame: {t['frame']}), "
             f"{t['span_s'][0]:.3f} to {t['span_s'][1]:.3f} s; stamps from {t['stamps']}.",
-            f"- Association: {a['associated']} of {a['estimated_poses']} estimated poses; {a['interpolated']} interpolated between "
-            f"true poses within {a['max_dt_s']} s on both sides, {a['nearest']} paired with the nearest true pose within "
-            f"{a['max_dt_s']} s{dt}; the others have no true pose that close and are not compared.",
+            f"- Association: {a['associated']} of {a['estimated_poses']} estimated poses; {a['interpolated']} "
+            f"interpolated between true poses within {a['max_dt_s']} s on both sides, {a['nearest']} paired with the "
+            f"nearest true pose within {a['max_dt_s']} s{dt}; the others have no true pose that close and are not "
+            "compared.",
             f"- Alignment: {modes[al['mode']]}"
             + (
                 ""
@@ -471,16 +486,18 @@ def format_trajectory_eval(results: dict) -> str:
             ),
             f"- Rotation errors: both are poses of {e['body_frame']}."
             if t["body_frame"] == e["body_frame"]
-            else f"- Rotation errors compare {e['body_frame']} with the truth's body frame as they are: a fixed rotation between "
-            "the two counts as error.",
+            else f"- Rotation errors compare {e['body_frame']} with the truth's body frame as they are: a fixed "
+            "rotation between the two counts as error.",
             "",
             "| ATE RMSE m | mean m | median m | max m | rotation RMSE deg "
             + ("| horizontal RMSE m | vertical RMSE m " if "horizontal_rmse_m" in ate else "")
             + f"| RPE over {rpe['segment_m']:g} m: translation % | rotation deg / 100 m | segments |",
             "|---|---|---|---|---|" + ("---|---|" if "horizontal_rmse_m" in ate else "") + "---|---|---|",
-            f"| {f(ate['rmse_m'])} | {f(ate['mean_m'])} | {f(ate['median_m'])} | {f(ate['max_m'])} | {f(ate['rotation_rmse_deg'])} | "
+            f"| {f(ate['rmse_m'])} | {f(ate['mean_m'])} | {f(ate['median_m'])} | {f(ate['max_m'])} | "
+            f"{f(ate['rotation_rmse_deg'])} | "
             + (f"{f(ate['horizontal_rmse_m'])} | {f(ate['vertical_rmse_m'])} | " if "horizontal_rmse_m" in ate else "")
-            + f"{f(rpe.get('translation_percent_mean'), 2)} | {f(rpe.get('rotation_deg_per_100m_mean'), 3)} | {rpe['segments']} |",
+            + f"{f(rpe.get('translation_percent_mean'), 2)} | {f(rpe.get('rotation_deg_per_100m_mean'), 3)} | "
+            f"{rpe['segments']} |",
             "",
         ]
         if not rpe["segments"]:
@@ -720,8 +737,8 @@ def format_align_truth(t: dict) -> str:
     lines.append("")
     lines.append(
         f"Overall median: {t['before_median_m']:.3f} m -> {t['after_median_m']:.3f} m. "
-        f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of {t['accepted_pairs']} "
-        f"(max {t['accepted_pair_true_error_max_m']:.2f} m)."
+        f"Accepted ICP pairs with a true error above 1 m: {t['accepted_pairs_true_error_above_1m']} of "
+        f"{t['accepted_pairs']} (max {t['accepted_pair_true_error_max_m']:.2f} m)."
     )
     if t.get("trajectories"):
         lines += [
@@ -729,12 +746,14 @@ def format_align_truth(t: dict) -> str:
             "Absolute trajectory error in the workspace frame (3D / horizontal RMSE, mean offset east, north, up), "
             "and with that offset removed by a rigid yaw-only fit to truth (3D / horizontal / vertical RMSE):",
             "",
-            "| session | GPS alignment alone | after mapkit align | offset removed, GPS alone | offset removed, after align |",
+            "| session | GPS alignment alone | after mapkit align | offset removed, GPS alone "
+            "| offset removed, after align |",
             "|---|---|---|---|---|",
         ]
         for name, e in t["trajectories"].items():
             cells = [
-                f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, ({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
+                f"{e[w]['ate_rmse_m']:.2f} / {e[w]['horizontal_rmse_m']:.2f} m, "
+                f"({', '.join(f'{x:.1f}' for x in e[w]['mean_offset_enu_m'])})"
                 for w in ("gps", "aligned")
             ]
             cells += [
@@ -748,16 +767,17 @@ def format_align_truth(t: dict) -> str:
         lines += [
             "",
             f"GPS bound: the frame cannot beat the mean of the {b['sessions']} sessions' GPS biases "
-            f"({', '.join(f'{x:.2f}' for x in b['mean_gps_bias_enu_m'])} m east, north, up; {b['allowed_horizontal_m']:.2f} m horizontally). "
-            f"Median horizontal RMSE after alignment {b['aligned_horizontal_rmse_median_m']:.2f} m: "
+            f"({', '.join(f'{x:.2f}' for x in b['mean_gps_bias_enu_m'])} m east, north, up; "
+            f"{b['allowed_horizontal_m']:.2f} m horizontally). Median horizontal RMSE after alignment "
+            f"{b['aligned_horizontal_rmse_median_m']:.2f} m: "
             + (f"{b['ratio_median']:.2f}x the bound." if b["ratio_median"] is not None else "the bound is zero."),
         ]
     c = t.get("consistency")
     if c and c.get("submaps"):
         lines += [
             "",
-            f"Covariance consistency: {100 * c['inside_95']:.0f}% of {c['submaps']} submap centres lie inside their 95% "
-            f"position ellipsoids (mean NEES {c['nees_mean']:.2f}; 3 expected): "
+            f"Covariance consistency: {100 * c['inside_95']:.0f}% of {c['submaps']} submap centres lie inside their "
+            f"95% position ellipsoids (mean NEES {c['nees_mean']:.2f}; 3 expected): "
             + ", ".join(f"{n} {100 * v['inside_95']:.0f}%" for n, v in c["sessions"].items())
             + ".",
         ]
@@ -765,6 +785,7 @@ def format_align_truth(t: dict) -> str:
 
 
 __all__ = [
+    "as_alignment",
     "compare_trajectories",
     "evaluate_align",
     "evaluate_build",

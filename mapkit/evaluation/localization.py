@@ -127,7 +127,7 @@ def _localize_session(
 
     imgs = read_session_images(ws.root, name)
     gt, ok = truth_camera_poses_at(truth, name, ws_frame, imgs.table["stamp_ns"])
-    paths = [p for p, good in zip(imgs.image_paths, ok) if good]
+    paths = [p for p, good in zip(imgs.image_paths, ok, strict=True) if good]
     odo = None
     if cfg.odometry:
         # the query session's own relative camera motion between queries: its image table's
@@ -174,7 +174,8 @@ def format_localization(results: dict) -> str:
     """Table II of the MCVL paper: per test sequence, mean and median errors of retrieval alone
     and of the filter; then how often the top-1, top-5 and top-k hold the right place."""
     lines = [
-        "| sequence | condition | queries | retrieval mean m / deg | retrieval median m / deg | MCVL mean m / deg | MCVL median m / deg | recall@1 / @5 / @k |",
+        "| sequence | condition | queries | retrieval mean m / deg | retrieval median m / deg | MCVL mean m / deg | "
+        "MCVL median m / deg | recall@1 / @5 / @k |",
         "|---|---|---|---|---|---|---|---|",
     ]
     f = lambda s, k: "" if s.get(k) is None else f"{s[k]:.2f}"  # noqa: E731
@@ -183,8 +184,9 @@ def format_localization(results: dict) -> str:
         at = sorted((int(k[len("recall_at_") :]), v) for k, v in r.items() if k.startswith("recall_at_"))
         recall = " / ".join(f"{v:.2f}" for _, v in at)
         lines.append(
-            f"| {name} | {r.get('condition') or ''} | {r['queries']} | {f(a, 'mean_translation_m')} / {f(a, 'mean_rotation_deg')} | "
-            f"{f(a, 'median_translation_m')} / {f(a, 'median_rotation_deg')} | {f(b, 'mean_translation_m')} / {f(b, 'mean_rotation_deg')} | "
-            f"{f(b, 'median_translation_m')} / {f(b, 'median_rotation_deg')} | {recall} |"
+            f"| {name} | {r.get('condition') or ''} | {r['queries']} | {f(a, 'mean_translation_m')} / "
+            f"{f(a, 'mean_rotation_deg')} | {f(a, 'median_translation_m')} / {f(a, 'median_rotation_deg')} | "
+            f"{f(b, 'mean_translation_m')} / {f(b, 'mean_rotation_deg')} | {f(b, 'median_translation_m')} / "
+            f"{f(b, 'median_rotation_deg')} | {recall} |"
         )
     return "\n".join(lines) + "\n"

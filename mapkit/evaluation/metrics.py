@@ -52,11 +52,16 @@ def distances_to_mesh(points: np.ndarray, mesh) -> np.ndarray:
         V, F = np.asarray(mesh[0], np.float64), np.asarray(mesh[1])
     origin = V.mean(axis=0) if len(V) else np.zeros(3)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor((V - origin).astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+    # open3d's stub gives Tensor(np_array, dtype, device) no defaults; its binding defaults both (the
+    # array's dtype, the CPU)
+    vertices = o3d.core.Tensor((V - origin).astype(np.float32))  # type: ignore[call-overload]
+    scene.add_triangles(vertices, o3d.core.Tensor(F.astype(np.uint32)))  # type: ignore[call-overload]
     out = np.empty(len(points), np.float64)
     step = 1_000_000
     for i in range(0, len(points), step):
-        q = o3d.core.Tensor((np.asarray(points[i : i + step], np.float64) - origin).astype(np.float32))
+        q = o3d.core.Tensor(  # type: ignore[call-overload]  # defaults the stub lacks, as above
+            (np.asarray(points[i : i + step], np.float64) - origin).astype(np.float32)
+        )
         out[i : i + step] = scene.compute_distance(q).numpy()
     return out
 

@@ -58,7 +58,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field
@@ -108,44 +108,48 @@ class PlacesEvalConfig(MapkitConfig):
     )
     structure: StructureIndexConfig = Field(
         default_factory=StructureIndexConfig,
-        description="The structure index (kind and database_sessions are set per method and pair; 5 % keypoints, PCA to 25).",
+        description="The structure index (kind and database_sessions are set per method and pair; 5 % keypoints, PCA "
+        "to 25).",
     )
     max_image_gap_s: float = Field(
         1.0,
         gt=0,
-        description="VLAD: a query keyframe whose nearest image is farther than this in time has no image query (counted as no match).",
+        description="VLAD: a query keyframe whose nearest image is farther than this in time has no image query "
+        "(counted as no match).",
     )
     vlad_workers: int = Field(1, ge=1, description="Processes encoding VLAD query images.")
     vlad_encodings_dir: str | None = Field(
         None,
-        description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize --cache-dir`): "
-        "images already encoded there with the same bundle are not encoded again.",
+        description="A folder of VLAD encodings shared with other evaluations (e.g. `mapkit eval localize "
+        "--cache-dir`): images already encoded there with the same bundle are not encoded again.",
     )
     descriptor_cache_dir: str | None = Field(
         None,
-        description="A folder of structure descriptors shared with index builds (the demo shares WORKSPACE/indexes/cache): "
-        "maps already described there with the same parameters are not described again; default: this evaluation's cache/.",
+        description="A folder of structure descriptors shared with index builds (the demo shares "
+        "WORKSPACE/indexes/cache): maps already described there with the same parameters are not described again; "
+        "default: this evaluation's cache/.",
     )
     bootstrap: int = Field(
         500,
         ge=0,
-        description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = none). "
-        "Not in the paper; ~100 queries per pair make differences of a few hundredths noise.",
+        description="Resamples of the queries for the AUC's 90 % interval and the paired comparison of methods (0 = "
+        "none). Not in the paper; ~100 queries per pair make differences of a few hundredths noise.",
     )
     split: Literal["triplets", "tiles", "none"] = Field(
         "triplets",
-        description="Which queries are held out, i.e. scored in the headline figures (semi-dense paper, Sec. 5.1: each sequence "
-        "is divided into geographically non-overlapping training and testing parts, and only testing places are evaluated). "
-        "'triplets': the UTM tiles of the triplet dataset (triplets_dir, else the CNN model's training dataset, else "
-        "WORKSPACE/triplets), so the CNN is scored on places it never trained on; without a dataset, as 'tiles'. "
-        "'tiles': tiles drawn as mapkit triplets draws them with TripletConfig's defaults (200 m, 25 % test, seed 0, 30 m buffer). "
-        "'none': no split, every query is scored (the all-places figures become the headline). A held-out query lies in a test "
-        "tile, not within the buffer of a training tile. All-places figures are reported as well.",
+        description="Which queries are held out, i.e. scored in the headline figures (semi-dense paper, Sec. 5.1: each "
+        "sequence is divided into geographically non-overlapping training and testing parts, and only testing places "
+        "are evaluated). 'triplets': the UTM tiles of the triplet dataset (triplets_dir, else the CNN model's training "
+        "dataset, else WORKSPACE/triplets), so the CNN is scored on places it never trained on; without a dataset, as "
+        "'tiles'. 'tiles': tiles drawn as mapkit triplets draws them with TripletConfig's defaults (200 m, 25 % test, "
+        "seed 0, 30 m buffer). 'none': no split, every query is scored (the all-places figures become the headline). A "
+        "held-out query lies in a test tile, not within the buffer of a training tile. All-places figures are reported "
+        "as well.",
     )
     triplets_dir: str | None = Field(
         None,
-        description="The triplet dataset (mapkit triplets) whose tiles split the places when split = triplets; default: "
-        "the CNN model's training dataset when it still exists, else WORKSPACE/triplets.",
+        description="The triplet dataset (mapkit triplets) whose tiles split the places when split = triplets; "
+        "default: the CNN model's training dataset when it still exists, else WORKSPACE/triplets.",
     )
 
 
@@ -338,6 +342,8 @@ class PlaceSplit:
         enu = np.asarray(enu, np.float64).reshape(-1, 3)
         if self.source == "none" or len(enu) == 0:
             return np.full(len(enu), "", object)
+        # a split other than "none" has its frame, tile size and buffer
+        assert self.frame is not None and self.tile_size_m is not None and self.buffer_m is not None
         lab = split_of(self.frame.enu_to_utm(enu)[:, :2], self.tiles, self.tile_size_m, self.buffer_m)
         return np.where(lab == "", "buffer", lab).astype(object)
 
@@ -348,6 +354,13 @@ class PlaceSplit:
     def held_out(self, enu: np.ndarray) -> np.ndarray:
         """(n,) bool: the position is a held-out place (in a test tile, outside the buffer)."""
         return self.labels(enu) == "test"
+
+    def manifest_tiles(self) -> list[dict]:
+        """The tiles in the triplet manifest's form (``utm_min`` corner, ``split``); [] without any."""
+        if not self.tiles:
+            return []
+        assert self.tile_size_m is not None  # tiles come with their size
+        return tiles_to_manifest(self.tiles, self.tile_size_m)
 
     def to_dict(self) -> dict:
         """What ``places.json`` records of the split: its source and parameters, and the tiles in
@@ -363,7 +376,7 @@ class PlaceSplit:
             "utm_crs_epsg": None if self.frame is None else int(self.frame.utm_epsg),
             "tile_counts": self.tile_counts,
             "notes": list(self.notes),
-            "tiles": tiles_to_manifest(self.tiles, self.tile_size_m) if self.tiles else [],
+            "tiles": self.manifest_tiles(),
         }
 
     def describe(self) -> str:
@@ -371,11 +384,11 @@ class PlaceSplit:
         if self.source == "none":
             return "no geographic split (split = none, or no UTM frame): the headline figures are over all queries"
         n = self.tile_counts
-        where = (
-            f"the triplet dataset {self.dataset}"
-            if self.source == "triplets"
-            else f"tiles drawn as mapkit triplets draws them (seed {self.seed}, {100 * self.test_fraction:g} % test)"
-        )
+        if self.source == "triplets":
+            where = f"the triplet dataset {self.dataset}"
+        else:
+            assert self.test_fraction is not None  # drawn tiles record their test share
+            where = f"tiles drawn as mapkit triplets draws them (seed {self.seed}, {100 * self.test_fraction:g} % test)"
         return (
             f"held-out queries lie in test tiles of {where}: UTM tiles of {self.tile_size_m:g} m, {n['test']} test and "
             f"{n['train']} training, and not within {self.buffer_m:g} m of a training tile"
@@ -484,21 +497,21 @@ def resolve_split(
                     notes.append(f"the CNN model's training dataset {model_ds['path']} is gone; tiles of {found[0]}")
             else:
                 notes.append(
-                    f"no triplet dataset ({', '.join(str(c) for c in candidates)}): tiles drawn with TripletConfig's defaults"
+                    f"no triplet dataset ({', '.join(str(c) for c in candidates)}): tiles drawn with TripletConfig's "
+                    "defaults"
                 )
     if split is None:
         split = tiles_split_of_workspace(ws, frame, None, fallback_maps)
     split.notes = notes + split.notes
-    if model_ds is not None and model_ds.get("tiles") is not None:
-        # the model's manifest records its dataset's tiles: they must be the split's, else the
-        # held-out queries may lie where the CNN trained
-        if model_ds["tiles"] != tiles_to_manifest(split.tiles, split.tile_size_m):
-            note = (
-                "the CNN model was trained on a triplet dataset whose tiles differ from the split's: its held-out figures "
-                "may include places it trained on (set triplets_dir to the model's dataset)"
-            )
-            warnings.warn(f"places: {note}", InputWarning, stacklevel=3)
-            split.notes.append(note)
+    # the model's manifest records its dataset's tiles: they must be the split's, else the
+    # held-out queries may lie where the CNN trained
+    if model_ds is not None and model_ds.get("tiles") is not None and model_ds["tiles"] != split.manifest_tiles():
+        note = (
+            "the CNN model was trained on a triplet dataset whose tiles differ from the split's: its held-out "
+            "figures may include places it trained on (set triplets_dir to the model's dataset)"
+        )
+        warnings.warn(f"places: {note}", InputWarning, stacklevel=3)
+        split.notes.append(note)
     return split
 
 
@@ -638,6 +651,7 @@ class _Scored:
         r["queries"] = int(k.sum())
         if self.keypoints is not None:
             t = r["best_f1"]["threshold"]
+            assert self.votes is not None  # set with the keypoints (structure methods)
             kp, v = self.keypoints[k], self.votes[k]
             r.update(
                 {
@@ -648,6 +662,7 @@ class _Scored:
                 }
             )
         if self.has_image is not None:
+            assert self.image_gap_s is not None  # set with has_image (VLAD)
             ok = self.has_image[k]
             r.update(
                 {
@@ -667,7 +682,7 @@ class _Queries:
     stamps_ns: np.ndarray  # (n,)
     positions: np.ndarray  # (n, 3) ground truth
     without_truth: int
-    split: np.ndarray = None  # (n,) object
+    split: np.ndarray  # (n,) object
 
     @property
     def held_out(self) -> np.ndarray:
@@ -858,10 +873,10 @@ def _eval_pair(
     held = q.held_out
     scoped = split.source != "none"
     counts = query_split_counts(q.split) if scoped else None
-    note = no_held_out_note(query, counts, split) if scoped and not held.any() else None
+    note = no_held_out_note(query, counts, split) if counts is not None and not held.any() else None
     if note:
         warnings.warn(f"places {query} to {db}: {note}", InputWarning, stacklevel=3)
-    entry = {
+    entry: dict[str, Any] = {
         "database": db,
         "query": query,
         "conditions": {"database": cond.get(db), "query": cond.get(query)},
@@ -1133,7 +1148,8 @@ def _maps_table(results: dict) -> list[str]:
         return []
     f = lambda v, d=0: "" if v is None else f"{v:,.{d}f}"  # noqa: E731
     lines = [
-        "| pair | query: keyframes / points / per 100 m | database: keyframes / points / per 100 m | density query / database |",
+        "| pair | query: keyframes / points / per 100 m | database: keyframes / points / per 100 m "
+        "| density query / database |",
         "|---|---|---|---|",
     ]
     for p in results["pairs"]:
@@ -1144,8 +1160,9 @@ def _maps_table(results: dict) -> list[str]:
             else None
         )
         lines.append(
-            f"| {p['query']} to {p['database']} | {f(q.get('keyframes'))} / {f(q.get('points'))} / {f(q.get('points_per_100m'))} "
-            f"| {f(d.get('keyframes'))} / {f(d.get('points'))} / {f(d.get('points_per_100m'))} | {f(ratio, 2)} |"
+            f"| {p['query']} to {p['database']} | {f(q.get('keyframes'))} / {f(q.get('points'))} / "
+            f"{f(q.get('points_per_100m'))} | {f(d.get('keyframes'))} / {f(d.get('points'))} / "
+            f"{f(d.get('points_per_100m'))} | {f(ratio, 2)} |"
         )
     return lines
 
@@ -1201,8 +1218,9 @@ def _protocol(results: dict) -> list[str]:
         "# Place recognition: area under the precision-recall curve",
         "",
         f"Protocol of the semi-dense place-recognition paper (Sec. 5.2, Table 1): r_e = {results['radius_m']:g} m, "
-        f"one keyframe in {results['query_stride']} of the query session is a query; ground truth: {results['ground_truth']}. "
-        f"Structure ({', '.join(METHOD_LABELS[m] for m in methods if m in STRUCTURE_METHODS) or 'none'}"
+        f"one keyframe in {results['query_stride']} of the query session is a query; ground truth: "
+        f"{results['ground_truth']}. Structure "
+        f"({', '.join(METHOD_LABELS[m] for m in methods if m in STRUCTURE_METHODS) or 'none'}"
         + (f"; CNN model {results['cnn_model']['path']}" if results.get("cnn_model") else "")
         + f"): {100 * sc['keypoint_fraction']:g} % keypoints, PCA to {sc['pca_dim']}, voting; lambda_v swept. "
         "VLAD: top-1 database image of the database session; minus its squared distance swept.",
@@ -1254,8 +1272,8 @@ def _auc_table(results: dict, scope: str = "held_out") -> list[str]:
 
 def _best_f1_table(results: dict) -> list[str]:
     lines = [
-        "Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold - 1; "
-        "VLAD: minus the squared distance):",
+        "Best F1 operating point per method (accepted: score >= threshold; structure: votes, i.e. lambda_v = threshold "
+        "- 1; VLAD: minus the squared distance):",
         "",
         "| pair | places | method | F1 | precision | recall | threshold | top-1 right of reachable |",
         "|---|---|---|---|---|---|---|---|",
@@ -1270,8 +1288,8 @@ def _best_f1_table(results: dict) -> list[str]:
                 prec = "" if b["precision"] is None else f"{b['precision']:.2f}"
                 thr = "" if b["threshold"] is None else f"{b['threshold']:.3g}"
                 lines.append(
-                    f"| {p['query']} to {p['database']} | {scope.replace('_', '-')} | {METHOD_LABELS.get(m, m)} | {b['f1']:.2f} | "
-                    f"{prec} | {b['recall']:.2f} | {thr} | {r['top1_correct_of_reachable']:.2f} |"
+                    f"| {p['query']} to {p['database']} | {scope.replace('_', '-')} | {METHOD_LABELS.get(m, m)} | "
+                    f"{b['f1']:.2f} | {prec} | {b['recall']:.2f} | {thr} | {r['top1_correct_of_reachable']:.2f} |"
                 )
     return lines
 
@@ -1299,8 +1317,8 @@ def _bootstrap_table(results: dict) -> list[str]:
     methods = results["methods"]
     scope = _scopes(results)[0][0]
     lines = [
-        f"AUC ({scope.replace('_', '-')} queries), 90 % bootstrap interval over the queries, and how often (paired resamples) "
-        "each structure method's AUC is above VLAD's:",
+        f"AUC ({scope.replace('_', '-')} queries), 90 % bootstrap interval over the queries, and how often (paired "
+        "resamples) each structure method's AUC is above VLAD's:",
         "",
         "| pair | "
         + " | ".join(METHOD_LABELS.get(m, m) for m in methods)
@@ -1334,7 +1352,7 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
     rows_n = (n + cols - 1) // cols
     fig, axes = plt.subplots(rows_n, cols, figsize=(4.6 * cols, 4.2 * rows_n), dpi=100, squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for ax, p in zip(axes.ravel(), results["pairs"]):
+    for ax, p in zip(axes.ravel(), results["pairs"], strict=False):
         for k, m in enumerate(results["methods"]):
             for scope, _ in _scopes(results):
                 r = _block(p, scope)["methods"].get(m, {})

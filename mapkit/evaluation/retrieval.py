@@ -121,7 +121,7 @@ def self_retrieval(vectors: np.ndarray, exclude: int = 2, positions: np.ndarray 
         "median_gap": float(np.median(gaps)),
         "fraction_gap_within_5": float(np.mean(gaps <= 5)),
         "fraction_gap_within_10": float(np.mean(gaps <= 10)),
-        "histogram": {int(a): int(b) for a, b in zip(values, counts)},
+        "histogram": {int(a): int(b) for a, b in zip(values, counts, strict=True)},
     }
     if positions is not None:
         p = np.asarray(positions, np.float64)
@@ -306,13 +306,15 @@ def _query_session(
     search_s = time.perf_counter() - t0
     q_pos = true_T[:, :3, 3]
     rec = recall_at_k(q_pos, db_pos, ids, ks, radius_m)
-    t_err, r_err, z_pos = [], [], []
+    t_list: list[float] = []
+    r_list: list[float] = []
+    z_list: list[np.ndarray] = []
     for i in range(len(keep)):
         z = idx.measurement_from_hits(idx.hits(ids[i, : idx.cfg.top_k], dist[i, : idx.cfg.top_k]))
-        t_err.append(float(np.linalg.norm(z.translation - q_pos[i])))
-        r_err.append(float(rotation_error_deg(true_T[i, :3, :3], z.rotation)))
-        z_pos.append(z.translation)
-    t_err, r_err, z_pos = np.asarray(t_err), np.asarray(r_err), np.asarray(z_pos).reshape(-1, 3)
+        t_list.append(float(np.linalg.norm(z.translation - q_pos[i])))
+        r_list.append(float(rotation_error_deg(true_T[i, :3, :3], z.rotation)))
+        z_list.append(z.translation)
+    t_err, r_err, z_pos = np.asarray(t_list), np.asarray(r_list), np.asarray(z_list).reshape(-1, 3)
     r = {
         "condition": info.get("condition"),
         "weather": info.get("weather"),
@@ -399,7 +401,8 @@ def format_retrieval(results: dict) -> str:
     ks = results["ks"]
     f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731
     lines = [
-        f"# Retrieval: {results['database_images']} database images ({', '.join(results['database_sessions'])}), {results['dim']}-D",
+        f"# Retrieval: {results['database_images']} database images ({', '.join(results['database_sessions'])}), "
+        f"{results['dim']}-D",
         "",
         f"Hit: one of the top k within {results['radius_m']:g} m of the query's true position. Measurement: mean shift "
         f"(bandwidth {results['mean_shift_bandwidth_m']:g} m) over the top {results['top_k']}.",
@@ -414,14 +417,15 @@ def format_retrieval(results: dict) -> str:
         lines.append(
             f"| {n} | {r['condition'] or ''} | {r['queries']} | {f(r['reachable'])} | "
             + " | ".join(f(r["recall"][k] if k in r["recall"] else r["recall"][str(k)]) for k in ks)
-            + f" | {f(m.get('median_translation_m'), 1)} | {f(m.get('median_rotation_deg'), 1)} | {f(m.get('fraction_within_5m'))} |"
+            + f" | {f(m.get('median_translation_m'), 1)} | {f(m.get('median_rotation_deg'), 1)} | "
+            f"{f(m.get('fraction_within_5m'))} |"
         )
     a = results["all"]
     lines.append(
         f"| **all** | | {a['queries']} | | "
         + " | ".join(f(a["recall"][k]) for k in ks)
-        + f" | {f(a['measurement'].get('median_translation_m'), 1)} | {f(a['measurement'].get('median_rotation_deg'), 1)} "
-        f"| {f(a['measurement'].get('fraction_within_5m'))} |"
+        + f" | {f(a['measurement'].get('median_translation_m'), 1)} | "
+        f"{f(a['measurement'].get('median_rotation_deg'), 1)} | {f(a['measurement'].get('fraction_within_5m'))} |"
     )
     return "\n".join(lines) + "\n"
 
@@ -446,11 +450,11 @@ def plot_retrieval(path: Path, per_session: dict, results: dict, db_pos: np.ndar
     ax1.legend(loc="lower right")
     ax2.scatter(db_pos[:, 0], db_pos[:, 1], s=4, c="0.7", label="database")
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for c, (n, d) in zip(colors * 10, per_session.items()):
+    for c, (n, d) in zip(colors * 10, per_session.items(), strict=False):
         q, t, hit = d["q"], d["top1"], d["hit1"]
         ax2.scatter(q[hit, 0], q[hit, 1], s=8, color=c, label=f"{n}: top-1 within radius")
         ax2.scatter(q[~hit, 0], q[~hit, 1], s=22, color=c, marker="x", label=f"{n}: top-1 miss")
-        for a, b in zip(q[~hit], t[~hit]):
+        for a, b in zip(q[~hit], t[~hit], strict=True):
             ax2.plot([a[0], b[0]], [a[1], b[1]], color=c, lw=0.5, alpha=0.6)
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.set_xlabel("east [m]")

@@ -14,7 +14,7 @@ from mapkit.mapping.trajectory import Trajectory
 from mapkit.places.triplets import SPLITS, TripletDataset
 
 
-def evaluate_triplets(dataset: str | Path, workspace: str | Path, truth: str | Path) -> dict:
+def evaluate_triplets(dataset: str | Path, workspace: str | Path | Workspace, truth: str | Path) -> dict:
     """Fraction of positive pairs whose true offset is below 0.5 m (and its distribution).
 
     Member s of a place put, after its ICP transform T_s, the true point E_s^-1 T_s^-1 p at the
@@ -41,9 +41,9 @@ def evaluate_triplets(dataset: str | Path, workspace: str | Path, truth: str | P
         true_pt[i] = (e @ q)[:3]
     offsets = []
     for split in SPLITS:
-        tr = ds.triplets(split)
-        if len(tr):
-            offsets.append(np.linalg.norm(true_pt[tr[:, 0]] - true_pt[tr[:, 1]], axis=1))
+        triplets = ds.triplets(split)
+        if len(triplets):
+            offsets.append(np.linalg.norm(true_pt[triplets[:, 0]] - true_pt[triplets[:, 1]], axis=1))
     off = np.concatenate(offsets) if offsets else np.zeros(0)
     res = {
         "positive_pairs": int(len(off)),

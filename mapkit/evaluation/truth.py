@@ -285,7 +285,8 @@ def session_truth_mesh(town_mesh, truth: Path, name: str, town_to_ws: np.ndarray
 
     cars = parked_cars_path(truth, name)
     if cars.is_file():
-        car_mesh = o3d.io.read_triangle_mesh(str(cars))
+        # open3d's stub says os.PathLike; its binding takes a str path as well
+        car_mesh = o3d.io.read_triangle_mesh(str(cars))  # type: ignore[arg-type]
         car_mesh.transform(town_to_ws)
         mesh += car_mesh
     return mesh

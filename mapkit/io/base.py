@@ -15,8 +15,9 @@ import warnings
 import zlib
 from abc import ABC, abstractmethod
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.types import CameraInfo, FrameTransform, Message, StreamInfo, StreamKind
@@ -59,6 +60,12 @@ class DriveLog(ABC):
         """Messages of the given topics (all if None), in (approximately) increasing time."""
 
     # --- provided ---------------------------------------------------------------------------------
+    @classmethod
+    def detect(cls, path: Path) -> bool:
+        """Whether ``path`` has this reader's folder layout (``guess_format`` asks the readers that recognise
+        folders by layout, and they override this)."""
+        return False
+
     def messages(
         self,
         kinds: Iterable[StreamKind | str] | None = None,
@@ -88,7 +95,7 @@ class DriveLog(ABC):
         for msg in self._guarded(self._iter_messages(topics)):
             yield msg.topic, msg.stamp_ns
 
-    def records(self, kind: StreamKind | str, topic: str | None = None) -> Iterator:
+    def records(self, kind: StreamKind | str, topic: str | None = None) -> Generator[Any, None, None]:
         """The records of one kind (optionally of one topic of that kind), in time order."""
         kind = StreamKind(kind)
         if topic is not None:
@@ -125,7 +132,7 @@ class DriveLog(ABC):
         kind = StreamKind(kind)
         return [s.topic for s in self.streams() if s.kind == kind]
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 - a no-op by design: readers that hold no files keep it
         """Release open files (readers that hold none need not override)."""
 
     def __enter__(self):

@@ -40,7 +40,7 @@ import heapq
 import json
 import warnings
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -281,7 +281,7 @@ class CsvTable:
         finally:
             rows.close()  # releases the file now, not when the generator is collected
 
-    def rows(self) -> Iterator[CsvRow]:
+    def rows(self) -> Generator[CsvRow, None, None]:
         with open(self.path, newline="", encoding="utf-8") as f:
             reader = csv.reader(f)
             with self._errors_named(reader):
@@ -431,7 +431,7 @@ class FolderLayoutLog(DriveLog):
             want_info = info is not None and info_topic is not None and wanted(info_topic)
             want_image = wanted(image_topic)
             for i, (stamp, path) in enumerate(frames()):
-                if want_info:
+                if want_info and info is not None and info_topic is not None:
                     yield Message(info_topic, StreamKind.CAMERA_INFO, i, replace(info, stamp_ns=stamp))
                 if want_image:
                     yield Message(image_topic, StreamKind.IMAGE, i, lazy_frame(stamp, camera, path, layout, convert))
@@ -547,11 +547,12 @@ class FolderLog(FolderLayoutLog):
         self.camera = camera
         self.image_dir = self.path / "images" if (self.path / "images").is_dir() else self.path
         self.table = CsvTable(self._find_csv(frames_csv), required=("image",))
-        self.time_column = next((c for c in TIME_COLUMNS if self.table.has(c)), None)
-        if self.time_column is None:
+        time_column = next((c for c in TIME_COLUMNS if self.table.has(c)), None)
+        if time_column is None:
             raise InputError(
                 self.table.path, f"header names no time column (one of {', '.join(TIME_COLUMNS)})", field="header"
             )
+        self.time_column: str = time_column
         self.has_gps = _all_or_none(self.table, GPS_COLUMNS, "GPS")
         self.has_pose = _all_or_none(self.table, POSE_COLUMNS, "pose")
         self._intrinsics_in_columns = _all_or_none(self.table, INTRINSICS_COLUMNS, "intrinsics")

@@ -99,7 +99,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     lines = [f"{summary['log']}  ({summary['format']}, {summary['messages_read']} messages)"]
     if summary.get("truncated_at_byte") is not None:
         lines.append(
-            f"  ! log damaged near byte {summary['truncated_at_byte']}: the damaged part is skipped (the warnings say what)"
+            f"  ! log damaged near byte {summary['truncated_at_byte']}: the damaged part is skipped (the warnings say "
+            "what)"
         )
     header = f"  {'topic':<34} {'type':<30} {'count':>7} {'rate Hz':>8} {'span s':>9}"
     lines += [header, "  " + "-" * (len(header) - 2)]

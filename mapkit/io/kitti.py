@@ -88,7 +88,38 @@ ODOMETRY_CAMERA_FOLDERS: dict[int, tuple[str, ...]] = {
 ODOMETRY_CALIB_ORDER = ("P0", "P1", "P2", "P3", "Tr")
 
 #: columns of a KITTI raw OXTS record (devkit readme, ``dataformat.txt``)
-OXTS_FIELDS = ["lat", "lon", "alt", "roll", "pitch", "yaw", "vn", "ve", "vf", "vl", "vu", "ax", "ay", "az", "af", "al", "au", "wx", "wy", "wz", "wf", "wl", "wu", "pos_accuracy", "vel_accuracy", "navstat", "numsats", "posmode", "velmode", "orimode"]
+OXTS_FIELDS = [
+    "lat",
+    "lon",
+    "alt",
+    "roll",
+    "pitch",
+    "yaw",
+    "vn",
+    "ve",
+    "vf",
+    "vl",
+    "vu",
+    "ax",
+    "ay",
+    "az",
+    "af",
+    "al",
+    "au",
+    "wx",
+    "wy",
+    "wz",
+    "wf",
+    "wl",
+    "wu",
+    "pos_accuracy",
+    "vel_accuracy",
+    "navstat",
+    "numsats",
+    "posmode",
+    "velmode",
+    "orimode",
+]
 _OXTS = {name: i for i, name in enumerate(OXTS_FIELDS)}
 
 #: IMU axes of an OXTS record: the vehicle body (rotates with roll and pitch) or the level frame
@@ -215,7 +246,8 @@ class CalibFile:
         return make_pose(self.rotation(name, Rt[:, :3]), Rt[:, 3])
 
     def camera_matrix(self, name: str, cols: int = 3) -> np.ndarray:
-        """A projection (``cols`` 4) or intrinsic matrix (3) whose left 3x3 block is invertible with positive focal lengths."""
+        """A projection (``cols`` 4) or intrinsic matrix (3) whose left 3x3 block is invertible with positive focal
+        lengths."""
         M = self.matrix(name, 3, cols)
         K = M[:, :3]
         s = np.linalg.svd(K, compute_uv=False)
@@ -245,7 +277,7 @@ def screen_poses(stamps_ns: np.ndarray, poses: np.ndarray) -> list[str]:
     move from the last accepted pose faster than ``MAX_SPEED_MPS``."""
     reasons: list[str] = []
     last: tuple[int, np.ndarray] | None = None
-    for stamp, T in zip(stamps_ns.tolist(), poses):
+    for stamp, T in zip(stamps_ns.tolist(), poses, strict=True):
         problem = rotation_problem(T[:3, :3])
         if not problem and last is not None:
             problem = too_fast(last[0], last[1], stamp, T[:3, 3])
@@ -399,15 +431,15 @@ class KittiOdometry(FolderLayoutLog):
             transforms.append(FrameTransform(first, "camera_0", "velodyne", self.calib.rigid_3x4("Tr")))
         elif self.velodyne_paths and self.world_from_camera_0 is not None:
             warnings.warn(
-                f"{self.path}: no Tr in {'calib.txt' if self.calib is not None else 'a calib.txt (there is none)'}: the ground "
-                "truth of poses.txt (camera 0) is not related to the velodyne frame",
+                f"{self.path}: no Tr in {'calib.txt' if self.calib is not None else 'a calib.txt (there is none)'}: "
+                "the ground truth of poses.txt (camera 0) is not related to the velodyne frame",
                 InputWarning,
                 stacklevel=2,
             )
         self._add_static_transforms(f"{prefix}/tf_static", transforms)
 
         stamps = self.stamps_ns.tolist()
-        for i, folder in sorted(self.image_dirs.items()):
+        for i in sorted(self.image_dirs):
             camera = f"camera_{i}"
             layout = probe_images(image_paths[i])
             P = self.projections[i]
@@ -444,9 +476,9 @@ class KittiOdometry(FolderLayoutLog):
             if folder is not None:
                 found[i] = folder
         if found and 0 not in found:
-            names = ", ".join(f"{f.name}/" for f in found.values())
+            listed = ", ".join(f"{f.name}/" for f in found.values())
             raise InputError(
-                self.path, f"has {names} but no image_0/ or image_l/ folder: not a KITTI odometry sequence"
+                self.path, f"has {listed} but no image_0/ or image_l/ folder: not a KITTI odometry sequence"
             )
         return found
 
@@ -501,7 +533,7 @@ class KittiOdometry(FolderLayoutLog):
         _require_same_count(path, "poses", len(poses), self._frames_what, n)
         reasons = screen_poses(self.stamps_ns, poses)
         self.pose_accepted = np.array([not r for r in reasons], dtype=bool)
-        rejected = {f"line {k}": r for k, r in zip(linenos, reasons) if r}
+        rejected = {f"line {k}": r for k, r in zip(linenos, reasons, strict=True) if r}
         if rejected:
             self.skipped[(self._gt_topic, "physically impossible pose")] += len(rejected)
             warnings.warn(rejection_summary(path, "poses", len(poses), rejected), InputWarning, stacklevel=3)
@@ -509,13 +541,13 @@ class KittiOdometry(FolderLayoutLog):
 
     def _ground_truth(self) -> Iterator[PoseSample]:
         assert self.world_from_camera_0 is not None
-        for stamp, T, ok in zip(self.stamps_ns.tolist(), self.world_from_camera_0, self.pose_accepted):
+        for stamp, T, ok in zip(self.stamps_ns.tolist(), self.world_from_camera_0, self.pose_accepted, strict=True):
             if ok:
                 yield PoseSample(stamp, "world", "camera_0", T, source="ground_truth")
 
     def _scans(self) -> Iterator[LidarScan]:
         half_sweep_s = 0.5 * NOMINAL_PERIOD_NS * 1e-9
-        for stamp, path in zip(self.stamps_ns.tolist(), self.velodyne_paths):
+        for stamp, path in zip(self.stamps_ns.tolist(), self.velodyne_paths, strict=True):
             xyz, reflectance = read_velodyne_bin(path)
             times = sweep_point_times_s(xyz, -half_sweep_s, 2 * half_sweep_s)
             yield LidarScan(stamp, "velodyne", xyz, intensity=reflectance, point_time_s=times)
@@ -699,7 +731,7 @@ class KittiRaw(FolderLayoutLog):
             scale, origin_from_mercator = 1.0, np.eye(4)
             last: tuple[int, np.ndarray] | None = None  # stamp and position of the last accepted record
             rejected: dict[str, str] = {}
-            for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths)):
+            for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths, strict=True)):
                 v = read_oxts_record(path)
                 problem = oxts_problem(v)
                 if not problem:
@@ -758,7 +790,7 @@ class KittiRaw(FolderLayoutLog):
             _require_same_count(folder / "timestamps_end.txt", "end times", len(ends), "scans", len(paths))
 
         def scans() -> Iterator[LidarScan]:
-            for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths)):
+            for i, (stamp, path) in enumerate(zip(stamps.tolist(), paths, strict=True)):
                 xyz, reflectance = read_velodyne_bin(path)
                 times = None
                 if starts is not None and ends is not None:

@@ -24,7 +24,7 @@ import struct
 import warnings
 import zlib
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path, PurePosixPath
@@ -118,7 +118,8 @@ def rosbag2_mcap_files(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     info = rosbag2_metadata(folder)
     meta_path = folder / ROSBAG2_METADATA
-    files_info = info.get("files") if isinstance(info.get("files"), list) else []
+    files = info.get("files")
+    files_info = files if isinstance(files, list) else []
     rel = info.get("relative_file_paths") or [f["path"] for f in files_info if isinstance(f, dict) and "path" in f]
     if not rel:
         raise InputError(meta_path, "lists no storage files", field="relative_file_paths")
@@ -174,7 +175,7 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")
 _FOOTER = struct.Struct("<BQQQI")
 _COMPRESSIONS = ("", "zstd", "lz4")
 _KNOWN_OPCODES = frozenset(int(op) for op in Opcode)
-_SUMMARY_RECORDS = {
+_SUMMARY_RECORDS: dict[Opcode, type[Schema] | type[Channel] | type[ChunkIndex] | type[Statistics]] = {
     Opcode.SCHEMA: Schema,
     Opcode.CHANNEL: Channel,
     Opcode.CHUNK_INDEX: ChunkIndex,
@@ -194,7 +195,8 @@ _PARSE_ERRORS = (
 
 
 class _Damage(Exception):
-    """A part of an MCAP file that cannot be read; ``offset`` is the file byte where it starts (None: nowhere in particular)."""
+    """A part of an MCAP file that cannot be read; ``offset`` is the file byte where it starts (None: nowhere in
+    particular)."""
 
     def __init__(self, offset: int | None, what: str):
         super().__init__(what)
@@ -297,9 +299,9 @@ class _McapFile:
     """One MCAP file, located record by record so that damage costs only the damaged part.
 
     With an intact summary (its CRC matches; in a file written without CRCs, every chunk index points at a
-    chunk record of the length it gives) the chunks come from the chunk index. Otherwise a linear scan of the data section finds them;
-    it steps over a damaged record by searching for the next well-formed chunk record (opcode, length and
-    fields that add up). Each chunk is then read on its own with its CRC checked, so a damaged chunk is
+    chunk record of the length it gives) the chunks come from the chunk index. Otherwise a linear scan of the data
+    section finds them; it steps over a damaged record by searching for the next well-formed chunk record (opcode,
+    length and fields that add up). Each chunk is then read on its own with its CRC checked, so a damaged chunk is
     skipped and every intact chunk after it is kept. Messages come in log-time order: chunks are opened
     in order of their first message and merged, so only overlapping chunks are held at once.
     """
@@ -397,7 +399,8 @@ class _McapFile:
         self.summary_ok = True
 
     def _chunk_at(self, offset: int, length: int | None = None) -> _ChunkHead:
-        """The fields of the chunk record at ``offset`` (checked for shape, not content); ``_Damage`` if none is there."""
+        """The fields of the chunk record at ``offset`` (checked for shape, not content); ``_Damage`` if none is
+        there."""
         m = self._map
         if not len(MCAP_MAGIC) <= offset <= self.size - _RECORD_HEAD.size:
             raise _Damage(offset, "no chunk record there (outside the file)")
@@ -626,7 +629,8 @@ class McapLog(DriveLog):
             self.close()
             raise InputError(f, f"could not be opened ({exc})") from None
         self._streams: list[StreamInfo] | None = None
-        #: byte offset of the first damage met (in ``truncated_file``, the earliest there), else None; reading goes on after it
+        #: byte offset of the first damage met (in ``truncated_file``, the earliest there), else None;
+        #: reading goes on after it
         self.truncated_at: int | None = None
         self.truncated_file: Path | None = None
         #: (file, byte offset or None, what) of every damaged part met, once each
@@ -721,16 +725,18 @@ class McapLog(DriveLog):
             if kind == StreamKind.OTHER or schema is None:
                 continue
             msgtype = ros2.short_type(schema.name)
-
-            def decode() -> list:
-                decoder = part.decoders.decoder_for(channel.message_encoding, schema)
-                if decoder is None:
-                    raise ValueError(f"no decoder for encoding {channel.message_encoding!r}")
-                return ros2.records_from_msg(decoder(message.data), msgtype, topic, i)
-
+            decode = partial(self._decode, part, schema, channel, message, msgtype, topic, i)
             records = self._records_or_skip(topic, i, decode)
             for rec in records:
                 yield Message(topic, kind, i, rec)
+
+    @staticmethod
+    def _decode(part: _McapFile, schema: Any, channel: Any, message: Any, msgtype: str, topic: str, index: int) -> list:
+        """The records of one message (raises on a payload that cannot be decoded)."""
+        decoder = part.decoders.decoder_for(channel.message_encoding, schema)
+        if decoder is None:
+            raise ValueError(f"no decoder for encoding {channel.message_encoding!r}")
+        return ros2.records_from_msg(decoder(message.data), msgtype, topic, index)
 
 
 # --- writer ---------------------------------------------------------------------------------------
@@ -793,7 +799,7 @@ class McapWriter:
         self._target = target
         target.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = target.with_name(target.name + ".partial")
-        self._fh = open(self._tmp, "wb")
+        self._fh = open(self._tmp, "wb")  # noqa: SIM115 - open for the writer's lifetime; close() and abort() close it
         self._writer = Ros2Writer(self._fh, chunk_size=chunk_size, compression=_COMPRESSION[compression])
         self._schemas: dict[str, Any] = {}
         self._sequence: Counter[str] = Counter()
@@ -871,16 +877,14 @@ class McapWriter:
             raise TypeError(f"cannot write {type(record).__name__} to MCAP")
         self._put(topic, msgtype, payload, record.stamp_ns, log_time_ns)
 
-    def write_transforms(
-        self, topic: str, transforms: list[FrameTransform], *, log_time_ns: int | None = None
-    ) -> None:
+    def write_transforms(self, topic: str, transforms: list[FrameTransform], *, log_time_ns: int | None = None) -> None:
         """One ``tf2_msgs/TFMessage`` holding several transforms (``/tf_static`` for extrinsics)."""
         if not transforms:
             raise ValueError("write_transforms needs at least one transform")
         stamp = min(t.stamp_ns for t in transforms)
         self._put(topic, "tf2_msgs/TFMessage", ros2.transforms_to_msg(transforms), stamp, log_time_ns)
 
-    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+    def add_metadata(self, name: str, data: Mapping[str, object]) -> None:
         self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
 
     def _finish_file(self) -> None:
@@ -947,7 +951,8 @@ class Rosbag2Writer(McapWriter):
     def metadata(self) -> dict:
         """The ``metadata.yaml`` document for what has been written so far."""
         start = int(self.first_log_ns or 0)
-        duration = int((self.last_log_ns - self.first_log_ns) if self.count else 0)
+        first, last = self.first_log_ns, self.last_log_ns  # both set by the first message
+        duration = int((last - first) if first is not None and last is not None else 0)
         topics = [
             {
                 "topic_metadata": {

@@ -55,6 +55,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from fractions import Fraction
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -187,10 +188,10 @@ def _gps_time_ns(gps: dict) -> int | None:
     hms = gps.get(GPS_TIMESTAMP)
     if not isinstance(hms, (tuple, list)) or len(hms) != 3:
         return None
-    parts = [_fraction(v) for v in hms]
-    if any(p is None or p < 0 for p in parts):
+    h, m, s = (_fraction(v) for v in hms)
+    if h is None or m is None or s is None or h < 0 or m < 0 or s < 0:
         return None
-    seconds = parts[0] * 3600 + parts[1] * 60 + parts[2]
+    seconds = h * 3600 + m * 60 + s
     return calendar.timegm(day.timetuple()) * 1_000_000_000 + round(seconds * 1_000_000_000)
 
 
@@ -258,6 +259,12 @@ class _Tags:
     alt_m: float | None = None
     sigma_m: float | None = None
     focal_px: tuple[float, float] | None = None  # upright (fx, fy)
+
+    @property
+    def stamp_ns(self) -> int:
+        """``time_ns`` once the folder-wide order has given every photo one."""
+        assert self.time_ns is not None, "photos are stamped by PhotoFolder._order"
+        return self.time_ns
 
 
 def _read_tags(path: Path, uere_m: float) -> _Tags:
@@ -372,11 +379,11 @@ class PhotoFolder(FolderLayoutLog):
 
         first = self.photos[0]
         self.layout = ImageLayout.of(read_photo(first.path))
-        p = topic_prefix.rstrip("/")
+        prefix = topic_prefix.rstrip("/")
         self.topics = {
-            StreamKind.CAMERA_INFO: f"{p}/{camera}/camera_info",
-            StreamKind.IMAGE: f"{p}/{camera}/image",
-            StreamKind.GPS: f"{p}/gps/fix",
+            StreamKind.CAMERA_INFO: f"{prefix}/{camera}/camera_info",
+            StreamKind.IMAGE: f"{prefix}/{camera}/image",
+            StreamKind.GPS: f"{prefix}/gps/fix",
         }
         n_fix = sum(ph.fix is not None for ph in self.photos)
         counts = {StreamKind.CAMERA_INFO: len(self.photos), StreamKind.IMAGE: len(self.photos), StreamKind.GPS: n_fix}
@@ -428,9 +435,9 @@ class PhotoFolder(FolderLayoutLog):
             )
         ordered = sorted(tags, key=lambda t: (t.time_ns, t.path.name))
         nudged = 0
-        for prev, t in zip(ordered, ordered[1:]):
-            if t.time_ns <= prev.time_ns:
-                t.time_ns, nudged = prev.time_ns + 1, nudged + 1
+        for prev, t in pairwise(ordered):  # none is timeless here
+            if t.stamp_ns <= prev.stamp_ns:
+                t.time_ns, nudged = prev.stamp_ns + 1, nudged + 1
         if nudged:
             self._warn(
                 f"{nudged} of {n} photos have the same time as the one before: each is stamped 1 ns after it, "
@@ -446,7 +453,8 @@ class PhotoFolder(FolderLayoutLog):
         if other:
             (w, h), mode = keep
             self._warn(
-                f"skipped {len(other)} of {len(tags)} photos that are not {w}x{h} {mode} like the others: {_names(other)}"
+                f"skipped {len(other)} of {len(tags)} photos that are not {w}x{h} {mode} like the others: "
+                f"{_names(other)}"
             )
         return [t for t in tags if (t.size, t.mode) == keep]
 
@@ -500,13 +508,13 @@ class PhotoFolder(FolderLayoutLog):
         for t in tags:
             fx, fy = t.focal_px if t.focal_px is not None else (DEFAULT_FOCAL_FACTOR * max(w, h),) * 2
             K = np.array([[fx, 0.0, (w - 1) / 2.0], [0.0, fy, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-            info = CameraInfo(self.camera, w, h, K, "plumb_bob", np.zeros(5), t.time_ns)
+            info = CameraInfo(self.camera, w, h, K, "plumb_bob", np.zeros(5), t.stamp_ns)
             fix = None
             if t.latlon is not None:
                 cov = None if t.sigma_m is None else np.eye(3) * t.sigma_m**2
                 alt = fill_alt if t.alt_m is None else t.alt_m
-                fix = GpsFix(t.time_ns, t.latlon[0], t.latlon[1], alt, GpsStatus.FIX, cov)
-            photos.append(Photo(t.path, t.time_ns, info, fix))
+                fix = GpsFix(t.stamp_ns, t.latlon[0], t.latlon[1], alt, GpsStatus.FIX, cov)
+            photos.append(Photo(t.path, t.stamp_ns, info, fix))
         return photos
 
     # --- messages --------------------------------------------------------------------------------

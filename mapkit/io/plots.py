@@ -177,7 +177,7 @@ def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = []
+    rows: list[tuple[str, np.ndarray]] = []
     for split in ("train", "test"):
         t = dataset.triplets(split)
         if len(t):
@@ -189,7 +189,7 @@ def triplet_examples(path: Path, dataset, n: int = 4, seed: int = 0) -> Path:
     names = dataset.manifest["sessions"]
     for r, (split, ids) in enumerate(rows):
         grids = dataset.grids(ids, "occupancy")
-        for c, (label, g) in enumerate(zip(("anchor", "positive", "negative"), grids)):
+        for c, (label, g) in enumerate(zip(("anchor", "positive", "negative"), grids, strict=True)):
             ax = axes[r, c]
             ax.imshow(g.sum(axis=2).T, origin="lower", cmap="magma")
             sess = names[int(dataset.table["session"][ids[c]])]

@@ -251,12 +251,14 @@ class RobotCar(FolderLayoutLog):
 
         def on_disk() -> Iterator[tuple[int, Path]]:
             paths = [p for p in folder.iterdir() if p.suffix == suffix]
-            stamps = {p: _microseconds(p.stem) for p in paths}
-            for p, stamp in stamps.items():
+            stamps: dict[Path, int] = {}
+            for p in paths:
+                stamp = _microseconds(p.stem)
                 if stamp is None:
                     raise InputError(
                         p, f"file name is not a timestamp in microseconds ({folder.name}/<timestamp_us>{suffix})"
                     )
+                stamps[p] = stamp
             for p in sorted(paths, key=stamps.__getitem__):
                 yield stamps[p], p
 
@@ -282,7 +284,8 @@ class RobotCar(FolderLayoutLog):
         if not any(p.suffix == ".bin" for p in folder.iterdir()):
             if any(p.suffix == ".png" for p in folder.iterdir()):
                 warnings.warn(
-                    f"{folder}: raw Velodyne .png scans are not read (use the SDK's .bin point clouds); no {name} stream",
+                    f"{folder}: raw Velodyne .png scans are not read (use the SDK's .bin point clouds); no {name} "
+                    "stream",
                     InputWarning,
                     stacklevel=3,
                 )
@@ -341,7 +344,7 @@ class RobotCar(FolderLayoutLog):
             enu = v[:, :3] * np.array([1.0, 1.0, -1.0])
             gamma = grid_convergence_rad(v[:, 6], v[:, 7], origin.zone) if self.grid_convergence else np.zeros(len(v))
             poses = utm_local_from_ins(enu, v[:, 3], v[:, 4], v[:, 5], gamma, origin_enu)
-            for row, T in zip(chunk, poses):
+            for row, T in zip(chunk, poses, strict=True):
                 yield PoseSample(_stamp_ns(row, "timestamp"), "utm_local", "ins", T, source="ins")
 
     def _vo_poses(self) -> Iterator[PoseSample]:
@@ -352,7 +355,7 @@ class RobotCar(FolderLayoutLog):
         for chunk in _chunks(self.vo_table.rows()):
             v = np.array([[row.number(c) for c in VO_COLUMNS[2:]] for row in chunk])
             destination_from_source = make_pose(rotation_from_rpy(v[:, 3], v[:, 4], v[:, 5]), v[:, :3])
-            for row, relative in zip(chunk, destination_from_source):
+            for row, relative in zip(chunk, destination_from_source, strict=True):
                 source_ns, destination_ns = _stamp_ns(row, "source_timestamp"), _stamp_ns(row, "destination_timestamp")
                 if previous_stamp is None:
                     previous_stamp = destination_ns
@@ -365,8 +368,8 @@ class RobotCar(FolderLayoutLog):
                 yield PoseSample(source_ns, "vo_origin", "vehicle", T, source="odometry")
         if breaks:
             warnings.warn(
-                f"{self.vo_table.path}: {len(breaks)} rows (first at line {breaks[0]}) do not continue from the previous "
-                "row's source_timestamp; chained anyway, as the RobotCar SDK does",
+                f"{self.vo_table.path}: {len(breaks)} rows (first at line {breaks[0]}) do not continue from the "
+                "previous row's source_timestamp; chained anyway, as the RobotCar SDK does",
                 InputWarning,
                 stacklevel=2,
             )

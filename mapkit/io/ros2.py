@@ -203,9 +203,7 @@ _IMAGE_DTYPES = {
 }
 
 
-def image_to_msg(
-    frame: CameraFrame, *, compress: str | None = None, frame_id: str | None = None
-) -> tuple[str, dict]:
+def image_to_msg(frame: CameraFrame, *, compress: str | None = None, frame_id: str | None = None) -> tuple[str, dict]:
     """(msgtype, message dict) of a frame: raw ``Image`` or, with ``compress``, ``CompressedImage``."""
     img = np.ascontiguousarray(frame.image)
     header = _header(frame.stamp_ns, frame_id or frame.camera)
@@ -359,6 +357,8 @@ def lidar_to_msg(scan: LidarScan) -> dict:
     if scan.ring is not None:
         cols.append(("ring", "<u2"))
     dt = np.dtype(cols)
+    layout = dt.fields
+    assert layout is not None  # a structured dtype has fields
     arr = np.empty(n, dtype=dt)
     xyz = np.asarray(scan.points_xyz)
     arr["x"], arr["y"], arr["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
@@ -371,7 +371,7 @@ def lidar_to_msg(scan: LidarScan) -> dict:
     fields = [
         {
             "name": name,
-            "offset": int(dt.fields[name][1]),
+            "offset": int(layout[name][1]),
             "datatype": _DTYPE_POINTFIELD[np.dtype(t).str[1:]],
             "count": 1,
         }
@@ -443,7 +443,9 @@ def lidar_from_msg(msg: Any, source: str) -> LidarScan:
 
 def _xyz_of(arr: np.ndarray, dt: np.dtype, buf, n: int) -> np.ndarray:
     """(N, 3) float32 copy of x, y, z: one block copy per point when they are adjacent (the usual layout)."""
-    (tx, ox), (ty, oy), (tz, oz) = (dt.fields[c][:2] for c in "xyz")
+    layout = dt.fields
+    assert layout is not None  # the dtype of a PointCloud2 is structured
+    (tx, ox), (ty, oy), (tz, oz) = (layout[c][:2] for c in "xyz")
     if tx == ty == tz and tx.shape == () and oy == ox + tx.itemsize and oz == oy + tx.itemsize:
         # an opaque 3*itemsize block per point copies 2x faster than numpy's strided (N, 3) loop
         block = np.dtype(
@@ -475,7 +477,7 @@ def imu_to_msg(s: ImuSample) -> dict:
     cov_o = [-1.0] + [0.0] * 8 if unknown else [0.0] * 9  # ROS: covariance[0] = -1 means no orientation
     return {
         "header": _header(s.stamp_ns, s.frame_id),
-        "orientation": _quat(np.array([1.0, 0, 0, 0]) if unknown else s.orientation_quat_wxyz),
+        "orientation": _quat(np.array([1.0, 0, 0, 0]) if s.orientation_quat_wxyz is None else s.orientation_quat_wxyz),
         "orientation_covariance": cov_o,
         "angular_velocity": _vec(s.angular_velocity_rad_s),
         "angular_velocity_covariance": [0.0] * 9,

@@ -18,6 +18,7 @@ import struct
 import warnings
 from collections import Counter
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -104,9 +105,12 @@ class RosbagLog(DriveLog):
         #: True for a ROS 1 bag, False for a rosbag2 folder
         self.is_ros1 = default == Stores.ROS1_NOETIC
         standard = get_typestore(default)
-        self._reader: AnyReader | None = None
         try:
-            self._reader = AnyReader([self.path], default_typestore=standard)
+            reader = AnyReader([self.path], default_typestore=standard)
+        except _READ_ERRORS as exc:
+            raise self._error(exc) from None
+        self._reader: AnyReader = reader
+        try:
             self._reader.open()
             self._top_up_types(standard)
             self._streams = self._read_streams()
@@ -193,8 +197,10 @@ class RosbagLog(DriveLog):
             topic = conn.topic
             i = index[topic]
             index[topic] += 1
-            records = self._records_or_skip(
-                topic, i, lambda: ros2.records_from_msg(self._reader.deserialize(raw, conn.msgtype), msgtype, topic, i)
-            )
+            records = self._records_or_skip(topic, i, partial(self._decode, raw, conn, msgtype, topic, i))
             for rec in records:
                 yield Message(topic, kinds[topic], i, rec)
+
+    def _decode(self, raw: bytes, conn: Any, msgtype: str, topic: str, index: int) -> list:
+        """The records of one message (raises on a payload that cannot be deserialised)."""
+        return ros2.records_from_msg(self._reader.deserialize(raw, conn.msgtype), msgtype, topic, index)

@@ -89,9 +89,10 @@ def write_tum(path: str | Path, stamps_ns: np.ndarray, world_from_body: np.ndarr
     q = matrix_to_quat_wxyz(world_from_body[:, :3, :3])
     t = world_from_body[:, :3, 3]
     lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for s, ti, qi in zip(np.asarray(stamps_ns, np.int64), t, q):
+    for s, ti, qi in zip(np.asarray(stamps_ns, np.int64), t, q, strict=True):
         lines.append(
-            f"{s // 1_000_000_000}.{s % 1_000_000_000:09d} {ti[0]:.6f} {ti[1]:.6f} {ti[2]:.6f} {qi[1]:.9f} {qi[2]:.9f} {qi[3]:.9f} {qi[0]:.9f}"
+            f"{s // 1_000_000_000}.{s % 1_000_000_000:09d} {ti[0]:.6f} {ti[1]:.6f} {ti[2]:.6f} {qi[1]:.9f} {qi[2]:.9f} "
+            f"{qi[3]:.9f} {qi[0]:.9f}"
         )
     return atomic_write_text(path, "\n".join(lines) + "\n")
 

@@ -103,8 +103,8 @@ class TrainConfig(MapkitConfig):
         4,
         ge=1,
         description="Passes over T (not in the paper). 4 x 20,000 triplets take about an hour on 2 CPU cores "
-        "at the ~22 triplets/s of bench/bench_cnn.py; the demo budget used a 2,000-triplet set for 5 epochs. Growing it "
-        "on a finished run continues training from its last checkpoint.",
+        "at the ~22 triplets/s of bench/bench_cnn.py; the demo budget used a 2,000-triplet set for 5 epochs. Growing "
+        "it on a finished run continues training from its last checkpoint.",
     )
     hard_negatives: bool = Field(True, description="Hard-negative cycling (Sec. 4.2, Fig. 4b); off for the ablation.")
     hard_every_epochs: int = Field(
@@ -242,11 +242,11 @@ def _checkpoints(folder: Path) -> list[Path]:
 
 def _save_checkpoint(torch, folder: Path, epoch: int, state: dict, keep: int) -> Path:
     path = folder / CHECKPOINTS / f"epoch-{epoch:04d}.pt"
-    with atomic_path(path) as tmp:  # a killed run leaves a .partial, never a truncated epoch-*.pt
-        with open(tmp, "wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
+    # a killed run leaves a .partial, never a truncated epoch-*.pt
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
     for old in _checkpoints(folder)[:-keep]:
         old.unlink(missing_ok=True)
     return path
@@ -297,7 +297,7 @@ def _cycle_hard(
     desc = torch_describe(model, grids.get(need), cfg.model.form, cfg.describe_batch)
     pool_rows = np.searchsorted(need, pool)
     anchor_rows = np.searchsorted(need, pairs[:, 0])
-    xy_of = dict(zip(cand_ids.tolist(), range(len(cand_ids))))
+    xy_of = dict(zip(cand_ids.tolist(), range(len(cand_ids)), strict=True))
     pool_xy = cand_xy[[xy_of[i] for i in pool]]
     anchor_xy = cand_xy[[xy_of[i] for i in pairs[:, 0]]]
     neg = hard_negatives(
@@ -436,7 +436,8 @@ def train_cnn(
                 "loss": float(np.sum(losses) / len(order)),
                 "active_fraction": active / len(order),
                 "train_s": train_s,
-                "train_cpu_s": train_cpu_s,  # CPU time of this process (all threads): steadier than wall on a shared machine
+                # CPU time of this process (all threads): steadier than wall on a shared machine
+                "train_cpu_s": train_cpu_s,
                 "triplets_per_s": len(order) / train_s if train_s > 0 else None,
             }
         )

@@ -46,11 +46,16 @@ from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
 Row4 = tuple[float, float, float, float]
 
+
+def _row4(row: np.ndarray, last: float) -> Row4:
+    return (float(row[0]), float(row[1]), float(row[2]), last)
+
+
 #: the default ``base_from_camera``: a camera looking straight ahead at the base's origin
 DEFAULT_BASE_FROM_CAMERA: tuple[Row4, Row4, Row4, Row4] = (
-    (*map(float, FORWARD_CAMERA_ROTATION[0]), 0.0),
-    (*map(float, FORWARD_CAMERA_ROTATION[1]), 0.0),
-    (*map(float, FORWARD_CAMERA_ROTATION[2]), 0.0),
+    _row4(FORWARD_CAMERA_ROTATION[0], 0.0),
+    _row4(FORWARD_CAMERA_ROTATION[1], 0.0),
+    _row4(FORWARD_CAMERA_ROTATION[2], 0.0),
     (0.0, 0.0, 0.0, 1.0),
 )
 
@@ -59,13 +64,13 @@ class LocalizeConfig(MapkitConfig):
     mcl: MclConfig = MclConfig()
     base_from_camera: tuple[Row4, Row4, Row4, Row4] | None = Field(
         None,
-        description="The rig's camera mount, a rigid 4x4 base_from_camera (base: x forward, y left, z up; camera: optical x right, "
-        "y down, z forward). The filter runs on the base pose, whose third Euler angle is the heading (MCVL Sec. IV-A's "
-        "covariances assume it); the database's camera poses are converted through this and the estimates back. None "
-        "(default): the mount the bundle recorded from its database sessions (mapkit build writes it), else a camera "
-        "looking straight ahead at the base origin (mapkit choice). A mount pitched a few degrees or offset from the true "
-        "one only tilts or shifts the base the filter tracks (the round trip back to the camera is exact); a camera turned "
-        "about its optical axis or looking steeply down needs its true mount.",
+        description="The rig's camera mount, a rigid 4x4 base_from_camera (base: x forward, y left, z up; camera: "
+        "optical x right, y down, z forward). The filter runs on the base pose, whose third Euler angle is the heading "
+        "(MCVL Sec. IV-A's covariances assume it); the database's camera poses are converted through this and the "
+        "estimates back. None (default): the mount the bundle recorded from its database sessions (mapkit build writes "
+        "it), else a camera looking straight ahead at the base origin (mapkit choice). A mount pitched a few degrees "
+        "or offset from the true one only tilts or shifts the base the filter tracks (the round trip back to the "
+        "camera is exact); a camera turned about its optical axis or looking steeply down needs its true mount.",
     )
     top_k: int = Field(20, ge=1, description="Retrieved database images per query (MCVL IV-A: R = 20).")
     bandwidth_m: float = Field(
@@ -127,7 +132,11 @@ def write_run_trajectories(out: Path, stamps_ns: np.ndarray, r: LocalizationRun)
     ``retrieval_tum.txt``; queries where the filter has no estimate yet are left out of both), as
     evo and ``mapkit view`` read them."""
     ok = np.isfinite(r.filter_position[:, 0])
-    for key, name in (("filter", "poses_tum.txt"), ("retrieval", "retrieval_tum.txt")):
+    files: tuple[tuple[Literal["retrieval", "filter"], str], ...] = (
+        ("filter", "poses_tum.txt"),
+        ("retrieval", "retrieval_tum.txt"),
+    )
+    for key, name in files:
         write_tum(out / name, np.asarray(stamps_ns, np.int64)[ok], r.poses(key)[ok])
     return out
 

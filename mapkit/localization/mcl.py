@@ -15,12 +15,13 @@ third. For an upright base, ``Rx(a) Ry(b) Rz(c)`` has small ``a, b`` and ``c`` i
 ``b`` never comes near the gimbal lock at +-90 deg. A camera's optical frame (x right, y down, z
 forward) is the wrong state: its heading lands in the second angle, which reaches +-90 deg
 (gimbal lock) whenever the vehicle drives east or west and gets the pitch's tiny variances, while
-the heading noise goes to the optical roll. Retrieval gives camera poses (the database's ``world_from_cam``), so the caller
-converts them with the rig's mount, :class:`CameraMount` (``base_from_camera``), before the update
-and converts the estimates back (:mod:`mapkit.localization.localize` does both). On a 1.4 km
-route with 90 deg turns and camera-pose measurements 2 m per axis and 0.01 rad off (3.2 m, 0.9 deg
-mean error), the paper's filter errs by 15-16 m and 15-16 deg on the optical state and by
-2.3-2.4 m and 0.65 deg on the base state (3 seeds; tests/test_mcl.py).
+the heading noise goes to the optical roll. Retrieval gives camera poses (the database's
+``world_from_cam``), so the caller converts them with the rig's mount, :class:`CameraMount`
+(``base_from_camera``), before the update and converts the estimates back
+(:mod:`mapkit.localization.localize` does both). On a 1.4 km route with 90 deg turns and camera-pose
+measurements 2 m per axis and 0.01 rad off (3.2 m, 0.9 deg mean error), the paper's filter errs by
+15-16 m and 15-16 deg on the optical state and by 2.3-2.4 m and 0.65 deg on the base state (3 seeds;
+tests/test_mcl.py).
 
 Conventions
 -----------
@@ -83,15 +84,18 @@ class OdometryMotionConfig(MapkitConfig):
 
     enabled: bool = Field(
         False,
-        description="Beyond the paper (MCVL uses eqs. 1-2 only): drive the motion model by odometry when the caller supplies it.",
+        description="Beyond the paper (MCVL uses eqs. 1-2 only): drive the motion model by odometry when the caller "
+        "supplies it.",
     )
     translation_sigma_m: Var3 = Field(
         (0.2, 0.2, 0.05),
-        description="Beyond the paper (mapkit choice): std of the noise added to the odometry translation, per step, in the base frame: x forward, y left, z up (m).",
+        description="Beyond the paper (mapkit choice): std of the noise added to the odometry translation, per step, "
+        "in the base frame: x forward, y left, z up (m).",
     )
     rotation_sigma_rad: Var3 = Field(
         (0.002, 0.002, 0.01),
-        description="Beyond the paper (mapkit choice): std of the noise added to the odometry rotation, per step, as XYZ Euler angles of the base: roll, pitch, heading (rad).",
+        description="Beyond the paper (mapkit choice): std of the noise added to the odometry rotation, per step, as "
+        "XYZ Euler angles of the base: roll, pitch, heading (rad).",
     )
 
 
@@ -100,21 +104,25 @@ class RecoveryConfig(MapkitConfig):
 
     enabled: bool = Field(
         False,
-        description="Beyond the paper (MCVL has no recovery): re-inject particles when the measurement stays far from all of them.",
+        description="Beyond the paper (MCVL has no recovery): re-inject particles when the measurement stays far from "
+        "all of them.",
     )
     distance_m: PositiveFloat = Field(
         25.0,
-        description="Beyond the paper (mapkit choice, ~11 sigma of the position part of Sigma_o): the track counts as lost at a step when no particle is this close to the measured position (m).",
+        description="Beyond the paper (mapkit choice, ~11 sigma of the position part of Sigma_o): the track counts as "
+        "lost at a step when no particle is this close to the measured position (m).",
     )
     consecutive_steps: PositiveInt = Field(
         3,
-        description="Beyond the paper (mapkit choice): re-inject after this many lost steps in a row (one outlier retrieval must not reset the filter).",
+        description="Beyond the paper (mapkit choice): re-inject after this many lost steps in a row (one outlier "
+        "retrieval must not reset the filter).",
     )
     fraction: float = Field(
         0.2,
         gt=0.0,
         le=1.0,
-        description="Beyond the paper (mapkit choice): share of the particles replaced by draws from the initial distribution around the measurement.",
+        description="Beyond the paper (mapkit choice): share of the particles replaced by draws from the initial "
+        "distribution around the measurement.",
     )
 
 
@@ -131,39 +139,47 @@ class MultiHypothesisConfig(MapkitConfig):
 
     enabled: bool = Field(
         False,
-        description="Beyond the paper (MCVL weighs by the largest mean-shift cluster, eq. 3): weigh by a mixture over all retrieved poses.",
+        description="Beyond the paper (MCVL weighs by the largest mean-shift cluster, eq. 3): weigh by a mixture over "
+        "all retrieved poses.",
     )
     kernel_position_cov_m2: Var3 | None = Field(
         None,
-        description="Beyond the paper: diagonal position covariance of each hit's kernel, m^2; None = the position part of Sigma_o (MCVL Sec. IV-A).",
+        description="Beyond the paper: diagonal position covariance of each hit's kernel, m^2; None = the position "
+        "part of Sigma_o (MCVL Sec. IV-A).",
     )
     kernel_rotation_sigma_rad: PositiveFloat | None = Field(
         None,
-        description="Beyond the paper: std of the (isotropic, geodesic) rotation part of each hit's kernel, rad; None = the square root of Sigma_o's largest Euler variance (MCVL Sec. IV-A: the heading's, 1e-3 rad^2).",
+        description="Beyond the paper: std of the (isotropic, geodesic) rotation part of each hit's kernel, rad; None "
+        "= the square root of Sigma_o's largest Euler variance (MCVL Sec. IV-A: the heading's, 1e-3 rad^2).",
     )
     hit_weighting: Literal["uniform", "rank", "distance"] = Field(
         "uniform",
-        description="Beyond the paper (mapkit choice): prior weight pi_j of the hits: equal, exp(-rank/scale), or exp(-(d_j - d_0)/scale) for descriptor distances d.",
+        description="Beyond the paper (mapkit choice): prior weight pi_j of the hits: equal, exp(-rank/scale), or "
+        "exp(-(d_j - d_0)/scale) for descriptor distances d.",
     )
     hit_weight_scale: PositiveFloat = Field(
         5.0,
-        description="Beyond the paper: the scale of hit_weighting 'rank' (ranks) or 'distance' (squared L2 between unit descriptors).",
+        description="Beyond the paper: the scale of hit_weighting 'rank' (ranks) or 'distance' (squared L2 between "
+        "unit descriptors).",
     )
     floor: float = Field(
         0.05,
         gt=0.0,
         lt=1.0,
-        description="Beyond the paper (mapkit choice): uniform floor of the likelihood for 'every hit is wrong', relative to a kernel's peak of 1.",
+        description="Beyond the paper (mapkit choice): uniform floor of the likelihood for 'every hit is wrong', "
+        "relative to a kernel's peak of 1.",
     )
     init_from_hits: bool = Field(
         True,
-        description="Beyond the paper: draw the initial particles from the mixture over the first query's hits (MCVL: a Gaussian around the first z_t).",
+        description="Beyond the paper: draw the initial particles from the mixture over the first query's hits (MCVL: "
+        "a Gaussian around the first z_t).",
     )
     reinject_below: float = Field(
         0.0,
         ge=0.0,
         lt=1.0,
-        description="Beyond the paper: count a step as lost when the cloud's support on its best hit, max_j sum_i w_i K_ij (see cloud_support), is below this (0 = never re-inject).",
+        description="Beyond the paper: count a step as lost when the cloud's support on its best hit, max_j sum_i w_i "
+        "K_ij (see cloud_support), is below this (0 = never re-inject).",
     )
     reinject_consecutive_steps: PositiveInt = Field(
         3, description="Beyond the paper: re-inject after this many lost steps in a row."
@@ -172,7 +188,8 @@ class MultiHypothesisConfig(MapkitConfig):
         0.1,
         gt=0.0,
         le=1.0,
-        description="Beyond the paper: share of the particles, the least likely under the current hits, replaced by draws from the mixture over those hits.",
+        description="Beyond the paper: share of the particles, the least likely under the current hits, replaced by "
+        "draws from the mixture over those hits.",
     )
 
 
@@ -191,28 +208,34 @@ class MclConfig(MapkitConfig):
     )
     init_euler_cov_rad2: Var3 = Field(
         (0.001, 0.001, 1.0),
-        description="Diagonal covariance of the initial Euler angles (roll, pitch, heading of the base) around the first measurement, rad^2 (MCVL Sec. IV-A: large on the heading only).",
+        description="Diagonal covariance of the initial Euler angles (roll, pitch, heading of the base) around the "
+        "first measurement, rad^2 (MCVL Sec. IV-A: large on the heading only).",
     )
     velocity_mean_m: Vec3 = Field(
         (0.1, 0.1, 0.01),
-        description="mu_v, mean linear velocity per step, m (MCVL Sec. IV-A; world frame as in eq. 2, x east, y north, z up in mapkit's ENU).",
+        description="mu_v, mean linear velocity per step, m (MCVL Sec. IV-A; world frame as in eq. 2, x east, y north, "
+        "z up in mapkit's ENU).",
     )
     velocity_cov_m2: Var3 = Field((1.0, 1.0, 0.01), description="Sigma_v diagonal, m^2 per step (MCVL Sec. IV-A).")
     velocity_frame: Literal["world", "body"] = Field(
         "world",
-        description="Frame of v: 'world' adds it to r as eq. 2 does (MCVL Sec. III-A); 'body' rotates it by the particle's base orientation first, x forward (mapkit option).",
+        description="Frame of v: 'world' adds it to r as eq. 2 does (MCVL Sec. III-A); 'body' rotates it by the "
+        "particle's base orientation first, x forward (mapkit option).",
     )
     angular_velocity_mean_rad: Vec3 = Field(
         (0.001, 0.00001, 0.01),
-        description="mu_psi, mean Euler increment per step, rad: roll, pitch, heading of the base, composed in the base frame (MCVL Sec. IV-A, eq. 2).",
+        description="mu_psi, mean Euler increment per step, rad: roll, pitch, heading of the base, composed in the "
+        "base frame (MCVL Sec. IV-A, eq. 2).",
     )
     angular_velocity_cov_rad2: Var3 = Field(
         (0.0001, 0.00001, 0.01),
-        description="Sigma_psi diagonal, rad^2 per step: roll, pitch, heading (MCVL Sec. IV-A; the authors' code draws the second angle with std 1e-5, i.e. variance 1e-10).",
+        description="Sigma_psi diagonal, rad^2 per step: roll, pitch, heading (MCVL Sec. IV-A; the authors' code draws "
+        "the second angle with std 1e-5, i.e. variance 1e-10).",
     )
     measurement_cov: Var6 = Field(
         (5.0, 5.0, 5.0, 0.0001, 0.0001, 0.001),
-        description="Sigma_o diagonal: position m^2, then the base's roll, pitch, heading rad^2 (MCVL Sec. IV-A, eq. 3; the authors' code uses (20, 20, 20, 0.001, 0.001, 0.01) on the 10 km RobotCar route).",
+        description="Sigma_o diagonal: position m^2, then the base's roll, pitch, heading rad^2 (MCVL Sec. IV-A, eq. "
+        "3; the authors' code uses (20, 20, 20, 0.001, 0.001, 0.01) on the 10 km RobotCar route).",
     )
     odometry: OdometryMotionConfig = Field(
         default_factory=OdometryMotionConfig, description="Beyond the paper: odometry-driven motion model (off)."
@@ -226,17 +249,20 @@ class MclConfig(MapkitConfig):
     )
     estimate: Literal["mean", "mode"] = Field(
         "mean",
-        description="Pose estimate: 'mean' of the weighted particles (MCVL Sec. III-C); 'mode' = beyond the paper: the mean of the particles within mode_radius_m of the densest place.",
+        description="Pose estimate: 'mean' of the weighted particles (MCVL Sec. III-C); 'mode' = beyond the paper: the "
+        "mean of the particles within mode_radius_m of the densest place.",
     )
     mode_radius_m: PositiveFloat = Field(
         10.0,
-        description="Beyond the paper (mapkit choice: ~4.5 position stds of Sigma_o, narrower than the tens of metres between wrong hypotheses): radius of the 'mode' estimate and its grid cell, m.",
+        description="Beyond the paper (mapkit choice: ~4.5 position stds of Sigma_o, narrower than the tens of metres "
+        "between wrong hypotheses): radius of the 'mode' estimate and its grid cell, m.",
     )
     resample_min_ess_fraction: float = Field(
         1.0,
         gt=0.0,
         le=1.0,
-        description="Resample when the effective sample size is at most this share of N; 1 = every step (MCVL Algorithm 1); below 1, beyond the paper: weights carry over the steps in between.",
+        description="Resample when the effective sample size is at most this share of N; 1 = every step (MCVL "
+        "Algorithm 1); below 1, beyond the paper: weights carry over the steps in between.",
     )
 
 
@@ -670,13 +696,18 @@ class MonteCarloLocalizer:
         if mh.enabled and hypotheses is None and measurement is not None:
             hypotheses = PoseHypotheses.from_measurement(measurement)
         observed = measurement is not None or hypotheses is not None
+        # from here on, an observed step has hypotheses when the multi-hypothesis model is on
+        # (the measurement stands in for them) and a measurement when it is off (hypotheses are
+        # refused above): the asserts below state it for the type checker
         if self._particles is None:
             if not observed:
                 return None
             if mh.enabled and mh.init_from_hits:
+                assert hypotheses is not None
                 self._particles = sample_hypotheses(hypotheses, cfg, self.rng)
             else:
                 if measurement is None:
+                    assert hypotheses is not None
                     best = int(np.argmax(hypotheses.weights))
                     measurement = Measurement.from_pose(hypotheses.translations[best], hypotheses.rotations[best])
                 self._particles = init_particles(measurement, cfg, self.rng)
@@ -685,12 +716,14 @@ class MonteCarloLocalizer:
 
         particles = predict(self._particles, cfg, self.rng, odometry)
         prior = self.weights
+        assert prior is not None  # the particles exist
         if not observed:
             self._particles = particles
             return self._estimate(particles, prior, False)
 
         n_new = 0
         if mh.enabled:
+            assert hypotheses is not None
             L, K = mixture_likelihood(particles, hypotheses, cfg, return_kernel=True)
             if mh.reinject_below > 0:
                 self._lost_steps = self._lost_steps + 1 if cloud_support(prior, K) < mh.reinject_below else 0
@@ -710,6 +743,7 @@ class MonteCarloLocalizer:
                     self._lost_steps = 0
             log_w = np.log(prior) + np.log(L)
         else:
+            assert measurement is not None
             if cfg.recovery.enabled:
                 nearest_m = np.sqrt(np.min(np.sum((particles.positions - measurement.translation) ** 2, axis=1)))
                 self._lost_steps = self._lost_steps + 1 if nearest_m > cfg.recovery.distance_m else 0

@@ -41,7 +41,8 @@ class MotionEstimate:
             "rate_hz": self.rate_hz,
             "steps": self.steps,
             "drives": self.drives,
-            "source": "training drives' base trajectories sampled at the query rate (MCVL Sec. III-A: estimated from training data)",
+            "source": "training drives' base trajectories sampled at the query rate (MCVL Sec. III-A: estimated from "
+            "training data)",
         }
 
 
@@ -77,7 +78,11 @@ def estimate_motion_model(
     mean = d.mean(axis=0)
     var = np.maximum(d.var(axis=0), min_variance_m2)
     return MotionEstimate(
-        tuple(float(x) for x in mean), tuple(float(x) for x in var), float(rate_hz), int(len(d)), drives
+        (float(mean[0]), float(mean[1]), float(mean[2])),
+        (float(var[0]), float(var[1]), float(var[2])),
+        float(rate_hz),
+        int(len(d)),
+        drives,
     )
 
 

@@ -33,7 +33,7 @@ import json
 import logging
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 from fnmatch import fnmatchcase
 from functools import partial
@@ -76,6 +76,7 @@ from mapkit.mapping.factor_graph import (
     fuse_session,
     loop_counts,
 )
+from mapkit.mapping.gps_align import Mode as AlignMode
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
 from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
@@ -131,9 +132,9 @@ class GeorefConfig(MapkitConfig):
 class ExtrinsicsConfig(MapkitConfig):
     assume_identity: list[str] = Field(
         default_factory=list,
-        description="Sensor frames (a NavSatFix's, a PointCloud2's, a camera's frame_id) that the log's tf may leave unlinked "
-        "to the trajectory's frame: each is then taken as mounted at it (the identity), with one warning. Any other "
-        "unlinked sensor is an error: a guessed mount moves the map by the lever arm, or turns it.",
+        description="Sensor frames (a NavSatFix's, a PointCloud2's, a camera's frame_id) that the log's tf may leave "
+        "unlinked to the trajectory's frame: each is then taken as mounted at it (the identity), with one warning. Any "
+        "other unlinked sensor is an error: a guessed mount moves the map by the lever arm, or turns it.",
     )
 
 
@@ -173,9 +174,9 @@ class BuildConfig(MapkitConfig):
 
     sessions: dict[str, dict] = Field(
         default_factory=dict,
-        description="Per-session overrides: a glob of session names -> settings of this config for the sessions it matches, "
-        "applied in order. MCVL's database is its training drives at 2 Hz while its queries stay at 4 Hz (Sec. IV-B): "
-        "{'train-*': {imagedb: {min_interval_s: 0.5}}}.",
+        description="Per-session overrides: a glob of session names -> settings of this config for the sessions it "
+        "matches, applied in order. MCVL's database is its training drives at 2 Hz while its queries stay at 4 Hz "
+        "(Sec. IV-B): {'train-*': {imagedb: {min_interval_s: 0.5}}}.",
     )
 
     @field_validator("imagedb", mode="before")
@@ -304,7 +305,8 @@ class SessionBuilder:
         return {"log": self.log_fingerprint(), **{folder.name: stage_digest(folder) for folder in upstream}}
 
     def _is_finished(self, out: Path, h: str, inputs: dict) -> bool:
-        """The stage at ``out`` finished with this config and these inputs, its outputs unchanged (checked once per run)."""
+        """The stage at ``out`` finished with this config and these inputs, its outputs unchanged (checked once per
+        run)."""
         if out in self._finished:
             return True
         if is_done(out, h, inputs=inputs, verify=True):
@@ -457,10 +459,12 @@ class SessionBuilder:
         # Its gravity comes from GPS where the path bends enough; on a straight path the cameras'
         # mean up fixes the roll about it (see gps_align's module notes).
         up_map = None
+        mode: AlignMode
         if _camera_only(traj):
             mode = "sim3"
             up_map = camera_up_hint(traj.world_from_base)
         else:
+            assert g.mode != "given"  # handled at the top, by _given
             mode = "yaw" if g.mode == "auto" else g.mode
         try:
             al = align_to_gps(
@@ -506,8 +510,8 @@ class SessionBuilder:
         return al, frame
 
     def _fuse(self, traj: Trajectory, enu_from_map: np.ndarray) -> dict:
-        """The factor graph over the odometry, the fixes this stage kept and the IMU (odometry and GPS alone without one):
-        writes the fused trajectory and its covariances, returns the graph's stats."""
+        """The factor graph over the odometry, the fixes this stage kept and the IMU (odometry and GPS alone without
+        one): writes the fused trajectory and its covariances, returns the graph's stats."""
         with np.load(self.dirs.gps_fixes) as f:
             fixes = {k: f[k] for k in ("stamps_ns", "enu", "sigma_m")}
         _, kept, _ = self._screened_fixes()
@@ -536,7 +540,8 @@ class SessionBuilder:
             source=str(self.log_path),
             imu=imu,
         )
-        fused, loop_stats = fuse(), {}
+        fused = fuse()
+        loop_stats: dict = {}
         if self.cfg.georef.factor_graph.loop_closures:
             fused, loop_stats = self._close_loops(traj, fused, fuse)
         Trajectory(fused.stamps_ns, fused.enu_from_base, traj.source, frame="enu", body_frame=traj.body_frame).save(
@@ -549,9 +554,9 @@ class SessionBuilder:
         return {**fused.stats, **loop_stats, "imu": "preintegrated" if imu is not None else "no IMU stream"}
 
     def _close_loops(self, traj: Trajectory, fused: FusedTrajectory, fuse) -> tuple[FusedTrajectory, dict]:
-        """Loop closures (mapping/loop_closure.py) proposed on the fused trajectory and verified by ICP of local maps of the
-        LiDAR scans (read once, up to the last one needed), placed with it; with any accepted, the graph solved again with
-        them, from the solution without. Returns the trajectory and the loop step's stats."""
+        """Loop closures (mapping/loop_closure.py) proposed on the fused trajectory and verified by ICP of local maps of
+        the LiDAR scans (read once, up to the last one needed), placed with it; with any accepted, the graph solved
+        again with them, from the solution without. Returns the trajectory and the loop step's stats."""
         topics = resolve_topics(self.log, self.cfg.topics).get(StreamKind.LIDAR, [])
         if not topics:
             return fused, {"loops": "not used: no LiDAR stream"}
@@ -627,7 +632,7 @@ class SessionBuilder:
                 missing = ~np.isfinite(alt)
                 if missing.any():
                     fill = float(np.median(alt[~missing])) if (~missing).any() else 0.0
-                    fixes = [replace(f, alt_m=fill) if m else f for f, m in zip(fixes, missing)]
+                    fixes = [replace(f, alt_m=fill) if m else f for f, m in zip(fixes, missing, strict=True)]
                     screen.altitude_filled = int(missing.sum())
                     warnings.warn(
                         f"{self.log_path}: {int(missing.sum())} of {len(fixes)} GPS fixes have no altitude; "
@@ -725,6 +730,7 @@ class SessionBuilder:
         self._undecodable = 0
         for msg in self.log.messages(topics=image_topics):
             frame = msg.record
+            assert isinstance(frame, CameraFrame)  # the records of image topics
             if frame.camera != name:
                 continue
             poses, ok = interpolate_poses(traj.stamps_ns, traj.world_from_base, np.array([frame.stamp_ns], np.int64))
@@ -743,7 +749,7 @@ class SessionBuilder:
         """Whether the frame's image decodes (it is then cached on the frame); a warning names the
         first five that do not."""
         try:
-            frame.image
+            _ = frame.image  # decodes the image and caches it on the frame
         except InputError as exc:
             self._undecodable += 1
             if self._undecodable <= 5:
@@ -802,9 +808,11 @@ class SessionBuilder:
         # a spacing in metres means nothing at a reconstruction's arbitrary scale: every registered frame is kept
         dbc = self.cfg.imagedb
         min_spacing = dbc.min_spacing_m if metric else 0.0
-        # a tenth of an interval's slack for the jitter of real camera stamps (2 Hz from a 4 Hz camera is every other frame)
+        # a tenth of an interval's slack for the jitter of real camera stamps
+        # (2 Hz from a 4 Hz camera is every other frame)
         min_interval_ns, training_interval_ns = dbc.min_interval_s * 0.9e9, dbc.training_interval_s * 0.9e9
-        last, last_ns, last_stored_ns = None, None, None
+        last: np.ndarray | None = None  # position of the last database image
+        last_ns = last_stored_ns = 0  # stamps of the last database image and the last stored one: read once last is set
         db_id_of_frame: dict[int, int] = {}
         for i, frame, T in self.posed_frames(decode=False):  # only the frames kept are decoded
             in_db = last is None or (
@@ -942,7 +950,7 @@ def _log_bytes(log: Path) -> int:
 
 
 def build(
-    logs: list[str | Path],
+    logs: Sequence[str | Path],
     workspace: str | Path | Workspace,
     config: str | Path | None = None,
     progress: bool = True,
@@ -956,9 +964,9 @@ def build(
     (kiss-icp's registration is mostly sequential). The workspace frame is then fixed before
     they start, from the first log's first GPS fix (or its given origin), which is where a serial
     build puts it too."""
-    logs = [Path(p) for p in logs]
+    log_paths = [Path(p) for p in logs]
     names: dict[str, Path] = {}
-    for log in logs:
+    for log in log_paths:
         name = session_name(log)
         if name in names:
             raise InputError(
@@ -974,7 +982,7 @@ def build(
                 InputWarning,
                 stacklevel=2,
             )
-    builders = [SessionBuilder(log, workspace, cfg, progress=progress) for log in logs]
+    builders = [SessionBuilder(log, workspace, cfg, progress=progress) for log in log_paths]
     for b in builders:  # nothing is written before every log passed its checks
         try:
             b.preflight()
@@ -984,8 +992,8 @@ def build(
     ws.root.mkdir(parents=True, exist_ok=True)
     atomic_write_text(ws.build_config, dump_config(cfg))
     ex = executor or get_executor()
-    if ex.workers > 1 and len(logs) > 1:
-        summary = _build_parallel(logs, ws, cfg, ex, progress)
+    if ex.workers > 1 and len(log_paths) > 1:
+        summary = _build_parallel(log_paths, ws, cfg, ex, progress)
     else:
         summary = {b.name: b.run() for b in builders}
     write_json(ws.metrics, {"sessions": summary})
@@ -999,7 +1007,9 @@ def _build_parallel(logs: list[Path], ws: Workspace, cfg: BuildConfig, ex: Execu
     done: dict[int, dict] = {}
     try:
         for m, i in zip(
-            ex.map(_build_task, [logs[i] for i in order], shared=(ws, cfg), desc="build", label=lambda p: str(p)), order
+            ex.map(_build_task, [logs[i] for i in order], shared=(ws, cfg), desc="build", label=lambda p: str(p)),
+            order,
+            strict=True,
         ):
             done[i] = m
             if progress:
@@ -1054,7 +1064,8 @@ def format_build_summary(workspace: str | Path | Workspace) -> str:
         rows.append(
             f"  {name:<24} {str(tr.get('source', ''))[:22]:<22} {length_cell:>11} "
             f"{'yes' if ge.get('georeferenced') else 'NO':>7} {'' if rmse is None else f'{rmse:.2f}':>10} "
-            f"{ge.get('fixes_rejected', ''):>8} {mp.get('points', 0):>9} {db.get('images', 0):>7} {_session_seconds(ws, name):>7.1f}"
+            f"{ge.get('fixes_rejected', ''):>8} {mp.get('points', 0):>9} {db.get('images', 0):>7} "
+            f"{_session_seconds(ws, name):>7.1f}"
         )
         if ge.get("reason"):
             rows.append(f"    not georeferenced: {ge['reason']}")

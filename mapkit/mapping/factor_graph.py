@@ -84,7 +84,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import Field
@@ -93,6 +93,9 @@ from mapkit.core.config import MapkitConfig
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import interpolate_poses, invert_pose, rotation_angle_rad, skew
 from mapkit.mapping.gps_align import align_to_gps, associate_fixes
+
+if TYPE_CHECKING:
+    import gtsam
 
 #: a fix is an inlier of the solution below this whitened residual (chi-square, 3 dof, 99%; as gps_align's gate)
 GPS_INLIER_SIGMAS = 3.37
@@ -105,11 +108,12 @@ class FactorGraphConfig(MapkitConfig):
     keyframe_interval_s: float = Field(
         0.5, description="... or every this many seconds, whichever comes first (standing still)."
     )
-    # kiss-icp's error as the sum of a random walk of its frame in the distance driven and a per-pose jitter that does not
-    # accumulate (scan-to-map registration: the next scan is registered to the map, not to this pose). Per base axis:
-    # rotation about x (roll), y (pitch), z (yaw); translation along x (forward), y (left), z (up). Defaults: kiss-icp on
-    # tiny-sunny at 512 columns, fitted against the truth by bench/factor_graph_budget.py (robust spread over 0.5-32 m steps,
-    # start and final braking left out); tiny-night and tiny-rainy, not used for the choice, fit within a factor 1.6.
+    # kiss-icp's error as the sum of a random walk of its frame in the distance driven and a per-pose jitter that does
+    # not accumulate (scan-to-map registration: the next scan is registered to the map, not to this pose). Per base
+    # axis: rotation about x (roll), y (pitch), z (yaw); translation along x (forward), y (left), z (up). Defaults:
+    # kiss-icp on tiny-sunny at 512 columns, fitted against the truth by bench/factor_graph_budget.py (robust spread
+    # over 0.5-32 m steps, start and final braking left out); tiny-night and tiny-rainy, not used for the choice, fit
+    # within a factor 1.6.
     odom_rotation_walk_rad_per_sqrt_m: tuple[float, float, float] = Field(
         (1.6e-4, 6e-5, 9e-5), description="Odometry drift, rotation per axis: sigma over d metres = this * sqrt(d)."
     )
@@ -124,7 +128,8 @@ class FactorGraphConfig(MapkitConfig):
     )
     gps_robust: Literal["cauchy", "huber", "none"] = Field(
         "cauchy",
-        description="Robust loss on GPS fixes: Cauchy (redescending: multipath jumps of several metres barely pull), Huber, or none.",
+        description="Robust loss on GPS fixes: Cauchy (redescending: multipath jumps of several metres barely pull), "
+        "Huber, or none.",
     )
     gps_robust_k: float = Field(
         2.0, description="The loss's scale in sigmas (Cauchy: 2.385 is the 95%-efficiency choice; 2 cuts harder)."
@@ -163,10 +168,11 @@ class FactorGraphConfig(MapkitConfig):
     )
     odom_robust: Literal["huber", "cauchy", "none"] = Field(
         "cauchy",
-        description="Robust loss on the odometry's drift and jitter factors: a registration that slipped (kiss-icp locking "
-        "onto too little motion from standstill, or along a corridor of flat facades) gives way to the IMU and GPS. Cauchy, not Huber: "
-        "a slip of metres is hundreds of sigmas, and Huber's bounded but constant pull still drags the speed around it (tiny-sunny, "
-        "bench/factor_graph_budget.py: error across its braking slip 1.16 m with Huber, 0.26 m with Cauchy, both at k = 2).",
+        description="Robust loss on the odometry's drift and jitter factors: a registration that slipped (kiss-icp "
+        "locking onto too little motion from standstill, or along a corridor of flat facades) gives way to the IMU and "
+        "GPS. Cauchy, not Huber: a slip of metres is hundreds of sigmas, and Huber's bounded but constant pull still "
+        "drags the speed around it (tiny-sunny, bench/factor_graph_budget.py: error across its braking slip 1.16 m "
+        "with Huber, 0.26 m with Cauchy, both at k = 2).",
     )
     odom_robust_k: float = Field(
         2.0,
@@ -200,12 +206,13 @@ class FactorGraphConfig(MapkitConfig):
     )
     imu_gyro_bias_sigma: float = Field(
         0.005,
-        description="Prior sigma of the gyro's turn-on bias, rad/s (mapkit choice: about 0.3 deg/s, loose for consumer MEMS; "
-        "the drive refines it).",
+        description="Prior sigma of the gyro's turn-on bias, rad/s (mapkit choice: about 0.3 deg/s, loose for consumer "
+        "MEMS; the drive refines it).",
     )
     imu_accel_bias_sigma: float = Field(
         0.1,
-        description="Prior sigma of the accelerometer's turn-on bias, m/s^2 (mapkit choice: about 10 mg, loose for consumer MEMS).",
+        description="Prior sigma of the accelerometer's turn-on bias, m/s^2 (mapkit choice: about 10 mg, loose for "
+        "consumer MEMS).",
     )
     imu_gravity_m_s2: float = Field(
         9.80665,
@@ -222,12 +229,12 @@ class FactorGraphConfig(MapkitConfig):
         0.005,
         ge=0,
         description="With the IMU preintegrated: a car's rear axle rolls, it does not slide. Between consecutive "
-        "keyframes the base moves along the chord of its arc, at half the odometry's heading change from its earlier heading; "
-        "its displacement across that chord is zero with sigma = this times the keyframes' time apart, m/s (0: off). The base "
-        "frame's origin is taken for the rear axle's centre: a base elsewhere (the car's centre, the front axle) moves "
-        "sideways in every turn. Synthetic town, tiny-sunny: the truth's displacement across the chord of the odometry's "
-        "heading change, rms 0.0047 m/s times dt (robust spread 0.0019; the truth's own, with its heading: 0.0025, lane "
-        "wander); eight other synthetic drives, not used for the choice: 0.0039-0.0059.",
+        "keyframes the base moves along the chord of its arc, at half the odometry's heading change from its earlier "
+        "heading; its displacement across that chord is zero with sigma = this times the keyframes' time apart, m/s "
+        "(0: off). The base frame's origin is taken for the rear axle's centre: a base elsewhere (the car's centre, "
+        "the front axle) moves sideways in every turn. Synthetic town, tiny-sunny: the truth's displacement across the "
+        "chord of the odometry's heading change, rms 0.0047 m/s times dt (robust spread 0.0019; the truth's own, with "
+        "its heading: 0.0025, lane wander); eight other synthetic drives, not used for the choice: 0.0039-0.0059.",
     )
     nhc_robust_k: float = Field(
         2.0,
@@ -240,10 +247,10 @@ class FactorGraphConfig(MapkitConfig):
     )
     max_pose_gap_s: float = Field(1.0, description="A fix between odometry poses further apart than this is not used.")
     max_iterations: int = Field(100, description="Levenberg-Marquardt iterations.")
-    # loop closures (mapping/loop_closure.py): proposed by position, verified by ICP of local maps. Gates and floors set on
-    # two synthetic loop drives (tiny preset's town generated around a 294 m rounded rectangle driven from rest a lap and 30 m
-    # on, LiDAR at 10 and 5 Hz) and on ICP of sweeps ray cast in the tiny town; tests/test_loop_closure.py's end-to-end drive
-    # (another town and route) was not used for any choice
+    # loop closures (mapping/loop_closure.py): proposed by position, verified by ICP of local maps. Gates and floors set
+    # on two synthetic loop drives (tiny preset's town generated around a 294 m rounded rectangle driven from rest a lap
+    # and 30 m on, LiDAR at 10 and 5 Hz) and on ICP of sweeps ray cast in the tiny town; tests/test_loop_closure.py's
+    # end-to-end drive (another town and route) was not used for any choice
     loop_closures: bool = Field(
         True,
         description="Close loops where the session revisits a place (mapkit build: logs with "
@@ -389,7 +396,8 @@ class GravityObservations:
 
 @dataclass
 class ImuObservations:
-    """IMU samples in the IMU's own frame: angular rate (rad/s) and specific force (m/s^2) at ``stamps_ns``, and its mount."""
+    """IMU samples in the IMU's own frame: angular rate (rad/s) and specific force (m/s^2) at ``stamps_ns``, and its
+    mount."""
 
     stamps_ns: np.ndarray
     gyro_rad_s: np.ndarray
@@ -410,8 +418,8 @@ class ImuObservations:
 @dataclass
 class LoopEdge:
     """A loop closure: the base's pose at ``stamp_b_ns`` seen from its pose at ``stamp_a_ns`` (``a_from_b``), with the
-    6x6 covariance of the right perturbation ``a_from_b exp(xi)`` (gtsam's Pose3 tangent: rotation, translation; base b's axes).
-    Both stamps are poses of the odometry."""
+    6x6 covariance of the right perturbation ``a_from_b exp(xi)`` (gtsam's Pose3 tangent: rotation, translation; base
+    b's axes). Both stamps are poses of the odometry."""
 
     stamp_a_ns: int
     stamp_b_ns: int
@@ -438,9 +446,8 @@ class FusedTrajectory:
     georef_covariance: np.ndarray  # 6x6 of the keyframe at the drive's middle: how well the session is tied to ENU
     gps_inliers: np.ndarray  # (n fixes used,) whitened residual below GPS_INLIER_SIGMAS at the solution
     stats: dict
-    solution: object = (
-        None  # the graph's solved gtsam.Values: where a re-solve of the same keyframes starts (``start``)
-    )
+    # the graph's solved values: where a re-solve of the same keyframes starts (``start``)
+    solution: gtsam.Values | None = None
 
     def position_sigmas_m(self) -> np.ndarray:
         """(N, 3) standard deviations of east, north, up."""
@@ -556,7 +563,8 @@ def _gravity_error(up_meas: np.ndarray):
 def select_keyframes(
     stamps_ns: np.ndarray, world_from_base: np.ndarray, distance_m: float, interval_s: float
 ) -> np.ndarray:
-    """Indices of keyframes: the first pose, every pose ``distance_m`` or ``interval_s`` past the last keyframe, the last pose."""
+    """Indices of keyframes: the first pose, every pose ``distance_m`` or ``interval_s`` past the last keyframe, the
+    last pose."""
     p = world_from_base[:, :3, 3]
     keys = [0]
     for i in range(1, len(stamps_ns)):
@@ -616,13 +624,13 @@ def _add_nhc(
     cfg: FactorGraphConfig,
     X,
 ) -> int:
-    """The non-holonomic constraint over each keyframe step: the base's displacement, in the earlier keyframe's base axes,
-    has no component across the chord direction (half the odometry's heading change ``dpsi`` from the x axis), within
-    ``nhc_sigma_m_s * dt``; nothing else about the step is said (the information is that one direction, moved into the
-    state frame as the odometry's). Neither the odometry's distance nor its sideways motion enters, only its heading
-    change (kiss-icp's distance slips and its steps' sideways errors, 16-172 mm rms per 0.1 s step on the tiny town, do
-    not). A ``BetweenFactorPose3`` with that rank-one information (plus 1e-8 on the other directions), not a Python
-    factor: gtsam's Python factors cost a call into the interpreter per factor and solver step, which doubled the
+    """The non-holonomic constraint over each keyframe step: the base's displacement, in the earlier keyframe's base
+    axes, has no component across the chord direction (half the odometry's heading change ``dpsi`` from the x axis),
+    within ``nhc_sigma_m_s * dt``; nothing else about the step is said (the information is that one direction, moved
+    into the state frame as the odometry's). Neither the odometry's distance nor its sideways motion enters, only its
+    heading change (kiss-icp's distance slips and its steps' sideways errors, 16-172 mm rms per 0.1 s step on the tiny
+    town, do not). A ``BetweenFactorPose3`` with that rank-one information (plus 1e-8 on the other directions), not a
+    Python factor: gtsam's Python factors cost a call into the interpreter per factor and solver step, which doubled the
     graph's time in a trial with a velocity form of the constraint. Returns the number of factors."""
     base_from_state = invert_pose(state_from_base)
     Ad_bs = _adjoint(base_from_state)
@@ -661,7 +669,8 @@ def fuse_session(
     loops: LoopClosures | None = None,
     start: FusedTrajectory | None = None,
 ) -> FusedTrajectory:
-    """Fuse one session's odometry with GPS and the IMU (preintegrated, or its gravity direction); poses of the base in ENU.
+    """Fuse one session's odometry with GPS and the IMU (preintegrated, or its gravity direction);
+    poses of the base in ENU.
 
     ``enu_from_odom`` is the initial guess (a rigid transform); by default the robust rigid GPS fit
     (``align_to_gps``, ``yaw`` mode). Without GPS (or with fewer than 3 fixes inside the trajectory,
@@ -725,10 +734,11 @@ def fuse_session(
     for k, T in enumerate(initial_poses):
         values.insert(X(k), gtsam.Pose3(T))
 
-    # odometry = its drifting frame + per-pose jitter: a chain of odometry-frame poses E_k (kiss-icp's poses without their
-    # registration noise) whose relative motions are the odometry's up to a random walk (slips break it: robust loss),
-    # and each pose X_k = E_k exp(w_k) with white jitter w_k. Independent steps with a per-step floor instead would
-    # let the floor accumulate as drift (0.4 deg of pitch over the tiny drive), which the real odometry does not do.
+    # odometry = its drifting frame + per-pose jitter: a chain of odometry-frame poses E_k (kiss-icp's poses without
+    # their registration noise) whose relative motions are the odometry's up to a random walk (slips break it: robust
+    # loss), and each pose X_k = E_k exp(w_k) with white jitter w_k. Independent steps with a per-step floor instead
+    # would let the floor accumulate as drift (0.4 deg of pitch over the tiny drive), which the real odometry does not
+    # do.
     E = lambda i: gtsam.symbol("e", i)  # noqa: E731
     Ad_sb = _adjoint(state_from_base)
     odom_rel = [invert_pose(odom[kf[k]]) @ odom[kf[k + 1]] for k in range(len(kf) - 1)]
@@ -745,10 +755,8 @@ def fuse_session(
         )
         chain_factors.append(graph.size())
         graph.add(gtsam.BetweenFactorPose3(E(k), E(k + 1), gtsam.Pose3(state_from_base @ rel @ base_from_state), noise))
-    if (
-        imu is not None and cfg.nhc_sigma_m_s > 0
-    ):  # without the IMU it changed nothing measurable (tiny town: height drift,
-        # ATE within 0.01 m) and cost time
+    # without the IMU it changed nothing measurable (tiny town: height drift, ATE within 0.01 m) and cost time
+    if imu is not None and cfg.nhc_sigma_m_s > 0:
         stats["nhc_factors"] = _add_nhc(gtsam, graph, odom_rel, stamps[kf], state_from_base, cfg, X)
     loop_factors = _add_loops(gtsam, graph, edges, stamps, kf, state_from_base, cfg, X)
 
@@ -760,6 +768,7 @@ def fuse_session(
         a = cfg.first_attitude_sigma_rad
         prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, a, a, 1e3, 1e3, 1e3]))
         graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), prior))
+        assert gps is not None  # the fixes came from it
         n_bias = _add_gps(
             gtsam, graph, values, fixes, stamps, odom, kf, gps.base_from_antenna, state_from_base, cfg, X, B
         )
@@ -807,7 +816,7 @@ def fuse_session(
         gtsam, marginals, X(0), X(len(kf) - 1), kf_poses[0], kf_poses[-1], Ad_bs
     ).tolist()
     poses, covs = _densify(stamps, odom, kf, kf_poses, kf_cov)
-    if imu_runs:  # between keyframes the IMU knows the motion (the odometry may be slipping there)
+    if imu is not None and imu_runs:  # between keyframes the IMU knows the motion (the odometry may be slipping there)
         _densify_imu(poses, stamps, kf, imu_runs, imu, result, state_from_base, cfg)
     inliers = np.zeros(0, bool)
     if fixes is not None:
@@ -840,8 +849,8 @@ def fuse_session(
 def _relative_sigma(
     gtsam, isam, key_a: int, key_b: int, pose_a: np.ndarray, pose_b: np.ndarray, Ad_bs: np.ndarray
 ) -> np.ndarray:
-    """Standard deviations (ENU, m) of the last keyframe's base position minus the first's, from their joint marginal: how
-    far the solution's own uncertainty lets the drive's end move against its start (its height drift, say)."""
+    """Standard deviations (ENU, m) of the last keyframe's base position minus the first's, from their joint marginal:
+    how far the solution's own uncertainty lets the drive's end move against its start (its height drift, say)."""
     cov = isam.jointMarginalCovariance([key_a, key_b]).fullMatrix()
     sel = np.hstack([np.zeros((3, 3)), np.eye(3)])  # translation of gtsam's Pose3 tangent: the position moves by R dt
     J = np.hstack([-pose_a[:3, :3] @ sel @ Ad_bs, pose_b[:3, :3] @ sel @ Ad_bs])
@@ -860,10 +869,10 @@ def _slips(
     cfg: FactorGraphConfig,
 ) -> dict:
     """Where the solution left the odometry. Keyframe steps whose translation the solution moves by more than
-    ``odom_slip_sigmas`` (3-dof chi-square) of the model's step spread (jitter at both ends plus the walk) are merged into
-    spans, whichever factor gave way (the drift chain for a lasting loss, the jitter for a few poses); a span is a slip
-    when the solution moves the odometry's motion across it by more than ``odom_slip_min_m``. Also how many drift and
-    jitter factors the robust loss down-weighted (whitened residual beyond 3 sigmas per dof)."""
+    ``odom_slip_sigmas`` (3-dof chi-square) of the model's step spread (jitter at both ends plus the walk) are merged
+    into spans, whichever factor gave way (the drift chain for a lasting loss, the jitter for a few poses); a span is a
+    slip when the solution moves the odometry's motion across it by more than ``odom_slip_min_m``. Also how many drift
+    and jitter factors the robust loss down-weighted (whitened residual beyond 3 sigmas per dof)."""
     jt = np.asarray(cfg.odom_translation_jitter_m)
     wt = np.asarray(cfg.odom_translation_walk_m_per_sqrt_m)
     off = []
@@ -894,7 +903,8 @@ def _slips(
 
 
 def _with_loop_keyframes(kf: np.ndarray, stamps: np.ndarray, edges: list[LoopEdge], source: str) -> np.ndarray:
-    """The keyframes with both poses of every loop edge among them; an InputError names an edge whose stamp is no pose."""
+    """The keyframes with both poses of every loop edge among them; an InputError names an edge whose stamp is no
+    pose."""
     if not edges:
         return kf
     ends = np.array([[e.stamp_a_ns, e.stamp_b_ns] for e in edges], np.int64).ravel()
@@ -917,8 +927,8 @@ def _add_loops(
     cfg: FactorGraphConfig,
     X,
 ) -> list[int]:
-    """A between factor of the state poses per loop edge (the base's relative pose and covariance moved to the state frame,
-    as the odometry's) under a Cauchy loss; returns their indices in the graph."""
+    """A between factor of the state poses per loop edge (the base's relative pose and covariance moved to the state
+    frame, as the odometry's) under a Cauchy loss; returns their indices in the graph."""
     Ad_sb = _adjoint(state_from_base)
     base_from_state = invert_pose(state_from_base)
     key = {int(s): k for k, s in enumerate(stamps[kf])}
@@ -949,10 +959,11 @@ def _loop_stats(
     cfg: FactorGraphConfig,
 ) -> dict:
     """Candidates, accepted and rejected (by reason) loop closures, and each edge's residual at the solution: how far
-    (m, deg; base b's frame) the solution's relative pose is from the edge's, and in sigmas of its covariance (before the loss)."""
+    (m, deg; base b's frame) the solution's relative pose is from the edge's, and in sigmas of its covariance (before
+    the loss)."""
     key = {int(s): k for k, s in enumerate(kf_stamps)}
     residuals = []
-    for i, e in zip(loop_factors, edges):
+    for i, e in zip(loop_factors, edges, strict=True):
         a, b = kf_poses[key[int(e.stamp_a_ns)]], kf_poses[key[int(e.stamp_b_ns)]]
         off = invert_pose(e.a_from_b) @ invert_pose(a) @ b
         residuals.append(
@@ -1163,7 +1174,8 @@ def _add_gps(
 def _add_gravity(
     gtsam, graph, values, gravity: GravityObservations, stamps, kf, state_from_base, cfg: FactorGraphConfig, X, G
 ) -> int:
-    """Up-direction factors on the keyframe nearest each observation (within half a keyframe interval), sharing the tilt bias."""
+    """Up-direction factors on the keyframe nearest each observation (within half a keyframe interval), sharing the tilt
+    bias."""
     kf_stamps = stamps[kf]
     g_stamps = np.asarray(gravity.stamps_ns, np.int64)
     j = np.clip(np.searchsorted(g_stamps, kf_stamps), 1, max(1, len(g_stamps) - 1))
@@ -1187,7 +1199,8 @@ def _add_gravity(
 
 
 def _gps_residual_sigmas(graph, result) -> np.ndarray:
-    """The whitened residual (sigmas of the fix's white noise, before the robust loss) of every GPS factor at the solution."""
+    """The whitened residual (sigmas of the fix's white noise, before the robust loss) of every GPS factor at the
+    solution."""
     import gtsam
 
     r = []

@@ -108,9 +108,9 @@ def screen_fixes(
         med = float(np.median(alt[finite]))
         mad = float(np.median(np.abs(alt[finite] - med)))
         bad_alt = finite & (np.abs(alt - med) > max(max_altitude_dev_m, 10.0 * 1.4826 * mad))
-        for f in (f for f, b in zip(cand, bad_alt) if b):
+        for f in (f for f, b in zip(cand, bad_alt, strict=True) if b):
             _reject(out, ALTITUDE, f)
-        cand = [f for f, b in zip(cand, bad_alt) if not b]
+        cand = [f for f, b in zip(cand, bad_alt, strict=True) if not b]
 
     lat = np.array([f.lat_deg for f in cand])
     lon = np.array([f.lon_deg for f in cand])
@@ -129,7 +129,7 @@ def screen_fixes(
             if np.linalg.norm(xy[j] - xy[last]) <= allowed:
                 keep[j] = True
                 last = j
-    for f, k in zip(cand, keep):
+    for f, k in zip(cand, keep, strict=True):
         if k:
             out.kept.append(f)
         else:

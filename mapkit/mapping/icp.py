@@ -51,7 +51,7 @@ def icp_coarse_to_fine(
     criteria = reg.ICPConvergenceCriteria(relative_change, relative_change, max_iterations)
     T = np.eye(4) if initial is None else np.asarray(initial, np.float64)
     clouds = None
-    for voxel, max_d in zip(voxel_sizes_m, max_correspondence_m):
+    for voxel, max_d in zip(voxel_sizes_m, max_correspondence_m, strict=True):
         clouds = level(voxel)
         if clouds is None:
             break

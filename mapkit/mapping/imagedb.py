@@ -58,18 +58,21 @@ CSV_COLUMNS = [
 class ImageDbConfig(MapkitConfig):
     min_spacing_m: float = Field(
         0.5,
-        description="Keep a frame when the camera moved this far since the last kept one (MCVL sub-sampled its training sequences to 2 Hz; spacing is rate-independent).",
+        description="Keep a frame when the camera moved this far since the last kept one (MCVL sub-sampled its "
+        "training sequences to 2 Hz; spacing is rate-independent).",
     )
     min_interval_s: float = Field(
         0.0,
         ge=0,
         description="... and at least this long after the last kept one (s; 0 = no time limit). MCVL's database is its "
-        "training drives sub-sampled to 2 Hz (Sec. IV-B): 0.5 with a faster camera. A tenth of it is slack for stamp jitter.",
+        "training drives sub-sampled to 2 Hz (Sec. IV-B): 0.5 with a faster camera. A tenth of it is slack for stamp "
+        "jitter.",
     )
     training_frames: bool = Field(
         False,
         description="Also store the frames the database skips (training/ and training.csv, at most one per "
-        "training_interval_s): images the retrieval encoder (vocabulary, PCA-whitening) learns from beside the database's.",
+        "training_interval_s): images the retrieval encoder (vocabulary, PCA-whitening) learns from beside the "
+        "database's.",
     )
     training_interval_s: float = Field(
         0.0,
@@ -218,7 +221,7 @@ class ImageDbWriter:
             kp = np.asarray(keypoints.get(im.image_id, []), np.float64).reshape(-1, 2)
             img = pycolmap.Image(name=im.relpath, keypoints=kp, camera_id=cam_ids[im.camera], image_id=im.image_id)
             rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(invert_pose(im.world_from_cam)[:3, :]))
-        for point, track_elems in zip(track_points, tracks):
+        for point, track_elems in zip(track_points, tracks, strict=True):
             track = pycolmap.Track()
             for image_id, kp_idx in track_elems:
                 track.add_element(image_id, kp_idx)
@@ -260,7 +263,7 @@ class ImageDbWriter:
             front = pc[:, 2] > 1e-6
             uv = pc[front, :2] / pc[front, 2:3] * [info.fx, info.fy] + [info.cx, info.cy]
             inside = (uv[:, 0] >= 0) & (uv[:, 0] < info.width) & (uv[:, 1] >= 0) & (uv[:, 1] < info.height)
-            for p, xy in zip(idx[front][inside], uv[inside]):
+            for p, xy in zip(idx[front][inside], uv[inside], strict=True):
                 keypoints[int(image_id)].append(xy)
                 tracks[p].append((int(image_id), counts[int(image_id)]))
                 counts[int(image_id)] += 1
@@ -278,6 +281,7 @@ def write_images_csv(
     T = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
     xyz = T[:, :3, 3]
     q = matrix_to_quat_wxyz(T[:, :3, :3]) if len(T) else np.zeros((0, 4))
+    epsg: int | str
     if frame is not None and len(T):
         lat, lon, alt = frame.enu_to_geodetic(xyz)
         utm = frame.enu_to_utm(xyz)

@@ -7,8 +7,9 @@
   the odometry's height drift is one of the things a loop corrects, so it must not hide the
   revisit. ``mapkit build`` proposes on the fused trajectory without loops, not on the rigid GPS
   fit of the odometry: on a synthetic loop drive kiss-icp slipped 6.6 m while starting from rest,
-  which left the rigid fit 8.2 m off where the drive came back and the fused one 1.4-2.3 m. Nearest first, at most one pair per ``loop_min_separation_m`` of route on each pass (a
-  pair within that of a nearer one's first or second keyframe is left out).
+  which left the rigid fit 8.2 m off where the drive came back and the fused one 1.4-2.3 m. Nearest first, at most one
+  pair per ``loop_min_separation_m`` of route on each pass (a pair within that of a nearer one's first or second
+  keyframe is left out).
 - Local maps (:func:`read_scans`, :func:`local_map`): a keyframe's scan and ``loop_local_scans``
   on each side, deskewed as kiss-icp did (each point placed at its own firing time, the trajectory
   interpolated between the sweep's start and its end, whose pose kiss-icp reports), in the
@@ -75,7 +76,8 @@ class LoopCandidate:
 
 @dataclass
 class LoopCheck:
-    """A candidate after verification: the verdict, the relative pose ICP found (``a_from_b``, base frames) and its support."""
+    """A candidate after verification: the verdict, the relative pose ICP found (``a_from_b``, base frames) and its
+    support."""
 
     candidate: LoopCandidate
     reason: LoopReason
@@ -97,6 +99,12 @@ class LoopCheck:
     def text(self) -> str:
         return f"{self.reason.value} ({self.detail})" if self.detail else self.reason.value
 
+    def edge(self, stamps_ns: np.ndarray) -> LoopEdge:
+        """The factor graph's edge of an accepted check."""
+        assert self.a_from_b is not None and self.covariance is not None, "an accepted check has a pose"
+        c = self.candidate
+        return LoopEdge(int(stamps_ns[c.a]), int(stamps_ns[c.b]), self.a_from_b, self.covariance)
+
     def to_dict(self, stamps_ns: np.ndarray) -> dict:
         c = self.candidate
         return {
@@ -115,11 +123,7 @@ class LoopCheck:
 
 def loop_closures(checks: list[LoopCheck], stamps_ns: np.ndarray) -> LoopClosures:
     """What the factor graph takes: the accepted checks as edges, the others' reasons."""
-    edges = [
-        LoopEdge(int(stamps_ns[c.candidate.a]), int(stamps_ns[c.candidate.b]), c.a_from_b, c.covariance)
-        for c in checks
-        if c.accepted
-    ]
+    edges = [c.edge(stamps_ns) for c in checks if c.accepted]
     return LoopClosures(edges, [c.reason.value for c in checks if not c.accepted])
 
 
@@ -128,7 +132,8 @@ def loop_closures(checks: list[LoopCheck], stamps_ns: np.ndarray) -> LoopClosure
 
 def horizontal_drift_sigma_m(travel_m: np.ndarray, cfg: FactorGraphConfig) -> np.ndarray:
     """The odometry model's horizontal position sigma after ``travel_m``: its translation walk (``w sqrt(d)``) and its
-    heading walk carried along the path (a heading error growing as ``w sqrt(s)`` moves the end by ``w d^1.5 / sqrt(3)``)."""
+    heading walk carried along the path (a heading error growing as ``w sqrt(s)`` moves the end by
+    ``w d^1.5 / sqrt(3)``)."""
     d = np.asarray(travel_m, np.float64)
     wt = float(np.hypot(*cfg.odom_translation_walk_m_per_sqrt_m[:2]))
     wy = float(cfg.odom_rotation_walk_rad_per_sqrt_m[2])
@@ -183,9 +188,9 @@ def read_scans(
     source: str = "log",
 ) -> dict[int, np.ndarray]:
     """The ``needed`` poses' scans (pose index -> points in the frame of ``world_from_base``, the trajectory that places
-    them, float32), read in one pass that stops after the last one. A scan belongs to the pose stamped at its sweep's last
-    point (kiss-icp deskewed it to there: its points are deskewed here with the trajectory) or at its header stamp (not
-    deskewed: placed rigidly). Needed poses whose scan is not found are left out with a warning."""
+    them, float32), read in one pass that stops after the last one. A scan belongs to the pose stamped at its sweep's
+    last point (kiss-icp deskewed it to there: its points are deskewed here with the trajectory) or at its header stamp
+    (not deskewed: placed rigidly). Needed poses whose scan is not found are left out with a warning."""
     stamps = np.asarray(stamps_ns, np.int64)
     want = set(int(i) for i in needed)
     out: dict[int, np.ndarray] = {}
@@ -249,7 +254,8 @@ def _in_world(
 
 
 def local_map(scans: dict[int, np.ndarray], k: int, world_from_base: np.ndarray, cfg: FactorGraphConfig) -> np.ndarray:
-    """Keyframe ``k``'s local map: the points of its scans (``scans_needed``' span about it) in its base frame, cropped."""
+    """Keyframe ``k``'s local map: the points of its scans (``scans_needed``' span about it) in its base frame,
+    cropped."""
     span = range(k - cfg.loop_local_scans, k + cfg.loop_local_scans + 1)
     parts = [scans[i] for i in span if i in scans]
     if not parts:
@@ -297,8 +303,8 @@ def support(
     source: np.ndarray, target: np.ndarray, target_normals: np.ndarray, T: np.ndarray, max_distance: float
 ) -> tuple[float, float, np.ndarray, int]:
     """How ``T`` fits ``source`` onto ``target``: (fitness: the fraction of source points with a target point within
-    ``max_distance``; point-to-plane RMSE over those; the 6x6 point-to-plane Hessian over those, for the right perturbation
-    ``T exp(xi)`` (xi = rotation, translation, in the source's frame); how many)."""
+    ``max_distance``; point-to-plane RMSE over those; the 6x6 point-to-plane Hessian over those, for the right
+    perturbation ``T exp(xi)`` (xi = rotation, translation, in the source's frame); how many)."""
     hit, j, r = point_to_plane(transform_points(T, source), target, target_normals, max_distance)
     if not hit.any():
         return 0.0, float("nan"), np.zeros((6, 6)), 0
@@ -369,7 +375,8 @@ def _gate(m: dict, cfg: FactorGraphConfig) -> tuple[LoopReason, str] | None:
 
 
 def edge_covariance(H: np.ndarray, rmse_m: float, cfg: FactorGraphConfig) -> np.ndarray:
-    """The loop edge's covariance (module notes): ICP's own, ``rmse^2 H^-1``, plus the floor of its local maps' placement."""
+    """The loop edge's covariance (module notes): ICP's own, ``rmse^2 H^-1``, plus the floor of its local maps'
+    placement."""
     floor = np.repeat([cfg.loop_floor_rotation_rad, cfg.loop_floor_translation_m], 3) ** 2
     return rmse_m**2 * np.linalg.inv(H) + np.diag(floor)
 

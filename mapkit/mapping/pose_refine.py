@@ -5,14 +5,14 @@ good to centimetres between neighbouring frames, but a camera rotation off by a 
 (an INS heading settling, a mount flexing, an extrinsic calibrated on another day) moves every epipolar
 line by pixels, and the depths a keyframe finds along such lines disagree with every other keyframe's
 (on frames 0-14 of the KITTI odometry clip the given poses put matches 2 px off their epipolar lines, with
-rotations off by up to 0.8 deg). DSO removes such errors by its photometric bundle adjustment; with the positions trusted, the
-rotations alone are a small, well-posed problem:
+rotations off by up to 0.8 deg). DSO removes such errors by its photometric bundle adjustment; with the positions
+trusted, the rotations alone are a small, well-posed problem:
 
 - correspondences of each frame with the frames up to ``max_gap`` after it: by default corners tracked from frame
   to frame (Shi-Tomasi corners, pyramidal Lucas-Kanade with a forward-backward check, as visual-inertial odometry
   front ends track; ``matcher="tracks"``), or SIFT features matched by Lowe's ratio test (``matcher="sift"``, about
-  ten times the CPU time for rotations as good on the KITTI clip: ``bench/rotation_refine_matchers.py``); matches farther than ``gate_px`` from the given
-  epipolar lines left out (repeated facades, tracks that slid along an edge);
+  ten times the CPU time for rotations as good on the KITTI clip: ``bench/rotation_refine_matchers.py``); matches
+  farther than ``gate_px`` from the given epipolar lines left out (repeated facades, tracks that slid along an edge);
 - per frame a small rotation ``x`` (rotation vector, camera frame: ``R = R_given @ exp(x)``) minimising the
   matches' distances (px) to the epipolar lines their partners predict, Huber-robust, with a weak prior at
   the given rotation (``prior_px`` pixels per 1/f rad of correction): on a straight drive a common roll about
@@ -29,8 +29,9 @@ when ``SemiDenseConfig.refine_rotations`` is on.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -42,7 +43,7 @@ Matches = Sequence[tuple[int, int, np.ndarray, np.ndarray]]
 
 
 def epipolar_distances_px(
-    K: np.ndarray, poses: np.ndarray, i: int, j: int, xi: np.ndarray, xj: np.ndarray
+    K: np.ndarray, poses: np.ndarray | Mapping[int, np.ndarray], i: int, j: int, xi: np.ndarray, xj: np.ndarray
 ) -> np.ndarray:
     """(n,) distances (px) of the pixels ``xj`` of frame j from the epipolar lines of their matches ``xi`` in
     frame i under ``poses`` (world_from_cam, indexable by frame id)."""
@@ -106,7 +107,8 @@ def _pair_terms(
 
 
 def _huber(r: np.ndarray, delta: float) -> tuple[float, np.ndarray]:
-    """The Huber cost (r^2 inside delta, 2 delta |r| - delta^2 outside) summed, and the IRLS weights min(1, delta/|r|)."""
+    """The Huber cost (r^2 inside delta, 2 delta |r| - delta^2 outside) summed, and the IRLS weights
+    min(1, delta/|r|)."""
     ar = np.abs(r)
     inside = ar <= delta
     return float(np.where(inside, r * r, 2 * delta * ar - delta * delta).sum()), np.where(
@@ -181,7 +183,9 @@ def _solve(
         # contiguous), then turned into x by the frames' right Jacobians (d = Jr(x) dx) and added into H and g
         D = np.concatenate([d_i, d_j], axis=1)
         Dw = D * w[:, None]
-        S = np.stack([Dw[s0 : s0 + k].T @ D[s0 : s0 + k] for s0, k in zip(starts, counts)])  # (pairs, 6, 6)
+        S = np.stack(  # (pairs, 6, 6)
+            [Dw[s0 : s0 + k].T @ D[s0 : s0 + k] for s0, k in zip(starts, counts, strict=True)]
+        )
         G = np.add.reduceat(Dw * r[:, None], starts)  # (pairs, 6)
         Jr = _right_jacobians(x)
         T = np.zeros((len(pairs), 6, 6))
@@ -285,7 +289,8 @@ class RotationRefiner:
     def __post_init__(self) -> None:
         if self.lag < self.max_gap:
             raise ValueError(
-                f"lag ({self.lag}) must be at least max_gap ({self.max_gap}): a frame's matches must all be in the window"
+                f"lag ({self.lag}) must be at least max_gap ({self.max_gap}): a frame's matches must all be in the "
+                "window"
             )
         if self.matcher not in ("tracks", "sift"):
             raise ValueError(f"matcher must be 'tracks' or 'sift', not {self.matcher!r}")
@@ -298,7 +303,7 @@ class RotationRefiner:
         g = gray if gray.dtype == np.uint8 else np.clip(gray, 0, 255).astype(np.uint8)
         if self.matcher == "sift":
             if not hasattr(self, "_sift"):
-                self._sift = cv2.SIFT_create(nfeatures=self.features)
+                self._sift = cv2.SIFT.create(nfeatures=self.features)
                 self._bf = cv2.BFMatcher(cv2.NORM_L2)
             kp, desc = self._sift.detectAndCompute(g, None)
             return np.array([k.pt for k in kp], np.float64).reshape(-1, 2), desc
@@ -313,7 +318,7 @@ class RotationRefiner:
         uv, ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
         prev = self._last
         if prev is not None and len(prev[1]) and prev[0].shape == g.shape:
-            lk = dict(
+            lk: dict[str, Any] = dict(
                 winSize=(self.track_window_px, self.track_window_px),
                 maxLevel=3,
                 criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
@@ -356,15 +361,16 @@ class RotationRefiner:
             return None
         if np.linalg.norm(a.given[:3, 3] - b.given[:3, 3]) < self.min_baseline_m:
             return None  # no parallax: the epipolar geometry is undefined
+        ia: list[int] | np.ndarray
+        ib: list[int] | np.ndarray
         if self.matcher == "sift":
             good = [m for m, n in self._bf.knnMatch(a.keys, b.keys, k=2) if m.distance < self.lowe_ratio * n.distance]
             ia, ib = [m.queryIdx for m in good], [m.trainIdx for m in good]
         else:  # the tracks seen in both frames
             _, ia, ib = np.intersect1d(a.keys, b.keys, assume_unique=True, return_indices=True)
         ua, ub = a.uv[ia].reshape(-1, 2), b.uv[ib].reshape(-1, 2)
-        if len(
-            ua
-        ):  # matches far from the given epipolar lines are wrong (repeated facades), not signs of a rotation error
+        # matches far from the given epipolar lines are wrong (repeated facades), not signs of a rotation error
+        if len(ua):
             near = epipolar_distances_px(self.K, {0: a.given, 1: b.given}, 0, 1, ua, ub) <= self.gate_px
             ua, ub = ua[near], ub[near]
         if len(ua) < self.min_matches:
@@ -408,7 +414,7 @@ class RotationRefiner:
                 at,
                 np.concatenate([f.x for f in window]),
             )
-            for f, xi in zip(window, x):
+            for f, xi in zip(window, x, strict=True):
                 f.x = xi  # warm start of the next window
             fr = window[done]
             final[fr.frame_id] = x[done].copy()

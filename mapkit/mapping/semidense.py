@@ -49,6 +49,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
+from itertools import pairwise
 from pathlib import Path
 from typing import Any, Literal
 
@@ -108,43 +109,51 @@ class SemiDenseConfig(MapkitConfig):
     block_size: int = Field(
         32,
         ge=4,
-        description="Side (px) of the blocks whose median gradient sets the threshold (DSO candidate selection: 32x32).",
+        description="Side (px) of the blocks whose median gradient sets the threshold (DSO candidate selection: "
+        "32x32).",
     )
     gradient_threshold_add: float = Field(
         7.0,
         ge=0,
-        description="Added to the block median of |gradient| (grey levels per px, central differences) to make the threshold (DSO: g_th = 7, setting_minGradHistAdd).",
+        description="Added to the block median of |gradient| (grey levels per px, central differences) to make the "
+        "threshold (DSO: g_th = 7, setting_minGradHistAdd).",
     )
     cell_size: int = Field(
         2,
         ge=1,
-        description="Keep the strongest candidate per cell of this side (px). DSO picks one per d x d cell with d tuned for ~2000 points; 2 keeps semi-dense density (LSD-SLAM uses every pixel) at a quarter of the cost.",
+        description="Keep the strongest candidate per cell of this side (px). DSO picks one per d x d cell with d "
+        "tuned for ~2000 points; 2 keeps semi-dense density (LSD-SLAM uses every pixel) at a quarter of the cost.",
     )
     max_candidates: int | None = Field(
         None,
         ge=1,
-        description="Keep at most this many candidates per keyframe (strongest gradient relative to threshold first); None = no cap.",
+        description="Keep at most this many candidates per keyframe (strongest gradient relative to threshold first); "
+        "None = no cap.",
     )
     # --- epipolar search ---
     min_depth_m: float = Field(
         1.0,
         gt=0,
-        description="Nearest depth searched (m), in the keyframe and every neighbour. A vehicle camera sees nothing closer than its own bonnet.",
+        description="Nearest depth searched (m), in the keyframe and every neighbour. A vehicle camera sees nothing "
+        "closer than its own bonnet.",
     )
     max_depth_m: float = Field(
         100.0,
         gt=0,
-        description="Farthest depth searched (m). Beyond ~100 m, baselines of a few metres cannot reach max_rel_sigma anyway.",
+        description="Farthest depth searched (m). Beyond ~100 m, baselines of a few metres cannot reach max_rel_sigma "
+        "anyway.",
     )
     search_samples: int = Field(
         32,
         ge=8,
-        description="Samples of the first (full-range) search along the epipolar line, at <= 1 px of the pyramid level it runs on.",
+        description="Samples of the first (full-range) search along the epipolar line, at <= 1 px of the pyramid level "
+        "it runs on.",
     )
     full_range_attempts: int = Field(
         1,
         ge=1,
-        description="Full-range searches tried per candidate (nearest neighbours first) before giving it up; sky and repetitive texture would otherwise pay for a full search in every neighbour.",
+        description="Full-range searches tried per candidate (nearest neighbours first) before giving it up; sky and "
+        "repetitive texture would otherwise pay for a full search in every neighbour.",
     )
     prior_search_samples: int = Field(
         12, ge=5, description="Samples of a search within +-search_sigmas of an existing estimate."
@@ -153,12 +162,14 @@ class SemiDenseConfig(MapkitConfig):
         4,
         ge=1,
         le=6,
-        description="Pyramid levels for coarse-to-fine search of long epipolar lines (level l samples every 2^l px); 4 covers lines up to 8*(search_samples-1) px at one level-pixel per sample.",
+        description="Pyramid levels for coarse-to-fine search of long epipolar lines (level l samples every 2^l px); 4 "
+        "covers lines up to 8*(search_samples-1) px at one level-pixel per sample.",
     )
     search_sigmas: float = Field(
         3.0,
         gt=0,
-        description="Half-width (in sigmas) of the search around an existing estimate (LSD-SLAM: STEREO_EPL_VAR_FAC = 2; 3 leaves slack for underestimated sigmas).",
+        description="Half-width (in sigmas) of the search around an existing estimate (LSD-SLAM: STEREO_EPL_VAR_FAC = "
+        "2; 3 leaves slack for underestimated sigmas).",
     )
     min_search_half_width_px: float = Field(
         2.0,
@@ -168,13 +179,15 @@ class SemiDenseConfig(MapkitConfig):
     min_epipolar_length_px: float = Field(
         2.0,
         ge=0,
-        description="Skip a full-range search whose epipolar segment (whole depth range, inside the image) is shorter than this: no parallax (LSD-SLAM: MIN_EPL_LENGTH_SQUARED = 1^2 px; 2 px because the pattern itself spans 4).",
+        description="Skip a full-range search whose epipolar segment (whole depth range, inside the image) is shorter "
+        "than this: no parallax (LSD-SLAM: MIN_EPL_LENGTH_SQUARED = 1^2 px; 2 px because the pattern itself spans 4).",
     )
     min_gradient_epipolar_cos: float = Field(
         0.3,
         ge=0,
         le=1,
-        description="Skip a neighbour when |cos| of the angle between the image gradient and the epipolar line is below this: the line runs along the edge (LSD-SLAM MIN_EPL_ANGLE_SQUARED = 0.3^2).",
+        description="Skip a neighbour when |cos| of the angle between the image gradient and the epipolar line is "
+        "below this: the line runs along the edge (LSD-SLAM MIN_EPL_ANGLE_SQUARED = 0.3^2).",
     )
     max_cost: float = Field(
         0.3, gt=0, le=2, description="Largest accepted 1 - ZNCC over the 8-pixel pattern (ZNCC >= 0.7)."
@@ -183,33 +196,42 @@ class SemiDenseConfig(MapkitConfig):
         None,
         gt=0,
         le=1,
-        description="Second-best ratio test of a full-range search (as Lowe's ratio and LSD-SLAM's second-best check): ambiguous (rejected) when another local minimum, more than 2 level-pixels away, scores at least this fraction of the best's ZNCC. None = off (only ambiguity_margin).",
+        description="Second-best ratio test of a full-range search (as Lowe's ratio and LSD-SLAM's second-best check): "
+        "ambiguous (rejected) when another local minimum, more than 2 level-pixels away, scores at least this fraction "
+        "of the best's ZNCC. None = off (only ambiguity_margin).",
     )
     ambiguity_margin: float = Field(
         0.1,
         ge=0,
-        description="A full-range search is ambiguous (rejected) when another local minimum, more than 2 level-pixels away, costs less than best + this (in 1 - ZNCC). LSD-SLAM asks the second-best SSD to be 1.5x the best; a ratio is meaningless for ZNCC costs near 0, hence a margin.",
+        description="A full-range search is ambiguous (rejected) when another local minimum, more than 2 level-pixels "
+        "away, costs less than best + this (in 1 - ZNCC). LSD-SLAM asks the second-best SSD to be 1.5x the best; a "
+        "ratio is meaningless for ZNCC costs near 0, hence a margin.",
     )
     image_noise_sigma: float = Field(
         4.0,
         gt=0,
-        description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: cameraPixelNoise2 = 4^2).",
+        description="Image noise (grey levels) for the photometric part of the matching sigma (LSD-SLAM: "
+        "cameraPixelNoise2 = 4^2).",
     )
     min_sigma_px: float = Field(
         0.25,
         gt=0,
-        description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block matching (parabola bias, 'pixel locking').",
+        description="Floor of the matching sigma along the epipolar line (px): the usual limit of sub-pixel block "
+        "matching (parabola bias, 'pixel locking').",
     )
     # --- acceptance ---
     min_agreeing_frames: int = Field(
         3,
         ge=2,
-        description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation: it cleans each keyframe's own depths, but with the fusion filters on the map itself hardly changes.",
+        description="Frames (keyframe + neighbours) whose matches agree within agree_sigmas; 3 = 'consistent across "
+        "more than two frames'. 4 is measured in bench/semidense_kitti_clip.py --ablation: it cleans each keyframe's "
+        "own depths, but with the fusion filters on the map itself hardly changes.",
     )
     agree_sigmas: float = Field(
         3.0,
         gt=0,
-        description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% of a Gaussian).",
+        description="Two inverse-depth estimates agree when they differ by at most this many combined sigmas (3: 99.7% "
+        "of a Gaussian).",
     )
     max_rel_sigma: float = Field(
         0.02, gt=0, description="Largest accepted sigma(depth)/depth (= sigma(rho)/rho) of a fused point."
@@ -217,12 +239,16 @@ class SemiDenseConfig(MapkitConfig):
     max_sigma_depth_m: float = Field(
         0.3,
         gt=0,
-        description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a median of 0.15 m.",
+        description="Largest accepted sigma of depth (m); keeps far points out of a map whose accuracy goal is a "
+        "median of 0.15 m.",
     )
     max_sigma_inv_depth: float | None = Field(
         None,
         gt=0,
-        description="Depth-filter convergence: largest accepted sigma of inverse depth (1/m) after fusing a candidate's observations, before it enters the map (LSD-SLAM keeps a pixel's hypothesis out of use until its inverse-depth variance has shrunk; SVO's depth filter calls a seed converged below a fixed sigma). None = off.",
+        description="Depth-filter convergence: largest accepted sigma of inverse depth (1/m) after fusing a "
+        "candidate's observations, before it enters the map (LSD-SLAM keeps a pixel's hypothesis out of use until its "
+        "inverse-depth variance has shrunk; SVO's depth filter calls a seed converged below a fixed sigma). None = "
+        "off.",
     )
     # --- keyframes and neighbours ---
     keyframe_spacing_m: float = Field(
@@ -234,7 +260,8 @@ class SemiDenseConfig(MapkitConfig):
     neighbour_window_frames: int = Field(
         3,
         ge=1,
-        description="Neighbours are the frames up to this many before and after a keyframe (streaming window of 2n+1 images).",
+        description="Neighbours are the frames up to this many before and after a keyframe (streaming window of 2n+1 "
+        "images).",
     )
     min_baseline_m: float = Field(
         0.1, ge=0, description="Neighbours closer than this to the keyframe are not used (no parallax)."
@@ -245,7 +272,16 @@ class SemiDenseConfig(MapkitConfig):
     # --- camera rotations refined against the images ---
     refine_rotations: bool = Field(
         False,
-        description="Refine every frame's camera rotation on its given position before mapping: correspondences with the frames up to refine_max_gap_frames on (tracked corners, or SIFT: refine_matcher), their epipolar distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the true surfaces 0.087 -> 0.116 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined ones.",
+        description="Refine every frame's camera rotation on its given position before mapping: correspondences with "
+        "the frames up to refine_max_gap_frames on (tracked corners, or SIFT: refine_matcher), their epipolar "
+        "distances minimised (Huber) over a small rotation per frame, in a sliding window of refine_lag_frames either "
+        "side (mapkit.mapping.pose_refine). For poses whose positions are right to millimetres between frames but "
+        "whose rotations disagree with the images by tenths of a degree (post-processed GPS/INS: KITTI's given poses; "
+        "an extrinsic rotation off). NOT for positions with centimetres of frame-to-frame noise (LiDAR odometry, a "
+        "factor graph): the baseline's direction is then off by degrees and the rotations follow it; on the synthetic "
+        "town it makes maps worse even on true poses (tiny-sunny, bench/map_error_budget.py --semidense: median to the "
+        "true surfaces 0.087 -> 0.116 m; docs/accuracy.md). Off by default; the map's keyframe poses are the refined "
+        "ones.",
     )
     refine_max_gap_frames: int = Field(
         3, ge=1, description="... frames matched with each frame, forward (3: the neighbour window)."
@@ -253,27 +289,38 @@ class SemiDenseConfig(MapkitConfig):
     refine_lag_frames: int = Field(
         6,
         ge=1,
-        description="... a frame's rotation is solved with this many frames before and after it, and handed to the mapper this many frames late (>= refine_max_gap_frames).",
+        description="... a frame's rotation is solved with this many frames before and after it, and handed to the "
+        "mapper this many frames late (>= refine_max_gap_frames).",
     )
     refine_huber_px: float = Field(1.0, gt=0, description="... Huber scale (px) of the epipolar distances.")
     refine_prior_px: float = Field(
         1.0,
         gt=0,
-        description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).",
+        description="... weak prior at the given rotation: a correction of 1/f rad costs as much as this many px of "
+        "epipolar distance (holds the roll about a straight drive, which the epipolar lines do not see).",
     )
     refine_anchor_px: float = Field(
         0.1,
         gt=0,
-        description="... frames already handed on stay in the window held at their final rotations by a prior of this many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median 0.317 against 0.392 m); scored on the KITTI clip.",
+        description="... frames already handed on stay in the window held at their final rotations by a prior of this "
+        "many px per 1/f rad: smaller ties the window's weakly seen common rotation to the frames before (consistent "
+        "neighbours, but an offset carried along), larger lets it follow the given rotations (no offset carried, more "
+        "jitter between windows). 0.1 chosen on the tiny town between 0.1 and 1.0 (tiny-sunny, estimated poses: median "
+        "0.317 against 0.392 m); scored on the KITTI clip.",
     )
     refine_gate_px: float = Field(
         10.0,
         gt=0,
-        description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).",
+        description="... matches farther than this (px) from the epipolar lines of the given poses are left out (wrong "
+        "matches on repeated texture; a rotation error of the size this corrects moves a line by a few px).",
     )
     refine_matcher: Literal["tracks", "sift"] = Field(
         "tracks",
-        description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test. On the KITTI clip both give rotations as good (median distance of independent SIFT matches to the refined epipolar lines: frames 25-50, given 0.305 px, SIFT 0.207, tracks 0.204) and the tracks' refiner takes a tenth of SIFT's CPU time (python3 bench/rotation_refine_matchers.py).",
+        description="... how frames are matched: 'tracks' follows Shi-Tomasi corners from frame to frame (pyramidal "
+        "Lucas-Kanade, forward-backward checked); 'sift' matches SIFT features by Lowe's ratio test. On the KITTI clip "
+        "both give rotations as good (median distance of independent SIFT matches to the refined epipolar lines: "
+        "frames 25-50, given 0.305 px, SIFT 0.207, tracks 0.204) and the tracks' refiner takes a tenth of SIFT's CPU "
+        "time (python3 bench/rotation_refine_matchers.py).",
     )
     refine_features: int = Field(
         600, ge=50, description="... corners tracked per frame (tracks), or SIFT features per frame (sift)."
@@ -282,7 +329,8 @@ class SemiDenseConfig(MapkitConfig):
         0.7,
         gt=0,
         le=1,
-        description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on repeated facades).",
+        description="... Lowe's ratio test of the matches (Lowe IJCV 2004: 0.8; 0.7 keeps fewer wrong matches on "
+        "repeated facades).",
     )
     refine_min_matches: int = Field(
         30, ge=8, description="... a pair of frames with fewer matches is left out (the prior holds a frame with none)."
@@ -291,80 +339,109 @@ class SemiDenseConfig(MapkitConfig):
     fusion_radius_m: float = Field(
         0.05,
         gt=0,
-        description="No two map points closer than this (m): the better-measured point absorbs the other's observations. Below the 0.15 m accuracy goal.",
+        description="No two map points closer than this (m): the better-measured point absorbs the other's "
+        "observations. Below the 0.15 m accuracy goal.",
     )
     fusion_window_keyframes: int = Field(
         10,
         ge=1,
-        description="A point stays open for fusion until this many keyframes pass without it absorbing a new observation.",
+        description="A point stays open for fusion until this many keyframes pass without it absorbing a new "
+        "observation.",
     )
     # --- outlier rejection at fusion ---
     min_consistent_views: int = Field(
         0,
         ge=0,
-        description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes have their own depth within consistency_rel_tol at its reprojection. 0 = off (the default; 1 with the defaults below is the setting chosen on the clip's first half, and with free_space_window_keyframes = 25 the recommended one: configs/build/clean-maps.yaml).",
+        description="Multi-view geometric consistency (as COLMAP's depth-map fusion filters): a keyframe depth enters "
+        "the map only where at least this many other keyframes within consistency_window_keyframes have their own "
+        "depth within consistency_rel_tol at its reprojection. 0 = off (the default; 1 with the defaults below is the "
+        "setting chosen on the clip's first half, and with free_space_window_keyframes = 25 the recommended one: "
+        "configs/build/clean-maps.yaml).",
     )
     consistency_rel_tol: float = Field(
         0.06,
         gt=0,
-        description="Relative depth tolerance |z - z_other| / z_other of the multi-view consistency test (COLMAP: filter_max_depth_diff = 0.01 on dense depth maps; 0.06 chosen on the first half of the KITTI clip, where 0.01-0.06 were tried).",
+        description="Relative depth tolerance |z - z_other| / z_other of the multi-view consistency test (COLMAP: "
+        "filter_max_depth_diff = 0.01 on dense depth maps; 0.06 chosen on the first half of the KITTI clip, where "
+        "0.01-0.06 were tried).",
     )
     consistency_pixel_radius: float = Field(
         1.5,
         gt=0,
-        description="A reprojected depth is compared with the other keyframe's depths within this radius (px): semi-dense candidates are one per cell, so the same edge may sit a pixel off.",
+        description="A reprojected depth is compared with the other keyframe's depths within this radius (px): "
+        "semi-dense candidates are one per cell, so the same edge may sit a pixel off.",
     )
     min_agree_over_conflict: float = Field(
         2.0,
         ge=0,
-        description="... and only where the agreeing views number at least this times the views whose depths there contradict it (stability-based fusion, Merrell et al. ICCV 2007: support against free-space violations and occlusions; 2 chosen on the first half of the KITTI clip among 0, 1, 1.5, 2). 0 = agreement alone decides.",
+        description="... and only where the agreeing views number at least this times the views whose depths there "
+        "contradict it (stability-based fusion, Merrell et al. ICCV 2007: support against free-space violations and "
+        "occlusions; 2 chosen on the first half of the KITTI clip among 0, 1, 1.5, 2). 0 = agreement alone decides.",
     )
     consistency_window_keyframes: int = Field(
         12,
         ge=1,
-        description="Keyframes before and after a keyframe that vote on its depths; a keyframe enters fusion this many keyframes late (memory: 2n+1 sparse depth images).",
+        description="Keyframes before and after a keyframe that vote on its depths; a keyframe enters fusion this many "
+        "keyframes late (memory: 2n+1 sparse depth images).",
     )
     photometric_min_views: int = Field(
         0,
         ge=0,
-        description="Photometric consistency (as DSO's point activation and COLMAP's photometric term): a keyframe depth enters the map only where at least this many other keyframes within consistency_window_keyframes that see it unoccluded show its patch with NCC >= photometric_ncc_min, and they number at least photometric_min_agree_over_conflict times those whose NCC falls below. 0 = off (measured alone it cleans less than the geometric test at the same point count on the KITTI clip: bench/semidense_kitti_clip.py --ablation).",
+        description="Photometric consistency (as DSO's point activation and COLMAP's photometric term): a keyframe "
+        "depth enters the map only where at least this many other keyframes within consistency_window_keyframes that "
+        "see it unoccluded show its patch with NCC >= photometric_ncc_min, and they number at least "
+        "photometric_min_agree_over_conflict times those whose NCC falls below. 0 = off (measured alone it cleans less "
+        "than the geometric test at the same point count on the KITTI clip: bench/semidense_kitti_clip.py --ablation).",
     )
     photometric_ncc_min: float = Field(
         0.5,
         ge=-1,
         le=1,
-        description="... NCC of the (2 photometric_patch_radius + 1)^2 patch, lifted at the depth (fronto-parallel) and sampled in the other keyframe, that counts as agreement (0.5 chosen on the first half of the KITTI clip among 0.5, 0.7, 0.8: the setting with the lowest 90th percentile that keeps half the points).",
+        description="... NCC of the (2 photometric_patch_radius + 1)^2 patch, lifted at the depth (fronto-parallel) "
+        "and sampled in the other keyframe, that counts as agreement (0.5 chosen on the first half of the KITTI clip "
+        "among 0.5, 0.7, 0.8: the setting with the lowest 90th percentile that keeps half the points).",
     )
     photometric_min_agree_over_conflict: float = Field(
         1.0,
         ge=0,
-        description="... agreeing keyframes at least this times the disagreeing ones (1 chosen on the first half of the KITTI clip among 0.5, 1, 2).",
+        description="... agreeing keyframes at least this times the disagreeing ones (1 chosen on the first half of "
+        "the KITTI clip among 0.5, 1, 2).",
     )
     photometric_patch_radius: int = Field(
         2,
         ge=1,
         le=5,
-        description="Half-side (px) of the patch the photometric test compares: 2 = 5x5, the extent of DSO's 8-pixel pattern.",
+        description="Half-side (px) of the patch the photometric test compares: 2 = 5x5, the extent of DSO's 8-pixel "
+        "pattern.",
     )
     free_space_window_keyframes: int = Field(
         0,
         ge=0,
-        description="Visibility test after the geometric and photometric ones (free-space carving as in TSDF fusion; Merrell et al.'s stability-based fusion, ICCV 2007): a depth is rejected when more than free_space_max_violations of the keyframes up to this many before and after it either see through it (it floats in front of a surface their checked depths hold at its reprojection) or saw a surface that would hide it in its own keyframe. 0 = off; 25 (twice the consistency window: the clip's 26-frame first half is too short to choose it on) is the setting measured. Keyframes enter fusion this many keyframes later again (memory: 2n+1 sparse keyframe depths).",
+        description="Visibility test after the geometric and photometric ones (free-space carving as in TSDF fusion; "
+        "Merrell et al.'s stability-based fusion, ICCV 2007): a depth is rejected when more than "
+        "free_space_max_violations of the keyframes up to this many before and after it either see through it (it "
+        "floats in front of a surface their checked depths hold at its reprojection) or saw a surface that would hide "
+        "it in its own keyframe. 0 = off; 25 (twice the consistency window: the clip's 26-frame first half is too "
+        "short to choose it on) is the setting measured. Keyframes enter fusion this many keyframes later again "
+        "(memory: 2n+1 sparse keyframe depths).",
     )
     free_space_max_violations: int = Field(
         0,
         ge=0,
-        description="... violating keyframes tolerated (0: one violation rejects; chosen on the first half of the KITTI clip among 0, 1, 2).",
+        description="... violating keyframes tolerated (0: one violation rejects; chosen on the first half of the "
+        "KITTI clip among 0, 1, 2).",
     )
     outlier_neighbours: int = Field(
         0,
         ge=0,
-        description="Final statistical outlier pass over the fused map (open3d remove_statistical_outlier): neighbours whose mean distance is compared. 0 = off.",
+        description="Final statistical outlier pass over the fused map (open3d remove_statistical_outlier): neighbours "
+        "whose mean distance is compared. 0 = off.",
     )
     outlier_std_ratio: float = Field(
         2.0,
         gt=0,
-        description="... a point goes when its mean neighbour distance exceeds the map's mean by this many standard deviations (the PCL/open3d tutorial value).",
+        description="... a point goes when its mean neighbour distance exceeds the map's mean by this many standard "
+        "deviations (the PCL/open3d tutorial value).",
     )
 
     @model_validator(mode="after")
@@ -375,7 +452,8 @@ class SemiDenseConfig(MapkitConfig):
             raise ValueError("max_baseline_m must exceed min_baseline_m")
         if self.refine_lag_frames < self.refine_max_gap_frames:
             raise ValueError(
-                f"refine_lag_frames ({self.refine_lag_frames}) must be at least refine_max_gap_frames ({self.refine_max_gap_frames})"
+                f"refine_lag_frames ({self.refine_lag_frames}) must be at least refine_max_gap_frames "
+                f"({self.refine_max_gap_frames})"
             )
         return self
 
@@ -519,6 +597,14 @@ class SemiDenseMap:
         folder.mkdir(parents=True, exist_ok=True)
         grey = np.repeat(self.intensity.astype(np.float64)[:, None] / 255.0, 3, axis=1)
         atomic_write_ply(folder / "points.ply", self.points_world, grey, frame=frame)
+        frames: dict[str, Any] = (  # Any: numpy's stub would match these arrays to savez's allow_pickle too
+            {}
+            if self.frame_ids is None
+            else {
+                "frame_ids": np.asarray(self.frame_ids, np.int64),
+                "frame_stamps_ns": np.asarray(self.frame_stamps_ns, np.int64),
+            }
+        )
         with atomic_path(folder / "observations.npz") as tmp, open(tmp, "wb") as f:
             np.savez(
                 f,
@@ -532,14 +618,7 @@ class SemiDenseMap:
                 keyframe_world_from_cam=self.keyframe_world_from_cam,
                 K=self.K,
                 image_size_wh=np.asarray(self.image_size_wh, np.int64),
-                **(
-                    {}
-                    if self.frame_ids is None
-                    else {
-                        "frame_ids": np.asarray(self.frame_ids, np.int64),
-                        "frame_stamps_ns": np.asarray(self.frame_stamps_ns, np.int64),
-                    }
-                ),
+                **frames,
             )
         if self.config is not None:
             atomic_write_text(folder / "config.yaml", dump_config(self.config))
@@ -554,7 +633,9 @@ class SemiDenseMap:
         for name in ("points.ply", "observations.npz"):
             if not (folder / name).is_file():
                 raise InputError(folder / name, "no such file (not a semi-dense map folder?)")
-        pts = np.asarray(o3d.io.read_point_cloud(str(folder / "points.ply"), format="ply").points, np.float64)
+        # open3d's stub asks for an os.PathLike; it reads a str path as well
+        ply = o3d.io.read_point_cloud(str(folder / "points.ply"), format="ply")  # type: ignore[arg-type]
+        pts = np.asarray(ply.points, np.float64)
         with np.load(folder / "observations.npz") as z:
             d = {k: z[k] for k in z.files}
         if len(d["obs_indptr"]) != len(pts) + 1:
@@ -564,6 +645,7 @@ class SemiDenseMap:
         cfg = None
         if (folder / "config.yaml").is_file():
             cfg = SemiDenseConfig.model_validate(yaml.safe_load((folder / "config.yaml").read_text()))
+        w, h = (int(x) for x in d["image_size_wh"])
         return cls(
             points_world=pts,
             intensity=d["intensity"],
@@ -575,7 +657,7 @@ class SemiDenseMap:
             keyframe_stamps_ns=d["keyframe_stamps_ns"],
             keyframe_world_from_cam=d["keyframe_world_from_cam"],
             K=d["K"],
-            image_size_wh=tuple(int(x) for x in d["image_size_wh"]),
+            image_size_wh=(w, h),
             config=cfg,
             frame_ids=d.get("frame_ids"),
             frame_stamps_ns=d.get("frame_stamps_ns"),
@@ -632,7 +714,7 @@ def map_keyframe(
         if neighbour_pyramids is not None
         else [_Pyramid(img, cfg.pyramid_levels) for img, _ in neighbours]
     )
-    for (img, _), pyr in zip(neighbours, nb_pyrs):
+    for (_img, _), pyr in zip(neighbours, nb_pyrs, strict=True):
         if pyr.shape != ref_pyr.shape:
             raise ValueError(f"neighbour image shape {pyr.shape} differs from the keyframe's {ref_pyr.shape}")
 
@@ -743,9 +825,31 @@ class _Checked:
     frame_id: int
     world_from_cam: np.ndarray
     points: KeyframePoints
-    depth: np.ndarray | SparseDepth | None  # own depths: (H, W) float32, NaN elsewhere, while voting; sparse while carving
+    # own depths: (H, W) float32, NaN elsewhere, while voting; sparse while carving
+    depth: np.ndarray | SparseDepth | None
     image: np.ndarray | None = None  # (H, W) grey keyframe image, for the photometric test
     xyz: np.ndarray | None = None  # (N, 3) world points of ``points``, once they passed the voting filters
+
+    # what each stage asks of a keyframe, which the stage before gave it when the test that asks is on
+    @property
+    def dense_depth(self) -> np.ndarray:
+        assert isinstance(self.depth, np.ndarray), "a voting keyframe has a dense depth image"
+        return self.depth
+
+    @property
+    def sparse_depth(self) -> SparseDepth:
+        assert isinstance(self.depth, SparseDepth), "a carving keyframe has sparse depths"
+        return self.depth
+
+    @property
+    def grey(self) -> np.ndarray:
+        assert self.image is not None, "a keyframe of the photometric test has its image"
+        return self.image
+
+    @property
+    def points_xyz(self) -> np.ndarray:
+        assert self.xyz is not None, "a voted keyframe has its world points"
+        return self.xyz
 
 
 def _map_keyframe_task(
@@ -859,10 +963,13 @@ def build_semidense_map(
         if cfg.photometric_min_views > 0:
             kf_images[kf.frame_id] = kf.image
         if executor.in_process:  # a frame's pyramid serves every keyframe whose window holds it
-            for f in (kf, *nbs):
+
+            def pyramid(f: _Buffered) -> _Pyramid:
                 if f.pyramid is None:
                     f.pyramid = _Pyramid(f.image, cfg.pyramid_levels)
-            t.pyramid, t.neighbour_pyramids = kf.pyramid, [f.pyramid for f in nbs]
+                return f.pyramid
+
+            t.pyramid, t.neighbour_pyramids = pyramid(kf), [pyramid(f) for f in nbs]
         return t
 
     def keyframe_tasks() -> Iterator[_KeyframeTask]:
@@ -911,7 +1018,7 @@ def build_semidense_map(
         if check_views:
             keep = multi_view_filter(
                 pts.points_world(K, item.world_from_cam),
-                [(o.world_from_cam, o.depth) for o in others],
+                [(o.world_from_cam, o.dense_depth) for o in others],
                 K,
                 min_views=cfg.min_consistent_views,
                 min_agree_over_conflict=cfg.min_agree_over_conflict,
@@ -923,10 +1030,10 @@ def build_semidense_map(
             sub = np.nonzero(keep)[0]
             ok = photometric_filter(
                 item.world_from_cam,
-                item.image,
+                item.grey,
                 pts.pixels_uv[sub],
                 pts.depth[sub],
-                [(o.world_from_cam, o.image, o.depth) for o in others],
+                [(o.world_from_cam, o.grey, o.dense_depth) for o in others],
                 K,
                 min_views=cfg.photometric_min_views,
                 ncc_min=cfg.photometric_ncc_min,
@@ -938,21 +1045,25 @@ def build_semidense_map(
             rejected["photometric"] += int((~ok).sum())
             keep[sub[~ok]] = False
         pts = pts.select(keep) if not keep.all() else pts
-        sparse = SparseDepth(pts.pixels_uv, pts.depth, image_shape) if check_free else None
+        sparse = None
+        if check_free:
+            assert image_shape is not None  # the first frame's, set before any keyframe is mapped
+            sparse = SparseDepth(pts.pixels_uv, pts.depth, image_shape)
         checked = _Checked(
             item.frame_id, item.world_from_cam, pts, sparse, xyz=pts.points_world(K, item.world_from_cam)
         )
         yield from carving.push(checked)
 
     def fuse(item: _Checked, others: list[_Checked]) -> None:
-        pts, world_from_cam, xyz = item.points, item.world_from_cam, item.xyz
+        pts, world_from_cam, xyz = item.points, item.world_from_cam, item.points_xyz
         if check_free:
+            assert image_shape is not None  # the first frame's, set before any keyframe is mapped
             keep = free_space_filter(
                 world_from_cam,
                 pts.pixels_uv,
                 pts.depth,
                 xyz,
-                [(o.world_from_cam, o.depth, o.xyz) for o in others],
+                [(o.world_from_cam, o.sparse_depth, o.points_xyz) for o in others],
                 K,
                 image_shape,
                 rel_tol=cfg.consistency_rel_tol,
@@ -1051,7 +1162,7 @@ def _pairs(
     depth at the nearest pixel (within ``max_pixel_distance``, chosen by image distance only)."""
     K = sd_map.K
     w, h = sd_map.image_size_wh
-    kf_centre = dict(zip(sd_map.keyframe_ids.tolist(), sd_map.keyframe_world_from_cam[:, :3, 3]))
+    kf_centre = dict(zip(sd_map.keyframe_ids.tolist(), sd_map.keyframe_world_from_cam[:, :3, 3], strict=True))
     src_centre = np.array([kf_centre.get(int(s), np.full(3, np.nan)) for s in sd_map.source_keyframe]).reshape(-1, 3)
     parts: dict[str, list[np.ndarray]] = {
         k: [] for k in ("point", "frame_id", "signed_rel", "baseline_m", "own_depth", "own_pixel")
@@ -1188,7 +1299,8 @@ def consistency(
         return (pairs.signed_rel > 0.05) & ref_verified & (confirming[pairs.point] >= min_confirming)
 
     ref_ok = np.array(
-        [px in ver_pixels.get(int(f), ()) for f, px in zip(p.frame_id.tolist(), p.own_pixel.tolist())], bool
+        [px in ver_pixels.get(int(f), ()) for f, px in zip(p.frame_id.tolist(), p.own_pixel.tolist(), strict=True)],
+        bool,
     )
     farther = r > 0.05
     occ = occluded(p, ref_ok)
@@ -1221,7 +1333,7 @@ def _binned(signed_rel: np.ndarray, key: np.ndarray, bins: Sequence[float], unit
     """Disagreement figures of the pairs whose ``key`` lies in each ``[from, to)`` of ``bins`` (keys
     ``from_<unit>``, ``to_<unit>``)."""
     out = []
-    for lo, hi in zip(bins[:-1], bins[1:]):
+    for lo, hi in pairwise(bins):
         sel = (key >= lo) & (key < hi)
         a, r = np.abs(signed_rel[sel]), signed_rel[sel]
         some = bool(sel.any())

@@ -103,7 +103,7 @@ class _Pyramid:
     GAP = 16  # NaN band (px) between levels: wider than any pattern tap can stray off its level
 
     def __init__(self, gray: np.ndarray, levels: int):
-        imgs = [np.asarray(gray, np.float32) - 128.0]
+        imgs: list[np.ndarray] = [np.asarray(gray, np.float32) - 128.0]
         for _ in range(1, levels):
             imgs.append(cv2.pyrDown(imgs[-1]))
         offsets, x = [], 0
@@ -111,7 +111,7 @@ class _Pyramid:
             offsets.append(x)
             x += im.shape[1] + self.GAP
         self.atlas = np.full((imgs[0].shape[0] + self.GAP, x), np.nan, np.float32)
-        for o, im in zip(offsets, imgs):
+        for o, im in zip(offsets, imgs, strict=True):
             self.atlas[: im.shape[0], o : o + im.shape[1]] = im
         self.offset_x = np.array(offsets, np.float64)
         self.scale = 0.5 ** np.arange(levels)

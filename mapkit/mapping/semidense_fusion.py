@@ -109,12 +109,13 @@ def _depth_evidence(
         seen = np.isfinite(z_own).any(axis=1)
         agree = (np.abs(zc - z_own) <= np.float32(rel_tol) * z_own).any(axis=1)
         behind = (zc > np.float32(1.0 + rel_tol) * z_own).any(axis=1)
-    return seen, agree, behind
+    # numpy's stub types any(axis=...) as "bool or array"; over axis 1 of a 2-D array it is an array
+    return seen, agree, behind  # type: ignore[return-value]
 
 
 def visibility_views(
     points_world: np.ndarray,
-    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    views: Sequence[tuple[np.ndarray, np.ndarray | SparseDepth]],
     K: np.ndarray,
     rel_tol: float,
     pixel_radius: float,
@@ -228,8 +229,7 @@ def photometric_ncc(
         return out
     Kinv = np.linalg.inv(K)
     r = int(patch_radius)
-    du, dv = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1))
-    du, dv = du.ravel(), dv.ravel()
+    du, dv = (a.ravel() for a in np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1)))
     src = np.asarray(source_image, np.float32)
     h, w = src.shape
     pu = np.clip(pixels_uv[:, 0:1] + du[None], 0, w - 1)
@@ -243,7 +243,8 @@ def photometric_ncc(
         source_world_from_cam, (np.column_stack([pixels_uv, np.ones(n)]) @ Kinv.T) * depth[:, None]
     )
     for k, (world_from_cam, image, view_depth) in enumerate(views):
-        # a tap lifted at the centre's depth z, in the view: z K R K^-1 [u v 1] + K t (columnwise: no BLAS on thin arrays)
+        # a tap lifted at the centre's depth z, in the view: z K R K^-1 [u v 1] + K t
+        # (columnwise: no BLAS on thin arrays)
         view_from_src = invert_pose(world_from_cam) @ source_world_from_cam
         A = (K @ view_from_src[:3, :3] @ Kinv).astype(np.float32)
         bt = (K @ view_from_src[:3, 3]).astype(np.float32)
@@ -335,8 +336,8 @@ def free_space_filter(
 ) -> np.ndarray:
     """(N,) bool: a keyframe's depths (``pixels_uv``, ``depth``, and as ``points_world``) that at most
     ``max_violations`` of the ``views`` contradict on visibility. A view is ``(world_from_cam, depth
-    image (H, W) or :class:`SparseDepth`, its depths as world points (M, 3))``; it contradicts a depth when it sees through
-    it (the depth floats in front of the surface the view holds there: :func:`visibility_views`'s
+    image (H, W) or :class:`SparseDepth`, its depths as world points (M, 3))``; it contradicts a depth when it sees
+    through it (the depth floats in front of the surface the view holds there: :func:`visibility_views`'s
     free-space count) or holds a surface that hides it in its own keyframe (:func:`hidden_in_source`).
     A depth hidden behind what a view sees is not contradicted (occlusion)."""
     _, _, free = visibility_views(points_world, [(T, d) for T, d, _ in views], K, rel_tol, pixel_radius)
@@ -509,7 +510,8 @@ class _Fuser:
         parts = self.done or [self._empty()]
         offsets = np.cumsum([0] + [len(p["xyz"]) for p in parts])
         out = {k: np.concatenate([p[k] for p in parts]) for k in ("xyz", "sigma", "intensity", "source")}
-        obs_pt = np.concatenate([p["obs_pt"] + off for p, off in zip(parts, offsets)])
+        # offsets has one entry more than parts (the total), which zip leaves out
+        obs_pt = np.concatenate([p["obs_pt"] + off for p, off in zip(parts, offsets, strict=False)])
         obs_fid = np.concatenate([p["obs_fid"] for p in parts])
         o = np.lexsort((obs_fid, obs_pt))
         out["obs_fid"] = obs_fid[o]

@@ -56,9 +56,9 @@ class KissIcpOptions(MapkitConfig):
     max_threads: int = Field(
         1,
         ge=0,
-        description="kiss-icp registration.max_num_threads; 0 = all cores. With one thread kiss-icp gives the same poses "
-        "to the bit on every run; with more, its correspondences are summed in a varying order. kiss-icp "
-        "fixes the count once per process (a TBB global control): the first kiss-icp of a process decides.",
+        description="kiss-icp registration.max_num_threads; 0 = all cores. With one thread kiss-icp gives the same "
+        "poses to the bit on every run; with more, its correspondences are summed in a varying order. kiss-icp fixes "
+        "the count once per process (a TBB global control): the first kiss-icp of a process decides.",
     )
 
     @model_validator(mode="after")
@@ -77,11 +77,13 @@ class CameraSfmOptions(MapkitConfig):
     max_threads: int = Field(-1, description="pycolmap threads; -1 = all cores.")
     init_min_tri_angle_deg: float = Field(
         4.0,
-        description="Initial pair's triangulation angle (COLMAP's 16 suits photo collections; a forward-moving car sees less).",
+        description="Initial pair's triangulation angle (COLMAP's 16 suits photo collections; a forward-moving car "
+        "sees less).",
     )
     init_max_forward_motion: float = Field(
         1.0,
-        description="COLMAP rejects initial pairs moving along the view axis above this (0.95): a front camera only does that.",
+        description="COLMAP rejects initial pairs moving along the view axis above this (0.95): a front camera only "
+        "does that.",
     )
 
 
@@ -217,9 +219,7 @@ class SensorMounts:
             return False
 
 
-def trajectory_from_poses(
-    log: DriveLog, topic: str, base_frame: str, mounts: SensorMounts | None = None
-) -> Trajectory:
+def trajectory_from_poses(log: DriveLog, topic: str, base_frame: str, mounts: SensorMounts | None = None) -> Trajectory:
     """A pose stream as the trajectory; a stream of another body frame is moved to the base (``mounts``: the log's
     sensor mounts with the build's policy, else its tf alone)."""
     stamps, poses = [], []
@@ -389,8 +389,8 @@ def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, pro
     o = cfg.camera
     counts = next((s.count for s in log.streams() if s.topic == topic), None)
     step = max(1, -(-counts // o.max_images)) if counts else 1
-    with tempfile.TemporaryDirectory(prefix="mapkit-sfm-") as tmp:
-        tmp = Path(tmp)
+    with tempfile.TemporaryDirectory(prefix="mapkit-sfm-") as tmp_name:
+        tmp = Path(tmp_name)
         (tmp / "images").mkdir()
         stamps: dict[str, int] = {}
         camera = None

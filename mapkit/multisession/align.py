@@ -124,12 +124,14 @@ class AlignConfig(MapkitConfig):
         50.0,
         gt=0,
         description="Submaps are cut every this much driving (m). mapkit choice: each submap gets one rigid "
-        "correction, so shorter submaps follow the GPS error more closely and longer ones hold more points to register.",
+        "correction, so shorter submaps follow the GPS error more closely and longer ones hold more points to "
+        "register.",
     )
     overlap_radius_m: float = Field(
         35.0,
         gt=0,
-        description="Submaps of different sessions whose trajectory centres lie within this distance (m) are registered.",
+        description="Submaps of different sessions whose trajectory centres lie within this distance (m) are "
+        "registered.",
     )
     crop_radius_m: float = Field(
         40.0,
@@ -139,7 +141,8 @@ class AlignConfig(MapkitConfig):
     target_neighbours: int = Field(
         1,
         ge=0,
-        description="The target cloud also includes this many neighbouring submaps on each side, so the source is fully covered.",
+        description="The target cloud also includes this many neighbouring submaps on each side, so the source is "
+        "fully covered.",
     )
     min_points: int = Field(
         1000,
@@ -151,7 +154,8 @@ class AlignConfig(MapkitConfig):
     graph: GraphConfig = GraphConfig()
     freeze_existing: bool = Field(
         True,
-        description="When sessions are added, keep the corrections of sessions aligned before fixed (their outputs do not change); false re-solves all.",
+        description="When sessions are added, keep the corrections of sessions aligned before fixed (their outputs do "
+        "not change); false re-solves all.",
     )
     merge_unverified: bool = Field(
         False,
@@ -162,7 +166,8 @@ class AlignConfig(MapkitConfig):
     @field_validator("icp")
     @classmethod
     def _icp_levels(cls, icp: IcpConfig) -> IcpConfig:
-        """ICP's levels, checked before anything is loaded (open3d fails on a voxel <= 0 deep inside the registration)."""
+        """ICP's levels, checked before anything is loaded (open3d fails on a voxel <= 0 deep inside the
+        registration)."""
         check_levels(icp.voxel_sizes_m, "voxel_sizes_m")
         check_levels(icp.max_correspondence_m, "max_correspondence_m")
         if len(icp.voxel_sizes_m) != len(icp.max_correspondence_m):
@@ -174,7 +179,8 @@ class AlignConfig(MapkitConfig):
 
 
 def check_levels(values: list[float], name: str) -> None:
-    """ICP levels (voxel sizes, distances in m): at least one, each finite and > 0 (a ``ValueError`` naming ``name`` otherwise)."""
+    """ICP levels (voxel sizes, distances in m): at least one, each finite and > 0 (a ``ValueError`` naming
+    ``name`` otherwise)."""
     if not values:
         raise ValueError(f"{name}: at least one ICP level is needed")
     bad = [v for v in values if not np.isfinite(v) or v <= 0]
@@ -256,6 +262,7 @@ def align_workspace(
             ws.origin, "no such file: the workspace has no georeferenced session to align (run mapkit build first)"
         )
     ws_frame = ws.frame()
+    assert ws_frame is not None  # origin.json exists (checked above)
     out = ws.align_dir
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
@@ -372,22 +379,25 @@ def _register_pairs(
         unit="pair",
         label=lambda c: f"{data[c[0]].name} submap {c[1]} onto {data[c[2]].name} submap {c[3]}",
     )
-    for n, r in zip(todo, registered):  # in candidate order, whichever executor ran them
+    for n, r in zip(todo, registered, strict=True):  # in candidate order, whichever executor ran them
         r.key = keys[n]
         cache[keys[n]] = cached[n] = r
         fresh += 1
         seconds += r.seconds
         if fresh % 25 == 0:
             _save_pair_cache(cache_path, cache)  # an interrupted run keeps what it registered
-    results = [
-        _judge(copy.deepcopy(r), cfg) for r in cached
-    ]  # copies: the graph may reject them, the cache keeps the registration
+    # copies: the graph may reject them, the cache keeps the registration
+    results = []
+    for r in cached:
+        assert r is not None  # registered above when not cached
+        results.append(_judge(copy.deepcopy(r), cfg))
     _save_pair_cache(cache_path, cache)
     return _Registrations(results, fresh, seconds)
 
 
 def _judge(r: PairResult, cfg: AlignConfig) -> PairResult:
-    """``r`` with its verdict under the current gates (a cached registration was judged under the gates of the run that cached it)."""
+    """``r`` with its verdict under the current gates (a cached registration was judged under the gates of the run
+    that cached it)."""
     if (
         r.source_points >= cfg.min_points
         and r.target_points >= cfg.min_points
@@ -468,7 +478,7 @@ def _solve_graph(
     for pi, r in enumerate(results):
         if not r.accepted:
             continue
-        a, b = nodes.node_of[tuple(r.source)], nodes.node_of[tuple(r.target)]
+        a, b = nodes.node_of[r.source], nodes.node_of[r.target]
         direction = data[session_index[r.source[0]]].directions[r.source[1]]
         graph.add(
             Edge(
@@ -488,11 +498,12 @@ def _solve_graph(
         bad = rms > cfg.graph.reject_sigmas
         if not bad.any():
             break
-        for e, rr, is_bad in zip(active, rms, bad):
+        for e, rr, is_bad in zip(active, rms, bad, strict=True):
             if is_bad:
+                assert e.pair is not None  # an ICP edge names its pair
                 results[e.pair].verdict = Verdict.of(Reason.INCONSISTENT, f"{rr:.1f} sigma after the pose graph")
-        x = graph.remove([e for e, is_bad in zip(active, bad) if is_bad])
-        active = [e for e, is_bad in zip(active, bad) if not is_bad]
+        x = graph.remove([e for e, is_bad in zip(active, bad, strict=True) if is_bad])
+        active = [e for e, is_bad in zip(active, bad, strict=True) if not is_bad]
     # frozen sessions enter as known: what the graph gives the new ones is relative to their frame,
     # so the frame's own uncertainty (the frozen anchors' covariance, nearly all common to them) is added
     frame = _frame_covariance(fixed, cov0, graph.edges, active)
@@ -519,8 +530,8 @@ def _submap_status(nodes: _Nodes, results: list[PairResult]) -> tuple[np.ndarray
     n_acc = np.zeros(len(nodes.centres), int)
     for r in results:
         for end in (r.source, r.target):
-            n_cand[nodes.node_of[tuple(end)]] += 1
-            n_acc[nodes.node_of[tuple(end)]] += r.accepted
+            n_cand[nodes.node_of[end]] += 1
+            n_acc[nodes.node_of[end]] += r.accepted
     status = np.where(n_cand == 0, "no overlap", np.where(n_acc > 0, "verified", "unverified"))
     return status, n_cand, n_acc
 
@@ -673,6 +684,7 @@ def _write_session(
     pts = apply_correction_points(s, xs, s.points, s.point_arc_m)
     if not keep_files:
         Trajectory(s.stamps_ns, poses, "align", frame="enu").save(dirs.trajectory)
+        assert s.smap is not None  # load_session keeps the map as built
         smap = copy.copy(s.smap)
         smap.points_world = pts
         # keyframe poses follow their trajectory's correction
@@ -713,7 +725,8 @@ def _write_session(
         "config_hash": config_hash(cfg),
         "frame": ws_frame.to_dict(),
         "submaps": submaps,
-        "covariance_axes": "rotation (rad) about east, north, up; translation (m) east, north, up; at each submap's centre",
+        "covariance_axes": "rotation (rad) about east, north, up; translation (m) east, north, up; at each submap's "
+        "centre",
     }
     if bias is not None:
         doc["gps_bias"] = {
@@ -773,7 +786,8 @@ def _write_refined_images(
     keep = np.flatnonzero(ok)
     if len(keep) < len(tab["stamp_ns"]):
         warnings.warn(
-            f"{src}: {len(tab['stamp_ns']) - len(keep)} images outside the trajectory's time span left out of the refined table",
+            f"{src}: {len(tab['stamp_ns']) - len(keep)} images outside the trajectory's time span left out of the "
+            "refined table",
             InputWarning,
             stacklevel=4,
         )

@@ -17,6 +17,7 @@ about ``gps_bias_sigma_m / sqrt(N)``, not to the GPS noise averaged over thousan
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import Field
@@ -25,6 +26,9 @@ from scipy.spatial.transform import Rotation
 from mapkit.core.config import MapkitConfig
 from mapkit.core.geometry import skew
 from mapkit.multisession.registration import PairResult
+
+if TYPE_CHECKING:
+    import gtsam
 
 
 class GraphConfig(MapkitConfig):
@@ -71,7 +75,8 @@ class GraphConfig(MapkitConfig):
     reject_sigmas: float = Field(
         6.0,
         gt=0,
-        description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and its factor removed from the graph.",
+        description="After the solve, an ICP edge whose RMS residual exceeds this many sigmas is rejected and its "
+        "factor removed from the graph.",
     )
     max_rounds: int = Field(3, ge=1, description="Solve / reject rounds.")
     relinearize_threshold: float = Field(
@@ -175,7 +180,7 @@ class PoseGraph:
         self.x0 = np.zeros((n, 6)) if initial is None else np.asarray(initial, np.float64).copy()
         self.session_of = np.arange(n) if session_of is None else np.asarray(session_of, np.int64)
         self.edges: list[Edge] = []
-        self._isam = None
+        self._isam: gtsam.ISAM2 | None = None
         self._factor_of: dict[int, int] = {}  # id(edge) -> iSAM2 factor index
         self.updates = 0
 
@@ -280,7 +285,7 @@ class PoseGraph:
                 continue
             res = self._isam.update(graph, values)
             self.updates += 1
-            for e, idx in zip(owned, list(res.getNewFactorsIndices())[graph.size() - len(owned) :]):
+            for e, idx in zip(owned, list(res.getNewFactorsIndices())[graph.size() - len(owned) :], strict=True):
                 self._factor_of[id(e)] = int(idx)
         return self._converge()
 
@@ -290,6 +295,7 @@ class PoseGraph:
 
         idx = [self._factor_of.pop(id(e)) for e in edges if id(e) in self._factor_of]
         if idx:
+            assert self._isam is not None  # factor indices come from solve's iSAM2
             self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), idx)
             self.updates += 1
         return self._converge()
@@ -329,7 +335,7 @@ class PoseGraph:
         """Each session with free nodes: its GPS bias estimate (ENU, m) and covariance (3, 3)."""
         import gtsam
 
-        out = {}
+        out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         if self._isam is None:
             return out
         est = self._isam.calculateEstimate()

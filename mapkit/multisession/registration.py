@@ -26,26 +26,29 @@ class IcpConfig(MapkitConfig):
     voxel_sizes_m: list[float] = Field(
         [1.0, 0.5, 0.25, 0.1],
         description="Voxel size of each coarse-to-fine ICP level (m). The fourth level, 0.1 m (the semi-dense "
-        "maps' own spacing near the road, below the 0.15 m accuracy goal), was chosen on the tiny town (misalignment 0.118 -> "
-        "0.085 m) and scored on the demo (0.091 -> 0.053 m; accepted pairs' true error 0.082 -> 0.043 m): docs/accuracy.md.",
+        "maps' own spacing near the road, below the 0.15 m accuracy goal), was chosen on the tiny town (misalignment "
+        "0.118 -> 0.085 m) and scored on the demo (0.091 -> 0.053 m; accepted pairs' true error 0.082 -> 0.043 m): "
+        "docs/accuracy.md.",
     )
     max_correspondence_m: list[float] = Field(
         [4.0, 1.5, 0.6, 0.25],
-        description="Largest correspondence distance of each level (m); the first bounds the misalignment ICP can pull in.",
+        description="Largest correspondence distance of each level (m); the first bounds the misalignment ICP can pull "
+        "in.",
     )
     max_iterations: int = Field(40, ge=1, description="ICP iterations per level.")
     normal_radius_factor: float = Field(
         3.0,
         gt=0,
-        description="Normals from neighbours within this many voxels (the semi-dense clouds carry no reliable normals).",
+        description="Normals from neighbours within this many voxels (the semi-dense clouds carry no reliable "
+        "normals).",
     )
     normal_max_nn: int = Field(30, ge=5, description="At most this many neighbours per normal.")
     lambda_icp_m: float = Field(
         0.40,
         gt=0,
-        description="lambda_ICP: reject a pair whose point-to-plane RMSE after ICP (over correspondences within eval_distance_m; "
-        "overall and for the structure alone) exceeds this (semi-dense paper, section 4.1; the paper gives no value: "
-        "0.40 m sits above the demo maps' own noise, whose accepted pairs reach 0.35 m).",
+        description="lambda_ICP: reject a pair whose point-to-plane RMSE after ICP (over correspondences within "
+        "eval_distance_m; overall and for the structure alone) exceeds this (semi-dense paper, section 4.1; the paper "
+        "gives no value: 0.40 m sits above the demo maps' own noise, whose accepted pairs reach 0.35 m).",
     )
     eval_distance_m: float = Field(
         1.0, gt=0, description="Correspondence distance for the RMSE and fitness that decide acceptance (m)."
@@ -54,13 +57,15 @@ class IcpConfig(MapkitConfig):
         0.25,
         ge=0,
         le=1,
-        description="Reject a pair when fewer than this fraction of source points have a target point within eval_distance_m.",
+        description="Reject a pair when fewer than this fraction of source points have a target point within "
+        "eval_distance_m.",
     )
     min_structure_fitness: float = Field(
         0.25,
         ge=0,
         le=1,
-        description="... and the same for the structure alone (points whose normal is not vertical): the ground fits any horizontal shift.",
+        description="... and the same for the structure alone (points whose normal is not vertical): the ground fits "
+        "any horizontal shift.",
     )
     structure_max_normal_z: float = Field(
         0.7, gt=0, le=1, description="A point is structure when |normal z| is below this."
@@ -68,7 +73,8 @@ class IcpConfig(MapkitConfig):
     max_correction_m: float = Field(
         12.0,
         gt=0,
-        description="Reject a pair whose correction moves the pair centre more than this (m): more than GPS can be off.",
+        description="Reject a pair whose correction moves the pair centre more than this (m): more than GPS can be "
+        "off.",
     )
     max_rotation_deg: float = Field(
         5.0, gt=0, description="Reject a pair whose correction rotates more than this (deg)."

@@ -36,12 +36,17 @@ class SessionData:
     point_arc_m: np.ndarray  # (N,) distance driven when the point's source keyframe was taken
     map_dir: Path
     map_hash: str
-    submap_of_point: np.ndarray = field(default=None)  # (N,) int
-    centres: np.ndarray = field(default=None)  # (S, 3) trajectory position at each submap's middle
-    boundaries: np.ndarray = field(default=None)  # (S-1, 3) positions where consecutive submaps meet
-    directions: np.ndarray = field(default=None)  # (S, 3) unit driving direction at each centre
-    submap_edges_m: np.ndarray = field(default=None)  # (S+1,) distance driven where submaps start and end
-    smap: object = field(default=None, repr=False)  # the SemiDenseMap as built (session frame)
+    # the cut into submaps, set by cut_submaps (empty until then); (N,) int
+    submap_of_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    # (S, 3) trajectory position at each submap's middle
+    centres: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # (S-1, 3) positions where consecutive submaps meet
+    boundaries: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # (S, 3) unit driving direction at each centre
+    directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    # (S+1,) distance driven where submaps start and end
+    submap_edges_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    smap: SemiDenseMap | None = field(default=None, repr=False)  # the map as built (session frame)
     ws_from_session: np.ndarray = field(default_factory=lambda: np.eye(4))
     fused: bool = False  # the trajectory is the factor graph's (georef.fuse), not the rigid GPS fit of kiss-icp's
 
@@ -88,7 +93,7 @@ def load_session(sdir: SessionDirs | Path, ws_frame: LocalFrame, length_m: float
     poses = ws_from_session @ traj.world_from_base
     pts = smap.points_world @ ws_from_session[:3, :3].T + ws_from_session[:3, 3]
     arc = _arc_length(poses[:, :3, 3])
-    kf_stamp = dict(zip(smap.keyframe_ids.tolist(), smap.keyframe_stamps_ns.tolist()))
+    kf_stamp = dict(zip(smap.keyframe_ids.tolist(), smap.keyframe_stamps_ns.tolist(), strict=True))
     src_stamp = np.array([kf_stamp[int(k)] for k in smap.source_keyframe], np.float64) if len(pts) else np.zeros(0)
     point_arc = np.interp(src_stamp, traj.stamps_ns.astype(np.float64), arc)
     done = json.loads((dirs.map / DONE_MARKER).read_text())

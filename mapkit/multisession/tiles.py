@@ -53,7 +53,7 @@ def write_tiles(
     starts = np.flatnonzero(np.r_[True, np.any(np.diff(key_sorted, axis=0) != 0, axis=1)])
     ends = np.r_[starts[1:], len(order)]
     tiles = []
-    for s0, s1 in zip(starts, ends):
+    for s0, s1 in zip(starts, ends, strict=True):
         sel = order[s0:s1]
         e, n = (int(v) for v in key_sorted[s0])
         stem = f"E{e * int(tile_m)}_N{n * int(tile_m)}"
@@ -106,7 +106,9 @@ def load_tiles(
             e0, n0, e1, n1 = bounds_utm
             if t["utm_max"][0] < e0 or t["utm_min"][0] > e1 or t["utm_max"][1] < n0 or t["utm_min"][1] > n1:
                 continue
-        pts.append(np.asarray(o3d.io.read_point_cloud(str(folder / f"{t['name']}.ply"), format="ply").points))
+        # open3d's stub says os.PathLike; its binding takes a str path as well
+        cloud = o3d.io.read_point_cloud(str(folder / f"{t['name']}.ply"), format="ply")  # type: ignore[arg-type]
+        pts.append(np.asarray(cloud.points))
         with np.load(folder / f"{t['name']}.npz") as z:
             sid.append(z["session_id"])
             idx.append(z["point_index"])

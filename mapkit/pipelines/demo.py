@@ -227,8 +227,9 @@ def _synth(d: Demo) -> None:
         d.metrics["streets"] = streets
         if streets:
             rows.append(
-                f"\nDriven {streets['driven_m'] / 1000:.1f} km; distinct streets {streets['distinct_m'] / 1000:.1f} km, "
-                f"{streets['distinct_train_m'] / 1000:.1f} km of them by training drives (where held-out places can lie)."
+                f"\nDriven {streets['driven_m'] / 1000:.1f} km; distinct streets {streets['distinct_m'] / 1000:.1f} "
+                f"km, {streets['distinct_train_m'] / 1000:.1f} km of them by training drives (where held-out places "
+                "can lie)."
             )
         sec.md("\n".join(rows))
         sec.picture(d.town / "pictures" / "map.png", "the town: streets, buildings and the drives", 560)
@@ -339,7 +340,7 @@ DEMO_VLAD = {"dsift": {"half_resolution": True}}
 #: 250-400 m drives have no negative 100 m away inside such small tiles.
 #: The demo town exports 2,000 triplets, enough to show the dataset (the paper's set of 20,000, the
 #: library default, takes a minute more); a CNN trained on the demo (--train-cnn) takes its budget's 2,000.
-DEMO_TRIPLETS = {"places": {"tile_size_m": 100.0, "test_fraction": 0.4}, "demo": {"n_triplets": 2000}}
+DEMO_TRIPLETS: dict[str, dict] = {"places": {"tile_size_m": 100.0, "test_fraction": 0.4}, "demo": {"n_triplets": 2000}}
 
 
 def _index_vlad(d: Demo) -> None:
@@ -489,10 +490,10 @@ def _view(d: Demo) -> None:
         s = write_recording(d.ws, budget_points=VIEW_BUDGET_POINTS, progress=d.progress)
         png = render_top_view(s.path, d.out / "view_top.png")
         sec.md(
-            f"`{s.path}` ({s.bytes / 1e6:.1f} MB, {s.seconds:.0f} s): open it with `rerun {s.path}` (the viewer extra). "
-            f"{s.points:,} of {sum(s.map_points_total.values()):,} map points in {len(s.map_points)} maps, "
-            f"{sum(s.images.values())} thumbnails at their poses, {sum(s.gps_fixes.values())} GPS fixes, the localizer's "
-            "estimates over time. Its top view, drawn from the recording:"
+            f"`{s.path}` ({s.bytes / 1e6:.1f} MB, {s.seconds:.0f} s): open it with `rerun {s.path}` (the viewer "
+            f"extra). {s.points:,} of {sum(s.map_points_total.values()):,} map points in {len(s.map_points)} maps, "
+            f"{sum(s.images.values())} thumbnails at their poses, {sum(s.gps_fixes.values())} GPS fixes, the "
+            "localizer's estimates over time. Its top view, drawn from the recording:"
         )
         sec.picture(png, "the recording from above", 900)
         d.metrics["view"] = {"path": str(s.path), "points": s.points}

@@ -322,7 +322,8 @@ def describe_cnn(points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.nd
     runs the ONNX model of ``cfg.cnn_model``."""
     if getattr(cfg, "cnn_model", None) is None:
         raise ConfigError(
-            "the cnn descriptor needs a trained model: set structure index config cnn_model to a mapkit train output folder"
+            "the cnn descriptor needs a trained model: set structure index config cnn_model to a mapkit train output "
+            "folder"
         )
     return onnx_describer(cfg.cnn_model).describe(points, keypoints, observer_dirs, tree)
 

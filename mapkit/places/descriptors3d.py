@@ -151,25 +151,25 @@ class M2DPConfig(MapkitConfig):
     n_angular: int = Field(16, ge=1, description="t: sectors per plane over [-pi, pi) (M2DP default 16).")
     radius: Literal["domain", "farthest"] = Field(
         "domain",
-        description="Grid radius r: the patch domain's radius, points beyond it left out (default; the semi-dense paper's "
-        "domain), or the distance of the patch's farthest point, every point on the grid (M2DP.m).",
+        description="Grid radius r: the patch domain's radius, points beyond it left out (default; the semi-dense "
+        "paper's domain), or the distance of the patch's farthest point, every point on the grid (M2DP.m).",
     )
     normalise_axes: bool = Field(
         True,
-        description="Normalise each plane's in-plane axes (default: metric in-plane coordinates), or leave them at length "
-        "sqrt(1 - n_x^2) as M2DP.m does.",
+        description="Normalise each plane's in-plane axes (default: metric in-plane coordinates), or leave them at "
+        "length sqrt(1 - n_x^2) as M2DP.m does.",
     )
     frame: Literal["yaw", "pca"] = Field(
         "yaw",
-        description="The patch's yaw-normalised frame about its keypoint (default, Sec. 3.2 of the semi-dense paper), or "
-        "centred on its mean and rotated onto its principal axes (M2DP.m).",
+        description="The patch's yaw-normalised frame about its keypoint (default, Sec. 3.2 of the semi-dense paper), "
+        "or centred on its mean and rotated onto its principal axes (M2DP.m).",
     )
     max_points: int | None = Field(
         None,
         ge=16,
         description="Thin each patch to about this many points before describing it (thin_patches: a fixed "
-        "pseudo-random choice of map points); None = every point, as M2DP and the semi-dense paper do (default). M2DP's cost "
-        "is linear in the points; the singular vectors barely move when a dense patch is thinned.",
+        "pseudo-random choice of map points); None = every point, as M2DP and the semi-dense paper do (default). "
+        "M2DP's cost is linear in the points; the singular vectors barely move when a dense patch is thinned.",
     )
 
     @model_validator(mode="after")
@@ -200,7 +200,8 @@ class StructureDescriptorConfig(MapkitConfig):
         0.05,
         gt=0,
         le=1,
-        description="Fraction of map points drawn as keypoints by the caller of describe() (Sec. 3.2: a random five percent).",
+        description="Fraction of map points drawn as keypoints by the caller of describe() (Sec. 3.2: a random five "
+        "percent).",
     )
     nbld: NBLDConfig = Field(default_factory=NBLDConfig, description="NBLD parameters.")
     m2dp: M2DPConfig = Field(default_factory=M2DPConfig, description="M2DP parameters.")
@@ -212,8 +213,10 @@ class StructureDescriptorConfig(MapkitConfig):
 
 def nbld_cell_volumes(cfg: NBLDConfig) -> np.ndarray:
     """(n_radial,) volume (m^3) of one cell of each ring: annular sector times layer height."""
-    edges = np.linspace(0.0, cfg.domain.radius, cfg.n_radial + 1)
-    return math.pi * np.diff(edges**2) / cfg.n_azimuth * (cfg.domain.height / cfg.n_vertical)
+    radius, height = cfg.domain.radius, cfg.domain.height
+    assert radius is not None and height is not None  # NBLDConfig's domain is a finite cylinder
+    edges = np.linspace(0.0, radius, cfg.n_radial + 1)
+    return math.pi * np.diff(edges**2) / cfg.n_azimuth * (height / cfg.n_vertical)
 
 
 def nbld_counts(points_normalised: np.ndarray, indptr: np.ndarray, cfg: NBLDConfig | None = None) -> np.ndarray:
@@ -229,6 +232,7 @@ def nbld_counts(points_normalised: np.ndarray, indptr: np.ndarray, cfg: NBLDConf
     indptr = np.asarray(indptr, np.int64)
     m = len(indptr) - 1
     nr, na, nz = cfg.n_radial, cfg.n_azimuth, cfg.n_vertical
+    assert cfg.domain.radius is not None and cfg.domain.height is not None  # a finite cylinder (NBLDConfig)
     R, H = float(cfg.domain.radius), float(cfg.domain.height)
     cells = nr * na * nz
     out = np.zeros((m, nr, na, nz), np.int64)
@@ -309,8 +313,8 @@ def _plane_axes(p: int, q: int, normalise: bool) -> tuple[np.ndarray, np.ndarray
     """Normals and in-plane x- and y-axes (each (p q, 3)) of the M2DP planes, azimuth-major."""
     az = np.linspace(-math.pi / 2, math.pi / 2, p)
     el = np.linspace(0.0, math.pi / 2, q)
-    a, e = np.meshgrid(az, el, indexing="ij")
-    a, e = a.ravel(), e.ravel()
+    a_grid, e_grid = np.meshgrid(az, el, indexing="ij")
+    a, e = a_grid.ravel(), e_grid.ravel()
     normal = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
     ax = np.array([1.0, 0.0, 0.0]) - normal[:, :1] * normal
     short = np.linalg.norm(ax, axis=1) < 1e-9
@@ -511,19 +515,20 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     block).
 
     Each block's points are first put into the frame of ``cfg.frame`` and, for the farthest-point
-    radius, scaled to their patch's grid (:func:`_m2dp_point_blocks`). Every (point, plane) pair
-    of a block of patches then gets a bin id (plane, ring, sector) in a few
-    float32 / uint8 passes (ring and sector combined in one byte when a plane has at most 256
-    bins, as with the defaults; else in uint16), and the ids of each patch are counted at once. The element-wise passes are OpenCV's where numpy is slow or has no such
-    operation (``cv2.magnitude``, ``cv2.sqrt``, ``cv2.convertScaleAbs`` that scales, offsets and
-    rounds to uint8 in one pass, ``cv2.min``), and the counting is ``cv2.calcHist`` (twice as
-    fast as ``np.bincount``, and float32 counts directly). Rounding stands in for flooring:
-    ``round(v + 1/2) = floor(v + 1)`` except on a bin edge exactly. Sectors are counted in t + 2
-    columns, ``floor((theta + pi) t / 2 pi) + 1``: column 0 only receives theta = -pi (the float32
-    -pi lies a hair below -pi) and column t + 1 only theta = pi; they are folded into sectors 0
-    and t - 1. Rings are clipped at ring l, which collects the points outside the grid and is
-    dropped (at ring l - 1 for the farthest-point radius, which has no outside). Planes that
-    coincide (at elevation pi/2 every azimuth gives the horizontal plane) are binned once.
+    radius, scaled to their patch's grid (:func:`_m2dp_point_blocks`). Every (point, plane) pair of
+    a block of patches then gets a bin id (plane, ring, sector) in a few float32 / uint8 passes
+    (ring and sector combined in one byte when a plane has at most 256 bins, as with the defaults;
+    else in uint16), and the ids of each patch are counted at once. The element-wise passes are
+    OpenCV's where numpy is slow or has no such operation (``cv2.magnitude``, ``cv2.sqrt``,
+    ``cv2.convertScaleAbs`` that scales, offsets and rounds to uint8 in one pass, ``cv2.min``), and
+    the counting is ``cv2.calcHist`` (twice as fast as ``np.bincount``, and float32 counts
+    directly). Rounding stands in for flooring: ``round(v + 1/2) = floor(v + 1)`` except on a bin
+    edge exactly. Sectors are counted in t + 2 columns, ``floor((theta + pi) t / 2 pi) + 1``: column
+    0 only receives theta = -pi (the float32 -pi lies a hair below -pi) and column t + 1 only theta
+    = pi; they are folded into sectors 0 and t - 1. Rings are clipped at ring l, which collects the
+    points outside the grid and is dropped (at ring l - 1 for the farthest-point radius, which has
+    no outside). Planes that coincide (at elevation pi/2 every azimuth gives the horizontal plane)
+    are binned once.
     """
     pts = _as_points(points_normalised)
     indptr = np.asarray(indptr, np.int64)
@@ -546,6 +551,7 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     # in-plane axes scaled by l^2 / r: the in-plane radius is then rho l^2 / r, whose square root
     # l sqrt(rho / r) is the ring coordinate (atan2 does not mind the common scale); with the
     # farthest-point radius the points carry their patch's scale instead
+    assert cfg.domain.radius is not None  # M2DPConfig's domain is a cylinder
     axis_scale = 1.0 if farthest else L**2 / float(cfg.domain.radius)
     wx = np.ascontiguousarray(ax[first].T * axis_scale, np.float32)
     wy = np.ascontiguousarray(ay[first].T * axis_scale, np.float32)
@@ -721,7 +727,7 @@ def describe(
     """
     cfg = cfg or StructureDescriptorConfig()
     if kind == "nbld":
-        sub: MapkitConfig = cfg.nbld
+        sub: NBLDConfig | M2DPConfig = cfg.nbld
     elif kind == "m2dp":
         sub = cfg.m2dp
     else:
@@ -737,7 +743,9 @@ def describe(
             indptr, indices = thin_patches(indptr, indices, cfg.m2dp.max_points)
         local = gather_local(points, keypoints[k0:k1], indptr, indices)
         _, normalised = yaw_normalise_patches(local, indptr, observer_dirs[k0:k1, :2])
-        out[k0:k1] = nbld_patches(normalised, indptr, sub) if kind == "nbld" else m2dp_patches(normalised, indptr, sub)
+        out[k0:k1] = (
+            nbld_patches(normalised, indptr, cfg.nbld) if kind == "nbld" else m2dp_patches(normalised, indptr, cfg.m2dp)
+        )
     return out
 
 
@@ -758,7 +766,8 @@ class DescriptorPCA:
         ):
             raise InputError(
                 None,
-                f"inconsistent PCA arrays: mean {self.mean.shape}, components {self.components.shape}, variance {self.explained_variance.shape}",
+                f"inconsistent PCA arrays: mean {self.mean.shape}, components {self.components.shape}, variance "
+                f"{self.explained_variance.shape}",
             )
 
     @property

@@ -50,7 +50,7 @@ import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, TypeGuard
 
 import numpy as np
 from pydantic import Field
@@ -62,7 +62,7 @@ from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.executor import SERIAL, get_executor
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json, write_timings
-from mapkit.core.workspace import Workspace
+from mapkit.core.workspace import MapSource, Workspace
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
 from mapkit.places.patches import first_observer_positions, select_keypoints, xy_tree
@@ -92,26 +92,29 @@ class StructureIndexConfig(StructureDescriptorConfig):
 
     kind: Kind = Field(
         "nbld",
-        description="Descriptor: nbld or m2dp (Sec. 3.3.1); cnn (Sec. 3.3.2) with cnn_model set, or a describer registered "
-        "with register_describer.",
+        description="Descriptor: nbld or m2dp (Sec. 3.3.1); cnn (Sec. 3.3.2) with cnn_model set, or a describer "
+        "registered with register_describer.",
     )
     cnn_model: str | None = Field(
         None,
-        description="kind cnn: a trained model folder (mapkit train); its model.onnx is run with onnxruntime (no torch needed).",
+        description="kind cnn: a trained model folder (mapkit train); its model.onnx is run with onnxruntime (no torch "
+        "needed).",
     )
     database_sessions: list[str] | None = Field(
         None, description="Sessions indexed. None = every session of the workspace with a map."
     )
     prefer_aligned_maps: bool = Field(
         True,
-        description="Index WORKSPACE/align/sessions/<name>/map where mapkit align finished, else the session's own map.",
+        description="Index WORKSPACE/align/sessions/<name>/map where mapkit align finished, else the session's own "
+        "map.",
     )
     seed: int = Field(0, description="Seed of the keypoint draw; each session's draw is seeded by (seed, crc32(name)).")
     lambda_v: float = Field(
         0.0,
         ge=0,
-        description="Vote threshold lambda_v: a match is accepted when v(d) > lambda_v (Sec. 3.4). The paper sweeps it for its PR "
-        "curves and gives no operating value; 0 accepts any voted frame. `mapkit eval places` reports the value of best F1.",
+        description="Vote threshold lambda_v: a match is accepted when v(d) > lambda_v (Sec. 3.4). The paper sweeps it "
+        "for its PR curves and gives no operating value; 0 accepts any voted frame. `mapkit eval places` reports the "
+        "value of best F1.",
     )
     top_frames: int = Field(10, ge=1, description="Entries of the vote vector returned per query (best first).")
 
@@ -139,10 +142,14 @@ def _describer(kind: str, cfg: StructureIndexConfig) -> Callable | None:
     return _DESCRIBERS.get(kind)
 
 
+def _is_handcrafted(kind: str) -> TypeGuard[Literal["nbld", "m2dp"]]:
+    return kind in ("nbld", "m2dp")
+
+
 def _describe(
     kind: str, points: np.ndarray, keypoints: np.ndarray, observer_dirs: np.ndarray, cfg: StructureIndexConfig, tree
 ) -> np.ndarray:
-    if kind in ("nbld", "m2dp"):
+    if _is_handcrafted(kind):
         return describe(kind, points, keypoints, observer_dirs, cfg, tree=tree)
     fn = _describer(kind, cfg)
     if fn is None:
@@ -186,16 +193,15 @@ def _descriptor_params(cfg: StructureIndexConfig, kind: str) -> dict:
         "descriptor": None if sub is None else sub.model_dump(mode="json"),
     }
     if kind == "cnn" and cfg.cnn_model is not None:
-        params["cnn_onnx_sha256"] = _cnn_model_info(cfg)[
-            "onnx_sha256"
-        ]  # a retrained model invalidates cached descriptors
+        # a retrained model invalidates cached descriptors
+        params["cnn_onnx_sha256"] = _cnn_model_info(cfg.cnn_model)["onnx_sha256"]
     return params
 
 
-def _cnn_model_info(cfg: StructureIndexConfig) -> dict:
+def _cnn_model_info(cnn_model: str) -> dict:
     from mapkit.places.cnn import model_fingerprint
 
-    return model_fingerprint(cfg.cnn_model)
+    return model_fingerprint(cnn_model)
 
 
 # --------------------------------------------------------------------------- sessions: keypoints and frames
@@ -393,7 +399,7 @@ def build_structure_index(
     cfg = load_config(StructureIndexConfig, config, ov)
     out = Path(out) if out is not None else ws.structure_index(cfg.kind)
     names = _database_sessions(ws, cfg)
-    cnn_info = _cnn_model_info(cfg) if cfg.kind == "cnn" and cfg.cnn_model is not None else None
+    cnn_info = _cnn_model_info(cfg.cnn_model) if cfg.kind == "cnn" and cfg.cnn_model is not None else None
     dirs = {n: ws.session_map(n, cfg.prefer_aligned_maps) for n in names}
     shas = {n: map_checksum(d) for n, (d, _) in dirs.items()}
     build_hash = _build_hash(cfg, names, dirs, shas, cnn_info)
@@ -493,11 +499,12 @@ def _database_sessions(ws: Workspace, cfg: StructureIndexConfig) -> list[str]:
 def _build_hash(
     cfg: StructureIndexConfig,
     names: list[str],
-    dirs: dict[str, tuple[Path, str]],
+    dirs: dict[str, tuple[Path, MapSource]],
     shas: dict[str, str],
     cnn_info: dict | None,
 ) -> str:
-    """What the bundle depends on: the config (not its query-time settings), the maps (source and checksum), the CNN model."""
+    """What the bundle depends on: the config (not its query-time settings), the maps (source and checksum), the CNN
+    model."""
     # cnn_model only enters the hash of a cnn index: nbld / m2dp bundles of earlier versions stay valid
     hashed = cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS | (set() if cfg.kind == "cnn" else {"cnn_model"}))
     return config_hash(
@@ -513,7 +520,8 @@ def _build_hash(
 
 @dataclass
 class _Described:
-    """Per database session (in order): raw descriptors, keypoints, frame table; and the manifest's and metrics' facts by name."""
+    """Per database session (in order): raw descriptors, keypoints, frame table; and the manifest's and metrics'
+    facts by name."""
 
     raws: list[np.ndarray]
     keypoints: list[SessionKeypoints]
@@ -526,7 +534,7 @@ def _describe_sessions(
     ws: Workspace,
     cfg: StructureIndexConfig,
     names: list[str],
-    dirs: dict[str, tuple[Path, str]],
+    dirs: dict[str, tuple[Path, MapSource]],
     shas: dict[str, str],
     cache_dir: str | Path | None,
     progress: bool,
@@ -576,7 +584,7 @@ def _entries_and_frames(
     sess_of_entry = np.concatenate([np.full(len(k), i, np.int32) for i, k in enumerate(kp_list)])
     frame_offsets = np.cumsum([0] + [len(f["frame_id"]) for f in frame_tables])
     ptrs, refs = [np.zeros(1, np.int64)], []
-    for i, (k, f) in enumerate(zip(kp_list, frame_tables)):
+    for i, (k, f) in enumerate(zip(kp_list, frame_tables, strict=True)):
         refs.append(np.searchsorted(f["frame_id"], k.obs_frame_ids) + frame_offsets[i])
         ptrs.append(k.obs_indptr[1:] + ptrs[-1][-1])
     entries = {
@@ -747,7 +755,8 @@ class StructureIndex:
                 path / INDEX_FILE, f"index dimension {index.d} differs from the PCA's {pca.dim}", field="dim"
             )
         if cfg.kind == "cnn" and cfg.cnn_model is not None and "cnn_model" in manifest:
-            now = _cnn_model_info(cfg)["onnx_sha256"]  # queries run the model at cnn_model: it must be the one indexed
+            # queries run the model at cnn_model: it must be the one indexed
+            now = _cnn_model_info(cfg.cnn_model)["onnx_sha256"]
             if now != manifest["cnn_model"]["onnx_sha256"]:
                 raise InputError(
                     Path(cfg.cnn_model) / "model.onnx",

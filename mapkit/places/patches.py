@@ -61,9 +61,7 @@ class PatchDomain(MapkitConfig):
 
     kind: Literal["cylinder", "cylinder_inf", "cube"] = Field(..., description="Shape of the domain.")
     radius: float | None = Field(None, gt=0, description="Cylinder radius (m); cylinder and cylinder_inf.")
-    height: float | None = Field(
-        None, gt=0, description="Cylinder height (m), centred on the keypoint; cylinder only."
-    )
+    height: float | None = Field(None, gt=0, description="Cylinder height (m), centred on the keypoint; cylinder only.")
     half_size: float | None = Field(None, gt=0, description="Half the cube's edge (m); cube only.")
 
     @model_validator(mode="after")
@@ -74,17 +72,27 @@ class PatchDomain(MapkitConfig):
             raise ValueError(f"a {self.kind} domain takes {sorted(need)}, got {sorted(given)}")
         return self
 
+    # the validator above guarantees the dimensions of each kind: the asserts below state it for the type checker
+
     @property
     def patch_radius(self) -> float:
         """Horizontal radius of the patch Gamma (m)."""
-        return float(self.half_size * math.sqrt(2.0)) if self.kind == "cube" else float(self.radius)
+        if self.kind == "cube":
+            assert self.half_size is not None
+            return float(self.half_size * math.sqrt(2.0))
+        assert self.radius is not None
+        return float(self.radius)
 
     @property
     def patch_half_height(self) -> float:
         """Half the vertical extent of the patch Gamma (m); inf for cylinder_inf."""
         if self.kind == "cylinder":
+            assert self.height is not None
             return float(self.height) / 2.0
-        return float(self.half_size) if self.kind == "cube" else math.inf
+        if self.kind == "cube":
+            assert self.half_size is not None
+            return float(self.half_size)
+        return math.inf
 
     @property
     def bounding_radius(self) -> float:
@@ -95,8 +103,10 @@ class PatchDomain(MapkitConfig):
     def box_half_extents(self) -> np.ndarray:
         """Half extents (x, y, z) of the domain's bounding box in the normalised frame (m)."""
         if self.kind == "cube":
+            assert self.half_size is not None
             return np.full(3, float(self.half_size))
         if self.kind == "cylinder":
+            assert self.radius is not None and self.height is not None
             return np.array([self.radius, self.radius, self.height / 2.0], np.float64)
         raise InputError(None, "an unbounded cylinder has no bounding box (no voxel grid)", field="domain.kind")
 
@@ -286,8 +296,8 @@ def _yaw_block(
     n = np.maximum(counts, 1)
     mean = sums[:, :3] / n[:, None]
     cov = np.empty((m, 3, 3))
-    for c, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
-        cov[:, i, j] = cov[:, j, i] = sums[:, 3 + c] / n - mean[:, i] * mean[:, j]
+    for col, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        cov[:, i, j] = cov[:, j, i] = sums[:, 3 + col] / n - mean[:, i] * mean[:, j]
     _, vecs = np.linalg.eigh(cov)  # ascending eigenvalues; columns are eigenvectors
     axis = vecs[:, :2, 0]
     weak = np.hypot(axis[:, 0], axis[:, 1]) < min_horizontal_norm

@@ -154,7 +154,8 @@ def export_pointnetvlad(
         if len(rows):
             stamps[rows] = unique_stamps(by_name[name].frame_stamps_ns(t["frame"][rows]), t["patch_id"][rows])
     files = np.array(
-        [f"{names[int(s)]}/{CLOUD_FOLDER}/{int(ts)}.bin" for s, ts in zip(t["session"], stamps)], dtype=object
+        [f"{names[int(s)]}/{CLOUD_FOLDER}/{int(ts)}.bin" for s, ts in zip(t["session"], stamps, strict=True)],
+        dtype=object,
     )
     written = np.zeros(n, bool)
     centroid, scale = np.zeros((n, 3)), np.zeros(n)
@@ -169,7 +170,7 @@ def export_pointnetvlad(
             for b in range(0, len(rows), 64):  # 64 patches at a time bound the candidates' memory
                 block = rows[b : b + 64]
                 clouds = patch_clouds(by_name[name], t["enu"][block], t["transform"][block], t["yaw"][block], domain)
-                for row, cloud in zip(block, clouds):
+                for row, cloud in zip(block, clouds, strict=True):
                     rng = np.random.default_rng([seed, int(t["patch_id"][row])])
                     if cfg.ground_distance_m is not None:
                         cloud = remove_ground(cloud, cfg.ground_distance_m, cfg.ground_max_tilt_deg, rng)
@@ -242,9 +243,11 @@ def export_pointnetvlad(
                 "patches_left_out": int((~written).sum()),
                 "points_per_cloud": cfg.points,
                 "dtype": "float64, x y z interleaved (points, 3)",
-                "file_names": "<session>/pointcloud_patches/<timestamp>.bin, timestamp = first observer keyframe's time (ns), made unique per session",
-                "normalisation": "ground plane removed, centred on the centroid, scaled to a mean distance of 0.5, within [-1, 1]; "
-                "metric point = point / scale + centroid (pointcloud_locations.csv), in the patch's yaw-normalised frame",
+                "file_names": "<session>/pointcloud_patches/<timestamp>.bin, timestamp = first observer keyframe's "
+                "time (ns), made unique per session",
+                "normalisation": "ground plane removed, centred on the centroid, scaled to a mean distance of 0.5, "
+                "within [-1, 1]; metric point = point / scale + centroid (pointcloud_locations.csv), in the patch's "
+                "yaw-normalised frame",
                 "files": {f: sha256_file(out / f) for f in (*QUERY_FILES.values(), *ev.values(), LOCATIONS_CSV)},
             },
         )
@@ -412,8 +415,9 @@ def evaluation_sets(
     ``radius_m``."""
     from scipy.spatial import cKDTree
 
-    database, query = [], []
-    for ne, q in zip(positions, is_query):
+    database: list[dict[int, dict[str, float]]] = []
+    query: list[dict[int, dict[str | int, float | list[int]]]] = []  # [i]: the database keys of run i near it
+    for ne, q in zip(positions, is_query, strict=True):
         database.append(
             {k: {"row": k, "northing": float(ne[k, 0]), "easting": float(ne[k, 1])} for k in range(len(ne))}
         )
@@ -432,7 +436,7 @@ def evaluation_sets(
             if i == j:
                 continue
             near = tree.query_ball_point(at, radius_m)
-            for key, nb in zip(qs, near):
+            for key, nb in zip(qs, near, strict=True):
                 qs[key][i] = sorted(int(x) for x in nb)
     return database, query
 

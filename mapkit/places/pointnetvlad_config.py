@@ -29,8 +29,8 @@ class PointNetVladConfig(MapkitConfig):
     negative_distance_m: float = Field(
         50.0, gt=0, description="Training negatives: patches of its split farther than this (same source: 50 m)."
     )
-    # PointNetVLAD, generating_queries/generate_test_sets.py: database neighbours of a query within r=25 (paper, section 5.2:
-    # "a retrieved point cloud is a correct match if it lies within 25 m of the query")
+    # PointNetVLAD, generating_queries/generate_test_sets.py: database neighbours of a query within r=25
+    # (paper, section 5.2: "a retrieved point cloud is a correct match if it lies within 25 m of the query")
     evaluation_distance_m: float = Field(
         25.0,
         gt=0,
@@ -43,7 +43,8 @@ class PointNetVladConfig(MapkitConfig):
         description="Points per cloud (PointNetVLAD's submaps hold 4096). A patch with more is drawn "
         "at random without replacement; one with fewer repeats random points of its own.",
     )
-    # PointNetVLAD, submap_generation/generate_submaps.m: pcfitplane(..., 0.5) removes the road plane before downsampling
+    # PointNetVLAD, submap_generation/generate_submaps.m: pcfitplane(..., 0.5) removes the road plane before
+    # downsampling
     ground_distance_m: float | None = Field(
         0.5,
         gt=0,
@@ -74,6 +75,7 @@ class PointNetVladConfig(MapkitConfig):
     def _check(self) -> PointNetVladConfig:
         if self.negative_distance_m < self.positive_distance_m:
             raise ValueError(
-                f"negative_distance_m ({self.negative_distance_m}) must not be below positive_distance_m ({self.positive_distance_m})"
+                f"negative_distance_m ({self.negative_distance_m}) must not be below positive_distance_m "
+                f"({self.positive_distance_m})"
             )
         return self

@@ -79,6 +79,7 @@ SHARD_SUFFIX = {"hdf5": ".h5", "npz": ".npz"}
 SHARD_FORMATS = tuple(SHARD_SUFFIX)
 SHARD_CHUNK_PATCHES = 16  # patches per HDF5 chunk: 64 KB of packed 32^3 occupancy, 192 KB of density comparison
 SPLITS = ("train", "test")
+GridForm = Literal["occupancy", "density_comparison"]  # how a patch's grid is stored (TripletDataset.grids)
 
 
 class NoTripletsError(InputError):
@@ -123,7 +124,8 @@ class TripletConfig(MapkitConfig):
     negative_min_distance_m: float = Field(
         100.0,
         gt=0,
-        description='Negatives lie farther than this from the anchor (semi-dense paper, section 4.1: "far away", no value given; mapkit choice: 100 m, five patch widths).',
+        description='Negatives lie farther than this from the anchor (semi-dense paper, section 4.1: "far away", no '
+        "value given; mapkit choice: 100 m, five patch widths).",
     )
     negative_pool: int = Field(2000, ge=10, description="Negative patches drawn per split and shared by its triplets.")
     tile_size_m: float = Field(
@@ -168,6 +170,7 @@ class TripletConfig(MapkitConfig):
     @classmethod
     def _icp_level(cls, values: list[float], info: ValidationInfo) -> list[float]:
         """ICP levels, checked before anything is loaded (open3d fails on a voxel <= 0 deep inside the registration)."""
+        assert info.field_name is not None  # pydantic names the field of a field validator
         check_levels(values, info.field_name)
         return values
 
@@ -253,7 +256,7 @@ class SessionPoints:
         self.keyframe_stamps_ns = keyframe_stamps_ns
         self.grid = GridIndex(points[:, :2], 5.0)
         self.tree3 = cKDTree(points)
-        self._icp_levels: dict[tuple, tuple[np.ndarray, np.ndarray, GridIndex]] = {}
+        self._icp_levels: dict[tuple, tuple[np.ndarray, np.ndarray | None, GridIndex]] = {}
 
     def frame_stamps_ns(self, frames: np.ndarray) -> np.ndarray:
         """Time stamps (ns) of keyframes ``frames`` (ids, as ``observer_frame`` holds them)."""
@@ -346,8 +349,8 @@ def tile_split(utm_xy: np.ndarray, tile_m: float, test_fraction: float, seed: in
     are taken in random order into the test split until it holds ``test_fraction`` of the points
     (so the test split gets its share of the mapped places, not of empty tiles); at least one
     tile stays in each split when there are two or more."""
-    keys, counts = np.unique(np.floor(utm_xy / tile_m).astype(np.int64), axis=0, return_counts=True)
-    keys = [tuple(int(v) for v in k) for k in keys]
+    key_rows, counts = np.unique(np.floor(utm_xy / tile_m).astype(np.int64), axis=0, return_counts=True)
+    keys = [(int(k[0]), int(k[1])) for k in key_rows]
     rng = np.random.default_rng(seed)
     labels = {k: "train" for k in keys}
     if len(keys) < 2:
@@ -388,10 +391,9 @@ def split_of(utm_xy: np.ndarray, tiles: dict[tuple[int, int], str], tile_m: floa
     inv = inv.ravel()
     code = {"train": 1, "test": 2}
 
-    def label(
-        di: int, dj: int, missing: int
-    ) -> np.ndarray:  # per point, the code of a neighbouring tile (looked up per tile)
-        return np.array([code.get(tiles.get((int(a) + di, int(b) + dj)), missing) for a, b in uniq], np.int8)[inv]
+    def label(di: int, dj: int, missing: int) -> np.ndarray:
+        """Per point, the code of a neighbouring tile (looked up per tile)."""
+        return np.array([code.get(tiles.get((int(a) + di, int(b) + dj), ""), missing) for a, b in uniq], np.int8)[inv]
 
     own = label(0, 0, 1)  # a tile without a label is a training tile
     u = utm_xy - ij * tile_m  # position inside the tile, [0, tile_m)
@@ -509,6 +511,7 @@ def register_cell(
         si, ti = sg.disc(sp, centre, reach), tg.disc(tp, centre, reach)
         if len(si) < 10 or len(ti) < 10:
             return None
+        assert tn is not None  # asked for with a normal radius
         return IcpClouds(sp[si] - centre, tp[ti] - centre, tn[ti])  # centre-relative: rotations pivot about the cell
 
     T, clouds = icp_coarse_to_fine(
@@ -558,7 +561,9 @@ class ChunkSets:
             dist, nn = s.tree3.query(P, distance_upper_bound=cfg.seen_radius_m)
             nearest[:, si] = np.where(np.isfinite(dist) & (anchors != si), nn, -1)
         nearest[np.arange(K), anchors] = kp_index[places]
-        cand = [[int(a)] + [si for si in np.flatnonzero(nearest[k] >= 0) if si != a] for k, a in enumerate(anchors)]
+        cand = [
+            [int(a)] + [int(si) for si in np.flatnonzero(nearest[k] >= 0) if si != a] for k, a in enumerate(anchors)
+        ]
         cand = [c[: cfg.max_members] for c in cand]
         cloud_idx, raw_in, row_of = {}, {}, {}
         for si in sorted({si for c in cand for si in c}):
@@ -575,7 +580,7 @@ class ChunkSets:
         self.result: dict[int, dict | None] = {}
         self.rejected: dict[int, int] = {}
         members: dict[int, list] = {}
-        transforms: dict[tuple, dict] = {}
+        transforms: dict[tuple[int, int], np.ndarray] = {}
         for k, j in enumerate(places):
             a, rejected, mem = int(anchors[k]), 0, []
             for si in cand[k]:
@@ -597,7 +602,7 @@ class ChunkSets:
             else:
                 members[k] = mem
         # the patches: per session and transform, one mask over (places, points)
-        slot_of = {}
+        slot_of: dict[tuple[int, int], int] = {}
         for k in sorted(members):
             for si, _, _, _ in members[k]:
                 slot_of[(k, si)] = len(slot_of)
@@ -628,9 +633,9 @@ class ChunkSets:
                 np.concatenate(parts_pts)[order], indptr, centres, obs, cfg
             )
         for k, mem in members.items():
-            sl = np.array([slot_of[(k, m[0])] for m in mem])
+            slots = np.array([slot_of[(k, m[0])] for m in mem])
             self.result[int(places[k])] = {
-                "slots": sl,
+                "slots": slots,
                 "session": np.array([m[0] for m in mem]),
                 "frame": np.array([sessions[m[0]].observer_frame[m[1]] for m in mem]),
                 "centre": np.repeat(P[k][None], len(mem), axis=0),
@@ -656,7 +661,8 @@ def mapped_patches(
     sess = np.asarray(sess)
     centres = np.asarray(centres, np.float64).reshape(-1, 3)
     r = domain.patch_radius
-    pts_of, counts = [None] * len(centres), np.zeros(len(centres), np.int64)
+    pts_of: list[np.ndarray | None] = [None] * len(centres)
+    counts = np.zeros(len(centres), np.int64)
     blocks = [
         (si, k[b : b + 64])
         for si in np.unique(sess)
@@ -679,7 +685,9 @@ def mapped_patches(
             pts_of[kk] = kept[bounds[m] : bounds[m + 1]]
             counts[kk] = n[m]
     indptr = np.concatenate([[0], np.cumsum(counts)])
-    return (np.concatenate(pts_of) if len(centres) else np.zeros((0, 3))), indptr
+    patches = [p for p in pts_of if p is not None]
+    assert len(patches) == len(pts_of)  # every centre is in one session's blocks
+    return (np.concatenate(patches) if len(centres) else np.zeros((0, 3))), indptr
 
 
 class ShardWriter:
@@ -908,7 +916,7 @@ class _PatchTable:
         "transform",
     )
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.columns: dict[str, list] = {k: [] for k in self.COLUMNS}
 
     def record(self, ids, set_id, split, role, sess, frames, enu, yaw, npts, rmse, T) -> None:
@@ -940,7 +948,8 @@ def _negative_pools(
     shards: ShardWriter,
     table: _PatchTable,
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per split, (patch ids, centres) of random keypoints' patches as mapped (no ICP needed), shared by its triplets."""
+    """Per split, (patch ids, centres) of random keypoints' patches as mapped (no ICP needed), shared by its
+    triplets."""
     pools = {}
     for split in SPLITS:
         cand = np.flatnonzero(kp.split == split)
@@ -1024,7 +1033,8 @@ class _Places:
         self.quota = {"test": int(round(cfg.test_fraction * cfg.n_triplets))}
         self.quota["train"] = cfg.n_triplets - self.quota["test"]
         self._icp_cache: dict[tuple, Registration] = {}
-        self._chunk, self._sets = -1, None
+        self._chunk = -1
+        self._sets: ChunkSets | None = None
 
     def make_triplets(self, progress: bool) -> None:
         """Places in order until ``n_triplets`` are made: first each split up to its quota, then any."""
@@ -1068,7 +1078,7 @@ class _Places:
         """The correspondence sets of the chunk of the place at ``order[pos]``: its places not made
         yet (all of them, unless a quota left some for the second pass), made together."""
         c = self.chunk_of[pos]
-        if self._chunk != c or int(self.order[pos]) not in self._sets.result:
+        if self._sets is None or self._chunk != c or int(self.order[pos]) not in self._sets.result:
             todo = np.union1d(np.flatnonzero((self.chunk_of == c) & ~self.used), [pos])
             self._chunk, self._sets = (
                 c,
@@ -1170,7 +1180,8 @@ def _write_dataset(
         "grid": cfg.grid,
         "grids": {
             "occupancy": "(n, g, g, ceil(g/8)) uint8, bits packed along the last axis (np.packbits)",
-            "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a neighbour's",
+            "density_comparison": "(n, 3, g, g, ceil(g/8)) uint8, same packing; channel a = density above the +a "
+            "neighbour's",
         },
         "tiles": tiles_to_manifest(tiles, cfg.tile_size_m),
         "shard_format": cfg.shard_format,
@@ -1217,16 +1228,18 @@ def _no_triplets_reason(cfg: TripletConfig, kp_split: np.ndarray, pools: dict, n
     reasons = (
         f"{head}: {why['no_set']} seen by fewer than two sessions agreeing by ICP ({rejected} members rejected), "
         f"{why['small_patches']} with fewer than two patches of min_patch_points={cfg.min_patch_points} points, "
-        f"{why['no_far_negative']} without a negative farther than negative_min_distance_m={cfg.negative_min_distance_m:g})"
+        f"{why['no_far_negative']} without a negative farther than "
+        f"negative_min_distance_m={cfg.negative_min_distance_m:g})"
     )
-    worst = max(why, key=why.get) if tried else "no_set"
+    worst = max(why, key=why.__getitem__) if tried else "no_set"
     advice = {
-        "no_set": f"too few overlapping places between sessions: drive the same streets in two sessions, raise seen_radius_m "
-        f"({cfg.seen_radius_m:g}) or lambda_icp_m ({cfg.lambda_icp_m:g}), or lower min_fitness ({cfg.min_fitness:g})",
+        "no_set": "too few overlapping places between sessions: drive the same streets in two sessions, raise "
+        f"seen_radius_m ({cfg.seen_radius_m:g}) or lambda_icp_m ({cfg.lambda_icp_m:g}), or lower min_fitness "
+        f"({cfg.min_fitness:g})",
         "small_patches": f"lower min_patch_points ({cfg.min_patch_points}) or map more densely (the patch radius is "
         f"{cfg.domain.patch_radius:g} m)",
-        "no_far_negative": f"lower negative_min_distance_m ({cfg.negative_min_distance_m:g}) below the extent of each split's map, "
-        f"or raise tile_size_m ({cfg.tile_size_m:g})",
+        "no_far_negative": f"lower negative_min_distance_m ({cfg.negative_min_distance_m:g}) below the extent of each "
+        f"split's map, or raise tile_size_m ({cfg.tile_size_m:g})",
     }[worst]
     return f"{reasons}; {advice}"
 
@@ -1325,7 +1338,7 @@ class TripletDataset:
             self._cache[k] = read_shard(self.folder / self.manifest["shards"][k]["file"], self.shard_format)
         return self._cache[k]
 
-    def grids(self, ids: np.ndarray, form: Literal["occupancy", "density_comparison"] = "occupancy") -> np.ndarray:
+    def grids(self, ids: np.ndarray, form: GridForm = "occupancy") -> np.ndarray:
         """Unpacked uint8 grids of patch ``ids``: (n, g, g, g) or (n, 3, g, g, g)."""
         ids = np.asarray(ids, np.int64)
         firsts = np.array([s["first_id"] for s in self.manifest["shards"]])
@@ -1345,14 +1358,19 @@ class TripletDataset:
         )
 
     def batches(
-        self, batch_size: int = 32, split: str = "train", form: str = "occupancy", shuffle: bool = True, seed: int = 0
+        self,
+        batch_size: int = 32,
+        split: str = "train",
+        form: GridForm = "occupancy",
+        shuffle: bool = True,
+        seed: int = 0,
     ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(X1, X2, X3) batches of unpacked grids."""
         t = self.triplets(split)
         order = np.random.default_rng(seed).permutation(len(t)) if shuffle else np.arange(len(t))
         for b in range(0, len(t), batch_size):
             rows = t[order[b : b + batch_size]]
-            yield tuple(self.grids(rows[:, c], form) for c in range(3))
+            yield self.grids(rows[:, 0], form), self.grids(rows[:, 1], form), self.grids(rows[:, 2], form)
 
     def torch_dataset(self, split: str = "train", form: str = "occupancy"):
         """A ``torch.utils.data.Dataset`` of float32 (X1, X2, X3) triplets (needs the learning extra)."""

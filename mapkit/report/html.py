@@ -119,30 +119,41 @@ def _img(p: Picture) -> str:
     data = base64.b64encode(p.path.read_bytes()).decode("ascii")
     style = f' style="max-width:{p.width}px"' if p.width else ""
     cap = f"<figcaption>{_inline(p.caption)}</figcaption>" if p.caption else ""
-    return f'<figure><img alt="{html.escape(p.caption or p.path.name)}" src="data:image/png;base64,{data}"{style}>{cap}</figure>'
+    return (
+        f'<figure><img alt="{html.escape(p.caption or p.path.name)}" '
+        f'src="data:image/png;base64,{data}"{style}>{cap}</figure>'
+    )
 
 
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;max-width:1180px;margin:2em auto;padding:0 1em;color:#222}
-h1{margin-bottom:.2em} h2{border-bottom:2px solid #ddd;padding-bottom:.2em;margin-top:2em}
-table{border-collapse:collapse;margin:.6em 0;font-size:.9em} th,td{border:1px solid #ccc;padding:.25em .5em;text-align:left}
-th{background:#f3f3f3} tbody tr:nth-child(even){background:#fafafa}
-figure{display:inline-block;margin:.5em 1em .5em 0;vertical-align:top} img{max-width:100%;border:1px solid #ddd}
-figcaption{font-size:.85em;color:#555} code{background:#f3f3f3;padding:0 .2em} .time{color:#777;font-weight:normal;font-size:.7em}
-nav a{margin-right:1em}
-"""
+# one rule set per line, as the page carries it
+_CSS = (
+    "\n"
+    "body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;"
+    "max-width:1180px;margin:2em auto;padding:0 1em;color:#222}\n"
+    "h1{margin-bottom:.2em} h2{border-bottom:2px solid #ddd;padding-bottom:.2em;margin-top:2em}\n"
+    "table{border-collapse:collapse;margin:.6em 0;font-size:.9em} "
+    "th,td{border:1px solid #ccc;padding:.25em .5em;text-align:left}\n"
+    "th{background:#f3f3f3} tbody tr:nth-child(even){background:#fafafa}\n"
+    "figure{display:inline-block;margin:.5em 1em .5em 0;vertical-align:top} img{max-width:100%;border:1px solid #ddd}\n"
+    "figcaption{font-size:.85em;color:#555} code{background:#f3f3f3;padding:0 .2em} "
+    ".time{color:#777;font-weight:normal;font-size:.7em}\n"
+    "nav a{margin-right:1em}\n"
+)
 
 
 def render(title: str, intro: str, sections: Sequence[Section]) -> str:
     """The whole page as a string."""
     anchors = [re.sub(r"[^a-z0-9]+", "-", s.title.lower()).strip("-") for s in sections]
     parts = [
-        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>"
+        f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
         markdown_to_html(intro),
-        "<nav>" + "".join(f'<a href="#{a}">{html.escape(s.title)}</a>' for a, s in zip(anchors, sections)) + "</nav>",
+        "<nav>"
+        + "".join(f'<a href="#{a}">{html.escape(s.title)}</a>' for a, s in zip(anchors, sections, strict=True))
+        + "</nav>",
     ]
-    for a, s in zip(anchors, sections):
+    for a, s in zip(anchors, sections, strict=True):
         t = f' <span class="time">{s.seconds:.0f} s</span>' if s.seconds is not None else ""
         parts.append(f'<h2 id="{a}">{html.escape(s.title)}{t}</h2>')
         for b in s.blocks:

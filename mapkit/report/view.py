@@ -173,7 +173,8 @@ class _Writer:
         """``keep`` points of the map, drawn uniformly, tinted with the session's colour by intensity."""
         import open3d as o3d
 
-        cloud = o3d.io.read_point_cloud(str(m.ply), format="ply")
+        # open3d's stub says os.PathLike; its binding takes a str path as well
+        cloud = o3d.io.read_point_cloud(str(m.ply), format="ply")  # type: ignore[arg-type]
         pts = np.asarray(cloud.points, np.float64)
         grey = np.asarray(cloud.colors, np.float64)[:, 0] if cloud.has_colors() else np.full(len(pts), 0.7)
         idx = np.sort(rng.choice(len(pts), size=min(keep, len(pts)), replace=False))
@@ -298,7 +299,8 @@ class _Writer:
             stamps = np.zeros(0, np.int64)
         if len(stamps) != len(ids):
             warnings.warn(
-                f"{hits}: {len(ids)} queries but session {session!r} has {len(stamps)} images; retrieved poses left out",
+                f"{hits}: {len(ids)} queries but session {session!r} has {len(stamps)} images; retrieved poses left "
+                "out",
                 InputWarning,
                 stacklevel=2,
             )
@@ -320,7 +322,8 @@ class _Writer:
 
 
 def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int, int]]:
-    """(K, (width, height)) of the session's image database camera (a build writes one), from its COLMAP reconstruction."""
+    """(K, (width, height)) of the session's image database camera (a build writes one), from its COLMAP
+    reconstruction."""
     import pycolmap
 
     folder = ws.session(name).imagedb / "colmap"
@@ -394,11 +397,12 @@ def write_recording(
 
     Every session's trajectory and map (``mapkit build``; and the aligned ones under ``world/align``
     when ``mapkit align`` finished), its GPS fixes (``gps``: those the georef stage saved; for a session
-    without ``georef/gps_fixes.npz``, read again from the session's log, which must still be where the build found it), thumbnails of its images at their poses, and, from
-    ``localize`` (default ``WORKSPACE/localize``), every ``mapkit localize`` run's estimates and the
-    database poses retrieved for each query of the cached hits. At most ``budget_points`` map points
-    over all maps; one thumbnail per ``image_spacing_m`` of camera travel. ``spawn`` also streams the
-    recording to a Rerun viewer it starts (needs a display). Returns what was written.
+    without ``georef/gps_fixes.npz``, read again from the session's log, which must still be where the
+    build found it), thumbnails of its images at their poses, and, from ``localize`` (default
+    ``WORKSPACE/localize``), every ``mapkit localize`` run's estimates and the database poses retrieved
+    for each query of the cached hits. At most ``budget_points`` map points over all maps; one thumbnail
+    per ``image_spacing_m`` of camera travel. ``spawn`` also streams the recording to a Rerun viewer it
+    starts (needs a display). Returns what was written.
     """
     rr = _rerun()
     t_start = time.perf_counter()
@@ -440,7 +444,7 @@ def write_recording(
         bar = progress_bar(len(names) + len(runs) + len(hits), progress, "mapkit view", "item")
         for i, name in enumerate(names):
             _session(w, name, i, frame, name in aligned, gps, image_spacing_m, thumbnail_width_px)
-            for m, q in zip(maps, quotas):
+            for m, q in zip(maps, quotas, strict=True):
                 if m.session == name:
                     w.map(m, q, rng)
             bar.update(1)
@@ -513,8 +517,8 @@ def _missing_notes(frame: LocalFrame | None, gps: bool, runs: list[Path], hits: 
     notes = []
     if gps:
         notes.append(
-            "GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for a session "
-            "without that file, read again from the session's log"
+            "GPS fixes: from each session's georef/gps_fixes.npz (the screened fixes the alignment used); for a "
+            "session without that file, read again from the session's log"
         )
     if frame is None:
         notes.append("the workspace is not georeferenced (no origin.json): no GPS fixes")
@@ -546,7 +550,7 @@ def _blueprint(cameras: list[str]):
     """The viewer's layout: the workspace in 3D beside the notes and one tab per session camera."""
     import rerun.blueprint as rrb
 
-    side = [rrb.TextDocumentView(origin="notes", name="notes")]
+    side: list[rrb.Container | rrb.View] = [rrb.TextDocumentView(origin="notes", name="notes")]
     if cameras:
         side.append(rrb.Tabs(*[rrb.Spatial2DView(origin=c, name=c.split("/")[2]) for c in cameras]))
     return rrb.Blueprint(

@@ -76,8 +76,8 @@ class DsiftConfig(MapkitConfig):
 
     region_widths: list[int] = Field(
         [16, 24, 32, 40],
-        description="Descriptor region widths (px), one per scale; 4x4 bins of width/4 px each (MCVL Sec. IV-A: 16, 24, 32, 40; "
-        "= vl_phow Sizes 4 6 8 10).",
+        description="Descriptor region widths (px), one per scale; 4x4 bins of width/4 px each (MCVL Sec. IV-A: 16, "
+        "24, 32, 40; = vl_phow Sizes 4 6 8 10).",
     )
     step: int = Field(
         2, ge=1, description="Grid spacing (px) of the frame centres (MCVL Sec. IV-A: 2; vl_phow Step 2)."
@@ -85,24 +85,25 @@ class DsiftConfig(MapkitConfig):
     magnif: float | None = Field(
         6.0,
         gt=0,
-        description="Each scale is pre-smoothed by a Gaussian of sigma = bin size / magnif (vl_phow Magnif 6); None = no smoothing.",
+        description="Each scale is pre-smoothed by a Gaussian of sigma = bin size / magnif (vl_phow Magnif 6); None = "
+        "no smoothing.",
     )
     window_sigma_bins: float | None = Field(
         2.0,
         gt=0,
-        description="Sigma of the Gaussian window over the 4x4 bins, in bins (SIFT: half the descriptor width = 2, as in Lowe "
-        "2004 and OpenCV); None = flat window. Mode 'mapkit' only (vl_phow's window is mode 'phow').",
+        description="Sigma of the Gaussian window over the 4x4 bins, in bins (SIFT: half the descriptor width = 2, as "
+        "in Lowe 2004 and OpenCV); None = flat window. Mode 'mapkit' only (vl_phow's window is mode 'phow').",
     )
     mode: Literal["mapkit", "phow"] = Field(
         "mapkit",
-        description="'mapkit': Gaussian window of sigma window_sigma_bins sampled at the bin centres, no contrast threshold "
-        "(Lowe 2004, OpenCV). 'phow': VLFeat vl_phow's defaults (Vedaldi and Fulkerson 2008; the extractor of the MCVL "
-        "authors): vl_dsift fast mode, each bin weighted by the mean of a Gaussian window of sigma phow_window_size bins "
-        "over the bin, and descriptors of contrast below phow_contrast_threshold zeroed; window_sigma_bins is then unused. "
-        "Default 'mapkit' by measured recall@1 within 25 m (VLAD, power whitening): no consistent gain from 'phow' (demo, "
-        "half resolution: clear 0.90 -> 0.98, night 0.11 -> 0.14, snowy 0.17 -> 0.39; full resolution: night 0.25 -> 0.07, "
-        "snowy 0.40 -> 0.35; tiny town night: half 0.42 -> 0.37, full 0.28 -> 0.36): its contrast threshold zeroes the "
-        "descriptors of under-exposed images.",
+        description="'mapkit': Gaussian window of sigma window_sigma_bins sampled at the bin centres, no contrast "
+        "threshold (Lowe 2004, OpenCV). 'phow': VLFeat vl_phow's defaults (Vedaldi and Fulkerson 2008; the extractor "
+        "of the MCVL authors): vl_dsift fast mode, each bin weighted by the mean of a Gaussian window of sigma "
+        "phow_window_size bins over the bin, and descriptors of contrast below phow_contrast_threshold zeroed; "
+        "window_sigma_bins is then unused. Default 'mapkit' by measured recall@1 within 25 m (VLAD, power whitening): "
+        "no consistent gain from 'phow' (demo, half resolution: clear 0.90 -> 0.98, night 0.11 -> 0.14, snowy 0.17 -> "
+        "0.39; full resolution: night 0.25 -> 0.07, snowy 0.40 -> 0.35; tiny town night: half 0.42 -> 0.37, full 0.28 "
+        "-> 0.36): its contrast threshold zeroes the descriptors of under-exposed images.",
     )
     phow_window_size: float = Field(
         1.5, gt=0, description="Mode 'phow': sigma of the Gaussian window, in bins (vl_phow WindowSize 1.5)."
@@ -110,16 +111,17 @@ class DsiftConfig(MapkitConfig):
     phow_contrast_threshold: float | None = Field(
         0.005,
         ge=0,
-        description="Mode 'phow': descriptors whose contrast (VLFeat's frame norm: windowed histogram mass per pixel of the "
-        "frame, grey levels in [0, 1]) is below this are zeroed (vl_phow ContrastThreshold 0.005); None = keep all.",
+        description="Mode 'phow': descriptors whose contrast (VLFeat's frame norm: windowed histogram mass per pixel "
+        "of the frame, grey levels in [0, 1]) is below this are zeroed (vl_phow ContrastThreshold 0.005); None = keep "
+        "all.",
     )
     clamp: float = Field(
         0.2, gt=0, le=1, description="SIFT normalisation: L2, clamp at this value, L2 again (Lowe 2004: 0.2)."
     )
     half_resolution: bool = Field(
         False,
-        description="Halve the image (area average) before extracting. False = the paper's text (Sec. IV-A); the authors' released "
-        "code halves the image (then region widths are in half-resolution pixels).",
+        description="Halve the image (area average) before extracting. False = the paper's text (Sec. IV-A); the "
+        "authors' released code halves the image (then region widths are in half-resolution pixels).",
     )
 
     @field_validator("region_widths")
@@ -383,8 +385,9 @@ def iter_histogram_blocks(
 ) -> Iterator[HistogramBlock]:
     """Raw (windowed, unnormalised) SIFT histograms of every frame, scale by scale, in row blocks.
 
-    ``gray`` is the float32 image of ``prepare_image``. The block's array is overwritten by the next block: copy what must outlive it. ``timer``
-    (a ``StepTimer``) receives the time of ``maps``, ``sample`` and, in mode ``"phow"``, ``contrast``.
+    ``gray`` is the float32 image of ``prepare_image``. The block's array is overwritten by the next block:
+    copy what must outlive it. ``timer`` (a ``StepTimer``) receives the time of ``maps``, ``sample`` and, in
+    mode ``"phow"``, ``contrast``.
     In mode ``"phow"`` the histograms of frames below the contrast threshold are zero.
     """
     threshold = cfg.phow_contrast_threshold if cfg.mode == "phow" else None
@@ -458,7 +461,7 @@ def dense_sift(image: np.ndarray, cfg: DsiftConfig | None = None) -> DenseSift:
         a = starts[blk.grid.scale_index] + blk.row0 * blk.grid.num_x
         b = a + len(blk.histograms)
         sift_normalize(blk.histograms, cfg.clamp, out=descriptors[a:b])
-    for gr, a, b in zip(grids, starts[:-1], starts[1:]):
+    for gr, a, b in zip(grids, starts[:-1], starts[1:], strict=True):
         keypoints[a:b] = gr.centres_xy()
         scale_index[a:b] = gr.scale_index
     if scale != 1.0:

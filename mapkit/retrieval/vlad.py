@@ -72,8 +72,8 @@ class VladConfig(MapkitConfig):
     num_words: int = Field(128, ge=1, description="Vocabulary size K (MCVL Sec. IV-A: 128; VLAD is K x 128 = 16384-D).")
     pooling: Pooling = Field(
         "sum",
-        description="'sum': residuals summed per word, then L2 (the paper's text, Sec. III-B); 'intra': each word's block "
-        "L2-normalised, then L2 (the authors' released code).",
+        description="'sum': residuals summed per word, then L2 (the paper's text, Sec. III-B); 'intra': each word's "
+        "block L2-normalised, then L2 (the authors' released code).",
     )
     pca_dim: int = Field(
         4096, ge=1, description="Output dimension after PCA (MCVL Sec. IV-A: 4096); capped at n_train - 1."
@@ -83,21 +83,23 @@ class VladConfig(MapkitConfig):
     )
     whitening: Whitening = Field(
         "power",
-        description="How principal components are scaled: 'full' = 1/sqrt(eigenvalue) (the paper's [33], sound when PCA learns on "
-        "many more images than its dimension, from a separate set); 'power' = eigenvalue^(-whitening_power/2) (power-law "
-        "whitening: HOW's shrinkage exponent, Tolias et al., ECCV 2020); 'shrinkage' = 1/sqrt(eigenvalue + whitening_shrinkage x "
-        "mean kept eigenvalue) (Ledoit-Wolf style). Default 'power': learned on the database itself (n images, n - 1 dimensions), "
-        "full whitening makes the database images all equidistant. Tiny town, PCA on the database sessions, each session in turn "
-        "the queries (209), recall@1/5/20 within 25 m (bench/bench_whitening.py): full 0.297/0.742/0.919, power 0.5 "
-        "0.411/0.852/0.938, shrinkage 1 0.402/0.823/0.933.",
+        description="How principal components are scaled: 'full' = 1/sqrt(eigenvalue) (the paper's [33], sound when "
+        "PCA learns on many more images than its dimension, from a separate set); 'power' = "
+        "eigenvalue^(-whitening_power/2) (power-law whitening: HOW's shrinkage exponent, Tolias et al., ECCV 2020); "
+        "'shrinkage' = 1/sqrt(eigenvalue + whitening_shrinkage x mean kept eigenvalue) (Ledoit-Wolf style). Default "
+        "'power': learned on the database itself (n images, n - 1 dimensions), full whitening makes the database "
+        "images all equidistant. Tiny town, PCA on the database sessions, each session in turn the queries (209), "
+        "recall@1/5/20 within 25 m (bench/bench_whitening.py): full 0.297/0.742/0.919, power 0.5 0.411/0.852/0.938, "
+        "shrinkage 1 0.402/0.823/0.933.",
     )
     whitening_power: float = Field(
         0.5,
         ge=0,
         le=1,
-        description="alpha of 'power' whitening: 1 = full whitening, 0 = plain PCA. 0.5 halves the full scaling's range in log "
-        "terms; on the tiny town 0.25 (recall@1 0.459) and plain PCA (0.455) edged it (0.411), within the +-0.034 standard error "
-        "of 209 queries, and 0.75 trailed (0.364): 0.5 keeps part of the damping of dominant components the paper whitens for.",
+        description="alpha of 'power' whitening: 1 = full whitening, 0 = plain PCA. 0.5 halves the full scaling's "
+        "range in log terms; on the tiny town 0.25 (recall@1 0.459) and plain PCA (0.455) edged it (0.411), within the "
+        "+-0.034 standard error of 209 queries, and 0.75 trailed (0.364): 0.5 keeps part of the damping of dominant "
+        "components the paper whitens for.",
     )
     whitening_shrinkage: float = Field(
         1.0,
@@ -107,8 +109,8 @@ class VladConfig(MapkitConfig):
     kmeans_max_descriptors: int = Field(
         200_000,
         ge=1,
-        description="k-means trains on a uniform random sample of at most this many RootSIFT descriptors of the training "
-        "images (not in the paper; ~1500 per word).",
+        description="k-means trains on a uniform random sample of at most this many RootSIFT descriptors of the "
+        "training images (not in the paper; ~1500 per word).",
     )
     kmeans_iterations: int = Field(25, ge=1, description="k-means iterations (faiss's default; not in the paper).")
     seed: int = Field(0, description="Seed of the descriptor sample and of k-means.")
@@ -407,7 +409,8 @@ class PcaWhitening:
 
     @staticmethod
     def rescale(vectors: np.ndarray, ratio: np.ndarray) -> np.ndarray:
-        """Outputs of one whitening (n, d), unit rows, as another's: scaled per direction by ``ratio``, then L2 again."""
+        """Outputs of one whitening (n, d), unit rows, as another's: scaled per direction by ``ratio``, then L2
+        again."""
         y = np.asarray(vectors, np.float64) * ratio
         y /= np.maximum(np.linalg.norm(y, axis=1, keepdims=True), _TINY)
         return y.astype(np.float32)
@@ -425,7 +428,8 @@ class PcaWhitening:
 
     @classmethod
     def from_state_dict(cls, state: dict[str, np.ndarray]) -> PcaWhitening:
-        """Arrays of ``state_dict``; encoders saved before the regularised whitening (no ``power``) were fully whitened."""
+        """Arrays of ``state_dict``; encoders saved before the regularised whitening (no ``power``) were fully
+        whitened."""
         whiten = bool(state["whiten"])
         power = float(state["power"]) if "power" in state else (1.0 if whiten else 0.0)
         return cls(
@@ -557,21 +561,21 @@ class VladEncoder:
         """(K * 128,) float32 VLAD of an image, before PCA. ``timer`` collects per-step seconds."""
         if self.vocabulary is None:
             raise ConfigError("the encoder has no vocabulary: fit or load it first")
-        timer = timer or null_timer
-        with timer("prepare"):
+        step = timer or null_timer
+        with step("prepare"):
             gray, _, _ = prepare_image(image, self.cfg.dsift)
         acc = VladAccumulator(self.vocabulary)
-        for blk in iter_histogram_blocks(gray, self.cfg.dsift, timer=timer):
-            with timer("rootsift"):
+        for blk in iter_histogram_blocks(gray, self.cfg.dsift, timer=step):
+            with step("rootsift"):
                 desc = _rootsift_from_histograms(blk.histograms, self.cfg.dsift.clamp)
-            acc.add(desc, timer)
+            acc.add(desc, step)
         if acc.counts.sum() == 0:
             raise InputError(
                 None,
                 f"image of shape {gray.shape} is smaller than the largest descriptor region "
                 f"({max(self.cfg.dsift.region_widths)} px): no dense SIFT frame fits",
             )
-        with timer("pool"):
+        with step("pool"):
             return acc.result(self.cfg.pooling)
 
     def encode(self, image: np.ndarray, timer: StepTimer | None = None) -> np.ndarray:
@@ -593,7 +597,8 @@ class VladEncoder:
         if self.pca is not None:
             arrays.update({f"pca_{k}": v for k, v in self.pca.state_dict().items()})
         with atomic_path(folder / self.MODEL_FILE) as tmp, open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+            # mypy matches **arrays against savez's allow_pickle: bool; no key here is allow_pickle
+            np.savez(f, **arrays)  # type: ignore[arg-type]
         atomic_write_text(folder / self.CONFIG_FILE, self.cfg.model_dump_json(indent=2) + "\n")
         return folder
 

@@ -11,8 +11,9 @@ the dimension is then n - 1 and ``vlad.whitening`` must be regularised (the defa
 rather than full, which would make the database images equidistant (see :mod:`mapkit.retrieval.vlad`).
 Sessions beyond the database named in ``train_sessions`` give the PCA images the database does not
 hold, and so, with ``training_frames: true``, do the frames a build kept beside each training
-session's database (``imagedb.training_frames``). The manifest's ``vlad.pca`` (and ``metrics.json``'s ``pca``) records what it learned on. The bundle is written into a partial folder and renamed into place
-(:func:`mapkit.core.bundle.building`). See :mod:`mapkit.retrieval.index_vlad` for the layout.
+session's database (``imagedb.training_frames``). The manifest's ``vlad.pca`` (and ``metrics.json``'s
+``pca``) records what it learned on. The bundle is written into a partial folder and renamed into
+place (:func:`mapkit.core.bundle.building`). See :mod:`mapkit.retrieval.index_vlad` for the layout.
 """
 
 from __future__ import annotations
@@ -164,8 +165,9 @@ def _build_hash(
     sessions and their tables (by checksum), the frame."""
     inputs = {n: [s.pose_source, sha256_file(s.csv_path)] for n, s in sessions.items()}
     for n in train_names:  # the training frames count only where they are learned from: bundles without any stay valid
-        if cfg.training_frames and sessions[n].training_paths:
-            inputs[n].append(sha256_file(sessions[n].training_csv))
+        training_csv = sessions[n].training_csv
+        if cfg.training_frames and training_csv is not None and sessions[n].training_paths:
+            inputs[n].append(sha256_file(training_csv))
     return config_hash(
         {
             "format_version": FORMAT_VERSION,
@@ -339,6 +341,7 @@ def _rewhiten(
             field="reuse",
         )
     encoder = VladEncoder.load(reuse / ENCODER_DIR)
+    assert encoder.pca is not None  # a bundle's encoder is saved with its PCA
     pca, ratio = encoder.pca.rewhitened(cfg.vlad.whiten, *whitening_parameters(cfg.vlad))
     vectors = read_vectors(reuse)  # read_manifest above checked every listed file's sha256
     train_sel, vocab_sel = _training_selection(cfg, sessions, train_names)
@@ -358,17 +361,18 @@ def _rewhiten(
 def _warn_small_pca(cfg: VladIndexConfig, encoder: VladEncoder, n_train: int) -> None:
     """Say when the PCA learned on fewer images than the dimension asked for, and what that does to
     full whitening (MCVL's [33] learns it on a separate, much larger set)."""
+    assert encoder.pca is not None  # called after fit_pca
     dim = encoder.pca.dim
     if dim >= cfg.vlad.pca_dim:
         return
     note = (
-        f"PCA dimension capped from {cfg.vlad.pca_dim} to {dim}: {n_train} training images (name more train_sessions or "
-        "raise max_training_images for more)"
+        f"PCA dimension capped from {cfg.vlad.pca_dim} to {dim}: {n_train} training images (name more train_sessions "
+        "or raise max_training_images for more)"
     )
     if cfg.vlad.whiten and cfg.vlad.whitening == "full" and dim >= n_train - 1:
         note += (
-            "; full whitening in n - 1 dimensions makes the n training images equidistant (a database learned on returns "
-            "ties): vlad.whitening 'power' or 'shrinkage' regularises it"
+            "; full whitening in n - 1 dimensions makes the n training images equidistant (a database learned on "
+            "returns ties): vlad.whitening 'power' or 'shrinkage' regularises it"
         )
     warnings.warn(note, InputWarning, stacklevel=5)  # the caller of build_vlad_index
 
@@ -385,6 +389,7 @@ def _encode_database(
     Returns (vectors, images reused from training, images encoded here)."""
     t0 = time.perf_counter()
     encoder = learned.encoder
+    assert encoder.pca is not None  # the learned (or re-whitened) encoder has its PCA
     db_refs = [(n, i) for n in db_names for i in range(len(sessions[n]))]
     if not db_refs:
         raise InputError(
@@ -424,7 +429,8 @@ def _build_into(
     executor: Executor,
     reuse: Path | None = None,
 ) -> tuple[dict, dict]:
-    """Learn, encode (or re-whiten ``reuse``'s) and write everything but metrics.json and the manifest into ``tmp``; returns both."""
+    """Learn, encode (or re-whiten ``reuse``'s) and write everything but metrics.json and the manifest into
+    ``tmp``; returns both."""
     timings: dict[str, float] = {}
     if reuse is None:
         learned = _learn_encoder(cfg, sessions, train_names, executor, progress, timings)
@@ -480,6 +486,7 @@ def _manifest(
 ) -> dict:
     """The bundle's manifest, without the file checksums (``write_manifest`` adds them)."""
     encoder = learned.encoder
+    assert encoder.pca is not None  # the learned (or re-whitened) encoder has its PCA
     train_count = {n: sum(1 for r in learned.train_sel if r[0] == n) for n in train_names}
     return {
         "format_version": FORMAT_VERSION,
@@ -493,9 +500,7 @@ def _manifest(
         "train_sessions": train_names,
         # each database session's camera mount (base_from_camera), so that a localizer can put its
         # filter on the vehicle pose the way the database was recorded
-        "camera_mounts": {
-            n: sessions[n].base_from_camera.tolist() for n in db_names if sessions[n].base_from_camera is not None
-        },
+        "camera_mounts": {n: mount.tolist() for n in db_names if (mount := sessions[n].base_from_camera) is not None},
         "sessions": {
             n: {
                 "images": len(s) if n in db_names else 0,
@@ -529,9 +534,10 @@ def _pca_record(
     cfg: VladIndexConfig, learned: _Learned, sessions: dict[str, SessionImages], db_names: list[str]
 ) -> dict:
     """What the PCA-whitening learned on and how it scales its directions, for the manifest and metrics:
-    training vectors per session, how many of them are database images and how many training frames, output dimension (asked
-    for and got: at most n - 1), whitening (mode, power, shrinkage)."""
+    training vectors per session, how many of them are database images and how many training frames,
+    output dimension (asked for and got: at most n - 1), whitening (mode, power, shrinkage)."""
     pca = learned.encoder.pca
+    assert pca is not None  # the learned (or re-whitened) encoder has its PCA
     per_session: dict[str, int] = {}
     in_database = training_frames = 0
     for name, row in learned.train_sel:
@@ -576,8 +582,9 @@ def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
             stacklevel=3,
         )
     quantizer = faiss.IndexFlatL2(d)
+    ivf_index: faiss.IndexIVF
     if ivf.pq_m is None:
-        index = faiss.IndexIVFFlat(quantizer, d, nlist, faiss.METRIC_L2)
+        ivf_index = faiss.IndexIVFFlat(quantizer, d, nlist, faiss.METRIC_L2)
         kind = "IndexIVFFlat"
     else:
         if d % ivf.pq_m:
@@ -586,24 +593,24 @@ def make_index(vectors: np.ndarray, cfg: VladIndexConfig):
             raise ConfigError(
                 f"IVF-PQ with {ivf.pq_bits}-bit codes needs at least {2**ivf.pq_bits} database vectors, got {n}"
             )
-        index = faiss.IndexIVFPQ(quantizer, d, nlist, ivf.pq_m, ivf.pq_bits)
+        ivf_index = faiss.IndexIVFPQ(quantizer, d, nlist, ivf.pq_m, ivf.pq_bits)
         kind = "IndexIVFPQ"
     train = vectors[_uniform_subset(n, ivf.max_training_vectors, cfg.seed, 3)]
-    index.train(np.ascontiguousarray(train))
-    index.add(vectors)
-    index.nprobe = min(ivf.nprobe, nlist)
+    ivf_index.train(np.ascontiguousarray(train))
+    ivf_index.add(vectors)
+    ivf_index.nprobe = min(ivf.nprobe, nlist)
     info = {
         "kind": "ivf",
         "faiss": kind,
         "dim": d,
         "metric": "squared L2",
-        "ntotal": int(index.ntotal),
+        "ntotal": int(ivf_index.ntotal),
         "nlist": nlist,
-        "nprobe": int(index.nprobe),
+        "nprobe": int(ivf_index.nprobe),
         "pq_m": ivf.pq_m,
         "pq_bits": ivf.pq_bits if ivf.pq_m else None,
     }
-    return index, info
+    return ivf_index, info
 
 
 def _rewrite_config(out: Path, cfg: VladIndexConfig) -> None:

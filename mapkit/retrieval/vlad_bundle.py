@@ -69,20 +69,22 @@ class IvfConfig(MapkitConfig):
     nlist: int | None = Field(
         None,
         ge=1,
-        description="Inverted lists (coarse centroids). None = 4 sqrt(N) (faiss's guideline); always capped at N / 39 so that "
-        "k-means has the 39 training points per list faiss asks for.",
+        description="Inverted lists (coarse centroids). None = 4 sqrt(N) (faiss's guideline); always capped at N / 39 "
+        "so that k-means has the 39 training points per list faiss asks for.",
     )
     nprobe: int = Field(
         16,
         ge=1,
-        description="Lists visited per query. With 1024 lists over 100k 4096-D vectors on one core: 14 ms per query and recall@20 "
-        "0.999 of the exact top-20, against 107 ms exact (bench/bench_vlad_query.py, road-clustered synthetic vectors).",
+        description="Lists visited per query. With 1024 lists over 100k 4096-D vectors on one core: 14 ms per query "
+        "and recall@20 0.999 of the exact top-20, against 107 ms exact (bench/bench_vlad_query.py, road-clustered "
+        "synthetic vectors).",
     )
     pq_m: int | None = Field(
         None,
         ge=1,
-        description="None = IVF-Flat (exact distances inside the visited lists). m = IVF-PQ with m sub-quantizers (m bytes per "
-        "vector at 8 bits; must divide the dimension): for city scale, at a recall cost measured by the benchmark.",
+        description="None = IVF-Flat (exact distances inside the visited lists). m = IVF-PQ with m sub-quantizers (m "
+        "bytes per vector at 8 bits; must divide the dimension): for city scale, at a recall cost measured by the "
+        "benchmark.",
     )
     pq_bits: int = Field(8, ge=1, le=16, description="Bits per PQ sub-quantizer code.")
     max_training_vectors: int = Field(
@@ -100,24 +102,24 @@ class VladIndexConfig(MapkitConfig):
     )
     train_sessions: list[str] | None = Field(
         None,
-        description="Sessions whose images train the vocabulary and PCA. None = the database sessions (the PCA then learns on the "
-        "database itself, which is why vlad.whitening is regularised by default). Sessions beyond the database give the PCA "
-        "images the database does not hold. Never the query sessions.",
+        description="Sessions whose images train the vocabulary and PCA. None = the database sessions (the PCA then "
+        "learns on the database itself, which is why vlad.whitening is regularised by default). Sessions beyond the "
+        "database give the PCA images the database does not hold. Never the query sessions.",
     )
     training_frames: bool = Field(
         False,
-        description="The vocabulary and PCA learn also from the frames the training sessions' image databases skipped and kept "
-        "for this (mapkit build's imagedb.training_frames): images that are not database images. Off by default: frames of "
-        "the same drives add dimensions to the PCA, not new appearance, and gave no retrieval gain on the synthetic town. "
-        "Drives of other days named in train_sessions are the other way.",
+        description="The vocabulary and PCA learn also from the frames the training sessions' image databases skipped "
+        "and kept for this (mapkit build's imagedb.training_frames): images that are not database images. Off by "
+        "default: frames of the same drives add dimensions to the PCA, not new appearance, and gave no retrieval gain "
+        "on the synthetic town. Drives of other days named in train_sessions are the other way.",
     )
     database_sessions: list[str] | None = Field(
         None, description="Sessions whose images are indexed. None = every session in the workspace."
     )
     prefer_aligned_poses: bool = Field(
         True,
-        description="Take camera poses from WORKSPACE/align (multi-session refinement) for sessions it finished, else from the "
-        "session's GPS-aligned imagedb.",
+        description="Take camera poses from WORKSPACE/align (multi-session refinement) for sessions it finished, else "
+        "from the session's GPS-aligned imagedb.",
     )
     index: Literal["flat", "ivf"] = Field(
         "flat", description="'flat': exact search (faiss IndexFlatL2); 'ivf': approximate, for city scale."
@@ -132,14 +134,14 @@ class VladIndexConfig(MapkitConfig):
     max_training_images: int = Field(
         5000,
         ge=2,
-        description="PCA trains on a uniform sample of at most this many training images (not in the paper; the 4096-D PCA of "
-        "Sec. IV-A needs more than 4096; fewer cap the dimension at n - 1).",
+        description="PCA trains on a uniform sample of at most this many training images (not in the paper; the 4096-D "
+        "PCA of Sec. IV-A needs more than 4096; fewer cap the dimension at n - 1).",
     )
     max_vocabulary_images: int = Field(
         250,
         ge=1,
-        description="The k-means descriptor sample (vlad.kmeans_max_descriptors) is drawn evenly from at most this many of the "
-        "training images (not in the paper; ~800 descriptors per image at the defaults).",
+        description="The k-means descriptor sample (vlad.kmeans_max_descriptors) is drawn evenly from at most this "
+        "many of the training images (not in the paper; ~800 descriptors per image at the defaults).",
     )
     workers: int = Field(1, ge=1, description="Processes encoding images (1 = in this process).")
     seed: int = Field(0, description="Seed of the image subsamples.")
@@ -187,12 +189,12 @@ def workspace_sessions(workspace: str | Path) -> list[str]:
     return Workspace(workspace).sessions_with_images()
 
 
-def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool = True) -> SessionImages:
+def read_session_images(workspace: str | Path | Workspace, name: str, prefer_aligned: bool = True) -> SessionImages:
     """A session's image table: the aligned one (``align/sessions/<name>/images.csv``) when the
     alignment finished and holds the session, else ``sessions/<name>/imagedb/images.csv``."""
     ws = Workspace(workspace)
     csv_path = ws.session_images_csv(name, prefer_aligned)
-    source = "align" if csv_path == ws.aligned(name).images_csv else "imagedb"
+    source: Literal["align", "imagedb"] = "align" if csv_path == ws.aligned(name).images_csv else "imagedb"
     if not csv_path.is_file():
         raise InputError(csv_path, f"session {name!r} has no image database (run mapkit build)")
     table = read_images_csv(csv_path)
@@ -212,7 +214,7 @@ def read_session_images(workspace: str | Path, name: str, prefer_aligned: bool =
     )
 
 
-def read_camera_mount(workspace: str | Path, name: str) -> np.ndarray | None:
+def read_camera_mount(workspace: str | Path | Workspace, name: str) -> np.ndarray | None:
     """Session ``name``'s camera mount ``base_from_camera`` (4, 4) as ``mapkit build`` recorded it;
     None for image databases built before it was recorded."""
     path = Workspace(workspace).session(name).camera_mount

@@ -112,6 +112,7 @@ def encode_images(
     else in ``workers`` local processes; the result is the same bit for bit on any of them.
     """
     executor = executor or get_executor(workers)
+    assert encoder.pca is not None, "the encoder has no PCA: fit or load it first"
     out = np.zeros((len(paths), encoder.pca.dim), np.float32)
     for rows, raw in _batched(_map(_raw_task, [str(p) for p in paths], encoder, executor, progress, desc), _PCA_BATCH):
         out[rows] = encoder.pca.transform(raw)

@@ -223,13 +223,13 @@ class VladIndex:
             try:
                 with np.load(cache, allow_pickle=False) as z:
                     if z["vectors"].shape[1:] == (self.dim,):
-                        have = dict(zip(z["keys"].tolist(), z["vectors"]))
+                        have = dict(zip(z["keys"].tolist(), z["vectors"], strict=True))
             except (OSError, KeyError, ValueError):
                 have = {}  # unreadable: encode again, the file is replaced below
         todo = sorted({k: i for i, k in enumerate(keys) if k not in have}.values())
         if todo:
             vec = encode_images(self.encoder, [paths[i] for i in todo], workers, progress, desc)
-            have.update({keys[i]: v for i, v in zip(todo, vec)})
+            have.update({keys[i]: v for i, v in zip(todo, vec, strict=True)})
             with atomic_path(cache) as tmp, open(tmp, "wb") as f:
                 np.savez(f, keys=np.array(list(have)), vectors=np.stack(list(have.values())).astype(np.float32))
         out = np.zeros((len(paths), self.dim), np.float32)
@@ -274,7 +274,7 @@ class VladIndex:
         frame = ws.frame()
         mine = self.manifest.get("frame")
         if (frame is None) != (mine is None) or (
-            frame is not None and not _same_frame(frame, LocalFrame.from_dict(mine))
+            frame is not None and mine is not None and not _same_frame(frame, LocalFrame.from_dict(mine))
         ):
             raise InputError(
                 ws.origin,

@@ -26,7 +26,8 @@ Output layout (``out``)::
     world/mesh.ply            static surfaces (world ENU, metres; binary PLY, per-face material and object id)
     world/roads.json          road graph: nodes (ENU xy, degree), edges (polylines, widths), the anchor place
     world/origin.json         LocalFrame.to_dict(): WGS84 origin and UTM EPSG code
-    world/manifest.json       format version, seed, preset, config hash, sessions (route, time, weather, rates, GPS noise)
+    world/manifest.json       format version, seed, preset, config hash, sessions (route, time, weather, rates,
+                              GPS noise)
     world/config.yaml         the resolved configuration
     sessions/<name>/          the session's log, a rosbag2 folder as ``ros2 bag record -s mcap`` writes it:
                               metadata.yaml and <name>_0.mcap with ROS 2 messages: /camera/front/image
@@ -60,7 +61,7 @@ import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Optional
+from typing import Any
 
 import numpy as np
 
@@ -204,7 +205,7 @@ def synthesize(
         plans = plan_sessions(cfg, town, external)
         timing["session_planning_s"] = time.perf_counter() - t
         world_dir = out / "world"
-        manifest = {
+        manifest: dict[str, Any] = {
             "format_version": FORMAT_VERSION,
             "generator": "mapkit.synth",
             "preset": cfg.preset,
@@ -395,7 +396,10 @@ def _pictures(out: Path, town, plans) -> None:
         if f.is_file():
             img = cv2.imread(str(f), cv2.IMREAD_COLOR)
             if img is not None:
-                caption = f"{p.name} ({p.config.role}) {p.local_start:%Y-%m-%d %H:%M}\n{p.conditions.label}, {p.conditions.season}"
+                caption = (
+                    f"{p.name} ({p.config.role}) {p.local_start:%Y-%m-%d %H:%M}\n{p.conditions.label}, "
+                    f"{p.conditions.season}"
+                )
                 frames.append((caption, img[..., ::-1]))
     if frames:
         draw_contact_sheet(

@@ -201,10 +201,7 @@ def make_conditions(
         0.02, 0.018, 0.016
     ) * night
     fog_rgb = (0.7 * hor + 0.1 * ambient).astype(F32)
-    if snow:
-        grass = f32(0.85, 0.86, 0.9)
-    else:
-        grass = f32(*GRASS[season])
+    grass = f32(0.85, 0.86, 0.9) if snow else f32(*GRASS[season])
     key = float(np.dot(sun_rgb * 0.6 + ambient, f32(0.2126, 0.7152, 0.0722)))
     # auto exposure toward mid-grey, limited by the sensor's maximum gain (night stays dark)
     gain = min(1.6 / max(key, 1e-6), MAX_GAIN) * 2.0**exposure_ev
@@ -392,8 +389,8 @@ class Hits:
             tri,
             table,
         )
-        self._uv = None
-        self._aux = None
+        self._uv: np.ndarray | None = None
+        self._aux: np.ndarray | None = None
 
     @property
     def uv(self) -> np.ndarray:
@@ -444,7 +441,7 @@ class Hits:
             return []
         starts = np.concatenate([[0], np.flatnonzero(m[1:] != m[:-1]) + 1])
         ends = np.concatenate([starts[1:], [len(m)]])
-        return [(int(m[a]), slice(int(a), int(b))) for a, b in zip(starts, ends)]
+        return [(int(m[a]), slice(int(a), int(b))) for a, b in zip(starts, ends, strict=True)]
 
 
 @dataclass

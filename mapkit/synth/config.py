@@ -23,8 +23,8 @@ from mapkit.core.presets import configs_dir, preset_path
 
 FORMAT_VERSION = 1
 PRESETS = ("tiny", "demo", "places", "benchmark")
-WEATHERS = ("clear", "sunny", "overcast", "cloudy", "foggy", "rainy", "snowy")
 Weather = Literal["clear", "sunny", "overcast", "cloudy", "foggy", "rainy", "snowy"]
+WEATHERS: tuple[Weather, ...] = ("clear", "sunny", "overcast", "cloudy", "foggy", "rainy", "snowy")
 Season = Literal["spring", "summer", "autumn", "winter"]
 
 

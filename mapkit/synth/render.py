@@ -75,8 +75,10 @@ class Renderer:
         self.tri_offset = np.zeros(len(parts), np.int64)
         off = 0
         for k, g in enumerate(parts):
+            # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
             self.scene.add_triangles(
-                o3d.core.Tensor(g.vertices.astype(np.float32)), o3d.core.Tensor(g.triangles.astype(np.uint32))
+                o3d.core.Tensor(g.vertices.astype(np.float32)),  # type: ignore[call-overload]
+                o3d.core.Tensor(g.triangles.astype(np.uint32)),  # type: ignore[call-overload]
             )
             self.tri_offset[k] = off
             off += g.n_triangles
@@ -115,7 +117,8 @@ class Renderer:
         rays = np.empty((len(dirs), 6), F32)
         rays[:, :3] = origins
         rays[:, 3:] = dirs
-        out = self.scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.nthreads)
+        # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
+        out = self.scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.nthreads)  # type: ignore[call-overload]
         return {k: out[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_normals")}
 
     def _sorted_hits(self, out: dict, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,7 +204,8 @@ class Renderer:
         rays = np.empty((len(p), 6), F32)
         rays[:, :3] = p + n * SHADOW_BIAS_M
         rays[:, 3:] = sun[None]
-        return self.scene.test_occlusions(self._o3d.core.Tensor(rays), nthreads=self.nthreads).numpy()
+        # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
+        return self.scene.test_occlusions(self._o3d.core.Tensor(rays), nthreads=self.nthreads).numpy()  # type: ignore[call-overload]
 
     def _sun_visibility(self, h: Hits, lit: np.ndarray, sun: np.ndarray) -> np.ndarray:
         """1 where the sun is not occluded (one shadow ray per lit hit), else 0."""
@@ -371,8 +375,10 @@ def ground_truth_mesh_scene(vertices: np.ndarray, triangles: np.ndarray):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
+    # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
     scene.add_triangles(
-        o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(triangles, np.uint32))
+        o3d.core.Tensor(np.asarray(vertices, np.float32)),  # type: ignore[call-overload]
+        o3d.core.Tensor(np.asarray(triangles, np.uint32)),  # type: ignore[call-overload]
     )
     return scene
 

@@ -130,7 +130,7 @@ class GpsErrorModel:
         i0, i1 = self._events(n, c.multipath_rate_hz, c.multipath_duration_s, rng)
         offs = rng.standard_normal((len(i0), 2)) * c.multipath_sigma_m
         multipath = np.zeros((n, 3))
-        for a, b, off in zip(i0, i1, offs):  # a few events a session: exact zeros outside them
+        for a, b, off in zip(i0, i1, offs, strict=True):  # a few events a session: exact zeros outside them
             multipath[a:b, :2] += off
         d0, d1 = self._events(n, c.dropout_rate_hz, c.dropout_duration_s, rng)
         cover = np.zeros(n + 1, int)

@@ -161,7 +161,7 @@ def _trim(poly: np.ndarray, s0: float, s1: float, step: float = 0.5) -> np.ndarr
 
 def route_centerline(g: RoadGraph, nodes: list[int], roads: list[int]) -> np.ndarray:
     """Dense centreline (M, 2) along the route's roads, with fillets through the junctions."""
-    polys = [g.oriented(g.roads[r], n) for r, n in zip(roads, nodes[:-1])]
+    polys = [g.oriented(g.roads[r], n) for r, n in zip(roads, nodes[:-1], strict=True)]
     lengths = [g.roads[r].length_m for r in roads]
     fil = [0.0] * (len(nodes))
     for i in range(1, len(nodes) - 1):
@@ -549,7 +549,7 @@ def _local_datetime(date: dt.date, hhmm: str, tz: str) -> dt.datetime:
 def plan_sessions(cfg: SynthConfig, town: Town, external: ExternalPath | None = None) -> list[SessionPlan]:
     rng_auto = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x5E55]))
     sessions = list(cfg.sessions) + auto_sessions(cfg, rng_auto)
-    plans = []
+    plans: list[SessionPlan] = []
     driven: dict[int, int] = {}  # road id -> sessions whose planned route takes it
     for i, sc in enumerate(sessions):
         seed = int(np.random.SeedSequence([cfg.seed, 0xD21, i]).generate_state(1)[0])
@@ -568,6 +568,7 @@ def plan_sessions(cfg: SynthConfig, town: Town, external: ExternalPath | None = 
         )
         if (sc.trajectory is not None) or (external is not None and i == 0):
             ext = external if sc.trajectory is None else read_external_trajectory(sc.trajectory)
+            assert ext is not None  # by the condition: the session's own trajectory, or the external one
             drive = drive_external(ext, sc, cfg, start_ns, town)
         else:
             follow = None
@@ -663,6 +664,9 @@ def write_session(
     model = GpsErrorModel(cfg.gps)
     err = model.simulate(len(gps_ns), rng_gps)
     antenna = (drive.poses_at(gps_ns) @ ex[FRAME_GPS])[:, :3, 3] if len(gps_ns) else np.zeros((0, 3))
+    lat: np.ndarray | list[float]
+    lon: np.ndarray | list[float]
+    alt: np.ndarray | list[float]
     lat, lon, alt = town.frame.enu_to_geodetic(antenna + err.total_enu) if len(gps_ns) else ([], [], [])
     cov = model.covariance_enu_m2
     gyro, accel = (np.zeros((0, 3)), np.zeros((0, 3)))

@@ -18,6 +18,8 @@ import json
 from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
+from functools import partial
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -101,7 +103,7 @@ class Geometry:
         offsets = np.cumsum([0] + [len(p.vertices) for p in parts])[:-1]
         return Geometry(
             np.concatenate([p.vertices for p in parts]) if parts else np.zeros((0, 3)),
-            np.concatenate([p.triangles + o for p, o in zip(parts, offsets)]).astype(np.int32)
+            np.concatenate([p.triangles + o for p, o in zip(parts, offsets, strict=True)]).astype(np.int32)
             if parts
             else np.zeros((0, 3), np.int32),
             *[
@@ -240,13 +242,15 @@ def add_boxes(
         return
     verts, fl = box_faces(b, faces)
     n = len(b.height)
-    for f, fd in zip(faces, fl):
+
+    def per(x, default):
+        """``x`` per triangle: ``default`` for None, a per-box array repeated (two triangles a face), else as is."""
+        return default if x is None else (np.repeat(np.asarray(x), 2, axis=0) if np.ndim(x) >= 1 and len(x) == n else x)
+
+    for f, fd in zip(faces, fl, strict=True):
         mat = material.get(f, material.get("default")) if isinstance(material, dict) else material
         if mat is None:
             continue
-        per = lambda x, default: (
-            default if x is None else (np.repeat(np.asarray(x), 2, axis=0) if np.ndim(x) >= 1 and len(x) == n else x)
-        )  # noqa: E731
         aux_f = aux(f, fd) if callable(aux) else aux
         mb.add(
             verts,
@@ -407,7 +411,7 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
         if pool:
             dest.append(int(rng.choice(pool)))
     node_id = -np.ones((nx, ny), int)
-    nodes = []
+    nodes: list[tuple[float, float]] = []
     jit = town.jitter
     for i in range(nx):
         for j in range(ny):
@@ -516,7 +520,7 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
             return [(min(ia, ib), ja - 1), (min(ia, ib), ja)]
         return [(ia - 1, min(ja, jb)), (ia, min(ja, jb))]
 
-    roads = []
+    roads: list[Road] = []
     for (a, b), kind in sorted(edges.items()):
         pa, pb = nodes_xy[a], nodes_xy[b]
         lattice = (
@@ -660,6 +664,12 @@ def _wall_strip(mb: MeshBuilder, line: np.ndarray, z0: float, z1: float, facing:
     mb.add(V, tris, material, origin=np.concatenate([origin, origin]), axis_u=np.concatenate([u, u]), axis_v=(0, 0, 1))
 
 
+def _road_aux(ss: np.ndarray, constants: tuple[float, ...]) -> np.ndarray:
+    """Per-triangle road attributes: arc length ``ss`` and, broadcast to it, the road's length, half
+    width, kind, usable start and end, and whether each end meets a junction."""
+    return np.stack([ss, *(np.full_like(ss, c) for c in constants)], 1)
+
+
 def road_surfaces(mb: MeshBuilder, g: RoadGraph, town: TownConfig) -> None:
     deg = g.degree()
     h = town.sidewalk_height_m
@@ -681,19 +691,7 @@ def road_surfaces(mb: MeshBuilder, g: RoadGraph, town: TownConfig) -> None:
             w,
             ROAD_Z,
             Mat.ROAD,
-            lambda ss: np.stack(
-                [
-                    ss,
-                    np.full_like(ss, L),
-                    np.full_like(ss, w),
-                    np.full_like(ss, kind),
-                    np.full_like(ss, s0),
-                    np.full_like(ss, s1),
-                    np.full_like(ss, xa),
-                    np.full_like(ss, xb),
-                ],
-                1,
-            ),
+            partial(_road_aux, constants=(L, w, kind, s0, s1, xa, xb)),
             object_id=road.id,
         )
         # sidewalks on both sides, with a curb face toward the road and a low face toward the ground
@@ -723,7 +721,9 @@ def road_surfaces(mb: MeshBuilder, g: RoadGraph, town: TownConfig) -> None:
         r = g.junction_radius_m[node]
         # a round patch of the widest road's half width (the whole bulb at a dead end)
         r_disc = r if len(inc) == 1 else min(r, max(rd.half_width_m for rd, _ in inc))
-        pts = [c + r_disc * np.stack([np.cos(a), np.sin(a)], -1) for a in np.linspace(0, 2 * np.pi, 24, endpoint=False)]
+        outline = [
+            c + r_disc * np.stack([np.cos(a), np.sin(a)], -1) for a in np.linspace(0, 2 * np.pi, 24, endpoint=False)
+        ]
         for road, _ in inc:
             p = g.oriented(road, node)
             S = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
@@ -731,8 +731,8 @@ def road_surfaces(mb: MeshBuilder, g: RoadGraph, town: TownConfig) -> None:
             k = min(np.searchsorted(S, r, side="right") - 1, len(p) - 2)
             t = (p[k + 1] - p[k]) / max(np.linalg.norm(p[k + 1] - p[k]), 1e-9)
             nrm = np.array([-t[1], t[0]])
-            pts += [x + nrm * road.half_width_m, x - nrm * road.half_width_m]
-        hull = _convex_hull(np.array(pts))
+            outline += [x + nrm * road.half_width_m, x - nrm * road.half_width_m]
+        hull = _convex_hull(np.array(outline))
         m = len(hull)
         V = np.zeros((m + 1, 3))
         V[0, :2] = hull.mean(axis=0)
@@ -753,7 +753,8 @@ def _convex_hull(p: np.ndarray) -> np.ndarray:
     def cross(o, a, b):
         return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
 
-    lower, upper = [], []
+    lower: list[tuple[float, ...]] = []
+    upper: list[tuple[float, ...]] = []
     for q in pts:
         while len(lower) >= 2 and cross(lower[-2], lower[-1], q) <= 0:
             lower.pop()
@@ -1010,17 +1011,14 @@ def build_town(cfg: SynthConfig, trajectory_xy: np.ndarray | None = None) -> Tow
     town = cfg.town
     ss = np.random.SeedSequence([cfg.seed, 0x70_77_4E])
     r_roads, r_build, r_props, r_styles, r_hills = (np.random.default_rng(s) for s in ss.spawn(5))
-    if trajectory_xy is not None:
-        g = roads_around_path(town, trajectory_xy, r_roads)
-    else:
-        g = generate_roads(town, r_roads)
+    g = roads_around_path(town, trajectory_xy, r_roads) if trajectory_xy is not None else generate_roads(town, r_roads)
     lo = np.min(np.vstack([g.nodes_xy] + [r.polyline for r in g.roads]), axis=0)
     hi = np.max(np.vstack([g.nodes_xy] + [r.polyline for r in g.roads]), axis=0)
     half = np.maximum(np.abs(lo), np.abs(hi)) + 40.0
     occ = Occupancy((float(half[0]), float(half[1])))
     for road in g.roads:
         w = road.half_width_m + town.sidewalk_width_m + 0.3
-        for a, b in zip(road.polyline[:-1], road.polyline[1:]):
+        for a, b in pairwise(road.polyline):
             occ.mark_segment(a, b, w)
     for node in range(len(g.nodes_xy)):
         occ.mark_segment(g.nodes_xy[node], g.nodes_xy[node], g.sidewalk_radius_m[node] + town.sidewalk_width_m)
@@ -1100,33 +1098,33 @@ def _buildings(
                 off = road.half_width_m + town.sidewalk_width_m + setback
                 centre = p + n_away * (off + d / 2)
                 x_axis = t if side > 0 else -t
-                yaw = float(np.arctan2(x_axis[1], x_axis[0]))
+                yaw_rad = float(np.arctan2(x_axis[1], x_axis[0]))
                 half = np.array([f / 2, d / 2])
-                style = int(street_styles[0] if rng.random() < 0.7 else rng.integers(len(styles)))
+                style_id = int(street_styles[0] if rng.random() < 0.7 else rng.integers(len(styles)))
                 floors = int(rng.integers(bc.floors[0], bc.floors[1] + 1))
-                floor_h = float(styles[style, 4])
-                height = floors * floor_h + rng.uniform(0.3, 0.8)
-                if not occ.rect_free(centre, half, yaw):
+                floor_h = float(styles[style_id, 4])
+                height_m = floors * floor_h + rng.uniform(0.3, 0.8)
+                if not occ.rect_free(centre, half, yaw_rad):
                     # a shallower building, else move on a little and try again
                     d = max(bc.depth_m[0] * 0.75, d * 0.6)
                     centre = p + n_away * (off + d / 2)
                     half = np.array([f / 2, d / 2])
-                    if not occ.rect_free(centre, half, yaw):
+                    if not occ.rect_free(centre, half, yaw_rad):
                         s += 3.0
                         continue
                 bid += 1
-                occ.mark_rect(centre, half, yaw, bid)
-                pitched = float(rng.random() < bc.pitched_roof_probability and floors <= 4)
-                boxes.append((centre, half, yaw, height, style, bid, pitched, 3))
+                occ.mark_rect(centre, half, yaw_rad, bid)
+                pitched_roof = float(rng.random() < bc.pitched_roof_probability and floors <= 4)
+                boxes.append((centre, half, yaw_rad, height_m, style_id, bid, pitched_roof, 3))
                 if rng.random() < bc.wing_probability:
                     fw = f * rng.uniform(0.35, 0.65)
                     dw = rng.uniform(5.0, 10.0)
                     shift = (f / 2 - fw / 2) * rng.choice([-1.0, 1.0])
                     wc = centre + x_axis * shift + n_away * (d / 2 + dw / 2 - 0.5)
-                    wh = max(floor_h + 0.5, height + rng.choice([-1.0, 1.0]) * floor_h * rng.integers(1, 3))
-                    if occ.rect_free(wc, np.array([fw / 2, dw / 2]), yaw, allow=bid):
-                        occ.mark_rect(wc, np.array([fw / 2, dw / 2]), yaw, bid)
-                        boxes.append((wc, np.array([fw / 2, dw / 2]), yaw, wh, style, bid, 0.0, -1))
+                    wh = max(floor_h + 0.5, height_m + rng.choice([-1.0, 1.0]) * floor_h * rng.integers(1, 3))
+                    if occ.rect_free(wc, np.array([fw / 2, dw / 2]), yaw_rad, allow=bid):
+                        occ.mark_rect(wc, np.array([fw / 2, dw / 2]), yaw_rad, bid)
+                        boxes.append((wc, np.array([fw / 2, dw / 2]), yaw_rad, wh, style_id, bid, 0.0, -1))
                 s += f + rng.uniform(0.0, 1.5)
     if not boxes:
         return 0, fences
@@ -1426,14 +1424,14 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
             aux=np.zeros((len(posts), 1)),
         )
         pc, ph, py, pk = [], [], [], []
-        for q, kind in segs:
+        for q, fence_kind in segs:
             a, b = q[:-1], q[1:]
             d = b - a
             L = np.linalg.norm(d, axis=1)
             pc.append((a + b) / 2)
             ph.append(np.c_[L / 2, np.full(len(L), 0.02)])
             py.append(np.arctan2(d[:, 1], d[:, 0]))
-            pk.append(np.full(len(L), kind))
+            pk.append(np.full(len(L), fence_kind))
         n = sum(len(x) for x in pc)
         add_boxes(
             mb,

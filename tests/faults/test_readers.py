@@ -53,7 +53,7 @@ def _read(path: Path, fmt: str | None = None):
         with open_log(path, fmt) as log:
             for msg in log.messages():
                 if isinstance(msg.record, CameraFrame):
-                    msg.record.image
+                    _ = msg.record.image  # decodes the frame
                 seen.add((msg.topic, msg.record.stamp_ns))
     texts = [str(w.message) for w in caught if issubclass(w.category, InputWarning)]
     return seen, texts
