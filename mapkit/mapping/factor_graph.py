@@ -449,10 +449,6 @@ class FusedTrajectory:
     # the graph's solved values: where a re-solve of the same keyframes starts (``start``)
     solution: gtsam.Values | None = None
 
-    def position_sigmas_m(self) -> np.ndarray:
-        """(N, 3) standard deviations of east, north, up."""
-        return np.sqrt(np.diagonal(self.covariances[:, 3:, 3:], axis1=1, axis2=2))
-
 
 # --- gravity -----------------------------------------------------------------------------------------
 
@@ -699,8 +695,65 @@ def fuse_session(
     # the graph's pose states: the IMU's frame when it is preintegrated (exact lever arm), else the base's
     base_from_state = np.asarray(imu.base_from_imu, np.float64) if imu is not None else np.eye(4)
     state_from_base = invert_pose(base_from_state)
+    fixes, enu_from_odom = _fixes_on_trajectory(gps, stamps, odom, enu_from_odom, cfg, source, stats)
+    T0 = np.eye(4) if enu_from_odom is None else np.asarray(enu_from_odom, np.float64)
+    initial_poses = T0 @ odom[kf] @ base_from_state
 
-    # GPS fixes on the trajectory, and the initial guess
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    X = lambda i: gtsam.symbol("x", i)  # noqa: E731
+    B = lambda j: gtsam.symbol("b", j)  # noqa: E731
+    G = gtsam.symbol("g", 0)
+    for k, T in enumerate(initial_poses):
+        values.insert(X(k), gtsam.Pose3(T))
+    odom_rel = [invert_pose(odom[kf[k]]) @ odom[kf[k + 1]] for k in range(len(kf) - 1)]
+    chain_factors, jitter_factors = _add_odometry(
+        gtsam, graph, values, odom_rel, initial_poses, state_from_base, base_from_state, cfg, X
+    )
+    # without the IMU it changed nothing measurable (tiny town: height drift, ATE within 0.01 m) and cost time
+    if imu is not None and cfg.nhc_sigma_m_s > 0:
+        stats["nhc_factors"] = _add_nhc(gtsam, graph, odom_rel, stamps[kf], state_from_base, cfg, X)
+    loop_factors = _add_loops(gtsam, graph, edges, stamps, kf, state_from_base, cfg, X)
+    _anchor_to_enu(gtsam, graph, values, fixes, gps, stamps, odom, kf, initial_poses, state_from_base, cfg, X, B, stats)
+    imu_runs = _add_inertial(
+        gtsam, graph, values, imu, gravity, stamps, kf, initial_poses, state_from_base, cfg, X, G, stats
+    )
+
+    if start is not None and start.solution is not None and np.array_equal(start.keyframes, kf):
+        values.update(start.solution)
+        stats["started_from"] = "an earlier solution"
+    result = _optimize(gtsam, graph, values, cfg, stats, t_start)
+
+    kf_poses = np.stack([result.atPose3(X(k)).matrix() for k in range(len(kf))]) @ state_from_base
+    kf_cov = _keyframe_covariances(gtsam, graph, result, kf_poses, base_from_state, X, stats)
+    poses, covs = _densify(stamps, odom, kf, kf_poses, kf_cov)
+    if imu is not None and imu_runs:  # between keyframes the IMU knows the motion (the odometry may be slipping there)
+        _densify_imu(poses, stamps, kf, imu_runs, imu, result, state_from_base, cfg)
+    inliers = _solution_stats(gtsam, graph, result, fixes is not None, imu_runs, cfg, B, G, stats)
+    stats.update(_slips(graph, result, chain_factors, jitter_factors, odom, kf, kf_poses, stamps[kf], cfg))
+    if loops is not None:
+        stats.update(_loop_stats(graph, result, loop_factors, edges, loops, stamps[kf], kf_poses, cfg))
+    stats["seconds"] = time.perf_counter() - t_start
+    mid = int(np.argmin(np.abs(stamps[kf] - (stamps[0] + stamps[-1]) // 2)))
+    return FusedTrajectory(stamps, poses, covs, kf, kf_cov[mid], inliers, stats, result)
+
+
+#: GPS fixes on the trajectory: (stamps_ns, enu, sigma_m, antenna positions in the odometry frame)
+_Fixes = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _fixes_on_trajectory(
+    gps: GpsObservations | None,
+    stamps: np.ndarray,
+    odom: np.ndarray,
+    enu_from_odom: np.ndarray | None,
+    cfg: FactorGraphConfig,
+    source: str,
+    stats: dict,
+) -> tuple[_Fixes | None, np.ndarray | None]:
+    """(the GPS fixes the graph uses, the initial guess ``enu_from_odom``): the fixes associated with the
+    trajectory (an unknown sigma taken as ``gps_unknown_sigma_m``), and without a given guess the robust rigid
+    fit to them. None for the fixes when GPS cannot be used, with the reason in ``stats['gps']``."""
     fixes = None
     if gps is not None and len(gps.stamps_ns):
         antenna, ok = associate_fixes(stamps, odom, gps.stamps_ns, gps.base_from_antenna, int(cfg.max_pose_gap_s * 1e9))
@@ -713,7 +766,7 @@ def fuse_session(
                 al = align_to_gps(antenna, fixes[1], sig, fixes[0], mode="yaw", source=source)
                 enu_from_odom = al.enu_from_map
             except InputError as exc:
-                warnings.warn(f"{exc}; fused without GPS", InputWarning, stacklevel=2)
+                warnings.warn(f"{exc}; fused without GPS", InputWarning, stacklevel=3)
                 stats["gps"] = f"not used: {exc.what}"
                 fixes = None
     elif gps is not None:
@@ -723,25 +776,30 @@ def fuse_session(
     if fixes is not None and len(fixes[0]) < 3:
         stats["gps"] = f"not used: {len(fixes[0])} fixes overlap the trajectory"
         fixes = None
-    T0 = np.eye(4) if enu_from_odom is None else np.asarray(enu_from_odom, np.float64)
-    initial_poses = T0 @ odom[kf] @ base_from_state
+    return fixes, enu_from_odom
 
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    X = lambda i: gtsam.symbol("x", i)  # noqa: E731
-    B = lambda j: gtsam.symbol("b", j)  # noqa: E731
-    G = gtsam.symbol("g", 0)
-    for k, T in enumerate(initial_poses):
-        values.insert(X(k), gtsam.Pose3(T))
 
-    # odometry = its drifting frame + per-pose jitter: a chain of odometry-frame poses E_k (kiss-icp's poses without
-    # their registration noise) whose relative motions are the odometry's up to a random walk (slips break it: robust
-    # loss), and each pose X_k = E_k exp(w_k) with white jitter w_k. Independent steps with a per-step floor instead
-    # would let the floor accumulate as drift (0.4 deg of pitch over the tiny drive), which the real odometry does not
-    # do.
+def _add_odometry(
+    gtsam,
+    graph,
+    values,
+    odom_rel: list[np.ndarray],
+    initial_poses: np.ndarray,
+    state_from_base: np.ndarray,
+    base_from_state: np.ndarray,
+    cfg: FactorGraphConfig,
+    X,
+) -> tuple[list[int], list[int]]:
+    """The odometry's factors; returns the indices in the graph of its drift chain's factors and of its jitter
+    factors.
+
+    Odometry = its drifting frame + per-pose jitter: a chain of odometry-frame poses E_k (kiss-icp's poses without
+    their registration noise) whose relative motions are the odometry's up to a random walk (slips break it: robust
+    loss), and each pose X_k = E_k exp(w_k) with white jitter w_k. Independent steps with a per-step floor instead
+    would let the floor accumulate as drift (0.4 deg of pitch over the tiny drive), which the real odometry does not
+    do."""
     E = lambda i: gtsam.symbol("e", i)  # noqa: E731
     Ad_sb = _adjoint(state_from_base)
-    odom_rel = [invert_pose(odom[kf[k]]) @ odom[kf[k + 1]] for k in range(len(kf) - 1)]
     jitter = np.diag(np.concatenate([cfg.odom_rotation_jitter_rad, cfg.odom_translation_jitter_m]) ** 2)
     jitter_noise = _odom_loss(gtsam, gtsam.noiseModel.Gaussian.Covariance(Ad_sb @ jitter @ Ad_sb.T), cfg)
     chain_factors, jitter_factors = [], []
@@ -755,40 +813,73 @@ def fuse_session(
         )
         chain_factors.append(graph.size())
         graph.add(gtsam.BetweenFactorPose3(E(k), E(k + 1), gtsam.Pose3(state_from_base @ rel @ base_from_state), noise))
-    # without the IMU it changed nothing measurable (tiny town: height drift, ATE within 0.01 m) and cost time
-    if imu is not None and cfg.nhc_sigma_m_s > 0:
-        stats["nhc_factors"] = _add_nhc(gtsam, graph, odom_rel, stamps[kf], state_from_base, cfg, X)
-    loop_factors = _add_loops(gtsam, graph, edges, stamps, kf, state_from_base, cfg, X)
+    return chain_factors, jitter_factors
 
+
+def _anchor_to_enu(
+    gtsam,
+    graph,
+    values,
+    fixes: _Fixes | None,
+    gps: GpsObservations | None,
+    stamps: np.ndarray,
+    odom: np.ndarray,
+    kf: np.ndarray,
+    initial_poses: np.ndarray,
+    state_from_base: np.ndarray,
+    cfg: FactorGraphConfig,
+    X,
+    B,
+    stats: dict,
+) -> None:
+    """What holds the graph in ENU: the GPS fixes (with a loose prior on the first pose, which holds its attitude),
+    or without them the first pose fixed where the initial guess puts it."""
     if fixes is None:
         graph.add(
             gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6))
         )
-    else:
-        a = cfg.first_attitude_sigma_rad
-        prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, a, a, 1e3, 1e3, 1e3]))
-        graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), prior))
-        assert gps is not None  # the fixes came from it
-        n_bias = _add_gps(
-            gtsam, graph, values, fixes, stamps, odom, kf, gps.base_from_antenna, state_from_base, cfg, X, B
-        )
-        stats["gps_bias_nodes"] = n_bias
-    imu_runs: list[list[int]] = []
-    if imu is not None:
-        imu_runs = _add_imu(gtsam, graph, values, imu, stamps[kf], initial_poses, cfg)
-        stats["imu_factors"] = int(sum(len(r) - 1 for r in imu_runs))
-        if gravity is not None and len(gravity.stamps_ns):
-            stats["gravity"] = "not used: the IMU is preintegrated"
-    else:
+        return
+    a = cfg.first_attitude_sigma_rad
+    prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([a, a, a, 1e3, 1e3, 1e3]))
+    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(initial_poses[0]), prior))
+    assert gps is not None  # the fixes came from it
+    n_bias = _add_gps(gtsam, graph, values, fixes, stamps, odom, kf, gps.base_from_antenna, state_from_base, cfg, X, B)
+    stats["gps_bias_nodes"] = n_bias
+
+
+def _add_inertial(
+    gtsam,
+    graph,
+    values,
+    imu: ImuObservations | None,
+    gravity: GravityObservations | None,
+    stamps: np.ndarray,
+    kf: np.ndarray,
+    initial_poses: np.ndarray,
+    state_from_base: np.ndarray,
+    cfg: FactorGraphConfig,
+    X,
+    G,
+    stats: dict,
+) -> list[list[int]]:
+    """The IMU preintegrated between keyframes, or without it the gravity observations; returns the IMU's runs of
+    keyframes (none without it)."""
+    if imu is None:
         stats["imu"] = "not used: no IMU"
         if gravity is not None and len(gravity.stamps_ns):
             stats["gravity_factors"] = _add_gravity(
                 gtsam, graph, values, gravity, stamps, kf, state_from_base, cfg, X, G
             )
+        return []
+    imu_runs = _add_imu(gtsam, graph, values, imu, stamps[kf], initial_poses, cfg)
+    stats["imu_factors"] = int(sum(len(r) - 1 for r in imu_runs))
+    if gravity is not None and len(gravity.stamps_ns):
+        stats["gravity"] = "not used: the IMU is preintegrated"
+    return imu_runs
 
-    if start is not None and start.solution is not None and np.array_equal(start.keyframes, kf):
-        values.update(start.solution)
-        stats["started_from"] = "an earlier solution"
+
+def _optimize(gtsam, graph, values, cfg: FactorGraphConfig, stats: dict, t_start: float):
+    """The graph solved by Levenberg-Marquardt from ``values``; its iterations, errors and time into ``stats``."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(cfg.max_iterations)
     params.setLinearSolverType("MULTIFRONTAL_QR")  # the IMU makes the system stiff (condition 1e13): Cholesky loses it
@@ -800,26 +891,37 @@ def fuse_session(
         error_final=float(graph.error(result)),
         solve_s=time.perf_counter() - t_start,
     )
+    return result
 
-    kf_state = np.stack([result.atPose3(X(k)).matrix() for k in range(len(kf))])
-    kf_poses = kf_state @ state_from_base
+
+def _keyframe_covariances(
+    gtsam, graph, result, kf_poses: np.ndarray, base_from_state: np.ndarray, X, stats: dict
+) -> np.ndarray:
+    """(K, 6, 6) covariances of the keyframes' base poses (rotation in ENU axes, position ENU) at the solution;
+    the sigmas of the drive's end against its start into ``stats``."""
     # marginals by QR (an iSAM2 built at the solution): gtsam.Marginals' Cholesky finds the IMU's graph indeterminate
     isam_params = gtsam.ISAM2Params()
     isam_params.setFactorization("QR")
     marginals = gtsam.ISAM2(isam_params)
     marginals.update(graph, result)
     Ad_bs = _adjoint(base_from_state)  # right perturbation of the state pose, seen on the base pose
+    n = len(kf_poses)
     kf_cov = np.stack(
-        [_world_cov(Ad_bs @ marginals.marginalCovariance(X(k)) @ Ad_bs.T, kf_poses[k, :3, :3]) for k in range(len(kf))]
+        [_world_cov(Ad_bs @ marginals.marginalCovariance(X(k)) @ Ad_bs.T, kf_poses[k, :3, :3]) for k in range(n)]
     )
     stats["end_minus_start_sigma_enu_m"] = _relative_sigma(
-        gtsam, marginals, X(0), X(len(kf) - 1), kf_poses[0], kf_poses[-1], Ad_bs
+        gtsam, marginals, X(0), X(n - 1), kf_poses[0], kf_poses[-1], Ad_bs
     ).tolist()
-    poses, covs = _densify(stamps, odom, kf, kf_poses, kf_cov)
-    if imu is not None and imu_runs:  # between keyframes the IMU knows the motion (the odometry may be slipping there)
-        _densify_imu(poses, stamps, kf, imu_runs, imu, result, state_from_base, cfg)
+    return kf_cov
+
+
+def _solution_stats(
+    gtsam, graph, result, with_gps: bool, imu_runs: list[list[int]], cfg: FactorGraphConfig, B, G, stats: dict
+) -> np.ndarray:
+    """The GPS fixes that the solution leaves within ``GPS_INLIER_SIGMAS`` (none without GPS); the GPS outliers
+    and the estimated biases (GPS, gravity tilt, the IMU's at the end) into ``stats``."""
     inliers = np.zeros(0, bool)
-    if fixes is not None:
+    if with_gps:
         inliers = _gps_residual_sigmas(graph, result) < GPS_INLIER_SIGMAS
         stats.update(gps="used", gps_fixes_outliers=int((~inliers).sum()))
         if cfg.gps_bias:
@@ -838,12 +940,7 @@ def fuse_session(
             "gyro_rad_s": bias[-1].gyroscope().tolist(),
             "accel_m_s2": bias[-1].accelerometer().tolist(),
         }
-    stats.update(_slips(graph, result, chain_factors, jitter_factors, odom, kf, kf_poses, stamps[kf], cfg))
-    if loops is not None:
-        stats.update(_loop_stats(graph, result, loop_factors, edges, loops, stamps[kf], kf_poses, cfg))
-    stats["seconds"] = time.perf_counter() - t_start
-    mid = int(np.argmin(np.abs(stamps[kf] - (stamps[0] + stamps[-1]) // 2)))
-    return FusedTrajectory(stamps, poses, covs, kf, kf_cov[mid], inliers, stats, result)
+    return inliers
 
 
 def _relative_sigma(

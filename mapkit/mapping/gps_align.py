@@ -22,7 +22,9 @@ unobservable (or, ``strict``, refused).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Literal
 
 import numpy as np
@@ -254,80 +256,20 @@ def align_to_gps(
             "are needed to observe heading and scale",
             field="gps",
         )
-    sig = np.full(n, np.nan) if sigma_m is None else np.asarray(sigma_m, np.float64).copy()
-    known = np.isfinite(sig) & (sig > 0)
-    sig[~known] = np.median(sig[known]) if known.any() else 3.0
-    # a residual is measured in sigmas: horizontal by the fix's sigma (floored so that an
-    # over-optimistic receiver cannot reject good fixes), vertical by a multiple of it
-    sig_h = np.maximum(sig, min_inlier_threshold_m / inlier_sigmas)
-    sig_v = vertical_sigma_factor * sig_h
-
+    sig_h, sig_v = _fix_sigmas(sigma_m, n, inlier_sigmas, vertical_sigma_factor, min_inlier_threshold_m)
     gravity: Gravity = "level frame"
-    roll_sigma = None
-    up = None
+    roll_sigma: float | None = None
+    up: np.ndarray | None = None
     if mode == "sim3":
-        roll_sigma = min(float(np.degrees(roll_sigma_rad(p_map, metres_per_unit, float(np.median(sig_v))))), 180.0)
-        gravity = "gps"
-        if roll_sigma > max_roll_sigma_deg:
-            msg = (
-                f"the drive is too straight for GPS to fix the rotation about its direction of travel (predicted "
-                f"sigma {roll_sigma:.1f} deg > {max_roll_sigma_deg:g} deg)"
-            )
-            if up_map is not None:
-                up = np.asarray(up_map, np.float64) / np.linalg.norm(up_map)
-                gravity = "up hint"
-                notes.append(msg + "; that roll is taken from the up hint (the cameras' mean up)")
-            elif strict:
-                raise InputError(source, msg, field="gps")
-            else:
-                gravity = "unobservable"
-                warnings.warn(
-                    f"{source}: {msg}; kept the full Sim3, whose roll about the path is unobservable",
-                    InputWarning,
-                    stacklevel=2,
-                )
-                notes.append(msg + "; roll about the path axis unobservable (full Sim3 kept)")
-
-    def normalised(T: np.ndarray) -> np.ndarray:
-        d = transform_points(T, p_map) - p_enu
-        return np.sqrt((d[:, 0] ** 2 + d[:, 1] ** 2) / sig_h**2 + d[:, 2] ** 2 / sig_v**2)
-
-    # RANSAC: minimal samples, spread apart so the sample spans the trajectory (judged in the map's
-    # own space, where positions are free of GPS noise and outliers)
-    rng = np.random.default_rng(seed)
-    k = _min_sample(mode)
-    best_inl, best_score = None, -1.0
-    for _ in range(ransac_iters):
-        idx = np.sort(rng.choice(n, size=k, replace=False))
-        if np.linalg.norm(p_map[idx[-1], dims] - p_map[idx[0], dims]) < 0.1 * extent_map:
-            continue
-        try:
-            T = fit_transform(p_map[idx], p_enu[idx], np.ones(k), mode, up)
-        except (np.linalg.LinAlgError, ValueError):
-            continue
-        u = normalised(T)
-        inl = u < inlier_sigmas
-        score = inl.sum() - 1e-3 * np.sum(np.minimum(u, inlier_sigmas)) / n
-        if score > best_score:
-            best_inl, best_score = inl, score
-    if best_inl is None or best_inl.sum() < k:
+        gravity, roll_sigma, up = _sim3_roll(
+            p_map, metres_per_unit, sig_v, max_roll_sigma_deg, up_map, strict, source, notes
+        )
+    residuals = partial(_normalised_residuals, p_map=p_map, p_enu=p_enu, sig_h=sig_h, sig_v=sig_v)
+    best_inl = _ransac(p_map, p_enu, residuals, mode, up, dims, extent_map, inlier_sigmas, ransac_iters, seed)
+    if best_inl is None or best_inl.sum() < _min_sample(mode):
         raise InputError(source, "no consistent subset of GPS fixes was found", field="gps")
-
-    # IRLS on the inliers with Cauchy weights on the normalised residual, then re-classify
-    inl = best_inl
-    T = fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, mode, up)
-    for _ in range(10):
-        u = normalised(T)
-        inl_new = u < inlier_sigmas
-        if inl_new.sum() < k:
-            break
-        w = 1.0 / (1.0 + u[inl_new] ** 2) / sig_h[inl_new] ** 2
-        T_new = fit_transform(p_map[inl_new], p_enu[inl_new], w, mode, up)
-        converged = np.array_equal(inl_new, inl) and np.allclose(T_new, T, atol=1e-9)
-        T, inl = T_new, inl_new
-        if converged:
-            break
-    u = normalised(T)
+    T, inl = _irls(p_map, p_enu, sig_h, residuals, best_inl, mode, up, inlier_sigmas)
+    u = residuals(T)
     res = np.linalg.norm(transform_points(T, p_map) - p_enu, axis=1)
     rejected = [
         {
@@ -347,3 +289,125 @@ def align_to_gps(
         up_enu = T[:3, :3] @ (np.asarray(up_map, np.float64) / np.linalg.norm(up_map))
         up_tilt = float(np.degrees(np.arccos(np.clip(up_enu[2] / np.linalg.norm(up_enu), -1.0, 1.0))))
     return GpsAlignment(T, mode, inl, res, stamps, rejected, notes, free_scale, extent, gravity, roll_sigma, up_tilt)
+
+
+def _fix_sigmas(
+    sigma_m: np.ndarray | None,
+    n: int,
+    inlier_sigmas: float,
+    vertical_sigma_factor: float,
+    min_inlier_threshold_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(horizontal, vertical) sigma of each fix that a residual is measured in: an unknown sigma is the median of
+    the known ones (or 3 m); the horizontal one is floored so that an over-optimistic receiver cannot reject good
+    fixes, the vertical one a multiple of it."""
+    sig = np.full(n, np.nan) if sigma_m is None else np.asarray(sigma_m, np.float64).copy()
+    known = np.isfinite(sig) & (sig > 0)
+    sig[~known] = np.median(sig[known]) if known.any() else 3.0
+    sig_h = np.maximum(sig, min_inlier_threshold_m / inlier_sigmas)
+    return sig_h, vertical_sigma_factor * sig_h
+
+
+def _sim3_roll(
+    p_map: np.ndarray,
+    metres_per_unit: float,
+    sig_v: np.ndarray,
+    max_roll_sigma_deg: float,
+    up_map: np.ndarray | None,
+    strict: bool,
+    source: str,
+    notes: list[str],
+) -> tuple[Gravity, float, np.ndarray | None]:
+    """Where a Sim3's rotation about the direction of travel comes from: (gravity source, the roll's predicted
+    sigma in degrees, the up vector that fixes it or None). GPS when the predicted sigma is at most
+    ``max_roll_sigma_deg``, else ``up_map``, else unobservable (an error if ``strict``); a note says which."""
+    roll_sigma = min(float(np.degrees(roll_sigma_rad(p_map, metres_per_unit, float(np.median(sig_v))))), 180.0)
+    if roll_sigma > max_roll_sigma_deg:
+        msg = (
+            f"the drive is too straight for GPS to fix the rotation about its direction of travel (predicted "
+            f"sigma {roll_sigma:.1f} deg > {max_roll_sigma_deg:g} deg)"
+        )
+        if up_map is not None:
+            notes.append(msg + "; that roll is taken from the up hint (the cameras' mean up)")
+            return "up hint", roll_sigma, np.asarray(up_map, np.float64) / np.linalg.norm(up_map)
+        if strict:
+            raise InputError(source, msg, field="gps")
+        warnings.warn(
+            f"{source}: {msg}; kept the full Sim3, whose roll about the path is unobservable",
+            InputWarning,
+            stacklevel=3,
+        )
+        notes.append(msg + "; roll about the path axis unobservable (full Sim3 kept)")
+        return "unobservable", roll_sigma, None
+    return "gps", roll_sigma, None
+
+
+def _normalised_residuals(
+    T: np.ndarray, *, p_map: np.ndarray, p_enu: np.ndarray, sig_h: np.ndarray, sig_v: np.ndarray
+) -> np.ndarray:
+    """Each fix's residual under ``enu_from_map`` ``T`` in sigmas (horizontal and vertical, each by its own)."""
+    d = transform_points(T, p_map) - p_enu
+    return np.sqrt((d[:, 0] ** 2 + d[:, 1] ** 2) / sig_h**2 + d[:, 2] ** 2 / sig_v**2)
+
+
+def _ransac(
+    p_map: np.ndarray,
+    p_enu: np.ndarray,
+    residuals: Callable[[np.ndarray], np.ndarray],
+    mode: Mode,
+    up: np.ndarray | None,
+    dims: slice,
+    extent_map: float,
+    inlier_sigmas: float,
+    ransac_iters: int,
+    seed: int,
+) -> np.ndarray | None:
+    """The inliers of the best transform fitted to minimal samples (None when no sample gave one). Samples are
+    spread apart so that each spans the trajectory (judged in the map's own space, where positions are free of
+    GPS noise and outliers); a transform scores its inliers, ties broken by the residuals."""
+    n = len(p_map)
+    rng = np.random.default_rng(seed)
+    k = _min_sample(mode)
+    best_inl, best_score = None, -1.0
+    for _ in range(ransac_iters):
+        idx = np.sort(rng.choice(n, size=k, replace=False))
+        if np.linalg.norm(p_map[idx[-1], dims] - p_map[idx[0], dims]) < 0.1 * extent_map:
+            continue
+        try:
+            T = fit_transform(p_map[idx], p_enu[idx], np.ones(k), mode, up)
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        u = residuals(T)
+        inl = u < inlier_sigmas
+        score = inl.sum() - 1e-3 * np.sum(np.minimum(u, inlier_sigmas)) / n
+        if score > best_score:
+            best_inl, best_score = inl, score
+    return best_inl
+
+
+def _irls(
+    p_map: np.ndarray,
+    p_enu: np.ndarray,
+    sig_h: np.ndarray,
+    residuals: Callable[[np.ndarray], np.ndarray],
+    inl: np.ndarray,
+    mode: Mode,
+    up: np.ndarray | None,
+    inlier_sigmas: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(transform, inliers): IRLS from the inliers ``inl`` with Cauchy weights on the normalised residual,
+    re-classifying the fixes at each step, until the inliers and the transform stop changing (10 steps at most)."""
+    k = _min_sample(mode)
+    T = fit_transform(p_map[inl], p_enu[inl], 1.0 / sig_h[inl] ** 2, mode, up)
+    for _ in range(10):
+        u = residuals(T)
+        inl_new = u < inlier_sigmas
+        if inl_new.sum() < k:
+            break
+        w = 1.0 / (1.0 + u[inl_new] ** 2) / sig_h[inl_new] ** 2
+        T_new = fit_transform(p_map[inl_new], p_enu[inl_new], w, mode, up)
+        converged = np.array_equal(inl_new, inl) and np.allclose(T_new, T, atol=1e-9)
+        T, inl = T_new, inl_new
+        if converged:
+            break
+    return T, inl

@@ -29,7 +29,7 @@ when ``SemiDenseConfig.refine_rotations`` is on.
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -143,52 +143,91 @@ def _solve(
     if not free:
         return np.zeros((0, 3))
     n = len(free)
-    col = {f: k for k, f in enumerate(free)}
-    pairs = [p for p in pairs if p[0] in col and p[1] in col and len(p[2])]
-    centre = np.zeros((n, 3)) if prior_at is None else np.asarray(prior_at, float).reshape(-1, 3)
-    f_mean = float(np.mean(f_px))
-    w_prior = np.repeat(
-        f_mean / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3
-    )  # px of residual per rad of correction
-    # every pair's matches stacked: each row knows its pair (seg), each pair its two frames (pi, pj)
-    pi = np.array([col[p[0]] for p in pairs], int)
-    pj = np.array([col[p[1]] for p in pairs], int)
-    counts = np.array([len(p[2]) for p in pairs], int)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
-    seg = np.repeat(np.arange(len(pairs)), counts)
-    A = np.concatenate([p[2] for p in pairs]) if pairs else np.zeros((0, 3))
-    B = np.concatenate([p[3] for p in pairs]) if pairs else np.zeros((0, 3))
-    R0f = np.array([R0[f] for f in free])
-    baseline = np.array([C[p[0]] - C[p[1]] for p in pairs]).reshape(-1, 3)  # Ci - Cj
+    problem = _RotationProblem(f_px, R0, C, free, pairs, huber_px, prior_px, prior_at)
+    x = np.zeros((n, 3)) if x0 is None else np.asarray(x0, float).reshape(n, 3).copy()
+    return _levenberg_marquardt(problem.evaluate, x, max_iterations, step_tol_rad)
 
-    def evaluate(x: np.ndarray, with_system: bool) -> tuple[float, np.ndarray, np.ndarray]:
+
+class _RotationProblem:
+    """:func:`_solve`'s cost: the Huber cost of every pair's epipolar distances and of the free frames' priors, with
+    its reweighted normal equations (:meth:`evaluate`)."""
+
+    def __init__(
+        self,
+        f_px: float | Sequence[float],
+        R0: dict[int, np.ndarray],
+        C: dict[int, np.ndarray],
+        free: list[int],
+        pairs: list[tuple[int, int, np.ndarray, np.ndarray]],
+        huber_px: float,
+        prior_px: float | np.ndarray,
+        prior_at: np.ndarray | None,
+    ):
+        n = self.n = len(free)
+        col = {f: k for k, f in enumerate(free)}
+        pairs = self.pairs = [p for p in pairs if p[0] in col and p[1] in col and len(p[2])]
+        self.f_px, self.huber_px = f_px, huber_px
+        self.centre = np.zeros((n, 3)) if prior_at is None else np.asarray(prior_at, float).reshape(-1, 3)
+        f_mean = float(np.mean(f_px))
+        self.w_prior = np.repeat(
+            f_mean / np.broadcast_to(np.asarray(prior_px, float), (n,)), 3
+        )  # px of residual per rad of correction
+        # every pair's matches stacked: each row knows its pair (seg), each pair its two frames (pi, pj)
+        self.pi = np.array([col[p[0]] for p in pairs], int)
+        self.pj = np.array([col[p[1]] for p in pairs], int)
+        self.counts = np.array([len(p[2]) for p in pairs], int)
+        self.starts = np.concatenate([[0], np.cumsum(self.counts)[:-1]]).astype(int)
+        self.seg = np.repeat(np.arange(len(pairs)), self.counts)
+        self.A = np.concatenate([p[2] for p in pairs]) if pairs else np.zeros((0, 3))
+        self.B = np.concatenate([p[3] for p in pairs]) if pairs else np.zeros((0, 3))
+        self.R0f = np.array([R0[f] for f in free])
+        self.baseline = np.array([C[p[0]] - C[p[1]] for p in pairs]).reshape(-1, 3)  # Ci - Cj
+
+    def evaluate(self, x: np.ndarray, with_system: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """Huber cost at ``x``; with the system: the normal matrix J^T W J and gradient J^T W r (3n) too."""
+        n, w_prior, pi, pj, seg = self.n, self.w_prior, self.pi, self.pj, self.seg
         H, g = np.zeros((3 * n, 3 * n)), np.zeros(3 * n)
-        prior = w_prior * (x - centre).ravel()
-        cost, w_p = _huber(prior, huber_px)
+        prior = w_prior * (x - self.centre).ravel()
+        cost, w_p = _huber(prior, self.huber_px)
         if with_system:
             H[np.diag_indices(3 * n)] += w_p * w_prior * w_prior
             g += w_p * w_prior * prior
-        if not pairs:
+        if not self.pairs:
             return cost, H, g
-        R = R0f @ Rotation.from_rotvec(x).as_matrix()
-        t = np.einsum("qki,qk->qi", R[pj], baseline)  # Rj^T (Ci - Cj)
+        R = self.R0f @ Rotation.from_rotvec(x).as_matrix()
+        t = np.einsum("qki,qk->qi", R[pj], self.baseline)  # Rj^T (Ci - Cj)
         M = np.einsum("qki,qkj->qij", R[pj], R[pi])  # Rj^T Ri
-        r, d_i, d_j = _pair_terms(f_px, M[seg], t[seg], A, B, with_system)
-        c, w = _huber(r, huber_px)
+        r, d_i, d_j = _pair_terms(self.f_px, M[seg], t[seg], self.A, self.B, with_system)
+        c, w = _huber(r, self.huber_px)
         cost += c
         if not with_system:
             return cost, H, g
-        # per pair, the 6x6 block and gradient in the perturbations (d_i, d_j), summed over its rows (which are
-        # contiguous), then turned into x by the frames' right Jacobians (d = Jr(x) dx) and added into H and g
+        assert d_i is not None and d_j is not None  # asked for with the system
+        self._add_pair_blocks(H, g, x, r, w, d_i, d_j)
+        return cost, H, g
+
+    def _add_pair_blocks(
+        self,
+        H: np.ndarray,
+        g: np.ndarray,
+        x: np.ndarray,
+        r: np.ndarray,
+        w: np.ndarray,
+        d_i: np.ndarray,
+        d_j: np.ndarray,
+    ) -> None:
+        """Add the matches' terms into ``H`` and ``g``: per pair, the 6x6 block and gradient in the perturbations
+        (d_i, d_j), summed over its rows (which are contiguous), then turned into x by the frames' right Jacobians
+        (d = Jr(x) dx)."""
+        n, pi, pj, starts = self.n, self.pi, self.pj, self.starts
         D = np.concatenate([d_i, d_j], axis=1)
         Dw = D * w[:, None]
         S = np.stack(  # (pairs, 6, 6)
-            [Dw[s0 : s0 + k].T @ D[s0 : s0 + k] for s0, k in zip(starts, counts, strict=True)]
+            [Dw[s0 : s0 + k].T @ D[s0 : s0 + k] for s0, k in zip(starts, self.counts, strict=True)]
         )
         G = np.add.reduceat(Dw * r[:, None], starts)  # (pairs, 6)
         Jr = _right_jacobians(x)
-        T = np.zeros((len(pairs), 6, 6))
+        T = np.zeros((len(self.pairs), 6, 6))
         T[:, :3, :3], T[:, 3:, 3:] = Jr[pi], Jr[pj]
         S = np.einsum("qki,qkl,qlj->qij", T, S, T)
         G = np.einsum("qki,qk->qi", T, G)
@@ -197,9 +236,18 @@ def _solve(
             np.add.at(blocks, (rk, ck), S[:, rs : rs + 3, cs : cs + 3])
         np.add.at(g.reshape(n, 3), pi, G[:, :3])
         np.add.at(g.reshape(n, 3), pj, G[:, 3:])
-        return cost, H, g
 
-    x = np.zeros((n, 3)) if x0 is None else np.asarray(x0, float).reshape(n, 3).copy()
+
+def _levenberg_marquardt(
+    evaluate: Callable[[np.ndarray, bool], tuple[float, np.ndarray, np.ndarray]],
+    x: np.ndarray,
+    max_iterations: int,
+    step_tol_rad: float,
+) -> np.ndarray:
+    """Levenberg-Marquardt from ``x`` (n, 3) on ``evaluate``'s cost and normal equations: a step that lowers the cost
+    is taken (and the damping relaxed), one that does not is retried with more damping. Stops when no rotation moves
+    by more than ``step_tol_rad``, the cost stops falling, or the damping exceeds 1e8."""
+    n = len(x)
     cost, H, g = evaluate(x, True)
     lam = 1e-4
     for _ in range(max_iterations):

@@ -63,7 +63,7 @@ from mapkit.core.geometry import invert_pose, rotation_angle_rad, transform_poin
 from mapkit.core.runio import atomic_path, atomic_write_ply, atomic_write_text, progress_bar
 from mapkit.mapping.pose_refine import RotationRefiner
 from mapkit.mapping.semidense_candidates import PATTERN_DSO8, gradient_threshold, image_gradients, select_candidates
-from mapkit.mapping.semidense_epipolar import _candidate_searcher, _neighbour_geometry, _Pyramid
+from mapkit.mapping.semidense_epipolar import _candidate_searcher, _Neighbour, _neighbour_geometry, _Pyramid, _Searcher
 from mapkit.mapping.semidense_fusion import (
     SparseDepth,
     _Fuser,
@@ -708,6 +708,61 @@ def map_keyframe(
     if ref_image.ndim != 2:
         raise ValueError(f"map_keyframe needs a (H, W) grey image, got shape {ref_image.shape}")
     ids = np.asarray(neighbour_ids if neighbour_ids is not None else np.arange(len(neighbours)), np.int64)
+    ref_pyr, nb_pyrs = _pyramids(ref_image, neighbours, cfg, ref_pyramid, neighbour_pyramids)
+
+    u, v, g, searcher = _candidate_searcher(ref_image, ref_pyr, cfg)
+    geoms = [_neighbour_geometry(i, ref_world_from_cam, T, K) for i, (_, T) in enumerate(neighbours)]
+    geoms = [n for n in geoms if cfg.min_baseline_m <= n.baseline_m <= cfg.max_baseline_m]
+    geoms.sort(key=lambda n: n.baseline_m)  # nearest first: short lines, then sharpen
+
+    est = _DepthEstimates.empty(len(u), len(neighbours))
+    n_searched = n_full = n_prior = 0
+    for nb in geoms:
+        usable = _gradient_along_line(nb, u, v, g) >= cfg.min_gradient_epipolar_cos
+        has = np.isfinite(est.rho)
+        tgt = nb_pyrs[nb.index]
+        # no estimate yet: full-range search with the ambiguity test
+        ia = np.nonzero(usable & ~has & (est.attempts < cfg.full_range_attempts))[0]
+        n_full += len(ia)
+        if len(ia):
+            est.search_full_range(searcher, ia, nb, tgt, cfg)
+        # estimate so far: search within +-search_sigmas, then fuse where it agrees (LSD-SLAM-style update)
+        ib = np.nonzero(usable & has)[0]
+        n_prior += len(ib)
+        if len(ib):
+            est.search_near_estimate(searcher, ib, nb, tgt, cfg)
+        n_searched += 1
+
+    sigma = np.sqrt(est.var)
+    keep = _accepted(est.rho, sigma, est.agreed, cfg)
+    intensity = np.clip(ref_image[v[keep], u[keep]], 0, 255).astype(np.uint8)
+    return KeyframePoints(
+        pixels_uv=np.column_stack([u[keep], v[keep]]).astype(np.int32),
+        inv_depth=est.rho[keep],
+        sigma_inv_depth=sigma[keep],
+        intensity=intensity,
+        neighbour_ids=ids,
+        agreed=est.agreed[keep],
+        frame_id=int(frame_id),
+        stats={
+            "candidates": int(len(u)),
+            "with_estimate": int(np.isfinite(est.rho).sum()),
+            "accepted": int(keep.sum()),
+            "neighbours_searched": n_searched,
+            "full_range_searches": n_full,
+            "prior_searches": n_prior,
+        },
+    )
+
+
+def _pyramids(
+    ref_image: np.ndarray,
+    neighbours: Sequence[tuple[np.ndarray, np.ndarray]],
+    cfg: SemiDenseConfig,
+    ref_pyramid: _Pyramid | None,
+    neighbour_pyramids: Sequence[_Pyramid] | None,
+) -> tuple[_Pyramid, list[_Pyramid]]:
+    """The keyframe's pyramid and its neighbours' (those given, else built), all of one image shape."""
     ref_pyr = ref_pyramid or _Pyramid(ref_image, cfg.pyramid_levels)
     nb_pyrs = (
         list(neighbour_pyramids)
@@ -717,78 +772,70 @@ def map_keyframe(
     for (_img, _), pyr in zip(neighbours, nb_pyrs, strict=True):
         if pyr.shape != ref_pyr.shape:
             raise ValueError(f"neighbour image shape {pyr.shape} differs from the keyframe's {ref_pyr.shape}")
+    return ref_pyr, nb_pyrs
 
-    u, v, g, searcher = _candidate_searcher(ref_image, ref_pyr, cfg)
-    n_cand = len(u)
 
-    geoms = [_neighbour_geometry(i, ref_world_from_cam, T, K) for i, (_, T) in enumerate(neighbours)]
-    geoms = [n for n in geoms if cfg.min_baseline_m <= n.baseline_m <= cfg.max_baseline_m]
-    geoms.sort(key=lambda n: n.baseline_m)  # nearest first: short lines, then sharpen
+def _gradient_along_line(nb: _Neighbour, u: np.ndarray, v: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """|cos| of the angle between each candidate's gradient ``g`` and its epipolar line towards neighbour ``nb``
+    (0 where undefined): a pixel whose gradient runs across its line cannot be placed along it."""
+    # the epipolar line in the keyframe runs from the epipole through the pixel
+    e = nb.epipole_h
+    line = np.column_stack([u * e[2] - e[0], v * e[2] - e[1]])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs((line * g).sum(1)) / (np.linalg.norm(line, axis=1) * np.linalg.norm(g, axis=1))
+    return np.nan_to_num(cos)
 
-    rho_min, rho_max = 1.0 / cfg.max_depth_m, 1.0 / cfg.min_depth_m
-    rho = np.full(n_cand, np.nan)
-    var = np.full(n_cand, np.inf)
-    agreed = np.zeros((n_cand, len(neighbours)), bool)
-    attempts = np.zeros(n_cand, np.int64)
-    n_searched = n_full = n_prior = 0
-    for nb in geoms:
-        # the epipolar line in the keyframe runs from the epipole through the pixel
-        e = nb.epipole_h
-        line = np.column_stack([u * e[2] - e[0], v * e[2] - e[1]])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            cos = np.abs((line * g).sum(1)) / (np.linalg.norm(line, axis=1) * np.linalg.norm(g, axis=1))
-        usable = np.nan_to_num(cos) >= cfg.min_gradient_epipolar_cos
-        has = np.isfinite(rho)
-        tgt = nb_pyrs[nb.index]
-        # no estimate yet: full-range search with the ambiguity test
-        ia = np.nonzero(usable & ~has & (attempts < cfg.full_range_attempts))[0]
-        n_full += len(ia)
-        if len(ia):
-            r = searcher.trace(
-                ia, np.full(len(ia), rho_min), np.full(len(ia), rho_max), nb, tgt, cfg.search_samples, True
-            )
-            attempts[ia[r.searched]] += 1  # a line outside this neighbour's view is no attempt
-            k = ia[r.ok]
-            rho[k], var[k] = r.rho[r.ok], r.sigma_rho[r.ok] ** 2
-            agreed[k, nb.index] = True
-        # estimate so far: search within +-search_sigmas, then fuse where it agrees (LSD-SLAM-style update)
-        ib = np.nonzero(usable & has)[0]
-        n_prior += len(ib)
-        if len(ib):
-            sd = np.sqrt(var[ib])
-            lo = np.clip(rho[ib] - cfg.search_sigmas * sd, rho_min, rho_max)
-            hi = np.clip(rho[ib] + cfg.search_sigmas * sd, rho_min, rho_max)
-            r = searcher.trace(ib, lo, hi, nb, tgt, cfg.prior_search_samples, False)
-            s2 = r.sigma_rho**2
-            agree = r.ok & (np.abs(r.rho - rho[ib]) <= cfg.agree_sigmas * np.sqrt(var[ib] + s2))
-            k = ib[agree]
-            w_old, w_new = 1.0 / var[k], 1.0 / s2[agree]
-            rho[k] = (rho[k] * w_old + r.rho[agree] * w_new) / (w_old + w_new)
-            var[k] = 1.0 / (w_old + w_new)
-            agreed[k, nb.index] = True
-        n_searched += 1
 
-    sigma = np.sqrt(var)
-    keep = _accepted(rho, sigma, agreed, cfg)
-    img = np.asarray(ref_image)
-    intensity = np.clip(img[v[keep], u[keep]], 0, 255).astype(np.uint8)
-    return KeyframePoints(
-        pixels_uv=np.column_stack([u[keep], v[keep]]).astype(np.int32),
-        inv_depth=rho[keep],
-        sigma_inv_depth=sigma[keep],
-        intensity=intensity,
-        neighbour_ids=ids,
-        agreed=agreed[keep],
-        frame_id=int(frame_id),
-        stats={
-            "candidates": int(n_cand),
-            "with_estimate": int(np.isfinite(rho).sum()),
-            "accepted": int(keep.sum()),
-            "neighbours_searched": n_searched,
-            "full_range_searches": n_full,
-            "prior_searches": n_prior,
-        },
-    )
+@dataclass
+class _DepthEstimates:
+    """Each candidate's depth filter over the neighbours searched so far."""
+
+    rho: np.ndarray  # (N,) inverse depth (1/m), NaN while there is no estimate
+    var: np.ndarray  # (N,) its variance
+    agreed: np.ndarray  # (N, neighbours) bool: the neighbours whose match agreed
+    attempts: np.ndarray  # (N,) full-range searches tried
+
+    @classmethod
+    def empty(cls, n_candidates: int, n_neighbours: int) -> _DepthEstimates:
+        return cls(
+            np.full(n_candidates, np.nan),
+            np.full(n_candidates, np.inf),
+            np.zeros((n_candidates, n_neighbours), bool),
+            np.zeros(n_candidates, np.int64),
+        )
+
+    def search_full_range(
+        self, searcher: _Searcher, idx: np.ndarray, nb: _Neighbour, tgt: _Pyramid, cfg: SemiDenseConfig
+    ) -> None:
+        """The candidates ``idx`` (no estimate yet) searched over the whole depth range, with the ambiguity test;
+        a match becomes their estimate."""
+        rho_min, rho_max = 1.0 / cfg.max_depth_m, 1.0 / cfg.min_depth_m
+        r = searcher.trace(
+            idx, np.full(len(idx), rho_min), np.full(len(idx), rho_max), nb, tgt, cfg.search_samples, True
+        )
+        self.attempts[idx[r.searched]] += 1  # a line outside this neighbour's view is no attempt
+        k = idx[r.ok]
+        self.rho[k], self.var[k] = r.rho[r.ok], r.sigma_rho[r.ok] ** 2
+        self.agreed[k, nb.index] = True
+
+    def search_near_estimate(
+        self, searcher: _Searcher, idx: np.ndarray, nb: _Neighbour, tgt: _Pyramid, cfg: SemiDenseConfig
+    ) -> None:
+        """The candidates ``idx`` searched within ``search_sigmas`` of their estimate; a match that agrees with it
+        (within ``agree_sigmas``) is fused into it by inverse variance."""
+        rho_min, rho_max = 1.0 / cfg.max_depth_m, 1.0 / cfg.min_depth_m
+        rho, var = self.rho, self.var
+        sd = np.sqrt(var[idx])
+        lo = np.clip(rho[idx] - cfg.search_sigmas * sd, rho_min, rho_max)
+        hi = np.clip(rho[idx] + cfg.search_sigmas * sd, rho_min, rho_max)
+        r = searcher.trace(idx, lo, hi, nb, tgt, cfg.prior_search_samples, False)
+        s2 = r.sigma_rho**2
+        agree = r.ok & (np.abs(r.rho - rho[idx]) <= cfg.agree_sigmas * np.sqrt(var[idx] + s2))
+        k = idx[agree]
+        w_old, w_new = 1.0 / var[k], 1.0 / s2[agree]
+        rho[k] = (rho[k] * w_old + r.rho[agree] * w_new) / (w_old + w_new)
+        var[k] = 1.0 / (w_old + w_new)
+        self.agreed[k, nb.index] = True
 
 
 # --- the map of a drive ---------------------------------------------------------------------------------
@@ -924,34 +971,107 @@ def build_semidense_map(
     cfg = cfg or SemiDenseConfig()
     K = np.asarray(K, np.float64)
     executor = executor or get_executor()
-    W = cfg.neighbour_window_frames
-    fuser = _Fuser(cfg.fusion_radius_m, cfg.fusion_window_keyframes)
-    kf_ids, kf_stamps, kf_poses = [], [], []
-    all_ids, all_stamps = [], []
-    image_shape: tuple[int, int] | None = None
     total = len(frames) if hasattr(frames, "__len__") else None  # type: ignore[arg-type]
-    refiner = None
-    if cfg.refine_rotations:
-        refiner = RotationRefiner(
-            K,
-            max_gap=cfg.refine_max_gap_frames,
-            lag=cfg.refine_lag_frames,
-            huber_px=cfg.refine_huber_px,
-            prior_px=cfg.refine_prior_px,
-            anchor_px=cfg.refine_anchor_px,
-            gate_px=cfg.refine_gate_px,
-            matcher=cfg.refine_matcher,
-            features=cfg.refine_features,
-            lowe_ratio=cfg.refine_lowe_ratio,
-            min_matches=cfg.refine_min_matches,
-            min_baseline_m=cfg.min_baseline_m,
-        )
+    refiner = _rotation_refiner(K, cfg)
+    if refiner is not None:
         frames = refiner.stream(frames)
     bar = progress_bar(total, progress, desc="semi-dense", unit="frame")
+    window = _FrameWindow(cfg, bar, share_pyramids=executor.in_process)
+    fusion = _KeyframeFusion(K, cfg, on_fused)
+    keyframes: list[tuple[int, int, np.ndarray]] = []  # (frame id, stamp, world_from_cam) of each keyframe, in order
+    results = executor.map(
+        _map_keyframe_task,
+        window.keyframe_tasks(frames),
+        shared=(K, cfg),
+        desc="semi-dense keyframes",
+        label=lambda t: f"keyframe {t.frame_id}",
+    )
+    try:
+        for frame_id, stamp_ns, world_from_cam, pts in results:
+            if on_keyframe is not None:
+                on_keyframe(frame_id, world_from_cam, pts)
+            keyframes.append((frame_id, stamp_ns, world_from_cam))
+            assert window.image_shape is not None  # the first frame's, set before any keyframe is mapped
+            image = window.keyframe_images.pop(frame_id) if fusion.check_photo else None
+            fusion.push(frame_id, world_from_cam, pts, window.image_shape, image)
+            if progress:
+                bar.set_postfix(keyframes=len(keyframes), points=fusion.points())
+        fusion.flush()
+    finally:
+        results.close()
+        bar.close()
+    sd_map = _assembled_map(fusion, keyframes, window, K, cfg, refiner)
+    if cfg.outlier_neighbours > 0:
+        keep = statistical_inliers(sd_map.points_world, cfg.outlier_neighbours, cfg.outlier_std_ratio)
+        sd_map = sd_map.select(keep)
+        sd_map.rejected["statistical"] = int((~keep).sum())
+    return sd_map
 
-    def task(window: deque[_Buffered], center: int) -> _KeyframeTask:
+
+def _rotation_refiner(K: np.ndarray, cfg: SemiDenseConfig) -> RotationRefiner | None:
+    """The streaming rotation refinement the config asks for (``refine_rotations``), or None."""
+    if not cfg.refine_rotations:
+        return None
+    return RotationRefiner(
+        K,
+        max_gap=cfg.refine_max_gap_frames,
+        lag=cfg.refine_lag_frames,
+        huber_px=cfg.refine_huber_px,
+        prior_px=cfg.refine_prior_px,
+        anchor_px=cfg.refine_anchor_px,
+        gate_px=cfg.refine_gate_px,
+        matcher=cfg.refine_matcher,
+        features=cfg.refine_features,
+        lowe_ratio=cfg.refine_lowe_ratio,
+        min_matches=cfg.refine_min_matches,
+        min_baseline_m=cfg.min_baseline_m,
+    )
+
+
+class _FrameWindow:
+    """The frames of a drive streamed through a window of ``2 * neighbour_window_frames + 1`` images, turned into
+    keyframe tasks (:meth:`keyframe_tasks`). Records every frame's id and stamp, the first frame's image shape,
+    and (with the photometric test on) each keyframe's image until the fusion takes it."""
+
+    def __init__(self, cfg: SemiDenseConfig, bar, share_pyramids: bool):
+        self.cfg = cfg
+        self.bar = bar  # counts the frames read
+        self.share_pyramids = share_pyramids  # tasks run in this process: a frame's pyramid is built once
+        self.image_shape: tuple[int, int] | None = None
+        self.frame_ids: list[int] = []
+        self.frame_stamps_ns: list[int] = []
+        self.keyframe_images: dict[int, np.ndarray] = {}  # keyframe images on their way to the photometric test
+
+    def keyframe_tasks(self, frames: Iterable[tuple[int, int, np.ndarray, np.ndarray]]) -> Iterator[_KeyframeTask]:
+        """A task per keyframe, once the frames after it have arrived (at the end, with the frames that exist)."""
+        W = self.cfg.neighbour_window_frames
+        window: deque[_Buffered] = deque()
+        last_kf: np.ndarray | None = None
+        for frame_id, stamp_ns, gray, world_from_cam in frames:
+            self.bar.update(1)
+            gray, T = _checked_frame(frame_id, gray, world_from_cam, self.image_shape)
+            if self.image_shape is None:
+                self.image_shape = gray.shape
+            is_kf = _is_keyframe(last_kf, T, self.cfg)
+            if is_kf:
+                last_kf = T
+            window.append(_Buffered(int(frame_id), int(stamp_ns), gray, T, bool(is_kf)))
+            self.frame_ids.append(int(frame_id))
+            self.frame_stamps_ns.append(int(stamp_ns))
+            del gray
+            # the frame W places back now has all its neighbours
+            if len(window) > W and window[-1 - W].is_keyframe:
+                yield self._task(window, len(window) - 1 - W)
+            while len(window) > 2 * W + 1:
+                window.popleft()
+        # keyframes among the last W frames: map with the frames that exist
+        for k in range(max(len(window) - W, 0), len(window)):
+            if window[k].is_keyframe:
+                yield self._task(window, k)
+
+    def _task(self, window: deque[_Buffered], center: int) -> _KeyframeTask:
         kf = window[center]
-        nbs = [f for k, f in enumerate(window) if k != center and abs(k - center) <= W]
+        nbs = [f for k, f in enumerate(window) if k != center and abs(k - center) <= self.cfg.neighbour_window_frames]
         t = _KeyframeTask(
             kf.frame_id,
             kf.stamp_ns,
@@ -960,62 +1080,87 @@ def build_semidense_map(
             [(f.image, f.world_from_cam) for f in nbs],
             [f.frame_id for f in nbs],
         )
-        if cfg.photometric_min_views > 0:
-            kf_images[kf.frame_id] = kf.image
-        if executor.in_process:  # a frame's pyramid serves every keyframe whose window holds it
-
-            def pyramid(f: _Buffered) -> _Pyramid:
-                if f.pyramid is None:
-                    f.pyramid = _Pyramid(f.image, cfg.pyramid_levels)
-                return f.pyramid
-
-            t.pyramid, t.neighbour_pyramids = pyramid(kf), [pyramid(f) for f in nbs]
+        if self.cfg.photometric_min_views > 0:
+            self.keyframe_images[kf.frame_id] = kf.image
+        if self.share_pyramids:  # a frame's pyramid serves every keyframe whose window holds it
+            t.pyramid, t.neighbour_pyramids = self._pyramid(kf), [self._pyramid(f) for f in nbs]
         return t
 
-    def keyframe_tasks() -> Iterator[_KeyframeTask]:
-        nonlocal image_shape
-        window: deque[_Buffered] = deque()
-        last_kf: np.ndarray | None = None
-        for frame_id, stamp_ns, gray, world_from_cam in frames:
-            bar.update(1)
-            gray, T = _checked_frame(frame_id, gray, world_from_cam, image_shape)
-            if image_shape is None:
-                image_shape = gray.shape
-            is_kf = _is_keyframe(last_kf, T, cfg)
-            if is_kf:
-                last_kf = T
-            window.append(_Buffered(int(frame_id), int(stamp_ns), gray, T, bool(is_kf)))
-            all_ids.append(int(frame_id))
-            all_stamps.append(int(stamp_ns))
-            del gray
-            # the frame W places back now has all its neighbours
-            if len(window) > W and window[-1 - W].is_keyframe:
-                yield task(window, len(window) - 1 - W)
-            while len(window) > 2 * W + 1:
-                window.popleft()
-        # keyframes among the last W frames: map with the frames that exist
-        for k in range(max(len(window) - W, 0), len(window)):
-            if window[k].is_keyframe:
-                yield task(window, k)
+    def _pyramid(self, f: _Buffered) -> _Pyramid:
+        if f.pyramid is None:
+            f.pyramid = _Pyramid(f.image, self.cfg.pyramid_levels)
+        return f.pyramid
 
-    # the fusion filters: a keyframe enters the multi-view and photometric tests once the keyframes after it that vote
-    # have arrived, then the free-space test once those after it that carve have passed the first two
-    check_views = cfg.min_consistent_views > 0
-    check_photo = cfg.photometric_min_views > 0
-    check_free = cfg.free_space_window_keyframes > 0
-    voting: _ViewWindow[_Checked] = _ViewWindow(cfg.consistency_window_keyframes if check_views or check_photo else 0)
-    carving: _ViewWindow[_Checked] = _ViewWindow(cfg.free_space_window_keyframes)
-    rejected = {
-        name: 0
-        for name, on in (("multi_view", check_views), ("photometric", check_photo), ("free_space", check_free))
-        if on
-    }
-    kf_images: dict[int, np.ndarray] = {}  # keyframe images on their way to the photometric test
 
-    def vote(item: _Checked, others: list[_Checked]) -> Iterator[tuple[_Checked, list[_Checked]]]:
+class _KeyframeFusion:
+    """The fusion's outlier tests and the fuser, fed mapped keyframes in order (:meth:`push`, then :meth:`flush`).
+
+    A keyframe enters the multi-view and photometric tests once the keyframes after it that vote have arrived,
+    then the free-space test once those after it that carve have passed the first two, then the fuser.
+    ``rejected`` counts the points each test removed."""
+
+    def __init__(
+        self,
+        K: np.ndarray,
+        cfg: SemiDenseConfig,
+        on_fused: Callable[[int, np.ndarray, KeyframePoints], None] | None,
+    ):
+        self.K = K
+        self.cfg = cfg
+        self.on_fused = on_fused
+        self.check_views = cfg.min_consistent_views > 0
+        self.check_photo = cfg.photometric_min_views > 0
+        self.check_free = cfg.free_space_window_keyframes > 0
+        self.voting: _ViewWindow[_Checked] = _ViewWindow(
+            cfg.consistency_window_keyframes if self.check_views or self.check_photo else 0
+        )
+        self.carving: _ViewWindow[_Checked] = _ViewWindow(cfg.free_space_window_keyframes)
+        self.rejected = {
+            name: 0
+            for name, on in (
+                ("multi_view", self.check_views),
+                ("photometric", self.check_photo),
+                ("free_space", self.check_free),
+            )
+            if on
+        }
+        self.fuser = _Fuser(cfg.fusion_radius_m, cfg.fusion_window_keyframes)
+        self.image_shape: tuple[int, int] | None = None
+
+    def points(self) -> int:
+        """Points fused so far."""
+        return len(self.fuser.open["xyz"]) + sum(len(d["xyz"]) for d in self.fuser.done)
+
+    def push(
+        self,
+        frame_id: int,
+        world_from_cam: np.ndarray,
+        pts: KeyframePoints,
+        image_shape: tuple[int, int],
+        image: np.ndarray | None,
+    ) -> None:
+        """A mapped keyframe (``image``: its grey image, for the photometric test); fuses those it makes ready."""
+        self.image_shape = image_shape
+        depth = pts.depth_image(image_shape, np.float32) if self.check_views or self.check_photo else None
+        for ready in self.voting.push(_Checked(frame_id, world_from_cam, pts, depth, image)):
+            for item, others in self._vote(*ready):
+                self._fuse(item, others)
+
+    def flush(self) -> None:
+        """Fuse the keyframes still waiting for their voters and carvers."""
+        for ready in self.voting.flush():
+            for item, others in self._vote(*ready):
+                self._fuse(item, others)
+        for item, others in self.carving.flush():
+            self._fuse(item, others)
+
+    def _vote(self, item: _Checked, others: list[_Checked]) -> Iterator[tuple[_Checked, list[_Checked]]]:
+        """The multi-view and photometric tests of ``item`` against the keyframes around it; yields the keyframes
+        that the free-space window releases."""
+        cfg, K = self.cfg, self.K
         pts = item.points
         keep = np.ones(len(pts), bool)
-        if check_views:
+        if self.check_views:
             keep = multi_view_filter(
                 pts.points_world(K, item.world_from_cam),
                 [(o.world_from_cam, o.dense_depth) for o in others],
@@ -1025,8 +1170,8 @@ def build_semidense_map(
                 rel_tol=cfg.consistency_rel_tol,
                 pixel_radius=cfg.consistency_pixel_radius,
             )
-            rejected["multi_view"] += int((~keep).sum())
-        if check_photo:
+            self.rejected["multi_view"] += int((~keep).sum())
+        if self.check_photo:
             sub = np.nonzero(keep)[0]
             ok = photometric_filter(
                 item.world_from_cam,
@@ -1042,101 +1187,76 @@ def build_semidense_map(
                 rel_tol=cfg.consistency_rel_tol,
                 pixel_radius=cfg.consistency_pixel_radius,
             )
-            rejected["photometric"] += int((~ok).sum())
+            self.rejected["photometric"] += int((~ok).sum())
             keep[sub[~ok]] = False
         pts = pts.select(keep) if not keep.all() else pts
         sparse = None
-        if check_free:
-            assert image_shape is not None  # the first frame's, set before any keyframe is mapped
-            sparse = SparseDepth(pts.pixels_uv, pts.depth, image_shape)
+        if self.check_free:
+            assert self.image_shape is not None  # the first frame's, set before any keyframe is mapped
+            sparse = SparseDepth(pts.pixels_uv, pts.depth, self.image_shape)
         checked = _Checked(
             item.frame_id, item.world_from_cam, pts, sparse, xyz=pts.points_world(K, item.world_from_cam)
         )
-        yield from carving.push(checked)
+        yield from self.carving.push(checked)
 
-    def fuse(item: _Checked, others: list[_Checked]) -> None:
+    def _fuse(self, item: _Checked, others: list[_Checked]) -> None:
+        """The free-space test of ``item`` against the keyframes around it, then its points into the fuser."""
+        cfg = self.cfg
         pts, world_from_cam, xyz = item.points, item.world_from_cam, item.points_xyz
-        if check_free:
-            assert image_shape is not None  # the first frame's, set before any keyframe is mapped
+        if self.check_free:
+            assert self.image_shape is not None  # the first frame's, set before any keyframe is mapped
             keep = free_space_filter(
                 world_from_cam,
                 pts.pixels_uv,
                 pts.depth,
                 xyz,
                 [(o.world_from_cam, o.sparse_depth, o.points_xyz) for o in others],
-                K,
-                image_shape,
+                self.K,
+                self.image_shape,
                 rel_tol=cfg.consistency_rel_tol,
                 pixel_radius=cfg.consistency_pixel_radius,
                 max_violations=cfg.free_space_max_violations,
             )
-            rejected["free_space"] += int((~keep).sum())
+            self.rejected["free_space"] += int((~keep).sum())
             pts, xyz = pts.select(keep), xyz[keep]
-        if on_fused is not None:
-            on_fused(item.frame_id, world_from_cam, pts)
+        if self.on_fused is not None:
+            self.on_fused(item.frame_id, world_from_cam, pts)
         obs_pt = np.concatenate([np.arange(len(pts)), np.nonzero(pts.agreed)[0]])
         obs_fid = np.concatenate(
             [np.full(len(pts), item.frame_id, np.int64), pts.neighbour_ids[np.nonzero(pts.agreed)[1]]]
         )
-        fuser.add(xyz, pts.sigma_depth, pts.intensity, item.frame_id, obs_pt, obs_fid)
+        self.fuser.add(xyz, pts.sigma_depth, pts.intensity, item.frame_id, obs_pt, obs_fid)
 
-    results = executor.map(
-        _map_keyframe_task,
-        keyframe_tasks(),
-        shared=(K, cfg),
-        desc="semi-dense keyframes",
-        label=lambda t: f"keyframe {t.frame_id}",
-    )
-    try:
-        for frame_id, stamp_ns, world_from_cam, pts in results:
-            if on_keyframe is not None:
-                on_keyframe(frame_id, world_from_cam, pts)
-            kf_ids.append(frame_id)
-            kf_stamps.append(stamp_ns)
-            kf_poses.append(world_from_cam)
-            depth = pts.depth_image(image_shape, np.float32) if check_views or check_photo else None
-            image = kf_images.pop(frame_id) if check_photo else None
-            for ready in voting.push(_Checked(frame_id, world_from_cam, pts, depth, image)):
-                for item, others in vote(*ready):
-                    fuse(item, others)
-            if progress:
-                bar.set_postfix(
-                    keyframes=len(kf_ids), points=len(fuser.open["xyz"]) + sum(len(d["xyz"]) for d in fuser.done)
-                )
-        for ready in voting.flush():
-            for item, others in vote(*ready):
-                fuse(item, others)
-        for item, others in carving.flush():
-            fuse(item, others)
-    finally:
-        results.close()
-        bar.close()
 
-    out = fuser.finish()
-    h, w = image_shape if image_shape is not None else (0, 0)
-    sd_map = SemiDenseMap(
+def _assembled_map(
+    fusion: _KeyframeFusion,
+    keyframes: list[tuple[int, int, np.ndarray]],
+    window: _FrameWindow,
+    K: np.ndarray,
+    cfg: SemiDenseConfig,
+    refiner: RotationRefiner | None,
+) -> SemiDenseMap:
+    """The map of the fused points, its keyframes (id, stamp, world_from_cam) and every frame read."""
+    out = fusion.fuser.finish()
+    h, w = window.image_shape if window.image_shape is not None else (0, 0)
+    return SemiDenseMap(
         points_world=out["xyz"].astype(np.float64),
         intensity=out["intensity"].astype(np.uint8),
         sigma_depth=out["sigma"].astype(np.float32),
         source_keyframe=out["source"].astype(np.int64),
         obs_indptr=out["indptr"],
         obs_frame_ids=out["obs_fid"].astype(np.int64),
-        keyframe_ids=np.asarray(kf_ids, np.int64),
-        keyframe_stamps_ns=np.asarray(kf_stamps, np.int64),
-        keyframe_world_from_cam=np.asarray(kf_poses, np.float64).reshape(-1, 4, 4),
+        keyframe_ids=np.asarray([k[0] for k in keyframes], np.int64),
+        keyframe_stamps_ns=np.asarray([k[1] for k in keyframes], np.int64),
+        keyframe_world_from_cam=np.asarray([k[2] for k in keyframes], np.float64).reshape(-1, 4, 4),
         K=K,
         image_size_wh=(int(w), int(h)),
         config=cfg,
-        frame_ids=np.asarray(all_ids, np.int64),
-        frame_stamps_ns=np.asarray(all_stamps, np.int64),
-        rejected=rejected,
+        frame_ids=np.asarray(window.frame_ids, np.int64),
+        frame_stamps_ns=np.asarray(window.frame_stamps_ns, np.int64),
+        rejected=fusion.rejected,
         pose_refinement=refiner.report() if refiner is not None else {},
     )
-    if cfg.outlier_neighbours > 0:
-        keep = statistical_inliers(sd_map.points_world, cfg.outlier_neighbours, cfg.outlier_std_ratio)
-        sd_map = sd_map.select(keep)
-        sd_map.rejected["statistical"] = int((~keep).sum())
-    return sd_map
 
 
 # --- cross-frame consistency -------------------------------------------------------------------------------
@@ -1265,7 +1385,6 @@ def consistency(
     (``farther_causes``, shares of the bin's pairs) when ``verified`` is given: where a drive's figure
     comes from, and whether the map or the reference depths are to blame there.
     """
-    w, h = sd_map.image_size_wh
     p = _pairs(sd_map, keyframes, max_pixel_distance)
     out: dict[str, Any] = {
         "pairs": int(len(p.signed_rel)),
@@ -1285,14 +1404,39 @@ def consistency(
         src_fid = sd_map.source_keyframe[p.point]
         out["by_source_keyframe"] = _binned(r, src_fid, keyframe_bins, unit="frame")
         out["by_reference_keyframe"] = _binned(r, p.frame_id, keyframe_bins, unit="frame")
-    if verified is None:
-        return out
-    ver_kf = list(verified)
+    if verified is not None:
+        _add_farther_causes(
+            out,
+            sd_map,
+            p,
+            list(verified),
+            max_pixel_distance,
+            min_confirming,
+            baseline_bins_m,
+            keyframe_bins is not None,
+        )
+    return out
+
+
+def _add_farther_causes(
+    out: dict,
+    sd_map: SemiDenseMap,
+    p: _Pairs,
+    verified: list[tuple[int, np.ndarray, KeyframePoints]],
+    max_pixel_distance: float,
+    min_confirming: int,
+    baseline_bins_m: Sequence[float],
+    by_keyframe: bool,
+) -> None:
+    """:func:`consistency`'s figures against the ``verified`` depths, added to ``out``: ``farther_causes`` (of
+    the pairs ``p``; with ``by_keyframe`` also in each bin of ``by_source_keyframe`` and
+    ``by_reference_keyframe``), ``verified_reference`` and ``verified_visible``."""
+    w, _ = sd_map.image_size_wh
     ver_pixels = {
         int(fid): set((pts.pixels_uv[:, 1].astype(np.int64) * w + pts.pixels_uv[:, 0]).tolist())
-        for fid, _, pts in ver_kf
+        for fid, _, pts in verified
     }
-    v = _pairs(sd_map, ver_kf, max_pixel_distance)
+    v = _pairs(sd_map, verified, max_pixel_distance)
     confirming = np.bincount(v.point[np.abs(v.signed_rel) <= 0.05], minlength=len(sd_map))
 
     def occluded(pairs: _Pairs, ref_verified: np.ndarray) -> np.ndarray:
@@ -1302,7 +1446,7 @@ def consistency(
         [px in ver_pixels.get(int(f), ()) for f, px in zip(p.frame_id.tolist(), p.own_pixel.tolist(), strict=True)],
         bool,
     )
-    farther = r > 0.05
+    farther = p.signed_rel > 0.05
     occ = occluded(p, ref_ok)
     out["farther_causes"] = {
         "reference_unverified": float(np.mean(farther & ~ref_ok)),
@@ -1310,7 +1454,8 @@ def consistency(
         "unexplained": float(np.mean(farther & ref_ok & ~occ)),
         "min_confirming": min_confirming,
     }
-    if keyframe_bins is not None:
+    if by_keyframe:
+        src_fid = sd_map.source_keyframe[p.point]
         for key, fid in (("by_source_keyframe", src_fid), ("by_reference_keyframe", p.frame_id)):
             for b in out[key]:
                 sel = (fid >= b["from_frame"]) & (fid < (np.inf if b["to_frame"] is None else b["to_frame"]))
@@ -1326,7 +1471,6 @@ def consistency(
         **_figures(v.signed_rel[~occ_v]),
         "by_keyframe_distance_m": _binned(v.signed_rel[~occ_v], v.baseline_m[~occ_v], baseline_bins_m),
     }
-    return out
 
 
 def _binned(signed_rel: np.ndarray, key: np.ndarray, bins: Sequence[float], unit: str = "m") -> list[dict]:
