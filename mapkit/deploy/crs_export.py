@@ -51,7 +51,7 @@ from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_ma
 from mapkit.core.runio import atomic_write_ply, atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.io.trajectory import read_tum, seconds_to_ns
-from mapkit.multisession.align import load_tiles
+from mapkit.multisession.tiles import load_tiles
 
 Source = Literal["auto", "aligned", "built"]
 CSV_COLUMNS = ("stamp_s", "lat_deg", "lon_deg", "height_m", "qx", "qy", "qz", "qw")
@@ -246,23 +246,7 @@ def export_crs(
         maps_skipped = f"EPSG:{epsg} is geographic: maps are written in a metric CRS only"
         map = merged = False
     aligned = set(ws.aligned_sessions())
-
-    def georeferenced(n: str) -> bool:
-        ga = ws.session(n).gps_alignment
-        return ga.is_file() and bool(json.loads(ga.read_text()).get("georeferenced"))
-
-    if not (trajectory or map):
-        chosen: list[str] = []
-    elif sessions is not None:
-        chosen = list(sessions)
-    else:
-        names = ws.session_names()
-        if source == "aligned":
-            chosen = [n for n in names if n in aligned]
-        elif source == "built":
-            chosen = [n for n in names if georeferenced(n)]
-        else:
-            chosen = [n for n in names if n in aligned or georeferenced(n)]
+    chosen = _chosen_sessions(ws, sessions, source, aligned) if (trajectory or map) else []
     manifest: dict = {
         "crs_epsg": epsg,
         "crs_name": info["name"],
@@ -277,33 +261,10 @@ def export_crs(
         which, frame, traj_dir, map_ply = _session_sources(ws, ws_frame, name, source, aligned)
         entry: dict = {"source": which, "frame": frame.to_dict()}
         if trajectory:
-            from mapkit.mapping.trajectory import Trajectory
-
-            traj = Trajectory.load(traj_dir)
             path = out / name / ("trajectory.csv" if geographic else "trajectory.tum")
-            write_crs_trajectory(path, traj.stamps_ns, traj.world_from_base, frame, epsg)
-            entry["trajectory"] = {
-                "file": path.relative_to(out).as_posix(),
-                "from": traj_dir.relative_to(ws.root).as_posix(),
-                "poses": len(traj),
-            }
+            entry["trajectory"] = _export_trajectory(ws, traj_dir, path, out, frame, epsg)
         if map:
-            if map_ply.is_file():
-                pts = _read_points(map_ply)
-                path = out / name / "map.ply"
-                atomic_write_ply(path, frame.enu_to_crs(pts, epsg), frame=frame, crs_epsg=epsg)
-                entry["map"] = {
-                    "file": path.relative_to(out).as_posix(),
-                    "from": map_ply.relative_to(ws.root).as_posix(),
-                    "points": len(pts),
-                }
-            else:
-                warnings.warn(
-                    f"{map_ply}: no such file (session {name!r} built without a map?); its map is not exported",
-                    InputWarning,
-                    stacklevel=2,
-                )
-                entry["map"] = None
+            entry["map"] = _export_map(ws, name, map_ply, out, frame, epsg)
         manifest["sessions"][name] = entry
     if merged:
         tiles = ws.tiles_dir
@@ -318,3 +279,54 @@ def export_crs(
         raise InputError(ws.root, "nothing to export: no georeferenced session chosen", field="sessions")
     write_json(out / "export.json", manifest)
     return manifest
+
+
+def _chosen_sessions(ws: Workspace, sessions: Sequence[str] | None, source: Source, aligned: set[str]) -> list[str]:
+    """``sessions`` as given, or by default the workspace's sessions that ``source`` can export:
+    those in ``mapkit align`` (``aligned``), the georeferenced built ones (``built``), or either (``auto``)."""
+    if sessions is not None:
+        return list(sessions)
+
+    def georeferenced(n: str) -> bool:
+        ga = ws.session(n).gps_alignment
+        return ga.is_file() and bool(json.loads(ga.read_text()).get("georeferenced"))
+
+    names = ws.session_names()
+    if source == "aligned":
+        return [n for n in names if n in aligned]
+    if source == "built":
+        return [n for n in names if georeferenced(n)]
+    return [n for n in names if n in aligned or georeferenced(n)]
+
+
+def _export_trajectory(ws: Workspace, traj_dir: Path, path: Path, out: Path, frame: LocalFrame, epsg: int) -> dict:
+    """A session's trajectory (folder ``traj_dir``) written to ``path`` in EPSG ``epsg``; returns its manifest entry."""
+    from mapkit.mapping.trajectory import Trajectory
+
+    traj = Trajectory.load(traj_dir)
+    write_crs_trajectory(path, traj.stamps_ns, traj.world_from_base, frame, epsg)
+    return {
+        "file": path.relative_to(out).as_posix(),
+        "from": traj_dir.relative_to(ws.root).as_posix(),
+        "poses": len(traj),
+    }
+
+
+def _export_map(ws: Workspace, name: str, map_ply: Path, out: Path, frame: LocalFrame, epsg: int) -> dict | None:
+    """Session ``name``'s map ``map_ply`` written to ``out/<name>/map.ply`` in EPSG ``epsg``;
+    returns its manifest entry, or None (with an InputWarning) when the session has no map."""
+    if not map_ply.is_file():
+        warnings.warn(
+            f"{map_ply}: no such file (session {name!r} built without a map?); its map is not exported",
+            InputWarning,
+            stacklevel=3,  # export_crs's caller
+        )
+        return None
+    pts = _read_points(map_ply)
+    path = out / name / "map.ply"
+    atomic_write_ply(path, frame.enu_to_crs(pts, epsg), frame=frame, crs_epsg=epsg)
+    return {
+        "file": path.relative_to(out).as_posix(),
+        "from": map_ply.relative_to(ws.root).as_posix(),
+        "points": len(pts),
+    }

@@ -358,17 +358,7 @@ def train_cnn(
     torch.set_num_threads(cfg.threads)
     t_start = time.perf_counter()
 
-    train_all = ds.triplets("train").astype(np.int64)
-    test_all = ds.triplets("test").astype(np.int64)
-    if len(train_all) == 0:
-        raise InputError(ds.folder, "the triplet dataset has no train triplets", field="triplets")
-    init_rng = _rng(cfg.seed, 0, 0)
-    tset = train_all[np.sort(init_rng.choice(len(train_all), min(cfg.triplet_set, len(train_all)), replace=False))]
-    test_t = (
-        test_all[np.sort(init_rng.choice(len(test_all), min(cfg.test_triplets, len(test_all)), replace=False))]
-        if len(test_all)
-        else test_all
-    )
+    train_all, tset, test_t = _triplet_sets(ds, cfg)
     train_ids = np.unique(train_all)
     train_xy = patch_xy(ds, train_ids)
     grids = PackedGrids(ds, np.union1d(train_ids, np.unique(test_t)), cfg.model.form)
@@ -377,19 +367,8 @@ def train_cnn(
     opt = _optimizer(torch, model, cfg)
     history: list[dict] = []
     start_epoch = 1
-    all_ckpts = _checkpoints(out)
-    ckpts = [c for c in all_ckpts if int(c.stem.split("-")[1]) <= cfg.epochs]
-    if all_ckpts and not ckpts:
-        raise ConfigError(
-            f"{out} holds checkpoints beyond epoch {cfg.epochs} only; train into another folder or raise epochs"
-        )
-    if ckpts:
-        state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)
-        if state.get("resume_hash") != resume_hash:
-            raise ConfigError(
-                f"{out} holds checkpoints of another training configuration or dataset; train into another folder "
-                f"or remove {out / CHECKPOINTS}"
-            )
+    state = _resume_state(torch, out, cfg.epochs, resume_hash)
+    if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         tset = np.asarray(state["triplet_set"], np.int64)
@@ -397,10 +376,6 @@ def train_cnn(
         start_epoch = int(state["epoch"]) + 1
     (out / ".done").unlink(missing_ok=True)  # from here on, out is not a finished run until the end
 
-    def batch_input(ids: np.ndarray):
-        return torch.from_numpy(grids_to_input(grids.get(ids), cfg.model.form))
-
-    B = cfg.batch_triplets
     for epoch in range(start_epoch, cfg.epochs + 1):
         row: dict = {"epoch": epoch}
         if cfg.hard_negatives and epoch > 1 and (epoch - 1) % cfg.hard_every_epochs == 0:
@@ -408,52 +383,15 @@ def train_cnn(
             # checkpoint does not depend on how many epochs follow
             tset, info = _cycle_hard(model, grids, train_all, tset, train_ids, train_xy, cfg, _rng(cfg.seed, epoch, 2))
             row.update(info)
-        torch.manual_seed(int(_rng(cfg.seed, epoch, 3).integers(2**31)))
-        order = _rng(cfg.seed, epoch, 1).permutation(len(tset))
-        model.train()
-        losses, active = [], 0
-        t0, c0 = time.perf_counter(), time.process_time()
-        bar = progress_bar(len(order), progress, f"epoch {epoch}/{cfg.epochs}", "triplet", leave=False)
-        for b in range(0, len(order), B):
-            rows = tset[order[b : b + B]]
-            n = len(rows)
-            x = batch_input(rows.T.reshape(-1))  # X1 of the batch, then X2, then X3: one pass, shared weights
-            d = model(x)
-            loss = triplet_loss(d[:n], d[n : 2 * n], d[2 * n :], cfg.margin)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            losses.append(float(loss.detach()) * n)
-            with torch.no_grad():
-                active += int(
-                    ((d[:n] - d[n : 2 * n]).norm(dim=1) + cfg.margin - (d[:n] - d[2 * n :]).norm(dim=1) > 0).sum()
-                )
-            bar.update(n)
-        bar.close()
-        train_s, train_cpu_s = time.perf_counter() - t0, time.process_time() - c0
-        row.update(
-            {
-                "loss": float(np.sum(losses) / len(order)),
-                "active_fraction": active / len(order),
-                "train_s": train_s,
-                # CPU time of this process (all threads): steadier than wall on a shared machine
-                "train_cpu_s": train_cpu_s,
-                "triplets_per_s": len(order) / train_s if train_s > 0 else None,
-            }
-        )
+        t0 = time.perf_counter()
+        row.update(_train_epoch(torch, model, opt, grids, tset, cfg, epoch, progress))
         row.update(_test_metrics(model, grids, test_t, cfg))
         row["wall_s"] = (
             (history[-1]["wall_s"] if history else 0.0) + time.perf_counter() - t0 + row.get("hard_mining_s", 0.0)
         )
         history.append(row)
         if progress:
-            log.info(
-                "epoch %d: loss %.4f, test accuracy %.3f, %.1f triplets/s",
-                epoch,
-                row["loss"],
-                row.get("test_accuracy", float("nan")),
-                row["triplets_per_s"],
-            )
+            _log_epoch(row)
         _save_checkpoint(
             torch,
             out,
@@ -470,6 +408,109 @@ def train_cnn(
         )
 
     # the deployable model: torch state dict, ONNX, metrics, curve, manifest last
+    _write_model(torch, out, model, cfg)
+    _write_records(out, history, cfg, torch.__version__, len(train_all), len(tset), len(test_t), t_start)
+    training_curve(
+        out / "training_curve.png",
+        history,
+        title=f"CNN descriptor, {cfg.model.form}, hard negatives {'on' if cfg.hard_negatives else 'off'}",
+    )
+    write_manifest(out, _model_manifest(cfg, ds, full_hash, resume_hash, len(history)))
+    mark_done(out, full_hash)
+    return out
+
+
+def _triplet_sets(ds: TripletDataset, cfg: TrainConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(every train triplet, the initial triplet set T, the test triplets scored per epoch), each
+    (n, 3) patch ids; T and the test triplets are drawn at random, without repeats, in dataset order."""
+    train_all = ds.triplets("train").astype(np.int64)
+    test_all = ds.triplets("test").astype(np.int64)
+    if len(train_all) == 0:
+        raise InputError(ds.folder, "the triplet dataset has no train triplets", field="triplets")
+    init_rng = _rng(cfg.seed, 0, 0)
+    tset = train_all[np.sort(init_rng.choice(len(train_all), min(cfg.triplet_set, len(train_all)), replace=False))]
+    test_t = (
+        test_all[np.sort(init_rng.choice(len(test_all), min(cfg.test_triplets, len(test_all)), replace=False))]
+        if len(test_all)
+        else test_all
+    )
+    return train_all, tset, test_t
+
+
+def _resume_state(torch, out: Path, epochs: int, resume_hash: str) -> dict | None:
+    """The last checkpoint in ``out`` up to epoch ``epochs`` (None when there is none); a
+    ConfigError when ``out`` holds checkpoints of later epochs only, or of another configuration."""
+    all_ckpts = _checkpoints(out)
+    ckpts = [c for c in all_ckpts if int(c.stem.split("-")[1]) <= epochs]
+    if all_ckpts and not ckpts:
+        raise ConfigError(
+            f"{out} holds checkpoints beyond epoch {epochs} only; train into another folder or raise epochs"
+        )
+    if not ckpts:
+        return None
+    state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)
+    if state.get("resume_hash") != resume_hash:
+        raise ConfigError(
+            f"{out} holds checkpoints of another training configuration or dataset; train into another folder "
+            f"or remove {out / CHECKPOINTS}"
+        )
+    return state
+
+
+def _train_epoch(
+    torch, model, opt, grids: PackedGrids, tset: np.ndarray, cfg: TrainConfig, epoch: int, progress: bool
+) -> dict:
+    """Epoch ``epoch``: one pass over the triplet set ``tset`` (n, 3) in an order drawn from
+    ``(seed, epoch)`` (torch's seed too), in batches of ``cfg.batch_triplets``, each an SGD step
+    on the loss of Eq. (1). Returns the epoch's mean loss, fraction of active triplets (positive
+    loss) and its wall and CPU seconds."""
+    torch.manual_seed(int(_rng(cfg.seed, epoch, 3).integers(2**31)))
+    triplets = tset[_rng(cfg.seed, epoch, 1).permutation(len(tset))]
+    B = cfg.batch_triplets
+    model.train()
+    losses, active = [], 0
+    t0, c0 = time.perf_counter(), time.process_time()
+    bar = progress_bar(len(triplets), progress, f"epoch {epoch}/{cfg.epochs}", "triplet", leave=False)
+    for b in range(0, len(triplets), B):
+        rows = triplets[b : b + B]
+        n = len(rows)
+        # X1 of the batch, then X2, then X3: one pass, shared weights
+        x = torch.from_numpy(grids_to_input(grids.get(rows.T.reshape(-1)), cfg.model.form))
+        d = model(x)
+        loss = triplet_loss(d[:n], d[n : 2 * n], d[2 * n :], cfg.margin)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()) * n)
+        with torch.no_grad():
+            active += int(
+                ((d[:n] - d[n : 2 * n]).norm(dim=1) + cfg.margin - (d[:n] - d[2 * n :]).norm(dim=1) > 0).sum()
+            )
+        bar.update(n)
+    bar.close()
+    train_s, train_cpu_s = time.perf_counter() - t0, time.process_time() - c0
+    return {
+        "loss": float(np.sum(losses) / len(triplets)),
+        "active_fraction": active / len(triplets),
+        "train_s": train_s,
+        # CPU time of this process (all threads): steadier than wall on a shared machine
+        "train_cpu_s": train_cpu_s,
+        "triplets_per_s": len(triplets) / train_s if train_s > 0 else None,
+    }
+
+
+def _log_epoch(row: dict) -> None:
+    log.info(
+        "epoch %d: loss %.4f, test accuracy %.3f, %.1f triplets/s",
+        row["epoch"],
+        row["loss"],
+        row.get("test_accuracy", float("nan")),
+        row["triplets_per_s"],
+    )
+
+
+def _write_model(torch, out: Path, model, cfg: TrainConfig) -> None:
+    """The trained model as a torch state dict (with its configs) and as ONNX, and the resolved config."""
     with atomic_path(out / TORCH_FILE) as tmp, open(tmp, "wb") as f:
         torch.save(
             {
@@ -481,32 +522,43 @@ def train_cnn(
         )
     export_onnx(model, cfg.model, out / ONNX_FILE)
     atomic_write_text(out / "config.yaml", dump_config(cfg))
-    total_wall = history[-1]["wall_s"] if history else 0.0
+
+
+def _write_records(
+    out: Path,
+    history: list[dict],
+    cfg: TrainConfig,
+    torch_version: str,
+    n_train: int,
+    n_set: int,
+    n_test: int,
+    t_start: float,
+) -> None:
+    """``metrics.json`` (per epoch without its wall-clock figures, the final epoch, set sizes) and
+    ``timings.json`` (the epochs' wall-clock figures, the mean rate, the wall time so far and of this call)."""
     epochs = [{k: v for k, v in r.items() if k not in EPOCH_TIMINGS} for r in history]
     metrics = {
         "epochs": epochs,
         "final": epochs[-1] if epochs else {},
-        "train_triplets_available": int(len(train_all)),
-        "triplet_set": int(len(tset)),
-        "test_triplets": int(len(test_t)),
+        "train_triplets_available": int(n_train),
+        "triplet_set": int(n_set),
+        "test_triplets": int(n_test),
         "threads": cfg.threads,
-        "torch_version": torch.__version__,
+        "torch_version": torch_version,
     }
     write_json(out / "metrics.json", metrics)
     write_timings(
         out,
         epochs=[{k: r[k] for k in EPOCH_TIMINGS if k in r} for r in history],
         triplets_per_s_mean=float(np.mean([r["triplets_per_s"] for r in history])) if history else None,
-        wall_s_training=total_wall,
+        wall_s_training=history[-1]["wall_s"] if history else 0.0,
         wall_s_this_call=time.perf_counter() - t_start,
     )
 
-    training_curve(
-        out / "training_curve.png",
-        history,
-        title=f"CNN descriptor, {cfg.model.form}, hard negatives {'on' if cfg.hard_negatives else 'off'}",
-    )
-    manifest = {
+
+def _model_manifest(cfg: TrainConfig, ds: TripletDataset, full_hash: str, resume_hash: str, epochs: int) -> dict:
+    """The trained model's manifest: format, hashes, configs, patch domain, ONNX signature, dataset."""
+    return {
         "format_version": MODEL_FORMAT_VERSION,
         "kind": "mapkit cnn descriptor",
         "mapkit_version": __version__,
@@ -515,7 +567,7 @@ def train_cnn(
         "config": cfg.model_dump(mode="json"),
         "model_config": cfg.model.model_dump(mode="json"),
         "domain": ds.manifest["domain"],
-        "epochs": len(history),
+        "epochs": epochs,
         "hard_negatives": cfg.hard_negatives,
         "onnx": {
             "file": ONNX_FILE,
@@ -530,9 +582,6 @@ def train_cnn(
             "triplets": ds.manifest.get("triplets"),
         },
     }
-    write_manifest(out, manifest)
-    mark_done(out, full_hash)
-    return out
 
 
 __all__ = ["TrainConfig", "train_cnn", "hard_negatives", "PackedGrids", "patch_xy"]

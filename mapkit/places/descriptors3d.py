@@ -538,14 +538,7 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
     Pu = len(first)
     cols = T + 2
     per_plane = (L + 1) * cols  # rings 0 .. l (outside), sector columns 0 .. t + 1
-    n_bins = Pu * per_plane
-    if L + 1 > 255 or cols > 255 or n_bins > 1 << 16:  # rings and sectors are uint8, bin ids uint16
-        raise InputError(
-            None,
-            f"M2DP grid of {P} planes x {L} rings x {T} sectors is too fine (at most 254 rings and 253 sectors, "
-            "65,536 bins over the distinct planes)",
-            field="m2dp",
-        )
+    _m2dp_check_bins(P, Pu, L, T)
     one_byte = per_plane <= 256
     farthest = cfg.radius == "farthest"
     # in-plane axes scaled by l^2 / r: the in-plane radius is then rho l^2 / r, whose square root
@@ -603,17 +596,38 @@ def _m2dp_signature_blocks(points_normalised: np.ndarray, indptr: np.ndarray, cf
             ids[at_origin] = plane_off[0] + T // 2 + 1
         if flat is not None and len(flat):
             ids[flat] = plane_off[0] + centre_id
-        H = np.empty((k1 - k0, n_bins, 1), np.float32)
-        for k in range(k0, k1):
-            rows = ids[indptr[k] - a : indptr[k + 1] - a]
-            if len(rows):
-                cv2.calcHist([rows], [0], None, [n_bins], [0, n_bins], hist=H[k - k0])
-            else:
-                H[k - k0] = 0.0
-        h = H.reshape(k1 - k0, Pu, L + 1, cols)[:, :, :L]
-        h[..., 1] += h[..., 0]
-        h[..., T] += h[..., T + 1]
-        yield k0, k1, h[..., 1 : T + 1]
+        yield k0, k1, _m2dp_block_counts(ids, indptr[k0 : k1 + 1] - a, Pu, L, T)
+
+
+def _m2dp_check_bins(P: int, Pu: int, L: int, T: int) -> None:
+    """An InputError when the bin ids of :func:`_m2dp_signature_blocks` do not fit their types:
+    rings 0 .. l and sector columns 0 .. t + 1 are uint8, bin ids over the ``Pu`` distinct planes uint16."""
+    if L + 1 > 255 or T + 2 > 255 or Pu * (L + 1) * (T + 2) > 1 << 16:
+        raise InputError(
+            None,
+            f"M2DP grid of {P} planes x {L} rings x {T} sectors is too fine (at most 254 rings and 253 sectors, "
+            "65,536 bins over the distinct planes)",
+            field="m2dp",
+        )
+
+
+def _m2dp_block_counts(ids: np.ndarray, indptr: np.ndarray, Pu: int, L: int, T: int) -> np.ndarray:
+    """Counts (patches, Pu, l, t) of the bin ids of a block of patches, patch k's ids being
+    ``ids[indptr[k]:indptr[k + 1]]``: counted by ``cv2.calcHist``, the outside ring dropped and
+    the sector columns 0 and t + 1 (theta = -pi and pi) folded into sectors 0 and t - 1."""
+    cols = T + 2
+    n_bins = Pu * (L + 1) * cols
+    H = np.empty((len(indptr) - 1, n_bins, 1), np.float32)
+    for k in range(len(indptr) - 1):
+        rows = ids[indptr[k] : indptr[k + 1]]
+        if len(rows):
+            cv2.calcHist([rows], [0], None, [n_bins], [0, n_bins], hist=H[k])
+        else:
+            H[k] = 0.0
+    h = H.reshape(len(H), Pu, L + 1, cols)[:, :, :L]
+    h[..., 1] += h[..., 0]
+    h[..., T] += h[..., T + 1]
+    return h[..., 1 : T + 1]
 
 
 def leading_singular_vectors(A: np.ndarray, tol: float = 1e-6, max_iter: int = 64) -> tuple[np.ndarray, np.ndarray]:

@@ -373,25 +373,13 @@ def first_observer_positions(
 # --- voxel grids ----------------------------------------------------------------------------------
 
 
-def voxel_counts(points_normalised: np.ndarray, indptr: np.ndarray, domain: PatchDomain, grid: int = 32) -> np.ndarray:
-    """(M, grid, grid, grid) int32 point counts of each patch over the domain's bounding box.
+def _voxel_counts_block(pts: np.ndarray, indptr: np.ndarray, domain: PatchDomain, grid: int) -> np.ndarray:
+    """Counts (k, g, g, g) int64 of the k patches ``indptr`` delimits (a view of one bincount).
 
     Axes are (x, y, z) of the normalised frame, cell ``i`` of an axis covering
     ``[-h + 2h i / grid, -h + 2h (i + 1) / grid)`` for half extent ``h``; points outside the box
-    are left out, points exactly on its far face fall into the last cell. 128 KiB per patch at
-    grid 32: for many patches use :func:`voxelise_patches`, which works through them in blocks.
+    are left out, points exactly on its far face fall into the last cell.
     """
-    pts = _as_points(points_normalised, "points_normalised")
-    indptr = np.asarray(indptr, np.int64)
-    out = np.empty((len(indptr) - 1, grid, grid, grid), np.int32)
-    for k0 in range(0, len(out), _VOXEL_CHUNK_PATCHES):
-        k1 = min(k0 + _VOXEL_CHUNK_PATCHES, len(out))
-        out[k0:k1] = _voxel_counts_block(pts, indptr[k0 : k1 + 1], domain, grid)
-    return out
-
-
-def _voxel_counts_block(pts: np.ndarray, indptr: np.ndarray, domain: PatchDomain, grid: int) -> np.ndarray:
-    """Counts (k, g, g, g) int64 of the k patches ``indptr`` delimits (a view of one bincount)."""
     k = len(indptr) - 1
     p = pts[indptr[0] : indptr[-1]]
     half = domain.box_half_extents
@@ -431,8 +419,9 @@ def voxelise(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Binary occupancy (g, g, g) and density-comparison grid (3, g, g, g), uint8, of one patch.
 
-    Sec. 3.3.2: the points of the (normalised) domain in a regular grid; see
-    :func:`voxel_counts` for the cells and :func:`density_comparison` for the channels.
+    Sec. 3.3.2: the points of the (normalised) domain in a regular grid (axes x, y, z of the
+    normalised frame, each axis cut into ``grid`` equal cells over the box; points outside it left
+    out); see :func:`density_comparison` for the channels.
     """
     pts = _as_points(points_normalised, "points_normalised")
     occ, dcg = voxelise_patches(pts, np.array([0, len(pts)], np.int64), domain, grid)

@@ -69,11 +69,9 @@ __all__ = [
     "export_pointnetvlad",
     "export_triplets_pointnetvlad",
     "evaluation_sets",
-    "load_cloud",
     "normalise_cloud",
     "patch_clouds",
     "query_dict",
-    "read_queries",
     "remove_ground",
     "sample_cloud",
     "unique_stamps",
@@ -147,38 +145,11 @@ def export_pointnetvlad(
     by_name = {s.name: s for s in sessions}
     domain = PatchDomain(**ds.manifest["domain"])
     n = len(t["patch_id"])
-    # file names: per session, unique integer stamps (ns) of the patches' first observer keyframes
-    stamps = np.zeros(n, np.int64)
-    for k, name in enumerate(names):
-        rows = np.flatnonzero(t["session"] == k)
-        if len(rows):
-            stamps[rows] = unique_stamps(by_name[name].frame_stamps_ns(t["frame"][rows]), t["patch_id"][rows])
-    files = np.array(
-        [f"{names[int(s)]}/{CLOUD_FOLDER}/{int(ts)}.bin" for s, ts in zip(t["session"], stamps, strict=True)],
-        dtype=object,
-    )
-    written = np.zeros(n, bool)
-    centroid, scale = np.zeros((n, 3)), np.zeros(n)
+    stamps, files = _cloud_files(names, t, by_name)
     final = out
     with building(final) as out:  # a partial folder, renamed into place last
         atomic_write_text(out / "config.yaml", dump_config(cfg))
-        for k, name in enumerate(names):
-            rows = np.flatnonzero(t["session"] == k)
-            if len(rows) == 0:
-                continue
-            (out / name / CLOUD_FOLDER).mkdir(parents=True, exist_ok=True)
-            for b in range(0, len(rows), 64):  # 64 patches at a time bound the candidates' memory
-                block = rows[b : b + 64]
-                clouds = patch_clouds(by_name[name], t["enu"][block], t["transform"][block], t["yaw"][block], domain)
-                for row, cloud in zip(block, clouds, strict=True):
-                    rng = np.random.default_rng([seed, int(t["patch_id"][row])])
-                    if cfg.ground_distance_m is not None:
-                        cloud = remove_ground(cloud, cfg.ground_distance_m, cfg.ground_max_tilt_deg, rng)
-                    if len(cloud) == 0:
-                        continue
-                    pts, centroid[row], scale[row] = normalise_cloud(cloud, cfg.points, rng)
-                    np.ascontiguousarray(pts, "<f8").tofile(out / files[row])
-                    written[row] = True
+        written, centroid, scale = _write_clouds(out, names, t, by_name, domain, files, cfg, seed)
         if not written.any():
             raise NoTripletsError(
                 dataset,
@@ -192,67 +163,173 @@ def export_pointnetvlad(
             )
         # the CSVs, and positions as their scripts read them back from the CSVs
         order, ne = _write_locations(out, names, t, files, stamps, written, centroid, scale)
-        counts = {}
-        rng = np.random.default_rng(seed)
-        for split in SPLITS:
-            rows = order[t["split"][order] == split]
-            queries = query_dict(
-                ne[rows, 0], ne[rows, 1], cfg.positive_distance_m, cfg.negative_distance_m, cfg.max_negatives, rng
-            )
-            for key, row in enumerate(rows):
-                queries[key].update(
-                    {
-                        "query": str(files[row]),
-                        "patch_id": int(t["patch_id"][row]),
-                        "session": names[int(t["session"][row])],
-                    }
-                )
-            _pickle(out / QUERY_FILES[split], queries)
-            counts[split] = len(rows)
-            del queries
-        runs = [k for k in range(len(names)) if np.any(written & (t["session"] == k))]
-        run_rows = [order[t["session"][order] == k] for k in runs]
-        database, query = evaluation_sets(
-            [ne[r] for r in run_rows], [t["split"][r] == "test" for r in run_rows], cfg.evaluation_distance_m
-        )
-        for sets in (database, query):
-            for i, entries in enumerate(sets):
-                for entry in entries.values():
-                    row = run_rows[i][entry.pop("row")]
-                    entry.update({"query": str(files[row]), "patch_id": int(t["patch_id"][row])})
-        ev = evaluation_files(cfg)
-        _pickle(out / ev["database"], database)
-        _pickle(out / ev["query"], query)
-        write_json(
-            out / "manifest.json",
-            {
-                "format_version": PNV_FORMAT_VERSION,
-                "layout": "PointNetVLAD (github.com/mikacuy/pointnetvlad)",
-                "dataset": ".." if final.parent == dataset else str(dataset),
-                "dataset_config_hash": ds.manifest["config_hash"],
-                "seed": seed,
-                "config_hash": h,
-                "queries": counts,
-                "runs": [names[k] for k in runs],
-                "evaluation_queries": int(sum(len(q) for q in query)),
-                "thresholds_m": {
-                    "positive": cfg.positive_distance_m,
-                    "negative": cfg.negative_distance_m,
-                    "evaluation": cfg.evaluation_distance_m,
-                },
-                "patches_left_out": int((~written).sum()),
-                "points_per_cloud": cfg.points,
-                "dtype": "float64, x y z interleaved (points, 3)",
-                "file_names": "<session>/pointcloud_patches/<timestamp>.bin, timestamp = first observer keyframe's "
-                "time (ns), made unique per session",
-                "normalisation": "ground plane removed, centred on the centroid, scaled to a mean distance of 0.5, "
-                "within [-1, 1]; metric point = point / scale + centroid (pointcloud_locations.csv), in the patch's "
-                "yaw-normalised frame",
-                "files": {f: sha256_file(out / f) for f in (*QUERY_FILES.values(), *ev.values(), LOCATIONS_CSV)},
-            },
-        )
+        counts = _write_query_sets(out, names, t, files, order, ne, cfg, seed)
+        runs, n_eval = _write_evaluation_sets(out, names, t, files, written, order, ne, cfg)
+        dataset_ref = ".." if final.parent == dataset else str(dataset)
+        left_out = int((~written).sum())
+        manifest = _manifest(out, cfg, ds, dataset_ref, h, seed, counts, [names[k] for k in runs], n_eval, left_out)
+        write_json(out / "manifest.json", manifest)
         mark_done(out, h)
     return final
+
+
+def _cloud_files(names: list[str], t: dict, by_name: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Per patch its timestamp and cloud file (``<session>/pointcloud_patches/<timestamp>.bin``):
+    per session, unique integer stamps (ns) of the patches' first observer keyframes."""
+    stamps = np.zeros(len(t["patch_id"]), np.int64)
+    for k, name in enumerate(names):
+        rows = np.flatnonzero(t["session"] == k)
+        if len(rows):
+            stamps[rows] = unique_stamps(by_name[name].frame_stamps_ns(t["frame"][rows]), t["patch_id"][rows])
+    files = np.array(
+        [f"{names[int(s)]}/{CLOUD_FOLDER}/{int(ts)}.bin" for s, ts in zip(t["session"], stamps, strict=True)],
+        dtype=object,
+    )
+    return stamps, files
+
+
+def _write_clouds(
+    out: Path,
+    names: list[str],
+    t: dict,
+    by_name: dict,
+    domain,
+    files: np.ndarray,
+    cfg: PointNetVladConfig,
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every patch's cloud into ``out / files[row]``: cut from its session's points, the ground
+    removed, drawn and normalised (each patch with its own generator, seeded by ``seed`` and its
+    patch id). Returns which patches were written (not empty once the ground is removed), and
+    their centroids (n, 3) and scales (n,)."""
+    n = len(t["patch_id"])
+    written = np.zeros(n, bool)
+    centroid, scale = np.zeros((n, 3)), np.zeros(n)
+    for k, name in enumerate(names):
+        rows = np.flatnonzero(t["session"] == k)
+        if len(rows) == 0:
+            continue
+        (out / name / CLOUD_FOLDER).mkdir(parents=True, exist_ok=True)
+        for b in range(0, len(rows), 64):  # 64 patches at a time bound the candidates' memory
+            block = rows[b : b + 64]
+            clouds = patch_clouds(by_name[name], t["enu"][block], t["transform"][block], t["yaw"][block], domain)
+            for row, cloud in zip(block, clouds, strict=True):
+                rng = np.random.default_rng([seed, int(t["patch_id"][row])])
+                if cfg.ground_distance_m is not None:
+                    cloud = remove_ground(cloud, cfg.ground_distance_m, cfg.ground_max_tilt_deg, rng)
+                if len(cloud) == 0:
+                    continue
+                pts, centroid[row], scale[row] = normalise_cloud(cloud, cfg.points, rng)
+                np.ascontiguousarray(pts, "<f8").tofile(out / files[row])
+                written[row] = True
+    return written, centroid, scale
+
+
+def _write_query_sets(
+    out: Path,
+    names: list[str],
+    t: dict,
+    files: np.ndarray,
+    order: np.ndarray,
+    ne: np.ndarray,
+    cfg: PointNetVladConfig,
+    seed: int,
+) -> dict[str, int]:
+    """The training and test query pickles: per split, its written clouds in the CSVs' ``order``
+    with their positives and negatives (:func:`query_dict`, negatives drawn from one generator
+    seeded by ``seed`` over the splits in turn), file, patch id and session. Returns the queries
+    per split."""
+    counts = {}
+    rng = np.random.default_rng(seed)
+    for split in SPLITS:
+        rows = order[t["split"][order] == split]
+        queries = query_dict(
+            ne[rows, 0], ne[rows, 1], cfg.positive_distance_m, cfg.negative_distance_m, cfg.max_negatives, rng
+        )
+        for key, row in enumerate(rows):
+            queries[key].update(
+                {
+                    "query": str(files[row]),
+                    "patch_id": int(t["patch_id"][row]),
+                    "session": names[int(t["session"][row])],
+                }
+            )
+        _pickle(out / QUERY_FILES[split], queries)
+        counts[split] = len(rows)
+        del queries
+    return counts
+
+
+def _write_evaluation_sets(
+    out: Path,
+    names: list[str],
+    t: dict,
+    files: np.ndarray,
+    written: np.ndarray,
+    order: np.ndarray,
+    ne: np.ndarray,
+    cfg: PointNetVladConfig,
+) -> tuple[list[int], int]:
+    """The evaluation database and query pickles (:func:`evaluation_sets`), one run per session
+    with a written cloud, its clouds in the CSVs' ``order``. Returns the runs (session indices)
+    and the number of evaluation queries."""
+    runs = [k for k in range(len(names)) if np.any(written & (t["session"] == k))]
+    run_rows = [order[t["session"][order] == k] for k in runs]
+    database, query = evaluation_sets(
+        [ne[r] for r in run_rows], [t["split"][r] == "test" for r in run_rows], cfg.evaluation_distance_m
+    )
+    for sets in (database, query):
+        for i, entries in enumerate(sets):
+            for entry in entries.values():
+                row = run_rows[i][entry.pop("row")]
+                entry.update({"query": str(files[row]), "patch_id": int(t["patch_id"][row])})
+    ev = evaluation_files(cfg)
+    _pickle(out / ev["database"], database)
+    _pickle(out / ev["query"], query)
+    return runs, int(sum(len(q) for q in query))
+
+
+def _manifest(
+    out: Path,
+    cfg: PointNetVladConfig,
+    ds: TripletDataset,
+    dataset_ref: str,
+    config_digest: str,
+    seed: int,
+    counts: dict[str, int],
+    runs: list[str],
+    n_eval_queries: int,
+    left_out: int,
+) -> dict:
+    """The manifest of the folder ``out`` (its pickles and CSV written): format, source dataset,
+    settings, counts, the layout's conventions and the checksums of the files PointNetVLAD reads."""
+    return {
+        "format_version": PNV_FORMAT_VERSION,
+        "layout": "PointNetVLAD (github.com/mikacuy/pointnetvlad)",
+        "dataset": dataset_ref,
+        "dataset_config_hash": ds.manifest["config_hash"],
+        "seed": seed,
+        "config_hash": config_digest,
+        "queries": counts,
+        "runs": runs,
+        "evaluation_queries": n_eval_queries,
+        "thresholds_m": {
+            "positive": cfg.positive_distance_m,
+            "negative": cfg.negative_distance_m,
+            "evaluation": cfg.evaluation_distance_m,
+        },
+        "patches_left_out": left_out,
+        "points_per_cloud": cfg.points,
+        "dtype": "float64, x y z interleaved (points, 3)",
+        "file_names": "<session>/pointcloud_patches/<timestamp>.bin, timestamp = first observer keyframe's "
+        "time (ns), made unique per session",
+        "normalisation": "ground plane removed, centred on the centroid, scaled to a mean distance of 0.5, "
+        "within [-1, 1]; metric point = point / scale + centroid (pointcloud_locations.csv), in the patch's "
+        "yaw-normalised frame",
+        "files": {
+            f: sha256_file(out / f) for f in (*QUERY_FILES.values(), *evaluation_files(cfg).values(), LOCATIONS_CSV)
+        },
+    }
 
 
 def _pickle(path: Path, obj) -> None:
@@ -481,14 +558,3 @@ def _write_locations(
         atomic_write_text(out / name / LOCATIONS_CSV, "\n".join(lines) + "\n")
     atomic_write_text(out / LOCATIONS_CSV, "\n".join(rows_all) + "\n")
     return (np.concatenate(order) if order else np.zeros(0, np.int64)), ne
-
-
-def read_queries(folder: str | Path, split: str = "train") -> dict[int, dict]:
-    """The query dictionary of ``split`` in a PointNetVLAD folder."""
-    with open(Path(folder) / QUERY_FILES[split], "rb") as f:
-        return pickle.load(f)
-
-
-def load_cloud(folder: str | Path, query: str, n: int = 4096) -> np.ndarray:
-    """(n, 3) points of one cloud file, as PointNetVLAD's loader reads it."""
-    return np.fromfile(Path(folder) / query, dtype=np.float64).reshape(n, 3)

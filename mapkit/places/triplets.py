@@ -414,21 +414,15 @@ def split_of(utm_xy: np.ndarray, tiles: dict[tuple[int, int], str], tile_m: floa
 # --- patches ------------------------------------------------------------------------------------------
 
 
-def places_by_cell(
-    kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, rng: np.random.Generator
-) -> np.ndarray:
-    """Every usable keypoint, in the order places are drawn: in rounds over the cells (in random
-    order), each round taking the next ``places_per_cell`` keypoints of each cell, one anchor
-    session at a time (so a cell's ICPs serve many places)."""
-    return place_chunks(kp_session, kp_index, kp_split, sessions, cfg, rng)[0]
-
-
 def place_chunks(
     kp_session, kp_index, kp_split, sessions, cfg: TripletConfig, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`places_by_cell`'s order, and per place the number of its chunk: the up to
-    ``places_per_cell`` consecutive places of one cell that one round takes (their patches are
-    made together)."""
+    """Every usable keypoint, in the order places are drawn, and per place the number of its chunk.
+
+    Places are drawn in rounds over the cells (in random order), each round taking the next
+    ``places_per_cell`` keypoints of each cell, one anchor session at a time (so a cell's ICPs
+    serve many places); a chunk is the up to ``places_per_cell`` consecutive places of one cell
+    that one round takes (their patches are made together)."""
     valid = np.flatnonzero(kp_split != "")
     if len(valid) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -527,6 +521,19 @@ def register_cell(
     return Registration(about_centre(T, centre), **ev)
 
 
+@dataclass
+class _CellClouds:
+    """The points of each candidate member session about a cell: ``index[si]``, indices into
+    session si's points, and ``local[si]`` (rows, n) bool, the mask of those within the crop
+    radius of each place that session is a candidate for (place k in row ``row_of[si][k]``): the
+    place's local cloud ``around(p, crop)`` in that session, of ``n_local[si]`` points per row."""
+
+    index: dict[int, np.ndarray]
+    local: dict[int, np.ndarray]
+    row_of: dict[int, dict[int, int]]
+    n_local: dict[int, np.ndarray]
+
+
 class ChunkSets:
     """The correspondence sets of one chunk of places (one cell), made together.
 
@@ -547,35 +554,14 @@ class ChunkSets:
         cfg: TripletConfig,
         icp_of: Callable[..., Registration],
     ):
-        d = cfg.domain
-        crop = d.patch_radius + 2.0
+        crop = cfg.domain.patch_radius + 2.0
         P = np.array([sessions[kp_session[j]].points[kp_index[j]] for j in places]).reshape(-1, 3)
         anchors = kp_session[places]
-        K = len(places)
         cell = np.floor(P[0, :2] / cfg.icp_cell_m)
         centre = np.array([*((cell + 0.5) * cfg.icp_cell_m), P[0, 2]])
         reach = crop + 0.71 * cfg.icp_cell_m  # every place of the cell lies within 0.71 cells of its centre
-        # members: the anchor, then every session with a map point within seen_radius_m, in session order
-        nearest = np.full((K, len(sessions)), -1, np.int64)
-        for si, s in enumerate(sessions):
-            dist, nn = s.tree3.query(P, distance_upper_bound=cfg.seen_radius_m)
-            nearest[:, si] = np.where(np.isfinite(dist) & (anchors != si), nn, -1)
-        nearest[np.arange(K), anchors] = kp_index[places]
-        cand = [
-            [int(a)] + [int(si) for si in np.flatnonzero(nearest[k] >= 0) if si != a] for k, a in enumerate(anchors)
-        ]
-        cand = [c[: cfg.max_members] for c in cand]
-        cloud_idx, raw_in, row_of = {}, {}, {}
-        for si in sorted({si for c in cand for si in c}):
-            rows = [k for k in range(K) if si in cand[k]]
-            row_of[si] = {k: r for r, k in enumerate(rows)}
-            cloud_idx[si] = sessions[si].around_indices(centre, reach)
-            xy = sessions[si].points[cloud_idx[si], :2]
-            dx, dy = xy[None, :, 0] - P[rows, None, 0], xy[None, :, 1] - P[rows, None, 1]
-            raw_in[si] = (
-                dx * dx + dy * dy <= crop * crop
-            )  # (rows, n): the local cloud ``around(p, crop)`` of each place
-        n_raw = {si: m.sum(axis=1) for si, m in raw_in.items()}
+        nearest, cand = _member_candidates(P, anchors, kp_index[places], sessions, cfg)
+        clouds = _cell_clouds(cand, P, sessions, centre, reach, crop)
         self.n_icp = 0
         self.result: dict[int, dict | None] = {}
         self.rejected: dict[int, int] = {}
@@ -584,12 +570,12 @@ class ChunkSets:
         for k, j in enumerate(places):
             a, rejected, mem = int(anchors[k]), 0, []
             for si in cand[k]:
-                if n_raw[si][row_of[si][k]] < cfg.min_patch_points:
+                if clouds.n_local[si][clouds.row_of[si][k]] < cfg.min_patch_points:
                     continue
                 if si == a:
                     T, rmse = np.eye(4), 0.0
                 else:
-                    r = icp_of(si, a, centre, reach, len(cloud_idx[si]), len(cloud_idx.get(a, ())))
+                    r = icp_of(si, a, centre, reach, len(clouds.index[si]), len(clouds.index.get(a, ())))
                     if r.fitness < cfg.min_fitness or not r.rmse_m <= cfg.lambda_icp_m:
                         rejected += 1
                         continue
@@ -601,36 +587,13 @@ class ChunkSets:
                 self.result[int(j)] = None
             else:
                 members[k] = mem
-        # the patches: per session and transform, one mask over (places, points)
         slot_of: dict[tuple[int, int], int] = {}
         for k in sorted(members):
             for si, _, _, _ in members[k]:
                 slot_of[(k, si)] = len(slot_of)
-        parts_slot, parts_pts = [], []
-        for (si, a), T in transforms.items():
-            rows = [k for k in sorted(members) if anchors[k] == a and (k, si) in slot_of]
-            if not rows:
-                continue
-            moved = sessions[si].points[cloud_idx[si]] @ T[:3, :3].T + T[:3, 3]
-            r_i, p_i = np.nonzero(raw_in[si][[row_of[si][k] for k in rows]])  # each place's local cloud, place by place
-            pts = moved[p_i]
-            rel = pts - P[rows][r_i]
-            keep = (np.hypot(rel[:, 0], rel[:, 1]) <= d.patch_radius) & (np.abs(rel[:, 2]) <= d.patch_half_height)
-            parts_slot.append(np.array([slot_of[(k, si)] for k in rows], np.int64)[r_i[keep]])
-            parts_pts.append(pts[keep])
-        n_slots = len(slot_of)
-        if n_slots:
-            slot = np.concatenate(parts_slot)
-            order = np.argsort(slot, kind="stable")
-            indptr = np.concatenate([[0], np.cumsum(np.bincount(slot, minlength=n_slots))])
-            centres = np.empty((n_slots, 3))
-            obs = np.empty((n_slots, 3))
-            for (k, si), sl in slot_of.items():
-                _, pi, T, _ = next(m for m in members[k] if m[0] == si)
-                centres[sl] = P[k]
-                obs[sl] = T[:3, :3] @ sessions[si].observer_pos[pi] + T[:3, 3]
-            self.occ, self.dcg, self.yaw, self.npts = make_patches_csr(
-                np.concatenate(parts_pts)[order], indptr, centres, obs, cfg
+        if slot_of:
+            self.occ, self.dcg, self.yaw, self.npts = _member_patches(
+                P, anchors, members, transforms, slot_of, clouds, sessions, cfg
             )
         for k, mem in members.items():
             slots = np.array([slot_of[(k, m[0])] for m in mem])
@@ -650,6 +613,79 @@ class ChunkSets:
             sl = res["slots"]
             res = {**res, "occ": self.occ[sl], "dcg": self.dcg[sl], "yaw": self.yaw[sl], "points": self.npts[sl]}
         return res, self.rejected[int(j)]
+
+
+def _member_candidates(
+    P: np.ndarray, anchors: np.ndarray, anchor_index: np.ndarray, sessions: list[SessionPoints], cfg: TripletConfig
+) -> tuple[np.ndarray, list[list[int]]]:
+    """Per place (keypoint ``P[k]`` of session ``anchors[k]``, its point ``anchor_index[k]``): the
+    nearest point of each session within ``seen_radius_m`` (K, sessions; -1 where none, the
+    keypoint itself for the anchor), and the candidate members: the anchor, then every session
+    that has such a point, in session order, at most ``max_members``."""
+    K = len(P)
+    nearest = np.full((K, len(sessions)), -1, np.int64)
+    for si, s in enumerate(sessions):
+        dist, nn = s.tree3.query(P, distance_upper_bound=cfg.seen_radius_m)
+        nearest[:, si] = np.where(np.isfinite(dist) & (anchors != si), nn, -1)
+    nearest[np.arange(K), anchors] = anchor_index
+    cand = [[int(a)] + [int(si) for si in np.flatnonzero(nearest[k] >= 0) if si != a] for k, a in enumerate(anchors)]
+    return nearest, [c[: cfg.max_members] for c in cand]
+
+
+def _cell_clouds(
+    cand: list[list[int]], P: np.ndarray, sessions: list[SessionPoints], centre: np.ndarray, reach: float, crop: float
+) -> _CellClouds:
+    """Each candidate session's points within ``reach`` of the cell ``centre`` and, per place it
+    is a candidate for, which of them lie within ``crop`` of the place (horizontally)."""
+    cloud_idx, raw_in, row_of = {}, {}, {}
+    for si in sorted({si for c in cand for si in c}):
+        rows = [k for k in range(len(P)) if si in cand[k]]
+        row_of[si] = {k: r for r, k in enumerate(rows)}
+        cloud_idx[si] = sessions[si].around_indices(centre, reach)
+        xy = sessions[si].points[cloud_idx[si], :2]
+        dx, dy = xy[None, :, 0] - P[rows, None, 0], xy[None, :, 1] - P[rows, None, 1]
+        raw_in[si] = dx * dx + dy * dy <= crop * crop  # (rows, n): the local cloud ``around(p, crop)`` of each place
+    return _CellClouds(cloud_idx, raw_in, row_of, {si: m.sum(axis=1) for si, m in raw_in.items()})
+
+
+def _member_patches(
+    P: np.ndarray,
+    anchors: np.ndarray,
+    members: dict[int, list],
+    transforms: dict[tuple[int, int], np.ndarray],
+    slot_of: dict[tuple[int, int], int],
+    clouds: _CellClouds,
+    sessions: list[SessionPoints],
+    cfg: TripletConfig,
+):
+    """The grids of every member's patch (:func:`make_patches_csr`), patch ``slot_of[(k, si)]``
+    being member si of place k: per session and transform, its points about the cell are moved
+    once and one mask over (places, points) cuts every place's patch."""
+    d = cfg.domain
+    parts_slot, parts_pts = [], []
+    for (si, a), T in transforms.items():
+        rows = [k for k in sorted(members) if anchors[k] == a and (k, si) in slot_of]
+        if not rows:
+            continue
+        moved = sessions[si].points[clouds.index[si]] @ T[:3, :3].T + T[:3, 3]
+        local = clouds.local[si][[clouds.row_of[si][k] for k in rows]]  # each place's local cloud, place by place
+        r_i, p_i = np.nonzero(local)
+        pts = moved[p_i]
+        rel = pts - P[rows][r_i]
+        keep = (np.hypot(rel[:, 0], rel[:, 1]) <= d.patch_radius) & (np.abs(rel[:, 2]) <= d.patch_half_height)
+        parts_slot.append(np.array([slot_of[(k, si)] for k in rows], np.int64)[r_i[keep]])
+        parts_pts.append(pts[keep])
+    n_slots = len(slot_of)
+    slot = np.concatenate(parts_slot)
+    order = np.argsort(slot, kind="stable")
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(slot, minlength=n_slots))])
+    centres = np.empty((n_slots, 3))
+    obs = np.empty((n_slots, 3))
+    for (k, si), sl in slot_of.items():
+        _, pi, T, _ = next(m for m in members[k] if m[0] == si)
+        centres[sl] = P[k]
+        obs[sl] = T[:3, :3] @ sessions[si].observer_pos[pi] + T[:3, 3]
+    return make_patches_csr(np.concatenate(parts_pts)[order], indptr, centres, obs, cfg)
 
 
 def mapped_patches(

@@ -61,7 +61,7 @@ import time
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -74,6 +74,9 @@ from mapkit.io.trajectory import read_tum
 from mapkit.synth.config import FORMAT_VERSION, PRESETS, SynthConfig, dump_yaml, load_config
 from mapkit.synth.sensors import GpsErrorModel, extrinsics, intrinsics
 from mapkit.synth.world import RoadGraph, read_ply, read_roads
+
+if TYPE_CHECKING:
+    from mapkit.synth.sessions import ExternalPath
 
 __all__ = [
     "synthesize",
@@ -175,23 +178,11 @@ def synthesize(
     the town generated around it; RobotCar files with latitude/longitude also move the origin there.
     ``overrides`` is a mapping merged over the preset and ``config`` (as a YAML file would be).
     """
-    from mapkit.synth.sessions import plan_sessions, read_external_trajectory, write_session
-    from mapkit.synth.world import build_town, write_ply, write_roads
+    from mapkit.synth.sessions import plan_sessions
+    from mapkit.synth.world import build_town
 
     t_start = time.perf_counter()
-    cfg = load_config(preset, config, seed, overrides)
-    external = None
-    digest = None
-    if trajectory is not None:
-        external = read_external_trajectory(Path(trajectory))
-        digest = sha256_file(trajectory)
-        if not cfg.sessions:
-            raise ConfigError(
-                f"--trajectory needs at least one session in `sessions` to drive it (preset {preset!r} has none)"
-            )
-        if external.origin_latlon is not None:
-            lat, lon = external.origin_latlon
-            cfg = cfg.model_copy(update={"origin": cfg.origin.model_copy(update={"lat_deg": lat, "lon_deg": lon})})
+    cfg, external, digest = _config_and_trajectory(preset, config, seed, overrides, trajectory)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     full_hash = config_hash({"config": cfg, "trajectory": digest, "log": SESSION_LOG_LAYOUT})
@@ -205,83 +196,24 @@ def synthesize(
         plans = plan_sessions(cfg, town, external)
         timing["session_planning_s"] = time.perf_counter() - t
         world_dir = out / "world"
-        manifest: dict[str, Any] = {
-            "format_version": FORMAT_VERSION,
-            "generator": "mapkit.synth",
-            "preset": cfg.preset,
-            "seed": cfg.seed,
-            "config_hash": full_hash,
-            "world_hash": w_hash,
-            "frame": "world = ENU at the origin (origin.json)",
-            "base_link": "x forward, y left, z up; on the road surface under the rear axle centre",
-            "anchor": town.anchor,
-            "world": town.summary(),
-            "sessions": [p.manifest_entry(cfg) for p in plans],
-        }
-        if external is not None:
-            manifest["sessions"][0]["trajectory_file"] = str(trajectory)
+        manifest = _manifest(cfg, town, plans, full_hash, w_hash, None if external is None else str(trajectory))
         if overwrite or not is_done(world_dir, full_hash):
             t = time.perf_counter()
-            world_dir.mkdir(parents=True, exist_ok=True)
-            write_ply(world_dir / "mesh.ply", town.geometry)
-            write_roads(world_dir / "roads.json", town.roads, town.anchor)
-            write_json(world_dir / "origin.json", town.frame.to_dict())
-            atomic_write_text(world_dir / "config.yaml", dump_yaml(cfg))
-            write_json(world_dir / "manifest.json", manifest)
-            mark_done(world_dir, full_hash, world_hash=w_hash)
+            _write_world(world_dir, town, cfg, manifest, full_hash, w_hash)
             timing["world_write_s"] = time.perf_counter() - t
-        session_metrics = []
-        session_timings: dict[str, dict] = {}
-        todo = []
-        for p in plans:
-            h = _session_hash(cfg, w_hash, p.index, p.config)
-            marker = out / "sessions" / ".markers" / p.name
-            if not overwrite and is_done(marker, h):
-                done = json.loads((marker / ".done").read_text()).get("metrics", {})
-                done.pop("timings_s", None)  # a marker may hold the session's timings: a run record, not a result
-                session_metrics.append(done | {"skipped": True})
-            else:
-                todo.append((p, h, marker))
+        session_metrics, todo = _sessions_to_render(cfg, plans, w_hash, out, overwrite)
         t = time.perf_counter()
-        workers = min(cfg.workers, len(todo))
-        if workers <= 1:
-            for p, h, marker in todo:
-                m = write_session(town, p, cfg, out, progress)
-                session_timings[p.name] = m.pop("timings_s")
-                mark_done(marker, h, metrics=m)
-                session_metrics.append(m)
-        else:
-            for m in _render_parallel(cfg, trajectory, out, todo, workers, progress):
-                session_timings[m["name"]] = m.pop("timings_s")
-                session_metrics.append(m)
+        session_timings = _render_sessions(cfg, town, trajectory, out, todo, session_metrics, progress)
         timing["render_s"] = time.perf_counter() - t
         t = time.perf_counter()
         _pictures(out, town, plans)
         timing["pictures_s"] = time.perf_counter() - t
     timing["total_s"] = time.perf_counter() - t_start
-    rendered = [m for m in session_metrics if not m.get("skipped")]
-    cam = sum(m["camera_frames"] for m in rendered)
-    lid = sum(m["lidar_scans"] for m in rendered)
+    metrics = _town_metrics(cfg, town, plans, full_hash, session_metrics)
+    write_json(out / "metrics.json", metrics)
+    cam, lid = metrics["rendered"]["camera_frames"], metrics["rendered"]["lidar_scans"]
     cam_s = sum(t["camera_render_s"] for t in session_timings.values())
     lid_s = sum(t["lidar_render_s"] for t in session_timings.values())
-    order = {p.name: k for k, p in enumerate(plans)}
-    metrics = {
-        "format_version": FORMAT_VERSION,
-        "preset": cfg.preset,
-        "seed": cfg.seed,
-        "config_hash": full_hash,
-        "world": town.summary(),
-        "rendered": {
-            "sessions": len(rendered),
-            "camera_frames": cam,
-            "lidar_scans": lid,
-            "image_size": [cfg.camera.width, cfg.camera.height],
-            "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
-        },
-        "sessions": sorted(session_metrics, key=lambda m: order.get(m.get("name"), 0)),
-        "streets": street_coverage(plans),
-    }
-    write_json(out / "metrics.json", metrics)
     write_timings(
         out,
         **{k: round(v, 3) for k, v in timing.items()},
@@ -291,6 +223,128 @@ def synthesize(
     )
     mark_done(out, full_hash)
     return out
+
+
+def _config_and_trajectory(
+    preset: str, config: Path | None, seed: int | None, overrides: dict | None, trajectory: Path | None
+) -> tuple[SynthConfig, ExternalPath | None, str | None]:
+    """(resolved config, external trajectory or None, its file's sha256 or None). An external
+    trajectory with latitude/longitude moves the config's origin there."""
+    from mapkit.synth.sessions import read_external_trajectory
+
+    cfg = load_config(preset, config, seed, overrides)
+    if trajectory is None:
+        return cfg, None, None
+    external = read_external_trajectory(Path(trajectory))
+    digest = sha256_file(trajectory)
+    if not cfg.sessions:
+        raise ConfigError(
+            f"--trajectory needs at least one session in `sessions` to drive it (preset {preset!r} has none)"
+        )
+    if external.origin_latlon is not None:
+        lat, lon = external.origin_latlon
+        cfg = cfg.model_copy(update={"origin": cfg.origin.model_copy(update={"lat_deg": lat, "lon_deg": lon})})
+    return cfg, external, digest
+
+
+def _manifest(
+    cfg: SynthConfig, town, plans: list, full_hash: str, w_hash: str, trajectory_file: str | None
+) -> dict[str, Any]:
+    """What ``world/manifest.json`` holds: format, seed, hashes, frames, anchor, world summary,
+    sessions (the first naming ``trajectory_file``, the external trajectory it drives, if any)."""
+    manifest: dict[str, Any] = {
+        "format_version": FORMAT_VERSION,
+        "generator": "mapkit.synth",
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "config_hash": full_hash,
+        "world_hash": w_hash,
+        "frame": "world = ENU at the origin (origin.json)",
+        "base_link": "x forward, y left, z up; on the road surface under the rear axle centre",
+        "anchor": town.anchor,
+        "world": town.summary(),
+        "sessions": [p.manifest_entry(cfg) for p in plans],
+    }
+    if trajectory_file is not None:
+        manifest["sessions"][0]["trajectory_file"] = trajectory_file
+    return manifest
+
+
+def _write_world(world_dir: Path, town, cfg: SynthConfig, manifest: dict, full_hash: str, w_hash: str) -> None:
+    """The ``world/`` folder: mesh, road graph, origin, resolved config and manifest, then its marker."""
+    from mapkit.synth.world import write_ply, write_roads
+
+    world_dir.mkdir(parents=True, exist_ok=True)
+    write_ply(world_dir / "mesh.ply", town.geometry)
+    write_roads(world_dir / "roads.json", town.roads, town.anchor)
+    write_json(world_dir / "origin.json", town.frame.to_dict())
+    atomic_write_text(world_dir / "config.yaml", dump_yaml(cfg))
+    write_json(world_dir / "manifest.json", manifest)
+    mark_done(world_dir, full_hash, world_hash=w_hash)
+
+
+def _sessions_to_render(
+    cfg: SynthConfig, plans: list, w_hash: str, out: Path, overwrite: bool
+) -> tuple[list[dict], list[tuple]]:
+    """(metrics of the sessions already finished with these settings, marked ``skipped``;
+    ``(plan, session hash, marker folder)`` of those still to render)."""
+    session_metrics = []
+    todo = []
+    for p in plans:
+        h = _session_hash(cfg, w_hash, p.index, p.config)
+        marker = out / "sessions" / ".markers" / p.name
+        if not overwrite and is_done(marker, h):
+            done = json.loads((marker / ".done").read_text()).get("metrics", {})
+            done.pop("timings_s", None)  # a marker may hold the session's timings: a run record, not a result
+            session_metrics.append(done | {"skipped": True})
+        else:
+            todo.append((p, h, marker))
+    return session_metrics, todo
+
+
+def _render_sessions(
+    cfg: SynthConfig, town, trajectory, out: Path, todo: list, session_metrics: list[dict], progress
+) -> dict[str, dict]:
+    """Render the sessions of ``todo`` (in this process, or in ``cfg.workers`` processes), appending
+    their metrics to ``session_metrics``; returns their timings by session name."""
+    from mapkit.synth.sessions import write_session
+
+    session_timings: dict[str, dict] = {}
+    workers = min(cfg.workers, len(todo))
+    if workers <= 1:
+        for p, h, marker in todo:
+            m = write_session(town, p, cfg, out, progress)
+            session_timings[p.name] = m.pop("timings_s")
+            mark_done(marker, h, metrics=m)
+            session_metrics.append(m)
+    else:
+        for m in _render_parallel(cfg, trajectory, out, todo, workers, progress):
+            session_timings[m["name"]] = m.pop("timings_s")
+            session_metrics.append(m)
+    return session_timings
+
+
+def _town_metrics(cfg: SynthConfig, town, plans: list, full_hash: str, session_metrics: list[dict]) -> dict:
+    """What ``metrics.json`` holds: the world's statistics, what was rendered, per-session counts
+    (in plan order) and street coverage."""
+    rendered = [m for m in session_metrics if not m.get("skipped")]
+    order = {p.name: k for k, p in enumerate(plans)}
+    return {
+        "format_version": FORMAT_VERSION,
+        "preset": cfg.preset,
+        "seed": cfg.seed,
+        "config_hash": full_hash,
+        "world": town.summary(),
+        "rendered": {
+            "sessions": len(rendered),
+            "camera_frames": sum(m["camera_frames"] for m in rendered),
+            "lidar_scans": sum(m["lidar_scans"] for m in rendered),
+            "image_size": [cfg.camera.width, cfg.camera.height],
+            "lidar_rays_per_scan": cfg.lidar.beams * cfg.lidar.azimuth_steps,
+        },
+        "sessions": sorted(session_metrics, key=lambda m: order.get(m.get("name"), 0)),
+        "streets": street_coverage(plans),
+    }
 
 
 _WORKER: dict = {}

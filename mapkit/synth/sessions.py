@@ -620,30 +620,33 @@ def session_parked_cars(town: Town, seed: int):
     return parked_cars(town, session_rngs(seed)[0])
 
 
-def write_session(
+@dataclass
+class _SessionStreams:
+    """What a session's log holds besides the rendered sensors: the stamps (ns) of every stream,
+    the camera poses at the image stamps, the GPS fixes and the IMU samples."""
+
+    camera_ns: np.ndarray
+    lidar_ns: np.ndarray
+    gps_ns: np.ndarray
+    imu_ns: np.ndarray
+    world_from_camera: np.ndarray  # (len(camera_ns), 4, 4), optical frame
+    gps_valid: np.ndarray  # (len(gps_ns),) bool: a fix, else NO_FIX
+    gps_lat_lon_alt: tuple  # three arrays (or empty lists without GPS stamps), WGS84
+    gps_covariance_enu_m2: np.ndarray
+    imu_gyro: np.ndarray  # (len(imu_ns), 3)
+    imu_accel: np.ndarray  # (len(imu_ns), 3)
+
+
+def _session_streams(
     town: Town,
     plan: SessionPlan,
     cfg: SynthConfig,
-    out_dir: Path,
-    progress: bool | None = None,
-    nthreads: int | None = None,
-) -> dict:
-    """Render and write one session: its log (a rosbag2 folder with MCAP storage), ground-truth files,
-    parked cars and anchor picture."""
-    import cv2
-
-    from mapkit.synth.render import Renderer
-
-    sess_dir = out_dir / "sessions"
-    sess_dir.mkdir(parents=True, exist_ok=True)
-    name = plan.name
-    rng_cars, rng_gps, rng_imu = session_rngs(plan.seed)
-    parked = parked_cars(town, rng_cars)
-    write_ply(sess_dir / f"{name}.parked_cars.ply", parked)
-    t0 = time.perf_counter()
-    renderer = Renderer(town, parked, cfg.camera, cfg.lidar, nthreads=nthreads)
-    ex = extrinsics(cfg)
-    K = intrinsics(cfg.camera)
+    ex: dict,
+    rng_gps: np.random.Generator,
+    rng_imu: np.random.Generator,
+) -> _SessionStreams:
+    """Every stream's stamps over the drive, the camera poses, the GPS fixes (antenna position plus
+    the error process, to WGS84; draws from ``rng_gps``) and the IMU samples (from ``rng_imu``)."""
     drive = plan.drive
     start, end = int(drive.stamps_ns[0]), int(drive.stamps_ns[-1])
     lidar_period_ns = int(round(1e9 / cfg.lidar.rate_hz))
@@ -656,70 +659,106 @@ def write_session(
     gps_ns = _stamps(start, end, cfg.gps.rate_hz)
     imu_ns = _stamps(start, end, cfg.imu.rate_hz) if cfg.imu.enabled else np.zeros(0, np.int64)
     world_from_cam = drive.poses_at(cam_ns) @ ex[FRAME_CAMERA] if len(cam_ns) else np.zeros((0, 4, 4))
-    write_tum(sess_dir / f"{name}.gt.tum", drive.stamps_ns, drive.world_from_base)
-    write_tum(sess_dir / f"{name}.camera.tum", cam_ns, world_from_cam)
-    keep_frame = anchor_frame(world_from_cam, town.anchor) if len(cam_ns) else -1
-
-    # GPS: antenna position plus the error process, to WGS84
     model = GpsErrorModel(cfg.gps)
     err = model.simulate(len(gps_ns), rng_gps)
     antenna = (drive.poses_at(gps_ns) @ ex[FRAME_GPS])[:, :3, 3] if len(gps_ns) else np.zeros((0, 3))
-    lat: np.ndarray | list[float]
-    lon: np.ndarray | list[float]
-    alt: np.ndarray | list[float]
-    lat, lon, alt = town.frame.enu_to_geodetic(antenna + err.total_enu) if len(gps_ns) else ([], [], [])
-    cov = model.covariance_enu_m2
+    lat_lon_alt = town.frame.enu_to_geodetic(antenna + err.total_enu) if len(gps_ns) else ([], [], [])
     gyro, accel = (np.zeros((0, 3)), np.zeros((0, 3)))
     if len(imu_ns):
         gyro, accel = imu_from_poses(imu_ns, drive.poses_at(imu_ns) @ ex[FRAME_IMU], cfg.imu, rng_imu)
+    return _SessionStreams(
+        cam_ns, lidar_ns, gps_ns, imu_ns, world_from_cam, err.valid, lat_lon_alt, model.covariance_enu_m2, gyro, accel
+    )
 
-    # every message in time order (at equal stamps: tf, ground truth, imu, gps, lidar, camera)
-    kinds = [(drive.stamps_ns, 1), (imu_ns, 2), (gps_ns, 3), (lidar_ns, 4), (cam_ns, 5)]
+
+def _messages_in_time_order(drive: Drive, st: _SessionStreams) -> list[tuple[int, int, int]]:
+    """(stamp, kind, index in its stream) of every message in time order; kinds 1 to 5 are ground
+    truth, IMU, GPS, LiDAR and camera, which is also the order at equal stamps (then by index)."""
+    kinds = [(drive.stamps_ns, 1), (st.imu_ns, 2), (st.gps_ns, 3), (st.lidar_ns, 4), (st.camera_ns, 5)]
     stamps = np.concatenate([k[0] for k in kinds])
     order_kind = np.concatenate([np.full(len(k[0]), k[1]) for k in kinds])
     index = np.concatenate([np.arange(len(k[0])) for k in kinds])
     order = np.lexsort((index, order_kind, stamps))
+    return [(int(stamps[j]), int(order_kind[j]), int(index[j])) for j in order]
+
+
+def _gps_message(st: _SessionStreams, i: int, stamp: int) -> GpsFix:
+    """GPS fix ``i`` of the session: its position and covariance, or NaN and NO_FIX where the
+    error process has no fix."""
+    ok = bool(st.gps_valid[i])
+    lat, lon, alt = st.gps_lat_lon_alt
+    return GpsFix(
+        stamp,
+        float(lat[i]) if ok else float("nan"),
+        float(lon[i]) if ok else float("nan"),
+        float(alt[i]) if ok else float("nan"),
+        GpsStatus.FIX if ok else GpsStatus.NO_FIX,
+        st.gps_covariance_enu_m2 if ok else None,
+        FRAME_GPS,
+    )
+
+
+def _log_metadata(plan: SessionPlan) -> dict:
+    """The session's description in its log's metadata."""
+    return {
+        "session": plan.name,
+        "condition": plan.conditions.label,
+        "weather": plan.config.weather,
+        "start_time_local": plan.local_start.isoformat(),
+        "seed": plan.seed,
+        "world_frame": "ENU at the origin in world/origin.json",
+    }
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> None:
+    """An RGB image (h, w, 3) as a PNG file, written atomically."""
+    import cv2
+
+    from mapkit.core.runio import atomic_path
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        ok_png, buf = cv2.imencode(".png", rgb[..., ::-1])
+        tmp.write_bytes(buf.tobytes())
+
+
+def _write_log(
+    log_dir: Path,
+    plan: SessionPlan,
+    cfg: SynthConfig,
+    renderer,
+    ex: dict,
+    st: _SessionStreams,
+    picture_frame: int,
+    picture: Path,
+    progress: bool | None,
+) -> dict[str, float]:
+    """Render the session's LiDAR sweeps and camera frames and write them with every other
+    message into the rosbag2 folder ``log_dir``; camera frame ``picture_frame`` is also saved as
+    the PNG ``picture``. Returns the seconds spent rendering camera and LiDAR.
+    Each sweep and frame draws from its own generator, seeded by the session's seed and its index."""
+    drive = plan.drive
+    K = intrinsics(cfg.camera)
     compress = None if cfg.camera.compression == "raw" else cfg.camera.compression
     info = CameraInfo(FRAME_CAMERA, cfg.camera.width, cfg.camera.height, K, "plumb_bob", np.zeros(5))
     render_s = {"camera": 0.0, "lidar": 0.0}
-    bar = progress_bar(len(cam_ns) + len(lidar_ns), progress, f"{name} ({plan.conditions.label})", "frame", leave=False)
-    log_dir = out_dir / session_log_relpath(name)
+    label = f"{plan.name} ({plan.conditions.label})"
+    bar = progress_bar(len(st.camera_ns) + len(st.lidar_ns), progress, label, "frame", leave=False)
     with Rosbag2Writer(log_dir) as w:
-        w.add_metadata(
-            "mapkit.synth",
-            {
-                "session": name,
-                "condition": plan.conditions.label,
-                "weather": plan.config.weather,
-                "start_time_local": plan.local_start.isoformat(),
-                "seed": plan.seed,
-                "world_frame": "ENU at the origin in world/origin.json",
-            },
+        w.add_metadata("mapkit.synth", _log_metadata(plan))
+        w.write_transforms(
+            TOPIC_TF_STATIC, [FrameTransform(int(drive.stamps_ns[0]), FRAME_BASE, k, v) for k, v in ex.items()]
         )
-        w.write_transforms(TOPIC_TF_STATIC, [FrameTransform(start, FRAME_BASE, k, v) for k, v in ex.items()])
-        for j in order:
-            kind, i, stamp = int(order_kind[j]), int(index[j]), int(stamps[j])
+        for stamp, kind, i in _messages_in_time_order(drive, st):
             if kind == 1:
                 w.write(
                     TOPIC_GROUND_TRUTH,
                     PoseSample(stamp, FRAME_WORLD, FRAME_BASE, drive.world_from_base[i], source="ground_truth"),
                 )
             elif kind == 2:
-                w.write(TOPIC_IMU, ImuSample(stamp, FRAME_IMU, gyro[i], accel[i], None))
+                w.write(TOPIC_IMU, ImuSample(stamp, FRAME_IMU, st.imu_gyro[i], st.imu_accel[i], None))
             elif kind == 3:
-                ok = bool(err.valid[i])
-                w.write(
-                    TOPIC_GPS,
-                    GpsFix(
-                        stamp,
-                        float(lat[i]) if ok else float("nan"),
-                        float(lon[i]) if ok else float("nan"),
-                        float(alt[i]) if ok else float("nan"),
-                        GpsStatus.FIX if ok else GpsStatus.NO_FIX,
-                        cov if ok else None,
-                        FRAME_GPS,
-                    ),
-                )
+                w.write(TOPIC_GPS, _gps_message(st, i, stamp))
             elif kind == 4:
                 tt = time.perf_counter()
                 col_ns = stamp + np.round(renderer.lidar_col_time_s * 1e9).astype(np.int64)
@@ -736,7 +775,7 @@ def write_session(
                 tt = time.perf_counter()
                 wfb = drive.poses_at(np.array([stamp]))[0]
                 frame = renderer.render_camera(
-                    world_from_cam[i], plan.conditions, np.random.default_rng([plan.seed, 5, i]), wfb
+                    st.world_from_camera[i], plan.conditions, np.random.default_rng([plan.seed, 5, i]), wfb
                 )
                 render_s["camera"] += time.perf_counter() - tt
                 w.write(
@@ -744,25 +783,51 @@ def write_session(
                     CameraInfo(info.camera, info.width, info.height, K, info.distortion_model, info.D, stamp),
                 )
                 w.write(TOPIC_IMAGE, CameraFrame(stamp, FRAME_CAMERA, frame.rgb, encoding="rgb8"), compress=compress)
-                if i == keep_frame:
-                    from mapkit.core.runio import atomic_path
-
-                    pic = out_dir / "pictures" / "frames" / f"{name}.png"
-                    pic.parent.mkdir(parents=True, exist_ok=True)
-                    with atomic_path(pic) as tmp:
-                        ok_png, buf = cv2.imencode(".png", frame.rgb[..., ::-1])
-                        tmp.write_bytes(buf.tobytes())
+                if i == picture_frame:
+                    _write_png(picture, frame.rgb)
                 bar.update(1)
     bar.close()
+    return render_s
+
+
+def write_session(
+    town: Town,
+    plan: SessionPlan,
+    cfg: SynthConfig,
+    out_dir: Path,
+    progress: bool | None = None,
+    nthreads: int | None = None,
+) -> dict:
+    """Render and write one session: its log (a rosbag2 folder with MCAP storage), ground-truth files,
+    parked cars and anchor picture."""
+    from mapkit.synth.render import Renderer
+
+    sess_dir = out_dir / "sessions"
+    sess_dir.mkdir(parents=True, exist_ok=True)
+    name = plan.name
+    rng_cars, rng_gps, rng_imu = session_rngs(plan.seed)
+    parked = parked_cars(town, rng_cars)
+    write_ply(sess_dir / f"{name}.parked_cars.ply", parked)
+    t0 = time.perf_counter()
+    renderer = Renderer(town, parked, cfg.camera, cfg.lidar, nthreads=nthreads)
+    ex = extrinsics(cfg)
+    drive = plan.drive
+    st = _session_streams(town, plan, cfg, ex, rng_gps, rng_imu)
+    write_tum(sess_dir / f"{name}.gt.tum", drive.stamps_ns, drive.world_from_base)
+    write_tum(sess_dir / f"{name}.camera.tum", st.camera_ns, st.world_from_camera)
+    keep_frame = anchor_frame(st.world_from_camera, town.anchor) if len(st.camera_ns) else -1
+    log_dir = out_dir / session_log_relpath(name)
+    picture = out_dir / "pictures" / "frames" / f"{name}.png"
+    render_s = _write_log(log_dir, plan, cfg, renderer, ex, st, keep_frame, picture, progress)
     (sess_dir / f"{name}.mcap").unlink(missing_ok=True)  # the bare log of a town written before rosbag2 folders
     wall = time.perf_counter() - t0
     return {
         "name": name,
-        "camera_frames": int(len(cam_ns)),
-        "lidar_scans": int(len(lidar_ns)),
-        "gps_fixes": int(len(gps_ns)),
-        "gps_fixes_without_fix": int((~err.valid).sum()),
-        "imu_samples": int(len(imu_ns)),
+        "camera_frames": int(len(st.camera_ns)),
+        "lidar_scans": int(len(st.lidar_ns)),
+        "gps_fixes": int(len(st.gps_ns)),
+        "gps_fixes_without_fix": int((~st.gps_valid).sum()),
+        "imu_samples": int(len(st.imu_ns)),
         "ground_truth_poses": int(len(drive.stamps_ns)),
         "parked_cars": int(len(np.unique(parked.object_id[parked.material == Mat.CAR_BODY]))),
         "anchor_frame": keep_frame,

@@ -387,20 +387,36 @@ def _connected(n_nodes: int, edges: set[tuple[int, int]]) -> bool:
     return len(seen) == len(used)
 
 
-def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
-    """A perturbed lattice thinned and enriched into a town graph.
+@dataclass
+class _Lattice:
+    """The perturbed lattice a town's road graph starts from: node ``node_id[i, j]`` (column i,
+    row j) at ``nodes_xy[node_id[i, j]]``, blocks ``block_m`` apart, and the rows and columns
+    that are avenues (straight: no jitter across them)."""
 
-    Straight avenues cross the town (no jitter across them); some lattice edges are dropped
-    (T-junctions), some cells get a diagonal (5-way junctions), some edges bend, and cul-de-sacs
-    and stubs at the town edge make dead ends.
-    """
+    node_id: np.ndarray  # (nx, ny) int
+    nodes_xy: np.ndarray  # (nx ny, 2)
+    block_m: tuple[float, float]
+    av_rows: list[int]
+    av_cols: list[int]
+
+    @property
+    def nx(self) -> int:
+        return self.node_id.shape[0]
+
+    @property
+    def ny(self) -> int:
+        return self.node_id.shape[1]
+
+
+def _lattice(town: TownConfig, rng: np.random.Generator) -> _Lattice:
+    """The town's lattice: avenues on interior rows and columns alternately (never adjacent),
+    every other node jittered by up to ``town.jitter`` of a block along each free axis."""
     sx, sy = town.size_m
     nx = max(2, int(round(sx / town.block_m)) + 1)
     ny = max(2, int(round(sy / town.block_m)) + 1)
     bx, by = sx / (nx - 1), sy / (ny - 1)
     xs = np.arange(nx) * bx - sx / 2
     ys = np.arange(ny) * by - sy / 2
-    # avenues: interior rows and columns alternately
     av_rows: list[int] = []
     av_cols: list[int] = []
     rows_avail = list(range(1, ny - 1)) or list(range(ny))
@@ -419,107 +435,150 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
             jy = 0.0 if j in av_rows else rng.uniform(-jit, jit) * by
             node_id[i, j] = len(nodes)
             nodes.append((xs[i] + jx, ys[j] + jy))
-    nodes_xy = np.array(nodes, float)
+    return _Lattice(node_id, np.array(nodes, float), (bx, by), av_rows, av_cols)
+
+
+def _lattice_edges(lat: _Lattice) -> dict[tuple[int, int], str]:
+    """Every lattice edge (node pair) and its kind: avenue along an avenue row or column, else street."""
     edges: dict[tuple[int, int], str] = {}
-    for i in range(nx):
-        for j in range(ny):
-            if i + 1 < nx:
-                edges[(node_id[i, j], node_id[i + 1, j])] = "avenue" if j in av_rows else "street"
-            if j + 1 < ny:
-                edges[(node_id[i, j], node_id[i, j + 1])] = "avenue" if i in av_cols else "street"
+    node_id = lat.node_id
+    for i in range(lat.nx):
+        for j in range(lat.ny):
+            if i + 1 < lat.nx:
+                edges[(node_id[i, j], node_id[i + 1, j])] = "avenue" if j in lat.av_rows else "street"
+            if j + 1 < lat.ny:
+                edges[(node_id[i, j], node_id[i, j + 1])] = "avenue" if i in lat.av_cols else "street"
+    return edges
 
-    extra_nodes: list[np.ndarray] = []
 
-    def degrees() -> np.ndarray:
-        d = np.zeros(len(nodes_xy) + len(extra_nodes), int)
-        for a, b in edges:
-            d[a] += 1
-            d[b] += 1
-        return d
+def _degrees(n_nodes: int, edges: dict[tuple[int, int], str]) -> np.ndarray:
+    d = np.zeros(n_nodes, int)
+    for a, b in edges:
+        d[a] += 1
+        d[b] += 1
+    return d
 
-    # thin: drop edges while every node keeps two roads and the graph stays connected
+
+def _thin_streets(edges: dict[tuple[int, int], str], n_nodes: int, fraction: float, rng: np.random.Generator) -> None:
+    """Drop about ``fraction`` of the streets (in random order) where both ends keep more than two
+    roads and the graph stays connected (T-junctions)."""
     cand = [e for e, k in edges.items() if k == "street"]
     for idx in rng.permutation(len(cand)):
         e = cand[idx]
-        if rng.random() >= town.drop_edge_fraction:
+        if rng.random() >= fraction:
             continue
-        d = degrees()
+        d = _degrees(n_nodes, edges)
         if d[e[0]] <= 2 or d[e[1]] <= 2:
             continue
         rest = set(edges) - {e}
-        if _connected(len(nodes_xy), rest):
+        if _connected(n_nodes, rest):
             del edges[e]
 
-    def angle_ok(node: int, direction: np.ndarray, min_deg: float = 38.0) -> bool:
-        for a, b in edges:
-            if node in (a, b):
-                other = b if a == node else a
-                d = nodes_xy[other] - nodes_xy[node]
-                cosang = float(np.dot(d, direction) / (np.linalg.norm(d) * np.linalg.norm(direction)))
-                if cosang > np.cos(np.radians(min_deg)):
-                    return False
-        return True
 
+def _angle_ok(
+    nodes_xy: np.ndarray, edges: dict[tuple[int, int], str], node: int, direction: np.ndarray, min_deg: float = 38.0
+) -> bool:
+    """Whether a new road leaving ``node`` along ``direction`` keeps ``min_deg`` from its roads."""
+    for a, b in edges:
+        if node in (a, b):
+            other = b if a == node else a
+            d = nodes_xy[other] - nodes_xy[node]
+            cosang = float(np.dot(d, direction) / (np.linalg.norm(d) * np.linalg.norm(direction)))
+            if cosang > np.cos(np.radians(min_deg)):
+                return False
+    return True
+
+
+def _add_diagonals(
+    lat: _Lattice, edges: dict[tuple[int, int], str], fraction: float, rng: np.random.Generator
+) -> set[tuple[int, int]]:
+    """Diagonal streets across about ``fraction`` of the cells (5-way junctions where a node had 4
+    roads); returns the cells they cross."""
+    node_id, nodes_xy = lat.node_id, lat.nodes_xy
     busy_cells: set[tuple[int, int]] = set()
-    # diagonals (5-way junctions where a node had 4 roads)
-    for i in range(nx - 1):
-        for j in range(ny - 1):
-            if rng.random() >= town.diagonal_fraction:
+    for i in range(lat.nx - 1):
+        for j in range(lat.ny - 1):
+            if rng.random() >= fraction:
                 continue
             if rng.random() < 0.5:
                 a, b = node_id[i, j], node_id[i + 1, j + 1]
             else:
                 a, b = node_id[i + 1, j], node_id[i, j + 1]
-            d = degrees()
+            d = _degrees(len(nodes_xy), edges)
             if d[a] > 4 or d[b] > 4:
                 continue
             v = nodes_xy[b] - nodes_xy[a]
-            if angle_ok(a, v) and angle_ok(b, -v):
+            if _angle_ok(nodes_xy, edges, a, v) and _angle_ok(nodes_xy, edges, b, -v):
                 edges[(a, b)] = "street"
                 busy_cells.add((i, j))
-    # cul-de-sacs into free cells, stubs out of the town edge
-    n_inner = (town.n_dead_ends + 1) // 2
+    return busy_cells
+
+
+def _add_dead_ends(
+    lat: _Lattice,
+    edges: dict[tuple[int, int], str],
+    busy_cells: set[tuple[int, int]],
+    n_dead_ends: int,
+    rng: np.random.Generator,
+) -> list[np.ndarray]:
+    """Lanes that end: cul-de-sacs from a corner into free cells (marked busy) and stubs out of
+    the town edge; returns their tips, the new nodes numbered on from the lattice's."""
+    node_id, nodes_xy = lat.node_id, lat.nodes_xy
+    nx, ny = lat.nx, lat.ny
+    extra_nodes: list[np.ndarray] = []
+    n_inner = (n_dead_ends + 1) // 2
     free_cells = [(i, j) for i in range(nx - 1) for j in range(ny - 1) if (i, j) not in busy_cells]
     for k in rng.permutation(len(free_cells))[:n_inner]:
         i, j = free_cells[k]
         corners = [node_id[i, j], node_id[i + 1, j], node_id[i + 1, j + 1], node_id[i, j + 1]]
         centre = nodes_xy[corners].mean(axis=0)
-        d = degrees()
+        d = _degrees(len(nodes_xy) + len(extra_nodes), edges)
         choices = [c for c in corners if d[c] <= 4]
         if not choices:
             continue
         c = int(rng.choice(choices))
         v = centre - nodes_xy[c]
-        if not angle_ok(c, v):
+        if not _angle_ok(nodes_xy, edges, c, v):
             continue
         tip = nodes_xy[c] + v * rng.uniform(0.55, 0.7)
         extra_nodes.append(tip)
         edges[(c, len(nodes_xy) + len(extra_nodes) - 1)] = "lane"
         busy_cells.add((i, j))
     boundary = [(i, j) for i in range(nx) for j in range(ny) if (i in (0, nx - 1)) != (j in (0, ny - 1))]
-    n_outer = town.n_dead_ends - n_inner
+    n_outer = n_dead_ends - n_inner
     for k in rng.permutation(len(boundary))[:n_outer]:
         i, j = boundary[k]
         c = node_id[i, j]
         out = np.array(
             [-1.0 if i == 0 else (1.0 if i == nx - 1 else 0.0), -1.0 if j == 0 else (1.0 if j == ny - 1 else 0.0)]
         )
-        if degrees()[c] > 3:
+        if _degrees(len(nodes_xy) + len(extra_nodes), edges)[c] > 3:
             continue
-        tip = nodes_xy[c] + out * 0.4 * min(bx, by)
+        tip = nodes_xy[c] + out * 0.4 * min(lat.block_m)
         extra_nodes.append(tip)
         edges[(c, len(nodes_xy) + len(extra_nodes) - 1)] = "lane"
-    if extra_nodes:
-        nodes_xy = np.vstack([nodes_xy, np.array(extra_nodes)])
+    return extra_nodes
 
-    # polylines: some lattice streets bend (a bump with zero slope at both ends)
-    def cells_of(a: int, b: int) -> list[tuple[int, int]]:
-        ia, ja = np.argwhere(node_id == a)[0] if a < node_id.size else (-9, -9)
-        ib, jb = np.argwhere(node_id == b)[0] if b < node_id.size else (-9, -9)
-        if ja == jb:  # horizontal edge
-            return [(min(ia, ib), ja - 1), (min(ia, ib), ja)]
-        return [(ia - 1, min(ja, jb)), (ia, min(ja, jb))]
 
+def _cells_of(node_id: np.ndarray, a: int, b: int) -> list[tuple[int, int]]:
+    """The two lattice cells on either side of the lattice edge (a, b)."""
+    ia, ja = np.argwhere(node_id == a)[0] if a < node_id.size else (-9, -9)
+    ib, jb = np.argwhere(node_id == b)[0] if b < node_id.size else (-9, -9)
+    if ja == jb:  # horizontal edge
+        return [(min(ia, ib), ja - 1), (min(ia, ib), ja)]
+    return [(ia - 1, min(ja, jb)), (ia, min(ja, jb))]
+
+
+def _roads_of_edges(
+    node_id: np.ndarray,
+    nodes_xy: np.ndarray,
+    edges: dict[tuple[int, int], str],
+    busy_cells: set[tuple[int, int]],
+    town: TownConfig,
+    rng: np.random.Generator,
+) -> list[Road]:
+    """The roads of the edges in node order: straight, except lattice streets beside no busy cell,
+    of which about ``town.curve_fraction`` bend (a bump with zero slope at both ends)."""
     roads: list[Road] = []
     for (a, b), kind in sorted(edges.items()):
         pa, pb = nodes_xy[a], nodes_xy[b]
@@ -533,7 +592,7 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
             kind == "street"
             and lattice
             and rng.random() < town.curve_fraction
-            and not any(c in busy_cells for c in cells_of(a, b))
+            and not any(c in busy_cells for c in _cells_of(node_id, a, b))
         ):
             f = np.linspace(0, 1, 25)
             L = np.linalg.norm(pb - pa)
@@ -545,6 +604,23 @@ def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
             kind
         ]
         roads.append(Road(len(roads), int(a), int(b), kind, float(hw), poly))
+    return roads
+
+
+def generate_roads(town: TownConfig, rng: np.random.Generator) -> RoadGraph:
+    """A perturbed lattice thinned and enriched into a town graph.
+
+    Straight avenues cross the town (no jitter across them); some lattice edges are dropped
+    (T-junctions), some cells get a diagonal (5-way junctions), some edges bend, and cul-de-sacs
+    and stubs at the town edge make dead ends.
+    """
+    lat = _lattice(town, rng)
+    edges = _lattice_edges(lat)
+    _thin_streets(edges, len(lat.nodes_xy), town.drop_edge_fraction, rng)
+    busy_cells = _add_diagonals(lat, edges, town.diagonal_fraction, rng)
+    extra_nodes = _add_dead_ends(lat, edges, busy_cells, town.n_dead_ends, rng)
+    nodes_xy = np.vstack([lat.nodes_xy, np.array(extra_nodes)]) if extra_nodes else lat.nodes_xy
+    roads = _roads_of_edges(lat.node_id, nodes_xy, edges, busy_cells, town, rng)
     g = RoadGraph(nodes_xy, roads)
     compute_junction_radii(g, town.sidewalk_width_m)
     return g
@@ -1065,69 +1141,102 @@ def choose_anchor(g: RoadGraph) -> dict:
 def _buildings(
     mb: MeshBuilder, g: RoadGraph, town: TownConfig, styles: np.ndarray, occ: Occupancy, rng: np.random.Generator
 ) -> tuple[int, list]:
-    bc = town.buildings
+    """Buildings along both sides of every road, marked in ``occ``, and their meshes; returns the
+    number of buildings and the fences of lot gaps (road, side, s from, s to)."""
     boxes: list[tuple] = []  # (center xy, half (2,), yaw, height, style, building id, pitched, front face index)
     fences: list[tuple[Road, float, float, float]] = []  # (road, side, s from, s to)
     bid = 0
     for road in g.roads:
-        L = road.length_m
         s_lo = g.sidewalk_radius_m[road.a] + 1.0
-        s_hi = L - g.sidewalk_radius_m[road.b] - 1.0
+        s_hi = road.length_m - g.sidewalk_radius_m[road.b] - 1.0
         for side in (-1.0, 1.0):
             street_styles = rng.choice(len(styles), size=2, replace=len(styles) < 2)
-            s = s_lo + rng.uniform(0, 3)
-            while s < s_hi - bc.frontage_m[0]:
-                if rng.random() < bc.gap_probability:
-                    gap = rng.uniform(4.0, 12.0)
-                    if rng.random() < town.fence_probability and s + gap < s_hi:
-                        fences.append((road, side, s, s + gap))
-                    s += gap
-                    continue
-                f = rng.uniform(*bc.frontage_m)
-                if s + f > s_hi:
-                    f = s_hi - s
-                    if f < bc.frontage_m[0]:
-                        break
-                d = rng.uniform(*bc.depth_m)
-                setback = rng.uniform(*bc.setback_m)
-                mid = s + f / 2
-                p, t = road.point_at(np.array([mid]))
-                p, t = p[0], t[0]
-                n_left = np.array([-t[1], t[0]])
-                n_away = side * n_left
-                off = road.half_width_m + town.sidewalk_width_m + setback
-                centre = p + n_away * (off + d / 2)
-                x_axis = t if side > 0 else -t
-                yaw_rad = float(np.arctan2(x_axis[1], x_axis[0]))
-                half = np.array([f / 2, d / 2])
-                style_id = int(street_styles[0] if rng.random() < 0.7 else rng.integers(len(styles)))
-                floors = int(rng.integers(bc.floors[0], bc.floors[1] + 1))
-                floor_h = float(styles[style_id, 4])
-                height_m = floors * floor_h + rng.uniform(0.3, 0.8)
-                if not occ.rect_free(centre, half, yaw_rad):
-                    # a shallower building, else move on a little and try again
-                    d = max(bc.depth_m[0] * 0.75, d * 0.6)
-                    centre = p + n_away * (off + d / 2)
-                    half = np.array([f / 2, d / 2])
-                    if not occ.rect_free(centre, half, yaw_rad):
-                        s += 3.0
-                        continue
-                bid += 1
-                occ.mark_rect(centre, half, yaw_rad, bid)
-                pitched_roof = float(rng.random() < bc.pitched_roof_probability and floors <= 4)
-                boxes.append((centre, half, yaw_rad, height_m, style_id, bid, pitched_roof, 3))
-                if rng.random() < bc.wing_probability:
-                    fw = f * rng.uniform(0.35, 0.65)
-                    dw = rng.uniform(5.0, 10.0)
-                    shift = (f / 2 - fw / 2) * rng.choice([-1.0, 1.0])
-                    wc = centre + x_axis * shift + n_away * (d / 2 + dw / 2 - 0.5)
-                    wh = max(floor_h + 0.5, height_m + rng.choice([-1.0, 1.0]) * floor_h * rng.integers(1, 3))
-                    if occ.rect_free(wc, np.array([fw / 2, dw / 2]), yaw_rad, allow=bid):
-                        occ.mark_rect(wc, np.array([fw / 2, dw / 2]), yaw_rad, bid)
-                        boxes.append((wc, np.array([fw / 2, dw / 2]), yaw_rad, wh, style_id, bid, 0.0, -1))
-                s += f + rng.uniform(0.0, 1.5)
+            lots, gaps = _street_side_buildings(road, side, (s_lo, s_hi), street_styles, town, styles, occ, rng, bid)
+            boxes += lots
+            fences += gaps
+            bid = lots[-1][5] if lots else bid
     if not boxes:
         return 0, fences
+    return _building_meshes(mb, boxes, styles), fences
+
+
+def _street_side_buildings(
+    road: Road,
+    side: float,
+    span: tuple[float, float],
+    street_styles: np.ndarray,
+    town: TownConfig,
+    styles: np.ndarray,
+    occ: Occupancy,
+    rng: np.random.Generator,
+    last_id: int,
+) -> tuple[list[tuple], list[tuple[Road, float, float, float]]]:
+    """Lots along one side of ``road`` between arc lengths ``span``: gaps (some fenced) and
+    buildings (mostly in the street's first style, some with a wing behind), each where ``occ``
+    is free (marked there), shallower where it is not. Returns their boxes (as :func:`_buildings`
+    lists them; building ids count on from ``last_id``) and fences."""
+    bc = town.buildings
+    s_lo, s_hi = span
+    bid = last_id
+    boxes: list[tuple] = []
+    fences: list[tuple[Road, float, float, float]] = []
+    s = s_lo + rng.uniform(0, 3)
+    while s < s_hi - bc.frontage_m[0]:
+        if rng.random() < bc.gap_probability:
+            gap = rng.uniform(4.0, 12.0)
+            if rng.random() < town.fence_probability and s + gap < s_hi:
+                fences.append((road, side, s, s + gap))
+            s += gap
+            continue
+        f = rng.uniform(*bc.frontage_m)
+        if s + f > s_hi:
+            f = s_hi - s
+            if f < bc.frontage_m[0]:
+                break
+        d = rng.uniform(*bc.depth_m)
+        setback = rng.uniform(*bc.setback_m)
+        mid = s + f / 2
+        p, t = road.point_at(np.array([mid]))
+        p, t = p[0], t[0]
+        n_left = np.array([-t[1], t[0]])
+        n_away = side * n_left
+        off = road.half_width_m + town.sidewalk_width_m + setback
+        centre = p + n_away * (off + d / 2)
+        x_axis = t if side > 0 else -t
+        yaw_rad = float(np.arctan2(x_axis[1], x_axis[0]))
+        half = np.array([f / 2, d / 2])
+        style_id = int(street_styles[0] if rng.random() < 0.7 else rng.integers(len(styles)))
+        floors = int(rng.integers(bc.floors[0], bc.floors[1] + 1))
+        floor_h = float(styles[style_id, 4])
+        height_m = floors * floor_h + rng.uniform(0.3, 0.8)
+        if not occ.rect_free(centre, half, yaw_rad):
+            # a shallower building, else move on a little and try again
+            d = max(bc.depth_m[0] * 0.75, d * 0.6)
+            centre = p + n_away * (off + d / 2)
+            half = np.array([f / 2, d / 2])
+            if not occ.rect_free(centre, half, yaw_rad):
+                s += 3.0
+                continue
+        bid += 1
+        occ.mark_rect(centre, half, yaw_rad, bid)
+        pitched_roof = float(rng.random() < bc.pitched_roof_probability and floors <= 4)
+        boxes.append((centre, half, yaw_rad, height_m, style_id, bid, pitched_roof, 3))
+        if rng.random() < bc.wing_probability:
+            fw = f * rng.uniform(0.35, 0.65)
+            dw = rng.uniform(5.0, 10.0)
+            shift = (f / 2 - fw / 2) * rng.choice([-1.0, 1.0])
+            wc = centre + x_axis * shift + n_away * (d / 2 + dw / 2 - 0.5)
+            wh = max(floor_h + 0.5, height_m + rng.choice([-1.0, 1.0]) * floor_h * rng.integers(1, 3))
+            if occ.rect_free(wc, np.array([fw / 2, dw / 2]), yaw_rad, allow=bid):
+                occ.mark_rect(wc, np.array([fw / 2, dw / 2]), yaw_rad, bid)
+                boxes.append((wc, np.array([fw / 2, dw / 2]), yaw_rad, wh, style_id, bid, 0.0, -1))
+        s += f + rng.uniform(0.0, 1.5)
+    return boxes, fences
+
+
+def _building_meshes(mb: MeshBuilder, boxes: list[tuple], styles: np.ndarray) -> int:
+    """Walls, flat roofs and pitched roofs (with gables) of the building boxes, with per-building
+    colour jitter and hash; returns the number of buildings."""
     centre = np.array([np.r_[b[0], GROUND_Z] for b in boxes])
     half = np.array([b[1] for b in boxes])
     yaw = np.array([b[2] for b in boxes])
@@ -1180,7 +1289,7 @@ def _buildings(
             col[pitched],
             styles,
         )
-    return int(len(np.unique(bids))), fences
+    return int(len(np.unique(bids)))
 
 
 def _pitched_roofs(mb, centre, half, yaw, eave, rise, bids, style, roof_col, bh, wall_col, styles) -> None:
@@ -1268,11 +1377,37 @@ def _pitched_roofs(mb, centre, half, yaw, eave, rise, bids, style, roof_col, bh,
 
 
 def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fences: list, rng: np.random.Generator):
+    """Lamps, trees (along streets and in parks), traffic signs and fences into ``mb``. Returns
+    (lamp heads (n, 3), number of trees, parking slots (n, 4): x, y, heading, road half width)."""
+    street = _street_props(g, town, rng)
+    lamps_xyz = _lamps(mb, street.lamp_pos, street.lamp_dir, town)
+    n_trees = _trees(mb, street.tree_pos, occ, town, rng)
+    _signs(mb, street.sign_pos, street.sign_dir, town, rng)
+    _fences(mb, fences, town, rng)
+    slots_arr = np.concatenate(street.slots) if street.slots else np.zeros((0, 4))
+    return lamps_xyz, n_trees, slots_arr
+
+
+@dataclass
+class _StreetProps:
+    """Where the props along the roads go, per road in lists: lamp bases (n, 2) and the directions
+    of their arms toward the road (n, 2), street trees (n, 2), signs (position and the direction
+    their plate faces, (2,) each) and parking slots (n, 4): x, y, heading, road half width."""
+
+    lamp_pos: list[np.ndarray] = field(default_factory=list)
+    lamp_dir: list[np.ndarray] = field(default_factory=list)
+    tree_pos: list[np.ndarray] = field(default_factory=list)
+    sign_pos: list[np.ndarray] = field(default_factory=list)
+    sign_dir: list[np.ndarray] = field(default_factory=list)
+    slots: list[np.ndarray] = field(default_factory=list)
+
+
+def _street_props(g: RoadGraph, town: TownConfig, rng: np.random.Generator) -> _StreetProps:
+    """Along each road between its junctions' sidewalks: lamps on alternating sides, trees on both
+    sidewalks (of avenues, and of 70 % of the other roads) away from the lamps, signs on the right
+    before junctions of three or more roads, and parking bays on streets and avenues."""
     deg = g.degree()
-    lamp_pos, lamp_dir = [], []
-    tree_pos = []
-    sign_pos, sign_dir = [], []
-    slots = []
+    out = _StreetProps()
     for road in g.roads:
         L = road.length_m
         w = road.half_width_m
@@ -1287,8 +1422,8 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
         p, t = road.point_at(s_l)
         nl = np.stack([-t[:, 1], t[:, 0]], 1)
         base = p + nl * (side_l * (w + 0.4))[:, None]
-        lamp_pos.append(base)
-        lamp_dir.append(-nl * side_l[:, None])
+        out.lamp_pos.append(base)
+        out.lamp_dir.append(-nl * side_l[:, None])
         # trees on sidewalks (some streets have none)
         if road.kind == "avenue" or rng.random() < 0.7:
             for side in (-1.0, 1.0):
@@ -1300,7 +1435,7 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
                 nl = np.stack([-t[:, 1], t[:, 0]], 1)
                 pos = p + nl * side * (w + 1.1)
                 far = np.min(np.linalg.norm(pos[:, None] - base[None], axis=2), axis=1) > 5.0
-                tree_pos.append(pos[far])
+                out.tree_pos.append(pos[far])
         # signs at the approach to junctions, on the right
         for end, node in ((1, road.b), (0, road.a)):
             if deg[node] < 3 or rng.random() >= town.sign_probability:
@@ -1309,8 +1444,8 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
             p, t = road.point_at(np.array([s]))
             heading = t[0] if end == 1 else -t[0]
             right = np.array([heading[1], -heading[0]])
-            sign_pos.append(p[0] + right * (w + 0.6))
-            sign_dir.append(-heading)
+            out.sign_pos.append(p[0] + right * (w + 0.6))
+            out.sign_dir.append(-heading)
         # parking bays on streets and avenues
         if road.kind in ("street", "avenue"):
             s_p = np.arange(q0 + 4.0, q1 - 4.0, 6.0)
@@ -1320,89 +1455,110 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
                 for side in (-1.0, 1.0):
                     xy = p + nl * side * (w - town.parking_width_m / 2)
                     heading = np.arctan2(t[:, 1], t[:, 0]) + (0.0 if side < 0 else np.pi)
-                    slots.append(np.c_[xy, heading, np.full(len(xy), w)])
-    # lamps: pole, arm toward the road, head
-    lamps_xyz = np.zeros((0, 3))
-    if lamp_pos:
-        base = np.concatenate(lamp_pos)
-        d = np.concatenate(lamp_dir)
-        n = len(base)
-        yaw = np.arctan2(d[:, 1], d[:, 0])
-        h = 7.0
-        add_boxes(
-            mb,
-            Boxes(np.c_[base, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.09), np.full(n, h), yaw),
-            Mat.POLE,
-            faces=(0, 1, 2, 3),
-        )
-        arm_c = base + d * 0.8
-        add_boxes(
-            mb,
-            Boxes(np.c_[arm_c, np.full(n, h - 0.12)], np.tile([0.85, 0.06], (n, 1)), np.full(n, 0.12), yaw),
-            Mat.POLE,
-        )
-        head = base + d * 1.55
-        add_boxes(
-            mb, Boxes(np.c_[head, np.full(n, h - 0.3)], np.tile([0.35, 0.17], (n, 1)), np.full(n, 0.18), yaw), Mat.LAMP
-        )
-        lamps_xyz = np.c_[head, np.full(n, h - 0.4)]
-    # trees
+                    out.slots.append(np.c_[xy, heading, np.full(len(xy), w)])
+    return out
+
+
+def _lamps(mb: MeshBuilder, lamp_pos: list[np.ndarray], lamp_dir: list[np.ndarray], town: TownConfig) -> np.ndarray:
+    """Street lamps (pole, arm toward the road, head) into ``mb``; returns their heads' light positions (n, 3)."""
+    if not lamp_pos:
+        return np.zeros((0, 3))
+    base = np.concatenate(lamp_pos)
+    d = np.concatenate(lamp_dir)
+    n = len(base)
+    yaw = np.arctan2(d[:, 1], d[:, 0])
+    h = 7.0
+    add_boxes(
+        mb,
+        Boxes(np.c_[base, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.09), np.full(n, h), yaw),
+        Mat.POLE,
+        faces=(0, 1, 2, 3),
+    )
+    arm_c = base + d * 0.8
+    add_boxes(
+        mb,
+        Boxes(np.c_[arm_c, np.full(n, h - 0.12)], np.tile([0.85, 0.06], (n, 1)), np.full(n, 0.12), yaw),
+        Mat.POLE,
+    )
+    head = base + d * 1.55
+    add_boxes(
+        mb, Boxes(np.c_[head, np.full(n, h - 0.3)], np.tile([0.35, 0.17], (n, 1)), np.full(n, 0.18), yaw), Mat.LAMP
+    )
+    return np.c_[head, np.full(n, h - 0.4)]
+
+
+def _trees(
+    mb: MeshBuilder, tree_pos: list[np.ndarray], occ: Occupancy, town: TownConfig, rng: np.random.Generator
+) -> int:
+    """The street trees at ``tree_pos`` and park trees on free land (clustered: candidates in the
+    "park" cells of a coarse random field), each a trunk and one of a few canopy shapes, sized and
+    turned at random, into ``mb``; returns their number."""
     canopies, CT, TV, TT = _tree_templates(rng)
     tp = np.concatenate(tree_pos) if tree_pos else np.zeros((0, 2))
-    # park trees on free land
     lo = np.array([occ.x0, occ.y0])
     area_ha = occ.nx * occ.ny * occ.res**2 / 1e4
     n_cand = int(area_ha * town.park_trees_per_ha * 3)
     if n_cand:
         cand = lo + rng.uniform(0, 1, (n_cand, 2)) * np.array([occ.nx, occ.ny]) * occ.res
         ok = occ.free_at(cand, radius=3.0)
-        # clustered: keep candidates in "park" cells of a coarse random field
         park = _value_noise_np(cand / 60.0, 7) > 0.55
         tp = np.concatenate([tp, cand[ok & park][: int(area_ha * town.park_trees_per_ha)]])
     n_trees = len(tp)
-    if n_trees:
-        trunk_h = rng.uniform(2.0, 3.5, n_trees)
-        rx = rng.uniform(1.8, 3.2, n_trees)
-        rz = rx * rng.uniform(1.0, 1.4, n_trees)
-        yaw = rng.uniform(0, 2 * np.pi, n_trees)
-        variant = rng.integers(len(canopies), size=n_trees)
-        base_z = np.full(n_trees, town.sidewalk_height_m)
-        base_z[occ.free_at(tp)] = GROUND_Z  # park trees stand on the ground
-        tv, tt = instances(
-            TV, TT, np.c_[tp, base_z], np.c_[np.full(n_trees, 0.22), np.full(n_trees, 0.22), trunk_h + rz * 0.5], yaw
-        )
-        tt = _outward(tv, tt, np.repeat(np.c_[tp, base_z + 1.0], len(TT), axis=0))
-        mb.add(tv, tt, Mat.TRUNK, object_id=np.repeat(np.arange(n_trees), len(TT)))
-        hashes = ((np.arange(n_trees) * 2654435761) % 1000003) / 1000003.0
-        for k, CV in enumerate(canopies):
-            sel = np.nonzero(variant == k)[0]
-            if not len(sel):
-                continue
-            centre = np.c_[tp[sel], base_z[sel] + trunk_h[sel] + rz[sel] * 0.8]
-            cv, ct = instances(CV, CT, centre, np.c_[rx[sel], rx[sel], rz[sel]], yaw[sel])
-            ct = _outward(cv, ct, np.repeat(centre, len(CT), axis=0))
-            mb.add(cv, ct, Mat.FOLIAGE, object_id=np.repeat(sel, len(CT)), aux=np.repeat(hashes[sel], len(CT))[:, None])
-    # traffic signs: pole and a plate facing oncoming traffic
-    if sign_pos:
-        sp = np.array(sign_pos)
-        sd = np.array(sign_dir)
-        n = len(sp)
-        yaw = np.arctan2(sd[:, 1], sd[:, 0]) + np.pi / 2  # plate's local -y faces along sd
-        add_boxes(
-            mb,
-            Boxes(np.c_[sp, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.04), np.full(n, 2.2), yaw),
-            Mat.POLE,
-            faces=(0, 1, 2, 3),
-        )
-        kind = rng.integers(0, 4, n).astype(float)
-        add_boxes(
-            mb,
-            Boxes(np.c_[sp, np.full(n, 2.0)], np.tile([0.35, 0.02], (n, 1)), np.full(n, 0.7), yaw),
-            {3: Mat.SIGN, "default": Mat.POLE},
-            aux=kind[:, None],
-            style=kind.astype(int),
-        )
-    # fences along lot gaps
+    if not n_trees:
+        return 0
+    trunk_h = rng.uniform(2.0, 3.5, n_trees)
+    rx = rng.uniform(1.8, 3.2, n_trees)
+    rz = rx * rng.uniform(1.0, 1.4, n_trees)
+    yaw = rng.uniform(0, 2 * np.pi, n_trees)
+    variant = rng.integers(len(canopies), size=n_trees)
+    base_z = np.full(n_trees, town.sidewalk_height_m)
+    base_z[occ.free_at(tp)] = GROUND_Z  # park trees stand on the ground
+    tv, tt = instances(
+        TV, TT, np.c_[tp, base_z], np.c_[np.full(n_trees, 0.22), np.full(n_trees, 0.22), trunk_h + rz * 0.5], yaw
+    )
+    tt = _outward(tv, tt, np.repeat(np.c_[tp, base_z + 1.0], len(TT), axis=0))
+    mb.add(tv, tt, Mat.TRUNK, object_id=np.repeat(np.arange(n_trees), len(TT)))
+    hashes = ((np.arange(n_trees) * 2654435761) % 1000003) / 1000003.0
+    for k, CV in enumerate(canopies):
+        sel = np.nonzero(variant == k)[0]
+        if not len(sel):
+            continue
+        centre = np.c_[tp[sel], base_z[sel] + trunk_h[sel] + rz[sel] * 0.8]
+        cv, ct = instances(CV, CT, centre, np.c_[rx[sel], rx[sel], rz[sel]], yaw[sel])
+        ct = _outward(cv, ct, np.repeat(centre, len(CT), axis=0))
+        mb.add(cv, ct, Mat.FOLIAGE, object_id=np.repeat(sel, len(CT)), aux=np.repeat(hashes[sel], len(CT))[:, None])
+    return n_trees
+
+
+def _signs(
+    mb: MeshBuilder, sign_pos: list[np.ndarray], sign_dir: list[np.ndarray], town: TownConfig, rng: np.random.Generator
+) -> None:
+    """Traffic signs into ``mb``: a pole and a plate (of a random kind) facing oncoming traffic."""
+    if not sign_pos:
+        return
+    sp = np.array(sign_pos)
+    sd = np.array(sign_dir)
+    n = len(sp)
+    yaw = np.arctan2(sd[:, 1], sd[:, 0]) + np.pi / 2  # plate's local -y faces along sd
+    add_boxes(
+        mb,
+        Boxes(np.c_[sp, np.full(n, town.sidewalk_height_m)], np.full((n, 2), 0.04), np.full(n, 2.2), yaw),
+        Mat.POLE,
+        faces=(0, 1, 2, 3),
+    )
+    kind = rng.integers(0, 4, n).astype(float)
+    add_boxes(
+        mb,
+        Boxes(np.c_[sp, np.full(n, 2.0)], np.tile([0.35, 0.02], (n, 1)), np.full(n, 0.7), yaw),
+        {3: Mat.SIGN, "default": Mat.POLE},
+        aux=kind[:, None],
+        style=kind.astype(int),
+    )
+
+
+def _fences(mb: MeshBuilder, fences: list, town: TownConfig, rng: np.random.Generator) -> None:
+    """Fences along the lot gaps ``fences`` (road, side, s from, s to) into ``mb``: posts about
+    2.5 m apart behind the sidewalk and a panel between each two, of a random kind per fence."""
     segs = []
     for road, side, s0, s1 in fences:
         ss = np.linspace(s0, s1, max(2, int((s1 - s0) / 2.5) + 1))
@@ -1410,37 +1566,36 @@ def _props(mb: MeshBuilder, g: RoadGraph, town: TownConfig, occ: Occupancy, fenc
         nl = np.stack([-t[:, 1], t[:, 0]], 1)
         q = p + nl * side * (road.half_width_m + town.sidewalk_width_m + 0.4)
         segs.append((q, float(rng.integers(0, 2))))
-    if segs:
-        posts = np.concatenate([q for q, _ in segs])
-        add_boxes(
-            mb,
-            Boxes(
-                np.c_[posts, np.full(len(posts), GROUND_Z)],
-                np.full((len(posts), 2), 0.05),
-                np.full(len(posts), 1.4),
-                np.zeros(len(posts)),
-            ),
-            Mat.FENCE,
-            aux=np.zeros((len(posts), 1)),
-        )
-        pc, ph, py, pk = [], [], [], []
-        for q, fence_kind in segs:
-            a, b = q[:-1], q[1:]
-            d = b - a
-            L = np.linalg.norm(d, axis=1)
-            pc.append((a + b) / 2)
-            ph.append(np.c_[L / 2, np.full(len(L), 0.02)])
-            py.append(np.arctan2(d[:, 1], d[:, 0]))
-            pk.append(np.full(len(L), fence_kind))
-        n = sum(len(x) for x in pc)
-        add_boxes(
-            mb,
-            Boxes(np.c_[np.concatenate(pc), np.full(n, 0.05)], np.concatenate(ph), np.full(n, 1.2), np.concatenate(py)),
-            Mat.FENCE,
-            aux=np.concatenate(pk)[:, None],
-        )
-    slots_arr = np.concatenate(slots) if slots else np.zeros((0, 4))
-    return lamps_xyz, n_trees, slots_arr
+    if not segs:
+        return
+    posts = np.concatenate([q for q, _ in segs])
+    add_boxes(
+        mb,
+        Boxes(
+            np.c_[posts, np.full(len(posts), GROUND_Z)],
+            np.full((len(posts), 2), 0.05),
+            np.full(len(posts), 1.4),
+            np.zeros(len(posts)),
+        ),
+        Mat.FENCE,
+        aux=np.zeros((len(posts), 1)),
+    )
+    pc, ph, py, pk = [], [], [], []
+    for q, fence_kind in segs:
+        a, b = q[:-1], q[1:]
+        d = b - a
+        L = np.linalg.norm(d, axis=1)
+        pc.append((a + b) / 2)
+        ph.append(np.c_[L / 2, np.full(len(L), 0.02)])
+        py.append(np.arctan2(d[:, 1], d[:, 0]))
+        pk.append(np.full(len(L), fence_kind))
+    n = sum(len(x) for x in pc)
+    add_boxes(
+        mb,
+        Boxes(np.c_[np.concatenate(pc), np.full(n, 0.05)], np.concatenate(ph), np.full(n, 1.2), np.concatenate(py)),
+        Mat.FENCE,
+        aux=np.concatenate(pk)[:, None],
+    )
 
 
 def _ground_and_hills(mb: MeshBuilder, half: np.ndarray, margin: float, rng: np.random.Generator) -> None:
