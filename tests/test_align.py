@@ -15,18 +15,11 @@ from mapkit.core.runio import is_done, mark_done, write_json
 from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
-from mapkit.multisession.align import (
-    AlignConfig,
-    Edge,
-    PoseGraph,
-    SessionData,
-    align_workspace,
-    candidate_pairs,
-    cut_submaps,
-    load_tiles,
-    register_clouds,
-    support_points,
-)
+from mapkit.multisession.align import AlignConfig, align_workspace
+from mapkit.multisession.posegraph import Edge, PoseGraph, support_points
+from mapkit.multisession.registration import register_clouds
+from mapkit.multisession.submaps import SessionData, candidate_pairs, cut_submaps
+from mapkit.multisession.tiles import load_tiles
 
 FRAME = LocalFrame(48.1, 11.5, 520.0)
 STREET_M = 160.0

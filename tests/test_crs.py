@@ -18,7 +18,7 @@ from mapkit.core.runio import atomic_write_ply, write_json
 from mapkit.deploy.crs_export import export_crs, ply_georef, read_crs_trajectory, read_ply_header, write_crs_trajectory
 from mapkit.io.trajectory import read_tum
 from mapkit.mapping.trajectory import Trajectory
-from mapkit.multisession.align import load_tiles, write_tiles
+from mapkit.multisession.tiles import load_tiles, write_tiles
 
 FRAME = LocalFrame(51.7520209, -1.2577263, 61.25)  # UTM zone 30N, EPSG:32630
 UTM = 32630

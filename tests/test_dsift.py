@@ -14,13 +14,20 @@ from mapkit.retrieval.dsift import (
     DESCRIPTOR_DIM,
     DsiftConfig,
     dense_sift,
-    frame_contrast,
     iter_histogram_blocks,
     opencv_keypoint_size,
     prepare_image,
     scale_grids,
     sift_normalize,
 )
+
+
+def frame_contrast(histograms: np.ndarray, bin_size: int) -> np.ndarray:
+    """(n,) VLFeat's contrast ("norm" of a ``vl_dsift`` frame) of raw histograms of one bin size, frame by
+    frame: VLFeat bins with triangles of unit height, ``s^2`` times mapkit's unit-integral ones, and
+    divides the histogram's sum by the frame's area ``(3 s + 1)^2`` (4 spatial bins of ``s`` pixels)."""
+    span = 3 * bin_size + 1
+    return histograms.sum(axis=1, dtype=np.float64) * bin_size * bin_size / (span * span)
 
 
 def textured_image(seed: int, h: int = 120, w: int = 160) -> np.ndarray:

@@ -35,7 +35,8 @@ from mapkit.core.executor import (
     use_executor,
 )
 from mapkit.mapping.semidense import build_semidense_map
-from mapkit.multisession.align import AlignConfig, _register_task, _SubmapClouds
+from mapkit.multisession.align import AlignConfig, _register_task
+from mapkit.multisession.submaps import SubmapClouds
 from mapkit.retrieval.index_vlad import read_image
 from mapkit.synth import session_logs
 
@@ -236,7 +237,7 @@ def test_icp_of_submap_pairs_serial_equals_process_pool():
     for k, shift in enumerate([(0.0, 0.0, 0.0), (0.6, -0.4, 0.1), (-0.5, 0.3, 0.0)]):
         pts = world[rng.random(len(world)) < 0.15]
         pts = pts + rng.normal(0, 0.03, pts.shape) + np.asarray(shift)
-        clouds.append(_SubmapClouds(f"s{k}", pts, np.zeros(len(pts), np.int64), np.array([[60.0, -2.0, 0.0]])))
+        clouds.append(SubmapClouds(f"s{k}", pts, np.zeros(len(pts), np.int64), np.array([[60.0, -2.0, 0.0]])))
     pairs = [(0, 0, 1, 0), (1, 0, 2, 0)]
     shared = (clouds, AlignConfig())
     got = {kind: list(EXECUTORS[kind]().map(_register_task, pairs, shared=shared)) for kind in EXECUTORS}

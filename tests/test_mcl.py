@@ -1,5 +1,7 @@
 """The MCVL particle filter against hand-computed cases and synthetic tracks with known truth."""
 
+from dataclasses import dataclass
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -19,7 +21,6 @@ from mapkit.localization.mcl import (
     log_likelihood,
     pose_errors,
     predict,
-    run_filter,
     sus_resample,
     weigh,
     wrap_angle,
@@ -27,6 +28,30 @@ from mapkit.localization.mcl import (
 from mapkit.retrieval.measurement import Measurement, PoseHypotheses, matrix_from_euler, mean_shift_measurement
 
 ZERO3 = (0.0, 0.0, 0.0)
+
+
+@dataclass
+class Track:
+    positions: np.ndarray  # (T, 3) m, world; NaN before the first measurement
+    rotations: np.ndarray  # (T, 3, 3) world_from_body; NaN there too
+    valid: np.ndarray  # (T,) bool: the localizer gave an estimate
+    reinjected: np.ndarray  # (T,) int: particles drawn afresh at that step
+
+
+def run_filter(measurements, cfg=None, seed=0, odometry=None, hypotheses=None) -> Track:
+    """Run :class:`MonteCarloLocalizer` over a sequence (None: no measurement at that step), as
+    ``mapkit localize`` does per query: ``odometry[t]`` is the 4x4 motion into step t,
+    ``hypotheses[t]`` the retrieved poses at step t."""
+    T = len(measurements)
+    loc = MonteCarloLocalizer(cfg, seed)
+    track = Track(np.full((T, 3), np.nan), np.full((T, 3, 3), np.nan), np.zeros(T, bool), np.zeros(T, np.int64))
+    for t, z in enumerate(measurements):
+        odo = None if odometry is None or not loc.initialized else odometry[t]
+        est = loc.step(z, odo, None if hypotheses is None else hypotheses[t])
+        if est is not None:
+            track.positions[t], track.rotations[t], track.valid[t] = est.position, est.rotation, True
+            track.reinjected[t] = est.reinjected
+    return track
 
 
 def _noiseless(**kw) -> MclConfig:
@@ -309,7 +334,7 @@ def test_localizer_steps_without_measurements_and_refuses_unrequested_odometry()
         loc.step(None, odometry=np.eye(4))
 
 
-def test_run_filter_leaves_rows_before_the_first_measurement_empty():
+def test_no_estimate_before_the_first_measurement_and_errors_over_the_estimated_frames():
     meas = [None, None] + [Measurement.from_pose([float(t), 0, 0], np.eye(3)) for t in range(5)]
     track = run_filter(meas, MclConfig(n_particles=100), seed=0)
     np.testing.assert_array_equal(track.valid, [False, False, True, True, True, True, True])
@@ -487,13 +512,20 @@ def test_paper_path_is_unchanged_by_the_new_options():
 
 
 def test_weights_carry_over_when_resampling_is_adaptive():
-    cfg = MclConfig(n_particles=200, resample_min_ess_fraction=0.5)
+    # a measurement covariance wide against the cloud (the paper's 0.01 rad against an initial
+    # heading spread of 1 rad leaves an effective sample size of ~2, which always resamples)
+    cfg = MclConfig(n_particles=200, resample_min_ess_fraction=0.5, measurement_cov=(100, 100, 100, 10, 10, 10))
     loc = MonteCarloLocalizer(cfg, seed=0)
     loc.step(Measurement.from_pose(ZERO3, np.eye(3)))
     np.testing.assert_allclose(loc.weights, 1 / 200)
     e = loc.step(Measurement.from_pose([1.0, 0, 0], np.eye(3)))
-    if e.n_eff > 100:  # not resampled: the weights are the step's
-        assert not np.allclose(loc.weights, 1 / 200)
+    assert e.n_eff > 100  # measured 197: above half the particles, so not resampled ...
+    # ... and the particles keep the step's weights: eq. 3 at the measurement (1, 0, 0), identity rotation
+    p = loc.particles
+    d = np.c_[p.positions - [1.0, 0.0, 0.0], Rotation.from_matrix(p.rotations).as_euler("XYZ")]
+    expected = np.exp(-0.5 * (d**2 / np.asarray(cfg.measurement_cov)).sum(axis=1))
+    np.testing.assert_allclose(loc.weights, expected / expected.sum(), rtol=1e-9)
+    assert loc.weights.max() > 1.1 / 200 and loc.weights.min() < 0.9 / 200  # not the equal weights of a resampling
     e = loc.step(Measurement.from_pose([300.0, 0, 0], np.eye(3)))  # degenerate: must resample
     assert e.n_eff < 100
     np.testing.assert_allclose(loc.weights, 1 / 200)

@@ -25,14 +25,6 @@ def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
     return np.where(q[..., :1] < 0, -q, q)
 
 
-def quat_xyzw_to_wxyz(q_xyzw: np.ndarray) -> np.ndarray:
-    return np.asarray(q_xyzw, dtype=np.float64)[..., [3, 0, 1, 2]]
-
-
-def quat_wxyz_to_xyzw(q_wxyz: np.ndarray) -> np.ndarray:
-    return np.asarray(q_wxyz, dtype=np.float64)[..., [1, 2, 3, 0]]
-
-
 def rotation_angle_rad(R: np.ndarray) -> np.ndarray:
     """Angle of rotation(s), robust near 0 and pi (via the quaternion, not arccos of the trace)."""
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).magnitude()

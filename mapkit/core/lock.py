@@ -136,8 +136,3 @@ def _release(path: Path) -> None:
         os.ftruncate(fd, 0)  # the file stays (removing it would race a waiter that opened it)
     finally:
         os.close(fd)  # closing the last descriptor releases the flock
-
-
-def holds_lock(root: str | os.PathLike) -> bool:
-    """Whether this process holds the workspace's lock."""
-    return (Path(root) / LOCK_NAME).resolve() in _held

@@ -201,16 +201,6 @@ class FrameTransform:
 
 Record = CameraFrame | CameraInfo | GpsFix | LidarScan | ImuSample | PoseSample | FrameTransform
 
-KIND_OF_RECORD: dict[type, StreamKind] = {
-    CameraFrame: StreamKind.IMAGE,
-    CameraInfo: StreamKind.CAMERA_INFO,
-    GpsFix: StreamKind.GPS,
-    LidarScan: StreamKind.LIDAR,
-    ImuSample: StreamKind.IMU,
-    PoseSample: StreamKind.POSE,
-    FrameTransform: StreamKind.TF,
-}
-
 
 @dataclass
 class Message:

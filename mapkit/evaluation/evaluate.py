@@ -57,7 +57,8 @@ from mapkit.io import open_log
 from mapkit.mapping.gps_align import fit_transform
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
-from mapkit.multisession.align import PairResult, _support_points
+from mapkit.multisession.posegraph import support_points
+from mapkit.multisession.registration import PairResult
 
 Alignment = Literal["auto", "se3", "sim3", "none"]
 
@@ -654,7 +655,7 @@ def _registration_errors(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
             continue
         A, B = sess[r.source[0]], sess[r.target[0]]
         T_true = B.before[B.nearest(r.centre[:2])] @ np.linalg.inv(A.before[A.nearest(r.centre[:2])])
-        P = _support_points(r.centre, np.array([1.0, 0.0, 0.0]), 10.0)
+        P = support_points(r.centre, np.array([1.0, 0.0, 0.0]), 10.0)
         d = (P @ r.target_from_source[:3, :3].T + r.target_from_source[:3, 3]) - (P @ T_true[:3, :3].T + T_true[:3, 3])
         errs.append(float(np.linalg.norm(d, axis=1).max()))
     errs_a = np.asarray(errs)

@@ -156,16 +156,6 @@ class PlacesEvalConfig(MapkitConfig):
 # --------------------------------------------------------------------------- pure computations
 
 
-def table1_counts(accepted: np.ndarray, correct: np.ndarray, reachable: np.ndarray) -> tuple[int, int, int]:
-    """(tp, fp, fn) of Table 1 for boolean arrays over queries: match accepted, matched place
-    within r_e, some database place within r_e."""
-    accepted, correct, reachable = (np.asarray(a, bool) for a in (accepted, correct, reachable))
-    tp = int(np.sum(accepted & correct))
-    fp = int(np.sum(accepted & ~correct))
-    fn = int(np.sum(accepted & ~correct & reachable) + np.sum(~accepted & reachable))
-    return tp, fp, fn
-
-
 def pr_curve(scores: np.ndarray, correct: np.ndarray, reachable: np.ndarray) -> dict:
     """Precision and recall over every threshold t of the scores (a match is accepted when its
     score >= t, i.e. > lambda just below t), in decreasing t.
@@ -1391,7 +1381,6 @@ def plot_pr_curves(path: Path, results: dict) -> Path:
 
 __all__ = [
     "PlacesEvalConfig",
-    "table1_counts",
     "pr_curve",
     "pr_auc",
     "best_f1",

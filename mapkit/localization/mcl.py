@@ -454,16 +454,28 @@ def log_likelihood(particles: Particles, measurement: Measurement, cfg: MclConfi
     return -0.5 * ((d * d) @ (1.0 / np.asarray(cfg.measurement_cov)))
 
 
-def weigh(particles: Particles, measurement: Measurement, cfg: MclConfig) -> np.ndarray:
-    """Normalised weights (N,) of eqs. 3-4, computed in log space.
+def _normalised_weights(log_w: np.ndarray) -> np.ndarray:
+    """Weights (N,) summing to 1 from log-weights.
 
-    Subtracting the largest log-likelihood before exponentiating keeps the best particle at
-    weight 1 before normalisation, so a measurement far from every particle (all eq. 3 values
-    underflow to 0 in linear space) still gives valid weights.
+    Subtracting the largest log-weight before exponentiating keeps the best particle at weight 1
+    before normalisation, so a measurement far from every particle (all eq. 3 values underflow to
+    0 in linear space) still gives valid weights.
     """
-    ll = log_likelihood(particles, measurement, cfg)
-    w = np.exp(ll - ll.max())
-    return w / w.sum()
+    w = np.exp(log_w - log_w.max())
+    w /= w.sum()
+    return w
+
+
+def weigh(
+    particles: Particles, measurement: Measurement, cfg: MclConfig, prior: np.ndarray | None = None
+) -> np.ndarray:
+    """Normalised weights (N,) of eqs. 3-4, computed in log space: eq. 3's likelihood of each
+    particle, times its ``prior`` weight when the particles carry weights (not resampled at the
+    last step; None: equal weights)."""
+    log_w = log_likelihood(particles, measurement, cfg)
+    if prior is not None:
+        log_w = log_w + np.log(prior)
+    return _normalised_weights(log_w)
 
 
 def sus_resample(weights: np.ndarray, rng: np.random.Generator, n: int | None = None) -> np.ndarray:
@@ -664,8 +676,7 @@ class MonteCarloLocalizer:
             return None
         if self._log_w is None:
             return np.full(len(self._particles), 1.0 / len(self._particles))
-        w = np.exp(self._log_w - self._log_w.max())
-        return w / w.sum()
+        return _normalised_weights(self._log_w)
 
     @property
     def initialized(self) -> bool:
@@ -741,7 +752,7 @@ class MonteCarloLocalizer:
                     prior = prior.copy()
                     prior[idx] = 1.0 / n
                     self._lost_steps = 0
-            log_w = np.log(prior) + np.log(L)
+            w = _normalised_weights(np.log(prior) + np.log(L))
         else:
             assert measurement is not None
             if cfg.recovery.enabled:
@@ -750,70 +761,13 @@ class MonteCarloLocalizer:
                 if self._lost_steps >= cfg.recovery.consecutive_steps:
                     particles, n_new = reinject(particles, measurement, cfg, self.rng, cfg.recovery.fraction)
                     self._lost_steps = 0
-            log_w = log_likelihood(particles, measurement, cfg)
-            if self._log_w is not None:
-                log_w = log_w + np.log(prior)
-        w = np.exp(log_w - log_w.max())
-        w /= w.sum()
+            w = weigh(particles, measurement, cfg, None if self._log_w is None else prior)
         est = self._estimate(particles, w, True, n_new)
         if est.n_eff <= cfg.resample_min_ess_fraction * len(particles) * (1.0 + 1e-12):
             self._particles, self._log_w = particles.take(sus_resample(w, self.rng)), None
         else:
             self._particles, self._log_w = particles, np.log(np.maximum(w, 1e-300))
         return est
-
-
-@dataclass(frozen=True, eq=False)
-class FilterTrack:
-    """Per-step outputs of :func:`run_filter`; rows before the first measurement are NaN and
-    ``valid`` is False there."""
-
-    positions: np.ndarray  # (T, 3) m, world
-    rotations: np.ndarray  # (T, 3, 3) world_from_body
-    euler: np.ndarray  # (T, 3) rad
-    position_std_m: np.ndarray  # (T, 3)
-    n_eff: np.ndarray  # (T,)
-    reinjected: np.ndarray  # (T,) int
-    valid: np.ndarray  # (T,) bool
-
-
-def run_filter(
-    measurements: Sequence[Measurement | None],
-    cfg: MclConfig | None = None,
-    seed: int | None = 0,
-    odometry: Sequence[np.ndarray | None] | None = None,
-    hypotheses: Sequence[PoseHypotheses | None] | None = None,
-) -> FilterTrack:
-    """Run :class:`MonteCarloLocalizer` over a sequence (None = no measurement at that step).
-
-    ``odometry[t]`` is the 4x4 ``body_{t-1} <- body_t`` motion into step ``t`` or None (beyond the
-    paper; needs ``cfg.odometry.enabled``). ``hypotheses[t]`` are the retrieved poses at step ``t``
-    (beyond the paper; needs ``cfg.multi_hypothesis.enabled``); ``measurements`` may then be all None.
-    """
-    T = len(measurements)
-    if odometry is not None and len(odometry) != T:
-        raise ValueError(f"odometry has {len(odometry)} entries for {T} measurements")
-    if hypotheses is not None and len(hypotheses) != T:
-        raise ValueError(f"hypotheses has {len(hypotheses)} entries for {T} measurements")
-    loc = MonteCarloLocalizer(cfg, seed)
-    pos = np.full((T, 3), np.nan)
-    rot = np.full((T, 3, 3), np.nan)
-    eul = np.full((T, 3), np.nan)
-    std = np.full((T, 3), np.nan)
-    n_eff = np.full(T, np.nan)
-    reinjected = np.zeros(T, np.int64)
-    valid = np.zeros(T, bool)
-    for t, z in enumerate(measurements):
-        est = loc.step(
-            z,
-            None if odometry is None or not loc.initialized else odometry[t],
-            None if hypotheses is None else hypotheses[t],
-        )
-        if est is None:
-            continue
-        pos[t], rot[t], eul[t], std[t], n_eff[t] = est.position, est.rotation, est.euler, est.position_std_m, est.n_eff
-        reinjected[t], valid[t] = est.reinjected, True
-    return FilterTrack(pos, rot, eul, std, n_eff, reinjected, valid)
 
 
 # --- evaluation ---------------------------------------------------------------------------------------

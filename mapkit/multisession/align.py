@@ -26,7 +26,7 @@ The stage lives here (:func:`align_workspace`, its registration cache and output
 modules of their own: :mod:`~mapkit.multisession.submaps` (sessions and submap pairs),
 :mod:`~mapkit.multisession.registration` (ICP and the accept/reject decision),
 :mod:`~mapkit.multisession.posegraph`, :mod:`~mapkit.multisession.corrections` and
-:mod:`~mapkit.multisession.tiles` (the merged map). Their public names are importable from here too.
+:mod:`~mapkit.multisession.tiles` (the merged map).
 """
 
 from __future__ import annotations
@@ -68,54 +68,17 @@ from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.multisession.corrections import apply_correction_points, apply_correction_poses, correction_at
 from mapkit.multisession.posegraph import Edge, GraphConfig, PoseGraph, session_offsets, support_points
-from mapkit.multisession.registration import (
-    IcpConfig,
-    PairResult,
-    Reason,
-    Registration,
-    Verdict,
-    decide,
-    evaluate_alignment,
-    register_clouds,
-    register_pair,
-)
-from mapkit.multisession.submaps import SessionData, SubmapClouds, candidate_pairs, cut_submaps, load_session
-from mapkit.multisession.tiles import ALIGN_FORMAT_VERSION, load_tiles, write_tiles
+from mapkit.multisession.registration import IcpConfig, PairResult, Reason, Verdict, decide, register_pair
+from mapkit.multisession.submaps import SessionData, SubmapClouds, candidate_pairs, load_session
+from mapkit.multisession.tiles import ALIGN_FORMAT_VERSION, write_tiles
 
 log = logging.getLogger(__name__)
 
-# names other modules import from here (their old home)
-_SubmapClouds = SubmapClouds
-_support_points = support_points
-
 __all__ = [
-    "ALIGN_FORMAT_VERSION",
     "AlignConfig",
-    "Edge",
-    "GraphConfig",
-    "IcpConfig",
-    "PairResult",
-    "PoseGraph",
-    "Reason",
-    "Registration",
-    "SessionData",
-    "Verdict",
     "align_workspace",
-    "aligned_sessions",
-    "apply_correction_points",
-    "apply_correction_poses",
-    "candidate_pairs",
-    "correction_at",
-    "cut_submaps",
-    "decide",
-    "evaluate_alignment",
+    "check_levels",
     "format_align_qa",
-    "load_session",
-    "load_tiles",
-    "register_clouds",
-    "register_pair",
-    "session_offsets",
-    "write_tiles",
 ]
 
 
@@ -548,11 +511,6 @@ def _require_a_verified_pair(ws: Workspace, results: list[PairResult]) -> None:
         + "; the sessions share no mapped surface that registers: drive the same streets in at least two "
         "sessions (more overlap, longer drives), or relax the icp gates of the align config",
     )
-
-
-def aligned_sessions(workspace: str | Path) -> list[str]:
-    """Sessions that a finished ``mapkit align`` holds (listed in ``WORKSPACE/align/.done``)."""
-    return Workspace(workspace).aligned_sessions()
 
 
 # --- outputs ---------------------------------------------------------------------------------------

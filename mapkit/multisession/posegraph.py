@@ -56,10 +56,13 @@ class GraphConfig(MapkitConfig):
     odometry_sigma_fused_m: float = Field(
         0.02,
         gt=0,
-        description="... on the factor graph's trajectory (georef.fuse: IMU, GPS and "
-        "kiss-icp), which holds a drive together better: 0.02 chosen on the tiny town among 0.10, "
-        "0.05, 0.02, 0.01 (misalignment with the four-level ICP 0.085 -> 0.074 m). On the demo, "
-        "where it was scored, it did not carry over: 0.053 m at 0.10, 0.058 m at 0.02 (docs/accuracy.md).",
+        description="... on the factor graph's trajectory (georef.fuse: IMU, GPS and kiss-icp), "
+        "which holds a drive together to centimetres (offset-removed ATE 0.03-0.08 m on the tiny town). "
+        "Misalignment between drives (eval_align's median) on tiny towns of seeds 7, 8 and 9: 0.053, "
+        "0.058, 0.051 m at 0.02 against 0.058, 0.051, 0.073 m at 0.10 (towns of `mapkit synth --preset tiny "
+        "--seed S` built with configs/build/demo.yaml; `mapkit align WS -c V.yaml`, V.yaml setting this "
+        "field, then `mapkit eval align WS --truth TOWN`). One demo town gave the opposite order (0.058 m "
+        "against 0.053 m), a difference inside the spread between towns.",
     )
     icp_sigma_m: float = Field(
         0.10, gt=0, description="Uncertainty of an accepted ICP registration at its support points (m)."

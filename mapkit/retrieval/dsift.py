@@ -31,7 +31,7 @@ Modes (``DsiftConfig.mode``) differ only in the window of step 5 and in a contra
   of the triangle, s the bin size), not by its value at the centre. ``vl_phow`` then zeroes every
   descriptor whose contrast is below 0.005, the contrast being VLFeat's frame "norm": the sum of
   the windowed histogram, with triangles of unit height, divided by the frame's area
-  ``(3 s + 1)^2`` pixels (grey levels in [0, 1]); see ``frame_contrast``. On KITTI frame 0 at
+  ``(3 s + 1)^2`` pixels (grey levels in [0, 1]). On KITTI frame 0 at
   640x480 this zeroes ~21% of the descriptors and the output matches VLFeat's at median cosine
   > 0.9999 (tests/test_dsift.py), against ~0.997 for ``"mapkit"``.
 
@@ -330,23 +330,10 @@ def bin_weights(cfg: DsiftConfig, bin_size: int) -> np.ndarray:
     return _window_weights(cfg.window_sigma_bins)
 
 
-def frame_contrast(histograms: np.ndarray, bin_size: int) -> np.ndarray:
-    """(n,) VLFeat's contrast ("norm" of a ``vl_dsift`` frame) of raw histograms of one bin size.
-
-    VLFeat bins with triangles of unit height, ``s^2`` times this module's unit-integral ones, and
-    divides the histogram's sum by the frame's area ``(3 s + 1)^2``: a gradient mass per pixel,
-    comparable across scales, which ``vl_phow`` thresholds.
-    """
-    span = (NUM_SPATIAL_BINS - 1) * bin_size + 1
-    mass = histograms @ np.ones(histograms.shape[1], np.float32)
-    mass *= np.float32(bin_size * bin_size / (span * span))
-    return mass
-
-
 def _low_contrast_frames(
     maps: np.ndarray, grid: ScaleGrid, g: int, weights: np.ndarray, threshold: float
 ) -> np.ndarray:
-    """(num_y, num_x) bool: frames of ``grid`` whose ``frame_contrast`` is below ``threshold``.
+    """(num_y, num_x) bool: frames of ``grid`` whose contrast (VLFeat's frame norm) is below ``threshold``.
 
     A frame's contrast is the sum of its windowed histogram, so the 8 orientation maps are summed
     first and each frame reads 16 values instead of 128; the whole grid at once, in 16 array
@@ -369,7 +356,9 @@ def _low_contrast_frames(
                 out=term,
             )
             contrast += term
-    contrast *= np.float32(s * s / ((NUM_SPATIAL_BINS - 1) * s + 1) ** 2)  # as frame_contrast
+    # VLFeat bins with triangles of unit height, s^2 times this module's unit-integral ones, and
+    # divides by the frame's area (3 s + 1)^2: a gradient mass per pixel, comparable across scales
+    contrast *= np.float32(s * s / ((NUM_SPATIAL_BINS - 1) * s + 1) ** 2)
     return contrast < threshold
 
 

@@ -25,10 +25,6 @@ import numpy as np
 
 from mapkit.core.geometry import average_rotations, quat_wxyz_to_matrix
 
-#: scipy's name of the Euler sequence used by the filter and the measurement
-EULER_SEQUENCE = "XYZ"
-
-
 # --- Euler angles <-> rotation matrices -------------------------------------------------------------
 # Written out instead of scipy's Rotation.from_euler/as_euler: those cost ~1.6 ms / 0.6 ms for 1,000
 # rotations on the target machine (scipy 1.17), more than a whole filter step's budget.

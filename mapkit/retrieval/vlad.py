@@ -217,15 +217,6 @@ def vlad(desc: np.ndarray, centroids: np.ndarray, pooling: Pooling = "sum") -> n
     return acc.result(pooling)
 
 
-def assign_nearest(desc: np.ndarray, centroids: np.ndarray) -> np.ndarray:
-    """Index of the nearest centroid (L2) of every row of ``desc``."""
-    acc = VladAccumulator(centroids)
-    desc = np.asarray(desc, dtype=np.float32)
-    return np.concatenate(
-        [acc.assign(desc[a : a + _ASSIGN_BLOCK]) for a in range(0, len(desc), _ASSIGN_BLOCK)] or [np.zeros(0, np.int64)]
-    )
-
-
 # --------------------------------------------------------------------------- vocabulary
 
 
