@@ -14,7 +14,8 @@ skipped as the build's frame loop skips it. Its outcome is one of:
 - ``crash``: any other exception escaped the reader (its type is listed).
 
 Fault classes: MCAP (written by mapkit's ``McapWriter``, zstd and uncompressed chunks) one-byte flips
-in the summary, in a chunk and elsewhere, 64-byte bursts, truncations; ROS 1 bags (written with
+in the summary, in a chunk and elsewhere, 64-byte bursts, truncations, a chunk whose opcode reads as the
+data end or the footer in a log without its summary; ROS 1 bags (written with
 ``rosbags``) flips and truncations; KITTI odometry text (calib.txt, times.txt, poses.txt) and KITTI
 raw OXTS records with a damaged token, byte or line, or a physically impossible pose; a folder log's
 frames.csv; corrupt PNG and JPEG images. The text and image classes have no notion of "intact data":
@@ -380,6 +381,10 @@ class FaultClass:
     run: Callable[[random.Random, Path], Outcome]
 
 
+#: the opcodes that end an MCAP's data section: DATA_END and FOOTER
+END_OPCODES = {"data end": 0x0F, "footer": 0x02}
+
+
 def _mcap_class(
     name: str, pick: Callable[[McapLayout, random.Random], tuple[int, int, str]], compression: str, base: Path
 ) -> FaultClass:
@@ -390,6 +395,9 @@ def _mcap_class(
         start, end, how = pick(layout, rnd)
         if how == "truncate":
             damaged = data[:start]
+        elif how in END_OPCODES:  # the summary cut off (so the reader must scan) and a chunk's opcode made an end's
+            damaged = data[: layout.summary_start]
+            damaged = damaged[:start] + bytes([END_OPCODES[how]]) + damaged[start + 1 :]
         elif how == "burst":
             damaged = data[:start] + rnd.randbytes(end - start) + data[end:]
         else:
@@ -458,6 +466,18 @@ def fault_classes(base: Path) -> list[FaultClass]:
         at = rnd.randrange(8, lay.size)
         return at, lay.size, "truncate"
 
+    def end_opcode(lay: McapLayout, rnd: random.Random):
+        # a chunk that defines no channel: without a summary, the chunk that defines one takes its later messages
+        seen: set = set()
+        candidates = []
+        for a, b, msgs in lay.chunks:
+            topics = {topic for topic, _ in msgs}
+            if topics <= seen:
+                candidates.append((a, b))
+            seen |= topics
+        a, b = rnd.choice(candidates)
+        return a, b, rnd.choice(sorted(END_OPCODES))
+
     classes = []
     for compression in ("zstd", "none"):
         classes += [
@@ -466,6 +486,7 @@ def fault_classes(base: Path) -> list[FaultClass]:
             _mcap_class("MCAP flip elsewhere", elsewhere, compression, base),
             _mcap_class("MCAP 64-byte burst", burst, compression, base),
             _mcap_class("MCAP truncation", truncation, compression, base),
+            _mcap_class("MCAP end opcode at a chunk, no summary", end_opcode, compression, base),
         ]
     bag_dir = base / "bag"
     bag_dir.mkdir()

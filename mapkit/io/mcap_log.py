@@ -445,10 +445,13 @@ class _McapFile:
         pos = len(MCAP_MAGIC)
         while pos + _RECORD_HEAD.size <= self.size:
             op, length = _RECORD_HEAD.unpack_from(self._map, pos)
-            if op in (Opcode.DATA_END, Opcode.FOOTER):
-                return
             body, end = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
             try:
+                if op in (Opcode.DATA_END, Opcode.FOOTER):
+                    # the summary after a real data end holds no chunk: one that follows says this opcode is damage
+                    if self._next_chunk(pos + 1) is None:
+                        return
+                    raise _Damage(pos, f"an end-of-data opcode (0x{op:02x}) with chunks after it")
                 if op not in _KNOWN_OPCODES:
                     raise _Damage(pos, f"no record starts here (opcode 0x{op:02x})")
                 if end > self.size:

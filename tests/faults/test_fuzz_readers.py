@@ -181,7 +181,7 @@ def test_seeded_campaign_over_whole_logs_never_crashes_nor_loses_intact_chunks(t
     """15 inputs of every fault class of bench/fuzz_readers.py (MCAP flips in the summary, in chunks and elsewhere,
     bursts and truncations, ROS 1 bag damage, KITTI and folder text, impossible poses, corrupt images)."""
     tallies = fz.campaign(seconds=float("inf"), seed=23, base=tmp_path / "clean", max_inputs=15)
-    assert len(tallies) == 17 and all(t.tried == 15 for t in tallies.values())
+    assert len(tallies) == 19 and all(t.tried == 15 for t in tallies.values())
     bad = {
         name: {k: t.examples[k] for k in ("crash", "silent loss", "intact data lost") if k in t.outcomes}
         for name, t in tallies.items()
@@ -191,4 +191,8 @@ def test_seeded_campaign_over_whole_logs_never_crashes_nor_loses_intact_chunks(t
     for compression in ("zstd", "none"):
         assert tallies[f"MCAP flip in summary ({compression})"].outcomes["warning, intact data kept"] == 15
         assert tallies[f"MCAP truncation ({compression})"].outcomes["warning, intact data kept"] == 15
+        assert (
+            tallies[f"MCAP end opcode at a chunk, no summary ({compression})"].outcomes["warning, intact data kept"]
+            == 15
+        )
     assert tallies["KITTI impossible pose"].outcomes["warning, intact data kept"] == 15

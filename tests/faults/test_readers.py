@@ -118,6 +118,29 @@ def test_a_broken_chunk_length_without_summary_is_stepped_over(mcap_log, tmp_pat
     assert any(f"near byte {start} of" in t for t in texts), texts
 
 
+@pytest.mark.parametrize("opcode", [0x0F, 0x02])
+def test_an_end_opcode_left_by_damage_does_not_end_the_scan(mcap_log, tmp_path, opcode):
+    """No summary, and damage leaves a chunk starting with the DATA_END (0x0F) or FOOTER (0x02) opcode: that chunk is
+    lost, the scan goes on to every chunk after it, and the warning names the byte."""
+    path, layout = mcap_log
+    data = bytearray(path.read_bytes()[: layout.summary_start])
+    start, _, lost = layout.chunks[5]  # (a chunk that defines no channel: see the test above)
+    data[start] = opcode
+    seen, texts = _read(_damaged(tmp_path, bytes(data)))
+    assert seen == layout.messages - lost
+    assert any(f"near byte {start} of" in t for t in texts), texts
+
+
+def test_the_real_data_end_is_believed_and_nothing_after_it_is_read_as_data(mcap_log, tmp_path):
+    """A clean log cut inside its summary: the scan ends at the real DATA_END with every message and no other
+    warning than the truncation's."""
+    path, layout = mcap_log
+    cut = layout.summary_start + (layout.size - layout.summary_start) // 2
+    seen, texts = _read(_damaged(tmp_path, path.read_bytes()[:cut]))
+    assert seen == layout.messages
+    assert len(texts) == 1 and "ends without a footer" in texts[0], texts
+
+
 def test_a_chunk_claiming_exabytes_is_skipped_without_allocating_them(mcap_log, tmp_path):
     """A flipped uncompressed-size field (2^63 bytes) costs its chunk only: nothing is allocated for it, no MemoryError
     or OverflowError leaves the reader, and the warning names the field and the byte."""
