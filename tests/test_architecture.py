@@ -179,3 +179,24 @@ def test_the_checks_catch_a_backward_edge_and_a_cycle(tmp_path):
 @pytest.mark.parametrize("name", ["mapkit.core.workspace"])
 def test_layout_modules_exist(name):
     assert _is_module(name, PACKAGE)
+
+
+#: a per-line suppression of a linter finding, and whether a reason follows its codes
+NOQA = re.compile(r"#\s*noqa(?::\s*[A-Z]+[0-9]+(?:\s*,\s*[A-Z]+[0-9]+)*)?(?P<reason>.*)$")
+
+
+def _noqa_without_reason(text: str) -> list[int]:
+    return [i for i, line in enumerate(text.splitlines(), 1) if (m := NOQA.search(line)) and not m["reason"].strip()]
+
+
+def test_every_noqa_says_why():
+    """A linter finding is silenced on its line only, and the line says why (no blanket ignores either)."""
+    root = PACKAGE.parent
+    bare = {
+        str(p.relative_to(root)): lines
+        for d in ("mapkit", "tests", "bench", "pipelines", "docs")
+        for p in sorted((root / d).rglob("*.py"))
+        if (lines := _noqa_without_reason(p.read_text()))
+    }
+    assert bare == {}
+    assert _noqa_without_reason("x = 1  # noqa: E731\ny = 2  # noqa\nz = 3  # noqa: E731 (why)\n") == [1, 2]

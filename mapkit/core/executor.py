@@ -296,7 +296,7 @@ class _ChunkedExecutor(Executor):
 
         try:
             pickle.dumps(fn)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 (pickling can raise any exception type; each means the same)
             raise ConfigError(
                 f"{desc or 'map'}: {fn!r} cannot be sent to worker processes ({exc}); use a module-level function"
             ) from None

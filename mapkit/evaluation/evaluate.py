@@ -426,7 +426,7 @@ def format_eval(results: dict) -> str:
         "| points / 100 m |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731
+    f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731 (a one-line helper local to this function)
     for name, r in results["sessions"].items():
         t, g, m, ml = r.get("trajectory", {}), r.get("gps_alone", {}), r.get("map", {}), r.get("map_local", {})
         off = t.get("mean_offset_enu_m")
@@ -452,7 +452,7 @@ def format_trajectory_eval(results: dict) -> str:
         "none": "none: the truth is taken to be in the workspace's ENU frame (absolute figures)",
     }
     lines: list[str] = []
-    f = lambda v, p=3: "" if v is None else f"{v:.{p}f}"  # noqa: E731
+    f = lambda v, p=3: "" if v is None else f"{v:.{p}f}"  # noqa: E731 (a one-line helper local to this function)
     for name, r in results["sessions"].items():
         e, t, a, al, ate, rpe = r["estimate"], r["truth"], r["association"], r["alignment"], r["ate"], r["rpe"]
         dt = (

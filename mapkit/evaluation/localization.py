@@ -178,7 +178,7 @@ def format_localization(results: dict) -> str:
         "MCVL median m / deg | recall@1 / @5 / @k |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    f = lambda s, k: "" if s.get(k) is None else f"{s[k]:.2f}"  # noqa: E731
+    f = lambda s, k: "" if s.get(k) is None else f"{s[k]:.2f}"  # noqa: E731 (a one-line helper local to this function)
     for name, r in results["sessions"].items():
         a, b = r["retrieval"], r["filter"]
         at = sorted((int(k[len("recall_at_") :]), v) for k, v in r.items() if k.startswith("recall_at_"))

@@ -1136,7 +1136,7 @@ def _maps_table(results: dict) -> list[str]:
     maps = results.get("maps") or {}
     if not maps:
         return []
-    f = lambda v, d=0: "" if v is None else f"{v:,.{d}f}"  # noqa: E731
+    f = lambda v, d=0: "" if v is None else f"{v:,.{d}f}"  # noqa: E731 (a one-line helper local to this function)
     lines = [
         "| pair | query: keyframes / points / per 100 m | database: keyframes / points / per 100 m "
         "| density query / database |",

@@ -399,7 +399,7 @@ def _write_queries_csv(path: Path, rows: list[list]) -> None:
 
 def format_retrieval(results: dict) -> str:
     ks = results["ks"]
-    f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731
+    f = lambda v, p=2: "" if v is None else f"{v:.{p}f}"  # noqa: E731 (a one-line helper local to this function)
     lines = [
         f"# Retrieval: {results['database_images']} database images ({', '.join(results['database_sessions'])}), "
         f"{results['dim']}-D",

@@ -498,7 +498,7 @@ def gravity_from_imu(
     a_turn = np.column_stack([np.zeros(len(imu_t)), v_imu * w_b[:, 2], np.zeros(len(imu_t))]) + np.cross(
         w_b, np.cross(w_b, r)
     )
-    csum = lambda x: np.vstack([np.zeros(x.shape[1]), np.cumsum(x, axis=0)])  # noqa: E731
+    csum = lambda x: np.vstack([np.zeros(x.shape[1]), np.cumsum(x, axis=0)])  # noqa: E731 (a one-line helper local to this function)
     cf, ca, cw = csum(f_b), csum(a_turn), csum(w_b)
     lo, hi = np.searchsorted(imu_t, q - half), np.searchsorted(imu_t, q + half, side="right")
     keep = hi - lo >= 3
@@ -701,8 +701,8 @@ def fuse_session(
 
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
-    X = lambda i: gtsam.symbol("x", i)  # noqa: E731
-    B = lambda j: gtsam.symbol("b", j)  # noqa: E731
+    X = lambda i: gtsam.symbol("x", i)  # noqa: E731 (a one-line helper local to this function)
+    B = lambda j: gtsam.symbol("b", j)  # noqa: E731 (a one-line helper local to this function)
     G = gtsam.symbol("g", 0)
     for k, T in enumerate(initial_poses):
         values.insert(X(k), gtsam.Pose3(T))
@@ -798,7 +798,7 @@ def _add_odometry(
     loss), and each pose X_k = E_k exp(w_k) with white jitter w_k. Independent steps with a per-step floor instead
     would let the floor accumulate as drift (0.4 deg of pitch over the tiny drive), which the real odometry does not
     do."""
-    E = lambda i: gtsam.symbol("e", i)  # noqa: E731
+    E = lambda i: gtsam.symbol("e", i)  # noqa: E731 (a one-line helper local to this function)
     Ad_sb = _adjoint(state_from_base)
     jitter = np.diag(np.concatenate([cfg.odom_rotation_jitter_rad, cfg.odom_translation_jitter_m]) ** 2)
     jitter_noise = _odom_loss(gtsam, gtsam.noiseModel.Gaussian.Covariance(Ad_sb @ jitter @ Ad_sb.T), cfg)
@@ -934,7 +934,7 @@ def _solution_stats(
     if "gravity_factors" in stats:
         stats["gravity_tilt_bias_rad"] = result.atPoint3(G).tolist()
     if imu_runs:
-        C = lambda i: gtsam.symbol("c", i)  # noqa: E731
+        C = lambda i: gtsam.symbol("c", i)  # noqa: E731 (a one-line helper local to this function)
         bias = [result.atConstantBias(C(r[-1])) for r in imu_runs]
         stats["imu_bias_end"] = {
             "gyro_rad_s": bias[-1].gyroscope().tolist(),
@@ -986,7 +986,7 @@ def _slips(
         if np.linalg.norm(diff) > cfg.odom_slip_min_m:
             spans.append([float(t[a]), float(t[b])])
             moved.append(float(np.linalg.norm(diff)))
-    whitened = lambda idx: np.array([float(np.linalg.norm(_whitened(graph.at(i), result))) for i in idx])  # noqa: E731
+    whitened = lambda idx: np.array([float(np.linalg.norm(_whitened(graph.at(i), result))) for i in idx])  # noqa: E731 (a one-line helper local to this function)
     return {
         "odom_slips": len(spans),
         "odom_slip_m": moved,
@@ -1171,9 +1171,9 @@ def _add_imu(
 ) -> list[list[int]]:
     """A CombinedImuFactor between consecutive keyframes the IMU covers without a gap; velocity (``v``) and bias (``c``)
     states at their keyframes, a bias prior at the start of every covered run. Returns the runs (keyframe indices)."""
-    X = lambda i: gtsam.symbol("x", i)  # noqa: E731
-    V = lambda i: gtsam.symbol("v", i)  # noqa: E731
-    C = lambda i: gtsam.symbol("c", i)  # noqa: E731
+    X = lambda i: gtsam.symbol("x", i)  # noqa: E731 (a one-line helper local to this function)
+    V = lambda i: gtsam.symbol("v", i)  # noqa: E731 (a one-line helper local to this function)
+    C = lambda i: gtsam.symbol("c", i)  # noqa: E731 (a one-line helper local to this function)
     t = imu.stamps_ns
     gap = int(cfg.imu_max_gap_s * 1e9)
     # an interval is covered when samples bracket it and none of the gaps inside it is too long
@@ -1324,7 +1324,7 @@ def _densify_imu(
     import gtsam
 
     params = imu_params(cfg)
-    X, V, C = (lambda i: gtsam.symbol("x", i)), (lambda i: gtsam.symbol("v", i)), (lambda i: gtsam.symbol("c", i))  # noqa: E731
+    X, V, C = (lambda i: gtsam.symbol("x", i)), (lambda i: gtsam.symbol("v", i)), (lambda i: gtsam.symbol("c", i))  # noqa: E731 (a one-line helper local to this function)
     for run in runs:
         for k in run[:-1]:
             a, b = int(kf[k]), int(kf[k + 1])

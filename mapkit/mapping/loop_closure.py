@@ -329,7 +329,7 @@ def verify_loop(
     with by :func:`read_scans`), judged by the gates of ``cfg`` (module notes)."""
     t0 = time.perf_counter()
     a, b = candidate.a, candidate.b
-    check = lambda reason, detail, **kw: LoopCheck(candidate, reason, detail, seconds=time.perf_counter() - t0, **kw)  # noqa: E731
+    check = lambda reason, detail, **kw: LoopCheck(candidate, reason, detail, seconds=time.perf_counter() - t0, **kw)  # noqa: E731 (a one-line helper local to this function)
     if a not in scans or b not in scans:
         return check(LoopReason.SCANS_MISSING, f"no scan at keyframe {'a' if a not in scans else 'b'}")
     guess = invert_pose(world_from_base[a]) @ world_from_base[b]

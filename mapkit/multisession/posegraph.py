@@ -228,7 +228,7 @@ class PoseGraph:
             gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_scale),
             gtsam.noiseModel.Gaussian.Information(support_information(local, e.sigma_m)),
         )
-        X = lambda k: gtsam.symbol("x", int(k))  # noqa: E731
+        X = lambda k: gtsam.symbol("x", int(k))  # noqa: E731 (a one-line helper local to this function)
         if self.fixed[other]:
             return gtsam.PriorFactorPose3(X(this), self._pose(self.x0, other).compose(gtsam.Pose3(meas)), noise)
         return gtsam.BetweenFactorPose3(X(other), X(this), gtsam.Pose3(meas), noise)
@@ -281,7 +281,7 @@ class PoseGraph:
             return self.x0.copy()
         sessions = list(dict.fromkeys(self.session_of.tolist()))  # in node order
         rank = {s: r for r, s in enumerate(sessions)}
-        entered = lambda e: max(rank[self.session_of[e.a]], rank[self.session_of[e.b]])  # noqa: E731
+        entered = lambda e: max(rank[self.session_of[e.a]], rank[self.session_of[e.b]])  # noqa: E731 (a one-line helper local to this function)
         for r, s in enumerate(sessions):
             graph, values, owned = self._session_block(s, [e for e in edges if entered(e) == r], self.x0)
             if graph.size() == 0 and values.size() == 0:

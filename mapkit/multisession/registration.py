@@ -178,7 +178,7 @@ def evaluate_alignment(
         )
         return np.asarray(pc.normals)
 
-    rms = lambda v: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")  # noqa: E731
+    rms = lambda v: float(np.sqrt(np.mean(v**2))) if len(v) else float("nan")  # noqa: E731 (a one-line helper local to this function)
     if len(source) == 0 or len(target) == 0:
         return {
             "fitness": 0.0,

@@ -391,7 +391,7 @@ def m2dp_pca_frame(points: np.ndarray, indptr: np.ndarray) -> np.ndarray:
     return out
 
 
-def m2dp_reference_signature(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, t: int = 16) -> np.ndarray:  # noqa: E741
+def m2dp_reference_signature(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, t: int = 16) -> np.ndarray:  # noqa: E741 (l: the number of lines, the M2DP paper's symbol)
     """(p q, l t) float64 point counts of one cloud on the M2DP planes, as the authors' ``M2DP.m``.
 
     The cloud is centred on its mean and rotated onto its principal axes (:func:`m2dp_pca_frame`);
@@ -424,7 +424,7 @@ def m2dp_reference_signature(points_xyz: np.ndarray, p: int = 4, q: int = 16, l:
     return A
 
 
-def m2dp_reference(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, t: int = 16) -> np.ndarray:  # noqa: E741
+def m2dp_reference(points_xyz: np.ndarray, p: int = 4, q: int = 16, l: int = 8, t: int = 16) -> np.ndarray:  # noqa: E741 (l: the number of lines, the M2DP paper's symbol)
     """M2DP (p q + l t,) float64 of one whole cloud exactly as the authors' ``M2DP.m`` computes it
     (He, Wang, Zhang, IROS 2016; signature matrix of :func:`m2dp_reference_signature`), [u1, v1]
     of a float64 SVD.

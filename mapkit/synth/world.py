@@ -1300,7 +1300,7 @@ def _pitched_roofs(mb, centre, half, yaw, eave, rise, bids, style, roof_col, bh,
     base = centre.copy()
     base[:, 2] = eave
     hx, hy = half[:, 0:1], half[:, 1:2]
-    p = lambda a, b, z=0.0: base + ex * (a * hx) + ey * (b * hy) + np.array([0, 0, 1.0]) * z  # noqa: E731
+    p = lambda a, b, z=0.0: base + ex * (a * hx) + ey * (b * hy) + np.array([0, 0, 1.0]) * z  # noqa: E731 (a one-line helper local to this function)
     # eave corners 0..3, ridge ends 4, 5
     V = np.stack(
         [
