@@ -44,7 +44,9 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 VPY="$VENV/bin/python"
-pip_install() { "$VPY" -m pip install --quiet --disable-pip-version-check "$@"; }
+# --no-compile: Python compiles a module the first time it is imported instead of pip compiling every
+# module of every package at install time (most of torch's, ray's and open3d's are never imported)
+pip_install() { "$VPY" -m pip install --quiet --disable-pip-version-check --no-compile "$@"; }
 
 # The environment is (re)filled when the project's dependencies changed since it was filled, or
 # when a module is missing, or when the installed mapkit is not this checkout.
