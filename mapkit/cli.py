@@ -35,9 +35,6 @@ app.add_typer(index_app, name="index")
 app.add_typer(eval_app, name="eval")
 
 
-_WAIT_S = 0.0
-
-
 def _writes(arg: str):
     """Hold the write lock of the workspace named by the command's argument ``arg`` for the whole
     command (:mod:`mapkit.core.lock`): a second writer refuses, naming the first, or waits ``--wait``."""
@@ -46,10 +43,11 @@ def _writes(arg: str):
         @functools.wraps(fn)
         def run(*args, **kwargs):
             from mapkit.core.lock import workspace_lock
+            from mapkit.core.writers import lock_wait
 
             if arg == "workspace" and not Path(kwargs[arg]).is_dir():
                 return fn(*args, **kwargs)  # no workspace to protect: the command says what is missing
-            with workspace_lock(kwargs[arg], command=f"mapkit {fn.__name__.replace('_', ' ')}", wait_s=_WAIT_S):
+            with workspace_lock(kwargs[arg], command=f"mapkit {fn.__name__.replace('_', ' ')}", wait_s=lock_wait()):
                 return fn(*args, **kwargs)
 
         return run
@@ -86,8 +84,9 @@ def _root(
     ),
 ) -> None:
     """mapkit: dataset building and mapping for visual localization."""
-    global _WAIT_S
-    _WAIT_S = max(wait, 0.0)
+    from mapkit.core.writers import set_lock_wait
+
+    set_lock_wait(wait)
     if executor not in ("local", "ray"):
         raise MapkitError(f"--executor {executor!r}: expected local or ray")
     if executor == "ray" or workers is not None or ray_address is not None:
@@ -364,13 +363,14 @@ def view(
     from contextlib import nullcontext
 
     from mapkit.core.workspace import Workspace
+    from mapkit.core.writers import lock_wait
     from mapkit.report.view import render_top_view, write_recording
 
     ws = Workspace(workspace)
     target = (out or ws.recording).resolve()
     # it only reads the workspace; its lock is held only when the recording lands inside it
     inside = ws.root.is_dir() and target.is_relative_to(ws.root.resolve())
-    with ws.lock("mapkit view", _WAIT_S) if inside else nullcontext():
+    with ws.lock("mapkit view", lock_wait()) if inside else nullcontext():
         s = write_recording(
             ws,
             out,
@@ -702,7 +702,10 @@ def main(argv: list[str] | None = None) -> int:
             return f"warning: {message}\n"
         return original(message, category, filename, lineno, line)
 
+    from mapkit.core.writers import lock_wait, set_lock_wait
+
     warnings.formatwarning = fmt
+    wait = lock_wait()  # --wait holds for this command only, not for library calls after it in one process
     try:
         app(args=argv, prog_name="mapkit")
     except SystemExit as exc:  # click's standalone mode ends every run with SystemExit
@@ -712,6 +715,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     finally:
         warnings.formatwarning = original
+        set_lock_wait(wait)
     return 0
 
 

@@ -50,6 +50,7 @@ from mapkit.core.geodesy import (
 from mapkit.core.geometry import make_pose, matrix_to_quat_wxyz, quat_wxyz_to_matrix
 from mapkit.core.runio import atomic_write_ply, atomic_write_text, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.io.trajectory import read_tum, seconds_to_ns
 from mapkit.multisession.tiles import load_tiles
 
@@ -214,6 +215,7 @@ def _read_points(path: Path) -> np.ndarray:
     return np.asarray(cloud.points, np.float64)
 
 
+@writes_workspace("workspace")
 def export_crs(
     workspace: str | Path,
     out: str | Path,

@@ -26,6 +26,7 @@ from mapkit.core.bundle import MANIFEST, building, copy_file, load_manifest
 from mapkit.core.errors import InputError
 from mapkit.core.runio import atomic_write_text, sha256_file, write_json
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 
 FORMAT_VERSION = 1
 KIND = "mapkit deployment bundle"
@@ -91,6 +92,7 @@ def _index_entry(name: str, src: Path, origin: dict | None) -> dict:
     }
 
 
+@writes_workspace("workspace")
 def export_bundles(workspace: str | Path, out: str | Path, names: Sequence[str] | None = None) -> Path:
     """Copy the finished indexes of ``workspace`` into ``out`` with a top-level manifest; returns ``out``.
     ``names`` selects folders of ``WORKSPACE/indexes`` (default all).

@@ -41,6 +41,7 @@ from mapkit.core.geometry import (
 from mapkit.core.runio import atomic_write_text, write_json
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.evaluation.metrics import map_accuracy, trajectory_errors
 from mapkit.evaluation.truth import (
     TruthTrajectory,
@@ -74,6 +75,7 @@ def as_alignment(value: str) -> Alignment:
     return value
 
 
+@writes_workspace("workspace")
 def evaluate_build(
     workspace: str | Path | Workspace,
     truth: str | Path,
@@ -545,6 +547,7 @@ class _SessionError:
         return self.tree.query(xy)[1]
 
 
+@writes_workspace("workspace")
 def evaluate_align(
     workspace: str | Path | Workspace, truth: str | Path, max_points_per_pair: int = 5000, overlap_m: float = 25.0
 ) -> dict:

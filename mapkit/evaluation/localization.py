@@ -22,6 +22,7 @@ from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import localization_track
 from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer, write_run_trajectories
 from mapkit.localization.mcl import pose_errors
@@ -48,6 +49,7 @@ def hit_recall(index, ids: np.ndarray, gt_positions: np.ndarray, radius_m: float
     return {**out, "recall_radius_m": radius_m}
 
 
+@writes_workspace("workspace")
 def evaluate_localization(
     workspace: str | Path | Workspace,
     truth: str | Path,

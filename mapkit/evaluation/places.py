@@ -70,6 +70,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import _save
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.index_structure import (
@@ -694,6 +695,7 @@ class _Maps:
         return self._maps[name]
 
 
+@writes_workspace("workspace")
 def evaluate_places(
     workspace: str | Path | Workspace,
     pairs: Sequence[tuple[str, str]],

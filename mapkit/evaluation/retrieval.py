@@ -29,6 +29,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import atomic_path, atomic_write_text, write_json, write_timings
 from mapkit.core.threads import single_thread_blas
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.evaluation.truth import town_sessions, truth_camera_poses_at
 from mapkit.retrieval.index_vlad import (
     VladIndex,
@@ -198,6 +199,7 @@ def _stats(trans_err: np.ndarray, rot_err: np.ndarray) -> dict:
     }
 
 
+@writes_workspace("workspace")
 def evaluate_retrieval(
     workspace: str | Path | Workspace,
     bundle: str | Path,

@@ -9,11 +9,13 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.runio import write_json
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.evaluation.truth import error_transforms, session_truth, ws_from_town
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.places.triplets import SPLITS, TripletDataset
 
 
+@writes_workspace("dataset", within=True)
 def evaluate_triplets(dataset: str | Path, workspace: str | Path | Workspace, truth: str | Path) -> dict:
     """Fraction of positive pairs whose true offset is below 0.5 m (and its distribution).
 

@@ -54,6 +54,7 @@ from mapkit.core.runio import (
     write_json,
     write_timings,
 )
+from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import training_curve
 from mapkit.places.cnn import (
     MODEL_FORMAT_VERSION,
@@ -323,6 +324,7 @@ def _cycle_hard(
     }
 
 
+@writes_workspace("out", within=True)
 def train_cnn(
     dataset,
     out: str | Path,

@@ -38,6 +38,7 @@ from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, sha256_file, write_json, write_timings
 from mapkit.core.types import StreamKind
+from mapkit.core.writers import writes_workspace
 from mapkit.io import open_log
 from mapkit.io.trajectory import write_tum
 from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclConfig, MonteCarloLocalizer
@@ -301,6 +302,7 @@ def cached_query_all(
     return ids, dist, False
 
 
+@writes_workspace("out", within=True)
 def localize_log(
     bundle: str | Path,
     log: str | Path,

@@ -58,6 +58,7 @@ from mapkit.core.runio import (
 )
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
 from mapkit.mapping.semidense import SemiDenseConfig
@@ -476,6 +477,7 @@ def _log_bytes(log: Path) -> int:
     return sum(p.stat().st_size for p in log.rglob("*") if p.is_file()) if log.is_dir() else 0
 
 
+@writes_workspace("workspace", creates=True)
 def build(
     logs: Sequence[str | Path],
     workspace: str | Path | Workspace,

@@ -62,6 +62,7 @@ from mapkit.core.runio import (
     write_timings,
 )
 from mapkit.core.workspace import AlignedDirs, SessionDirs, Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import align_histograms, align_pairs_map
 from mapkit.mapping.icp import open3d_one_thread
 from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
@@ -204,6 +205,7 @@ def _save_pair_cache(path: Path, cache: dict[str, PairResult]) -> None:
 # --- the stage -------------------------------------------------------------------------------------
 
 
+@writes_workspace("workspace")
 def align_workspace(
     workspace: str | Path,
     config: str | Path | None = None,

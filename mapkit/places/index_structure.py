@@ -63,6 +63,7 @@ from mapkit.core.executor import SERIAL, get_executor
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json, write_timings
 from mapkit.core.workspace import MapSource, Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
 from mapkit.places.patches import first_observer_positions, select_keypoints, xy_tree
@@ -373,6 +374,7 @@ def session_descriptors(
 # --------------------------------------------------------------------------- building
 
 
+@writes_workspace("workspace")
 def build_structure_index(
     workspace: str | Path,
     kind: str | None = None,

@@ -54,6 +54,7 @@ import numpy as np
 from mapkit.core.bundle import building
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+from mapkit.core.writers import writes_workspace
 from mapkit.places.pointnetvlad_config import PointNetVladConfig
 from mapkit.places.triplets import (
     SPLITS,
@@ -90,6 +91,7 @@ def evaluation_files(cfg: PointNetVladConfig) -> dict[str, str]:
     }
 
 
+@writes_workspace("workspace")
 def export_triplets_pointnetvlad(
     workspace: str | Path,
     out: str | Path | None = None,

@@ -55,6 +55,7 @@ from mapkit.core.runio import (
     write_timings,
 )
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import triplet_examples
 from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine
 from mapkit.mapping.semidense import SemiDenseMap
@@ -852,6 +853,7 @@ def _savez_fast(path: Path, **arrays: np.ndarray) -> None:
 # --- the export ---------------------------------------------------------------------------------------
 
 
+@writes_workspace("workspace")
 def export_triplets(
     workspace: str | Path,
     out: str | Path | None = None,

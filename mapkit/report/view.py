@@ -40,6 +40,7 @@ from mapkit.core.errors import InputError, InputWarning, MapkitError
 from mapkit.core.geometry import matrix_to_quat_wxyz
 from mapkit.core.runio import atomic_path, progress_bar
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -381,6 +382,7 @@ def _localize_runs(folder: Path) -> Iterator[Path]:
     yield from sorted(p.parent for p in folder.rglob("poses_tum.txt"))
 
 
+@writes_workspace("out", within=True, default="workspace")
 def write_recording(
     workspace: str | Path | Workspace,
     out: str | Path | None = None,

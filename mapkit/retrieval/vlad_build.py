@@ -36,6 +36,7 @@ from mapkit.core.executor import Executor, get_executor
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import atomic_write_text, config_hash, sha256_file, verify_file, write_json, write_timings
 from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
 from mapkit.retrieval.vlad import PcaWhitening, VladEncoder, kmeans, whitening_parameters
 from mapkit.retrieval.vlad_bundle import (
     _QUERY_TIME_FIELDS,
@@ -180,6 +181,7 @@ def _build_hash(
     )
 
 
+@writes_workspace("workspace")
 def build_vlad_index(
     workspace: str | Path,
     out: str | Path | None = None,

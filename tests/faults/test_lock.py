@@ -115,3 +115,114 @@ def test_second_cli_writer_refuses_with_one_line_and_writes_nothing(tmp_path, ca
         assert main(["--wait", "60", "build", str(tmp_path / "no-such.mcap"), "--out", str(ws)]) == 2
         assert "no-such.mcap: no such" in capsys.readouterr().err
         assert proc.wait(timeout=30) == 0
+
+
+# --- the library takes the lock itself --------------------------------------------------------------
+
+
+def _all_writers() -> list:
+    """Every entry point registered by ``writes_workspace``, once every module that defines one is imported."""
+    import importlib
+    import pkgutil
+
+    import mapkit
+    from mapkit.core.writers import WRITERS
+
+    for info in pkgutil.walk_packages(mapkit.__path__, "mapkit."):
+        if info.name != "mapkit.__main__":
+            importlib.import_module(info.name)
+
+    return list(WRITERS)
+
+
+def _a_workspace(root: Path) -> Path:
+    root.mkdir(parents=True)
+    Workspace(root).build_config.write_text("{}\n")
+    return root
+
+
+def _listing(root: Path) -> list[str]:
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.name != ".lock")
+
+
+def test_every_library_writer_refuses_while_another_process_writes(tmp_path):
+    """Through the Python API, as a user's script calls it: every entry point that writes into a workspace
+    refuses with the holder named while another process holds the workspace, and writes nothing."""
+    from mapkit.core.writers import enclosing_workspace
+
+    ws = _a_workspace(tmp_path / "ws")
+    writers = _all_writers()
+    assert len(writers) >= 16
+    with _holder(ws, tmp_path, 60) as proc:
+        before = _listing(ws)
+        for fn in writers:
+            arg = fn.__mapkit_locks__
+            target = ws / "out" if arg == "out" else ws  # an output folder inside the workspace
+            with pytest.raises(WorkspaceBusy, match=f"pid {proc.pid}"):
+                fn(**{arg: target})
+            assert _listing(ws) == before, fn.__qualname__
+    assert enclosing_workspace(ws / "a" / "b") == ws.resolve() and enclosing_workspace(tmp_path) is None
+
+
+def test_an_output_outside_any_workspace_takes_no_lock(tmp_path):
+    """`mapkit localize` and `mapkit train` lock only the workspace their output lies in: elsewhere they run."""
+    from mapkit.learning.train import train_cnn
+
+    ws = _a_workspace(tmp_path / "ws")
+    with _holder(ws, tmp_path, 60), pytest.raises(Exception) as err:
+        train_cnn(tmp_path / "no-dataset", tmp_path / "model")
+    assert not isinstance(err.value, WorkspaceBusy)
+
+
+def test_mapkit_localize_into_a_workspace_being_built_is_refused(tmp_path, capsys):
+    from mapkit.cli import main
+
+    ws = _a_workspace(tmp_path / "ws")
+    with _holder(ws, tmp_path, 60) as proc:
+        before = _listing(ws)
+        code = main(["localize", str(tmp_path / "bundle"), str(tmp_path / "drive.mcap"), "--out", str(ws / "loc")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and f"pid {proc.pid}" in err[0]
+        assert _listing(ws) == before
+
+
+def test_every_cli_write_goes_through_a_locking_entry_point():
+    """Structural: each library function a writing CLI command calls with the workspace it writes is a registered
+    writer, so the lock does not depend on the CLI."""
+    import ast
+    import importlib
+    import inspect
+
+    import mapkit.cli
+
+    _all_writers()
+    tree = ast.parse(Path(mapkit.cli.__file__).read_text())
+    called = set()
+    for cmd in tree.body:
+        if not isinstance(cmd, ast.FunctionDef):
+            continue
+        locks = [
+            d.args[0].value
+            for d in cmd.decorator_list
+            if isinstance(d, ast.Call)
+            and getattr(d.func, "id", "") == "_writes"
+            and isinstance(d.args[0], ast.Constant)
+        ]
+        if not locks:
+            continue
+        imported = {
+            a.asname or a.name: (node.module, a.name)
+            for node in ast.walk(cmd)
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mapkit.")
+            for a in node.names
+        }
+        for node in ast.walk(cmd):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in imported:
+                names = {a.id for a in [*node.args, *(k.value for k in node.keywords)] if isinstance(a, ast.Name)}
+                module, name = imported[node.func.id]
+                fn = getattr(importlib.import_module(module), name)
+                if locks[0] in names and inspect.isfunction(fn):
+                    called.add(fn)
+    assert len(called) >= 10
+    unlocked = sorted(f"{fn.__module__}.{fn.__name__}" for fn in called if not hasattr(fn, "__mapkit_locks__"))
+    assert unlocked == []
