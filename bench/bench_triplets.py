@@ -46,6 +46,7 @@ def run_one(workspace: Path, n: int, overrides: dict, module_file: Path | None =
             + f"out = export_triplets({str(workspace)!r}, out={tmp + '/t'!r}, "
             f"overrides={dict(overrides, n_triplets=n)!r}, progress=False)\n"
             "print('METRICS', open(out / 'metrics.json').read().replace(chr(10), ' '))\n"
+            "print('TIMINGS', open(out / 'timings.json').read().replace(chr(10), ' '))\n"
             "ru = resource.getrusage(resource.RUSAGE_SELF)\n"
             "print('CPU_S', ru.ru_utime + ru.ru_stime)\n"
         )
@@ -55,15 +56,18 @@ def run_one(workspace: Path, n: int, overrides: dict, module_file: Path | None =
         )
         proc = subprocess.run([sys.executable, "-c", wrapper], capture_output=True, text=True, check=True)
         metrics = peak = cpu = None
+        timings: dict = {}  # wall-clock figures: the stage's run record, apart from its metrics
         for line in proc.stdout.splitlines():
             if line.startswith("METRICS"):
                 metrics = json.loads(line[len("METRICS") :])
+            if line.startswith("TIMINGS"):
+                timings = json.loads(line[len("TIMINGS") :])
             if line.startswith("CPU_S"):
                 cpu = float(line.split()[1])
             if line.startswith("PEAK_RSS_KB"):
                 peak = int(line.split()[1]) / 1024.0
         made = sum(metrics["triplets"].values())
-        return {**metrics, "cpu_s_process": cpu, "triplets_per_cpu_s": made / cpu, "peak_rss_mb": peak}
+        return {**metrics, **timings, "cpu_s_process": cpu, "triplets_per_cpu_s": made / cpu, "peak_rss_mb": peak}
 
 
 def _line(label: str, r: dict) -> str:

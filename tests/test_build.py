@@ -208,6 +208,22 @@ def test_build_reads_images_from_the_topics_named_in_topics_images(tmp_path):
         assert (cv2.imread(str(db / rel), cv2.IMREAD_UNCHANGED) == 190).all()
 
 
+def test_a_map_that_would_be_empty_is_one_error_and_nothing_of_it_is_written(tmp_path, capsys):
+    """Flat grey frames (a lens cap on, say) give no depth: the map stage fails in one line naming the log, the
+    session and the way out, and publishes no map; the stages before it stay finished."""
+    log = _two_camera_log(tmp_path / "capped.mcap", front_grey=60, rear_grey=190)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("topics:\n  images: [/front/image]\ntrajectory:\n  source: poses\nimagedb: false\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # no GPS stream
+        assert main(["build", str(log), "--out", str(tmp_path / "ws"), "-c", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "capped.mcap [map]" in err[0] and "0 points" in err[0] and "map: false" in err[0], err
+    dirs = Workspace(tmp_path / "ws").session("capped")
+    assert not dirs.map.exists() or not any(dirs.map.glob("*.ply"))
+    assert is_done(dirs.trajectory)
+
+
 def _imageless_log(path, yaw_deg: float = 37.0, faults: bool = False):
     """A log as an INS-equipped car without a camera records it: 30 s of fused poses of base_link
     at 10 Hz along a 300 m bend, and GPS at 1 Hz (1 m noise) in an ENU frame turned by ``yaw_deg``

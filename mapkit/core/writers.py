@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
-from mapkit.core.lock import workspace_lock
+from mapkit.core.lock import LOCK_NAME, workspace_lock
 from mapkit.core.workspace import ORIGIN, Workspace
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -87,11 +87,26 @@ def writes_workspace(
             root = root_of(sig.bind_partial(*args, **kwargs))
             if root is None:
                 return fn(*args, **kwargs)
-            with workspace_lock(root, wait_s=_wait_s):
-                return fn(*args, **kwargs)
+            new = not root.exists()
+            try:
+                with workspace_lock(root, wait_s=_wait_s):
+                    return fn(*args, **kwargs)
+            except BaseException:
+                if new:  # a workspace refused before anything was written leaves no folder behind
+                    _remove_if_only_the_lock(root)
+                raise
 
         run.__mapkit_locks__ = arg  # type: ignore[attr-defined]
         WRITERS.append(run)
         return run  # type: ignore[return-value]
 
     return wrap
+
+
+def _remove_if_only_the_lock(root: Path) -> None:
+    try:
+        if [p.name for p in root.iterdir()] == [LOCK_NAME]:
+            (root / LOCK_NAME).unlink()
+            root.rmdir()
+    except OSError:
+        pass  # another writer came in meanwhile: its folder stays

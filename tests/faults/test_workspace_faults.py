@@ -323,7 +323,7 @@ def test_a_bad_align_or_triplets_config_is_named_before_anything_is_written(tmp_
 
         with pytest.raises(ConfigError, match=field):
             export_triplets(ws, overrides=overrides, progress=False)
-    assert sorted(p.name for p in ws.iterdir()) == ["origin.json"]
+    assert sorted(p.name for p in ws.iterdir() if p.name != ".lock") == ["origin.json"]  # (the lock is no output)
 
 
 @pytest.fixture()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import write_json
 from mapkit.core.workspace import SessionDirs
@@ -28,6 +29,14 @@ def write_map(
     out = dirs.map
     gray_frames = ((i, f.stamp_ns, f.gray(), T) for i, f, T in frames)
     smap = build_semidense_map(gray_frames, frames.camera.info.K, cfg, progress=progress)
+    if len(smap.points_world) == 0:  # an empty map would pass for a finished one; open3d cannot even read it
+        raise InputError(
+            frames.log.path,
+            f"session {dirs.name}: the semi-dense map has 0 points from {len(smap.keyframe_ids)} keyframes of camera "
+            f"{frames.camera.name}: no frame gave depth (frames outside the trajectory's time span, images without "
+            "texture, or undecodable: see the warnings above); set `map: false` to build the session without a map",
+            field="map",
+        )
     smap.save(out, frame=frame)
     map_top_view(
         out / "top_view.png",
