@@ -173,6 +173,21 @@ def test_bundle_loader_refuses_a_changed_file_and_an_unknown_version(tiny_demo, 
     assert "manifest.json" in str(e.value) and "format_version" in str(e.value)
 
 
+def test_a_bundle_whose_manifest_lists_fewer_indexes_than_it_holds_is_refused(tiny_demo, tmp_path):
+    """A manifest edited (or an export mixed with another) so that it lists no index while an index folder is
+    there: one error naming the manifest and the unlisted folders, never an empty bundle."""
+    out, _ = tiny_demo
+    copy = tmp_path / "bundle"
+    shutil.copytree(out / "bundles", copy)
+    man = json.loads((copy / "manifest.json").read_text())
+    held = sorted(man["indexes"])
+    man["indexes"] = {}
+    (copy / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(InputError, match="lists 0 index") as e:
+        load_bundle(copy)
+    assert "manifest.json" in str(e.value) and all(name in str(e.value) for name in held)
+
+
 def test_export_of_one_named_index_and_of_a_missing_one(tiny_demo, tmp_path, capsys):
     out, _ = tiny_demo
     ws = out / "workspace"

@@ -182,6 +182,14 @@ def load_bundle(path: str | Path, verify: bool = True) -> Bundle:
         if load is None:
             raise InputError(mpath, f"index {name!r} has unknown kind {e.get('kind')!r}", field="kind")
         indexes[name] = load(sub, verify=verify)
+    listed = {(path / e.get("path", name)).resolve() for name, e in (top.get("indexes") or {}).items()}
+    unlisted = sorted(d.name for d in path.iterdir() if (d / MANIFEST).is_file() and d.resolve() not in listed)
+    if unlisted:  # an export and its manifest that disagree: edited, or two exports mixed in one folder
+        raise InputError(
+            mpath,
+            f"lists {len(listed)} index(es) but the folder holds others: {unlisted}; export it again",
+            field="indexes",
+        )
     return Bundle(path, top, indexes)
 
 
