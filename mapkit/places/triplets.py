@@ -785,11 +785,18 @@ def write_shard_hdf5(path: Path, occ: np.ndarray, dcg: np.ndarray, first_id: int
     (n, 3, g, g, ceil(g/8)), uint8 with the bits of the last axis packed (``np.packbits``, big
     bit order), chunked by whole grids (16 patches a chunk, so reading one patch inflates at most
     64 KB / 192 KB) and deflated at level 1 (gzip: any HDF5 reader has it; the packed grids
-    compress about as well as at level 9, several times faster). Attributes name the layout."""
+    compress about as well as at level 9, several times faster). Attributes name the layout.
+
+    The file is made in memory and written in one Python write: HDF5 that meets a full disk cannot
+    close its file, and the half-closed handle crashed the interpreter at exit; this way a full disk is
+    one ``OSError`` like any other write's."""
+    import io
+
     import h5py
 
     n = len(occ)
-    with h5py.File(path, "w", track_order=True) as f:
+    image = io.BytesIO()
+    with h5py.File(image, "w", track_order=True) as f:
         f.attrs.update(
             {
                 "format": "mapkit triplet patches",
@@ -811,6 +818,7 @@ def write_shard_hdf5(path: Path, occ: np.ndarray, dcg: np.ndarray, first_id: int
                 name, data=a, chunks=chunks, compression="gzip" if n else None, compression_opts=1 if n else None
             )
             ds.attrs.update({"layout": what, "grid": int(grid), "unpack": "np.unpackbits(x, axis=-1, count=grid)"})
+    Path(path).write_bytes(image.getbuffer())
 
 
 def read_shard(path: str | Path, fmt: str | None = None) -> dict[str, np.ndarray]:

@@ -368,6 +368,45 @@ def test_a_real_full_disk_stops_the_build_with_one_line_and_it_resumes(tmp_path,
     assert is_done(ws.session("drive").georef) and _poses(ws, "drive") == 300
 
 
+SHARDS_ONTO = """
+import sys
+from pathlib import Path
+import numpy as np
+from mapkit.core.errors import MapkitError
+from mapkit.places.triplets import ShardWriter
+rng = np.random.default_rng(0)
+w = ShardWriter(Path(sys.argv[1]), 16)  # a shard of about 260 kB: more than the disk holds at first
+try:
+    for _ in range(4):
+        w.add(rng.integers(0, 255, (16, 32, 32, 4), np.uint8), rng.integers(0, 255, (16, 3, 32, 32, 4), np.uint8))
+    w.flush()
+except MapkitError as exc:
+    print(exc, file=sys.stderr)
+    sys.exit(2)
+"""
+
+
+def test_a_full_disk_under_an_hdf5_shard_is_one_error_not_a_crash(small_disk):
+    """Triplet shards (HDF5, incompressible grids) written onto a 200 KiB file system, in a process of its own: it
+    exits 2 with one line naming the shard and the free space, no traceback and no crash at exit, nothing partial
+    left; with room made, the same shards are written and read back."""
+    import subprocess
+    import sys
+
+    from mapkit.places.triplets import read_shard
+
+    disk, grow = small_disk
+    r = subprocess.run([sys.executable, "-c", SHARDS_ONTO, str(disk)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "patches-00000.h5" in lines[0] and "MB free on" in lines[0], r.stderr[-2000:]
+    assert not list(disk.rglob("*.partial"))
+    grow()
+    r = subprocess.run([sys.executable, "-c", SHARDS_ONTO, str(disk)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert read_shard(disk / "patches-00003.h5")["occupancy"].shape == (16, 32, 32, 4)
+
+
 def test_a_tampered_export_is_restored_by_re_export_and_the_index_is_untouched(tmp_path):
     """An export shares no file with the workspace's index (its files are copies, not hard links), so
     editing the export leaves the index intact; loading the edited export fails its checksum, re-export
