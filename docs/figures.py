@@ -547,6 +547,7 @@ def render_first_run() -> str:
     return (
         table(["from a fresh clone", "time"], rows)
         + f"\n\nMeasured {rec['measured']} by `python3 bench/first_run.py` on {rec['machine']}, nothing else running."
+        + (f" The tests that failed in that run: {', '.join(rec['tests_failed'])}." if rec.get("tests_failed") else "")
     )
 
 
@@ -585,6 +586,7 @@ def render_benchmarks() -> str:
     return (
         table(["benchmark", "what is measured", "mapkit", "baseline (same run)", "ratio", "status"], rows)
         + f"\n\n`python3 bench/run_all.py{mode}`, measured {rec['measured']} on {rec['machine']}."
+        + (f" {rec['note']}" if rec.get("note") else "")
     )
 
 
