@@ -739,8 +739,14 @@ def blocks(text: str) -> list[tuple[str, str]]:
     return [(m.group("name"), m.group("body")) for m in BLOCK.finditer(text)]
 
 
-def fill(text: str, render: Callable[[str], str]) -> str:
-    return BLOCK.sub(lambda m: m.group(1) + render(m.group("name")).rstrip("\n") + "\n" + m.group(4), text)
+def fill(text: str, render: Callable[[str], str | None]) -> str:
+    """Each block's body replaced by its rendering; a block whose rendering is None keeps its body."""
+
+    def one(m: re.Match) -> str:
+        body = render(m.group("name"))
+        return m.group(0) if body is None else m.group(1) + body.rstrip("\n") + "\n" + m.group(4)
+
+    return BLOCK.sub(one, text)
 
 
 def _rendered() -> Callable[[str], str]:
@@ -757,8 +763,19 @@ def _rendered() -> Callable[[str], str]:
 
 
 def render_pages(pages: list[Path] = PAGES) -> list[Path]:
-    """Fill every block; returns the pages that changed."""
-    render, changed = _rendered(), []
+    """Fill every block; returns the pages that changed. A block whose record is missing keeps its text,
+    with one line saying so (``check`` still fails on it)."""
+    rendered, changed, missing = _rendered(), [], set()
+
+    def render(name: str) -> str | None:
+        try:
+            return rendered(name)
+        except SystemExit as why:
+            if str(why) not in missing:
+                missing.add(str(why))
+                print(f"kept as it is: {why}", file=sys.stderr)
+            return None
+
     for page in pages:
         text = page.read_text()
         new = fill(text, render)
