@@ -6,9 +6,11 @@ a stale lock), whose text names the holder (pid, host, command, start time) for 
 next writer sees. A second writer refuses at once with that message, or waits up to ``wait_s``.
 
 The lock is re-entrant within a process (a pipeline that calls ``build`` and then ``align`` takes
-it once) and is not inherited by worker processes: workers of a command write under their parent's
-lock (threads of one process share it too). It is advisory: it keeps mapkit's writers from each
-other, not an editor.
+it once; threads of one process share it). A worker process that a holder starts (``build``'s
+sessions on a process pool or Ray) is not given the flock; it works under its parent's lock by
+:func:`adopted_lock` with the holder's token (:func:`lock_token`), which the lock file records, so
+the library's own entry points called inside the worker find the lock held. It is advisory: it
+keeps mapkit's writers from each other, not an editor.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import errno
 import fcntl
 import json
 import os
+import secrets
 import socket
 import sys
 import threading
@@ -30,6 +33,8 @@ from mapkit.core.errors import MapkitError
 LOCK_NAME = ".lock"
 
 _held: dict[Path, tuple[int, int]] = {}  # resolved lock path -> (fd, depth), this process only
+_tokens: dict[Path, str] = {}  # resolved lock path -> the token this process's holder wrote
+_adopted: dict[Path, int] = {}  # resolved lock path -> depth, locks a worker works under for its parent
 _guard = threading.Lock()
 
 
@@ -86,11 +91,15 @@ def workspace_lock(
             reentered = True
         else:
             reentered = False
+        adopted = path in _adopted
     if reentered:
         try:
             yield path
         finally:
             _release(path)
+        return
+    if adopted:  # a worker under its parent's lock
+        yield path
         return
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     t0 = time.monotonic()
@@ -106,8 +115,10 @@ def workspace_lock(
                 if waited >= wait_s:
                     raise WorkspaceBusy(path, read_holder(path), waited) from None
                 time.sleep(min(poll_s, max(wait_s - waited, 0.01)))
+        token = secrets.token_hex(8)
         holder = {
             "pid": os.getpid(),
+            "token": token,
             "host": socket.gethostname(),
             "command": command or _command_line(),
             "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -119,10 +130,43 @@ def workspace_lock(
         raise
     with _guard:
         _held[path] = (fd, 1)
+        _tokens[path] = token
     try:
         yield path
     finally:
         _release(path)
+
+
+def lock_token(root: str | os.PathLike) -> str | None:
+    """The token of the lock this process holds on workspace ``root`` (None when it holds none): what a
+    worker it starts needs for :func:`adopted_lock`."""
+    path = (Path(root) / LOCK_NAME).resolve()
+    with _guard:
+        return _tokens.get(path) if path in _held else None
+
+
+@contextmanager
+def adopted_lock(root: str | os.PathLike, token: str | None) -> Iterator[None]:
+    """In a worker process: work under the lock that the process which started it holds on ``root`` (its
+    ``token``, from :func:`lock_token`), so that entry points called here find it held. Without a token
+    (the parent held no lock) nothing is adopted. Raises :class:`WorkspaceBusy` when the lock file no
+    longer names that token: the parent's lock is gone, and writing now would race another writer."""
+    if token is None:
+        yield
+        return
+    path = (Path(root) / LOCK_NAME).resolve()
+    holder = read_holder(path)
+    if holder.get("token") != token:
+        raise WorkspaceBusy(path, holder, 0.0)
+    with _guard:
+        _adopted[path] = _adopted.get(path, 0) + 1
+    try:
+        yield
+    finally:
+        with _guard:
+            _adopted[path] -= 1
+            if not _adopted[path]:
+                del _adopted[path]
 
 
 def _release(path: Path) -> None:
@@ -132,6 +176,7 @@ def _release(path: Path) -> None:
             _held[path] = (fd, depth - 1)
             return
         del _held[path]
+        _tokens.pop(path, None)
     try:
         os.ftruncate(fd, 0)  # the file stays (removing it would race a waiter that opened it)
     finally:

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from mapkit.core.lock import LOCK_NAME, workspace_lock
-from mapkit.core.workspace import ORIGIN, Workspace
+from mapkit.core.workspace import ORIGIN, SessionDirs, Workspace
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -53,8 +53,8 @@ def enclosing_workspace(path: str | os.PathLike) -> Path | None:
 def writes_workspace(
     arg: str = "workspace", *, creates: bool = False, within: bool = False, default: str = ""
 ) -> Callable[[F], F]:
-    """Decorate an entry point that writes the workspace given as its argument ``arg`` (a path or a
-    :class:`Workspace`).
+    """Decorate an entry point that writes the workspace given as its argument ``arg`` (a path, a
+    :class:`Workspace`, or with ``within`` a folder in one, such as a session's :class:`SessionDirs`).
 
     - ``creates``: the function makes the workspace when it does not exist (``build``), so the lock
       is taken on the new folder; otherwise a missing folder is left for the function to report;
@@ -77,7 +77,7 @@ def writes_workspace(
                 value = argument(bound, default)
             if value is None or value is inspect.Parameter.empty:
                 return None
-            path = Path(value.root if isinstance(value, Workspace) else value)
+            path = Path(value.root if isinstance(value, (Workspace, SessionDirs)) else value)
             if within:
                 return enclosing_workspace(path)
             return path if creates or path.is_dir() else None

@@ -226,3 +226,55 @@ def test_every_cli_write_goes_through_a_locking_entry_point():
     assert len(called) >= 10
     unlocked = sorted(f"{fn.__module__}.{fn.__name__}" for fn in called if not hasattr(fn, "__mapkit_locks__"))
     assert unlocked == []
+
+
+def test_a_session_builder_on_a_held_workspace_refuses_before_it_empties_a_stage(tmp_path):
+    """SessionBuilder is public: run while another process writes the workspace, it refuses with the holder named,
+    and a stage it would re-make (its marker gone) is not emptied first."""
+    import warnings
+
+    from test_build import _imageless_log
+
+    from mapkit.core.errors import InputWarning
+    from mapkit.core.runio import DONE_MARKER
+    from mapkit.mapping.build import BuildConfig, SessionBuilder, build
+
+    log = _imageless_log(tmp_path / "drive.mcap")
+    os.utime(log, (time.time() - 3600,) * 2)  # a log that finished being written
+    ws = tmp_path / "ws"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)  # the image stages are skipped: this log has no camera
+        build([log], ws, progress=False)
+    (Workspace(ws).session("drive").trajectory / DONE_MARKER).unlink()
+    with _holder(ws, tmp_path, 60) as proc:
+        before = _listing(ws)
+        with pytest.raises(WorkspaceBusy, match=f"pid {proc.pid}"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", InputWarning)
+            SessionBuilder(log, ws, BuildConfig(), progress=False).run()
+        assert _listing(ws) == before
+
+
+def test_a_worker_writes_under_its_parents_lock_only_with_its_token(tmp_path):
+    """A worker process that the holder started adopts the holder's lock by its token (build's sessions on a pool);
+    a process with another token, or none, is refused as any second writer is."""
+    from mapkit.core.lock import lock_token
+
+    ws = _a_workspace(tmp_path / "ws")
+    worker = (
+        "import sys\n"
+        "from mapkit.core.lock import adopted_lock, workspace_lock\n"
+        "token = sys.argv[2] or None\n"
+        "with adopted_lock(sys.argv[1], token), workspace_lock(sys.argv[1]):\n"
+        "    print('wrote')\n"
+    )
+    with workspace_lock(ws, command="mapkit build parent"):
+        token = lock_token(ws)
+        assert token is not None and read_holder(ws / ".lock")["token"] == token
+        runs = {
+            t: subprocess.run([sys.executable, "-c", worker, str(ws), t], capture_output=True, text=True, timeout=60)
+            for t in (token, "0" * 16, "")
+        }
+    assert runs[token].returncode == 0 and runs[token].stdout.strip() == "wrote"
+    for t in ("0" * 16, ""):
+        assert runs[t].returncode != 0 and "WorkspaceBusy" in runs[t].stderr and "mapkit build parent" in runs[t].stderr
+    assert lock_token(ws) is None  # released: the token is gone with the lock
