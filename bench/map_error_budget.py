@@ -67,12 +67,8 @@ def _variant_poses(variant: str, est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return q
 
 
-# the config sections each reused stage hashes, and the stages whose digests its inputs record (as
-# SessionBuilder.trajectory / .georef compute them)
-_REUSED_STAGES = {
-    "trajectory": (("topics", "trajectory"), ()),
-    "georef": (("topics", "trajectory", "georef"), ("trajectory",)),
-}
+# the stages whose digests each reused stage's inputs record (as SessionBuilder.trajectory / .georef compute them)
+_REUSED_STAGES: dict[str, tuple[str, ...]] = {"trajectory": (), "georef": ("trajectory",)}
 
 
 def _copy_stages(builder, sdir: Path, stages: tuple[str, ...]) -> None:
@@ -91,15 +87,17 @@ def _mark_finished(builder, stages: tuple[str, ...]) -> None:
     georef stage hashes the factor graph's section), and the builder would run the stage again,
     writing the estimated trajectory over the variant's."""
     from mapkit.core.runio import mark_done, read_marker
-    from mapkit.mapping.build import _stage_hash
+    from mapkit.mapping.build import _stage_hash, _stage_version
 
     for stage in stages:  # upstream first: a stage's inputs hold the digest of its upstream's marker
-        sections, upstream = _REUSED_STAGES[stage]
+        upstream = _REUSED_STAGES[stage]
         out = getattr(builder.dirs, stage)
-        info = {k: v for k, v in (read_marker(out) or {}).items() if k not in ("config_hash", "inputs", "outputs")}
+        kept = ("config_hash", "stage_version", "legacy_config_hash", "inputs", "outputs")
+        info = {k: v for k, v in (read_marker(out) or {}).items() if k not in kept}
         mark_done(
             out,
-            _stage_hash(builder.cfg, *sections),
+            _stage_hash(builder.cfg, stage),
+            version=_stage_version(stage),
             inputs=builder._inputs(*(getattr(builder.dirs, u) for u in upstream)),
             outputs=True,
             **info,

@@ -68,7 +68,7 @@ def test_variant_poses_are_the_mapped_trajectory(meb, tmp_path, fused):
         mapped = builder.dirs.enu_trajectory
         assert mapped == (builder.dirs.fused_trajectory if fused else builder.dirs.georef_trajectory)
         # the workspace's markers copied as they are: the builder would run georef again
-        h = _stage_hash(builder.cfg, "topics", "trajectory", "georef")
+        h = _stage_hash(builder.cfg, "georef")
         assert not is_done(builder.dirs.georef, h, inputs=builder._inputs(builder.dirs.trajectory), verify=True)
 
         variant = _traj(15, -50.0)

@@ -1,13 +1,18 @@
 """Run-folder plumbing: atomic writes, finished-stage markers, resolved configs and metrics.
 
-A stage writes into its output folder and, last of all, a ``.done`` marker holding the hash of
-the configuration that made it, the identity of its inputs (``inputs``: a log's fingerprint, the
-:func:`stage_digest` of the upstream stages it read) and the size and SHA-256 of its outputs
-(``outputs``). A folder without the marker (an interrupted run) is never taken for a finished one;
-a marker with another config hash or other inputs means the stage reruns; an output that no longer
+A stage writes into its output folder and, last of all, a ``.done`` marker holding its identity:
+the :func:`stage_hash` of its name, the version of its algorithm (``stage_version``, a constant
+beside the stage's code) and the resolved configuration it depends on, every field with its
+default; the identity of its inputs (``inputs``: a log's fingerprint, the :func:`stage_digest` of
+the upstream stages it read); and the size and SHA-256 of its outputs (``outputs``). A folder
+without the marker (an interrupted run) is never taken for a finished one; a marker with another
+hash (another config, a changed default, another version) or other inputs means the stage reruns,
+and so does a marker without an input record where the stage has inputs; an output that no longer
 matches its record is re-made by its own stage (:func:`is_done` with ``verify``) or refused by the
-stage that loads it (:func:`verify_file`). Markers written before inputs were recorded have no
-``inputs`` and stay valid for their config hash, so that existing workspaces do not rebuild.
+stage that loads it (:func:`verify_file`). A marker of an older mapkit (no ``stage_version``) is
+migrated once (:func:`is_done` with ``legacy_hash``): when its hash is the older rule's hash of
+today's config and its inputs and outputs still match, it is rewritten with today's hash, with a
+warning, and the stage is reused; otherwise the stage runs again.
 
 Wall-clock figures (how long a stage took, how fast it went) are a record of one run, not a result:
 they go into the stage folder's ``timings.json`` (:func:`write_timings`), never into ``metrics.json``
@@ -261,42 +266,103 @@ def read_marker(folder: str | Path) -> dict | None:
     return record if isinstance(record, dict) else None
 
 
+def stage_hash(stage: str, version: int, config: Any) -> str:
+    """The hash a stage's marker holds: of the stage's name, the version of its algorithm and ``config``,
+    the resolved configuration it depends on (every field, defaults included), so that another config, a
+    changed default or a bumped version makes the stage run again."""
+    return config_hash({"stage": stage, "version": version, "config": config})
+
+
 def is_done(
-    folder: str | Path, cfg_hash: str | None = None, *, inputs: dict | None = None, verify: bool = False
+    folder: str | Path,
+    cfg_hash: str | None = None,
+    *,
+    inputs: dict | None = None,
+    verify: bool = False,
+    legacy_hash: str | None = None,
+    version: int | None = None,
 ) -> bool:
     """Whether ``folder`` holds a finished stage made with ``cfg_hash`` from ``inputs``.
 
-    ``inputs`` are compared with the marker's record of them, when it has one (a marker written
-    before inputs were recorded is valid for its config hash alone). With ``verify``, every output
-    the marker recorded must still have its size and SHA-256; a stage whose inputs or outputs
-    changed is not finished (the reason is logged, or warned for changed outputs)."""
+    ``inputs`` are compared with the marker's record of them; a marker that records none is not trusted
+    (the stage runs again, the reason logged). With ``verify``, every output the marker recorded must
+    still have its size and SHA-256; a stage whose inputs or outputs changed is not finished (the reason
+    is logged, or warned for changed outputs).
+
+    ``legacy_hash`` (with ``version``) is the older rule's hash of today's config: a marker without a
+    ``stage_version`` that holds it, and whose inputs and outputs still match, is rewritten with
+    ``cfg_hash`` and ``version`` (one warning) and the stage is finished."""
+    folder = Path(folder)
     record = read_marker(folder)
-    if record is None or (cfg_hash is not None and record.get("config_hash") != cfg_hash):
+    if record is None:
         return False
-    if inputs is not None and "inputs" in record and record["inputs"] != json.loads(to_json(inputs)):
-        changed = sorted(
-            k
-            for k in set(inputs) | set(record["inputs"])
-            if json.loads(to_json(inputs.get(k))) != record["inputs"].get(k)
-        )
-        logger.info("%s: inputs changed (%s); the stage runs again", folder, ", ".join(changed))
-        return False
-    if verify:
+    legacy = False
+    if cfg_hash is not None and record.get("config_hash") != cfg_hash:
+        if legacy_hash is None or "stage_version" in record or record.get("config_hash") != legacy_hash:
+            return False
+        legacy = True
+    if inputs is not None:
+        if "inputs" not in record:
+            logger.info("%s: its marker records no inputs to compare; the stage runs again", folder)
+            return False
+        if record["inputs"] != json.loads(to_json(inputs)):
+            changed = sorted(
+                k
+                for k in set(inputs) | set(record["inputs"])
+                if json.loads(to_json(inputs.get(k))) != record["inputs"].get(k)
+            )
+            logger.info("%s: inputs changed (%s); the stage runs again", folder, ", ".join(changed))
+            return False
+    if verify or legacy:
         for rel, rec in (record.get("outputs") or {}).items():
-            why = check_file(Path(folder) / rel, rec)
+            why = check_file(folder / rel, rec)
             if why is not None:
-                warnings.warn(f"{Path(folder) / rel} {why}; its stage runs again", InputWarning, stacklevel=2)
+                warnings.warn(f"{folder / rel} {why}; its stage runs again", InputWarning, stacklevel=2)
                 return False
+    if legacy:
+        if version is None:
+            raise ValueError("is_done: legacy_hash needs the stage's version")
+        _migrate_marker(folder, record, str(cfg_hash), version)
     return True
 
 
+def _migrate_marker(folder: Path, record: dict, cfg_hash: str, version: int) -> None:
+    """Rewrite the marker of an older mapkit with today's hash and the stage's version. Its hash is kept as
+    ``legacy_config_hash``, which :func:`stage_digest` reads, so that the downstream stages' input records
+    still match."""
+    write_json(
+        folder / DONE_MARKER,
+        {
+            **record,
+            "config_hash": cfg_hash,
+            "stage_version": version,
+            "legacy_config_hash": record.get("legacy_config_hash", record.get("config_hash")),
+        },
+    )
+    warnings.warn(
+        f"{folder}: finished by an older mapkit (its marker holds no stage version); its config, inputs and "
+        f"outputs still match, so it is reused and its marker migrated to stage version {version}",
+        InputWarning,
+        stacklevel=3,
+    )
+
+
 def mark_done(
-    folder: str | Path, cfg_hash: str, *, inputs: dict | None = None, outputs: bool | Sequence[str] = (), **info: Any
+    folder: str | Path,
+    cfg_hash: str,
+    *,
+    version: int | None = None,
+    inputs: dict | None = None,
+    outputs: bool | Sequence[str] = (),
+    **info: Any,
 ) -> None:
-    """Finish a stage: its marker records ``cfg_hash``, ``inputs`` (JSON) and the size and SHA-256 of
-    ``outputs`` (paths relative to ``folder``, a folder standing for its files; True: every file in it)."""
+    """Finish a stage: its marker records ``cfg_hash`` (a :func:`stage_hash`), the stage's ``version``,
+    ``inputs`` (JSON) and the size and SHA-256 of ``outputs`` (paths relative to ``folder``, a folder
+    standing for its files; True: every file in it)."""
     folder = Path(folder)
     record: dict[str, Any] = {"config_hash": cfg_hash}
+    if version is not None:
+        record["stage_version"] = version
     if inputs is not None:
         record["inputs"] = inputs
     if outputs:
@@ -304,14 +370,27 @@ def mark_done(
     write_json(folder / DONE_MARKER, {**record, **info})
 
 
+def marker_hash(record: dict) -> str | None:
+    """The config hash a marker's stage was made with, as its downstream stages identify it: the older hash a
+    migrated marker keeps (:func:`is_done` with ``legacy_hash``), else its own."""
+    return record.get("legacy_config_hash", record.get("config_hash"))
+
+
 def stage_digest(folder: str | Path) -> str | None:
     """What a downstream stage records of an upstream one: a hash of its marker's output record (of
     its config hash and inputs for a marker without one), so that a re-made upstream output
-    invalidates what was made from it. None when the stage has not finished."""
+    invalidates what was made from it. A migrated marker (:func:`is_done` with ``legacy_hash``)
+    gives the digest it gave before. None when the stage has not finished."""
     record = read_marker(folder)
     if record is None:
         return None
-    return config_hash({k: record.get(k) for k in ("config_hash", "inputs", "outputs")})
+    return config_hash(
+        {
+            "config_hash": marker_hash(record),
+            "inputs": record.get("inputs"),
+            "outputs": record.get("outputs"),
+        }
+    )
 
 
 def verify_file(path: str | Path, rerun: str) -> None:

@@ -51,6 +51,7 @@ from mapkit.core.runio import (
     is_done,
     mark_done,
     progress_bar,
+    stage_hash,
     write_json,
     write_timings,
 )
@@ -73,6 +74,8 @@ from mapkit.places.triplets import TripletDataset
 
 log = logging.getLogger(__name__)
 
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 CHECKPOINTS = "checkpoints"
 #: an epoch's wall-clock figures: the run record (timings.json), not metrics.json
 EPOCH_TIMINGS = ("train_s", "train_cpu_s", "triplets_per_s", "wall_s", "hard_mining_s")
@@ -346,15 +349,16 @@ def train_cnn(
     if cfg.model.grid != ds.grid:
         raise ConfigError(f"model.grid is {cfg.model.grid} but the triplet dataset's grids are {ds.grid}^3")
     out = Path(out)
-    resume_hash = config_hash(
-        {
-            "config": cfg.model_dump(mode="json", exclude=_RESUME_FREE),
-            "dataset": ds.manifest.get("config_hash"),
-            "dataset_files": ds.manifest.get("files"),
-        }
-    )
-    full_hash = config_hash({"resume": resume_hash, "epochs": cfg.epochs})
-    if is_done(out, full_hash) and (out / ONNX_FILE).is_file():
+    resume_config = {
+        "config": cfg.model_dump(mode="json", exclude=_RESUME_FREE),
+        "dataset": ds.manifest.get("config_hash"),
+        "dataset_files": ds.manifest.get("files"),
+    }
+    # the version is in the checkpoints' hash too: a checkpoint of another version of the training is not resumed
+    resume_hash = stage_hash("train", STAGE_VERSION, resume_config)
+    full_hash = stage_hash("train", STAGE_VERSION, {"resume": resume_hash, "epochs": cfg.epochs})
+    legacy_hash = config_hash({"resume": config_hash(resume_config), "epochs": cfg.epochs})
+    if is_done(out, full_hash, legacy_hash=legacy_hash, version=STAGE_VERSION) and (out / ONNX_FILE).is_file():
         return out
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(cfg.threads)
@@ -418,7 +422,7 @@ def train_cnn(
         title=f"CNN descriptor, {cfg.model.form}, hard negatives {'on' if cfg.hard_negatives else 'off'}",
     )
     write_manifest(out, _model_manifest(cfg, ds, full_hash, resume_hash, len(history)))
-    mark_done(out, full_hash)
+    mark_done(out, full_hash, version=STAGE_VERSION)
     return out
 
 
@@ -453,7 +457,8 @@ def _resume_state(torch, out: Path, epochs: int, resume_hash: str) -> dict | Non
     state = torch.load(ckpts[-1], map_location="cpu", weights_only=False)
     if state.get("resume_hash") != resume_hash:
         raise ConfigError(
-            f"{out} holds checkpoints of another training configuration or dataset; train into another folder "
+            f"{out} holds checkpoints of another training configuration, dataset or version of the training; "
+            "train into another folder "
             f"or remove {out / CHECKPOINTS}"
         )
     return state

@@ -57,6 +57,7 @@ from mapkit.core.runio import (
     mark_done,
     read_marker,
     stage_digest,
+    stage_hash,
     verify_file,
     write_json,
     write_timings,
@@ -74,6 +75,9 @@ from mapkit.multisession.submaps import SessionData, SubmapClouds, candidate_pai
 from mapkit.multisession.tiles import ALIGN_FORMAT_VERSION, write_tiles
 
 log = logging.getLogger(__name__)
+
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 
 __all__ = [
     "AlignConfig",
@@ -245,11 +249,12 @@ def align_workspace(
             f"{len(data)} alignable session(s); multi-session alignment needs at least two built, "
             "georeferenced sessions with a semi-dense map (the warnings above say why each was skipped)",
         )
-    run_hash = config_hash({"cfg": cfg, "sessions": [[s.name, s.map_hash] for s in data]})
+    run_config = {"cfg": cfg, "sessions": [[s.name, s.map_hash] for s in data]}
+    run_hash = stage_hash("align", STAGE_VERSION, run_config)
     inputs = {
         s.name: {stage: stage_digest(ws.session(s.name).stage(stage)) for stage in ("georef", "map")} for s in data
     }
-    if is_done(out, run_hash, inputs=inputs):
+    if is_done(out, run_hash, inputs=inputs, legacy_hash=config_hash(run_config), version=STAGE_VERSION):
         return out
     finished = (read_marker(out) or {}).get(
         "outputs"
@@ -276,7 +281,12 @@ def align_workspace(
     )
     atomic_write_text(out / "qa.md", format_align_qa(qa))
     mark_done(
-        out, run_hash, inputs=inputs, outputs=["sessions", "tiles", "pairs.json"], sessions=[s.name for s in data]
+        out,
+        run_hash,
+        version=STAGE_VERSION,
+        inputs=inputs,
+        outputs=["sessions", "tiles", "pairs.json"],
+        sessions=[s.name for s in data],
     )
     return out
 

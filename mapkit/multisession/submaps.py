@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.errors import InputWarning
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import DONE_MARKER
+from mapkit.core.runio import DONE_MARKER, marker_hash
 from mapkit.core.workspace import SessionDirs
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
@@ -105,7 +105,7 @@ def load_session(sdir: SessionDirs | Path, ws_frame: LocalFrame, length_m: float
         pts,
         point_arc,
         dirs.map,
-        done.get("config_hash", ""),
+        marker_hash(done) or "",  # of a migrated marker, the hash the cached registrations know its map by
         smap=smap,
         ws_from_session=ws_from_session,
         fused=dirs.fused_trajectory.is_dir(),

@@ -53,7 +53,17 @@ import numpy as np
 
 from mapkit.core.bundle import building
 from mapkit.core.config import dump_config, load_config
-from mapkit.core.runio import atomic_path, atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json
+from mapkit.core.runio import (
+    atomic_path,
+    atomic_write_text,
+    config_hash,
+    is_done,
+    mark_done,
+    sha256_file,
+    stage_digest,
+    stage_hash,
+    write_json,
+)
 from mapkit.core.writers import writes_workspace
 from mapkit.places.pointnetvlad_config import PointNetVladConfig
 from mapkit.places.triplets import (
@@ -78,6 +88,8 @@ __all__ = [
     "unique_stamps",
 ]
 
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 PNV_FORMAT_VERSION = 2  # 2: integer timestamps, zero-mean clouds scaled as PointNetVLAD's, evaluation pickles
 QUERY_FILES = {"train": "training_queries_baseline.pickle", "test": "test_queries_baseline.pickle"}
 CLOUD_FOLDER = "pointcloud_patches"
@@ -109,6 +121,7 @@ def export_triplets_pointnetvlad(
     return folder
 
 
+@writes_workspace("out", within=True, default="dataset")
 def export_pointnetvlad(
     dataset: str | Path,
     workspace: str | Path,
@@ -126,16 +139,16 @@ def export_pointnetvlad(
     dataset, workspace = Path(dataset), Path(workspace)
     ds = TripletDataset(dataset)
     out = Path(out) if out is not None else dataset / cfg.folder
-    h = config_hash(
-        {
-            "cfg": cfg.model_dump(mode="json", exclude={"enabled"}),
-            "seed": seed,
-            "format": PNV_FORMAT_VERSION,
-            "dataset": ds.manifest["config_hash"],
-            "patches": ds.manifest["patches"],
-        }
-    )
-    if is_done(out, h):
+    identity = {
+        "cfg": cfg.model_dump(mode="json", exclude={"enabled"}),
+        "seed": seed,
+        "format": PNV_FORMAT_VERSION,
+        "dataset": ds.manifest["config_hash"],
+        "patches": ds.manifest["patches"],
+    }
+    h = stage_hash("pointnetvlad", STAGE_VERSION, identity)
+    inputs = {"dataset": stage_digest(dataset)}  # a dataset made again from re-aligned maps: its clouds moved
+    if is_done(out, h, inputs=inputs, legacy_hash=config_hash(identity), version=STAGE_VERSION):
         return out
     names = list(ds.manifest["sessions"])
     t = ds.table
@@ -171,7 +184,7 @@ def export_pointnetvlad(
         left_out = int((~written).sum())
         manifest = _manifest(out, cfg, ds, dataset_ref, h, seed, counts, [names[k] for k in runs], n_eval, left_out)
         write_json(out / "manifest.json", manifest)
-        mark_done(out, h)
+        mark_done(out, h, version=STAGE_VERSION, inputs=inputs)
     return final
 
 

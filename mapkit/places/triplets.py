@@ -47,9 +47,11 @@ from mapkit.core.runio import (
     config_hash,
     is_done,
     mark_done,
+    marker_hash,
     progress_bar,
     sha256_file,
     stage_digest,
+    stage_hash,
     verify_file,
     write_json,
     write_timings,
@@ -73,6 +75,9 @@ from mapkit.places.patches import (
 from mapkit.places.pointnetvlad_config import PointNetVladConfig
 
 log = logging.getLogger(__name__)
+
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 
 TRIPLETS_FORMAT_VERSION = 2  # 2: shards in HDF5 (or npz, as the manifest's shard_format says); 1: npz shards only
 READABLE_FORMAT_VERSIONS = (1, 2)
@@ -878,11 +883,11 @@ def export_triplets(
     cfg = load_config(TripletConfig, config, overrides)
     out = Path(out) if out is not None else ws.triplets_dir
     # the PointNetVLAD layout is a stage of its own (mapkit.places.pointnetvlad): its settings do not change the dataset
-    h = config_hash(
-        {"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": ws.align_record().get("config_hash")}
-    )
+    # the alignment as its downstream stages know it (the older hash of a migrated marker)
+    identity = {"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": marker_hash(ws.align_record())}
+    h = stage_hash("triplets", STAGE_VERSION, identity)
     inputs = {"align": stage_digest(ws.align_dir)}  # a re-made alignment (other maps, same config) makes a new dataset
-    if is_done(out, h, inputs=inputs):
+    if is_done(out, h, inputs=inputs, legacy_hash=config_hash(identity), version=STAGE_VERSION):
         return out
     t0 = time.perf_counter()
     sessions, frame = load_aligned_sessions(ws, cfg.sessions)
@@ -913,7 +918,7 @@ def export_triplets(
             places.counts.icp,
         )
         _write_dataset(out, ws, h, cfg, sessions, frame, kp.tiles, shards, table, places, t0)
-        mark_done(out, h, inputs=inputs)
+        mark_done(out, h, version=STAGE_VERSION, inputs=inputs)
     return final
 
 

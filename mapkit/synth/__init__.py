@@ -67,7 +67,16 @@ import numpy as np
 
 from mapkit.core.errors import ConfigError, MapkitError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json, write_timings
+from mapkit.core.runio import (
+    atomic_write_text,
+    config_hash,
+    is_done,
+    mark_done,
+    sha256_file,
+    stage_hash,
+    write_json,
+    write_timings,
+)
 from mapkit.core.threads import single_thread_blas
 from mapkit.io.mcap_log import ROSBAG2_METADATA, is_rosbag2
 from mapkit.io.trajectory import read_tum
@@ -98,6 +107,10 @@ __all__ = [
 #: how a session's log is written; part of the output hashes, so that a town written with bare
 #: ``sessions/<name>.mcap`` logs is rewritten with rosbag2 folders (and a manifest naming them)
 SESSION_LOG_LAYOUT = "rosbag2-mcap"
+#: the versions of the town's and the sessions' algorithms, each bumped whenever its output for the same inputs
+#: changes (it reruns; a new town version renders the sessions again too)
+TOWN_STAGE_VERSION = 1
+SESSIONS_STAGE_VERSION = 1
 
 
 def session_log_relpath(session: str) -> str:
@@ -145,20 +158,19 @@ def _world_hash(cfg: SynthConfig, trajectory_digest: str | None) -> str:
     )
 
 
-def _session_hash(cfg: SynthConfig, world_hash: str, index: int, session) -> str:
-    return config_hash(
-        {
-            "world": world_hash,
-            "index": index,
-            "session": session,
-            "camera": cfg.camera,
-            "lidar": cfg.lidar,
-            "gps": cfg.gps,
-            "imu": cfg.imu,
-            "motion": cfg.motion,
-            "log": SESSION_LOG_LAYOUT,
-        }
-    )
+def _session_identity(cfg: SynthConfig, world_hash: str, index: int, session) -> dict:
+    """What a session's render depends on (its marker's hash is of this, the town's and the sessions' versions)."""
+    return {
+        "world": world_hash,
+        "index": index,
+        "session": session,
+        "camera": cfg.camera,
+        "lidar": cfg.lidar,
+        "gps": cfg.gps,
+        "imu": cfg.imu,
+        "motion": cfg.motion,
+        "log": SESSION_LOG_LAYOUT,
+    }
 
 
 def synthesize(
@@ -185,7 +197,8 @@ def synthesize(
     cfg, external, digest = _config_and_trajectory(preset, config, seed, overrides, trajectory)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    full_hash = config_hash({"config": cfg, "trajectory": digest, "log": SESSION_LOG_LAYOUT})
+    town_identity = {"config": cfg, "trajectory": digest, "log": SESSION_LOG_LAYOUT}
+    full_hash = stage_hash("town", TOWN_STAGE_VERSION, town_identity)
     w_hash = _world_hash(cfg, digest)
     timing: dict[str, float] = {}
     with single_thread_blas():
@@ -197,7 +210,9 @@ def synthesize(
         timing["session_planning_s"] = time.perf_counter() - t
         world_dir = out / "world"
         manifest = _manifest(cfg, town, plans, full_hash, w_hash, None if external is None else str(trajectory))
-        if overwrite or not is_done(world_dir, full_hash):
+        if overwrite or not is_done(
+            world_dir, full_hash, legacy_hash=config_hash(town_identity), version=TOWN_STAGE_VERSION
+        ):
             t = time.perf_counter()
             _write_world(world_dir, town, cfg, manifest, full_hash, w_hash)
             timing["world_write_s"] = time.perf_counter() - t
@@ -221,7 +236,7 @@ def synthesize(
         lidar_scans_per_s=round(lid / lid_s, 3) if lid_s else None,
         sessions=session_timings,
     )
-    mark_done(out, full_hash)
+    mark_done(out, full_hash, version=TOWN_STAGE_VERSION)
     return out
 
 
@@ -280,7 +295,7 @@ def _write_world(world_dir: Path, town, cfg: SynthConfig, manifest: dict, full_h
     write_json(world_dir / "origin.json", town.frame.to_dict())
     atomic_write_text(world_dir / "config.yaml", dump_yaml(cfg))
     write_json(world_dir / "manifest.json", manifest)
-    mark_done(world_dir, full_hash, world_hash=w_hash)
+    mark_done(world_dir, full_hash, version=TOWN_STAGE_VERSION, world_hash=w_hash)
 
 
 def _sessions_to_render(
@@ -291,9 +306,10 @@ def _sessions_to_render(
     session_metrics = []
     todo = []
     for p in plans:
-        h = _session_hash(cfg, w_hash, p.index, p.config)
+        identity = _session_identity(cfg, w_hash, p.index, p.config)
+        h = stage_hash("sessions", SESSIONS_STAGE_VERSION, {**identity, "town_version": TOWN_STAGE_VERSION})
         marker = out / "sessions" / ".markers" / p.name
-        if not overwrite and is_done(marker, h):
+        if not overwrite and is_done(marker, h, legacy_hash=config_hash(identity), version=SESSIONS_STAGE_VERSION):
             done = json.loads((marker / ".done").read_text()).get("metrics", {})
             done.pop("timings_s", None)  # a marker may hold the session's timings: a run record, not a result
             session_metrics.append(done | {"skipped": True})
@@ -315,7 +331,7 @@ def _render_sessions(
         for p, h, marker in todo:
             m = write_session(town, p, cfg, out, progress)
             session_timings[p.name] = m.pop("timings_s")
-            mark_done(marker, h, metrics=m)
+            mark_done(marker, h, version=SESSIONS_STAGE_VERSION, metrics=m)
             session_metrics.append(m)
     else:
         for m in _render_parallel(cfg, trajectory, out, todo, workers, progress):
@@ -372,7 +388,9 @@ def _worker_render(index: int, out: str, cfg_hash: str, marker: str) -> dict:
             _WORKER["progress"],
             nthreads=_WORKER["nthreads"],
         )
-    mark_done(Path(marker), cfg_hash, metrics={k: v for k, v in m.items() if k != "timings_s"})
+    mark_done(
+        Path(marker), cfg_hash, version=SESSIONS_STAGE_VERSION, metrics={k: v for k, v in m.items() if k != "timings_s"}
+    )
     return m
 
 

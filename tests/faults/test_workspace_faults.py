@@ -25,7 +25,17 @@ from test_build import _imageless_log
 from mapkit.core.bundle import MANIFEST, copy_file, is_finished, write_manifest
 from mapkit.core.errors import ConfigError, InputError, InputWarning, MapkitError
 from mapkit.core.fingerprint import log_fingerprint
-from mapkit.core.runio import DONE_MARKER, WriteError, atomic_write_ply, is_done, mark_done, read_marker, write_json
+from mapkit.core.runio import (
+    DONE_MARKER,
+    WriteError,
+    atomic_write_ply,
+    config_hash,
+    is_done,
+    mark_done,
+    read_marker,
+    stage_hash,
+    write_json,
+)
 from mapkit.core.workspace import Workspace
 from mapkit.mapping.build import build
 from mapkit.mapping.trajectory import Trajectory
@@ -126,16 +136,22 @@ def test_a_replaced_log_is_rebuilt_and_an_unchanged_one_is_not(tmp_path, full_lo
     )
 
 
-def test_markers_of_older_workspaces_stay_valid_for_their_config(tmp_path):
-    """A marker without input records is finished for its config hash: workspaces whose markers hold none stay
-    valid; once a marker records inputs, other inputs make it unfinished."""
+def test_a_marker_without_inputs_is_not_trusted_and_an_older_one_is_migrated(tmp_path):
+    """A marker without input records is not finished for a stage that has inputs (it runs again); a marker
+    without a stage version that holds the older rule's hash of the config, and whose inputs still match, is
+    migrated once, with a warning; once a marker records inputs, other inputs make it unfinished."""
     folder = tmp_path / "stage"
     folder.mkdir()
-    mark_done(folder, "abc")
-    assert is_done(folder, "abc", inputs={"log": {"bytes": 1}}, verify=True)
-    mark_done(folder, "abc", inputs={"log": {"bytes": 1}})
-    assert is_done(folder, "abc", inputs={"log": {"bytes": 1}})
-    assert not is_done(folder, "abc", inputs={"log": {"bytes": 2}})
+    new, old = stage_hash("stage", 1, {"a": 1}), config_hash({"a": 1})
+    mark_done(folder, new)
+    assert not is_done(folder, new, inputs={"log": {"bytes": 1}}, verify=True)
+    mark_done(folder, old, inputs={"log": {"bytes": 1}})
+    assert not is_done(folder, new, inputs={"log": {"bytes": 1}})
+    with pytest.warns(InputWarning, match="finished by an older mapkit"):
+        assert is_done(folder, new, inputs={"log": {"bytes": 1}}, legacy_hash=old, version=1)
+    assert read_marker(folder)["stage_version"] == 1 and read_marker(folder)["config_hash"] == new
+    assert is_done(folder, new, inputs={"log": {"bytes": 1}})
+    assert not is_done(folder, new, inputs={"log": {"bytes": 2}})
 
 
 @pytest.mark.filterwarnings("ignore:.*skipped. the log has no image stream")
