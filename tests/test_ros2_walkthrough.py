@@ -246,10 +246,13 @@ def test_assume_identity_builds_a_gps_antenna_tf_does_not_link_with_one_warning(
 
 
 def test_a_bag_without_any_extrinsic_takes_the_antenna_at_the_base_saying_so_and_refuses_the_camera(town, tmp_path):
-    """A bag recorded without /tf_static: the GPS antenna is taken at the base with one warning (nothing in the bag
-    could place it); a camera, whose orientation a map needs, is an error until the config allows the identity."""
+    """A bag recorded without /tf_static: the GPS antenna and the LiDAR (whose scans the LiDAR map places) are taken
+    at the base with one warning each (nothing in the bag could place them); a camera, whose orientation a map
+    needs, is an error until the config allows the identity."""
     bag = _bag_without(session_log(town, BAG), tmp_path / "no-tf", None)
-    said = _build(bag, tmp_path / "ws", FAST + "imagedb: false\n")
-    assert len(said) == 1 and "GPS antenna frame 'gps'" in said[0] and "no extrinsics" in said[0], said
+    said = sorted(_build(bag, tmp_path / "ws", FAST + "imagedb: false\n"))
+    assert len(said) == 2, said
+    assert "GPS antenna frame 'gps'" in said[0] and "LiDAR frame 'lidar'" in said[1], said
+    assert all("no extrinsics" in s for s in said), said
     with pytest.raises(InputError, match=r"camera frame 'camera_front'.*the log's tf holds no transform"):
         _build(bag, tmp_path / "ws-camera", FAST)

@@ -48,7 +48,7 @@ from mapkit.core.lock import workspace_lock
 ORIGIN = "origin.json"
 DONE = ".done"
 
-Stage = Literal["trajectory", "georef", "map", "imagedb"]
+Stage = Literal["trajectory", "georef", "map", "lidar_map", "imagedb"]
 MapSource = Literal["align", "build"]
 
 
@@ -115,6 +115,11 @@ class SessionDirs:
     @property
     def map(self) -> Path:
         return self.root / "map"
+
+    @property
+    def lidar_map(self) -> Path:
+        """The LiDAR map (:mod:`mapkit.mapping.stages.lidar_map`)."""
+        return self.root / "lidar_map"
 
     @property
     def imagedb(self) -> Path:

@@ -1,9 +1,10 @@
 """``mapkit build``: one drive log to a georeferenced session map, stage by stage.
 
 Stages (each a folder under ``WORKSPACE/sessions/<name>/`` with a ``.done`` marker holding the
-hash of the config that made it, the log's fingerprint, the digests of the upstream stages it read
-and the SHA-256 of its outputs; re-running skips finished stages and redoes half-written ones, those
-whose log or upstream stage changed, and those whose outputs were changed or truncated since):
+hash of the config sections and the version of the code that made it, the log's fingerprint, the
+digests of the upstream stages it read and the SHA-256 of its outputs; re-running skips finished
+stages and redoes half-written ones, those whose config, code, log or upstream stage changed, and
+those whose outputs were changed or truncated since):
 
 1. ``trajectory/``  vehicle poses (kiss-icp, a pose stream, ...), TUM and KITTI files
 2. ``georef/``      GPS alignment: ``enu_from_map``, residuals, rejected fixes, aligned trajectory,
@@ -45,6 +46,7 @@ from mapkit.core.errors import InputError, InputWarning, MapkitError
 from mapkit.core.executor import Executor, TaskError, get_executor
 from mapkit.core.fingerprint import describe_change, log_fingerprint
 from mapkit.core.geodesy import LocalFrame
+from mapkit.core.lock import adopted_lock, lock_token, workspace_lock
 from mapkit.core.runio import (
     atomic_write_text,
     config_hash,
@@ -53,15 +55,22 @@ from mapkit.core.runio import (
     read_timings,
     reset_stage,
     stage_digest,
+    stage_hash,
     write_json,
     write_timings,
 )
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
-from mapkit.core.writers import writes_workspace
+from mapkit.core.writers import lock_wait, writes_workspace
 from mapkit.io import open_log
 from mapkit.io.base import DriveLog
+from mapkit.mapping.lidar_map import LidarMapConfig
 from mapkit.mapping.semidense import SemiDenseConfig
+from mapkit.mapping.stages import georef as georef_stage
+from mapkit.mapping.stages import imagedb as imagedb_stage
+from mapkit.mapping.stages import lidar_map as lidar_map_stage
+from mapkit.mapping.stages import map as map_stage
+from mapkit.mapping.stages import trajectory as trajectory_stage
 from mapkit.mapping.stages.common import camera_only
 from mapkit.mapping.stages.frames import MappingCamera, PosedFrames, choose_camera
 from mapkit.mapping.stages.georef import (
@@ -73,6 +82,7 @@ from mapkit.mapping.stages.georef import (
     workspace_frame,
 )
 from mapkit.mapping.stages.imagedb import ImageDbStageConfig, write_imagedb
+from mapkit.mapping.stages.lidar_map import write_lidar_map
 from mapkit.mapping.stages.map import write_map
 from mapkit.mapping.stages.trajectory import write_trajectory
 from mapkit.mapping.trajectory import SensorMounts, Trajectory, TrajectoryConfig
@@ -104,6 +114,11 @@ class BuildConfig(MapkitConfig):
         description="Build the semi-dense map (stage 3). False: trajectory, georeferencing and an image "
         "database without triangulated points, all that image retrieval and MCVL need.",
     )
+    lidar_map: LidarMapConfig = Field(
+        default_factory=LidarMapConfig,
+        description="The LiDAR map (lidar_map/): the deskewed scans in voxels on the session's final trajectory. "
+        "false: none; true: required (a log without a LiDAR is an error); auto (the default): when the log has one.",
+    )
     camera: str | None = Field(
         None,
         description="Camera (frame id) to map with; if unset, the first one (by name) with "
@@ -121,6 +136,11 @@ class BuildConfig(MapkitConfig):
     @classmethod
     def _imagedb_switch(cls, v):
         return {"enabled": v} if isinstance(v, bool) else v
+
+    @field_validator("lidar_map", mode="before")
+    @classmethod
+    def _lidar_map_switch(cls, v):
+        return {"enabled": v} if isinstance(v, bool) or v == "auto" else v
 
     @model_validator(mode="after")
     def _session_overrides_are_valid(self):
@@ -151,21 +171,23 @@ class BuildConfig(MapkitConfig):
         return cfg
 
 
-_IMAGEDB_LATER_DEFAULTS = {"min_interval_s": 0.0, "training_frames": False, "training_interval_s": 0.0}
+# each stage: its module (whose STAGE_VERSION is read when hashing, so a bumped version counts at once) and the
+# config sections its output depends on
+_STAGES = {
+    "trajectory": (trajectory_stage, ("topics", "trajectory")),
+    "georef": (georef_stage, ("topics", "trajectory", "georef")),
+    "lidar_map": (lidar_map_stage, ("topics", "trajectory", "georef", "lidar_map")),
+    "map": (map_stage, ("topics", "trajectory", "georef", "semidense", "camera")),
+    "imagedb": (imagedb_stage, ("topics", "trajectory", "georef", "semidense", "camera", "imagedb", "map")),
+}
 
 
-def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
-    """The config hash a stage's marker holds: of the config sections ``parts`` the stage depends on."""
-    d = cfg.model_dump(mode="json")
-    # Workspaces written by mapkit versions whose configs lacked some fields keep matching: the semi-dense
-    # section is hashed as the overrides it was given (not its defaults)
-    d["semidense"] = cfg.semidense.model_dump(mode="json", exclude_unset=True)
-    # the image database's switch decides whether it runs, not what it holds
-    d["imagedb"].pop("enabled")
-    # the image database's time sub-sampling and training frames count only when set
-    for key, default in _IMAGEDB_LATER_DEFAULTS.items():
-        if d["imagedb"].get(key) == default:
-            d["imagedb"].pop(key)
+def _stage_config(d: dict, parts: tuple[str, ...]) -> dict:
+    """Of a config dumped as JSON, the sections ``parts`` a stage depends on, as far as they change its output."""
+    d = json.loads(json.dumps(d))
+    # the image database's and the LiDAR map's switches decide whether they run, not what they hold
+    d["imagedb"].pop("enabled", None)
+    d["lidar_map"].pop("enabled", None)
     # the factor graph's section counts only when fusion is on
     if not d["georef"]["fuse"]:
         d["georef"].pop("fuse")
@@ -173,7 +195,34 @@ def _stage_hash(cfg: BuildConfig, *parts: str) -> str:
     # the assumed mounts count only when one is assumed: then every stage depends on them
     if d["extrinsics"]["assume_identity"]:
         parts = (*parts, "extrinsics")
-    return config_hash({p: d.get(p) for p in parts})
+    return {p: d.get(p) for p in parts}
+
+
+def _stage_version(stage: str) -> int:
+    """The version of a build stage's algorithm (its module's ``STAGE_VERSION``)."""
+    return int(_STAGES[stage][0].STAGE_VERSION)
+
+
+def _stage_hash(cfg: BuildConfig, stage: str) -> str:
+    """The hash a build stage's marker holds (:func:`mapkit.core.runio.stage_hash`): of its version and the
+    resolved config sections it depends on, every field with its default."""
+    return stage_hash(stage, _stage_version(stage), _stage_config(cfg.model_dump(mode="json"), _STAGES[stage][1]))
+
+
+# defaults that the older rule (:func:`_legacy_stage_hash`) left out of the hash
+_LEGACY_IMAGEDB_DEFAULTS = {"min_interval_s": 0.0, "training_frames": False, "training_interval_s": 0.0}
+
+
+def _legacy_stage_hash(cfg: BuildConfig, stage: str) -> str:
+    """The hash markers without a stage version hold (only to migrate them, :func:`mapkit.core.runio.is_done`):
+    no version, the semi-dense section as the overrides it was given and the image database's time
+    sub-sampling and training frames only when set."""
+    d = cfg.model_dump(mode="json")
+    d["semidense"] = cfg.semidense.model_dump(mode="json", exclude_unset=True)
+    for key, default in _LEGACY_IMAGEDB_DEFAULTS.items():
+        if d["imagedb"].get(key) == default:
+            d["imagedb"].pop(key)
+    return config_hash(_stage_config(d, _STAGES[stage][1]))
 
 
 def session_name(log_path: str | Path) -> str:
@@ -246,17 +295,24 @@ class SessionBuilder:
         """A stage's input record: the log's fingerprint and the digests of the upstream stages it reads."""
         return {"log": self.log_fingerprint(), **{folder.name: stage_digest(folder) for folder in upstream}}
 
-    def _is_finished(self, out: Path, h: str, inputs: dict) -> bool:
-        """The stage at ``out`` finished with this config and these inputs, its outputs unchanged (checked once per
-        run)."""
+    def _is_finished(self, out: Path, stage: str, inputs: dict) -> bool:
+        """The stage ``stage`` at ``out`` finished with this config, this version of its code and these inputs, its
+        outputs unchanged (checked once per run); a marker of an older mapkit that still matches is migrated."""
         if out in self._finished:
             return True
-        if is_done(out, h, inputs=inputs, verify=True):
+        if is_done(
+            out,
+            _stage_hash(self.cfg, stage),
+            inputs=inputs,
+            verify=True,
+            legacy_hash=_legacy_stage_hash(self.cfg, stage),
+            version=_stage_version(stage),
+        ):
             self._finished.add(out)
             return True
         return False
 
-    def _mark(self, out: Path, h: str, inputs: dict) -> None:
+    def _mark(self, out: Path, stage: str, inputs: dict) -> None:
         """Mark a stage finished, unless its log changed while the stage read it (then nothing is marked)."""
         now = log_fingerprint(self.log_path, watch=False)
         if now != inputs["log"]:
@@ -266,19 +322,20 @@ class SessionBuilder:
                 "the stage is not marked finished: build again once the log is complete",
                 field="mtime",
             )
-        mark_done(out, h, inputs=inputs, outputs=True)
+        mark_done(out, _stage_hash(self.cfg, stage), version=_stage_version(stage), inputs=inputs, outputs=True)
         self._finished.add(out)
 
-    def _run_stage(self, out: Path, h: str, inputs: dict, write: Callable[[], Path]) -> Path:
-        """The stage folder ``out``: reused when it finished with config hash ``h`` from ``inputs``, else emptied,
-        written by ``write``, timed (its ``timings.json``) and marked finished."""
-        if self._is_finished(out, h, inputs):
+    def _run_stage(self, out: Path, stage: str, inputs: dict, write: Callable[[], Path]) -> Path:
+        """The stage folder ``out`` of stage ``stage``: reused when it finished with this config and version from
+        ``inputs``, else emptied, written by ``write``, timed (its ``timings.json``) and marked finished."""
+        if self._is_finished(out, stage, inputs):
             return out
-        t0 = time.perf_counter()
-        reset_stage(out)
-        write()
-        write_timings(out, seconds=time.perf_counter() - t0)
-        self._mark(out, h, inputs)
+        with workspace_lock(self.ws.root, wait_s=lock_wait()):  # emptied and re-made only under the lock
+            t0 = time.perf_counter()
+            reset_stage(out)
+            write()
+            write_timings(out, seconds=time.perf_counter() - t0)
+            self._mark(out, stage, inputs)
         return out
 
     def preflight(self) -> None:
@@ -289,6 +346,13 @@ class SessionBuilder:
         chosen. A log without images skips the image stages instead (see :meth:`skip_reason`)."""
         self.log_fingerprint()
         topics = resolve_topics(self.log, self.cfg.topics)
+        if self.cfg.lidar_map.enabled is True and not topics.get(StreamKind.LIDAR):
+            raise InputError(
+                self.log_path,
+                f"has no LiDAR stream{'' if self.cfg.topics.lidar is None else ' on topics.lidar'}, but the config "
+                "asks for a LiDAR map (lidar_map.enabled: true)",
+                field="lidar_map.enabled",
+            )
         if not (self.cfg.map or self.cfg.imagedb.enabled):
             return
         named = self.cfg.camera is not None or self.cfg.topics.images is not None
@@ -311,7 +375,7 @@ class SessionBuilder:
         """Stage 1 (:mod:`mapkit.mapping.stages.trajectory`)."""
         return self._run_stage(
             self.dirs.trajectory,
-            _stage_hash(self.cfg, "topics", "trajectory"),
+            "trajectory",
             self._inputs(),
             lambda: write_trajectory(
                 self.dirs, self.log, self.cfg.trajectory, self.cfg.topics, self.mounts, progress=self.progress
@@ -323,7 +387,7 @@ class SessionBuilder:
         trajectory = self.trajectory()
         return self._run_stage(
             self.dirs.georef,
-            _stage_hash(self.cfg, "topics", "trajectory", "georef"),
+            "georef",
             self._inputs(trajectory),
             lambda: self._georeference(trajectory),
         )
@@ -343,11 +407,29 @@ class SessionBuilder:
         )
         return stage.run(trajectory)
 
+    def lidar_map(self) -> Path:
+        """The LiDAR map (:mod:`mapkit.mapping.stages.lidar_map`), on the trajectory the semi-dense map uses."""
+        return self._run_stage(
+            self.dirs.lidar_map,
+            "lidar_map",
+            self._inputs(self.georef()),
+            lambda: write_lidar_map(
+                self.dirs,
+                self.log,
+                resolve_topics(self.log, self.cfg.topics)[StreamKind.LIDAR][0],
+                self.enu_trajectory(),
+                self.mounts,
+                self.cfg.lidar_map,
+                self.frame(),
+                progress=self.progress,
+            ),
+        )
+
     def semidense(self) -> Path:
         """Stage 3 (:mod:`mapkit.mapping.stages.map`)."""
         return self._run_stage(
             self.dirs.map,
-            _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera"),
+            "map",
             self._inputs(self.georef()),
             lambda: write_map(self.dirs, self.posed_frames(), self.cfg.semidense, self.frame(), progress=self.progress),
         )
@@ -358,7 +440,7 @@ class SessionBuilder:
         map_dir = self.semidense() if with_map else None
         return self._run_stage(
             self.dirs.imagedb,
-            _stage_hash(self.cfg, "topics", "trajectory", "georef", "semidense", "camera", "imagedb", "map"),
+            "imagedb",
             self._inputs(self.georef(), *([map_dir] if map_dir is not None else [])),
             lambda: write_imagedb(
                 self.dirs, self.posed_frames(decode=False), self.cfg.imagedb, self.frame(), self.metric(), map_dir
@@ -416,7 +498,9 @@ class SessionBuilder:
         return not camera_only(self.enu_trajectory()) or self.frame() is not None
 
     def skip_reason(self, stage: str) -> str | None:
-        """Why an image stage (``semidense``, ``imagedb``) does not run for this session, or None."""
+        """Why an image stage (``semidense``, ``imagedb``) or the LiDAR map does not run for this session, or None."""
+        if stage == "lidar_map":
+            return self._lidar_map_skip()
         if stage in SKIPPED_BY_CONFIG and not (self.cfg.map if stage == "semidense" else self.cfg.imagedb.enabled):
             return SKIPPED_BY_CONFIG[stage]
         if not resolve_topics(self.log, self.cfg.topics).get(StreamKind.IMAGE):
@@ -428,6 +512,17 @@ class SessionBuilder:
             )
         return None
 
+    def _lidar_map_skip(self) -> str | None:
+        """Why the LiDAR map does not run: switched off, no LiDAR (quietly, with ``enabled: auto``; ``true`` failed
+        at :meth:`preflight`), or a camera-only trajectory of arbitrary scale."""
+        if self.cfg.lidar_map.enabled is False:
+            return SKIPPED_BY_CONFIG["lidar_map"]
+        if not resolve_topics(self.log, self.cfg.topics).get(StreamKind.LIDAR):
+            return NO_LIDAR
+        if not self.metric():
+            return "the camera-only trajectory is not georeferenced: its scale is arbitrary and the scans are in metres"
+        return None
+
     def run(self) -> dict:
         """Every stage of the session in order (the image stages unless skipped, with the reason in the metrics);
         writes the session's config, metrics and timings; returns the metrics."""
@@ -435,11 +530,11 @@ class SessionBuilder:
         self.preflight()
         self.dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.dirs.config, dump_config(self.cfg))
-        for stage in (self.trajectory, self.georef, self.semidense, self.imagedb):
+        for stage in (self.trajectory, self.georef, self.lidar_map, self.semidense, self.imagedb):
             s0 = time.perf_counter()
             reason = self.skip_reason(stage.__name__) if stage.__name__ in SKIPPED_BY_CONFIG else None
             if reason is not None:
-                if reason not in SKIPPED_BY_CONFIG.values():
+                if reason not in SKIPPED_BY_CONFIG.values() and reason != NO_LIDAR:
                     warnings.warn(f"{self.log_path}: {stage.__name__} skipped: {reason}", InputWarning, stacklevel=2)
                 self.metrics["stages"][stage.__name__] = {"skipped": reason}
                 continue
@@ -467,7 +562,12 @@ class SessionBuilder:
         return json.loads(m_path.read_text()) if m_path.is_file() else {}
 
 
-SKIPPED_BY_CONFIG = {"semidense": "map: false in the config", "imagedb": "imagedb: false in the config"}
+SKIPPED_BY_CONFIG = {
+    "semidense": "map: false in the config",
+    "imagedb": "imagedb: false in the config",
+    "lidar_map": "lidar_map: false in the config",
+}
+NO_LIDAR = "the log has no LiDAR stream"  # with lidar_map.enabled: auto, no warning
 
 
 def _log_bytes(log: Path) -> int:
@@ -536,7 +636,13 @@ def _build_parallel(logs: list[Path], ws: Workspace, cfg: BuildConfig, ex: Execu
     done: dict[int, dict] = {}
     try:
         for m, i in zip(
-            ex.map(_build_task, [logs[i] for i in order], shared=(ws, cfg), desc="build", label=lambda p: str(p)),
+            ex.map(
+                _build_task,
+                [logs[i] for i in order],
+                shared=(ws, cfg, lock_token(ws.root)),
+                desc="build",
+                label=lambda p: str(p),
+            ),
             order,
             strict=True,
         ):
@@ -548,9 +654,10 @@ def _build_parallel(logs: list[Path], ws: Workspace, cfg: BuildConfig, ex: Execu
     return {done[i]["session"]: done[i] for i in range(len(logs))}
 
 
-def _build_task(shared: tuple[Workspace, BuildConfig], log: Path) -> dict:
-    ws, cfg = shared
-    return SessionBuilder(log, ws, cfg, progress=False).run()
+def _build_task(shared: tuple[Workspace, BuildConfig, str | None], log: Path) -> dict:
+    ws, cfg, token = shared
+    with adopted_lock(ws.root, token):  # a worker writes under the lock build() holds in the parent
+        return SessionBuilder(log, ws, cfg, progress=False).run()
 
 
 def _fix_workspace_frame(logs: list[Path], ws: Workspace, cfg: BuildConfig) -> None:

@@ -20,6 +20,7 @@ from mapkit.core.config import TopicConfig, resolve_topics
 from mapkit.core.runio import atomic_path, write_timings
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs
+from mapkit.core.writers import writes_workspace
 from mapkit.io.base import DriveLog
 from mapkit.mapping.factor_graph import (
     FactorGraphConfig,
@@ -36,6 +37,7 @@ from mapkit.mapping.trajectory import SensorMounts, Trajectory
 FUSED_TIMINGS = ("seconds", "solve_s", "loop_seconds")
 
 
+@writes_workspace("dirs", within=True)
 def fuse_georeferenced(
     traj: Trajectory,
     enu_from_map: np.ndarray,

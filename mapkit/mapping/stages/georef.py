@@ -27,9 +27,11 @@ from mapkit.core.config import MapkitConfig, TopicConfig, resolve_topics
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import transform_points, transform_poses
+from mapkit.core.lock import workspace_lock
 from mapkit.core.runio import atomic_path, write_json
 from mapkit.core.types import GpsFix, StreamKind
 from mapkit.core.workspace import SessionDirs, Workspace
+from mapkit.core.writers import lock_wait, writes_workspace
 from mapkit.io.base import DriveLog
 from mapkit.io.plots import map_top_view, trajectory_over_gps
 from mapkit.mapping.factor_graph import FactorGraphConfig
@@ -39,6 +41,9 @@ from mapkit.mapping.gps_screen import GpsScreen, screen_fixes
 from mapkit.mapping.stages.common import camera_only, path_length, plot_axes
 from mapkit.mapping.stages.fusion import fuse_georeferenced
 from mapkit.mapping.trajectory import SensorMounts, Trajectory, camera_up_hint
+
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 
 
 class GeorefConfig(MapkitConfig):
@@ -128,6 +133,7 @@ def proposed_frame(cfg: GeorefConfig, gps: Callable[[], ScreenedFixes]) -> Local
     return None if not fixes else LocalFrame(fixes[0].lat_deg, fixes[0].lon_deg, fixes[0].alt_m)
 
 
+@writes_workspace("ws")
 def workspace_frame(ws: Workspace, proposed: LocalFrame) -> LocalFrame:
     """The workspace's frame: the one already set, else ``proposed``, which becomes it (``origin.json``)."""
     frame = ws.frame()
@@ -168,7 +174,11 @@ class Georeference:
         self.gps = gps
 
     def run(self, trajectory_dir: Path) -> Path:
-        """Georeference the trajectory in ``trajectory_dir``; returns the stage folder."""
+        """Georeference the trajectory in ``trajectory_dir``; returns the stage folder (under the workspace's lock)."""
+        with workspace_lock(self.ws.root, wait_s=lock_wait()):
+            return self._run(trajectory_dir)
+
+    def _run(self, trajectory_dir: Path) -> Path:
         out = self.dirs.georef
         traj = Trajectory.load(trajectory_dir)
         result: dict = {"session": self.dirs.name, "georeferenced": False}

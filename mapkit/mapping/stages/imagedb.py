@@ -12,10 +12,14 @@ from pydantic import Field, field_validator
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import write_json
 from mapkit.core.workspace import SessionDirs
+from mapkit.core.writers import writes_workspace
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.stages.common import ARBITRARY_UNITS
 from mapkit.mapping.stages.frames import PosedFrames
+
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 
 
 class ImageDbStageConfig(ImageDbConfig):
@@ -31,6 +35,7 @@ class ImageDbStageConfig(ImageDbConfig):
         return v
 
 
+@writes_workspace("dirs", within=True)
 def write_imagedb(
     dirs: SessionDirs,
     frames: PosedFrames,

@@ -10,12 +10,17 @@ from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.runio import write_json
 from mapkit.core.workspace import SessionDirs
+from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import map_top_view
 from mapkit.mapping.semidense import SemiDenseConfig, build_semidense_map
 from mapkit.mapping.stages.common import plot_axes
 from mapkit.mapping.stages.frames import PosedFrames
 
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 
+
+@writes_workspace("dirs", within=True)
 def write_map(
     dirs: SessionDirs,
     frames: PosedFrames,

@@ -9,11 +9,16 @@ from pathlib import Path
 from mapkit.core.config import TopicConfig
 from mapkit.core.runio import write_json
 from mapkit.core.workspace import SessionDirs
+from mapkit.core.writers import writes_workspace
 from mapkit.io.base import DriveLog
 from mapkit.mapping.stages.common import path_length
 from mapkit.mapping.trajectory import SensorMounts, TrajectoryConfig, estimate_trajectory
 
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
 
+
+@writes_workspace("dirs", within=True)
 def write_trajectory(
     dirs: SessionDirs,
     log: DriveLog,

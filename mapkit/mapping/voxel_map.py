@@ -1,0 +1,205 @@
+"""A streaming voxel map of LiDAR points with per-voxel statistics.
+
+Points are added scan by scan; they are buffered up to ``chunk_points``, then sorted by voxel key and summed
+per run of equal keys (``np.argsort``, ``np.add.reduceat``) and merged into the map's arrays, which are kept
+sorted by key (``np.searchsorted`` finds the voxels already there, the new ones are spliced in, in one pass).
+Memory is therefore bounded by the map (120 bytes a voxel) plus one chunk, not by the length of the log.
+
+Per voxel the map keeps sums, so that merging is exact and order-free: the point count, the sum of
+the points and of their outer products (relative to the voxel's corner, which keeps the covariance
+well conditioned far from the origin), the sum of intensities, and the first and last stamp that
+saw the voxel. :meth:`VoxelMap.stats` turns them into the centroid, the mean intensity, and from
+the covariance's eigenvalues ``l1 >= l2 >= l3`` the normal (the eigenvector of ``l3``, turned to
+point up, +z) and the planarity ``(l2 - l3) / l1`` (Weinmann et al., ISPRS J. 2015): 1 for points
+on a plane, 0 on a line or in a ball. Both are NaN for voxels of fewer than 3 points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_BITS = 21  # per axis of a packed voxel key: +-2**20 voxels, +-105 km at 0.1 m
+_HALF = 1 << (_BITS - 1)
+_MASK = (1 << _BITS) - 1
+# the six distinct products of a point's coordinates: xx, xy, xz, yy, yz, zz
+_OUTER_I = np.array([0, 0, 0, 1, 1, 2])
+_OUTER_J = np.array([0, 1, 2, 1, 2, 2])
+
+
+@dataclass
+class VoxelStats:
+    """The statistics of every voxel of a map, sorted by voxel key."""
+
+    voxel_size_m: float
+    centroid: np.ndarray  # (V, 3) mean of the voxel's points
+    count: np.ndarray  # (V,) points
+    intensity: np.ndarray  # (V,) mean intensity of the points that had one; NaN where none had
+    normal: np.ndarray  # (V, 3) unit normal, +z up; NaN below 3 points
+    planarity: np.ndarray  # (V,) (l2 - l3) / l1 of the covariance's eigenvalues; NaN below 3 points
+    first_ns: np.ndarray  # (V,) stamp of the first scan that saw the voxel
+    last_ns: np.ndarray  # (V,) stamp of the last one
+
+    def __len__(self) -> int:
+        return int(len(self.count))
+
+
+class VoxelMap:
+    """Voxel statistics of the points added with :meth:`add`, merged every ``chunk_points`` points."""
+
+    def __init__(self, voxel_size_m: float, chunk_points: int = 1_000_000):
+        if not voxel_size_m > 0:
+            raise ValueError(f"voxel size must be positive, got {voxel_size_m}")
+        self.voxel_size_m = float(voxel_size_m)
+        self.chunk_points = int(chunk_points)
+        self.keys = np.zeros(0, np.int64)
+        self.count = np.zeros(0, np.int64)
+        self.sum_xyz = np.zeros((0, 3))
+        self.sum_outer = np.zeros((0, 6))
+        self.sum_intensity = np.zeros(0)
+        self.count_intensity = np.zeros(0, np.int64)
+        self.first_ns = np.zeros(0, np.int64)
+        self.last_ns = np.zeros(0, np.int64)
+        self.points_added = 0
+        self._pending: list[tuple[np.ndarray, np.ndarray | None, int]] = []
+        self._pending_points = 0
+
+    def __len__(self) -> int:
+        self.flush()
+        return int(len(self.keys))
+
+    def add(self, points: np.ndarray, intensity: np.ndarray | None, stamp_ns: int) -> None:
+        """Add ``points`` (N, 3, map frame, metres) seen at ``stamp_ns`` with their ``intensity`` (N,) or None."""
+        pts = np.asarray(points, np.float64).reshape(-1, 3)
+        if not len(pts):
+            return
+        self._pending.append((pts, None if intensity is None else np.asarray(intensity, np.float64), int(stamp_ns)))
+        self._pending_points += len(pts)
+        self.points_added += len(pts)
+        if self._pending_points >= self.chunk_points:
+            self.flush()
+
+    def flush(self) -> None:
+        """Merge the buffered points into the map."""
+        if not self._pending:
+            return
+        pts = np.concatenate([p for p, _, _ in self._pending])
+        inten = np.concatenate([np.full(len(p), np.nan) if i is None else i for p, i, _ in self._pending])
+        stamps = np.concatenate([np.full(len(p), s, np.int64) for p, _, s in self._pending])
+        self._pending, self._pending_points = [], 0
+        self._merge(*self._reduce(pts, inten, stamps))
+
+    def _reduce(self, pts: np.ndarray, inten: np.ndarray, stamps: np.ndarray) -> tuple:
+        """Per-voxel sums of one chunk: (keys, count, sum_xyz, sum_outer, sum_intensity, count_intensity,
+        first_ns, last_ns), keys sorted and unique. The points are sorted by voxel once and each sum is one
+        ``reduceat`` over the runs of equal keys."""
+        ijk = np.floor(pts * (1.0 / self.voxel_size_m)).astype(np.int64)
+        if np.abs(ijk).max() >= _HALF:
+            raise ValueError(
+                f"points up to {np.abs(pts).max():.0f} m from the map's origin: beyond the voxel keys' reach of "
+                f"{_HALF * self.voxel_size_m:.0f} m at {self.voxel_size_m} m voxels"
+            )
+        keys = _pack(ijk)
+        order = np.argsort(keys)
+        keys = keys[order]
+        start = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
+        count = np.diff(np.append(start, len(keys)))
+        local = [(pts[:, c] - ijk[:, c] * self.voxel_size_m)[order] for c in range(3)]  # x, y, z, each contiguous
+        sum_xyz = np.stack([np.add.reduceat(c, start) for c in local], axis=1)
+        sum_outer = np.stack(
+            [np.add.reduceat(local[i] * local[j], start) for i, j in zip(_OUTER_I, _OUTER_J, strict=True)], axis=1
+        )
+        inten = inten[order]
+        has = np.isfinite(inten)
+        sum_int = np.add.reduceat(np.where(has, inten, 0.0), start)
+        count_int = np.add.reduceat(has.astype(np.int64), start)
+        stamps = stamps[order]
+        first = np.minimum.reduceat(stamps, start)
+        last = np.maximum.reduceat(stamps, start)
+        return keys[start], count, sum_xyz, sum_outer, sum_int, count_int, first, last
+
+    def _merge(self, keys, count, sum_xyz, sum_outer, sum_int, count_int, first, last) -> None:
+        pos = np.searchsorted(self.keys, keys)
+        found = np.zeros(len(keys), bool)
+        inside = pos < len(self.keys)
+        found[inside] = self.keys[pos[inside]] == keys[inside]
+        at = pos[found]  # unique: the chunk's keys are
+        self.count[at] += count[found]
+        self.sum_xyz[at] += sum_xyz[found]
+        self.sum_outer[at] += sum_outer[found]
+        self.sum_intensity[at] += sum_int[found]
+        self.count_intensity[at] += count_int[found]
+        self.first_ns[at] = np.minimum(self.first_ns[at], first[found])
+        self.last_ns[at] = np.maximum(self.last_ns[at], last[found])
+        new = ~found
+        new_at, old_at = _spliced_positions(len(self.keys), pos[new])
+        self.keys = _splice(self.keys, keys[new], new_at, old_at)
+        self.count = _splice(self.count, count[new], new_at, old_at)
+        self.sum_xyz = _splice(self.sum_xyz, sum_xyz[new], new_at, old_at)
+        self.sum_outer = _splice(self.sum_outer, sum_outer[new], new_at, old_at)
+        self.sum_intensity = _splice(self.sum_intensity, sum_int[new], new_at, old_at)
+        self.count_intensity = _splice(self.count_intensity, count_int[new], new_at, old_at)
+        self.first_ns = _splice(self.first_ns, first[new], new_at, old_at)
+        self.last_ns = _splice(self.last_ns, last[new], new_at, old_at)
+
+    def nbytes(self) -> int:
+        """Bytes held by the map's arrays (the buffered chunk aside)."""
+        arrays = (self.keys, self.count, self.sum_xyz, self.sum_outer, self.sum_intensity, self.count_intensity)
+        return int(sum(a.nbytes for a in arrays) + self.first_ns.nbytes + self.last_ns.nbytes)
+
+    def stats(self) -> VoxelStats:
+        """Centroid, mean intensity, normal, planarity and first/last stamp of every voxel (buffered points merged
+        first)."""
+        self.flush()
+        n = self.count.astype(np.float64)
+        mean_local = self.sum_xyz / n[:, None]
+        corner = _unpack(self.keys) * self.voxel_size_m
+        second = np.zeros((len(n), 3, 3))
+        second[:, _OUTER_I, _OUTER_J] = self.sum_outer / n[:, None]
+        second[:, _OUTER_J, _OUTER_I] = second[:, _OUTER_I, _OUTER_J]
+        cov = second - mean_local[:, :, None] * mean_local[:, None, :]
+        normal = np.full((len(n), 3), np.nan)
+        planarity = np.full(len(n), np.nan)
+        enough = np.flatnonzero(self.count >= 3)
+        evals, evecs = np.linalg.eigh(cov[enough])  # ascending: l3, l2, l1
+        normal[enough] = evecs[:, :, 0] * np.where(evecs[:, 2, 0] < 0, -1.0, 1.0)[:, None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            planarity[enough] = np.where(evals[:, 2] > 0, (evals[:, 1] - evals[:, 0]) / evals[:, 2], np.nan)
+            intensity = np.where(self.count_intensity > 0, self.sum_intensity / self.count_intensity, np.nan)
+        return VoxelStats(
+            self.voxel_size_m,
+            corner + mean_local,
+            self.count.copy(),
+            intensity,
+            normal,
+            planarity,
+            self.first_ns.copy(),
+            self.last_ns.copy(),
+        )
+
+
+def _pack(ijk: np.ndarray) -> np.ndarray:
+    """One int64 key per voxel index (i, j, k), ordered by i, then j, then k."""
+    u = ijk + _HALF
+    return (u[:, 0] << (2 * _BITS)) | (u[:, 1] << _BITS) | u[:, 2]
+
+
+def _unpack(keys: np.ndarray) -> np.ndarray:
+    return np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], axis=1) - _HALF
+
+
+def _spliced_positions(n_old: int, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the new and the old entries go when new ones are inserted before the old indices ``where``
+    (non-decreasing, as ``np.searchsorted`` gives for sorted keys): one pass, no sort."""
+    new_at = where + np.arange(len(where))
+    is_new = np.zeros(n_old + len(where), bool)
+    is_new[new_at] = True
+    return new_at, np.flatnonzero(~is_new)
+
+
+def _splice(old: np.ndarray, new: np.ndarray, new_at: np.ndarray, old_at: np.ndarray) -> np.ndarray:
+    out = np.empty((len(old) + len(new), *old.shape[1:]), old.dtype)
+    out[old_at] = old
+    out[new_at] = new
+    return out
