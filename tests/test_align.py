@@ -252,8 +252,9 @@ def _mc_graph(rng, cfg, n_sessions=4, n_sub=3, outlier=False, isolated=0):
 
 def test_pose_graph_covariances_are_consistent_with_its_gps_model():
     # Monte Carlo over the GPS bias model: the true corrections fall inside their 95% ellipsoids
-    # about 95% of the time (the common offset of N sessions is known to sigma_b / sqrt(N), not better)
-    cfg = AlignConfig().graph
+    # about 95% of the time (the common offset of N sessions is known to sigma_b / sqrt(N), not better); the
+    # registrations are exact, so their shared errors are not considered (tie_sigma_m 0): the GPS model alone
+    cfg = AlignConfig().graph.model_copy(update={"tie_sigma_m": 0.0})
     rng = np.random.default_rng(4)
     d2, sig = [], []
     for _ in range(60):
@@ -269,7 +270,7 @@ def test_pose_graph_covariances_are_consistent_with_its_gps_model():
 
 
 def test_a_session_that_touches_no_other_keeps_its_gps_uncertainty():
-    cfg = AlignConfig().graph
+    cfg = AlignConfig().graph.model_copy(update={"tie_sigma_m": 0.0})  # the GPS model alone, as above
     g, true_t, _ = _mc_graph(np.random.default_rng(2), cfg, n_sessions=4, isolated=1)
     g.solve()
     sig = np.sqrt(g.covariances()[:, [3, 4, 5], [3, 4, 5]])
@@ -361,13 +362,16 @@ def test_align_brings_sessions_together_and_resumes(tmp_path, street_world):
     assert misalignment(ws, "s0", "s3", errors, probe) < 0.1
     assert m2["graph"]["sessions_solved"] == 1  # only s3's submaps were variables of the graph
     # the frozen sessions keep their covariances and GPS biases; s3's are its own, and every
-    # session's bias is estimated to what 3-4 sessions allow (2 m / sqrt(N) horizontally)
+    # session's bias is estimated to what 3-4 sessions allow (2 m / sqrt(N) horizontally), widened by
+    # what registrations wrong together at its 3 places could move it (tie_sigma_m), still below a
+    # lone session's sqrt(2^2 + 1/3) m
     for name in ("s0", "s3"):
         sm = json.loads((out / "sessions" / name / "submaps.json").read_text())
         sig = np.array([k["position_sigma_enu_m"] for k in sm["submaps"]])
-        assert np.all(sig[:, :2] > 0.5) and np.all(sig[:, :2] < 1.3), (name, sig)
-        # the bias less well than the submaps: each submap holds it to gps_submap_sigma_m (1 m)
-        assert sig[0, 0] < sm["gps_bias"]["sigma_enu_m"][0] < 1.6
+        assert np.all(sig[:, :2] > 0.5) and np.all(sig[:, :2] < 1.9), (name, sig)
+        # the bias about as well as the submaps: each holds it to gps_submap_sigma_m (1 m), and a shift of
+        # the registrations moves both
+        assert 0.9 * sig[0, 0] < sm["gps_bias"]["sigma_enu_m"][0] < 2.0
 
 
 def test_a_session_displaced_by_30m_is_not_merged(tmp_path, street_world):

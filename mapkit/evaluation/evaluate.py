@@ -673,11 +673,16 @@ def _registration_errors(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
 CHI2_95_3DOF = 7.815  # 95% quantile of chi-square with 3 degrees of freedom
 
 
+OVERCONFIDENT_OUTSIDE = 0.10  # a session whose truth leaves its 95% ellipsoids more often than this is flagged
+
+
 def _consistency(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
     """Are the graph's covariances honest? At every submap's centre c, the true position error of
     the aligned session there (E_after c - c) against the submap's marginal position covariance:
     the fraction inside its 95% ellipsoid (NEES <= 7.815) should be near 0.95 (evo and SLAM
-    benchmarks check the same). Submaps without a covariance (aligned by an older mapkit) are left out."""
+    benchmarks check the same). A session whose truth lies outside for more than 10% of its submap
+    centres is *overconfident*: its map claims a certainty it does not have, and ``overconfident``
+    names it. Submaps without a covariance (aligned by an older mapkit) are left out."""
     d2_all: list[float] = []
     per: dict = {}
     for name, se in sess.items():
@@ -694,10 +699,12 @@ def _consistency(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
             e = E[:3, :3] @ c + E[:3, 3] - c
             d2.append(float(e @ np.linalg.solve(cov, e)))
         if d2:
+            inside = float(np.mean(np.asarray(d2) <= CHI2_95_3DOF))
             per[name] = {
                 "submaps": len(d2),
-                "inside_95": float(np.mean(np.asarray(d2) <= CHI2_95_3DOF)),
+                "inside_95": inside,
                 "nees_mean": float(np.mean(d2)),
+                "overconfident": bool(1.0 - inside > OVERCONFIDENT_OUTSIDE),
             }
             d2_all += d2
     a = np.asarray(d2_all)
@@ -706,6 +713,7 @@ def _consistency(ws: Workspace, sess: dict[str, _SessionError]) -> dict:
         "inside_95": float(np.mean(a <= CHI2_95_3DOF)) if len(a) else None,
         "nees_mean": float(a.mean()) if len(a) else None,
         "sessions": per,
+        "overconfident": [n for n, v in per.items() if v["overconfident"]],
     }
 
 
@@ -784,6 +792,19 @@ def format_align_truth(t: dict) -> str:
             f"95% position ellipsoids (mean NEES {c['nees_mean']:.2f}; 3 expected): "
             + ", ".join(f"{n} {100 * v['inside_95']:.0f}%" for n, v in c["sessions"].items())
             + ".",
+        ]
+        bad = c.get("overconfident") or []
+        lines += [
+            "",
+            (
+                f"**Overconfident: {', '.join(bad)}**: the true position lies outside the 95% ellipsoid at more than "
+                f"{100 * OVERCONFIDENT_OUTSIDE:.0f}% of the submap centres ("
+                + ", ".join(f"{n} {100 * (1 - c['sessions'][n]['inside_95']):.0f}%" for n in bad)
+                + "); their covariances claim a certainty these maps do not have."
+            )
+            if bad
+            else f"No session is overconfident (truth outside the 95% ellipsoid at more than "
+            f"{100 * OVERCONFIDENT_OUTSIDE:.0f}% of its submap centres).",
         ]
     return "\n".join(lines)
 
