@@ -17,6 +17,7 @@ docs (``compare``).
     python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
     python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
     python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
+    python3 docs/figures.py collect fault-campaign FILE # what bench/fault_campaign.py --out FILE wrote
     python3 docs/figures.py render                      # fill every block of README.md and docs/**/*.md
     python3 docs/figures.py check                       # exit 1 when a block is not its rendering (a test runs it)
     python3 docs/figures.py compare places RUN          # a fresh run beside the record: within its spread?
@@ -197,7 +198,7 @@ def machine() -> str:
 
 def collect(name: str, sources: list[Path], command: str, note: str = "") -> Path:
     """Write the record ``docs/results/NAME.json`` from ``sources`` (run folders, or one JSON file)."""
-    if name in ("first-run", "references", "mcvl-benchmark", "benchmarks", "robustness"):
+    if name in ("first-run", "references", "mcvl-benchmark", "benchmarks", "robustness", "fault-campaign"):
         data = json.loads(sources[0].read_text())
         record = {"name": name, **data}
     else:
@@ -603,6 +604,50 @@ def render_robustness() -> str:
     )
 
 
+#: the outcome columns of the CLI fault campaign (bench/fault_campaign.py), as its table heads them
+FAULT_CAMPAIGN_COLUMNS = {
+    "clear error": "clear errors",
+    "recovered": "recovered",
+    "traceback": "tracebacks",
+    "silent-wrong": "silent-wrong",
+    "lost": "lost",
+    "other": "other",
+}
+
+
+def render_fault_campaign() -> str:
+    """The fault campaign through the CLI (bench/fault_campaign.py): per class, cases and their outcomes, then
+    every case against the promise with its command."""
+    rec = record("fault-campaign")
+    classes = rec["classes"]
+    rows = []
+    for name, c in classes.items():
+        if c.get("skipped"):  # cases not run, with the first one's reason (a tmpfs not permitted, say)
+            label = f"{name} ({'skipped' if not c['cases'] else 'some not run'}: {c['skipped']})"
+        else:
+            label = name
+        rows.append([label, str(c["cases"]), *[str(c.get(o, 0)) for o in FAULT_CAMPAIGN_COLUMNS]])
+    rows.append(
+        [
+            "**all**",
+            str(sum(c["cases"] for c in classes.values())),
+            *[str(sum(c.get(o, 0) for c in classes.values())) for o in FAULT_CAMPAIGN_COLUMNS],
+        ]
+    )
+    mode = "every case" if rec.get("mode") == "full" else "the quick selection (`--quick`: a few cases per class)"
+    text = (
+        table(["class", "cases", *FAULT_CAMPAIGN_COLUMNS.values()], rows)
+        + f"\n\n`{rec['command']}`: {mode}, {_minutes(rec.get('seconds'))}, measured {rec['measured']} on "
+        f"{rec['machine']}."
+    )
+    bad = [c for c in rec.get("cases", []) if c["outcome"] in ("traceback", "silent-wrong", "lost", "other")]
+    if bad:
+        text += "\n\nCases against the promise:\n\n" + "\n".join(
+            f"- {c['klass']}, {c['name']}: **{c['outcome']}**, {c['detail']}" for c in bad
+        )
+    return text
+
+
 def render_mcvl_benchmark() -> str:
     """MCVL at its Sec. IV-B scale (pipelines/mcvl_benchmark.py): Table II per test sequence and filter setting."""
     rec = record("mcvl-benchmark")
@@ -724,6 +769,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "tiny-stages": lambda: _stages("tiny"),
     "places-stages": lambda: _stages("places"),
     "robustness": render_robustness,
+    "fault-campaign": render_fault_campaign,
     "benchmarks": render_benchmarks,
     "mcvl-benchmark": render_mcvl_benchmark,
     "scaling-units": render_scaling_units,

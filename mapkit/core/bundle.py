@@ -20,6 +20,8 @@ from mapkit.core.errors import InputError
 from mapkit.core.runio import TIMINGS, WRITE_ERRNOS, sha256_file, write_error, write_json
 
 MANIFEST = "manifest.json"
+#: the ``kind`` of an export's top manifest (:mod:`mapkit.deploy.export`): several indexes in one folder
+EXPORT_KIND = "mapkit deployment bundle"
 
 
 def write_manifest(folder: Path, manifest: dict) -> None:
@@ -60,8 +62,12 @@ def read_manifest(path: Path, what: str, format_version: int, required: Iterable
     mpath = path / MANIFEST
     manifest = load_manifest(path, f"{what} bundle", format_version)
     files = manifest.get("files")
+    if manifest.get("kind") == EXPORT_KIND:  # the export's top folder, not one of its indexes
+        names = sorted(manifest.get("indexes") or {})
+        raise InputError(mpath, f"is an export of {len(names)} index(es) {names}: pass one of its index folders")
     if not isinstance(files, dict):
         raise InputError(mpath, "no file list", field="files")
+    _check_enclosing_export(path)
     for rel in required:
         if rel not in files:
             raise InputError(mpath, f"the file list lacks {rel}", field="files")
@@ -72,6 +78,26 @@ def read_manifest(path: Path, what: str, format_version: int, required: Iterable
         if verify and sha256_file(p) != info.get("sha256"):
             raise InputError(p, "checksum mismatch: the file changed since the bundle was written", field="sha256")
     return manifest
+
+
+def _check_enclosing_export(path: Path) -> None:
+    """An index inside an export (``mapkit index export``) must be one its export lists, with the manifest it
+    lists: an export whose manifest was edited, or an index copied into another export, is refused."""
+    top = path.parent / MANIFEST
+    try:
+        export = json.loads(top.read_text())
+    except (OSError, json.JSONDecodeError):
+        return  # not inside an export (or its manifest is not one: then it is not an export's)
+    if not isinstance(export, dict) or export.get("kind") != EXPORT_KIND:
+        return
+    listed = {(path.parent / e.get("path", n)).resolve(): n for n, e in (export.get("indexes") or {}).items()}
+    name = listed.get(path.resolve())
+    if name is None:
+        raise InputError(
+            top, f"does not list the index {path.name!r} its folder holds; export it again", field="indexes"
+        )
+    if sha256_file(path / MANIFEST) != export["indexes"][name].get("manifest_sha256"):
+        raise InputError(path / MANIFEST, f"index {name!r} differs from the one {top} lists", field="manifest_sha256")
 
 
 def is_finished(out: Path, build_hash: str, format_version: int) -> bool:

@@ -22,14 +22,14 @@ from pathlib import Path
 from typing import Any
 
 from mapkit import __version__
-from mapkit.core.bundle import MANIFEST, building, copy_file, load_manifest
+from mapkit.core.bundle import EXPORT_KIND, MANIFEST, building, copy_file, load_manifest
 from mapkit.core.errors import InputError
 from mapkit.core.runio import atomic_write_text, sha256_file, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.core.writers import writes_workspace
 
 FORMAT_VERSION = 1
-KIND = "mapkit deployment bundle"
+KIND = EXPORT_KIND
 
 #: the index kinds an export holds, as their manifests name them
 _VLAD, _STRUCTURE = "mapkit VLAD index", "mapkit structure index"

@@ -61,7 +61,15 @@ from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.executor import SERIAL, get_executor
 from mapkit.core.geometry import interpolate_poses
-from mapkit.core.runio import atomic_write_text, config_hash, progress_bar, sha256_file, write_json, write_timings
+from mapkit.core.runio import (
+    atomic_write_text,
+    config_hash,
+    progress_bar,
+    sha256_file,
+    verify_file,
+    write_json,
+    write_timings,
+)
 from mapkit.core.workspace import MapSource, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.mapping.semidense import SemiDenseMap
@@ -403,6 +411,9 @@ def build_structure_index(
     names = _database_sessions(ws, cfg)
     cnn_info = _cnn_model_info(cfg.cnn_model) if cfg.kind == "cnn" and cfg.cnn_model is not None else None
     dirs = {n: ws.session_map(n, cfg.prefer_aligned_maps) for n in names}
+    for n, (d, source) in dirs.items():  # a map changed since its stage wrote it is refused, naming the stage to re-run
+        for f in ("points.ply", "observations.npz"):
+            verify_file(d / f, "mapkit align" if source == "align" else f"mapkit build (session {n})")
     shas = {n: map_checksum(d) for n, (d, _) in dirs.items()}
     build_hash = _build_hash(cfg, names, dirs, shas, cnn_info)
     if is_finished(out, build_hash, FORMAT_VERSION):
