@@ -126,6 +126,7 @@ CONFIGS: dict[str, str] = {
     "mcl": "mapkit.localization.mcl:MclConfig",
     "vlad": "mapkit.retrieval.vlad:VladConfig",
     "triplets": "mapkit.places.triplets:TripletConfig",
+    "reference_model": "mapkit.localization.reference_model:ReferenceModelConfig",
     "index_vlad": "mapkit.retrieval.index_vlad:VladIndexConfig",
     "localize": "mapkit.localization.localize:LocalizeConfig",
     "structure_index": "mapkit.places.index_structure:StructureIndexConfig",
@@ -302,6 +303,24 @@ def triplets(
         f"written to {folder}: patches-*.h5 (or .npz), patches.csv, triplets_train.npy, triplets_test.npy, "
         "manifest.json, examples.png" + (", pointnetvlad/" if (folder / "pointnetvlad").is_dir() else "")
     )
+
+
+@app.command()
+@_writes("workspace")
+def model(
+    workspace: Path = typer.Argument(..., help="A workspace with image databases (aligned by `mapkit align` or not)."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Model folder (default WORKSPACE/reference_model)."),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults reference_model`."
+    ),
+    session: list[str] | None = typer.Option(None, "--session", help="A session to use (repeatable; default all)."),
+) -> None:
+    """Build the triangulated reference model (COLMAP, SIFT) of the database images on their known poses."""
+    from mapkit.localization.reference_model import build_reference_model
+
+    folder = build_reference_model(workspace, session or None, out, config)
+    typer.echo((folder / "metrics.json").read_text(), nl=False)
+    typer.echo(f"written to {folder}: sfm/ (COLMAP binary), sfm_text/, database.db, pairs.txt, statistics.png")
 
 
 @app.command()

@@ -245,3 +245,33 @@ def training_curve(path: Path, history: list[dict], title: str = "CNN descriptor
     ax.legend(handles, labels, loc="center right", fontsize=8)
     ax.set_title(title, fontsize=10)
     return _save(plt, fig, path)
+
+
+def reference_model_statistics(
+    path: Path, points_per_image: np.ndarray, track_lengths: np.ndarray, reprojection_errors_px: np.ndarray
+) -> Path:
+    """A triangulated reference model at a glance: points seen per image (in image order), the
+    track-length histogram and the reprojection-error histogram of every observation."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(14, 4), dpi=110)
+    a1.bar(np.arange(len(points_per_image)), points_per_image, width=1.0, color="tab:blue")
+    a1.set_xlabel("image (model order)")
+    a1.set_ylabel("triangulated points seen")
+    lengths = np.asarray(track_lengths, np.int64)
+    top = int(lengths.max()) if len(lengths) else 2
+    a2.hist(lengths, bins=np.arange(1.5, top + 1.5), color="tab:green")
+    a2.set_xlabel("track length (images per point)")
+    a2.set_ylabel("points")
+    err = np.asarray(reprojection_errors_px, np.float64)
+    a3.hist(err, bins=np.linspace(0, max(float(err.max()) if len(err) else 1.0, 1e-3), 40), color="tab:orange")
+    if len(err):
+        a3.axvline(float(np.median(err)), color="k", ls="--", lw=1, label=f"median {np.median(err):.2f} px")
+        a3.legend(fontsize=8)
+    a3.set_xlabel("reprojection error [px]")
+    a3.set_ylabel("observations")
+    fig.suptitle(f"reference model: {len(lengths)} points in {len(points_per_image)} images")
+    return _save(plt, fig, path)

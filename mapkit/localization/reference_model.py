@@ -1,0 +1,543 @@
+"""The triangulated reference model: the database images as a COLMAP reconstruction whose images
+carry 2D keypoints with triangulated 3D points, the map the field's 6-DoF localizers register
+queries against (hloc's localize_sfm, COLMAP's image registrator).
+
+The poses are not estimated here: each image keeps its known pose (``mapkit align``'s common frame,
+or a single session's own) and camera. Local features are COLMAP's SIFT (``pycolmap.extract_features``)
+with COLMAP's default descriptor normalisation L1_ROOT, which is RootSIFT (Arandjelovic and Zisserman
+2012). Image pairs come from the poses, as COLMAP's spatial matcher chooses them plus a heading gate:
+the ``pair_neighbours`` nearest camera centres within ``pair_max_distance_m`` whose viewing directions
+differ by at most ``pair_max_angle_deg``. pycolmap matches and verifies them geometrically
+(``match_image_pairs``) and triangulates with the poses and intrinsics held fixed
+(``triangulate_points``: only the points are refined).
+
+Output (default ``WORKSPACE/reference_model/``)::
+
+    sfm/             the model, COLMAP binary (cameras, rigs, frames, images with keypoints, points3D)
+    sfm_text/        the same model as COLMAP text
+    database.db      the COLMAP database: keypoints, descriptors, matches, verified geometries
+    pairs.txt        the image pairs matched, by image name
+    config.yaml, metrics.json, statistics.png, top_view.png
+
+Image names are paths relative to the images' common folder (the workspace root for a workspace),
+and the database is written with the model's camera, rig, frame and image ids before extraction,
+so COLMAP's image reader reuses each image by name and database and model agree on every id.
+Depth from the semi-dense map near a keypoint is not used: every point is triangulated from
+matches alone.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from mapkit.core.bundle import building
+from mapkit.core.config import MapkitConfig, dump_config, load_config
+from mapkit.core.errors import InputError
+from mapkit.core.geometry import invert_pose
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json, write_timings
+from mapkit.core.types import CameraInfo
+from mapkit.core.workspace import Workspace
+from mapkit.core.writers import writes_workspace
+from mapkit.io.plots import map_top_view, reference_model_statistics
+from mapkit.retrieval.vlad_bundle import read_session_images
+
+log = logging.getLogger(__name__)
+
+#: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
+STAGE_VERSION = 1
+#: the default output folder, under the workspace root
+DEFAULT_FOLDER = "reference_model"
+
+
+class ReferenceModelConfig(MapkitConfig):
+    max_features: int = Field(8192, ge=16, description="SIFT features per image at most (COLMAP's default).")
+    first_octave: int = Field(
+        -1,
+        ge=-1,
+        le=1,
+        description="SIFT's first octave: -1 upsamples the image twice first (COLMAP's default; most features), "
+        "0 starts at full resolution (about three times faster, about a quarter of the features).",
+    )
+    peak_threshold: float = Field(
+        0.02 / 3, gt=0, description="SIFT's DoG peak threshold (COLMAP's default, 0.02 / octave_resolution)."
+    )
+    pair_neighbours: int = Field(
+        10, ge=1, description="Each image is matched with at most this many nearest images (by camera centre)."
+    )
+    pair_max_distance_m: float = Field(
+        30.0, gt=0, description="... whose camera centres lie within this distance (m; pose units without GPS)."
+    )
+    pair_max_angle_deg: float = Field(
+        60.0,
+        gt=0,
+        le=180,
+        description="... and whose viewing directions differ by at most this (deg): cameras facing apart share "
+        "nothing to match.",
+    )
+    max_ratio: float = Field(0.8, gt=0, le=1, description="Lowe's ratio test (COLMAP's default).")
+    min_num_inliers: int = Field(
+        15, ge=5, description="A verified pair needs this many inlier matches (COLMAP's default)."
+    )
+    max_reprojection_error_px: float = Field(
+        4.0, gt=0, description="Observations farther from their point's projection are dropped (COLMAP's default)."
+    )
+    min_triangulation_angle_deg: float = Field(
+        1.5, gt=0, description="A point needs rays this far apart (COLMAP's default)."
+    )
+    num_threads: int = Field(
+        2,
+        ge=1,
+        description="Threads of feature extraction, matching and triangulation (fixed: pycolmap's -1 takes every "
+        "core). The model does not depend on it: every image's features and every pair's verification are "
+        "computed alone, with fixed seeds.",
+    )
+    seed: int = Field(0, ge=0, description="Seed of RANSAC (two-view verification) and of the triangulator.")
+    sessions: list[str] | None = Field(None, description="Sessions to use; every session with images if unset.")
+
+
+@dataclass(frozen=True)
+class PosedImage:
+    """One image with its known pose: ``world_from_cam`` (4, 4) maps camera coordinates (x right,
+    y down, z forward) into the model's frame."""
+
+    path: Path
+    camera: CameraInfo | None
+    world_from_cam: np.ndarray
+
+
+@dataclass
+class ModelMetrics:
+    """What a reference model holds (``metrics.json``)."""
+
+    images: int
+    registered_images: int
+    images_with_points: int
+    image_pairs: int
+    verified_pairs: int
+    points: int
+    observations: int
+    track_length_mean: float
+    track_length_median: float
+    reprojection_error_mean_px: float
+    reprojection_error_median_px: float
+    points_per_image: dict[str, float]
+
+
+# --- the workspace's images ---------------------------------------------------------------------------
+
+
+def _workspace_images(ws: Workspace, sessions: list[str] | None) -> list[PosedImage]:
+    """Every database image of ``sessions`` (all with images if None), with its aligned pose where a finished
+    ``mapkit align`` holds the session, and its camera from the session's image database (``imagedb/colmap``)."""
+    import pycolmap
+
+    names = ws.sessions_with_images()
+    if not names:
+        raise InputError(ws.sessions_dir, "no session with an image database here (run mapkit build)")
+    if sessions is not None:
+        missing = sorted(set(sessions) - set(names))
+        if missing:
+            raise InputError(ws.sessions_dir, f"sessions {missing} have no image database", field="sessions")
+        names = [n for n in names if n in sessions]
+    images: list[PosedImage] = []
+    for name in names:
+        table = read_session_images(ws, name)
+        imagedb = ws.session(name).imagedb
+        model = imagedb / "colmap"
+        if not (model / "cameras.bin").is_file() and not (model / "cameras.txt").is_file():
+            raise InputError(model, f"session {name!r}: no camera intrinsics (COLMAP cameras) here", field="cameras")
+        rec = pycolmap.Reconstruction(str(model))
+        for path, T, camera in zip(table.image_paths, table.world_from_cam, table.table["camera"], strict=True):
+            im = rec.find_image_with_name(os.path.relpath(path, imagedb))
+            if im is None:
+                raise InputError(
+                    model, f"session {name!r}: image {os.path.relpath(path, imagedb)} has no intrinsics", field="images"
+                )
+            images.append(PosedImage(Path(path), _camera_info(rec.cameras[im.camera_id], str(camera), model), T))
+    return images
+
+
+def _camera_info(cam, name: str, where: Path) -> CameraInfo:
+    """A pinhole COLMAP camera as mapkit's :class:`CameraInfo` (the image database writes PINHOLE cameras)."""
+    p = np.asarray(cam.params, np.float64)
+    if cam.model_name == "PINHOLE":
+        fx, fy, cx, cy = p
+    elif cam.model_name == "SIMPLE_PINHOLE":
+        fx, cx, cy = p
+        fy = fx
+    else:
+        raise InputError(where, f"camera {cam.camera_id} is {cam.model_name}, not a pinhole camera", field="cameras")
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+    return CameraInfo(name, int(cam.width), int(cam.height), K)
+
+
+# --- pairs from poses -----------------------------------------------------------------------------------
+
+
+def pairs_from_poses(
+    world_from_cam: np.ndarray, neighbours: int, max_distance: float, max_angle_deg: float
+) -> np.ndarray:
+    """(M, 2) index pairs i < j, sorted: each image with its ``neighbours`` nearest images (by camera
+    centre, ties by index) within ``max_distance`` whose viewing directions (camera z axes) differ
+    by at most ``max_angle_deg``; a pair chosen from either side is kept once."""
+    T = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
+    centres, axes = T[:, :3, 3], T[:, :3, 2]
+    min_cos = np.cos(np.radians(max_angle_deg)) - 1e-12
+    pairs = set()
+    for i, near in enumerate(cKDTree(centres).query_ball_point(centres, max_distance)):
+        cand = np.asarray([j for j in near if j != i], np.int64)
+        if not len(cand):
+            continue
+        cand = cand[axes[cand] @ axes[i] >= min_cos]
+        d = np.linalg.norm(centres[cand] - centres[i], axis=1)
+        for j in cand[np.lexsort((cand, d))][:neighbours]:
+            pairs.add((min(i, int(j)), max(i, int(j))))
+    return np.asarray(sorted(pairs), np.int64).reshape(-1, 2)
+
+
+# --- the model ------------------------------------------------------------------------------------------
+
+
+def _check_images(images: Sequence[PosedImage]) -> None:
+    if not images:
+        raise InputError(None, "no images to build a reference model from")
+    seen: set[Path] = set()
+    for im in images:
+        if not Path(im.path).is_file():
+            raise InputError(im.path, "no such image")
+        cam = im.camera
+        if cam is None or not (np.all(np.isfinite(cam.K)) and cam.fx > 0 and cam.fy > 0):
+            raise InputError(
+                im.path, "image without intrinsics (a camera with a positive focal length)", field="camera"
+            )
+        if cam.width <= 0 or cam.height <= 0:
+            raise InputError(im.path, f"camera {cam.camera!r} has no image size", field="camera")
+        if np.any(cam.D) and cam.distortion_model not in ("plumb_bob", "rational_polynomial"):
+            raise InputError(
+                im.path, f"distortion model {cam.distortion_model!r}: only plumb_bob and rational_polynomial", field="D"
+            )
+        T = np.asarray(im.world_from_cam, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise InputError(im.path, "world_from_cam is not a finite 4x4 pose", field="world_from_cam")
+        key = Path(im.path).resolve()
+        if key in seen:
+            raise InputError(im.path, "image given twice")
+        seen.add(key)
+
+
+def _colmap_camera(info: CameraInfo, camera_id: int):
+    """COLMAP's camera of ``info``: PINHOLE without distortion, OPENCV / FULL_OPENCV with plumb-bob coefficients."""
+    import pycolmap
+
+    D = np.zeros(8)
+    D[: min(len(info.D), 8)] = np.asarray(info.D, np.float64)[:8]
+    pin = [info.fx, info.fy, info.cx, info.cy]
+    if not np.any(D):
+        return pycolmap.Camera(model="PINHOLE", width=info.width, height=info.height, params=pin, camera_id=camera_id)
+    if not np.any(D[4:]):
+        return pycolmap.Camera(
+            model="OPENCV", width=info.width, height=info.height, params=pin + list(D[:4]), camera_id=camera_id
+        )
+    return pycolmap.Camera(
+        model="FULL_OPENCV", width=info.width, height=info.height, params=pin + list(D), camera_id=camera_id
+    )
+
+
+def _image_names(images: Sequence[PosedImage], image_root: str | Path | None) -> tuple[Path, list[str]]:
+    """The folder the image names are relative to (``image_root``, else the images' common folder) and each
+    image's name (COLMAP's image names)."""
+    paths = [Path(os.path.abspath(im.path)) for im in images]
+    root = (
+        Path(os.path.abspath(image_root))
+        if image_root is not None
+        else Path(os.path.commonpath([p.parent for p in paths]))
+    )
+    names = []
+    for im, p in zip(images, paths, strict=True):
+        if not p.is_relative_to(root):
+            raise InputError(im.path, f"image outside the image root {root}", field="image_root")
+        names.append(p.relative_to(root).as_posix())
+    return root, names
+
+
+def _posed_reconstruction(images: Sequence[PosedImage], names: list[str]):
+    """A reconstruction with the images' cameras (one per distinct camera) and known poses, no points."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    cameras: list[CameraInfo] = []
+    for k, (im, name) in enumerate(zip(images, names, strict=True), start=1):
+        assert im.camera is not None  # checked by _check_images
+        idx = next((i for i, c in enumerate(cameras) if c == im.camera), None)
+        if idx is None:
+            cameras.append(im.camera)
+            idx = len(cameras) - 1
+            rec.add_camera_with_trivial_rig(_colmap_camera(im.camera, idx + 1))
+        cam_from_world = invert_pose(np.asarray(im.world_from_cam, np.float64))
+        img = pycolmap.Image(name=name, camera_id=idx + 1, image_id=k)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(cam_from_world[:3, :]))
+    return rec
+
+
+def _write_database(rec, path: Path) -> None:
+    """Cameras, rigs, frames and images of ``rec`` into a new COLMAP database, with the model's ids."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(path))
+    try:
+        for cam in rec.cameras.values():
+            db.write_camera(cam, use_camera_id=True)
+        for rig in rec.rigs.values():
+            db.write_rig(rig, use_rig_id=True)
+        for frame in rec.frames.values():
+            db.write_frame(frame, use_frame_id=True)
+        for image in rec.images.values():
+            db.write_image(image, use_image_id=True)
+    finally:
+        db.close()
+
+
+@contextmanager
+def _quiet_colmap() -> Iterator[None]:
+    """COLMAP's own log (a few lines per image and pair) down to warnings while it runs."""
+    import pycolmap
+
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 1
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = level
+
+
+def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Path, cfg: ReferenceModelConfig):
+    """Extract, match, verify and triangulate in ``folder``; returns the triangulated reconstruction."""
+    import pycolmap
+
+    db_path = folder / "database.db"
+    _write_database(rec, db_path)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = cfg.num_threads
+    extraction.sift.max_num_features = cfg.max_features
+    extraction.sift.first_octave = cfg.first_octave
+    extraction.sift.peak_threshold = cfg.peak_threshold
+    # L1_ROOT (RootSIFT) is COLMAP's default normalisation: kept
+    assert extraction.sift.normalization == pycolmap.Normalization.L1_ROOT
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = cfg.num_threads
+    matching.sift.max_ratio = cfg.max_ratio
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(folder / "pairs.txt")
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = cfg.min_num_inliers
+    verification.ransac.random_seed = cfg.seed
+    tri = pycolmap.IncrementalPipelineOptions()
+    tri.num_threads = cfg.num_threads
+    tri.random_seed = cfg.seed
+    tri.mapper.num_threads = cfg.num_threads
+    tri.mapper.random_seed = cfg.seed
+    tri.triangulation.random_seed = cfg.seed
+    tri.mapper.filter_max_reproj_error = cfg.max_reprojection_error_px
+    tri.mapper.filter_min_tri_angle = cfg.min_triangulation_angle_deg
+    tri.triangulation.min_angle = cfg.min_triangulation_angle_deg
+    tri.triangulation.complete_max_reproj_error = cfg.max_reprojection_error_px
+    tri.triangulation.merge_max_reproj_error = cfg.max_reprojection_error_px
+    (folder / "sfm").mkdir()
+    with _quiet_colmap():
+        t0 = time.perf_counter()
+        pycolmap.extract_features(
+            db_path,
+            root,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+        _check_database(db_path, rec)
+        t1 = time.perf_counter()
+        if len(pairs):
+            pycolmap.match_image_pairs(
+                db_path,
+                matching_options=matching,
+                pairing_options=pairing,
+                verification_options=verification,
+                device=pycolmap.Device.cpu,
+            )
+        t2 = time.perf_counter()
+        model = pycolmap.triangulate_points(rec, db_path, root, folder / "sfm", clear_points=True, options=tri)
+        write_timings(folder, extraction_s=t1 - t0, matching_s=t2 - t1, triangulation_s=time.perf_counter() - t2)
+    return model
+
+
+def _check_database(db_path: Path, rec) -> None:
+    """The extractor reused every image of the model by name: same ids, no image added."""
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        by_id = {im.image_id: im.name for im in db.read_all_images()}
+        want = {i: im.name for i, im in rec.images.items()}
+        if by_id != want or db.num_cameras() != rec.num_cameras():
+            raise RuntimeError("COLMAP's database does not hold the model's images and cameras")
+    finally:
+        db.close()
+
+
+def observation_errors_px(rec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per observation of every 3D point: (point id, image id, reprojection error in px), ordered by image id."""
+    ids = sorted(rec.points3D)
+    xyz = {pid: rec.points3D[pid].xyz for pid in ids}
+    pid_out, iid_out, err_out = [], [], []
+    for image_id in sorted(rec.images):
+        im = rec.images[image_id]
+        obs = [(p.point3D_id, p.xy) for p in im.points2D if p.has_point3D()]
+        if not obs:
+            continue
+        pids = np.array([o[0] for o in obs], np.int64)
+        uv = np.array([o[1] for o in obs], np.float64)
+        X = np.array([xyz[p] for p in pids], np.float64)
+        T = np.asarray(im.cam_from_world().matrix(), np.float64)
+        Xc = X @ T[:, :3].T + T[:, 3]
+        proj = np.asarray(im.camera.img_from_cam(Xc), np.float64)
+        pid_out.append(pids)
+        iid_out.append(np.full(len(pids), image_id, np.int64))
+        err_out.append(np.linalg.norm(proj - uv, axis=1))
+    if not pid_out:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    return np.concatenate(pid_out), np.concatenate(iid_out), np.concatenate(err_out)
+
+
+def model_metrics(rec, pairs: int = 0, verified: int = 0) -> ModelMetrics:
+    """The figures ``metrics.json`` holds, computed from the reconstruction ``rec``."""
+    _, image_ids, err = observation_errors_px(rec)
+    lengths = np.array([p.track.length() for p in rec.points3D.values()], np.int64)
+    per_image = np.array([np.sum(image_ids == i) for i in sorted(rec.images)], np.int64)
+    pct = [0, 5, 25, 50, 75, 95, 100]
+
+    def stat(fn, v) -> float:
+        return round(float(fn(v)), 4) if len(v) else 0.0
+
+    return ModelMetrics(
+        images=rec.num_images(),
+        registered_images=rec.num_reg_images(),
+        images_with_points=int(np.sum(per_image > 0)),
+        image_pairs=pairs,
+        verified_pairs=verified,
+        points=rec.num_points3D(),
+        observations=int(len(err)),
+        track_length_mean=stat(np.mean, lengths),
+        track_length_median=stat(np.median, lengths),
+        reprojection_error_mean_px=stat(np.mean, err),
+        reprojection_error_median_px=stat(np.median, err),
+        points_per_image={
+            f"p{q}": round(float(v), 1)
+            for q, v in zip(pct, np.percentile(per_image, pct) if len(per_image) else [0] * 7, strict=True)
+        },
+    )
+
+
+def _verified_pairs(db_path: Path) -> int:
+    import pycolmap
+
+    db = pycolmap.Database.open(str(db_path))
+    try:
+        return int(db.num_verified_image_pairs())
+    finally:
+        db.close()
+
+
+def _input_hash(cfg: ReferenceModelConfig, images: Sequence[PosedImage], names: list[str]) -> str:
+    """The config and every image's name, pose, camera and file size and time: a changed input rebuilds."""
+    rows = []
+    for im, name in zip(images, names, strict=True):
+        st = Path(im.path).stat()
+        assert im.camera is not None
+        cam = im.camera
+        rows.append(
+            [
+                name,
+                np.round(np.asarray(im.world_from_cam, np.float64), 9).tolist(),
+                [cam.width, cam.height, np.round(cam.K, 9).tolist(), np.round(np.asarray(cam.D), 12).tolist()],
+                st.st_size,
+                st.st_mtime_ns,
+            ]
+        )
+    return config_hash({"cfg": cfg.model_dump(mode="json", exclude={"sessions"}), "images": rows, "v": STAGE_VERSION})
+
+
+@writes_workspace("out", within=True)
+def triangulate_reference_model(
+    images: Sequence[PosedImage],
+    out: str | Path,
+    config: ReferenceModelConfig | None = None,
+    image_root: str | Path | None = None,
+) -> Path:
+    """Build the reference model of ``images`` (known poses and cameras) into the folder ``out``;
+    returns it. Image names are paths relative to ``image_root`` (default: the images' common
+    folder). The folder is written aside and renamed into place when complete: a failure leaves any
+    earlier model as it was. Re-running with the same images and config does nothing."""
+    cfg = config if config is not None else ReferenceModelConfig()
+    _check_images(images)
+    root, names = _image_names(images, image_root)
+    final = Path(out)
+    h = _input_hash(cfg, images, names)
+    if is_done(final, h):
+        return final
+    t0 = time.perf_counter()
+    T = np.stack([np.asarray(im.world_from_cam, np.float64) for im in images])
+    pairs = pairs_from_poses(T, cfg.pair_neighbours, cfg.pair_max_distance_m, cfg.pair_max_angle_deg)
+    rec = _posed_reconstruction(images, names)
+    with building(final) as folder:
+        atomic_write_text(folder / "config.yaml", dump_config(cfg))
+        atomic_write_text(folder / "pairs.txt", "".join(f"{names[i]} {names[j]}\n" for i, j in pairs))
+        log.info("reference model: %d images, %d pairs", len(images), len(pairs))
+        model = _run_colmap(rec, root, names, pairs, folder, cfg)
+        model.write_binary(str(folder / "sfm"))  # pycolmap writes its default format there: binary, said once
+        (folder / "sfm_text").mkdir()
+        model.write_text(str(folder / "sfm_text"))
+        m = model_metrics(model, len(pairs), _verified_pairs(folder / "database.db"))
+        write_json(folder / "metrics.json", {**m.__dict__, "image_root": os.path.relpath(root, final.resolve())})
+        _, _, err = observation_errors_px(model)
+        reference_model_statistics(
+            folder / "statistics.png",
+            np.array([model.images[i].num_points3D for i in sorted(model.images)]),
+            np.array([p.track.length() for p in model.points3D.values()]),
+            err,
+        )
+        xyz = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3)
+        map_top_view(folder / "top_view.png", xyz, T[:, :3, 3], f"reference model: {len(xyz)} points")
+        write_timings(folder, seconds=time.perf_counter() - t0)
+        mark_done(folder, h, version=STAGE_VERSION, outputs=["sfm", "sfm_text", "metrics.json"])
+    log.info(
+        "reference model: %d points, median track %.1f, median reprojection error %.2f px",
+        m.points,
+        m.track_length_median,
+        m.reprojection_error_median_px,
+    )
+    return final
+
+
+@writes_workspace("workspace")
+def build_reference_model(
+    workspace: str | Path | Workspace,
+    sessions: list[str] | None = None,
+    out: str | Path | None = None,
+    config: str | Path | ReferenceModelConfig | None = None,
+) -> Path:
+    """The reference model of the workspace's database images (``mapkit align``'s common frame when
+    it finished, else each session's own) into ``out`` (default ``WORKSPACE/reference_model``); returns it."""
+    ws = Workspace(workspace)
+    cfg = load_config(ReferenceModelConfig, config, {"sessions": sessions} if sessions is not None else None)
+    images = _workspace_images(ws, cfg.sessions)
+    target = Path(out) if out is not None else ws.root / DEFAULT_FOLDER
+    return triangulate_reference_model(images, target, cfg, image_root=ws.root)

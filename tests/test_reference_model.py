@@ -1,0 +1,213 @@
+"""The triangulated reference model: known poses of the real KITTI clip give a model whose points
+agree with the ground-truth geometry, pycolmap reads both written formats alike, two builds give
+the same points, and bad input is one error that writes nothing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from mapkit.core.errors import InputError
+from mapkit.core.types import CameraInfo
+from mapkit.core.workspace import Workspace
+from mapkit.localization.reference_model import (
+    PosedImage,
+    ReferenceModelConfig,
+    build_reference_model,
+    pairs_from_poses,
+    triangulate_reference_model,
+)
+from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
+
+#: every other frame of the first 23 (2.4 m apart): 12 images over 26 m of a street
+FRAMES = list(range(0, 24, 2))
+
+
+def _kitti(clip: Path) -> tuple[CameraInfo, np.ndarray]:
+    """The left grey camera (calib.txt's first projection) and the clip's world_from_cam poses (N, 4, 4)."""
+    P0 = np.loadtxt(clip / "calib.txt")[0].reshape(3, 4)
+    rows = np.loadtxt(clip / "poses.txt").reshape(-1, 3, 4)
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3] = rows
+    return CameraInfo("cam0", 1226, 370, P0[:, :3].copy()), poses
+
+
+@pytest.fixture(scope="module")
+def kitti_model(kitti_clip, tmp_path_factory):
+    """The reference model of 12 real frames on their ground-truth poses, COLMAP's SIFT defaults."""
+    cam, poses = _kitti(kitti_clip)
+    images = [PosedImage(kitti_clip / "image_l" / f"{i:06d}.png", cam, poses[i]) for i in FRAMES]
+    out = tmp_path_factory.mktemp("refmodel") / "model"
+    triangulate_reference_model(images, out, ReferenceModelConfig(pair_neighbours=3))
+    return out, cam, poses
+
+
+def _frame_of(name: str) -> int:
+    return int(Path(name).stem)
+
+
+def test_kitti_points_agree_with_the_ground_truth_geometry(kitti_model):
+    """Thousands of points that reproject sub-pixel through the ground-truth poses and calibration
+    (computed here from poses.txt, not read from the model), lie in front of every camera that sees
+    them, and sit at the depth a two-view triangulation of the same keypoints gives."""
+    out, cam, poses = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    assert rec.num_images() == rec.num_reg_images() == len(FRAMES)
+    assert rec.num_points3D() >= 1800  # 2064 measured
+    K = cam.K
+    errors, depths = [], []
+    for im in rec.images.values():
+        cam_from_world = np.linalg.inv(poses[_frame_of(im.name)])
+        # the poses as given (KITTI rotations carry 7 digits: pycolmap's quaternion makes them orthonormal)
+        np.testing.assert_allclose(im.cam_from_world().matrix(), cam_from_world[:3], atol=1e-6)
+        obs = [(p.xy, rec.points3D[p.point3D_id].xyz) for p in im.points2D if p.has_point3D()]
+        uv = np.array([o[0] for o in obs])
+        X = np.array([o[1] for o in obs]) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        depths.append(X[:, 2])
+        errors.append(np.linalg.norm((X @ K.T)[:, :2] / X[:, 2:3] - uv, axis=1))
+    err = np.concatenate(errors)
+    assert np.median(err) < 1.0 and np.percentile(err, 95) < 4.0
+    assert np.concatenate(depths).min() > 0.5
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["points"] == rec.num_points3D() and metrics["images"] == len(FRAMES)
+    assert metrics["reprojection_error_median_px"] == pytest.approx(np.median(err), abs=1e-3)
+
+    # points seen in frames 0 and 4: numpy's linear two-view triangulation from the same keypoints
+    a = next(im for im in rec.images.values() if _frame_of(im.name) == 0)
+    b = next(im for im in rec.images.values() if _frame_of(im.name) == 4)
+    kp_b = {p.point3D_id: p.xy for p in b.points2D if p.has_point3D()}
+    shared = [(p.xy, kp_b[p.point3D_id], rec.points3D[p.point3D_id].xyz) for p in a.points2D if p.point3D_id in kp_b]
+    assert len(shared) >= 100
+    Pa = K @ np.linalg.inv(poses[0])[:3]
+    Pb = K @ np.linalg.inv(poses[4])[:3]
+    model_depth, two_view_depth = [], []
+    for xa, xb, X in shared:
+        A = np.stack([xa[0] * Pa[2] - Pa[0], xa[1] * Pa[2] - Pa[1], xb[0] * Pb[2] - Pb[0], xb[1] * Pb[2] - Pb[1]])
+        Xh = np.linalg.svd(A)[2][-1]
+        two_view_depth.append((np.linalg.inv(poses[0]) @ (Xh / Xh[3]))[2])
+        model_depth.append((np.linalg.inv(poses[0]) @ np.append(X, 1.0))[2])
+    rel = np.abs(np.array(two_view_depth) / np.array(model_depth) - 1)
+    assert np.median(rel) < 0.02
+
+
+def test_binary_and_text_models_agree(kitti_model):
+    out, _, _ = kitti_model
+    binary = pycolmap.Reconstruction(str(out / "sfm"))
+    text = pycolmap.Reconstruction(str(out / "sfm_text"))
+    assert (out / "sfm" / "points3D.bin").is_file() and (out / "sfm_text" / "points3D.txt").is_file()
+    assert binary.num_points3D() == text.num_points3D() > 0
+    assert {i: c.params.tolist() for i, c in binary.cameras.items()} == {
+        i: c.params.tolist() for i, c in text.cameras.items()
+    }
+    for image_id, im in binary.images.items():
+        other = text.images[image_id]
+        assert other.name == im.name and other.num_points2D() == im.num_points2D()
+        np.testing.assert_allclose(other.cam_from_world().matrix(), im.cam_from_world().matrix(), atol=1e-12)
+    for pid, p in binary.points3D.items():
+        q = text.points3D[pid]
+        np.testing.assert_allclose(q.xyz, p.xyz, rtol=1e-12, atol=1e-9)
+        assert [(e.image_id, e.point2D_idx) for e in q.track.elements] == [
+            (e.image_id, e.point2D_idx) for e in p.track.elements
+        ]
+    db = pycolmap.Database.open(str(out / "database.db"))
+    try:  # the database the localizers match against names every image as the model does
+        assert {im.image_id: im.name for im in db.read_all_images()} == {i: im.name for i, im in binary.images.items()}
+    finally:
+        db.close()
+
+
+# --- a workspace -------------------------------------------------------------------------------------
+
+FAST = {"first_octave": 0, "max_features": 2048, "pair_neighbours": 2}  # small and quick: the wiring, not the figures
+
+
+def _workspace(root: Path, clip: Path, frames: list[int]) -> Workspace:
+    """A workspace with one session whose image database holds ``frames`` of the clip on their poses."""
+    cam, poses = _kitti(clip)
+    ws = Workspace(root)
+    writer = ImageDbWriter(ws.session("kitti").imagedb, ImageDbConfig(image_format="png"), {"cam0": cam})
+    for i in frames:
+        image = cv2.imread(str(clip / "image_l" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+        writer.add(i * 100_000_000, "cam0", image, poses[i])
+    writer.close(None)
+    return ws
+
+
+def _points(out: Path) -> tuple[np.ndarray, list]:
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    ids = sorted(rec.points3D)
+    xyz = np.array([rec.points3D[i].xyz for i in ids])
+    tracks = [sorted((e.image_id, e.point2D_idx) for e in rec.points3D[i].track.elements) for i in ids]
+    return xyz, tracks
+
+
+def test_workspace_model_is_repeatable(kitti_clip, tmp_path):
+    """Two builds of one workspace give the same points and tracks, to the bit; the model's images
+    are the database's, named from the workspace root, on the database's poses."""
+    ws = _workspace(tmp_path / "ws", kitti_clip, [0, 2, 4, 6])
+    first = build_reference_model(ws.root, config=ReferenceModelConfig(**FAST))
+    assert first == ws.root / "reference_model"
+    done_ns = (first / ".done").stat().st_mtime_ns
+    assert build_reference_model(ws.root, config=ReferenceModelConfig(**FAST)) == first  # done: nothing to do
+    assert (first / ".done").stat().st_mtime_ns == done_ns
+    second = build_reference_model(ws.root, out=tmp_path / "again", config=ReferenceModelConfig(**FAST))
+    xyz_a, tracks_a = _points(first)
+    xyz_b, tracks_b = _points(second)
+    assert len(xyz_a) > 50
+    assert np.array_equal(xyz_a, xyz_b) and tracks_a == tracks_b
+    _, poses = _kitti(kitti_clip)
+    rec = pycolmap.Reconstruction(str(first / "sfm"))
+    names = sorted(im.name for im in rec.images.values())
+    assert names == [f"sessions/kitti/imagedb/images/cam0/{i * 100_000_000}.png" for i in (0, 2, 4, 6)]
+    for im in rec.images.values():
+        frame = int(Path(im.name).stem) // 100_000_000  # images.csv holds positions to 0.1 mm
+        np.testing.assert_allclose(im.cam_from_world().matrix(), np.linalg.inv(poses[frame])[:3], atol=1e-4)
+
+
+def test_bad_input_is_one_error_and_writes_nothing(kitti_clip, tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no session with an image database"):
+        build_reference_model(empty)
+    assert [p.name for p in empty.iterdir() if p.name != ".lock"] == []
+
+    ws = _workspace(tmp_path / "ws", kitti_clip, [0, 2])
+    for f in (ws.session("kitti").imagedb / "colmap").iterdir():
+        f.unlink()  # the database's cameras are gone
+    with pytest.raises(InputError) as err:
+        build_reference_model(ws.root)
+    assert err.value.field == "cameras" and err.value.path == ws.session("kitti").imagedb / "colmap"
+    assert not (ws.root / "reference_model").exists()
+
+    cam, poses = _kitti(kitti_clip)
+    path = kitti_clip / "image_l" / "000000.png"
+    images = [PosedImage(path, None, poses[0]), PosedImage(kitti_clip / "image_l" / "000002.png", cam, poses[2])]
+    with pytest.raises(InputError) as err:
+        triangulate_reference_model(images, tmp_path / "model")
+    assert err.value.field == "camera" and err.value.path == path
+    assert not (tmp_path / "model").exists() and [p.name for p in tmp_path.iterdir()] == ["empty", "ws"]
+
+
+def test_pairs_are_nearest_cameras_that_look_the_same_way():
+    """Five cameras 1 m apart along x looking along +y, the fourth looking back along -y: each pairs with its
+    two nearest that face its way, never farther than 2.5 m."""
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    look_y = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], np.float64)  # camera z along world +y
+    poses[:, :3, :3] = look_y
+    poses[3, :3, :3] = look_y @ np.diag([-1.0, 1.0, -1.0])  # turned around its y axis: z along -y
+    poses[:, 0, 3] = np.arange(5)
+    pairs = pairs_from_poses(poses, neighbours=2, max_distance=2.5, max_angle_deg=60)
+    assert pairs.tolist() == [[0, 1], [0, 2], [1, 2], [2, 4]]
+
+
+def test_the_command_says_what_it_builds(capsys):
+    from mapkit.cli import main
+
+    assert main(["model", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "triangulated reference model" in out and "--session" in out
