@@ -14,7 +14,7 @@ from mapkit.cli import main
 from mapkit.core.errors import InputError
 from mapkit.core.runio import read_timings
 from mapkit.core.workspace import Workspace
-from mapkit.deploy.export import export_bundles, load_bundle
+from mapkit.deploy.export import export_bundles, find_indexes, load_bundle
 from mapkit.pipelines.demo import RUN_RECORDS, places_pairs, run_demo
 from mapkit.report.html import Section, markdown_to_html, render
 from mapkit.retrieval.index_vlad import VladIndex
@@ -186,6 +186,26 @@ def test_a_bundle_whose_manifest_lists_fewer_indexes_than_it_holds_is_refused(ti
     with pytest.raises(InputError, match="lists 0 index") as e:
         load_bundle(copy)
     assert "manifest.json" in str(e.value) and all(name in str(e.value) for name in held)
+    # one of its index folders, loaded alone (`mapkit localize EXPORT/vlad`), is refused as well
+    with pytest.raises(InputError, match="does not list the index 'vlad'") as e:
+        VladIndex.load(copy / "vlad")
+    assert str(copy / "manifest.json") in str(e.value)
+
+
+def test_an_index_of_an_export_is_checked_against_the_export_and_the_export_is_not_an_index(tiny_demo, tmp_path):
+    """`mapkit localize EXPORT/vlad` loads one index of an export: it must be the one the export lists (an index
+    replaced by another is refused); `mapkit localize EXPORT` says to pass one of its index folders."""
+    out, _ = tiny_demo
+    copy = tmp_path / "bundle"
+    shutil.copytree(out / "bundles", copy)
+    assert len(VladIndex.load(copy / "vlad")) > 0
+    man = json.loads((copy / "manifest.json").read_text())
+    man["indexes"]["vlad"]["manifest_sha256"] = "0" * 64
+    (copy / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(InputError, match="differs from the one"):
+        VladIndex.load(copy / "vlad")
+    with pytest.raises(InputError, match="pass one of its index folders"):
+        VladIndex.load(copy)
 
 
 def test_export_of_one_named_index_and_of_a_missing_one(tiny_demo, tmp_path, capsys):
@@ -303,3 +323,96 @@ def test_figures_spread_and_verdicts():
     assert figures.verdict([0.1, 0.2, 0.01]) == "yes, in 3 of 3 runs"
     assert figures.verdict([0.1, -0.2, 0.3]) == "not beyond the spread (2 of 3 runs)"
     assert figures.verdict([-0.1, -0.2]) == "no, in 2 of 2 runs"
+
+
+def _functions_taking_a_workspace() -> dict[str, object]:
+    """Every public function and class of mapkit (the CLI aside) with a parameter that is a workspace or a folder of
+    one: named ``workspace`` or ``ws``, or typed ``Workspace`` or ``SessionDirs``. By qualified name."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    import mapkit
+
+    found: dict[str, object] = {}
+    for info in pkgutil.walk_packages(mapkit.__path__, "mapkit."):
+        if info.name in ("mapkit.cli", "mapkit.__main__"):
+            continue
+        module = importlib.import_module(info.name)
+        for attr, obj in vars(module).items():
+            if attr.startswith("_") or not (inspect.isfunction(obj) or inspect.isclass(obj)):
+                continue
+            if obj.__module__ != info.name:
+                continue
+            params = inspect.signature(obj.__init__ if inspect.isclass(obj) else obj).parameters.values()
+            if any(
+                p.name in ("workspace", "ws") or re.search(r"\b(Workspace|SessionDirs)\b", str(p.annotation))
+                for p in params
+            ):
+                found[f"{info.name}.{attr}"] = obj
+    return found
+
+
+#: the public functions that take a workspace and only read it, each called here on the tiny chain's workspace
+def _readers(ws: Path) -> dict[str, object]:
+    from mapkit.evaluation.places import PlacesEvalConfig, VladBaseline, resolve_split, tiles_split_of_workspace
+    from mapkit.mapping.build import format_build_summary
+    from mapkit.multisession.submaps import load_session
+    from mapkit.places.index_structure import session_map_dir, session_names
+    from mapkit.places.triplets import load_aligned_sessions
+    from mapkit.retrieval.vlad_bundle import read_camera_mount, read_session_images, workspace_sessions
+
+    w = Workspace(ws)
+    name = w.session_names()[0]
+    frame = w.require_frame()
+    return {
+        "mapkit.deploy.export.find_indexes": lambda: find_indexes(ws),
+        "mapkit.evaluation.places.tiles_split_of_workspace": lambda: tiles_split_of_workspace(w, frame),
+        "mapkit.evaluation.places.resolve_split": lambda: resolve_split(w, PlacesEvalConfig()),
+        "mapkit.evaluation.places.VladBaseline": lambda: VladBaseline(ws / "indexes" / "vlad", ws).images(name),
+        "mapkit.mapping.build.format_build_summary": lambda: format_build_summary(ws),
+        "mapkit.multisession.submaps.load_session": lambda: load_session(w.session(name), frame, 20.0),
+        "mapkit.places.index_structure.session_names": lambda: session_names(ws),
+        "mapkit.places.index_structure.session_map_dir": lambda: session_map_dir(ws, name),
+        "mapkit.places.triplets.load_aligned_sessions": lambda: load_aligned_sessions(ws),
+        "mapkit.retrieval.vlad_bundle.workspace_sessions": lambda: workspace_sessions(ws),
+        "mapkit.retrieval.vlad_bundle.read_session_images": lambda: read_session_images(ws, name),
+        "mapkit.retrieval.vlad_bundle.read_camera_mount": lambda: read_camera_mount(ws, name),
+    }
+
+
+#: public classes that take a workspace: each method that writes takes the lock itself (tests/faults/test_lock.py)
+LOCKING_CLASSES = {
+    "mapkit.core.workspace.Workspace",  # paths only; Workspace.lock() is the lock
+    "mapkit.mapping.build.SessionBuilder",  # every stage runs under the lock (test_lock: a held workspace)
+    "mapkit.mapping.stages.georef.Georeference",  # run() takes the lock
+}
+
+
+def test_every_function_that_takes_a_workspace_locks_it_or_writes_nothing(tiny_demo):
+    """The walk over the library: a public function that takes a workspace is a registered writer (it takes the
+    lock: tests/faults/test_lock.py calls each while another process holds it), or it writes nothing there: each of
+    the others is called on the tiny chain's workspace, whose files (names, sizes, times) must not change. A new
+    function that takes a workspace fails here until it is one or the other."""
+    from mapkit.core.writers import WRITERS
+
+    out, _ = tiny_demo
+    ws = out / "workspace"
+    found = _functions_taking_a_workspace()
+    writers = {f"{fn.__module__}.{fn.__name__}" for fn in WRITERS}  # every module is imported by now
+    readers = _readers(ws)
+    unlocked = sorted(set(found) - writers - set(readers) - LOCKING_CLASSES)
+    assert unlocked == []
+    assert set(readers) <= set(found)  # no stale entry
+
+    def state() -> dict[str, tuple[int, int]]:
+        return {
+            p.relative_to(ws).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in ws.rglob("*")
+            if p.name != ".lock"
+        }
+
+    before = state()
+    for name, call in readers.items():
+        call()
+        assert state() == before, name

@@ -630,7 +630,7 @@ def render_top_view(recording: str | Path, png: str | Path, max_points: int = 40
     data = read_recording(recording)
     fig, ax = plt.subplots(figsize=(10, 10), dpi=120)
     pts, cols = [], []
-    for entity, c in data.items():
+    for entity, c in sorted(data.items()):  # by name: the recording's chunk order varies from run to run
         if entity.endswith("/map") and "Points3D:positions" in c:
             pts.append(_xy(c["Points3D:positions"]))
             cols.append(_rgba(c.get("Points3D:colors", [None])[0], len(pts[-1])))
