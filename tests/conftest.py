@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,20 @@ def kitti_clip() -> Path:
     if not (path / "poses.txt").is_file():
         pytest.skip(f"real data not found at {path} (expected ../shared/data/kitti-odometry-clip beside the project)")
     return path
+
+
+@pytest.fixture(scope="module")
+def clip12(kitti_clip, tmp_path_factory) -> Path:
+    """The first 12 frames of the real KITTI clip as a KITTI odometry folder, with its calibration, poses and times."""
+    d = tmp_path_factory.mktemp("kitti12") / "clip12"
+    (d / "image_l").mkdir(parents=True)
+    for i in range(12):
+        shutil.copy(kitti_clip / "image_l" / f"{i:06d}.png", d / "image_l")
+    shutil.copy(kitti_clip / "calib.txt", d)
+    lines = (kitti_clip / "poses.txt").read_text().splitlines()[:12]
+    (d / "poses.txt").write_text("\n".join(lines) + "\n")
+    (d / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(12)))
+    return d
 
 
 @pytest.fixture

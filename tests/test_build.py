@@ -19,21 +19,7 @@ from mapkit.io.mcap_log import McapWriter
 from mapkit.mapping.build import build
 from mapkit.mapping.imagedb import read_images_csv
 
-N = 12
-
-
-@pytest.fixture(scope="module")
-def clip12(kitti_clip, tmp_path_factory):
-    """The first 12 frames of the clip, with its calibration and poses."""
-    d = tmp_path_factory.mktemp("kitti12") / "clip12"
-    (d / "image_l").mkdir(parents=True)
-    for i in range(N):
-        shutil.copy(kitti_clip / "image_l" / f"{i:06d}.png", d / "image_l")
-    shutil.copy(kitti_clip / "calib.txt", d)
-    lines = (kitti_clip / "poses.txt").read_text().splitlines()[:N]
-    (d / "poses.txt").write_text("\n".join(lines) + "\n")
-    (d / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(N)))
-    return d
+N = 12  # frames of the clip12 fixture (tests/conftest.py)
 
 
 def test_build_writes_every_stage_in_the_fields_formats(clip12, tmp_path):

@@ -31,19 +31,11 @@ MIGRATED = "finished by an older mapkit"
 
 
 @pytest.fixture(scope="module")
-def clip12(kitti_clip, tmp_path_factory):
-    """The first 12 frames of the KITTI clip, with its calibration and poses, settled (no wait for a writer)."""
-    d = tmp_path_factory.mktemp("kitti12") / "clip12"
-    (d / "image_l").mkdir(parents=True)
-    for i in range(N):
-        shutil.copy(kitti_clip / "image_l" / f"{i:06d}.png", d / "image_l")
-    shutil.copy(kitti_clip / "calib.txt", d)
-    lines = (kitti_clip / "poses.txt").read_text().splitlines()[:N]
-    (d / "poses.txt").write_text("\n".join(lines) + "\n")
-    (d / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(N)))
-    for p in d.rglob("*"):
+def clip12(clip12):
+    """The clip12 fixture (tests/conftest.py) with old file times: a finished log, built without waiting for it."""
+    for p in clip12.rglob("*"):
         os.utime(p, (1_000_000_000, 1_000_000_000))
-    return d
+    return clip12
 
 
 @pytest.fixture(scope="module")
