@@ -22,10 +22,11 @@ from mapkit.deploy.crs_export import ply_georef
 from mapkit.evaluation.metrics import distances_to_mesh
 from mapkit.io import open_log
 from mapkit.io.mcap_log import McapWriter
+from mapkit.io.plots import raster_top_view
 from mapkit.mapping.build import BuildConfig, build
 from mapkit.mapping.lidar_map import LidarMapConfig, build_lidar_map, load_voxel_stats, save_voxel_map
 from mapkit.mapping.trajectory import Trajectory
-from mapkit.mapping.voxel_map import VoxelMap
+from mapkit.mapping.voxel_map import _OUTER_I, _OUTER_J, VoxelMap, symmetric3_eigen
 
 T0 = 1_700_000_000_000_000_000
 SPEED_MPS, YAW_RATE = 8.0, np.pi / 2  # a fast turn: 9 degrees and 0.8 m during one 0.1 s sweep
@@ -189,6 +190,54 @@ def test_voxel_statistics_of_a_plane_and_a_line_and_merging_in_chunks_is_exact(r
     assert a.first_ns.tolist() == [T0, T0 + 9] and a.last_ns.tolist() == [T0 + 3, T0 + 9]
     for field in ("centroid", "count", "intensity", "normal", "planarity", "first_ns", "last_ns"):
         np.testing.assert_allclose(getattr(a, field), getattr(b, field), rtol=1e-12, atol=1e-12, err_msg=field)
+
+
+def test_closed_form_eigen_gives_the_known_eigenvalues_and_smallest_eigenvector(rng):
+    """Matrices built as R diag(l) R^T with known l and R, over the shapes a voxel takes (plane, thin plane, line,
+    ball, plane with exactly zero thickness, one repeated point): the eigenvalues to 2e-8 of the largest (about the
+    square root of the machine epsilon where two coincide, as the cubic's roots are there), and
+    where the smallest is simple the eigenvector is R's first column (up to sign)."""
+    shapes = {
+        "plane": [1e-6, 4e-4, 9e-4],
+        "thin plane": [1e-12, 1e-4, 2e-3],
+        "flat": [0.0, 1e-4, 2e-3],
+        "line": [1e-8, 1e-8, 2e-3],
+        "ball": [4e-4, 4e-4, 4e-4],
+        "point": [0.0, 0.0, 0.0],
+    }
+    for name, lam in shapes.items():
+        rot = Rotation.random(500, random_state=rng.integers(1 << 31)).as_matrix()
+        full = np.einsum("vij,j,vkj->vik", rot, np.array(lam), rot)
+        evals, vec = symmetric3_eigen(full[:, _OUTER_I, _OUTER_J])
+        np.testing.assert_allclose(
+            evals, np.broadcast_to(lam, evals.shape), atol=2e-8 * max(max(lam), 1e-12), err_msg=name
+        )
+        residual = np.einsum("vij,vj->vi", full, vec) - evals[:, :1] * vec
+        assert np.abs(np.linalg.norm(vec, axis=1) - 1).max() < 1e-9, name
+        assert np.abs(residual).max() <= 2e-8 * max(max(lam), 1e-12), name
+        if lam[0] < lam[1]:  # a simple smallest eigenvalue: a unique normal
+            assert np.abs(np.einsum("vi,vi->v", vec, rot[:, :, 0])).min() > 1 - 1e-6, name
+
+
+def test_raster_top_view_puts_each_point_in_its_pixel_with_its_height_colour(tmp_path):
+    """Two clusters at known places and heights: the low one is drawn dark blue (viridis' start) and the high one
+    yellow (its end) where they are, the rest of the map white; north is up."""
+    from PIL import Image
+
+    low = np.column_stack([np.full(50, 10.0), np.full(50, 10.0), np.zeros(50)])
+    high = np.column_stack([np.full(50, 90.0), np.full(50, 90.0), np.full(50, 5.0)])
+    path = raster_top_view(tmp_path / "top.png", np.vstack([low, high]), None, "two clusters", max_side_px=200)
+    img = np.asarray(Image.open(path).convert("RGB")).astype(int)[52:]  # below the caption
+    h, w, _ = img.shape
+    lo, px = 10.0 - 0.03 * 80, 80 * 1.06 / 200  # the padded extent and metres per pixel
+
+    def at(x, y):
+        return img[int((90.0 + 0.03 * 80 - y) / px), int((x - lo) / px)]
+
+    assert (at(10.0, 10.0) == [68, 1, 84]).all()  # viridis(0)
+    assert (at(90.0, 90.0) == [253, 231, 36]).all()  # viridis(1)
+    assert (at(50.0, 80.0) == 255).all() and (at(80.0, 20.0) == 255).all()
+    assert (img == 255).all(axis=2).mean() > 0.9
 
 
 def test_memory_is_bounded_by_the_map_not_by_the_log(mesh):

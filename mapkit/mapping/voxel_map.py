@@ -155,15 +155,13 @@ class VoxelMap:
         n = self.count.astype(np.float64)
         mean_local = self.sum_xyz / n[:, None]
         corner = _unpack(self.keys) * self.voxel_size_m
-        second = np.zeros((len(n), 3, 3))
-        second[:, _OUTER_I, _OUTER_J] = self.sum_outer / n[:, None]
-        second[:, _OUTER_J, _OUTER_I] = second[:, _OUTER_I, _OUTER_J]
-        cov = second - mean_local[:, :, None] * mean_local[:, None, :]
+        # the covariance's six distinct entries (xx, xy, xz, yy, yz, zz)
+        cov = self.sum_outer / n[:, None] - mean_local[:, _OUTER_I] * mean_local[:, _OUTER_J]
         normal = np.full((len(n), 3), np.nan)
         planarity = np.full(len(n), np.nan)
         enough = np.flatnonzero(self.count >= 3)
-        evals, evecs = np.linalg.eigh(cov[enough])  # ascending: l3, l2, l1
-        normal[enough] = evecs[:, :, 0] * np.where(evecs[:, 2, 0] < 0, -1.0, 1.0)[:, None]
+        evals, smallest = symmetric3_eigen(cov[enough])  # ascending: l3, l2, l1
+        normal[enough] = smallest * np.where(smallest[:, 2] < 0, -1.0, 1.0)[:, None]
         with np.errstate(invalid="ignore", divide="ignore"):
             planarity[enough] = np.where(evals[:, 2] > 0, (evals[:, 1] - evals[:, 0]) / evals[:, 2], np.nan)
             intensity = np.where(self.count_intensity > 0, self.sum_intensity / self.count_intensity, np.nan)
@@ -177,6 +175,50 @@ class VoxelMap:
             self.first_ns.copy(),
             self.last_ns.copy(),
         )
+
+
+def symmetric3_eigen(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (ascending) and the eigenvector of the smallest one of many symmetric 3x3 matrices, given as
+    their six distinct entries ``a`` (V, 6: xx, xy, xz, yy, yz, zz), in closed form: the eigenvalues from the
+    characteristic cubic by the trigonometric method (Smith, Comm. ACM 1961), the eigenvector as the longest cross
+    product of two rows of ``a - l3 I``. Array arithmetic only, without LAPACK's per-matrix cost in a batched
+    ``np.linalg.eigh``; matrices whose smallest eigenvalue is not simple (a line's or a ball's covariance: no
+    unique normal) take ``eigh``'s vector."""
+    a = np.asarray(a, np.float64)
+    a00, a01, a02, a11, a12, a22 = a.T
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.where(p > 0, det / (2.0 * p**3), 0.0)
+    phi = np.arccos(np.clip(r, -1.0, 1.0)) / 3.0
+    l1 = q + 2.0 * p * np.cos(phi)
+    l3 = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    evals = np.stack([l3, 3.0 * q - l1 - l3, l1], axis=1)
+    m00, m11, m22 = a00 - l3, a11 - l3, a22 - l3
+    # rows of a - l3 I: (m00, a01, a02), (a01, m11, a12), (a02, a12, m22); their three cross products
+    crosses = np.stack(
+        [
+            np.stack([a01 * a12 - a02 * m11, a02 * a01 - m00 * a12, m00 * m11 - a01 * a01], axis=1),
+            np.stack([a01 * m22 - a02 * a12, a02 * a02 - m00 * m22, m00 * a12 - a01 * a02], axis=1),
+            np.stack([m11 * m22 - a12 * a12, a12 * a02 - a01 * m22, a01 * a12 - m11 * a02], axis=1),
+        ]
+    )  # (3, V, 3)
+    norm2 = np.einsum("kvi,kvi->kv", crosses, crosses)
+    best = np.argmax(norm2, axis=0)
+    rows = np.arange(len(a))
+    longest = np.sqrt(norm2[best, rows])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        vec = crosses[best, rows] / longest[:, None]
+    # the cross products of a rank-1 (or 0) ``a - l3 I`` vanish: l3 is not simple, eigh picks a vector
+    weak = np.flatnonzero(~(longest > 1e-9 * np.maximum(l1 - l3, 0.0) ** 2) | (p <= 0))
+    if len(weak):
+        full = np.zeros((len(weak), 3, 3))
+        full[:, _OUTER_I, _OUTER_J] = a[weak]
+        full[:, _OUTER_J, _OUTER_I] = a[weak]
+        vec[weak] = np.linalg.eigh(full)[1][:, :, 0]
+    return evals, vec
 
 
 def _pack(ijk: np.ndarray) -> np.ndarray:

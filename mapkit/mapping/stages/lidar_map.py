@@ -19,16 +19,13 @@ from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs
 from mapkit.core.writers import writes_workspace
 from mapkit.io.base import DriveLog
-from mapkit.io.plots import map_top_view
+from mapkit.io.plots import raster_top_view
 from mapkit.mapping.lidar_map import LidarMapConfig, build_lidar_map, save_voxel_map
 from mapkit.mapping.stages.common import plot_axes
 from mapkit.mapping.trajectory import SensorMounts, Trajectory
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
 STAGE_VERSION = 1
-
-
-TOP_VIEW_POINTS = 20_000  # voxels drawn in the top view (a random sample): matplotlib takes seconds per 100 000
 
 
 def lidar_frame(log: DriveLog, topic: str) -> str | None:
@@ -72,12 +69,11 @@ def write_lidar_map(
         )
     stats = result.voxels.stats()
     save_voxel_map(out, stats, frame)
-    map_top_view(
+    raster_top_view(
         out / "top_view.png",
         stats.centroid,
         trajectory.world_from_base[:, :3, 3],
         f"{dirs.name}: LiDAR map, {len(stats)} voxels of {cfg.voxel_size_m:g} m",
-        max_points=TOP_VIEW_POINTS,
         axes=plot_axes(frame),
     )
     m["crs"] = None if frame is None else frame.to_dict()
