@@ -76,6 +76,18 @@ def test_map_lies_on_the_true_surfaces(built):
     assert m["median_distance_m"] < 0.25 and m["fraction_within_0.5m"] > 0.65, m
 
 
+def test_lidar_map_on_the_builds_own_poses_lies_on_the_true_surfaces_beside_the_semidense_map(built):
+    """The LiDAR map built on the session's own (GPS-aligned) trajectory, its offset removed: median distance to
+    the true surfaces at most 0.10 m, at least 95 % of its voxels within 0.25 m; eval_build.md puts both maps of
+    the session side by side."""
+    _, ws, r = built
+    lm = r["lidar_map_local"]
+    assert lm["points"] > 10 * r["map_local"]["points"]  # the LiDAR sees far more of the street than the images
+    assert lm["median_distance_m"] <= 0.10 and lm["fraction_within_0.25m"] >= 0.95, lm
+    rows = [line for line in (ws / "eval_build.md").read_text().splitlines() if line.startswith("| drive | LiDAR |")]
+    assert len(rows) == 1 and f"| {lm['median_distance_m']:.3f} |" in rows[0], rows
+
+
 def test_image_database_records_the_camera_mount(built):
     """The build keeps the camera's mount on the vehicle beside its image table, and a VLAD bundle
     made from it carries it, so that the localizer's filter runs on the vehicle pose as recorded."""
@@ -131,7 +143,7 @@ def test_fused_georeferencing_writes_poses_with_covariances_and_the_map_uses_the
     ws2 = tmp_path / "ws"
     shutil.copytree(ws, ws2)
     cfg = tmp_path / "fuse.yaml"
-    cfg.write_text("georef:\n  fuse: true\nimagedb: false\n")
+    cfg.write_text("georef:\n  fuse: true\nimagedb: false\nlidar_map: false\n")
     s, s2 = Workspace(ws).session("drive"), Workspace(ws2).session("drive")
     traj_marker = (s2.trajectory / ".done").read_text()
     map_marker = (s2.map / ".done").read_text()

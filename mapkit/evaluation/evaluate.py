@@ -383,6 +383,16 @@ def _evaluate_session(
         if fix is not None:
             r["map_local"] = map_accuracy(transform_points(fix, smap.points_world), session_mesh, road_length_m=length)
             r["map_local"]["driven_m"] = length
+    if s.has("lidar_map"):
+        from mapkit.mapping.lidar_map import load_voxel_stats
+
+        centroids = load_voxel_stats(s.lidar_map).centroid
+        session_mesh = session_truth_mesh(mesh, truth, s.name, town_to_ws)
+        length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
+        if georeferenced:
+            r["lidar_map"] = map_accuracy(centroids, session_mesh, road_length_m=length)
+        if fix is not None:
+            r["lidar_map_local"] = map_accuracy(transform_points(fix, centroids), session_mesh, road_length_m=length)
     return r
 
 
@@ -441,6 +451,24 @@ def format_eval(results: dict) -> str:
             f"{f(ml.get('median_distance_m'), 3)} / {f(ml.get('fraction_within_0.5m'), 3)} | "
             f"{f(ml.get('points_per_100m'), 0)} |"
         )
+    lidar = {name: r for name, r in results["sessions"].items() if "lidar_map_local" in r}
+    if lidar:
+        lines += [
+            "",
+            "Both maps of each session against the true surfaces, offset removed (the trajectory's rigid fit to truth; "
+            "the LiDAR map's points are its voxels' centroids):",
+            "",
+            "| session | map | points | median m | within 0.25 m | within 0.5 m | points / 100 m |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for name, r in lidar.items():
+            for label, key in (("semi-dense", "map_local"), ("LiDAR", "lidar_map_local")):
+                m = r.get(key, {})
+                lines.append(
+                    f"| {name} | {label} | {m.get('points', '')} | {f(m.get('median_distance_m'), 3)} | "
+                    f"{f(m.get('fraction_within_0.25m'), 3)} | {f(m.get('fraction_within_0.5m'), 3)} | "
+                    f"{f(m.get('points_per_100m'), 0)} |"
+                )
     return "\n".join(lines) + "\n"
 
 

@@ -74,6 +74,7 @@ def map_accuracy(points: np.ndarray, mesh, road_length_m: float | None = None) -
         "median_distance_m": float(np.median(d)) if len(d) else None,
         "fraction_within_0.5m": float(np.mean(d < 0.5)) if len(d) else None,
         "fraction_within_0.15m": float(np.mean(d < 0.15)) if len(d) else None,
+        "fraction_within_0.25m": float(np.mean(d < 0.25)) if len(d) else None,
         "p50_p90_p99_m": [float(x) for x in np.percentile(d, [50, 90, 99])] if len(d) else None,
     }
     if road_length_m:
