@@ -55,7 +55,9 @@ OVERRIDES = {
 def evaluated(tmp_path_factory):
     root = tmp_path_factory.mktemp("eval-align")
     town = synthesize(preset="tiny", out=root / "town", overrides=OVERRIDES, seed=3, progress=False)
-    ws = build(session_logs(town), root / "ws", progress=False)
+    cfg = root / "build.yaml"
+    cfg.write_text("lidar_map: false\n")  # align registers the semi-dense maps
+    ws = build(session_logs(town), root / "ws", config=cfg, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
         align_workspace(ws, progress=False)

@@ -508,7 +508,13 @@ def tiny_workspace(tmp_path_factory) -> Path:
     town = synthesize(preset="tiny", out=root / "town", overrides=TINY_TRAIN, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)  # tiny's drives are too short to georeference
-        return build(session_logs(town), root / "ws", progress=False)
+        return build(session_logs(town), root / "ws", config=_no_lidar_map(root), progress=False)
+
+
+def _no_lidar_map(folder: Path) -> Path:
+    """A build config without the LiDAR map: the stages these tests compare are the camera's."""
+    (folder / "no-lidar-map.yaml").write_text("lidar_map: false\n")
+    return folder / "no-lidar-map.yaml"
 
 
 def test_tiny_town_vlad_index_is_identical_on_ray(tiny_workspace, ray_executor, tmp_path):
@@ -568,7 +574,7 @@ def test_sessions_built_in_parallel_equal_a_serial_build(tiny_workspace, tmp_pat
     logs = session_logs(tiny_workspace.parent / "town")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)
-        parallel = build(logs, tmp_path / "ws", progress=False, executor=ProcessExecutor(2))
+        parallel = build(logs, tmp_path / "ws", _no_lidar_map(tmp_path), progress=False, executor=ProcessExecutor(2))
     a, b = _session_files(tiny_workspace), _session_files(parallel)
     assert len(a) == 5 * len(logs) and a.keys() == b.keys()
     # bit for bit, except the map's float coordinates: a worker runs BLAS on one thread, which sums

@@ -48,7 +48,9 @@ ONE_DRIVE = {
     "motion": {"start_from_rest": False},
 }
 #: builds that exercise the extrinsic lookups cheaply: the truth's pose stream as trajectory, no semi-dense map
-FAST = "topics: {poses: /ground_truth/odom}\ntrajectory: {source: poses}\nmap: false\n"
+# the pose stream instead of kiss-icp, and neither map: what these tests check is the tf lookups
+POSES_NO_MAPS = "topics: {poses: /ground_truth/odom}\ntrajectory: {source: poses}\nmap: false\n"
+FAST = POSES_NO_MAPS + "lidar_map: false\n"
 
 
 @pytest.fixture(scope="module")
@@ -250,7 +252,7 @@ def test_a_bag_without_any_extrinsic_takes_the_antenna_at_the_base_saying_so_and
     at the base with one warning each (nothing in the bag could place them); a camera, whose orientation a map
     needs, is an error until the config allows the identity."""
     bag = _bag_without(session_log(town, BAG), tmp_path / "no-tf", None)
-    said = sorted(_build(bag, tmp_path / "ws", FAST + "imagedb: false\n"))
+    said = sorted(_build(bag, tmp_path / "ws", POSES_NO_MAPS + "imagedb: false\n"))  # the LiDAR map on
     assert len(said) == 2, said
     assert "GPS antenna frame 'gps'" in said[0] and "LiDAR frame 'lidar'" in said[1], said
     assert all("no extrinsics" in s for s in said), said
