@@ -111,3 +111,44 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
 def write_kitti_poses(path: str | Path, world_from_body: np.ndarray) -> Path:
     lines = [" ".join(f"{x:.9e}" for x in T[:3, :].ravel()) for T in np.asarray(world_from_body)]
     return atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def write_benchmark_poses(path: str | Path, names: list[str], cam_from_world: np.ndarray) -> Path:
+    """The visual localization benchmark's submission format: one line ``name qw qx qy qz tx ty tz`` per
+    query image, the pose ``cam_from_world`` (world to camera, as COLMAP's images.txt), quaternion scalar-first."""
+    T = np.asarray(cam_from_world, np.float64).reshape(-1, 4, 4)
+    if len(names) != len(T):
+        raise ValueError(f"{len(names)} names for {len(T)} poses")
+    q = matrix_to_quat_wxyz(T[:, :3, :3]) if len(T) else np.zeros((0, 4))
+    lines = []
+    for name, qi, ti in zip(names, q, T[:, :3, 3], strict=True):
+        if not name or any(c.isspace() for c in name):
+            raise ValueError(f"image name {name!r} is empty or holds white space: the format splits on it")
+        lines.append(f"{name} {' '.join(f'{v:.12f}' for v in qi)} {' '.join(f'{v:.9f}' for v in ti)}")
+    return atomic_write_text(path, "".join(f"{line}\n" for line in lines))
+
+
+def read_benchmark_poses(path: str | Path) -> tuple[list[str], np.ndarray]:
+    """(image names, cam_from_world (N, 4, 4)) of a benchmark pose file (``name qw qx qy qz tx ty tz``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such file")
+    names: list[str] = []
+    poses = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        parts = line.split()
+        if not parts or parts[0].startswith("#"):
+            continue
+        where = f"line {lineno}"
+        if len(parts) != 8:
+            raise InputError(path, f"{where} has {len(parts)} fields, expected name qw qx qy qz tx ty tz", field=where)
+        try:
+            vals = np.array([float(p) for p in parts[1:]])
+        except ValueError:
+            raise InputError(path, f"{where} has a value that is not a number: {line[:80]!r}", field=where) from None
+        norm = np.linalg.norm(vals[:4])
+        if not np.all(np.isfinite(vals)) or abs(norm - 1.0) > 1e-3:
+            raise InputError(path, f"{where} has a quaternion of norm {norm:.4f} or a non-finite value", field=where)
+        names.append(parts[0])
+        poses.append(make_pose(quat_wxyz_to_matrix(vals[:4] / norm), vals[4:]))
+    return names, np.array(poses).reshape(-1, 4, 4)

@@ -1,0 +1,467 @@
+"""The reference 6-DoF localizer: a query image registered against the triangulated reference model
+(:mod:`mapkit.localization.reference_model`), as hloc's ``localize_sfm`` and COLMAP's image
+registrator do it.
+
+Per query: COLMAP's SIFT with the model's own extraction settings (its ``config.yaml``: the same
+octaves, feature budget and RootSIFT normalisation, so query and database descriptors compare);
+each candidate database image's descriptors (retrieval's top-k, or the images nearest a prior
+pose that look its way) matched by mutual nearest neighbour and Lowe's ratio test on the angle
+between descriptors, as COLMAP's SIFT matcher does; the matched keypoints of the candidate that
+carry a triangulated point give 2D-3D correspondences (each query keypoint and 3D point pair once);
+``pycolmap.estimate_and_refine_absolute_pose`` (P3P in LO-RANSAC, then non-linear refinement) gives
+``cam_from_world``. With fewer than ``min_inliers`` inliers the pose is not trusted: the result
+keeps the caller's fallback (the filter's or retrieval's pose) and says why.
+
+Poses are camera poses in the model's frame (optical axes x right, y down, z forward);
+``cam_from_world`` maps world points into the camera, ``world_from_cam`` is its inverse.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field
+
+from mapkit.core.config import MapkitConfig, load_config
+from mapkit.core.errors import ConfigError, InputError
+from mapkit.core.geometry import invert_pose
+from mapkit.core.runio import progress_bar
+from mapkit.core.types import CameraInfo
+from mapkit.localization.reference_model import ReferenceModelConfig, _colmap_camera
+
+log = logging.getLogger(__name__)
+
+#: COLMAP stores RootSIFT descriptors as unit vectors scaled by 512 and rounded to uint8
+_DESCRIPTOR_SCALE = 512.0
+#: query rows matched at a time: the similarity block stays near 32 MB for 8192 database features
+_MATCH_CHUNK = 1024
+
+
+class SixDofConfig(MapkitConfig):
+    max_candidates: int = Field(
+        10,
+        ge=1,
+        description="Candidate database images matched per query at most, the first of the given list (hloc's "
+        "pipelines retrieve 10 to 50; along a drive the 10 nearest views already overlap the query).",
+    )
+    prior_neighbours: int = Field(
+        10, ge=1, description="Candidates from a prior pose: this many database images nearest its camera centre ..."
+    )
+    prior_max_distance_m: float = Field(
+        30.0, gt=0, description="... within this distance (m; the reference model's pairing radius) ..."
+    )
+    prior_max_angle_deg: float = Field(
+        60.0,
+        gt=0,
+        le=180,
+        description="... whose viewing direction differs from the prior's by at most this (deg; the reference "
+        "model's pairing gate: cameras facing apart share nothing to match).",
+    )
+    max_ratio: float = Field(
+        0.8, gt=0, le=1, description="Lowe's ratio test on descriptor angles (COLMAP's SIFT matcher default)."
+    )
+    max_distance: float = Field(
+        0.7,
+        gt=0,
+        le=np.pi,
+        description="A match's descriptor angle (rad) at most this (COLMAP's SIFT matcher max_distance).",
+    )
+    ransac_max_error_px: float = Field(
+        12.0,
+        gt=0,
+        description="RANSAC's inlier threshold on the reprojection error (px; COLMAP's abs_pose_max_error and "
+        "hloc's localize_sfm default).",
+    )
+    min_inliers: int = Field(
+        30,
+        ge=4,
+        description="A pose needs this many RANSAC inliers to be accepted (COLMAP's abs_pose_min_num_inliers: "
+        "the count below which its mapper refuses to register an image); else the fallback pose stays.",
+    )
+    num_threads: int = Field(2, ge=1, description="Threads of feature extraction (pycolmap's -1 takes every core).")
+    seed: int = Field(0, ge=0, description="Seed of RANSAC: the same query gives the same pose.")
+
+
+@dataclass
+class SixDofQuery:
+    """One query: its image (a grey or RGB uint8 array, or a path), the camera that took it, and the
+    pose to keep when registration fails (``world_from_cam``, the filter's or retrieval's; may be None)."""
+
+    name: str
+    image: np.ndarray | str | Path
+    camera: CameraInfo | None
+    fallback_world_from_cam: np.ndarray | None = None
+
+
+@dataclass
+class SixDofResult:
+    """The pose of one query. ``accepted``: registered with at least ``min_inliers`` inliers; else the
+    poses are the caller's fallback (None without one) and ``reason`` says why."""
+
+    name: str
+    cam_from_world: np.ndarray | None
+    world_from_cam: np.ndarray | None
+    accepted: bool
+    reason: str
+    inliers: int
+    matches: int
+    candidates: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+# --- the model on disk -----------------------------------------------------------------------------------
+
+
+def _walk_binary(path: Path, kind: str) -> int:
+    """The record count of a COLMAP ``images.bin`` / ``points3D.bin`` after checking that its records fill the
+    file exactly. COLMAP's reader runs for minutes on a truncated points3D.bin (until it fails to allocate): a
+    damaged file is refused here first."""
+    if not path.is_file():
+        raise InputError(path, "no such file: not a COLMAP binary model", field="sfm")
+    data = path.read_bytes()
+    size = len(data)
+
+    def damaged(what: str) -> InputError:
+        return InputError(path, f"damaged COLMAP {kind} file ({what}); rebuild with mapkit model", field="sfm")
+
+    if size < 8:
+        raise damaged(f"{size} bytes, no record count")
+    (n,) = struct.unpack_from("<Q", data, 0)
+    pos = 8
+    for i in range(n):
+        if kind == "points3D":
+            # id u64, xyz 3 f64, rgb 3 u8, error f64, track length u64; then (image id u32, point2D idx u32) each
+            if pos + 51 > size:
+                raise damaged(f"ends inside point {i} of {n}")
+            (track,) = struct.unpack_from("<Q", data, pos + 43)
+            pos += 51 + 8 * track
+        else:
+            # id u32, qvec 4 f64, tvec 3 f64, camera id u32, name NUL-terminated, points2D u64; then (x, y f64, id u64)
+            end = data.find(b"\0", pos + 64)
+            if pos + 64 > size or end < 0 or end + 9 > size:
+                raise damaged(f"ends inside image {i} of {n}")
+            (points,) = struct.unpack_from("<Q", data, end + 1)
+            pos = end + 9 + 24 * points
+        if pos > size:
+            raise damaged(f"ends inside {kind} record {i} of {n}")
+    if pos != size:
+        raise damaged(f"{size - pos} bytes after the last of its {n} records")
+    return int(n)
+
+
+def _load_reconstruction(sfm: Path):
+    import pycolmap
+
+    if not sfm.is_dir():
+        raise InputError(sfm, "no reference model here (run mapkit model)", field="sfm")
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        if not (sfm / name).is_file():
+            raise InputError(sfm / name, "no such file: the reference model is incomplete", field="sfm")
+    n_images = _walk_binary(sfm / "images.bin", "images")
+    n_points = _walk_binary(sfm / "points3D.bin", "points3D")
+    try:
+        rec = pycolmap.Reconstruction(str(sfm))
+    except (RuntimeError, ValueError, IndexError) as exc:
+        raise InputError(sfm, f"COLMAP cannot read the model: {exc}", field="sfm") from None
+    if rec.num_images() != n_images or rec.num_points3D() != n_points:
+        raise InputError(sfm, "COLMAP read fewer images or points than the files hold", field="sfm")
+    if n_points == 0:
+        raise InputError(sfm / "points3D.bin", "the model has no 3D points to register against", field="sfm")
+    return rec
+
+
+def _features_config(folder: Path) -> ReferenceModelConfig:
+    """The extraction settings the model was built with (its ``config.yaml``); COLMAP's defaults without one."""
+    path = folder / "config.yaml"
+    if not path.is_file():
+        log.info("%s: no config.yaml, query features use COLMAP's SIFT defaults", folder)
+        return ReferenceModelConfig()
+    try:
+        return load_config(ReferenceModelConfig, path)
+    except ConfigError as exc:
+        raise InputError(path, f"not the config of a reference model ({exc})", field="config") from None
+
+
+@dataclass
+class _DatabaseImage:
+    image_id: int
+    point3D_ids: np.ndarray  # (M,) int64 per keypoint, -1 where not triangulated
+    centre: np.ndarray  # (3,) camera centre in the world
+    axis: np.ndarray  # (3,) viewing direction (camera z) in the world
+
+
+class SixDofLocalizer:
+    """Registers queries against one reference model folder (``mapkit model``'s output: ``sfm/`` and
+    ``database.db``). The model is read once; each database image's descriptors are read from the
+    database on first use and kept in memory (uint8, as COLMAP stores them)."""
+
+    def __init__(self, model_folder: str | Path, config: SixDofConfig | None = None):
+        import pycolmap
+
+        self.folder = Path(model_folder)
+        self.cfg = config if config is not None else SixDofConfig()
+        if not self.folder.is_dir():
+            raise InputError(self.folder, "no reference model folder here (run mapkit model)")
+        self.rec = _load_reconstruction(self.folder / "sfm")
+        self.features = _features_config(self.folder)
+        self._db: pycolmap.Database | None = None
+        db_path = self.folder / "database.db"
+        if not db_path.is_file():  # pycolmap would create an empty database
+            raise InputError(db_path, "no such file: the reference model's features are missing", field="database")
+        try:
+            self._db = db = pycolmap.Database.open(str(db_path))
+            stored = {im.image_id: im.name for im in db.read_all_images()}
+        except (RuntimeError, ValueError) as exc:
+            self.close()
+            raise InputError(db_path, f"not a readable COLMAP database: {exc}", field="database") from None
+        self._images: dict[str, _DatabaseImage] = {}
+        self._descriptors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for image_id, im in self.rec.images.items():
+            if stored.get(image_id) != im.name:
+                self.close()
+                raise InputError(db_path, f"image {image_id} ({im.name}) of the model is not there", field="database")
+            n = db.num_keypoints_for_image(image_id)
+            if n != im.num_points2D() or db.num_descriptors_for_image(image_id) != n:
+                self.close()
+                raise InputError(
+                    db_path, f"image {im.name}: {n} keypoints, the model has {im.num_points2D()}", field="database"
+                )
+            world_from_cam = invert_pose(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
+            ids = np.array([p.point3D_id if p.has_point3D() else -1 for p in im.points2D], np.int64)
+            self._images[im.name] = _DatabaseImage(image_id, ids, world_from_cam[:3, 3], world_from_cam[:3, 2])
+        self._xyz = {pid: np.asarray(p.xyz, np.float64) for pid, p in self.rec.points3D.items()}
+        self._names = sorted(self._images)
+        self._centres = np.array([self._images[n].centre for n in self._names]).reshape(-1, 3)
+        self._axes = np.array([self._images[n].axis for n in self._names]).reshape(-1, 3)
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = self.cfg.num_threads
+        extraction.sift.max_num_features = self.features.max_features
+        extraction.sift.first_octave = self.features.first_octave
+        extraction.sift.peak_threshold = self.features.peak_threshold
+        self._extractor = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
+
+    # --- lifetime
+
+    def close(self) -> None:
+        if self._db is not None:
+            self._db.close()
+            self._db = None
+
+    def __enter__(self) -> SixDofLocalizer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- candidates
+
+    @property
+    def image_names(self) -> list[str]:
+        """The model's database image names, sorted."""
+        return list(self._names)
+
+    def world_from_cam(self, name: str) -> np.ndarray:
+        """The known pose of database image ``name`` (4, 4)."""
+        im = self.rec.find_image_with_name(name)
+        if im is None:
+            raise KeyError(name)
+        return invert_pose(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
+
+    def candidates_near(self, world_from_cam: np.ndarray) -> list[str]:
+        """The database images nearest a prior camera pose (by camera centre, within ``prior_max_distance_m``)
+        whose viewing direction is within ``prior_max_angle_deg`` of the prior's, nearest first, at most
+        ``prior_neighbours``."""
+        T = np.asarray(world_from_cam, np.float64)
+        d = np.linalg.norm(self._centres - T[:3, 3], axis=1)
+        ok = (d <= self.cfg.prior_max_distance_m) & (
+            self._axes @ T[:3, 2] >= np.cos(np.radians(self.cfg.prior_max_angle_deg)) - 1e-12
+        )
+        idx = np.nonzero(ok)[0]
+        idx = idx[np.argsort(d[idx], kind="stable")][: self.cfg.prior_neighbours]
+        return [self._names[i] for i in idx]
+
+    # --- features and matches
+
+    def _database_features(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(descriptors (M, 128) uint8, point3D ids (M,)) of a database image, read once."""
+        if name not in self._descriptors:
+            assert self._db is not None, "the localizer is closed"
+            im = self._images[name]
+            desc = np.ascontiguousarray(np.asarray(self._db.read_descriptors(im.image_id).data, np.uint8))
+            self._descriptors[name] = (desc, im.point3D_ids)
+        return self._descriptors[name]
+
+    def extract(self, image: np.ndarray | str | Path) -> tuple[np.ndarray, np.ndarray]:
+        """(keypoints (N, 2) in COLMAP's pixel convention, descriptors (N, 128) uint8) of a query image."""
+        import pycolmap
+
+        if isinstance(image, (str, Path)):
+            if not Path(image).is_file():
+                raise InputError(image, "no such image")
+            bitmap = pycolmap.Bitmap.read(str(image), as_rgb=False)  # COLMAP's own reader, as the model's images
+            if bitmap is None:
+                raise InputError(image, "not an image COLMAP can read")
+            kp, desc = self._extractor.extract(bitmap)
+        else:
+            arr = np.asarray(image)
+            if arr.dtype != np.uint8 or arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] != 3):
+                raise InputError(None, f"query image of {arr.dtype} {arr.shape}: expected uint8 grey or RGB")
+            kp, desc = self._extractor.extract_from_uint8_array(np.ascontiguousarray(arr))
+        xy = np.array([[k.x, k.y] for k in kp], np.float64).reshape(-1, 2)
+        return xy, np.ascontiguousarray(np.asarray(desc.data, np.uint8)).reshape(-1, 128)
+
+    def localize(
+        self,
+        image: np.ndarray | str | Path,
+        camera: CameraInfo | None,
+        candidates: Sequence[str],
+        fallback_world_from_cam: np.ndarray | None = None,
+        name: str = "",
+    ) -> SixDofResult:
+        """The pose of one query image taken by ``camera`` from its ``candidates`` (database image names,
+        best first); the fallback pose, not accepted, when it does not register."""
+        t0 = time.perf_counter()
+        label = name or (str(image) if isinstance(image, (str, Path)) else "query")
+        cam = _check_camera(camera, image if isinstance(image, (str, Path)) else None, label)
+        unknown = [c for c in candidates if c not in self._images]
+        if unknown:
+            raise InputError(self.folder / "sfm", f"{label}: candidate {unknown[0]!r} is not an image of the model")
+        used = list(dict.fromkeys(candidates))[: self.cfg.max_candidates]
+
+        def result(accepted: bool, reason: str, inliers: int, matches: int, T: np.ndarray | None) -> SixDofResult:
+            world_from_cam = None if T is None else invert_pose(T)
+            if T is None and fallback_world_from_cam is not None:
+                world_from_cam = np.array(fallback_world_from_cam, np.float64)  # kept as given
+                T = invert_pose(world_from_cam)
+            return SixDofResult(
+                label,
+                T,
+                world_from_cam,
+                accepted,
+                reason,
+                inliers,
+                matches,
+                used,
+                time.perf_counter() - t0,
+            )
+
+        if not used:
+            return result(False, "no candidate database images", 0, 0, None)
+        if isinstance(image, np.ndarray) and image.shape[:2] != (cam.height, cam.width):
+            raise InputError(None, f"{label}: image {image.shape[1]}x{image.shape[0]}, camera {cam.width}x{cam.height}")
+        xy, desc = self.extract(image)
+        pairs = []
+        for c in used:
+            db_desc, pids = self._database_features(c)
+            qi, dj = mutual_ratio_matches(desc, db_desc, self.cfg.max_ratio, self.cfg.max_distance)
+            keep = pids[dj] >= 0
+            pairs.append(np.stack([qi[keep], pids[dj[keep]]], axis=1))
+        pair = np.unique(np.concatenate(pairs).reshape(-1, 2), axis=0)
+        if len(pair) < self.cfg.min_inliers:
+            return result(
+                False, f"{len(pair)} 2D-3D matches, fewer than min_inliers {self.cfg.min_inliers}", 0, len(pair), None
+            )
+        points2D = xy[pair[:, 0]]
+        points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
+        T, inliers = self._absolute_pose(points2D, points3D, cam)
+        if T is None:
+            return result(False, f"RANSAC found no pose from {len(pair)} 2D-3D matches", 0, len(pair), None)
+        if inliers < self.cfg.min_inliers:
+            return result(
+                False,
+                f"{inliers} inliers of {len(pair)} 2D-3D matches, fewer than min_inliers {self.cfg.min_inliers}",
+                inliers,
+                len(pair),
+                None,
+            )
+        return result(True, f"{inliers} inliers of {len(pair)} 2D-3D matches", inliers, len(pair), T)
+
+    def _absolute_pose(self, points2D: np.ndarray, points3D: np.ndarray, camera: CameraInfo):
+        """(cam_from_world (4, 4), inliers), or (None, 0) when RANSAC finds no pose."""
+        import pycolmap
+
+        options = pycolmap.AbsolutePoseEstimationOptions()
+        options.ransac.max_error = self.cfg.ransac_max_error_px
+        options.ransac.random_seed = self.cfg.seed
+        out = pycolmap.estimate_and_refine_absolute_pose(points2D, points3D, _colmap_camera(camera, 1), options)
+        if out is None:
+            return None, 0
+        T = np.eye(4)
+        T[:3] = out["cam_from_world"].matrix()
+        return T, int(out["num_inliers"])
+
+
+def _check_camera(camera: CameraInfo | None, path: str | Path | None, label: str) -> CameraInfo:
+    if camera is None or not (np.all(np.isfinite(camera.K)) and camera.fx > 0 and camera.fy > 0):
+        raise InputError(path, f"{label}: query without intrinsics (a camera with a positive focal length)")
+    if camera.width <= 0 or camera.height <= 0:
+        raise InputError(path, f"{label}: camera {camera.camera!r} has no image size", field="camera")
+    return camera
+
+
+def mutual_ratio_matches(
+    desc_a: np.ndarray, desc_b: np.ndarray, max_ratio: float, max_distance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (i in a, j in b) of mutual nearest neighbours between two sets of COLMAP SIFT descriptors (uint8,
+    unit vectors times 512) whose angle is at most ``max_distance`` (rad) and below ``max_ratio`` times the angle
+    to a's second nearest neighbour in b (Lowe's ratio test on angles, as COLMAP's matcher)."""
+    a = np.asarray(desc_a, np.float32) / _DESCRIPTOR_SCALE
+    b = np.asarray(desc_b, np.float32) / _DESCRIPTOR_SCALE
+    if len(a) == 0 or len(b) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    best_j = np.empty(len(a), np.int64)
+    best, second = np.empty(len(a), np.float32), np.empty(len(a), np.float32)
+    col_best = np.full(len(b), -np.inf, np.float32)
+    col_arg = np.zeros(len(b), np.int64)
+    bt = np.ascontiguousarray(b.T)
+    cols = np.arange(len(b))
+    for s in range(0, len(a), _MATCH_CHUNK):
+        sim = a[s : s + _MATCH_CHUNK] @ bt
+        arg = np.argmax(sim, axis=0)  # b's nearest in this block, before a's best are masked below
+        val = sim[arg, cols]
+        better = val > col_best
+        col_best[better] = val[better]
+        col_arg[better] = arg[better] + s
+        rows = np.arange(len(sim))
+        j = np.argmax(sim, axis=1)
+        best_j[s : s + len(sim)] = j
+        best[s : s + len(sim)] = sim[rows, j]
+        sim[rows, j] = -np.inf
+        second[s : s + len(sim)] = np.max(sim, axis=1)
+    d1 = np.arccos(np.clip(best, -1.0, 1.0))
+    d2 = np.arccos(np.clip(second, -1.0, 1.0))
+    i = np.arange(len(a))
+    ok = (d1 <= max_distance) & (d1 < max_ratio * d2) & (col_arg[best_j] == i)
+    return i[ok], best_j[ok]
+
+
+def localize_images(
+    model_folder: str | Path,
+    queries: Sequence[SixDofQuery],
+    candidates_per_query: Sequence[Sequence[str] | None],
+    config: str | Path | SixDofConfig | None = None,
+    progress: bool | None = None,
+) -> list[SixDofResult]:
+    """Every query registered against the reference model in ``model_folder``, from its candidates (database image
+    names, best first; None: the images nearest the query's fallback pose that look its way)."""
+    cfg = load_config(SixDofConfig, config)
+    if len(candidates_per_query) != len(queries):
+        raise InputError(None, f"{len(queries)} queries but {len(candidates_per_query)} candidate lists")
+    results = []
+    with SixDofLocalizer(model_folder, cfg) as loc:
+        bar = progress_bar(len(queries), progress, "6-DoF", "image")
+        for q, cands in zip(queries, candidates_per_query, strict=True):
+            if cands is None:
+                cands = [] if q.fallback_world_from_cam is None else loc.candidates_near(q.fallback_world_from_cam)
+            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name))
+            bar.update()
+        bar.close()
+    n = sum(r.accepted for r in results)
+    log.info("6-DoF: %d of %d queries registered", n, len(results))
+    return results
