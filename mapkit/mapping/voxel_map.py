@@ -26,6 +26,7 @@ _MASK = (1 << _BITS) - 1
 # the six distinct products of a point's coordinates: xx, xy, xz, yy, yz, zz
 _OUTER_I = np.array([0, 0, 0, 1, 1, 2])
 _OUTER_J = np.array([0, 1, 2, 1, 2, 2])
+STATS_BLOCK = 65_536  # voxels whose normal and planarity are computed at a time
 
 
 @dataclass
@@ -133,6 +134,8 @@ class VoxelMap:
         self.first_ns[at] = np.minimum(self.first_ns[at], first[found])
         self.last_ns[at] = np.maximum(self.last_ns[at], last[found])
         new = ~found
+        if not new.any():  # a pass over mapped ground: nothing to splice in
+            return
         new_at, old_at = _spliced_positions(len(self.keys), pos[new])
         self.keys = _splice(self.keys, keys[new], new_at, old_at)
         self.count = _splice(self.count, count[new], new_at, old_at)
@@ -155,15 +158,18 @@ class VoxelMap:
         n = self.count.astype(np.float64)
         mean_local = self.sum_xyz / n[:, None]
         corner = _unpack(self.keys) * self.voxel_size_m
-        # the covariance's six distinct entries (xx, xy, xz, yy, yz, zz)
-        cov = self.sum_outer / n[:, None] - mean_local[:, _OUTER_I] * mean_local[:, _OUTER_J]
         normal = np.full((len(n), 3), np.nan)
         planarity = np.full(len(n), np.nan)
         enough = np.flatnonzero(self.count >= 3)
-        evals, smallest = symmetric3_eigen(cov[enough])  # ascending: l3, l2, l1
-        normal[enough] = smallest * np.where(smallest[:, 2] < 0, -1.0, 1.0)[:, None]
+        for lo in range(0, len(enough), STATS_BLOCK):  # in blocks: the eigen temporaries stay bounded
+            at = enough[lo : lo + STATS_BLOCK]
+            # the covariance's six distinct entries (xx, xy, xz, yy, yz, zz)
+            cov = self.sum_outer[at] / n[at, None] - mean_local[at][:, _OUTER_I] * mean_local[at][:, _OUTER_J]
+            evals, smallest = symmetric3_eigen(cov)  # ascending: l3, l2, l1
+            normal[at] = smallest * np.where(smallest[:, 2] < 0, -1.0, 1.0)[:, None]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                planarity[at] = np.where(evals[:, 2] > 0, (evals[:, 1] - evals[:, 0]) / evals[:, 2], np.nan)
         with np.errstate(invalid="ignore", divide="ignore"):
-            planarity[enough] = np.where(evals[:, 2] > 0, (evals[:, 1] - evals[:, 0]) / evals[:, 2], np.nan)
             intensity = np.where(self.count_intensity > 0, self.sum_intensity / self.count_intensity, np.nan)
         return VoxelStats(
             self.voxel_size_m,
@@ -182,8 +188,8 @@ def symmetric3_eigen(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     their six distinct entries ``a`` (V, 6: xx, xy, xz, yy, yz, zz), in closed form: the eigenvalues from the
     characteristic cubic by the trigonometric method (Smith, Comm. ACM 1961), the eigenvector as the longest cross
     product of two rows of ``a - l3 I``. Array arithmetic only, without LAPACK's per-matrix cost in a batched
-    ``np.linalg.eigh``; matrices whose smallest eigenvalue is not simple (a line's or a ball's covariance: no
-    unique normal) take ``eigh``'s vector."""
+    ``np.linalg.eigh``. Where the smallest eigenvalue is not simple (a line's or a ball's covariance: no unique
+    normal) the vector is one of its eigenvectors."""
     a = np.asarray(a, np.float64)
     a00, a01, a02, a11, a12, a22 = a.T
     q = (a00 + a11 + a22) / 3.0
@@ -211,13 +217,23 @@ def symmetric3_eigen(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     longest = np.sqrt(norm2[best, rows])
     with np.errstate(invalid="ignore", divide="ignore"):
         vec = crosses[best, rows] / longest[:, None]
-    # the cross products of a rank-1 (or 0) ``a - l3 I`` vanish: l3 is not simple, eigh picks a vector
+    # the cross products of a rank-1 (or 0) ``a - l3 I`` vanish: l3 is not simple (a line's or a ball's covariance).
+    # Then any unit vector orthogonal to its longest row (the line's direction) is an eigenvector of l3, and where
+    # every row vanishes (a ball, or one point seen again and again) any vector is: take up, +z
     weak = np.flatnonzero(~(longest > 1e-9 * np.maximum(l1 - l3, 0.0) ** 2) | (p <= 0))
     if len(weak):
-        full = np.zeros((len(weak), 3, 3))
-        full[:, _OUTER_I, _OUTER_J] = a[weak]
-        full[:, _OUTER_J, _OUTER_I] = a[weak]
-        vec[weak] = np.linalg.eigh(full)[1][:, :, 0]
+        rows3 = np.stack(
+            [np.stack([m00, a01, a02], axis=1), np.stack([a01, m11, a12], axis=1), np.stack([a02, a12, m22], axis=1)]
+        )[:, weak]  # (3, W, 3)
+        row_norm = np.linalg.norm(rows3, axis=2)
+        pick = np.argmax(row_norm, axis=0)
+        w = np.arange(len(weak))
+        direction = rows3[pick, w]
+        axis = np.eye(3)[np.argmin(np.abs(direction), axis=1)]  # the axis least along the line
+        ortho = np.cross(direction, axis)
+        size = np.linalg.norm(ortho, axis=1)
+        flat = size > 1e-12 * np.maximum(row_norm[pick, w], 1e-300)
+        vec[weak] = np.where(flat[:, None], ortho / np.where(flat, size, 1.0)[:, None], [0.0, 0.0, 1.0])
     return evals, vec
 
 
