@@ -215,11 +215,18 @@ def align(
         ..., help="A workspace made by `mapkit build` (two or more georeferenced sessions)."
     ),
     config: Path | None = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults align`."),
+    map_source: str | None = typer.Option(
+        None,
+        "--map-source",
+        help="Register submap pairs on semidense, lidar or auto (LiDAR maps where both sessions have one); "
+        "default: the config's map_source (semidense).",
+    ),
 ) -> None:
     """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""
     from mapkit.multisession.align import align_workspace
 
-    out = align_workspace(workspace, config, progress=sys.stderr.isatty())
+    overrides = None if map_source is None else {"map_source": map_source}
+    out = align_workspace(workspace, config, overrides, progress=sys.stderr.isatty())
     typer.echo((out / "qa.md").read_text(), nl=False)
     typer.echo(f"written to {out}: refined sessions, tiles/, pairs.json, qa.md, pictures")
 
@@ -277,7 +284,9 @@ def _is_source(value: str) -> TypeGuard[Source]:
 @_writes("workspace")
 def triplets(
     workspace: Path = typer.Argument(..., help="A workspace aligned by `mapkit align`."),
-    out: Path | None = typer.Option(None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets)."),
+    out: Path | None = typer.Option(
+        None, "--out", "-o", help="Dataset folder (default WORKSPACE/triplets, WORKSPACE/triplets-lidar with lidar)."
+    ),
     config: Path | None = typer.Option(
         None, "--config", "-c", help="YAML overriding `mapkit config defaults triplets`."
     ),
@@ -287,6 +296,12 @@ def triplets(
     pointnetvlad: bool = typer.Option(
         False, "--pointnetvlad", help="Also write the PointNetVLAD tuple layout (DATASET/pointnetvlad)."
     ),
+    map_source: str | None = typer.Option(
+        None,
+        "--map-source",
+        help="Cut patches from the aligned semidense maps or the aligned lidar maps; default: the config's "
+        "map_source (semidense).",
+    ),
 ) -> None:
     """Export a triplet dataset of voxelised 3D patches (train/test split by UTM tiles)."""
     import json
@@ -294,7 +309,9 @@ def triplets(
     from mapkit.evaluation.triplets import evaluate_triplets
     from mapkit.places.pointnetvlad import export_triplets_pointnetvlad
 
-    overrides = {"pointnetvlad": {"enabled": True}} if pointnetvlad else None
+    overrides: dict = {"pointnetvlad": {"enabled": True}} if pointnetvlad else {}
+    if map_source is not None:
+        overrides["map_source"] = map_source
     folder = export_triplets_pointnetvlad(workspace, out, config, overrides=overrides, progress=sys.stderr.isatty())
     typer.echo((folder / "metrics.json").read_text(), nl=False)
     if truth is not None:
@@ -524,7 +541,10 @@ def index_structure(
         None, "--model", help="A trained CNN folder (`mapkit train`), for --kind cnn; runs its ONNX export."
     ),
     out: Path | None = typer.Option(
-        None, "--out", "-o", help="Bundle folder (default WORKSPACE/indexes/structure-KIND)."
+        None,
+        "--out",
+        "-o",
+        help="Bundle folder (default WORKSPACE/indexes/structure-KIND, structure-KIND-lidar with --map-source lidar).",
     ),
     session: list[str] | None = typer.Option(
         None, "--session", "-s", help="Database session; repeat for several (default: all)."
@@ -532,13 +552,21 @@ def index_structure(
     config: Path | None = typer.Option(
         None, "--config", "-c", help="YAML overriding `mapkit config defaults structure_index`."
     ),
+    map_source: str | None = typer.Option(
+        None,
+        "--map-source",
+        help="Index the semidense maps or the lidar maps (voxel centroids); default: the config's map_source "
+        "(semidense).",
+    ),
 ) -> None:
     """Structure index of a workspace's maps (NBLD, M2DP or a trained CNN's patch descriptors) with keypoint-to-frame voting, as a deployable bundle."""  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
     from mapkit.places.index_structure import build_structure_index
 
-    overrides = {"cnn_model": str(model)} if model is not None else None
+    overrides: dict = {"cnn_model": str(model)} if model is not None else {}
+    if map_source is not None:
+        overrides["map_source"] = map_source
     bundle = build_structure_index(
-        workspace, kind, out, session or None, config, overrides=overrides, progress=sys.stderr.isatty()
+        workspace, kind, out, session or None, config, overrides=overrides or None, progress=sys.stderr.isatty()
     )
     typer.echo(f"bundle written to {bundle}")
 

@@ -16,13 +16,13 @@ A workspace holds one folder per drive (session) and the multi-session stages bu
         imagedb/                  images/, images.csv, colmap/, camera_mount.json;
                                   training/, training.csv: frames the database skipped (encoder training)
       align/                      mapkit align; .done lists the sessions it holds
-        sessions/<name>/          trajectory/, map/, images.csv in the common frame
+        sessions/<name>/          trajectory/, map/, lidar_map/ (where built), images.csv in the common frame
         tiles/                    merged map in UTM tiles
         pairs.json, registrations.json, qa.md, eval_align.json, .md
-      triplets/                   mapkit triplets
+      triplets/                   mapkit triplets (triplets-lidar/ from the LiDAR maps)
       cnn/                        mapkit train
       indexes/vlad/               mapkit index vlad
-      indexes/structure-<kind>/   mapkit index structure
+      indexes/structure-<kind>/   mapkit index structure (structure-<kind>-lidar/ from the LiDAR maps)
       indexes/cache/              structure descriptors of session maps, shared by index builds and evaluations
       localize/                   mapkit eval localize (cache/ holds retrieved hits)
       eval/places/                mapkit eval places
@@ -50,6 +50,12 @@ DONE = ".done"
 
 Stage = Literal["trajectory", "georef", "map", "lidar_map", "imagedb"]
 MapSource = Literal["align", "build"]
+#: which of a session's maps: the semi-dense map made from images (``map/``) or the LiDAR map (``lidar_map/``)
+MapKind = Literal["semidense", "lidar"]
+MAP_KINDS: tuple[MapKind, ...] = ("semidense", "lidar")
+#: the file whose presence makes a map folder of each kind readable
+_MAP_FILE: dict[MapKind, str] = {"semidense": "observations.npz", "lidar": "voxels.npz"}
+_MAP_NAME: dict[MapKind, str] = {"semidense": "semi-dense map", "lidar": "LiDAR map"}
 
 
 @dataclass(frozen=True)
@@ -165,6 +171,11 @@ class AlignedDirs:
     @property
     def map(self) -> Path:
         return self.root / "map"
+
+    @property
+    def lidar_map(self) -> Path:
+        """The session's LiDAR map under the alignment's corrections (:mod:`mapkit.multisession.align`)."""
+        return self.root / "lidar_map"
 
     @property
     def images_csv(self) -> Path:
@@ -296,24 +307,58 @@ class Workspace:
         """Sessions that a finished ``mapkit align`` holds (listed in ``align/.done``)."""
         return list(self.align_record().get("sessions", []))
 
-    def session_map(self, name: str, prefer_aligned: bool = True) -> tuple[Path, MapSource]:
-        """(map folder, source) of session ``name``: ``align`` (one common frame for all sessions)
-        when a finished ``mapkit align`` holds it, else ``build``."""
-        aligned = self.aligned(name).map
-        if prefer_aligned and name in self.aligned_sessions() and (aligned / "observations.npz").is_file():
+    def session_map(
+        self, name: str, prefer_aligned: bool = True, source: MapKind = "semidense"
+    ) -> tuple[Path, MapSource]:
+        """(map folder, where it comes from) of session ``name``'s ``source`` map (the semi-dense ``map/`` or the
+        ``lidar_map/``): ``align`` (one common frame for all sessions) when a finished ``mapkit align`` holds it,
+        else ``build``. A session without that map is one error naming the session, the map and the maps it has."""
+        if source not in _MAP_FILE:
+            raise InputError(None, f"map source {source!r}: expected one of {list(MAP_KINDS)}", field="map_source")
+        file = _MAP_FILE[source]
+        aligned = self._map_dir(self.aligned(name), source)
+        if prefer_aligned and name in self.aligned_sessions() and (aligned / file).is_file():
             return aligned, "align"
-        own = self.session(name).map
-        if (own / "observations.npz").is_file():
+        own = self._map_dir(self.session(name), source)
+        if (own / file).is_file():
             return own, "build"
-        raise InputError(own, f"session {name!r} has no semi-dense map (run mapkit build / align)", field="sessions")
+        has = [_MAP_NAME[k] for k in MAP_KINDS if k != source and self._has_map(name, k)]
+        raise InputError(
+            own,
+            f"session {name!r} has no {_MAP_NAME[source]} (map source {source!r}); it has "
+            + (" and ".join(has) if has else "no map at all")
+            + (
+                " (build it with `lidar_map: true` from a log with a LiDAR stream, then mapkit align)"
+                if source == "lidar"
+                else " (run mapkit build / align)"
+            ),
+            field="sessions",
+        )
 
-    def sessions_with_maps(self) -> list[str]:
-        """Sessions with a semi-dense map, built or aligned, sorted."""
+    @staticmethod
+    def _map_dir(dirs: SessionDirs | AlignedDirs, source: MapKind) -> Path:
+        return dirs.map if source == "semidense" else dirs.lidar_map
+
+    def _has_map(self, name: str, source: MapKind) -> bool:
+        file = _MAP_FILE[source]
+        return any((self._map_dir(d, source) / file).is_file() for d in (self.aligned(name), self.session(name)))
+
+    def sessions_with_maps(self, source: MapKind = "semidense") -> list[str]:
+        """Sessions with a ``source`` map (semi-dense by default, or LiDAR), built or aligned, sorted."""
+        folder = "map" if source == "semidense" else "lidar_map"
         names = set()
         for base in (self.align_dir / "sessions", self.sessions_dir):
             if base.is_dir():
-                names |= {p.name for p in base.iterdir() if (p / "map" / "observations.npz").is_file()}
+                names |= {p.name for p in base.iterdir() if (p / folder / _MAP_FILE[source]).is_file()}
         return sorted(names)
+
+    def map_trajectory(self, name: str, where: MapSource) -> Path:
+        """The trajectory folder session ``name``'s maps from ``where`` lie on: the aligned trajectory for ``align``,
+        else the one the build placed them by (the GPS-aligned or fused one; the odometry's without GPS)."""
+        if where == "align":
+            return self.aligned(name).trajectory
+        dirs = self.session(name)
+        return dirs.enu_trajectory if dirs.enu_trajectory.is_dir() else dirs.trajectory
 
     def session_images_csv(self, name: str, prefer_aligned: bool = True) -> Path:
         """Session ``name``'s image table: the aligned poses when align holds the session, else the built ones."""
@@ -326,6 +371,11 @@ class Workspace:
     @property
     def triplets_dir(self) -> Path:
         return self.root / "triplets"
+
+    def triplets_folder(self, source: MapKind = "semidense") -> Path:
+        """The default folder of ``mapkit triplets``: ``triplets/`` from the semi-dense maps, ``triplets-lidar/``
+        from the LiDAR maps (two datasets side by side, neither overwriting the other)."""
+        return self.triplets_dir if source == "semidense" else self.root / "triplets-lidar"
 
     @property
     def cnn_dir(self) -> Path:
@@ -343,8 +393,9 @@ class Workspace:
         """A second VLAD bundle built for comparison (``indexes/vlad-<name>``)."""
         return self.indexes_dir / f"vlad-{name}"
 
-    def structure_index(self, kind: str) -> Path:
-        return self.indexes_dir / f"structure-{kind}"
+    def structure_index(self, kind: str, source: MapKind = "semidense") -> Path:
+        """``indexes/structure-<kind>`` of the semi-dense maps, ``indexes/structure-<kind>-lidar`` of the LiDAR maps."""
+        return self.indexes_dir / (f"structure-{kind}" if source == "semidense" else f"structure-{kind}-{source}")
 
     @property
     def descriptor_cache(self) -> Path:
@@ -375,4 +426,4 @@ class Workspace:
         return self.eval_dir / "places"
 
 
-__all__ = ["AlignedDirs", "DONE", "ORIGIN", "SessionDirs", "Workspace"]
+__all__ = ["MAP_KINDS", "AlignedDirs", "DONE", "MapKind", "ORIGIN", "SessionDirs", "Workspace"]

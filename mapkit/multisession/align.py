@@ -16,11 +16,17 @@ ICP exceeds lambda_ICP. mapkit does this for a whole workspace:
    removed from the graph. Every submap's correction gets its marginal covariance, every session
    its GPS bias with its covariance.
 4. Corrections are interpolated along each session (no tearing) and applied to its trajectory and
-   map. Submaps that overlap other sessions but have no accepted registration are *unverified* and
-   left out of the merged map (never silently merged).
+   maps (the semi-dense map and, where the build made one, the LiDAR map). Submaps that overlap
+   other sessions but have no accepted registration are *unverified* and left out of the merged
+   map (never silently merged).
 
 Outputs under ``WORKSPACE/align/``: refined trajectories and maps per session, every submap's
 correction, the merged map tiled by UTM, and a QA report (JSON, Markdown, PNGs).
+
+Which maps are registered (``map_source``): the semi-dense maps (the default), the LiDAR maps
+(every session must have one), or ``auto``: the LiDAR maps of a pair whose two sessions both have
+one, the semi-dense maps of the others. Every pair records the maps it was registered on
+(``map_source`` in pairs.json); metrics.json and qa.md count them.
 
 The stage lives here (:func:`align_workspace`, its registration cache and outputs); its parts are
 modules of their own: :mod:`~mapkit.multisession.submaps` (sessions and submap pairs),
@@ -39,6 +45,7 @@ import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -51,6 +58,7 @@ from mapkit.core.fingerprint import check_file
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import (
+    atomic_path,
     atomic_write_text,
     config_hash,
     is_done,
@@ -62,13 +70,19 @@ from mapkit.core.runio import (
     write_json,
     write_timings,
 )
-from mapkit.core.workspace import AlignedDirs, SessionDirs, Workspace
+from mapkit.core.workspace import AlignedDirs, MapKind, SessionDirs, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import align_histograms, align_pairs_map
 from mapkit.mapping.icp import open3d_one_thread
 from mapkit.mapping.imagedb import images_world_from_cam, read_images_csv, write_images_csv
+from mapkit.mapping.lidar_map import save_voxel_map
 from mapkit.mapping.trajectory import Trajectory
-from mapkit.multisession.corrections import apply_correction_points, apply_correction_poses, correction_at
+from mapkit.multisession.corrections import (
+    apply_correction_points,
+    apply_correction_poses,
+    apply_correction_voxels,
+    correction_at,
+)
 from mapkit.multisession.posegraph import Edge, GraphConfig, PoseGraph, session_offsets, support_points
 from mapkit.multisession.registration import IcpConfig, PairResult, Reason, Verdict, decide, register_pair
 from mapkit.multisession.submaps import SessionData, SubmapClouds, candidate_pairs, load_session
@@ -83,7 +97,9 @@ __all__ = [
     "AlignConfig",
     "align_workspace",
     "check_levels",
+    "config_identity",
     "format_align_qa",
+    "pair_sources",
 ]
 
 
@@ -130,6 +146,12 @@ class AlignConfig(MapkitConfig):
         description="Put submaps that overlap other sessions but have no accepted registration into the merged map.",
     )
     tile_size_m: float = Field(100.0, gt=0, description="Side of the UTM tiles of the merged map (m).")
+    map_source: Literal["semidense", "lidar", "auto"] = Field(
+        "semidense",
+        description="Maps the submap pairs are registered on: semidense, lidar (every session needs a LiDAR map), or "
+        "auto: lidar for a pair whose two sessions have a LiDAR map, semidense for the others (each pair records "
+        "which). The corrections move both maps either way.",
+    )
 
     @field_validator("icp")
     @classmethod
@@ -146,6 +168,12 @@ class AlignConfig(MapkitConfig):
         return icp
 
 
+def config_identity(cfg: AlignConfig) -> dict:
+    """What the alignment's hashes know of its config: ``map_source`` enters only when it is not the default, so
+    that alignments made before the option existed stay valid."""
+    return cfg.model_dump(mode="json", exclude={"map_source"} if cfg.map_source == "semidense" else set())
+
+
 def check_levels(values: list[float], name: str) -> None:
     """ICP levels (voxel sizes, distances in m): at least one, each finite and > 0 (a ``ValueError`` naming
     ``name`` otherwise)."""
@@ -159,14 +187,37 @@ def check_levels(values: list[float], name: str) -> None:
 # --- registering pairs on an executor -------------------------------------------------------------
 
 
-def _register_task(shared: tuple[list[SubmapClouds], AlignConfig], pair: tuple[int, int, int, int]) -> PairResult:
-    """One submap pair on an executor's worker (open3d on one thread, so results do not depend on the executor)."""
+def _register_task(
+    shared: tuple[dict[MapKind, list[SubmapClouds | None]], AlignConfig], pair: tuple[int, int, int, int, MapKind]
+) -> PairResult:
+    """One submap pair on an executor's worker (open3d on one thread, so results do not depend on the executor),
+    registered on the maps ``pair`` names."""
     clouds, cfg = shared
-    ia, i, ib, j = pair
+    ia, i, ib, j, source = pair
+    a, b = clouds[source][ia], clouds[source][ib]
+    assert a is not None and b is not None  # pair_sources chose lidar only where both sessions have a LiDAR map
     with open3d_one_thread():
-        return register_pair(
-            clouds[ia], i, clouds[ib], j, cfg.icp, cfg.crop_radius_m, cfg.target_neighbours, cfg.min_points
-        )
+        r = register_pair(a, i, b, j, cfg.icp, cfg.crop_radius_m, cfg.target_neighbours, cfg.min_points)
+    r.map_source = source
+    return r
+
+
+def pair_sources(data: list[SessionData], cands: list[tuple[int, int, int, int]], cfg: AlignConfig) -> list[MapKind]:
+    """The maps each candidate pair is registered on, under ``cfg.map_source`` (see :class:`AlignConfig`); ``lidar``
+    with a session that has no LiDAR map is one error naming them."""
+    if cfg.map_source == "lidar":
+        lacking = [s.name for s in data if s.lidar is None]
+        if lacking:
+            raise InputError(
+                None,
+                f"map_source lidar, but session(s) {lacking} have no LiDAR map (lidar_map/ of mapkit build); "
+                "use map_source auto (semi-dense maps for their pairs) or semidense",
+                field="map_source",
+            )
+    if cfg.map_source == "semidense":
+        return ["semidense"] * len(cands)
+    both = [data[ia].lidar is not None and data[ib].lidar is not None for ia, _, ib, _ in cands]
+    return ["lidar" if b else "semidense" for b in both]
 
 
 # --- the registration cache ------------------------------------------------------------------------
@@ -175,20 +226,23 @@ def _register_task(shared: tuple[list[SubmapClouds], AlignConfig], pair: tuple[i
 _DECISION_FIELDS = {"lambda_icp_m", "min_fitness", "min_structure_fitness", "max_correction_m", "max_rotation_deg"}
 
 
-def _pair_key(a: SessionData, i: int, b: SessionData, j: int, cfg: AlignConfig) -> str:
+def _pair_key(a: SessionData, i: int, b: SessionData, j: int, cfg: AlignConfig, source: MapKind = "semidense") -> str:
     """What a registration depends on; the acceptance thresholds are not part of it (a cached
-    registration is judged again under the current thresholds)."""
+    registration is judged again under the current thresholds). A registration on the LiDAR maps
+    is keyed by them as well (and a semi-dense one as it always was)."""
     icp = {k: v for k, v in cfg.icp.model_dump().items() if k not in _DECISION_FIELDS}
-    return config_hash(
-        {
-            "a": [a.name, a.map_hash, i],
-            "b": [b.name, b.map_hash, j],
-            "len": cfg.submap_length_m,
-            "crop": cfg.crop_radius_m,
-            "nb": cfg.target_neighbours,
-            "icp": icp,
-        }
-    )
+    key = {
+        "a": [a.name, a.map_hash, i],
+        "b": [b.name, b.map_hash, j],
+        "len": cfg.submap_length_m,
+        "crop": cfg.crop_radius_m,
+        "nb": cfg.target_neighbours,
+        "icp": icp,
+    }
+    if source == "lidar":
+        assert a.lidar is not None and b.lidar is not None  # pair_sources chose lidar
+        key["lidar"] = [a.lidar.map_hash, b.lidar.map_hash]
+    return config_hash(key)
 
 
 def _load_pair_cache(path: Path) -> dict[str, PairResult]:
@@ -240,6 +294,7 @@ def align_workspace(
     names = ws.session_names() if sessions is None else sessions
     for n in names:
         _verify_built(ws.session(n))
+    ident = config_identity(cfg)
     data = [s for s in (load_session(ws.session(n), ws_frame, cfg.submap_length_m) for n in names) if s is not None]
     for s in data:
         _identify_map(s, ws.session(s.name))
@@ -249,10 +304,17 @@ def align_workspace(
             f"{len(data)} alignable session(s); multi-session alignment needs at least two built, "
             "georeferenced sessions with a semi-dense map (the warnings above say why each was skipped)",
         )
-    run_config = {"cfg": cfg, "sessions": [[s.name, s.map_hash] for s in data]}
+    run_config = {
+        "cfg": ident,
+        "sessions": [[s.name, s.map_hash] + ([s.lidar.map_hash] if s.lidar else []) for s in data],
+    }
     run_hash = stage_hash("align", STAGE_VERSION, run_config)
     inputs = {
-        s.name: {stage: stage_digest(ws.session(s.name).stage(stage)) for stage in ("georef", "map")} for s in data
+        s.name: {
+            stage: stage_digest(ws.session(s.name).stage(stage))
+            for stage in ("georef", "map", *(("lidar_map",) if s.lidar else ()))
+        }
+        for s in data
     }
     if is_done(out, run_hash, inputs=inputs, legacy_hash=config_hash(run_config), version=STAGE_VERSION):
         return out
@@ -297,9 +359,11 @@ def _verify_built(dirs: SessionDirs) -> None:
     the file. Sessions that are not fully built are left to :func:`load_session`'s warning."""
     if not (dirs.has("georef") and dirs.has("map")):
         return
+    lidar = (dirs.lidar_map / "points.ply", dirs.lidar_map / "voxels.npz") if dirs.has("lidar_map") else ()
     for path in (
         dirs.map / "points.ply",
         dirs.map / "observations.npz",
+        *lidar,
         dirs.gps_alignment,
         *sorted(dirs.enu_trajectory.glob("*.npz")),
     ):
@@ -329,7 +393,8 @@ def _register_pairs(
     pairs) and judged under the current gates; the cache keeps the registrations."""
     cache = _load_pair_cache(cache_path)
     cands = candidate_pairs(data, cfg.overlap_radius_m)
-    keys = [_pair_key(data[ia], i, data[ib], j, cfg) for ia, i, ib, j in cands]
+    sources = pair_sources(data, cands, cfg)
+    keys = [_pair_key(data[ia], i, data[ib], j, cfg, src) for (ia, i, ib, j), src in zip(cands, sources, strict=True)]
     cached: list[PairResult | None] = []
     for key in keys:
         r = cache.get(key)
@@ -344,10 +409,16 @@ def _register_pairs(
     if todo:
         log.info("registering %d new submap pairs (%d in all)", len(todo), len(cands))
     fresh, seconds = 0, 0.0
-    clouds = [SubmapClouds(s.name, s.points, s.submap_of_point, s.centres) for s in data]
+    clouds: dict[MapKind, list[SubmapClouds | None]] = {
+        "semidense": [SubmapClouds(s.name, s.points, s.submap_of_point, s.centres) for s in data],
+        "lidar": [
+            None if s.lidar is None else SubmapClouds(s.name, s.lidar.points, s.lidar.submap_of_point, s.centres)
+            for s in data
+        ],
+    }
     registered = (executor or get_executor()).map(
         _register_task,
-        [cands[n] for n in todo],
+        [(*cands[n], sources[n]) for n in todo],
         shared=(clouds, cfg),
         progress=progress,
         desc="ICP of submap pairs",
@@ -547,8 +618,9 @@ def _previous_corrections(ws: Workspace, data: list[SessionData], cfg: AlignConf
         d = json.loads(p.read_text())
         if (
             d.get("map_hash") != s.map_hash
-            or d.get("config_hash") != config_hash(cfg)
+            or d.get("config_hash") != config_hash(config_identity(cfg))
             or len(d["submaps"]) != s.n_submaps
+            or (cfg.map_source != "semidense" and d.get("lidar_map_hash") != (s.lidar.map_hash if s.lidar else None))
         ):
             continue
         if not any(sm["status"] == "verified" for sm in d["submaps"]):
@@ -586,7 +658,7 @@ def _write_outputs(
     for si, s in enumerate(data):
         nodes = slice(offsets[si], offsets[si + 1])
         bias = sol.biases.get(s.name)
-        keep_files = s.name in sol.frozen and _outputs_intact(ws, s.name, finished)
+        keep_files = s.name in sol.frozen and _outputs_intact(ws, s.name, finished, s.lidar is not None)
         pts, keep, qa["sessions"][s.name] = _write_session(
             ws,
             s,
@@ -604,6 +676,11 @@ def _write_outputs(
         merged_sid.append(np.full(int(keep.sum()), si, np.int16))
         merged_idx.append(np.flatnonzero(keep).astype(np.int64))
     qa["pairs"] = _pair_summary(results)
+    qa["map_source"] = {
+        "config": cfg.map_source,
+        "pairs": dict(sorted(Counter(r.map_source for r in results).items())),
+        "sessions_without_lidar_map": [s.name for s in data if s.lidar is None],
+    }
     write_json(out / "pairs.json", {"format_version": ALIGN_FORMAT_VERSION, "pairs": [r.to_dict() for r in results]})
     qa["tiles"] = write_tiles(
         ws.tiles_dir,
@@ -620,12 +697,16 @@ def _write_outputs(
     return qa
 
 
-def _outputs_intact(ws: Workspace, name: str, finished: dict) -> bool:
-    """Whether session ``name``'s trajectory, map and image table under ``align/sessions`` are still the
-    files the last finished run recorded (size and SHA-256 in ``finished``), its map among them."""
+def _outputs_intact(ws: Workspace, name: str, finished: dict, lidar: bool = False) -> bool:
+    """Whether session ``name``'s trajectory, map(s) and image table under ``align/sessions`` are still the
+    files the last finished run recorded (size and SHA-256 in ``finished``), its map (and with ``lidar`` its
+    LiDAR map) among them."""
     prefix = f"sessions/{name}/"
     recorded = {rel: rec for rel, rec in finished.items() if rel.startswith(prefix) and rel != prefix + "submaps.json"}
-    if not {prefix + "map/points.ply", prefix + "map/observations.npz"} <= set(recorded):
+    needed = {prefix + "map/points.ply", prefix + "map/observations.npz"}
+    if lidar:
+        needed |= {prefix + "lidar_map/points.ply", prefix + "lidar_map/voxels.npz"}
+    if not needed <= set(recorded):
         return False
     return all(check_file(ws.align_dir / rel, rec) is None for rel, rec in recorded.items())
 
@@ -665,6 +746,8 @@ def _write_session(
         kf[:, :3, 3] = np.einsum("mij,mj->mi", R, kf[:, :3, 3] - c) + c + t
         smap.keyframe_world_from_cam = kf
         smap.save(dirs.map, frame=ws_frame)
+        if s.lidar is not None:
+            _write_lidar_map(dirs.lidar_map, s, xs, st, cfg, ws_frame)
         _write_refined_images(s, poses, ws.session(s.name).images_csv, dirs, ws_frame)
     move = np.linalg.norm(poses[:, :3, 3] - s.poses[:, :3, 3], axis=1)
     sigma = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2)[:, 3:], 0))  # (K, 3) position sigmas, ENU m
@@ -692,7 +775,8 @@ def _write_session(
     doc = {
         "session": s.name,
         "map_hash": s.map_hash,
-        "config_hash": config_hash(cfg),
+        **({"lidar_map_hash": s.lidar.map_hash} if s.lidar else {}),
+        "config_hash": config_hash(config_identity(cfg)),
         "frame": ws_frame.to_dict(),
         "submaps": submaps,
         "covariance_axes": "rotation (rad) about east, north, up; translation (m) east, north, up; at each submap's "
@@ -718,8 +802,24 @@ def _write_session(
         "position_sigma_median_m": np.median(sigma, axis=0).tolist(),
         "merged": bool(keep.any()),
         "outputs_kept": keep_files,
+        **({"lidar_voxels": len(s.lidar.points)} if s.lidar else {}),
     }
     return pts, keep, summary
+
+
+def _write_lidar_map(
+    folder: Path, s: SessionData, xs: np.ndarray, st: np.ndarray, cfg: AlignConfig, ws_frame: LocalFrame
+) -> None:
+    """Session ``s``'s LiDAR map under its corrections ``xs`` into ``folder`` (``points.ply`` with the frame in its
+    header, ``voxels.npz`` as the build writes them), and ``voxel_submaps.npz``: each voxel's submap and whether it
+    belongs to the merged map (its submap is not unverified, unless merge_unverified), as the tiles say of the
+    semi-dense points."""
+    assert s.lidar is not None
+    save_voxel_map(folder, apply_correction_voxels(s, xs, s.lidar), ws_frame)
+    sub = s.lidar.submap_of_point
+    merged = np.isin(sub, np.flatnonzero((st != "unverified") | cfg.merge_unverified))
+    with atomic_path(folder / "voxel_submaps.npz") as tmp, open(tmp, "wb") as f:
+        np.savez(f, submap=sub.astype(np.int32), merged=merged)
 
 
 def _pair_summary(results: list[PairResult]) -> dict:
@@ -784,4 +884,14 @@ def format_align_qa(qa: dict) -> str:
             f"| {name} | {s['submaps']} | {s['verified']} | {s['unverified']} | {s['no_overlap']} | "
             f"{s['points_merged']}/{s['points']} | {s['correction_median_m']:.2f} | {s['correction_max_m']:.2f} |"
         )
+    ms = qa.get("map_source")
+    if ms and ms["config"] != "semidense":
+        counts = ", ".join(f"{n} on {k} maps" for k, n in ms["pairs"].items()) or "none"
+        lacking = ms["sessions_without_lidar_map"]
+        lines += [
+            "",
+            f"Registered on (map_source {ms['config']}): {counts}"
+            + (f"; the semi-dense maps where a session has no LiDAR map ({', '.join(lacking)})" if lacking else "")
+            + ".",
+        ]
     return "\n".join(lines) + "\n"

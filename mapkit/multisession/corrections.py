@@ -1,6 +1,8 @@
 """Submap corrections blended along a session: each point and pose moves by the interpolation,
 by distance driven, of its two neighbouring submaps' corrections (slerp for the rotation), so a
-session's map does not tear where submaps meet.
+session's map does not tear where submaps meet. A LiDAR map's voxels move the same way, each at
+its own distance driven (:func:`~mapkit.multisession.submaps.voxel_arc_m`), their normals turned
+by the same rotation.
 """
 
 from __future__ import annotations
@@ -8,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from mapkit.multisession.submaps import SessionData, position_at_arc
+from mapkit.mapping.voxel_map import VoxelStats
+from mapkit.multisession.submaps import LidarSubmaps, SessionData, position_at_arc, rotate_normals
 
 
 def correction_at(
@@ -51,3 +54,13 @@ def apply_correction_poses(s: SessionData, x_session: np.ndarray) -> np.ndarray:
     out[:, :3, :3] = R @ s.poses[:, :3, :3]
     out[:, :3, 3] = np.einsum("mij,mj->mi", R, s.poses[:, :3, 3] - c) + c + t
     return out
+
+
+def apply_correction_voxels(s: SessionData, x_session: np.ndarray, lidar: LidarSubmaps) -> VoxelStats:
+    """Session ``s``'s LiDAR map under its submaps' corrections: centroids moved, normals rotated (still +z up),
+    every other statistic as built."""
+    st = lidar.stats
+    R, c, t = correction_at(s, x_session, lidar.arc_m)
+    centroid = np.einsum("mij,mj->mi", R, st.centroid - c) + c + t
+    normal = rotate_normals(np.einsum("mij,mj->mi", R, st.normal), np.eye(3))
+    return VoxelStats(st.voxel_size_m, centroid, st.count, st.intensity, normal, st.planarity, st.first_ns, st.last_ns)

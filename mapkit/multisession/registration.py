@@ -301,6 +301,7 @@ class PairResult:
     structure_fitness: float = 0.0
     structure_rmse_m: float = float("nan")
     key: str = ""
+    map_source: str = "semidense"  # the maps registered: semidense or lidar (AlignConfig.map_source)
 
     @property
     def accepted(self) -> bool:
@@ -332,6 +333,7 @@ class PairResult:
             "target_points": self.target_points,
             "correction_m": self.correction_m,
             "key": self.key,
+            "map_source": self.map_source,
         }
 
     @classmethod
@@ -351,6 +353,7 @@ class PairResult:
             float(d.get("structure_fitness", 0.0)),
             float(d.get("structure_rmse_m", float("nan"))),
             d.get("key", ""),
+            d.get("map_source", "semidense"),
         )
 
 

@@ -4,6 +4,10 @@ A session's map is cut by distance driven (each point goes with the keyframe tha
 submap is a stretch of road and its correction can be blended with its neighbours' along the
 drive (:mod:`mapkit.multisession.corrections`). Pairs are the submaps of different sessions whose
 trajectory centres are close (:func:`candidate_pairs`).
+
+A session's LiDAR map (``lidar_map/``, where the build made one) is cut by the same submaps
+(:class:`LidarSubmaps`): each voxel goes with the distance driven at the pose nearest to it among
+those of the time it was seen (:func:`voxel_arc_m`), and moves with the correction there.
 """
 
 from __future__ import annotations
@@ -18,10 +22,28 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.errors import InputWarning
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import DONE_MARKER, marker_hash
+from mapkit.core.runio import DONE_MARKER, config_hash, marker_hash
 from mapkit.core.workspace import SessionDirs
+from mapkit.mapping.lidar_map import load_voxel_stats
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
+from mapkit.mapping.voxel_map import VoxelStats
+
+
+@dataclass
+class LidarSubmaps:
+    """A session's LiDAR map in the workspace frame (voxel centroids and normals moved by the session's frame change),
+    each voxel with the distance driven it is corrected at and, once cut, its submap."""
+
+    stats: VoxelStats
+    arc_m: np.ndarray  # (V,) distance driven at the voxel's pose (voxel_arc_m)
+    map_dir: Path
+    map_hash: str  # of the LiDAR map's build and its files: the key of registrations made on it
+    submap_of_point: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def points(self) -> np.ndarray:
+        return self.stats.centroid
 
 
 @dataclass
@@ -49,6 +71,7 @@ class SessionData:
     smap: SemiDenseMap | None = field(default=None, repr=False)  # the map as built (session frame)
     ws_from_session: np.ndarray = field(default_factory=lambda: np.eye(4))
     fused: bool = False  # the trajectory is the factor graph's (georef.fuse), not the rigid GPS fit of kiss-icp's
+    lidar: LidarSubmaps | None = None  # the session's LiDAR map, where the build made one
 
     @property
     def n_submaps(self) -> int:
@@ -110,8 +133,58 @@ def load_session(sdir: SessionDirs | Path, ws_frame: LocalFrame, length_m: float
         ws_from_session=ws_from_session,
         fused=dirs.fused_trajectory.is_dir(),
     )
+    if dirs.has("lidar_map"):
+        s.lidar = _load_lidar(dirs, s, traj.stamps_ns)
     cut_submaps(s, length_m)
     return s
+
+
+def _load_lidar(dirs: SessionDirs, s: SessionData, stamps_ns: np.ndarray) -> LidarSubmaps:
+    """Session ``s``'s LiDAR map (``dirs.lidar_map``, in the session's frame like its trajectory) in the workspace
+    frame, each voxel with its distance driven (:func:`voxel_arc_m`)."""
+    stats = load_voxel_stats(dirs.lidar_map)
+    T = s.ws_from_session
+    centroid = stats.centroid @ T[:3, :3].T + T[:3, 3]
+    moved = VoxelStats(
+        stats.voxel_size_m,
+        centroid,
+        stats.count,
+        stats.intensity,
+        rotate_normals(stats.normal, T[:3, :3]),
+        stats.planarity,
+        stats.first_ns,
+        stats.last_ns,
+    )
+    done = json.loads((dirs.lidar_map / DONE_MARKER).read_text())
+    key = config_hash([marker_hash(done) or "", done.get("outputs")])
+    arc = voxel_arc_m(centroid, stats.first_ns, stats.last_ns, s.poses[:, :3, 3], stamps_ns, s.arc_m)
+    return LidarSubmaps(moved, arc, dirs.lidar_map, key)
+
+
+def rotate_normals(normals: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Unit normals (V, 3) rotated by ``R`` (3, 3), turned to point up (+z) as the voxel map keeps them; NaN stays
+    NaN."""
+    n = np.asarray(normals, np.float64) @ np.asarray(R, np.float64).T
+    return np.where(n[:, 2:3] < 0, -n, n)
+
+
+def voxel_arc_m(
+    centroids: np.ndarray,
+    first_ns: np.ndarray,
+    last_ns: np.ndarray,
+    positions: np.ndarray,
+    stamps_ns: np.ndarray,
+    arc_m: np.ndarray,
+) -> np.ndarray:
+    """The distance driven (V,) a voxel is corrected at: the trajectory's at the pose nearest to the voxel, its time
+    clamped into the span the voxel was seen (``first_ns`` .. ``last_ns``). A semi-dense point goes with the keyframe
+    that made it; a voxel is seen by many scans, up to 100 m away, and the pose beside it is the one whose
+    correction fits it (the clamp keeps a voxel that a later pass drove past unseen with the pass that saw it)."""
+    if not len(centroids):
+        return np.zeros(0)
+    _, k = cKDTree(positions).query(centroids)
+    t = np.clip(stamps_ns[k], first_ns, last_ns).astype(np.float64)
+    return np.interp(t, stamps_ns.astype(np.float64), arc_m)
 
 
 def cut_submaps(s: SessionData, length_m: float) -> None:
@@ -125,6 +198,8 @@ def cut_submaps(s: SessionData, length_m: float) -> None:
         np.linspace(0.0, total, n + 1) if n * length_m > total else np.concatenate([np.arange(n) * length_m, [total]])
     )
     s.submap_of_point = np.clip(np.searchsorted(edges, s.point_arc_m, side="right") - 1, 0, n - 1)
+    if s.lidar is not None:
+        s.lidar.submap_of_point = np.clip(np.searchsorted(edges, s.lidar.arc_m, side="right") - 1, 0, n - 1)
     mids = 0.5 * (edges[:-1] + edges[1:])
     P = s.poses[:, :3, 3]
     s.centres = position_at_arc(s.arc_m, P, mids)

@@ -11,6 +11,10 @@ its nearest database descriptor (L2, no threshold) and each match casts one vote
 database frame that observed the matched keypoint. The frame d with the most votes v(d) is the
 match, accepted when v(d) > lambda_v (Sec. 3.4).
 
+The maps indexed are the semi-dense maps, or with ``map_source: lidar`` the LiDAR maps: their voxel
+centroids are the points, poses of the session's trajectory every 2 m the frames, and a frame observed
+the voxels near it seen while it passed (:mod:`mapkit.places.lidar_observations`).
+
 Places are frames: ``(session, frame id)`` of the semi-dense maps. A map's observation lists
 hold its keyframes (posed) and the non-key neighbour frames that confirmed a point (not posed in
 the map). A non-key frame between two keyframes gets its pose by interpolating the keyframes'
@@ -20,7 +24,7 @@ interpolated over its frame id (frame ids count the camera frames: a constant ra
 keyframes). A frame outside the keyframe range keeps its votes but has no pose and is never
 returned as the match.
 
-Bundle layout (``WORKSPACE/indexes/structure-<kind>`` by default)::
+Bundle layout (``WORKSPACE/indexes/structure-<kind>`` by default, ``structure-<kind>-lidar`` of the LiDAR maps)::
 
     manifest.json   format_version, kind, build hash, resolved config, source workspace, the
                     sessions (map source and checksum, keypoints, frames), counts, the CNN
@@ -70,10 +74,17 @@ from mapkit.core.runio import (
     write_json,
     write_timings,
 )
-from mapkit.core.workspace import MapSource, Workspace
+from mapkit.core.workspace import MapKind, MapSource, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.places.descriptors3d import DescriptorPCA, StructureDescriptorConfig, describe
+from mapkit.places.lidar_observations import (
+    LIDAR_FRAME_SPACING_M,
+    LIDAR_MAP_FILES,
+    LIDAR_OBSERVE_RADIUS_M,
+    lidar_map_checksum,
+    load_lidar_observations,
+)
 from mapkit.places.patches import first_observer_positions, select_keypoints, xy_tree
 
 FORMAT_VERSION = 1
@@ -111,6 +122,11 @@ class StructureIndexConfig(StructureDescriptorConfig):
     )
     database_sessions: list[str] | None = Field(
         None, description="Sessions indexed. None = every session of the workspace with a map."
+    )
+    map_source: MapKind = Field(
+        "semidense",
+        description="Maps indexed: semidense (map/), or lidar (lidar_map/: voxel centroids as points, trajectory poses "
+        "every 2 m as frames; mapkit.places.lidar_observations).",
     )
     prefer_aligned_maps: bool = Field(
         True,
@@ -308,20 +324,36 @@ def session_frames(smap, frame_stamps: tuple[np.ndarray, np.ndarray] | None = No
     return {"frame_id": ids, "stamp_ns": stamps, "world_from_cam": T, "pose_source": source}
 
 
-def session_names(workspace: str | Path) -> list[str]:
-    """Sessions of a workspace with a semi-dense map (aligned or not), sorted."""
-    return Workspace(workspace).sessions_with_maps()
+def session_names(workspace: str | Path, source: MapKind = "semidense") -> list[str]:
+    """Sessions of a workspace with a ``source`` map (semi-dense by default; aligned or not), sorted."""
+    return Workspace(workspace).sessions_with_maps(source)
 
 
-def session_map_dir(workspace: str | Path, name: str, prefer_aligned: bool = True) -> tuple[Path, str]:
+def session_map_dir(
+    workspace: str | Path, name: str, prefer_aligned: bool = True, source: MapKind = "semidense"
+) -> tuple[Path, str]:
     """(map folder, source) of a session: ``align`` (WORKSPACE/align/sessions/<name>/map, one
     common frame for all sessions) when mapkit align finished it, else ``build``."""
-    return Workspace(workspace).session_map(name, prefer_aligned)
+    return Workspace(workspace).session_map(name, prefer_aligned, source)
 
 
 def map_checksum(folder: Path) -> str:
     """sha256 over a map folder's points.ply and observations.npz."""
     return config_hash({n: sha256_file(folder / n) for n in ("points.ply", "observations.npz")})
+
+
+def map_files(source: MapKind) -> tuple[str, ...]:
+    """The files of a ``source`` map folder that its stage recorded (checked before use)."""
+    return ("points.ply", "observations.npz") if source == "semidense" else LIDAR_MAP_FILES
+
+
+def _load_session_map(ws: Workspace, name: str, folder: Path, where: MapSource, source: MapKind):
+    """Session ``name``'s map in ``folder``: a :class:`SemiDenseMap`, or for ``lidar`` its LiDAR map with the frames
+    that observed each voxel (:func:`~mapkit.places.lidar_observations.load_lidar_observations`), which this module
+    reads as it reads a semi-dense map."""
+    if source == "lidar":
+        return load_lidar_observations(folder, ws.map_trajectory(name, where))
+    return SemiDenseMap.load(folder)
 
 
 def session_descriptors(
@@ -392,11 +424,13 @@ def build_structure_index(
     overrides: dict | None = None,
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    map_source: MapKind | None = None,
 ) -> Path:
     """Build the structure index bundle of ``workspace``; returns its folder.
 
-    ``kind`` and ``sessions`` override the config's ``kind`` and ``database_sessions``. Default
-    output: ``WORKSPACE/indexes/structure-<kind>``. ``cache_dir`` keeps each session's raw
+    ``kind``, ``sessions`` and ``map_source`` override the config's ``kind``, ``database_sessions`` and
+    ``map_source``. Default output: ``WORKSPACE/indexes/structure-<kind>`` (``structure-<kind>-lidar`` of the
+    LiDAR maps). ``cache_dir`` keeps each session's raw
     descriptors for reuse (e.g. by ``mapkit eval places``). Skips when the bundle at ``out`` was
     built from the same config and the same maps.
     """
@@ -406,15 +440,20 @@ def build_structure_index(
         ov["kind"] = kind
     if sessions is not None:
         ov["database_sessions"] = list(sessions)
+    if map_source is not None:
+        ov["map_source"] = map_source
     cfg = load_config(StructureIndexConfig, config, ov)
-    out = Path(out) if out is not None else ws.structure_index(cfg.kind)
+    out = Path(out) if out is not None else ws.structure_index(cfg.kind, cfg.map_source)
     names = _database_sessions(ws, cfg)
     cnn_info = _cnn_model_info(cfg.cnn_model) if cfg.kind == "cnn" and cfg.cnn_model is not None else None
-    dirs = {n: ws.session_map(n, cfg.prefer_aligned_maps) for n in names}
+    dirs = {n: ws.session_map(n, cfg.prefer_aligned_maps, cfg.map_source) for n in names}
     for n, (d, source) in dirs.items():  # a map changed since its stage wrote it is refused, naming the stage to re-run
-        for f in ("points.ply", "observations.npz"):
+        for f in map_files(cfg.map_source):
             verify_file(d / f, "mapkit align" if source == "align" else f"mapkit build (session {n})")
-    shas = {n: map_checksum(d) for n, (d, _) in dirs.items()}
+    shas = {
+        n: map_checksum(d) if cfg.map_source == "semidense" else lidar_map_checksum(d, ws.map_trajectory(n, w))
+        for n, (d, w) in dirs.items()
+    }
     build_hash = _build_hash(cfg, names, dirs, shas, cnn_info)
     if is_finished(out, build_hash, FORMAT_VERSION):
         return out
@@ -440,6 +479,7 @@ def build_structure_index(
 
     entries, frames = _entries_and_frames(described.keypoints, described.frames)
     metrics = {
+        "map_source": cfg.map_source,
         "sessions": {n: {"patches": t["patches"]} for n, t in described.timings.items()},
         "entries": int(len(vectors)),
         "pca_explained_variance_fraction": float(
@@ -459,6 +499,11 @@ def build_structure_index(
         "config": cfg.model_dump(mode="json"),
         "descriptor": cfg.kind,
         **({"cnn_model": cnn_info} if cnn_info else {}),
+        **(
+            {"lidar_frames": {"spacing_m": LIDAR_FRAME_SPACING_M, "observe_radius_m": LIDAR_OBSERVE_RADIUS_M}}
+            if cfg.map_source == "lidar"
+            else {}
+        ),
         "source_workspace": str(ws.root.resolve()),
         "session_names": names,
         "sessions": described.info,
@@ -487,17 +532,18 @@ def build_structure_index(
 
 def _database_sessions(ws: Workspace, cfg: StructureIndexConfig) -> list[str]:
     """The sessions to index (the config's, else every one with a map), checked, and the descriptor available."""
-    available = ws.sessions_with_maps()
+    available = ws.sessions_with_maps(cfg.map_source)
+    what = "semi-dense map" if cfg.map_source == "semidense" else "LiDAR map"
     names = list(cfg.database_sessions) if cfg.database_sessions is not None else available
     if not names:
-        raise InputError(ws.root, "no session with a semi-dense map to index", field="database_sessions")
+        raise InputError(ws.root, f"no session with a {what} to index", field="database_sessions")
     if len(set(names)) != len(names):
         raise ConfigError(f"database_sessions lists a session twice: {names}")
     missing = [n for n in names if n not in available]
     if missing:
         raise InputError(
             ws.root,
-            f"no semi-dense map for session(s) {missing}; the workspace has {available}",
+            f"no {what} for session(s) {missing} (map_source {cfg.map_source}); the workspace has one for {available}",
             field="database_sessions",
         )
     if cfg.kind not in ("nbld", "m2dp") and _describer(cfg.kind, cfg) is None:
@@ -519,7 +565,13 @@ def _build_hash(
     """What the bundle depends on: the config (not its query-time settings), the maps (source and checksum), the CNN
     model."""
     # cnn_model only enters the hash of a cnn index: nbld / m2dp bundles of earlier versions stay valid
-    hashed = cfg.model_dump(mode="json", exclude=_QUERY_TIME_FIELDS | (set() if cfg.kind == "cnn" else {"cnn_model"}))
+    # and map_source only that of a LiDAR index: semi-dense bundles made before the option stay valid
+    hashed = cfg.model_dump(
+        mode="json",
+        exclude=_QUERY_TIME_FIELDS
+        | (set() if cfg.kind == "cnn" else {"cnn_model"})
+        | (set() if cfg.map_source == "lidar" else {"map_source"}),
+    )
     return config_hash(
         {
             "format_version": FORMAT_VERSION,
@@ -556,7 +608,7 @@ def _describe_sessions(
 
     out = _Described([], [], [], {}, {})
     for n in names:
-        smap = SemiDenseMap.load(dirs[n][0])
+        smap = _load_session_map(ws, n, dirs[n][0], dirs[n][1], cfg.map_source)
         if len(smap.points_world) == 0:  # no keypoint to describe: fail before any bundle is written
             raise InputError(
                 dirs[n][0],
@@ -578,6 +630,7 @@ def _describe_sessions(
         out.info[n] = {
             "map": os.path.relpath(dirs[n][0], ws.root),
             "map_source": dirs[n][1],
+            "map_kind": cfg.map_source,
             "map_checksum": shas[n],
             "map_points": int(len(smap.points_world)),
             "keypoints": int(len(kps)),

@@ -156,7 +156,7 @@ def export_pointnetvlad(
         raise NoTripletsError(
             dataset / "manifest.json", "the triplet dataset holds no patch: nothing to write in PointNetVLAD's layout"
         )
-    sessions, _ = load_aligned_sessions(workspace, names)
+    sessions, _ = load_aligned_sessions(workspace, names, ds.manifest.get("map_source", "semidense"))
     by_name = {s.name: s for s in sessions}
     domain = PatchDomain(**ds.manifest["domain"])
     n = len(t["patch_id"])

@@ -7,6 +7,12 @@ patches are cut from the aligned clouds, yaw-normalised (section 3.2) and voxeli
 density comparison, 32^3). N members give N-choose-2 positive pairs; each gets a negative: a patch
 farther than ``negative_min_distance_m`` from the anchor, from the same split.
 
+The maps cut are the aligned semi-dense maps, or with ``map_source: lidar`` the aligned LiDAR maps
+(``align/sessions/<name>/lidar_map``: the voxel centroids as points, the voxels of submaps left out of
+the merged map left out here too; a point's first observer is the trajectory pose, one every 2 m,
+that first passed within 15 m of it while it was seen: :mod:`mapkit.places.lidar_observations`).
+The default output folder is then ``WORKSPACE/triplets-lidar``.
+
 Train and test places come from disjoint UTM tiles, with a buffer strip: no keypoint (anchor or
 negative) lies within ``buffer_m`` of a tile of the other split, so no test place has a training
 patch nearby. Output: shards of the patches' grids (bits packed; HDF5 by default, see
@@ -56,7 +62,7 @@ from mapkit.core.runio import (
     write_json,
     write_timings,
 )
-from mapkit.core.workspace import Workspace
+from mapkit.core.workspace import MapKind, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import triplet_examples
 from mapkit.mapping.icp import IcpClouds, icp_coarse_to_fine
@@ -64,6 +70,7 @@ from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.multisession.align import check_levels
 from mapkit.multisession.registration import IcpConfig, Registration, about_centre, evaluate_alignment
 from mapkit.multisession.tiles import load_tiles
+from mapkit.places.lidar_observations import LIDAR_MAP_FILES, load_lidar_observations
 from mapkit.places.patches import (
     CNN_DOMAIN,
     PatchDomain,
@@ -170,6 +177,11 @@ class TripletConfig(MapkitConfig):
     seed: int = Field(0, description="Seed of every random choice: the same seed and inputs give the same dataset.")
     sessions: list[str] | None = Field(
         None, description="Sessions to use; all merged sessions of the alignment if unset."
+    )
+    map_source: MapKind = Field(
+        "semidense",
+        description="Maps the patches are cut from: semidense (align/sessions/<name>/map), or lidar (the aligned LiDAR "
+        "maps' voxel centroids; default folder WORKSPACE/triplets-lidar).",
     )
 
     @field_validator("icp_voxel_sizes_m", "icp_max_correspondence_m")
@@ -310,14 +322,18 @@ class SessionPoints:
 
 
 def load_aligned_sessions(
-    workspace: str | Path | Workspace, names: list[str] | None = None
+    workspace: str | Path | Workspace, names: list[str] | None = None, source: MapKind = "semidense"
 ) -> tuple[list[SessionPoints], LocalFrame]:
-    """The merged points of every session (or of ``names``) of a finished ``mapkit align``, and the workspace frame."""
+    """The merged points of every session (or of ``names``) of a finished ``mapkit align``, and the workspace frame;
+    with ``source`` lidar, the merged voxels of the aligned LiDAR maps, their first observers the frames of
+    :func:`~mapkit.places.lidar_observations.lidar_observations` (trajectory poses, ids = pose indices)."""
 
     ws = Workspace(workspace)
     if not ws.align_done.is_file():
         raise InputError(ws.align_dir, "no finished multi-session alignment here (run mapkit align first)")
     frame = ws.require_frame()
+    if source == "lidar":
+        return _load_aligned_lidar_sessions(ws, names), frame
     for p in sorted(
         ws.tiles_dir.rglob("*")
     ):  # each checked against what align recorded: no truncated cloud is cut into patches
@@ -345,6 +361,42 @@ def load_aligned_sessions(
     if len(out) < 2:
         raise InputError(ws.align_dir, f"{len(out)} session(s) with merged points; triplets need two or more")
     return out, frame
+
+
+def _load_aligned_lidar_sessions(ws: Workspace, names: list[str] | None = None) -> list[SessionPoints]:
+    """The merged voxels of every aligned LiDAR map (or of ``names``: each must have one)."""
+    aligned = ws.aligned_sessions()
+    if names is not None:
+        for n in names:
+            ws.session_map(n, source="lidar")  # one error naming a session without a LiDAR map
+    wanted = aligned if names is None else [n for n in names if n in aligned]
+    out = []
+    for name in wanted:
+        folder = ws.aligned(name).lidar_map
+        if not (folder / "voxels.npz").is_file():
+            continue
+        for f in (*LIDAR_MAP_FILES, "voxel_submaps.npz"):
+            verify_file(folder / f, "mapkit align")
+        view = load_lidar_observations(folder, ws.map_trajectory(name, "align"))
+        with np.load(folder / "voxel_submaps.npz") as z:
+            keep = np.flatnonzero(z["merged"])
+        if len(keep) == 0:
+            continue
+        first = first_observer_frames(keep, view.obs_indptr, view.obs_frame_ids, view.keyframe_ids)
+        pos = view.keyframe_world_from_cam[np.searchsorted(view.keyframe_ids, first), :3, 3]
+        out.append(SessionPoints(name, view.points_world[keep], pos, first, view.keyframe_ids, view.keyframe_stamps_ns))
+    if names is not None:
+        missing = sorted(set(names) - {s.name for s in out})
+        if missing:
+            raise InputError(ws.align_dir, f"sessions {missing} have no merged LiDAR voxels", field="sessions")
+    if len(out) < 2:
+        raise InputError(
+            ws.align_dir,
+            f"{len(out)} session(s) with an aligned LiDAR map ({[s.name for s in out]} of the aligned {aligned}); "
+            "LiDAR triplets need two or more",
+            field="map_source",
+        )
+    return out
 
 
 # --- the spatial split ------------------------------------------------------------------------------
@@ -881,16 +933,18 @@ def export_triplets(
     :func:`mapkit.places.pointnetvlad.export_triplets_pointnetvlad`, which calls this and then the export."""
     ws = Workspace(workspace)
     cfg = load_config(TripletConfig, config, overrides)
-    out = Path(out) if out is not None else ws.triplets_dir
-    # the PointNetVLAD layout is a stage of its own (mapkit.places.pointnetvlad): its settings do not change the dataset
-    # the alignment as its downstream stages know it (the older hash of a migrated marker)
-    identity = {"cfg": cfg.model_dump(mode="json", exclude={"pointnetvlad"}), "align": marker_hash(ws.align_record())}
+    out = Path(out) if out is not None else ws.triplets_folder(cfg.map_source)
+    # the PointNetVLAD layout is a stage of its own (mapkit.places.pointnetvlad): its settings do not change the
+    # dataset; map_source enters only when not the default (datasets made before the option stay valid); the
+    # alignment as its downstream stages know it (the older hash of a migrated marker)
+    exclude = {"pointnetvlad"} | ({"map_source"} if cfg.map_source == "semidense" else set())
+    identity = {"cfg": cfg.model_dump(mode="json", exclude=exclude), "align": marker_hash(ws.align_record())}
     h = stage_hash("triplets", STAGE_VERSION, identity)
     inputs = {"align": stage_digest(ws.align_dir)}  # a re-made alignment (other maps, same config) makes a new dataset
     if is_done(out, h, inputs=inputs, legacy_hash=config_hash(identity), version=STAGE_VERSION):
         return out
     t0 = time.perf_counter()
-    sessions, frame = load_aligned_sessions(ws, cfg.sessions)
+    sessions, frame = load_aligned_sessions(ws, cfg.sessions, cfg.map_source)
     final = out
     with building(final) as out:  # a partial folder, renamed into place last: an earlier dataset survives a failure
         atomic_write_text(out / "config.yaml", dump_config(cfg))
@@ -1223,6 +1277,7 @@ def _write_dataset(
     manifest = {
         "format_version": TRIPLETS_FORMAT_VERSION,
         "workspace": str(ws.root),
+        "map_source": cfg.map_source,
         "sessions": names,
         "seed": cfg.seed,
         "config_hash": h,
@@ -1246,6 +1301,7 @@ def _write_dataset(
     write_json(out / "manifest.json", manifest)
     n = places.counts
     metrics = {
+        "map_source": cfg.map_source,
         "triplets": counts,
         "quota": places.quota,
         "patches": int(shards.n),

@@ -1,0 +1,115 @@
+"""A session's LiDAR map as the stages that cut patches read a semi-dense map: points, and the frames that saw them.
+
+The semi-dense map's points come with observation lists (the camera frames that saw each point) and posed
+keyframes; patches are yaw-normalised towards a keypoint's first observer (:mod:`mapkit.places.patches`), the
+structure index votes for every frame that observed a matched keypoint (:mod:`mapkit.places.index_structure`)
+and the triplets name a patch by its first observer frame (:mod:`mapkit.places.triplets`). A LiDAR map
+(``lidar_map/``: voxel centroids with the first and last stamp of the scans that hit them) has no such lists.
+Its equivalent, :func:`lidar_observations`:
+
+- the points are the voxel centroids;
+- the frames are poses of the session's trajectory (the vehicle's body, not a camera), one every
+  ``LIDAR_FRAME_SPACING_M`` of driving; a frame's id is the pose's index in the trajectory, so ids grow with time
+  as camera frame ids do, and every frame is posed (a keyframe);
+- a frame observed a voxel when it lies within ``LIDAR_OBSERVE_RADIUS_M`` (horizontally) of it and its stamp
+  within the time the voxel was seen (from the last frame at or before ``first_ns`` to the first at or after
+  ``last_ns``); a voxel that no frame observed so (seen only from farther away) is observed by that first frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mapkit.core.runio import config_hash, sha256_file
+from mapkit.mapping.lidar_map import load_voxel_stats
+from mapkit.mapping.trajectory import Trajectory
+from mapkit.mapping.voxel_map import VoxelStats
+
+#: frames along the trajectory; mapkit choice: a semi-dense map's keyframes come about every metre or two
+LIDAR_FRAME_SPACING_M = 2.0
+#: a frame observed the voxels this close to it (m, horizontal); mapkit choice: about where a 32-beam scanner's
+#: returns from the road and the facades beside it are dense, and a patch's reach (the CNN's cube, 14 m)
+LIDAR_OBSERVE_RADIUS_M = 15.0
+LIDAR_MAP_FILES = ("points.ply", "voxels.npz")
+
+
+@dataclass
+class LidarObservations:
+    """The fields of :class:`~mapkit.mapping.semidense.SemiDenseMap` that patches, the structure index and triplets
+    read, made from a LiDAR map (see the module's docstring)."""
+
+    points_world: np.ndarray  # (V, 3) voxel centroids
+    obs_indptr: np.ndarray  # (V + 1,) CSR over obs_frame_ids
+    obs_frame_ids: np.ndarray  # frame ids (trajectory pose indices), sorted within each voxel
+    keyframe_ids: np.ndarray  # (F,) every frame, posed
+    keyframe_stamps_ns: np.ndarray  # (F,)
+    keyframe_world_from_cam: np.ndarray  # (F, 4, 4) the body's pose (world_from_base)
+    frame_ids: np.ndarray | None = None  # every frame is a keyframe: no other frame to time
+    frame_stamps_ns: np.ndarray | None = None
+
+
+def lidar_observations(
+    stats: VoxelStats,
+    trajectory: Trajectory,
+    spacing_m: float = LIDAR_FRAME_SPACING_M,
+    radius_m: float = LIDAR_OBSERVE_RADIUS_M,
+) -> LidarObservations:
+    """The LiDAR map ``stats`` with the frames of ``trajectory`` (in the map's frame) that observed each voxel."""
+    P = trajectory.world_from_base[:, :3, 3]
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    fidx = np.unique(np.searchsorted(arc, np.arange(0.0, arc[-1] + 1e-9, spacing_m)).clip(0, len(P) - 1))
+    fst = trajectory.stamps_ns[fidx]
+    n = len(stats.centroid)
+    lo = np.clip(np.searchsorted(fst, stats.first_ns, side="right") - 1, 0, len(fidx) - 1)
+    hi = np.clip(np.searchsorted(fst, stats.last_ns, side="left"), 0, len(fidx) - 1)
+    hits = cKDTree(stats.centroid[:, :2]).query_ball_point(P[fidx, :2], radius_m, return_sorted=False)
+    counts = np.array([len(h) for h in hits], np.int64)
+    voxel = np.concatenate([np.asarray(h, np.int64) for h in hits]) if counts.sum() else np.zeros(0, np.int64)
+    frame = np.repeat(np.arange(len(fidx)), counts)
+    inside = (frame >= lo[voxel]) & (frame <= hi[voxel])
+    voxel, frame = voxel[inside], frame[inside]
+    unseen = np.setdiff1d(np.arange(n), voxel)
+    voxel, frame = np.concatenate([voxel, unseen]), np.concatenate([frame, lo[unseen]])
+    order = np.lexsort((frame, voxel))
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(voxel, minlength=n), out=indptr[1:])
+    return LidarObservations(
+        np.asarray(stats.centroid, np.float64),
+        indptr,
+        fidx[frame[order]].astype(np.int64),
+        fidx.astype(np.int64),
+        fst.astype(np.int64),
+        trajectory.world_from_base[fidx],
+    )
+
+
+def load_lidar_observations(folder: Path, trajectory_dir: Path) -> LidarObservations:
+    """The LiDAR map in ``folder`` with its observing frames, from the trajectory in ``trajectory_dir`` (the one the
+    map lies on: :meth:`~mapkit.core.workspace.Workspace.map_trajectory`)."""
+    return lidar_observations(load_voxel_stats(folder), Trajectory.load(trajectory_dir))
+
+
+def lidar_map_checksum(folder: Path, trajectory_dir: Path) -> str:
+    """sha256 over what :func:`load_lidar_observations` reads (the map's files, the trajectory's) and its rule."""
+    return config_hash(
+        {
+            **{n: sha256_file(folder / n) for n in LIDAR_MAP_FILES},
+            "trajectory": {p.name: sha256_file(p) for p in sorted(trajectory_dir.glob("*.npz"))},
+            "frames": [LIDAR_FRAME_SPACING_M, LIDAR_OBSERVE_RADIUS_M],
+        }
+    )
+
+
+__all__ = [
+    "LIDAR_FRAME_SPACING_M",
+    "LIDAR_MAP_FILES",
+    "LIDAR_OBSERVE_RADIUS_M",
+    "LidarObservations",
+    "lidar_map_checksum",
+    "lidar_observations",
+    "load_lidar_observations",
+]
