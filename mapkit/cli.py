@@ -33,6 +33,8 @@ index_app = typer.Typer(help="Build, extend and export deployable indexes.", no_
 eval_app = typer.Typer(help="Evaluate maps, indexes and localizers against ground truth.", no_args_is_help=True)
 app.add_typer(index_app, name="index")
 app.add_typer(eval_app, name="eval")
+export_app = typer.Typer(help="Export a workspace for other tools.", no_args_is_help=True)
+app.add_typer(export_app, name="export")
 
 
 def _writes(arg: str):
@@ -127,6 +129,8 @@ CONFIGS: dict[str, str] = {
     "vlad": "mapkit.retrieval.vlad:VladConfig",
     "triplets": "mapkit.places.triplets:TripletConfig",
     "reference_model": "mapkit.localization.reference_model:ReferenceModelConfig",
+    "sixdof": "mapkit.localization.sixdof:SixDofConfig",
+    "benchmark_export": "mapkit.deploy.benchmark:BenchmarkExportConfig",
     "index_vlad": "mapkit.retrieval.index_vlad:VladIndexConfig",
     "localize": "mapkit.localization.localize:LocalizeConfig",
     "structure_index": "mapkit.places.index_structure:StructureIndexConfig",
@@ -355,6 +359,54 @@ def localize(
 
     folder = localize_log(bundle, log, out, config, camera, progress=sys.stderr.isatty())
     typer.echo(f"camera poses written to {folder}/poses_tum.txt (filter) and retrieval_tum.txt")
+
+
+@app.command("localize-benchmark")
+def localize_benchmark(
+    benchmark: Path = typer.Argument(..., help="A benchmark folder (`mapkit export benchmark`)."),
+    out: Path = typer.Option(..., "--out", "-o", help="The poses file to write (name qw qx qy qz tx ty tz a line)."),
+    config: Path | None = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults sixdof`."),
+    fallback: bool = typer.Option(
+        False, "--fallback", help="Give a query that does not register its best retrieved database image's pose."
+    ),
+) -> None:
+    """Register the benchmark's queries against its reference model (SIFT, 2D-3D matches, P3P RANSAC) from their retrieval pairs."""  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
+    from mapkit.localization.sixdof import localize_benchmark as run
+
+    poses = run(benchmark, out, config, retrieval_fallback=fallback, progress=sys.stderr.isatty())
+    typer.echo(f"poses written to {poses} (each query's outcome in {poses.stem}.queries.json)")
+
+
+@export_app.command("benchmark")
+def export_benchmark(
+    workspace: Path = typer.Argument(..., help="A workspace with a reference model (`mapkit model`) and a VLAD index."),
+    out: Path = typer.Option(..., "--out", "-o", help="The benchmark folder to write."),
+    queries: list[str] = typer.Option(
+        ..., "--queries", "--query", "-q", help="A query session (repeatable, or comma-separated)."
+    ),
+    truth: Path | None = typer.Option(
+        None, "--truth", help="The synthetic town: true camera poses and conditions (else the sessions' own poses)."
+    ),
+    log: list[str] | None = typer.Option(
+        None, "--log", help="SESSION=LOG: a query session without an image database, read from its log (repeatable)."
+    ),
+    config: Path | None = typer.Option(
+        None, "--config", "-c", help="YAML overriding `mapkit config defaults benchmark_export`."
+    ),
+) -> None:
+    """Export a 6-DoF visual localization benchmark: reference model, query images and intrinsics, ground truth, retrieval pairs."""  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
+    from mapkit.deploy.benchmark import export_benchmark as run
+
+    logs: dict[str, str] = {}
+    for item in log or []:
+        session, sep, path = item.partition("=")
+        if not sep or not session or not path:
+            raise ConfigError(f"--log {item!r}: expected SESSION=LOG")
+        logs[session] = path
+    names = [n for q in queries for n in q.split(",") if n]
+    folder = run(workspace, out, names, truth, logs, config, progress=sys.stderr.isatty())
+    typer.echo((folder / "metrics.json").read_text(), nl=False)
+    typer.echo(f"benchmark written to {folder} (see README.md)")
 
 
 @app.command()
@@ -729,6 +781,18 @@ def eval_localize(
     typer.echo(
         f"written to {out or Workspace(workspace).localize_dir}: eval_localize.json, .md and one PNG per sequence"
     )
+
+
+@eval_app.command("benchmark")
+def eval_benchmark(
+    benchmark: Path = typer.Argument(..., help="A benchmark folder (`mapkit export benchmark`)."),
+    poses: Path = typer.Option(..., "--poses", help="Poses to score: name qw qx qy qz tx ty tz (cam_from_world)."),
+) -> None:
+    """Share of queries within (0.25 m, 2 deg), (0.5 m, 5 deg), (5 m, 10 deg), per condition and overall."""
+    from mapkit.evaluation.benchmark import format_benchmark, score_benchmark
+
+    typer.echo(format_benchmark(score_benchmark(benchmark, poses)), nl=False)
+    typer.echo(f"written to {poses.parent}: eval_benchmark.json and eval_benchmark.md")
 
 
 def configure_logging() -> None:

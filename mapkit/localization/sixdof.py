@@ -31,8 +31,11 @@ from pydantic import Field
 from mapkit.core.config import MapkitConfig, load_config
 from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.geometry import invert_pose
-from mapkit.core.runio import progress_bar
+from mapkit.core.runio import progress_bar, write_json
 from mapkit.core.types import CameraInfo
+from mapkit.core.writers import writes_workspace
+from mapkit.io.benchmark import IMAGES, MODEL_CONFIG, PAIRS, QUERIES, read_pairs, read_queries_with_intrinsics
+from mapkit.io.trajectory import write_benchmark_poses
 from mapkit.localization.reference_model import ReferenceModelConfig, _colmap_camera
 
 log = logging.getLogger(__name__)
@@ -176,11 +179,10 @@ def _load_reconstruction(sfm: Path):
     return rec
 
 
-def _features_config(folder: Path) -> ReferenceModelConfig:
+def _features_config(path: Path) -> ReferenceModelConfig:
     """The extraction settings the model was built with (its ``config.yaml``); COLMAP's defaults without one."""
-    path = folder / "config.yaml"
     if not path.is_file():
-        log.info("%s: no config.yaml, query features use COLMAP's SIFT defaults", folder)
+        log.info("%s: no such file, query features use COLMAP's SIFT defaults", path)
         return ReferenceModelConfig()
     try:
         return load_config(ReferenceModelConfig, path)
@@ -201,7 +203,10 @@ class SixDofLocalizer:
     ``database.db``). The model is read once; each database image's descriptors are read from the
     database on first use and kept in memory (uint8, as COLMAP stores them)."""
 
-    def __init__(self, model_folder: str | Path, config: SixDofConfig | None = None):
+    def __init__(
+        self, model_folder: str | Path, config: SixDofConfig | None = None, model_config: str | Path | None = None
+    ):
+        """``model_config``: the model's extraction settings (default ``model_folder/config.yaml``)."""
         import pycolmap
 
         self.folder = Path(model_folder)
@@ -209,7 +214,9 @@ class SixDofLocalizer:
         if not self.folder.is_dir():
             raise InputError(self.folder, "no reference model folder here (run mapkit model)")
         self.rec = _load_reconstruction(self.folder / "sfm")
-        self.features = _features_config(self.folder)
+        self.features = _features_config(
+            Path(model_config) if model_config is not None else self.folder / "config.yaml"
+        )
         self._db: pycolmap.Database | None = None
         db_path = self.folder / "database.db"
         if not db_path.is_file():  # pycolmap would create an empty database
@@ -465,3 +472,55 @@ def localize_images(
     n = sum(r.accepted for r in results)
     log.info("6-DoF: %d of %d queries registered", n, len(results))
     return results
+
+
+@writes_workspace("poses_file", within=True)
+def localize_benchmark(
+    folder: str | Path,
+    poses_file: str | Path,
+    config: str | Path | SixDofConfig | None = None,
+    retrieval_fallback: bool = False,
+    progress: bool | None = None,
+) -> Path:
+    """Every query of a benchmark folder (``mapkit export benchmark``) registered against its reference model
+    from its retrieval pairs; writes the registered poses to ``poses_file`` in the benchmark format
+    (``cam_from_world``) and each query's outcome beside it (``<poses stem>.queries.json``); returns the poses
+    file. A query that does not register is left out (a failure when scored), or with ``retrieval_fallback``
+    given its best retrieved database image's pose."""
+    folder, poses_file = Path(folder), Path(poses_file)
+    cfg = load_config(SixDofConfig, config)
+    cameras = read_queries_with_intrinsics(folder / QUERIES)
+    pairs = read_pairs(folder / PAIRS)
+    t0 = time.perf_counter()
+    with SixDofLocalizer(folder, cfg, model_config=folder / MODEL_CONFIG) as loc:
+        queries, candidates = [], []
+        for name, camera in cameras.items():
+            cands = [c for c in pairs.get(name, []) if c in loc._images]
+            fallback = loc.world_from_cam(cands[0]) if retrieval_fallback and cands else None
+            queries.append(SixDofQuery(name, folder / IMAGES / name, camera, fallback))
+            candidates.append(cands)
+        results = []
+        bar = progress_bar(len(queries), progress, "6-DoF", "image")
+        for q, cands in zip(queries, candidates, strict=True):
+            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name))
+            bar.update()
+        bar.close()
+    posed = [r for r in results if r.cam_from_world is not None]
+    write_benchmark_poses(poses_file, [r.name for r in posed], np.array([r.cam_from_world for r in posed]))
+    write_json(
+        poses_file.with_name(f"{poses_file.stem}.queries.json"),
+        {
+            "benchmark": str(folder),
+            "config": cfg.model_dump(mode="json"),
+            "retrieval_fallback": retrieval_fallback,
+            "registered": sum(r.accepted for r in results),
+            "queries": len(results),
+            "seconds": round(time.perf_counter() - t0, 3),
+            "per_query": {
+                r.name: {"accepted": r.accepted, "inliers": r.inliers, "matches": r.matches, "reason": r.reason}
+                for r in results
+            },
+        },
+    )
+    log.info("6-DoF: %d of %d benchmark queries registered", sum(r.accepted for r in results), len(results))
+    return poses_file

@@ -1,0 +1,214 @@
+"""The localization benchmark export and its evaluation: a workspace of real KITTI frames (every other one the
+database, frames between them the queries) whose recorded poses are off the town's truth by a known rigid
+transform; the export recovers that transform from the database images alone, so each query's ground truth is
+its KITTI pose; the evaluator scores known answers; the 6-DoF localizer runs on the export end to end."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+from test_index_vlad import FRAME, SMALL_VLAD, small_config
+from test_reference_model import FAST, _kitti, _workspace
+
+from mapkit.core.errors import InputError
+from mapkit.core.geodesy import LocalFrame
+from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
+from mapkit.deploy.benchmark import BenchmarkExportConfig, export_benchmark
+from mapkit.evaluation.benchmark import evaluate_benchmark, score_benchmark
+from mapkit.io.benchmark import read_pairs, read_queries_with_intrinsics
+from mapkit.io.trajectory import read_benchmark_poses, write_benchmark_poses, write_tum
+from mapkit.localization.reference_model import ReferenceModelConfig, build_reference_model
+from mapkit.localization.sixdof import localize_benchmark
+from mapkit.retrieval.index_vlad import build_vlad_index
+
+DB_FRAMES = list(range(0, 24, 2))
+QUERY_FRAMES = [3, 7, 11, 15, 19]
+#: the recorded (model) frame from the truth's, the known answer: 20 deg about the world z axis (KITTI's forward,
+#: the roll that a straight drive's camera centres alone leave free) and a shift
+MODEL_FROM_TRUTH = make_pose(yaw_rotation(np.radians(20.0)), [3.0, -2.0, 0.5])
+
+
+def _stamps(frames: list[int]) -> np.ndarray:
+    return np.array(frames, np.int64) * 100_000_000  # as test_reference_model's workspace stamps its frames
+
+
+def _town(root: Path, poses: np.ndarray) -> Path:
+    """A town folder 10 m east of the workspace's origin holding the true camera poses of both sessions: the
+    KITTI poses taken out of the model's frame by MODEL_FROM_TRUTH."""
+    lat, lon, alt = FRAME.enu_to_geodetic(np.array([[10.0, 0.0, 0.0]]))
+    town_frame = LocalFrame(float(lat[0]), float(lon[0]), float(alt[0]), FRAME.utm_epsg)
+    (root / "world").mkdir(parents=True)
+    (root / "sessions").mkdir()
+    (root / "world" / "origin.json").write_text(json.dumps(town_frame.to_dict()))
+    sessions = [
+        {"name": "kitti", "role": "train", "condition": "day-sunny", "weather": "sunny"},
+        {"name": "query", "role": "test", "condition": "dusk-overcast", "weather": "overcast", "time_of_day": "19:30"},
+    ]
+    (root / "world" / "manifest.json").write_text(json.dumps({"sessions": sessions}))
+    town_from_model = FRAME.to_frame(town_frame) @ invert_pose(MODEL_FROM_TRUTH)
+    frames = list(range(24))
+    write_tum(root / "sessions" / "kitti.camera.tum", _stamps(frames), town_from_model @ poses[frames])
+    for session in ("query", "drive"):  # drive: a query session that is only a log
+        write_tum(root / "sessions" / f"{session}.camera.tum", _stamps(frames), town_from_model @ poses[frames])
+    return root
+
+
+def _benchmark_workspace(root: Path, clip: Path) -> Path:
+    """Session ``kitti`` (the database) and session ``query`` (frames between), georeferenced at FRAME."""
+    ws = _workspace(root / "ws", clip, DB_FRAMES)
+    queries = _workspace(root / "q", clip, QUERY_FRAMES)
+    shutil.move(queries.session("kitti").imagedb.parent, ws.session("query").imagedb.parent)
+    (ws.root / "origin.json").write_text(json.dumps(FRAME.to_dict()))
+    return ws.root
+
+
+@pytest.fixture(scope="module")
+def exported(kitti_clip, tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    ws = _benchmark_workspace(root, kitti_clip)
+    build_reference_model(ws, ["kitti"], config=ReferenceModelConfig(**FAST))
+    vlad = SMALL_VLAD.model_copy(update={"pca_dim": 8})  # 12 database images: a PCA of at most 11 dimensions
+    build_vlad_index(ws, config=small_config(database_sessions=["kitti"], vlad=vlad), progress=False)
+    _, poses = _kitti(kitti_clip)
+    town = _town(root / "town", poses)
+    out = export_benchmark(ws, root / "bench", ["query"], truth=town, config=BenchmarkExportConfig(retrieval_k=4))
+    return ws, out, poses, town
+
+
+def test_export_holds_the_model_queries_and_their_true_poses(exported):
+    ws, out, poses, _ = exported
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    assert rec.num_images() == len(DB_FRAMES) and rec.num_points3D() > 50
+    for im in rec.images.values():  # every database image resolves under images/ by the model's own name
+        assert (out / "images" / im.name).is_file()
+    cams = read_queries_with_intrinsics(out / "queries_with_intrinsics.txt")
+    names = [f"query/query/cam0/{i * 100_000_000}.png" for i in QUERY_FRAMES]
+    assert list(cams) == names
+    for n in names:
+        assert (out / "images" / n).is_file()
+        line = next(x for x in (out / "queries_with_intrinsics.txt").read_text().splitlines() if x.startswith(n))
+        assert line.split()[1:4] == ["PINHOLE", "1226", "370"]
+    # the truth came through MODEL_FROM_TRUTH, fitted on the database images: each query's truth is its KITTI pose
+    gt_names, gt = read_benchmark_poses(out / "queries_gt.txt")
+    assert gt_names == names
+    for i, T in zip(QUERY_FRAMES, gt, strict=True):
+        expected = invert_pose(poses[i])
+        assert np.linalg.norm(invert_pose(T)[:3, 3] - poses[i][:3, 3]) < 1e-3  # images.csv keeps 0.1 mm
+        assert np.degrees(rotation_angle_rad(T[:3, :3] @ expected[:3, :3].T)) < 1e-3
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["truth"]["fit_images"] == len(DB_FRAMES) and m["truth"]["residual_max_m"] < 1e-3
+    np.testing.assert_allclose(m["truth"]["model_from_truth"], MODEL_FROM_TRUTH, atol=1e-4)
+    assert m["queries"] == len(QUERY_FRAMES) and m["queries_without_truth"] == {"query": 0}
+    # retrieval pairs: each query's top 4, all images of the model
+    pairs = read_pairs(out / "pairs-query-retrieval.txt")
+    model_names = {im.name for im in rec.images.values()}
+    assert list(pairs) == names and all(len(v) == 4 and set(v) <= model_names for v in pairs.values())
+    cond = json.loads((out / "conditions.json").read_text())
+    assert cond[names[0]] == {
+        "session": "query",
+        "condition": "dusk-overcast",
+        "weather": "overcast",
+        "time_of_day": "19:30",
+    }
+    readme = (out / "README.md").read_text()
+    assert "local ENU frame" in readme and f"{FRAME.lat0_deg:.9f}" in readme and "RMSE" in readme
+    assert (out / "config.yaml").is_file() and (out / "database.db").is_file()
+
+
+def test_evaluator_scores_known_answers(exported, tmp_path):
+    _, out, _, _ = exported
+    names, gt = read_benchmark_poses(out / "queries_gt.txt")
+    ev = evaluate_benchmark(out / "queries_gt.txt", out / "queries_gt.txt", out / "conditions.json")
+    assert set(ev.overall.recall.values()) == {1.0} and ev.overall.missing == 0
+    assert ev.overall.median_translation_m == 0.0 and list(ev.conditions) == ["dusk-overcast"]
+    # every camera 1 m off along its own x axis (world_from_cam's translation moved by 1 m), orientation kept
+    world = np.array([invert_pose(T) for T in gt])
+    world[:, :3, 3] += world[:, :3, 0]
+    write_benchmark_poses(tmp_path / "off.txt", names, np.array([invert_pose(T) for T in world]))
+    ev = evaluate_benchmark(out / "queries_gt.txt", tmp_path / "off.txt")
+    assert ev.overall.recall == {"0.25m_2deg": 0.0, "0.5m_5deg": 0.0, "5m_10deg": 1.0}
+    assert ev.overall.median_translation_m == pytest.approx(1.0, abs=1e-6)
+    assert ev.overall.median_rotation_deg == pytest.approx(0.0, abs=1e-6)
+    # every camera turned 3 deg about its own y axis, centres kept: only the orientation fails the first band
+    world = np.array([invert_pose(T) for T in gt])
+    world[:, :3, :3] = world[:, :3, :3] @ Rotation.from_euler("y", 3.0, degrees=True).as_matrix()
+    write_benchmark_poses(tmp_path / "turned.txt", names, np.array([invert_pose(T) for T in world]))
+    ev = evaluate_benchmark(out / "queries_gt.txt", tmp_path / "turned.txt")
+    assert ev.overall.recall == {"0.25m_2deg": 0.0, "0.5m_5deg": 1.0, "5m_10deg": 1.0}
+    assert ev.overall.median_rotation_deg == pytest.approx(3.0, abs=1e-6)
+    assert ev.overall.median_translation_m == pytest.approx(0.0, abs=1e-6)
+    # two queries missing: failures at every threshold, and counted
+    write_benchmark_poses(tmp_path / "part.txt", names[2:], gt[2:])
+    ev = evaluate_benchmark(out / "queries_gt.txt", tmp_path / "part.txt", {n: "c" for n in names})
+    assert ev.overall.missing == 2 and ev.overall.recall["5m_10deg"] == pytest.approx(3 / 5)
+    assert ev.errors[names[0]] is None and ev.conditions["c"].missing == 2
+
+
+def test_localizer_on_the_export_end_to_end(exported, tmp_path):
+    """The 6-DoF localizer registers the exported queries from their pairs; the scores land beside its poses."""
+    _, out, _, _ = exported
+    poses = localize_benchmark(out, tmp_path / "run" / "poses.txt")
+    ev = score_benchmark(out, poses)
+    outcome = json.loads((tmp_path / "run" / "poses.queries.json").read_text())
+    assert outcome["queries"] == len(QUERY_FRAMES)
+    assert all(q["accepted"] for q in outcome["per_query"].values()), outcome["per_query"]
+    # between database images 2.4 m apart, 150 to 250 inliers each: about 1 cm and 0.04 deg off (measured)
+    assert ev.overall.recall["0.25m_2deg"] == 1.0 and ev.overall.median_translation_m < 0.05, ev.overall
+    saved = json.loads((tmp_path / "run" / "eval_benchmark.json").read_text())
+    assert saved["overall"]["recall"] == ev.overall.recall
+    assert "| overall | 5 |" in (tmp_path / "run" / "eval_benchmark.md").read_text()
+
+
+def test_missing_model_or_index_is_one_error(kitti_clip, tmp_path):
+    ws = _benchmark_workspace(tmp_path, kitti_clip)
+    with pytest.raises(InputError, match=f"run mapkit model {ws} first") as err:
+        export_benchmark(ws, tmp_path / "out", ["query"])
+    assert err.value.field == "reference_model"
+    model = ws / "reference_model" / "sfm"
+    model.mkdir(parents=True)
+    for f in ("cameras.bin", "images.bin", "points3D.bin"):
+        (model / f).write_bytes(b"")
+    (ws / "reference_model" / "database.db").write_bytes(b"")
+    with pytest.raises(InputError, match="run mapkit index vlad") as err:
+        export_benchmark(ws, tmp_path / "out", ["query"])
+    assert err.value.field == "vlad"
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_commands(exported, tmp_path, capsys):
+    from mapkit.cli import main
+
+    _, out, _, _ = exported
+    shutil.copy(out / "queries_gt.txt", tmp_path / "poses.txt")
+    assert main(["eval", "benchmark", str(out), "--poses", str(tmp_path / "poses.txt")]) == 0
+    assert "| overall | 5 | 0 | 100.0 % | 100.0 % | 100.0 % |" in capsys.readouterr().out
+    assert (tmp_path / "eval_benchmark.json").is_file()
+    assert main(["export", "benchmark", "--help"]) == 0 and "--queries" in capsys.readouterr().out
+    assert main(["eval", "benchmark", str(tmp_path), "--poses", str(tmp_path / "poses.txt")]) == 2
+    assert "not a benchmark folder" in capsys.readouterr().err
+
+
+def test_a_query_session_from_its_log(exported, clip12, tmp_path):
+    """A query session without an image database: its camera frames come from its log (a KITTI folder, stamps
+    from times.txt), written as PNG, with the log's intrinsics; its truth is the town's at the frames' stamps."""
+    ws, _, poses, town = exported
+    with pytest.raises(InputError, match="has no image database: give its log"):
+        export_benchmark(ws, tmp_path / "none", ["drive"], truth=town)
+    out = export_benchmark(ws, tmp_path / "log", ["drive"], truth=town, logs={"drive": clip12})
+    cams = read_queries_with_intrinsics(out / "queries_with_intrinsics.txt")
+    names = [f"query/drive/camera_0/{i * 100_000_000}.png" for i in range(12)]
+    assert list(cams) == names and cams[names[0]].fx == pytest.approx(707.0912)
+    image = cv2.imread(str(out / "images" / names[5]), cv2.IMREAD_UNCHANGED)
+    assert np.array_equal(image, cv2.imread(str(clip12 / "image_l" / "000005.png"), cv2.IMREAD_UNCHANGED))
+    gt_names, gt = read_benchmark_poses(out / "queries_gt.txt")
+    assert gt_names == names
+    centres = np.array([invert_pose(T)[:3, 3] for T in gt])
+    np.testing.assert_allclose(centres, poses[:12, :3, 3], atol=1e-3)
+    assert "its log" in (out / "README.md").read_text()
