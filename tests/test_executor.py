@@ -238,8 +238,8 @@ def test_icp_of_submap_pairs_serial_equals_process_pool():
         pts = world[rng.random(len(world)) < 0.15]
         pts = pts + rng.normal(0, 0.03, pts.shape) + np.asarray(shift)
         clouds.append(SubmapClouds(f"s{k}", pts, np.zeros(len(pts), np.int64), np.array([[60.0, -2.0, 0.0]])))
-    pairs = [(0, 0, 1, 0), (1, 0, 2, 0)]
-    shared = (clouds, AlignConfig())
+    pairs = [(0, 0, 1, 0, "semidense"), (1, 0, 2, 0, "semidense")]  # each pair names the maps it is registered on
+    shared = ({"semidense": clouds, "lidar": [None, None, None]}, AlignConfig())
     got = {kind: list(EXECUTORS[kind]().map(_register_task, pairs, shared=shared)) for kind in EXECUTORS}
     for a, b in zip(got["serial"], got["process"], strict=True):
         np.testing.assert_array_equal(a.target_from_source, b.target_from_source)
