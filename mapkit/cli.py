@@ -353,12 +353,36 @@ def localize(
         None, "--config", "-c", help="YAML overriding `mapkit config defaults localize`."
     ),
     camera: str | None = typer.Option(None, "--camera", help="Camera to use when the log has several."),
+    refine: str | None = typer.Option(
+        None,
+        "--refine",
+        help="none or 6dof: register each query against the reference model after the filter (default: the "
+        "config's refine, none).",
+    ),
+    model: Path | None = typer.Option(
+        None,
+        "--model",
+        help="The reference model of --refine 6dof (default: reference_model/ in the bundle's workspace).",
+    ),
 ) -> None:
     """Run the Monte Carlo visual localizer on a drive log against a VLAD bundle."""
     from mapkit.localization.localize import localize_log
 
-    folder = localize_log(bundle, log, out, config, camera, progress=sys.stderr.isatty())
+    overrides = _refine_overrides(refine, model)
+    folder = localize_log(bundle, log, out, config, camera, progress=sys.stderr.isatty(), overrides=overrides)
     typer.echo(f"camera poses written to {folder}/poses_tum.txt (filter) and retrieval_tum.txt")
+    if (folder / "sixdof.json").is_file():
+        typer.echo(f"6-DoF poses written to {folder}/sixdof_tum.txt and sixdof_poses.txt (outcomes in sixdof.json)")
+
+
+def _refine_overrides(refine: str | None, model: Path | None) -> dict | None:
+    """The config overrides of ``--refine`` and ``--model``."""
+    overrides: dict = {}
+    if refine is not None:
+        overrides["refine"] = refine
+    if model is not None:
+        overrides["reference_model"] = str(model)
+    return overrides or None
 
 
 @app.command("localize-benchmark")
@@ -769,13 +793,32 @@ def eval_localize(
     cache_dir: Path | None = typer.Option(
         None, "--cache-dir", help="Keep each test session's retrieval hits here; reused while the bundle is the same."
     ),
+    refine: str | None = typer.Option(
+        None,
+        "--refine",
+        help="none or 6dof: also register each query against the reference model and score the 6-DoF poses, the "
+        "filter and retrieval at (0.25 m, 2 deg), (0.5 m, 5 deg), (5 m, 10 deg) (default: the config's refine, none).",
+    ),
+    model: Path | None = typer.Option(
+        None,
+        "--model",
+        help="The reference model of --refine 6dof, built from the training sessions only (default: "
+        "WORKSPACE/reference_model).",
+    ),
 ) -> None:
     """MCVL's protocol: training sessions build the index, test sessions are localized (Table II, Fig. 5)."""
     from mapkit.core.workspace import Workspace
     from mapkit.evaluation.localization import evaluate_localization, format_localization
 
     r = evaluate_localization(
-        workspace, truth, bundle, config=config, out=out, cache_dir=cache_dir, progress=sys.stderr.isatty()
+        workspace,
+        truth,
+        bundle,
+        config=config,
+        overrides=_refine_overrides(refine, model),
+        out=out,
+        cache_dir=cache_dir,
+        progress=sys.stderr.isatty(),
     )
     typer.echo(format_localization(r), nl=False)
     typer.echo(

@@ -68,8 +68,11 @@ def pose_errors(gt_cam_from_world: np.ndarray, est_cam_from_world: np.ndarray) -
     return np.linalg.norm(c_est - c_gt, axis=1), ang
 
 
-def _scores(t: np.ndarray, r: np.ndarray, thresholds) -> BenchmarkScores:
-    """Scores of errors where a missing query's are inf."""
+def band_scores(
+    t: np.ndarray, r: np.ndarray, thresholds: tuple[tuple[float, float], ...] = THRESHOLDS
+) -> BenchmarkScores:
+    """The scores of per-query errors (position m ``t``, orientation deg ``r``), a missing query's inf: the share
+    within each threshold pair and the medians (None when more than half are missing)."""
     n = len(t)
     missing = int(np.sum(~np.isfinite(t)))
     recall = {band_key(a, b): float(np.mean((t <= a) & (r <= b))) if n else 0.0 for a, b in thresholds}
@@ -133,9 +136,9 @@ def evaluate_benchmark(
     per: dict[str, BenchmarkScores] = {}
     for label in sorted(set(labels.values())):
         sel = np.array([labels[n] == label for n in gt_names])
-        per[label] = _scores(t[sel], r[sel], thresholds)
+        per[label] = band_scores(t[sel], r[sel], thresholds)
     unknown = sorted(set(est_names) - set(gt_names))
-    return BenchmarkEvaluation(_scores(t, r, thresholds), per, errors, unknown, thresholds)
+    return BenchmarkEvaluation(band_scores(t, r, thresholds), per, errors, unknown, thresholds)
 
 
 def format_benchmark(ev: BenchmarkEvaluation) -> str:

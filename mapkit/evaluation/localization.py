@@ -4,6 +4,12 @@ Training sessions build the index, test sessions are queries; per sequence the t
 ||c_est - c_gt|| and the orientation error, mean and median, for retrieval alone and for the filter
 (Table II), and a plot of the estimated against the true trajectory (Fig. 5).
 
+With ``refine: 6dof`` every query is also registered against the reference model
+(:func:`~mapkit.localization.localize.refine_sixdof`), and each test session reports, for the
+6-DoF poses, the filter and retrieval alone on the same queries, the share within the visual
+localization benchmark's bands (0.25 m, 2 deg), (0.5 m, 5 deg), (5 m, 10 deg) and the median
+errors (:mod:`mapkit.evaluation.benchmark`; a query without an estimate fails every band).
+
 Errors are those of camera poses, as Table II's are: the filter runs on the vehicle's base pose
 (:mod:`mapkit.localization.mcl`) and :func:`~mapkit.localization.localize.run_localizer` returns
 its estimates converted back to the camera through ``LocalizeConfig.base_from_camera``.
@@ -12,6 +18,7 @@ its estimates converted back to the camera through ``LocalizeConfig.base_from_ca
 from __future__ import annotations
 
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -23,9 +30,22 @@ from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.core.writers import writes_workspace
+from mapkit.evaluation.benchmark import THRESHOLDS, BenchmarkScores, band_key, band_scores
+from mapkit.evaluation.benchmark import pose_errors as benchmark_pose_errors
 from mapkit.io.plots import localization_track
-from mapkit.localization.localize import LocalizeConfig, cached_query_all, run_localizer, write_run_trajectories
+from mapkit.localization.localize import (
+    LocalizeConfig,
+    cached_query_all,
+    open_reference_model,
+    refine_sixdof,
+    remove_sixdof_outputs,
+    run_localizer,
+    write_run_trajectories,
+    write_sixdof,
+)
 from mapkit.localization.mcl import pose_errors
+from mapkit.localization.reference_model import _workspace_images
+from mapkit.localization.sixdof import SixDofLocalizer
 from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 
 if TYPE_CHECKING:
@@ -49,6 +69,31 @@ def hit_recall(index, ids: np.ndarray, gt_positions: np.ndarray, radius_m: float
     return {**out, "recall_radius_m": radius_m}
 
 
+def pose_band_scores(gt_world_from_cam: np.ndarray, est_world_from_cam: np.ndarray) -> BenchmarkScores:
+    """The visual localization benchmark's scores of camera poses (n, 4, 4) against the truth (both
+    ``world_from_camera``): the share within each band and the median errors; a query without an
+    estimate (NaN) fails every band and counts as missing."""
+    gt = np.asarray(gt_world_from_cam, np.float64).reshape(-1, 4, 4)
+    est = np.asarray(est_world_from_cam, np.float64).reshape(-1, 4, 4)
+    if len(gt) != len(est):
+        raise ValueError(f"{len(est)} estimates for {len(gt)} true poses")
+    have = np.all(np.isfinite(est), axis=(1, 2))
+    t, r = np.full(len(gt), np.inf), np.full(len(gt), np.inf)
+    if have.any():
+        t[have], r[have] = benchmark_pose_errors(invert_pose(gt[have]), invert_pose(est[have]))
+    return band_scores(t, r, THRESHOLDS)
+
+
+def _model_clash(loc: SixDofLocalizer, ws: Workspace, tests: list[str]) -> list[str]:
+    """The test sessions with an image in the reference model (queries must not be part of the map)."""
+    in_model = set(loc.names_by_path())
+    return [
+        name
+        for name in tests
+        if any(Path(p).resolve() in in_model for p in read_session_images(ws.root, name).image_paths)
+    ]
+
+
 @writes_workspace("workspace")
 def evaluate_localization(
     workspace: str | Path | Workspace,
@@ -70,14 +115,16 @@ def evaluate_localization(
     (:func:`cached_query_all`), so that runs with other filter settings do not encode the images
     again; hits are reused only for the same bundle (fingerprint), session, top_k and images.
     Besides Table II, each session reports how often the top-1 and any of the top-k hits lie
-    within ``RECALL_RADIUS_M`` of the truth (what any measurement model can work with)."""
+    within ``RECALL_RADIUS_M`` of the truth (what any measurement model can work with).
+
+    With ``refine: 6dof`` (the config or ``overrides``) the queries are registered against the
+    reference model (``reference_model``, default ``WORKSPACE/reference_model``), which must hold
+    no image of a test session; each session then gains the ``sixdof`` scores and its folder the
+    6-DoF poses, and ``eval_localize.md`` a second table."""
     from mapkit.evaluation.truth import town_sessions
 
     ws, truth = Workspace(workspace), Path(truth)
     cfg = load_config(LocalizeConfig, config, overrides)
-    out = Path(out) if out is not None else ws.localize_dir
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.yaml", dump_config(cfg))
     town = town_sessions(truth)
     if not town:
         raise InputError(
@@ -86,6 +133,37 @@ def evaluate_localization(
     built = ws.session_names("imagedb")
     train = [n for n in built if town.get(n, {}).get("role") == "train"]
     tests = test_sessions or [n for n in built if town.get(n, {}).get("role") == "test"]
+    loc = open_reference_model(cfg, ws.root) if cfg.refine == "6dof" else None
+    try:
+        if loc is not None and (clash := _model_clash(loc, ws, tests)):
+            raise InputError(
+                loc.folder,
+                f"test session(s) {clash} are in the reference model: they cannot be queries (build it from the "
+                "training sessions: mapkit model --session ...)",
+                field="sessions",
+            )
+        return _evaluate(ws, truth, bundle, cfg, town, train, tests, out, progress, cache_dir, loc)
+    finally:
+        if loc is not None:
+            loc.close()
+
+
+def _evaluate(
+    ws: Workspace,
+    truth: Path,
+    bundle: str | Path | None,
+    cfg: LocalizeConfig,
+    town: dict,
+    train: list[str],
+    tests: list[str],
+    out: str | Path | None,
+    progress: bool,
+    cache_dir: str | Path | None,
+    loc: SixDofLocalizer | None,
+) -> dict:
+    out = Path(out) if out is not None else ws.localize_dir
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.yaml", dump_config(cfg))
     if bundle is None:  # `mapkit eval localize WS --truth TOWN` without --bundle: the town's training sessions
         bundle = build_vlad_index(
             ws.root, overrides={"train_sessions": train, "database_sessions": train}, progress=progress
@@ -103,7 +181,7 @@ def evaluate_localization(
     timings: dict = {}
     for name in tests:
         results["sessions"][name], timings[name] = _localize_session(
-            ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out, cache_dir, progress
+            ws, truth, name, index, cfg, ws_frame, town.get(name, {}), out, cache_dir, progress, loc
         )
     write_json(out / "eval_localize.json", results)
     write_timings(out, sessions=timings)
@@ -122,9 +200,11 @@ def _localize_session(
     out: Path,
     cache_dir: str | Path | None,
     progress: bool,
+    loc: SixDofLocalizer | None = None,
 ) -> tuple[dict, dict]:
-    """One test session through retrieval and the filter: its row of Table II and its recall, and
-    its timings (a run record); draws its track against the truth into ``out/<name>.png``."""
+    """One test session through retrieval and the filter (and the 6-DoF registration with ``loc``):
+    its row of Table II and its recall, and its timings (a run record); draws its track against the
+    truth into ``out/<name>.png``."""
     from mapkit.evaluation.truth import truth_camera_poses_at
 
     imgs = read_session_images(ws.root, name)
@@ -160,6 +240,23 @@ def _localize_session(
         "filter_ms_per_step": 1000 * r.filter_s / max(1, len(paths)),
     }
     write_run_trajectories(out / name, imgs.table["stamp_ns"][ok], r)  # the estimates, for evo and mapkit view
+    if loc is None:
+        remove_sixdof_outputs(out / name)
+    else:
+        t1 = time.perf_counter()
+        cameras = [im.camera for im, good in zip(_workspace_images(ws, [name]), ok, strict=True) if good]
+        names = [p for p, good in zip(imgs.workspace_paths, ok, strict=True) if good]
+        found = refine_sixdof(loc, index, r, paths, cameras, names, progress)
+        summary = write_sixdof(out / name, imgs.table["stamp_ns"][ok], found, loc)
+        est = np.array([np.full((4, 4), np.nan) if x.world_from_cam is None else x.world_from_cam for x in found])
+        entry["sixdof"] = {
+            "accepted_share": summary["accepted_share"],
+            "median_s_per_query": summary["median_s_per_query"],
+            "6dof": asdict(pose_band_scores(gt, est)),
+            "filter": asdict(pose_band_scores(gt, r.poses("filter"))),
+            "retrieval": asdict(pose_band_scores(gt, r.poses("retrieval"))),
+        }
+        timings["sixdof_s_per_query"] = (time.perf_counter() - t1) / max(1, len(paths))
     localization_track(
         out / f"{name}.png",
         gt[:, :3, 3],
@@ -191,4 +288,36 @@ def format_localization(results: dict) -> str:
             f"{f(b, 'mean_translation_m')} / {f(b, 'mean_rotation_deg')} | {f(b, 'median_translation_m')} / "
             f"{f(b, 'median_rotation_deg')} | {recall} |"
         )
+    table = "\n".join(lines) + "\n"
+    return table + ("\n" + format_sixdof(results) if any("sixdof" in r for r in results["sessions"].values()) else "")
+
+
+#: the estimates of the 6-DoF table, in its row order
+SIXDOF_ROWS = (("6dof", "6-DoF"), ("filter", "MCVL"), ("retrieval", "retrieval"))
+
+
+def format_sixdof(results: dict) -> str:
+    """Per test sequence, on the same queries: the share of the 6-DoF poses, the filter's and retrieval's
+    within each band of the visual localization benchmark and their median errors; the share of queries the
+    registration accepted and its median time per query."""
+    head = " | ".join(f"{a:g} m, {b:g} deg" for a, b in THRESHOLDS)
+    lines = [
+        f"| sequence | queries | estimate | {head} | median m / deg | accepted | s / query |",
+        "|---|---|---|" + "---|" * len(THRESHOLDS) + "---|---|---|",
+    ]
+    med = lambda v, d=2: "-" if v is None else f"{v:.{d}f}"  # noqa: E731 (a one-line helper local to this function)
+    for name, r in results["sessions"].items():
+        s = r.get("sixdof")
+        if s is None:
+            continue
+        for key, label in SIXDOF_ROWS:
+            e = s[key]
+            shares = " | ".join(f"{100 * e['recall'][band_key(a, b)]:.1f} %" for a, b in THRESHOLDS)
+            extra = (
+                f"{100 * (s['accepted_share'] or 0):.1f} % | {med(s['median_s_per_query'])}" if key == "6dof" else " | "
+            )
+            lines.append(
+                f"| {name} | {e['queries']} | {label} | {shares} | {med(e['median_translation_m'], 3)} / "
+                f"{med(e['median_rotation_deg'])} | {extra} |"
+            )
     return "\n".join(lines) + "\n"

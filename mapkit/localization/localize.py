@@ -21,31 +21,45 @@ odometry, and the multi-hypothesis measurement model of :mod:`mapkit.localizatio
 particles by all top-k retrieved poses. Retrieval (encoding each image with dense SIFT, the
 expensive part) can be cached per test session (:func:`cached_query_all`), so that runs with
 other filter settings reuse the hits of the same bundle.
+
+Beyond the paper, ``refine: 6dof`` registers every query against the triangulated reference model
+(``mapkit model``) once the filter has run over the sequence (:func:`refine_sixdof`): the filter
+gives a place to metres, the registration a camera pose to centimetres where it succeeds, and the
+filter's pose where it does not.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
-from mapkit.core.errors import InputError
+from mapkit.core.errors import ConfigError, InputError
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, sha256_file, write_json, write_timings
-from mapkit.core.types import StreamKind
+from mapkit.core.types import CameraInfo, StreamKind
 from mapkit.core.writers import writes_workspace
 from mapkit.io import open_log
-from mapkit.io.trajectory import write_tum
+from mapkit.io.trajectory import write_benchmark_poses, write_tum
 from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclConfig, MonteCarloLocalizer
+from mapkit.localization.reference_model import DEFAULT_FOLDER as MODEL_FOLDER
+from mapkit.localization.sixdof import SixDofConfig, SixDofLocalizer, SixDofResult
 from mapkit.retrieval.index_vlad import VladIndex
 from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
+logger = logging.getLogger(__name__)
+
 Row4 = tuple[float, float, float, float]
+
+#: the files a 6-DoF refinement writes beside the filter's (removed by a run without one)
+SIXDOF_FILES = ("sixdof_tum.txt", "sixdof_poses.txt", "sixdof.json")
 
 
 def _row4(row: np.ndarray, last: float) -> Row4:
@@ -84,6 +98,21 @@ class LocalizeConfig(MapkitConfig):
         "of eqs. 1-2. Sets mcl.odometry.enabled.",
     )
     seed: int = Field(0, description="Seed of the particle filter.")
+    refine: Literal["none", "6dof"] = Field(
+        "none",
+        description="Beyond the paper: '6dof' registers every query against the triangulated reference model "
+        "(mapkit model) once the filter has run over the sequence: SIFT 2D-3D matches with its retrieved database "
+        "images, else with the model's images near the filter's pose, then P3P in RANSAC (hloc's localize_sfm). A "
+        "query that registers neither way keeps the filter's pose. 'none': the filter alone, as the paper.",
+    )
+    reference_model: str | None = Field(
+        None,
+        description="The reference model folder of refine '6dof' (default: reference_model/ in the workspace: the "
+        "bundle's source workspace for mapkit localize, the evaluated one for mapkit eval localize).",
+    )
+    sixdof: SixDofConfig = Field(
+        default_factory=SixDofConfig, description="The registration of refine '6dof' (mapkit config defaults sixdof)."
+    )
 
     @field_validator("base_from_camera")
     @classmethod
@@ -302,6 +331,140 @@ def cached_query_all(
     return ids, dist, False
 
 
+# --- the 6-DoF refinement -------------------------------------------------------------------------
+
+
+def reference_model_folder(cfg: LocalizeConfig, workspace: str | Path | None) -> Path:
+    """The reference model of ``refine: 6dof``: ``cfg.reference_model``, else ``WORKSPACE/reference_model``."""
+    if cfg.reference_model is not None:
+        return Path(cfg.reference_model)
+    if workspace is None:
+        raise ConfigError(
+            "refine 6dof: no reference_model given, and no workspace to find WORKSPACE/reference_model in"
+        )
+    return Path(workspace) / MODEL_FOLDER
+
+
+def open_reference_model(cfg: LocalizeConfig, workspace: str | Path | None) -> SixDofLocalizer:
+    """The 6-DoF localizer on the reference model of ``refine: 6dof`` (read and checked now: a missing or damaged
+    model is one InputError naming it before any query is encoded)."""
+    folder = reference_model_folder(cfg, workspace)
+    if not folder.is_dir():
+        raise InputError(folder, "no reference model folder here: run mapkit model, or give its folder (--model)")
+    return SixDofLocalizer(folder, cfg.sixdof)
+
+
+def database_model_names(index, loc: SixDofLocalizer) -> list[str | None]:
+    """Each database entry of a VLAD bundle as an image name of the reference model (None where the model does not
+    hold it). database.csv names images relative to the bundle's source workspace, the model relative to its image
+    root (the same folder when ``mapkit model`` ran on that workspace, but either may have been built elsewhere):
+    they are compared as resolved paths, and by name where no path is shared."""
+    images = [str(n) for n in index.database["image"]]
+    source = index.manifest.get("source_workspace")
+    if source is not None:
+        by_path = loc.names_by_path()
+        names = [by_path.get((Path(source) / n).resolve()) for n in images]
+        if any(n is not None for n in names):
+            return names
+    known = set(loc.image_names)
+    names = [n if n in known else None for n in images]
+    if images and not any(n is not None for n in names):
+        logger.warning(
+            "6-DoF: none of the bundle's %d database images is in the reference model %s: candidates come from the "
+            "filter's pose alone",
+            len(images),
+            loc.folder,
+        )
+    return names
+
+
+def refine_sixdof(
+    loc: SixDofLocalizer,
+    index,
+    run: LocalizationRun,
+    images: Sequence[np.ndarray | str | Path],
+    cameras: Sequence[CameraInfo | None],
+    names: Sequence[str],
+    progress: bool = False,
+) -> list[SixDofResult]:
+    """Every query of a filter run registered against the reference model (``loc``): from its retrieved database
+    images (``run.ids``, best first) that the model holds; where these do not register, from the model's images
+    near the filter's pose that look its way. A query that registers neither way keeps the filter's pose (None
+    before the filter's first estimate), not accepted, and its reason names both attempts."""
+    n = len(run.ids)
+    if not len(images) == len(cameras) == len(names) == n:
+        raise ValueError(f"{n} queries in the run, {len(images)} images, {len(cameras)} cameras, {len(names)} names")
+    db_names = database_model_names(index, loc)
+    filter_poses = run.poses("filter")
+    results = []
+    bar = progress_bar(n, progress, "6-DoF", "query")
+    for t in range(n):
+        prior = filter_poses[t] if np.all(np.isfinite(filter_poses[t])) else None
+        retrieved = [name for i in run.ids[t] if i >= 0 and (name := db_names[i]) is not None]
+        r = loc.localize(images[t], cameras[t], retrieved, prior, names[t])
+        if not r.accepted and prior is not None:
+            near = loc.candidates_near(prior)
+            if near and near[: loc.cfg.max_candidates] != r.candidates:
+                again = loc.localize(images[t], cameras[t], near, prior, names[t])
+                again.seconds += r.seconds
+                again.reason = f"retrieved images: {r.reason}; images near the filter's pose: {again.reason}"
+                r = again
+        results.append(r)
+        bar.update(1)
+    bar.close()
+    logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
+    return results
+
+
+def write_sixdof(out: Path, stamps_ns: np.ndarray, results: Sequence[SixDofResult], loc: SixDofLocalizer) -> dict:
+    """The 6-DoF poses of a run into ``out``: ``sixdof_tum.txt`` (``world_from_camera``, TUM, as the filter's),
+    ``sixdof_poses.txt`` (``cam_from_world`` in the benchmark format, named as the queries) and ``sixdof.json``
+    (each query's outcome). A query without a pose is left out of both pose files. Returns the summary: queries,
+    accepted share, median seconds per query."""
+    posed = [k for k, r in enumerate(results) if r.world_from_cam is not None]
+    world_from_cam = np.array([results[k].world_from_cam for k in posed], np.float64).reshape(-1, 4, 4)
+    cam_from_world = np.array([results[k].cam_from_world for k in posed], np.float64).reshape(-1, 4, 4)
+    write_tum(out / "sixdof_tum.txt", np.asarray(stamps_ns, np.int64)[posed], world_from_cam)
+    write_benchmark_poses(out / "sixdof_poses.txt", [results[k].name for k in posed], cam_from_world)
+    seconds = np.array([r.seconds for r in results], np.float64)
+    accepted = sum(r.accepted for r in results)
+    summary: dict[str, Any] = {
+        "model": str(loc.folder),
+        "queries": len(results),
+        "accepted": accepted,
+        "accepted_share": accepted / len(results) if results else None,
+        "median_s_per_query": float(np.median(seconds)) if len(seconds) else None,
+    }
+    per_query = [
+        {
+            "name": r.name,
+            "stamp_ns": int(stamp),
+            "accepted": r.accepted,
+            "reason": r.reason,
+            "inliers": r.inliers,
+            "matches": r.matches,
+            "seconds": round(r.seconds, 4),
+            "candidates": r.candidates,
+        }
+        for r, stamp in zip(results, np.asarray(stamps_ns, np.int64), strict=True)
+    ]
+    write_json(out / "sixdof.json", {**summary, "config": loc.cfg.model_dump(mode="json"), "per_query": per_query})
+    return summary
+
+
+def remove_sixdof_outputs(out: Path) -> None:
+    """A run without refinement removes the 6-DoF files an earlier run left in its folder: the folder then holds
+    one run's outputs."""
+    for name in SIXDOF_FILES:
+        (out / name).unlink(missing_ok=True)
+
+
+def _query_pixels(frame) -> np.ndarray:
+    """A log frame's pixels as the 6-DoF localizer reads them: grey or RGB (a ``bgr8`` frame's channels turned)."""
+    image = frame.image
+    return image[..., ::-1] if frame.encoding == "bgr8" and image.ndim == 3 else image
+
+
 @writes_workspace("out", within=True)
 def localize_log(
     bundle: str | Path,
@@ -310,15 +473,34 @@ def localize_log(
     config: str | Path | None = None,
     camera: str | None = None,
     progress: bool = True,
+    overrides: dict | None = None,
 ) -> Path:
     """Run the localizer on the camera images of a drive log against a VLAD bundle; writes the
-    filter's and retrieval's camera poses as TUM files, the resolved config and metrics."""
+    filter's and retrieval's camera poses as TUM files, the resolved config and metrics. With
+    ``refine: 6dof`` each query is then registered against the reference model (default: the
+    bundle's source workspace's ``reference_model/``; the log must hold the camera's intrinsics),
+    and :func:`write_sixdof`'s files join the others."""
 
-    cfg = load_config(LocalizeConfig, config)
+    cfg = load_config(LocalizeConfig, config, overrides)
     index = VladIndex.load(bundle)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.yaml", dump_config(cfg))
+    loc = open_reference_model(cfg, index.manifest.get("source_workspace")) if cfg.refine == "6dof" else None
+    try:
+        return _localize_log(index, Path(bundle), Path(log), Path(out), cfg, camera, progress, loc)
+    finally:
+        if loc is not None:
+            loc.close()
+
+
+def _localize_log(
+    index: VladIndex,
+    bundle: Path,
+    log: Path,
+    out: Path,
+    cfg: LocalizeConfig,
+    camera: str | None,
+    progress: bool,
+    loc: SixDofLocalizer | None,
+) -> Path:
     with open_log(log) as lg:
         frames = [f for f in lg.records(StreamKind.IMAGE) if camera is None or f.camera == camera]
         if not frames:
@@ -330,18 +512,37 @@ def localize_log(
             raise InputError(
                 log, f"images of {len(cams)} cameras ({sorted(cams)}): choose one with --camera", field="camera"
             )
+        info = lg.camera_infos().get(frames[0].camera) if loc is not None else None
+        if loc is not None and info is None:
+            raise InputError(
+                log,
+                f"camera {frames[0].camera!r} has no intrinsics (camera_info): refine 6dof needs them",
+                field="camera",
+            )
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "config.yaml", dump_config(cfg))
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         t0 = time.perf_counter()
         r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
+        t1 = time.perf_counter()
+        results = None
+        if loc is not None:
+            pixels = [_query_pixels(f) for f in frames]
+            results = refine_sixdof(loc, index, r, pixels, [info] * len(frames), [str(s) for s in stamps], progress)
     write_run_trajectories(out, stamps, r)
-    write_json(
-        out / "metrics.json",
-        {
-            "bundle": str(bundle),
-            "log": str(log),
-            "queries": len(stamps),
-            "frame": "workspace ENU of the bundle (world_from_camera)",
-        },
-    )
-    write_timings(out, seconds=time.perf_counter() - t0, filter_ms_per_step=1000 * r.filter_s / len(stamps))
+    metrics: dict[str, Any] = {
+        "bundle": str(bundle),
+        "log": str(log),
+        "queries": len(stamps),
+        "frame": "workspace ENU of the bundle (world_from_camera)",
+    }
+    if results is not None and loc is not None:
+        metrics["sixdof"] = write_sixdof(out, stamps, results, loc)
+    else:
+        remove_sixdof_outputs(out)
+    write_json(out / "metrics.json", metrics)
+    timings: dict[str, Any] = {"filter_ms_per_step": 1000 * r.filter_s / len(stamps)}
+    if results is not None:
+        timings["sixdof_s_per_query"] = (time.perf_counter() - t1) / len(stamps)
+    write_timings(out, seconds=time.perf_counter() - t0, **timings)
     return out

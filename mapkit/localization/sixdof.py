@@ -18,6 +18,7 @@ Poses are camera poses in the model's frame (optical axes x right, y down, z for
 
 from __future__ import annotations
 
+import json
 import logging
 import struct
 import time
@@ -272,6 +273,23 @@ class SixDofLocalizer:
     def image_names(self) -> list[str]:
         """The model's database image names, sorted."""
         return list(self._names)
+
+    @property
+    def image_root(self) -> Path:
+        """The folder the model's image names are relative to: its metrics.json's ``image_root`` (relative to the
+        model folder; ``mapkit model`` builds on the workspace root), else the model folder's parent."""
+        metrics = self.folder / "metrics.json"
+        try:
+            rel = json.loads(metrics.read_text()).get("image_root", "..") if metrics.is_file() else ".."
+        except (json.JSONDecodeError, AttributeError) as exc:
+            raise InputError(metrics, f"not the metrics of a reference model ({exc})", field="image_root") from None
+        return (self.folder.resolve() / rel).resolve()
+
+    def names_by_path(self) -> dict[Path, str]:
+        """The model's image names by resolved path: how a table naming the same files relative to another
+        folder (a VLAD bundle's database.csv, a session's images.csv) finds them in the model."""
+        root = self.image_root
+        return {(root / n).resolve(): n for n in self._names}
 
     def world_from_cam(self, name: str) -> np.ndarray:
         """The known pose of database image ``name`` (4, 4)."""
