@@ -59,6 +59,7 @@ QUICK_ARGS: dict[str, list[str]] = {
     "bench_executor": ["--images", "20"],
     "bench_mcl": ["--steps", "50", "--loop-steps", "1", "--repeat", "2"],
     "bench_semidense": ["--frames", "8", "--repeat", "1", "--naive", "40"],
+    "bench_sixdof": ["--fast"],
     "bench_structure_index": [
         "--db-size",
         "100000",
