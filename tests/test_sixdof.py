@@ -13,10 +13,10 @@ import numpy as np
 import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
+from test_reference_model import _kitti
 
 from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose, rotation_angle_rad
-from mapkit.core.types import CameraInfo
 from mapkit.io.trajectory import read_benchmark_poses, write_benchmark_poses
 from mapkit.localization.reference_model import PosedImage, ReferenceModelConfig, triangulate_reference_model
 from mapkit.localization.sixdof import (
@@ -32,15 +32,6 @@ MODEL_FRAMES = [0, 2, 4, 6, 8, 12, 14, 18]
 HELD_OUT = [10, 16]
 #: full-resolution SIFT, 4096 features: a model of 8 frames in a few seconds
 FAST = {"first_octave": 0, "max_features": 4096, "pair_neighbours": 3}
-
-
-def _kitti(clip: Path) -> tuple[CameraInfo, np.ndarray]:
-    """The left grey camera (calib.txt's first projection) and the clip's world_from_cam poses (N, 4, 4)."""
-    P0 = np.loadtxt(clip / "calib.txt")[0].reshape(3, 4)
-    rows = np.loadtxt(clip / "poses.txt").reshape(-1, 3, 4)
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3] = rows
-    return CameraInfo("cam0", 1226, 370, P0[:, :3].copy()), poses
 
 
 def _image(clip: Path, frame: int) -> Path:
