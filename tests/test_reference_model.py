@@ -19,10 +19,13 @@ from mapkit.localization.reference_model import (
     PosedImage,
     ReferenceModelConfig,
     build_reference_model,
+    depth_agreement,
+    observation_errors_px,
     pairs_from_poses,
     triangulate_reference_model,
 )
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
+from mapkit.mapping.lidar_map import VoxelStats, save_voxel_map
 
 #: every other frame of the first 23 (2.4 m apart): 12 images over 26 m of a street
 FRAMES = list(range(0, 24, 2))
@@ -121,6 +124,58 @@ def test_binary_and_text_models_agree(kitti_model):
         db.close()
 
 
+# --- the depth check -----------------------------------------------------------------------------------
+
+
+def _own_points_densified(rec, copies: int = 4, jitter_m: float = 1e-3) -> np.ndarray:
+    """The model's own points, each with ``copies`` more jittered by ``jitter_m`` (a map whose depth is known)."""
+    xyz = np.array([p.xyz for p in rec.points3D.values()])
+    rng = np.random.default_rng(7)
+    return np.concatenate([xyz] + [xyz + rng.normal(0, jitter_m, xyz.shape) for _ in range(copies)])
+
+
+def test_depth_check_on_the_models_own_points_agrees(kitti_model):
+    """A map made of the model's own points (each with four copies 1 mm off) gives nearly every observation a
+    map depth, equal to the triangulated one; the points alone are too few for a map depth; an empty map gives
+    none, and no error."""
+    out, _, _ = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    d = depth_agreement(rec, _own_points_densified(rec), radius_px=2.0)
+    assert d["observations"] == json.loads((out / "metrics.json").read_text())["observations"]
+    # every observation whose point reprojects well within the radius finds its point's copies (and more: a
+    # neighbouring point's copies too); 0.904 measured
+    _, _, err = observation_errors_px(rec)
+    assert d["fraction_compared"] >= np.mean(err < 1.9) and d["fraction_compared"] > 0.88
+    assert d["compared"] == sum(v["compared"] for v in d["images"].values())
+    assert d["median_relative_difference"] < 0.005 and d["share_below_2pct"] > 0.9
+    assert set(d["images"]) == {im.name for im in rec.images.values()}
+
+    # one map point per triangulated point: under the three a map depth needs, except where points crowd
+    single = np.array([p.xyz for p in rec.points3D.values()])
+    assert depth_agreement(rec, single)["fraction_compared"] < 0.05
+    assert depth_agreement(rec, single, min_points=1)["fraction_compared"] > 0.85
+
+    empty = depth_agreement(rec, np.zeros((0, 3)))
+    assert empty["observations"] == d["observations"] and empty["compared"] == 0 and empty["fraction_compared"] == 0
+    assert empty["median_relative_difference"] is None and empty["images"] == {}
+
+
+def test_depth_check_sees_a_map_ten_percent_farther(kitti_model):
+    """The same map scaled by 1.10 about one camera's centre keeps every point on its ray through that camera
+    at 1.10 times the depth: that camera's relative difference is |z - 1.1 z| / 1.1 z = 1/11 for every
+    observation; the other cameras see the map moved and disagree too."""
+    out, _, _ = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    im = next(im for im in rec.images.values() if _frame_of(im.name) == 10)
+    centre = np.asarray(im.projection_center())
+    scaled = centre + 1.10 * (_own_points_densified(rec) - centre)
+    d = depth_agreement(rec, scaled, radius_px=2.0)
+    own = d["images"][im.name]
+    assert own["compared"] > 0.9 * im.num_points3D
+    assert own["median_relative_difference"] == pytest.approx(1 / 11, abs=0.002)
+    assert d["share_below_2pct"] < 0.2  # the map moved for every camera
+
+
 # --- a workspace -------------------------------------------------------------------------------------
 
 FAST = {"first_octave": 0, "max_features": 2048, "pair_neighbours": 2}  # small and quick: the wiring, not the figures
@@ -148,14 +203,30 @@ def _points(out: Path) -> tuple[np.ndarray, list]:
 
 def test_workspace_model_is_repeatable(kitti_clip, tmp_path):
     """Two builds of one workspace give the same points and tracks, to the bit; the model's images
-    are the database's, named from the workspace root, on the database's poses."""
+    are the database's, named from the workspace root, on the database's poses. A session without maps
+    has no depth check; a LiDAR map added to it (here the model's own points) is checked and agrees."""
     ws = _workspace(tmp_path / "ws", kitti_clip, [0, 2, 4, 6])
     first = build_reference_model(ws.root, config=ReferenceModelConfig(**FAST))
     assert first == ws.root / "reference_model"
     done_ns = (first / ".done").stat().st_mtime_ns
     assert build_reference_model(ws.root, config=ReferenceModelConfig(**FAST)) == first  # done: nothing to do
     assert (first / ".done").stat().st_mtime_ns == done_ns
+    assert json.loads((first / "metrics.json").read_text())["depth_check"] == {"semidense": "absent", "lidar": "absent"}
+    centroid = _own_points_densified(pycolmap.Reconstruction(str(first / "sfm")))
+    n = len(centroid)
+    stats = VoxelStats(
+        0.1, centroid, np.ones(n, np.int64), np.zeros(n), np.zeros((n, 3)), np.zeros(n), *[np.zeros(n, np.int64)] * 2
+    )
+    save_voxel_map(ws.session("kitti").lidar_map, stats, None)
     second = build_reference_model(ws.root, out=tmp_path / "again", config=ReferenceModelConfig(**FAST))
+    check = json.loads((second / "metrics.json").read_text())["depth_check"]
+    assert check["semidense"] == "absent" and check["lidar"]["map_points"] == n
+    _, _, err = observation_errors_px(pycolmap.Reconstruction(str(second / "sfm")))
+    assert check["lidar"]["fraction_compared"] >= np.mean(err < 1.9) and check["lidar"]["fraction_compared"] > 0.7
+    assert check["lidar"]["median_relative_difference"] < 0.005
+    build_reference_model(ws.root, config=ReferenceModelConfig(**FAST))  # a new map: the model is built again
+    assert (first / ".done").stat().st_mtime_ns != done_ns
+    assert json.loads((first / "metrics.json").read_text())["depth_check"] == check
     xyz_a, tracks_a = _points(first)
     xyz_b, tracks_b = _points(second)
     assert len(xyz_a) > 50

@@ -22,16 +22,22 @@ Output (default ``WORKSPACE/reference_model/``)::
 Image names are paths relative to the images' common folder (the workspace root for a workspace),
 and the database is written with the model's camera, rig, frame and image ids before extraction,
 so COLMAP's image reader reuses each image by name and database and model agree on every id.
-Depth from the semi-dense map near a keypoint is not used: every point is triangulated from
-matches alone.
+Every point is triangulated from matches alone; the maps then check it (:func:`depth_agreement`, in
+``metrics.json`` as ``depth_check``): where the session's semi-dense or LiDAR map has points within
+``depth_check_radius_px`` of a keypoint, their median depth is compared with the triangulated point's
+(``|z_tri - z_map| / z_map``: median, 90th percentile, share below 2 %, and the fraction of observations
+that had a map depth). Both depths rest on the same database poses but reach them by other routes (SIFT
+matches across images, the map's own depth estimates or the LiDAR's ranges), so a large difference points
+at a wrong pose or a session aligned badly.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +52,7 @@ from mapkit.core.errors import InputError
 from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json, write_timings
 from mapkit.core.types import CameraInfo
-from mapkit.core.workspace import Workspace
+from mapkit.core.workspace import MAP_KINDS, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import map_top_view, reference_model_statistics
 from mapkit.retrieval.vlad_bundle import read_session_images
@@ -54,7 +60,7 @@ from mapkit.retrieval.vlad_bundle import read_session_images
 log = logging.getLogger(__name__)
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 1
+STAGE_VERSION = 2
 #: the default output folder, under the workspace root
 DEFAULT_FOLDER = "reference_model"
 
@@ -102,6 +108,13 @@ class ReferenceModelConfig(MapkitConfig):
         "computed alone, with fixed seeds.",
     )
     seed: int = Field(0, ge=0, description="Seed of RANSAC (two-view verification) and of the triangulator.")
+    depth_check_radius_px: float = Field(
+        2.0,
+        gt=0,
+        description="The depth check takes the map points projecting within this distance of a keypoint (px): "
+        "a few times the model's median reprojection error (0.5 px on KITTI), so a keypoint finds its own "
+        "surface's points, and few enough pixels that they are not the next object's.",
+    )
     sessions: list[str] | None = Field(None, description="Sessions to use; every session with images if unset.")
 
 
@@ -141,14 +154,7 @@ def _workspace_images(ws: Workspace, sessions: list[str] | None) -> list[PosedIm
     ``mapkit align`` holds the session, and its camera from the session's image database (``imagedb/colmap``)."""
     import pycolmap
 
-    names = ws.sessions_with_images()
-    if not names:
-        raise InputError(ws.sessions_dir, "no session with an image database here (run mapkit build)")
-    if sessions is not None:
-        missing = sorted(set(sessions) - set(names))
-        if missing:
-            raise InputError(ws.sessions_dir, f"sessions {missing} have no image database", field="sessions")
-        names = [n for n in names if n in sessions]
+    names = _session_names(ws, sessions)
     images: list[PosedImage] = []
     for name in names:
         table = read_session_images(ws, name)
@@ -446,6 +452,108 @@ def model_metrics(rec, pairs: int = 0, verified: int = 0) -> ModelMetrics:
     )
 
 
+def _observations(im, xyz: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The keypoints (K, 2) of image ``im`` that have a triangulated point, and the points (K, 3)."""
+    obs = [(p.xy, xyz[p.point3D_id]) for p in im.points2D if p.has_point3D()]
+    uv = np.array([o[0] for o in obs], np.float64).reshape(-1, 2)
+    return uv, np.array([o[1] for o in obs], np.float64).reshape(-1, 3)
+
+
+def _project_into(im, X_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2) and camera z (M,) of the points of ``X_world`` in front of image ``im``'s camera that
+    project inside its image (pycolmap's camera model, distortion included)."""
+    cam = im.camera
+    T = np.asarray(im.cam_from_world().matrix(), np.float64)
+    Xc = X_world @ T[:, :3].T + T[:, 3]
+    z = Xc[:, 2]
+    # the pinhole projection within half an image of the frame first: a distortion polynomial folds points
+    # far outside the field of view back into the image
+    fx, fy, cx, cy = (float(v) for v in np.asarray(cam.calibration_matrix())[[0, 1, 0, 1], [0, 1, 2, 2]])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u0, v0 = fx * Xc[:, 0] / z + cx, fy * Xc[:, 1] / z + cy
+    w, h = float(cam.width), float(cam.height)
+    near = (z > 1e-6) & (u0 > -w / 2) & (u0 < 1.5 * w) & (v0 > -h / 2) & (v0 < 1.5 * h)
+    uv = np.asarray(cam.img_from_cam(Xc[near]), np.float64).reshape(-1, 2)
+    inside = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    return uv[inside], z[near][inside]
+
+
+def depth_agreement(
+    rec, map_points_world: np.ndarray, radius_px: float = 2.0, min_points: int = 3, max_points: int = 16
+) -> dict:
+    """How far the triangulated points lie from a map's depth at their keypoints: a check of the poses
+    the model was triangulated on against a map made on the same poses by other means (the semi-dense
+    map's depths, the LiDAR's ranges).
+
+    Per image, the map's points (``map_points_world`` (M, 3), the model's frame) are projected into the
+    camera; a keypoint with a triangulated point gets the map's depth when at least ``min_points`` of them
+    (the ``max_points`` nearest) lie within ``radius_px``: their median camera z. The relative difference
+    is ``|z_tri - z_map| / z_map``. Returns the observations (keypoints with a point), how many and which
+    fraction had a map depth, the median and 90th percentile of the relative difference, its share below
+    2 %, and per image (by name) the observations compared and their median."""
+    if min_points < 1 or max_points < min_points:
+        raise ValueError(f"need 1 <= min_points <= max_points, got {min_points}, {max_points}")
+    X = np.asarray(map_points_world, np.float64).reshape(-1, 3)
+    X = X[np.all(np.isfinite(X), axis=1)]
+    xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
+    observations = 0
+    rel_all: list[np.ndarray] = []
+    per_image: dict[str, dict] = {}
+    for image_id in sorted(rec.images):
+        im = rec.images[image_id]
+        kp, X_tri = _observations(im, xyz)
+        observations += len(kp)
+        if not len(kp) or not len(X):
+            continue
+        uv_map, z_map = _project_into(im, X)
+        if len(z_map) < min_points:
+            continue
+        dist, idx = cKDTree(uv_map).query(kp, k=max_points, distance_upper_bound=radius_px)
+        dist, idx = dist.reshape(len(kp), -1), idx.reshape(len(kp), -1)
+        found = np.isfinite(dist)
+        ok = found.sum(axis=1) >= min_points
+        if not np.any(ok):
+            continue
+        z_near = np.where(found[ok], z_map[np.minimum(idx[ok], len(z_map) - 1)], np.nan)
+        z_ref = np.nanmedian(z_near, axis=1)
+        T = np.asarray(im.cam_from_world().matrix(), np.float64)
+        z_tri = X_tri[ok] @ T[2, :3] + T[2, 3]
+        rel = np.abs(z_tri - z_ref) / z_ref
+        rel_all.append(rel)
+        per_image[im.name] = {"compared": int(len(rel)), "median_relative_difference": round(float(np.median(rel)), 5)}
+    rel = np.concatenate(rel_all) if rel_all else np.zeros(0)
+    has = len(rel) > 0
+    return {
+        "map_points": int(len(X)),
+        "radius_px": float(radius_px),
+        "min_points": int(min_points),
+        "observations": int(observations),
+        "compared": int(len(rel)),
+        "fraction_compared": round(len(rel) / observations, 4) if observations else 0.0,
+        "median_relative_difference": round(float(np.median(rel)), 5) if has else None,
+        "p90_relative_difference": round(float(np.percentile(rel, 90)), 5) if has else None,
+        "share_below_2pct": round(float(np.mean(rel < 0.02)), 4) if has else None,
+        "images": per_image,
+    }
+
+
+def _depth_check(rec, maps: Mapping[str, np.ndarray | None], radius_px: float) -> dict:
+    """``metrics.json``'s ``depth_check``: :func:`depth_agreement` per map source, ``"absent"`` for a source
+    without a map; per image only the five images that disagree most (by their median, of those with at least
+    20 observations compared)."""
+    out: dict[str, dict | str] = {}
+    for kind, points in maps.items():
+        if points is None:
+            out[kind] = "absent"
+            continue
+        d = depth_agreement(rec, points, radius_px)
+        images = d.pop("images")
+        enough = [(v["median_relative_difference"], k) for k, v in images.items() if v["compared"] >= 20]
+        d["worst_images"] = {k: m for m, k in sorted(enough, reverse=True)[:5]}
+        out[kind] = d
+    return out
+
+
 def _verified_pairs(db_path: Path) -> int:
     import pycolmap
 
@@ -456,8 +564,14 @@ def _verified_pairs(db_path: Path) -> int:
         db.close()
 
 
-def _input_hash(cfg: ReferenceModelConfig, images: Sequence[PosedImage], names: list[str]) -> str:
-    """The config and every image's name, pose, camera and file size and time: a changed input rebuilds."""
+def _input_hash(
+    cfg: ReferenceModelConfig,
+    images: Sequence[PosedImage],
+    names: list[str],
+    maps: Mapping[str, np.ndarray | None] | None = None,
+) -> str:
+    """The config, every image's name, pose, camera and file size and time, and the maps' points: a changed
+    input rebuilds."""
     rows = []
     for im, name in zip(images, names, strict=True):
         st = Path(im.path).stat()
@@ -472,7 +586,13 @@ def _input_hash(cfg: ReferenceModelConfig, images: Sequence[PosedImage], names: 
                 st.st_mtime_ns,
             ]
         )
-    return config_hash({"cfg": cfg.model_dump(mode="json", exclude={"sessions"}), "images": rows, "v": STAGE_VERSION})
+    h = {"cfg": cfg.model_dump(mode="json", exclude={"sessions"}), "images": rows, "v": STAGE_VERSION}
+    if maps is not None:
+        h["maps"] = {
+            k: None if v is None else hashlib.sha256(np.ascontiguousarray(v, np.float64).tobytes()).hexdigest()
+            for k, v in sorted(maps.items())
+        }
+    return config_hash(h)
 
 
 @writes_workspace("out", within=True)
@@ -481,16 +601,19 @@ def triangulate_reference_model(
     out: str | Path,
     config: ReferenceModelConfig | None = None,
     image_root: str | Path | None = None,
+    maps: Mapping[str, np.ndarray | None] | None = None,
 ) -> Path:
     """Build the reference model of ``images`` (known poses and cameras) into the folder ``out``;
     returns it. Image names are paths relative to ``image_root`` (default: the images' common
-    folder). The folder is written aside and renamed into place when complete: a failure leaves any
-    earlier model as it was. Re-running with the same images and config does nothing."""
+    folder). ``maps`` (source name to map points (M, 3) in the images' frame, or None where the source
+    has no map) are checked against the triangulated points (:func:`depth_agreement`, ``depth_check`` in
+    ``metrics.json``). The folder is written aside and renamed into place when complete: a failure leaves any
+    earlier model as it was. Re-running with the same images, maps and config does nothing."""
     cfg = config if config is not None else ReferenceModelConfig()
     _check_images(images)
     root, names = _image_names(images, image_root)
     final = Path(out)
-    h = _input_hash(cfg, images, names)
+    h = _input_hash(cfg, images, names, maps)
     if is_done(final, h):
         return final
     t0 = time.perf_counter()
@@ -506,7 +629,10 @@ def triangulate_reference_model(
         (folder / "sfm_text").mkdir()
         model.write_text(str(folder / "sfm_text"))
         m = model_metrics(model, len(pairs), _verified_pairs(folder / "database.db"))
-        write_json(folder / "metrics.json", {**m.__dict__, "image_root": os.path.relpath(root, final.resolve())})
+        metrics: dict = {**m.__dict__, "image_root": os.path.relpath(root, final.resolve())}
+        if maps is not None:
+            metrics["depth_check"] = _depth_check(model, maps, cfg.depth_check_radius_px)
+        write_json(folder / "metrics.json", metrics)
         _, _, err = observation_errors_px(model)
         reference_model_statistics(
             folder / "statistics.png",
@@ -527,6 +653,45 @@ def triangulate_reference_model(
     return final
 
 
+def _session_names(ws: Workspace, sessions: list[str] | None) -> list[str]:
+    """The sessions the model holds: ``sessions``, or every session with an image database if None."""
+    names = ws.sessions_with_images()
+    if not names:
+        raise InputError(ws.sessions_dir, "no session with an image database here (run mapkit build)")
+    if sessions is not None:
+        missing = sorted(set(sessions) - set(names))
+        if missing:
+            raise InputError(ws.sessions_dir, f"sessions {missing} have no image database", field="sessions")
+        names = [n for n in names if n in sessions]
+    return names
+
+
+def _workspace_maps(ws: Workspace, names: list[str]) -> dict[str, np.ndarray | None]:
+    """The map points of sessions ``names`` per map source (semi-dense points, LiDAR voxel centroids), in the
+    frame their images are in (aligned maps with aligned images); None for a source no session has. A map in
+    another frame than its session's images (built but not aligned) is left out, with a warning."""
+    from mapkit.mapping.lidar_map import load_voxel_stats
+    from mapkit.mapping.semidense import SemiDenseMap
+
+    out: dict[str, np.ndarray | None] = {}
+    for kind in MAP_KINDS:
+        parts = []
+        for name in names:
+            aligned = ws.session_images_csv(name) == ws.aligned(name).images_csv
+            try:
+                folder, source = ws.session_map(name, prefer_aligned=aligned, source=kind)
+            except InputError:
+                continue  # the session has no such map
+            if aligned and source != "align":
+                log.warning("depth check: session %r's %s map is not aligned with its images: left out", name, kind)
+                continue
+            parts.append(
+                SemiDenseMap.load(folder).points_world if kind == "semidense" else load_voxel_stats(folder).centroid
+            )
+        out[kind] = np.concatenate(parts).reshape(-1, 3) if parts else None
+    return out
+
+
 @writes_workspace("workspace")
 def build_reference_model(
     workspace: str | Path | Workspace,
@@ -539,5 +704,6 @@ def build_reference_model(
     ws = Workspace(workspace)
     cfg = load_config(ReferenceModelConfig, config, {"sessions": sessions} if sessions is not None else None)
     images = _workspace_images(ws, cfg.sessions)
+    maps = _workspace_maps(ws, _session_names(ws, cfg.sessions))
     target = Path(out) if out is not None else ws.root / DEFAULT_FOLDER
-    return triangulate_reference_model(images, target, cfg, image_root=ws.root)
+    return triangulate_reference_model(images, target, cfg, image_root=ws.root, maps=maps)
