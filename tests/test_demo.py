@@ -356,6 +356,7 @@ def _functions_taking_a_workspace() -> dict[str, object]:
 #: the public functions that take a workspace and only read it, each called here on the tiny chain's workspace
 def _readers(ws: Path) -> dict[str, object]:
     from mapkit.evaluation.places import PlacesEvalConfig, VladBaseline, resolve_split, tiles_split_of_workspace
+    from mapkit.localization.localize import LocalizeConfig, open_reference_model, reference_model_folder
     from mapkit.mapping.build import format_build_summary
     from mapkit.multisession.submaps import load_session
     from mapkit.places.index_structure import session_map_dir, session_names
@@ -378,7 +379,17 @@ def _readers(ws: Path) -> dict[str, object]:
         "mapkit.retrieval.vlad_bundle.workspace_sessions": lambda: workspace_sessions(ws),
         "mapkit.retrieval.vlad_bundle.read_session_images": lambda: read_session_images(ws, name),
         "mapkit.retrieval.vlad_bundle.read_camera_mount": lambda: read_camera_mount(ws, name),
+        "mapkit.localization.localize.reference_model_folder": lambda: reference_model_folder(LocalizeConfig(), ws),
+        # the tiny chain builds no reference model: the one error, and nothing written before it
+        "mapkit.localization.localize.open_reference_model": lambda: _input_error(
+            lambda: open_reference_model(LocalizeConfig(refine="6dof"), ws)
+        ),
     }
+
+
+def _input_error(call) -> None:
+    with pytest.raises(InputError, match="no reference model folder"):
+        call()
 
 
 #: public classes that take a workspace: each method that writes takes the lock itself (tests/faults/test_lock.py)
