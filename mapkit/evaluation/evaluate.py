@@ -372,27 +372,25 @@ def _evaluate_session(
         if georeferenced:
             r["trajectory"] = _absolute_errors(est, gt_stamps, gt_ws)
         r["gps_alone"] = _gps_error(ws, s.name, gt_stamps, gt_ws, ws_frame)
+    maps: dict[str, np.ndarray] = {}  # the map points of each source the session has, workspace frame
     if s.has("map"):
         from mapkit.mapping.semidense import SemiDenseMap
 
-        smap = SemiDenseMap.load(s.map)
-        session_mesh = session_truth_mesh(mesh, truth, s.name, town_to_ws)
-        length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
-        if georeferenced:
-            r["map"] = map_accuracy(smap.points_world, session_mesh, road_length_m=length)
-        if fix is not None:
-            r["map_local"] = map_accuracy(transform_points(fix, smap.points_world), session_mesh, road_length_m=length)
-            r["map_local"]["driven_m"] = length
+        maps["map"] = SemiDenseMap.load(s.map).points_world
     if s.has("lidar_map"):
         from mapkit.mapping.lidar_map import load_voxel_stats
 
-        centroids = load_voxel_stats(s.lidar_map).centroid
+        maps["lidar_map"] = load_voxel_stats(s.lidar_map).centroid  # one point per voxel
+    if maps:
         session_mesh = session_truth_mesh(mesh, truth, s.name, town_to_ws)
         length = float(np.linalg.norm(np.diff(gt_ws[:, :3, 3], axis=0), axis=1).sum())
+    for key, points in maps.items():
         if georeferenced:
-            r["lidar_map"] = map_accuracy(centroids, session_mesh, road_length_m=length)
+            r[key] = map_accuracy(points, session_mesh, road_length_m=length)
         if fix is not None:
-            r["lidar_map_local"] = map_accuracy(transform_points(fix, centroids), session_mesh, road_length_m=length)
+            r[f"{key}_local"] = map_accuracy(transform_points(fix, points), session_mesh, road_length_m=length)
+    if "map_local" in r:
+        r["map_local"]["driven_m"] = length
     return r
 
 
