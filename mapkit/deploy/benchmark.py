@@ -60,6 +60,7 @@ from mapkit.io.benchmark import (
     QUERY_PREFIX,
     SFM,
     colmap_camera_params,
+    model_image_root,
     write_pairs,
     write_queries_with_intrinsics,
 )
@@ -127,13 +128,6 @@ def _require_inputs(ws: Workspace) -> tuple[Path, Path]:
     if not (index / "manifest.json").is_file():
         raise InputError(index, f"no VLAD index here: run mapkit index vlad {ws.root} first", field="vlad")
     return model, index
-
-
-def _image_root(model: Path) -> Path:
-    """The folder the model's image names are relative to (its metrics.json's ``image_root``)."""
-    metrics = model / "metrics.json"
-    rel = json.loads(metrics.read_text()).get("image_root", "..") if metrics.is_file() else ".."
-    return (model / rel).resolve()
 
 
 def _session_of_images(ws: Workspace) -> dict[Path, tuple[str, int, np.ndarray]]:
@@ -305,7 +299,7 @@ def export_benchmark(
     if unknown:
         raise InputError(log_paths[unknown[0]], f"a log for {unknown}, which are not query sessions", field="logs")
     rec = pycolmap.Reconstruction(str(model_dir / SFM))
-    root = _image_root(model_dir)
+    root = model_image_root(model_dir)
     by_path = _session_of_images(ws)
     db_names = {i: im.name for i, im in rec.images.items()}
     db_sessions = {by_path.get((root / n).resolve(), ("?", 0, None))[0] for n in db_names.values()}

@@ -13,6 +13,7 @@ agree on one definition.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -124,3 +125,15 @@ def read_pairs(path: str | Path) -> dict[str, list[str]]:
             )
         out.setdefault(parts[0], []).append(parts[1])
     return out
+
+
+def model_image_root(model: str | Path) -> Path:
+    """The folder a reference model's image names are relative to: its metrics.json's ``image_root`` (relative to
+    the model folder; ``mapkit model`` builds on the workspace root), else the model folder's parent."""
+    folder = Path(model)
+    metrics = folder / "metrics.json"
+    try:
+        rel = json.loads(metrics.read_text()).get("image_root", "..") if metrics.is_file() else ".."
+    except (json.JSONDecodeError, AttributeError) as exc:
+        raise InputError(metrics, f"not the metrics of a reference model ({exc})", field="image_root") from None
+    return (folder.resolve() / rel).resolve()

@@ -18,7 +18,6 @@ Poses are camera poses in the model's frame (optical axes x right, y down, z for
 
 from __future__ import annotations
 
-import json
 import logging
 import struct
 import time
@@ -35,7 +34,15 @@ from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import progress_bar, write_json
 from mapkit.core.types import CameraInfo
 from mapkit.core.writers import writes_workspace
-from mapkit.io.benchmark import IMAGES, MODEL_CONFIG, PAIRS, QUERIES, read_pairs, read_queries_with_intrinsics
+from mapkit.io.benchmark import (
+    IMAGES,
+    MODEL_CONFIG,
+    PAIRS,
+    QUERIES,
+    model_image_root,
+    read_pairs,
+    read_queries_with_intrinsics,
+)
 from mapkit.io.trajectory import write_benchmark_poses
 from mapkit.localization.reference_model import ReferenceModelConfig, _colmap_camera
 
@@ -278,12 +285,7 @@ class SixDofLocalizer:
     def image_root(self) -> Path:
         """The folder the model's image names are relative to: its metrics.json's ``image_root`` (relative to the
         model folder; ``mapkit model`` builds on the workspace root), else the model folder's parent."""
-        metrics = self.folder / "metrics.json"
-        try:
-            rel = json.loads(metrics.read_text()).get("image_root", "..") if metrics.is_file() else ".."
-        except (json.JSONDecodeError, AttributeError) as exc:
-            raise InputError(metrics, f"not the metrics of a reference model ({exc})", field="image_root") from None
-        return (self.folder.resolve() / rel).resolve()
+        return model_image_root(self.folder)
 
     def names_by_path(self) -> dict[Path, str]:
         """The model's image names by resolved path: how a table naming the same files relative to another
