@@ -40,7 +40,7 @@ _PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "
 
 def colmap_camera_params(info: CameraInfo) -> tuple[str, list[float]]:
     """COLMAP's model name and parameters of ``info``: PINHOLE without distortion, OPENCV with plumb-bob's
-    four coefficients, FULL_OPENCV with rational-polynomial's eight (as the reference model's cameras)."""
+    four coefficients, FULL_OPENCV with rational-polynomial's eight; the reference model's cameras too."""
     D = np.zeros(8)
     D[: min(len(info.D), 8)] = np.asarray(info.D, np.float64)[:8]
     pin = [info.fx, info.fy, info.cx, info.cy]

@@ -54,6 +54,7 @@ from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done
 from mapkit.core.types import CameraInfo
 from mapkit.core.workspace import MAP_KINDS, Workspace
 from mapkit.core.writers import writes_workspace
+from mapkit.io.benchmark import colmap_camera_params
 from mapkit.io.plots import map_top_view, reference_model_statistics
 from mapkit.retrieval.vlad_bundle import read_session_images
 
@@ -242,21 +243,12 @@ def _check_images(images: Sequence[PosedImage]) -> None:
 
 
 def _colmap_camera(info: CameraInfo, camera_id: int):
-    """COLMAP's camera of ``info``: PINHOLE without distortion, OPENCV / FULL_OPENCV with plumb-bob coefficients."""
+    """COLMAP's camera of ``info`` (:func:`mapkit.io.benchmark.colmap_camera_params`: PINHOLE without distortion,
+    OPENCV / FULL_OPENCV with plumb-bob coefficients)."""
     import pycolmap
 
-    D = np.zeros(8)
-    D[: min(len(info.D), 8)] = np.asarray(info.D, np.float64)[:8]
-    pin = [info.fx, info.fy, info.cx, info.cy]
-    if not np.any(D):
-        return pycolmap.Camera(model="PINHOLE", width=info.width, height=info.height, params=pin, camera_id=camera_id)
-    if not np.any(D[4:]):
-        return pycolmap.Camera(
-            model="OPENCV", width=info.width, height=info.height, params=pin + list(D[:4]), camera_id=camera_id
-        )
-    return pycolmap.Camera(
-        model="FULL_OPENCV", width=info.width, height=info.height, params=pin + list(D), camera_id=camera_id
-    )
+    model, params = colmap_camera_params(info)
+    return pycolmap.Camera(model=model, width=info.width, height=info.height, params=params, camera_id=camera_id)
 
 
 def _image_names(images: Sequence[PosedImage], image_root: str | Path | None) -> tuple[Path, list[str]]:
