@@ -44,8 +44,8 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 VPY="$VENV/bin/python"
-# --no-compile: Python compiles a module the first time it is imported instead of pip compiling every
-# module of every package at install time (most of torch's, ray's and open3d's are never imported)
+# --no-compile: pip would compile every module of every package (most of torch's, ray's and open3d's are
+# never imported); scripts/warm_bytecode.py below compiles the ones mapkit imports
 pip_install() { "$VPY" -m pip install --quiet --disable-pip-version-check --no-compile "$@"; }
 
 # The environment is (re)filled when the project's dependencies changed since it was filled, or
@@ -65,9 +65,15 @@ if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
   fi
   say "installing mapkit (editable) with its extras learning, distributed, viewer, docs and test"
   pip_install -e ".[test,learning,distributed,viewer,docs]"
+  # bytecode of what mapkit imports, written once: where PYTHONDONTWRITEBYTECODE is set, every process
+  # would compile it again (about 3 s of each worker's start)
+  "$VPY" scripts/warm_bytecode.py
   echo "$WANT" > "$STAMP"
   say "installed in $(( $(date +%s) - t0 )) s"
 fi
+# mapkit's own bytecode, for the modules changed since the last set-up (compileall writes it whatever
+# PYTHONDONTWRITEBYTECODE says)
+"$VPY" -m compileall -q mapkit >/dev/null
 # the docs site serves Mermaid itself (docs/offline.py): fetched once from the npm registry, then offline
 if ! "$VPY" docs/offline.py >/dev/null 2>&1; then
   say "warning: could not fetch Mermaid for the docs site (npm registry unreachable?); mkdocs build will try again"
