@@ -18,6 +18,7 @@ docs (``compare``).
     python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
     python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
     python3 docs/figures.py collect fault-campaign FILE # what bench/fault_campaign.py --out FILE wrote
+    python3 docs/figures.py collect outside-localizer FILE  # what bench/outside_localizer.py --out FILE wrote
     python3 docs/figures.py render                      # fill every block of README.md and docs/**/*.md
     python3 docs/figures.py check                       # exit 1 when a block is not its rendering (a test runs it)
     python3 docs/figures.py compare places RUN          # a fresh run beside the record: within its spread?
@@ -198,7 +199,15 @@ def machine() -> str:
 
 def collect(name: str, sources: list[Path], command: str, note: str = "") -> Path:
     """Write the record ``docs/results/NAME.json`` from ``sources`` (run folders, or one JSON file)."""
-    if name in ("first-run", "references", "mcvl-benchmark", "benchmarks", "robustness", "fault-campaign"):
+    if name in (
+        "first-run",
+        "references",
+        "mcvl-benchmark",
+        "benchmarks",
+        "robustness",
+        "fault-campaign",
+        "outside-localizer",
+    ):
         data = json.loads(sources[0].read_text())
         record = {"name": name, **data}
     else:
@@ -680,6 +689,57 @@ def render_mcvl_benchmark() -> str:
     )
 
 
+#: the band the outside localizer is held to, and by how many points it may trail mapkit's localizer there
+OUTSIDE_BAND, OUTSIDE_POINTS = "0.5m_5deg", 5.0
+
+
+def render_outside_localizer() -> str:
+    """COLMAP's image registrator beside mapkit's 6-DoF localizer on one benchmark export, per condition."""
+    rec = record("outside-localizer")
+    names = {"mapkit": "mapkit (`--localizer mapkit`)", "colmap": "COLMAP image registrator (`--localizer colmap`)"}
+    rows = []
+    for key, loc in rec["localizers"].items():
+        for cond, s in [*loc["conditions"].items(), ("all", loc["overall"])]:
+            r = s["recall"]
+            rows.append(
+                [
+                    names[key],
+                    cond,
+                    str(s["queries"]),
+                    *(f"{100 * r[b]:.1f} %" for b in ("0.25m_2deg", "0.5m_5deg", "5m_10deg")),
+                    "-" if s["median_translation_m"] is None else f"{s['median_translation_m']:.3f}",
+                    "-" if s["median_rotation_deg"] is None else f"{s['median_rotation_deg']:.2f}",
+                    f"{1000 * loc['seconds_per_query']:.0f}",
+                ]
+            )
+    gaps = []
+    for cond in rec["localizers"]["mapkit"]["conditions"]:
+        ours, theirs = (rec["localizers"][k]["conditions"][cond]["recall"][OUTSIDE_BAND] for k in ("mapkit", "colmap"))
+        gap = 100 * (ours - theirs)
+        verdict = "holds" if gap <= OUTSIDE_POINTS else "does not hold"
+        gaps.append(f"{cond} {abs(gap):.1f} points {'below' if gap > 0 else 'above or level'} ({verdict})")
+    return (
+        table(
+            [
+                "localizer",
+                "condition",
+                "queries",
+                "(0.25 m, 2 deg)",
+                "(0.5 m, 5 deg)",
+                "(5 m, 10 deg)",
+                "median m",
+                "median deg",
+                "ms/query",
+            ],
+            rows,
+        )
+        + f"\n\nAt (0.5 m, 5 deg), COLMAP's registrator against mapkit's localizer (goal: at most "
+        f"{OUTSIDE_POINTS:.0f} points below): {'; '.join(gaps)}. Reference model "
+        f"of {rec['database_images']} database images and {rec['points3D']} points; one run of `{rec['command']}` on "
+        f"the main job's workspace, measured {rec['measured']} on {rec['machine']}."
+    )
+
+
 def _unit_costs(run: dict) -> dict[str, tuple[str, float | None]]:
     """Per-unit wall seconds of one places run: (unit, seconds per unit) per stage."""
     u = run.get("units") or {}
@@ -772,6 +832,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "fault-campaign": render_fault_campaign,
     "benchmarks": render_benchmarks,
     "mcvl-benchmark": render_mcvl_benchmark,
+    "outside-localizer": render_outside_localizer,
     "scaling-units": render_scaling_units,
     "scaling-projection": render_scaling_projection,
 }

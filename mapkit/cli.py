@@ -130,6 +130,7 @@ CONFIGS: dict[str, str] = {
     "triplets": "mapkit.places.triplets:TripletConfig",
     "reference_model": "mapkit.localization.reference_model:ReferenceModelConfig",
     "sixdof": "mapkit.localization.sixdof:SixDofConfig",
+    "colmap_registrator": "mapkit.localization.colmap_registrator:ColmapRegistratorConfig",
     "benchmark_export": "mapkit.deploy.benchmark:BenchmarkExportConfig",
     "index_vlad": "mapkit.retrieval.index_vlad:VladIndexConfig",
     "localize": "mapkit.localization.localize:LocalizeConfig",
@@ -393,11 +394,26 @@ def localize_benchmark(
     fallback: bool = typer.Option(
         False, "--fallback", help="Give a query that does not register its best retrieved database image's pose."
     ),
+    localizer: str = typer.Option(
+        "mapkit",
+        "--localizer",
+        help="mapkit (its 6-DoF localizer; `-c` overrides `mapkit config defaults sixdof`) or colmap (COLMAP's "
+        "image registrator through pycolmap; `-c` overrides `mapkit config defaults colmap_registrator`).",
+    ),
 ) -> None:
     """Register the benchmark's queries against its reference model (SIFT, 2D-3D matches, P3P RANSAC) from their retrieval pairs."""  # noqa: E501 (Typer's rich help keeps a docstring's line breaks: one line per help line)
-    from mapkit.localization.sixdof import localize_benchmark as run
+    if localizer == "colmap":
+        if fallback:
+            raise ConfigError("--fallback is mapkit's localizer's: COLMAP's registrator leaves a query out")
+        from mapkit.localization.colmap_registrator import register_benchmark
 
-    poses = run(benchmark, out, config, retrieval_fallback=fallback, progress=sys.stderr.isatty())
+        poses = register_benchmark(benchmark, out, config, progress=sys.stderr.isatty())
+    elif localizer == "mapkit":
+        from mapkit.localization.sixdof import localize_benchmark as run
+
+        poses = run(benchmark, out, config, retrieval_fallback=fallback, progress=sys.stderr.isatty())
+    else:
+        raise ConfigError(f"--localizer {localizer!r}: mapkit or colmap")
     typer.echo(f"poses written to {poses} (each query's outcome in {poses.stem}.queries.json)")
 
 

@@ -24,6 +24,7 @@ from mapkit.deploy.benchmark import BenchmarkExportConfig, export_benchmark
 from mapkit.evaluation.benchmark import evaluate_benchmark, score_benchmark
 from mapkit.io.benchmark import read_pairs, read_queries_with_intrinsics
 from mapkit.io.trajectory import read_benchmark_poses, write_benchmark_poses, write_tum
+from mapkit.localization.colmap_registrator import register_benchmark
 from mapkit.localization.reference_model import ReferenceModelConfig, build_reference_model
 from mapkit.localization.sixdof import localize_benchmark
 from mapkit.retrieval.index_vlad import build_vlad_index
@@ -164,6 +165,35 @@ def test_localizer_on_the_export_end_to_end(exported, tmp_path):
     saved = json.loads((tmp_path / "run" / "eval_benchmark.json").read_text())
     assert saved["overall"]["recall"] == ev.overall.recall
     assert "| overall | 5 |" in (tmp_path / "run" / "eval_benchmark.md").read_text()
+
+
+def test_colmap_registrator_reads_the_export_as_it_is(exported, tmp_path):
+    """An outside localizer on the export: COLMAP's own image registrator (its mapper's 2D-3D correspondences and
+    absolute pose) registers every query against the model, at the KITTI truth like mapkit's localizer (about 1 cm
+    and 0.03 deg, measured); the export is not changed, the query features land in a copy of its database."""
+    _, out, _, _ = exported
+    before = (out / "database.db").read_bytes()
+    poses = register_benchmark(out, tmp_path / "colmap" / "poses.txt")
+    ev = score_benchmark(out, poses)
+    assert ev.overall.recall["0.25m_2deg"] == 1.0 and ev.overall.median_translation_m < 0.05, ev.overall
+    outcome = json.loads((tmp_path / "colmap" / "poses.queries.json").read_text())
+    assert outcome["registered"] == outcome["queries"] == len(QUERY_FRAMES)
+    assert all(q["points3D"] >= 30 for q in outcome["per_query"].values()), outcome["per_query"]
+    assert (out / "database.db").read_bytes() == before
+    db = pycolmap.Database.open(str(tmp_path / "colmap" / "poses.colmap.db"))
+    try:
+        names = {im.name for im in db.read_all_images()}
+    finally:
+        db.close()
+    assert len(names) == len(DB_FRAMES) + len(QUERY_FRAMES)
+    assert set(read_pairs(out / "pairs-query-retrieval.txt")) <= names
+    assert sorted(p.name for p in (tmp_path / "colmap").iterdir()) == [
+        "eval_benchmark.json",
+        "eval_benchmark.md",
+        "poses.colmap.db",
+        "poses.queries.json",
+        "poses.txt",
+    ]
 
 
 def test_missing_model_or_index_is_one_error(kitti_clip, tmp_path):

@@ -318,19 +318,27 @@ def _quiet_colmap() -> Iterator[None]:
         pycolmap.logging.minloglevel = level
 
 
+def sift_extraction_options(cfg: ReferenceModelConfig, num_threads: int):
+    """COLMAP's SIFT extraction with a model's settings: the database images and any query extracted with them
+    give descriptors that compare (RootSIFT, COLMAP's default normalisation, kept)."""
+    import pycolmap
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = num_threads
+    extraction.sift.max_num_features = cfg.max_features
+    extraction.sift.first_octave = cfg.first_octave
+    extraction.sift.peak_threshold = cfg.peak_threshold
+    assert extraction.sift.normalization == pycolmap.Normalization.L1_ROOT
+    return extraction
+
+
 def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Path, cfg: ReferenceModelConfig):
     """Extract, match, verify and triangulate in ``folder``; returns the triangulated reconstruction."""
     import pycolmap
 
     db_path = folder / "database.db"
     _write_database(rec, db_path)
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = cfg.num_threads
-    extraction.sift.max_num_features = cfg.max_features
-    extraction.sift.first_octave = cfg.first_octave
-    extraction.sift.peak_threshold = cfg.peak_threshold
-    # L1_ROOT (RootSIFT) is COLMAP's default normalisation: kept
-    assert extraction.sift.normalization == pycolmap.Normalization.L1_ROOT
+    extraction = sift_extraction_options(cfg, cfg.num_threads)
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = cfg.num_threads
     matching.sift.max_ratio = cfg.max_ratio

@@ -44,7 +44,7 @@ from mapkit.io.benchmark import (
     read_queries_with_intrinsics,
 )
 from mapkit.io.trajectory import write_benchmark_poses
-from mapkit.localization.reference_model import ReferenceModelConfig, _colmap_camera
+from mapkit.localization.reference_model import ReferenceModelConfig, _colmap_camera, sift_extraction_options
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ def _walk_binary(path: Path, kind: str) -> int:
     return int(n)
 
 
-def _load_reconstruction(sfm: Path):
+def load_reference_reconstruction(sfm: Path):
     import pycolmap
 
     if not sfm.is_dir():
@@ -187,7 +187,7 @@ def _load_reconstruction(sfm: Path):
     return rec
 
 
-def _features_config(path: Path) -> ReferenceModelConfig:
+def model_features_config(path: Path) -> ReferenceModelConfig:
     """The extraction settings the model was built with (its ``config.yaml``); COLMAP's defaults without one."""
     if not path.is_file():
         log.info("%s: no such file, query features use COLMAP's SIFT defaults", path)
@@ -221,8 +221,8 @@ class SixDofLocalizer:
         self.cfg = config if config is not None else SixDofConfig()
         if not self.folder.is_dir():
             raise InputError(self.folder, "no reference model folder here (run mapkit model)")
-        self.rec = _load_reconstruction(self.folder / "sfm")
-        self.features = _features_config(
+        self.rec = load_reference_reconstruction(self.folder / "sfm")
+        self.features = model_features_config(
             Path(model_config) if model_config is not None else self.folder / "config.yaml"
         )
         self._db: pycolmap.Database | None = None
@@ -254,11 +254,7 @@ class SixDofLocalizer:
         self._names = sorted(self._images)
         self._centres = np.array([self._images[n].centre for n in self._names]).reshape(-1, 3)
         self._axes = np.array([self._images[n].axis for n in self._names]).reshape(-1, 3)
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = self.cfg.num_threads
-        extraction.sift.max_num_features = self.features.max_features
-        extraction.sift.first_octave = self.features.first_octave
-        extraction.sift.peak_threshold = self.features.peak_threshold
+        extraction = sift_extraction_options(self.features, self.cfg.num_threads)
         self._extractor = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
 
     # --- lifetime
