@@ -48,6 +48,11 @@ def slow_square(x: int) -> int:
     return x * x
 
 
+def thread_env(_: int) -> tuple[int, str | None]:
+    time.sleep(0.05)  # long enough that the pool starts its second worker
+    return os.getpid(), os.environ.get("OMP_NUM_THREADS")
+
+
 def inverse(x: float) -> float:
     return 1.0 / x
 
@@ -172,6 +177,15 @@ def test_a_consumer_done_after_the_last_result_lets_the_pool_close(monkeypatch):
     next(g)
     g.close()
     assert stops == [False, True]
+
+
+def test_every_worker_starts_with_one_blas_thread(monkeypatch):
+    """Each spawned worker, also those the pool starts as work arrives, has one BLAS/OpenMP thread by its
+    environment; the caller's environment is left as it was."""
+    monkeypatch.setenv("OMP_NUM_THREADS", "7")
+    out = list(ProcessExecutor(2).map(thread_env, range(8), chunksize=1))
+    assert len({pid for pid, _ in out}) == 2 and {env for _, env in out} == {"1"}
+    assert os.environ["OMP_NUM_THREADS"] == "7"
 
 
 def test_a_lambda_is_refused_by_processes_with_a_clear_error():

@@ -36,6 +36,7 @@ import atexit
 import contextlib
 import itertools
 import logging
+import multiprocessing.context
 import os
 import pickle
 import sys
@@ -387,12 +388,27 @@ def _one_thread_env() -> Iterator[None]:
                 os.environ[n] = v
 
 
+class _OneThreadSpawnProcess(multiprocessing.context.SpawnProcess):
+    """A spawned process started in the one-thread environment (the pool starts its workers as work arrives)."""
+
+    def start(self) -> None:
+        with _one_thread_env():
+            super().start()
+
+
+class _OneThreadSpawnContext(multiprocessing.context.SpawnContext):
+    Process = _OneThreadSpawnProcess
+
+
 class ProcessExecutor(_ChunkedExecutor):
     """A pool of ``workers`` spawned processes per ``map``, one BLAS/OpenMP/OpenCV thread each.
 
     Spawned, not forked: a fork of a process that holds OpenMP, open3d or faiss threads can
     deadlock. The pool lives for one ``map`` (its initializer ships ``shared``); spawning costs
-    about a second, small next to the minutes of work worth a pool.
+    about a second, small next to the minutes of work worth a pool. It is a
+    ``concurrent.futures.ProcessPoolExecutor``: a map abandoned half-way kills its workers, and that
+    pool notices dead workers, where ``multiprocessing.Pool.terminate`` waits forever for a queue
+    lock that a worker killed in the middle of sending its result still holds.
     """
 
     kind = "process"
@@ -407,26 +423,29 @@ class ProcessExecutor(_ChunkedExecutor):
         return self._workers
 
     def _start(self, fn, shared, n_chunks):
-        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
 
         n = self._workers if n_chunks is None else max(1, min(self._workers, n_chunks))
-        with _one_thread_env():
-            return mp.get_context("spawn").Pool(
-                n, _process_init, (pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),)
-            )
+        return ProcessPoolExecutor(
+            n,
+            mp_context=_OneThreadSpawnContext(),
+            initializer=_process_init,
+            initargs=(pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),),
+        )
 
     def _submit(self, pool, fn, chunk, shared):
-        return pool.apply_async(_process_chunk, (fn, chunk))
+        return pool.submit(_process_chunk, fn, chunk)
 
     def _result(self, pool, head):
-        return head.handle.get()
+        return head.handle.result()
 
     def _stop(self, pool, pending, failed):
-        if failed:
-            pool.terminate()
+        if failed:  # what is in flight is not waited for: its workers are killed (SIGKILL: no handler runs)
+            for proc in list((pool._processes or {}).values()):
+                proc.kill()
+            pool.shutdown(wait=True, cancel_futures=True)
         else:
-            pool.close()
-        pool.join()
+            pool.shutdown(wait=True)
 
 
 # --------------------------------------------------------------------------- Ray
