@@ -212,6 +212,18 @@ def test_missing_model_or_index_is_one_error(kitti_clip, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_model_of_sessions_not_aligned_is_one_error(kitti_clip, tmp_path):
+    """Two sessions that no alignment holds are refused before anything is written; one of them alone, or both
+    with allow_unaligned (their KITTI poses share one frame), make a model."""
+    ws = _benchmark_workspace(tmp_path, kitti_clip)
+    with pytest.raises(InputError, match=r"sessions \['kitti', 'query'\] are not aligned.*mapkit align") as err:
+        build_reference_model(ws, config=ReferenceModelConfig(**FAST))
+    assert err.value.field == "align" and err.value.path == ws / "align"
+    assert not (ws / "reference_model").exists()
+    both = build_reference_model(ws, out=tmp_path / "both", config=ReferenceModelConfig(**FAST, allow_unaligned=True))
+    assert pycolmap.Reconstruction(str(both / "sfm")).num_images() == len(DB_FRAMES) + len(QUERY_FRAMES)
+
+
 def test_the_commands(exported, tmp_path, capsys):
     from mapkit.cli import main
 

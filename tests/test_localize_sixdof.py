@@ -216,7 +216,8 @@ def test_eval_localize_scores_the_sixdof_poses_beside_the_filter(kitti_ws, tmp_p
     names, _ = read_benchmark_poses(out / "query" / "sixdof_poses.txt")
     assert names == [f"sessions/query/imagedb/images/cam0/{100_000_000 * f}.png" for f in EVAL_QUERIES]
 
-    wrong = build_reference_model(ws, ["kitti", "query"], out=tmp_path / "all", config=ReferenceModelConfig(**FAST))
+    both = ReferenceModelConfig(**FAST, allow_unaligned=True)  # the two sessions' KITTI poses share one frame
+    wrong = build_reference_model(ws, ["kitti", "query"], out=tmp_path / "all", config=both)
     with pytest.raises(InputError, match=r"test session\(s\) \['query'\] are in the reference model") as err:
         evaluate_localization(
             ws, town, bundle, overrides={"refine": "6dof", "reference_model": str(wrong)}, out=tmp_path / "refused"

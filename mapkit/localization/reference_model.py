@@ -117,6 +117,11 @@ class ReferenceModelConfig(MapkitConfig):
         "surface's points, and few enough pixels that they are not the next object's.",
     )
     sessions: list[str] | None = Field(None, description="Sessions to use; every session with images if unset.")
+    allow_unaligned: bool = Field(
+        False,
+        description="Build a model of several sessions that no finished `mapkit align` holds: only where their "
+        "poses already share one frame (a pose stream from an INS); GPS-georeferenced sessions lie metres apart.",
+    )
 
 
 @dataclass(frozen=True)
@@ -700,10 +705,21 @@ def build_reference_model(
     config: str | Path | ReferenceModelConfig | None = None,
 ) -> Path:
     """The reference model of the workspace's database images (``mapkit align``'s common frame when
-    it finished, else each session's own) into ``out`` (default ``WORKSPACE/reference_model``); returns it."""
+    it finished, else each session's own) into ``out`` (default ``WORKSPACE/reference_model``); returns it.
+    Several sessions that no finished alignment holds are refused (``allow_unaligned`` overrides)."""
     ws = Workspace(workspace)
     cfg = load_config(ReferenceModelConfig, config, {"sessions": sessions} if sessions is not None else None)
+    names = _session_names(ws, cfg.sessions)
+    unaligned = [n for n in names if n not in set(ws.aligned_sessions())]
+    if len(names) > 1 and unaligned and not cfg.allow_unaligned:
+        raise InputError(
+            ws.align_dir,
+            f"sessions {unaligned} are not aligned: a model of several sessions needs them in one frame (each "
+            f"GPS-georeferenced session lies metres off the others). Run mapkit align {ws.root} first, give one "
+            "session, or set allow_unaligned where their poses already share a frame (an INS pose stream)",
+            field="align",
+        )
     images = _workspace_images(ws, cfg.sessions)
-    maps = _workspace_maps(ws, _session_names(ws, cfg.sessions))
+    maps = _workspace_maps(ws, names)
     target = Path(out) if out is not None else ws.root / DEFAULT_FOLDER
     return triangulate_reference_model(images, target, cfg, image_root=ws.root, maps=maps)
