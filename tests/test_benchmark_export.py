@@ -212,6 +212,16 @@ def test_missing_model_or_index_is_one_error(kitti_clip, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_colmap_registrator_refuses_a_missing_query_image_and_writes_nothing(exported, tmp_path):
+    _, out, _, _ = exported
+    bench = shutil.copytree(out, tmp_path / "bench")
+    name = next(iter(read_queries_with_intrinsics(bench / "queries_with_intrinsics.txt")))
+    (bench / "images" / name).unlink()
+    with pytest.raises(InputError, match=r"no such query image \(1 of 5 missing\)") as err:
+        register_benchmark(bench, tmp_path / "run" / "poses.txt")
+    assert err.value.path == bench / "images" / name and not (tmp_path / "run").exists()
+
+
 def test_a_model_of_sessions_not_aligned_is_one_error(kitti_clip, tmp_path):
     """Two sessions that no alignment holds are refused before anything is written; one of them alone, or both
     with allow_unaligned (their KITTI poses share one frame), make a model."""

@@ -108,6 +108,13 @@ def register_benchmark(
     source_db = folder / DATABASE
     if not source_db.is_file():
         raise InputError(source_db, "no such file: the model's features are missing", field="database")
+    missing = [name for name in cameras if not (folder / IMAGES / name).is_file()]
+    if missing:
+        raise InputError(
+            folder / IMAGES / missing[0],
+            f"no such query image ({len(missing)} of {len(cameras)} missing)",
+            field=QUERIES,
+        )
     t0 = time.perf_counter()
     poses_file.parent.mkdir(parents=True, exist_ok=True)
     db_path = poses_file.with_name(f"{poses_file.stem}.colmap.db")
