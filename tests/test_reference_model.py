@@ -22,6 +22,7 @@ from mapkit.localization.reference_model import (
     depth_agreement,
     observation_errors_px,
     pairs_from_poses,
+    pixels_near,
     triangulate_reference_model,
 )
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
@@ -282,3 +283,18 @@ def test_the_command_says_what_it_builds(capsys):
     assert main(["model", "--help"]) == 0
     out = capsys.readouterr().out
     assert "triangulated reference model" in out and "--session" in out
+
+
+def test_the_depth_checks_cull_keeps_every_map_pixel_near_a_keypoint():
+    """The cull before the depth check's radius search: every projected map point within the radius of a
+    keypoint is kept (against a brute-force search), and points more than two grid cells from every keypoint
+    are dropped."""
+    rng = np.random.default_rng(3)
+    uv = rng.uniform(0, 640, (20000, 2))
+    kp = rng.uniform(0, 640, (60, 2))
+    radius = 2.0
+    d = np.linalg.norm(uv[:, None, :] - kp[None, :, :], axis=2).min(axis=1)
+    keep = pixels_near(uv, kp, radius)
+    assert np.all(keep[d <= radius]) and (d <= radius).sum() > 5
+    assert not np.any(keep[d > 2 * np.sqrt(2) * radius + 1e-9])
+    assert keep.sum() < 0.1 * len(uv)

@@ -483,6 +483,21 @@ def _project_into(im, X_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uv[inside], z[near][inside]
 
 
+def pixels_near(uv: np.ndarray, keypoints: np.ndarray, radius: float) -> np.ndarray:
+    """A mask over pixels ``uv`` (M, 2) keeping every one within ``radius`` of a keypoint (K, 2), and some
+    farther: those in the radius-sized grid cells next to a keypoint's cell (a superset, so that a radius
+    search over what it keeps finds what a search over all of ``uv`` finds)."""
+    cell = max(float(radius), 1e-9)
+    kc = np.floor(keypoints / cell).astype(np.int64)
+    around = (kc[:, None, :] + np.array([(i, j) for i in (-1, 0, 1) for j in (-1, 0, 1)])[None]).reshape(-1, 2)
+    uc = np.floor(uv / cell).astype(np.int64)
+
+    def key(c: np.ndarray) -> np.ndarray:  # one integer per cell (cells of an image's pixels: |index| < 2**20)
+        return (c[:, 0] + 2**20) * 2**21 + (c[:, 1] + 2**20)
+
+    return np.isin(key(uc), np.unique(key(around)))
+
+
 def depth_agreement(
     rec, map_points_world: np.ndarray, radius_px: float = 2.0, min_points: int = 3, max_points: int = 16
 ) -> dict:
@@ -511,6 +526,8 @@ def depth_agreement(
         if not len(kp) or not len(X):
             continue
         uv_map, z_map = _project_into(im, X)
+        near = pixels_near(uv_map, kp, radius_px)  # the tree is then built over these few only
+        uv_map, z_map = uv_map[near], z_map[near]
         if len(z_map) < min_points:
             continue
         dist, idx = cKDTree(uv_map).query(kp, k=max_points, distance_upper_bound=radius_px)
