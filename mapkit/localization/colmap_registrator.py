@@ -41,7 +41,7 @@ from mapkit.io.benchmark import (
     read_queries_with_intrinsics,
 )
 from mapkit.io.trajectory import write_benchmark_poses
-from mapkit.localization.reference_model import _quiet_colmap, sift_extraction_options
+from mapkit.localization.reference_model import _quiet_colmap, sift_extraction_options, sift_matching_options
 from mapkit.localization.sixdof import load_reference_reconstruction, model_features_config
 
 log = logging.getLogger(__name__)
@@ -125,14 +125,9 @@ def register_benchmark(
     try:
         _add_queries(partial, cameras, {im.name for im in rec.images.values()})
         extraction = sift_extraction_options(features, cfg.num_threads)
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = cfg.num_threads
-        matching.sift.max_ratio = features.max_ratio
+        matching, verification = sift_matching_options(features, cfg.num_threads, cfg.seed)
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = str(pairs_txt)
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.min_num_inliers = features.min_num_inliers
-        verification.ransac.random_seed = cfg.seed
         with _quiet_colmap():
             pycolmap.extract_features(
                 partial,

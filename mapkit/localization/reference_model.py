@@ -337,6 +337,20 @@ def sift_extraction_options(cfg: ReferenceModelConfig, num_threads: int):
     return extraction
 
 
+def sift_matching_options(cfg: ReferenceModelConfig, num_threads: int, seed: int):
+    """COLMAP's SIFT matching and two-view verification options with a model's settings (ratio test, inliers a
+    verified pair needs): (FeatureMatchingOptions, TwoViewGeometryOptions)."""
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = num_threads
+    matching.sift.max_ratio = cfg.max_ratio
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = cfg.min_num_inliers
+    verification.ransac.random_seed = seed
+    return matching, verification
+
+
 def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Path, cfg: ReferenceModelConfig):
     """Extract, match, verify and triangulate in ``folder``; returns the triangulated reconstruction."""
     import pycolmap
@@ -344,14 +358,9 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
     db_path = folder / "database.db"
     _write_database(rec, db_path)
     extraction = sift_extraction_options(cfg, cfg.num_threads)
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = cfg.num_threads
-    matching.sift.max_ratio = cfg.max_ratio
+    matching, verification = sift_matching_options(cfg, cfg.num_threads, cfg.seed)
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(folder / "pairs.txt")
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.min_num_inliers = cfg.min_num_inliers
-    verification.ransac.random_seed = cfg.seed
     tri = pycolmap.IncrementalPipelineOptions()
     tri.num_threads = cfg.num_threads
     tri.random_seed = cfg.seed
@@ -727,7 +736,8 @@ def build_reference_model(
     ws = Workspace(workspace)
     cfg = load_config(ReferenceModelConfig, config, {"sessions": sessions} if sessions is not None else None)
     names = _session_names(ws, cfg.sessions)
-    unaligned = [n for n in names if n not in set(ws.aligned_sessions())]
+    aligned = set(ws.aligned_sessions())
+    unaligned = [n for n in names if n not in aligned]
     if len(names) > 1 and unaligned and not cfg.allow_unaligned:
         raise InputError(
             ws.align_dir,
