@@ -44,7 +44,7 @@ from mapkit.localization.localize import (
     write_sixdof,
 )
 from mapkit.localization.mcl import pose_errors
-from mapkit.localization.reference_model import _workspace_images
+from mapkit.localization.reference_model import workspace_images
 from mapkit.localization.sixdof import SixDofLocalizer
 from mapkit.retrieval.index_vlad import VladIndex, build_vlad_index, read_session_images
 
@@ -244,7 +244,7 @@ def _localize_session(
         remove_sixdof_outputs(out / name)
     else:
         t1 = time.perf_counter()
-        cameras = [im.camera for im, good in zip(_workspace_images(ws, [name]), ok, strict=True) if good]
+        cameras = [im.camera for im, good in zip(workspace_images(ws, [name]), ok, strict=True) if good]
         names = [p for p, good in zip(imgs.workspace_paths, ok, strict=True) if good]
         found = refine_sixdof(loc, index, r, paths, cameras, names, progress)
         summary = write_sixdof(out / name, imgs.table["stamp_ns"][ok], found, loc)

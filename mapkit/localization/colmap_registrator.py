@@ -41,7 +41,7 @@ from mapkit.io.benchmark import (
     read_queries_with_intrinsics,
 )
 from mapkit.io.trajectory import write_benchmark_poses
-from mapkit.localization.reference_model import _quiet_colmap, sift_extraction_options, sift_matching_options
+from mapkit.localization.reference_model import quiet_colmap, sift_extraction_options, sift_matching_options
 from mapkit.localization.sixdof import load_reference_reconstruction, model_features_config
 
 log = logging.getLogger(__name__)
@@ -128,7 +128,7 @@ def register_benchmark(
         matching, verification = sift_matching_options(features, cfg.num_threads, cfg.seed)
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = str(pairs_txt)
-        with _quiet_colmap():
+        with quiet_colmap():
             pycolmap.extract_features(
                 partial,
                 folder / IMAGES,

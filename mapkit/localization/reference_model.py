@@ -155,7 +155,7 @@ class ModelMetrics:
 # --- the workspace's images ---------------------------------------------------------------------------
 
 
-def _workspace_images(ws: Workspace, sessions: list[str] | None) -> list[PosedImage]:
+def workspace_images(ws: Workspace, sessions: list[str] | None) -> list[PosedImage]:
     """Every database image of ``sessions`` (all with images if None), with its aligned pose where a finished
     ``mapkit align`` holds the session, and its camera from the session's image database (``imagedb/colmap``)."""
     import pycolmap
@@ -247,7 +247,7 @@ def _check_images(images: Sequence[PosedImage]) -> None:
         seen.add(key)
 
 
-def _colmap_camera(info: CameraInfo, camera_id: int):
+def colmap_camera(info: CameraInfo, camera_id: int):
     """COLMAP's camera of ``info`` (:func:`mapkit.io.benchmark.colmap_camera_params`: PINHOLE without distortion,
     OPENCV / FULL_OPENCV with plumb-bob coefficients)."""
     import pycolmap
@@ -285,7 +285,7 @@ def _posed_reconstruction(images: Sequence[PosedImage], names: list[str]):
         if idx is None:
             cameras.append(im.camera)
             idx = len(cameras) - 1
-            rec.add_camera_with_trivial_rig(_colmap_camera(im.camera, idx + 1))
+            rec.add_camera_with_trivial_rig(colmap_camera(im.camera, idx + 1))
         cam_from_world = invert_pose(np.asarray(im.world_from_cam, np.float64))
         img = pycolmap.Image(name=name, camera_id=idx + 1, image_id=k)
         rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(cam_from_world[:3, :]))
@@ -311,7 +311,7 @@ def _write_database(rec, path: Path) -> None:
 
 
 @contextmanager
-def _quiet_colmap() -> Iterator[None]:
+def quiet_colmap() -> Iterator[None]:
     """COLMAP's own log (a few lines per image and pair) down to warnings while it runs."""
     import pycolmap
 
@@ -373,7 +373,7 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
     tri.triangulation.complete_max_reproj_error = cfg.max_reprojection_error_px
     tri.triangulation.merge_max_reproj_error = cfg.max_reprojection_error_px
     (folder / "sfm").mkdir()
-    with _quiet_colmap():
+    with quiet_colmap():
         t0 = time.perf_counter()
         pycolmap.extract_features(
             db_path,
@@ -746,7 +746,7 @@ def build_reference_model(
             "session, or set allow_unaligned where their poses already share a frame (an INS pose stream)",
             field="align",
         )
-    images = _workspace_images(ws, cfg.sessions)
+    images = workspace_images(ws, cfg.sessions)
     maps = _workspace_maps(ws, names)
     target = Path(out) if out is not None else ws.root / DEFAULT_FOLDER
     return triangulate_reference_model(images, target, cfg, image_root=ws.root, maps=maps)

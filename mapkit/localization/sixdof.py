@@ -44,7 +44,7 @@ from mapkit.io.benchmark import (
     read_queries_with_intrinsics,
 )
 from mapkit.io.trajectory import write_benchmark_poses
-from mapkit.localization.reference_model import ReferenceModelConfig, _colmap_camera, sift_extraction_options
+from mapkit.localization.reference_model import ReferenceModelConfig, colmap_camera, sift_extraction_options
 
 log = logging.getLogger(__name__)
 
@@ -412,7 +412,7 @@ class SixDofLocalizer:
         options = pycolmap.AbsolutePoseEstimationOptions()
         options.ransac.max_error = self.cfg.ransac_max_error_px
         options.ransac.random_seed = self.cfg.seed
-        out = pycolmap.estimate_and_refine_absolute_pose(points2D, points3D, _colmap_camera(camera, 1), options)
+        out = pycolmap.estimate_and_refine_absolute_pose(points2D, points3D, colmap_camera(camera, 1), options)
         if out is None:
             return None, 0
         T = np.eye(4)
