@@ -68,6 +68,20 @@ def pose_errors(gt_cam_from_world: np.ndarray, est_cam_from_world: np.ndarray) -
     return np.linalg.norm(c_est - c_gt, axis=1), ang
 
 
+def errors_or_missing(gt_cam_from_world: np.ndarray, est_cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per query (camera centre distance m, rotation angle deg) between stacks of ``cam_from_world`` poses; a
+    query whose estimate is not finite (NaN: there is none) gets inf for both, which fails every band."""
+    gt = np.asarray(gt_cam_from_world, np.float64).reshape(-1, 4, 4)
+    est = np.asarray(est_cam_from_world, np.float64).reshape(-1, 4, 4)
+    if len(gt) != len(est):
+        raise ValueError(f"{len(est)} estimates for {len(gt)} true poses")
+    have = np.all(np.isfinite(est), axis=(1, 2))
+    t, r = np.full(len(gt), np.inf), np.full(len(gt), np.inf)
+    if have.any():
+        t[have], r[have] = pose_errors(gt[have], est[have])
+    return t, r
+
+
 def band_scores(
     t: np.ndarray, r: np.ndarray, thresholds: tuple[tuple[float, float], ...] = THRESHOLDS
 ) -> BenchmarkScores:
@@ -121,13 +135,8 @@ def evaluate_benchmark(
         dup = next(n for n in est_names if est_names.count(n) > 1)
         raise InputError(poses_file, f"query {dup} has two poses", field=dup)
     by_name = dict(zip(est_names, est, strict=True))
-    t = np.full(len(gt_names), np.inf)
-    r = np.full(len(gt_names), np.inf)
     have = np.array([n in by_name for n in gt_names], bool)
-    if have.any():
-        t[have], r[have] = pose_errors(
-            gt[have], np.array([by_name[n] for n, h in zip(gt_names, have, strict=True) if h])
-        )
+    t, r = errors_or_missing(gt, np.array([by_name.get(n, np.full((4, 4), np.nan)) for n in gt_names]))
     errors = {
         n: (round(float(a), 6), round(float(b), 6)) if h else None
         for n, a, b, h in zip(gt_names, t, r, have, strict=True)

@@ -30,8 +30,7 @@ from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
 from mapkit.core.writers import writes_workspace
-from mapkit.evaluation.benchmark import THRESHOLDS, BenchmarkScores, band_key, band_scores
-from mapkit.evaluation.benchmark import pose_errors as benchmark_pose_errors
+from mapkit.evaluation.benchmark import THRESHOLDS, BenchmarkScores, band_key, band_scores, errors_or_missing
 from mapkit.io.plots import localization_track
 from mapkit.localization.localize import (
     LocalizeConfig,
@@ -75,13 +74,7 @@ def pose_band_scores(gt_world_from_cam: np.ndarray, est_world_from_cam: np.ndarr
     estimate (NaN) fails every band and counts as missing."""
     gt = np.asarray(gt_world_from_cam, np.float64).reshape(-1, 4, 4)
     est = np.asarray(est_world_from_cam, np.float64).reshape(-1, 4, 4)
-    if len(gt) != len(est):
-        raise ValueError(f"{len(est)} estimates for {len(gt)} true poses")
-    have = np.all(np.isfinite(est), axis=(1, 2))
-    t, r = np.full(len(gt), np.inf), np.full(len(gt), np.inf)
-    if have.any():
-        t[have], r[have] = benchmark_pose_errors(invert_pose(gt[have]), invert_pose(est[have]))
-    return band_scores(t, r, THRESHOLDS)
+    return band_scores(*errors_or_missing(invert_pose(gt), invert_pose(est)), THRESHOLDS)
 
 
 def _model_clash(loc: SixDofLocalizer, ws: Workspace, tests: list[str]) -> list[str]:
