@@ -357,6 +357,7 @@ def _functions_taking_a_workspace() -> dict[str, object]:
 def _readers(ws: Path) -> dict[str, object]:
     from mapkit.evaluation.places import PlacesEvalConfig, VladBaseline, resolve_split, tiles_split_of_workspace
     from mapkit.localization.localize import LocalizeConfig, open_reference_model, reference_model_folder
+    from mapkit.localization.reference_model import workspace_images
     from mapkit.mapping.build import format_build_summary
     from mapkit.multisession.submaps import load_session
     from mapkit.places.index_structure import session_map_dir, session_names
@@ -380,6 +381,7 @@ def _readers(ws: Path) -> dict[str, object]:
         "mapkit.retrieval.vlad_bundle.read_session_images": lambda: read_session_images(ws, name),
         "mapkit.retrieval.vlad_bundle.read_camera_mount": lambda: read_camera_mount(ws, name),
         "mapkit.localization.localize.reference_model_folder": lambda: reference_model_folder(LocalizeConfig(), ws),
+        "mapkit.localization.reference_model.workspace_images": lambda: workspace_images(w, [name]),
         # the tiny chain builds no reference model: the one error, and nothing written before it
         "mapkit.localization.localize.open_reference_model": lambda: _input_error(
             lambda: open_reference_model(LocalizeConfig(refine="6dof"), ws)
