@@ -128,10 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     for ex in executors.values():
         ex.close()
     h, w = np.asarray(__import__("cv2").imread(str(paths[0]), 0)).shape
+    source = "the tiny town" if args.workspace is None else f"workspace {ws.name}"
     report(
         "VLAD database encoding per executor",
         rows,
-        f"{len(paths)} images of {w}x{h} px from {ws}; 128 words, {encoder.pca.dim}-D after PCA. {ray_note}",
+        f"{len(paths)} images of {w}x{h} px from {source}; 128 words, {encoder.pca.dim}-D after PCA. {ray_note}",
     )
     return 0
 

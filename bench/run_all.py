@@ -421,9 +421,24 @@ def command_for(spec: BenchSpec, quick: bool, workspace: Path) -> tuple[list[str
     return cmd, None
 
 
+def shown(cmd: list[str]) -> list[str]:
+    """A command as the report records it: the interpreter as ``python`` and paths relative to the checkout (or
+    beside it), so that the report names no folder of the machine it ran on."""
+    out = ["python"]
+    for arg in cmd[1:]:
+        p = Path(arg)
+        if p.is_absolute():
+            for base, prefix in ((ROOT, ""), (ROOT.parent, "../")):
+                if p.is_relative_to(base):
+                    arg = prefix + str(p.relative_to(base))
+                    break
+        out.append(arg)
+    return out
+
+
 def run_one(spec: BenchSpec, quick: bool, workspace: Path, timeout_s: float) -> BenchResult:
     cmd, why_not = command_for(spec, quick, workspace)
-    res = BenchResult(spec.name, spec.what, cmd, "skipped", why_not or "")
+    res = BenchResult(spec.name, spec.what, shown(cmd), "skipped", why_not or "")
     if why_not:
         return res
     env = dict(os.environ)

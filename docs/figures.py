@@ -218,12 +218,29 @@ def collect(name: str, sources: list[Path], command: str, note: str = "") -> Pat
         record = {"name": name, "command": command, "preset": presets.pop(), "runs": runs}
     if note:
         record["note"] = note
+    record = portable(record)
     record.setdefault("measured", dt.date.today().isoformat())
     record.setdefault("machine", machine())
     RESULTS.mkdir(parents=True, exist_ok=True)
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(record, indent=1, sort_keys=False) + "\n")
     return path
+
+
+def portable(value, root: Path = ROOT, python: str = sys.executable):
+    """``value`` (a record: dicts, lists, strings) with this machine's paths taken out of its strings: the
+    interpreter becomes ``python``, paths in the checkout become relative to it and paths beside it (the shared
+    data) relative to it with ``../``, so that a record says the same on every machine."""
+    if isinstance(value, dict):
+        return {k: portable(v, root, python) for k, v in value.items()}
+    if isinstance(value, list):
+        return [portable(v, root, python) for v in value]
+    if not isinstance(value, str):
+        return value
+    out = value.replace(python, "python")
+    for prefix, short in ((f"{root}/", ""), (f"{root.parent}/", "../")):
+        out = out.replace(prefix, short)
+    return out
 
 
 def record(name: str) -> dict:

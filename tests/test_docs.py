@@ -242,3 +242,37 @@ def test_the_demo_expects_the_stage_times_its_records_measured():
             assert expected is not None and abs(expected - median) <= median / 3, (preset, stage, expected, median)
             checked += 1
     assert checked >= 15
+
+
+# an absolute path: a slash not inside a word, URL or relative path, then two or more components
+_ABSOLUTE = re.compile(r"(?<![\w.:/~-])/(?:[\w.+-]+/)+[\w.+-]+")
+
+
+def test_the_records_name_no_folder_of_the_machine_they_were_measured_on():
+    """A record of docs/results says the same on every machine: an absolute path whose first folder exists here
+    (/tmp, /home, /usr, ...) is a machine's folder; a ROS topic (/kitti/oxts/pose) is not."""
+    roots = {p.name for p in Path("/").iterdir()}
+    found = [
+        f"{record.name}: {m.group(0)}"
+        for record in sorted((DOCS / "results").glob("*.json"))
+        for m in _ABSOLUTE.finditer(record.read_text())
+        if m.group(0).split("/")[1] in roots
+    ]
+    assert not found, found[:5]
+
+
+def test_a_collected_record_says_paths_relative_to_the_checkout():
+    sys.path.insert(0, str(DOCS))
+    try:
+        import figures
+    finally:
+        sys.path.remove(str(DOCS))
+    root = Path("/srv/checkout")
+    raw = {
+        "command": ["/srv/checkout/.venv/bin/python", "/srv/checkout/bench/bench_x.py", "/srv/shared/data/clip"],
+        "tail": ["/srv/checkout/mapkit/a.py:3: InputWarning: topic /kitti/oxts/pose", 3.5],
+    }
+    assert figures.portable(raw, root, "/srv/checkout/.venv/bin/python") == {
+        "command": ["python", "bench/bench_x.py", "../shared/data/clip"],
+        "tail": ["mapkit/a.py:3: InputWarning: topic /kitti/oxts/pose", 3.5],
+    }
