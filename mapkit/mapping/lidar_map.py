@@ -148,7 +148,11 @@ def place_scan(
     grid_s = np.linspace(lo_s, hi_s, DESKEW_SLICES)
     T = _clamped_poses(traj, scan.stamp_ns + np.round(grid_s * 1e9).astype(np.int64)) @ base_from_lidar
     slice_of = np.rint((t - lo_s) / (hi_s - lo_s) * (DESKEW_SLICES - 1)).astype(np.intp)
-    world = np.einsum("nij,nj->ni", T[slice_of, :3, :3], xyz) + T[slice_of, :3, 3]
+    world = np.empty_like(xyz)
+    x, y, z = xyz.T
+    for i in range(3):  # row by row: gathers of one entry per point, not of a 3x3 matrix per point
+        world[:, i] = T[:, i, 0][slice_of] * x + T[:, i, 1][slice_of] * y + T[:, i, 2][slice_of] * z
+        world[:, i] += T[:, i, 3][slice_of]
     return world, intensity
 
 

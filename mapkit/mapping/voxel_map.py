@@ -1,9 +1,11 @@
 """A streaming voxel map of LiDAR points with per-voxel statistics.
 
-Points are added scan by scan; they are buffered up to ``chunk_points``, then sorted by voxel key and summed
-per run of equal keys (``np.argsort``, ``np.add.reduceat``) and merged into the map's arrays, which are kept
-sorted by key (``np.searchsorted`` finds the voxels already there, the new ones are spliced in, in one pass).
-Memory is therefore bounded by the map (120 bytes a voxel) plus one chunk, not by the length of the log.
+Points are added scan by scan. Each scan is summed per voxel at once (its points labelled by voxel key through
+one sort, each sum one ``np.bincount``: linear in the points however few share a voxel); the scans' sums are
+buffered up to ``chunk_points`` points, summed per voxel again the same way, and merged into the map's arrays,
+which are kept sorted by key (``np.searchsorted`` finds the voxels already there, the new ones are spliced in, in
+one pass). Memory is therefore bounded by the map (120 bytes a voxel) plus one chunk, not by the length of the
+log.
 
 Per voxel the map keeps sums, so that merging is exact and order-free: the point count, the sum of
 the points and of their outer products (relative to the voxel's corner, which keeps the covariance
@@ -26,6 +28,7 @@ _MASK = (1 << _BITS) - 1
 # the six distinct products of a point's coordinates: xx, xy, xz, yy, yz, zz
 _OUTER_I = np.array([0, 0, 0, 1, 1, 2])
 _OUTER_J = np.array([0, 1, 2, 1, 2, 2])
+_SUMS = 11  # summed per voxel: x, y, z, xx, xy, xz, yy, yz, zz, intensity, points with an intensity
 STATS_BLOCK = 65_536  # voxels whose normal and planarity are computed at a time
 
 
@@ -56,81 +59,99 @@ class VoxelMap:
         self.chunk_points = int(chunk_points)
         self.keys = np.zeros(0, np.int64)
         self.count = np.zeros(0, np.int64)
-        self.sum_xyz = np.zeros((0, 3))
-        self.sum_outer = np.zeros((0, 6))
-        self.sum_intensity = np.zeros(0)
-        self.count_intensity = np.zeros(0, np.int64)
+        self.sums = np.zeros((0, _SUMS))  # per voxel: x, y, z, the six outer products, intensity, points with one
         self.first_ns = np.zeros(0, np.int64)
         self.last_ns = np.zeros(0, np.int64)
         self.points_added = 0
-        self._pending: list[tuple[np.ndarray, np.ndarray | None, int]] = []
+        self._pending: list[tuple[np.ndarray, ...]] = []
         self._pending_points = 0
+
+    @property
+    def sum_xyz(self) -> np.ndarray:
+        return self.sums[:, 0:3]
+
+    @property
+    def sum_outer(self) -> np.ndarray:
+        return self.sums[:, 3:9]
+
+    @property
+    def sum_intensity(self) -> np.ndarray:
+        return self.sums[:, 9]
+
+    @property
+    def count_intensity(self) -> np.ndarray:
+        return self.sums[:, 10]
 
     def __len__(self) -> int:
         self.flush()
         return int(len(self.keys))
 
     def add(self, points: np.ndarray, intensity: np.ndarray | None, stamp_ns: int) -> None:
-        """Add ``points`` (N, 3, map frame, metres) seen at ``stamp_ns`` with their ``intensity`` (N,) or None."""
+        """Add ``points`` (N, 3, map frame, metres) seen at ``stamp_ns`` with their ``intensity`` (N,) or None.
+        They are summed per voxel at once (one scan's arrays stay small); the sums wait for the next merge."""
         pts = np.asarray(points, np.float64).reshape(-1, 3)
         if not len(pts):
             return
-        self._pending.append((pts, None if intensity is None else np.asarray(intensity, np.float64), int(stamp_ns)))
+        keys, count, sums = self._reduce(pts, None if intensity is None else np.asarray(intensity, np.float64))
+        self._pending.append((keys, count, sums, np.full(len(keys), int(stamp_ns), np.int64)))
         self._pending_points += len(pts)
         self.points_added += len(pts)
         if self._pending_points >= self.chunk_points:
             self.flush()
 
     def flush(self) -> None:
-        """Merge the buffered points into the map."""
+        """Merge the buffered per-scan sums into the map, summed per voxel first."""
         if not self._pending:
             return
-        pts = np.concatenate([p for p, _, _ in self._pending])
-        inten = np.concatenate([np.full(len(p), np.nan) if i is None else i for p, i, _ in self._pending])
-        stamps = np.concatenate([np.full(len(p), s, np.int64) for p, _, s in self._pending])
+        keys, count, sums, stamps = (np.concatenate(parts) for parts in zip(*self._pending, strict=True))
+        several = len(self._pending) > 1  # one scan's keys are unique and sorted already
         self._pending, self._pending_points = [], 0
-        self._merge(*self._reduce(pts, inten, stamps))
+        first = last = stamps
+        if several:
+            unique, label, order, start = _group(keys)
+            count = np.bincount(label, weights=count, minlength=len(unique)).astype(np.int64)
+            summed = np.empty((len(unique), _SUMS))
+            for c in range(_SUMS):
+                summed[:, c] = np.bincount(label, weights=sums[:, c], minlength=len(unique))
+            sums = summed
+            stamps = stamps[order]
+            first, last = np.minimum.reduceat(stamps, start), np.maximum.reduceat(stamps, start)
+            keys = unique
+        self._merge(keys, count, sums, first, last)
 
-    def _reduce(self, pts: np.ndarray, inten: np.ndarray, stamps: np.ndarray) -> tuple:
-        """Per-voxel sums of one chunk: (keys, count, sum_xyz, sum_outer, sum_intensity, count_intensity,
-        first_ns, last_ns), keys sorted and unique. The points are sorted by voxel once and each sum is one
-        ``reduceat`` over the runs of equal keys."""
+    def _reduce(self, pts: np.ndarray, inten: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per-voxel sums of one scan's points: (keys sorted and unique, count, sums (V, 11)), each sum one
+        ``np.bincount`` over the points' voxel labels (linear in the points, whatever their number per voxel)."""
         ijk = np.floor(pts * (1.0 / self.voxel_size_m)).astype(np.int64)
         if np.abs(ijk).max() >= _HALF:
             raise ValueError(
                 f"points up to {np.abs(pts).max():.0f} m from the map's origin: beyond the voxel keys' reach of "
                 f"{_HALF * self.voxel_size_m:.0f} m at {self.voxel_size_m} m voxels"
             )
-        keys = _pack(ijk)
-        order = np.argsort(keys)
-        keys = keys[order]
-        start = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
-        count = np.diff(np.append(start, len(keys)))
-        local = [(pts[:, c] - ijk[:, c] * self.voxel_size_m)[order] for c in range(3)]  # x, y, z, each contiguous
-        sum_xyz = np.stack([np.add.reduceat(c, start) for c in local], axis=1)
-        sum_outer = np.stack(
-            [np.add.reduceat(local[i] * local[j], start) for i, j in zip(_OUTER_I, _OUTER_J, strict=True)], axis=1
-        )
-        inten = inten[order]
-        has = np.isfinite(inten)
-        sum_int = np.add.reduceat(np.where(has, inten, 0.0), start)
-        count_int = np.add.reduceat(has.astype(np.int64), start)
-        stamps = stamps[order]
-        first = np.minimum.reduceat(stamps, start)
-        last = np.maximum.reduceat(stamps, start)
-        return keys[start], count, sum_xyz, sum_outer, sum_int, count_int, first, last
+        keys, label, _, _ = _group(_pack(ijk))
+        local = pts - ijk * self.voxel_size_m  # from the voxel's corner: well conditioned far from the origin
+        sums = np.empty((len(keys), _SUMS))
+        for c in range(3):
+            sums[:, c] = np.bincount(label, weights=local[:, c], minlength=len(keys))
+        for c, (i, j) in enumerate(zip(_OUTER_I, _OUTER_J, strict=True)):
+            sums[:, 3 + c] = np.bincount(label, weights=local[:, i] * local[:, j], minlength=len(keys))
+        count = np.bincount(label, minlength=len(keys))
+        if inten is None:
+            sums[:, 9:11] = 0.0
+        else:
+            has = np.isfinite(inten)
+            sums[:, 9] = np.bincount(label, weights=np.where(has, inten, 0.0), minlength=len(keys))
+            sums[:, 10] = count if has.all() else np.bincount(label, weights=has, minlength=len(keys))
+        return keys, count, sums
 
-    def _merge(self, keys, count, sum_xyz, sum_outer, sum_int, count_int, first, last) -> None:
+    def _merge(self, keys, count, sums, first, last) -> None:
         pos = np.searchsorted(self.keys, keys)
         found = np.zeros(len(keys), bool)
         inside = pos < len(self.keys)
         found[inside] = self.keys[pos[inside]] == keys[inside]
         at = pos[found]  # unique: the chunk's keys are
         self.count[at] += count[found]
-        self.sum_xyz[at] += sum_xyz[found]
-        self.sum_outer[at] += sum_outer[found]
-        self.sum_intensity[at] += sum_int[found]
-        self.count_intensity[at] += count_int[found]
+        self.sums[at] += sums[found]
         self.first_ns[at] = np.minimum(self.first_ns[at], first[found])
         self.last_ns[at] = np.maximum(self.last_ns[at], last[found])
         new = ~found
@@ -139,17 +160,14 @@ class VoxelMap:
         new_at, old_at = _spliced_positions(len(self.keys), pos[new])
         self.keys = _splice(self.keys, keys[new], new_at, old_at)
         self.count = _splice(self.count, count[new], new_at, old_at)
-        self.sum_xyz = _splice(self.sum_xyz, sum_xyz[new], new_at, old_at)
-        self.sum_outer = _splice(self.sum_outer, sum_outer[new], new_at, old_at)
-        self.sum_intensity = _splice(self.sum_intensity, sum_int[new], new_at, old_at)
-        self.count_intensity = _splice(self.count_intensity, count_int[new], new_at, old_at)
+        self.sums = _splice(self.sums, sums[new], new_at, old_at)
         self.first_ns = _splice(self.first_ns, first[new], new_at, old_at)
         self.last_ns = _splice(self.last_ns, last[new], new_at, old_at)
 
     def nbytes(self) -> int:
-        """Bytes held by the map's arrays (the buffered chunk aside)."""
-        arrays = (self.keys, self.count, self.sum_xyz, self.sum_outer, self.sum_intensity, self.count_intensity)
-        return int(sum(a.nbytes for a in arrays) + self.first_ns.nbytes + self.last_ns.nbytes)
+        """Bytes held by the map's arrays (the buffered sums aside)."""
+        arrays = (self.keys, self.count, self.sums, self.first_ns, self.last_ns)
+        return int(sum(a.nbytes for a in arrays))
 
     def stats(self) -> VoxelStats:
         """Centroid, mean intensity, normal, planarity and first/last stamp of every voxel (buffered points merged
@@ -245,6 +263,20 @@ def _pack(ijk: np.ndarray) -> np.ndarray:
 
 def _unpack(keys: np.ndarray) -> np.ndarray:
     return np.stack([(keys >> (2 * _BITS)) & _MASK, (keys >> _BITS) & _MASK, keys & _MASK], axis=1) - _HALF
+
+
+def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The unique ``keys`` (sorted), each entry's label (its key's index among them), the sorting order and where
+    each key's run begins in it: what ``np.unique(return_inverse=True)`` gives, with the order kept."""
+    order = np.argsort(keys)
+    ordered = keys[order]
+    edge = np.empty(len(keys), bool)
+    edge[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=edge[1:])
+    label = np.empty(len(keys), np.intp)
+    label[order] = np.cumsum(edge) - 1
+    start = np.flatnonzero(edge)
+    return ordered[start], label, order, start
 
 
 def _spliced_positions(n_old: int, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
