@@ -1,7 +1,9 @@
 """``mapkit index export``: a workspace's indexes as one deployable folder.
 
 The export holds one self-describing sub-folder per index (VLAD, structure NBLD / M2DP / CNN),
-each the index's own bundle with its own manifest and checksums, and a top-level
+each the index's own bundle with its own manifest and checksums, the workspace's reference model when
+it has a finished one (``reference_model/``: the COLMAP model, its features database and settings, what
+the 6-DoF localizer reads, with a manifest of checksums like an index's), and a top-level
 ``manifest.json`` that says what is there: the export's format version, per index its kind,
 format version, parameters, the CRS and origin of its poses, its source sessions, and the sha256
 of its manifest (which in turn checksums each of its files). Files are copied, never hard-linked:
@@ -21,18 +23,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from mapkit import __version__
-from mapkit.core.bundle import EXPORT_KIND, MANIFEST, building, copy_file, load_manifest
+from mapkit.core.bundle import EXPORT_KIND, MANIFEST, building, copy_file, load_manifest, read_manifest, write_manifest
 from mapkit.core.errors import InputError
-from mapkit.core.runio import atomic_write_text, sha256_file, write_json
+from mapkit.core.runio import atomic_write_text, read_marker, sha256_file, write_json
 from mapkit.core.workspace import Workspace
 from mapkit.core.writers import writes_workspace
+from mapkit.deploy.benchmark import MODEL_FOLDER
 
 FORMAT_VERSION = 1
 KIND = EXPORT_KIND
 
 #: the index kinds an export holds, as their manifests name them
-_VLAD, _STRUCTURE = "mapkit VLAD index", "mapkit structure index"
+_VLAD, _STRUCTURE, _MODEL = "mapkit VLAD index", "mapkit structure index", "mapkit reference model"
+#: the files of a reference model (``mapkit model``) that the 6-DoF localizer reads, and its record
+_MODEL_FILES = ("sfm", "database.db", "config.yaml", "metrics.json")
+MODEL_FORMAT_VERSION = 1
 
 
 def _loader(kind: str):
@@ -45,7 +53,42 @@ def _loader(kind: str):
         from mapkit.places.index_structure import StructureIndex
 
         return StructureIndex.load
+    if kind == _MODEL:
+        return load_model_bundle
     return None
+
+
+def load_model_bundle(path: str | Path, verify: bool = True) -> Path:
+    """An exported reference model (``BUNDLE/reference_model``) after checking its manifest and (``verify``) every
+    file's checksum: its folder, what :class:`mapkit.localization.sixdof.SixDofLocalizer` and ``mapkit localize
+    --refine 6dof --model`` take."""
+    read_manifest(Path(path), "reference model", MODEL_FORMAT_VERSION, ("database.db", "config.yaml"), verify)
+    return Path(path)
+
+
+def _model_entry(name: str, src: Path, origin: dict | None) -> dict:
+    metrics = json.loads((src / "metrics.json").read_text())
+    cfg = yaml.safe_load((src / "config.yaml").read_text()) or {}
+    return {
+        "path": name,
+        "kind": _MODEL,
+        "descriptor": "sift",
+        "format_version": MODEL_FORMAT_VERSION,
+        "parameters": {k: v for k, v in cfg.items() if k != "sessions"},
+        "crs": origin,
+        "source_sessions": sorted(cfg.get("sessions") or []),
+        "entries": metrics.get("points"),
+        "images": metrics.get("images"),
+    }
+
+
+def _copy_model(src: Path, dst: Path) -> None:
+    for part in _MODEL_FILES:
+        f = src / part
+        for g in sorted(f.rglob("*")) if f.is_dir() else [f]:
+            if g.is_file():
+                copy_file(g, dst / g.relative_to(src))
+    write_manifest(dst, {"format_version": MODEL_FORMAT_VERSION, "kind": _MODEL, "mapkit_version": __version__})
 
 
 def find_indexes(workspace: str | Path | Workspace) -> dict[str, Path]:
@@ -95,7 +138,7 @@ def _index_entry(name: str, src: Path, origin: dict | None) -> dict:
 @writes_workspace("workspace")
 def export_bundles(workspace: str | Path, out: str | Path, names: Sequence[str] | None = None) -> Path:
     """Copy the finished indexes of ``workspace`` into ``out`` with a top-level manifest; returns ``out``.
-    ``names`` selects folders of ``WORKSPACE/indexes`` (default all).
+    ``names`` selects folders of ``WORKSPACE/indexes`` (default all, and the finished reference model).
     The export is built beside ``out`` and renamed into place, so ``out`` is always whole."""
     ws, out = Workspace(workspace), Path(out)
     found = find_indexes(ws)
@@ -112,11 +155,18 @@ def export_bundles(workspace: str | Path, out: str | Path, names: Sequence[str] 
         json.loads(ws.origin.read_text()) if ws.origin.is_file() else None
     )  # as written: the export states it verbatim
     entries = {name: _index_entry(name, src, origin) for name, src in found.items()}
+    model = ws.root / MODEL_FOLDER
+    with_model = not names and read_marker(model) is not None
+    if with_model:
+        entries[MODEL_FOLDER] = _model_entry(MODEL_FOLDER, model, origin)
     with building(out) as tmp:
         for name, src in found.items():
             for f in sorted(src.rglob("*")):
                 if f.is_file():
                     copy_file(f, tmp / name / f.relative_to(src))
+        if with_model:
+            _copy_model(model, tmp / MODEL_FOLDER)
+            entries[MODEL_FOLDER]["manifest_sha256"] = sha256_file(tmp / MODEL_FOLDER / MANIFEST)
         manifest = {
             "format_version": FORMAT_VERSION,
             "kind": KIND,
@@ -138,6 +188,8 @@ def _readme(entries: dict) -> str:
         "",
         "    from mapkit.deploy.export import load_bundle",
         "    bundle = load_bundle('THIS_FOLDER')   # bundle['vlad'], bundle['structure-nbld'], ...",
+        "",
+        "A reference_model/ folder (when listed) is what `mapkit localize --refine 6dof --model` takes.",
         "",
         "Indexes:",
     ]
