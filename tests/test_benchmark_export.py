@@ -264,3 +264,58 @@ def test_a_query_session_from_its_log(exported, clip12, tmp_path):
     centres = np.array([invert_pose(T)[:3, 3] for T in gt])
     np.testing.assert_allclose(centres, poses[:12, :3, 3], atol=1e-3)
     assert "its log" in (out / "README.md").read_text()
+
+
+def test_the_deployment_bundle_carries_the_reference_model_with_checksums(exported, tmp_path):
+    """`mapkit index export` copies the finished reference model beside the indexes, listed in the top manifest
+    with its own manifest of checksums; loaded back, it is a folder the 6-DoF localizer opens; a changed byte of
+    its features database is refused by name."""
+    from mapkit.deploy.export import export_bundles, load_bundle
+    from mapkit.localization.sixdof import SixDofLocalizer
+
+    ws, _, _, _ = exported
+    out = export_bundles(ws, tmp_path / "bundle")
+    entry = json.loads((out / "manifest.json").read_text())["indexes"]["reference_model"]
+    assert entry["kind"] == "mapkit reference model" and entry["source_sessions"] == ["kitti"]
+    assert entry["images"] == len(DB_FRAMES) and entry["parameters"]["max_features"] == FAST["max_features"]
+    files = json.loads((out / "reference_model" / "manifest.json").read_text())["files"]
+    assert {"database.db", "config.yaml", "metrics.json", "sfm/points3D.bin"} <= set(files)
+    bundle = load_bundle(out)
+    loc = SixDofLocalizer(bundle["reference_model"])
+    try:
+        model = pycolmap.Reconstruction(str(ws / "reference_model" / "sfm"))
+        assert sorted(loc.image_names) == sorted(im.name for im in model.images.values())
+    finally:
+        loc.close()
+    assert "reference_model" not in load_bundle(export_bundles(ws, tmp_path / "vlad-only", ["vlad"])).indexes
+    db = out / "reference_model" / "database.db"
+    data = bytearray(db.read_bytes())
+    data[-1] ^= 0xFF
+    db.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="database.db") as err:
+        load_bundle(out)
+    assert err.value.field == "sha256"
+
+
+def test_eval_localize_scores_the_sixdof_poses_in_the_model_frame(exported, tmp_path):
+    """The workspace's poses sit off the town's truth by MODEL_FROM_TRUTH (20 deg and 3.7 m), as an aligned map
+    sits off the truth by the drives' common GPS bias: eval localize fits that transform on the model's database
+    images (the known answer) and scores the 6-DoF poses against the truth moved by it, within (0.25 m, 2 deg),
+    where against the unmoved truth every query would be metres off."""
+    from mapkit.evaluation.localization import evaluate_localization
+
+    ws, _, _, town = exported
+    r = evaluate_localization(
+        ws,
+        town,
+        ws / "indexes" / "vlad",
+        test_sessions=["query"],
+        overrides={"refine": "6dof"},
+        out=tmp_path / "eval",
+        progress=False,
+    )
+    fit = r["model_from_truth"]
+    np.testing.assert_allclose(fit["matrix"], MODEL_FROM_TRUTH, atol=1e-4)
+    assert fit["fit_images"] == len(DB_FRAMES) and fit["residual_max_m"] < 1e-3
+    s = r["sessions"]["query"]["sixdof"]
+    assert s["6dof"]["recall"]["0.25m_2deg"] >= 0.8 and s["6dof"]["median_translation_m"] < 0.05, s["6dof"]
