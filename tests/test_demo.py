@@ -93,6 +93,7 @@ def test_tiny_main_job_runs_every_stage_with_non_empty_outputs(tiny_demo):
     out, m = tiny_demo
     status = {n: s["status"] for n, s in m["stages"].items()}
     assert status.pop("train_cnn") == "skipped"  # only with --train-cnn
+    assert status.pop("sixdof") == "skipped"  # the demo and places presets only
     assert set(status.values()) == {"ok"}, m["stages"]
     ws = out / "workspace"
     # synth and build: every session georeferenced; align: at least two sessions in one frame
@@ -254,6 +255,9 @@ def test_video_rate_build_config_keeps_each_sessions_image_rate(tmp_path):
     assert (
         cfg.georef.fuse == base.georef.fuse and cfg.semidense == base.semidense
     )  # the maps: every image, as the demo's
+    assert base.lidar_map.enabled is False and cfg.lidar_map.enabled is False
+    both = load_config(BuildConfig, demo_build_config(tmp_path / "lidar", same, lidar_map=True))
+    assert both.lidar_map.enabled is True and both.for_session("train-a").imagedb.min_interval_s == 0.5
 
 
 def test_places_pairs_mix_conditions_and_skip_empty_maps():

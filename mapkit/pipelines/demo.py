@@ -44,12 +44,14 @@ from mapkit.core.executor import default_executor, use_executor
 from mapkit.core.presets import preset_path
 from mapkit.core.runio import atomic_write_text, write_json, write_timings
 from mapkit.core.workspace import Workspace
+from mapkit.deploy.benchmark import export_benchmark
 from mapkit.deploy.export import export_bundles, load_bundle
 from mapkit.evaluation.evaluate import evaluate_align, evaluate_build
-from mapkit.evaluation.localization import evaluate_localization
+from mapkit.evaluation.localization import evaluate_localization, format_sixdof
 from mapkit.evaluation.places import evaluate_places
 from mapkit.evaluation.triplets import evaluate_triplets
 from mapkit.evaluation.truth import town_sessions
+from mapkit.localization.reference_model import build_reference_model
 from mapkit.mapping.build import BuildConfig, build, format_build_summary
 from mapkit.multisession.align import align_workspace
 from mapkit.places.index_structure import build_structure_index
@@ -269,7 +271,8 @@ def _condition(s: dict) -> str:
 def _build(d: Demo) -> None:
     with d.stage("build", "Session maps (mapkit build)") as sec:
         logs = session_logs(d.town)
-        build(logs, d.ws.root, config=demo_build_config(d.out, d.roles), progress=d.progress)
+        lidar = d.preset == "demo"  # the main job shows both maps; the other presets keep their time
+        build(logs, d.ws.root, config=demo_build_config(d.out, d.roles, lidar), progress=d.progress)
         d.log(format_build_summary(d.ws.root))
         r = evaluate_build(d.ws, d.town)
         d.metrics["eval_build"] = r
@@ -279,19 +282,23 @@ def _build(d: Demo) -> None:
             sec.picture(d.ws.session(n).georef / "trajectory_over_gps.png", f"{n}: trajectory over GPS", 380)
         for n in sorted(r["sessions"]):
             sec.picture(d.ws.session(n).map / "top_view.png", f"{n}: semi-dense map, top view", 380)
+        for n in sorted(r["sessions"]):
+            lidar_view = d.ws.session(n).lidar_map / "top_view.png"
+            if lidar_view.is_file():
+                sec.picture(lidar_view, f"{n}: LiDAR map, top view", 380)
 
 
-def demo_build_config(out: Path, roles: dict[str, dict]) -> Path:
-    """``configs/build/demo.yaml``, or, when the town's cameras record faster than the sessions'
-    own image rates (video, ``camera.record_rate_hz``), a copy in ``out`` whose image databases
-    keep each session's own rate (``imagedb.min_interval_s``, never shorter than the demo's): the
-    maps are made from every image, retrieval and the localizer see the images they would without
-    video."""
+def demo_build_config(out: Path, roles: dict[str, dict], lidar_map: bool = False) -> Path:
+    """``configs/build/demo.yaml``, or a copy of it in ``out`` where the run asks for more: where the town's
+    cameras record faster than the sessions' own image rates (video, ``camera.record_rate_hz``), image databases
+    that keep each session's own rate (``imagedb.min_interval_s``, never shorter than the demo's): the maps are
+    made from every image, retrieval and the localizer see the images they would without video; with
+    ``lidar_map``, each session's LiDAR map too."""
     base = preset_path("build", "demo")
     faster = {
         n: s for n, s in roles.items() if s.get("image_rate_hz") and s["camera_rate_hz"] > s["image_rate_hz"] * 1.001
     }
-    if not faster:
+    if not faster and not lidar_map:
         return base
     data = yaml.safe_load(base.read_text()) or {}
     cfg = load_config(BuildConfig, base)
@@ -300,11 +307,21 @@ def demo_build_config(out: Path, roles: dict[str, dict]) -> Path:
         interval = max(cfg.for_session(name).imagedb.min_interval_s, 1.0 / float(s["image_rate_hz"]))
         sessions[name] = deep_merge(sessions.get(name, {}), {"imagedb": {"min_interval_s": round(interval, 6)}})
     data["sessions"] = sessions
-    path = out / "build_config_video.yaml"
+    notes = []
+    if faster:
+        notes.append(
+            "# each session's image database at its own image rate: the town's cameras record faster\n"
+            "# (camera.record_rate_hz) and the maps use every image"
+        )
+    if lidar_map:
+        data["lidar_map"] = {"enabled": True}
+        notes.append("# each session's LiDAR map beside its semi-dense map")
+    path = out / ("build_config_video.yaml" if faster else "build_config.yaml")
     atomic_write_text(
         path,
-        "# configs/build/demo.yaml with each session's image database at its own image rate: the town's\n"
-        "# cameras record faster (camera.record_rate_hz) and the maps use every image (mapkit demo).\n"
+        "# configs/build/demo.yaml as mapkit demo ran it, with:\n"
+        + "\n".join(notes)
+        + "\n"
         + yaml.safe_dump(data, sort_keys=False),
     )
     return path
@@ -432,6 +449,58 @@ def _localize(d: Demo) -> None:
             sec.md_file(out / "eval_localize.md", drop_title=False)
             for n in d.test_sessions:
                 sec.picture(out / f"{n}.png", f"{n}, {name}: localized track against truth", 420)
+
+
+def _sixdof(d: Demo) -> None:
+    title = "6-DoF localization on a reference model (mapkit model, eval localize --refine 6dof, export benchmark)"
+    with d.stage("sixdof", title) as sec:
+        d.need("align", "index_vlad")
+        if d.preset == "tiny":
+            raise _Skip("the tiny preset leaves it out to stay small; the demo and places presets run it")
+        if not d.train_sessions or not d.test_sessions:
+            raise _Skip("the town needs training and test sessions")
+        model = build_reference_model(d.ws, sessions=d.train_sessions)
+        m = json.loads((model / "metrics.json").read_text())
+        depth = {k: v for k, v in (m.get("depth_check") or {}).items() if isinstance(v, dict)}
+        checks = "; ".join(
+            f"{src}: median {100 * v['median_relative_difference']:.1f} % of the depth, "
+            f"{100 * v['fraction_compared']:.0f} % of the observations compared"
+            for src, v in depth.items()
+            if v.get("median_relative_difference") is not None
+        )
+        sec.md(
+            f"Reference model of {', '.join(d.train_sessions)} in the aligned frame (`{model}`): {m['points']:,} "
+            f"points seen by {m['images_with_points']} of {m['images']} images, median track length "
+            f"{m['track_length_median']:g}, median reprojection error {m['reprojection_error_median_px']:.2f} px."
+            + (f" Depth check against the maps: {checks}." if checks else "")
+        )
+        sec.picture(model / "statistics.png", "points per image, track lengths, reprojection errors", 700)
+        out = d.ws.localize_dir / "6dof"
+        r = evaluate_localization(  # the filter that localizes best on the demo gives the prior and the fallback
+            d.ws,
+            d.town,
+            bundle=d.ws.vlad_index,
+            config=preset_path("localize", "odometry-multihypothesis"),
+            overrides={"refine": "6dof"},
+            out=out,
+            cache_dir=_localize_cache(d.ws),
+            progress=d.progress,
+        )
+        d.metrics["sixdof"] = {n: s["sixdof"] for n, s in r["sessions"].items() if "sixdof" in s}
+        fit = r["model_from_truth"]
+        sec.md(
+            "#### Each test drive's queries: 6-DoF, MCVL's filter and retrieval alone\n\n"
+            "The filter is preset `configs/localize/odometry-multihypothesis.yaml`; its pose is the 6-DoF localizer's "
+            "prior and the estimate of a query it does not register. Every estimate is scored against the truth in "
+            f"the model's frame, fitted on its {fit['fit_images']} database images (the aligned frame sits "
+            f"{fit['offset_m']:.2f} m off the truth; fit residual {fit['residual_rmse_m']:.2f} m RMSE)."
+        )
+        sec.md(format_sixdof(r))
+        bench = export_benchmark(d.ws, d.out / "benchmark", queries=d.test_sessions, truth=d.town, progress=d.progress)
+        sec.md(
+            f"Benchmark export for outside localizers: `{bench}` (the model, `queries_with_intrinsics.txt`, the "
+            "ground truth and retrieval pairs; its README says what each file is)."
+        )
 
 
 def places_pairs(roles: dict[str, dict], map_points: dict[str, int]) -> list[tuple[str, str]]:
@@ -562,6 +631,7 @@ STAGES = (
     _index_vlad,
     _index_structure,
     _localize,
+    _sixdof,
     _places,
     _export,
     _view,
