@@ -221,6 +221,7 @@ def collect(name: str, sources: list[Path], command: str, note: str = "") -> Pat
         "robustness",
         "fault-campaign",
         "outside-localizer",
+        "align-sources",
     ):
         data = json.loads(sources[0].read_text())
         record = {"name": name, **data}
@@ -305,8 +306,14 @@ def table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows])
 
 
+def _runs(n: int) -> str:
+    return "one run" if n == 1 else f"{n} runs"
+
+
 def _runs_note(rec: dict) -> str:
     seeds = [r.get("seed") for r in rec["runs"]]
+    if len(seeds) == 1:
+        return f"One run (seed {seeds[0]}), measured {rec['measured']} on {rec['machine']}."
     return (
         f"{len(seeds)} runs (seeds {', '.join(map(str, seeds))}), measured {rec['measured']} on {rec['machine']}; "
         f"each figure is the median with its range over the runs."
@@ -595,8 +602,30 @@ def render_sixdof() -> str:
         table(
             ["test drive", "estimate", *(b for _, b in SIXDOF_BANDS), "median m", "median deg", "6-DoF accepted"], rows
         )
-        + f"\n\n{note}`{rec['command']}`; "
+        + f"\n\n{note}`{rec['command']}`. "
         + _runs_note({**rec, "runs": runs})
+    )
+
+
+def render_align_sources() -> str:
+    """bench/align_map_sources.py: each pair's misalignment after align on semi-dense and on LiDAR maps."""
+    rec = record("align-sources")
+    src = rec["sources"]
+    semi, lidar = src["semidense"], src["lidar"]
+    rows = [
+        [pair, f"{semi['pairs'][pair]:.3f}", f"{lidar['pairs'].get(pair, float('nan')):.3f}"] for pair in semi["pairs"]
+    ]
+    rows.append(["**all pairs, median**", f"{semi['after_median_m']:.3f}", f"{lidar['after_median_m']:.3f}"])
+    rows.append(["ICP pairs accepted", str(semi["accepted_pairs"]), str(lidar["accepted_pairs"])])
+    rows.append(["align, seconds", f"{semi['align_s']:.0f}", f"{lidar['align_s']:.0f}"])
+    worst = max(lidar["pairs"].values())
+    holds = worst < 0.1 and lidar["after_median_m"] <= semi["after_median_m"]
+    return (
+        table(["session pair", "semi-dense maps, m", "LiDAR maps, m"], rows)
+        + f"\n\nMisalignment after align: the median distance between the two sessions' maps of the same true "
+        f"surface. On LiDAR maps the worst pair is {worst:.3f} m (goal: every pair under 0.1 m, the median no worse "
+        f"than on semi-dense maps: {'holds' if holds else 'does not hold'}). "
+        f"One run of `{rec['command']}` on the main job's workspace, measured {rec['measured']} on {rec['machine']}."
     )
 
 
@@ -616,17 +645,15 @@ def _stages(name: str) -> str:
     runs = rec["runs"]
     stages = [s for s in STAGE_LABELS if any(r["stages_s"].get(s) for r in runs)]
     rows = [[STAGE_LABELS[s], spread([r["stages_s"].get(s) for r in runs], "{:.0f}")] for s in stages]
-    rows.append(
-        [
-            "**whole run**",
-            f"**{_minutes(statistics.median([r['total_s'] for r in runs]))}** "
-            f"({_minutes(min(r['total_s'] for r in runs))} - {_minutes(max(r['total_s'] for r in runs))})",
-        ]
-    )
+    totals = [r["total_s"] for r in runs]
+    whole = f"**{_minutes(statistics.median(totals))}**"
+    if len(runs) > 1:
+        whole += f" ({_minutes(min(totals))} - {_minutes(max(totals))})"
+    rows.append(["**whole run**", whole])
     driven = runs[0].get("driven_m")
     return (
         table(["stage", "seconds"], rows)
-        + f"\n\n{len(runs)} runs of `{rec['command']}`"
+        + f"\n\n{_runs(len(runs)).capitalize()} of `{rec['command']}`"
         + (f" ({driven / 1000:.1f} km driven)" if driven else "")
         + f", measured {rec['measured']} on {rec['machine']}."
         + (f" {rec['note']}" if rec.get("note") else "")
@@ -913,6 +940,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "first-run": render_first_run,
     "main-job-stages": lambda: _stages("main-job"),
     "main-job-sixdof": render_sixdof,
+    "align-sources": render_align_sources,
     "tiny-stages": lambda: _stages("tiny"),
     "places-stages": lambda: _stages("places"),
     "robustness": render_robustness,
