@@ -3,9 +3,9 @@
 Points are added scan by scan. Each scan is summed per voxel at once (its points labelled by voxel key through
 one sort, each sum one ``np.bincount``: linear in the points however few share a voxel); the scans' sums are
 buffered up to ``chunk_points`` points, summed per voxel again the same way, and merged into the map's arrays,
-which are kept sorted by key (``np.searchsorted`` finds the voxels already there, the new ones are spliced in, in
-one pass). Memory is therefore bounded by the map (120 bytes a voxel) plus one chunk, not by the length of the
-log.
+appended in the order they are first seen; a sorted index of their keys (``np.searchsorted``) finds the voxels
+already there, and only that index (16 bytes a voxel) is spliced when new ones arrive. Memory is therefore bounded
+by the map (136 bytes a voxel, up to half as much again in spare capacity) plus one chunk, not by the length of the log.
 
 Per voxel the map keeps sums, so that merging is exact and order-free: the point count, the sum of
 the points and of their outer products (relative to the voxel's corner, which keeps the covariance
@@ -57,34 +57,47 @@ class VoxelMap:
             raise ValueError(f"voxel size must be positive, got {voxel_size_m}")
         self.voxel_size_m = float(voxel_size_m)
         self.chunk_points = int(chunk_points)
-        self.keys = np.zeros(0, np.int64)
-        self.count = np.zeros(0, np.int64)
-        self.sums = np.zeros((0, _SUMS))  # per voxel: x, y, z, the six outer products, intensity, points with one
-        self.first_ns = np.zeros(0, np.int64)
-        self.last_ns = np.zeros(0, np.int64)
+        # per voxel, in the order the voxels were first seen (appended, never moved; capacity grows by half): its key,
+        # point count, sums (one row per sum: x, y, z, the six outer products, intensity, points with one) and
+        # first and last stamp; and the keys sorted with the row each is at, the index a merge searches
+        self._n = 0
+        self._key = np.zeros(0, np.int64)
+        self._count = np.zeros(0, np.int64)
+        self._sums = np.zeros((_SUMS, 0))
+        self._first = np.zeros(0, np.int64)
+        self._last = np.zeros(0, np.int64)
+        self._sorted_keys = np.zeros(0, np.int64)
+        self._sorted_rows = np.zeros(0, np.int64)
         self.points_added = 0
-        self._pending: list[tuple[np.ndarray, ...]] = []
+        self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []  # per scan: keys, count, sums, stamp
         self._pending_points = 0
 
-    @property
-    def sum_xyz(self) -> np.ndarray:
-        return self.sums[:, 0:3]
+    # --- the voxels sorted by key (views made on demand)
 
     @property
-    def sum_outer(self) -> np.ndarray:
-        return self.sums[:, 3:9]
+    def keys(self) -> np.ndarray:
+        return self._sorted_keys
 
     @property
-    def sum_intensity(self) -> np.ndarray:
-        return self.sums[:, 9]
+    def count(self) -> np.ndarray:
+        return self._count[self._sorted_rows]
 
     @property
-    def count_intensity(self) -> np.ndarray:
-        return self.sums[:, 10]
+    def sums(self) -> np.ndarray:
+        """(V, 11) per voxel, sorted by key."""
+        return self._sums[:, self._sorted_rows].T
+
+    @property
+    def first_ns(self) -> np.ndarray:
+        return self._first[self._sorted_rows]
+
+    @property
+    def last_ns(self) -> np.ndarray:
+        return self._last[self._sorted_rows]
 
     def __len__(self) -> int:
         self.flush()
-        return int(len(self.keys))
+        return self._n
 
     def add(self, points: np.ndarray, intensity: np.ndarray | None, stamp_ns: int) -> None:
         """Add ``points`` (N, 3, map frame, metres) seen at ``stamp_ns`` with their ``intensity`` (N,) or None.
@@ -93,7 +106,7 @@ class VoxelMap:
         if not len(pts):
             return
         keys, count, sums = self._reduce(pts, None if intensity is None else np.asarray(intensity, np.float64))
-        self._pending.append((keys, count, sums, np.full(len(keys), int(stamp_ns), np.int64)))
+        self._pending.append((keys, count, sums, int(stamp_ns)))
         self._pending_points += len(pts)
         self.points_added += len(pts)
         if self._pending_points >= self.chunk_points:
@@ -103,16 +116,18 @@ class VoxelMap:
         """Merge the buffered per-scan sums into the map, summed per voxel first."""
         if not self._pending:
             return
-        keys, count, sums, stamps = (np.concatenate(parts) for parts in zip(*self._pending, strict=True))
-        several = len(self._pending) > 1  # one scan's keys are unique and sorted already
-        self._pending, self._pending_points = [], 0
+        pending, self._pending, self._pending_points = self._pending, [], 0
+        keys = np.concatenate([p[0] for p in pending])
+        count = np.concatenate([p[1] for p in pending])
+        sums = np.concatenate([p[2] for p in pending], axis=1)
+        stamps = np.repeat(np.array([p[3] for p in pending], np.int64), [len(p[0]) for p in pending])
         first = last = stamps
-        if several:
+        if len(pending) > 1:  # one scan's keys are unique and sorted already
             unique, label, order, start = _group(keys)
             count = np.bincount(label, weights=count, minlength=len(unique)).astype(np.int64)
-            summed = np.empty((len(unique), _SUMS))
+            summed = np.empty((_SUMS, len(unique)))
             for c in range(_SUMS):
-                summed[:, c] = np.bincount(label, weights=sums[:, c], minlength=len(unique))
+                summed[c] = np.bincount(label, weights=sums[c], minlength=len(unique))
             sums = summed
             stamps = stamps[order]
             first, last = np.minimum.reduceat(stamps, start), np.maximum.reduceat(stamps, start)
@@ -120,7 +135,7 @@ class VoxelMap:
         self._merge(keys, count, sums, first, last)
 
     def _reduce(self, pts: np.ndarray, inten: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per-voxel sums of one scan's points: (keys sorted and unique, count, sums (V, 11)), each sum one
+        """Per-voxel sums of one scan's points: (keys sorted and unique, count, sums (11, V)), each sum one
         ``np.bincount`` over the points' voxel labels (linear in the points, whatever their number per voxel)."""
         ijk = np.floor(pts * (1.0 / self.voxel_size_m)).astype(np.int64)
         if np.abs(ijk).max() >= _HALF:
@@ -130,74 +145,103 @@ class VoxelMap:
             )
         keys, label, _, _ = _group(_pack(ijk))
         local = pts - ijk * self.voxel_size_m  # from the voxel's corner: well conditioned far from the origin
-        sums = np.empty((len(keys), _SUMS))
+        n = len(keys)
+        sums = np.empty((_SUMS, n))
         for c in range(3):
-            sums[:, c] = np.bincount(label, weights=local[:, c], minlength=len(keys))
+            sums[c] = np.bincount(label, weights=local[:, c], minlength=n)
         for c, (i, j) in enumerate(zip(_OUTER_I, _OUTER_J, strict=True)):
-            sums[:, 3 + c] = np.bincount(label, weights=local[:, i] * local[:, j], minlength=len(keys))
-        count = np.bincount(label, minlength=len(keys))
+            sums[3 + c] = np.bincount(label, weights=local[:, i] * local[:, j], minlength=n)
+        count = np.bincount(label, minlength=n)
         if inten is None:
-            sums[:, 9:11] = 0.0
+            sums[9:11] = 0.0
         else:
             has = np.isfinite(inten)
-            sums[:, 9] = np.bincount(label, weights=np.where(has, inten, 0.0), minlength=len(keys))
-            sums[:, 10] = count if has.all() else np.bincount(label, weights=has, minlength=len(keys))
+            sums[9] = np.bincount(label, weights=np.where(has, inten, 0.0), minlength=n)
+            sums[10] = count if has.all() else np.bincount(label, weights=has, minlength=n)
         return keys, count, sums
 
     def _merge(self, keys, count, sums, first, last) -> None:
-        pos = np.searchsorted(self.keys, keys)
+        """Add a chunk's per-voxel sums (keys unique and sorted; sums (11, K)): voxels already mapped are summed in
+        place, new ones appended, and only the sorted index of keys (16 bytes a voxel) takes them in order."""
+        pos = np.searchsorted(self._sorted_keys, keys)
         found = np.zeros(len(keys), bool)
-        inside = pos < len(self.keys)
-        found[inside] = self.keys[pos[inside]] == keys[inside]
-        at = pos[found]  # unique: the chunk's keys are
-        self.count[at] += count[found]
-        self.sums[at] += sums[found]
-        self.first_ns[at] = np.minimum(self.first_ns[at], first[found])
-        self.last_ns[at] = np.maximum(self.last_ns[at], last[found])
-        new = ~found
-        if not new.any():  # a pass over mapped ground: nothing to splice in
+        inside = pos < self._n
+        found[inside] = self._sorted_keys[pos[inside]] == keys[inside]
+        at = self._sorted_rows[pos[found]]  # unique: the chunk's keys are
+        self._count[at] += count[found]
+        self._sums[:, at] += sums[:, found]
+        self._first[at] = np.minimum(self._first[at], first[found])
+        self._last[at] = np.maximum(self._last[at], last[found])
+        new = np.flatnonzero(~found)
+        if not len(new):  # a pass over mapped ground: nothing to add
             return
-        new_at, old_at = _spliced_positions(len(self.keys), pos[new])
-        self.keys = _splice(self.keys, keys[new], new_at, old_at)
-        self.count = _splice(self.count, count[new], new_at, old_at)
-        self.sums = _splice(self.sums, sums[new], new_at, old_at)
-        self.first_ns = _splice(self.first_ns, first[new], new_at, old_at)
-        self.last_ns = _splice(self.last_ns, last[new], new_at, old_at)
+        rows = self._append(keys[new], count[new], sums[:, new], first[new], last[new])
+        new_at, old_at = _spliced_positions(len(self._sorted_keys), pos[new])
+        self._sorted_keys = _splice(self._sorted_keys, keys[new], new_at, old_at)
+        self._sorted_rows = _splice(self._sorted_rows, rows, new_at, old_at)
+
+    def _append(self, keys, count, sums, first, last) -> np.ndarray:
+        """Append voxels at the end of the per-voxel arrays (their capacity grown by half when full); their rows."""
+        n, k = self._n, len(keys)
+        if n + k > len(self._key):
+            cap = max(len(self._key) * 3 // 2, n + k, 1024)
+            self._key = _grown(self._key, cap, n)
+            self._count = _grown(self._count, cap, n)
+            self._sums = _grown(self._sums, cap, n)
+            self._first = _grown(self._first, cap, n)
+            self._last = _grown(self._last, cap, n)
+        self._key[n : n + k] = keys
+        self._count[n : n + k] = count
+        self._sums[:, n : n + k] = sums
+        self._first[n : n + k] = first
+        self._last[n : n + k] = last
+        self._n = n + k
+        return np.arange(n, n + k, dtype=np.int64)
 
     def nbytes(self) -> int:
-        """Bytes held by the map's arrays (the buffered sums aside)."""
-        arrays = (self.keys, self.count, self.sums, self.first_ns, self.last_ns)
+        """Bytes held by the map's arrays, their spare capacity included (the buffered sums aside)."""
+        arrays = (self._key, self._count, self._sums, self._first, self._last, self._sorted_keys, self._sorted_rows)
         return int(sum(a.nbytes for a in arrays))
 
     def stats(self) -> VoxelStats:
-        """Centroid, mean intensity, normal, planarity and first/last stamp of every voxel (buffered points merged
-        first)."""
+        """Centroid, mean intensity, normal, planarity and first/last stamp of every voxel, sorted by voxel key
+        (buffered points merged first)."""
         self.flush()
-        n = self.count.astype(np.float64)
-        mean_local = self.sum_xyz / n[:, None]
-        corner = _unpack(self.keys) * self.voxel_size_m
+        rows = self._sorted_rows
+        count = self._count[rows]
+        n = count.astype(np.float64)
+        centroid = np.empty((len(n), 3))
         normal = np.full((len(n), 3), np.nan)
         planarity = np.full(len(n), np.nan)
-        enough = np.flatnonzero(self.count >= 3)
-        for lo in range(0, len(enough), STATS_BLOCK):  # in blocks: the eigen temporaries stay bounded
-            at = enough[lo : lo + STATS_BLOCK]
+        intensity = np.full(len(n), np.nan)
+        for lo in range(0, len(n), STATS_BLOCK):  # in blocks: the gathered sums and eigen temporaries stay bounded
+            blk = slice(lo, lo + STATS_BLOCK)
+            sums = self._sums[:, rows[blk]]  # (11, B)
+            nb = n[blk]
+            mean_local = (sums[0:3] / nb).T
+            centroid[blk] = _unpack(self._sorted_keys[blk]) * self.voxel_size_m + mean_local
+            with np.errstate(invalid="ignore", divide="ignore"):
+                intensity[blk] = np.where(sums[10] > 0, sums[9] / sums[10], np.nan)
+            enough = np.flatnonzero(count[blk] >= 3)
+            if not len(enough):
+                continue
             # the covariance's six distinct entries (xx, xy, xz, yy, yz, zz)
-            cov = self.sum_outer[at] / n[at, None] - mean_local[at][:, _OUTER_I] * mean_local[at][:, _OUTER_J]
+            m = mean_local[enough]
+            cov = (sums[3:9, enough] / nb[enough]).T - m[:, _OUTER_I] * m[:, _OUTER_J]
             evals, smallest = symmetric3_eigen(cov)  # ascending: l3, l2, l1
+            at = lo + enough
             normal[at] = smallest * np.where(smallest[:, 2] < 0, -1.0, 1.0)[:, None]
             with np.errstate(invalid="ignore", divide="ignore"):
                 planarity[at] = np.where(evals[:, 2] > 0, (evals[:, 1] - evals[:, 0]) / evals[:, 2], np.nan)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            intensity = np.where(self.count_intensity > 0, self.sum_intensity / self.count_intensity, np.nan)
         return VoxelStats(
             self.voxel_size_m,
-            corner + mean_local,
-            self.count.copy(),
+            centroid,
+            count,
             intensity,
             normal,
             planarity,
-            self.first_ns.copy(),
-            self.last_ns.copy(),
+            self._first[rows],
+            self._last[rows],
         )
 
 
@@ -277,6 +321,13 @@ def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     label[order] = np.cumsum(edge) - 1
     start = np.flatnonzero(edge)
     return ordered[start], label, order, start
+
+
+def _grown(a: np.ndarray, capacity: int, used: int) -> np.ndarray:
+    """``a`` with room for ``capacity`` entries along its last axis, its first ``used`` kept."""
+    out = np.empty((*a.shape[:-1], capacity), a.dtype)
+    out[..., :used] = a[..., :used]
+    return out
 
 
 def _spliced_positions(n_old: int, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
