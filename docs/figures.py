@@ -258,6 +258,22 @@ def portable(value, root: Path = ROOT, python: str = sys.executable):
     return out
 
 
+def update_benchmarks(source: Path) -> Path:
+    """Replace the benchmarks record's entries of the benchmarks ``source`` (a bench/run_all.py JSON report of some
+    of them) ran; each replaced entry carries its own ``measured`` date, the others keep the record's."""
+    rec = record("benchmarks")
+    new = portable(json.loads(source.read_text()))
+    if bool(new.get("quick")) != bool(rec.get("quick")):
+        raise SystemExit("the report and the record differ in --quick: run the benchmark as the record ran them")
+    today = dt.date.today().isoformat()
+    fresh = {r["name"]: {**r, "measured": today} for r in new["results"]}
+    unknown = sorted(set(fresh) - {r["name"] for r in rec["results"]})
+    rec["results"] = [fresh.get(r["name"], r) for r in rec["results"]] + [fresh[n] for n in unknown]
+    path = RESULTS / "benchmarks.json"
+    path.write_text(json.dumps(rec, indent=1, sort_keys=False) + "\n")
+    return path
+
+
 def record(name: str) -> dict:
     path = RESULTS / f"{name}.json"
     if not path.is_file():
@@ -701,7 +717,9 @@ def render_benchmarks() -> str:
             r["mapkit"] or "",
             r["baseline"] or "",
             r["ratio"] or "",
-            r["status"] + (f": {r['detail']}" if r["status"] != "ok" and r.get("detail") else ""),
+            r["status"]
+            + (f": {r['detail']}" if r["status"] != "ok" and r.get("detail") else "")
+            + (f" (measured {r['measured']})" if r.get("measured", rec["measured"]) != rec["measured"] else ""),
         ]
         for r in rec["results"]
     ]
@@ -1026,13 +1044,21 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("sources", nargs="+", type=Path)
     c.add_argument("--command", default="", help="the command that made each run, as the docs should show it")
     c.add_argument("--note", default="", help="how the runs were made, as a reader should know it")
+    c.add_argument(
+        "--update",
+        action="store_true",
+        help="benchmarks only: replace the record's entries of the benchmarks this report ran (bench/run_all.py "
+        "--only ...), each dated, and keep the others",
+    )
     sub.add_parser("render", help="fill every figures block of README.md and docs/")
     sub.add_parser("check", help="exit 1 when a block is not its rendering")
     cmp_ = sub.add_parser("compare", help="a fresh run's figures beside a record's spread")
     cmp_.add_argument("name")
     cmp_.add_argument("run", type=Path)
     a = ap.parse_args(argv)
-    if a.cmd == "collect":
+    if a.cmd == "collect" and a.update:
+        print(update_benchmarks(a.sources[0]))
+    elif a.cmd == "collect":
         print(collect(a.name, a.sources, a.command, a.note))
     elif a.cmd == "render":
         for p in render_pages():
