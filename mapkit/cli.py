@@ -336,11 +336,16 @@ def model(
         None, "--config", "-c", help="YAML overriding `mapkit config defaults reference_model`."
     ),
     session: list[str] | None = typer.Option(None, "--session", help="A session to use (repeatable; default all)."),
+    truth: Path | None = typer.Option(
+        None,
+        "--truth",
+        help="A synthetic town: the images take their true poses, a model that measures a localizer alone.",
+    ),
 ) -> None:
     """Build the triangulated reference model (COLMAP, SIFT) of the database images on their known poses."""
     from mapkit.localization.reference_model import build_reference_model
 
-    folder = build_reference_model(workspace, session or None, out, config)
+    folder = build_reference_model(workspace, session or None, out, config, truth)
     typer.echo((folder / "metrics.json").read_text(), nl=False)
     typer.echo(f"written to {folder}: sfm/ (COLMAP binary), sfm_text/, database.db, pairs.txt, statistics.png")
 
@@ -558,6 +563,15 @@ def demo(
         "use every image, as the semi-dense paper's DSO maps do; image databases "
         "and queries keep the preset's rates.",
     ),
+    lidar_maps: bool = typer.Option(
+        False, "--lidar-maps", help="Also build each session's LiDAR map (shown beside the semi-dense maps)."
+    ),
+    sixdof: bool = typer.Option(
+        False,
+        "--sixdof",
+        help="Also build the reference model, localize the test drives in 6-DoF on it and export the localization "
+        "benchmark (about 2 more minutes on the demo town).",
+    ),
 ) -> None:
     """Synthetic town to deployable bundles and an HTML report, in one command."""
     from mapkit.pipelines.demo import run_demo
@@ -570,6 +584,8 @@ def demo(
         train_cnn=train_cnn,
         progress=sys.stderr.isatty(),
         record_rate_hz=record_rate_hz,
+        lidar_maps=lidar_maps,
+        sixdof=sixdof,
     )
     typer.echo((out / "timings.md").read_text(), nl=False)
     typer.echo(f"report: {m['report']}")

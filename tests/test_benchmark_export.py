@@ -319,3 +319,35 @@ def test_eval_localize_scores_the_sixdof_poses_in_the_model_frame(exported, tmp_
     assert fit["fit_images"] == len(DB_FRAMES) and fit["residual_max_m"] < 1e-3
     s = r["sessions"]["query"]["sixdof"]
     assert s["6dof"]["recall"]["0.25m_2deg"] >= 0.8 and s["6dof"]["median_translation_m"] < 0.05, s["6dof"]
+
+
+def test_a_model_on_the_towns_true_poses(exported, tmp_path):
+    """`mapkit model --truth TOWN`: the database images take their true poses, the recorded ones moved by the
+    inverse of MODEL_FROM_TRUTH (the known answer), so eval localize finds no transform left to fit; a session
+    the town did not drive is one error."""
+    from mapkit.evaluation.localization import evaluate_localization
+
+    ws, _, poses, town = exported
+    model = build_reference_model(ws, ["kitti"], out=tmp_path / "true", config=ReferenceModelConfig(**FAST), truth=town)
+    rec = pycolmap.Reconstruction(str(model / "sfm"))
+    for im in rec.images.values():
+        frame = int(Path(im.name).stem) // 100_000_000
+        T = invert_pose(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
+        np.testing.assert_allclose(T, invert_pose(MODEL_FROM_TRUTH) @ poses[frame], atol=1e-3)
+    assert rec.num_points3D() > 50 and "depth_check" not in json.loads((model / "metrics.json").read_text())
+    r = evaluate_localization(
+        ws,
+        town,
+        ws / "indexes" / "vlad",
+        test_sessions=["query"],
+        overrides={"refine": "6dof", "reference_model": str(model)},
+        out=tmp_path / "eval",
+        progress=False,
+    )
+    np.testing.assert_allclose(r["model_from_truth"]["matrix"], np.eye(4), atol=1e-3)
+    assert r["sessions"]["query"]["sixdof"]["6dof"]["recall"]["0.25m_2deg"] >= 0.8
+    partial = shutil.copytree(town, tmp_path / "town-without-query")
+    (partial / "sessions" / "query.camera.tum").unlink()
+    with pytest.raises(InputError, match="session 'query'") as err:
+        build_reference_model(ws, ["kitti", "query"], out=tmp_path / "none", truth=partial)
+    assert err.value.field == "truth" and not (tmp_path / "none").exists()

@@ -48,8 +48,8 @@ from scipy.spatial import cKDTree
 
 from mapkit.core.bundle import building
 from mapkit.core.config import MapkitConfig, dump_config, load_config
-from mapkit.core.errors import InputError
-from mapkit.core.geometry import invert_pose
+from mapkit.core.errors import InputError, MapkitError
+from mapkit.core.geometry import interpolate_poses, invert_pose
 from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json, write_timings
 from mapkit.core.types import CameraInfo
 from mapkit.core.workspace import MAP_KINDS, Workspace
@@ -684,6 +684,32 @@ def triangulate_reference_model(
     return final
 
 
+def _on_true_poses(ws: Workspace, names: list[str], images: list[PosedImage], truth: Path) -> list[PosedImage]:
+    """``images`` (of sessions ``names``) with the synthetic town's true camera poses at their stamps, in the
+    workspace's frame. An image without a true pose (a session the town did not drive) is one error."""
+    from mapkit.synth import camera_poses, town_frame
+
+    try:
+        ws_from_town = town_frame(truth).to_frame(ws.require_frame("a model on the town's true poses"))
+    except MapkitError as exc:
+        raise InputError(truth, str(exc), field="truth") from None
+    true: dict[Path, np.ndarray] = {}
+    for name in names:
+        table = read_session_images(ws, name)
+        try:
+            stamps, T = camera_poses(truth, name)
+        except MapkitError as exc:
+            raise InputError(truth, f"session {name!r}: {exc}", field="truth") from None
+        poses, ok = interpolate_poses(stamps, ws_from_town @ T, np.asarray(table.table["stamp_ns"], np.int64))
+        true.update({Path(p): pose for p, pose, good in zip(table.image_paths, poses, ok, strict=True) if good})
+    missing = [im.path for im in images if im.path not in true]
+    if missing:
+        raise InputError(
+            truth, f"{len(missing)} database images have no true pose in the town (first: {missing[0]})", field="truth"
+        )
+    return [PosedImage(im.path, im.camera, true[im.path]) for im in images]
+
+
 def _session_names(ws: Workspace, sessions: list[str] | None) -> list[str]:
     """The sessions the model holds: ``sessions``, or every session with an image database if None."""
     names = ws.sessions_with_images()
@@ -729,13 +755,22 @@ def build_reference_model(
     sessions: list[str] | None = None,
     out: str | Path | None = None,
     config: str | Path | ReferenceModelConfig | None = None,
+    truth: str | Path | None = None,
 ) -> Path:
     """The reference model of the workspace's database images (``mapkit align``'s common frame when
     it finished, else each session's own) into ``out`` (default ``WORKSPACE/reference_model``); returns it.
-    Several sessions that no finished alignment holds are refused (``allow_unaligned`` overrides)."""
+    Several sessions that no finished alignment holds are refused (``allow_unaligned`` overrides).
+
+    ``truth`` (a synthetic town): the images take their true camera poses in the workspace's frame instead of
+    their recorded ones, a model that measures a localizer alone, without the map's own errors; the depth check
+    is then left out (the maps lie on the recorded poses)."""
     ws = Workspace(workspace)
     cfg = load_config(ReferenceModelConfig, config, {"sessions": sessions} if sessions is not None else None)
     names = _session_names(ws, cfg.sessions)
+    if truth is not None:
+        images = _on_true_poses(ws, names, workspace_images(ws, cfg.sessions), Path(truth))
+        target = Path(out) if out is not None else ws.root / DEFAULT_FOLDER
+        return triangulate_reference_model(images, target, cfg, image_root=ws.root, maps=None)
     aligned = set(ws.aligned_sessions())
     unaligned = [n for n in names if n not in aligned]
     if len(names) > 1 and unaligned and not cfg.allow_unaligned:
