@@ -14,6 +14,7 @@ docs (``compare``).
 
     python3 docs/figures.py collect places RUN...       # runs of `mapkit demo --preset places --seed S --train-cnn`
     python3 docs/figures.py collect main-job RUN...     # runs of the README's main job (the demo preset)
+    python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job with --sixdof --lidar-maps
     python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
     python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
     python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
@@ -576,7 +577,7 @@ SIXDOF_BANDS = (("0.25m_2deg", "(0.25 m, 2°)"), ("0.5m_5deg", "(0.5 m, 5°)"), 
 def render_sixdof() -> str:
     """The main job's 6-DoF stage: per test drive, the share of queries in each band and the median errors for the
     6-DoF localizer, MCVL's filter and retrieval alone on the same queries; the reference model's size."""
-    rec = record("main-job")
+    rec = record("main-job-6dof")
     runs = [r for r in rec["runs"] if r.get("sixdof")]
     if not runs:
         return "No run of the record holds the 6-DoF stage."

@@ -9,8 +9,11 @@ The recipe is :func:`mapkit.pipelines.demo.run_demo`; this script is its stand-a
 4. ``mapkit triplets``: the triplet patch dataset, with the true offsets of its positives
 5. ``mapkit train`` (only with ``--train-cnn``): the 3D CNN patch descriptor
 6. ``mapkit index vlad`` and ``mapkit index structure``: the deployable indexes
-7. ``mapkit eval localize`` and ``mapkit eval places``: the localizer and place recognition
-8. ``mapkit index export``: the verified deployment bundle; ``report.html``: everything above
+7. ``mapkit eval localize``: the Monte Carlo localizer; with ``--sixdof``, ``mapkit model``, ``mapkit eval
+   localize --refine 6dof`` and ``mapkit export benchmark``: the reference model, 6-DoF localization and the
+   localization benchmark
+8. ``mapkit eval places``: place recognition
+9. ``mapkit index export``: the verified deployment bundle; ``report.html``: everything above
 
 Re-running resumes: every stage skips what it already finished.
 """
@@ -41,6 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--workers", type=int, default=2, help="processes for image encoding (default 2)")
     ap.add_argument("--train-cnn", action="store_true", help="also train the 3D CNN (learning extra)")
+    ap.add_argument("--lidar-maps", action="store_true", help="also build each session's LiDAR map")
+    ap.add_argument(
+        "--sixdof", action="store_true", help="also the reference model, 6-DoF localization and the benchmark export"
+    )
     ap.add_argument(
         "--record-rate-hz",
         type=float,
@@ -60,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         args.train_cnn,
         progress=sys.stderr.isatty(),
         record_rate_hz=args.record_rate_hz,
+        lidar_maps=args.lidar_maps,
+        sixdof=args.sixdof,
     )
     print((args.out / "timings.md").read_text(), end="")
     print(f"report: {m['report']}")

@@ -93,7 +93,7 @@ def test_tiny_main_job_runs_every_stage_with_non_empty_outputs(tiny_demo):
     out, m = tiny_demo
     status = {n: s["status"] for n, s in m["stages"].items()}
     assert status.pop("train_cnn") == "skipped"  # only with --train-cnn
-    assert status.pop("sixdof") == "skipped"  # the demo and places presets only
+    assert status.pop("sixdof") == "skipped"  # only with --sixdof
     assert set(status.values()) == {"ok"}, m["stages"]
     ws = out / "workspace"
     # synth and build: every session georeferenced; align: at least two sessions in one frame

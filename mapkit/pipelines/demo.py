@@ -142,8 +142,11 @@ class Demo:
         log: Callable[[str], None],
         record_rate_hz: float | None = None,
         synth_overrides: dict | None = None,
+        lidar_maps: bool = False,
+        sixdof: bool = False,
     ):
         self.out, self.preset, self.seed, self.workers = Path(out), preset, seed, workers
+        self.lidar_maps, self.sixdof = lidar_maps, sixdof
         self.record_rate_hz, self.synth_overrides = record_rate_hz, synth_overrides
         self.train_cnn, self.progress, self.log = train_cnn, progress, log
         self.town = self.out / "town"
@@ -272,8 +275,8 @@ def _condition(s: dict) -> str:
 def _build(d: Demo) -> None:
     with d.stage("build", "Session maps (mapkit build)") as sec:
         logs = session_logs(d.town)
-        lidar = d.preset == "demo"  # the main job shows both maps; the other presets keep their time
-        build(logs, d.ws.root, config=demo_build_config(d.out, d.roles, lidar), progress=d.progress)
+        config = demo_build_config(d.out, d.roles, d.lidar_maps)
+        build(logs, d.ws.root, config=config, progress=d.progress)
         d.log(format_build_summary(d.ws.root))
         r = evaluate_build(d.ws, d.town)
         d.metrics["eval_build"] = r
@@ -455,9 +458,9 @@ def _localize(d: Demo) -> None:
 def _sixdof(d: Demo) -> None:
     title = "6-DoF localization on a reference model (mapkit model, eval localize --refine 6dof, export benchmark)"
     with d.stage("sixdof", title) as sec:
+        if not d.sixdof:
+            raise _Skip("not asked for (`mapkit demo --sixdof`: about 2 more minutes on the demo town)")
         d.need("align", "index_vlad")
-        if d.preset == "tiny":
-            raise _Skip("the tiny preset leaves it out to stay small; the demo and places presets run it")
         if not d.train_sessions or not d.test_sessions:
             raise _Skip("the town needs training and test sessions")
         model = build_reference_model(d.ws, sessions=d.train_sessions)
@@ -649,6 +652,8 @@ def run_demo(
     log: Callable[[str], None] = logger.info,
     record_rate_hz: float | None = None,
     synth_overrides: dict | None = None,
+    lidar_maps: bool = False,
+    sixdof: bool = False,
 ) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
     the paths of the report and the bundle. ``log`` takes the stage lines ("[demo] build: ok in
@@ -657,9 +662,14 @@ def run_demo(
     ``record_rate_hz``: the town's cameras record video at this rate and the maps are made from
     every image, as the semi-dense paper's DSO maps are (Sec. 3); image databases and queries keep
     the preset's rates (:func:`demo_build_config`). ``synth_overrides``: merged over the town's
-    preset, as a ``mapkit synth --config`` file would be."""
+    preset, as a ``mapkit synth --config`` file would be. ``lidar_maps``: each session's LiDAR map too (the
+    report shows them beside the semi-dense maps and the reference model's depth check uses them; the later
+    stages read the semi-dense maps). ``sixdof``: the reference model of the training drives, the 6-DoF
+    localization of the test drives on it and the localization benchmark export (the ``sixdof`` stage)."""
 
-    d = Demo(Path(out), preset, seed, workers, train_cnn, progress, log, record_rate_hz, synth_overrides)
+    d = Demo(
+        Path(out), preset, seed, workers, train_cnn, progress, log, record_rate_hz, synth_overrides, lidar_maps, sixdof
+    )
     d.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ex = default_executor()  # `mapkit --executor ray demo` set one; else a local pool of `workers`
