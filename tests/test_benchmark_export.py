@@ -323,10 +323,7 @@ def test_eval_localize_scores_the_sixdof_poses_in_the_model_frame(exported, tmp_
 
 def test_a_model_on_the_towns_true_poses(exported, tmp_path):
     """`mapkit model --truth TOWN`: the database images take their true poses, the recorded ones moved by the
-    inverse of MODEL_FROM_TRUTH (the known answer), so eval localize finds no transform left to fit; a session
-    the town did not drive is one error."""
-    from mapkit.evaluation.localization import evaluate_localization
-
+    inverse of MODEL_FROM_TRUTH (the known answer); a session the town did not drive is one error."""
     ws, _, poses, town = exported
     model = build_reference_model(ws, ["kitti"], out=tmp_path / "true", config=ReferenceModelConfig(**FAST), truth=town)
     rec = pycolmap.Reconstruction(str(model / "sfm"))
@@ -335,17 +332,6 @@ def test_a_model_on_the_towns_true_poses(exported, tmp_path):
         T = invert_pose(np.vstack([im.cam_from_world().matrix(), [0, 0, 0, 1]]))
         np.testing.assert_allclose(T, invert_pose(MODEL_FROM_TRUTH) @ poses[frame], atol=1e-3)
     assert rec.num_points3D() > 50 and "depth_check" not in json.loads((model / "metrics.json").read_text())
-    r = evaluate_localization(
-        ws,
-        town,
-        ws / "indexes" / "vlad",
-        test_sessions=["query"],
-        overrides={"refine": "6dof", "reference_model": str(model)},
-        out=tmp_path / "eval",
-        progress=False,
-    )
-    np.testing.assert_allclose(r["model_from_truth"]["matrix"], np.eye(4), atol=1e-3)
-    assert r["sessions"]["query"]["sixdof"]["6dof"]["recall"]["0.25m_2deg"] >= 0.8
     partial = shutil.copytree(town, tmp_path / "town-without-query")
     (partial / "sessions" / "query.camera.tum").unlink()
     with pytest.raises(InputError, match="session 'query'") as err:
