@@ -40,3 +40,13 @@ def clip12(kitti_clip, tmp_path_factory) -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+#: the test files whose module fixtures run longest (`pytest --durations`: the two tiny chains of test_demo.py alone
+#: take five minutes), started first so that the other worker is never left idle while one of them runs at the end
+LONGEST_FIRST = ("test_demo.py", "test_loop_closure.py", "test_eval_align.py", "test_executor.py")
+
+
+def pytest_collection_modifyitems(items: list) -> None:
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
