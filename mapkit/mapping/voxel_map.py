@@ -5,7 +5,7 @@ one sort, each sum one ``np.bincount``: linear in the points however few share a
 buffered up to ``chunk_points`` points, summed per voxel again the same way, and merged into the map's arrays,
 appended in the order they are first seen; a sorted index of their keys (``np.searchsorted``) finds the voxels
 already there, and only that index (16 bytes a voxel) is spliced when new ones arrive. Memory is therefore bounded
-by the map (136 bytes a voxel, up to half as much again in spare capacity) plus one chunk, not by the length of the log.
+by the map (128 bytes a voxel, up to half as much again in spare capacity) plus one chunk, not by the length of the log.
 
 Per voxel the map keeps sums, so that merging is exact and order-free: the point count, the sum of
 the points and of their outer products (relative to the voxel's corner, which keeps the covariance
@@ -57,11 +57,10 @@ class VoxelMap:
             raise ValueError(f"voxel size must be positive, got {voxel_size_m}")
         self.voxel_size_m = float(voxel_size_m)
         self.chunk_points = int(chunk_points)
-        # per voxel, in the order the voxels were first seen (appended, never moved; capacity grows by half): its key,
+        # per voxel, in the order the voxels were first seen (appended, never moved; capacity grows by half): its
         # point count, sums (one row per sum: x, y, z, the six outer products, intensity, points with one) and
         # first and last stamp; and the keys sorted with the row each is at, the index a merge searches
         self._n = 0
-        self._key = np.zeros(0, np.int64)
         self._count = np.zeros(0, np.int64)
         self._sums = np.zeros((_SUMS, 0))
         self._first = np.zeros(0, np.int64)
@@ -71,29 +70,6 @@ class VoxelMap:
         self.points_added = 0
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []  # per scan: keys, count, sums, stamp
         self._pending_points = 0
-
-    # --- the voxels sorted by key (views made on demand)
-
-    @property
-    def keys(self) -> np.ndarray:
-        return self._sorted_keys
-
-    @property
-    def count(self) -> np.ndarray:
-        return self._count[self._sorted_rows]
-
-    @property
-    def sums(self) -> np.ndarray:
-        """(V, 11) per voxel, sorted by key."""
-        return self._sums[:, self._sorted_rows].T
-
-    @property
-    def first_ns(self) -> np.ndarray:
-        return self._first[self._sorted_rows]
-
-    @property
-    def last_ns(self) -> np.ndarray:
-        return self._last[self._sorted_rows]
 
     def __len__(self) -> int:
         self.flush()
@@ -175,22 +151,20 @@ class VoxelMap:
         new = np.flatnonzero(~found)
         if not len(new):  # a pass over mapped ground: nothing to add
             return
-        rows = self._append(keys[new], count[new], sums[:, new], first[new], last[new])
+        rows = self._append(count[new], sums[:, new], first[new], last[new])
         new_at, old_at = _spliced_positions(len(self._sorted_keys), pos[new])
         self._sorted_keys = _splice(self._sorted_keys, keys[new], new_at, old_at)
         self._sorted_rows = _splice(self._sorted_rows, rows, new_at, old_at)
 
-    def _append(self, keys, count, sums, first, last) -> np.ndarray:
+    def _append(self, count, sums, first, last) -> np.ndarray:
         """Append voxels at the end of the per-voxel arrays (their capacity grown by half when full); their rows."""
-        n, k = self._n, len(keys)
-        if n + k > len(self._key):
-            cap = max(len(self._key) * 3 // 2, n + k, 1024)
-            self._key = _grown(self._key, cap, n)
+        n, k = self._n, len(count)
+        if n + k > len(self._count):
+            cap = max(len(self._count) * 3 // 2, n + k, 1024)
             self._count = _grown(self._count, cap, n)
             self._sums = _grown(self._sums, cap, n)
             self._first = _grown(self._first, cap, n)
             self._last = _grown(self._last, cap, n)
-        self._key[n : n + k] = keys
         self._count[n : n + k] = count
         self._sums[:, n : n + k] = sums
         self._first[n : n + k] = first
@@ -200,7 +174,7 @@ class VoxelMap:
 
     def nbytes(self) -> int:
         """Bytes held by the map's arrays, their spare capacity included (the buffered sums aside)."""
-        arrays = (self._key, self._count, self._sums, self._first, self._last, self._sorted_keys, self._sorted_rows)
+        arrays = (self._count, self._sums, self._first, self._last, self._sorted_keys, self._sorted_rows)
         return int(sum(a.nbytes for a in arrays))
 
     def stats(self) -> VoxelStats:
