@@ -246,7 +246,9 @@ def fit_model_from_truth(model_world_from_cam: np.ndarray, truth_world_from_cam:
     return umeyama(points(truth_world_from_cam), points(model_world_from_cam), with_scale=False)
 
 
-def _fit(model_T: np.ndarray, truth_T: np.ndarray, source: str, min_images: int, where: Path) -> BenchmarkTruth:
+def fit_truth(model_T: np.ndarray, truth_T: np.ndarray, source: str, min_images: int, where: Path) -> BenchmarkTruth:
+    """:func:`fit_model_from_truth` of the database images' model poses ``model_T`` and true poses ``truth_T`` (both
+    world_from_cam), with its residual; fewer than ``min_images`` is one error at ``where`` (field ``truth``)."""
     if len(model_T) < min_images:
         raise InputError(
             where,
@@ -331,7 +333,7 @@ def export_benchmark(
             T_true = T[0]
         model_T.append(invert_pose(np.vstack([rec.images[i].cam_from_world().matrix(), [0, 0, 0, 1]])))
         truth_T.append(T_true)
-    fit = _fit(
+    fit = fit_truth(
         np.array(model_T).reshape(-1, 4, 4),
         np.array(truth_T).reshape(-1, 4, 4),
         source,

@@ -193,7 +193,7 @@ def _model_frame_truth(ws: Workspace, truth: Path, ws_frame: LocalFrame, loc: Si
     model's database images alone (their known poses against their truth, as ``mapkit export benchmark`` fits it):
     the aligned frame the model is built in sits off the truth by the drives' common GPS bias, which no localizer
     on that map can see. ``transform`` (4, 4), the images it was fitted on and its residual."""
-    from mapkit.deploy.benchmark import fit_model_from_truth
+    from mapkit.deploy.benchmark import fit_truth
     from mapkit.evaluation.truth import truth_camera_poses_at
 
     by_path = loc.names_by_path()
@@ -211,19 +211,13 @@ def _model_frame_truth(ws: Workspace, truth: Path, ws_frame: LocalFrame, loc: Si
             continue  # a session the town did not drive: no truth
         model_T += [loc.world_from_cam(names[i]) for i, good in zip(at, ok, strict=True) if good]
         truth_T += list(T[ok])
-    if len(model_T) < 3:
-        raise InputError(
-            loc.folder, f"{len(model_T)} images of the model have truth in the town; 3 needed", field="truth"
-        )
-    model_arr, truth_arr = np.array(model_T), np.array(truth_T)
-    S = fit_model_from_truth(model_arr, truth_arr)
-    d = np.linalg.norm((S @ truth_arr)[:, :3, 3] - model_arr[:, :3, 3], axis=1)
+    fit = fit_truth(np.array(model_T).reshape(-1, 4, 4), np.array(truth_T).reshape(-1, 4, 4), "the town", 3, loc.folder)
     return {
-        "transform": S,
-        "fit_images": len(model_T),
-        "offset_m": float(np.linalg.norm(S[:3, 3])),
-        "residual_rmse_m": float(np.sqrt(np.mean(d**2))),
-        "residual_max_m": float(d.max()),
+        "transform": fit.model_from_truth,
+        "fit_images": fit.fit_images,
+        "offset_m": float(np.linalg.norm(fit.model_from_truth[:3, 3])),
+        "residual_rmse_m": fit.residual_rmse_m,
+        "residual_max_m": fit.residual_max_m,
     }
 
 
