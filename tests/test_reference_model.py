@@ -99,6 +99,20 @@ def test_kitti_points_agree_with_the_ground_truth_geometry(kitti_model):
     assert np.median(rel) < 0.02
 
 
+def test_guided_matching_adds_points_that_fit_the_poses(kitti_model, kitti_clip, tmp_path):
+    """The default model (COLMAP's guided matching on) holds more points than the same images matched without it,
+    and its points fit the ground-truth poses as well: sub-pixel, in front of the cameras."""
+    out, cam, poses = kitti_model
+    images = [PosedImage(kitti_clip / "image_l" / f"{i:06d}.png", cam, poses[i]) for i in FRAMES]
+    plain = triangulate_reference_model(
+        images, tmp_path / "plain", ReferenceModelConfig(pair_neighbours=3, guided_matching=False)
+    )
+    guided, unguided = (json.loads((m / "metrics.json").read_text()) for m in (out, plain))
+    assert guided["points"] >= 1.1 * unguided["points"], (guided["points"], unguided["points"])
+    assert guided["observations"] >= 1.1 * unguided["observations"]
+    assert guided["reprojection_error_median_px"] < 1.0
+
+
 def test_binary_and_text_models_agree(kitti_model):
     out, _, _ = kitti_model
     binary = pycolmap.Reconstruction(str(out / "sfm"))

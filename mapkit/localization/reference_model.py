@@ -61,7 +61,7 @@ from mapkit.retrieval.vlad_bundle import read_session_images
 log = logging.getLogger(__name__)
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 2
+STAGE_VERSION = 3
 #: the default output folder, under the workspace root
 DEFAULT_FOLDER = "reference_model"
 
@@ -95,11 +95,27 @@ class ReferenceModelConfig(MapkitConfig):
     min_num_inliers: int = Field(
         15, ge=5, description="A verified pair needs this many inlier matches (COLMAP's default)."
     )
+    guided_matching: bool = Field(
+        True,
+        description="Once a pair's two-view geometry is verified, match its features again along that geometry "
+        "(COLMAP's guided matching, off in COLMAP by default): a feature whose best match fails the ratio test "
+        "against a look-alike elsewhere in the image (the next window of a facade) is matched where the geometry "
+        "allows. mapkit's default: on the demo town it gives 1.7x the points (3,792 -> 6,328 on the training "
+        "drives' true poses) for 1.1x the time.",
+    )
     max_reprojection_error_px: float = Field(
         4.0, gt=0, description="Observations farther from their point's projection are dropped (COLMAP's default)."
     )
     min_triangulation_angle_deg: float = Field(
         1.5, gt=0, description="A point needs rays this far apart (COLMAP's default)."
+    )
+    min_depth_m: float = Field(
+        0.5,
+        ge=0,
+        description="A point nearer than this to a camera that sees it is dropped (m; pose units without GPS). "
+        "Near the epipole of a camera moving forward, a match along the epipolar line fits a point anywhere "
+        "on the line of the camera centres, with rays wide apart: COLMAP's angle and reprojection filters keep "
+        "it. Nothing a vehicle's camera maps lies this close.",
     )
     num_threads: int = Field(
         2,
@@ -345,6 +361,7 @@ def sift_matching_options(cfg: ReferenceModelConfig, num_threads: int, seed: int
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = num_threads
     matching.sift.max_ratio = cfg.max_ratio
+    matching.guided_matching = cfg.guided_matching
     verification = pycolmap.TwoViewGeometryOptions()
     verification.min_num_inliers = cfg.min_num_inliers
     verification.ransac.random_seed = seed
@@ -395,8 +412,28 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
             )
         t2 = time.perf_counter()
         model = pycolmap.triangulate_points(rec, db_path, root, folder / "sfm", clear_points=True, options=tri)
+        drop_near_points(model, cfg.min_depth_m)
         write_timings(folder, extraction_s=t1 - t0, matching_s=t2 - t1, triangulation_s=time.perf_counter() - t2)
     return model
+
+
+def drop_near_points(rec, min_depth: float) -> int:
+    """Delete the points of ``rec`` that lie nearer than ``min_depth`` (camera z) to any image that sees them;
+    returns how many."""
+    near: set[int] = set()
+    for im in rec.images.values():
+        ids = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        if not ids:
+            continue
+        X = np.array([rec.points3D[i].xyz for i in ids], np.float64)
+        T = np.asarray(im.cam_from_world().matrix(), np.float64)
+        z = X @ T[2, :3] + T[2, 3]
+        near.update(int(i) for i, zi in zip(ids, z, strict=True) if zi < min_depth)
+    for pid in sorted(near):
+        rec.delete_point3D(pid)
+    if near:
+        log.info("dropped %d points nearer than %g to a camera that sees them", len(near), min_depth)
+    return len(near)
 
 
 def _check_database(db_path: Path, rec) -> None:
