@@ -223,6 +223,7 @@ def collect(name: str, sources: list[Path], command: str, note: str = "") -> Pat
         "fault-campaign",
         "outside-localizer",
         "align-sources",
+        "sixdof-thresholds",
     ):
         data = json.loads(sources[0].read_text())
         record = {"name": name, **data}
@@ -646,6 +647,30 @@ def render_align_sources() -> str:
     )
 
 
+def render_sixdof_thresholds() -> str:
+    """bench/sixdof_thresholds.py: right and off shares of held-out training drives per RANSAC threshold and
+    inlier count, and the setting chosen."""
+    rec = record("sixdof-thresholds")
+    counts = sorted({r["min_inliers"] for r in rec["rows"]})
+    chosen = rec["chosen"]
+    rows = []
+    for px in sorted({r["ransac_px"] for r in rec["rows"]}):
+        cells = []
+        for m in counts:
+            r = next(r for r in rec["rows"] if r["ransac_px"] == px and r["min_inliers"] == m)
+            cell = f"{100 * r['right']:.1f} / {100 * r['off']:.1f}"
+            cells.append(f"**{cell}**" if (px, m) == (chosen["ransac_px"], chosen["min_inliers"]) else cell)
+        rows.append([f"{px:g} px", *cells])
+    drives = ", ".join(f"{k} ({v['queries']} queries)" for k, v in rec["drives"].items())
+    return (
+        table(["RANSAC threshold", *(f"{m} inliers" for m in counts)], rows)
+        + f"\n\nPer cell: % of queries accepted within (0.25 m, 2 deg) / % accepted outside it, pooled over the "
+        f"held-out drives {drives}. Chosen (bold): the most right poses with at most {100 * rec['max_off']:.0f} % "
+        f"accepted off: RANSAC {chosen['ransac_px']:g} px, {chosen['min_inliers']} inliers. "
+        f"One run of `{rec['command']}`, measured {rec['measured']} on {rec['machine']}."
+    )
+
+
 def render_triplets() -> str:
     pl = record("places")
     runs = pl["runs"]
@@ -960,6 +985,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "main-job-stages": lambda: _stages("main-job"),
     "main-job-sixdof": render_sixdof,
     "align-sources": render_align_sources,
+    "sixdof-thresholds": render_sixdof_thresholds,
     "tiny-stages": lambda: _stages("tiny"),
     "places-stages": lambda: _stages("places"),
     "robustness": render_robustness,

@@ -84,16 +84,19 @@ class SixDofConfig(MapkitConfig):
         description="A match's descriptor angle (rad) at most this (COLMAP's SIFT matcher max_distance).",
     )
     ransac_max_error_px: float = Field(
-        12.0,
+        4.0,
         gt=0,
-        description="RANSAC's inlier threshold on the reprojection error (px; COLMAP's abs_pose_max_error and "
-        "hloc's localize_sfm default).",
+        description="RANSAC's inlier threshold on the reprojection error (px). Chosen with min_inliers on held-out "
+        "training drives of the demo town (bench/sixdof_thresholds.py: the most queries within (0.25 m, 2 deg) "
+        "while at most 5 % are accepted outside it). COLMAP's abs_pose_max_error and hloc's localize_sfm use "
+        "12 px, meant for photos of 1,000-1,600 px: on 640 px images it accepts about twice as many wrong poses.",
     )
     min_inliers: int = Field(
-        30,
+        10,
         ge=4,
-        description="A pose needs this many RANSAC inliers to be accepted (COLMAP's abs_pose_min_num_inliers: "
-        "the count below which its mapper refuses to register an image); else the fallback pose stays.",
+        description="A pose needs this many RANSAC inliers to be accepted, else the fallback pose stays. Chosen "
+        "with ransac_max_error_px (above). COLMAP's mapper refuses to register an image below 30 "
+        "(abs_pose_min_num_inliers): on the demo town that keeps a third of the right poses.",
     )
     num_threads: int = Field(2, ge=1, description="Threads of feature extraction (pycolmap's -1 takes every core).")
     seed: int = Field(0, ge=0, description="Seed of RANSAC: the same query gives the same pose.")
