@@ -786,8 +786,16 @@ def eval_places(
     ),
     truth: Path | None = typer.Option(None, "--truth", help="Synthetic town: true positions (else the aligned poses)."),
     vlad_bundle: Path | None = typer.Option(None, "--vlad-bundle", help="VLAD bundle for the image baseline."),
-    out: Path | None = typer.Option(None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places)."),
+    out: Path | None = typer.Option(
+        None, "--out", "-o", help="Output folder (default WORKSPACE/eval/places; eval/places-lidar with lidar)."
+    ),
     config: Path | None = typer.Option(None, "--config", "-c", help="YAML overriding `mapkit config defaults places`."),
+    map_source: str | None = typer.Option(
+        None,
+        "--map-source",
+        help="The structure methods' maps: semidense or lidar (voxel centroids); default: the config's "
+        "structure.map_source (semidense).",
+    ),
 ) -> None:
     """Place recognition precision/recall and AUC per session pair (the semi-dense paper's Table 2)."""
     from mapkit.core.errors import ConfigError
@@ -799,7 +807,12 @@ def eval_places(
             raise ConfigError(f"--pair {p!r}: expected DATABASE:QUERY")
         database, query = p.split(":")
         pairs.append((database, query))
-    overrides = {"structure": {"cnn_model": str(cnn_model)}} if cnn_model is not None else None
+    structure: dict = {}
+    if cnn_model is not None:
+        structure["cnn_model"] = str(cnn_model)
+    if map_source is not None:
+        structure["map_source"] = map_source
+    overrides = {"structure": structure} if structure else None
     r = evaluate_places(
         workspace, pairs, method, out, truth, vlad_bundle, config, overrides=overrides, progress=sys.stderr.isatty()
     )

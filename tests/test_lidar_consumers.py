@@ -286,3 +286,34 @@ def test_structure_index_of_lidar_maps_has_its_own_folder_and_lidar_keypoints(al
     assert len(mid) >= 10 and np.all(res.best_frame >= 0)
     print("lidar index place error m:", np.round(err, 1))
     assert np.mean(err <= 10.0) >= 0.8 and np.median(err) <= 4.0, np.round(err, 1)
+
+
+def test_eval_places_on_lidar_maps_scores_lidar_frames_beside_the_semidense_run(aligned, capsys):
+    """``mapkit eval places --map-source lidar``: its own folder (eval/places-lidar) beside the semi-dense run's, the
+    queries the frames of the query drive's LiDAR map, the database index cut from the database drive's LiDAR
+    voxels; on the test street a query frame finds its place (both drives pass the same facades); a pair whose drive
+    has no LiDAR map is one error naming it."""
+    from mapkit.places.index_structure import session_frames
+
+    cfg = aligned / "places.yaml"
+    cfg.write_text(json.dumps({"structure": {"keypoint_fraction": 0.03}, "split": "none", "bootstrap": 0}))
+    ws = Workspace(aligned)
+    args = ["eval", "places", str(aligned), "-p", "s0:s1", "-m", "nbld", "-c", str(cfg)]
+    assert main([*args, "--map-source", "lidar"]) == 0
+    out = aligned / "eval" / "places-lidar"
+    assert ws.places_eval_folder("lidar") == out and not ws.places_eval_dir.exists()
+    r = json.loads((out / "places.json").read_text())
+    assert r["map_source"] == "lidar" and r["config"]["structure"]["map_source"] == "lidar"
+    pair = r["pairs"][0]
+    q = lidar_observations(load_voxel_stats(ws.aligned("s1").lidar_map), Trajectory.load(ws.aligned("s1").trajectory))
+    assert pair["all_places"]["queries"] == len(session_frames(q)["frame_id"][:: r["query_stride"]])
+    assert r["maps"]["s0"]["points"] == len(load_voxel_stats(ws.aligned("s0").lidar_map))
+    index = Path(pair["methods"]["nbld"]["index"])
+    assert json.loads((index / "manifest.json").read_text())["config"]["map_source"] == "lidar"
+    assert pair["all_places"]["methods"]["nbld"]["auc"] >= 0.8, pair["all_places"]["methods"]["nbld"]
+    assert "from the LiDAR maps" in (out / "places.md").read_text()
+    before = (out / "places.json").read_bytes()
+    capsys.readouterr()
+    assert main([*args[:4], "s0:s2", *args[5:], "--map-source", "lidar"]) == 2
+    assert "session 's2' has no LiDAR" in capsys.readouterr().err
+    assert (out / "places.json").read_bytes() == before  # the earlier run's results stand

@@ -425,5 +425,10 @@ class Workspace:
     def places_eval_dir(self) -> Path:
         return self.eval_dir / "places"
 
+    def places_eval_folder(self, source: MapKind = "semidense") -> Path:
+        """The default folder of ``mapkit eval places``: ``eval/places`` on the semi-dense maps, ``eval/places-lidar``
+        on the LiDAR maps."""
+        return self.places_eval_dir if source == "semidense" else self.eval_dir / "places-lidar"
+
 
 __all__ = ["MAP_KINDS", "AlignedDirs", "DONE", "MapKind", "ORIGIN", "SessionDirs", "Workspace"]

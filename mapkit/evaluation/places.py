@@ -69,7 +69,7 @@ from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_write_text, write_json, write_timings
-from mapkit.core.workspace import Workspace
+from mapkit.core.workspace import MapKind, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.io.plots import _save
 from mapkit.mapping.semidense import SemiDenseMap
@@ -80,6 +80,7 @@ from mapkit.places.index_structure import (
     map_checksum,
     session_descriptors,
 )
+from mapkit.places.lidar_observations import LIDAR_FRAME_SPACING_M, lidar_map_checksum, load_lidar_observations
 from mapkit.places.triplets import (
     TripletConfig,
     load_aligned_sessions,
@@ -681,17 +682,22 @@ class _Queries:
 
 
 class _Maps:
-    """The semi-dense maps of the workspace's sessions (aligned when ``mapkit align`` holds them),
-    loaded once: (map, checksum, source)."""
+    """The maps of the workspace's sessions (aligned when ``mapkit align`` holds them) of one map source, the
+    semi-dense maps or the LiDAR maps (read as the structure index reads them), loaded once: (map, checksum,
+    where it came from: ``align`` or ``build``)."""
 
-    def __init__(self, ws: Workspace, prefer_aligned: bool):
-        self.ws, self.prefer_aligned = ws, prefer_aligned
+    def __init__(self, ws: Workspace, prefer_aligned: bool, source: MapKind = "semidense"):
+        self.ws, self.prefer_aligned, self.source = ws, prefer_aligned, source
         self._maps: dict[str, tuple] = {}
 
     def __call__(self, name: str) -> tuple:
         if name not in self._maps:
-            d, src = self.ws.session_map(name, self.prefer_aligned)
-            self._maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
+            d, src = self.ws.session_map(name, self.prefer_aligned, self.source)
+            if self.source == "lidar":
+                traj = self.ws.map_trajectory(name, src)
+                self._maps[name] = (load_lidar_observations(d, traj), lidar_map_checksum(d, traj), src)
+            else:
+                self._maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
         return self._maps[name]
 
 
@@ -725,7 +731,7 @@ def evaluate_places(
     ws = Workspace(workspace)
     cfg = load_config(PlacesEvalConfig, config, overrides)
     truth = None if truth is None else Path(truth)
-    out = Path(out) if out is not None else ws.places_eval_dir
+    out = Path(out) if out is not None else ws.places_eval_folder(cfg.structure.map_source)
     cache = out / "cache"
     pairs = [(str(a), str(b)) for a, b in pairs]
     if not pairs:
@@ -733,7 +739,7 @@ def evaluate_places(
     _check_methods(methods, cfg)
     gt = _Truth(ws, truth)
     cond = _conditions(truth)
-    maps = _Maps(ws, cfg.structure.prefer_aligned_maps)
+    maps = _Maps(ws, cfg.structure.prefer_aligned_maps, cfg.structure.map_source)
     split = resolve_split(ws, cfg, lambda: [maps(n)[0] for n in sorted({s for p in pairs for s in p})])
     vlad, vlad_note = (
         (appearance, None)
@@ -745,6 +751,7 @@ def evaluate_places(
         "workspace": str(ws.root),
         "truth": None if truth is None else str(truth),
         "ground_truth": gt.source,
+        "map_source": cfg.structure.map_source,
         "radius_m": cfg.radius_m,
         "query_stride": cfg.query_stride,
         "methods": list(methods),
@@ -1173,7 +1180,8 @@ def format_places(results: dict) -> str:
             "",
             "## Map densities",
             "",
-            "The semi-dense maps compared, points per 100 m of their keyframes' path:",
+            f"The {'LiDAR maps (voxels)' if results.get('map_source') == 'lidar' else 'semi-dense maps'} compared, "
+            "points per 100 m of their keyframes' path:",
             "",
         ] + _maps_table(results)
     notes = [
@@ -1213,6 +1221,12 @@ def _protocol(results: dict) -> list[str]:
         f"one keyframe in {results['query_stride']} of the query session is a query; ground truth: "
         f"{results['ground_truth']}. Structure "
         f"({', '.join(METHOD_LABELS[m] for m in methods if m in STRUCTURE_METHODS) or 'none'}"
+        + (
+            f"; from the LiDAR maps: voxel centroids, queries the frames every {LIDAR_FRAME_SPACING_M:g} m of the "
+            "query drive"
+            if results.get("map_source") == "lidar"
+            else ""
+        )
         + (f"; CNN model {results['cnn_model']['path']}" if results.get("cnn_model") else "")
         + f"): {100 * sc['keypoint_fraction']:g} % keypoints, PCA to {sc['pca_dim']}, voting; lambda_v swept. "
         "VLAD: top-1 database image of the database session; minus its squared distance swept.",

@@ -51,6 +51,25 @@ class LidarObservations:
     frame_ids: np.ndarray | None = None  # every frame is a keyframe: no other frame to time
     frame_stamps_ns: np.ndarray | None = None
 
+    def __len__(self) -> int:
+        return int(len(self.points_world))
+
+    def stats(self) -> dict:
+        """What :meth:`~mapkit.mapping.semidense.SemiDenseMap.stats` says of a map's size: points (voxels), frames,
+        the frames' path and points per 100 m of it, and observations (voxel-frame pairs)."""
+        path_m = (
+            float(np.linalg.norm(np.diff(self.keyframe_world_from_cam[:, :3, 3], axis=0), axis=1).sum())
+            if len(self.keyframe_ids) > 1
+            else 0.0
+        )
+        return {
+            "points": len(self),
+            "keyframes": int(len(self.keyframe_ids)),
+            "keyframe_path_m": path_m,
+            "points_per_100m": len(self) / path_m * 100.0 if path_m > 0 else None,
+            "observations": int(len(self.obs_frame_ids)),
+        }
+
 
 def lidar_observations(
     stats: VoxelStats,
