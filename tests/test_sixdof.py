@@ -127,6 +127,26 @@ def test_a_query_that_does_not_register_keeps_its_fallback(model, kitti_clip):
         assert not r.accepted and r.world_from_cam is None and r.cam_from_world is None
 
 
+def test_a_pose_that_could_not_have_seen_its_candidates_is_not_accepted(model, kitti_clip):
+    """Frame 10 registers between frames 8 and 12 (1.2-1.3 m from their cameras, looking their way). Held to a
+    co-visibility gate it cannot meet (its candidates within 0.5 m, or looking within 0.01 deg of it), the same
+    RANSAC pose is refused and the fallback stays, the reason saying which gate failed."""
+    folder, cam, poses = model
+    fallback = _offset(poses[10], 3.0, 0.0)
+    image, cands = _image(kitti_clip, 10), ["000008.png", "000012.png"]
+    with SixDofLocalizer(folder) as loc:
+        ok = loc.localize(image, cam, cands, fallback)
+    assert ok.accepted and np.linalg.norm(ok.world_from_cam[:3, 3] - poses[10][:3, 3]) < 0.25
+    for gate, why in (
+        ({"prior_max_distance_m": 0.5}, "m from the nearest candidate image (more than 0.5)"),
+        ({"prior_max_angle_deg": 0.01}, "deg away from the candidate images near it (more than 0.01)"),
+    ):
+        with SixDofLocalizer(folder, SixDofConfig(**gate)) as loc:
+            r = loc.localize(image, cam, cands, fallback)
+        assert not r.accepted and r.inliers == ok.inliers and why in r.reason, r.reason
+        np.testing.assert_array_equal(r.world_from_cam, fallback)
+
+
 def test_a_damaged_model_or_query_is_one_error_naming_the_file(model, kitti_clip, tmp_path):
     folder, cam, _ = model
     truncated = tmp_path / "truncated"

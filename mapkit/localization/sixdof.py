@@ -65,14 +65,18 @@ class SixDofConfig(MapkitConfig):
         10, ge=1, description="Candidates from a prior pose: this many database images nearest its camera centre ..."
     )
     prior_max_distance_m: float = Field(
-        30.0, gt=0, description="... within this distance (m; the reference model's pairing radius) ..."
+        30.0,
+        gt=0,
+        description="... within this distance (m; the reference model's pairing radius) ... A registered pose "
+        "this far from every candidate image is not accepted either.",
     )
     prior_max_angle_deg: float = Field(
         60.0,
         gt=0,
         le=180,
         description="... whose viewing direction differs from the prior's by at most this (deg; the reference "
-        "model's pairing gate: cameras facing apart share nothing to match).",
+        "model's pairing gate: cameras facing apart share nothing to match). A registered pose that looks farther "
+        "away than this from every candidate image near it is not accepted either.",
     )
     max_ratio: float = Field(
         0.8, gt=0, le=1, description="Lowe's ratio test on descriptor angles (COLMAP's SIFT matcher default)."
@@ -406,7 +410,30 @@ class SixDofLocalizer:
                 len(pair),
                 None,
             )
+        far = self._off_candidates(T, used)
+        if far:
+            return result(False, f"{inliers} inliers of {len(pair)} 2D-3D matches, but {far}", inliers, len(pair), None)
         return result(True, f"{inliers} inliers of {len(pair)} 2D-3D matches", inliers, len(pair), T)
+
+    def _off_candidates(self, cam_from_world: np.ndarray, used: Sequence[str]) -> str:
+        """Why a registered pose cannot have seen what its candidate images saw ('' when it can): it lies farther
+        than ``prior_max_distance_m`` from every candidate's camera, or looks more than ``prior_max_angle_deg`` away
+        from each one near it (the co-visibility gate of the model's pairs). A pose RANSAC fits to a handful of
+        wrong matches lands anywhere, hundreds of metres off or turned round."""
+        T = invert_pose(cam_from_world)
+        centres = np.array([self._images[c].centre for c in used]).reshape(-1, 3)
+        axes = np.array([self._images[c].axis for c in used]).reshape(-1, 3)
+        d = np.linalg.norm(centres - T[:3, 3], axis=1)
+        near = d <= self.cfg.prior_max_distance_m
+        if not np.any(near):
+            limit = self.cfg.prior_max_distance_m
+            return f"the pose lies {d.min():.1f} m from the nearest candidate image (more than {limit:g})"
+        cos = axes[near] @ T[:3, 2]
+        if np.all(cos < np.cos(np.radians(self.cfg.prior_max_angle_deg)) - 1e-12):
+            turned = np.degrees(np.arccos(np.clip(cos.max(), -1.0, 1.0)))
+            limit = self.cfg.prior_max_angle_deg
+            return f"the pose looks {turned:.0f} deg away from the candidate images near it (more than {limit:g})"
+        return ""
 
     def _absolute_pose(self, points2D: np.ndarray, points3D: np.ndarray, camera: CameraInfo):
         """(cam_from_world (4, 4), inliers), or (None, 0) when RANSAC finds no pose."""
