@@ -48,7 +48,7 @@ from mapkit.deploy.benchmark import export_benchmark
 from mapkit.deploy.export import export_bundles, load_bundle
 from mapkit.evaluation.evaluate import evaluate_align, evaluate_build
 from mapkit.evaluation.localization import evaluate_localization, format_sixdof
-from mapkit.evaluation.places import evaluate_places
+from mapkit.evaluation.places import METHOD_LABELS, evaluate_places
 from mapkit.evaluation.triplets import evaluate_triplets
 from mapkit.evaluation.truth import town_sessions
 from mapkit.localization.reference_model import build_reference_model
@@ -549,6 +549,53 @@ def _places(d: Demo) -> None:
         }
         sec.md_file(out / "places.md")
         sec.picture(out / "pr_curves.png", "precision-recall curves", 1000)
+        if d.lidar_maps:
+            structure = [m for m in methods if m != "vlad"]
+            ov = d.places_overrides()
+            ov["structure"] = {**ov.get("structure", {}), "map_source": "lidar"}
+            lidar = evaluate_places(
+                d.ws,
+                pairs,
+                structure,
+                out=d.ws.places_eval_folder("lidar"),
+                truth=d.town,
+                overrides=ov,
+                progress=d.progress,
+            )
+            d.metrics["places_lidar"] = {
+                f"{p['database']}:{p['query']}": {m: v.get("auc") for m, v in p["methods"].items()}
+                for p in lidar["pairs"]
+            }
+            sec.md("#### Structure from images against structure from LiDAR\n\n" + places_by_source(r, lidar))
+
+
+def places_by_source(semidense: dict, lidar: dict) -> str:
+    """Each pair's AUC per structure method on the semi-dense maps and on the LiDAR maps, side by side (the
+    headline scope of each run: held-out queries where there is a split), with each run's query count."""
+    methods = [m for m in lidar["methods"] if m in semidense["methods"]]
+    head = ["pair (query to database)", "queries (semi-dense / LiDAR)"] + [
+        f"{METHOD_LABELS.get(m, m)}: semi-dense / LiDAR" for m in methods
+    ]
+    rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    by_pair = {(p["database"], p["query"]): p for p in lidar["pairs"]}
+    for p in semidense["pairs"]:
+        q = by_pair.get((p["database"], p["query"]))
+        if q is None:
+            continue
+
+        def auc(entry: dict, m: str) -> str:
+            v = entry["methods"].get(m, {}).get("auc")
+            return "n/a" if v is None else f"{v:.3f}"
+
+        cells = [f"{p['queries']} / {q['queries']}"] + [f"{auc(p, m)} / {auc(q, m)}" for m in methods]
+        rows.append(f"| {p['query']} to {p['database']} | " + " | ".join(cells) + " |")
+    scope = "held-out queries" if semidense.get("headline") == "held_out" else "all queries"
+    return (
+        "\n".join(rows)
+        + f"\n\nAUC over {scope}, the same pairs and split; queries are the semi-dense maps' keyframes and the LiDAR "
+        "maps' frames (one every 2 m), so their counts differ. The LiDAR run's own tables: "
+        "`workspace/eval/places-lidar/places.md`."
+    )
 
 
 def _map_points(ws: Workspace) -> dict[str, int]:
