@@ -15,7 +15,7 @@ from mapkit.core.errors import InputError
 from mapkit.core.runio import read_timings
 from mapkit.core.workspace import Workspace
 from mapkit.deploy.export import export_bundles, find_indexes, load_bundle
-from mapkit.pipelines.demo import RUN_RECORDS, places_by_source, places_pairs, run_demo
+from mapkit.pipelines.demo import RUN_RECORDS, aucs_by_source, places_by_source, places_pairs, run_demo
 from mapkit.report.html import Section, markdown_to_html, render
 from mapkit.retrieval.index_vlad import VladIndex
 
@@ -282,25 +282,48 @@ def test_places_pairs_mix_conditions_and_skip_empty_maps():
 
 def test_places_by_source_puts_each_pairs_two_aucs_side_by_side():
     """Each pair's row holds its semi-dense AUC then its LiDAR AUC per structure method (the VLAD column, not in the
-    LiDAR run, is left out), matched by pair, not by order; a method without an AUC says n/a."""
+    LiDAR run, is left out), matched by pair, not by order, over the held-out queries or over all; a method without
+    an AUC says n/a; metrics.json's form holds the same figures."""
 
     def run(headline, pairs):
+        def scope(aucs, n):
+            return {"queries": n, "methods": {m: {"auc": a} for m, a in aucs.items()}}
+
         return {
             "headline": headline,
             "methods": ["nbld", "m2dp"] + (["vlad"] if headline else []),
             "pairs": [
-                {"database": db, "query": q, "queries": n, "methods": {m: {"auc": a} for m, a in aucs.items()}}
-                for db, q, n, aucs in pairs
+                {"database": db, "query": q, **scope(held, n), "all_places": scope(every, 2 * n)}
+                for db, q, n, held, every in pairs
             ],
         }
 
-    semi = run("held_out", [("a", "x", 40, {"nbld": 0.5, "m2dp": 0.25, "vlad": 0.9}), ("b", "x", 40, {"nbld": 0.75})])
-    lidar = run(None, [("b", "x", 31, {"nbld": 0.125, "m2dp": None}), ("a", "x", 30, {"nbld": 0.625, "m2dp": 1.0})])
+    semi = run(
+        "held_out",
+        [
+            ("a", "x", 40, {"nbld": 0.5, "m2dp": 0.25, "vlad": 0.9}, {"nbld": 0.4, "m2dp": 0.3, "vlad": 0.8}),
+            ("b", "x", 40, {"nbld": 0.75}, {"nbld": 0.7}),
+        ],
+    )
+    lidar = run(
+        None,
+        [
+            ("b", "x", 31, {"nbld": 0.125, "m2dp": None}, {"nbld": 0.2, "m2dp": None}),
+            ("a", "x", 30, {"nbld": 0.625, "m2dp": 1.0}, {"nbld": 0.6, "m2dp": 0.9}),
+        ],
+    )
     lines = places_by_source(semi, lidar).splitlines()
     assert lines[0].split(" | ")[2:] == ["NBLD: semi-dense / LiDAR", "M2DP: semi-dense / LiDAR |"]
     assert lines[2] == "| x to a | 40 / 30 | 0.500 / 0.625 | 0.250 / 1.000 |"
     assert lines[3] == "| x to b | 40 / 31 | 0.750 / 0.125 | n/a / n/a |"
     assert "AUC over held-out queries" in lines[5]
+    every = places_by_source(semi, lidar, "all_places").splitlines()
+    assert every[2] == "| x to a | 80 / 60 | 0.400 / 0.600 | 0.300 / 0.900 |"
+    assert "AUC over all queries" in every[5]
+    m = aucs_by_source(semi, lidar)
+    assert m["a:x"]["lidar"]["auc"]["m2dp"] == {"held_out": 1.0, "all_places": 0.9}
+    assert m["b:x"]["semidense"]["queries"] == {"held_out": 40, "all_places": 80}
+    assert set(m["a:x"]["semidense"]["auc"]) == {"nbld", "m2dp"}
 
 
 def test_markdown_subset_to_html():

@@ -317,3 +317,32 @@ def test_eval_places_on_lidar_maps_scores_lidar_frames_beside_the_semidense_run(
     assert main([*args[:4], "s0:s2", *args[5:], "--map-source", "lidar"]) == 2
     assert "session 's2' has no LiDAR" in capsys.readouterr().err
     assert (out / "places.json").read_bytes() == before  # the earlier run's results stand
+
+
+def test_coarsen_merges_voxels_by_count_and_keeps_the_times_they_were_seen():
+    """Three 0.25 m voxels, two of them in one 1 m cell: the merged centroid is their count-weighted mean, the counts
+    add, the intensity is the count-weighted mean of the voxels that had one, the stamps span both; the third voxel
+    stays as it was; a voxel size not above the map's is refused."""
+    from mapkit.mapping.voxel_map import VoxelStats
+    from mapkit.places.lidar_observations import coarsen
+
+    fine = VoxelStats(
+        0.25,
+        np.array([[0.1, 0.1, 0.1], [0.6, 0.1, 0.1], [1.5, 0.2, 0.3]]),
+        np.array([1, 3, 2]),
+        np.array([10.0, np.nan, 7.0]),
+        np.full((3, 3), 0.5),
+        np.full(3, 0.9),
+        np.array([50, 20, 5]),
+        np.array([60, 90, 8]),
+    )
+    c = coarsen(fine, 1.0)
+    assert len(c) == 2 and c.voxel_size_m == 1.0
+    np.testing.assert_allclose(c.centroid, [[0.475, 0.1, 0.1], [1.5, 0.2, 0.3]])
+    np.testing.assert_array_equal(c.count, [4, 2])
+    np.testing.assert_allclose(c.intensity, [10.0, 7.0])
+    np.testing.assert_array_equal(c.first_ns, [20, 5])
+    np.testing.assert_array_equal(c.last_ns, [90, 8])
+    assert np.all(np.isnan(c.normal)) and np.all(np.isnan(c.planarity))
+    with pytest.raises(ValueError, match="not larger"):
+        coarsen(fine, 0.25)

@@ -686,8 +686,10 @@ class _Maps:
     semi-dense maps or the LiDAR maps (read as the structure index reads them), loaded once: (map, checksum,
     where it came from: ``align`` or ``build``)."""
 
-    def __init__(self, ws: Workspace, prefer_aligned: bool, source: MapKind = "semidense"):
-        self.ws, self.prefer_aligned, self.source = ws, prefer_aligned, source
+    def __init__(
+        self, ws: Workspace, prefer_aligned: bool, source: MapKind = "semidense", lidar_voxel_m: float | None = None
+    ):
+        self.ws, self.prefer_aligned, self.source, self.lidar_voxel_m = ws, prefer_aligned, source, lidar_voxel_m
         self._maps: dict[str, tuple] = {}
 
     def __call__(self, name: str) -> tuple:
@@ -695,7 +697,8 @@ class _Maps:
             d, src = self.ws.session_map(name, self.prefer_aligned, self.source)
             if self.source == "lidar":
                 traj = self.ws.map_trajectory(name, src)
-                self._maps[name] = (load_lidar_observations(d, traj), lidar_map_checksum(d, traj), src)
+                v = self.lidar_voxel_m
+                self._maps[name] = (load_lidar_observations(d, traj, v), lidar_map_checksum(d, traj, v), src)
             else:
                 self._maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
         return self._maps[name]
@@ -739,7 +742,7 @@ def evaluate_places(
     _check_methods(methods, cfg)
     gt = _Truth(ws, truth)
     cond = _conditions(truth)
-    maps = _Maps(ws, cfg.structure.prefer_aligned_maps, cfg.structure.map_source)
+    maps = _Maps(ws, cfg.structure.prefer_aligned_maps, cfg.structure.map_source, cfg.structure.lidar_voxel_m)
     split = resolve_split(ws, cfg, lambda: [maps(n)[0] for n in sorted({s for p in pairs for s in p})])
     vlad, vlad_note = (
         (appearance, None)

@@ -507,6 +507,12 @@ def _sixdof(d: Demo) -> None:
         )
 
 
+#: the voxel the demo's LiDAR maps are merged to for place recognition (m); mapkit choice: on the demo town 0.45 m
+#: leaves 0.59 M LiDAR points over its four evaluated drives against their 0.61 M semi-dense points (0.25 m, as
+#: built: 6.4 M, ten times as long to describe), so both sources are compared at about the same density
+LIDAR_PLACES_VOXEL_M = 0.45
+
+
 def places_pairs(roles: dict[str, dict], map_points: dict[str, int]) -> list[tuple[str, str]]:
     """Session pairs (database, query) mixing conditions: each test session against two training
     sessions with maps, the one whose streets it retraces (its ``follows``) first, then the fullest
@@ -552,7 +558,7 @@ def _places(d: Demo) -> None:
         if d.lidar_maps:
             structure = [m for m in methods if m != "vlad"]
             ov = d.places_overrides()
-            ov["structure"] = {**ov.get("structure", {}), "map_source": "lidar"}
+            ov["structure"] = {**ov.get("structure", {}), "map_source": "lidar", "lidar_voxel_m": LIDAR_PLACES_VOXEL_M}
             lidar = evaluate_places(
                 d.ws,
                 pairs,
@@ -562,40 +568,71 @@ def _places(d: Demo) -> None:
                 overrides=ov,
                 progress=d.progress,
             )
-            d.metrics["places_lidar"] = {
-                f"{p['database']}:{p['query']}": {m: v.get("auc") for m, v in p["methods"].items()}
-                for p in lidar["pairs"]
-            }
-            sec.md("#### Structure from images against structure from LiDAR\n\n" + places_by_source(r, lidar))
+            d.metrics["places_by_source"] = aucs_by_source(r, lidar)
+            sec.md(
+                "#### Structure from images against structure from LiDAR\n\n"
+                f"The LiDAR maps' voxels merged to {LIDAR_PLACES_VOXEL_M:g} m, about the semi-dense maps' point count. "
+                "Held-out places:\n\n"
+                + places_by_source(r, lidar)
+                + "\n\nAll places:\n\n"
+                + places_by_source(r, lidar, "all_places")
+                + "\n\nThe LiDAR run's own tables: `workspace/eval/places-lidar/places.md`."
+            )
 
 
-def places_by_source(semidense: dict, lidar: dict) -> str:
-    """Each pair's AUC per structure method on the semi-dense maps and on the LiDAR maps, side by side (the
-    headline scope of each run: held-out queries where there is a split), with each run's query count."""
+def places_by_source(semidense: dict, lidar: dict, scope: str = "held_out") -> str:
+    """Each pair's AUC per structure method on the semi-dense maps and on the LiDAR maps, side by side, over one
+    scope of queries (``held_out``, the headline where there is a split, or ``all_places``), with each run's query
+    count."""
     methods = [m for m in lidar["methods"] if m in semidense["methods"]]
     head = ["pair (query to database)", "queries (semi-dense / LiDAR)"] + [
         f"{METHOD_LABELS.get(m, m)}: semi-dense / LiDAR" for m in methods
     ]
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     by_pair = {(p["database"], p["query"]): p for p in lidar["pairs"]}
+
+    def block(entry: dict) -> dict:
+        return entry["all_places"] if scope == "all_places" else entry
+
+    def auc(entry: dict, m: str) -> str:
+        v = block(entry)["methods"].get(m, {}).get("auc")
+        return "n/a" if v is None else f"{v:.3f}"
+
     for p in semidense["pairs"]:
         q = by_pair.get((p["database"], p["query"]))
         if q is None:
             continue
-
-        def auc(entry: dict, m: str) -> str:
-            v = entry["methods"].get(m, {}).get("auc")
-            return "n/a" if v is None else f"{v:.3f}"
-
-        cells = [f"{p['queries']} / {q['queries']}"] + [f"{auc(p, m)} / {auc(q, m)}" for m in methods]
+        cells = [f"{block(p)['queries']} / {block(q)['queries']}"] + [f"{auc(p, m)} / {auc(q, m)}" for m in methods]
         rows.append(f"| {p['query']} to {p['database']} | " + " | ".join(cells) + " |")
-    scope = "held-out queries" if semidense.get("headline") == "held_out" else "all queries"
+    what = "all queries" if scope == "all_places" or semidense.get("headline") != "held_out" else "held-out queries"
     return (
         "\n".join(rows)
-        + f"\n\nAUC over {scope}, the same pairs and split; queries are the semi-dense maps' keyframes and the LiDAR "
-        "maps' frames (one every 2 m), so their counts differ. The LiDAR run's own tables: "
-        "`workspace/eval/places-lidar/places.md`."
+        + f"\n\nAUC over {what}, the same pairs and split; queries are the semi-dense maps' keyframes and the LiDAR "
+        "maps' frames (one every 2 m), so their counts differ."
     )
+
+
+def aucs_by_source(semidense: dict, lidar: dict) -> dict:
+    """``metrics.json``'s ``places_by_source``: per pair (``DATABASE:QUERY``) and structure method, the AUC on each
+    map source over the held-out queries and over all, with the query counts."""
+    out: dict = {}
+    by_pair = {(p["database"], p["query"]): p for p in lidar["pairs"]}
+    for p in semidense["pairs"]:
+        q = by_pair.get((p["database"], p["query"]))
+        if q is None:
+            continue
+        entry: dict = {}
+        for src, e in (("semidense", p), ("lidar", q)):
+            entry[src] = {
+                "queries": {"held_out": e["queries"], "all_places": e["all_places"]["queries"]},
+                "auc": {
+                    m: {"held_out": e["methods"][m].get("auc"), "all_places": e["all_places"]["methods"][m].get("auc")}
+                    for m in lidar["methods"]
+                    if m in e["methods"]
+                },
+            }
+        out[f"{p['database']}:{p['query']}"] = entry
+    return out
 
 
 def _map_points(ws: Workspace) -> dict[str, int]:

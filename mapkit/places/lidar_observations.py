@@ -106,19 +106,58 @@ def lidar_observations(
     )
 
 
-def load_lidar_observations(folder: Path, trajectory_dir: Path) -> LidarObservations:
+def coarsen(stats: VoxelStats, voxel_m: float) -> VoxelStats:
+    """``stats`` merged into voxels of ``voxel_m`` (larger than its own): each coarse voxel's centroid is its fine
+    voxels' centroid weighted by their point counts, its count their sum, its intensity their count-weighted mean
+    (of those that had one), its first and last stamps the earliest and latest; normals and planarity, which the
+    merged covariance would need, are NaN. Coarse voxels are sorted by key as the map's are."""
+    if not voxel_m > stats.voxel_size_m:
+        raise ValueError(f"coarsen to {voxel_m} m: not larger than the map's {stats.voxel_size_m} m voxels")
+    keys = np.floor(stats.centroid / voxel_m).astype(np.int64)
+    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    n = len(uniq)
+    w = stats.count.astype(np.float64)
+    count = np.bincount(inv, w, n)
+    centroid = np.stack([np.bincount(inv, w * stats.centroid[:, k], n) for k in range(3)], axis=1) / count[:, None]
+    has = np.isfinite(stats.intensity)
+    wi = np.bincount(inv, np.where(has, w, 0.0), n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        intensity = np.bincount(inv, np.where(has, w * stats.intensity, 0.0), n) / wi
+    first = np.full(n, np.iinfo(np.int64).max, np.int64)
+    last = np.full(n, np.iinfo(np.int64).min, np.int64)
+    np.minimum.at(first, inv, stats.first_ns)
+    np.maximum.at(last, inv, stats.last_ns)
+    return VoxelStats(
+        float(voxel_m),
+        centroid,
+        count.astype(np.int64),
+        np.where(wi > 0, intensity, np.nan),
+        np.full((n, 3), np.nan),
+        np.full(n, np.nan),
+        first,
+        last,
+    )
+
+
+def load_lidar_observations(folder: Path, trajectory_dir: Path, voxel_m: float | None = None) -> LidarObservations:
     """The LiDAR map in ``folder`` with its observing frames, from the trajectory in ``trajectory_dir`` (the one the
-    map lies on: :meth:`~mapkit.core.workspace.Workspace.map_trajectory`)."""
-    return lidar_observations(load_voxel_stats(folder), Trajectory.load(trajectory_dir))
+    map lies on: :meth:`~mapkit.core.workspace.Workspace.map_trajectory`); with ``voxel_m``, its voxels merged into
+    coarser ones first (:func:`coarsen`)."""
+    stats = load_voxel_stats(folder)
+    if voxel_m is not None and voxel_m > stats.voxel_size_m:
+        stats = coarsen(stats, voxel_m)
+    return lidar_observations(stats, Trajectory.load(trajectory_dir))
 
 
-def lidar_map_checksum(folder: Path, trajectory_dir: Path) -> str:
+def lidar_map_checksum(folder: Path, trajectory_dir: Path, voxel_m: float | None = None) -> str:
     """sha256 over what :func:`load_lidar_observations` reads (the map's files, the trajectory's) and its rule."""
     return config_hash(
         {
             **{n: sha256_file(folder / n) for n in LIDAR_MAP_FILES},
             "trajectory": {p.name: sha256_file(p) for p in sorted(trajectory_dir.glob("*.npz"))},
             "frames": [LIDAR_FRAME_SPACING_M, LIDAR_OBSERVE_RADIUS_M],
+            **({"voxel_m": float(voxel_m)} if voxel_m is not None else {}),
         }
     )
 
