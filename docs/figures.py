@@ -115,6 +115,7 @@ def extract_run(run: Path) -> dict:
         for cfg, sessions in (m.get("localize") or {}).items()
     }
     out["sixdof"] = m.get("sixdof") or {}
+    out["places_by_source"] = m.get("places_by_source") or {}
     model = _json(run / "workspace" / "reference_model" / "metrics.json")
     if model:
         out["reference_model"] = {
@@ -647,6 +648,44 @@ def render_align_sources() -> str:
     )
 
 
+def render_places_by_source() -> str:
+    """The main job with --lidar-maps: each pair's AUC per structure method from the semi-dense maps and from the
+    LiDAR maps (merged to the demo's voxel), over held-out queries and over all places."""
+    rec = record("main-job-6dof")
+    runs = [r for r in rec["runs"] if r.get("places_by_source")]
+    if not runs:
+        return "No run of the record holds place recognition on LiDAR maps."
+    first = runs[0]["places_by_source"]
+    methods = list(next(iter(first.values()))["lidar"]["auc"])
+    rows = []
+    for pair in first:
+        db, query = pair.split(":")
+        for scope, label in (("held_out", "held out"), ("all_places", "all places")):
+            e = [r["places_by_source"][pair] for r in runs]
+            cells = [
+                f"{spread([x['semidense']['queries'][scope] for x in e], '{:.0f}')} / "
+                f"{spread([x['lidar']['queries'][scope] for x in e], '{:.0f}')}"
+            ]
+            for m in methods:
+                semi = spread([x["semidense"]["auc"][m][scope] for x in e], "{:.3f}")
+                lidar = spread([x["lidar"]["auc"][m][scope] for x in e], "{:.3f}")
+                cells.append(f"{semi} / {lidar}")
+            rows.append([f"{query} to {db}", label, *cells])
+    return (
+        table(
+            [
+                "pair (query to database)",
+                "queries",
+                "count (semi-dense / LiDAR)",
+                *(f"{m.upper()} AUC (semi-dense / LiDAR)" for m in methods),
+            ],
+            rows,
+        )
+        + f"\n\nAUC from the semi-dense maps / from the LiDAR maps on the same pairs and split. `{rec['command']}`. "
+        + _runs_note(rec)
+    )
+
+
 def render_sixdof_thresholds() -> str:
     """bench/sixdof_thresholds.py: right and off shares of held-out training drives per RANSAC threshold and
     inlier count, and the setting chosen."""
@@ -984,6 +1023,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "first-run": render_first_run,
     "main-job-stages": lambda: _stages("main-job"),
     "main-job-sixdof": render_sixdof,
+    "main-job-places-by-source": render_places_by_source,
     "align-sources": render_align_sources,
     "sixdof-thresholds": render_sixdof_thresholds,
     "tiny-stages": lambda: _stages("tiny"),

@@ -88,7 +88,7 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "index_vlad": 16,
         "index_structure": 32,
         "localize": 11,
-        "sixdof": 162,  # with --sixdof and --lidar-maps (docs/results/main-job-6dof.json)
+        "sixdof": 150,  # with --sixdof and --lidar-maps (docs/results/main-job-6dof.json)
         "places": 27,
         "view": 6,
     },
