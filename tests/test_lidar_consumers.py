@@ -346,3 +346,17 @@ def test_coarsen_merges_voxels_by_count_and_keeps_the_times_they_were_seen():
     assert np.all(np.isnan(c.normal)) and np.all(np.isnan(c.planarity))
     with pytest.raises(ValueError, match="not larger"):
         coarsen(fine, 0.25)
+
+
+def test_a_merge_voxel_not_above_the_maps_own_is_a_warning_and_the_map_as_built(aligned):
+    """lidar_voxel_m at or below the built 0.25 m voxels has nothing to merge: one warning naming the folder, and
+    every voxel of the map; above it, fewer points than voxels."""
+    from mapkit.core.errors import InputWarning
+    from mapkit.places.lidar_observations import load_lidar_observations
+
+    ws = Workspace(aligned)
+    folder, traj = ws.aligned("s0").lidar_map, ws.aligned("s0").trajectory
+    voxels = len(load_voxel_stats(folder))
+    with pytest.warns(InputWarning, match=r"lidar_voxel_m 0.2 is not above the map's 0.25 m voxels"):
+        assert len(load_lidar_observations(folder, traj, 0.2)) == voxels
+    assert len(load_lidar_observations(folder, traj, 1.0)) < voxels / 4

@@ -18,12 +18,14 @@ Its equivalent, :func:`lidar_observations`:
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from mapkit.core.errors import InputWarning
 from mapkit.core.runio import config_hash, sha256_file
 from mapkit.mapping.lidar_map import load_voxel_stats
 from mapkit.mapping.trajectory import Trajectory
@@ -147,6 +149,13 @@ def load_lidar_observations(folder: Path, trajectory_dir: Path, voxel_m: float |
     stats = load_voxel_stats(folder)
     if voxel_m is not None and voxel_m > stats.voxel_size_m:
         stats = coarsen(stats, voxel_m)
+    elif voxel_m is not None:
+        warnings.warn(
+            f"{folder}: lidar_voxel_m {voxel_m:g} is not above the map's {stats.voxel_size_m:g} m voxels; the map is "
+            "used as built",
+            InputWarning,
+            stacklevel=2,
+        )
     return lidar_observations(stats, Trajectory.load(trajectory_dir))
 
 
