@@ -262,3 +262,42 @@ def test_band_scores_of_camera_poses_known_answer():
     md = format_localization({"sessions": {"test-night": session}})
     assert "| test-night | 4 | 6-DoF | 25.0 % | 50.0 % | 75.0 % | 1.700 / 1.50 | 75.0 % | 0.40 |" in md
     assert "| test-night | 4 | retrieval | 25.0 % | 50.0 % | 75.0 % | 1.700 / 1.50 |  |  |" in md
+
+
+def test_sequence_check_refuses_a_pose_its_neighbours_disagree_with():
+    """Nine queries 5 m apart along a turning street, the odometry exact. Query 2 slid 2 m along the street and
+    query 6 turned 10 deg: each disagrees with its registered neighbours and keeps its fallback, said in its reason.
+    Query 4, 0.3 m off, lies within the band of its neighbours and stays; query 3, next to the slid one, agrees with
+    query 4 and stays (the verdicts use the poses as registered); query 8, whose only neighbour was not registered,
+    stays unchecked."""
+    from mapkit.localization.localize import check_sequence
+    from mapkit.localization.sixdof import SixDofResult
+
+    def turn(deg: float) -> np.ndarray:
+        a = np.radians(deg)
+        return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1.0]])
+
+    n = 9
+    truth = [make_pose(turn(3.0 * k), np.array([5.0 * k, 0.1 * k * k, 0.0])) for k in range(n)]
+    odometry = [None] + [invert_pose(truth[k - 1]) @ truth[k] for k in range(1, n)]
+    registered = [T.copy() for T in truth]
+    registered[2][:3, 3] += [2.0, 0.0, 0.0]
+    registered[4][:3, 3] += [0.3, 0.0, 0.0]
+    registered[6][:3, :3] = registered[6][:3, :3] @ turn(10.0)
+    accepted = [True] * 7 + [False, True]
+    fallback = [make_pose(np.eye(3), np.array([float(k), 9.0, 0.0])) for k in range(n)]
+    results = [
+        SixDofResult(f"q{k}", invert_pose(T), T, ok, "20 inliers of 60 2D-3D matches", 20, 60)
+        for k, (T, ok) in enumerate(zip(registered, accepted, strict=True))
+    ]
+    out = check_sequence(results, odometry, fallback, 0.5, 5.0)
+    assert [r.accepted for r in out] == [True, True, False, True, True, True, False, False, True]
+    assert "2.00 m / 0.0 deg from its registered neighbours moved by the odometry" in out[2].reason
+    assert "/ 10.0 deg from its registered neighbours" in out[6].reason
+    for k in (2, 6):
+        np.testing.assert_array_equal(out[k].world_from_cam, fallback[k])
+        np.testing.assert_allclose(out[k].cam_from_world, invert_pose(fallback[k]))
+    for k in (0, 1, 3, 4, 5, 7, 8):
+        assert out[k] is results[k]
+    with pytest.raises(ValueError, match="9 results, 8 odometry steps"):
+        check_sequence(results, odometry[1:], fallback, 0.5, 5.0)

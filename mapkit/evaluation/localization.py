@@ -244,14 +244,13 @@ def _localize_session(
     imgs = read_session_images(ws.root, name)
     gt, ok = truth_camera_poses_at(truth, name, ws_frame, imgs.table["stamp_ns"])
     paths = [p for p, good in zip(imgs.image_paths, ok, strict=True) if good]
-    odo = None
-    if cfg.odometry:
-        # the query session's own relative camera motion between queries: its image table's
-        # poses come from its odometry, placed rigidly (georef) or smoothly (align) in the
-        # map, and relative motion does not see that placement; run_localizer turns it into the
-        # base's motion through the mount
-        cams = imgs.world_from_cam[ok]
-        odo = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
+    # the query session's own relative camera motion between queries: its image table's poses come from its
+    # odometry, placed rigidly (georef) or smoothly (align) in the map, and relative motion does not see that
+    # placement; run_localizer turns it into the base's motion through the mount (with odometry on), and the 6-DoF
+    # refinement checks consecutive poses with it
+    cams = imgs.world_from_cam[ok]
+    steps = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
+    odo = steps if cfg.odometry else None
     t0 = time.perf_counter()
     ids, dist, cached = cached_query_all(index, paths, cfg.top_k, cache_dir, name, progress=progress)
     t_retrieve = time.perf_counter() - t0
@@ -280,7 +279,7 @@ def _localize_session(
         t1 = time.perf_counter()
         cameras = [im.camera for im, good in zip(workspace_images(ws, [name]), ok, strict=True) if good]
         names = [p for p, good in zip(imgs.workspace_paths, ok, strict=True) if good]
-        found = refine_sixdof(loc, index, r, paths, cameras, names, progress)
+        found = refine_sixdof(loc, index, r, paths, cameras, names, progress, odometry=steps)
         summary = write_sixdof(out / name, imgs.table["stamp_ns"][ok], found, loc)
         est = np.array([np.full((4, 4), np.nan) if x.world_from_cam is None else x.world_from_cam for x in found])
         gt_model = gt if model_fit is None else model_fit["transform"] @ gt

@@ -34,7 +34,7 @@ import hashlib
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -43,6 +43,7 @@ from pydantic import Field, field_validator
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
+from mapkit.core.geometry import invert_pose, rotation_angle_rad
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, sha256_file, write_json, write_timings
 from mapkit.core.types import CameraInfo, StreamKind
 from mapkit.core.writers import writes_workspace
@@ -386,11 +387,14 @@ def refine_sixdof(
     cameras: Sequence[CameraInfo | None],
     names: Sequence[str],
     progress: bool = False,
+    odometry: Sequence[np.ndarray | None] | None = None,
 ) -> list[SixDofResult]:
     """Every query of a filter run registered against the reference model (``loc``): from its retrieved database
     images (``run.ids``, best first) that the model holds; where these do not register, from the model's images
     near the filter's pose that look its way. A query that registers neither way keeps the filter's pose (None
-    before the filter's first estimate), not accepted, and its reason names both attempts."""
+    before the filter's first estimate), not accepted, and its reason names both attempts. With ``odometry``
+    (per query the camera's motion since the previous query, ``cam_prev_from_cam``; None for the first), poses
+    that disagree with every registered neighbour are refused as well (:func:`check_sequence`)."""
     n = len(run.ids)
     if not len(images) == len(cameras) == len(names) == n:
         raise ValueError(f"{n} queries in the run, {len(images)} images, {len(cameras)} cameras, {len(names)} names")
@@ -412,8 +416,65 @@ def refine_sixdof(
         results.append(r)
         bar.update(1)
     bar.close()
+    if odometry is not None and loc.cfg.sequence_max_m is not None:
+        fallback = [filter_poses[t] if np.all(np.isfinite(filter_poses[t])) else None for t in range(n)]
+        results = check_sequence(results, odometry, fallback, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
     logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
     return results
+
+
+def check_sequence(
+    results: Sequence[SixDofResult],
+    odometry: Sequence[np.ndarray | None],
+    fallback: Sequence[np.ndarray | None],
+    max_m: float,
+    max_deg: float,
+) -> list[SixDofResult]:
+    """``results`` with each accepted pose that disagrees with every accepted neighbour (the previous and the next
+    query) refused: the neighbour's pose moved by the odometry between them (``odometry[t]``: the camera's motion
+    from query t-1 to t, ``cam_prev_from_cam``) must lie within ``max_m`` and ``max_deg`` of it. A pose whose
+    neighbours are not accepted stays. The verdicts use the poses as registered, so one wrong pose does not refuse
+    its right neighbours; a refused query keeps its ``fallback`` pose and says why."""
+    if len(odometry) != len(results) or len(fallback) != len(results):
+        raise ValueError(f"{len(results)} results, {len(odometry)} odometry steps, {len(fallback)} fallback poses")
+    accepted = [r.accepted and r.world_from_cam is not None for r in results]
+
+    def predicted(t: int, k: int) -> np.ndarray | None:
+        """Query t's pose from neighbour k's and the odometry between them."""
+        W = results[k].world_from_cam
+        if W is None:
+            return None
+        if k == t - 1:
+            step = odometry[t]
+            return None if step is None else W @ step
+        step = odometry[k]
+        return None if step is None else W @ invert_pose(step)
+
+    out = []
+    for t, r in enumerate(results):
+        verdicts = []
+        for k in (t - 1, t + 1):
+            if 0 <= k < len(results) and accepted[k] and accepted[t] and (P := predicted(t, k)) is not None:
+                W = np.asarray(r.world_from_cam)
+                dm = float(np.linalg.norm(P[:3, 3] - W[:3, 3]))
+                ddeg = float(np.degrees(rotation_angle_rad(P[:3, :3].T @ W[:3, :3])))
+                verdicts.append((dm <= max_m and ddeg <= max_deg, dm, ddeg))
+        if not verdicts or any(ok for ok, _, _ in verdicts):
+            out.append(r)
+            continue
+        dm, ddeg = min((v[1], v[2]) for v in verdicts)
+        T = fallback[t]
+        out.append(
+            replace(
+                r,
+                accepted=False,
+                world_from_cam=None if T is None else np.array(T, np.float64),
+                cam_from_world=None if T is None else invert_pose(np.asarray(T, np.float64)),
+                reason=f"{r.reason}, but {dm:.2f} m / {ddeg:.1f} deg from its registered neighbours moved by the "
+                f"odometry (more than {max_m:g} m / {max_deg:g} deg)",
+            )
+        )
+    return out
 
 
 def write_sixdof(out: Path, stamps_ns: np.ndarray, results: Sequence[SixDofResult], loc: SixDofLocalizer) -> dict:

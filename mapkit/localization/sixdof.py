@@ -102,6 +102,15 @@ class SixDofConfig(MapkitConfig):
         "with ransac_max_error_px (above). COLMAP's mapper refuses to register an image below 30 "
         "(abs_pose_min_num_inliers): on the demo town that keeps a third of the right poses.",
     )
+    sequence_max_m: float | None = Field(
+        0.5,
+        gt=0,
+        description="In a sequence with odometry (mapkit eval localize): a pose that disagrees by more than this (m) "
+        "or sequence_max_deg with each registered neighbour's pose moved by the odometry between them is not "
+        "accepted; a pose without a registered neighbour stays. The (0.5 m, 5 deg) band: neighbours 0.5 s apart "
+        "agree far better than that, a pose slid along a facade of repeated windows by metres does not. None: off.",
+    )
+    sequence_max_deg: float = Field(5.0, gt=0, description="The rotation part of sequence_max_m's check (deg).")
     num_threads: int = Field(2, ge=1, description="Threads of feature extraction (pycolmap's -1 takes every core).")
     seed: int = Field(0, ge=0, description="Seed of RANSAC: the same query gives the same pose.")
 
