@@ -410,7 +410,7 @@ def _readers(ws: Path) -> dict[str, object]:
     from mapkit.localization.reference_model import workspace_images
     from mapkit.mapping.build import format_build_summary
     from mapkit.multisession.submaps import load_session
-    from mapkit.places.index_structure import session_map_dir, session_names
+    from mapkit.places.index_structure import load_session_map, session_map_checksum, session_map_dir, session_names
     from mapkit.places.triplets import load_aligned_sessions
     from mapkit.retrieval.vlad_bundle import read_camera_mount, read_session_images, workspace_sessions
 
@@ -426,6 +426,12 @@ def _readers(ws: Path) -> dict[str, object]:
         "mapkit.multisession.submaps.load_session": lambda: load_session(w.session(name), frame, 20.0),
         "mapkit.places.index_structure.session_names": lambda: session_names(ws),
         "mapkit.places.index_structure.session_map_dir": lambda: session_map_dir(ws, name),
+        "mapkit.places.index_structure.load_session_map": lambda: load_session_map(
+            w, name, *w.session_map(name), "semidense"
+        ),
+        "mapkit.places.index_structure.session_map_checksum": lambda: session_map_checksum(
+            w, name, *w.session_map(name), "semidense"
+        ),
         "mapkit.places.triplets.load_aligned_sessions": lambda: load_aligned_sessions(ws),
         "mapkit.retrieval.vlad_bundle.workspace_sessions": lambda: workspace_sessions(ws),
         "mapkit.retrieval.vlad_bundle.read_session_images": lambda: read_session_images(ws, name),

@@ -77,10 +77,11 @@ from mapkit.places.index_structure import (
     StructureIndex,
     StructureIndexConfig,
     build_structure_index,
-    map_checksum,
+    load_session_map,
     session_descriptors,
+    session_map_checksum,
 )
-from mapkit.places.lidar_observations import LIDAR_FRAME_SPACING_M, lidar_map_checksum, load_lidar_observations
+from mapkit.places.lidar_observations import LIDAR_FRAME_SPACING_M
 from mapkit.places.triplets import (
     TripletConfig,
     load_aligned_sessions,
@@ -695,12 +696,8 @@ class _Maps:
     def __call__(self, name: str) -> tuple:
         if name not in self._maps:
             d, src = self.ws.session_map(name, self.prefer_aligned, self.source)
-            if self.source == "lidar":
-                traj = self.ws.map_trajectory(name, src)
-                v = self.lidar_voxel_m
-                self._maps[name] = (load_lidar_observations(d, traj, v), lidar_map_checksum(d, traj, v), src)
-            else:
-                self._maps[name] = (SemiDenseMap.load(d), map_checksum(d), src)
+            how = (self.ws, name, d, src, self.source, self.lidar_voxel_m)
+            self._maps[name] = (load_session_map(*how), session_map_checksum(*how), src)
         return self._maps[name]
 
 

@@ -354,15 +354,25 @@ def map_files(source: MapKind) -> tuple[str, ...]:
     return ("points.ply", "observations.npz") if source == "semidense" else LIDAR_MAP_FILES
 
 
-def _load_session_map(
+def load_session_map(
     ws: Workspace, name: str, folder: Path, where: MapSource, source: MapKind, lidar_voxel_m: float | None = None
 ):
-    """Session ``name``'s map in ``folder``: a :class:`SemiDenseMap`, or for ``lidar`` its LiDAR map with the frames
-    that observed each voxel (:func:`~mapkit.places.lidar_observations.load_lidar_observations`), which this module
-    reads as it reads a semi-dense map."""
+    """Session ``name``'s map in ``folder`` (from ``where``: ``align`` or ``build``): a :class:`SemiDenseMap`, or for
+    ``lidar`` its LiDAR map with the frames that observed each voxel
+    (:func:`~mapkit.places.lidar_observations.load_lidar_observations`, voxels merged to ``lidar_voxel_m`` when
+    given), which the structure stages read as they read a semi-dense map."""
     if source == "lidar":
         return load_lidar_observations(folder, ws.map_trajectory(name, where), lidar_voxel_m)
     return SemiDenseMap.load(folder)
+
+
+def session_map_checksum(
+    ws: Workspace, name: str, folder: Path, where: MapSource, source: MapKind, lidar_voxel_m: float | None = None
+) -> str:
+    """The checksum of what :func:`load_session_map` reads with the same arguments."""
+    if source == "lidar":
+        return lidar_map_checksum(folder, ws.map_trajectory(name, where), lidar_voxel_m)
+    return map_checksum(folder)
 
 
 def session_descriptors(
@@ -459,12 +469,7 @@ def build_structure_index(
     for n, (d, source) in dirs.items():  # a map changed since its stage wrote it is refused, naming the stage to re-run
         for f in map_files(cfg.map_source):
             verify_file(d / f, "mapkit align" if source == "align" else f"mapkit build (session {n})")
-    shas = {
-        n: map_checksum(d)
-        if cfg.map_source == "semidense"
-        else lidar_map_checksum(d, ws.map_trajectory(n, w), cfg.lidar_voxel_m)
-        for n, (d, w) in dirs.items()
-    }
+    shas = {n: session_map_checksum(ws, n, d, w, cfg.map_source, cfg.lidar_voxel_m) for n, (d, w) in dirs.items()}
     build_hash = _build_hash(cfg, names, dirs, shas, cnn_info)
     if is_finished(out, build_hash, FORMAT_VERSION):
         return out
@@ -619,7 +624,7 @@ def _describe_sessions(
 
     out = _Described([], [], [], {}, {})
     for n in names:
-        smap = _load_session_map(ws, n, dirs[n][0], dirs[n][1], cfg.map_source, cfg.lidar_voxel_m)
+        smap = load_session_map(ws, n, dirs[n][0], dirs[n][1], cfg.map_source, cfg.lidar_voxel_m)
         if len(smap.points_world) == 0:  # no keypoint to describe: fail before any bundle is written
             raise InputError(
                 dirs[n][0],
@@ -986,9 +991,11 @@ __all__ = [
     "FrameMatches",
     "PlaceMatch",
     "build_structure_index",
+    "load_session_map",
     "session_keypoints",
     "session_frames",
     "session_descriptors",
+    "session_map_checksum",
     "session_map_dir",
     "session_names",
     "vote_counts",
