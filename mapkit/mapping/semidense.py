@@ -513,6 +513,19 @@ class KeyframePoints:
         )
 
 
+def map_size(points: int, keyframe_world_from_cam: np.ndarray) -> dict:
+    """A map's size as its stats report it: points, keyframes, the keyframes' path (m) and points per 100 m of it
+    (None on a path of zero length)."""
+    K = np.asarray(keyframe_world_from_cam, np.float64).reshape(-1, 4, 4)
+    path_m = float(np.linalg.norm(np.diff(K[:, :3, 3], axis=0), axis=1).sum()) if len(K) > 1 else 0.0
+    return {
+        "points": int(points),
+        "keyframes": int(len(K)),
+        "keyframe_path_m": path_m,
+        "points_per_100m": points / path_m * 100.0 if path_m > 0 else None,
+    }
+
+
 @dataclass
 class SemiDenseMap:
     """A fused semi-dense point map; each point lists every frame that observed it (CSR)."""
@@ -572,16 +585,8 @@ class SemiDenseMap:
 
     def stats(self) -> dict:
         c = self.obs_counts
-        path_m = (
-            float(np.linalg.norm(np.diff(self.keyframe_world_from_cam[:, :3, 3], axis=0), axis=1).sum())
-            if len(self.keyframe_ids) > 1
-            else 0.0
-        )
         return {
-            "points": len(self),
-            "keyframes": int(len(self.keyframe_ids)),
-            "keyframe_path_m": path_m,
-            "points_per_100m": len(self) / path_m * 100.0 if path_m > 0 else None,
+            **map_size(len(self), self.keyframe_world_from_cam),
             "observations": int(c.sum()),
             "obs_per_point_median": float(np.median(c)) if len(c) else None,
             "sigma_depth_median_m": float(np.median(self.sigma_depth)) if len(c) else None,

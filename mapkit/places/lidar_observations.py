@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from mapkit.core.errors import InputWarning
 from mapkit.core.runio import config_hash, sha256_file
 from mapkit.mapping.lidar_map import load_voxel_stats
+from mapkit.mapping.semidense import map_size
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.mapping.voxel_map import VoxelStats
 
@@ -59,18 +60,7 @@ class LidarObservations:
     def stats(self) -> dict:
         """What :meth:`~mapkit.mapping.semidense.SemiDenseMap.stats` says of a map's size: points (voxels), frames,
         the frames' path and points per 100 m of it, and observations (voxel-frame pairs)."""
-        path_m = (
-            float(np.linalg.norm(np.diff(self.keyframe_world_from_cam[:, :3, 3], axis=0), axis=1).sum())
-            if len(self.keyframe_ids) > 1
-            else 0.0
-        )
-        return {
-            "points": len(self),
-            "keyframes": int(len(self.keyframe_ids)),
-            "keyframe_path_m": path_m,
-            "points_per_100m": len(self) / path_m * 100.0 if path_m > 0 else None,
-            "observations": int(len(self.obs_frame_ids)),
-        }
+        return {**map_size(len(self), self.keyframe_world_from_cam), "observations": int(len(self.obs_frame_ids))}
 
 
 def lidar_observations(
