@@ -321,9 +321,10 @@ def test_places_by_source_puts_each_pairs_two_aucs_side_by_side():
     assert every[2] == "| x to a | 80 / 60 | 0.400 / 0.600 | 0.300 / 0.900 |"
     assert "AUC over all queries" in every[5]
     m = aucs_by_source(semi, lidar)
-    assert m["a:x"]["lidar"]["auc"]["m2dp"] == {"held_out": 1.0, "all_places": 0.9}
-    assert m["b:x"]["semidense"]["queries"] == {"held_out": 40, "all_places": 80}
-    assert set(m["a:x"]["semidense"]["auc"]) == {"nbld", "m2dp"}
+    assert list(m) == [("a", "x"), ("b", "x")]  # the semi-dense run's order
+    assert m[("a", "x")]["lidar"]["auc"]["m2dp"] == {"held_out": 1.0, "all_places": 0.9}
+    assert m[("b", "x")]["semidense"]["queries"] == {"held_out": 40, "all_places": 80}
+    assert set(m[("a", "x")]["semidense"]["auc"]) == {"nbld", "m2dp"}
 
 
 def test_markdown_subset_to_html():

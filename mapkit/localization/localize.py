@@ -399,11 +399,11 @@ def refine_sixdof(
     if not len(images) == len(cameras) == len(names) == n:
         raise ValueError(f"{n} queries in the run, {len(images)} images, {len(cameras)} cameras, {len(names)} names")
     db_names = database_model_names(index, loc)
-    filter_poses = run.poses("filter")
+    priors = [T if np.all(np.isfinite(T)) else None for T in run.poses("filter")]
     results = []
     bar = progress_bar(n, progress, "6-DoF", "query")
     for t in range(n):
-        prior = filter_poses[t] if np.all(np.isfinite(filter_poses[t])) else None
+        prior = priors[t]
         retrieved = [name for i in run.ids[t] if i >= 0 and (name := db_names[i]) is not None]
         r = loc.localize(images[t], cameras[t], retrieved, prior, names[t])
         if not r.accepted and prior is not None:
@@ -417,8 +417,7 @@ def refine_sixdof(
         bar.update(1)
     bar.close()
     if odometry is not None and loc.cfg.sequence_max_m is not None:
-        fallback = [filter_poses[t] if np.all(np.isfinite(filter_poses[t])) else None for t in range(n)]
-        results = check_sequence(results, odometry, fallback, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
+        results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
     logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
     return results
 

@@ -568,7 +568,7 @@ def _places(d: Demo) -> None:
                 overrides=ov,
                 progress=d.progress,
             )
-            d.metrics["places_by_source"] = aucs_by_source(r, lidar)
+            d.metrics["places_by_source"] = {f"{db}:{q}": e for (db, q), e in aucs_by_source(r, lidar).items()}
             sec.md(
                 "#### Structure from images against structure from LiDAR\n\n"
                 f"The LiDAR maps' voxels merged to {LIDAR_PLACES_VOXEL_M:g} m, about the semi-dense maps' point count. "
@@ -583,27 +583,23 @@ def _places(d: Demo) -> None:
 def places_by_source(semidense: dict, lidar: dict, scope: str = "held_out") -> str:
     """Each pair's AUC per structure method on the semi-dense maps and on the LiDAR maps, side by side, over one
     scope of queries (``held_out``, the headline where there is a split, or ``all_places``), with each run's query
-    count."""
+    count: :func:`aucs_by_source` as a table."""
     methods = [m for m in lidar["methods"] if m in semidense["methods"]]
     head = ["pair (query to database)", "queries (semi-dense / LiDAR)"] + [
         f"{METHOD_LABELS.get(m, m)}: semi-dense / LiDAR" for m in methods
     ]
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    by_pair = {(p["database"], p["query"]): p for p in lidar["pairs"]}
-
-    def block(entry: dict) -> dict:
-        return entry["all_places"] if scope == "all_places" else entry
 
     def auc(entry: dict, m: str) -> str:
-        v = block(entry)["methods"].get(m, {}).get("auc")
+        v = entry["auc"].get(m, {}).get(scope)
         return "n/a" if v is None else f"{v:.3f}"
 
-    for p in semidense["pairs"]:
-        q = by_pair.get((p["database"], p["query"]))
-        if q is None:
-            continue
-        cells = [f"{block(p)['queries']} / {block(q)['queries']}"] + [f"{auc(p, m)} / {auc(q, m)}" for m in methods]
-        rows.append(f"| {p['query']} to {p['database']} | " + " | ".join(cells) + " |")
+    for (db, query), e in aucs_by_source(semidense, lidar).items():
+        semi, lid = e["semidense"], e["lidar"]
+        cells = [f"{semi['queries'][scope]} / {lid['queries'][scope]}"] + [
+            f"{auc(semi, m)} / {auc(lid, m)}" for m in methods
+        ]
+        rows.append(f"| {query} to {db} | " + " | ".join(cells) + " |")
     what = "all queries" if scope == "all_places" or semidense.get("headline") != "held_out" else "held-out queries"
     return (
         "\n".join(rows)
@@ -613,8 +609,9 @@ def places_by_source(semidense: dict, lidar: dict, scope: str = "held_out") -> s
 
 
 def aucs_by_source(semidense: dict, lidar: dict) -> dict:
-    """``metrics.json``'s ``places_by_source``: per pair (``DATABASE:QUERY``) and structure method, the AUC on each
-    map source over the held-out queries and over all, with the query counts."""
+    """Per pair (``(database, query)``, the semi-dense run's order) and structure method, the AUC on each map source
+    over the held-out queries and over all, with the query counts (``metrics.json``'s ``places_by_source``, keyed
+    ``DATABASE:QUERY``)."""
     out: dict = {}
     by_pair = {(p["database"], p["query"]): p for p in lidar["pairs"]}
     for p in semidense["pairs"]:
@@ -631,7 +628,7 @@ def aucs_by_source(semidense: dict, lidar: dict) -> dict:
                     if m in e["methods"]
                 },
             }
-        out[f"{p['database']}:{p['query']}"] = entry
+        out[(p["database"], p["query"])] = entry
     return out
 
 
