@@ -610,6 +610,11 @@ def parked_cars_path(path: str | Path, session: str) -> Path:
     return Path(path) / "sessions" / f"{session}.parked_cars.ply"
 
 
+def moving_cars_path(path: str | Path, session: str) -> Path:
+    """Which LiDAR returns of ``session`` hit a moving car (:mod:`mapkit.synth.traffic`; absent without them)."""
+    return Path(path) / "sessions" / f"{session}.moving_cars.npz"
+
+
 def gt_poses(path: str | Path, session: str) -> tuple[np.ndarray, np.ndarray]:
     """Ground truth of a session: (stamps_ns (N,) int64, world_from_base (N, 4, 4))."""
     f = Path(path) / "sessions" / f"{session}.gt.tum"

@@ -162,6 +162,9 @@ class SessionConfig(_Model):
     trajectory: Path | None = None
     follow: str | None = None
     follow_shift_m: float = 0.0
+    # oncoming cars driving the route the other way in the opposite lane (mapkit.synth.traffic); their LiDAR
+    # returns are written beside the log as the truth of dynamic-point removal
+    moving_cars: int = Field(0, ge=0)
 
 
 class SessionPlanConfig(_Model):

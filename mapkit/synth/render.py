@@ -10,12 +10,16 @@ vignetting, noise and tone curve. The renderer also returns the range and z-dept
 A LiDAR sweep is one ``cast_rays`` call with each azimuth column fired from the sensor pose at its
 own firing time: the points are what the sensor measures (range along the beam in its frame at
 that instant), so a consumer sees motion distortion unless it undistorts with ``time``.
+
+Moving cars (:mod:`mapkit.synth.traffic`) are a second scene built for each frame's time; each ray
+takes the nearer of its hits in the two, and each scene's hits are shaded from its own triangle table.
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -23,6 +27,7 @@ import numpy as np
 from mapkit.synth.appearance import F32, Conditions, Hits, TriangleTable, dot3, f32, sky_radiance, surface, to_srgb8
 from mapkit.synth.config import CameraConfig, LidarConfig
 from mapkit.synth.sensors import intrinsics, pixel_rays_camera
+from mapkit.synth.traffic import Traffic
 from mapkit.synth.world import Geometry, Mat, Town
 
 SHADOW_BIAS_M = 0.02
@@ -52,10 +57,46 @@ class LidarSweep:
     time_s: np.ndarray  # (N,) float32 seconds after the sweep's stamp
     ring: np.ndarray  # (N,) uint16, 0 = lowest beam
     range_m: np.ndarray  # (N,) float32 measured range (with noise)
+    moving: np.ndarray  # (N,) bool: the return hit a moving car
+
+
+@dataclass
+class _Layer:
+    """A scene and the per-triangle attributes its hits are shaded with."""
+
+    scene: Any  # open3d RaycastingScene
+    material: np.ndarray  # (T,) uint8
+    table: TriangleTable
+    tri_offset: np.ndarray  # first triangle of each geometry added to the scene
+
+    @staticmethod
+    def of(parts: list[Geometry]) -> _Layer:
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        tri_offset = np.zeros(len(parts), np.int64)
+        off = 0
+        for k, g in enumerate(parts):
+            # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
+            scene.add_triangles(
+                o3d.core.Tensor(g.vertices.astype(np.float32)),  # type: ignore[call-overload]
+                o3d.core.Tensor(g.triangles.astype(np.uint32)),  # type: ignore[call-overload]
+            )
+            tri_offset[k] = off
+            off += g.n_triangles
+        cat = Geometry.concat(parts) if len(parts) > 1 else parts[0]
+        # origin, axis_u, axis_v, aux packed per triangle: one gather per material slice
+        table = TriangleTable(
+            np.ascontiguousarray(np.concatenate([cat.origin, cat.axis_u, cat.axis_v, cat.aux], axis=1), F32),
+            cat.style.astype(np.int64),
+            cat.object_id,
+        )
+        return _Layer(scene, cat.material, table, tri_offset)
 
 
 class Renderer:
-    """A scene (static town plus one session's parked cars) and the sensors that look at it."""
+    """A scene (static town plus one session's parked cars, and its moving cars placed at each frame's time)
+    and the sensors that look at it."""
 
     def __init__(
         self,
@@ -64,32 +105,16 @@ class Renderer:
         camera: CameraConfig,
         lidar: LidarConfig,
         nthreads: int | None = None,
+        traffic: Traffic | None = None,
     ):
         import open3d as o3d
 
         self._o3d = o3d
         self.town = town
         self.styles = town.styles
-        parts = [town.geometry] + ([parked] if parked is not None and parked.n_triangles else [])
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.tri_offset = np.zeros(len(parts), np.int64)
-        off = 0
-        for k, g in enumerate(parts):
-            # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
-            self.scene.add_triangles(
-                o3d.core.Tensor(g.vertices.astype(np.float32)),  # type: ignore[call-overload]
-                o3d.core.Tensor(g.triangles.astype(np.uint32)),  # type: ignore[call-overload]
-            )
-            self.tri_offset[k] = off
-            off += g.n_triangles
-        cat = Geometry.concat(parts) if len(parts) > 1 else parts[0]
-        self.material = cat.material
-        # origin, axis_u, axis_v, aux packed per triangle: one gather per material slice
-        self.table = TriangleTable(
-            np.ascontiguousarray(np.concatenate([cat.origin, cat.axis_u, cat.axis_v, cat.aux], axis=1), F32),
-            cat.style.astype(np.int64),
-            cat.object_id,
-        )
+        self.traffic = traffic
+        self.static = _Layer.of([town.geometry] + ([parked] if parked is not None and parked.n_triangles else []))
+        self.scene = self.static.scene
         # open3d's default (0) oversubscribes a small machine; one thread per available core is faster
         self.nthreads = nthreads or available_cores()
         # camera
@@ -113,22 +138,44 @@ class Renderer:
         self.lidar_col_time_s = np.arange(lidar.azimuth_steps) / lidar.azimuth_steps / lidar.rate_hz
 
     # --- ray casting ----------------------------------------------------------------------------
-    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> dict:
+    def cast(self, origins: np.ndarray, dirs: np.ndarray, layer: _Layer | None = None) -> dict:
         rays = np.empty((len(dirs), 6), F32)
         rays[:, :3] = origins
         rays[:, 3:] = dirs
+        scene = (layer or self.static).scene
         # open3d's generated stub makes Tensor's dtype and device required; they default to the array's and the CPU
-        out = self.scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.nthreads)  # type: ignore[call-overload]
+        out = scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self.nthreads)  # type: ignore[call-overload]
         return {k: out[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_normals")}
 
-    def _sorted_hits(self, out: dict, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _moving(self, t_ns: int | None) -> _Layer | None:
+        """The moving cars' scene at ``t_ns`` (None without traffic, or with none on the road)."""
+        if self.traffic is None or t_ns is None:
+            return None
+        g = self.traffic.geometry_at(t_ns)
+        return None if g is None else _Layer.of([g])
+
+    def cast_all(
+        self, origins: np.ndarray, dirs: np.ndarray, t_ns: int | None
+    ) -> list[tuple[_Layer, dict, np.ndarray]]:
+        """Per scene (the static one, then the moving cars' at ``t_ns`` if any): the layer, its cast, and which
+        rays it is the nearest hit of."""
+        out = self.cast(origins, dirs)
+        moving = self._moving(t_ns)
+        if moving is None:
+            return [(self.static, out, np.isfinite(out["t_hit"]))]
+        out_m = self.cast(origins, dirs, moving)
+        nearer = out_m["t_hit"] < out["t_hit"]  # inf where either misses
+        return [(self.static, out, np.isfinite(out["t_hit"]) & ~nearer), (moving, out_m, nearer)]
+
+    def _sorted_hits(self, out: dict, mask: np.ndarray, layer: _Layer | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Indices of the rays that hit and their triangle ids, ordered by material."""
+        layer = layer or self.static
         idx = np.flatnonzero(mask)
         gid = out["geometry_ids"][idx]
         tri = out["primitive_ids"][idx].astype(np.int64)
-        if len(self.tri_offset) > 1:
-            tri += self.tri_offset[np.minimum(gid, len(self.tri_offset) - 1)]
-        order = np.argsort(self.material[tri], kind="stable")
+        if len(layer.tri_offset) > 1:
+            tri += layer.tri_offset[np.minimum(gid, len(layer.tri_offset) - 1)]
+        order = np.argsort(layer.material[tri], kind="stable")
         return idx[order], tri[order]
 
     def _hits(
@@ -139,7 +186,9 @@ class Renderer:
         idx: np.ndarray,
         tri: np.ndarray,
         footprint_per_m: float,
+        layer: _Layer | None = None,
     ) -> Hits:
+        layer = layer or self.static
         t = out["t_hit"][idx]
         d = dirs[idx]
         p = origin_rows + d * t[:, None]
@@ -147,7 +196,7 @@ class Renderer:
         facing = dot3(nrm, d)
         nrm *= np.where(facing > 0, F32(-1), F32(1))[:, None]
         cos_i = np.maximum(np.abs(facing), F32(0.2))
-        return Hits(p, nrm, d, t, t * (F32(footprint_per_m) / cos_i), self.material[tri], tri, self.table)
+        return Hits(p, nrm, d, t, t * (F32(footprint_per_m) / cos_i), layer.material[tri], tri, layer.table)
 
     # --- camera ---------------------------------------------------------------------------------
     def render_camera(
@@ -156,18 +205,24 @@ class Renderer:
         cond: Conditions,
         rng: np.random.Generator,
         world_from_base: np.ndarray | None = None,
+        t_ns: int | None = None,
     ) -> CameraRender:
+        """One frame from ``world_from_camera``; ``t_ns`` places the moving cars (none without it)."""
         R = world_from_camera[:3, :3].astype(F32)
         o = world_from_camera[:3, 3]
         d = self.rays_cam @ R.T
-        out = self.cast(np.broadcast_to(o.astype(F32), d.shape), d)
-        t_hit = out["t_hit"]
-        hit = np.isfinite(t_hit)
-        idx, tri = self._sorted_hits(out, hit)
-        h = self._hits(o.astype(F32)[None], d, out, idx, tri, 1.0 / self.K[0, 0])
-        surf = surface(h, self.styles, cond)
         radiance = np.zeros((len(d), 3), F32)
-        radiance[idx] = self._shade(h, surf, cond, world_from_base)
+        mat = np.zeros(len(d), np.uint8)
+        t_hit = np.full(len(d), np.inf, F32)
+        hit = np.zeros(len(d), bool)
+        for layer, out, mine in self.cast_all(np.broadcast_to(o.astype(F32), d.shape), d, t_ns):
+            idx, tri = self._sorted_hits(out, mine, layer)
+            h = self._hits(o.astype(F32)[None], d, out, idx, tri, 1.0 / self.K[0, 0], layer)
+            surf = surface(h, self.styles, cond)
+            radiance[idx] = self._shade(h, surf, cond, world_from_base)
+            mat[idx] = h.mat
+            t_hit[idx] = out["t_hit"][idx]
+            hit[idx] = True
         sky_idx = np.nonzero(~hit)[0]
         if len(sky_idx):
             radiance[sky_idx] = sky_radiance(d[sky_idx], cond)
@@ -193,9 +248,7 @@ class Renderer:
         img = to_srgb8(linear).reshape(self.H, self.W, 3)
         if cond.rain > 0 or cond.weather == "foggy":
             img = cv2.GaussianBlur(img, (0, 0), 0.8)
-        range_m = t_hit.reshape(self.H, self.W)  # open3d reports inf where a ray hits nothing
-        mat = np.zeros(len(d), np.uint8)
-        mat[idx] = h.mat
+        range_m = t_hit.reshape(self.H, self.W)  # inf where a ray hits nothing
         return CameraRender(
             img, range_m, range_m * self.rays_cam[:, 2].reshape(self.H, self.W), mat.reshape(self.H, self.W)
         )
@@ -342,23 +395,32 @@ class Renderer:
         return linear + (np.clip(layer, 0, 2.0) * level).reshape(-1, 1)
 
     # --- lidar ----------------------------------------------------------------------------------
-    def scan_lidar(self, world_from_lidar_cols: np.ndarray, rng: np.random.Generator) -> LidarSweep:
-        """One sweep; ``world_from_lidar_cols`` (A, 4, 4) is the sensor pose at each column's firing time."""
+    def scan_lidar(
+        self, world_from_lidar_cols: np.ndarray, rng: np.random.Generator, t_ns: int | None = None
+    ) -> LidarSweep:
+        """One sweep; ``world_from_lidar_cols`` (A, 4, 4) is the sensor pose at each column's firing time;
+        ``t_ns`` (the sweep's middle) places the moving cars (none without it)."""
         A, B = self.lidar_dirs.shape[:2]
         R = world_from_lidar_cols[:, :3, :3]
         dirs_w = np.matmul(self.lidar_dirs, np.swapaxes(R, 1, 2).astype(F32)).reshape(-1, 3)
         origins = np.repeat(world_from_lidar_cols[:, :3, 3], B, axis=0).astype(F32)
-        out = self.cast(origins, dirs_w)
-        t = out["t_hit"]
-        ok = np.isfinite(t) & (t >= self.lidar.min_range_m) & (t <= self.lidar.max_range_m)
-        idx, tri = self._sorted_hits(out, ok)
-        h = self._hits(origins[idx], dirs_w, out, idx, tri, LIDAR_BEAM_DIVERGENCE_RAD)
-        refl = surface(h, self.styles, None).reflectivity
-        # back to firing order (column by column, beams within a column)
-        back = np.argsort(idx, kind="stable")
-        idx, refl, h = idx[back], refl[back], h.take(back)
-        cos_i = np.abs(dot3(h.d, h.n))
-        intensity = np.clip(255.0 * refl * np.sqrt(cos_i) * (1.0 / (1.0 + (h.rng_m / 80.0) ** 2)), 0, 255).astype(F32)
+        t = np.full(len(dirs_w), np.inf, F32)
+        refl = np.zeros(len(dirs_w), F32)
+        cos_i = np.zeros(len(dirs_w), F32)
+        moving = np.zeros(len(dirs_w), bool)
+        for k, (layer, out, mine) in enumerate(self.cast_all(origins, dirs_w, t_ns)):
+            tk = out["t_hit"]
+            ok = mine & (tk >= self.lidar.min_range_m) & (tk <= self.lidar.max_range_m)
+            idx, tri = self._sorted_hits(out, ok, layer)
+            h = self._hits(origins[idx], dirs_w, out, idx, tri, LIDAR_BEAM_DIVERGENCE_RAD, layer)
+            refl[idx] = surface(h, self.styles, None).reflectivity
+            cos_i[idx] = np.abs(dot3(h.d, h.n))
+            t[idx] = tk[idx]
+            moving[idx] = k > 0
+        idx = np.flatnonzero(np.isfinite(t))  # in firing order: column by column, beams within a column
+        intensity = np.clip(
+            255.0 * refl[idx] * np.sqrt(cos_i[idx]) * (1.0 / (1.0 + (t[idx] / 80.0) ** 2)), 0, 255
+        ).astype(F32)
         r = t[idx].astype(np.float64)
         if self.lidar.range_noise_m > 0:
             r = r + rng.standard_normal(len(r)) * self.lidar.range_noise_m
@@ -366,7 +428,12 @@ class Renderer:
         pts = (dirs_l * r[:, None]).astype(F32)
         col = idx // B
         return LidarSweep(
-            pts, intensity, self.lidar_col_time_s[col].astype(F32), (idx % B).astype(np.uint16), r.astype(F32)
+            pts,
+            intensity,
+            self.lidar_col_time_s[col].astype(F32),
+            (idx % B).astype(np.uint16),
+            r.astype(F32),
+            moving[idx],
         )
 
 

@@ -39,7 +39,7 @@ from mapkit.core.types import (
 )
 from mapkit.io.mcap_log import Rosbag2Writer
 from mapkit.io.trajectory import read_kitti_poses, read_tum, write_tum
-from mapkit.synth import session_log_relpath
+from mapkit.synth import moving_cars_path, session_log_relpath
 from mapkit.synth.appearance import Conditions, make_conditions
 from mapkit.synth.config import SessionConfig, SynthConfig
 from mapkit.synth.sensors import (
@@ -54,6 +54,7 @@ from mapkit.synth.sensors import (
     imu_from_poses,
     intrinsics,
 )
+from mapkit.synth.traffic import oncoming_traffic, write_dynamic_truth
 from mapkit.synth.world import DRIVE_LANE_CENTER_M, Mat, RoadGraph, Town, parked_cars, write_ply
 
 TOPIC_IMAGE = "/camera/front/image"
@@ -732,10 +733,12 @@ def _write_log(
     picture_frame: int,
     picture: Path,
     progress: bool | None,
+    moving_hits: list[tuple[int, np.ndarray]] | None = None,
 ) -> dict[str, float]:
     """Render the session's LiDAR sweeps and camera frames and write them with every other
     message into the rosbag2 folder ``log_dir``; camera frame ``picture_frame`` is also saved as
-    the PNG ``picture``. Returns the seconds spent rendering camera and LiDAR.
+    the PNG ``picture``. Returns the seconds spent rendering camera and LiDAR; each sweep's stamp and the indices
+    of its points that hit a moving car are appended to ``moving_hits`` when given.
     Each sweep and frame draws from its own generator, seeded by the session's seed and its index."""
     drive = plan.drive
     K = intrinsics(cfg.camera)
@@ -763,8 +766,12 @@ def _write_log(
                 tt = time.perf_counter()
                 col_ns = stamp + np.round(renderer.lidar_col_time_s * 1e9).astype(np.int64)
                 sweep = renderer.scan_lidar(
-                    drive.poses_at(col_ns) @ ex[FRAME_LIDAR], np.random.default_rng([plan.seed, 4, i])
+                    drive.poses_at(col_ns) @ ex[FRAME_LIDAR],
+                    np.random.default_rng([plan.seed, 4, i]),
+                    stamp + int(round(0.5e9 / cfg.lidar.rate_hz)),
                 )
+                if moving_hits is not None:
+                    moving_hits.append((stamp, np.flatnonzero(sweep.moving)))
                 render_s["lidar"] += time.perf_counter() - tt
                 w.write(
                     TOPIC_LIDAR,
@@ -775,7 +782,7 @@ def _write_log(
                 tt = time.perf_counter()
                 wfb = drive.poses_at(np.array([stamp]))[0]
                 frame = renderer.render_camera(
-                    st.world_from_camera[i], plan.conditions, np.random.default_rng([plan.seed, 5, i]), wfb
+                    st.world_from_camera[i], plan.conditions, np.random.default_rng([plan.seed, 5, i]), wfb, stamp
                 )
                 render_s["camera"] += time.perf_counter() - tt
                 w.write(
@@ -809,16 +816,24 @@ def write_session(
     parked = parked_cars(town, rng_cars)
     write_ply(sess_dir / f"{name}.parked_cars.ply", parked)
     t0 = time.perf_counter()
-    renderer = Renderer(town, parked, cfg.camera, cfg.lidar, nthreads=nthreads)
-    ex = extrinsics(cfg)
     drive = plan.drive
+    traffic = oncoming_traffic(
+        drive.stamps_ns, drive.world_from_base, plan.config.moving_cars, np.random.default_rng([plan.seed, 8])
+    )
+    renderer = Renderer(town, parked, cfg.camera, cfg.lidar, nthreads=nthreads, traffic=traffic)
+    ex = extrinsics(cfg)
     st = _session_streams(town, plan, cfg, ex, rng_gps, rng_imu)
     write_tum(sess_dir / f"{name}.gt.tum", drive.stamps_ns, drive.world_from_base)
     write_tum(sess_dir / f"{name}.camera.tum", st.camera_ns, st.world_from_camera)
     keep_frame = anchor_frame(st.world_from_camera, town.anchor) if len(st.camera_ns) else -1
     log_dir = out_dir / session_log_relpath(name)
     picture = out_dir / "pictures" / "frames" / f"{name}.png"
-    render_s = _write_log(log_dir, plan, cfg, renderer, ex, st, keep_frame, picture, progress)
+    moving_hits: list[tuple[int, np.ndarray]] | None = [] if traffic is not None else None
+    render_s = _write_log(log_dir, plan, cfg, renderer, ex, st, keep_frame, picture, progress, moving_hits)
+    if traffic is not None and moving_hits is not None:
+        write_dynamic_truth(
+            moving_cars_path(out_dir, name), traffic, [t for t, _ in moving_hits], [h for _, h in moving_hits]
+        )
     (sess_dir / f"{name}.mcap").unlink(missing_ok=True)  # the bare log of a town written before rosbag2 folders
     wall = time.perf_counter() - t0
     return {
@@ -830,6 +845,11 @@ def write_session(
         "imu_samples": int(len(st.imu_ns)),
         "ground_truth_poses": int(len(drive.stamps_ns)),
         "parked_cars": int(len(np.unique(parked.object_id[parked.material == Mat.CAR_BODY]))),
+        **(
+            {}
+            if traffic is None or moving_hits is None
+            else {"moving_cars": len(traffic), "lidar_moving_car_points": int(sum(len(h) for _, h in moving_hits))}
+        ),
         "anchor_frame": keep_frame,
         "mcap_bytes": int(sum(f.stat().st_size for f in log_dir.glob("*.mcap"))),
         # how long it took: a run record (the caller moves it to the town's timings.json)

@@ -1664,7 +1664,6 @@ def parked_cars(town: Town, rng: np.random.Generator, occupancy: float | None = 
     take = rng.random(len(slots)) < p
     sl = slots[take]
     n = len(sl)
-    mb = MeshBuilder()
     if n == 0:
         return _empty_geometry()
     length = rng.uniform(3.8, 4.8, n)
@@ -1674,20 +1673,46 @@ def parked_cars(town: Town, rng: np.random.Generator, occupancy: float | None = 
     left = np.c_[-fwd[:, 1], fwd[:, 0]]
     xy = sl[:, :2] + fwd * rng.uniform(-0.5, 0.5, n)[:, None] + left * rng.uniform(-0.15, 0.15, n)[:, None]
     colour = CAR_COLOURS[rng.integers(len(CAR_COLOURS), size=n)] * rng.uniform(0.85, 1.1, (n, 1))
-    ids = np.arange(n)
     body_h = rng.uniform(0.65, 0.8, n)
+    cab_len = length * rng.uniform(0.45, 0.55, n)
+    cab_h = rng.uniform(0.45, 0.55, n)
+    return car_meshes(CarShapes(length, width, body_h, cab_len, cab_h, colour), xy, yaw)
+
+
+@dataclass
+class CarShapes:
+    """The sizes (m) and colours of ``n`` cars: a body box on wheels and a glass cab on it."""
+
+    length: np.ndarray  # (n,)
+    width: np.ndarray  # (n,)
+    body_h: np.ndarray  # (n,) body height above its 0.3 m ground clearance
+    cab_len: np.ndarray  # (n,)
+    cab_h: np.ndarray  # (n,)
+    colour: np.ndarray  # (n, 3) linear RGB
+
+    def take(self, k: np.ndarray) -> CarShapes:
+        return CarShapes(*(getattr(self, f)[k] for f in ("length", "width", "body_h", "cab_len", "cab_h", "colour")))
+
+
+def car_meshes(shape: CarShapes, xy: np.ndarray, yaw: np.ndarray) -> Geometry:
+    """Cars of ``shape`` standing on z = 0 at ``xy`` (n, 2) heading ``yaw`` (n,): body, cab, four wheels."""
+    n = len(xy)
+    mb = MeshBuilder()
+    fwd = np.c_[np.cos(yaw), np.sin(yaw)]
+    left = np.c_[-fwd[:, 1], fwd[:, 0]]
+    length, width, colour = shape.length, shape.width, shape.colour
+    ids = np.arange(n)
     add_boxes(
         mb,
-        Boxes(np.c_[xy, np.full(n, 0.3)], np.c_[length / 2, width / 2], body_h, yaw),
+        Boxes(np.c_[xy, np.full(n, 0.3)], np.c_[length / 2, width / 2], shape.body_h, yaw),
         Mat.CAR_BODY,
         object_id=ids,
         aux=colour,
     )
-    cab_len = length * rng.uniform(0.45, 0.55, n)
     cab = xy - fwd * (0.08 * length)[:, None]
     add_boxes(
         mb,
-        Boxes(np.c_[cab, 0.3 + body_h], np.c_[cab_len / 2, width / 2 - 0.08], rng.uniform(0.45, 0.55, n), yaw),
+        Boxes(np.c_[cab, 0.3 + shape.body_h], np.c_[shape.cab_len / 2, width / 2 - 0.08], shape.cab_h, yaw),
         {4: Mat.CAR_BODY, "default": Mat.CAR_GLASS},
         object_id=ids,
         aux=colour,
