@@ -115,11 +115,14 @@ def raster_top_view(
     title: str,
     axes: tuple[str, str] = ("east", "north"),
     max_side_px: int = 1000,
+    marked: np.ndarray | None = None,
+    marked_label: str = "",
 ) -> Path:
     """Every map point seen from above as an image: each pixel the mean height of the points it holds (viridis,
     2nd to 98th percentile), white where none, the trajectory in red, a scale bar and the height range in the
-    caption. Drawn with Pillow, not matplotlib: a dense map of millions of points in a fraction of a second, where
-    a scatter plot would take seconds for a sample of it. Metres; the image's up is ``axes[1]``."""
+    caption; pixels holding one of the ``marked`` points (N, 3) drawn magenta over them, named ``marked_label``.
+    Drawn with Pillow, not matplotlib: a dense map of millions of points in a fraction of a second, where a scatter
+    plot would take seconds for a sample of it. Metres; the image's up is ``axes[1]``."""
     from PIL import Image, ImageDraw, ImageFont
 
     xy = np.asarray(points, np.float64)[:, :2]
@@ -143,6 +146,11 @@ def raster_top_view(
         level = np.clip((mean_z - zlo) / max(zhi - zlo, 1e-6) * 255, 0, 255).astype(np.intp)
         seen = count > 0
         rgb.reshape(-1, 3)[seen] = lut[level[seen]]
+    if marked is not None and len(marked):
+        m = np.asarray(marked, np.float64)
+        mc = np.clip(((m[:, 0] - lo[0]) / px_m).astype(np.intp), 0, w - 1)
+        mr = np.clip(((hi[1] - m[:, 1]) / px_m).astype(np.intp), 0, h - 1)
+        rgb[mr, mc] = (230, 0, 200)
     img = Image.fromarray(rgb)
     draw = ImageDraw.Draw(img)
     if traj_xy is not None and len(traj_xy):
@@ -153,7 +161,7 @@ def raster_top_view(
     draw.rectangle([20, h - 24, 20 + bar_px, h - 18], fill=(0, 0, 0))
     font = ImageFont.load_default(size=14)
     draw.text((20, h - 44), f"{bar_m:g} m", fill=(0, 0, 0), font=font)
-    caption = Image.new("RGB", (w, 52), (255, 255, 255))
+    caption = Image.new("RGB", (w, 72 if marked is not None and len(marked) else 52), (255, 255, 255))
     cd = ImageDraw.Draw(caption)
     cd.text((8, 4), title, fill=(0, 0, 0), font=ImageFont.load_default(size=16))
     cd.text(
@@ -163,9 +171,11 @@ def raster_top_view(
         fill=(60, 60, 60),
         font=font,
     )
-    out = Image.new("RGB", (w, h + 52), (255, 255, 255))
+    if marked is not None and len(marked):
+        cd.text((8, 48), f"magenta: {marked_label}", fill=(60, 60, 60), font=font)
+    out = Image.new("RGB", (w, h + caption.height), (255, 255, 255))
     out.paste(caption, (0, 0))
-    out.paste(img, (0, 52))
+    out.paste(img, (0, caption.height))
     path = Path(path)
     with atomic_path(path) as tmp:
         out.save(tmp, format="PNG")

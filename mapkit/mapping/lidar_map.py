@@ -16,6 +16,10 @@ scan is placed by one pose, the trajectory's at its stamp.
 Where a point falls outside the trajectory's time span (the first sweep of a kiss-icp trajectory, whose poses
 are stamped at each sweep's end) it takes the nearest end pose; a scan whose whole sweep lies outside it is
 skipped and counted.
+
+Moving objects (``dynamic``, on by default): each placed scan passes through
+:class:`~mapkit.mapping.lidar_dynamic.DynamicFilter` before it enters the map, and the points it removes go into a
+second voxel map of the same size (``dynamic.ply``), so that what was removed can be looked at.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_path, atomic_write_ply, progress_bar
 from mapkit.core.types import LidarScan
+from mapkit.mapping.lidar_dynamic import DynamicConfig, DynamicFilter, PlacedScan, beam_spacing
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.mapping.voxel_map import VoxelMap, VoxelStats
 
@@ -69,6 +74,9 @@ class LidarMapConfig(MapkitConfig):
     chunk_points: int = Field(
         1_000_000, ge=1, description="Points buffered before they are merged into the map (memory per chunk)."
     )
+    dynamic: DynamicConfig = Field(
+        default_factory=DynamicConfig, description="Removal of moving objects' points (free space between scans)."
+    )
 
     @model_validator(mode="after")
     def _ranges(self) -> LidarMapConfig:
@@ -82,7 +90,9 @@ class LidarMapResult:
     """The map and what went into it."""
 
     voxels: VoxelMap
+    removed: VoxelMap | None = None  # the moving objects' points, when dynamic removal is on
     scans_used: int = 0
+    points_seen: int = 0  # within the range limits, before dynamic removal
     skipped: dict[str, int] = field(default_factory=dict)  # reason -> scans
     times: dict[str, int] = field(default_factory=dict)  # where the deskew times came from -> scans
 
@@ -96,6 +106,14 @@ class LidarMapResult:
             **({"skipped": dict(self.skipped)} if self.skipped else {}),
             "deskew": cfg.deskew,
             "deskew_times": dict(self.times),
+            "dynamic": {"enabled": False}
+            if self.removed is None
+            else {
+                "enabled": True,
+                "points_removed": int(self.removed.points_added),
+                "fraction_removed": round(self.removed.points_added / max(self.points_seen, 1), 5),
+                "voxels_removed": len(self.removed),
+            },
         }
 
 
@@ -125,10 +143,10 @@ def _clamped_poses(traj: Trajectory, query_ns: np.ndarray) -> np.ndarray:
 
 def place_scan(
     scan: LidarScan, traj: Trajectory, base_from_lidar: np.ndarray, cfg: LidarMapConfig, times: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray | None] | None:
-    """The scan's points within the range limits in the trajectory's world frame, with their intensities;
-    deskewed when ``times`` (per point, s relative to the stamp) are given. None when the sweep lies outside the
-    trajectory's time span."""
+) -> PlacedScan | None:
+    """The scan's points within the range limits in the trajectory's world frame, with their intensities and the
+    sensor's position when each was measured; deskewed when ``times`` (per point, s relative to the stamp) are
+    given. None when the sweep lies outside the trajectory's time span."""
     xyz = np.asarray(scan.points_xyz, np.float64)
     r2 = np.einsum("ij,ij->i", xyz, xyz)
     keep = (r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)  # NaN compares false: dropped too
@@ -144,7 +162,8 @@ def place_scan(
         return None
     if t is None or hi_s <= lo_s:
         T = _clamped_poses(traj, np.array([scan.stamp_ns]))[0] @ base_from_lidar
-        return xyz @ T[:3, :3].T + T[:3, 3], intensity
+        origin = np.broadcast_to(T[:3, 3], xyz.shape)
+        return PlacedScan(scan.stamp_ns, xyz @ T[:3, :3].T + T[:3, 3], intensity, origin, T[:3, :3])
     grid_s = np.linspace(lo_s, hi_s, DESKEW_SLICES)
     T = _clamped_poses(traj, scan.stamp_ns + np.round(grid_s * 1e9).astype(np.int64)) @ base_from_lidar
     slice_of = np.rint((t - lo_s) / (hi_s - lo_s) * (DESKEW_SLICES - 1)).astype(np.intp)
@@ -153,7 +172,8 @@ def place_scan(
     for i in range(3):  # row by row: gathers of one entry per point, not of a 3x3 matrix per point
         world[:, i] = T[:, i, 0][slice_of] * x + T[:, i, 1][slice_of] * y + T[:, i, 2][slice_of] * z
         world[:, i] += T[:, i, 3][slice_of]
-    return world, intensity
+    origin = T[:, :3, 3][slice_of]
+    return PlacedScan(scan.stamp_ns, world, intensity, origin, T[DESKEW_SLICES // 2, :3, :3])
 
 
 def build_lidar_map(
@@ -168,19 +188,38 @@ def build_lidar_map(
     """The voxel map of ``scans`` placed by ``traj`` (world_from_base) and the LiDAR's mount, scan by scan;
     ``source`` names the log in the warning about scans whose times cannot be used."""
     out = LidarMapResult(VoxelMap(cfg.voxel_size_m, cfg.chunk_points))
+    moving = None  # the dynamic filter, made at the first scan (its range image's rows from the scan's rings)
+    if cfg.dynamic.enabled:
+        out.removed = VoxelMap(cfg.voxel_size_m, cfg.chunk_points)
+
+    def add(decided: list[tuple[PlacedScan, np.ndarray]]) -> None:
+        for placed, keep in decided:
+            gone = ~keep
+            out.voxels.add(
+                placed.points[keep], None if placed.intensity is None else placed.intensity[keep], placed.stamp_ns
+            )
+            if out.removed is not None and gone.any():
+                out.removed.add(
+                    placed.points[gone], None if placed.intensity is None else placed.intensity[gone], placed.stamp_ns
+                )
+
     bar = progress_bar(total, progress, desc="lidar map", unit="scan", leave=False)
     for scan in scans:
         bar.update(1)
         times, origin = scan_times(scan, cfg)
         placed = place_scan(scan, traj, base_from_lidar, cfg, times)
-        if placed is None or not len(placed[0]):
+        if placed is None or not len(placed.points):
             why = "outside the trajectory's time span" if placed is None else "no point within the range limits"
             out.skipped[why] = out.skipped.get(why, 0) + 1
             continue
-        points, intensity = placed
-        out.voxels.add(points, intensity, scan.stamp_ns)
+        out.points_seen += len(placed.points)
+        if moving is None and cfg.dynamic.enabled:
+            moving = DynamicFilter(cfg.dynamic, beam_spacing(scan.points_xyz, scan.ring))
+        add(moving.push(placed) if moving is not None else [(placed, np.ones(len(placed.points), bool))])
         out.scans_used += 1
         out.times[origin] = out.times.get(origin, 0) + 1
+    if moving is not None:
+        add(moving.finish())
     bar.close()
     out.voxels.flush()
     if out.times.get("unusable"):

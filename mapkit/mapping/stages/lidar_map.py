@@ -5,16 +5,20 @@ trajectory's own frame when the session is not georeferenced).
 
 Files: ``points.ply`` (one point per voxel, its centroid, grey by mean intensity; the frame in the header),
 ``voxels.npz`` (per voxel: centroid, count, mean intensity, normal, planarity, first and last stamp seen),
-``top_view.png`` (coloured by height) and ``metrics.json`` (points, voxels, scans used and skipped, deskew).
+``dynamic.ply`` (the points removed as moving objects, one per voxel, when ``dynamic`` is on),
+``top_view.png`` (coloured by height, the removed points in magenta) and ``metrics.json`` (points, voxels,
+scans used and skipped, deskew, points removed).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
-from mapkit.core.runio import write_json
+from mapkit.core.runio import atomic_write_ply, write_json
 from mapkit.core.types import StreamKind
 from mapkit.core.workspace import SessionDirs
 from mapkit.core.writers import writes_workspace
@@ -25,7 +29,7 @@ from mapkit.mapping.stages.common import plot_axes
 from mapkit.mapping.trajectory import SensorMounts, Trajectory
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 1
+STAGE_VERSION = 2
 
 
 def lidar_frame(log: DriveLog, topic: str) -> str | None:
@@ -69,12 +73,20 @@ def write_lidar_map(
         )
     stats = result.voxels.stats()
     save_voxel_map(out, stats, frame)
+    removed = None
+    if result.removed is not None and len(result.removed):  # an empty PLY is one open3d cannot read
+        removed = result.removed.stats().centroid
+        atomic_write_ply(out / "dynamic.ply", removed, np.tile([0.9, 0.0, 0.8], (len(removed), 1)), frame=frame)
+    else:
+        (out / "dynamic.ply").unlink(missing_ok=True)  # from an earlier build that removed points
     raster_top_view(
         out / "top_view.png",
         stats.centroid,
         trajectory.world_from_base[:, :3, 3],
         f"{dirs.name}: LiDAR map, {len(stats)} voxels of {cfg.voxel_size_m:g} m",
         axes=plot_axes(frame),
+        marked=removed,
+        marked_label=f"removed as moving ({m['dynamic'].get('points_removed', 0)} points)",
     )
     m["crs"] = None if frame is None else frame.to_dict()
     m["topic"] = topic

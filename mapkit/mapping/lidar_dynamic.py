@@ -1,0 +1,292 @@
+"""Points of moving objects, removed from a LiDAR map where passes disagree.
+
+The rule is free-space carving between scans (the visibility test of Removert, Kim & Kim IROS 2020, applied
+point by point within a time window): a point that a later or earlier scan sees *through* was not there when
+that scan looked, so it belonged to something that moved. For each scan, ``witnesses`` other scans are taken
+at time offsets spread over ``min_dt_s``..``max_dt_s`` before and after it (a car has driven its own length
+away by then). Each witness keeps a range image of what it measured: per pixel of azimuth and elevation
+(``azimuth_resolution_deg`` x ``vertical_resolution_deg``, around the sensor's orientation at the sweep's
+middle) the nearest return, then the nearest over each 3 x 3 neighbourhood. A point of the scan is projected
+into the witness along the ray from the witness's sensor position when it fired that azimuth; the witness
+sees through it when the neighbourhood's nearest return lies beyond the point by more than
+``margin_m + margin_fraction * range``. A point seen through by at least ``min_votes`` witnesses is removed.
+
+What stays, by construction: a point no witness can see (occluded, out of range, or with no return in its
+neighbourhood: sky, a black car) gets no vote; a surface seen at a grazing angle has nearer returns in the
+neighbourhood; a parked car is seen again where it was. What goes that should not: a thin object (a pole, a
+branch) that every witness's rays pass beside; the measured share is in the docs. What cannot go: a car
+moving with the vehicle at its speed stays in the same place relative to it, so no witness sees through it.
+
+Streaming: a scan is decided once the scans up to ``max_dt_s`` after it have arrived; the filter holds the
+scans of that window and the range images of twice it, so its memory is bounded by the window, not the log.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from pydantic import Field, model_validator
+
+from mapkit.core.config import MapkitConfig
+
+GROW_PASSES = 2
+HDL64_BEAM_SPACING_DEG = 0.4  # 26.9 deg over 64 beams (Velodyne HDL-64E datasheet)
+
+
+def beam_spacing(xyz: np.ndarray, ring: np.ndarray | None) -> float | None:
+    """The mean spacing (rad) of a scanner's beams from one scan in its own frame: the span of the rings' median
+    elevations over their count less one. None without a ring field or with fewer than two rings."""
+    if ring is None or len(ring) != len(xyz):
+        return None
+    xyz = np.asarray(xyz, np.float64)
+    el = np.arctan2(xyz[:, 2], np.hypot(xyz[:, 0], xyz[:, 1]))
+    rings, index = np.unique(np.asarray(ring), return_inverse=True)
+    if len(rings) < 2:
+        return None
+    order = np.argsort(index, kind="stable")
+    starts = np.searchsorted(index[order], np.arange(len(rings)))
+    medians = np.sort([np.median(part) for part in np.split(el[order], starts[1:])])
+    return float((medians[-1] - medians[0]) / (len(rings) - 1))
+
+
+class DynamicConfig(MapkitConfig):
+    """Removal of moving objects' points from the LiDAR map (``lidar_map.dynamic``)."""
+
+    enabled: bool = Field(True, description="Remove points that other scans see through (moving objects).")
+    min_dt_s: float = Field(
+        0.5,
+        gt=0,
+        allow_inf_nan=False,
+        description="Witness scans at least this far in time: an oncoming car (20 m/s relative) has moved 10 m.",
+    )
+    max_dt_s: float = Field(
+        3.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Witness scans at most this far in time (a walker at 1.5 m/s has moved 3 m); also the delay "
+        "before a scan is decided.",
+    )
+    witnesses: int = Field(8, ge=1, description="Witness scans per scan, half before and half after it.")
+    min_votes: int = Field(2, ge=1, description="Witnesses that must see through a point to remove it.")
+    margin_m: float = Field(
+        0.3, ge=0, allow_inf_nan=False, description="A witness sees through a point beyond it by more than this..."
+    )
+    margin_fraction: float = Field(
+        0.02, ge=0, allow_inf_nan=False, description="...plus this fraction of the point's range (pose error)."
+    )
+    grow_px: int = Field(
+        2,
+        ge=0,
+        description="Then a kept point goes too when, within this many pixels of it in its own scan's range image, "
+        "more points at its range (within margin_m) went than stayed: the rest of a car whose parts the witnesses "
+        "could not see through. 0: off.",
+    )
+    vertical_resolution_deg: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="Range-image rows; None: the scanner's mean beam spacing, from the scans' ring field, else "
+        "0.4 deg (a Velodyne HDL-64E's, as in KITTI's ring-less files). Rows finer than the beams let a surface seen "
+        "at a grazing angle look seen through: set it for a ring-less scanner with fewer beams.",
+    )
+    azimuth_resolution_deg: float = Field(
+        0.4,
+        gt=0,
+        allow_inf_nan=False,
+        description="Range-image columns; coarser than the scanner's own step is safe (fewer holes), finer leaves "
+        "empty pixels and their points get no vote.",
+    )
+
+    @model_validator(mode="after")
+    def _window(self) -> DynamicConfig:
+        if self.min_dt_s > self.max_dt_s:
+            raise ValueError(f"min_dt_s ({self.min_dt_s}) must not exceed max_dt_s ({self.max_dt_s})")
+        if self.min_votes > self.witnesses:
+            raise ValueError(f"min_votes ({self.min_votes}) must not exceed witnesses ({self.witnesses})")
+        return self
+
+
+@dataclass
+class PlacedScan:
+    """A scan's points in the map frame and where they were measured from."""
+
+    stamp_ns: int
+    points: np.ndarray  # (N, 3) map frame
+    intensity: np.ndarray | None  # (N,)
+    origin: np.ndarray  # (N, 3) the sensor's position when each point was measured
+    rotation: np.ndarray  # (3, 3) map_from_sensor at the sweep's middle
+
+
+@dataclass
+class RangeView:
+    """What one scan saw: the nearest return per pixel and over each 3 x 3 neighbourhood (inf: none)."""
+
+    stamp_ns: int
+    rotation: np.ndarray  # (3, 3) map_from_sensor at the sweep's middle
+    centre: np.ndarray  # (3,) the sensor's mean position
+    column_origin: np.ndarray  # (W, 3) the sensor's position when it fired each column
+    column_offset: np.ndarray  # (W, 3) float32: that position from the centre, in the sensor's frame
+    image: np.ndarray  # (H, W) float32
+    el_lo: float  # elevation of row 0's lower edge (rad)
+
+
+def _angles(local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x, y, z = local[:, 0], local[:, 1], local[:, 2]
+    horizontal = np.hypot(x, y)
+    return np.arctan2(y, x), np.arctan2(z, horizontal), np.sqrt(horizontal * horizontal + z * z)
+
+
+class DynamicFilter:
+    """Scans in (time order) with :meth:`push`, decided scans out with their keep masks, ``max_dt_s`` later;
+    :meth:`finish` decides the rest."""
+
+    def __init__(self, cfg: DynamicConfig, beam_spacing_rad: float | None = None):
+        self.cfg = cfg
+        self.az_res = np.radians(cfg.azimuth_resolution_deg)
+        if cfg.vertical_resolution_deg is not None:
+            self.el_res = float(np.radians(cfg.vertical_resolution_deg))
+        else:
+            self.el_res = beam_spacing_rad or float(np.radians(HDL64_BEAM_SPACING_DEG))
+        self.columns = int(np.ceil(2 * np.pi / self.az_res))
+        self.max_dt_ns = int(round(cfg.max_dt_s * 1e9))
+        self.min_dt_ns = int(round(cfg.min_dt_s * 1e9))
+        self._pending: deque[PlacedScan] = deque()
+        self._views: deque[RangeView] = deque()
+        self.points_seen = 0
+        self.points_removed = 0
+
+    def view(self, scan: PlacedScan) -> RangeView:
+        """The range image of ``scan``."""
+        local = (scan.points - scan.origin) @ scan.rotation
+        az, el, r = _angles(local)
+        W = self.columns
+        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % W
+        el_lo = float(el.min()) - 1.5 * self.el_res if len(el) else 0.0  # a beam at a row's middle
+        row = np.floor((el - el_lo) / self.el_res).astype(np.int64)
+        H = int(row.max()) + 2 if len(row) else 1
+        flat = np.full(H * W, np.inf, np.float32)
+        np.minimum.at(flat, row * W + col, r.astype(np.float32))
+        raw = flat.reshape(H, W)
+        # nearest over each 3 x 3 neighbourhood, the columns wrapping around
+        padded = np.concatenate([raw[:, -1:], raw, raw[:, :1]], axis=1)
+        eroded = cv2.erode(padded, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        image = np.ascontiguousarray(eroded[:, 1:-1])
+        centre = scan.origin.mean(axis=0) if len(scan.origin) else np.zeros(3)
+        counts = np.bincount(col, minlength=W)
+        column_origin = np.repeat(centre[None], W, axis=0)
+        filled = np.flatnonzero(counts)
+        if len(filled):
+            for k in range(3):
+                sums = np.bincount(col, scan.origin[:, k], minlength=W)
+                column_origin[:, k] = np.interp(np.arange(W), filled, sums[filled] / counts[filled], period=W)
+        offset = ((column_origin - centre) @ scan.rotation).astype(np.float32)
+        return RangeView(scan.stamp_ns, scan.rotation, centre, column_origin, offset, image, el_lo)
+
+    def see_through(self, points: np.ndarray, view: RangeView) -> np.ndarray:
+        """Which ``points`` (N, 3, map frame) ``view`` sees through."""
+        # in float32 relative to the sensor's mean position (a sweep spans metres, not kilometres)
+        R = view.rotation.astype(np.float32)
+        rel = (points - view.centre).astype(np.float32)
+        local = rel @ R
+        col0 = np.floor((np.arctan2(local[:, 1], local[:, 0]) + np.pi) / self.az_res).astype(np.int64) % self.columns
+        local -= view.column_offset[col0]
+        az, el, r = _angles(local)
+        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % self.columns
+        row = np.floor((el - view.el_lo) / self.el_res).astype(np.int64)
+        inside = (row >= 0) & (row < view.image.shape[0])
+        seen = np.full(len(points), np.inf, np.float32)
+        seen[inside] = view.image[row[inside], col[inside]]
+        return np.isfinite(seen) & (seen > r + self.cfg.margin_m + self.cfg.margin_fraction * r)
+
+    def _witnesses(self, stamp_ns: int) -> list[RangeView]:
+        """Up to ``witnesses`` views, each nearest to one of the target offsets spread over the window."""
+        half = max(1, self.cfg.witnesses // 2)
+        offsets = np.linspace(self.min_dt_ns, self.max_dt_ns, half)
+        targets = np.r_[-offsets[::-1], offsets][: self.cfg.witnesses] if self.cfg.witnesses > 1 else offsets[:1]
+        dt = np.array([v.stamp_ns - stamp_ns for v in self._views], np.int64)
+        eligible = np.flatnonzero((np.abs(dt) >= self.min_dt_ns) & (np.abs(dt) <= self.max_dt_ns))
+        chosen: list[int] = []
+        for target in targets:
+            side = eligible[np.sign(dt[eligible]) == np.sign(target)]
+            free = side[~np.isin(side, chosen)]
+            if len(free):
+                chosen.append(int(free[np.argmin(np.abs(dt[free] - target))]))
+        return [self._views[i] for i in chosen]
+
+    def _decide(self, scan: PlacedScan) -> tuple[PlacedScan, np.ndarray]:
+        votes = np.zeros(len(scan.points), np.int32)
+        for view in self._witnesses(scan.stamp_ns):
+            votes += self.see_through(scan.points, view)
+        keep = votes < self.cfg.min_votes
+        for _ in range(GROW_PASSES if self.cfg.grow_px and not keep.all() else 0):
+            keep &= ~self._grow(scan, ~keep)
+        self.points_seen += len(keep)
+        self.points_removed += int((~keep).sum())
+        return scan, keep
+
+    def _grow(self, scan: PlacedScan, gone: np.ndarray) -> np.ndarray:
+        """Kept points whose neighbours at their range (in the scan's own range image) mostly went."""
+        local = (scan.points - scan.origin) @ scan.rotation
+        az, el, r = _angles(local)
+        W = self.columns
+        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % W
+        row = np.floor((el - el.min()) / self.el_res + 0.5).astype(np.int64)
+        H = int(row.max()) + 1
+        pixel = row * W + col
+        nearest = np.full(H * W, np.inf)
+        np.minimum.at(nearest, pixel, r)
+        went = np.zeros(H * W, bool)
+        went[pixel[gone]] = True
+        went &= np.isfinite(nearest)
+        # a pixel's status is its nearest point's: a pixel where a kept point is the nearest one stays kept
+        kept_nearest = ~gone & (r <= nearest[pixel])
+        went[pixel[kept_nearest]] = False
+        k = self.cfg.grow_px
+        nearest = np.pad(nearest.reshape(H, W), ((k, k), (k, k)), constant_values=np.inf, mode="constant")
+        went = np.pad(went.reshape(H, W), ((k, k), (k, k)))
+        # only kept points within k pixels of one that went can change
+        reach = cv2.dilate(went.astype(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+        cand = np.flatnonzero(~gone & (reach[row + k, col + k] > 0))
+        rc, cc, rr = row[cand] + k, col[cand] + k, r[cand]
+        n_went = np.zeros(len(cand), np.int32)
+        n_stay = np.zeros(len(cand), np.int32)
+        for dr in range(-k, k + 1):
+            for dc in range(-k, k + 1):
+                if dr == 0 and dc == 0:
+                    continue
+                near = np.abs(nearest[rc + dr, cc + dc] - rr) < self.cfg.margin_m
+                w = went[rc + dr, cc + dc]
+                n_went += near & w
+                n_stay += near & ~w
+        # and a kept point right below one that went, at its range: where a wheel meets the road
+        below = np.zeros(len(cand), bool)
+        for dr in range(1, k + 1):
+            below |= went[rc + dr, cc] & (np.abs(nearest[rc + dr, cc] - rr) < self.cfg.margin_m)
+        out = np.zeros(len(gone), bool)
+        out[cand[(n_went > n_stay) | below]] = True
+        return out
+
+    def push(self, scan: PlacedScan) -> list[tuple[PlacedScan, np.ndarray]]:
+        """Add ``scan``; returns the scans now decided, each with its keep mask."""
+        self._pending.append(scan)
+        self._views.append(self.view(scan))
+        out = []
+        while self._pending and self._pending[0].stamp_ns + self.max_dt_ns <= scan.stamp_ns:
+            out.append(self._decide(self._pending.popleft()))
+        oldest = self._pending[0].stamp_ns if self._pending else scan.stamp_ns
+        while self._views and self._views[0].stamp_ns < oldest - self.max_dt_ns:
+            self._views.popleft()
+        return out
+
+    def finish(self) -> list[tuple[PlacedScan, np.ndarray]]:
+        """Decide the scans still waiting (the log's last ``max_dt_s``, with the witnesses there are)."""
+        out = [self._decide(s) for s in self._pending]
+        self._pending.clear()
+        self._views.clear()
+        return out
+
+
+__all__ = ["DynamicConfig", "DynamicFilter", "PlacedScan", "RangeView", "beam_spacing"]
