@@ -22,17 +22,25 @@ import tempfile
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's mapkit, whatever is installed
 
 from mapkit.core.errors import InputWarning  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.core.geometry import interpolate_poses  # noqa: E402 (as above)
+from mapkit.core.types import StreamKind  # noqa: E402 (as above)
 from mapkit.core.workspace import Workspace  # noqa: E402 (as above)
 from mapkit.evaluation.dynamic import score_dynamic_removal  # noqa: E402 (as above)
+from mapkit.io import open_log  # noqa: E402 (as above)
 from mapkit.mapping.build import BuildConfig, build  # noqa: E402 (as above)
-from mapkit.mapping.lidar_map import LidarMapConfig  # noqa: E402 (as above)
+from mapkit.mapping.lidar_dynamic import DynamicConfig, DynamicFilter  # noqa: E402 (as above)
+from mapkit.mapping.lidar_map import LidarMapConfig, place_scan, scan_times  # noqa: E402 (as above)
 from mapkit.mapping.trajectory import Trajectory  # noqa: E402 (as above)
-from mapkit.synth import load_config, session_log, synthesize  # noqa: E402 (as above)
+from mapkit.synth import gt_poses, load_config, session_log, synthesize  # noqa: E402 (as above)
 
+DEFAULT_CLIP = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti-raw-velodyne-clip"
 SESSION = "traffic"
+EARLY_S = 3.0  # the drive's first seconds, reported apart (a trajectory's start is where it is least sure)
 TRAFFIC = {
     "seed": 11,
     "sessions": [
@@ -58,9 +66,54 @@ def built(town: Path, ws: Path, dynamic: bool) -> tuple[Workspace, dict]:
     return w, times
 
 
+def relative_error_1s(own: Trajectory, town: Path) -> list[float]:
+    """Every 0.5 s, how far the build's own motion over the next second is from the true one (m): frame-free."""
+    true_stamps, true_poses = gt_poses(town, SESSION)
+    t = np.arange(own.stamps_ns[0], own.stamps_ns[-1] - 1_000_000_000, 500_000_000)
+    a, _ = interpolate_poses(own.stamps_ns, own.world_from_base, t)
+    b, _ = interpolate_poses(own.stamps_ns, own.world_from_base, t + 1_000_000_000)
+    c, _ = interpolate_poses(true_stamps, true_poses, t)
+    d, _ = interpolate_poses(true_stamps, true_poses, t + 1_000_000_000)
+    err = np.linalg.inv(np.linalg.inv(c) @ d) @ (np.linalg.inv(a) @ b)
+    return [round(float(x), 3) for x in np.linalg.norm(err[:, :3, 3], axis=1)]
+
+
+def real_clip(clip: Path, scratch: Path) -> dict:
+    """The real KITTI clip (no labels): the share of its points removed, and of its points near the ground (within
+    0.15 m of the lowest point around them), with the defaults and without the height tolerance near the ground."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", InputWarning)
+        w = Workspace(
+            build([clip], scratch / "ws-clip", config=BuildConfig.model_validate({"map": False}), progress=False)
+        )
+    name = w.session_names()[0]
+    traj = Trajectory.load(w.session(name).enu_trajectory)
+    scans = list(open_log(clip).records(StreamKind.LIDAR))
+    out = {}
+    for label, dynamic in (("defaults", {}), ("no height tolerance", {"margin_vertical_m": 0.0})):
+        cfg = LidarMapConfig(dynamic=dynamic)
+        moving, probe = DynamicFilter(cfg.dynamic), DynamicFilter(DynamicConfig())
+        decided = []
+        for scan in scans:
+            placed = place_scan(scan, traj, np.eye(4), cfg, scan_times(scan, cfg)[0])
+            decided += moving.push(placed) if placed is not None else []
+        decided += moving.finish()
+        n = gone = ground = ground_gone = 0
+        for placed, keep in decided:
+            near = probe.near_ground(placed)
+            n, gone = n + len(keep), gone + int((~keep).sum())
+            ground, ground_gone = ground + int(near.sum()), ground_gone + int((~keep & near).sum())
+        out[label] = {
+            "removed_fraction": round(gone / n, 4),
+            "near_ground_removed_fraction": round(ground_gone / ground, 4),
+        }
+    return {"scans": len(scans), **out}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True, help="the record (JSON)")
+    ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP, help="the real KITTI clip (skipped when absent)")
     ap.add_argument("--scratch", type=Path, default=None, help="where the town and workspaces go (a temp dir)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -77,11 +130,20 @@ def main() -> int:
             score_dynamic_removal(town, SESSION, LidarMapConfig(dynamic={"enabled": False})),
         ]
         rows[1]["poses"] = "own"
+        rpe = relative_error_1s(own, town)
         rows[2]["poses"] = "truth, removal off"
+        for r in rows:  # where in the drive the static points went: the first seconds against the rest
+            per_scan = r.pop("per_scan")
+            start = per_scan[0][0]
+            early = [row for row in per_scan if row[0] - start < EARLY_S * 1e9]
+            r["static_removed_first_s"] = EARLY_S
+            r["static_points_removed_first"] = int(sum(row[4] for row in early))
         record = {
             "command": "python3 bench/lidar_dynamic.py --out runs/lidar-dynamic.json",
             "session": {"preset": "tiny", "seed": TRAFFIC["seed"], "length_m": 150.0, "moving_cars": 8},
             "rows": rows,
+            "real_clip": real_clip(args.clip, root) if (args.clip / "velodyne").is_dir() else None,
+            "own_motion_error_1s_m": {"first_second": rpe[0], "median_after_3s": float(np.median(rpe[6:]))},
             "stage_s": {
                 "trajectory": round(t_on["trajectory"], 2),
                 "lidar_map_with_removal": round(t_on["lidar_map"], 2),
@@ -93,8 +155,21 @@ def main() -> int:
     for r in rows:
         print(
             f"{r['poses']:>20}: car points kept {100 * r['car_kept_fraction']:.2f} % of {r['car_points']}, "
-            f"static removed {100 * r['static_removed_fraction']:.3f} % of {r['static_points']}"
+            f"static removed {100 * r['static_removed_fraction']:.3f} % of {r['static_points']} "
+            f"({r['static_points_removed_first']} of those {r['static_points_removed']} in the first {EARLY_S:g} s)"
         )
+    if record["real_clip"]:
+        for label, v in record["real_clip"].items():
+            if isinstance(v, dict):
+                print(
+                    f"real clip, {label}: {100 * v['removed_fraction']:.2f} % of points removed, "
+                    f"{100 * v['near_ground_removed_fraction']:.2f} % of the points near the ground"
+                )
+    e = record["own_motion_error_1s_m"]
+    print(
+        f"own trajectory's motion over 1 s: {e['first_second']:.2f} m off in the first second, median "
+        f"{e['median_after_3s']:.3f} m after 3 s"
+    )
     s = record["stage_s"]
     print(
         f"LiDAR map stage {s['lidar_map_with_removal']:.1f} s with removal, {s['lidar_map_without_removal']:.1f} s "

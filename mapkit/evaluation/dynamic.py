@@ -64,13 +64,11 @@ def score_dynamic_removal(
         t0 = time.perf_counter()
         decided += [(p.stamp_ns, keep) for p, keep in moving.finish()]
         seconds += time.perf_counter() - t0
-    car_n = car_kept = static_n = static_removed = 0
+    per_scan = []  # stamp, car points, car points kept, static points, static points removed
     for stamp, keep in decided:
         car = labels[stamp]
-        car_n += int(car.sum())
-        car_kept += int((keep & car).sum())
-        static_n += int((~car).sum())
-        static_removed += int((~keep & ~car).sum())
+        per_scan.append([stamp, int(car.sum()), int((keep & car).sum()), int((~car).sum()), int((~keep & ~car).sum())])
+    car_n, car_kept, static_n, static_removed = (int(sum(row[k] for row in per_scan)) for k in (1, 2, 3, 4))
     return {
         "session": session,
         "poses": trajectory.source,
@@ -82,6 +80,7 @@ def score_dynamic_removal(
         "static_points_removed": static_removed,
         "static_removed_fraction": static_removed / max(static_n, 1),
         "filter_s": round(seconds, 3),
+        "per_scan": per_scan,
     }
 
 

@@ -33,6 +33,7 @@ from pydantic import Field, model_validator
 from mapkit.core.config import MapkitConfig
 
 GROW_PASSES = 2
+GROUND_CELL_M, GROUND_CELL_DEG = 2.0, 2.0
 HDL64_BEAM_SPACING_DEG = 0.4  # 26.9 deg over 64 beams (Velodyne HDL-64E datasheet)
 
 
@@ -83,6 +84,20 @@ class DynamicConfig(MapkitConfig):
         description="Then a kept point goes too when, within this many pixels of it in its own scan's range image, "
         "more points at its range (within margin_m) went than stayed: the rest of a car whose parts the witnesses "
         "could not see through. 0: off.",
+    )
+    margin_vertical_m: float = Field(
+        0.1,
+        ge=0,
+        allow_inf_nan=False,
+        description="...plus, for points near the ground, this height error carried along the ray (divided by the "
+        "sine of its elevation): the road seen at a grazing angle, where centimetres of height move a return metres "
+        "along the beam.",
+    )
+    ground_band_m: float = Field(
+        0.15,
+        ge=0,
+        allow_inf_nan=False,
+        description="Near the ground: within this of the lowest point around (2 m x 2 deg polar cells).",
     )
     vertical_resolution_deg: float | None = Field(
         None,
@@ -185,8 +200,9 @@ class DynamicFilter:
         offset = ((column_origin - centre) @ scan.rotation).astype(np.float32)
         return RangeView(scan.stamp_ns, scan.rotation, centre, column_origin, offset, image, el_lo)
 
-    def see_through(self, points: np.ndarray, view: RangeView) -> np.ndarray:
-        """Which ``points`` (N, 3, map frame) ``view`` sees through."""
+    def see_through(self, points: np.ndarray, view: RangeView, height_error: np.ndarray | float = 0.0) -> np.ndarray:
+        """Which ``points`` (N, 3, map frame) ``view`` sees through; ``height_error`` (m, per point or one) is carried
+        along each ray into the margin."""
         # in float32 relative to the sensor's mean position (a sweep spans metres, not kilometres)
         R = view.rotation.astype(np.float32)
         rel = (points - view.centre).astype(np.float32)
@@ -199,7 +215,10 @@ class DynamicFilter:
         inside = (row >= 0) & (row < view.image.shape[0])
         seen = np.full(len(points), np.inf, np.float32)
         seen[inside] = view.image[row[inside], col[inside]]
-        return np.isfinite(seen) & (seen > r + self.cfg.margin_m + self.cfg.margin_fraction * r)
+        margin = self.cfg.margin_m + self.cfg.margin_fraction * r
+        if np.any(height_error):
+            margin = margin + height_error / np.maximum(np.abs(np.sin(el)), 0.01)
+        return np.isfinite(seen) & (seen > r + margin)
 
     def _witnesses(self, stamp_ns: int) -> list[RangeView]:
         """Up to ``witnesses`` views, each nearest to one of the target offsets spread over the window."""
@@ -218,14 +237,33 @@ class DynamicFilter:
 
     def _decide(self, scan: PlacedScan) -> tuple[PlacedScan, np.ndarray]:
         votes = np.zeros(len(scan.points), np.int32)
+        height_error = self.cfg.margin_vertical_m * self.near_ground(scan) if self.cfg.margin_vertical_m else 0.0
         for view in self._witnesses(scan.stamp_ns):
-            votes += self.see_through(scan.points, view)
+            votes += self.see_through(scan.points, view, height_error)
         keep = votes < self.cfg.min_votes
         for _ in range(GROW_PASSES if self.cfg.grow_px and not keep.all() else 0):
             keep &= ~self._grow(scan, ~keep)
         self.points_seen += len(keep)
         self.points_removed += int((~keep).sum())
         return scan, keep
+
+    def near_ground(self, scan: PlacedScan) -> np.ndarray:
+        """Points within ``ground_band_m`` of the lowest point around them (polar cells of 2 m by 2 deg around the
+        sensor, the lowest over each 3 x 3 cells): the road, and the bottom of whatever stands on it."""
+        rel = scan.points - scan.origin
+        az = np.arctan2(rel[:, 1], rel[:, 0])
+        ring = np.floor(np.hypot(rel[:, 0], rel[:, 1]) / GROUND_CELL_M).astype(np.int64)
+        sector = np.floor((az + np.pi) / np.radians(GROUND_CELL_DEG)).astype(np.int64)
+        n_sector = int(np.ceil(360 / GROUND_CELL_DEG))
+        n_ring = int(ring.max()) + 1
+        lowest = np.full(n_ring * n_sector, np.inf, np.float32)
+        z = scan.points[:, 2].astype(np.float32)
+        np.minimum.at(lowest, ring * n_sector + sector % n_sector, z)
+        grid = lowest.reshape(n_ring, n_sector)
+        padded = np.concatenate([grid[:, -1:], grid, grid[:, :1]], axis=1)
+        ground = cv2.erode(padded, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+        ground = ground[:, 1:-1].reshape(-1)
+        return z - ground[ring * n_sector + sector % n_sector] < self.cfg.ground_band_m
 
     def _grow(self, scan: PlacedScan, gone: np.ndarray) -> np.ndarray:
         """Kept points whose neighbours at their range (in the scan's own range image) mostly went."""
