@@ -24,9 +24,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's 
 from mapkit.core.workspace import Workspace  # noqa: E402 (after sys.path points at this checkout)
 from mapkit.deploy.benchmark import export_benchmark  # noqa: E402 (after sys.path points at this checkout)
 from mapkit.evaluation.benchmark import score_benchmark  # noqa: E402 (after sys.path points at this checkout)
-from mapkit.localization.colmap_registrator import register_benchmark  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.localization.colmap_registrator import (  # noqa: E402 (after sys.path points at this checkout)
+    ColmapRegistratorConfig,
+    register_benchmark,
+)
 from mapkit.localization.reference_model import build_reference_model  # noqa: E402 (after sys.path points at this checkout)
-from mapkit.localization.sixdof import localize_benchmark  # noqa: E402 (after sys.path points at this checkout)
+from mapkit.localization.sixdof import (  # noqa: E402 (after sys.path points at this checkout)
+    SixDofConfig,
+    localize_benchmark,
+)
 
 
 def _scores(ev) -> dict:
@@ -65,7 +71,18 @@ def main(argv: list[str] | None = None) -> int:
         "points3D": model["points3D"],
         "localizers": {},
     }
-    for name, localize in (("mapkit", localize_benchmark), ("colmap", register_benchmark)):
+    # COLMAP's registrator twice: with COLMAP's defaults, and with the acceptance mapkit's localizer uses (its RANSAC
+    # threshold and inlier count), so that what differs is the pipeline, not where a pose is accepted
+    six = SixDofConfig()
+    same_acceptance = ColmapRegistratorConfig(
+        abs_pose_max_error_px=six.ransac_max_error_px, abs_pose_min_num_inliers=six.min_inliers
+    )
+    runs = (
+        ("mapkit", localize_benchmark),
+        ("colmap", register_benchmark),
+        ("colmap-same-acceptance", lambda folder, out: register_benchmark(folder, out, config=same_acceptance)),
+    )
+    for name, localize in runs:
         t = time.perf_counter()
         poses = localize(bench, run / name / "poses.txt")
         seconds = time.perf_counter() - t
@@ -73,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
         record["localizers"][name] = {"seconds_per_query": round(seconds / max(ev.overall.queries, 1), 3)}
         record["localizers"][name].update(_scores(ev))
         print(f"{name}: {ev.overall.recall} median {ev.overall.median_translation_m} m", file=sys.stderr)
+    record["same_acceptance"] = same_acceptance.model_dump(
+        include={"abs_pose_max_error_px", "abs_pose_min_num_inliers"}
+    )
     args.out.write_text(json.dumps(record, indent=1) + "\n")
     print(f"record written to {args.out}", file=sys.stderr)
     return 0
