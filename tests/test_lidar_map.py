@@ -412,6 +412,23 @@ def test_real_clip_road_is_thin(kitti_velodyne):
     assert on <= 0.03
 
 
+def test_real_clip_the_removal_of_moving_objects_leaves_the_road(kitti_velodyne):
+    """On the real clip the removal takes under 1 % of the points near the ground (the road, where no moving object
+    stands but a small pitch error between scans looks like free space), and more than 1.5 % without the height
+    tolerance near the ground that keeps it."""
+    m = json.loads((kitti_velodyne.lidar_map / "metrics.json").read_text())["dynamic"]
+    assert m["enabled"] and 0 < m["near_ground_fraction_removed"] < 0.01 and m["fraction_removed"] < 0.1, m
+    traj = Trajectory.load(kitti_velodyne.enu_trajectory)
+    log = open_log(KITTI_VELODYNE)
+    try:
+        bare = build_lidar_map(
+            log.records(StreamKind.LIDAR), traj, np.eye(4), LidarMapConfig(dynamic={"margin_vertical_m": 0.0})
+        )
+    finally:
+        log.close()
+    assert bare.metrics(LidarMapConfig())["dynamic"]["near_ground_fraction_removed"] > 0.015
+
+
 def test_the_trajectory_the_map_is_placed_by_agrees_with_kiss_icps_own_pipeline(kitti_velodyne, tmp_path):
     """kiss-icp's ``OdometryPipeline`` on the same scans, read by its own KITTI reader with its own azimuth times
     (``KITTIRawDataset.get_timestamps``) and mapkit's default settings: every pose within 1 cm of mapkit's."""

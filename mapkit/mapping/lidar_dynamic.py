@@ -172,6 +172,8 @@ class DynamicFilter:
         self._views: deque[RangeView] = deque()
         self.points_seen = 0
         self.points_removed = 0
+        self.ground_seen = 0  # points near the ground (near_ground), and those of them removed: the road carved
+        self.ground_removed = 0
 
     def view(self, scan: PlacedScan) -> RangeView:
         """The range image of ``scan``."""
@@ -237,7 +239,8 @@ class DynamicFilter:
 
     def _decide(self, scan: PlacedScan) -> tuple[PlacedScan, np.ndarray]:
         votes = np.zeros(len(scan.points), np.int32)
-        height_error = self.cfg.margin_vertical_m * self.near_ground(scan) if self.cfg.margin_vertical_m else 0.0
+        near = self.near_ground(scan)
+        height_error = self.cfg.margin_vertical_m * near if self.cfg.margin_vertical_m else 0.0
         for view in self._witnesses(scan.stamp_ns):
             votes += self.see_through(scan.points, view, height_error)
         keep = votes < self.cfg.min_votes
@@ -245,6 +248,8 @@ class DynamicFilter:
             keep &= ~self._grow(scan, ~keep)
         self.points_seen += len(keep)
         self.points_removed += int((~keep).sum())
+        self.ground_seen += int(near.sum())
+        self.ground_removed += int((~keep & near).sum())
         return scan, keep
 
     def near_ground(self, scan: PlacedScan) -> np.ndarray:

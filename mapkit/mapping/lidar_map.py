@@ -91,6 +91,7 @@ class LidarMapResult:
 
     voxels: VoxelMap
     removed: VoxelMap | None = None  # the moving objects' points, when dynamic removal is on
+    near_ground: tuple[int, int] = (0, 0)  # points near the ground the removal saw, and removed
     scans_used: int = 0
     points_seen: int = 0  # within the range limits, before dynamic removal
     skipped: dict[str, int] = field(default_factory=dict)  # reason -> scans
@@ -112,6 +113,8 @@ class LidarMapResult:
                 "enabled": True,
                 "points_removed": int(self.removed.points_added),
                 "fraction_removed": round(self.removed.points_added / max(self.points_seen, 1), 5),
+                # a road carved by pose errors shows here, where no moving object should be
+                "near_ground_fraction_removed": round(self.near_ground[1] / max(self.near_ground[0], 1), 5),
                 "voxels_removed": len(self.removed),
             },
         }
@@ -220,6 +223,7 @@ def build_lidar_map(
         out.times[origin] = out.times.get(origin, 0) + 1
     if moving is not None:
         add(moving.finish())
+        out.near_ground = (moving.ground_seen, moving.ground_removed)
     bar.close()
     out.voxels.flush()
     if out.times.get("unusable"):

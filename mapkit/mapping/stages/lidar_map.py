@@ -29,7 +29,7 @@ from mapkit.mapping.stages.common import plot_axes
 from mapkit.mapping.trajectory import SensorMounts, Trajectory
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 2
+STAGE_VERSION = 3
 
 
 def lidar_frame(log: DriveLog, topic: str) -> str | None:
