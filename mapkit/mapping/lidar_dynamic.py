@@ -214,13 +214,14 @@ class DynamicFilter:
         az, el, r = _angles(local)
         col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % self.columns
         row = np.floor((el - view.el_lo) / self.el_res).astype(np.int64)
-        inside = (row >= 0) & (row < view.image.shape[0])
-        seen = np.full(len(points), np.inf, np.float32)
-        seen[inside] = view.image[row[inside], col[inside]]
+        H = view.image.shape[0]
+        inside = (row >= 0) & (row < H)
+        seen = view.image.reshape(-1)[np.clip(row, 0, H - 1) * self.columns + col]  # one gather, rows outside: below
         margin = self.cfg.margin_m + self.cfg.margin_fraction * r
         if np.any(height_error):
-            margin = margin + height_error / np.maximum(np.abs(np.sin(el)), 0.01)
-        return np.isfinite(seen) & (seen > r + margin)
+            sin_el = np.abs(local[:, 2]) / np.maximum(r, 1e-6)
+            margin = margin + height_error / np.maximum(sin_el, 0.01)
+        return inside & np.isfinite(seen) & (seen > r + margin)
 
     def _witnesses(self, stamp_ns: int) -> list[RangeView]:
         """Up to ``witnesses`` views, each nearest to one of the target offsets spread over the window."""
