@@ -95,3 +95,10 @@ def test_a_session_without_moving_cars_cannot_be_scored(tmp_path):
     (tmp_path / "sessions").mkdir()
     with pytest.raises(InputError, match="rendered without moving cars"):
         score_dynamic_removal(tmp_path, "drive")
+
+
+def test_a_window_that_cannot_vote_is_one_config_error_naming_the_field():
+    with pytest.raises(ValueError, match="min_votes \\(9\\) must not exceed witnesses \\(8\\)"):
+        LidarMapConfig(dynamic={"min_votes": 9})
+    with pytest.raises(ValueError, match="min_dt_s \\(4.0\\) must not exceed max_dt_s \\(3.0\\)"):
+        BuildConfig.model_validate({"lidar_map": {"dynamic": {"min_dt_s": 4.0}}})
