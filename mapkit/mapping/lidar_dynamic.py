@@ -142,8 +142,8 @@ class RangeView:
     stamp_ns: int
     rotation: np.ndarray  # (3, 3) map_from_sensor at the sweep's middle
     centre: np.ndarray  # (3,) the sensor's mean position
-    column_origin: np.ndarray  # (W, 3) the sensor's position when it fired each column
-    column_offset: np.ndarray  # (W, 3) float32: that position from the centre, in the sensor's frame
+    column_offset: np.ndarray  # (W, 3) float32: the sensor's position when it fired each column, from the centre,
+    # in the sensor's frame
     image: np.ndarray  # (H, W) float32
     el_lo: float  # elevation of row 0's lower edge (rad)
 
@@ -152,6 +152,14 @@ def _angles(local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     x, y, z = local[:, 0], local[:, 1], local[:, 2]
     horizontal = np.hypot(x, y)
     return np.arctan2(y, x), np.arctan2(z, horizontal), np.sqrt(horizontal * horizontal + z * z)
+
+
+def _nearest_around(grid: np.ndarray) -> np.ndarray:
+    """The minimum over each cell's 3 x 3 neighbourhood of ``grid`` (rows x columns of azimuth), the columns
+    wrapping around the circle, the rows not (inf beyond them)."""
+    padded = np.concatenate([grid[:, -1:], grid, grid[:, :1]], axis=1)
+    eroded = cv2.erode(padded, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
+    return np.ascontiguousarray(eroded[:, 1:-1])
 
 
 class DynamicFilter:
@@ -170,27 +178,26 @@ class DynamicFilter:
         self.min_dt_ns = int(round(cfg.min_dt_s * 1e9))
         self._pending: deque[PlacedScan] = deque()
         self._views: deque[RangeView] = deque()
-        self.points_seen = 0
-        self.points_removed = 0
         self.ground_seen = 0  # points near the ground (near_ground), and those of them removed: the road carved
         self.ground_removed = 0
 
+    def _pixels(self, scan: PlacedScan) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Each point's row and column in its own scan's range image and its range, and the elevation of row 0's
+        middle (the scan's lowest point: a beam at a row's middle)."""
+        az, el, r = _angles((scan.points - scan.origin) @ scan.rotation)
+        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % self.columns
+        el_min = float(el.min()) if len(el) else 0.0
+        return np.floor((el - el_min) / self.el_res + 0.5).astype(np.int64), col, r, el_min
+
     def view(self, scan: PlacedScan) -> RangeView:
-        """The range image of ``scan``."""
-        local = (scan.points - scan.origin) @ scan.rotation
-        az, el, r = _angles(local)
+        """The range image of ``scan``, with an empty row below its lowest beam."""
+        row, col, r, el_min = self._pixels(scan)
+        row += 1
         W = self.columns
-        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % W
-        el_lo = float(el.min()) - 1.5 * self.el_res if len(el) else 0.0  # a beam at a row's middle
-        row = np.floor((el - el_lo) / self.el_res).astype(np.int64)
         H = int(row.max()) + 2 if len(row) else 1
         flat = np.full(H * W, np.inf, np.float32)
         np.minimum.at(flat, row * W + col, r.astype(np.float32))
-        raw = flat.reshape(H, W)
-        # nearest over each 3 x 3 neighbourhood, the columns wrapping around
-        padded = np.concatenate([raw[:, -1:], raw, raw[:, :1]], axis=1)
-        eroded = cv2.erode(padded, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-        image = np.ascontiguousarray(eroded[:, 1:-1])
+        image = _nearest_around(flat.reshape(H, W))
         centre = scan.origin.mean(axis=0) if len(scan.origin) else np.zeros(3)
         counts = np.bincount(col, minlength=W)
         column_origin = np.repeat(centre[None], W, axis=0)
@@ -200,7 +207,7 @@ class DynamicFilter:
                 sums = np.bincount(col, scan.origin[:, k], minlength=W)
                 column_origin[:, k] = np.interp(np.arange(W), filled, sums[filled] / counts[filled], period=W)
         offset = ((column_origin - centre) @ scan.rotation).astype(np.float32)
-        return RangeView(scan.stamp_ns, scan.rotation, centre, column_origin, offset, image, el_lo)
+        return RangeView(scan.stamp_ns, scan.rotation, centre, offset, image, el_min - 1.5 * self.el_res)
 
     def see_through(self, points: np.ndarray, view: RangeView, height_error: np.ndarray | float = 0.0) -> np.ndarray:
         """Which ``points`` (N, 3, map frame) ``view`` sees through; ``height_error`` (m, per point or one) is carried
@@ -245,10 +252,10 @@ class DynamicFilter:
         for view in self._witnesses(scan.stamp_ns):
             votes += self.see_through(scan.points, view, height_error)
         keep = votes < self.cfg.min_votes
-        for _ in range(GROW_PASSES if self.cfg.grow_px and not keep.all() else 0):
-            keep &= ~self._grow(scan, ~keep)
-        self.points_seen += len(keep)
-        self.points_removed += int((~keep).sum())
+        if self.cfg.grow_px and not keep.all():
+            row, col, r, _ = self._pixels(scan)
+            for _ in range(GROW_PASSES):
+                keep &= ~self._grow(row, col, r, ~keep)
         self.ground_seen += int(near.sum())
         self.ground_removed += int((~keep & near).sum())
         return scan, keep
@@ -265,19 +272,13 @@ class DynamicFilter:
         lowest = np.full(n_ring * n_sector, np.inf, np.float32)
         z = scan.points[:, 2].astype(np.float32)
         np.minimum.at(lowest, ring * n_sector + sector % n_sector, z)
-        grid = lowest.reshape(n_ring, n_sector)
-        padded = np.concatenate([grid[:, -1:], grid, grid[:, :1]], axis=1)
-        ground = cv2.erode(padded, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf)
-        ground = ground[:, 1:-1].reshape(-1)
+        ground = _nearest_around(lowest.reshape(n_ring, n_sector)).reshape(-1)
         return z - ground[ring * n_sector + sector % n_sector] < self.cfg.ground_band_m
 
-    def _grow(self, scan: PlacedScan, gone: np.ndarray) -> np.ndarray:
-        """Kept points whose neighbours at their range (in the scan's own range image) mostly went."""
-        local = (scan.points - scan.origin) @ scan.rotation
-        az, el, r = _angles(local)
+    def _grow(self, row: np.ndarray, col: np.ndarray, r: np.ndarray, gone: np.ndarray) -> np.ndarray:
+        """Kept points whose neighbours at their range in their scan's own range image (each point's ``row``,
+        ``col`` and range ``r`` there) mostly went."""
         W = self.columns
-        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % W
-        row = np.floor((el - el.min()) / self.el_res + 0.5).astype(np.int64)
         H = int(row.max()) + 1
         pixel = row * W + col
         nearest = np.full(H * W, np.inf)
