@@ -33,8 +33,7 @@ from mapkit.core.workspace import Workspace  # noqa: E402 (as above)
 from mapkit.evaluation.dynamic import score_dynamic_removal  # noqa: E402 (as above)
 from mapkit.io import open_log  # noqa: E402 (as above)
 from mapkit.mapping.build import BuildConfig, build  # noqa: E402 (as above)
-from mapkit.mapping.lidar_dynamic import DynamicConfig, DynamicFilter  # noqa: E402 (as above)
-from mapkit.mapping.lidar_map import LidarMapConfig, place_scan, scan_times  # noqa: E402 (as above)
+from mapkit.mapping.lidar_map import LidarMapConfig, build_lidar_map  # noqa: E402 (as above)
 from mapkit.mapping.trajectory import Trajectory  # noqa: E402 (as above)
 from mapkit.synth import gt_poses, load_config, session_log, synthesize  # noqa: E402 (as above)
 
@@ -88,26 +87,18 @@ def real_clip(clip: Path, scratch: Path) -> dict:
         )
     name = w.session_names()[0]
     traj = Trajectory.load(w.session(name).enu_trajectory)
-    scans = list(open_log(clip).records(StreamKind.LIDAR))
-    out = {}
+    out: dict = {}
     for label, dynamic in (("defaults", {}), ("no height tolerance", {"margin_vertical_m": 0.0})):
         cfg = LidarMapConfig(dynamic=dynamic)
-        moving, probe = DynamicFilter(cfg.dynamic), DynamicFilter(DynamicConfig())
-        decided = []
-        for scan in scans:
-            placed = place_scan(scan, traj, np.eye(4), cfg, scan_times(scan, cfg)[0])
-            decided += moving.push(placed) if placed is not None else []
-        decided += moving.finish()
-        n = gone = ground = ground_gone = 0
-        for placed, keep in decided:
-            near = probe.near_ground(placed)
-            n, gone = n + len(keep), gone + int((~keep).sum())
-            ground, ground_gone = ground + int(near.sum()), ground_gone + int((~keep & near).sum())
+        with open_log(clip) as log:
+            result = build_lidar_map(log.records(StreamKind.LIDAR), traj, np.eye(4), cfg)
+        m = result.metrics(cfg)["dynamic"]
+        out["scans"] = result.scans_used
         out[label] = {
-            "removed_fraction": round(gone / n, 4),
-            "near_ground_removed_fraction": round(ground_gone / ground, 4),
+            "removed_fraction": round(m["fraction_removed"], 4),
+            "near_ground_removed_fraction": round(m["near_ground_fraction_removed"], 4),
         }
-    return {"scans": len(scans), **out}
+    return out
 
 
 def main() -> int:

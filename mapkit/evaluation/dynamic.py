@@ -2,23 +2,23 @@
 
 A session rendered with ``moving_cars`` knows which LiDAR returns hit a moving car
 (:mod:`mapkit.synth.traffic`). Its scans are placed as the LiDAR map places them (on the true poses by default,
-or on a given trajectory: the build's own) and passed through the same
-:class:`~mapkit.mapping.lidar_dynamic.DynamicFilter`; each point is then a car point kept or removed, or a static
-point kept or removed. The figures are shares of points, before the map's voxels merge them.
+or on a given trajectory: the build's own) and given their keep masks as the map gives them
+(:func:`~mapkit.mapping.lidar_map.keep_masks`); each point is then a car point kept or removed, or a static point
+kept or removed. The figures are shares of points, before the map's voxels merge them.
 """
 
 from __future__ import annotations
 
-import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
 from mapkit.core.errors import InputError
-from mapkit.core.types import StreamKind
+from mapkit.core.types import LidarScan, StreamKind
 from mapkit.io import open_log
-from mapkit.mapping.lidar_dynamic import DynamicFilter, beam_spacing
-from mapkit.mapping.lidar_map import LidarMapConfig, place_scan, scan_times
+from mapkit.mapping.lidar_dynamic import PlacedScan
+from mapkit.mapping.lidar_map import LidarMapConfig, keep_masks, place_scan, scan_times, within_range
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.synth import extrinsics, gt_poses, load_world, moving_cars_path, session_log
 from mapkit.synth.traffic import read_dynamic_truth
@@ -38,48 +38,33 @@ def score_dynamic_removal(
     if trajectory is None:
         trajectory = Trajectory(*gt_poses(town, session), "truth")
     base_from_lidar = extrinsics(load_world(town).config)["lidar"]
-    moving: DynamicFilter | None = None
     labels: dict[int, np.ndarray] = {}
-    decided: list[tuple[int, np.ndarray]] = []
-    seconds = 0.0
-    for scan in open_log(session_log(town, session)).records(StreamKind.LIDAR):
-        xyz = np.asarray(scan.points_xyz, np.float64)
-        r2 = np.einsum("ij,ij->i", xyz, xyz)
-        in_range = (r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)  # the points place_scan keeps
-        car = np.zeros(len(xyz), bool)
-        car[truth[scan.stamp_ns]] = True
-        placed = place_scan(scan, trajectory, base_from_lidar, cfg, scan_times(scan, cfg)[0])
-        if placed is None or not len(placed.points):
-            continue
-        labels[scan.stamp_ns] = car[in_range]
-        t0 = time.perf_counter()
-        if not cfg.dynamic.enabled:
-            decided.append((placed.stamp_ns, np.ones(len(placed.points), bool)))
-            continue
-        if moving is None:
-            moving = DynamicFilter(cfg.dynamic, beam_spacing(scan.points_xyz, scan.ring))
-        decided += [(p.stamp_ns, keep) for p, keep in moving.push(placed)]
-        seconds += time.perf_counter() - t0
-    if moving is not None:
-        t0 = time.perf_counter()
-        decided += [(p.stamp_ns, keep) for p, keep in moving.finish()]
-        seconds += time.perf_counter() - t0
+
+    def placed_scans() -> Iterator[tuple[LidarScan, PlacedScan]]:
+        for scan in open_log(session_log(town, session)).records(StreamKind.LIDAR):
+            placed = place_scan(scan, trajectory, base_from_lidar, cfg, scan_times(scan, cfg)[0])
+            if placed is None or not len(placed.points):
+                continue
+            car = np.zeros(len(scan), bool)
+            car[truth[scan.stamp_ns]] = True
+            labels[scan.stamp_ns] = car[within_range(np.asarray(scan.points_xyz, np.float64), cfg)]
+            yield scan, placed
+
     per_scan = []  # stamp, car points, car points kept, static points, static points removed
-    for stamp, keep in decided:
-        car = labels[stamp]
+    for placed, keep in keep_masks(placed_scans(), cfg):
+        stamp, car = placed.stamp_ns, labels.pop(placed.stamp_ns)
         per_scan.append([stamp, int(car.sum()), int((keep & car).sum()), int((~car).sum()), int((~keep & ~car).sum())])
     car_n, car_kept, static_n, static_removed = (int(sum(row[k] for row in per_scan)) for k in (1, 2, 3, 4))
     return {
         "session": session,
         "poses": trajectory.source,
-        "scans": len(decided),
+        "scans": len(per_scan),
         "car_points": car_n,
         "car_points_kept": car_kept,
         "car_kept_fraction": car_kept / max(car_n, 1),
         "static_points": static_n,
         "static_points_removed": static_removed,
         "static_removed_fraction": static_removed / max(static_n, 1),
-        "filter_s": round(seconds, 3),
         "per_scan": per_scan,
     }
 

@@ -24,6 +24,7 @@ scans of that window and the range images of twice it, so its memory is bounded 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -31,6 +32,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from mapkit.core.config import MapkitConfig
+from mapkit.core.types import LidarScan
 
 GROW_PASSES = 2
 GROUND_CELL_M, GROUND_CELL_DEG = 2.0, 2.0
@@ -164,15 +166,12 @@ def _nearest_around(grid: np.ndarray) -> np.ndarray:
 
 class DynamicFilter:
     """Scans in (time order) with :meth:`push`, decided scans out with their keep masks, ``max_dt_s`` later;
-    :meth:`finish` decides the rest."""
+    :meth:`finish` decides the rest. :meth:`run` does both over a stream, its rows from the first scan's rings."""
 
-    def __init__(self, cfg: DynamicConfig, beam_spacing_rad: float | None = None):
+    def __init__(self, cfg: DynamicConfig):
         self.cfg = cfg
         self.az_res = np.radians(cfg.azimuth_resolution_deg)
-        if cfg.vertical_resolution_deg is not None:
-            self.el_res = float(np.radians(cfg.vertical_resolution_deg))
-        else:
-            self.el_res = beam_spacing_rad or float(np.radians(HDL64_BEAM_SPACING_DEG))
+        self.el_res = float(np.radians(cfg.vertical_resolution_deg or HDL64_BEAM_SPACING_DEG))
         self.columns = int(np.ceil(2 * np.pi / self.az_res))
         self.max_dt_ns = int(round(cfg.max_dt_s * 1e9))
         self.min_dt_ns = int(round(cfg.min_dt_s * 1e9))
@@ -325,6 +324,17 @@ class DynamicFilter:
         while self._views and self._views[0].stamp_ns < oldest - self.max_dt_ns:
             self._views.popleft()
         return out
+
+    def run(self, scans: Iterable[tuple[LidarScan, PlacedScan]]) -> Iterator[tuple[PlacedScan, np.ndarray]]:
+        """Each placed scan of ``scans`` (with the scan it was placed from) and its keep mask, in order; the range
+        images' rows at the beam spacing of the first scan's rings unless ``vertical_resolution_deg`` is set."""
+        first = True
+        for scan, placed in scans:
+            if first and self.cfg.vertical_resolution_deg is None:
+                self.el_res = beam_spacing(scan.points_xyz, scan.ring) or self.el_res
+            first = False
+            yield from self.push(placed)
+        yield from self.finish()
 
     def finish(self) -> list[tuple[PlacedScan, np.ndarray]]:
         """Decide the scans still waiting (the log's last ``max_dt_s``, with the witnesses there are)."""

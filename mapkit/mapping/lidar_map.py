@@ -25,7 +25,7 @@ second voxel map of the same size (``dynamic.ply``), so that what was removed ca
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -39,7 +39,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import interpolate_poses
 from mapkit.core.runio import atomic_path, atomic_write_ply, progress_bar
 from mapkit.core.types import LidarScan
-from mapkit.mapping.lidar_dynamic import DynamicConfig, DynamicFilter, PlacedScan, beam_spacing
+from mapkit.mapping.lidar_dynamic import DynamicConfig, DynamicFilter, PlacedScan
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.mapping.voxel_map import VoxelMap, VoxelStats
 
@@ -144,6 +144,22 @@ def _clamped_poses(traj: Trajectory, query_ns: np.ndarray) -> np.ndarray:
     return poses
 
 
+def within_range(xyz: np.ndarray, cfg: LidarMapConfig) -> np.ndarray:
+    """Which of a scan's points (N, 3, its own frame) lie within the range limits (NaN compares false: dropped)."""
+    r2 = np.einsum("ij,ij->i", xyz, xyz)
+    return (r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)
+
+
+def keep_masks(
+    placed: Iterable[tuple[LidarScan, PlacedScan]], cfg: LidarMapConfig, moving: DynamicFilter | None = None
+) -> Iterator[tuple[PlacedScan, np.ndarray]]:
+    """Each placed scan with the mask of the points the map keeps: those ``moving`` (a filter of ``cfg.dynamic``,
+    made here when not given) does not remove, all of them with the removal off."""
+    if not cfg.dynamic.enabled:
+        return ((p, np.ones(len(p.points), bool)) for _, p in placed)
+    return (moving or DynamicFilter(cfg.dynamic)).run(placed)
+
+
 def place_scan(
     scan: LidarScan, traj: Trajectory, base_from_lidar: np.ndarray, cfg: LidarMapConfig, times: np.ndarray | None
 ) -> PlacedScan | None:
@@ -151,8 +167,7 @@ def place_scan(
     sensor's position when each was measured; deskewed when ``times`` (per point, s relative to the stamp) are
     given. None when the sweep lies outside the trajectory's time span."""
     xyz = np.asarray(scan.points_xyz, np.float64)
-    r2 = np.einsum("ij,ij->i", xyz, xyz)
-    keep = (r2 >= cfg.min_range_m**2) & (r2 <= cfg.max_range_m**2)  # NaN compares false: dropped too
+    keep = within_range(xyz, cfg)
     xyz = xyz[keep]
     intensity = None if scan.intensity is None else np.asarray(scan.intensity, np.float64)[keep]
     t = None if times is None else times[keep]
@@ -191,38 +206,32 @@ def build_lidar_map(
     """The voxel map of ``scans`` placed by ``traj`` (world_from_base) and the LiDAR's mount, scan by scan;
     ``source`` names the log in the warning about scans whose times cannot be used."""
     out = LidarMapResult(VoxelMap(cfg.voxel_size_m, cfg.chunk_points))
-    moving = None  # the dynamic filter, made at the first scan (its range image's rows from the scan's rings)
-    if cfg.dynamic.enabled:
-        out.removed = VoxelMap(cfg.voxel_size_m, cfg.chunk_points)
-
-    def add(decided: list[tuple[PlacedScan, np.ndarray]]) -> None:
-        for placed, keep in decided:
-            gone = ~keep
-            out.voxels.add(
-                placed.points[keep], None if placed.intensity is None else placed.intensity[keep], placed.stamp_ns
-            )
-            if out.removed is not None and gone.any():
-                out.removed.add(
-                    placed.points[gone], None if placed.intensity is None else placed.intensity[gone], placed.stamp_ns
-                )
-
-    bar = progress_bar(total, progress, desc="lidar map", unit="scan", leave=False)
-    for scan in scans:
-        bar.update(1)
-        times, origin = scan_times(scan, cfg)
-        placed = place_scan(scan, traj, base_from_lidar, cfg, times)
-        if placed is None or not len(placed.points):
-            why = "outside the trajectory's time span" if placed is None else "no point within the range limits"
-            out.skipped[why] = out.skipped.get(why, 0) + 1
-            continue
-        out.points_seen += len(placed.points)
-        if moving is None and cfg.dynamic.enabled:
-            moving = DynamicFilter(cfg.dynamic, beam_spacing(scan.points_xyz, scan.ring))
-        add(moving.push(placed) if moving is not None else [(placed, np.ones(len(placed.points), bool))])
-        out.scans_used += 1
-        out.times[origin] = out.times.get(origin, 0) + 1
+    moving = DynamicFilter(cfg.dynamic) if cfg.dynamic.enabled else None
     if moving is not None:
-        add(moving.finish())
+        out.removed = VoxelMap(cfg.voxel_size_m, cfg.chunk_points)
+    bar = progress_bar(total, progress, desc="lidar map", unit="scan", leave=False)
+
+    def placed_scans() -> Iterator[tuple[LidarScan, PlacedScan]]:
+        for scan in scans:
+            bar.update(1)
+            times, origin = scan_times(scan, cfg)
+            placed = place_scan(scan, traj, base_from_lidar, cfg, times)
+            if placed is None or not len(placed.points):
+                why = "outside the trajectory's time span" if placed is None else "no point within the range limits"
+                out.skipped[why] = out.skipped.get(why, 0) + 1
+                continue
+            out.points_seen += len(placed.points)
+            out.scans_used += 1
+            out.times[origin] = out.times.get(origin, 0) + 1
+            yield scan, placed
+
+    for placed, keep in keep_masks(placed_scans(), cfg, moving):
+        intensity = placed.intensity
+        out.voxels.add(placed.points[keep], None if intensity is None else intensity[keep], placed.stamp_ns)
+        if out.removed is not None and not keep.all():
+            gone = ~keep
+            out.removed.add(placed.points[gone], None if intensity is None else intensity[gone], placed.stamp_ns)
+    if moving is not None:
         out.near_ground = (moving.ground_seen, moving.ground_removed)
     bar.close()
     out.voxels.flush()
