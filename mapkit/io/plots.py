@@ -134,6 +134,7 @@ def raster_top_view(
     px_m = float((hi - lo).max()) / max_side_px
     w, h = (np.ceil((hi - lo) / px_m).astype(int) + 1).tolist()
     rgb = np.full((h, w, 3), 255, np.uint8)
+    has_marked = marked is not None and len(marked) > 0
     zlo = zhi = 0.0
     if len(xy):
         col = np.clip(((xy[:, 0] - lo[0]) / px_m).astype(np.intp), 0, w - 1)
@@ -146,7 +147,7 @@ def raster_top_view(
         level = np.clip((mean_z - zlo) / max(zhi - zlo, 1e-6) * 255, 0, 255).astype(np.intp)
         seen = count > 0
         rgb.reshape(-1, 3)[seen] = lut[level[seen]]
-    if marked is not None and len(marked):
+    if has_marked:
         m = np.asarray(marked, np.float64)
         mc = np.clip(((m[:, 0] - lo[0]) / px_m).astype(np.intp), 0, w - 1)
         mr = np.clip(((hi[1] - m[:, 1]) / px_m).astype(np.intp), 0, h - 1)
@@ -161,7 +162,7 @@ def raster_top_view(
     draw.rectangle([20, h - 24, 20 + bar_px, h - 18], fill=(0, 0, 0))
     font = ImageFont.load_default(size=14)
     draw.text((20, h - 44), f"{bar_m:g} m", fill=(0, 0, 0), font=font)
-    caption = Image.new("RGB", (w, 72 if marked is not None and len(marked) else 52), (255, 255, 255))
+    caption = Image.new("RGB", (w, 72 if has_marked else 52), (255, 255, 255))
     cd = ImageDraw.Draw(caption)
     cd.text((8, 4), title, fill=(0, 0, 0), font=ImageFont.load_default(size=16))
     cd.text(
@@ -171,7 +172,7 @@ def raster_top_view(
         fill=(60, 60, 60),
         font=font,
     )
-    if marked is not None and len(marked):
+    if has_marked:
         cd.text((8, 48), f"magenta: {marked_label}", fill=(60, 60, 60), font=font)
     out = Image.new("RGB", (w, h + caption.height), (255, 255, 255))
     out.paste(caption, (0, 0))

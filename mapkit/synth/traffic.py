@@ -44,16 +44,14 @@ class Traffic:
         s = self.s0 - self.speed * (t_ns - self.t0_ns) * 1e-9
         on = np.flatnonzero((s >= 0) & (s <= self.track_s[-1]))
         s = s[on]
-        xy = np.c_[np.interp(s, self.track_s, self.track_xy[:, 0]), np.interp(s, self.track_s, self.track_xy[:, 1])]
-        ahead = np.c_[
-            np.interp(s + 1.0, self.track_s, self.track_xy[:, 0]), np.interp(s + 1.0, self.track_s, self.track_xy[:, 1])
-        ]
-        behind = np.c_[
-            np.interp(s - 1.0, self.track_s, self.track_xy[:, 0]), np.interp(s - 1.0, self.track_s, self.track_xy[:, 1])
-        ]
+        xy, ahead, behind = self._at(s), self._at(s + 1.0), self._at(s - 1.0)
         d = ahead - behind
         yaw = np.arctan2(d[:, 1], d[:, 0]) + np.pi  # driving against the track
         return xy, yaw, on
+
+    def _at(self, s: np.ndarray) -> np.ndarray:
+        """Points (k, 2) of the track at arc lengths ``s`` (clamped to its ends)."""
+        return np.c_[np.interp(s, self.track_s, self.track_xy[:, 0]), np.interp(s, self.track_s, self.track_xy[:, 1])]
 
     def geometry_at(self, t_ns: int) -> Geometry | None:
         """The cars' meshes at ``t_ns``; None when none is on the track."""
