@@ -22,7 +22,7 @@ from mapkit.core.runio import (
     write_json,
 )
 from mapkit.core.workspace import Workspace
-from mapkit.mapping.build import BuildConfig, _legacy_stage_hash, _stage_hash, build
+from mapkit.mapping.build import BuildConfig, _legacy_stage_hash, _stage_hash, _stage_version, build
 from mapkit.mapping.semidense import SemiDenseConfig
 
 N = 12
@@ -88,7 +88,14 @@ def test_a_bumped_stage_version_reruns_that_stage_and_its_downstream_stages_only
     monkeypatch.setattr("mapkit.mapping.stages.georef.STAGE_VERSION", 2)
     assert _rerun(clip12, ws) == {"georef", "map", "imagedb"}
     assert read_marker(Workspace(ws).session("clip12").georef)["stage_version"] == 2
-    assert read_marker(Workspace(ws).session("clip12").trajectory)["stage_version"] == 1
+    assert read_marker(Workspace(ws).session("clip12").trajectory)["stage_version"] == _stage_version("trajectory")
+
+
+@pytest.fixture
+def first_versions(monkeypatch):
+    """Every build stage at its first algorithm (version 1): what a marker without a version was made by."""
+    for stage in STAGES:
+        monkeypatch.setattr(f"mapkit.mapping.stages.{stage}.STAGE_VERSION", 1)
 
 
 def _make_old(ws) -> None:
@@ -104,7 +111,7 @@ def _make_old(ws) -> None:
         write_json(s.stage(stage) / ".done", record)
 
 
-def test_an_older_workspace_is_migrated_once_and_nothing_runs_again(clip12, ws):
+def test_an_older_workspace_is_migrated_once_and_nothing_runs_again(clip12, ws, first_versions):
     _make_old(ws)
     s = Workspace(ws).session("clip12")
     with warnings.catch_warnings(record=True) as caught:
@@ -122,7 +129,7 @@ def test_an_older_workspace_is_migrated_once_and_nothing_runs_again(clip12, ws):
     assert not [w for w in caught if MIGRATED in str(w.message)]
 
 
-def test_an_older_marker_of_another_config_is_not_migrated(clip12, ws, tmp_path):
+def test_an_older_marker_of_another_config_is_not_migrated(clip12, ws, tmp_path, first_versions):
     """An older marker whose hash is not the older rule's hash of today's config is not reused: its stage runs."""
     _make_old(ws)
     cfg = tmp_path / "c.yaml"
@@ -160,6 +167,7 @@ def test_an_older_marker_is_migrated_only_when_its_hash_inputs_and_outputs_still
     with pytest.warns(UserWarning, match="out.txt has"):
         assert not is_done(folder, new, inputs={"log": 1}, legacy_hash=old, version=1)
     (folder / "out.txt").write_text("made")
+    assert not is_done(folder, new, inputs={"log": 1}, legacy_hash=old, version=2)  # the stage's algorithm changed
     with pytest.warns(UserWarning, match=MIGRATED):
         assert is_done(folder, new, inputs={"log": 1}, legacy_hash=old, version=1)
     record = read_marker(folder)

@@ -291,7 +291,8 @@ def is_done(
 
     ``legacy_hash`` (with ``version``) is the older rule's hash of today's config: a marker without a
     ``stage_version`` that holds it, and whose inputs and outputs still match, is rewritten with
-    ``cfg_hash`` and ``version`` (one warning) and the stage is finished."""
+    ``cfg_hash`` and ``version`` (one warning) and the stage is finished. Such a marker was made by the
+    stage's first algorithm: at a later ``version`` the stage runs again."""
     folder = Path(folder)
     record = read_marker(folder)
     if record is None:
@@ -299,6 +300,10 @@ def is_done(
     legacy = False
     if cfg_hash is not None and record.get("config_hash") != cfg_hash:
         if legacy_hash is None or "stage_version" in record or record.get("config_hash") != legacy_hash:
+            return False
+        if version is None:
+            raise ValueError("is_done: legacy_hash needs the stage's version")
+        if version != 1:  # made before the stage's algorithm changed
             return False
         legacy = True
     if inputs is not None:
@@ -320,9 +325,7 @@ def is_done(
                 warnings.warn(f"{folder / rel} {why}; its stage runs again", InputWarning, stacklevel=2)
                 return False
     if legacy:
-        if version is None:
-            raise ValueError("is_done: legacy_hash needs the stage's version")
-        _migrate_marker(folder, record, str(cfg_hash), version)
+        _migrate_marker(folder, record, str(cfg_hash), 1)
     return True
 
 
