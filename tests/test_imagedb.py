@@ -36,9 +36,12 @@ def test_colmap_and_csv_round_trip(tmp_path, rng):
         np.testing.assert_allclose(cam_from_world, invert_pose(poses[im.image_id - 1])[:3, :], atol=1e-9)
     (pt,) = rec.points3D.values()
     assert sorted(e.image_id for e in pt.track.elements) == [1, 2]
-    # the keypoint of image 1 is the projection of the point: the principal point (it is dead ahead)
+    # the keypoint of image 1 is the projection of the point: the principal point (it is dead ahead), in COLMAP's
+    # pixel convention (the image's corner at 0, 0): the centre of a 640 x 480 image is (320, 240) there, as the
+    # camera says
     kp = rec.image(1).points2D[0].xy
-    np.testing.assert_allclose(kp, [319.5, 239.5], atol=1e-6)
+    np.testing.assert_allclose(kp, [320.0, 240.0], atol=1e-6)
+    np.testing.assert_allclose(rec.cameras[1].params, [400.0, 400.0, 320.0, 240.0])
     table = read_images_csv(tmp_path / "db" / "images.csv")
     np.testing.assert_array_equal(table["stamp_ns"], 1_000 + np.arange(5))
     lat, lon, alt = frame.enu_to_geodetic(np.array([T[:3, 3] for T in poses]))

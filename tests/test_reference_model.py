@@ -15,6 +15,7 @@ import pytest
 from mapkit.core.errors import InputError
 from mapkit.core.types import CameraInfo
 from mapkit.core.workspace import Workspace
+from mapkit.io.benchmark import COLMAP_PIXEL_OFFSET, camera_info_from_colmap, colmap_camera_params
 from mapkit.localization.reference_model import (
     PosedImage,
     ReferenceModelConfig,
@@ -64,7 +65,7 @@ def test_kitti_points_agree_with_the_ground_truth_geometry(kitti_model):
     assert rec.num_images() == rec.num_reg_images() == len(FRAMES)
     assert rec.num_points3D() >= 1800  # 2064 measured
     K = cam.K
-    errors, depths = [], []
+    errors, depths, residuals = [], [], []
     for im in rec.images.values():
         cam_from_world = np.linalg.inv(poses[_frame_of(im.name)])
         # the poses as given (KITTI rotations carry 7 digits: pycolmap's quaternion makes them orthonormal)
@@ -73,9 +74,14 @@ def test_kitti_points_agree_with_the_ground_truth_geometry(kitti_model):
         uv = np.array([o[0] for o in obs])
         X = np.array([o[1] for o in obs]) @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
         depths.append(X[:, 2])
-        errors.append(np.linalg.norm((X @ K.T)[:, :2] / X[:, 2:3] - uv, axis=1))
+        # KITTI's calibration puts pixel centres at integers; COLMAP's keypoints put the image's corner at 0
+        residual = uv - ((X @ K.T)[:, :2] / X[:, 2:3] + COLMAP_PIXEL_OFFSET)
+        residuals.append(residual)
+        errors.append(np.linalg.norm(residual, axis=1))
     err = np.concatenate(errors)
     assert np.median(err) < 1.0 and np.percentile(err, 95) < 4.0
+    # no offset between keypoints and projections: half a pixel where the model's camera mixes the conventions
+    assert np.abs(np.median(np.concatenate(residuals), axis=0)).max() < 0.1
     assert np.concatenate(depths).min() > 0.5
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["points"] == rec.num_points3D() and metrics["images"] == len(FRAMES)
@@ -87,8 +93,9 @@ def test_kitti_points_agree_with_the_ground_truth_geometry(kitti_model):
     kp_b = {p.point3D_id: p.xy for p in b.points2D if p.has_point3D()}
     shared = [(p.xy, kp_b[p.point3D_id], rec.points3D[p.point3D_id].xyz) for p in a.points2D if p.point3D_id in kp_b]
     assert len(shared) >= 100
-    Pa = K @ np.linalg.inv(poses[0])[:3]
-    Pb = K @ np.linalg.inv(poses[4])[:3]
+    K_colmap = K + [[0, 0, COLMAP_PIXEL_OFFSET], [0, 0, COLMAP_PIXEL_OFFSET], [0, 0, 0]]
+    Pa = K_colmap @ np.linalg.inv(poses[0])[:3]
+    Pb = K_colmap @ np.linalg.inv(poses[4])[:3]
     model_depth, two_view_depth = [], []
     for xa, xb, X in shared:
         A = np.stack([xa[0] * Pa[2] - Pa[0], xa[1] * Pa[2] - Pa[1], xb[0] * Pb[2] - Pb[0], xb[1] * Pb[2] - Pb[1]])
@@ -97,6 +104,24 @@ def test_kitti_points_agree_with_the_ground_truth_geometry(kitti_model):
         model_depth.append((np.linalg.inv(poses[0]) @ np.append(X, 1.0))[2])
     rel = np.abs(np.array(two_view_depth) / np.array(model_depth) - 1)
     assert np.median(rel) < 0.02
+
+
+def test_colmap_cameras_see_colmap_keypoints_where_mapkit_cameras_project():
+    """A blob drawn centred on the pixel a point projects to through mapkit's camera (pixel centres at integers) is
+    found by COLMAP's SIFT where the COLMAP camera of it projects the point, and the camera converts back."""
+    cam = CameraInfo("cam", 240, 200, np.array([[180.0, 0, 119.5], [0, 180.0, 99.5], [0, 0, 1]]))
+    points = np.array([[-1.0, -0.5, 6.0], [0.3, 0.8, 5.0], [1.2, -1.0, 8.0]])
+    uv = (points @ cam.K.T)[:, :2] / points[:, 2:3]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
+    img = sum(np.exp(-((u - a) ** 2 + (v - b) ** 2) / (2 * 3.0**2)) for a, b in uv)
+    keypoints = pycolmap.Sift().extract(np.asarray(img / img.max(), np.float32))[0][:, :2]
+    model, params = colmap_camera_params(cam)
+    colmap_cam = pycolmap.Camera(model=model, width=cam.width, height=cam.height, params=params)
+    projected = np.asarray(colmap_cam.img_from_cam(points))
+    nearest = np.linalg.norm(projected[:, None] - keypoints[None], axis=2).min(axis=1)
+    assert nearest.max() < 0.05, nearest
+    back = camera_info_from_colmap("cam", model, cam.width, cam.height, params)
+    np.testing.assert_allclose(back.K, cam.K)
 
 
 def test_guided_matching_adds_points_that_fit_the_poses(kitti_model, kitti_clip, tmp_path):

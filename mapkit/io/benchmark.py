@@ -34,16 +34,22 @@ GROUND_TRUTH = "queries_gt.txt"
 PAIRS = "pairs-query-retrieval.txt"
 CONDITIONS = "conditions.json"
 
+#: COLMAP puts the image's origin at the top-left pixel's corner (its SIFT keypoints and cameras: the first pixel's
+#: centre is (0.5, 0.5)); mapkit's cameras (ROS CameraInfo, KITTI, OpenCV) put it at that pixel's centre. A principal
+#: point crosses between them with this added (to COLMAP) or taken off (from COLMAP); so does a projected keypoint.
+COLMAP_PIXEL_OFFSET = 0.5
+
 #: COLMAP camera models this module reads, with their parameter count
 _PARAMS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
 
 
 def colmap_camera_params(info: CameraInfo) -> tuple[str, list[float]]:
     """COLMAP's model name and parameters of ``info``: PINHOLE without distortion, OPENCV with plumb-bob's
-    four coefficients, FULL_OPENCV with rational-polynomial's eight; the reference model's cameras too."""
+    four coefficients, FULL_OPENCV with rational-polynomial's eight; the principal point in COLMAP's pixel
+    convention (``COLMAP_PIXEL_OFFSET``). Every camera mapkit hands to COLMAP goes through here."""
     D = np.zeros(8)
     D[: min(len(info.D), 8)] = np.asarray(info.D, np.float64)[:8]
-    pin = [info.fx, info.fy, info.cx, info.cy]
+    pin = [info.fx, info.fy, info.cx + COLMAP_PIXEL_OFFSET, info.cy + COLMAP_PIXEL_OFFSET]
     if not np.any(D):
         return "PINHOLE", pin
     if not np.any(D[4:]):
@@ -52,7 +58,8 @@ def colmap_camera_params(info: CameraInfo) -> tuple[str, list[float]]:
 
 
 def camera_info_from_colmap(name: str, model: str, width: int, height: int, params: Sequence[float]) -> CameraInfo:
-    """mapkit's :class:`CameraInfo` of a COLMAP camera (pinhole models and OpenCV's distortion)."""
+    """mapkit's :class:`CameraInfo` of a COLMAP camera (pinhole models and OpenCV's distortion), the principal point
+    moved back to mapkit's pixel convention (``COLMAP_PIXEL_OFFSET``)."""
     p = [float(v) for v in params]
     if model not in _PARAMS or len(p) != _PARAMS[model]:
         raise ValueError(f"camera model {model} with {len(p)} parameters: expected one of {sorted(_PARAMS)}")
@@ -63,6 +70,7 @@ def camera_info_from_colmap(name: str, model: str, width: int, height: int, para
     else:
         fx, fy, cx, cy = p[:4]
         D = p[4:]
+    cx, cy = cx - COLMAP_PIXEL_OFFSET, cy - COLMAP_PIXEL_OFFSET
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
     return CameraInfo(
         name, int(width), int(height), K, "plumb_bob" if len(D) <= 5 else "rational_polynomial", np.array(D)

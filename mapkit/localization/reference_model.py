@@ -54,14 +54,14 @@ from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done
 from mapkit.core.types import CameraInfo
 from mapkit.core.workspace import MAP_KINDS, Workspace
 from mapkit.core.writers import writes_workspace
-from mapkit.io.benchmark import colmap_camera_params
+from mapkit.io.benchmark import camera_info_from_colmap, colmap_camera_params
 from mapkit.io.plots import map_top_view, reference_model_statistics
 from mapkit.retrieval.vlad_bundle import read_session_images
 
 log = logging.getLogger(__name__)
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 3
+STAGE_VERSION = 4
 #: the default output folder, under the workspace root
 DEFAULT_FOLDER = "reference_model"
 
@@ -196,17 +196,12 @@ def workspace_images(ws: Workspace, sessions: list[str] | None) -> list[PosedIma
 
 
 def _camera_info(cam, name: str, where: Path) -> CameraInfo:
-    """A pinhole COLMAP camera as mapkit's :class:`CameraInfo` (the image database writes PINHOLE cameras)."""
-    p = np.asarray(cam.params, np.float64)
-    if cam.model_name == "PINHOLE":
-        fx, fy, cx, cy = p
-    elif cam.model_name == "SIMPLE_PINHOLE":
-        fx, cx, cy = p
-        fy = fx
-    else:
-        raise InputError(where, f"camera {cam.camera_id} is {cam.model_name}, not a pinhole camera", field="cameras")
-    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
-    return CameraInfo(name, int(cam.width), int(cam.height), K)
+    """A COLMAP camera of an image database as mapkit's :class:`CameraInfo` (pinhole models and OpenCV's
+    distortion; :func:`mapkit.io.benchmark.camera_info_from_colmap`)."""
+    try:
+        return camera_info_from_colmap(name, cam.model_name, cam.width, cam.height, [float(v) for v in cam.params])
+    except ValueError as e:
+        raise InputError(where, f"camera {cam.camera_id}: {e}", field="cameras") from e
 
 
 # --- pairs from poses -----------------------------------------------------------------------------------

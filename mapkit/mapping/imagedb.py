@@ -32,6 +32,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import invert_pose, matrix_to_quat_wxyz, pose_from_quat_wxyz
 from mapkit.core.runio import atomic_write_bytes, atomic_write_text
 from mapkit.core.types import CameraInfo
+from mapkit.io.benchmark import COLMAP_PIXEL_OFFSET, colmap_camera_params
 
 CSV_COLUMNS = [
     "image_id",
@@ -203,13 +204,8 @@ class ImageDbWriter:
         rec = pycolmap.Reconstruction()
         cam_ids: dict[str, int] = {}
         for i, (name, info) in enumerate(sorted(self.infos.items()), start=1):
-            cam = pycolmap.Camera(
-                model="PINHOLE",
-                width=info.width,
-                height=info.height,
-                params=[info.fx, info.fy, info.cx, info.cy],
-                camera_id=i,
-            )
+            model, params = colmap_camera_params(info)
+            cam = pycolmap.Camera(model=model, width=info.width, height=info.height, params=params, camera_id=i)
             rec.add_camera_with_trivial_rig(cam)
             cam_ids[name] = i
         keypoints: dict[int, list[np.ndarray]] = {im.image_id: [] for im in self.images}
@@ -261,7 +257,8 @@ class ImageDbWriter:
             cam_from_world = invert_pose(im.world_from_cam)
             pc = points_world[idx] @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
             front = pc[:, 2] > 1e-6
-            uv = pc[front, :2] / pc[front, 2:3] * [info.fx, info.fy] + [info.cx, info.cy]
+            # in COLMAP's pixel convention, as its cameras (colmap_camera_params) and SIFT keypoints are
+            uv = pc[front, :2] / pc[front, 2:3] * [info.fx, info.fy] + [info.cx, info.cy] + COLMAP_PIXEL_OFFSET
             inside = (uv[:, 0] >= 0) & (uv[:, 0] < info.width) & (uv[:, 1] >= 0) & (uv[:, 1] < info.height)
             for p, xy in zip(idx[front][inside], uv[inside], strict=True):
                 keypoints[int(image_id)].append(xy)

@@ -27,6 +27,7 @@ from mapkit.core.geometry import invert_pose
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar
 from mapkit.core.types import FrameTransform, StreamKind
 from mapkit.io.base import DriveLog
+from mapkit.io.benchmark import colmap_camera_params
 from mapkit.io.trajectory import read_tum, write_kitti_poses, write_tum
 
 
@@ -415,8 +416,8 @@ def trajectory_from_camera(log: DriveLog, topic: str, cfg: TrajectoryConfig, pro
                 log.path, f"{len(stamps)} images on {topic}: too few for structure from motion", field=topic
             )
         reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "PINHOLE"
-        reader.camera_params = f"{info.fx},{info.fy},{info.cx},{info.cy}"
+        reader.camera_model, params = colmap_camera_params(info)
+        reader.camera_params = ",".join(repr(float(v)) for v in params)
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.max_image_size = o.max_image_size
         extraction.num_threads = o.max_threads

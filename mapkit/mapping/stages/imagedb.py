@@ -19,7 +19,7 @@ from mapkit.mapping.stages.common import ARBITRARY_UNITS
 from mapkit.mapping.stages.frames import PosedFrames
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 1
+STAGE_VERSION = 2
 
 
 class ImageDbStageConfig(ImageDbConfig):

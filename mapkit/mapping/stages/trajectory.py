@@ -15,7 +15,7 @@ from mapkit.mapping.stages.common import path_length
 from mapkit.mapping.trajectory import SensorMounts, TrajectoryConfig, estimate_trajectory
 
 #: the version of this stage's algorithm, bumped whenever its output for the same inputs changes (it reruns)
-STAGE_VERSION = 1
+STAGE_VERSION = 2
 
 
 @writes_workspace("dirs", within=True)
