@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from scipy.spatial import cKDTree
 
 from mapkit.core.errors import InputError
 from mapkit.core.types import CameraInfo
@@ -23,6 +24,9 @@ from mapkit.localization.reference_model import (
     depth_agreement,
     observation_errors_px,
     pairs_from_poses,
+    _GroundGrid,
+    _posed_reconstruction,
+    _project_into,
     pixels_near,
     triangulate_reference_model,
 )
@@ -175,17 +179,17 @@ def _own_points_densified(rec, copies: int = 4, jitter_m: float = 1e-3) -> np.nd
 
 
 def test_depth_check_on_the_models_own_points_agrees(kitti_model):
-    """A map made of the model's own points (each with four copies 1 mm off) gives nearly every observation a
-    map depth, equal to the triangulated one; the points alone are too few for a map depth; an empty map gives
-    none, and no error."""
+    """A map made of the model's own points (each with four copies 1 mm off) gives most observations a map depth,
+    equal to the triangulated one (the others have a neighbouring point's copies at another depth within the radius:
+    no one surface there); the points alone are too few for a map depth; an empty map gives none, and no error."""
     out, _, _ = kitti_model
     rec = pycolmap.Reconstruction(str(out / "sfm"))
     d = depth_agreement(rec, _own_points_densified(rec), radius_px=2.0)
     assert d["observations"] == json.loads((out / "metrics.json").read_text())["observations"]
-    # every observation whose point reprojects well within the radius finds its point's copies (and more: a
-    # neighbouring point's copies too); 0.904 measured
+    # an observation whose point reprojects well within the radius finds its point's copies, unless a neighbouring
+    # point's copies at another depth come within the radius too; 0.840 measured, 0.856 reproject within 1.9 px
     _, _, err = observation_errors_px(rec)
-    assert d["fraction_compared"] >= np.mean(err < 1.9) and d["fraction_compared"] > 0.88
+    assert 0.8 < d["fraction_compared"] <= np.mean(err < 1.9)
     assert d["compared"] == sum(v["compared"] for v in d["images"].values())
     assert d["median_relative_difference"] < 0.005 and d["share_below_2pct"] > 0.9
     assert set(d["images"]) == {im.name for im in rec.images.values()}
@@ -211,9 +215,71 @@ def test_depth_check_sees_a_map_ten_percent_farther(kitti_model):
     scaled = centre + 1.10 * (_own_points_densified(rec) - centre)
     d = depth_agreement(rec, scaled, radius_px=2.0)
     own = d["images"][im.name]
-    assert own["compared"] > 0.9 * im.num_points3D
+    assert own["compared"] > 0.8 * im.num_points3D  # 0.85 measured
     assert own["median_relative_difference"] == pytest.approx(1 / 11, abs=0.002)
     assert d["share_below_2pct"] < 0.2  # the map moved for every camera
+
+
+def test_depth_check_takes_the_nearer_surface_where_it_holds_most_points_and_none_where_they_split(kitti_model):
+    """Behind the model's points, on the same rays of one camera, a second surface 30 % farther (a map holds what its
+    sensors saw from elsewhere). With one far point to five near ones around a keypoint the map's depth is the near
+    surface's and agrees; with as many far as near the points lie at two depths and that camera compares (almost)
+    nothing, where a median of all of them would have read a depth between the two."""
+    out, _, _ = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    im = next(im for im in rec.images.values() if _frame_of(im.name) == 10)
+    centre = np.asarray(im.projection_center())
+    near = _own_points_densified(rec)
+    far = centre + 1.3 * (near - centre)
+    one_far = depth_agreement(rec, np.concatenate([near, far[: len(far) // 5]]))["images"][im.name]
+    assert one_far["compared"] > 0.75 * im.num_points3D and one_far["median_relative_difference"] < 0.005
+    split = depth_agreement(rec, np.concatenate([near, far]))["images"].get(im.name, {"compared": 0})
+    assert split["compared"] < 0.05 * im.num_points3D
+
+
+def test_depth_check_gathers_every_map_point_a_camera_sees():
+    """The ground grid the depth check gathers a camera's map points from holds every point within the view's box:
+    against a brute-force box test on random points, for boxes inside, across and outside the points, and no point
+    farther than a cell from the box."""
+    rng = np.random.default_rng(5)
+    points = rng.uniform([-300, -200, -5], [300, 200, 30], (50_000, 3))
+    grid = _GroundGrid(points, 8.0)
+    for lo, hi in (([-20.0, -35.0], [45.0, 12.0]), ([250.0, 150.0], [400.0, 400.0])):
+        got = grid.within(np.array(lo), np.array(hi)) + grid.origin  # float32 about the origin: millimetres
+        inside = points[np.all((points[:, :2] >= lo) & (points[:, :2] <= hi), axis=1)]
+        assert len(inside) > 100 and cKDTree(got).query(inside)[0].max() < 1e-3
+        # and nothing beyond the cells the box touches: within one cell of it
+        assert np.all((got[:, :2] >= np.array(lo) - 8.0) & (got[:, :2] <= np.array(hi) + 8.0))
+    assert len(grid.within(np.array([500.0, 0.0]), np.array([600.0, 1.0]))) == 0  # beyond every point
+
+
+def test_depth_check_cull_keeps_every_point_a_camera_sees():
+    """The cells a camera's view pyramid reaches hold every map point that projects into its image within the
+    reach: the same depths as projecting all of them, for cameras along a street in an up-z frame (a workspace's)
+    looking every way, level and tilted, with and without distortion; and most of the points are never projected."""
+    pinhole = CameraInfo("pin", 640, 480, np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]))
+    wide = CameraInfo("wide", 640, 480, pinhole.K, "plumb_bob", np.array([-0.3, 0.1, 0.001, -0.001]))
+    look_x = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], np.float64)  # optical z along world +x, y down
+    images, names = [], []
+    for k, (yaw, pitch) in enumerate([(0, 0), (60, 0), (135, 10), (200, -15), (300, 5), (90, 0)]):
+        a, b = np.radians(yaw), np.radians(pitch)
+        Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+        Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+        T = np.eye(4)
+        T[:3, :3] = Rz @ Ry @ look_x
+        T[:3, 3] = [12.0 * k, 3.0 * k, 1.5]
+        images.append(PosedImage(Path(f"{k}.png"), wide if k % 2 else pinhole, T))
+        names.append(f"{k}.png")
+    rec = _posed_reconstruction(images, names)
+    rng = np.random.default_rng(11)
+    points = rng.uniform([-80, -80, -3], [140, 100, 25], (300_000, 3))
+    grid = _GroundGrid(points, 8.0)
+    for im in rec.images.values():
+        every_uv, every_z = _project_into(im, points, 40.0)
+        near = grid.seen_by(im, 40.0)
+        uv, z = _project_into(im, near, 40.0, grid.origin)
+        assert len(every_z) > 1000 and len(z) == len(every_z) and len(near) < 0.25 * len(points)
+        np.testing.assert_allclose(np.sort(z), np.sort(every_z), atol=1e-3)
 
 
 # --- a workspace -------------------------------------------------------------------------------------
