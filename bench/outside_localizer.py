@@ -72,10 +72,13 @@ def main(argv: list[str] | None = None) -> int:
         "localizers": {},
     }
     # COLMAP's registrator twice: with COLMAP's defaults, and with the acceptance mapkit's localizer uses (its RANSAC
-    # threshold and inlier count), so that what differs is the pipeline, not where a pose is accepted
+    # threshold and inlier count, and no floor on the inliers' share, which mapkit's localizer does not have), so
+    # that what differs is the pipeline, not where a pose is accepted
     six = SixDofConfig()
     same_acceptance = ColmapRegistratorConfig(
-        abs_pose_max_error_px=six.ransac_max_error_px, abs_pose_min_num_inliers=six.min_inliers
+        abs_pose_max_error_px=six.ransac_max_error_px,
+        abs_pose_min_num_inliers=six.min_inliers,
+        abs_pose_min_inlier_ratio=0.0,
     )
     runs = (
         ("mapkit", localize_benchmark),
@@ -91,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         record["localizers"][name].update(_scores(ev))
         print(f"{name}: {ev.overall.recall} median {ev.overall.median_translation_m} m", file=sys.stderr)
     record["same_acceptance"] = same_acceptance.model_dump(
-        include={"abs_pose_max_error_px", "abs_pose_min_num_inliers"}
+        include={"abs_pose_max_error_px", "abs_pose_min_num_inliers", "abs_pose_min_inlier_ratio"}
     )
     args.out.write_text(json.dumps(record, indent=1) + "\n")
     print(f"record written to {args.out}", file=sys.stderr)

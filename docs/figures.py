@@ -987,7 +987,9 @@ def render_outside_localizer() -> str:
         + f"\n\nAt (0.5 m, 5 deg), COLMAP's registrator against mapkit's localizer (goal: at most "
         f"{OUTSIDE_POINTS:.0f} points below): {'; '.join(gaps)}. mapkit's acceptance: RANSAC "
         f"{rec.get('same_acceptance', {}).get('abs_pose_max_error_px', '-')} px, "
-        f"{rec.get('same_acceptance', {}).get('abs_pose_min_num_inliers', '-')} inliers. Reference model "
+        f"{rec.get('same_acceptance', {}).get('abs_pose_min_num_inliers', '-')} inliers, their share of the 2D-3D "
+        f"matches at least {rec.get('same_acceptance', {}).get('abs_pose_min_inlier_ratio', '-')} (COLMAP's default: "
+        "0.25). Reference model "
         f"of {rec['database_images']} database images and {rec['points3D']} points; one run of `{rec['command']}` on "
         f"the main job's workspace, measured {rec['measured']} on {rec['machine']}."
     )

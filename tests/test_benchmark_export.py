@@ -24,7 +24,7 @@ from mapkit.deploy.benchmark import BenchmarkExportConfig, export_benchmark
 from mapkit.evaluation.benchmark import evaluate_benchmark, score_benchmark
 from mapkit.io.benchmark import read_pairs, read_queries_with_intrinsics
 from mapkit.io.trajectory import read_benchmark_poses, write_benchmark_poses, write_tum
-from mapkit.localization.colmap_registrator import register_benchmark
+from mapkit.localization.colmap_registrator import ColmapRegistratorConfig, register_benchmark
 from mapkit.localization.reference_model import ReferenceModelConfig, build_reference_model
 from mapkit.localization.sixdof import localize_benchmark
 from mapkit.retrieval.index_vlad import build_vlad_index
@@ -194,6 +194,13 @@ def test_colmap_registrator_reads_the_export_as_it_is(exported, tmp_path):
         "poses.queries.json",
         "poses.txt",
     ]
+    # its acceptance is COLMAP's own options: asking every 2D-3D match to be an inlier refuses a query the
+    # default takes (one of the five has an outlier)
+    strict = register_benchmark(
+        out, tmp_path / "strict" / "poses.txt", config=ColmapRegistratorConfig(abs_pose_min_inlier_ratio=1.0)
+    )
+    registered = json.loads((tmp_path / "strict" / "poses.queries.json").read_text())["registered"]
+    assert 0 < registered < len(QUERY_FRAMES) and len(read_benchmark_poses(strict)[0]) == registered
 
 
 def test_missing_model_or_index_is_one_error(kitti_clip, tmp_path):

@@ -57,6 +57,13 @@ class ColmapRegistratorConfig(MapkitConfig):
     abs_pose_max_error_px: float = Field(
         12.0, gt=0, description="RANSAC's reprojection threshold of the absolute pose (px; COLMAP's default)."
     )
+    abs_pose_min_inlier_ratio: float = Field(
+        0.25,
+        ge=0,
+        le=1,
+        description="A query registers when at least this share of its 2D-3D correspondences are inliers (COLMAP's "
+        "default).",
+    )
     num_threads: int = Field(2, ge=1, description="Threads of extraction and matching.")
     seed: int = Field(0, ge=0, description="Seed of COLMAP's RANSAC: the same queries give the same poses.")
 
@@ -190,6 +197,7 @@ def _register(db_path: Path, rec, names: list[str], cfg: ColmapRegistratorConfig
     options = pycolmap.IncrementalMapperOptions()
     options.abs_pose_min_num_inliers = cfg.abs_pose_min_num_inliers
     options.abs_pose_max_error = cfg.abs_pose_max_error_px
+    options.abs_pose_min_inlier_ratio = cfg.abs_pose_min_inlier_ratio
     options.fix_existing_frames = True
     options.num_threads = cfg.num_threads
     options.random_seed = cfg.seed
