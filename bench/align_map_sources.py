@@ -1,7 +1,6 @@
 """Align on LiDAR maps against align on semi-dense maps, on one workspace and its town's truth.
 
-The workspace needs both maps for every session (the README's main job with `--lidar-maps` builds them:
-`runs/main/workspace`).
+The workspace needs both maps for every session (the README's main job builds them: `runs/main/workspace`).
 For each map source the sessions are copied into a fresh workspace beside the record, aligned there with
 `mapkit align --map-source SOURCE` and scored with `mapkit eval align`: the misalignment of the same true
 surface between each pair of sessions after alignment, the registered pairs, and the time align took. The copies

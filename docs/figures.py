@@ -14,7 +14,7 @@ docs (``compare``).
 
     python3 docs/figures.py collect places RUN...       # runs of `mapkit demo --preset places --seed S --train-cnn`
     python3 docs/figures.py collect main-job RUN...     # runs of the README's main job (the demo preset)
-    python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job with --sixdof --lidar-maps
+    python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job with --sixdof
     python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
     python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
     python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
@@ -650,7 +650,7 @@ def render_align_sources() -> str:
 
 
 def render_places_by_source() -> str:
-    """The main job with --lidar-maps: each pair's AUC per structure method from the semi-dense maps and from the
+    """The main job (its LiDAR maps): each pair's AUC per structure method from the semi-dense maps and from the
     LiDAR maps (merged to the demo's voxel), over held-out queries and over all places."""
     rec = record("main-job-6dof")
     runs = [r for r in rec["runs"] if r.get("places_by_source")]

@@ -564,7 +564,10 @@ def demo(
         "and queries keep the preset's rates.",
     ),
     lidar_maps: bool = typer.Option(
-        False, "--lidar-maps", help="Also build each session's LiDAR map (shown beside the semi-dense maps)."
+        True,
+        "--lidar-maps/--no-lidar-maps",
+        help="Build each session's LiDAR map beside its semi-dense map (align registers on them; place recognition "
+        "scores both).",
     ),
     sixdof: bool = typer.Option(
         False,

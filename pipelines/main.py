@@ -44,7 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--workers", type=int, default=2, help="processes for image encoding (default 2)")
     ap.add_argument("--train-cnn", action="store_true", help="also train the 3D CNN (learning extra)")
-    ap.add_argument("--lidar-maps", action="store_true", help="also build each session's LiDAR map")
+    ap.add_argument(
+        "--lidar-maps",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="build each session's LiDAR map beside its semi-dense map (default; --no-lidar-maps leaves them out)",
+    )
     ap.add_argument(
         "--sixdof", action="store_true", help="also the reference model, 6-DoF localization and the benchmark export"
     )

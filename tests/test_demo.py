@@ -239,7 +239,7 @@ def test_video_rate_build_config_keeps_each_sessions_image_rate(tmp_path):
     from mapkit.pipelines.demo import demo_build_config
 
     same = {"train-a": {"camera_rate_hz": 4.0, "image_rate_hz": 4.0}, "test-b": {"camera_rate_hz": 4.0}}
-    assert demo_build_config(tmp_path, same) == preset_path("build", "demo")
+    assert demo_build_config(tmp_path, same) == preset_path("build", "demo")  # LiDAR maps as the preset's: on
     roles = {
         "train-a": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0},
         "test-b": {"camera_rate_hz": 16.0, "image_rate_hz": 4.0},
@@ -255,9 +255,9 @@ def test_video_rate_build_config_keeps_each_sessions_image_rate(tmp_path):
     assert (
         cfg.georef.fuse == base.georef.fuse and cfg.semidense == base.semidense
     )  # the maps: every image, as the demo's
-    assert base.lidar_map.enabled is False and cfg.lidar_map.enabled is False
-    both = load_config(BuildConfig, demo_build_config(tmp_path / "lidar", same, lidar_map=True))
-    assert both.lidar_map.enabled is True and both.for_session("train-a").imagedb.min_interval_s == 0.5
+    assert base.lidar_map.enabled == "auto" and cfg.lidar_map.enabled == "auto"
+    camera_only = load_config(BuildConfig, demo_build_config(tmp_path / "camera", same, lidar_map=False))
+    assert camera_only.lidar_map.enabled is False and camera_only.for_session("train-a").imagedb.min_interval_s == 0.5
 
 
 def test_places_pairs_mix_conditions_and_skip_empty_maps():

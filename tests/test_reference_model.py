@@ -20,13 +20,13 @@ from mapkit.io.benchmark import COLMAP_PIXEL_OFFSET, camera_info_from_colmap, co
 from mapkit.localization.reference_model import (
     PosedImage,
     ReferenceModelConfig,
+    _GroundGrid,
+    _posed_reconstruction,
+    _project_into,
     build_reference_model,
     depth_agreement,
     observation_errors_px,
     pairs_from_poses,
-    _GroundGrid,
-    _posed_reconstruction,
-    _project_into,
     pixels_near,
     triangulate_reference_model,
 )

@@ -88,7 +88,7 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "index_vlad": 16,
         "index_structure": 32,
         "localize": 11,
-        "sixdof": 150,  # with --sixdof and --lidar-maps (docs/results/main-job-6dof.json)
+        "sixdof": 150,  # with --sixdof (docs/results/main-job-6dof.json)
         "places": 27,
         "view": 6,
     },
@@ -142,7 +142,7 @@ class Demo:
         log: Callable[[str], None],
         record_rate_hz: float | None = None,
         synth_overrides: dict | None = None,
-        lidar_maps: bool = False,
+        lidar_maps: bool = True,
         sixdof: bool = False,
     ):
         self.out, self.preset, self.seed, self.workers = Path(out), preset, seed, workers
@@ -292,17 +292,17 @@ def _build(d: Demo) -> None:
                 sec.picture(lidar_view, f"{n}: LiDAR map, top view", 380)
 
 
-def demo_build_config(out: Path, roles: dict[str, dict], lidar_map: bool = False) -> Path:
+def demo_build_config(out: Path, roles: dict[str, dict], lidar_map: bool = True) -> Path:
     """``configs/build/demo.yaml``, or a copy of it in ``out`` where the run asks for more: where the town's
     cameras record faster than the sessions' own image rates (video, ``camera.record_rate_hz``), image databases
     that keep each session's own rate (``imagedb.min_interval_s``, never shorter than the demo's): the maps are
-    made from every image, retrieval and the localizer see the images they would without video; with
-    ``lidar_map``, each session's LiDAR map too."""
+    made from every image, retrieval and the localizer see the images they would without video; without
+    ``lidar_map``, no LiDAR maps (the preset builds them)."""
     base = preset_path("build", "demo")
     faster = {
         n: s for n, s in roles.items() if s.get("image_rate_hz") and s["camera_rate_hz"] > s["image_rate_hz"] * 1.001
     }
-    if not faster and not lidar_map:
+    if not faster and lidar_map:
         return base
     data = yaml.safe_load(base.read_text()) or {}
     cfg = load_config(BuildConfig, base)
@@ -317,9 +317,9 @@ def demo_build_config(out: Path, roles: dict[str, dict], lidar_map: bool = False
             "# each session's image database at its own image rate: the town's cameras record faster\n"
             "# (camera.record_rate_hz) and the maps use every image"
         )
-    if lidar_map:
-        data["lidar_map"] = {"enabled": True}
-        notes.append("# each session's LiDAR map beside its semi-dense map")
+    if not lidar_map:
+        data["lidar_map"] = {"enabled": False}
+        notes.append("# no LiDAR maps (--no-lidar-maps)")
     path = out / ("build_config_video.yaml" if faster else "build_config.yaml")
     atomic_write_text(
         path,
@@ -733,7 +733,7 @@ def run_demo(
     log: Callable[[str], None] = logger.info,
     record_rate_hz: float | None = None,
     synth_overrides: dict | None = None,
-    lidar_maps: bool = False,
+    lidar_maps: bool = True,
     sixdof: bool = False,
 ) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
@@ -743,9 +743,10 @@ def run_demo(
     ``record_rate_hz``: the town's cameras record video at this rate and the maps are made from
     every image, as the semi-dense paper's DSO maps are (Sec. 3); image databases and queries keep
     the preset's rates (:func:`demo_build_config`). ``synth_overrides``: merged over the town's
-    preset, as a ``mapkit synth --config`` file would be. ``lidar_maps``: each session's LiDAR map too (the
-    report shows them beside the semi-dense maps and the reference model's depth check uses them; the later
-    stages read the semi-dense maps). ``sixdof``: the reference model of the training drives, the 6-DoF
+    preset, as a ``mapkit synth --config`` file would be. ``lidar_maps`` (on by default): each session's LiDAR
+    map too (the report shows them beside the semi-dense maps, align registers on them, place recognition scores
+    them beside the semi-dense maps and the reference model's depth check uses them; triplets and the structure
+    indexes read the semi-dense maps). ``sixdof``: the reference model of the training drives, the 6-DoF
     localization of the test drives on it and the localization benchmark export (the ``sixdof`` stage)."""
 
     d = Demo(
