@@ -41,6 +41,7 @@ from mapkit.core.geometry import matrix_to_quat_wxyz
 from mapkit.core.runio import atomic_path, progress_bar
 from mapkit.core.workspace import Workspace
 from mapkit.core.writers import writes_workspace
+from mapkit.io.benchmark import COLMAP_PIXEL_OFFSET
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -324,7 +325,7 @@ class _Writer:
 
 def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int, int]]:
     """(K, (width, height)) of the session's image database camera (a build writes one), from its COLMAP
-    reconstruction."""
+    reconstruction, with pixel centres at integers (:data:`mapkit.io.benchmark.COLMAP_PIXEL_OFFSET` taken off)."""
     import pycolmap
 
     folder = ws.session(name).imagedb / "colmap"
@@ -336,7 +337,9 @@ def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int,
     if not cams:
         raise InputError(folder / "cameras.bin", "no camera", field="cameras")
     c = cams[0]
-    return np.asarray(c.calibration_matrix(), np.float64), (int(c.width), int(c.height))
+    K = np.asarray(c.calibration_matrix(), np.float64)
+    K[:2, 2] -= COLMAP_PIXEL_OFFSET
+    return K, (int(c.width), int(c.height))
 
 
 def _gps_fixes(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
