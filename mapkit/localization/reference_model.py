@@ -668,6 +668,28 @@ class _GroundGrid:
         return self.gather(cells[~outside])
 
 
+def map_depths(
+    im, grid: _GroundGrid, keypoints: np.ndarray, reach: float, radius_px: float, min_points: int, max_points: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The map's depth at each keypoint (K, 2) of image ``im`` and how far its points there spread: the median and
+    the interquartile range of the depths of the ``max_points`` map points (of ``grid``, at most ``reach`` deep)
+    nearest the keypoint within ``radius_px``, NaN where fewer than ``min_points`` lie there."""
+    z_ref, spread = np.full(len(keypoints), np.nan), np.full(len(keypoints), np.nan)
+    uv_map, z_map = _project_into(im, grid.seen_by(im, reach), reach, grid.origin)
+    keep = pixels_near(uv_map, keypoints, radius_px)  # the tree is then built over these few only
+    uv_map, z_map = uv_map[keep], z_map[keep]
+    if len(z_map) < min_points:
+        return z_ref, spread
+    dist, idx = cKDTree(uv_map).query(keypoints, k=max_points, distance_upper_bound=radius_px)
+    dist, idx = dist.reshape(len(keypoints), -1), idx.reshape(len(keypoints), -1)
+    found = np.isfinite(dist)
+    ok = found.sum(axis=1) >= min_points
+    z_near = np.where(found[ok], z_map[np.minimum(idx[ok], len(z_map) - 1)], np.nan)
+    q25, z_ref[ok], q75 = _row_quartiles(z_near)
+    spread[ok] = q75 - q25
+    return z_ref, spread
+
+
 def depth_agreement(
     rec,
     map_points_world: np.ndarray,
@@ -709,25 +731,12 @@ def depth_agreement(
         reach = DEPTH_CHECK_REACH * float(z_tri.max())
         if not reach > 0:
             continue
-        near_camera = grid.seen_by(im, reach)
-        uv_map, z_map = _project_into(im, near_camera, reach, grid.origin)
-        keep = pixels_near(uv_map, kp, radius_px)  # the tree is then built over these few only
-        uv_map, z_map = uv_map[keep], z_map[keep]
-        if len(z_map) < min_points:
-            continue
-        dist, idx = cKDTree(uv_map).query(kp, k=max_points, distance_upper_bound=radius_px)
-        dist, idx = dist.reshape(len(kp), -1), idx.reshape(len(kp), -1)
-        found = np.isfinite(dist)
-        ok = found.sum(axis=1) >= min_points
-        if not np.any(ok):
-            continue
-        z_near = np.where(found[ok], z_map[np.minimum(idx[ok], len(z_map) - 1)], np.nan)
-        q25, z_ref, q75 = _row_quartiles(z_near)
-        one_surface = q75 - q25 <= max_spread * z_ref
+        z_ref, spread = map_depths(im, grid, kp, reach, radius_px, min_points, max_points)
+        one_surface = spread <= max_spread * z_ref  # NaN (no map depth) compares false
         if not np.any(one_surface):
             continue
         z_ref = z_ref[one_surface]
-        rel = np.abs(z_tri[ok][one_surface] - z_ref) / z_ref
+        rel = np.abs(z_tri[one_surface] - z_ref) / z_ref
         rel_all.append(rel)
         per_image[im.name] = {"compared": int(len(rel)), "median_relative_difference": round(float(np.median(rel)), 5)}
     rel = np.concatenate(rel_all) if rel_all else np.zeros(0)

@@ -1,0 +1,123 @@
+"""The reference model's depth check against the truth: how far the triangulated points and the maps' depths lie
+from the true surfaces, at the same keypoints, on a synthetic town's workspace.
+
+Per observation of the model (a keypoint with a triangulated point; every ``--every``-th image), the true depth is
+where the keypoint's ray meets the town's mesh, moved into the model's frame by the fit ``mapkit eval localize
+--refine 6dof`` wrote (``WS/localize/6dof/eval_localize.json``: ``model_from_truth``, on the database images). The
+table gives each depth's relative difference from it, ``|z - z_true| / z_true`` (median, 90th percentile):
+
+* the triangulated points, all and by their triangulation angle (the widest angle between two rays of the track);
+* each map's depth as the check takes it (``depth_check_max_spread``: the map's points around the keypoint on one
+  surface) and as the median of all its points there, whatever their spread.
+
+So it says which side of a disagreement the check reports is the model's and which the map's. Run on the main job's
+workspace with ``--sixdof`` (or the tiny town's, where the check's spread was chosen)::
+
+    python3 bench/depth_check_truth.py runs/main/workspace --truth runs/main/town
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from bench.common import report  # noqa: E402 (after sys.path points at this checkout)
+
+ANGLE_BINS = ((0.0, 3.0), (3.0, 6.0), (6.0, 12.0), (12.0, 180.0))
+
+
+def _row(what: str, est: np.ndarray, truth: np.ndarray) -> dict:
+    m = np.isfinite(est) & np.isfinite(truth)
+    rel = np.abs(est[m] - truth[m]) / truth[m]
+    return {
+        "depth": what,
+        "observations": int(m.sum()),
+        "median": round(float(np.median(rel)), 4) if m.any() else None,
+        "p90": round(float(np.percentile(rel, 90)), 3) if m.any() else None,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("workspace", type=Path)
+    ap.add_argument("--truth", type=Path, required=True, help="the synthetic town the workspace was built from")
+    ap.add_argument("--every", type=int, default=3, help="every n-th image of the model (default 3)")
+    args = ap.parse_args(argv)
+    import open3d as o3d
+    import pycolmap
+
+    from mapkit.core.workspace import Workspace
+    from mapkit.evaluation.truth import ws_from_town
+    from mapkit.localization import reference_model as rm
+
+    ws = Workspace(args.workspace)
+    fit_file = ws.localize_dir / "6dof" / "eval_localize.json"
+    if not fit_file.is_file():
+        print(f"no {fit_file}: run the main job with --sixdof (mapkit eval localize --refine 6dof)", file=sys.stderr)
+        return 2
+    model_from_truth = np.array(json.loads(fit_file.read_text())["model_from_truth"]["matrix"])
+    rec = pycolmap.Reconstruction(str(ws.root / rm.DEFAULT_FOLDER / "sfm"))
+    cfg = rm.ReferenceModelConfig()
+    sessions = sorted({im.name.split("/")[1] for im in rec.images.values()})
+    maps = rm._workspace_maps(ws, sessions)
+    grids = {k: rm._GroundGrid(v, rm.DEPTH_CHECK_CELL_M) for k, v in maps.items() if v is not None}
+    mesh = o3d.io.read_triangle_mesh(str(args.truth / "world" / "mesh.ply"))
+    mesh.transform(model_from_truth @ ws_from_town(args.truth, ws.require_frame("the truth is georeferenced")))
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    centres = {i: np.asarray(im.projection_center()) for i, im in rec.images.items()}
+    xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
+    cols: dict[str, list[np.ndarray]] = {"tri": [], "true": [], "angle": []}
+    for kind in grids:
+        cols[f"{kind}:check"], cols[f"{kind}:all"] = [], []
+    for image_id in sorted(rec.images)[:: args.every]:
+        im = rec.images[image_id]
+        pids = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        if not pids:
+            continue
+        kp = np.array([p.xy for p in im.points2D if p.has_point3D()], np.float64)
+        T = np.asarray(im.cam_from_world().matrix(), np.float64)
+        z_tri = np.array([xyz[i] for i in pids]) @ T[2, :3] + T[2, 3]
+        rays = np.c_[np.asarray(im.camera.cam_from_img(kp), np.float64), np.ones(len(kp))] @ T[:, :3]  # z = 1
+        origin = np.tile(centres[image_id], (len(kp), 1))
+        hits = scene.cast_rays(o3d.core.Tensor(np.c_[origin, rays].astype(np.float32)))["t_hit"].numpy()
+        angles = []
+        for pid in pids:
+            track = np.array([centres[e.image_id] for e in rec.points3D[pid].track.elements]) - xyz[pid]
+            track /= np.linalg.norm(track, axis=1)[:, None]
+            angles.append(np.degrees(np.arccos(np.clip((track @ track.T).min(), -1.0, 1.0))))
+        cols["tri"].append(z_tri)
+        cols["true"].append(np.where(np.isfinite(hits), hits, np.nan))
+        cols["angle"].append(np.array(angles))
+        reach = rm.DEPTH_CHECK_REACH * float(z_tri.max())
+        for kind, grid in grids.items():
+            z_map, spread = rm.map_depths(im, grid, kp, reach, cfg.depth_check_radius_px, 3, 16)
+            cols[f"{kind}:all"].append(z_map)
+            cols[f"{kind}:check"].append(np.where(spread <= cfg.depth_check_max_spread * z_map, z_map, np.nan))
+    a = {k: np.concatenate(v) if v else np.zeros(0) for k, v in cols.items()}
+    rows = [_row("triangulated, all", a["tri"], a["true"])]
+    for lo, hi in ANGLE_BINS:
+        sel = (a["angle"] >= lo) & (a["angle"] < hi)
+        rows.append(_row(f"triangulated, rays {lo:g}-{hi:g} deg apart", a["tri"][sel], a["true"][sel]))
+    for kind in grids:
+        rows.append(_row(f"{kind} map, as the check takes it (one surface)", a[f"{kind}:check"], a["true"]))
+        rows.append(_row(f"{kind} map, median of all its points there", a[f"{kind}:all"], a["true"]))
+    report(
+        "Depths at the reference model's keypoints against the true surfaces (relative difference)",
+        rows,
+        f"{len(a['tri'])} observations of every {args.every}. image of the model; the truth moved by the fit on the "
+        "database images",
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
