@@ -12,7 +12,8 @@ outputs), with the command that made each run, the date and the machine. So a pa
 that no run wrote, two pages cannot disagree about one figure, and a fresh run can be held against the
 docs (``compare``).
 
-    python3 docs/figures.py collect places RUN...       # runs of `mapkit demo --preset places --seed S --train-cnn`
+    python3 docs/figures.py collect places RUN...       # `mapkit demo --preset places --seed S --train-cnn
+                                                        #  --no-lidar-maps` runs
     python3 docs/figures.py collect main-job RUN...     # runs of the README's main job (the demo preset)
     python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job with --sixdof
     python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
@@ -407,7 +408,7 @@ def render_claims() -> str:
         )
     pl = _maybe("places")
     if pl:
-        runs, cmd = pl["runs"], "`mapkit demo --preset places --seed S --train-cnn`"
+        runs, cmd = pl["runs"], "`mapkit demo --preset places --seed S --train-cnn --no-lidar-maps`"
         d = [(_mean_auc(r, "nbld") or 0) - (_mean_auc(r, "m2dp") or 0) for r in runs]
         ahead = [_ahead(_pair_diffs(r, "nbld", "m2dp")) for r in runs]
         rows.append(
