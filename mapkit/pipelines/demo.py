@@ -81,15 +81,15 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "view": 3,
     },
     "demo": {
-        "synth": 111,
-        "build": 105,
-        "align": 25,
-        "triplets": 27,
-        "index_vlad": 16,
-        "index_structure": 32,
-        "localize": 11,
+        "synth": 114,
+        "build": 147,
+        "align": 40,
+        "triplets": 19,
+        "index_vlad": 15,
+        "index_structure": 34,
+        "localize": 10,
         "sixdof": 150,  # with --sixdof (docs/results/main-job-6dof.json)
-        "places": 27,
+        "places": 75,
         "view": 6,
     },
     "places": {
