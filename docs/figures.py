@@ -128,6 +128,11 @@ def extract_run(run: Path) -> dict:
                 for k, v in (model.get("depth_check") or {}).items()
                 if isinstance(v, dict)
             },
+            "depth_fraction_compared": {
+                k: v.get("fraction_compared")
+                for k, v in (model.get("depth_check") or {}).items()
+                if isinstance(v, dict)
+            },
         }
     places = _json(run / "workspace" / "eval" / "places" / "places.json")
     out["places"] = {}
@@ -617,7 +622,11 @@ def render_sixdof() -> str:
     ]
     for k in depth:
         median = [100 * (m["depth_median_relative"].get(k) or 0) for m in models]
-        parts.append(f"depth against the {k} map, median {spread(median, '{:.1f}')} %")
+        text = f"depth against the {k} map, median {spread(median, '{:.1f}')} %"
+        compared = [100 * m["depth_fraction_compared"][k] for m in models if k in m.get("depth_fraction_compared", {})]
+        if compared:  # a record may not hold the fraction
+            text += f" of the {spread(compared, '{:.0f}')} % of observations where the map gives one depth"
+        parts.append(text)
     note = "; ".join(parts) + ". "
     return (
         table(

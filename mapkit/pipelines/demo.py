@@ -88,7 +88,7 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "index_vlad": 15,
         "index_structure": 34,
         "localize": 10,
-        "sixdof": 150,  # with --sixdof (docs/results/main-job-6dof.json)
+        "sixdof": 133,  # with --sixdof (docs/results/main-job-6dof.json)
         "places": 75,
         "view": 6,
     },
