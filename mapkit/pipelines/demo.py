@@ -81,15 +81,15 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "view": 3,
     },
     "demo": {
-        "synth": 114,
-        "build": 147,
-        "align": 40,
-        "triplets": 19,
+        "synth": 109,
+        "build": 135,
+        "align": 39,
+        "triplets": 20,
         "index_vlad": 15,
-        "index_structure": 34,
+        "index_structure": 33,
         "localize": 10,
         "sixdof": 133,  # with --sixdof (docs/results/main-job-6dof.json)
-        "places": 75,
+        "places": 76,
         "view": 6,
     },
     "places": {
