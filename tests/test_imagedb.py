@@ -54,6 +54,31 @@ def test_colmap_and_csv_round_trip(tmp_path, rng):
     np.testing.assert_array_equal(back, imgs[3])  # png: stored exactly
 
 
+def test_keypoints_of_a_distorted_camera_are_where_opencv_projects_them(tmp_path, rng):
+    """With lens distortion the COLMAP model's camera carries it (OPENCV) and each track's keypoint is the point's
+    projection as cv2.projectPoints gives it, moved into COLMAP's pixel convention (half a pixel)."""
+    import cv2
+
+    D = np.array([-0.28, 0.09, 0.001, -0.0005])
+    info = CameraInfo("cam", 640, 480, K, "plumb_bob", D)
+    w = ImageDbWriter(tmp_path / "db", ImageDbConfig(image_format="png"), {"cam": info})
+    poses = _poses(2)
+    for i, T in enumerate(poses):
+        w.add(1_000 + i, "cam", rng.integers(0, 255, (480, 640), dtype=np.uint8), T)
+    # points off the optical axis of the first camera (its optical z is the map's +x), where distortion moves them
+    p = np.array([[10.0, 3.0, 0.0], [8.0, -2.5, 3.5], [12.0, 1.0, 4.0]])
+    w.close(None, p, (np.array([0, 1, 2, 3]), np.array([1, 1, 1])))
+    rec = pycolmap.Reconstruction(str(tmp_path / "db" / "colmap"))
+    assert rec.cameras[1].model.name == "OPENCV"
+    cam_from_world = invert_pose(poses[0])
+    expected, _ = cv2.projectPoints(p, cv2.Rodrigues(cam_from_world[:3, :3])[0], cam_from_world[:3, 3], K, D)
+    image = rec.image(1)
+    kp = np.array([image.points2D[i].xy for i in range(3)])
+    np.testing.assert_allclose(kp, expected.reshape(-1, 2) + 0.5, atol=1e-6)
+    pinhole, _ = cv2.projectPoints(p, cv2.Rodrigues(cam_from_world[:3, :3])[0], cam_from_world[:3, 3], K, None)
+    assert np.abs(kp - (pinhole.reshape(-1, 2) + 0.5)).max() > 5.0  # the distortion matters here
+
+
 def test_downscaled_intrinsics_keep_pixel_centres():
     info = scaled_info(CameraInfo("cam", 640, 480, K), 2)
     assert (info.width, info.height) == (320, 240)

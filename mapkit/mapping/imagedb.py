@@ -32,7 +32,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import invert_pose, matrix_to_quat_wxyz, pose_from_quat_wxyz
 from mapkit.core.runio import atomic_write_bytes, atomic_write_text
 from mapkit.core.types import CameraInfo
-from mapkit.io.benchmark import COLMAP_PIXEL_OFFSET, colmap_camera_params
+from mapkit.io.benchmark import colmap_camera_params
 
 CSV_COLUMNS = [
     "image_id",
@@ -202,20 +202,23 @@ class ImageDbWriter:
         import pycolmap
 
         rec = pycolmap.Reconstruction()
-        cam_ids: dict[str, int] = {}
+        cameras = {}
         for i, (name, info) in enumerate(sorted(self.infos.items()), start=1):
             model, params = colmap_camera_params(info)
-            cam = pycolmap.Camera(model=model, width=info.width, height=info.height, params=params, camera_id=i)
-            rec.add_camera_with_trivial_rig(cam)
-            cam_ids[name] = i
+            cameras[name] = pycolmap.Camera(
+                model=model, width=info.width, height=info.height, params=params, camera_id=i
+            )
+            rec.add_camera_with_trivial_rig(cameras[name])
         keypoints: dict[int, list[np.ndarray]] = {im.image_id: [] for im in self.images}
         tracks: list[list[tuple[int, int]]] = []
         track_points = np.zeros(0, np.int64)
         if points_world is not None and observers is not None and len(points_world):
-            keypoints, tracks, track_points = self._tracks(points_world, observers)
+            keypoints, tracks, track_points = self._tracks(points_world, observers, cameras)
         for im in self.images:
             kp = np.asarray(keypoints.get(im.image_id, []), np.float64).reshape(-1, 2)
-            img = pycolmap.Image(name=im.relpath, keypoints=kp, camera_id=cam_ids[im.camera], image_id=im.image_id)
+            img = pycolmap.Image(
+                name=im.relpath, keypoints=kp, camera_id=cameras[im.camera].camera_id, image_id=im.image_id
+            )
             rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(invert_pose(im.world_from_cam)[:3, :]))
         for point, track_elems in zip(track_points, tracks, strict=True):
             track = pycolmap.Track()
@@ -233,8 +236,9 @@ class ImageDbWriter:
             shutil.rmtree(out)
         tmp.rename(out)
 
-    def _tracks(self, points_world: np.ndarray, observers: tuple[np.ndarray, np.ndarray]):
-        """Project each point into the database images that observed it: the 2D keypoints of its track.
+    def _tracks(self, points_world: np.ndarray, observers: tuple[np.ndarray, np.ndarray], cameras: dict):
+        """Project each point into the database images that observed it, through the image's COLMAP camera
+        (``cameras`` by camera name: its distortion and pixel convention): the 2D keypoints of its track.
 
         Returns (keypoints by image id, tracks, index into ``points_world`` of each track's point).
         """
@@ -257,9 +261,9 @@ class ImageDbWriter:
             cam_from_world = invert_pose(im.world_from_cam)
             pc = points_world[idx] @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
             front = pc[:, 2] > 1e-6
-            # in COLMAP's pixel convention, as its cameras (colmap_camera_params) and SIFT keypoints are
-            uv = pc[front, :2] / pc[front, 2:3] * [info.fx, info.fy] + [info.cx, info.cy] + COLMAP_PIXEL_OFFSET
-            inside = (uv[:, 0] >= 0) & (uv[:, 0] < info.width) & (uv[:, 1] >= 0) & (uv[:, 1] < info.height)
+            uv = np.asarray(cameras[im.camera].img_from_cam(pc[front]), np.float64).reshape(-1, 2)
+            inside = np.isfinite(uv).all(axis=1)
+            inside &= (uv[:, 0] >= 0) & (uv[:, 0] < info.width) & (uv[:, 1] >= 0) & (uv[:, 1] < info.height)
             for p, xy in zip(idx[front][inside], uv[inside], strict=True):
                 keypoints[int(image_id)].append(xy)
                 tracks[p].append((int(image_id), counts[int(image_id)]))
