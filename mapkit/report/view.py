@@ -41,7 +41,7 @@ from mapkit.core.geometry import matrix_to_quat_wxyz
 from mapkit.core.runio import atomic_path, progress_bar
 from mapkit.core.workspace import Workspace
 from mapkit.core.writers import writes_workspace
-from mapkit.io.benchmark import COLMAP_PIXEL_OFFSET
+from mapkit.io.benchmark import camera_info_from_colmap
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -325,7 +325,7 @@ class _Writer:
 
 def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int, int]]:
     """(K, (width, height)) of the session's image database camera (a build writes one), from its COLMAP
-    reconstruction, with pixel centres at integers (:data:`mapkit.io.benchmark.COLMAP_PIXEL_OFFSET` taken off)."""
+    reconstruction, in mapkit's pixel convention (:func:`mapkit.io.benchmark.camera_info_from_colmap`)."""
     import pycolmap
 
     folder = ws.session(name).imagedb / "colmap"
@@ -337,9 +337,11 @@ def _camera_intrinsics(ws: Workspace, name: str) -> tuple[np.ndarray, tuple[int,
     if not cams:
         raise InputError(folder / "cameras.bin", "no camera", field="cameras")
     c = cams[0]
-    K = np.asarray(c.calibration_matrix(), np.float64)
-    K[:2, 2] -= COLMAP_PIXEL_OFFSET
-    return K, (int(c.width), int(c.height))
+    try:
+        info = camera_info_from_colmap(name, c.model_name, c.width, c.height, [float(v) for v in c.params])
+    except ValueError as e:
+        raise InputError(folder / "cameras.bin", str(e), field="cameras") from e
+    return info.K, (info.width, info.height)
 
 
 def _gps_fixes(ws: Workspace, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
