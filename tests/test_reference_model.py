@@ -245,12 +245,13 @@ def test_depth_check_gathers_every_map_point_a_camera_sees():
     points = rng.uniform([-300, -200, -5], [300, 200, 30], (50_000, 3))
     grid = _GroundGrid(points, 8.0)
     for lo, hi in (([-20.0, -35.0], [45.0, 12.0]), ([250.0, 150.0], [400.0, 400.0])):
-        got = grid.within(np.array(lo), np.array(hi)) + grid.origin  # float32 about the origin: millimetres
+        # float32 about the origin: millimetres
+        got = grid.gather(grid.cells_within(np.array(lo), np.array(hi))) + grid.origin
         inside = points[np.all((points[:, :2] >= lo) & (points[:, :2] <= hi), axis=1)]
         assert len(inside) > 100 and cKDTree(got).query(inside)[0].max() < 1e-3
         # and nothing beyond the cells the box touches: within one cell of it
         assert np.all((got[:, :2] >= np.array(lo) - 8.0) & (got[:, :2] <= np.array(hi) + 8.0))
-    assert len(grid.within(np.array([500.0, 0.0]), np.array([600.0, 1.0]))) == 0  # beyond every point
+    assert len(grid.cells_within(np.array([500.0, 0.0]), np.array([600.0, 1.0]))) == 0  # beyond every point
 
 
 def test_depth_check_cull_keeps_every_point_a_camera_sees():

@@ -524,7 +524,7 @@ def _project_into(
     (millimetres at hundreds of metres), the depth first so that only the points ahead are carried on."""
     cam = im.camera
     T = np.asarray(im.cam_from_world().matrix(), np.float64)
-    centre = -T[:, 3] @ T[:, :3] - (0.0 if origin is None else origin)
+    centre = np.asarray(im.projection_center(), np.float64) - (0.0 if origin is None else origin)
     R = T[:, :3].astype(np.float32)
     if X_world.dtype == np.float32:
         rel = X_world - centre.astype(np.float32)
@@ -628,12 +628,8 @@ class _GroundGrid:
         last = np.searchsorted(self.keys, rows + j1, side="right")
         return np.concatenate([np.arange(a, b) for a, b in zip(first, last, strict=True)])
 
-    def within(self, lo_xy: np.ndarray, hi_xy: np.ndarray) -> np.ndarray:
-        """The points of every cell that the box ``lo_xy``..``hi_xy`` (m) touches (relative to ``origin``)."""
-        return self.gather(self.cells_within(lo_xy, hi_xy))
-
     def gather(self, cells: np.ndarray) -> np.ndarray:
-        """The points of ``cells`` (indices of non-empty cells)."""
+        """The points of ``cells`` (indices of non-empty cells), relative to ``origin``."""
         if not len(cells):
             return self.points[:0]
         return np.concatenate([self.points[a:b] for a, b in zip(self.start[cells], self.stop[cells], strict=True)])
@@ -651,8 +647,7 @@ class _GroundGrid:
         xn = np.asarray(cam.cam_from_img(border), np.float64)
         (x_lo, y_lo), (x_hi, y_hi) = xn.min(axis=0), xn.max(axis=0)
         far = np.c_[xn, np.ones(len(xn))] * reach
-        centre = -T[:, 3] @ T[:, :3]
-        xy = np.vstack([(far - T[:, 3]) @ T[:, :3], centre[None]])[:, :2]  # the pyramid's ground box
+        xy = np.vstack([(far - T[:, 3]) @ T[:, :3], im.projection_center()])[:, :2]  # the pyramid's ground box
         cells = self.cells_within(xy.min(axis=0), xy.max(axis=0))
         if not len(cells):
             return self.points[:0]
