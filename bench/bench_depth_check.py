@@ -43,8 +43,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rec = pycolmap.Reconstruction(str(sfm))
     ws = Workspace(args.workspace)
-    sessions = sorted({im.name.split("/")[1] for im in rec.images.values() if im.name.startswith("sessions/")})
-    maps = {k: v for k, v in rm._workspace_maps(ws, sessions).items() if v is not None}
+    maps = {k: v for k, v in rm.model_maps(ws, sfm.parent).items() if v is not None}
     every_point = rm._GroundGrid.seen_by
 
     def uncull(grid, im, reach):  # every map point, whatever the camera sees

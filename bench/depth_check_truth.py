@@ -66,8 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     model_from_truth = np.array(json.loads(fit_file.read_text())["model_from_truth"]["matrix"])
     rec = pycolmap.Reconstruction(str(ws.root / rm.DEFAULT_FOLDER / "sfm"))
     cfg = rm.ReferenceModelConfig()
-    sessions = sorted({im.name.split("/")[1] for im in rec.images.values()})
-    maps = rm._workspace_maps(ws, sessions)
+    maps = rm.model_maps(ws, ws.root / rm.DEFAULT_FOLDER)
     grids = {k: rm._GroundGrid(v, rm.DEPTH_CHECK_CELL_M) for k, v in maps.items() if v is not None}
     mesh = o3d.io.read_triangle_mesh(str(args.truth / "world" / "mesh.ply"))
     mesh.transform(model_from_truth @ ws_from_town(args.truth, ws.require_frame("the truth is georeferenced")))

@@ -932,6 +932,13 @@ def _workspace_maps(ws: Workspace, names: list[str]) -> dict[str, np.ndarray | N
     return out
 
 
+def model_maps(ws: Workspace, folder: str | Path) -> dict[str, np.ndarray | None]:
+    """The map points per source that the depth check of the workspace's model in ``folder`` compares with: those of
+    the sessions its ``config.yaml`` names (every session with images where it names none)."""
+    cfg = load_config(ReferenceModelConfig, Path(folder) / "config.yaml")
+    return _workspace_maps(ws, _session_names(ws, cfg.sessions))
+
+
 @writes_workspace("workspace")
 def build_reference_model(
     workspace: str | Path | Workspace,
