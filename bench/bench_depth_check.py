@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     import pycolmap
 
+    from mapkit.core.config import load_config
     from mapkit.core.workspace import Workspace
     from mapkit.localization import reference_model as rm
 
@@ -43,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     rec = pycolmap.Reconstruction(str(sfm))
     ws = Workspace(args.workspace)
-    maps = {k: v for k, v in rm.model_maps(ws, sfm.parent).items() if v is not None}
+    sessions = load_config(rm.ReferenceModelConfig, sfm.parent / "config.yaml").sessions
+    maps = {k: v for k, v in rm.session_maps(ws, sessions).items() if v is not None}
     every_point = rm._GroundGrid.seen_by
 
     def uncull(grid, im, reach):  # every map point, whatever the camera sees

@@ -54,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     import open3d as o3d
     import pycolmap
 
+    from mapkit.core.config import load_config
     from mapkit.core.workspace import Workspace
     from mapkit.evaluation.truth import ws_from_town
     from mapkit.localization import reference_model as rm
@@ -66,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     model_from_truth = np.array(json.loads(fit_file.read_text())["model_from_truth"]["matrix"])
     rec = pycolmap.Reconstruction(str(ws.root / rm.DEFAULT_FOLDER / "sfm"))
     cfg = rm.ReferenceModelConfig()
-    maps = rm.model_maps(ws, ws.root / rm.DEFAULT_FOLDER)
+    sessions = load_config(rm.ReferenceModelConfig, ws.root / rm.DEFAULT_FOLDER / "config.yaml").sessions
+    maps = rm.session_maps(ws, sessions)
     grids = {k: rm._GroundGrid(v, rm.DEPTH_CHECK_CELL_M) for k, v in maps.items() if v is not None}
     mesh = o3d.io.read_triangle_mesh(str(args.truth / "world" / "mesh.ply"))
     mesh.transform(model_from_truth @ ws_from_town(args.truth, ws.require_frame("the truth is georeferenced")))

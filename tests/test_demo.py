@@ -408,7 +408,7 @@ def _functions_taking_a_workspace() -> dict[str, object]:
 def _readers(ws: Path) -> dict[str, object]:
     from mapkit.evaluation.places import PlacesEvalConfig, VladBaseline, resolve_split, tiles_split_of_workspace
     from mapkit.localization.localize import LocalizeConfig, open_reference_model, reference_model_folder
-    from mapkit.localization.reference_model import workspace_images
+    from mapkit.localization.reference_model import session_maps, workspace_images
     from mapkit.mapping.build import format_build_summary
     from mapkit.multisession.submaps import load_session
     from mapkit.places.index_structure import load_session_map, session_map_checksum, session_map_dir, session_names
@@ -434,6 +434,7 @@ def _readers(ws: Path) -> dict[str, object]:
             w, name, *w.session_map(name), "semidense"
         ),
         "mapkit.places.triplets.load_aligned_sessions": lambda: load_aligned_sessions(ws),
+        "mapkit.localization.reference_model.session_maps": lambda: session_maps(w, None),
         "mapkit.retrieval.vlad_bundle.workspace_sessions": lambda: workspace_sessions(ws),
         "mapkit.retrieval.vlad_bundle.read_session_images": lambda: read_session_images(ws, name),
         "mapkit.retrieval.vlad_bundle.read_camera_mount": lambda: read_camera_mount(ws, name),

@@ -932,11 +932,10 @@ def _workspace_maps(ws: Workspace, names: list[str]) -> dict[str, np.ndarray | N
     return out
 
 
-def model_maps(ws: Workspace, folder: str | Path) -> dict[str, np.ndarray | None]:
-    """The map points per source that the depth check of the workspace's model in ``folder`` compares with: those of
-    the sessions its ``config.yaml`` names (every session with images where it names none)."""
-    cfg = load_config(ReferenceModelConfig, Path(folder) / "config.yaml")
-    return _workspace_maps(ws, _session_names(ws, cfg.sessions))
+def session_maps(ws: Workspace, sessions: list[str] | None) -> dict[str, np.ndarray | None]:
+    """The map points per source that a model of ``sessions`` (``ReferenceModelConfig.sessions``: every session with
+    images where None) has its depth check compare with."""
+    return _workspace_maps(ws, _session_names(ws, sessions))
 
 
 @writes_workspace("workspace")
