@@ -270,13 +270,18 @@ def portable(value, root: Path = ROOT, python: str = sys.executable):
 
 def update_benchmarks(source: Path) -> Path:
     """Replace the benchmarks record's entries of the benchmarks ``source`` (a bench/run_all.py JSON report of some
-    of them) ran; each replaced entry carries its own ``measured`` date, the others keep the record's."""
+    of them) ran; each replaced entry carries its own ``measured`` date (and machine, where it is not the record's),
+    the others keep the record's."""
     rec = record("benchmarks")
     new = portable(json.loads(source.read_text()))
     if bool(new.get("quick")) != bool(rec.get("quick")):
         raise SystemExit("the report and the record differ in --quick: run the benchmark as the record ran them")
     today = dt.date.today().isoformat()
-    fresh = {r["name"]: {**r, "measured": today} for r in new["results"]}
+    here = machine()
+    fresh = {
+        r["name"]: {**r, "measured": today, **({"machine": here} if here != rec["machine"] else {})}
+        for r in new["results"]
+    }
     unknown = sorted(set(fresh) - {r["name"] for r in rec["results"]})
     rec["results"] = [fresh.get(r["name"], r) for r in rec["results"]] + [fresh[n] for n in unknown]
     path = RESULTS / "benchmarks.json"
@@ -842,7 +847,11 @@ def render_benchmarks() -> str:
             r["ratio"] or "",
             r["status"]
             + (f": {r['detail']}" if r["status"] != "ok" and r.get("detail") else "")
-            + (f" (measured {r['measured']})" if r.get("measured", rec["measured"]) != rec["measured"] else ""),
+            + (
+                f" (measured {r['measured']}" + (f" on {r['machine']})" if r.get("machine") else ")")
+                if r.get("measured", rec["measured"]) != rec["measured"]
+                else ""
+            ),
         ]
         for r in rec["results"]
     ]

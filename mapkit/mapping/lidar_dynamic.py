@@ -128,32 +128,70 @@ class DynamicConfig(MapkitConfig):
 
 @dataclass
 class PlacedScan:
-    """A scan's points in the map frame and where they were measured from."""
+    """A scan's points in the map frame and where they were measured from: the sensor's positions across the
+    sweep (one without deskewing) and which of them each point was measured at."""
 
     stamp_ns: int
     points: np.ndarray  # (N, 3) map frame
     intensity: np.ndarray | None  # (N,)
-    origin: np.ndarray  # (N, 3) the sensor's position when each point was measured
+    positions: np.ndarray  # (S, 3) the sensor's positions across the sweep
+    position_of: np.ndarray  # (N,) integer: each point's index into positions
     rotation: np.ndarray  # (3, 3) map_from_sensor at the sweep's middle
+
+    @property
+    def origin(self) -> np.ndarray:
+        """(N, 3) the sensor's position when each point was measured."""
+        return self.positions[self.position_of]
 
 
 @dataclass
 class RangeView:
-    """What one scan saw: the nearest return per pixel and over each 3 x 3 neighbourhood (inf: none)."""
+    """What one scan saw: the nearest return per pixel and over each 3 x 3 neighbourhood (0: none)."""
 
     stamp_ns: int
     rotation: np.ndarray  # (3, 3) map_from_sensor at the sweep's middle
     centre: np.ndarray  # (3,) the sensor's mean position
-    column_offset: np.ndarray  # (W, 3) float32: the sensor's position when it fired each column, from the centre,
+    column_offset: np.ndarray  # (3, W) float32: the sensor's position when it fired each column, from the centre,
     # in the sensor's frame
-    image: np.ndarray  # (H, W) float32
-    el_lo: float  # elevation of row 0's lower edge (rad)
+    image: np.ndarray  # (H + 2, W) float32, an empty row (0) above and below the rows that can hold returns
+    el_lo: float  # elevation of row 1's lower edge (rad)
 
 
-def _angles(local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    x, y, z = local[:, 0], local[:, 1], local[:, 2]
-    horizontal = np.hypot(x, y)
-    return np.arctan2(y, x), np.arctan2(z, horizontal), np.sqrt(horizontal * horizontal + z * z)
+@dataclass
+class _Prepared:
+    """A placed scan as the filter holds it while it waits: its points from the sensor's mean position in
+    float32, one row per axis (a sweep spans metres, not kilometres: under 4 micrometres of rounding at 64 m), and
+    each point's pixel and range in its own range image."""
+
+    scan: PlacedScan  # its points dropped: rel holds them
+    centre: np.ndarray  # (3,) float64
+    rel: np.ndarray  # (3, N) float32: points - centre
+    row: np.ndarray  # (N,) int32, from the scan's lowest point (row 0)
+    col: np.ndarray  # (N,) int32
+    r: np.ndarray  # (N,) float32
+    near_ground: np.ndarray  # (N,) bool
+
+
+def _rotate(R: np.ndarray, p: np.ndarray, shift: np.ndarray | None = None) -> np.ndarray:
+    """``(p.T @ R).T + shift`` for points ``p`` (3, N) float32, axis by axis: elementwise passes, no BLAS threads
+    (a BLAS product of this shape costs far more than its arithmetic on a shared machine)."""
+    R = np.asarray(R, np.float32)
+    out = np.empty_like(p)
+    tmp = np.empty_like(p[0])
+    for j in range(3):
+        np.multiply(p[0], R[0, j], out=out[j])
+        out[j] += np.multiply(p[1], R[1, j], out=tmp)
+        out[j] += np.multiply(p[2], R[2, j], out=tmp)
+        if shift is not None:
+            out[j] += np.float32(shift[j])
+    return out
+
+
+def _polar(local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Azimuth, elevation and range of points ``local`` (3, N) float32."""
+    x, y, z = local
+    horizontal2 = x * x + y * y
+    return np.arctan2(y, x), np.arctan2(z, np.sqrt(horizontal2)), np.sqrt(horizontal2 + z * z)
 
 
 def _nearest_around(grid: np.ndarray) -> np.ndarray:
@@ -175,59 +213,89 @@ class DynamicFilter:
         self.columns = int(np.ceil(2 * np.pi / self.az_res))
         self.max_dt_ns = int(round(cfg.max_dt_s * 1e9))
         self.min_dt_ns = int(round(cfg.min_dt_s * 1e9))
-        self._pending: deque[PlacedScan] = deque()
+        self._pending: deque[_Prepared] = deque()
         self._views: deque[RangeView] = deque()
         self.ground_seen = 0  # points near the ground (near_ground), and those of them removed: the road carved
         self.ground_removed = 0
 
-    def _pixels(self, scan: PlacedScan) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-        """Each point's row and column in its own scan's range image and its range, and the elevation of row 0's
-        middle (the scan's lowest point: a beam at a row's middle)."""
-        az, el, r = _angles((scan.points - scan.origin) @ scan.rotation)
-        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % self.columns
-        el_min = float(el.min()) if len(el) else 0.0
-        return np.floor((el - el_min) / self.el_res + 0.5).astype(np.int64), col, r, el_min
+    def _column(self, az: np.ndarray) -> np.ndarray:
+        col = np.floor((az + np.float32(np.pi)) * np.float32(1.0 / self.az_res)).astype(np.intp)
+        col[col >= self.columns] -= self.columns  # az = pi exactly (and float32 rounding at the seam)
+        return col
 
-    def view(self, scan: PlacedScan) -> RangeView:
-        """The range image of ``scan``, with an empty row below its lowest beam."""
-        row, col, r, el_min = self._pixels(scan)
-        row += 1
+    def prepare(self, scan: PlacedScan) -> tuple[_Prepared, RangeView]:
+        """The scan's points relative to the sensor, each point's row and column in its own range image (row 0 at
+        the scan's lowest point: a beam at a row's middle), its range and whether it lies near the ground; and the
+        scan's range image."""
+        positions = np.asarray(scan.positions, np.float64)
+        weight = np.bincount(scan.position_of, minlength=len(positions))  # points per position
+        centre = weight @ positions / weight.sum() if len(scan.points) else positions.mean(axis=0)
+        rel = (scan.points - centre).T.astype(np.float32)
+        sensor = (positions - centre).astype(np.float32)  # (S, 3)
+        from_origin = rel - sensor[scan.position_of].T
+        az, el, r = _polar(_rotate(scan.rotation, from_origin))
+        el_min = float(el.min()) if len(el) else 0.0
+        row = np.floor((el - np.float32(el_min)) * np.float32(1.0 / self.el_res) + np.float32(0.5)).astype(np.intp)
+        col = self._column(az)
+        near = self._near_ground(from_origin, rel[2])
+        view = self._view(scan, centre, row, col, r, el_min, sensor)
+        light = PlacedScan(
+            scan.stamp_ns, np.empty((0, 3)), scan.intensity, scan.positions, scan.position_of, scan.rotation
+        )
+        return _Prepared(light, centre, rel, row.astype(np.int32), col.astype(np.int32), r, near), view
+
+    def _view(
+        self,
+        scan: PlacedScan,
+        centre: np.ndarray,
+        row: np.ndarray,
+        col: np.ndarray,
+        r: np.ndarray,
+        el_min: float,
+        sensor: np.ndarray,
+    ) -> RangeView:
+        """The range image of a scan (its points' ``row``, ``col`` and range ``r`` in it), with an empty row below
+        its lowest beam (the neighbourhoods of the lowest beam reach into it) and, beyond those, the empty rows that
+        points outside fall on; and the sensor's position per column (``sensor``: its positions across the sweep
+        from ``centre``)."""
         W = self.columns
-        H = int(row.max()) + 2 if len(row) else 1
+        row = row + 2  # the outer empty row, then the one below the lowest beam
+        H = int(row.max()) + 2 if len(row) else 3
         flat = np.full(H * W, np.inf, np.float32)
-        np.minimum.at(flat, row * W + col, r.astype(np.float32))
-        image = _nearest_around(flat.reshape(H, W))
-        centre = scan.origin.mean(axis=0) if len(scan.origin) else np.zeros(3)
+        np.minimum.at(flat, row * W + col, r)
+        image = flat.reshape(H, W)
+        image[1:-1] = _nearest_around(image[1:-1])
+        image[~np.isfinite(image)] = 0.0  # no return: sees through nothing
         counts = np.bincount(col, minlength=W)
-        column_origin = np.repeat(centre[None], W, axis=0)
+        offset = np.zeros((3, W), np.float32)  # the sensor's position per column, from the centre, map axes
         filled = np.flatnonzero(counts)
         if len(filled):
+            at = sensor[scan.position_of]
             for k in range(3):
-                sums = np.bincount(col, scan.origin[:, k], minlength=W)
-                column_origin[:, k] = np.interp(np.arange(W), filled, sums[filled] / counts[filled], period=W)
-        offset = ((column_origin - centre) @ scan.rotation).astype(np.float32)
+                sums = np.bincount(col, at[:, k], minlength=W)
+                offset[k] = np.interp(np.arange(W), filled, sums[filled] / counts[filled], period=W)
+        offset = _rotate(scan.rotation, offset)
         return RangeView(scan.stamp_ns, scan.rotation, centre, offset, image, el_min - 1.5 * self.el_res)
 
-    def see_through(self, points: np.ndarray, view: RangeView, height_error: np.ndarray | float = 0.0) -> np.ndarray:
-        """Which ``points`` (N, 3, map frame) ``view`` sees through; ``height_error`` (m, per point or one) is carried
+    def see_through(self, p: _Prepared, view: RangeView, height_error: np.ndarray | None = None) -> np.ndarray:
+        """Which points of a prepared scan ``view`` sees through; ``height_error`` (m, per point, or None) is carried
         along each ray into the margin."""
-        # in float32 relative to the sensor's mean position (a sweep spans metres, not kilometres)
-        R = view.rotation.astype(np.float32)
-        rel = (points - view.centre).astype(np.float32)
-        local = rel @ R
-        col0 = np.floor((np.arctan2(local[:, 1], local[:, 0]) + np.pi) / self.az_res).astype(np.int64) % self.columns
-        local -= view.column_offset[col0]
-        az, el, r = _angles(local)
-        col = np.floor((az + np.pi) / self.az_res).astype(np.int64) % self.columns
-        row = np.floor((el - view.el_lo) / self.el_res).astype(np.int64)
-        H = view.image.shape[0]
-        inside = (row >= 0) & (row < H)
-        seen = view.image.reshape(-1)[np.clip(row, 0, H - 1) * self.columns + col]  # one gather, rows outside: below
-        margin = self.cfg.margin_m + self.cfg.margin_fraction * r
-        if np.any(height_error):
-            sin_el = np.abs(local[:, 2]) / np.maximum(r, 1e-6)
-            margin = margin + height_error / np.maximum(sin_el, 0.01)
-        return inside & np.isfinite(seen) & (seen > r + margin)
+        local = _rotate(view.rotation, p.rel, (p.centre - view.centre) @ view.rotation)
+        col0 = self._column(np.arctan2(local[1], local[0]))
+        for k in range(3):  # from the sensor's position when it fired that column
+            local[k] -= view.column_offset[k][col0]
+        az, el, r = _polar(local)
+        rows = view.image.shape[0]
+        row = np.floor((el - np.float32(view.el_lo)) * np.float32(1.0 / self.el_res)).astype(np.intp) + 1
+        np.clip(row, 0, rows - 1, out=row)  # beyond the image: its empty outer rows
+        seen = view.image.reshape(-1)[row * self.columns + self._column(az)]
+        margin = np.float32(self.cfg.margin_fraction) * r
+        margin += np.float32(self.cfg.margin_m) + r
+        if height_error is not None:
+            at = np.flatnonzero(height_error)
+            sin_el = np.abs(local[2][at]) / np.maximum(r[at], np.float32(1e-6))
+            margin[at] += height_error[at] / np.maximum(sin_el, np.float32(0.01))
+        return seen > margin
 
     def _witnesses(self, stamp_ns: int) -> list[RangeView]:
         """Up to ``witnesses`` views, each nearest to one of the target offsets spread over the window."""
@@ -244,35 +312,41 @@ class DynamicFilter:
                 chosen.append(int(free[np.argmin(np.abs(dt[free] - target))]))
         return [self._views[i] for i in chosen]
 
-    def _decide(self, scan: PlacedScan) -> tuple[PlacedScan, np.ndarray]:
-        votes = np.zeros(len(scan.points), np.int32)
-        near = self.near_ground(scan)
-        height_error = self.cfg.margin_vertical_m * near if self.cfg.margin_vertical_m else 0.0
-        for view in self._witnesses(scan.stamp_ns):
-            votes += self.see_through(scan.points, view, height_error)
+    def _decide(self, p: _Prepared) -> tuple[PlacedScan, np.ndarray]:
+        votes = np.zeros(len(p.r), np.uint8)
+        near = p.near_ground
+        height_error = (
+            np.where(near, np.float32(self.cfg.margin_vertical_m), np.float32(0.0))
+            if self.cfg.margin_vertical_m
+            else None
+        )
+        for view in self._witnesses(p.scan.stamp_ns):
+            votes += self.see_through(p, view, height_error)
         keep = votes < self.cfg.min_votes
         if self.cfg.grow_px and not keep.all():
-            row, col, r, _ = self._pixels(scan)
+            row, col = p.row.astype(np.intp), p.col.astype(np.intp)
             for _ in range(GROW_PASSES):
-                keep &= ~self._grow(row, col, r, ~keep)
+                keep &= ~self._grow(row, col, p.r, ~keep)
         self.ground_seen += int(near.sum())
         self.ground_removed += int((~keep & near).sum())
+        scan = p.scan
+        scan.points = p.rel.T + p.centre  # float64 again, for the map
         return scan, keep
 
-    def near_ground(self, scan: PlacedScan) -> np.ndarray:
-        """Points within ``ground_band_m`` of the lowest point around them (polar cells of 2 m by 2 deg around the
-        sensor, the lowest over each 3 x 3 cells): the road, and the bottom of whatever stands on it."""
-        rel = scan.points - scan.origin
-        az = np.arctan2(rel[:, 1], rel[:, 0])
-        ring = np.floor(np.hypot(rel[:, 0], rel[:, 1]) / GROUND_CELL_M).astype(np.int64)
-        sector = np.floor((az + np.pi) / np.radians(GROUND_CELL_DEG)).astype(np.int64)
+    def _near_ground(self, from_origin: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Points (``from_origin``: (3, N) from the sensor, map axes; ``z``: their heights) within ``ground_band_m``
+        of the lowest point around them (polar cells of 2 m by 2 deg around the sensor, the lowest over each 3 x 3
+        cells): the road, and the bottom of whatever stands on it."""
+        x, y, _ = from_origin
+        ring = np.floor(np.sqrt(x * x + y * y) * np.float32(1.0 / GROUND_CELL_M)).astype(np.intp)
         n_sector = int(np.ceil(360 / GROUND_CELL_DEG))
-        n_ring = int(ring.max()) + 1
+        sector = np.floor((np.arctan2(y, x) + np.float32(np.pi)) * np.float32(1.0 / np.radians(GROUND_CELL_DEG)))
+        cell = ring * n_sector + sector.astype(np.intp) % n_sector
+        n_ring = int(ring.max()) + 1 if len(ring) else 1
         lowest = np.full(n_ring * n_sector, np.inf, np.float32)
-        z = scan.points[:, 2].astype(np.float32)
-        np.minimum.at(lowest, ring * n_sector + sector % n_sector, z)
+        np.minimum.at(lowest, cell, z)
         ground = _nearest_around(lowest.reshape(n_ring, n_sector)).reshape(-1)
-        return z - ground[ring * n_sector + sector % n_sector] < self.cfg.ground_band_m
+        return z - ground[cell] < self.cfg.ground_band_m
 
     def _grow(self, row: np.ndarray, col: np.ndarray, r: np.ndarray, gone: np.ndarray) -> np.ndarray:
         """Kept points whose neighbours at their range in their scan's own range image (each point's ``row``,
@@ -280,7 +354,7 @@ class DynamicFilter:
         W = self.columns
         H = int(row.max()) + 1
         pixel = row * W + col
-        nearest = np.full(H * W, np.inf)
+        nearest = np.full(H * W, np.inf, np.float32)
         np.minimum.at(nearest, pixel, r)
         went = np.zeros(H * W, bool)
         went[pixel[gone]] = True
@@ -289,38 +363,42 @@ class DynamicFilter:
         kept_nearest = ~gone & (r <= nearest[pixel])
         went[pixel[kept_nearest]] = False
         k = self.cfg.grow_px
+        Wp = W + 2 * k  # padded by k on every side, then flat: a neighbour is one offset away
         nearest = np.pad(nearest.reshape(H, W), ((k, k), (k, k)), constant_values=np.inf, mode="constant")
         went = np.pad(went.reshape(H, W), ((k, k), (k, k)))
         # only kept points within k pixels of one that went can change
         reach = cv2.dilate(went.astype(np.uint8), np.ones((2 * k + 1, 2 * k + 1), np.uint8))
-        cand = np.flatnonzero(~gone & (reach[row + k, col + k] > 0))
-        rc, cc, rr = row[cand] + k, col[cand] + k, r[cand]
+        nearest, went, reach = nearest.reshape(-1), went.reshape(-1), reach.reshape(-1)
+        at = (row + k) * Wp + (col + k)
+        cand = np.flatnonzero(~gone & (reach[at] > 0))
+        at, rr = at[cand], r[cand]
         n_went = np.zeros(len(cand), np.int32)
         n_stay = np.zeros(len(cand), np.int32)
+        below = np.zeros(len(cand), bool)  # a kept point right below one that went, at its range: a wheel on the road
         for dr in range(-k, k + 1):
             for dc in range(-k, k + 1):
                 if dr == 0 and dc == 0:
                     continue
-                near = np.abs(nearest[rc + dr, cc + dc] - rr) < self.cfg.margin_m
-                w = went[rc + dr, cc + dc]
+                there = at + (dr * Wp + dc)
+                near = np.abs(nearest[there] - rr) < self.cfg.margin_m
+                w = went[there]
                 n_went += near & w
                 n_stay += near & ~w
-        # and a kept point right below one that went, at its range: where a wheel meets the road
-        below = np.zeros(len(cand), bool)
-        for dr in range(1, k + 1):
-            below |= went[rc + dr, cc] & (np.abs(nearest[rc + dr, cc] - rr) < self.cfg.margin_m)
+                if dc == 0 and dr > 0:
+                    below |= near & w
         out = np.zeros(len(gone), bool)
         out[cand[(n_went > n_stay) | below]] = True
         return out
 
     def push(self, scan: PlacedScan) -> list[tuple[PlacedScan, np.ndarray]]:
         """Add ``scan``; returns the scans now decided, each with its keep mask."""
-        self._pending.append(scan)
-        self._views.append(self.view(scan))
+        p, view = self.prepare(scan)
+        self._pending.append(p)
+        self._views.append(view)
         out = []
-        while self._pending and self._pending[0].stamp_ns + self.max_dt_ns <= scan.stamp_ns:
+        while self._pending and self._pending[0].scan.stamp_ns + self.max_dt_ns <= scan.stamp_ns:
             out.append(self._decide(self._pending.popleft()))
-        oldest = self._pending[0].stamp_ns if self._pending else scan.stamp_ns
+        oldest = self._pending[0].scan.stamp_ns if self._pending else scan.stamp_ns
         while self._views and self._views[0].stamp_ns < oldest - self.max_dt_ns:
             self._views.popleft()
         return out
@@ -336,12 +414,12 @@ class DynamicFilter:
             yield from self.push(placed)
         yield from self.finish()
 
-    def finish(self) -> list[tuple[PlacedScan, np.ndarray]]:
-        """Decide the scans still waiting (the log's last ``max_dt_s``, with the witnesses there are)."""
-        out = [self._decide(s) for s in self._pending]
-        self._pending.clear()
+    def finish(self) -> Iterator[tuple[PlacedScan, np.ndarray]]:
+        """Decide the scans still waiting (the log's last ``max_dt_s``, with the witnesses there are), one at a
+        time: each is let go once decided."""
+        while self._pending:
+            yield self._decide(self._pending.popleft())
         self._views.clear()
-        return out
 
 
 __all__ = ["DynamicConfig", "DynamicFilter", "PlacedScan", "RangeView", "beam_spacing"]

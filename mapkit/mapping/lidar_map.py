@@ -72,7 +72,10 @@ class LidarMapConfig(MapkitConfig):
         0.1, gt=0, allow_inf_nan=False, description="Sweep duration for times derived from the azimuth (10 Hz)."
     )
     chunk_points: int = Field(
-        1_000_000, ge=1, description="Points buffered before they are merged into the map (memory per chunk)."
+        1_000_000,
+        ge=1,
+        description="Points buffered before they are merged into the map (memory per chunk); the removed points' "
+        "map merges with it.",
     )
     dynamic: DynamicConfig = Field(
         default_factory=DynamicConfig, description="Removal of moving objects' points (free space between scans)."
@@ -169,7 +172,7 @@ def place_scan(
     xyz = np.asarray(scan.points_xyz, np.float64)
     keep = within_range(xyz, cfg)
     xyz = xyz[keep]
-    intensity = None if scan.intensity is None else np.asarray(scan.intensity, np.float64)[keep]
+    intensity = None if scan.intensity is None else np.asarray(scan.intensity)[keep]
     t = None if times is None else times[keep]
     lo_s, hi_s = (0.0, 0.0) if t is None or not len(t) else (float(t.min()), float(t.max()))
     slack_ns = 1_000_000  # 1 ms: the trajectory's stamps are rounded from the same float times
@@ -180,8 +183,8 @@ def place_scan(
         return None
     if t is None or hi_s <= lo_s:
         T = _clamped_poses(traj, np.array([scan.stamp_ns]))[0] @ base_from_lidar
-        origin = np.broadcast_to(T[:3, 3], xyz.shape)
-        return PlacedScan(scan.stamp_ns, xyz @ T[:3, :3].T + T[:3, 3], intensity, origin, T[:3, :3])
+        at = np.zeros(len(xyz), np.int16)
+        return PlacedScan(scan.stamp_ns, xyz @ T[:3, :3].T + T[:3, 3], intensity, T[None, :3, 3], at, T[:3, :3])
     grid_s = np.linspace(lo_s, hi_s, DESKEW_SLICES)
     T = _clamped_poses(traj, scan.stamp_ns + np.round(grid_s * 1e9).astype(np.int64)) @ base_from_lidar
     slice_of = np.rint((t - lo_s) / (hi_s - lo_s) * (DESKEW_SLICES - 1)).astype(np.intp)
@@ -190,8 +193,14 @@ def place_scan(
     for i in range(3):  # row by row: gathers of one entry per point, not of a 3x3 matrix per point
         world[:, i] = T[:, i, 0][slice_of] * x + T[:, i, 1][slice_of] * y + T[:, i, 2][slice_of] * z
         world[:, i] += T[:, i, 3][slice_of]
-    origin = T[:, :3, 3][slice_of]
-    return PlacedScan(scan.stamp_ns, world, intensity, origin, T[DESKEW_SLICES // 2, :3, :3])
+    return PlacedScan(
+        scan.stamp_ns,
+        world,
+        intensity,
+        T[:, :3, 3].copy(),
+        slice_of.astype(np.int16),
+        T[DESKEW_SLICES // 2, :3, :3].copy(),
+    )
 
 
 def build_lidar_map(
@@ -227,10 +236,13 @@ def build_lidar_map(
 
     for placed, keep in keep_masks(placed_scans(), cfg, moving):
         intensity = placed.intensity
+        merges = out.voxels.merges
         out.voxels.add(placed.points[keep], None if intensity is None else intensity[keep], placed.stamp_ns)
         if out.removed is not None and not keep.all():
             gone = ~keep
             out.removed.add(placed.points[gone], None if intensity is None else intensity[gone], placed.stamp_ns)
+        if out.removed is not None and out.voxels.merges != merges:
+            out.removed.flush()  # one chunk for both: the few removed points a scan are not held for longer
     if moving is not None:
         out.near_ground = (moving.ground_seen, moving.ground_removed)
     bar.close()

@@ -70,6 +70,7 @@ class VoxelMap:
         self.points_added = 0
         self._pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, int]] = []  # per scan: keys, count, sums, stamp
         self._pending_points = 0
+        self.merges = 0  # chunks merged so far
 
     def __len__(self) -> int:
         self.flush()
@@ -93,6 +94,7 @@ class VoxelMap:
         if not self._pending:
             return
         pending, self._pending, self._pending_points = self._pending, [], 0
+        self.merges += 1
         keys = np.concatenate([p[0] for p in pending])
         count = np.concatenate([p[1] for p in pending])
         sums = np.concatenate([p[2] for p in pending], axis=1)
