@@ -68,7 +68,7 @@ def test_on_the_builds_own_trajectory_under_1_percent_of_car_points_stay_and_und
 ):
     """The build's own trajectory (kiss-icp, GPS-aligned) places the scans: the drive begins at 11 m/s, which
     kiss-icp alone under-estimates over its first second (1.3 % of the static points then go, most of them there);
-    the build's warm start runs that second again backwards and the static points stay."""
+    the build's warm start registers that second again, backwards, against the next second's map, and they stay."""
     cfg = BuildConfig.model_validate({"map": False})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", InputWarning)

@@ -30,7 +30,7 @@ from mapkit.io.base import DriveLog
 from mapkit.io.benchmark import colmap_camera_params
 from mapkit.io.trajectory import read_tum, write_kitti_poses, write_tum
 
-WARM_START_LEAD_S = 1.0  # scans the backward run registers before the ones it replaces: its own start (see _warm_start)
+WARM_START_LEAD_S = 1.0  # the scans after the warm start whose map it registers against (see _warm_start)
 
 
 class KissIcpOptions(MapkitConfig):
@@ -67,11 +67,12 @@ class KissIcpOptions(MapkitConfig):
         2.0,
         ge=0,
         allow_inf_nan=False,
-        description="kiss-icp starts from standstill (its motion model's first guess is no motion), so a log that "
-        "begins in motion has its first second or so under-estimated. The drive's first this-many seconds are run "
-        "again backwards in time, from where the forward run knows the velocity, and take those poses. 0: off, the "
-        "poses are kiss-icp's own forward run's, as its kiss_icp_pipeline gives them. 2 s: kiss-icp needed 0.8 s to "
-        "reach the speed of a synthetic drive begun at 11 m/s (tests/test_rosbag2.py's).",
+        description="kiss-icp starts from standstill (its motion model's first guess is no motion, and against a map "
+        "of one or two sweeps the ground rings pull towards none), so a log that begins in motion has its first "
+        "second or so under-estimated. The drive's first this-many seconds are registered again, backwards in time, "
+        "against the map the next second's sweeps made, and take those poses. 0: off, the poses are kiss-icp's own "
+        "forward run's, as its kiss_icp_pipeline gives them. 2 s: kiss-icp needed 0.8 s to reach the speed of a "
+        "synthetic drive begun at 8 m/s (tests/test_rosbag2.py's).",
     )
 
     @model_validator(mode="after")
@@ -316,7 +317,7 @@ def trajectory_from_lidar(
     bar.close()
     replaced = sum(h[2] - held[0][2] < o.warm_start_s * 1e9 for h in held)
     if 1 < replaced < len(held) < len(stamps):
-        stamps, lidar0_from_lidar = _warm_start(KissICP(kcfg), held, replaced, stamps, lidar0_from_lidar)
+        stamps, lidar0_from_lidar = _warm_start(KissICP(kcfg), odometry, held, replaced, stamps, lidar0_from_lidar)
     if len(stamps) < 2:
         raise InputError(
             log.path, f"LiDAR topic {topic} gave {len(stamps)} usable scans; a trajectory needs at least 2", field=topic
@@ -344,35 +345,39 @@ def trajectory_from_lidar(
 
 def _warm_start(
     backward,
+    forward,
     held: list[tuple[np.ndarray, np.ndarray, int]],
     m: int,
     stamps: list[int],
     poses: list[np.ndarray],
 ) -> tuple[list[int], list[np.ndarray]]:
-    """The forward run's ``stamps`` and ``poses`` with those of its first ``m`` scans replaced by a backward run
-    (``backward``, a fresh kiss-icp) over the ``held`` scans (the first ``m`` and the lead after them), re-expressed
-    so that the first pose is the identity again.
+    """The forward run's ``stamps`` and ``poses`` with those of its first ``m`` scans replaced by registering them
+    again, backwards in time, against the map the ``held`` scans after them made on the forward run's poses.
 
-    Backwards in time a sweep runs from its last point to its first: each scan's times are negated (kiss-icp
-    normalises them to the sweep), and the pose kiss-icp gives is that of the sweep's first point, stamped so. The
-    backward run starts at the last held scan, with the forward run's motion there (reversed) as its motion model's
-    first guess, and its first scans only build its local map (registered to one or two scans, the scanner's ground
-    rings pull the motion towards none, forwards or backwards); it is placed where the forward run is at scan
-    ``m``'s first point."""
+    ``backward`` is a fresh kiss-icp: its local map is filled with the later held scans (deskewed and placed as the
+    forward run placed them), its threshold is the forward run's (``forward``) at its end, and its motion model
+    starts from the forward run's motion at scan ``m``, reversed. Backwards in time a sweep runs from its last point
+    to its first: each scan's times are negated (kiss-icp normalises them to the sweep), and the pose kiss-icp gives
+    is that of the sweep's first point, stamped so. Each scan thus meets a map of many sweeps, whose ground rings lie
+    at other places than its own: against one or two sweeps they pull the motion towards none, which is why the
+    forward run lags where a drive begins in motion. The poses are re-expressed so that the first is the identity."""
     if np.any(np.diff(stamps) <= 0):  # scans out of order: kept as they are
         return stamps, poses
-    last = len(held) - 1
-    backward.last_delta = invert_pose(poses[last]) @ poses[last - 1]
+    for j in range(len(held) - 1, m - 1, -1):  # the map of the later scans, last to first: trimmed around scan m
+        pts, t, _ = held[j]
+        frame = backward.preprocessor.preprocess(pts, t, invert_pose(poses[j - 1]) @ poses[j])
+        backward.local_map.update(backward.voxelize(frame)[1], poses[j])
+    at_start, ok = interpolate_poses(np.asarray(stamps, np.int64), np.stack(poses), np.array([held[m][2]]))
+    if not ok.all():  # scan m's first point before the forward run's first pose: nothing to start from
+        return stamps, poses
+    backward.adaptive_threshold = forward.adaptive_threshold
+    backward.last_pose = at_start[0]
+    backward.last_delta = invert_pose(poses[m]) @ poses[m - 1]
     back = []
-    for pts, t, _ in reversed(held):
+    for pts, t, _ in reversed(held[:m]):
         backward.register_frame(pts, -t)
         back.append(backward.last_pose.copy())
-    back.reverse()
-    at_start, ok = interpolate_poses(np.asarray(stamps, np.int64), np.stack(poses), np.array([held[m][2]]))
-    if not ok.all():  # scan m's first point before the forward run's first pose: nothing to anchor on
-        return stamps, poses
-    fix = at_start[0] @ invert_pose(back[m])
-    new = [fix @ p for p in back[:m]] + poses[m:]
+    new = back[::-1] + poses[m:]
     first = invert_pose(new[0])
     return [h[2] for h in held[:m]] + stamps[m:], [first @ p for p in new]
 
