@@ -28,6 +28,7 @@ from mapkit.evaluation.localization import evaluate_localization, format_localiz
 from mapkit.io.trajectory import read_benchmark_poses, read_tum, write_tum
 from mapkit.localization.localize import localize_log
 from mapkit.localization.reference_model import ReferenceModelConfig, build_reference_model
+from mapkit.localization.sixdof import SixDofLocalizer
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
 from mapkit.retrieval.dsift import DsiftConfig
 from mapkit.retrieval.index_vlad import VladIndexConfig, build_vlad_index
@@ -158,17 +159,20 @@ def test_sixdof_poses_are_ten_times_closer_than_the_filter(kitti_ws, tmp_path, c
     assert scores.median_translation_m == pytest.approx(np.median(t6), abs=1e-5)
 
 
-def test_a_query_that_does_not_register_keeps_the_filters_pose(kitti_ws, kitti_clip, tmp_path):
+def test_a_query_that_does_not_register_keeps_the_filters_pose(kitti_ws, kitti_clip, tmp_path, monkeypatch):
     """With more inliers required than any query has matches (five queries), none is accepted: each keeps the
     filter's pose (the same TUM rows), and its reason names both attempts, from the retrieved images and from
-    those near the filter's pose."""
+    those near the filter's pose; the query's features are extracted once for both."""
     _, bundle, _, _, _ = kitti_ws
     log = _query_log(kitti_clip, [1, 3, 5, 7, 9], tmp_path / "queries")
+    extracted = []
+    extract = SixDofLocalizer.extract
+    monkeypatch.setattr(SixDofLocalizer, "extract", lambda self, image: extracted.append(1) or extract(self, image))
     out = localize_log(
         bundle, log, tmp_path / "run", progress=False, overrides={"refine": "6dof", "sixdof": {"min_inliers": 100_000}}
     )
     record = json.loads((out / "sixdof.json").read_text())
-    assert record["accepted"] == 0 and len(record["per_query"]) == 5
+    assert record["accepted"] == 0 and len(record["per_query"]) == 5 and len(extracted) == 5
     for q in record["per_query"]:
         assert not q["accepted"] and q["inliers"] == 0 and q["matches"] > 30
         assert q["reason"].startswith("retrieved images: ") and "; images near the filter's pose: " in q["reason"]

@@ -405,11 +405,15 @@ def refine_sixdof(
     for t in range(n):
         prior = priors[t]
         retrieved = [name for i in run.ids[t] if i >= 0 and (name := db_names[i]) is not None]
-        r = loc.localize(images[t], cameras[t], retrieved, prior, names[t])
+        started = time.perf_counter()
+        features = loc.extract(images[t])  # once for both attempts
+        extract_s = time.perf_counter() - started
+        r = loc.localize(images[t], cameras[t], retrieved, prior, names[t], features)
+        r.seconds += extract_s
         if not r.accepted and prior is not None:
             near = loc.candidates_near(prior)
             if near and near[: loc.cfg.max_candidates] != r.candidates:
-                again = loc.localize(images[t], cameras[t], near, prior, names[t])
+                again = loc.localize(images[t], cameras[t], near, prior, names[t], features)
                 again.seconds += r.seconds
                 again.reason = f"retrieved images: {r.reason}; images near the filter's pose: {again.reason}"
                 r = again

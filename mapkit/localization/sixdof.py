@@ -362,9 +362,11 @@ class SixDofLocalizer:
         candidates: Sequence[str],
         fallback_world_from_cam: np.ndarray | None = None,
         name: str = "",
+        features: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> SixDofResult:
         """The pose of one query image taken by ``camera`` from its ``candidates`` (database image names,
-        best first); the fallback pose, not accepted, when it does not register."""
+        best first); the fallback pose, not accepted, when it does not register. ``features``: the image's
+        :meth:`extract`, when the caller has them already (a second attempt with other candidates)."""
         t0 = time.perf_counter()
         label = name or (str(image) if isinstance(image, (str, Path)) else "query")
         cam = _check_camera(camera, image if isinstance(image, (str, Path)) else None, label)
@@ -394,7 +396,7 @@ class SixDofLocalizer:
             return result(False, "no candidate database images", 0, 0, None)
         if isinstance(image, np.ndarray) and image.shape[:2] != (cam.height, cam.width):
             raise InputError(None, f"{label}: image {image.shape[1]}x{image.shape[0]}, camera {cam.width}x{cam.height}")
-        xy, desc = self.extract(image)
+        xy, desc = features if features is not None else self.extract(image)
         pairs = []
         for c in used:
             db_desc, pids = self._database_features(c)
