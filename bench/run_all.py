@@ -8,7 +8,9 @@ test suite's pass/fail; this runner always exits 0 once the report is written.
 Quick mode (``--quick``): a benchmark with its own ``--quick`` flag gets it; the others get the
 small-run flags of ``QUICK_ARGS`` below (their own options: fewer patches, repeats, frames); a
 benchmark in neither runs in full. A benchmark with a positional ``workspace`` argument gets
-``--workspace`` (an aligned workspace, default runs/main/workspace: the main job's) and is skipped when it is absent.
+``--workspace`` (an aligned workspace, default runs/main/workspace: the main job's) and is skipped when it is absent,
+or when it lacks the file the benchmark names in a module-level ``WORKSPACE_NEEDS`` (a path inside the workspace: a
+reference model, which only the main job with ``--sixdof`` builds).
 
 The table, one row per benchmark:
 
@@ -348,6 +350,7 @@ class BenchSpec:
     what: str
     has_quick: bool
     positionals: list[str]
+    workspace_needs: str | None = None  # a file inside the workspace, without which the benchmark has nothing to time
 
 
 @dataclass
@@ -374,6 +377,15 @@ def inspect_bench(path: Path) -> BenchSpec:
     tree = ast.parse(path.read_text(), filename=str(path))
     doc = (ast.get_docstring(tree) or "").strip()
     options, positionals = set(), []
+    needs = None
+    for node in tree.body:
+        if (
+            isinstance(node, ast.Assign)
+            and any(isinstance(t, ast.Name) and t.id == "WORKSPACE_NEEDS" for t in node.targets)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            needs = node.value.value
     for node in ast.walk(tree):
         if (
             isinstance(node, ast.Call)
@@ -384,7 +396,7 @@ def inspect_bench(path: Path) -> BenchSpec:
             first = node.args[0]
             if isinstance(first, ast.Constant) and isinstance(first.value, str):
                 (options.add(first.value) if first.value.startswith("-") else positionals.append(first.value))
-    return BenchSpec(path.stem, path, _first_sentence(doc), "--quick" in options, positionals)
+    return BenchSpec(path.stem, path, _first_sentence(doc), "--quick" in options, positionals, needs)
 
 
 def _first_sentence(doc: str, limit: int = 160) -> str:
@@ -415,6 +427,8 @@ def command_for(spec: BenchSpec, quick: bool, workspace: Path) -> tuple[list[str
             return cmd, f"needs the positional argument {pos!r}"
         if not workspace.is_dir():
             return cmd, f"no workspace at {workspace}"
+        if spec.workspace_needs and not (workspace / spec.workspace_needs).is_file():
+            return cmd, f"no {spec.workspace_needs} in {workspace}"
         cmd.append(str(workspace))
     if quick:
         cmd += ["--quick"] if spec.has_quick else QUICK_ARGS.get(spec.name, [])

@@ -96,3 +96,34 @@ def test_headline_falls_back_to_a_ratio_column():
     printed = run_all.parse_output("some text\nBENCH_JSON " + json.dumps({"bench": "t", "rows": rows}) + "\ndone\n")
     h = run_all.headline("bench_unknown", printed)
     assert h["source"] == "table" and h["ratio"] == "speedup: mapkit 3.5; loop 1"
+
+
+NEEDS_MODEL_BENCH = '''"""Fake benchmark of a workspace's reference model."""
+import argparse, pathlib
+WORKSPACE_NEEDS = "reference_model/sfm/images.bin"
+ap = argparse.ArgumentParser()
+ap.add_argument("workspace")
+args = ap.parse_args()
+print("measured", pathlib.Path(args.workspace).name)
+print("ratio 1.5")
+'''
+
+
+def test_a_workspace_without_what_a_benchmark_needs_is_a_skip_not_a_failure(tmp_path):
+    """A benchmark that names the file it needs (``WORKSPACE_NEEDS``) is skipped, with that file as its reason, on a
+    workspace without it, and runs on one that has it."""
+    run_all = _run_all()
+    benches = tmp_path / "benches"
+    benches.mkdir()
+    (benches / "bench_model.py").write_text(NEEDS_MODEL_BENCH)
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    out = tmp_path / "bench.md"
+    run_all.main(["--bench-dir", str(benches), "--out", str(out), "--workspace", str(ws)])
+    (r,) = json.loads(out.with_suffix(".json").read_text())["results"]
+    assert r["status"] == "skipped" and r["detail"] == f"no reference_model/sfm/images.bin in {ws}", r
+    (ws / "reference_model" / "sfm").mkdir(parents=True)
+    (ws / "reference_model" / "sfm" / "images.bin").write_bytes(b"")
+    run_all.main(["--bench-dir", str(benches), "--out", str(out), "--workspace", str(ws)])
+    (r,) = json.loads(out.with_suffix(".json").read_text())["results"]
+    assert r["status"] == "ok" and r["ratio"] == "ratio 1.5", r
