@@ -23,6 +23,7 @@ scans of that window and the range images of twice it, so its memory is bounded 
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -163,13 +164,13 @@ class _Prepared:
     float32, one row per axis (a sweep spans metres, not kilometres: under 4 micrometres of rounding at 64 m), and
     each point's pixel and range in its own range image."""
 
-    scan: PlacedScan  # its points dropped: rel holds them
+    scan: PlacedScan  # its points dropped (an empty array): rel holds them
     centre: np.ndarray  # (3,) float64
     rel: np.ndarray  # (3, N) float32: points - centre
     row: np.ndarray  # (N,) int32, from the scan's lowest point (row 0)
     col: np.ndarray  # (N,) int32
     r: np.ndarray  # (N,) float32
-    near_ground: np.ndarray  # (N,) bool
+    ground: np.ndarray  # indices of the points near the ground (_near_ground)
 
 
 def _rotate(R: np.ndarray, p: np.ndarray, shift: np.ndarray | None = None) -> np.ndarray:
@@ -215,7 +216,7 @@ class DynamicFilter:
         self.min_dt_ns = int(round(cfg.min_dt_s * 1e9))
         self._pending: deque[_Prepared] = deque()
         self._views: deque[RangeView] = deque()
-        self.ground_seen = 0  # points near the ground (near_ground), and those of them removed: the road carved
+        self.ground_seen = 0  # points near the ground (_near_ground), and those of them removed: the road carved
         self.ground_removed = 0
 
     def _column(self, az: np.ndarray) -> np.ndarray:
@@ -237,12 +238,10 @@ class DynamicFilter:
         el_min = float(el.min()) if len(el) else 0.0
         row = np.floor((el - np.float32(el_min)) * np.float32(1.0 / self.el_res) + np.float32(0.5)).astype(np.intp)
         col = self._column(az)
-        near = self._near_ground(from_origin, rel[2])
+        ground = np.flatnonzero(self._near_ground(from_origin, rel[2]))
         view = self._view(scan, centre, row, col, r, el_min, sensor)
-        light = PlacedScan(
-            scan.stamp_ns, np.empty((0, 3)), scan.intensity, scan.positions, scan.position_of, scan.rotation
-        )
-        return _Prepared(light, centre, rel, row.astype(np.int32), col.astype(np.int32), r, near), view
+        light = dataclasses.replace(scan, points=np.empty((0, 3)))
+        return _Prepared(light, centre, rel, row.astype(np.int32), col.astype(np.int32), r, ground), view
 
     def _view(
         self,
@@ -277,9 +276,9 @@ class DynamicFilter:
         offset = _rotate(scan.rotation, offset)
         return RangeView(scan.stamp_ns, scan.rotation, centre, offset, image, el_min - 1.5 * self.el_res)
 
-    def see_through(self, p: _Prepared, view: RangeView, height_error: np.ndarray | None = None) -> np.ndarray:
-        """Which points of a prepared scan ``view`` sees through; ``height_error`` (m, per point, or None) is carried
-        along each ray into the margin."""
+    def see_through(self, p: _Prepared, view: RangeView) -> np.ndarray:
+        """Which points of a prepared scan ``view`` sees through; for the points near the ground, ``margin_vertical_m``
+        of height error is carried along each ray into the margin."""
         local = _rotate(view.rotation, p.rel, (p.centre - view.centre) @ view.rotation)
         col0 = self._column(np.arctan2(local[1], local[0]))
         for k in range(3):  # from the sensor's position when it fired that column
@@ -291,10 +290,10 @@ class DynamicFilter:
         seen = view.image.reshape(-1)[row * self.columns + self._column(az)]
         margin = np.float32(self.cfg.margin_fraction) * r
         margin += np.float32(self.cfg.margin_m) + r
-        if height_error is not None:
-            at = np.flatnonzero(height_error)
+        if self.cfg.margin_vertical_m:
+            at = p.ground
             sin_el = np.abs(local[2][at]) / np.maximum(r[at], np.float32(1e-6))
-            margin[at] += height_error[at] / np.maximum(sin_el, np.float32(0.01))
+            margin[at] += np.float32(self.cfg.margin_vertical_m) / np.maximum(sin_el, np.float32(0.01))
         return seen > margin
 
     def _witnesses(self, stamp_ns: int) -> list[RangeView]:
@@ -314,24 +313,16 @@ class DynamicFilter:
 
     def _decide(self, p: _Prepared) -> tuple[PlacedScan, np.ndarray]:
         votes = np.zeros(len(p.r), np.uint8)
-        near = p.near_ground
-        height_error = (
-            np.where(near, np.float32(self.cfg.margin_vertical_m), np.float32(0.0))
-            if self.cfg.margin_vertical_m
-            else None
-        )
         for view in self._witnesses(p.scan.stamp_ns):
-            votes += self.see_through(p, view, height_error)
+            votes += self.see_through(p, view)
         keep = votes < self.cfg.min_votes
         if self.cfg.grow_px and not keep.all():
             row, col = p.row.astype(np.intp), p.col.astype(np.intp)
             for _ in range(GROW_PASSES):
                 keep &= ~self._grow(row, col, p.r, ~keep)
-        self.ground_seen += int(near.sum())
-        self.ground_removed += int((~keep & near).sum())
-        scan = p.scan
-        scan.points = p.rel.T + p.centre  # float64 again, for the map
-        return scan, keep
+        self.ground_seen += len(p.ground)
+        self.ground_removed += int(np.count_nonzero(~keep[p.ground]))
+        return dataclasses.replace(p.scan, points=p.rel.T + p.centre), keep  # float64 again, for the map
 
     def _near_ground(self, from_origin: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Points (``from_origin``: (3, N) from the sensor, map axes; ``z``: their heights) within ``ground_band_m``

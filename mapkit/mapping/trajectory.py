@@ -363,13 +363,13 @@ def _warm_start(
     forward run lags where a drive begins in motion. The poses are re-expressed so that the first is the identity."""
     if np.any(np.diff(stamps) <= 0):  # scans out of order: kept as they are
         return stamps, poses
+    at_start, ok = interpolate_poses(np.asarray(stamps, np.int64), np.stack(poses), np.array([held[m][2]]))
+    if not ok.all():  # scan m's first point before the forward run's first pose: nothing to start from
+        return stamps, poses
     for j in range(len(held) - 1, m - 1, -1):  # the map of the later scans, last to first: trimmed around scan m
         pts, t, _ = held[j]
         frame = backward.preprocessor.preprocess(pts, t, invert_pose(poses[j - 1]) @ poses[j])
         backward.local_map.update(backward.voxelize(frame)[1], poses[j])
-    at_start, ok = interpolate_poses(np.asarray(stamps, np.int64), np.stack(poses), np.array([held[m][2]]))
-    if not ok.all():  # scan m's first point before the forward run's first pose: nothing to start from
-        return stamps, poses
     backward.adaptive_threshold = forward.adaptive_threshold
     backward.last_pose = at_start[0]
     backward.last_delta = invert_pose(poses[m]) @ poses[m - 1]
