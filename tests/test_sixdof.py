@@ -6,6 +6,7 @@ as COLMAP's quaternions."""
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -23,6 +24,7 @@ from mapkit.localization.sixdof import (
     SixDofConfig,
     SixDofLocalizer,
     SixDofQuery,
+    guided_matches,
     localize_images,
     mutual_ratio_matches,
 )
@@ -109,7 +111,10 @@ def test_a_query_that_does_not_register_keeps_its_fallback(model, kitti_clip):
     with SixDofLocalizer(folder) as loc:
         r = loc.localize(noise, cam, loc.candidates_near(fallback), fallback, name="noise")
         assert not r.accepted and r.inliers < loc.cfg.min_inliers
-        assert f"2D-3D matches, fewer than min_inliers {loc.cfg.min_inliers}" in r.reason
+        assert f"2D-3D matches, fewer than min_inliers {loc.cfg.min_inliers}" in r.reason or (
+            f"2D-3D matches, matched guided from the fallback pose, fewer than min_inliers {loc.cfg.min_inliers}"
+            in r.reason
+        )
         assert r.world_from_cam is not None and r.cam_from_world is not None
         np.testing.assert_array_equal(r.world_from_cam, fallback)
         np.testing.assert_allclose(r.cam_from_world, invert_pose(fallback), atol=1e-12)
@@ -198,6 +203,114 @@ def test_matches_are_mutual_nearest_neighbours_that_pass_the_ratio_test():
     i, j = mutual_ratio_matches(query, database, max_ratio=0.8, max_distance=0.7)
     expected = {int(q): int(np.nonzero(perm == q)[0][0]) for q in range(1, 50)}
     assert dict(zip(i.tolist(), j.tolist(), strict=True)) == expected
+
+
+def _unit512(x: np.ndarray) -> np.ndarray:
+    """COLMAP's uint8 SIFT descriptors: unit vectors times 512, clipped."""
+    x = np.abs(x)
+    return np.clip(np.round(512 * x / np.linalg.norm(x, axis=1, keepdims=True)), 0, 255).astype(np.uint8)
+
+
+def test_guided_matches_tell_look_alikes_apart_by_where_they_project():
+    """A facade of 150 points, each with a look-alike 3 m along it (the next window: the same descriptor in the
+    model, slightly perturbed, and the same in the query), seen by a query 8-20 m away. Matched whole, most
+    look-alikes are refused by the ratio test and a third of what passes is the twin. Guided from a pose 0.5 m
+    and 1 deg off within 40 px, each look-alike projects a hundred pixels from the other and every point finds
+    its own keypoint (within 400 px both look-alikes are in reach and the ratio test refuses them rather than
+    guess); from a pose 3 m along the facade, where each look-alike lands on its twin's keypoint, no match is
+    right: the matching trusts the pose it starts from."""
+    rng = np.random.default_rng(11)
+    camera = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[500.0, 500.0, 320.0, 240.0])
+    n = 150
+    own = np.c_[rng.uniform(-6, 3, n), rng.uniform(-3, 2, n), rng.uniform(8, 20, n)]
+    twin = own + [3.0, 0.0, 0.0]
+    X = np.vstack([own, twin])  # world = the true camera's frame
+    raw = rng.random((n, 128)) ** 4
+    obs_desc = _unit512(np.vstack([raw, raw * (1 + 0.02 * rng.random((n, 128)))]))
+    obs_pid = np.arange(2 * n) + 100
+    xyz = {int(p): X[k] for k, p in enumerate(obs_pid)}
+    uv = camera.img_from_cam(X)
+    inside = (uv[:, 0] > 0) & (uv[:, 0] < 640) & (uv[:, 1] > 0) & (uv[:, 1] < 480)
+    kp = uv[inside] + rng.normal(0, 0.5, (int(inside.sum()), 2))
+    seen = raw * (1 + 0.02 * rng.random((n, 128)))  # a look-alike and its twin look the same to the query
+    q_desc = _unit512(np.vstack([seen, seen])[inside])
+    truth_pid = obs_pid[inside]  # query keypoint k sees point truth_pid[k]
+    assert inside[:n].sum() > 100 and inside[n:].sum() > 100
+
+    i, j = mutual_ratio_matches(q_desc, obs_desc, max_ratio=0.8, max_distance=0.7)
+    right = obs_pid[j] == truth_pid[i]
+    assert right.sum() < 0.5 * len(kp) and (~right).sum() > 0.25 * len(i)  # matched whole: refused, or a guess
+
+    def turned(metres: float, yaw_deg: float) -> np.ndarray:
+        return invert_pose(_offset(np.eye(4), metres, yaw_deg))  # cam_from_world of the offset camera
+
+    pair = guided_matches(kp, q_desc, obs_desc, obs_pid, xyz, turned(0.5, 1.0), camera, 40.0, 0.8, 0.7)
+    assert len(pair) >= 0.9 * len(kp)
+    np.testing.assert_array_equal(pair[:, 1], truth_pid[pair[:, 0]])
+    assert len(np.unique(pair[:, 0])) == len(pair) == len(np.unique(pair[:, 1]))
+
+    wide = guided_matches(kp, q_desc, obs_desc, obs_pid, xyz, turned(0.5, 1.0), camera, 400.0, 0.8, 0.7)
+    assert len(wide) < 0.5 * len(pair)  # both look-alikes within reach: the ratio test refuses them ...
+    np.testing.assert_array_equal(wide[:, 1], truth_pid[wide[:, 0]])  # ... rather than guess
+
+    slid = guided_matches(kp, q_desc, obs_desc, obs_pid, xyz, turned(3.0, 0.0), camera, 40.0, 0.8, 0.7)
+    assert len(slid) > 50 and not np.any(slid[:, 1] == truth_pid[slid[:, 0]])
+    assert len(guided_matches(kp, q_desc, obs_desc, obs_pid, xyz, turned(0.0, 180.0), camera, 40.0, 0.8, 0.7)) == 0
+
+
+def test_a_query_whose_candidates_fail_registers_guided_from_its_neighbour(model, kitti_clip):
+    """Frames 9, 10 and 11, none in the model, in sequence with their true odometry. Frame 10 has no candidates
+    and its fallback lies 80 m off (a lost filter): alone it does not register. Guided
+    from frame 9's registered pose moved by the odometry it registers within 0.25 m and 2 deg, and says so, and
+    frame 11 then from frame 10; queries with nothing registered beside them keep their results; run backward,
+    frame 9 registers from 10."""
+    from mapkit.localization.localize import follow_neighbours
+
+    folder, cam, poses = model
+    frames = [9, 10, 11]
+    images = [_image(kitti_clip, f) for f in frames]
+    odometry = [None] + [invert_pose(poses[f - 1]) @ poses[f] for f in frames[1:]]
+    lost = [_offset(poses[f], 80.0, 60.0) for f in frames]
+    with SixDofLocalizer(folder) as loc:
+        first = loc.localize(images[0], cam, ["000008.png", "000012.png"], lost[0], "9")
+        assert first.accepted
+        alone = loc.localize(images[1], cam, [], lost[1], "10")
+        assert not alone.accepted
+        unmatched = replace(alone, name="11", reason="not tried")
+        out = follow_neighbours(loc, [first, alone, unmatched], images, [cam] * 3, ["9", "10", "11"], lost, odometry)
+        assert out[0] is first
+        for k in (1, 2):  # 10 from 9, then 11 from 10
+            assert out[k].accepted and "from the previous query" in out[k].reason, out[k].reason
+            assert "guided from a neighbour's pose moved by the odometry" in out[k].reason
+            position_m, rotation_deg = _errors(out[k].world_from_cam, poses[frames[k]])
+            assert position_m < 0.25 and rotation_deg < 2.0
+        none = follow_neighbours(loc, [alone, unmatched], images[1:], [cam] * 2, ["10", "11"], lost[1:], odometry[1:])
+        assert none[0] is alone and none[1] is unmatched  # nothing registered beside them
+        back = follow_neighbours(
+            loc, [replace(alone, name="9"), out[1]], images[:2], [cam] * 2, ["9", "10"], lost[:2], odometry[:2]
+        )
+    assert back[0].accepted and "from the next query" in back[0].reason
+    position_m, rotation_deg = _errors(back[0].world_from_cam, poses[9])
+    assert position_m < 0.25 and rotation_deg < 2.0
+
+
+def test_a_guided_pose_beyond_its_guides_reach_is_refused(model, kitti_clip):
+    """Frame 10 with no candidates, only its fallback pose as a guide. Turned 3 deg, within the 40 px reach
+    (atan(40 / 707 px) = 3.2 deg), the guide finds the true pose. Turned 5 deg, the points land 60 px from their
+    keypoints: within 40 px only wrong look-alikes are left, and RANSAC fits them a pose (measured: 10 inliers,
+    1.8 m and 7 deg off) that turned farther from the guide than its matches allow. It is refused and the fallback
+    stays, even with an inlier gate low enough to let it through."""
+    folder, cam, poses = model
+    cfg = SixDofConfig(min_inliers=8, guided_radii_px=[40.0, 10.0])
+    image = _image(kitti_clip, 10)
+    with SixDofLocalizer(folder, cfg) as loc:
+        near = loc.localize(image, cam, [], _offset(poses[10], 0.0, 3.0))
+        far = loc.localize(image, cam, [], _offset(poses[10], 0.0, 5.0))
+    assert near.accepted and "guided from the fallback pose" in near.reason
+    position_m, rotation_deg = _errors(near.world_from_cam, poses[10])
+    assert position_m < 0.25 and rotation_deg < 2.0
+    assert not far.accepted, far.reason
+    np.testing.assert_array_equal(far.world_from_cam, _offset(poses[10], 0.0, 5.0))
 
 
 def test_benchmark_poses_round_trip_and_read_as_colmap_quaternions(tmp_path):

@@ -422,8 +422,45 @@ def refine_sixdof(
     bar.close()
     if odometry is not None and loc.cfg.sequence_max_m is not None:
         results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
+    if odometry is not None and loc.cfg.guided_radii_px:
+        results = follow_neighbours(loc, results, images, cameras, names, priors, odometry)
+        if loc.cfg.sequence_max_m is not None:
+            results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
     logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
     return results
+
+
+def follow_neighbours(
+    loc: SixDofLocalizer,
+    results: Sequence[SixDofResult],
+    images: Sequence[np.ndarray | str | Path],
+    cameras: Sequence[CameraInfo | None],
+    names: Sequence[str],
+    priors: Sequence[np.ndarray | None],
+    odometry: Sequence[np.ndarray | None],
+) -> list[SixDofResult]:
+    """``results`` with each query not accepted tried once more, matched guided from an accepted neighbour's pose
+    moved by the odometry between them: forward through the sequence from the previous query, then backward from
+    the next, so that a run of queries the filter and retrieval both missed is registered from the first good pose
+    beside it. A query that still does not register keeps its result."""
+    out = list(results)
+    order = [(range(1, len(out)), -1), (range(len(out) - 2, -1, -1), 1)]
+    for steps, side in order:
+        for t in steps:
+            k = t + side
+            if out[t].accepted or not out[k].accepted or out[k].world_from_cam is None:
+                continue
+            step = odometry[t] if side == -1 else odometry[k]
+            if step is None:
+                continue
+            W = np.asarray(out[k].world_from_cam)
+            guide = W @ step if side == -1 else W @ invert_pose(step)
+            again = loc.localize(images[t], cameras[t], [], priors[t], names[t], guides=[guide])
+            if again.accepted:
+                again.seconds += out[t].seconds
+                again.reason = f"{out[t].reason}; from the {'previous' if side == -1 else 'next'} query: {again.reason}"
+                out[t] = again
+    return out
 
 
 def check_sequence(

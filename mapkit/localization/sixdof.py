@@ -9,8 +9,12 @@ pose that look its way) matched by mutual nearest neighbour and Lowe's ratio tes
 between descriptors, as COLMAP's SIFT matcher does; the matched keypoints of the candidate that
 carry a triangulated point give 2D-3D correspondences (each query keypoint and 3D point pair once);
 ``pycolmap.estimate_and_refine_absolute_pose`` (P3P in LO-RANSAC, then non-linear refinement) gives
-``cam_from_world``. With fewer than ``min_inliers`` inliers the pose is not trusted: the result
-keeps the caller's fallback (the filter's or retrieval's pose) and says why.
+``cam_from_world``. That pose, the caller's fallback pose and any neighbour's pose given as a guide then each
+start a prior-guided matching (:func:`guided_matches`): the model's points near the guide projected into the
+query, each matched only with the features near where it lands, RANSAC again, then again within a smaller radius;
+the pose with the most inliers wins, unless it turned or slid beyond the first radius's reach of its guide. With
+fewer than ``min_inliers`` inliers the pose is not trusted: the result keeps the caller's fallback (the filter's or
+retrieval's pose) and says why.
 
 Poses are camera poses in the model's frame (optical axes x right, y down, z forward);
 ``cam_from_world`` maps world points into the camera, ``world_from_cam`` is its inverse.
@@ -30,7 +34,7 @@ from pydantic import Field
 
 from mapkit.core.config import MapkitConfig, load_config
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.core.geometry import invert_pose
+from mapkit.core.geometry import invert_pose, rotation_angle_rad
 from mapkit.core.runio import progress_bar, write_json
 from mapkit.core.types import CameraInfo
 from mapkit.core.writers import writes_workspace
@@ -96,11 +100,11 @@ class SixDofConfig(MapkitConfig):
         "12 px, meant for photos of 1,000-1,600 px: on 640 px images it accepts about twice as many wrong poses.",
     )
     min_inliers: int = Field(
-        10,
+        15,
         ge=4,
         description="A pose needs this many RANSAC inliers to be accepted, else the fallback pose stays. Chosen "
         "with ransac_max_error_px (above). COLMAP's mapper refuses to register an image below 30 "
-        "(abs_pose_min_num_inliers): on the demo town that keeps a third of the right poses.",
+        "(abs_pose_min_num_inliers): on the demo town that keeps two fifths of the right poses.",
     )
     sequence_max_m: float | None = Field(
         0.5,
@@ -111,6 +115,16 @@ class SixDofConfig(MapkitConfig):
         "agree far better than that, a pose slid along a facade of repeated windows by metres does not. None: off.",
     )
     sequence_max_deg: float = Field(5.0, gt=0, description="The rotation part of sequence_max_m's check (deg).")
+    guided_radii_px: list[float] = Field(
+        [40.0, 10.0],
+        description="Prior-guided matching (px; empty: off): from a starting pose (RANSAC's pose from the candidates, "
+        "and the fallback pose), the model's points seen by the images near it are projected into the query and "
+        "each is matched only with query features within the first radius, by the ratio test among those; RANSAC "
+        "on these matches gives the next pose, matched again within the next radius. The starting pose that ends "
+        "with the most inliers wins, against matching the candidates whole as well. Matching a whole image lets "
+        "each feature pick any look-alike (the next window of a facade); a pose to within a metre leaves it the "
+        "few within reach.",
+    )
     num_threads: int = Field(2, ge=1, description="Threads of feature extraction (pycolmap's -1 takes every core).")
     seed: int = Field(0, ge=0, description="Seed of RANSAC: the same query gives the same pose.")
 
@@ -363,10 +377,13 @@ class SixDofLocalizer:
         fallback_world_from_cam: np.ndarray | None = None,
         name: str = "",
         features: tuple[np.ndarray, np.ndarray] | None = None,
+        guides: Sequence[np.ndarray] = (),
     ) -> SixDofResult:
         """The pose of one query image taken by ``camera`` from its ``candidates`` (database image names,
         best first); the fallback pose, not accepted, when it does not register. ``features``: the image's
-        :meth:`extract`, when the caller has them already (a second attempt with other candidates)."""
+        :meth:`extract`, when the caller has them already (a second attempt with other candidates).
+        ``guides``: more starting poses of the guided matching (``world_from_cam``; a neighbour's pose moved by
+        the odometry), tried before the fallback."""
         t0 = time.perf_counter()
         label = name or (str(image) if isinstance(image, (str, Path)) else "query")
         cam = _check_camera(camera, image if isinstance(image, (str, Path)) else None, label)
@@ -392,7 +409,12 @@ class SixDofLocalizer:
                 time.perf_counter() - t0,
             )
 
-        if not used:
+        guided_starts = [invert_pose(np.asarray(g, np.float64)) for g in guides]
+        if fallback_world_from_cam is not None:
+            guided_starts.append(invert_pose(np.asarray(fallback_world_from_cam, np.float64)))
+        if not self.cfg.guided_radii_px:
+            guided_starts = []
+        if not used and not guided_starts:
             return result(False, "no candidate database images", 0, 0, None)
         if isinstance(image, np.ndarray) and image.shape[:2] != (cam.height, cam.width):
             raise InputError(None, f"{label}: image {image.shape[1]}x{image.shape[0]}, camera {cam.width}x{cam.height}")
@@ -403,28 +425,72 @@ class SixDofLocalizer:
             qi, dj = mutual_ratio_matches(desc, db_desc, self.cfg.max_ratio, self.cfg.max_distance)
             keep = pids[dj] >= 0
             pairs.append(np.stack([qi[keep], pids[dj[keep]]], axis=1))
-        pair = np.unique(np.concatenate(pairs).reshape(-1, 2), axis=0)
-        if len(pair) < self.cfg.min_inliers:
-            return result(
-                False, f"{len(pair)} 2D-3D matches, fewer than min_inliers {self.cfg.min_inliers}", 0, len(pair), None
-            )
-        points2D = xy[pair[:, 0]]
-        points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
-        T, inliers = self._absolute_pose(points2D, points3D, cam)
+        pair = np.unique(np.concatenate(pairs or [np.zeros((0, 2), np.int64)]).reshape(-1, 2), axis=0)
+        n_matches, T, inliers, how = len(pair), None, 0, ""
+        if n_matches >= self.cfg.min_inliers:
+            points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
+            T, inliers, _ = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
+        starts = ([] if T is None else [("RANSAC's pose", T)]) + [
+            ("a neighbour's pose moved by the odometry" if k < len(guides) else "the fallback pose", S)
+            for k, S in enumerate(guided_starts)
+        ]
+        for what, start in starts if self.cfg.guided_radii_px else []:
+            guided = self._guided(xy, desc, cam, start)
+            if guided is not None and guided[1] > inliers:
+                T, inliers, n_matches, near = guided
+                used = list(dict.fromkeys([*used, *near]))
+                how = f", matched guided from {what}"
         if T is None:
-            return result(False, f"RANSAC found no pose from {len(pair)} 2D-3D matches", 0, len(pair), None)
+            if n_matches < self.cfg.min_inliers:
+                why = f"{n_matches} 2D-3D matches, fewer than min_inliers {self.cfg.min_inliers}"
+            else:
+                why = f"RANSAC found no pose from {n_matches} 2D-3D matches"
+            return result(False, why, 0, n_matches, None)
+        found = f"{inliers} inliers of {n_matches} 2D-3D matches{how}"
         if inliers < self.cfg.min_inliers:
-            return result(
-                False,
-                f"{inliers} inliers of {len(pair)} 2D-3D matches, fewer than min_inliers {self.cfg.min_inliers}",
-                inliers,
-                len(pair),
-                None,
-            )
+            return result(False, f"{found}, fewer than min_inliers {self.cfg.min_inliers}", inliers, n_matches, None)
         far = self._off_candidates(T, used)
         if far:
-            return result(False, f"{inliers} inliers of {len(pair)} 2D-3D matches, but {far}", inliers, len(pair), None)
-        return result(True, f"{inliers} inliers of {len(pair)} 2D-3D matches", inliers, len(pair), T)
+            return result(False, f"{found}, but {far}", inliers, n_matches, None)
+        return result(True, found, inliers, n_matches, T)
+
+    def _guided(self, xy: np.ndarray, desc: np.ndarray, cam: CameraInfo, start: np.ndarray):
+        """RANSAC on prior-guided matches from ``start`` (cam_from_world), once per radius of ``guided_radii_px``:
+        (cam_from_world, inliers, matches, the images whose points were matched), or None when no pose follows."""
+        near = self.candidates_near(invert_pose(start))
+        if not near:
+            return None
+        obs_desc, obs_pid = self._observations(near)
+        colmap_cam = colmap_camera(cam, 1)
+        T, out, kept = start, None, np.zeros((0, 3))
+        for radius in self.cfg.guided_radii_px:
+            pair = guided_matches(
+                xy, desc, obs_desc, obs_pid, self._xyz, T, colmap_cam, radius, self.cfg.max_ratio, self.cfg.max_distance
+            )
+            if len(pair) < self.cfg.min_inliers:
+                break
+            points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
+            T_next, inliers, mask = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
+            if T_next is None:
+                break
+            T, out, kept = T_next, (T_next, inliers, len(pair), near), points3D[mask]
+        if out is None:
+            return None
+        reach = self.cfg.guided_radii_px[0]
+        turned = rotation_angle_rad(T[:3, :3] @ start[:3, :3].T)
+        if _drift_px(kept, start, T, colmap_cam) > reach or turned > np.arctan(reach / max(cam.fx, cam.fy)):
+            return None  # the pose left the reach its matches were made in: they assumed the start was near
+        return out
+
+    def _observations(self, names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """The descriptors (K, 128) and point ids (K,) of the triangulated keypoints of the images ``names``."""
+        descs, pids = [], []
+        for name in names:
+            d, p = self._database_features(name)
+            keep = p >= 0
+            descs.append(d[keep])
+            pids.append(p[keep])
+        return np.concatenate(descs).reshape(-1, 128), np.concatenate(pids).astype(np.int64)
 
     def _off_candidates(self, cam_from_world: np.ndarray, used: Sequence[str]) -> str:
         """Why a registered pose cannot have seen what its candidate images saw ('' when it can): it lies farther
@@ -447,7 +513,7 @@ class SixDofLocalizer:
         return ""
 
     def _absolute_pose(self, points2D: np.ndarray, points3D: np.ndarray, camera: CameraInfo):
-        """(cam_from_world (4, 4), inliers), or (None, 0) when RANSAC finds no pose."""
+        """(cam_from_world (4, 4), inliers, inlier mask), or (None, 0, None) when RANSAC finds no pose."""
         import pycolmap
 
         options = pycolmap.AbsolutePoseEstimationOptions()
@@ -455,10 +521,24 @@ class SixDofLocalizer:
         options.ransac.random_seed = self.cfg.seed
         out = pycolmap.estimate_and_refine_absolute_pose(points2D, points3D, colmap_camera(camera, 1), options)
         if out is None:
-            return None, 0
+            return None, 0, None
         T = np.eye(4)
         T[:3] = out["cam_from_world"].matrix()
-        return T, int(out["num_inliers"])
+        return T, int(out["num_inliers"]), np.asarray(out["inlier_mask"], bool)
+
+
+def _drift_px(points3D: np.ndarray, cam_from_world_a: np.ndarray, cam_from_world_b: np.ndarray, camera) -> float:
+    """The median distance (px) between where two camera poses project the same points (inf when none project in
+    front of both)."""
+    za = points3D @ cam_from_world_a[2, :3] + cam_from_world_a[2, 3]
+    zb = points3D @ cam_from_world_b[2, :3] + cam_from_world_b[2, 3]
+    front = (za > 1e-6) & (zb > 1e-6)
+    if not front.any():
+        return float("inf")
+    X = points3D[front]
+    a = camera.img_from_cam(X @ cam_from_world_a[:3, :3].T + cam_from_world_a[:3, 3], check_cheirality=False)
+    b = camera.img_from_cam(X @ cam_from_world_b[:3, :3].T + cam_from_world_b[:3, 3], check_cheirality=False)
+    return float(np.median(np.linalg.norm(a - b, axis=1)))
 
 
 def _check_camera(camera: CameraInfo | None, path: str | Path | None, label: str) -> CameraInfo:
@@ -503,6 +583,65 @@ def mutual_ratio_matches(
     i = np.arange(len(a))
     ok = (d1 <= max_distance) & (d1 < max_ratio * d2) & (col_arg[best_j] == i)
     return i[ok], best_j[ok]
+
+
+def guided_matches(
+    xy: np.ndarray,
+    desc: np.ndarray,
+    obs_desc: np.ndarray,
+    obs_pid: np.ndarray,
+    xyz: dict,
+    cam_from_world: np.ndarray,
+    camera,
+    radius_px: float,
+    max_ratio: float,
+    max_distance: float,
+) -> np.ndarray:
+    """2D-3D matches (K, 2: query keypoint, point id) guided by a pose: each observation of a model point (its
+    descriptor ``obs_desc[k]`` and point ``obs_pid[k]``) is projected into the query at ``cam_from_world`` through
+    ``camera`` (pycolmap's) and matched with the query keypoints ``xy`` within ``radius_px`` of it, the nearest
+    descriptor by angle if within ``max_distance`` and below ``max_ratio`` times the second nearest's there; each
+    query keypoint and each point keeps its closest match."""
+    from scipy.spatial import cKDTree
+
+    none = np.zeros((0, 2), np.int64)
+    if len(xy) == 0 or len(obs_pid) == 0:
+        return none
+    pids, inv = np.unique(obs_pid, return_inverse=True)
+    X = np.array([xyz[int(p)] for p in pids], np.float64).reshape(-1, 3)
+    Xc = X @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    front = Xc[:, 2] > 1e-6
+    uv = np.full((len(X), 2), np.inf)
+    if front.any():
+        uv[front] = camera.img_from_cam(Xc[front], check_cheirality=False)
+    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+    obs = np.nonzero(inside[inv])[0]
+    if len(obs) == 0:
+        return none
+    reach = cKDTree(np.asarray(xy, np.float64)).query_ball_point(uv[inv[obs]], radius_px)
+    counts = np.array([len(r) for r in reach], np.int64)
+    if counts.sum() == 0:
+        return none
+    o = np.repeat(obs, counts)
+    q = np.concatenate([np.asarray(r, np.int64) for r in reach if r])
+    a = np.asarray(obs_desc, np.float32)[o] / _DESCRIPTOR_SCALE
+    b = np.asarray(desc, np.float32)[q] / _DESCRIPTOR_SCALE
+    angle = np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0))
+    order = np.lexsort((angle, o))  # by observation, nearest descriptor first
+    o, q, angle = o[order], q[order], angle[order]
+    first = np.r_[True, o[1:] != o[:-1]]
+    has_second = np.r_[~first[1:], False] & first
+    second = np.full(len(o), np.inf)
+    second[has_second] = angle[np.nonzero(has_second)[0] + 1]
+    keep = first & (angle <= max_distance) & (angle < max_ratio * second)
+    o, q, angle = o[keep], q[keep], angle[keep]
+    pid = obs_pid[o]
+    best = np.lexsort((angle, q))  # per query keypoint, its closest observation
+    best = best[np.r_[True, q[best][1:] != q[best][:-1]]]
+    q, pid, angle = q[best], pid[best], angle[best]
+    best = np.lexsort((angle, pid))  # per point, its closest query keypoint
+    best = best[np.r_[True, pid[best][1:] != pid[best][:-1]]]
+    return np.stack([q[best], pid[best]], axis=1).astype(np.int64)
 
 
 def localize_images(
