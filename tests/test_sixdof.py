@@ -218,7 +218,7 @@ def test_guided_matches_tell_look_alikes_apart_by_where_they_project():
     and 1 deg off within 40 px, each look-alike projects a hundred pixels from the other and every point finds
     its own keypoint (within 400 px both look-alikes are in reach and the ratio test refuses them rather than
     guess); from a pose 3 m along the facade, where each look-alike lands on its twin's keypoint, no match is
-    right: the matching trusts the pose it starts from."""
+    right: the matching trusts the pose it starts from. Turned round, or with no descriptor near enough, none."""
     rng = np.random.default_rng(11)
     camera = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[500.0, 500.0, 320.0, 240.0])
     n = 150
@@ -256,6 +256,8 @@ def test_guided_matches_tell_look_alikes_apart_by_where_they_project():
     slid = guided_matches(kp, q_desc, obs_desc, obs_pid, xyz, turned(3.0, 0.0), camera, 40.0, 0.8, 0.7)
     assert len(slid) > 50 and not np.any(slid[:, 1] == truth_pid[slid[:, 0]])
     assert len(guided_matches(kp, q_desc, obs_desc, obs_pid, xyz, turned(0.0, 180.0), camera, 40.0, 0.8, 0.7)) == 0
+    other = _unit512(rng.random((len(kp), 128)) ** 4)  # another scene's features where the points land
+    assert len(guided_matches(kp, other, obs_desc, obs_pid, xyz, turned(0.5, 1.0), camera, 40.0, 0.8, 0.1)) == 0
 
 
 def test_a_query_whose_candidates_fail_registers_guided_from_its_neighbour(model, kitti_clip):

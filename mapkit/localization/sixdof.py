@@ -634,6 +634,8 @@ def guided_matches(
     second = np.full(len(o), np.inf)
     second[has_second] = angle[np.nonzero(has_second)[0] + 1]
     keep = first & (angle <= max_distance) & (angle < max_ratio * second)
+    if not keep.any():
+        return none
     o, q, angle = o[keep], q[keep], angle[keep]
     pid = obs_pid[o]
     best = np.lexsort((angle, q))  # per query keypoint, its closest observation
