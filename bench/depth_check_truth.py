@@ -8,10 +8,13 @@ table gives each depth's relative difference from it, ``|z - z_true| / z_true`` 
 
 * the triangulated points, all and by their triangulation angle (the widest angle between two rays of the track);
 * each map's depth as the check takes it (``depth_check_max_spread``: the map's points around the keypoint on one
-  surface) and as the median of all its points there, whatever their spread.
+  surface) and as the median of all its points there, whatever their spread;
+* the triangulated points at the observations each map's check compares.
 
 So it says which side of a disagreement the check reports is the model's and which the map's. Run on the main job's
-workspace with ``--sixdof`` (or the tiny town's, where the check's spread was chosen)::
+workspace with ``--sixdof`` (or the tiny town's, where the check's spread was chosen); ``--model M --true-poses``
+measures a model built on the true poses (``mapkit model --truth``) instead, whose maps' rows mean nothing (the maps
+lie on the build's poses)::
 
     python3 bench/depth_check_truth.py runs/main/workspace --truth runs/main/town
 """
@@ -50,6 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("workspace", type=Path)
     ap.add_argument("--truth", type=Path, required=True, help="the synthetic town the workspace was built from")
     ap.add_argument("--every", type=int, default=3, help="every n-th image of the model (default 3)")
+    ap.add_argument("--model", type=Path, help="a reference model folder (default WORKSPACE/reference_model)")
+    ap.add_argument(
+        "--true-poses",
+        action="store_true",
+        help="the model was built on the town's true poses (mapkit model --truth): its frame is the truth's",
+    )
     args = ap.parse_args(argv)
     import open3d as o3d
     import pycolmap
@@ -60,14 +69,18 @@ def main(argv: list[str] | None = None) -> int:
     from mapkit.localization import reference_model as rm
 
     ws = Workspace(args.workspace)
+    model = args.model or ws.root / rm.DEFAULT_FOLDER
     fit_file = ws.localize_dir / "6dof" / "eval_localize.json"
-    if not fit_file.is_file():
+    if args.true_poses:
+        model_from_truth = np.eye(4)
+    elif not fit_file.is_file():
         print(f"no {fit_file}: run the main job with --sixdof (mapkit eval localize --refine 6dof)", file=sys.stderr)
         return 2
-    model_from_truth = np.array(json.loads(fit_file.read_text())["model_from_truth"]["matrix"])
-    rec = pycolmap.Reconstruction(str(ws.root / rm.DEFAULT_FOLDER / "sfm"))
+    else:
+        model_from_truth = np.array(json.loads(fit_file.read_text())["model_from_truth"]["matrix"])
+    rec = pycolmap.Reconstruction(str(model / "sfm"))
     cfg = rm.ReferenceModelConfig()
-    sessions = load_config(rm.ReferenceModelConfig, ws.root / rm.DEFAULT_FOLDER / "config.yaml").sessions
+    sessions = load_config(rm.ReferenceModelConfig, model / "config.yaml").sessions
     maps = rm.session_maps(ws, sessions)
     grids = {k: rm._GroundGrid(v, rm.DEPTH_CHECK_CELL_M) for k, v in maps.items() if v is not None}
     mesh = o3d.io.read_triangle_mesh(str(args.truth / "world" / "mesh.ply"))
@@ -111,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
     for kind in grids:
         rows.append(_row(f"{kind} map, as the check takes it (one surface)", a[f"{kind}:check"], a["true"]))
         rows.append(_row(f"{kind} map, median of all its points there", a[f"{kind}:all"], a["true"]))
+    for kind in grids:  # the observations the check compares: how far each side lies from the truth there
+        sel = np.isfinite(a[f"{kind}:check"])
+        rows.append(_row(f"triangulated, where the {kind} check compares", a["tri"][sel], a["true"][sel]))
     report(
         "Depths at the reference model's keypoints against the true surfaces (relative difference)",
         rows,
