@@ -22,6 +22,7 @@ Poses are camera poses in the model's frame (optical axes x right, y down, z for
 
 from __future__ import annotations
 
+import itertools
 import logging
 import struct
 import time
@@ -618,22 +619,33 @@ def guided_matches(
     obs = np.nonzero(inside[inv])[0]
     if len(obs) == 0:
         return none
-    reach = cKDTree(np.asarray(xy, np.float64)).query_ball_point(uv[inv[obs]], radius_px)
-    counts = np.array([len(r) for r in reach], np.int64)
+    points = np.nonzero(inside)[0]  # each point's keypoints in reach once, shared by its observations
+    reach = cKDTree(np.asarray(xy, np.float64)).query_ball_point(uv[points], radius_px)
+    per_point = np.fromiter((len(r) for r in reach), np.int64, len(reach))
+    flat = np.fromiter(itertools.chain.from_iterable(reach), np.int64, int(per_point.sum()))
+    slot = np.zeros(len(X), np.int64)
+    slot[points] = np.arange(len(points))
+    counts = per_point[slot[inv[obs]]]
     if counts.sum() == 0:
         return none
     o = np.repeat(obs, counts)
-    q = np.concatenate([np.asarray(r, np.int64) for r in reach if r])
-    a = np.asarray(obs_desc, np.float32)[o] / _DESCRIPTOR_SCALE
-    b = np.asarray(desc, np.float32)[q] / _DESCRIPTOR_SCALE
-    angle = np.arccos(np.clip(np.einsum("ij,ij->i", a, b), -1.0, 1.0))
-    order = np.lexsort((angle, o))  # by observation, nearest descriptor first
-    o, q, angle = o[order], q[order], angle[order]
-    first = np.r_[True, o[1:] != o[:-1]]
-    has_second = np.r_[~first[1:], False] & first
-    second = np.full(len(o), np.inf)
-    second[has_second] = angle[np.nonzero(has_second)[0] + 1]
-    keep = first & (angle <= max_distance) & (angle < max_ratio * second)
+    begin = np.cumsum(per_point) - per_point  # where each point's keypoints start in flat
+    within = np.arange(len(o)) - np.repeat(np.cumsum(counts) - counts, counts)
+    q = flat[np.repeat(begin[slot[inv[obs]]], counts) + within]
+    a = np.asarray(obs_desc)[o].astype(np.float32)  # gathered as uint8: a quarter of the bytes
+    b = np.asarray(desc)[q].astype(np.float32)
+    sim = np.einsum("ij,ij->i", a, b) / np.float32(_DESCRIPTOR_SCALE**2)  # cosines; o runs in blocks
+    starts = np.r_[0, np.cumsum(counts[counts > 0])[:-1]]
+    group = np.repeat(np.arange(len(starts)), counts[counts > 0])
+    top = np.maximum.reduceat(sim, starts)
+    at_top = np.flatnonzero(sim == top[group])
+    at_top = at_top[np.r_[True, group[at_top][1:] != group[at_top][:-1]]]  # each block's first best
+    sim[at_top] = -np.inf
+    runner_up = np.maximum.reduceat(sim, starts)  # -inf for a block of one: no second, the ratio test passes
+    angle = np.arccos(np.clip(top, -1.0, 1.0))
+    second = np.where(np.isfinite(runner_up), np.arccos(np.clip(runner_up, -1.0, 1.0)), np.inf)
+    o, q = o[at_top], q[at_top]
+    keep = (angle <= max_distance) & (angle < max_ratio * second)
     if not keep.any():
         return none
     o, q, angle = o[keep], q[keep], angle[keep]
