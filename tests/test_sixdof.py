@@ -260,6 +260,21 @@ def test_guided_matches_tell_look_alikes_apart_by_where_they_project():
     assert len(guided_matches(kp, other, obs_desc, obs_pid, xyz, turned(0.5, 1.0), camera, 40.0, 0.8, 0.1)) == 0
 
 
+def test_guided_matches_do_not_take_a_point_the_lens_distortion_folds_into_the_image():
+    """A camera with strong barrel distortion (k1 = -0.11) folds a point 72 deg off its axis, far outside its
+    field of view, back onto the image near the principal point, where a look-alike keypoint waits. Guided
+    matching leaves it alone; a point in view, projected through the same distortion, is matched."""
+    camera = pycolmap.Camera(model="OPENCV", width=640, height=480, params=[500, 500, 320, 240, -0.11, 0, 0, 0])
+    outside, in_view = np.array([3.0, 0.0, 1.0]), np.array([0.1, 0.0, 1.0])
+    folded = camera.img_from_cam(outside[None], check_cheirality=False)[0]
+    assert 0 <= folded[0] < 640 and 0 <= folded[1] < 480  # what the camera model alone says
+    kp = np.vstack([folded, camera.img_from_cam(in_view[None])[0]])
+    desc = _unit512(np.random.default_rng(5).random((2, 128)) ** 4)
+    xyz = {7: outside, 8: in_view}
+    pair = guided_matches(kp, desc, desc, np.array([7, 8]), xyz, np.eye(4), camera, 10.0, 0.8, 0.7)
+    np.testing.assert_array_equal(pair, [[1, 8]])
+
+
 def test_a_query_whose_candidates_fail_registers_guided_from_its_neighbour(model, kitti_clip):
     """Frames 9, 10 and 11, none in the model, in sequence with their true odometry. Frame 10 has no candidates
     and its fallback lies 80 m off (a lost filter): alone it does not register. Guided

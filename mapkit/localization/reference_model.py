@@ -534,6 +534,13 @@ def _project_into(
     ahead = np.flatnonzero((z > 1e-6) & (z <= max_depth))
     rel, z = rel[ahead], z[ahead]
     x, y = rel @ R[0], rel @ R[1]
+    inside, uv = image_pixels(cam, x, y, z)
+    return uv, z[inside].astype(np.float64)
+
+
+def image_pixels(cam, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which camera-frame points (``x``, ``y``, ``z`` > 0) land inside ``cam``'s image (pycolmap's camera,
+    distortion included) and their pixels: (indices (K,), pixels (K, 2) float64)."""
     # the pinhole projection first; with distortion, within half an image of the frame before the camera model: a
     # distortion polynomial folds points far outside the field of view back into the image
     fx, fy, cx, cy = (float(v) for v in np.asarray(cam.calibration_matrix())[[0, 1, 0, 1], [0, 1, 2, 2]])
@@ -541,13 +548,12 @@ def _project_into(
     w, h = float(cam.width), float(cam.height)
     if cam.model_name in ("PINHOLE", "SIMPLE_PINHOLE"):  # the projection is the pinhole's
         inside = np.flatnonzero((u0 >= 0) & (u0 < w) & (v0 >= 0) & (v0 < h))
-        return np.stack([u0[inside], v0[inside]], axis=1).astype(np.float64), z[inside].astype(np.float64)
-    near = (u0 > -w / 2) & (u0 < 1.5 * w) & (v0 > -h / 2) & (v0 < 1.5 * h)
-    z = z[near].astype(np.float64)
-    uv = np.asarray(cam.img_from_cam(np.stack([x[near], y[near], z], axis=1).astype(np.float64)), np.float64)
-    uv = uv.reshape(-1, 2)
-    inside = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-    return uv[inside], z[inside]
+        return inside, np.stack([u0[inside], v0[inside]], axis=1).astype(np.float64)
+    near = np.flatnonzero((u0 > -w / 2) & (u0 < 1.5 * w) & (v0 > -h / 2) & (v0 < 1.5 * h))
+    cam_points = np.stack([x[near], y[near], z[near]], axis=1).astype(np.float64)
+    uv = np.asarray(cam.img_from_cam(cam_points), np.float64).reshape(-1, 2)
+    ok = np.all(np.isfinite(uv), axis=1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    return near[ok], uv[ok]
 
 
 def pixels_near(uv: np.ndarray, keypoints: np.ndarray, radius: float) -> np.ndarray:

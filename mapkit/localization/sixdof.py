@@ -49,7 +49,12 @@ from mapkit.io.benchmark import (
     read_queries_with_intrinsics,
 )
 from mapkit.io.trajectory import write_benchmark_poses
-from mapkit.localization.reference_model import ReferenceModelConfig, colmap_camera, sift_extraction_options
+from mapkit.localization.reference_model import (
+    ReferenceModelConfig,
+    colmap_camera,
+    image_pixels,
+    sift_extraction_options,
+)
 
 log = logging.getLogger(__name__)
 
@@ -611,11 +616,12 @@ def guided_matches(
     pids, inv = np.unique(obs_pid, return_inverse=True)
     X = np.array([xyz[int(p)] for p in pids], np.float64).reshape(-1, 3)
     Xc = X @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    front = Xc[:, 2] > 1e-6
+    front = np.flatnonzero(Xc[:, 2] > 1e-6)
+    seen, pixels = image_pixels(camera, *Xc[front].T)
+    inside = np.zeros(len(X), bool)
+    inside[front[seen]] = True
     uv = np.full((len(X), 2), np.inf)
-    if front.any():
-        uv[front] = camera.img_from_cam(Xc[front], check_cheirality=False)
-    inside = front & (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+    uv[front[seen]] = pixels
     obs = np.nonzero(inside[inv])[0]
     if len(obs) == 0:
         return none
