@@ -419,7 +419,7 @@ class SixDofLocalizer:
         if fallback_world_from_cam is not None:
             guided_starts.append(invert_pose(np.asarray(fallback_world_from_cam, np.float64)))
         if not self.cfg.guided_radii_px:
-            guided_starts = []
+            guided_starts = []  # off: the candidates alone
         if not used and not guided_starts:
             return result(False, "no candidate database images", 0, 0, None)
         if isinstance(image, np.ndarray) and image.shape[:2] != (cam.height, cam.width):
@@ -436,11 +436,13 @@ class SixDofLocalizer:
         if n_matches >= self.cfg.min_inliers:
             points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
             T, inliers, _ = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
-        starts = ([] if T is None else [("RANSAC's pose", T)]) + [
+        starts = [
             ("a neighbour's pose moved by the odometry" if k < len(guides) else "the fallback pose", S)
             for k, S in enumerate(guided_starts)
         ]
-        for what, start in starts if self.cfg.guided_radii_px else []:
+        if T is not None and self.cfg.guided_radii_px:
+            starts.insert(0, ("RANSAC's pose", T))
+        for what, start in starts:
             guided = self._guided(xy, desc, cam, start)
             if guided is not None and guided[1] > inliers:
                 T, inliers, n_matches, near = guided
