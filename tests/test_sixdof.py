@@ -24,6 +24,7 @@ from mapkit.localization.sixdof import (
     SixDofConfig,
     SixDofLocalizer,
     SixDofQuery,
+    _drift_px,
     guided_matches,
     localize_images,
     mutual_ratio_matches,
@@ -356,3 +357,19 @@ def test_benchmark_poses_round_trip_and_read_as_colmap_quaternions(tmp_path):
     assert err.value.field == "line 1"
     with pytest.raises(ValueError, match="white space"):
         write_benchmark_poses(tmp_path / "x.txt", ["a b.png"], cam_from_world[:1])
+
+
+def test_the_reach_check_measures_a_poses_drift_on_the_image_plane_not_through_a_folding_lens():
+    """Points 10 m ahead to the left and right, near where a strong barrel distortion (k1 = -0.3) stops spreading
+    rays apart and starts folding them back: a camera moved 0.25 m sideways shifts every one by f * 0.25 / 10 =
+    10 px on the image plane, though through the lens they land within a pixel of where they were."""
+    f, z, d = 400.0, 10.0, 0.25
+    cam = pycolmap.Camera(model="OPENCV", width=640, height=480, params=[f, f, 320, 240, -0.3, 0, 0, 0])
+    r = np.linspace(1.0, 1.1, 21)  # normalised radius about the fold at 1 / sqrt(3 * 0.3) = 1.054
+    x = np.concatenate([r, -r]) * z
+    points = np.stack([x, np.zeros_like(x), np.full_like(x, z)], axis=1)
+    moved = np.eye(4)[:3]
+    moved[0, 3] = d
+    through_lens = np.linalg.norm(cam.img_from_cam(points) - cam.img_from_cam(points + [d, 0, 0]), axis=1)
+    assert np.median(through_lens) < 1.5 and np.all(cam.img_from_cam(points)[:, 0] < 640)  # the trap, in view
+    assert _drift_px(points, np.eye(4)[:3], moved, cam) == pytest.approx(f * d / z, rel=1e-9)

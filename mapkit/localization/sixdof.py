@@ -536,17 +536,19 @@ class SixDofLocalizer:
 
 
 def _drift_px(points3D: np.ndarray, cam_from_world_a: np.ndarray, cam_from_world_b: np.ndarray, camera) -> float:
-    """The median distance (px) between where two camera poses project the same points (inf when none project in
-    front of both)."""
+    """The median distance between where two camera poses project the same points, in pixels at the camera's focal
+    length on the undistorted image plane (inf when none lies in front of both). Not through the lens model: a
+    distortion polynomial folds points beyond its reach back into the image, where two far-apart rays land close."""
     za = points3D @ cam_from_world_a[2, :3] + cam_from_world_a[2, 3]
     zb = points3D @ cam_from_world_b[2, :3] + cam_from_world_b[2, 3]
     front = (za > 1e-6) & (zb > 1e-6)
     if not front.any():
         return float("inf")
     X = points3D[front]
-    a = camera.img_from_cam(X @ cam_from_world_a[:3, :3].T + cam_from_world_a[:3, 3], check_cheirality=False)
-    b = camera.img_from_cam(X @ cam_from_world_b[:3, :3].T + cam_from_world_b[:3, 3], check_cheirality=False)
-    return float(np.median(np.linalg.norm(a - b, axis=1)))
+    a = X @ cam_from_world_a[:2, :3].T + cam_from_world_a[:2, 3]
+    b = X @ cam_from_world_b[:2, :3].T + cam_from_world_b[:2, 3]
+    shift = (a / za[front, None] - b / zb[front, None]) * [camera.focal_length_x, camera.focal_length_y]
+    return float(np.median(np.linalg.norm(shift, axis=1)))
 
 
 def _check_camera(camera: CameraInfo | None, path: str | Path | None, label: str) -> CameraInfo:
