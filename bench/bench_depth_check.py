@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     every_point = rm._GroundGrid.seen_by
 
     def uncull(grid, im, reach):  # every map point, whatever the camera sees
-        return grid.points
+        return grid.points, None
 
     rows = []
     for kind, points in maps.items():

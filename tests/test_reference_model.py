@@ -28,6 +28,8 @@ from mapkit.localization.reference_model import (
     observation_errors_px,
     pairs_from_poses,
     pixels_near,
+    point_covariances,
+    point_depth_uncertainty,
     triangulate_reference_model,
 )
 from mapkit.mapping.imagedb import ImageDbConfig, ImageDbWriter
@@ -237,6 +239,85 @@ def test_depth_check_takes_the_nearer_surface_where_it_holds_most_points_and_non
     assert split["compared"] < 0.05 * im.num_points3D
 
 
+def test_depth_check_compares_a_surface_seen_head_on_and_not_one_seen_edge_on(kitti_model):
+    """The model's own points as a map with normals: pointing back along camera 10's rays, its surface faces that
+    camera and it compares as much as without normals; turned across the rays (edge-on), or unknown, that camera
+    compares nothing and the check counts them as left out for the surface."""
+    out, _, _ = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    im = next(im for im in rec.images.values() if _frame_of(im.name) == 10)
+    centre = np.asarray(im.projection_center())
+    points = _own_points_densified(rec)
+    ray = (points - centre) / np.linalg.norm(points - centre, axis=1)[:, None]
+    across = np.cross(ray, [0.0, 1.0, 0.0])  # KITTI's y is down: across a ray that runs near level
+    across /= np.linalg.norm(across, axis=1)[:, None]
+    plain = depth_agreement(rec, points)["images"][im.name]["compared"]
+    facing = depth_agreement(rec, np.c_[points, -ray], max_incidence_deg=70.0)
+    assert facing["images"][im.name]["compared"] == plain > 0.8 * im.num_points3D
+    for normals in (across, np.full_like(ray, np.nan)):
+        d = depth_agreement(rec, np.c_[points, normals], max_incidence_deg=70.0)
+        assert im.name not in d["images"] and d["left_out"]["oblique_or_unknown_surface"] >= plain
+    # without the condition the normals change nothing
+    assert depth_agreement(rec, np.c_[points, across])["images"][im.name]["compared"] == plain
+
+
+def _two_view_point(f: float, baseline: float, X: np.ndarray, axis: int = 0):
+    """Two cameras ``baseline`` apart along world ``axis`` (both looking down +z) that see the point ``X``."""
+    cam = CameraInfo("pin", 640, 480, np.array([[f, 0, 319.5], [0, f, 239.5], [0, 0, 1]]))
+    images = []
+    for k, sign in enumerate((-0.5, 0.5)):
+        T = np.eye(4)
+        T[axis, 3] = sign * baseline
+        images.append(PosedImage(Path(f"{k}.png"), cam, T))
+    rec = _posed_reconstruction(images, ["0.png", "1.png"])
+    track = pycolmap.Track()
+    for image_id in sorted(rec.images):
+        im = rec.images[image_id]
+        uv = np.asarray(im.camera.img_from_cam(im.cam_from_world() * X)).ravel()
+        im.points2D = pycolmap.Point2DList([pycolmap.Point2D(uv)])
+        track.add_element(image_id, 0)
+    return rec, rec.add_point3D(X, track)
+
+
+def test_a_points_depth_uncertainty_is_the_stereo_formulas():
+    """Two cameras side by side, a point straight ahead between them: its depth's standard deviation for one pixel
+    on each keypoint is the stereo rig's sqrt(2) z^2 / (f b), over z; the same two cameras one behind the other
+    (a car driving at the point: it lies on their baseline) do not fix its depth at all."""
+    f, b, z = 500.0, 1.0, 20.0
+    rec, pid = _two_view_point(f, b, np.array([0.0, 0.0, z]))
+    sigma = point_depth_uncertainty(rec, 1, np.array([pid]), point_covariances(rec))
+    assert sigma[0] == pytest.approx(np.sqrt(2) * z / (f * b), rel=1e-9)
+    # four times as far: sixteen times the spread, four times relative to the depth
+    rec, pid = _two_view_point(f, b, np.array([0.0, 0.0, 4 * z]))
+    assert point_depth_uncertainty(rec, 1, np.array([pid]), point_covariances(rec))[0] == pytest.approx(
+        4 * np.sqrt(2) * z / (f * b), rel=1e-9
+    )
+    rec, pid = _two_view_point(f, b, np.array([0.0, 0.0, z]), axis=2)
+    assert not np.isfinite(point_depth_uncertainty(rec, 1, np.array([pid]), point_covariances(rec))[0])
+
+
+def test_depth_check_compares_only_points_their_rays_fix(kitti_model):
+    """At the configured bound the check compares exactly the one-surface observations whose point's depth its rays
+    fix that well, and counts the rest; at a bound no point meets it compares none."""
+    out, _, _ = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    points = _own_points_densified(rec)
+    every = depth_agreement(rec, points)
+    cov = point_covariances(rec)
+    sigmas = np.concatenate(
+        [
+            point_depth_uncertainty(rec, i, np.array([p.point3D_id for p in im.points2D if p.has_point3D()]), cov)
+            for i, im in rec.images.items()
+        ]
+    )
+    bound = float(np.median(sigmas))
+    d = depth_agreement(rec, points, max_depth_uncertainty=bound)
+    assert 0 < d["compared"] < every["compared"]
+    assert d["compared"] + d["left_out"]["weakly_fixed_point"] == every["compared"]
+    none = depth_agreement(rec, points, max_depth_uncertainty=1e-9)
+    assert none["compared"] == 0 and none["left_out"]["weakly_fixed_point"] == every["compared"]
+
+
 def test_depth_check_gathers_every_map_point_a_camera_sees():
     """The ground grid the depth check gathers a camera's map points from holds every point within the view's box:
     against a brute-force box test on random points, for boxes inside, across and outside the points, and no point
@@ -276,9 +357,9 @@ def test_depth_check_cull_keeps_every_point_a_camera_sees():
     points = rng.uniform([-80, -80, -3], [140, 100, 25], (300_000, 3))
     grid = _GroundGrid(points, 8.0)
     for im in rec.images.values():
-        every_uv, every_z = _project_into(im, points, 40.0)
-        near = grid.seen_by(im, 40.0)
-        uv, z = _project_into(im, near, 40.0, grid.origin)
+        every_uv, every_z, _ = _project_into(im, points, 40.0)
+        near, _ = grid.seen_by(im, 40.0)
+        uv, z, _ = _project_into(im, near, 40.0, grid.origin)
         assert len(every_z) > 1000 and len(z) == len(every_z) and len(near) < 0.25 * len(points)
         np.testing.assert_allclose(np.sort(z), np.sort(every_z), atol=1e-3)
 
@@ -313,10 +394,12 @@ def test_workspace_model_is_repeatable(kitti_clip, tmp_path):
     are the database's, named from the workspace root, on the database's poses. A session without maps
     has no depth check; a LiDAR map added to it (here the model's own points) is checked and agrees."""
     ws = _workspace(tmp_path / "ws", kitti_clip, [0, 2, 4, 6])
-    first = build_reference_model(ws.root, config=ReferenceModelConfig(**FAST))
+    # the check's conditions on the surface and on the point's rays have tests of their own: here every point compares
+    cfg = ReferenceModelConfig(**FAST, depth_check_max_incidence_deg=90, depth_check_max_depth_uncertainty=1e9)
+    first = build_reference_model(ws.root, config=cfg)
     assert first == ws.root / "reference_model"
     done_ns = (first / ".done").stat().st_mtime_ns
-    assert build_reference_model(ws.root, config=ReferenceModelConfig(**FAST)) == first  # done: nothing to do
+    assert build_reference_model(ws.root, config=cfg) == first  # done: nothing to do
     assert (first / ".done").stat().st_mtime_ns == done_ns
     assert json.loads((first / "metrics.json").read_text())["depth_check"] == {"semidense": "absent", "lidar": "absent"}
     centroid = _own_points_densified(pycolmap.Reconstruction(str(first / "sfm")))
@@ -325,13 +408,13 @@ def test_workspace_model_is_repeatable(kitti_clip, tmp_path):
         0.1, centroid, np.ones(n, np.int64), np.zeros(n), np.zeros((n, 3)), np.zeros(n), *[np.zeros(n, np.int64)] * 2
     )
     save_voxel_map(ws.session("kitti").lidar_map, stats, None)
-    second = build_reference_model(ws.root, out=tmp_path / "again", config=ReferenceModelConfig(**FAST))
+    second = build_reference_model(ws.root, out=tmp_path / "again", config=cfg)
     check = json.loads((second / "metrics.json").read_text())["depth_check"]
     assert check["semidense"] == "absent" and check["lidar"]["map_points"] == n
     _, _, err = observation_errors_px(pycolmap.Reconstruction(str(second / "sfm")))
     assert check["lidar"]["fraction_compared"] >= np.mean(err < 1.9) and check["lidar"]["fraction_compared"] > 0.7
     assert check["lidar"]["median_relative_difference"] < 0.005
-    build_reference_model(ws.root, config=ReferenceModelConfig(**FAST))  # a new map: the model is built again
+    build_reference_model(ws.root, config=cfg)  # a new map: the model is built again
     assert (first / ".done").stat().st_mtime_ns != done_ns
     assert json.loads((first / "metrics.json").read_text())["depth_check"] == check
     xyz_a, tracks_a = _points(first)

@@ -23,12 +23,14 @@ Image names are paths relative to the images' common folder (the workspace root 
 and the database is written with the model's camera, rig, frame and image ids before extraction,
 so COLMAP's image reader reuses each image by name and database and model agree on every id.
 Every point is triangulated from matches alone; the maps then check it (:func:`depth_agreement`, in
-``metrics.json`` as ``depth_check``): where the session's semi-dense or LiDAR map has points within
-``depth_check_radius_px`` of a keypoint that lie on one surface (``depth_check_max_spread``), their median
-depth is compared with the triangulated point's (``|z_tri - z_map| / z_map``: median, 90th percentile, share
-below 2 %, and the fraction of observations that had a map depth). Both depths rest on the same database
-poses but reach them by other routes (SIFT matches across images, the map's own depth estimates or the
-LiDAR's ranges), so a large difference points at a wrong pose or a session aligned badly.
+``metrics.json`` as ``depth_check``) where both sides fix a depth at a keypoint: the session's semi-dense or LiDAR
+map has points within ``depth_check_radius_px`` of it that lie on one surface (``depth_check_max_spread``), a
+surface facing the camera where the map knows its normals (``depth_check_max_incidence_deg``), and the point's
+rays fix its depth (``depth_check_max_depth_uncertainty``). The map's median depth there is compared with the
+triangulated point's (``|z_tri - z_map| / z_map``: median, 90th percentile, share below 2 %, the fraction of
+observations compared and what each condition left out). Both depths rest on the same database poses but reach
+them by other routes (SIFT matches across images, the map's own depth estimates or the LiDAR's ranges), so a
+large difference points at a wrong pose or a session aligned badly.
 """
 
 from __future__ import annotations
@@ -141,6 +143,26 @@ class ReferenceModelConfig(MapkitConfig):
         "their median is none of them. mapkit choice, measured on the tiny town (which no claim is scored on) "
         "against its true surfaces with bench/depth_check_truth.py: the LiDAR map's depth at a keypoint lies 0.3 % "
         "off (median; 15 % at the 90th percentile) where its points agree, and 0.5 % (84 %) taken over all of them.",
+    )
+    depth_check_max_incidence_deg: float = Field(
+        70.0,
+        gt=0,
+        le=90,
+        description="... on a surface the camera sees at most this far from head-on (deg: the angle between the "
+        "map's normals there and the rays to them; 90 compares every surface; a map without normals, the semi-dense "
+        "one, is compared at any angle). On a surface seen obliquely (the road ahead, a facade along the street) a "
+        "keypoint does not keep to one spot from image to image, and one pixel spans much depth. mapkit choice on "
+        "the tiny town (which no claim is scored on) with bench/depth_check_truth.py: the widest angle at which the "
+        "triangulated points the LiDAR check compares lie within 1 % of the true surfaces (median: 0.8 % at 70, "
+        "1.2 % at 80).",
+    )
+    depth_check_max_depth_uncertainty: float = Field(
+        0.02,
+        gt=0,
+        description="... at a triangulated point whose rays fix its depth to this fraction of it for a one-pixel "
+        "error of each of its keypoints (from its track's geometry, the poses held fixed): the 2 % a check of the "
+        "poses is read at. A point near a forward-moving camera's direction of travel, seen along its baseline, "
+        "has no such depth.",
     )
     sessions: list[str] | None = Field(None, description="Sessions to use; every session with images if unset.")
     allow_unaligned: bool = Field(
@@ -517,11 +539,12 @@ def _observations(im, xyz: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def _project_into(
     im, X_world: np.ndarray, max_depth: float = np.inf, origin: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (M, 2) and camera z (M,) of the points of ``X_world`` (relative to ``origin`` where given, float32
-    or float64) in front of image ``im``'s camera, at most ``max_depth`` deep, that project inside its image
-    (pycolmap's camera model, distortion included). The points are moved to the camera in float32 about its centre
-    (millimetres at hundreds of metres), the depth first so that only the points ahead are carried on."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels (M, 2), camera z (M,) and row in ``X_world`` (M,) of the points of ``X_world`` (relative to
+    ``origin`` where given, float32 or float64) in front of image ``im``'s camera, at most ``max_depth`` deep, that
+    project inside its image (pycolmap's camera model, distortion included). The points are moved to the camera in
+    float32 about its centre (millimetres at hundreds of metres), the depth first so that only the points ahead are
+    carried on."""
     cam = im.camera
     T = np.asarray(im.cam_from_world().matrix(), np.float64)
     centre = np.asarray(im.projection_center(), np.float64) - (0.0 if origin is None else origin)
@@ -535,7 +558,7 @@ def _project_into(
     rel, z = rel[ahead], z[ahead]
     x, y = rel @ R[0], rel @ R[1]
     inside, uv = image_pixels(cam, x, y, z)
-    return uv, z[inside].astype(np.float64)
+    return uv, z[inside].astype(np.float64), ahead[inside]
 
 
 def image_pixels(cam, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -603,7 +626,7 @@ class _GroundGrid:
     """Map points sorted by the ground cell (x, y) they fall in, each cell with its span of heights: the cells a
     camera's view reaches are found by a box-and-frustum test on the cells, and their points gathered in slices."""
 
-    def __init__(self, points: np.ndarray, cell_m: float):
+    def __init__(self, points: np.ndarray, cell_m: float, normals: np.ndarray | None = None):
         self.cell = float(cell_m)
         ij = np.floor(points[:, :2] / self.cell).astype(np.int64)
         self.lo = ij.min(axis=0) if len(ij) else np.zeros(2, np.int64)
@@ -614,6 +637,8 @@ class _GroundGrid:
         # float32 about the points' mean: half the bytes to gather, millimetres over kilometres
         self.origin = points.mean(axis=0) if len(points) else np.zeros(3)
         self.points, key = (points[order] - self.origin).astype(np.float32), key[order]
+        # each point's unit surface normal (NaN where unknown), in the same order
+        self.normals = None if normals is None else np.asarray(normals, np.float32)[order]
         # per non-empty cell: its key, where its points start and stop, and its lowest and highest point
         edge = np.r_[True, key[1:] != key[:-1]] if len(key) else np.zeros(0, bool)
         self.start = np.flatnonzero(edge)
@@ -640,11 +665,22 @@ class _GroundGrid:
             return self.points[:0]
         return np.concatenate([self.points[a:b] for a, b in zip(self.start[cells], self.stop[cells], strict=True)])
 
-    def seen_by(self, im, reach: float) -> np.ndarray:
+    def rows_of(self, cells: np.ndarray | None, positions: np.ndarray) -> np.ndarray:
+        """Rows of ``points`` of the points at ``positions`` of :meth:`gather`'s output for ``cells`` (None: the
+        positions are rows of ``points`` already)."""
+        if cells is None:
+            return np.asarray(positions, np.int64)
+        counts = self.stop[cells] - self.start[cells]
+        first = np.cumsum(counts) - counts  # where each cell's points begin in the gathered array
+        k = np.searchsorted(first, positions, side="right") - 1
+        return self.start[cells][k] + (positions - first[k])
+
+    def seen_by(self, im, reach: float) -> tuple[np.ndarray, np.ndarray | None]:
         """The points of every cell whose column (its ground square between its lowest and highest point) reaches
         into image ``im``'s view out to depth ``reach``: a cell all of whose eight corners lie outside one face of
         the view's pyramid (its four sides through the image's border, the camera's plane, depth ``reach``) is
-        left out; the others are kept whole (relative to ``origin``)."""
+        left out; the others are kept whole (relative to ``origin``), returned with the cells they come from
+        (:meth:`rows_of`)."""
         cam = im.camera
         T = np.asarray(im.cam_from_world().matrix(), np.float64)
         w, h = float(cam.width), float(cam.height)
@@ -656,7 +692,7 @@ class _GroundGrid:
         xy = np.vstack([(far - T[:, 3]) @ T[:, :3], im.projection_center()])[:, :2]  # the pyramid's ground box
         cells = self.cells_within(xy.min(axis=0), xy.max(axis=0))
         if not len(cells):
-            return self.points[:0]
+            return self.points[:0], cells
         ij = np.stack([self.keys[cells] // self.shape[1], self.keys[cells] % self.shape[1]], axis=1) + self.lo
         square = np.array([[0, 0], [0, 1], [1, 0], [1, 1]], np.float64)
         ground = np.tile((ij[:, None, :] + square[None]) * self.cell, (1, 2, 1))  # (C, 8, 2)
@@ -666,29 +702,84 @@ class _GroundGrid:
         outside = np.zeros(len(cells), bool)
         for face in (x - x_lo * z, x_hi * z - x, y - y_lo * z, y_hi * z - y, z, reach - z):
             outside |= np.all(face < 0, axis=1)
-        return self.gather(cells[~outside])
+        return self.gather(cells[~outside]), cells[~outside]
 
 
 def map_depths(
     im, grid: _GroundGrid, keypoints: np.ndarray, reach: float, radius_px: float, min_points: int, max_points: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """The map's depth at each keypoint (K, 2) of image ``im`` and how far its points there spread: the median and
-    the interquartile range of the depths of the ``max_points`` map points (of ``grid``, at most ``reach`` deep)
-    nearest the keypoint within ``radius_px``, NaN where fewer than ``min_points`` lie there."""
-    z_ref, spread = np.full(len(keypoints), np.nan), np.full(len(keypoints), np.nan)
-    uv_map, z_map = _project_into(im, grid.seen_by(im, reach), reach, grid.origin)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The map's depth at each keypoint (K, 2) of image ``im``, how far its points there spread and how obliquely
+    the camera sees their surface: the median and the interquartile range of the depths of the ``max_points`` map
+    points (of ``grid``, at most ``reach`` deep) nearest the keypoint within ``radius_px``, NaN where fewer than
+    ``min_points`` lie there; and the median angle (deg) between their normals and the rays to them, NaN where the
+    grid has no normals or none of theirs is known."""
+    z_ref, spread, incidence = (np.full(len(keypoints), np.nan) for _ in range(3))
+    seen, cells = grid.seen_by(im, reach)
+    uv_map, z_map, at = _project_into(im, seen, reach, grid.origin)
     keep = pixels_near(uv_map, keypoints, radius_px)  # the tree is then built over these few only
-    uv_map, z_map = uv_map[keep], z_map[keep]
+    uv_map, z_map, at = uv_map[keep], z_map[keep], at[keep]
     if len(z_map) < min_points:
-        return z_ref, spread
+        return z_ref, spread, incidence
     dist, idx = cKDTree(uv_map).query(keypoints, k=max_points, distance_upper_bound=radius_px)
     dist, idx = dist.reshape(len(keypoints), -1), idx.reshape(len(keypoints), -1)
     found = np.isfinite(dist)
     ok = found.sum(axis=1) >= min_points
-    z_near = np.where(found[ok], z_map[np.minimum(idx[ok], len(z_map) - 1)], np.nan)
+    near = np.minimum(idx[ok], len(z_map) - 1)
+    z_near = np.where(found[ok], z_map[near], np.nan)
     q25, z_ref[ok], q75 = _row_quartiles(z_near)
     spread[ok] = q75 - q25
-    return z_ref, spread
+    if grid.normals is not None:
+        rows = grid.rows_of(cells, at)
+        ray = seen[at] - (np.asarray(im.projection_center(), np.float64) - grid.origin).astype(np.float32)
+        n = grid.normals[rows]
+        with np.errstate(invalid="ignore", divide="ignore"):  # a zero normal is as unknown as a NaN one
+            cos = np.abs(np.sum(n * ray, axis=1)) / (np.linalg.norm(n, axis=1) * np.linalg.norm(ray, axis=1))
+        angle = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))  # NaN where the normal is unknown
+        incidence[ok] = _row_quartiles(np.where(found[ok], angle[near], np.nan))[1]
+    return z_ref, spread, incidence
+
+
+def point_depth_uncertainty(rec, image_id: int, point_ids: np.ndarray, cov: Mapping[int, np.ndarray]) -> np.ndarray:
+    """How well the rays of each point fix its depth in image ``image_id``: the standard deviation of the camera
+    depth of each of ``point_ids`` for a one-pixel error of every keypoint of its track, over the depth (``cov``:
+    :func:`point_covariances`)."""
+    T = np.asarray(rec.images[image_id].cam_from_world().matrix(), np.float64)
+    if not len(point_ids):
+        return np.zeros(0)
+    C = np.stack([cov[int(p)] for p in point_ids])
+    X = np.stack([rec.points3D[int(p)].xyz for p in point_ids])
+    z = X @ T[2, :3] + T[2, 3]
+    var = np.einsum("i,kij,j->k", T[2, :3], C, T[2, :3])
+    return np.sqrt(np.maximum(var, 0.0)) / np.abs(z)
+
+
+def point_covariances(rec) -> dict[int, np.ndarray]:
+    """Each point's 3x3 covariance (model units squared) for a one-pixel error of each of its keypoints, the poses
+    held fixed: the inverse of the sum over its track of J^T J, J the pinhole projection's 2x3 Jacobian at the
+    point (the cameras' focal lengths; a lens's distortion left out). Infinite where the rays do not fix it."""
+    ids = np.array(sorted(rec.points3D), np.int64)
+    if not len(ids):
+        return {}
+    row = {int(p): i for i, p in enumerate(ids)}
+    xyz = np.stack([rec.points3D[int(p)].xyz for p in ids])
+    info = np.zeros((len(ids), 3, 3))
+    for image_id in sorted(rec.images):
+        im = rec.images[image_id]
+        r = np.array([row[p.point3D_id] for p in im.points2D if p.has_point3D()], np.int64)
+        if not len(r):
+            continue
+        T = np.asarray(im.cam_from_world().matrix(), np.float64)
+        Xc = xyz[r] @ T[:, :3].T + T[:, 3]
+        x, y, z = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], Xc[:, 2]
+        J = np.zeros((len(r), 2, 3))
+        J[:, 0, 0], J[:, 0, 2] = im.camera.focal_length_x / z, -im.camera.focal_length_x * x / z
+        J[:, 1, 1], J[:, 1, 2] = im.camera.focal_length_y / z, -im.camera.focal_length_y * y / z
+        J = J @ T[:, :3]
+        np.add.at(info, r, np.einsum("kai,kaj->kij", J, J))
+    cov = np.full_like(info, np.inf)
+    solid = np.linalg.cond(info) < 1e12
+    cov[solid] = np.linalg.inv(info[solid])
+    return {int(p): c for p, c in zip(ids, cov, strict=True)}
 
 
 def depth_agreement(
@@ -698,46 +789,70 @@ def depth_agreement(
     min_points: int = 3,
     max_points: int = 16,
     max_spread: float = 0.05,
+    max_incidence_deg: float = 90.0,
+    max_depth_uncertainty: float = np.inf,
 ) -> dict:
     """How far the triangulated points lie from a map's depth at their keypoints: a check of the poses
     the model was triangulated on against a map made on the same poses by other means (the semi-dense
     map's depths, the LiDAR's ranges).
 
-    Per image, the map's points (``map_points_world`` (M, 3), the model's frame) within ``DEPTH_CHECK_REACH`` times
-    the image's farthest triangulated depth are projected into the camera; a keypoint with a triangulated point gets
-    the map's depth where at least ``min_points`` of them (the ``max_points`` nearest) lie within ``radius_px`` and
-    agree on one surface: their interquartile range at most ``max_spread`` of their median depth, which is the map's
-    depth there. Where they do not (an edge, or a surface behind it that the map holds from another viewpoint) the
-    map has no one depth at that keypoint and it is not compared. The relative difference is
-    ``|z_tri - z_map| / z_map``. Returns the observations (keypoints with a point), how many and which fraction had
-    a map depth, the median and 90th percentile of the relative difference, its share below 2 %, and per image (by
-    name) the observations compared and their median."""
+    Per image, the map's points (``map_points_world``: (M, 3) in the model's frame, or (M, 6) with their unit
+    normals, NaN where unknown) within
+    ``DEPTH_CHECK_REACH`` times the image's farthest triangulated depth are projected into the camera. A keypoint
+    with a triangulated point is compared where both sides fix a depth there:
+
+    * the map: at least ``min_points`` of its points (the ``max_points`` nearest) lie within ``radius_px`` and on
+      one surface (their interquartile range of depth at most ``max_spread`` of their median, which is the map's
+      depth there) and, where the map has normals, a surface the camera sees at most ``max_incidence_deg`` from
+      head-on (the median angle between their normals and the rays to them; not compared where none is known);
+    * the point: its rays fix its depth to ``max_depth_uncertainty`` of it for a one-pixel error of every keypoint
+      of its track (:func:`point_depth_uncertainty`).
+
+    The relative difference is ``|z_tri - z_map| / z_map``. Returns the observations (keypoints with a point), how
+    many and which fraction were compared, how many each condition left out (in this order: no map depth, several
+    surfaces, an oblique surface or one of unknown orientation, a weakly fixed point), the median and 90th
+    percentile of the relative difference, its share below 2 %, and per image (by name) the observations compared
+    and their median."""
     if min_points < 1 or max_points < min_points:
         raise ValueError(f"need 1 <= min_points <= max_points, got {min_points}, {max_points}")
-    X = np.asarray(map_points_world, np.float64).reshape(-1, 3)
-    X = X[np.isfinite(X @ np.ones(3))]  # a NaN or an infinity in any coordinate
-    grid = _GroundGrid(X, DEPTH_CHECK_CELL_M)
+    X = np.asarray(map_points_world, np.float64)
+    if X.ndim != 2 or X.shape[1] not in (3, 6):
+        raise ValueError(f"map points must be (M, 3) or (M, 6) with normals, got shape {X.shape}")
+    X = X[np.isfinite(X[:, :3] @ np.ones(3))]  # a NaN or an infinity in any coordinate
+    grid = _GroundGrid(X[:, :3], DEPTH_CHECK_CELL_M, X[:, 3:] if X.shape[1] == 6 else None)
     xyz = {pid: p.xyz for pid, p in rec.points3D.items()}
+    cov = point_covariances(rec) if np.isfinite(max_depth_uncertainty) else {}
     observations = 0
+    left_out = {"no_map_depth": 0, "several_surfaces": 0, "oblique_or_unknown_surface": 0, "weakly_fixed_point": 0}
     rel_all: list[np.ndarray] = []
     per_image: dict[str, dict] = {}
     for image_id in sorted(rec.images):
         im = rec.images[image_id]
+        pids = np.array([p.point3D_id for p in im.points2D if p.has_point3D()], np.int64)
         kp, X_tri = _observations(im, xyz)
         observations += len(kp)
-        if not len(kp) or not len(X):
+        if not len(kp):
             continue
         T = np.asarray(im.cam_from_world().matrix(), np.float64)
         z_tri = X_tri @ T[2, :3] + T[2, 3]
         reach = DEPTH_CHECK_REACH * float(z_tri.max())
-        if not reach > 0:
+        if not len(X) or not reach > 0:
+            left_out["no_map_depth"] += len(kp)
             continue
-        z_ref, spread = map_depths(im, grid, kp, reach, radius_px, min_points, max_points)
-        one_surface = spread <= max_spread * z_ref  # NaN (no map depth) compares false
-        if not np.any(one_surface):
+        z_ref, spread, incidence = map_depths(im, grid, kp, reach, radius_px, min_points, max_points)
+        has = np.isfinite(z_ref)
+        one = has & (spread <= max_spread * z_ref)
+        facing = one & (incidence <= max_incidence_deg) if grid.normals is not None and max_incidence_deg < 90 else one
+        fixed = facing.copy()
+        if np.isfinite(max_depth_uncertainty) and facing.any():
+            fixed[facing] = point_depth_uncertainty(rec, image_id, pids[facing], cov) <= max_depth_uncertainty
+        left_out["no_map_depth"] += int(np.sum(~has))
+        left_out["several_surfaces"] += int(np.sum(has & ~one))
+        left_out["oblique_or_unknown_surface"] += int(np.sum(one & ~facing))
+        left_out["weakly_fixed_point"] += int(np.sum(facing & ~fixed))
+        if not np.any(fixed):
             continue
-        z_ref = z_ref[one_surface]
-        rel = np.abs(z_tri[one_surface] - z_ref) / z_ref
+        rel = np.abs(z_tri[fixed] - z_ref[fixed]) / z_ref[fixed]
         rel_all.append(rel)
         per_image[im.name] = {"compared": int(len(rel)), "median_relative_difference": round(float(np.median(rel)), 5)}
     rel = np.concatenate(rel_all) if rel_all else np.zeros(0)
@@ -747,9 +862,12 @@ def depth_agreement(
         "radius_px": float(radius_px),
         "min_points": int(min_points),
         "max_spread": float(max_spread),
+        "max_incidence_deg": float(max_incidence_deg),
+        "max_depth_uncertainty": float(max_depth_uncertainty) if np.isfinite(max_depth_uncertainty) else None,
         "observations": int(observations),
         "compared": int(len(rel)),
         "fraction_compared": round(len(rel) / observations, 4) if observations else 0.0,
+        "left_out": left_out,
         "median_relative_difference": round(float(np.median(rel)), 5) if has else None,
         "p90_relative_difference": round(float(np.percentile(rel, 90)), 5) if has else None,
         "share_below_2pct": round(float(np.mean(rel < 0.02)), 4) if has else None,
@@ -757,7 +875,7 @@ def depth_agreement(
     }
 
 
-def _depth_check(rec, maps: Mapping[str, np.ndarray | None], radius_px: float, max_spread: float) -> dict:
+def _depth_check(rec, maps: Mapping[str, np.ndarray | None], cfg: ReferenceModelConfig) -> dict:
     """``metrics.json``'s ``depth_check``: :func:`depth_agreement` per map source, ``"absent"`` for a source
     without a map; per image only the five images that disagree most (by their median, of those with at least
     20 observations compared)."""
@@ -766,7 +884,14 @@ def _depth_check(rec, maps: Mapping[str, np.ndarray | None], radius_px: float, m
         if points is None:
             out[kind] = "absent"
             continue
-        d = depth_agreement(rec, points, radius_px, max_spread=max_spread)
+        d = depth_agreement(
+            rec,
+            points,
+            cfg.depth_check_radius_px,
+            max_spread=cfg.depth_check_max_spread,
+            max_incidence_deg=cfg.depth_check_max_incidence_deg,
+            max_depth_uncertainty=cfg.depth_check_max_depth_uncertainty,
+        )
         images = d.pop("images")
         enough = [(v["median_relative_difference"], k) for k, v in images.items() if v["compared"] >= 20]
         d["worst_images"] = {k: m for m, k in sorted(enough, reverse=True)[:5]}
@@ -851,7 +976,7 @@ def triangulate_reference_model(
         m = model_metrics(model, len(pairs), _verified_pairs(folder / "database.db"))
         metrics: dict = {**m.__dict__, "image_root": os.path.relpath(root, final.resolve())}
         if maps is not None:
-            metrics["depth_check"] = _depth_check(model, maps, cfg.depth_check_radius_px, cfg.depth_check_max_spread)
+            metrics["depth_check"] = _depth_check(model, maps, cfg)
         write_json(folder / "metrics.json", metrics)
         _, _, err = observation_errors_px(model)
         reference_model_statistics(
@@ -931,10 +1056,12 @@ def _workspace_maps(ws: Workspace, names: list[str]) -> dict[str, np.ndarray | N
             if aligned and source != "align":
                 log.warning("depth check: session %r's %s map is not aligned with its images: left out", name, kind)
                 continue
-            parts.append(
-                SemiDenseMap.load(folder).points_world if kind == "semidense" else load_voxel_stats(folder).centroid
-            )
-        out[kind] = np.concatenate(parts).reshape(-1, 3) if parts else None
+            if kind == "semidense":  # no normals: the check estimates them from the points
+                parts.append(SemiDenseMap.load(folder).points_world)
+            else:
+                voxels = load_voxel_stats(folder)
+                parts.append(np.c_[voxels.centroid, voxels.normal])
+        out[kind] = np.concatenate(parts) if parts else None
     return out
 
 
