@@ -19,13 +19,14 @@ from test_index_vlad import FRAME
 from test_sixdof import FAST, _kitti
 
 from mapkit.cli import main
-from mapkit.core.errors import InputError
+from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad
 from mapkit.core.runio import mark_done
 from mapkit.core.workspace import Workspace
 from mapkit.evaluation.benchmark import band_key
 from mapkit.evaluation.localization import evaluate_localization, format_localization, pose_band_scores
 from mapkit.io.trajectory import read_benchmark_poses, read_tum, write_tum
+from mapkit.localization import localize as localize_module
 from mapkit.localization.localize import localize_log
 from mapkit.localization.reference_model import ReferenceModelConfig, build_reference_model
 from mapkit.localization.sixdof import SixDofLocalizer
@@ -305,3 +306,47 @@ def test_sequence_check_refuses_a_pose_its_neighbours_disagree_with():
         assert out[k] is results[k]
     with pytest.raises(ValueError, match="9 results, 8 odometry steps"):
         check_sequence(results, odometry[1:], fallback, 0.5, 5.0)
+
+
+def test_localize_moves_the_filter_by_the_logs_own_odometry(kitti_ws, kitti_clip, tmp_path, monkeypatch):
+    """``odometry: true`` on a log with a pose stream (a KITTI folder with its poses.txt): the filter and the 6-DoF
+    neighbour check get the camera's motion between consecutive images, here poses.txt's own (to its 7 digits),
+    and metrics.json names the source; without a LiDAR or pose stream there is no metric odometry: one warning,
+    and the run goes on without it."""
+    _, bundle, _, _, _ = kitti_ws
+    frames = [1, 3, 5, 7, 9]
+    log = _query_log(kitti_clip, frames, tmp_path / "with_poses")
+    rows = np.loadtxt(kitti_clip / "poses.txt")[frames]
+    np.savetxt(log / "poses.txt", rows)
+    poses = np.tile(np.eye(4), (len(frames), 1, 1))
+    poses[:, :3] = rows.reshape(-1, 3, 4)
+    seen = {}
+    check = localize_module.check_sequence
+
+    def spy(results, odometry, *args):
+        seen.setdefault("odometry", odometry)
+        return check(results, odometry, *args)
+
+    monkeypatch.setattr(localize_module, "check_sequence", spy)
+    run = localize_module.run_localizer
+
+    def filter_spy(index, images, cfg, odometry, **kwargs):
+        seen["filter"] = odometry
+        return run(index, images, cfg, odometry, **kwargs)
+
+    monkeypatch.setattr(localize_module, "run_localizer", filter_spy)
+    out = localize_log(bundle, log, tmp_path / "run", progress=False, overrides={"odometry": True, "refine": "6dof"})
+    assert json.loads((out / "metrics.json").read_text())["odometry"] == {
+        "source": "poses:/kitti/ground_truth",
+        "steps": 4,
+    }
+    steps = seen["odometry"]
+    assert seen["filter"] is steps and steps[0] is None and len(steps) == len(frames)
+    for k in range(1, len(frames)):
+        np.testing.assert_allclose(steps[k], invert_pose(poses[k - 1]) @ poses[k], atol=1e-6)
+
+    bare = _query_log(kitti_clip, frames, tmp_path / "images_only")
+    with pytest.warns(InputWarning, match="no LiDAR and no pose stream"):
+        out = localize_log(bundle, bare, tmp_path / "bare", progress=False, overrides={"odometry": True})
+    assert json.loads((out / "metrics.json").read_text())["odometry"]["source"] is None
+    assert len(read_tum(out / "poses_tum.txt")[0]) > 0

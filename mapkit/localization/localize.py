@@ -94,9 +94,10 @@ class LocalizeConfig(MapkitConfig):
     )
     odometry: bool = Field(
         False,
-        description="Beyond the paper: drive the motion model by the query session's own trajectory "
-        "(its relative camera motion between queries, turned into the base's through base_from_camera) instead "
-        "of eqs. 1-2. Sets mcl.odometry.enabled.",
+        description="Beyond the paper: drive the motion model by the query drive's own odometry (its relative "
+        "camera motion between queries, turned into the base's through base_from_camera) instead of eqs. 1-2: "
+        "mapkit eval localize takes the query session's built trajectory, mapkit localize the log's (kiss-icp on "
+        "its LiDAR, else its pose stream). Sets mcl.odometry.enabled.",
     )
     seed: int = Field(0, description="Seed of the particle filter.")
     refine: Literal["none", "6dof"] = Field(
@@ -566,6 +567,45 @@ def _query_pixels(frame) -> np.ndarray:
     return image[..., ::-1] if frame.encoding == "bgr8" and image.ndim == 3 else image
 
 
+def log_camera_odometry(
+    lg, camera: str, stamps_ns: np.ndarray, progress: bool = False
+) -> tuple[list[np.ndarray | None] | None, dict[str, Any]]:
+    """The camera's motion between consecutive images of a log (``odometry[t]``: camera t-1 from camera t, None for
+    the first and where the trajectory does not span both stamps), from the log's own trajectory as ``mapkit build``
+    estimates it: kiss-icp on its LiDAR, else its pose stream, moved to the camera by the log's tf. With neither
+    (monocular visual odometry has no metric scale the filter could move by) or where the trajectory cannot be made,
+    ``(None, why)`` and an :class:`InputWarning` saying the filter runs without odometry."""
+    import warnings
+
+    from mapkit.core.config import TopicConfig, resolve_topics
+    from mapkit.core.errors import InputWarning
+    from mapkit.core.geometry import interpolate_poses
+    from mapkit.mapping.trajectory import SensorMounts, TrajectoryConfig, choose_source, estimate_trajectory
+
+    def without(why: str) -> tuple[None, dict[str, Any]]:
+        warnings.warn(f"{lg.path}: odometry: {why}; the filter runs without odometry", InputWarning, stacklevel=3)
+        return None, {"source": None, "why": why}
+
+    try:
+        cfg = TrajectoryConfig()
+        source = choose_source(lg, cfg, resolve_topics(lg, TopicConfig()))
+        if source == "camera":
+            return without("no LiDAR and no pose stream (visual odometry from one camera has no metric scale)")
+        traj = estimate_trajectory(lg, cfg, progress=progress)
+        base_from_cam = SensorMounts.of(lg).base_from(traj.body_frame, camera, "camera")
+    except InputError as e:
+        return without(str(e))
+    world_from_base, inside = interpolate_poses(traj.stamps_ns, traj.world_from_base, stamps_ns)
+    cams: list[np.ndarray | None] = [None] * len(stamps_ns)
+    for t, pose in zip(np.flatnonzero(inside), world_from_base, strict=True):
+        cams[t] = pose @ base_from_cam
+    steps: list[np.ndarray | None] = [None]
+    for t in range(1, len(cams)):
+        a, b = cams[t - 1], cams[t]
+        steps.append(None if a is None or b is None else invert_pose(a) @ b)
+    return steps, {"source": traj.source, "steps": sum(s is not None for s in steps)}
+
+
 @writes_workspace("out", within=True)
 def localize_log(
     bundle: str | Path,
@@ -578,9 +618,11 @@ def localize_log(
 ) -> Path:
     """Run the localizer on the camera images of a drive log against a VLAD bundle; writes the
     filter's and retrieval's camera poses as TUM files, the resolved config and metrics. With
+    ``odometry: true`` the filter moves by the log's own odometry (:func:`log_camera_odometry`). With
     ``refine: 6dof`` each query is then registered against the reference model (default: the
     bundle's source workspace's ``reference_model/``; the log must hold the camera's intrinsics),
-    and :func:`write_sixdof`'s files join the others."""
+    and :func:`write_sixdof`'s files join the others; with odometry, consecutive registered poses are checked
+    against it and unregistered queries retried from a registered neighbour, as ``mapkit eval localize`` does."""
 
     cfg = load_config(LocalizeConfig, config, overrides)
     index = VladIndex.load(bundle)
@@ -624,12 +666,16 @@ def _localize_log(
         atomic_write_text(out / "config.yaml", dump_config(cfg))
         stamps = np.array([f.stamp_ns for f in frames], np.int64)
         t0 = time.perf_counter()
-        r = run_localizer(index, [f.image for f in frames], cfg, progress=progress)
+        odometry, odometry_info = (
+            log_camera_odometry(lg, frames[0].camera, stamps, progress) if cfg.odometry else (None, None)
+        )
+        r = run_localizer(index, [f.image for f in frames], cfg, odometry, progress=progress)
         t1 = time.perf_counter()
         results = None
         if loc is not None:
             pixels = [_query_pixels(f) for f in frames]
-            results = refine_sixdof(loc, index, r, pixels, [info] * len(frames), [str(s) for s in stamps], progress)
+            names = [str(s) for s in stamps]
+            results = refine_sixdof(loc, index, r, pixels, [info] * len(frames), names, progress, odometry=odometry)
     write_run_trajectories(out, stamps, r)
     metrics: dict[str, Any] = {
         "bundle": str(bundle),
@@ -637,6 +683,8 @@ def _localize_log(
         "queries": len(stamps),
         "frame": "workspace ENU of the bundle (world_from_camera)",
     }
+    if odometry_info is not None:
+        metrics["odometry"] = odometry_info
     if results is not None and loc is not None:
         metrics["sixdof"] = write_sixdof(out, stamps, results, loc)
     else:
