@@ -630,7 +630,7 @@ def render_sixdof() -> str:
         text = f"depth against the {k} map, median {spread(median, '{:.1f}')} %"
         compared = [100 * m["depth_fraction_compared"][k] for m in models if k in m.get("depth_fraction_compared", {})]
         if compared:  # a record may not hold the fraction
-            text += f" of the {spread(compared, '{:.0f}')} % of observations where the map gives one depth"
+            text += f" of the {spread(compared, '{:.0f}')} % of observations where map and point both fix a depth"
         parts.append(text)
     note = "; ".join(parts) + ". "
     return (
