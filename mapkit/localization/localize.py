@@ -597,8 +597,8 @@ def log_camera_odometry(
         return without(str(e))
     world_from_base, inside = interpolate_poses(traj.stamps_ns, traj.world_from_base, stamps_ns)
     cams: list[np.ndarray | None] = [None] * len(stamps_ns)
-    for t, pose in zip(np.flatnonzero(inside), world_from_base, strict=True):
-        cams[t] = pose @ base_from_cam
+    for k, pose in zip(np.flatnonzero(inside), world_from_base, strict=True):
+        cams[int(k)] = pose @ base_from_cam
     steps: list[np.ndarray | None] = [None]
     for t in range(1, len(cams)):
         a, b = cams[t - 1], cams[t]
