@@ -108,10 +108,10 @@ class ReferenceModelConfig(MapkitConfig):
     exact_matching: bool = Field(
         True,
         description="Match descriptors by brute force (COLMAP's cpu_brute_force_matcher) instead of COLMAP's default "
-        "approximate index on the CPU. mapkit's default, for the same model from the same inputs: on the demo town "
-        "two builds of the approximate index once differed in 4 of 521 pairs (82 matches against none), which "
-        "moved the clear drive's 6-DoF share within (0.25 m, 2 deg) by 3 points; brute force triples matching "
-        "time (6 -> 18 s there).",
+        "approximate index on the CPU, which can give two builds of the same inputs different matches (on the demo "
+        "town: two models 25 points apart, and a 6-DoF share within (0.25 m, 2 deg) 3 points apart). mapkit's "
+        "default, for the same model from the same inputs; brute force triples matching time (about 6 -> 19 s "
+        "there).",
     )
     max_reprojection_error_px: float = Field(
         4.0, gt=0, description="Observations farther from their point's projection are dropped (COLMAP's default)."
