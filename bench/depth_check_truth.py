@@ -115,24 +115,23 @@ def main(argv: list[str] | None = None) -> int:
         cols[f"{kind}:one"], cols[f"{kind}:all"], cols[f"{kind}:incidence"] = [], [], []
     for image_id in sorted(rec.images)[:: args.every]:
         im = rec.images[image_id]
-        pids = [p.point3D_id for p in im.points2D if p.has_point3D()]
-        if not pids:
+        kp, X_obs, pids = rm._observations(im, xyz)
+        if not len(pids):
             continue
-        kp = np.array([p.xy for p in im.points2D if p.has_point3D()], np.float64)
         T = np.asarray(im.cam_from_world().matrix(), np.float64)
-        z_tri = np.array([xyz[i] for i in pids]) @ T[2, :3] + T[2, 3]
+        z_tri = X_obs @ T[2, :3] + T[2, 3]
         rays = np.c_[np.asarray(im.camera.cam_from_img(kp), np.float64), np.ones(len(kp))] @ T[:, :3]  # z = 1
         origin = np.tile(centres[image_id], (len(kp), 1))
         hits = scene.cast_rays(o3d.core.Tensor(np.c_[origin, rays].astype(np.float32)))["t_hit"].numpy()
         angles = []
-        for pid in pids:
+        for pid in pids.tolist():
             track = np.array([centres[e.image_id] for e in rec.points3D[pid].track.elements]) - xyz[pid]
             track /= np.linalg.norm(track, axis=1)[:, None]
             angles.append(np.degrees(np.arccos(np.clip((track @ track.T).min(), -1.0, 1.0))))
         cols["tri"].append(z_tri)
         cols["true"].append(np.where(np.isfinite(hits), hits, np.nan))
         cols["angle"].append(np.array(angles))
-        sigma = rm.point_depth_uncertainty(rec, image_id, np.array(pids, np.int64), cov)
+        sigma = rm.point_depth_uncertainty(rec, image_id, pids, cov)
         cols["fixed"].append(sigma <= cfg.depth_check_max_depth_uncertainty)
         reach = rm.DEPTH_CHECK_REACH * float(z_tri.max())
         for kind, grid in grids.items():
@@ -145,10 +144,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def checked(kind: str, max_incidence: float) -> np.ndarray:
         """The map's depth where the check compares, NaN elsewhere."""
-        keep = fixed & np.isfinite(a[f"{kind}:one"])
-        if grids[kind].normals is not None and max_incidence < 90:
-            keep &= a[f"{kind}:incidence"] <= max_incidence
-        return np.where(keep, a[f"{kind}:one"], np.nan)
+        facing = rm.facing_surface(a[f"{kind}:incidence"], max_incidence, grids[kind].normals is not None)
+        return np.where(fixed & facing & np.isfinite(a[f"{kind}:one"]), a[f"{kind}:one"], np.nan)
 
     rows = [_row("triangulated, all", a["tri"], a["true"])]
     for lo, hi in ANGLE_BINS:

@@ -36,6 +36,7 @@ from mapkit.io.plots import localization_track
 from mapkit.localization.localize import (
     LocalizeConfig,
     cached_query_all,
+    odometry_steps,
     open_reference_model,
     refine_sixdof,
     remove_sixdof_outputs,
@@ -249,7 +250,7 @@ def _localize_session(
     # placement; run_localizer turns it into the base's motion through the mount (with odometry on), and the 6-DoF
     # refinement checks consecutive poses with it
     cams = imgs.world_from_cam[ok]
-    steps = [None] + [invert_pose(cams[k - 1]) @ cams[k] for k in range(1, len(cams))]
+    steps = odometry_steps(list(cams))
     odo = steps if cfg.odometry else None
     t0 = time.perf_counter()
     ids, dist, cached = cached_query_all(index, paths, cfg.top_k, cache_dir, name, progress=progress)

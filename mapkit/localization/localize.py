@@ -431,6 +431,28 @@ def refine_sixdof(
     return results
 
 
+def odometry_steps(world_from_cam: Sequence[np.ndarray | None]) -> list[np.ndarray | None]:
+    """The camera's motion between consecutive poses, as the filter and the 6-DoF sequence check take odometry:
+    ``odometry[t]`` is camera t-1 from camera t (``cam_prev_from_cam``), None for the first and beside a missing
+    pose."""
+    steps: list[np.ndarray | None] = [None]
+    for a, b in zip(world_from_cam[:-1], world_from_cam[1:], strict=True):
+        steps.append(None if a is None or b is None else invert_pose(a) @ b)
+    return steps
+
+
+def moved_by_odometry(
+    world_from_cam_k: np.ndarray, odometry: Sequence[np.ndarray | None], t: int, k: int
+) -> np.ndarray | None:
+    """Query t's camera pose from its neighbour k's (k = t - 1 or t + 1) moved by the odometry between them; None
+    where that step is unknown."""
+    if k == t - 1:
+        step = odometry[t]
+        return None if step is None else world_from_cam_k @ step
+    step = odometry[k]
+    return None if step is None else world_from_cam_k @ invert_pose(step)
+
+
 def follow_neighbours(
     loc: SixDofLocalizer,
     results: Sequence[SixDofResult],
@@ -451,11 +473,9 @@ def follow_neighbours(
             k = t + side
             if out[t].accepted or not out[k].accepted or out[k].world_from_cam is None:
                 continue
-            step = odometry[t] if side == -1 else odometry[k]
-            if step is None:
+            guide = moved_by_odometry(np.asarray(out[k].world_from_cam), odometry, t, k)
+            if guide is None:
                 continue
-            W = np.asarray(out[k].world_from_cam)
-            guide = W @ step if side == -1 else W @ invert_pose(step)
             again = loc.localize(images[t], cameras[t], [], priors[t], names[t], guides=[guide])
             if again.accepted:
                 again.seconds += out[t].seconds
@@ -479,27 +499,19 @@ def check_sequence(
     if len(odometry) != len(results) or len(fallback) != len(results):
         raise ValueError(f"{len(results)} results, {len(odometry)} odometry steps, {len(fallback)} fallback poses")
     accepted = [r.accepted and r.world_from_cam is not None for r in results]
-
-    def predicted(t: int, k: int) -> np.ndarray | None:
-        """Query t's pose from neighbour k's and the odometry between them."""
-        W = results[k].world_from_cam
-        if W is None:
-            return None
-        if k == t - 1:
-            step = odometry[t]
-            return None if step is None else W @ step
-        step = odometry[k]
-        return None if step is None else W @ invert_pose(step)
-
     out = []
     for t, r in enumerate(results):
         verdicts = []
         for k in (t - 1, t + 1):
-            if 0 <= k < len(results) and accepted[k] and accepted[t] and (P := predicted(t, k)) is not None:
-                W = np.asarray(r.world_from_cam)
-                dm = float(np.linalg.norm(P[:3, 3] - W[:3, 3]))
-                ddeg = float(np.degrees(rotation_angle_rad(P[:3, :3].T @ W[:3, :3])))
-                verdicts.append((dm <= max_m and ddeg <= max_deg, dm, ddeg))
+            if not (0 <= k < len(results) and accepted[k] and accepted[t]):
+                continue
+            P = moved_by_odometry(np.asarray(results[k].world_from_cam), odometry, t, k)
+            if P is None:
+                continue
+            W = np.asarray(r.world_from_cam)
+            dm = float(np.linalg.norm(P[:3, 3] - W[:3, 3]))
+            ddeg = float(np.degrees(rotation_angle_rad(P[:3, :3].T @ W[:3, :3])))
+            verdicts.append((dm <= max_m and ddeg <= max_deg, dm, ddeg))
         if not verdicts or any(ok for ok, _, _ in verdicts):
             out.append(r)
             continue
@@ -599,10 +611,7 @@ def log_camera_odometry(
     cams: list[np.ndarray | None] = [None] * len(stamps_ns)
     for k, pose in zip(np.flatnonzero(inside), world_from_base, strict=True):
         cams[int(k)] = pose @ base_from_cam
-    steps: list[np.ndarray | None] = [None]
-    for t in range(1, len(cams)):
-        a, b = cams[t - 1], cams[t]
-        steps.append(None if a is None or b is None else invert_pose(a) @ b)
+    steps = odometry_steps(cams)
     return steps, {"source": traj.source, "steps": sum(s is not None for s in steps)}
 
 

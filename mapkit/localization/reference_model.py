@@ -539,11 +539,12 @@ def model_metrics(rec, pairs: int = 0, verified: int = 0) -> ModelMetrics:
     )
 
 
-def _observations(im, xyz: dict) -> tuple[np.ndarray, np.ndarray]:
-    """The keypoints (K, 2) of image ``im`` that have a triangulated point, and the points (K, 3)."""
-    obs = [(p.xy, xyz[p.point3D_id]) for p in im.points2D if p.has_point3D()]
+def _observations(im, xyz: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The keypoints (K, 2) of image ``im`` that have a triangulated point, the points (K, 3) and their ids (K,)."""
+    obs = [(p.xy, xyz[p.point3D_id], p.point3D_id) for p in im.points2D if p.has_point3D()]
     uv = np.array([o[0] for o in obs], np.float64).reshape(-1, 2)
-    return uv, np.array([o[1] for o in obs], np.float64).reshape(-1, 3)
+    ids = np.array([o[2] for o in obs], np.int64)
+    return uv, np.array([o[1] for o in obs], np.float64).reshape(-1, 3), ids
 
 
 def _project_into(
@@ -748,6 +749,15 @@ def map_depths(
     return z_ref, spread, incidence
 
 
+def facing_surface(incidence_deg: np.ndarray, max_incidence_deg: float, has_normals: bool) -> np.ndarray:
+    """Where the depth check takes a map's surface as facing the camera: at most ``max_incidence_deg`` from head-on
+    (:func:`map_depths`' angles; unknown ones do not face it), everywhere for a map without normals or a bound of
+    90 deg."""
+    if not has_normals or max_incidence_deg >= 90:
+        return np.ones(len(incidence_deg), bool)
+    return incidence_deg <= max_incidence_deg  # NaN compares false
+
+
 def point_depth_uncertainty(rec, image_id: int, point_ids: np.ndarray, cov: Mapping[int, np.ndarray]) -> np.ndarray:
     """How well the rays of each point fix its depth in image ``image_id``: the standard deviation of the camera
     depth of each of ``point_ids`` for a one-pixel error of every keypoint of its track, over the depth (``cov``:
@@ -837,8 +847,7 @@ def depth_agreement(
     per_image: dict[str, dict] = {}
     for image_id in sorted(rec.images):
         im = rec.images[image_id]
-        pids = np.array([p.point3D_id for p in im.points2D if p.has_point3D()], np.int64)
-        kp, X_tri = _observations(im, xyz)
+        kp, X_tri, pids = _observations(im, xyz)
         observations += len(kp)
         if not len(kp):
             continue
@@ -851,7 +860,7 @@ def depth_agreement(
         z_ref, spread, incidence = map_depths(im, grid, kp, reach, radius_px, min_points, max_points)
         has = np.isfinite(z_ref)
         one = has & (spread <= max_spread * z_ref)
-        facing = one & (incidence <= max_incidence_deg) if grid.normals is not None and max_incidence_deg < 90 else one
+        facing = one & facing_surface(incidence, max_incidence_deg, grid.normals is not None)
         fixed = facing.copy()
         if np.isfinite(max_depth_uncertainty) and facing.any():
             fixed[facing] = point_depth_uncertainty(rec, image_id, pids[facing], cov) <= max_depth_uncertainty
@@ -1065,7 +1074,7 @@ def _workspace_maps(ws: Workspace, names: list[str]) -> dict[str, np.ndarray | N
             if aligned and source != "align":
                 log.warning("depth check: session %r's %s map is not aligned with its images: left out", name, kind)
                 continue
-            if kind == "semidense":  # no normals: the check estimates them from the points
+            if kind == "semidense":  # no normals: the check compares it at any surface angle
                 parts.append(SemiDenseMap.load(folder).points_world)
             else:
                 voxels = load_voxel_stats(folder)
