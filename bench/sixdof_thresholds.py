@@ -51,10 +51,13 @@ MIN_INLIERS = (8, 10, 12, 15, 20, 30)
 RIGHT_M, RIGHT_DEG = 0.25, 2.0
 
 
-def held_out_drive(ws: Workspace, truth: Path, query: str, others: list[str], scratch: Path) -> dict:
-    """Every image of ``query`` localized against the true-pose model of ``others``, once per RANSAC threshold:
-    per threshold the inlier count, position and rotation error of each query's pose (inf without one)."""
-    model = build_reference_model(ws, sessions=others, out=scratch / f"model-{query}", truth=truth)
+def held_out_drive(
+    ws: Workspace, truth: Path, query: str, others: list[str], scratch: Path, model_config: Path | None = None
+) -> dict:
+    """Every image of ``query`` localized against the true-pose model of ``others`` (``model_config``: its settings,
+    mapkit's defaults where None), once per RANSAC threshold: per threshold the inlier count, position and rotation
+    error of each query's pose (inf without one)."""
+    model = build_reference_model(ws, sessions=others, out=scratch / f"model-{query}", config=model_config, truth=truth)
     imgs = read_session_images(ws.root, query)
     gt, ok = truth_camera_poses_at(truth, query, ws.require_frame(), imgs.table["stamp_ns"])
     cams = [im.camera for im, good in zip(workspace_images(ws, [query]), ok, strict=True) if good]
@@ -116,6 +119,9 @@ def main() -> None:
     ap.add_argument("--truth", type=Path, required=True, help="its synthetic town (runs/main/town)")
     ap.add_argument("--out", type=Path, required=True, help="the record (JSON)")
     ap.add_argument("--max-off", type=float, default=0.05, help="largest share of queries accepted off (default 0.05)")
+    ap.add_argument(
+        "--model-config", type=Path, default=None, help="the reference models' settings (YAML; mapkit's defaults)"
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     ws = Workspace(args.workspace)
@@ -125,13 +131,17 @@ def main() -> None:
         raise SystemExit(f"error: {args.workspace}: {len(train)} training drives with images; two or more needed")
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="sixdof-thresholds-") as scratch:
-        drives = {q: held_out_drive(ws, args.truth, q, [n for n in train if n != q], Path(scratch)) for q in train}
+        drives = {
+            q: held_out_drive(ws, args.truth, q, [n for n in train if n != q], Path(scratch), args.model_config)
+            for q in train
+        }
     rows = table(drives)
     best = choose(rows, args.max_off)
     record = {
         "command": "python3 bench/sixdof_thresholds.py runs/main/workspace --truth runs/main/town --out F",
         "seconds": round(time.perf_counter() - t0, 1),
         "max_off": args.max_off,
+        "model_config": None if args.model_config is None else args.model_config.read_text(),
         "drives": {q: {"queries": d["queries"], "model_points": d["model_points"]} for q, d in drives.items()},
         "rows": rows,
         "chosen": best,

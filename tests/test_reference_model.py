@@ -364,6 +364,41 @@ def test_depth_check_cull_keeps_every_point_a_camera_sees():
         np.testing.assert_allclose(np.sort(z), np.sort(every_z), atol=1e-3)
 
 
+def test_depth_check_projects_every_map_point_near_a_keypoint_and_few_others():
+    """With keypoints, the projection keeps every point whose pixel (the projection of all of them) lies within the
+    radius of one, through a pinhole and a distorting lens, and drops most of the rest."""
+    pinhole = CameraInfo("pin", 640, 480, np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]))
+    wide = CameraInfo("wide", 640, 480, pinhole.K, "plumb_bob", np.array([-0.3, 0.1, 0.001, -0.001]))
+    look_x = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], np.float64)  # optical z along world +x, y down
+    T = np.eye(4)
+    T[:3, :3] = look_x
+    images = [PosedImage(Path("0.png"), pinhole, T), PosedImage(Path("1.png"), wide, T)]
+    rec = _posed_reconstruction(images, ["0.png", "1.png"])
+    rng = np.random.default_rng(4)
+    points = rng.uniform([1, -30, -5], [60, 30, 10], (200_000, 3)).astype(np.float32)
+    for im in rec.images.values():
+        uv, z, rows = _project_into(im, points, 50.0)
+        kp = uv[rng.choice(len(uv), 80, replace=False)] + rng.normal(0, 1.5, (80, 2))
+        near_uv, near_z, near_rows = _project_into(im, points, 50.0, None, kp, 2.0)
+        within = cKDTree(kp).query(uv)[0] <= 2.0
+        assert within.sum() > 100 and set(rows[within]) <= set(near_rows)
+        assert len(near_rows) < 0.05 * len(rows)
+        at = {r: i for i, r in enumerate(rows)}
+        i = np.array([at[r] for r in near_rows])
+        np.testing.assert_array_equal(near_uv, uv[i])
+        np.testing.assert_array_equal(near_z, z[i])
+
+
+def test_depth_check_gives_the_same_figures_on_more_threads(kitti_model):
+    """Images projected two at a time give the figures one at a time gives."""
+    out, _, _ = kitti_model
+    rec = pycolmap.Reconstruction(str(out / "sfm"))
+    points = _own_points_densified(rec)
+    one = depth_agreement(rec, points, max_depth_uncertainty=0.02, num_threads=1)
+    assert one["compared"] > 100
+    assert depth_agreement(rec, points, max_depth_uncertainty=0.02, num_threads=2) == one
+
+
 # --- a workspace -------------------------------------------------------------------------------------
 
 FAST = {"first_octave": 0, "max_features": 2048, "pair_neighbours": 2}  # small and quick: the wiring, not the figures
