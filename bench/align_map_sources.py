@@ -1,4 +1,5 @@
-"""Align on LiDAR maps against align on semi-dense maps, on one workspace and its town's truth.
+"""Align on LiDAR maps, on semi-dense maps, and on semi-dense maps with LiDAR where they are too sparse, on one
+workspace and its town's truth.
 
 The workspace needs both maps for every session (the README's main job builds them: `runs/main/workspace`).
 For each map source the sessions are copied into a fresh workspace beside the record, aligned there with
@@ -26,7 +27,7 @@ from mapkit.core.workspace import Workspace  # noqa: E402 (after sys.path points
 from mapkit.evaluation.evaluate import evaluate_align  # noqa: E402 (after sys.path points at this checkout)
 from mapkit.multisession.align import align_workspace  # noqa: E402 (after sys.path points at this checkout)
 
-SOURCES = ("semidense", "lidar")
+SOURCES = ("semidense", "semidense+lidar", "lidar")
 #: what a session needs for align: its stage folders and records (not the workspace's later products)
 KEEP = ("origin.json", "sessions")
 
@@ -70,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("workspace", type=Path, help="a built workspace whose sessions have both maps")
     ap.add_argument("--truth", type=Path, required=True, help="the synthetic town the workspace was built from")
     ap.add_argument("--out", type=Path, required=True, help="the record to write (JSON)")
+    ap.add_argument(
+        "--sources", nargs="+", choices=SOURCES, default=list(SOURCES), help="the map sources to align on (all)"
+    )
     args = ap.parse_args(argv)
     ws = Workspace(args.workspace)
     missing = [n for n in ws.session_names() if not (ws.session(n).lidar_map / "voxels.npz").is_file()]
@@ -78,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     results = {}
     with tempfile.TemporaryDirectory(prefix="align-sources-", dir=args.out.parent) as scratch:
-        for source in SOURCES:
+        for source in args.sources:
             print(f"[align-sources] {source} ...", file=sys.stderr, flush=True)
             results[source] = one_source(ws.root, args.truth, source, Path(scratch))
             r = results[source]

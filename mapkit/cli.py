@@ -223,8 +223,9 @@ def align(
     map_source: str | None = typer.Option(
         None,
         "--map-source",
-        help="Register submap pairs on semidense, lidar or auto (LiDAR maps where both sessions have one); "
-        "default: the config's map_source (semidense).",
+        help="Register submap pairs on semidense, lidar, auto (LiDAR maps where both sessions have one) or "
+        "semidense+lidar (LiDAR maps where the semi-dense ones are too sparse to register); default: the config's "
+        "map_source (semidense+lidar).",
     ),
 ) -> None:
     """Align the sessions of a workspace into one georeferenced frame (GPS, then ICP and a pose graph)."""

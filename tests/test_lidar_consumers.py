@@ -27,8 +27,8 @@ from mapkit.mapping.lidar_map import load_voxel_stats, save_voxel_map
 from mapkit.mapping.semidense import SemiDenseMap
 from mapkit.mapping.trajectory import Trajectory
 from mapkit.mapping.voxel_map import VoxelMap
-from mapkit.multisession.align import AlignConfig, align_workspace, config_identity
-from mapkit.multisession.submaps import voxel_arc_m
+from mapkit.multisession.align import AlignConfig, align_workspace, config_identity, pair_sources
+from mapkit.multisession.submaps import candidate_pairs, load_session, voxel_arc_m
 from mapkit.places.lidar_observations import lidar_observations
 from mapkit.places.triplets import TripletConfig
 
@@ -143,10 +143,26 @@ def test_auto_registers_on_lidar_maps_only_where_both_sessions_have_one_and_says
     assert "Registered on (map_source auto)" in qa and "no LiDAR map (s2)" in qa
 
 
+def test_semidense_and_lidar_takes_the_lidar_maps_where_the_semidense_ones_are_too_sparse(aligned):
+    """The default map source registers a pair on the LiDAR maps where its semi-dense maps hold fewer than min_points
+    about it and both sessions have a LiDAR map: none on the test street's dense maps; with min_points above every
+    pair's points, exactly the pairs of the sessions with LiDAR maps (s0, s1)."""
+    ws = Workspace(aligned)
+    data = [load_session(ws.session(n), ws.frame(), AlignConfig().submap_length_m) for n in ("s0", "s1", "s2")]
+    cands = candidate_pairs(data, AlignConfig().overlap_radius_m)
+    assert AlignConfig().map_source == "semidense+lidar"
+    assert pair_sources(data, cands, AlignConfig()) == ["semidense"] * len(cands)
+    starved = AlignConfig(min_points=10**9)
+    with_lidar = ["lidar" if data[ia].lidar and data[ib].lidar else "semidense" for ia, _, ib, _ in cands]
+    assert "lidar" in with_lidar and "semidense" in with_lidar
+    assert pair_sources(data, cands, starved) == with_lidar
+
+
 def test_semidense_stays_out_of_the_alignments_identity():
     """An alignment made before map_source existed is still the same alignment (its hashes do not move)."""
-    assert "map_source" not in config_identity(AlignConfig())
+    assert "map_source" not in config_identity(AlignConfig(map_source="semidense"))
     assert config_identity(AlignConfig(map_source="lidar"))["map_source"] == "lidar"
+    assert config_identity(AlignConfig())["map_source"] == "semidense+lidar"
 
 
 def test_voxel_arc_is_the_nearest_pose_within_the_time_it_was_seen():
@@ -161,9 +177,13 @@ def test_voxel_arc_is_the_nearest_pose_within_the_time_it_was_seen():
     np.testing.assert_allclose(got, [6.0, 12.0, 18.0])
 
 
-def test_registering_on_lidar_maps_recovers_a_known_offset_that_the_semidense_maps_cannot(world, tmp_path, capsys):
+@pytest.mark.parametrize("source", ["lidar", None])
+def test_registering_on_lidar_maps_recovers_a_known_offset_that_the_semidense_maps_cannot(
+    world, tmp_path, capsys, source
+):
     """Two sessions whose semi-dense maps are too sparse to register (a few hundred points a submap, under
-    min_points): on them align finds no pair; on the LiDAR maps it brings together what GPS left 3.2 m apart."""
+    min_points): on them align finds no pair; on the LiDAR maps (map_source lidar, or the default semidense+lidar,
+    which takes them for exactly such pairs) it brings together what GPS left 3.2 m apart."""
     errors = {"a": gps_error(1.0, -1.5, 0.2, 0.2), "b": gps_error(-1.0, 1.0, -0.2, -0.1)}
     ws = tmp_path / "ws"
     ws.mkdir()
@@ -173,9 +193,10 @@ def test_registering_on_lidar_maps_recovers_a_known_offset_that_the_semidense_ma
         write_session(ws, name, sparse, E, np.random.default_rng(300 + i), lane_y=-2.0 if i == 0 else 2.0)
         write_lidar_map(ws, name, world, E, 60 + i)
     with pytest.raises(InputError, match="0 of .* candidate submap pairs verified"):
-        align_workspace(ws, progress=False)
-    assert main(["align", str(ws), "--map-source", "lidar"]) == 0
-    assert "Registered on (map_source lidar): 3 on lidar maps." in capsys.readouterr().out
+        align_workspace(ws, overrides={"map_source": "semidense"}, progress=False)
+    assert main(["align", str(ws), *(["--map-source", source] if source else [])]) == 0
+    said = "lidar" if source else "semidense+lidar"
+    assert f"Registered on (map_source {said}): 3 on lidar maps." in capsys.readouterr().out
     out = ws / "align"
     pairs = json.loads((out / "pairs.json").read_text())["pairs"]
     assert pairs and all(p["map_source"] == "lidar" for p in pairs) and any(p["accepted"] for p in pairs)

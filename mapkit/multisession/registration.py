@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 import numpy as np
 from pydantic import Field
@@ -357,6 +358,26 @@ class PairResult:
         )
 
 
+def pair_points(
+    a: SessionData | SubmapClouds,
+    i: int,
+    b: SessionData | SubmapClouds,
+    j: int,
+    crop_radius_m: float,
+    target_neighbours: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points a pair is registered on: submap ``i`` of ``a`` and submap ``j`` of ``b`` with ``target_neighbours``
+    submaps on each side, both cropped to ``crop_radius_m`` (in the ground plane) about the pair centre; and that
+    centre."""
+    centre = 0.5 * (a.centres[i] + b.centres[j])
+    src = submap_points(a, i)
+    tgt = submap_points(b, j, target_neighbours)
+    r2 = crop_radius_m**2
+    src = src[np.sum((src[:, :2] - centre[:2]) ** 2, axis=1) < r2]
+    tgt = tgt[np.sum((tgt[:, :2] - centre[:2]) ** 2, axis=1) < r2]
+    return src, tgt, centre
+
+
 def register_pair(
     a: SessionData | SubmapClouds,
     i: int,
@@ -370,13 +391,10 @@ def register_pair(
     """Submap ``i`` of ``a`` registered onto submap ``j`` of ``b`` (with ``target_neighbours``
     submaps on each side), both cropped to ``crop_radius_m`` about the pair centre, and judged."""
     t0 = time.perf_counter()
-    centre = 0.5 * (a.centres[i] + b.centres[j])
-    src = submap_points(a, i)
-    tgt = submap_points(b, j, target_neighbours)
-    r2 = crop_radius_m**2
-    src = src[np.sum((src[:, :2] - centre[:2]) ** 2, axis=1) < r2]
-    tgt = tgt[np.sum((tgt[:, :2] - centre[:2]) ** 2, axis=1) < r2]
-    base = dict(source=(a.name, i), target=(b.name, j), centre=centre, source_points=len(src), target_points=len(tgt))
+    src, tgt, centre = pair_points(a, i, b, j, crop_radius_m, target_neighbours)
+    base: dict[str, Any] = dict(
+        source=(a.name, i), target=(b.name, j), centre=centre, source_points=len(src), target_points=len(tgt)
+    )
     if len(src) < min_points or len(tgt) < min_points:
         return PairResult(
             **base,
