@@ -60,7 +60,10 @@ def apply_correction_voxels(s: SessionData, x_session: np.ndarray, lidar: LidarS
     """Session ``s``'s LiDAR map under its submaps' corrections: centroids moved, normals rotated (still +z up),
     every other statistic as built."""
     st = lidar.stats
-    R, c, t = correction_at(s, x_session, lidar.arc_m)
+    # a voxel's distance driven is a pose's or a scan's (voxel_arc_m): the correction once per distinct one (a few
+    # thousand slerps instead of one per voxel), the same figures handed to every voxel that shares it
+    arcs, at = np.unique(lidar.arc_m, return_inverse=True)
+    R, c, t = (v[at] for v in correction_at(s, x_session, arcs))
     centroid = np.einsum("mij,mj->mi", R, st.centroid - c) + c + t
     normal = rotate_normals(np.einsum("mij,mj->mi", R, st.normal), np.eye(3))
     return VoxelStats(st.voxel_size_m, centroid, st.count, st.intensity, normal, st.planarity, st.first_ns, st.last_ns)
