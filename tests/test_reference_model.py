@@ -449,6 +449,9 @@ def test_workspace_model_is_repeatable(kitti_clip, tmp_path):
     _, _, err = observation_errors_px(pycolmap.Reconstruction(str(second / "sfm")))
     assert check["lidar"]["fraction_compared"] >= np.mean(err < 1.9) and check["lidar"]["fraction_compared"] > 0.7
     assert check["lidar"]["median_relative_difference"] < 0.005
+    timings = json.loads((second / "timings.json").read_text())
+    assert 0 < timings["depth_check_s"] < timings["seconds"]
+    assert json.loads((first / "timings.json").read_text())["depth_check_s"] == 0  # no map: no check
     build_reference_model(ws.root, config=cfg)  # a new map: the model is built again
     assert (first / ".done").stat().st_mtime_ns != done_ns
     assert json.loads((first / "metrics.json").read_text())["depth_check"] == check

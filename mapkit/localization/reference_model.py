@@ -1065,8 +1065,11 @@ def triangulate_reference_model(
         model.write_text(str(folder / "sfm_text"))
         m = model_metrics(model, len(pairs), _verified_pairs(folder / "database.db"))
         metrics: dict = {**m.__dict__, "image_root": os.path.relpath(root, final.resolve())}
+        depth_check_s = 0.0
         if maps is not None:
+            t_check = time.perf_counter()
             metrics["depth_check"] = _depth_check(model, maps, cfg)
+            depth_check_s = time.perf_counter() - t_check
         write_json(folder / "metrics.json", metrics)
         _, _, err = observation_errors_px(model)
         reference_model_statistics(
@@ -1077,7 +1080,7 @@ def triangulate_reference_model(
         )
         xyz = np.array([p.xyz for p in model.points3D.values()]).reshape(-1, 3)
         map_top_view(folder / "top_view.png", xyz, T[:, :3, 3], f"reference model: {len(xyz)} points")
-        write_timings(folder, seconds=time.perf_counter() - t0)
+        write_timings(folder, depth_check_s=depth_check_s, seconds=time.perf_counter() - t0)
         mark_done(folder, h, version=STAGE_VERSION, outputs=["sfm", "sfm_text", "metrics.json"])
     log.info(
         "reference model: %d points, median track %.1f, median reprojection error %.2f px",
