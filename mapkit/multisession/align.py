@@ -160,9 +160,9 @@ class AlignConfig(MapkitConfig):
         "auto (lidar for a pair whose two sessions have a LiDAR map, semidense for the others), or semidense+lidar: "
         "semidense, and lidar for a pair whose semi-dense maps hold fewer than min_points about it (a drive in fog "
         "or at dusk, whose camera saw little) where both sessions have a LiDAR map. Each pair records which. The "
-        "corrections move both maps either way. mapkit's default: registering on the LiDAR maps takes about three "
-        "times as long (bench/align_map_sources.py), and only where the semi-dense maps cannot register at all does "
-        "a session otherwise stay where its GPS put it, metres off.",
+        "corrections move both maps either way. mapkit's default: aligning every pair on the LiDAR maps takes about "
+        "four times as long (bench/align_map_sources.py on the demo town), and only where the semi-dense maps cannot "
+        "register at all does a session otherwise stay where its GPS put it, metres off.",
     )
 
     @field_validator("icp")
