@@ -164,7 +164,7 @@ class ReferenceModelConfig(MapkitConfig):
         "one, is compared at any angle). On a surface seen obliquely (the road ahead, a facade along the street) a "
         "keypoint does not keep to one spot from image to image, and one pixel spans much depth. mapkit choice on "
         "the tiny town (which no claim is scored on) with bench/depth_check_truth.py: the widest angle at which the "
-        "triangulated points the LiDAR check compares lie within 1 % of the true surfaces (median: 0.8 % at 70, "
+        "triangulated points the LiDAR check compares lie within 1 % of the true surfaces (median: 0.9 % at 70, "
         "1.2 % at 80).",
     )
     depth_check_max_depth_uncertainty: float = Field(
