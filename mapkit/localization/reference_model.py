@@ -578,16 +578,16 @@ def _project_into(
     cam_from_origin = np.c_[T[:, :3], -T[:, :3] @ centre]  # camera coordinates of the points as given
     Xc: np.ndarray = cv2.transform(X.reshape(-1, 1, 3), cam_from_origin).reshape(-1, 3)
     x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
-    fx, fy, cx, cy = (float(v) for v in np.asarray(cam.calibration_matrix())[[0, 1, 0, 1], [0, 1, 2, 2]])
-    w, h = float(cam.width), float(cam.height)
-    with np.errstate(divide="ignore", invalid="ignore"):  # behind the camera: masked out below
-        u0, v0 = x / z, y / z
-        u0 *= fx
-        u0 += cx
-        v0 *= fy
-        v0 += cy
     ahead = (z > 1e-6) & (z <= max_depth)
     if cam.model_name in ("PINHOLE", "SIMPLE_PINHOLE"):  # the projection is the pinhole's
+        fx, fy, cx, cy = (float(v) for v in np.asarray(cam.calibration_matrix())[[0, 1, 0, 1], [0, 1, 2, 2]])
+        w, h = float(cam.width), float(cam.height)
+        with np.errstate(divide="ignore", invalid="ignore"):  # behind the camera: masked out with ahead
+            u0, v0 = x / z, y / z
+            u0 *= fx
+            u0 += cx
+            v0 *= fy
+            v0 += cy
         ahead &= (u0 >= 0) & (u0 < w) & (v0 >= 0) & (v0 < h)
         rows = np.flatnonzero(ahead)
         u, v = u0[rows], v0[rows]
@@ -595,10 +595,7 @@ def _project_into(
             keep = _near_cells(u, v, keypoints, radius_px, (0.0, 0.0, w, h))
             rows, u, v = rows[keep], u[keep], v[keep]
         return np.stack([u, v], axis=1).astype(np.float64), z[rows].astype(np.float64), rows
-    # within half an image of the frame before the camera model: a distortion polynomial folds points far outside the
-    # field of view back into the image
-    ahead &= (u0 > -w / 2) & (u0 < 1.5 * w) & (v0 > -h / 2) & (v0 < 1.5 * h)
-    near = np.flatnonzero(ahead)
+    near = np.flatnonzero(ahead)  # the camera model, distortion included
     inside, uv = image_pixels(cam, x[near], y[near], z[near])
     rows = near[inside]
     if keypoints is not None:

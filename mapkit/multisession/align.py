@@ -90,6 +90,7 @@ from mapkit.multisession.registration import (
     Reason,
     Verdict,
     decide,
+    enough_points,
     pair_points,
     register_pair,
 )
@@ -238,7 +239,7 @@ def _too_sparse(a: SessionData, i: int, b: SessionData, j: int, cfg: AlignConfig
     """Whether the semi-dense maps hold too few points about the pair to register it (either side under
     ``min_points`` once cropped as the registration crops them)."""
     src, tgt, _ = pair_points(a, i, b, j, cfg.crop_radius_m, cfg.target_neighbours)
-    return min(len(src), len(tgt)) < cfg.min_points
+    return not enough_points(len(src), len(tgt), cfg.min_points)
 
 
 # --- the registration cache ------------------------------------------------------------------------
@@ -422,7 +423,7 @@ def _register_pairs(
         if (
             r is not None
             and r.verdict.reason is Reason.NOT_REGISTERED
-            and min(r.source_points, r.target_points) >= cfg.min_points
+            and enough_points(r.source_points, r.target_points, cfg.min_points)
         ):
             r = None  # skipped under a stricter min_points than today's
         cached.append(r)
@@ -466,8 +467,7 @@ def _judge(r: PairResult, cfg: AlignConfig) -> PairResult:
     """``r`` with its verdict under the current gates (a cached registration was judged under the gates of the run
     that cached it)."""
     if (
-        r.source_points >= cfg.min_points
-        and r.target_points >= cfg.min_points
+        enough_points(r.source_points, r.target_points, cfg.min_points)
         and r.verdict.reason is not Reason.NOT_REGISTERED
     ):
         r.verdict, _ = decide(r.registration(), cfg.icp, r.centre)

@@ -378,6 +378,11 @@ def pair_points(
     return src, tgt, centre
 
 
+def enough_points(source_points: int, target_points: int, min_points: int) -> bool:
+    """Whether a pair's cropped clouds (:func:`pair_points`) hold enough points on both sides to be registered."""
+    return min(source_points, target_points) >= min_points
+
+
 def register_pair(
     a: SessionData | SubmapClouds,
     i: int,
@@ -395,7 +400,7 @@ def register_pair(
     base: dict[str, Any] = dict(
         source=(a.name, i), target=(b.name, j), centre=centre, source_points=len(src), target_points=len(tgt)
     )
-    if len(src) < min_points or len(tgt) < min_points:
+    if not enough_points(len(src), len(tgt), min_points):
         return PairResult(
             **base,
             target_from_source=np.eye(4),
