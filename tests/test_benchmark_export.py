@@ -344,3 +344,27 @@ def test_a_model_on_the_towns_true_poses(exported, tmp_path):
     with pytest.raises(InputError, match="session 'query'") as err:
         build_reference_model(ws, ["kitti", "query"], out=tmp_path / "none", truth=partial)
     assert err.value.field == "truth" and not (tmp_path / "none").exists()
+
+
+def test_an_export_takes_the_query_encodings_a_localization_kept(exported, tmp_path, monkeypatch):
+    """With a cache of encodings, the retrieval pairs are those encoded afresh, found by the query images'
+    own files in the session (the exported copies hold the same bytes): a second export encodes nothing."""
+    import mapkit.retrieval.vlad_index as vlad_index
+
+    ws, out, _, town = exported
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    cfg = BenchmarkExportConfig(retrieval_k=4)
+    first = export_benchmark(ws, tmp_path / "first", ["query"], truth=town, config=cfg, cache_dir=cache)
+    assert (first / "pairs-query-retrieval.txt").read_text() == (out / "pairs-query-retrieval.txt").read_text()
+    (stored,) = cache.glob("encodings-*.npz")
+    with np.load(stored) as z:
+        keys = [k.split("|")[0] for k in z["keys"].tolist()]
+    assert len(keys) == len(QUERY_FRAMES) and all(str(ws / "sessions" / "query") in k for k in keys)
+
+    def encode(*args, **kwargs):
+        raise AssertionError("encoded again")
+
+    monkeypatch.setattr(vlad_index, "encode_images", encode)
+    again = export_benchmark(ws, tmp_path / "again", ["query"], truth=town, config=cfg, cache_dir=cache)
+    assert (again / "pairs-query-retrieval.txt").read_text() == (out / "pairs-query-retrieval.txt").read_text()

@@ -373,3 +373,26 @@ def test_the_reach_check_measures_a_poses_drift_on_the_image_plane_not_through_a
     through_lens = np.linalg.norm(cam.img_from_cam(points) - cam.img_from_cam(points + [d, 0, 0]), axis=1)
     assert np.median(through_lens) < 1.5 and np.all(cam.img_from_cam(points)[:, 0] < 640)  # the trap, in view
     assert _drift_px(points, np.eye(4)[:3], moved, cam) == pytest.approx(f * d / z, rel=1e-9)
+
+
+def test_queries_extracted_together_have_each_images_own_features(model, kitti_clip, tmp_path):
+    """Many queries' features, extracted by COLMAP's pipeline two at a time, are each image's :meth:`extract`
+    exactly (keypoints and descriptors): files from two folders, a file given twice, an array among them. A file
+    that is gone is one error naming it."""
+    folder, _, _ = model
+    elsewhere = tmp_path / "elsewhere" / "q.png"
+    elsewhere.parent.mkdir()
+    shutil.copy(_image(kitti_clip, 16), elsewhere)
+    array = cv2.imread(str(_image(kitti_clip, 10)), cv2.IMREAD_GRAYSCALE)
+    images = [_image(kitti_clip, 10), elsewhere, array, _image(kitti_clip, 10), str(_image(kitti_clip, 11))]
+    with SixDofLocalizer(folder, SixDofConfig()) as loc:
+        together = loc.extract_many(images)
+        assert len(together) == len(images)
+        for image, (xy, desc) in zip(images, together, strict=True):
+            one_xy, one_desc = loc.extract(image)
+            assert len(xy) > 500
+            np.testing.assert_array_equal(desc, one_desc)
+            np.testing.assert_allclose(xy, one_xy, atol=1e-4)
+        assert not np.array_equal(together[0][1], together[1][1])  # each image its own, not the first's
+        with pytest.raises(InputError, match="gone.png"):
+            loc.extract_many([_image(kitti_clip, 10), tmp_path / "gone.png"])

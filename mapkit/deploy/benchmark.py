@@ -282,11 +282,13 @@ def export_benchmark(
     logs: Mapping[str, str | Path] | None = None,
     config: str | Path | BenchmarkExportConfig | None = None,
     progress: bool | None = None,
+    cache_dir: str | Path | None = None,
 ) -> Path:
     """Export the workspace's reference model, the query sessions' images and their ground truth into ``out``
     (see the module's docstring); returns ``out``. A query session's images come from its image database, else
     from its log in ``logs`` (session -> log path). The folder is written aside and renamed into place when
-    complete."""
+    complete. ``cache_dir``: where the VLAD encodings of image-database queries are kept and found (a
+    localization's ``--cache-dir`` that encoded the same files already)."""
     import pycolmap
 
     t0 = time.perf_counter()
@@ -382,7 +384,8 @@ def export_benchmark(
         names = [q.name for q in kept]
         write_queries_with_intrinsics(folder / QUERIES, [(q.name, q.model, q.width, q.height, q.params) for q in kept])
         write_benchmark_poses(folder / GROUND_TRUTH, names, np.array([invert_pose(T) for T in gt]))
-        pairs, pair_stats = _retrieval_pairs(index_dir, folder / IMAGES, names, db_names, root, ws, cfg, progress)
+        sources = [q.source if q.source is not None else folder / IMAGES / q.name for q in kept]
+        pairs, pair_stats = _retrieval_pairs(index_dir, sources, names, db_names, root, ws, cfg, progress, cache_dir)
         write_pairs(folder / PAIRS, pairs)
         conditions = {q.name: _condition(q.session, town.get(q.session, {})) for q in kept}
         write_json(folder / CONDITIONS, conditions)
@@ -447,21 +450,22 @@ def _write_log_images(qs: list[_Query], images: Path, progress: bool | None) -> 
 
 def _retrieval_pairs(
     index_dir: Path,
-    images: Path,
+    images: list[Path],
     names: list[str],
     db_names: dict[int, str],
     root: Path,
     ws: Workspace,
     cfg: BenchmarkExportConfig,
     progress: bool | None,
+    cache_dir: str | Path | None = None,
 ) -> tuple[list[tuple[str, str]], dict]:
     """Each query's top-k database images of the VLAD index, as the model names them (hits outside the model
-    are left out and counted)."""
+    are left out and counted); ``images``: each query's image file, the exported copy's content."""
     from mapkit.retrieval.index_vlad import VladIndex
 
     index = VladIndex.load(index_dir)
     model_name = {(root / n).resolve(): n for n in db_names.values()}
-    vectors = index.encode_files([images / n for n in names], progress=bool(progress), desc="retrieval")
+    vectors = index.encode_files(images, progress=bool(progress), desc="retrieval", cache_dir=cache_dir)
     _, ids = index.search(vectors, cfg.retrieval_k)
     pairs, outside = [], 0
     for q, row in zip(names, ids, strict=True):

@@ -402,19 +402,19 @@ def refine_sixdof(
     db_names = database_model_names(index, loc)
     priors = [T if np.all(np.isfinite(T)) else None for T in run.poses("filter")]
     results = []
+    started = time.perf_counter()
+    features = loc.extract_many(images, progress)  # once for every attempt
+    extract_s = (time.perf_counter() - started) / max(n, 1)  # each query's share of the batch
     bar = progress_bar(n, progress, "6-DoF", "query")
     for t in range(n):
         prior = priors[t]
         retrieved = [name for i in run.ids[t] if i >= 0 and (name := db_names[i]) is not None]
-        started = time.perf_counter()
-        features = loc.extract(images[t])  # once for both attempts
-        extract_s = time.perf_counter() - started
-        r = loc.localize(images[t], cameras[t], retrieved, prior, names[t], features)
+        r = loc.localize(images[t], cameras[t], retrieved, prior, names[t], features[t])
         r.seconds += extract_s
         if not r.accepted and prior is not None:
             near = loc.candidates_near(prior)
             if near and near[: loc.cfg.max_candidates] != r.candidates:
-                again = loc.localize(images[t], cameras[t], near, prior, names[t], features)
+                again = loc.localize(images[t], cameras[t], near, prior, names[t], features[t])
                 again.seconds += r.seconds
                 again.reason = f"retrieved images: {r.reason}; images near the filter's pose: {again.reason}"
                 r = again
@@ -424,7 +424,7 @@ def refine_sixdof(
     if odometry is not None and loc.cfg.sequence_max_m is not None:
         results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
     if odometry is not None and loc.cfg.guided_radii_px:
-        results = follow_neighbours(loc, results, images, cameras, names, priors, odometry)
+        results = follow_neighbours(loc, results, images, cameras, names, priors, odometry, features)
         if loc.cfg.sequence_max_m is not None:
             results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
     logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
@@ -461,11 +461,13 @@ def follow_neighbours(
     names: Sequence[str],
     priors: Sequence[np.ndarray | None],
     odometry: Sequence[np.ndarray | None],
+    features: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> list[SixDofResult]:
     """``results`` with each query not accepted tried once more, matched guided from an accepted neighbour's pose
     moved by the odometry between them: forward through the sequence from the previous query, then backward from
     the next, so that a run of queries the filter and retrieval both missed is registered from the first good pose
-    beside it. A query that still does not register keeps its result."""
+    beside it. A query that still does not register keeps its result. ``features``: each query's
+    :meth:`~SixDofLocalizer.extract`, when the caller has them (extracted again otherwise)."""
     out = list(results)
     order = [(range(1, len(out)), -1), (range(len(out) - 2, -1, -1), 1)]
     for steps, side in order:
@@ -476,7 +478,9 @@ def follow_neighbours(
             guide = moved_by_odometry(np.asarray(out[k].world_from_cam), odometry, t, k)
             if guide is None:
                 continue
-            again = loc.localize(images[t], cameras[t], [], priors[t], names[t], guides=[guide])
+            again = loc.localize(
+                images[t], cameras[t], [], priors[t], names[t], None if features is None else features[t], [guide]
+            )
             if again.accepted:
                 again.seconds += out[t].seconds
                 again.reason = f"{out[t].reason}; from the {'previous' if side == -1 else 'next'} query: {again.reason}"

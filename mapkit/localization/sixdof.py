@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import itertools
 import logging
+import os
 import struct
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -53,6 +55,7 @@ from mapkit.localization.reference_model import (
     ReferenceModelConfig,
     colmap_camera,
     image_pixels,
+    quiet_colmap,
     sift_extraction_options,
 )
 
@@ -159,7 +162,7 @@ class SixDofResult:
     inliers: int
     matches: int
     candidates: list[str] = field(default_factory=list)
-    seconds: float = 0.0
+    seconds: float = 0.0  # with the query's share of a batch's feature extraction
 
 
 # --- the model on disk -----------------------------------------------------------------------------------
@@ -374,6 +377,60 @@ class SixDofLocalizer:
             kp, desc = self._extractor.extract_from_uint8_array(np.ascontiguousarray(arr))
         xy = np.array([[k.x, k.y] for k in kp], np.float64).reshape(-1, 2)
         return xy, np.ascontiguousarray(np.asarray(desc.data, np.uint8)).reshape(-1, 128)
+
+    def extract_many(
+        self, images: Sequence[np.ndarray | str | Path], progress: bool = False
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """:meth:`extract` of every image, the same features. Image files go through COLMAP's own extraction
+        pipeline, ``num_threads`` images at a time (one image's SIFT holds the interpreter: threads of
+        :meth:`extract` would take turns), in batches so that progress shows; arrays are extracted one by one."""
+        import pycolmap
+
+        out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(images)
+        files: dict[Path, list[int]] = {}
+        for k, image in enumerate(images):
+            if isinstance(image, (str, Path)):
+                if not Path(image).is_file():
+                    raise InputError(image, "no such image")
+                files.setdefault(Path(image).resolve(), []).append(k)
+        bar = progress_bar(len(images), progress, "SIFT", "image")
+        if files:
+            paths = list(files)
+            root = Path(os.path.commonpath([p.parent for p in paths]))
+            extraction = sift_extraction_options(self.features, self.cfg.num_threads)
+            batch = 8 * self.cfg.num_threads
+            with tempfile.TemporaryDirectory(prefix="mapkit-sift-") as tmp, quiet_colmap():
+                db_path = Path(tmp) / "queries.db"
+                for start in range(0, len(paths), batch):
+                    names = [p.relative_to(root).as_posix() for p in paths[start : start + batch]]
+                    pycolmap.extract_features(
+                        db_path,
+                        root,
+                        image_names=names,
+                        camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                        extraction_options=extraction,
+                        device=pycolmap.Device.cpu,
+                    )
+                    bar.update(sum(len(files[p]) for p in paths[start : start + batch]))
+                db = pycolmap.Database.open(str(db_path))
+                try:
+                    stored = {im.name: im.image_id for im in db.read_all_images()}
+                    for p, ks in files.items():
+                        image_id = stored.get(p.relative_to(root).as_posix())
+                        if image_id is None:
+                            raise InputError(p, "not an image COLMAP can read")
+                        xy = np.array(db.read_keypoints(image_id)[:, :2], np.float64).reshape(-1, 2)
+                        desc = np.ascontiguousarray(np.asarray(db.read_descriptors(image_id).data, np.uint8))
+                        for k in ks:
+                            out[k] = (xy, desc.reshape(-1, 128))
+                finally:
+                    db.close()
+        for k, image in enumerate(images):
+            if out[k] is None:
+                out[k] = self.extract(image)
+                bar.update(1)
+        bar.close()
+        return [o for o in out if o is not None]
 
     def localize(
         self,
@@ -668,6 +725,17 @@ def guided_matches(
     return np.stack([q[best], pid[best]], axis=1).astype(np.int64)
 
 
+def _extract_shared(
+    loc: SixDofLocalizer, images: Sequence[np.ndarray | str | Path], progress: bool | None
+) -> list[tuple[tuple[np.ndarray, np.ndarray], float]]:
+    """Every image's features (:meth:`SixDofLocalizer.extract_many`), each with its share of the extraction's
+    seconds, which a query's result counts as its own."""
+    t0 = time.perf_counter()
+    features = loc.extract_many(images, bool(progress))
+    share = (time.perf_counter() - t0) / max(len(images), 1)
+    return [(f, share) for f in features]
+
+
 def localize_images(
     model_folder: str | Path,
     queries: Sequence[SixDofQuery],
@@ -682,11 +750,13 @@ def localize_images(
         raise InputError(None, f"{len(queries)} queries but {len(candidates_per_query)} candidate lists")
     results = []
     with SixDofLocalizer(model_folder, cfg) as loc:
+        features = _extract_shared(loc, [q.image for q in queries], progress)
         bar = progress_bar(len(queries), progress, "6-DoF", "image")
-        for q, cands in zip(queries, candidates_per_query, strict=True):
+        for q, cands, f in zip(queries, candidates_per_query, features, strict=True):
             if cands is None:
                 cands = [] if q.fallback_world_from_cam is None else loc.candidates_near(q.fallback_world_from_cam)
-            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name))
+            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name, f[0]))
+            results[-1].seconds += f[1]
             bar.update()
         bar.close()
     n = sum(r.accepted for r in results)
@@ -720,9 +790,11 @@ def localize_benchmark(
             queries.append(SixDofQuery(name, folder / IMAGES / name, camera, fallback))
             candidates.append(cands)
         results = []
+        features = _extract_shared(loc, [q.image for q in queries], progress)
         bar = progress_bar(len(queries), progress, "6-DoF", "image")
-        for q, cands in zip(queries, candidates, strict=True):
-            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name))
+        for q, cands, f in zip(queries, candidates, features, strict=True):
+            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name, f[0]))
+            results[-1].seconds += f[1]
             bar.update()
         bar.close()
     posed = [r for r in results if r.cam_from_world is not None]

@@ -500,7 +500,14 @@ def _sixdof(d: Demo) -> None:
             f"{fit['offset_m']:.2f} m off the truth; fit residual {fit['residual_rmse_m']:.2f} m RMSE)."
         )
         sec.md(format_sixdof(r))
-        bench = export_benchmark(d.ws, d.out / "benchmark", queries=d.test_sessions, truth=d.town, progress=d.progress)
+        bench = export_benchmark(
+            d.ws,
+            d.out / "benchmark",
+            queries=d.test_sessions,
+            truth=d.town,
+            progress=d.progress,
+            cache_dir=_localize_cache(d.ws),
+        )
         sec.md(
             f"Benchmark export for outside localizers: `{bench}` (the model, `queries_with_intrinsics.txt`, the "
             "ground truth and retrieval pairs; its README says what each file is)."
