@@ -369,6 +369,67 @@ def test_coarsen_merges_voxels_by_count_and_keeps_the_times_they_were_seen():
         coarsen(fine, 0.25)
 
 
+def test_coarsen_sorts_packed_voxel_keys_as_it_sorts_their_rows(monkeypatch):
+    """Merging 20,000 random voxels either side of the origin through one packed int64 key per voxel gives exactly
+    the merge through np.unique of the (i, j, k) rows (every field, bit for bit); a map beyond the packed keys'
+    range (a voxel 2,000 km out at 1 m) takes the rows' way and still merges."""
+    from mapkit.mapping.voxel_map import VoxelStats
+    from mapkit.places import lidar_observations
+
+    rng = np.random.default_rng(3)
+    n = 20_000
+    centroid = rng.uniform(-60.0, 60.0, (n, 3))
+    fine = VoxelStats(
+        0.25,
+        centroid,
+        rng.integers(1, 9, n),
+        np.where(rng.random(n) < 0.2, np.nan, rng.uniform(0, 100, n)),
+        np.full((n, 3), 0.5),
+        np.full(n, 0.9),
+        rng.integers(0, 10**9, n),
+        rng.integers(10**9, 2 * 10**9, n),
+    )
+    packed = lidar_observations.coarsen(fine, 1.5)
+    monkeypatch.setattr(lidar_observations, "packable", lambda keys: False)
+    rows = lidar_observations.coarsen(fine, 1.5)
+    monkeypatch.undo()
+    assert 1000 < len(packed) < n
+    for field in ("centroid", "count", "intensity", "first_ns", "last_ns"):
+        np.testing.assert_array_equal(getattr(packed, field), getattr(rows, field))
+    far = VoxelStats(
+        0.25,
+        centroid + [2.0e6, 0.0, 0.0],
+        *[getattr(fine, f) for f in ("count", "intensity", "normal", "planarity", "first_ns", "last_ns")],
+    )
+    moved = lidar_observations.coarsen(far, 1.0)
+    assert len(moved) == len(lidar_observations.coarsen(fine, 1.0))
+
+
+def test_a_lidar_map_read_again_unchanged_is_read_once(aligned, tmp_path, monkeypatch):
+    """Loading a session's LiDAR map twice with the same merge reads it once (the same object); another merge, or
+    the map's trajectory changed on disk, reads it again."""
+    import shutil
+
+    from mapkit.places import index_structure
+
+    ws = Workspace(shutil.copytree(aligned, tmp_path / "ws", symlinks=True))
+    reads = []
+    real = index_structure.load_lidar_observations
+    monkeypatch.setattr(index_structure, "load_lidar_observations", lambda *a: reads.append(a) or real(*a))
+    folder, where = ws.session_map("s0", True, "lidar")
+    first = index_structure.load_session_map(ws, "s0", folder, where, "lidar", 0.5)
+    assert index_structure.load_session_map(ws, "s0", folder, where, "lidar", 0.5) is first
+    assert len(reads) == 1
+    other = index_structure.load_session_map(ws, "s0", folder, where, "lidar", 1.0)
+    assert len(reads) == 2 and len(other.points_world) < len(first.points_world)
+    trajectory = sorted(ws.map_trajectory("s0", where).glob("*.npz"))[0]
+    with np.load(trajectory) as z:
+        arrays = {k: z[k] for k in z.files}
+    np.savez(trajectory, **{k: (v + 1.0 if v.dtype.kind == "f" else v) for k, v in arrays.items()})
+    again = index_structure.load_session_map(ws, "s0", folder, where, "lidar", 0.5)
+    assert len(reads) == 3 and again is not first
+
+
 def test_a_merge_voxel_not_above_the_maps_own_is_a_warning_and_the_map_as_built(aligned):
     """lidar_voxel_m at or below the built 0.25 m voxels has nothing to merge: one warning naming the folder, and
     every voxel of the map; above it, fewer points than voxels."""

@@ -275,6 +275,17 @@ def symmetric3_eigen(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return evals, vec
 
 
+def packable(ijk: np.ndarray) -> bool:
+    """Whether every voxel index (i, j, k) fits the packed keys' range (+-2**20 per axis)."""
+    return not len(ijk) or bool(np.all(ijk >= -_HALF) and np.all(ijk < _HALF))
+
+
+def pack_voxel_keys(ijk: np.ndarray) -> np.ndarray:
+    """One int64 key per voxel index (i, j, k) (:func:`packable`), ordered by i, then j, then k: sorting the keys
+    sorts the rows as ``np.unique(ijk, axis=0)`` does, several times faster."""
+    return _pack(np.asarray(ijk, np.int64))
+
+
 def _pack(ijk: np.ndarray) -> np.ndarray:
     """One int64 key per voxel index (i, j, k), ordered by i, then j, then k."""
     u = ijk + _HALF

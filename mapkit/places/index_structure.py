@@ -362,8 +362,21 @@ def load_session_map(
     (:func:`~mapkit.places.lidar_observations.load_lidar_observations`, voxels merged to ``lidar_voxel_m`` when
     given), which the structure stages read as they read a semi-dense map."""
     if source == "lidar":
-        return load_lidar_observations(folder, ws.map_trajectory(name, where), lidar_voxel_m)
+        trajectory = ws.map_trajectory(name, where)
+        key = lidar_map_checksum(folder, trajectory, lidar_voxel_m)  # what is read, by content
+        if key not in _LIDAR_LOADED:
+            while len(_LIDAR_LOADED) >= _LIDAR_LOADED_MAX:
+                _LIDAR_LOADED.pop(next(iter(_LIDAR_LOADED)))
+            _LIDAR_LOADED[key] = load_lidar_observations(folder, trajectory, lidar_voxel_m)
+        return _LIDAR_LOADED[key]
     return SemiDenseMap.load(folder)
+
+
+#: LiDAR maps with their observing frames, as :func:`load_session_map` last read them, by the checksum of what it
+#: read: an evaluation of several pairs and methods reads each session's map once (each read merges a drive's
+#: 1.9 M voxels again). The maps are shared, not copied: their readers do not change them.
+_LIDAR_LOADED: dict[str, object] = {}
+_LIDAR_LOADED_MAX = 6
 
 
 def session_map_checksum(

@@ -30,7 +30,7 @@ from mapkit.core.runio import config_hash, sha256_file
 from mapkit.mapping.lidar_map import load_voxel_stats
 from mapkit.mapping.semidense import map_size
 from mapkit.mapping.trajectory import Trajectory
-from mapkit.mapping.voxel_map import VoxelStats
+from mapkit.mapping.voxel_map import VoxelStats, pack_voxel_keys, packable
 
 #: frames along the trajectory; mapkit choice: a semi-dense map's keyframes come about every metre or two
 LIDAR_FRAME_SPACING_M = 2.0
@@ -106,7 +106,10 @@ def coarsen(stats: VoxelStats, voxel_m: float) -> VoxelStats:
     if not voxel_m > stats.voxel_size_m:
         raise ValueError(f"coarsen to {voxel_m} m: not larger than the map's {stats.voxel_size_m} m voxels")
     keys = np.floor(stats.centroid / voxel_m).astype(np.int64)
-    uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+    if packable(keys):  # one int64 per voxel sorts as the rows do
+        uniq, inv = np.unique(pack_voxel_keys(keys), return_inverse=True)
+    else:
+        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
     inv = inv.reshape(-1)
     n = len(uniq)
     w = stats.count.astype(np.float64)
