@@ -288,14 +288,21 @@ def test_the_deployment_bundle_carries_the_reference_model_with_checksums(export
     files = json.loads((out / "reference_model" / "manifest.json").read_text())["files"]
     assert {"database.db", "config.yaml", "metrics.json", "sfm/points3D.bin"} <= set(files)
     bundle = load_bundle(out)
+    db = out / "reference_model" / "database.db"
+    before, listing = db.read_bytes(), sorted(p.name for p in db.parent.iterdir())
     loc = SixDofLocalizer(bundle["reference_model"])
     try:
         model = pycolmap.Reconstruction(str(ws / "reference_model" / "sfm"))
         assert sorted(loc.image_names) == sorted(im.name for im in model.images.values())
+        for name in loc.image_names:  # every image's descriptors, one per keypoint of the model
+            assert len(loc._database_features(name)[0]) == model.find_image_with_name(name).num_points2D()
     finally:
         loc.close()
+    # reading the model leaves its files as they were (COLMAP's own Database.open rewrites the database's header
+    # and leaves a journal beside it), so the bundle still verifies
+    assert db.read_bytes() == before and sorted(p.name for p in db.parent.iterdir()) == listing
+    load_bundle(out)
     assert "reference_model" not in load_bundle(export_bundles(ws, tmp_path / "vlad-only", ["vlad"])).indexes
-    db = out / "reference_model" / "database.db"
     data = bytearray(db.read_bytes())
     data[-1] ^= 0xFF
     db.write_bytes(bytes(data))

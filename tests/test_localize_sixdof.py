@@ -152,7 +152,10 @@ def test_sixdof_poses_are_ten_times_closer_than_the_filter(kitti_ws, tmp_path, c
     assert record["model"] == metrics["model"] == str(ws / "reference_model")
     accepted = [q for q in record["per_query"] if q["accepted"]]
     assert len(record["per_query"]) == len(truth) and metrics["accepted"] == len(accepted)
-    assert metrics["accepted_share"] == pytest.approx(len(accepted) / len(truth)) and metrics["median_s_per_query"] > 0
+    assert metrics["accepted_share"] == pytest.approx(len(accepted) / len(truth))
+    timings = json.loads((out / "timings.json").read_text())  # the run record: times stay out of the outputs
+    assert 0 < timings["sixdof_median_s_per_query"] <= timings["sixdof_max_s_per_query"]
+    assert "seconds" not in record["per_query"][0] and "median_s_per_query" not in record
     assert all(q["inliers"] >= record["config"]["min_inliers"] for q in accepted)
 
     scores = pose_band_scores(gt, sixdof)
@@ -258,15 +261,14 @@ def test_band_scores_of_camera_poses_known_answer():
         "recall_at_1": 0.5,
         "sixdof": {
             "accepted_share": 0.75,
-            "median_s_per_query": 0.4,
             "6dof": asdict(s),
             "filter": asdict(s),
             "retrieval": asdict(s),
         },
     }
     md = format_localization({"sessions": {"test-night": session}})
-    assert "| test-night | 4 | 6-DoF | 25.0 % | 50.0 % | 75.0 % | 1.700 / 1.50 | 75.0 % | 0.40 |" in md
-    assert "| test-night | 4 | retrieval | 25.0 % | 50.0 % | 75.0 % | 1.700 / 1.50 |  |  |" in md
+    assert "| test-night | 4 | 6-DoF | 25.0 % | 50.0 % | 75.0 % | 1.700 / 1.50 | 75.0 % |" in md
+    assert "| test-night | 4 | retrieval | 25.0 % | 50.0 % | 75.0 % | 1.700 / 1.50 |  |" in md
 
 
 def test_sequence_check_refuses_a_pose_its_neighbours_disagree_with():

@@ -396,3 +396,25 @@ def test_queries_extracted_together_have_each_images_own_features(model, kitti_c
         assert not np.array_equal(together[0][1], together[1][1])  # each image its own, not the first's
         with pytest.raises(InputError, match="gone.png"):
             loc.extract_many([_image(kitti_clip, 10), tmp_path / "gone.png"])
+
+
+def test_a_features_database_that_is_not_colmaps_is_one_error_naming_it(model, tmp_path):
+    """A database.db of other bytes, or a SQLite file without COLMAP's tables, is one error naming the file; the
+    file is left as it was."""
+    folder, _, _ = model
+    for label, content in (("garbage", b"not a database at all" * 100), ("empty sqlite", None)):
+        damaged = tmp_path / label.replace(" ", "_")
+        shutil.copytree(folder, damaged)
+        db = damaged / "database.db"
+        db.unlink()
+        if content is None:
+            import sqlite3
+
+            sqlite3.connect(db).execute("CREATE TABLE other (x INTEGER)").connection.close()
+        else:
+            db.write_bytes(content)
+        before = db.read_bytes()
+        with pytest.raises(InputError, match="not a readable COLMAP database") as err:
+            SixDofLocalizer(damaged)
+        assert err.value.path == db and err.value.field == "database"
+        assert db.read_bytes() == before

@@ -53,11 +53,12 @@ from mapkit.core.bundle import building
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import InputError, MapkitError
 from mapkit.core.geometry import interpolate_poses, invert_pose
-from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, write_json, write_timings
+from mapkit.core.runio import atomic_write_text, config_hash, is_done, mark_done, sha256_file, write_json, write_timings
 from mapkit.core.types import CameraInfo
 from mapkit.core.workspace import MAP_KINDS, Workspace
 from mapkit.core.writers import writes_workspace
 from mapkit.io.benchmark import camera_info_from_colmap, colmap_camera_params
+from mapkit.io.colmap_db import ColmapDatabase
 from mapkit.io.plots import map_top_view, reference_model_statistics
 from mapkit.retrieval.vlad_bundle import read_session_images
 
@@ -452,6 +453,7 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
         t2 = time.perf_counter()
         model = pycolmap.triangulate_points(rec, db_path, root, folder / "sfm", clear_points=True, options=tri)
         drop_near_points(model, cfg.min_depth_m)
+        compact_database(db_path)
         write_timings(folder, extraction_s=t1 - t0, matching_s=t2 - t1, triangulation_s=time.perf_counter() - t2)
     return model
 
@@ -473,6 +475,23 @@ def drop_near_points(rec, min_depth: float) -> int:
     if near:
         log.info("dropped %d points nearer than %g to a camera that sees them", len(near), min_depth)
     return len(near)
+
+
+def compact_database(db_path: Path) -> None:
+    """Rewrite a COLMAP database afresh in its rows' order (SQLite's ``VACUUM INTO`` a new file, which then replaces
+    it): matching threads insert the pairs in whatever order they finish, which leaves the same rows in other pages
+    and another count of writes in the header, so two builds of the same model would differ in their bytes (and
+    checksums) though not in what they hold."""
+    import sqlite3
+
+    fresh = db_path.with_name(db_path.name + ".compact")
+    fresh.unlink(missing_ok=True)
+    con = sqlite3.connect(db_path)
+    try:
+        con.execute("VACUUM INTO ?", (str(fresh),))
+    finally:
+        con.close()
+    os.replace(fresh, db_path)
 
 
 def _check_database(db_path: Path, rec) -> None:
@@ -987,13 +1006,8 @@ def _depth_check(rec, maps: Mapping[str, np.ndarray | None], cfg: ReferenceModel
 
 
 def _verified_pairs(db_path: Path) -> int:
-    import pycolmap
-
-    db = pycolmap.Database.open(str(db_path))
-    try:
-        return int(db.num_verified_image_pairs())
-    finally:
-        db.close()
+    with ColmapDatabase(db_path) as db:  # read-only: the compacted file stays as written
+        return db.num_verified_pairs()
 
 
 def _input_hash(
@@ -1002,11 +1016,11 @@ def _input_hash(
     names: list[str],
     maps: Mapping[str, np.ndarray | None] | None = None,
 ) -> str:
-    """The config, every image's name, pose, camera and file size and time, and the maps' points: a changed
-    input rebuilds."""
+    """The config, every image's name, pose, camera and file content, and the maps' points: a changed input
+    rebuilds (the same files written again do not, and two builds of the same inputs record the same hash)."""
     rows = []
     for im, name in zip(images, names, strict=True):
-        st = Path(im.path).stat()
+        path = Path(im.path)
         assert im.camera is not None
         cam = im.camera
         rows.append(
@@ -1014,8 +1028,8 @@ def _input_hash(
                 name,
                 np.round(np.asarray(im.world_from_cam, np.float64), 9).tolist(),
                 [cam.width, cam.height, np.round(cam.K, 9).tolist(), np.round(np.asarray(cam.D), 12).tolist()],
-                st.st_size,
-                st.st_mtime_ns,
+                path.stat().st_size,
+                sha256_file(path),
             ]
         )
     h = {"cfg": cfg.model_dump(mode="json", exclude={"sessions"}), "images": rows, "v": STAGE_VERSION}

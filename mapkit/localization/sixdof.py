@@ -50,6 +50,7 @@ from mapkit.io.benchmark import (
     read_pairs,
     read_queries_with_intrinsics,
 )
+from mapkit.io.colmap_db import ColmapDatabase
 from mapkit.io.trajectory import write_benchmark_poses
 from mapkit.localization.reference_model import (
     ReferenceModelConfig,
@@ -264,24 +265,19 @@ class SixDofLocalizer:
         self.features = model_features_config(
             Path(model_config) if model_config is not None else self.folder / "config.yaml"
         )
-        self._db: pycolmap.Database | None = None
         db_path = self.folder / "database.db"
-        if not db_path.is_file():  # pycolmap would create an empty database
-            raise InputError(db_path, "no such file: the reference model's features are missing", field="database")
-        try:
-            self._db = db = pycolmap.Database.open(str(db_path))
-            stored = {im.image_id: im.name for im in db.read_all_images()}
-        except (RuntimeError, ValueError) as exc:
-            self.close()
-            raise InputError(db_path, f"not a readable COLMAP database: {exc}", field="database") from None
+        # read-only: COLMAP's own Database.open rewrites the file's header, and a bundle checksums it
+        self._db: ColmapDatabase | None = ColmapDatabase(db_path)
+        db = self._db
+        stored = db.image_names
         self._images: dict[str, _DatabaseImage] = {}
         self._descriptors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         for image_id, im in self.rec.images.items():
             if stored.get(image_id) != im.name:
                 self.close()
                 raise InputError(db_path, f"image {image_id} ({im.name}) of the model is not there", field="database")
-            n = db.num_keypoints_for_image(image_id)
-            if n != im.num_points2D() or db.num_descriptors_for_image(image_id) != n:
+            n = db.num_rows("keypoints", image_id)
+            if n != im.num_points2D() or db.num_rows("descriptors", image_id) != n:
                 self.close()
                 raise InputError(
                     db_path, f"image {im.name}: {n} keypoints, the model has {im.num_points2D()}", field="database"
@@ -355,7 +351,7 @@ class SixDofLocalizer:
         if name not in self._descriptors:
             assert self._db is not None, "the localizer is closed"
             im = self._images[name]
-            desc = np.ascontiguousarray(np.asarray(self._db.read_descriptors(im.image_id).data, np.uint8))
+            desc = self._db.descriptors(im.image_id)
             self._descriptors[name] = (desc, im.point3D_ids)
         return self._descriptors[name]
 
