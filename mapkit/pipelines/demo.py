@@ -89,7 +89,7 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "index_structure": 33,
         "localize": 10,
         "sixdof": 92,  # with --sixdof: its stage in the seed-7 main job (`pipelines/main.py --sixdof`)
-        "places": 76,
+        "places": 63,
         "view": 6,
     },
     "places": {
