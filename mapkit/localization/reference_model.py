@@ -408,6 +408,21 @@ def sift_matching_options(cfg: ReferenceModelConfig, num_threads: int, seed: int
     return matching, verification
 
 
+def extract_sift(db_path: Path, root: Path, names: Sequence[str], extraction) -> None:
+    """COLMAP's SIFT of the images ``names`` (relative to ``root``) into the database ``db_path``, on the CPU, with
+    :func:`sift_extraction_options`' settings: the model's images and a batch of queries extract the same way."""
+    import pycolmap
+
+    pycolmap.extract_features(
+        db_path,
+        root,
+        image_names=list(names),
+        camera_mode=pycolmap.CameraMode.PER_IMAGE,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+
+
 def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Path, cfg: ReferenceModelConfig):
     """Extract, match, verify and triangulate in ``folder``; returns the triangulated reconstruction."""
     import pycolmap
@@ -432,14 +447,7 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
     (folder / "sfm").mkdir()
     with quiet_colmap():
         t0 = time.perf_counter()
-        pycolmap.extract_features(
-            db_path,
-            root,
-            image_names=names,
-            camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
+        extract_sift(db_path, root, names, extraction)
         _check_database(db_path, rec)
         t1 = time.perf_counter()
         if len(pairs):

@@ -55,6 +55,7 @@ from mapkit.io.trajectory import write_benchmark_poses
 from mapkit.localization.reference_model import (
     ReferenceModelConfig,
     colmap_camera,
+    extract_sift,
     image_pixels,
     quiet_colmap,
     sift_extraction_options,
@@ -399,14 +400,7 @@ class SixDofLocalizer:
                 db_path = Path(tmp) / "queries.db"
                 for start in range(0, len(paths), batch):
                     names = [p.relative_to(root).as_posix() for p in paths[start : start + batch]]
-                    pycolmap.extract_features(
-                        db_path,
-                        root,
-                        image_names=names,
-                        camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                        extraction_options=extraction,
-                        device=pycolmap.Device.cpu,
-                    )
+                    extract_sift(db_path, root, names, extraction)
                     bar.update(sum(len(files[p]) for p in paths[start : start + batch]))
                 db = pycolmap.Database.open(str(db_path))
                 try:
