@@ -51,7 +51,7 @@ from mapkit.io import open_log
 from mapkit.io.trajectory import write_benchmark_poses, write_tum
 from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclConfig, MonteCarloLocalizer
 from mapkit.localization.reference_model import DEFAULT_FOLDER as MODEL_FOLDER
-from mapkit.localization.sixdof import SixDofConfig, SixDofLocalizer, SixDofResult
+from mapkit.localization.sixdof import SixDofConfig, SixDofLocalizer, SixDofResult, extract_with_shares
 from mapkit.retrieval.index_vlad import VladIndex
 from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
@@ -402,15 +402,14 @@ def refine_sixdof(
     db_names = database_model_names(index, loc)
     priors = [T if np.all(np.isfinite(T)) else None for T in run.poses("filter")]
     results = []
-    started = time.perf_counter()
-    features = loc.extract_many(images, progress)  # once for every attempt
-    extract_s = (time.perf_counter() - started) / max(n, 1)  # each query's share of the batch
+    shared = extract_with_shares(loc, images, progress)  # once for every attempt
+    features = [f for f, _ in shared]
     bar = progress_bar(n, progress, "6-DoF", "query")
     for t in range(n):
         prior = priors[t]
         retrieved = [name for i in run.ids[t] if i >= 0 and (name := db_names[i]) is not None]
         r = loc.localize(images[t], cameras[t], retrieved, prior, names[t], features[t])
-        r.seconds += extract_s
+        r.seconds += shared[t][1]
         if not r.accepted and prior is not None:
             near = loc.candidates_near(prior)
             if near and near[: loc.cfg.max_candidates] != r.candidates:

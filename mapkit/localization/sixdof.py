@@ -381,8 +381,6 @@ class SixDofLocalizer:
         """:meth:`extract` of every image, the same features. Image files go through COLMAP's own extraction
         pipeline, ``num_threads`` images at a time (one image's SIFT holds the interpreter: threads of
         :meth:`extract` would take turns), in batches so that progress shows; arrays are extracted one by one."""
-        import pycolmap
-
         out: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(images)
         files: dict[Path, list[int]] = {}
         for k, image in enumerate(images):
@@ -402,19 +400,16 @@ class SixDofLocalizer:
                     names = [p.relative_to(root).as_posix() for p in paths[start : start + batch]]
                     extract_sift(db_path, root, names, extraction)
                     bar.update(sum(len(files[p]) for p in paths[start : start + batch]))
-                db = pycolmap.Database.open(str(db_path))
-                try:
-                    stored = {im.name: im.image_id for im in db.read_all_images()}
+                with ColmapDatabase(db_path) as db:
+                    stored = {name: image_id for image_id, name in db.image_names.items()}
                     for p, ks in files.items():
                         image_id = stored.get(p.relative_to(root).as_posix())
                         if image_id is None:
                             raise InputError(p, "not an image COLMAP can read")
-                        xy = np.array(db.read_keypoints(image_id)[:, :2], np.float64).reshape(-1, 2)
-                        desc = np.ascontiguousarray(np.asarray(db.read_descriptors(image_id).data, np.uint8))
+                        xy = db.keypoints(image_id)[:, :2].astype(np.float64)
+                        desc = db.descriptors(image_id)
                         for k in ks:
-                            out[k] = (xy, desc.reshape(-1, 128))
-                finally:
-                    db.close()
+                            out[k] = (xy, desc)
         for k, image in enumerate(images):
             if out[k] is None:
                 out[k] = self.extract(image)
@@ -715,7 +710,7 @@ def guided_matches(
     return np.stack([q[best], pid[best]], axis=1).astype(np.int64)
 
 
-def _extract_shared(
+def extract_with_shares(
     loc: SixDofLocalizer, images: Sequence[np.ndarray | str | Path], progress: bool | None
 ) -> list[tuple[tuple[np.ndarray, np.ndarray], float]]:
     """Every image's features (:meth:`SixDofLocalizer.extract_many`), each with its share of the extraction's
@@ -740,7 +735,7 @@ def localize_images(
         raise InputError(None, f"{len(queries)} queries but {len(candidates_per_query)} candidate lists")
     results = []
     with SixDofLocalizer(model_folder, cfg) as loc:
-        features = _extract_shared(loc, [q.image for q in queries], progress)
+        features = extract_with_shares(loc, [q.image for q in queries], progress)
         bar = progress_bar(len(queries), progress, "6-DoF", "image")
         for q, cands, f in zip(queries, candidates_per_query, features, strict=True):
             if cands is None:
@@ -780,7 +775,7 @@ def localize_benchmark(
             queries.append(SixDofQuery(name, folder / IMAGES / name, camera, fallback))
             candidates.append(cands)
         results = []
-        features = _extract_shared(loc, [q.image for q in queries], progress)
+        features = extract_with_shares(loc, [q.image for q in queries], progress)
         bar = progress_bar(len(queries), progress, "6-DoF", "image")
         for q, cands, f in zip(queries, candidates, features, strict=True):
             results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name, f[0]))
