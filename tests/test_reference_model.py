@@ -549,3 +549,20 @@ def test_two_builds_write_the_same_bytes_and_only_new_content_rebuilds(kitti_cli
     cv2.imwrite(str(image), pixels)
     build_reference_model(ws.root, out=a, config=cfg)
     assert (a / ".done").stat().st_mtime_ns != done_ns
+
+
+def test_the_models_database_opens_read_only_without_leaving_files(kitti_model):
+    """The features database a model hands on (to a benchmark, a bundle) is in SQLite's rollback-journal mode, not
+    the write-ahead log COLMAP writes it in: a reader opening it read-only leaves the folder as it found it."""
+    import sqlite3
+
+    out = kitti_model[0]
+    header = (out / "database.db").read_bytes()[:100]
+    assert header[18:20] == b"\x01\x01"  # file format write and read versions: 1 legacy (rollback), 2 WAL
+    before = sorted(p.name for p in out.iterdir())
+    con = sqlite3.connect(f"file:{out / 'database.db'}?mode=ro", uri=True)
+    try:
+        assert con.execute("SELECT COUNT(*) FROM images").fetchone()[0] == len(FRAMES)
+    finally:
+        con.close()
+    assert sorted(p.name for p in out.iterdir()) == before

@@ -489,7 +489,9 @@ def compact_database(db_path: Path) -> None:
     """Rewrite a COLMAP database afresh in its rows' order (SQLite's ``VACUUM INTO`` a new file, which then replaces
     it): matching threads insert the pairs in whatever order they finish, which leaves the same rows in other pages
     and another count of writes in the header, so two builds of the same model would differ in their bytes (and
-    checksums) though not in what they hold."""
+    checksums) though not in what they hold. The copy keeps SQLite's rollback journal instead of the write-ahead
+    log COLMAP switches to: a reader of a WAL database leaves ``-wal`` and ``-shm`` files beside it (and cannot
+    open it in a folder it may not write to), which a model handed to others should not ask of them."""
     import sqlite3
 
     fresh = db_path.with_name(db_path.name + ".compact")
@@ -497,6 +499,11 @@ def compact_database(db_path: Path) -> None:
     con = sqlite3.connect(db_path)
     try:
         con.execute("VACUUM INTO ?", (str(fresh),))
+    finally:
+        con.close()
+    con = sqlite3.connect(fresh)
+    try:
+        con.execute("PRAGMA journal_mode=DELETE")
     finally:
         con.close()
     os.replace(fresh, db_path)
