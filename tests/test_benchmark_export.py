@@ -22,7 +22,7 @@ from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
 from mapkit.deploy.benchmark import BenchmarkExportConfig, export_benchmark
 from mapkit.evaluation.benchmark import evaluate_benchmark, score_benchmark
-from mapkit.io.benchmark import read_pairs, read_queries_with_intrinsics
+from mapkit.io.benchmark import QUERIES, colmap_camera_params, read_pairs, read_queries_with_intrinsics
 from mapkit.io.trajectory import read_benchmark_poses, write_benchmark_poses, write_tum
 from mapkit.localization.colmap_registrator import ColmapRegistratorConfig, register_benchmark
 from mapkit.localization.reference_model import ReferenceModelConfig, build_reference_model
@@ -152,6 +152,25 @@ def test_evaluator_scores_known_answers(exported, tmp_path):
     assert ev.errors[names[0]] is None and ev.conditions["c"].missing == 2
 
 
+def test_evaluator_takes_poses_named_by_file_name_where_it_is_unique(tmp_path):
+    """hloc's localize_sfm names a pose by the query's file name alone: it scores the query of that file name,
+    unless two queries share it (then it names no query, and both count as missing)."""
+    names = ["night/cam/1.jpg", "day/cam/1.jpg", "day/cam/2.jpg"]
+    gt = np.array([make_pose(yaw_rotation(0.1 * i), [i, 2.0 * i, 0.0]) for i in range(3)])
+    write_benchmark_poses(tmp_path / "gt.txt", names, gt)
+    est = gt.copy()
+    est[2, 0, 3] += 0.3  # 0.3 m off: scored, so within (0.5 m, 5 deg) and not (0.25 m, 2 deg)
+    write_benchmark_poses(tmp_path / "poses.txt", ["2.jpg", "1.jpg"], est[[2, 0]])
+    ev = evaluate_benchmark(tmp_path / "gt.txt", tmp_path / "poses.txt")
+    assert ev.errors["day/cam/2.jpg"] == pytest.approx((0.3, 0.0), abs=1e-6)
+    assert ev.errors["night/cam/1.jpg"] is None and ev.errors["day/cam/1.jpg"] is None
+    assert ev.unknown_names == ["1.jpg"] and ev.overall.missing == 2
+    # a full name and its file name for one query are two poses of it
+    write_benchmark_poses(tmp_path / "twice.txt", ["2.jpg", "day/cam/2.jpg"], est[[2, 2]])
+    with pytest.raises(InputError, match="query day/cam/2.jpg has two poses"):
+        evaluate_benchmark(tmp_path / "gt.txt", tmp_path / "twice.txt")
+
+
 def test_localizer_on_the_export_end_to_end(exported, tmp_path):
     """The 6-DoF localizer registers the exported queries from their pairs; the scores land beside its poses."""
     _, out, _, _ = exported
@@ -194,13 +213,30 @@ def test_colmap_registrator_reads_the_export_as_it_is(exported, tmp_path):
         "poses.queries.json",
         "poses.txt",
     ]
-    # its acceptance is COLMAP's own options: asking every 2D-3D match to be an inlier refuses a query the
-    # default takes (one of the five has an outlier)
+    # its acceptance is COLMAP's own options: asking more inliers than an image has features refuses every query
     strict = register_benchmark(
-        out, tmp_path / "strict" / "poses.txt", config=ColmapRegistratorConfig(abs_pose_min_inlier_ratio=1.0)
+        out, tmp_path / "strict" / "poses.txt", config=ColmapRegistratorConfig(abs_pose_min_num_inliers=100_000)
     )
-    registered = json.loads((tmp_path / "strict" / "poses.queries.json").read_text())["registered"]
-    assert 0 < registered < len(QUERY_FRAMES) and len(read_benchmark_poses(strict)[0]) == registered
+    assert json.loads((tmp_path / "strict" / "poses.queries.json").read_text())["registered"] == 0
+    assert len(read_benchmark_poses(strict)[0]) == 0
+
+
+def test_colmap_registrator_keeps_the_benchmarks_intrinsics(exported, tmp_path):
+    """The queries' cameras are the benchmark's: COLMAP's mapper estimates and refines the focal length and
+    distortion of a camera it is not told is known, so each query would get intrinsics of its own fitted to its
+    matches."""
+    _, out, _, _ = exported
+    given = {n: colmap_camera_params(info)[1] for n, info in read_queries_with_intrinsics(out / QUERIES).items()}
+    runs = {}
+    for refine in (False, True):
+        run = tmp_path / f"refine-{refine}"
+        register_benchmark(out, run / "poses.txt", config=ColmapRegistratorConfig(refine_intrinsics=refine))
+        runs[refine] = json.loads((run / "poses.queries.json").read_text())["per_query"]
+    for name, params in given.items():
+        assert runs[False][name]["accepted"], name
+        np.testing.assert_allclose(runs[False][name]["camera_params"], params, rtol=1e-12, err_msg=name)
+    refined = [n for n in given if runs[True][n]["accepted"] and runs[True][n]["camera_params"][0] != given[n][0]]
+    assert refined, runs[True]  # the switch reaches COLMAP: fitted focal lengths differ from the given ones
 
 
 def test_missing_model_or_index_is_one_error(kitti_clip, tmp_path):

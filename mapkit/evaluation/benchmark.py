@@ -13,8 +13,9 @@ half are missing. Scores are given overall and per condition (``conditions.json`
 from __future__ import annotations
 
 import json
+from collections import Counter
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
@@ -126,11 +127,17 @@ def evaluate_benchmark(
     thresholds: tuple[tuple[float, float], ...] = THRESHOLDS,
 ) -> BenchmarkEvaluation:
     """Score the poses of ``poses_file`` (benchmark format, ``cam_from_world``) against ``gt_file``: overall and,
-    with ``conditions`` (conditions.json or a dict name -> label or -> {"condition": label}), per condition."""
+    with ``conditions`` (conditions.json or a dict name -> label or -> {"condition": label}), per condition. A pose
+    named by its file name alone (as hloc's ``localize_sfm`` writes them) scores the query of that file name where
+    no other query shares it."""
     gt_names, gt = read_benchmark_poses(gt_file)
     est_names, est = read_benchmark_poses(poses_file)
     if len(set(gt_names)) != len(gt_names):
         raise InputError(gt_file, "a query is listed twice")
+    known = set(gt_names)
+    file_names = Counter(PurePosixPath(n).name for n in gt_names)
+    by_file_name = {PurePosixPath(n).name: n for n in gt_names if file_names[PurePosixPath(n).name] == 1}
+    est_names = [n if n in known else by_file_name.get(n, n) for n in est_names]
     if len(set(est_names)) != len(est_names):
         dup = next(n for n in est_names if est_names.count(n) > 1)
         raise InputError(poses_file, f"query {dup} has two poses", field=dup)

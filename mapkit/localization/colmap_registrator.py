@@ -64,12 +64,20 @@ class ColmapRegistratorConfig(MapkitConfig):
         description="A query registers when at least this share of its 2D-3D correspondences are inliers (COLMAP's "
         "default).",
     )
+    refine_intrinsics: bool = Field(
+        False,
+        description="Let the mapper estimate and refine each query's focal length and distortion (COLMAP's mapper "
+        "default for a camera without a known focal length). Off: the queries' intrinsics are the benchmark's "
+        "(queries_with_intrinsics.txt), as hloc's localize_sfm takes them and as `colmap feature_extractor "
+        "--ImageReader.camera_params` marks them.",
+    )
     num_threads: int = Field(2, ge=1, description="Threads of extraction and matching.")
     seed: int = Field(0, ge=0, description="Seed of COLMAP's RANSAC: the same queries give the same poses.")
 
 
-def _add_queries(db_path: Path, cameras: dict, existing: set[str]) -> None:
-    """Each query as an image of its own camera, rig and frame (COLMAP's layout for a lone camera)."""
+def _add_queries(db_path: Path, cameras: dict, existing: set[str], known_focal: bool) -> None:
+    """Each query as an image of its own camera, rig and frame (COLMAP's layout for a lone camera); ``known_focal``
+    marks the camera's focal length as given, as COLMAP's reader marks camera parameters passed to it."""
     import pycolmap
 
     db = pycolmap.Database.open(str(db_path))
@@ -79,7 +87,13 @@ def _add_queries(db_path: Path, cameras: dict, existing: set[str]) -> None:
                 raise InputError(db_path, f"query {name} is already an image of the model's database", field="queries")
             model, params = colmap_camera_params(info)
             camera_id = db.write_camera(
-                pycolmap.Camera(model=model, width=info.width, height=info.height, params=params)
+                pycolmap.Camera(
+                    model=model,
+                    width=info.width,
+                    height=info.height,
+                    params=params,
+                    has_prior_focal_length=known_focal,
+                )
             )
             sensor = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id)
             rig = pycolmap.Rig()
@@ -130,7 +144,7 @@ def register_benchmark(
     pairs_txt = partial.with_suffix(".pairs.txt")
     pairs_txt.write_text("".join(f"{q} {d}\n" for q, ds in pairs.items() if q in cameras for d in ds))
     try:
-        _add_queries(partial, cameras, {im.name for im in rec.images.values()})
+        _add_queries(partial, cameras, {im.name for im in rec.images.values()}, not cfg.refine_intrinsics)
         extraction = sift_extraction_options(features, cfg.num_threads)
         matching, verification = sift_matching_options(features, cfg.num_threads, cfg.seed)
         pairing = pycolmap.ImportedPairingOptions()
@@ -159,7 +173,7 @@ def register_benchmark(
     finally:
         pairs_txt.unlink(missing_ok=True)
     partial.replace(db_path)
-    posed = [(name, T) for name, (T, _) in results.items() if T is not None]
+    posed = [(name, T) for name, (T, _, _) in results.items() if T is not None]
     write_benchmark_poses(poses_file, [n for n, _ in posed], np.array([T for _, T in posed]).reshape(-1, 4, 4))
     registered = len(posed)
     write_json(
@@ -174,7 +188,10 @@ def register_benchmark(
             "seconds": round(time.perf_counter() - t0, 3),
             "seconds_registration": round(time.perf_counter() - t_matched, 3),
             "database": db_path.name,
-            "per_query": {n: {"accepted": T is not None, "points3D": points} for n, (T, points) in results.items()},
+            "per_query": {
+                n: {"accepted": T is not None, "points3D": points, "camera_params": params}
+                for n, (T, points, params) in results.items()
+            },
         },
     )
     log.info("COLMAP registrator: %d of %d benchmark queries registered", registered, len(results))
@@ -182,7 +199,8 @@ def register_benchmark(
 
 
 def _register(db_path: Path, rec, names: list[str], cfg: ColmapRegistratorConfig, progress: bool | None) -> dict:
-    """name -> (cam_from_world (4, 4) or None, the 3D points its registration observes)."""
+    """name -> (cam_from_world (4, 4) or None, the 3D points its registration observes, its camera's parameters
+    after registration (COLMAP's order; empty when not registered))."""
     import pycolmap
 
     db = pycolmap.Database.open(str(db_path))
@@ -198,12 +216,14 @@ def _register(db_path: Path, rec, names: list[str], cfg: ColmapRegistratorConfig
     options.abs_pose_min_num_inliers = cfg.abs_pose_min_num_inliers
     options.abs_pose_max_error = cfg.abs_pose_max_error_px
     options.abs_pose_min_inlier_ratio = cfg.abs_pose_min_inlier_ratio
+    options.abs_pose_refine_focal_length = cfg.refine_intrinsics
+    options.abs_pose_refine_extra_params = cfg.refine_intrinsics
     options.fix_existing_frames = True
     options.num_threads = cfg.num_threads
     options.random_seed = cfg.seed
     mapper = pycolmap.IncrementalMapper(cache)
     mapper.begin_reconstruction(rec)
-    out: dict[str, tuple[np.ndarray | None, int]] = {}
+    out: dict[str, tuple[np.ndarray | None, int, list[float]]] = {}
     bar = progress_bar(len(names), progress, "COLMAP registrator", "image")
     for name in names:
         ok = name in ids and mapper.register_next_image(options, ids[name])
@@ -211,9 +231,9 @@ def _register(db_path: Path, rec, names: list[str], cfg: ColmapRegistratorConfig
         if image is not None and image.has_pose:
             T = np.eye(4)
             T[:3, :] = image.cam_from_world().matrix()
-            out[name] = (T, int(image.num_points3D))
+            out[name] = (T, int(image.num_points3D), [float(v) for v in rec.cameras[image.camera_id].params])
         else:
-            out[name] = (None, 0)
+            out[name] = (None, 0, [])
         bar.update()
     bar.close()
     mapper.end_reconstruction(False)
