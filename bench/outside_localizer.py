@@ -3,7 +3,8 @@
 On a workspace with a VLAD index (the README's main job makes one: `runs/main/workspace`), this builds the
 reference model of the training sessions if it is missing (`mapkit model`), exports the benchmark of the query
 sessions with the town's truth (`mapkit export benchmark`), registers the queries with mapkit's localizer and
-with COLMAP's image registrator (`mapkit localize-benchmark --localizer mapkit|colmap`), scores both with mapkit's
+with COLMAP's image registrator (`mapkit localize-benchmark --localizer mapkit|colmap`; mapkit's also without its
+guided matching, and COLMAP's with its own acceptance and with mapkit's), scores each with mapkit's
 evaluator (`mapkit eval benchmark`) and writes the record that docs/guide/benchmark.md's table is made from:
 
     python3 bench/outside_localizer.py runs/main/workspace --truth runs/main/town --queries test-clear \\
@@ -80,8 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         abs_pose_min_num_inliers=six.min_inliers,
         abs_pose_min_inlier_ratio=0.0,
     )
+    # and mapkit's localizer without its guided matching: what its second pass adds to matching the pairs whole
+    unguided = SixDofConfig(guided_radii_px=[])
     runs = (
         ("mapkit", localize_benchmark),
+        ("mapkit-unguided", lambda folder, out: localize_benchmark(folder, out, config=unguided)),
         ("colmap", register_benchmark),
         ("colmap-same-acceptance", lambda folder, out: register_benchmark(folder, out, config=same_acceptance)),
     )
