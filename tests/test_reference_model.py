@@ -560,4 +560,3 @@ def test_two_builds_write_the_same_bytes_and_only_new_content_rebuilds(kitti_cli
     cv2.imwrite(str(image), pixels)
     build_reference_model(ws.root, out=a, config=cfg)
     assert (a / ".done").stat().st_mtime_ns != done_ns
-
