@@ -93,7 +93,13 @@ if hasattr(pycolmap, "TwoViewGeometryConfiguration"):
     pycolmap.TwoViewGeometry = CalibratedTwoViewGeometry
 
 import hloc  # noqa: E402 (after the wrap above)
-from hloc import extract_features, localize_sfm, match_features, pairs_from_poses, triangulation  # noqa: E402
+from hloc import (  # noqa: E402 (after the wrap above)
+    extract_features,
+    localize_sfm,
+    match_features,
+    pairs_from_poses,
+    triangulation,
+)
 
 bench, work = Path(args["benchmark"]), Path(args["work"])
 seconds = {}
