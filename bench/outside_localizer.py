@@ -232,6 +232,7 @@ def main(argv: list[str] | None = None) -> int:
         + " --out FILE"
         + (" --hloc SRC --hloc-python PY" if args.hloc is not None else ""),
         "queries": args.queries,
+        "town_seed": json.loads((args.truth / "world" / "manifest.json").read_text()).get("seed"),
         "database_images": model["database_images"],
         "points3D": model["points3D"],
         "localizers": {},

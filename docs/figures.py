@@ -21,6 +21,7 @@ docs (``compare``).
     python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
     python3 docs/figures.py collect fault-campaign FILE # what bench/fault_campaign.py --out FILE wrote
     python3 docs/figures.py collect outside-localizer FILE  # what bench/outside_localizer.py --out FILE wrote
+    python3 docs/figures.py collect outside-localizer-towns FILE...  # the same, one file per town (seed)
     python3 docs/figures.py render                      # fill every block of README.md and docs/**/*.md
     python3 docs/figures.py check                       # exit 1 when a block is not its rendering (a test runs it)
     python3 docs/figures.py compare places RUN          # a fresh run beside the record: within its spread?
@@ -235,6 +236,11 @@ def collect(name: str, sources: list[Path], command: str, note: str = "") -> Pat
     ):
         data = json.loads(sources[0].read_text())
         record = {"name": name, **data}
+    elif name == "outside-localizer-towns":
+        towns = [json.loads(p.read_text()) for p in sources]
+        if len({t["command"] for t in towns}) != 1:
+            raise SystemExit("outside-localizer records of different commands: run each town the same way")
+        record = {"name": name, "command": towns[0]["command"], "towns": towns}
     else:
         runs = [extract_run(p) for p in sources]
         presets = {r["preset"] for r in runs}
@@ -1025,6 +1031,51 @@ def render_outside_localizer() -> str:
     )
 
 
+def render_outside_localizer_towns() -> str:
+    """The clear drive's share within (0.5 m, 5 deg) of mapkit's localizer and COLMAP's registrator on each town's
+    export, and the gap the goal bounds."""
+    rec = record("outside-localizer-towns")
+    rows = []
+    for town in sorted(rec["towns"], key=lambda t: t.get("town_seed") or 0):
+        locs = town["localizers"]
+
+        def cell(key: str, town_locs: dict = locs) -> str:
+            s = town_locs[key]["conditions"][OUTSIDE_CONDITION]
+            m = s["median_translation_m"]
+            return f"{100 * s['recall'][OUTSIDE_BAND]:.1f} % ({'-' if m is None else f'{m:.3f} m'})"
+
+        gap = 100 * (
+            locs["mapkit"]["conditions"][OUTSIDE_CONDITION]["recall"][OUTSIDE_BAND]
+            - locs["colmap-same-acceptance"]["conditions"][OUTSIDE_CONDITION]["recall"][OUTSIDE_BAND]
+        )
+        rows.append(
+            [
+                str(town.get("town_seed", "-")),
+                str(locs["mapkit"]["conditions"][OUTSIDE_CONDITION]["queries"]),
+                cell("mapkit"),
+                cell("colmap-same-acceptance"),
+                cell("colmap"),
+                f"{gap:.1f} ({'holds' if gap <= OUTSIDE_POINTS else 'does not hold'})",
+            ]
+        )
+    return (
+        table(
+            [
+                "town (seed)",
+                "queries",
+                "mapkit",
+                "COLMAP, mapkit's acceptance",
+                "COLMAP, its own acceptance",
+                f"points below mapkit (goal: at most {OUTSIDE_POINTS:.0f})",
+            ],
+            rows,
+        )
+        + f"\n\nThe {OUTSIDE_CONDITION} drive's share within (0.5 m, 5 deg) and, in brackets, its median error; one "
+        f"run of `{rec['command']}` per town on the main job's workspace (`--sixdof --seed S`), measured "
+        f"{rec['measured']} on {rec['machine']}."
+    )
+
+
 def _hloc_note(rec: dict) -> str:
     """What the outside-localizer record's hloc rows stand on: its model, its fallback poses, its timing."""
     if "hloc" not in rec:
@@ -1145,6 +1196,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "benchmarks": render_benchmarks,
     "mcvl-benchmark": render_mcvl_benchmark,
     "outside-localizer": render_outside_localizer,
+    "outside-localizer-towns": render_outside_localizer_towns,
     "scaling-units": render_scaling_units,
     "scaling-projection": render_scaling_projection,
 }
