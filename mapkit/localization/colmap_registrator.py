@@ -41,7 +41,12 @@ from mapkit.io.benchmark import (
     read_queries_with_intrinsics,
 )
 from mapkit.io.trajectory import write_benchmark_poses
-from mapkit.localization.reference_model import quiet_colmap, sift_extraction_options, sift_matching_options
+from mapkit.localization.reference_model import (
+    extract_sift,
+    quiet_colmap,
+    sift_extraction_options,
+    sift_matching_options,
+)
 from mapkit.localization.sixdof import load_reference_reconstruction, model_features_config
 
 log = logging.getLogger(__name__)
@@ -150,14 +155,7 @@ def register_benchmark(
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = str(pairs_txt)
         with quiet_colmap():
-            pycolmap.extract_features(
-                partial,
-                folder / IMAGES,
-                image_names=list(cameras),
-                camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                extraction_options=extraction,
-                device=pycolmap.Device.cpu,
-            )
+            extract_sift(partial, folder / IMAGES, list(cameras), extraction)
             pycolmap.match_image_pairs(
                 partial,
                 matching_options=matching,
