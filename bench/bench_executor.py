@@ -9,6 +9,11 @@ same run; reported are images per second, the ratio to this process, and whether
 this process's bit for bit. Pool and Ray start-up are part of the time (a pool is spawned per map;
 Ray's workers are warmed up once beforehand, as a long run would have them).
 
+A second table times what a run of many stages does: ``--maps`` encodings of a few images each, one
+after the other, on a pool spawned per map (the library's default for an executor nobody closes)
+against one pool kept for every map (``keep_pool``: what ``mapkit`` commands and the demo use), with
+the ratio and whether the vectors are the same.
+
 Run from the repository root (Ray: ``pip install -e ".[distributed]"``; skipped without it)::
 
     nice -n 5 python3 bench/bench_executor.py [--images 80] [--repeat 1]
@@ -83,6 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--images", type=int, default=80, help="images encoded per executor")
     ap.add_argument("--repeat", type=int, default=1, help="timed runs per executor; the best is reported")
     ap.add_argument("--workers", type=int, default=2, help="processes of the pool and CPUs of the Ray instance")
+    ap.add_argument("--maps", type=int, default=12, help="maps in a row for the kept-pool table")
     args = ap.parse_args(argv)
 
     from mapkit.core.executor import SERIAL, ProcessExecutor, make_executor
@@ -133,6 +139,39 @@ def main(argv: list[str] | None = None) -> int:
         "VLAD database encoding per executor",
         rows,
         f"{len(paths)} images of {w}x{h} px from {source}; 128 words, {encoder.pca.dim}-D after PCA. {ray_note}",
+    )
+    batches = [paths[(k * 4) % len(paths) :][:4] for k in range(args.maps)]
+    pools = {"a pool per map": ProcessExecutor(args.workers), "one pool kept": ProcessExecutor(args.workers, True)}
+    kept_rows, per_map_s, first = [], None, None
+    for name, ex in pools.items():
+        got: dict = {}
+
+        def in_a_row(ex=ex, got=got) -> None:
+            got["v"] = [encode_images(encoder, b, progress=False, executor=ex) for b in batches]
+
+        seconds = best_of(in_a_row, args.repeat)
+        ex.close()
+        if first is None:
+            first, per_map_s = got["v"], seconds
+        kept_rows.append(
+            {
+                "pool": name,
+                "maps": len(batches),
+                "seconds": seconds,
+                "s_per_map": seconds / len(batches),
+                "speed_vs_per_map": per_map_s / seconds,
+                "bit_identical": all(np.array_equal(a, b) for a, b in zip(got["v"], first, strict=True)),
+            }
+        )
+    report(
+        "Maps in a row: a pool per map against one kept",
+        kept_rows,
+        f"{len(batches)} encodings of {len(batches[0])} images each, {args.workers} processes.",
+        headline={
+            "mapkit": f"{kept_rows[1]['s_per_map']:.2f} s/map (kept pool)",
+            "baseline": f"{kept_rows[0]['s_per_map']:.2f} s/map (pool per map)",
+            "ratio": f"{kept_rows[1]['speed_vs_per_map']:.2f}x",
+        },
     )
     return 0
 

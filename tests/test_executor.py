@@ -85,7 +85,11 @@ def producer(n: int, fail_at: int | None = None, pulled: list | None = None):
         yield i
 
 
-EXECUTORS = {"serial": lambda: SERIAL, "process": lambda: ProcessExecutor(2)}
+EXECUTORS = {
+    "serial": lambda: SERIAL,
+    "process": lambda: ProcessExecutor(2),
+    "kept": lambda: ProcessExecutor(2, keep_pool=True),  # one pool for every map, until closed
+}
 
 
 # --------------------------------------------------------------------------- the contract, local executors
@@ -124,7 +128,7 @@ def test_a_mapkit_error_comes_back_whole_with_a_label(kind, tmp_path):
         and e.value.cause.what == "cannot read this image"
     )
     assert "(no-such.png)" in str(e.value)
-    if kind == "process":
+    if kind != "serial":
         assert "read_image" in e.value.remote_traceback
 
 
@@ -177,6 +181,44 @@ def test_a_consumer_done_after_the_last_result_lets_the_pool_close(monkeypatch):
     next(g)
     g.close()
     assert stops == [False, True]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").is_file() and Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+
+
+def test_a_kept_pool_serves_every_map_with_its_own_shared_state_until_closed(tmp_path, monkeypatch):
+    """keep_pool: the same workers run map after map, each map's shared state arrives once per worker and
+    replaces the last (its temporary file is removed when the map ends); a failed map's workers are killed and
+    the next map starts fresh ones; close() lets the workers go."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    ex = ProcessExecutor(2, keep_pool=True)
+    try:
+        first = list(ex.map(lookup, range(20), shared=CountedShared(np.arange(20.0))))
+        second = list(ex.map(lookup, range(20), shared=CountedShared(np.arange(20.0) * -2)))
+        assert [v for v, _, _ in first] == list(np.arange(20.0))
+        assert [v for v, _, _ in second] == list(np.arange(20.0) * -2)  # the second map's state, not the first's
+        pids = {pid for _, pid, _ in first}
+        assert {pid for _, pid, _ in second} <= pids and os.getpid() not in pids  # the same workers
+        assert {n for _, _, n in first} == {1} and {n for _, _, n in second} == {2}  # once per worker per map
+        assert list(tmp_path.iterdir()) == []  # each map's shared file is gone
+        assert list(ex.map(slow_square, range(4))) == [0, 1, 4, 9]  # a map without shared state
+        with pytest.raises(TaskError):
+            list(ex.map(inverse, [1.0, 0.0, 2.0, 3.0, 4.0]))
+        assert not any(_alive(p) for p in pids)  # killed with the failed map
+        again = list(ex.map(lookup, range(6), shared=CountedShared(np.arange(6.0) + 1)))
+        assert [v for v, _, _ in again] == list(np.arange(6.0) + 1)
+        fresh = {pid for _, pid, _ in again}
+        assert not fresh & pids and all(_alive(p) for p in fresh)
+    finally:
+        ex.close()
+    assert not any(_alive(p) for p in fresh)
 
 
 def test_every_worker_starts_with_one_blas_thread(monkeypatch):

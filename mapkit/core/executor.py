@@ -361,15 +361,29 @@ class _ChunkedExecutor(Executor):
 _WORKER_SHARED: dict[str, Any] = {}
 
 
-def _process_init(shared_blob: bytes) -> None:
+def _process_init(shared_blob: bytes | None = None) -> None:
     import cv2
 
     cv2.setNumThreads(1)
     _WORKER_SHARED.clear()
-    _WORKER_SHARED["value"] = pickle.loads(shared_blob)
+    if shared_blob is not None:
+        _WORKER_SHARED["value"] = pickle.loads(shared_blob)
 
 
 def _process_chunk(fn: Callable, items: list) -> list:
+    return _run_items(fn, items, _WORKER_SHARED["value"], remote=True)
+
+
+def _kept_pool_chunk(fn: Callable, items: list, token: str | None, path: str | None) -> list:
+    """A chunk in a pool kept across maps: each map's ``shared`` is read from its file once per worker (by its
+    token) and replaces the previous map's."""
+    if token is None:
+        return _run_items(fn, items, _NO_SHARED, remote=True)
+    if _WORKER_SHARED.get("token") != token:
+        _WORKER_SHARED.clear()
+        with open(path, "rb") as f:  # type: ignore[arg-type]
+            _WORKER_SHARED["value"] = pickle.load(f)
+        _WORKER_SHARED["token"] = token
     return _run_items(fn, items, _WORKER_SHARED["value"], remote=True)
 
 
@@ -401,50 +415,83 @@ class _OneThreadSpawnContext(multiprocessing.context.SpawnContext):
 
 
 class ProcessExecutor(_ChunkedExecutor):
-    """A pool of ``workers`` spawned processes per ``map``, one BLAS/OpenMP/OpenCV thread each.
+    """A pool of ``workers`` spawned processes, one BLAS/OpenMP/OpenCV thread each.
 
     Spawned, not forked: a fork of a process that holds OpenMP, open3d or faiss threads can
-    deadlock. The pool lives for one ``map`` (its initializer ships ``shared``); spawning costs
-    about a second, small next to the minutes of work worth a pool. It is a
-    ``concurrent.futures.ProcessPoolExecutor``: a map abandoned half-way kills its workers, and that
-    pool notices dead workers, where ``multiprocessing.Pool.terminate`` waits forever for a queue
-    lock that a worker killed in the middle of sending its result still holds.
+    deadlock. By default the pool lives for one ``map`` (its initializer ships ``shared``): nothing
+    outlives the call. With ``keep_pool``, the executor's owner (:func:`use_executor`,
+    :func:`set_default_executor`, the CLI) keeps one pool for every map until :meth:`close`: a worker
+    spawns and imports once per run instead of once per map (about a second each), and each map's
+    ``shared`` travels through a temporary file, read once per worker (which keeps it until its next map or
+    :meth:`close`). It is a
+    ``concurrent.futures.ProcessPoolExecutor``: a map abandoned half-way kills its workers (a kept
+    pool is then started afresh by the next map), and that pool notices dead workers, where
+    ``multiprocessing.Pool.terminate`` waits forever for a queue lock that a worker killed in the
+    middle of sending its result still holds.
     """
 
     kind = "process"
 
-    def __init__(self, workers: int = 2):
+    def __init__(self, workers: int = 2, keep_pool: bool = False):
         if workers < 1:
             raise ConfigError(f"workers must be >= 1, got {workers}")
         self._workers = int(workers)
+        self.keep_pool = bool(keep_pool)
+        self._pool: Any = None
 
     @property
     def workers(self) -> int:
         return self._workers
 
-    def _start(self, fn, shared, n_chunks):
+    def _new_pool(self, n: int, initargs: tuple):
         from concurrent.futures import ProcessPoolExecutor
 
-        n = self._workers if n_chunks is None else max(1, min(self._workers, n_chunks))
-        return ProcessPoolExecutor(
-            n,
-            mp_context=_OneThreadSpawnContext(),
-            initializer=_process_init,
-            initargs=(pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),),
-        )
+        return ProcessPoolExecutor(n, mp_context=_OneThreadSpawnContext(), initializer=_process_init, initargs=initargs)
 
-    def _submit(self, pool, fn, chunk, shared):
-        return pool.submit(_process_chunk, fn, chunk)
+    def _start(self, fn, shared, n_chunks):
+        if not self.keep_pool:
+            n = self._workers if n_chunks is None else max(1, min(self._workers, n_chunks))
+            return self._new_pool(n, (pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),)), None, None
+        if self._pool is None:
+            self._pool = self._new_pool(self._workers, ())
+        if shared is _NO_SHARED:
+            return self._pool, None, None
+        import tempfile
 
-    def _result(self, pool, head):
+        fd, path = tempfile.mkstemp(prefix="mapkit-shared-", suffix=".pkl")
+        with os.fdopen(fd, "wb") as f:
+            pickle.dump(shared, f, protocol=pickle.HIGHEST_PROTOCOL)
+        return self._pool, uuid.uuid4().hex, path
+
+    def _submit(self, state, fn, chunk, shared):
+        pool, token, path = state
+        if not self.keep_pool:
+            return pool.submit(_process_chunk, fn, chunk)
+        return pool.submit(_kept_pool_chunk, fn, chunk, token, path)
+
+    def _result(self, state, head):
         return head.handle.result()
 
-    def _stop(self, pool, pending, failed):
-        if failed:  # what is in flight is not waited for: its workers are killed (SIGKILL: no handler runs)
-            for proc in list((pool._processes or {}).values()):
-                proc.kill()
-            pool.shutdown(wait=True, cancel_futures=True)
-        else:
+    def _stop(self, state, pending, failed):
+        pool, _, path = state
+        try:
+            if failed:  # what is in flight is not waited for: its workers are killed (SIGKILL: no handler runs)
+                for proc in list((pool._processes or {}).values()):
+                    proc.kill()
+                pool.shutdown(wait=True, cancel_futures=True)
+                if pool is self._pool:
+                    self._pool = None  # the next map starts a fresh one
+            elif pool is not self._pool:
+                pool.shutdown(wait=True)
+        finally:
+            if path is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(path)
+
+    def close(self) -> None:
+        """Let a kept pool's workers go (a later map starts a new one)."""
+        pool, self._pool = self._pool, None
+        if pool is not None:
             pool.shutdown(wait=True)
 
 
@@ -609,16 +656,16 @@ def available_cores() -> int:
 
 
 def make_executor(kind: str = "local", workers: int | None = None, address: str | None = None) -> Executor:
-    """An executor by name: ``"local"`` (``workers`` = 1: this process; more: a process pool;
-    None: one process per available core) or ``"ray"`` (``address`` of a running cluster, or a
-    local instance of ``workers`` CPUs)."""
+    """An executor by name: ``"local"`` (``workers`` = 1: this process; more: a process pool kept for every map
+    until :meth:`Executor.close`; None: one process per available core) or ``"ray"`` (``address`` of a running
+    cluster, or a local instance of ``workers`` CPUs). Its caller closes it."""
     cfg = load_config(ExecutorConfig, None, {"kind": kind, "workers": workers, "address": address})
     if cfg.kind == "ray":
         return RayExecutor(cfg.workers, cfg.address)
     if cfg.address:
         raise ConfigError("an address is for the Ray executor (--executor ray)")
     n = cfg.workers or available_cores()
-    return SERIAL if n <= 1 else ProcessExecutor(n)
+    return SERIAL if n <= 1 else ProcessExecutor(n, keep_pool=True)  # its maker closes it
 
 
 SERIAL = SerialExecutor()
