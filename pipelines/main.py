@@ -27,8 +27,6 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's mapkit, whatever is installed
 
-from mapkit.pipelines.demo import run_demo
-
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -61,6 +59,10 @@ def main(argv: list[str] | None = None) -> int:
         "semi-dense paper's DSO maps do; image databases and queries keep the preset's rates",
     )
     args = ap.parse_args(argv)
+    # imported here, not at the top: every worker process the demo spawns re-imports this script, and needs
+    # only its own task's modules
+    from mapkit.pipelines.demo import run_demo
+
     # the demo's stage lines ("[demo] build: ok in 12 s") and its stages' progress are mapkit's INFO log records
     logging.basicConfig(level=logging.WARNING, format="%(message)s", stream=sys.stderr)
     logging.getLogger("mapkit").setLevel(logging.INFO)

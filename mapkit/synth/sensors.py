@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import lfilter
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import make_pose
@@ -126,6 +125,8 @@ class GpsErrorModel:
         phi = float(np.exp(-self.dt_s / c.bias_tau_s))
         eps = rng.standard_normal((n, 3)) * np.sqrt(1.0 - phi * phi)
         b0 = rng.standard_normal(3)  # stationary start
+        from scipy.signal import lfilter  # here: scipy.signal takes half a second to import, in every worker
+
         bias = lfilter([1.0], [1.0, -phi], eps, axis=0, zi=(phi * b0)[None, :])[0] * c.bias_sigma_m * scale
         i0, i1 = self._events(n, c.multipath_rate_hz, c.multipath_duration_s, rng)
         offs = rng.standard_normal((len(i0), 2)) * c.multipath_sigma_m
