@@ -291,7 +291,8 @@ class SixDofLocalizer:
         self._centres = np.array([self._images[n].centre for n in self._names]).reshape(-1, 3)
         self._axes = np.array([self._images[n].axis for n in self._names]).reshape(-1, 3)
         extraction = sift_extraction_options(self.features, self.cfg.num_threads)
-        self._extractor = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
+        with quiet_colmap():  # COLMAP logs the extractor's creation at INFO
+            self._extractor = pycolmap.FeatureExtractor.create(extraction, device=pycolmap.Device.cpu)
 
     # --- lifetime
 
