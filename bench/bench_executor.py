@@ -1,4 +1,4 @@
-"""VLAD database encoding on each executor: in this process, a local pool of 2 processes, Ray on 2 CPUs.
+"""VLAD database encoding per executor (this process, 2 processes, Ray on 2 CPUs), and maps in a row on a kept pool.
 
 The images are the synthetic ``tiny`` town's camera images (made and built into a workspace on the
 first run, kept in ``--cache``, by default in the system's temporary folder) or any workspace's
