@@ -576,6 +576,12 @@ def demo(
         help="Also build the reference model, localize the test drives in 6-DoF on it and export the localization "
         "benchmark (about 1.5 more minutes on the demo town).",
     ),
+    synth_config: Path | None = typer.Option(
+        None,
+        "--synth-config",
+        help="YAML over the town's preset, as `mapkit synth --config` takes it (configs/synth/demo-snowy.yaml adds "
+        "a snowy test drive to the demo town).",
+    ),
 ) -> None:
     """Synthetic town to deployable bundles and an HTML report, in one command."""
     from mapkit.pipelines.demo import run_demo
@@ -590,6 +596,7 @@ def demo(
         record_rate_hz=record_rate_hz,
         lidar_maps=lidar_maps,
         sixdof=sixdof,
+        synth_config=synth_config,
     )
     typer.echo((out / "timings.md").read_text(), nl=False)
     typer.echo(f"report: {m['report']}")

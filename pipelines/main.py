@@ -52,6 +52,13 @@ def main(argv: list[str] | None = None) -> int:
         "--sixdof", action="store_true", help="also the reference model, 6-DoF localization and the benchmark export"
     )
     ap.add_argument(
+        "--synth-config",
+        type=Path,
+        default=None,
+        help="YAML over the town's preset, as `mapkit synth --config` takes it (configs/synth/demo-snowy.yaml adds a "
+        "snowy test drive to the demo town)",
+    )
+    ap.add_argument(
         "--record-rate-hz",
         type=float,
         default=None,
@@ -76,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         record_rate_hz=args.record_rate_hz,
         lidar_maps=args.lidar_maps,
         sixdof=args.sixdof,
+        synth_config=args.synth_config,
     )
     print((args.out / "timings.md").read_text(), end="")
     print(f"report: {m['report']}")

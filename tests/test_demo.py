@@ -497,3 +497,39 @@ def test_every_function_that_takes_a_workspace_locks_it_or_writes_nothing(tiny_d
     for name, call in readers.items():
         call()
         assert state() == before, name
+
+
+def test_the_demo_commands_hand_their_synth_config_to_the_town(tmp_path, monkeypatch):
+    """`mapkit demo --synth-config` and pipelines/main.py's give the file to run_demo, which synthesizes the town
+    from the preset with it (an overlay's extra drive is among the town's sessions)."""
+    import importlib.util
+
+    from mapkit.core.presets import preset_path
+
+    overlay = preset_path("synth", "demo-snowy")
+    seen: list = []
+
+    def fake_run_demo(out, *args, **kw):
+        seen.append(kw["synth_config"])
+        Path(out).mkdir(parents=True, exist_ok=True)
+        (Path(out) / "timings.md").write_text("")
+        return {"stages": {}, "report": str(Path(out) / "report.html")}
+
+    monkeypatch.setattr("mapkit.pipelines.demo.run_demo", fake_run_demo)
+    assert main(["demo", "-o", str(tmp_path / "a"), "--synth-config", str(overlay)]) == 0
+    spec = importlib.util.spec_from_file_location("main_job", Path(__file__).parents[1] / "pipelines" / "main.py")
+    job = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(job)
+    assert job.main(["--out", str(tmp_path / "b"), "--synth-config", str(overlay)]) == 0
+    assert [Path(p) for p in seen] == [overlay, overlay]
+
+    captured: dict = {}
+    monkeypatch.setattr(
+        "mapkit.pipelines.demo.synthesize", lambda **kw: captured.update(kw) or (_ for _ in ()).throw(RuntimeError)
+    )
+    from mapkit.pipelines.demo import Demo, _synth
+
+    d = Demo(tmp_path / "c", "demo", None, 1, False, False, lambda s: None, synth_config=overlay)
+    with pytest.raises(RuntimeError):
+        _synth(d)
+    assert captured["config"] == overlay and captured["preset"] == "demo"

@@ -101,6 +101,25 @@ def test_presets_load_and_every_value_names_its_source():
     assert bench.session_plan.n_train + len(bench.sessions) == 59  # MCVL: 59 vehicles
 
 
+def test_the_snowy_overlay_adds_a_snowy_test_drive_and_leaves_the_demos_drives_as_they_are():
+    """configs/synth/demo-snowy.yaml over the demo preset: the demo's five sessions, planned along the same paths,
+    and a snowy test drive on a training drive's streets."""
+    from mapkit.synth.sessions import plan_sessions
+    from mapkit.synth.world import build_town
+
+    base = load_config("demo")
+    snowy = load_config("demo", presets_dir() / "demo-snowy.yaml")
+    assert [s.model_dump() for s in snowy.sessions[:-1]] == [s.model_dump() for s in base.sessions]
+    extra = snowy.sessions[-1]
+    assert extra.weather == "snowy" and extra.role == "test"
+    assert extra.follow in {s.name for s in base.sessions if s.role == "train"}
+    plans = plan_sessions(base, build_town(base, None), None)
+    with_snow = plan_sessions(snowy, build_town(snowy, None), None)
+    assert len(with_snow) == len(plans) + 1
+    for a, b in zip(plans, with_snow, strict=False):
+        assert a.name == b.name and np.array_equal(a.drive.path_xy, b.drive.path_xy)
+
+
 def test_bad_preset_and_bad_field_raise_config_errors_naming_them(tmp_path):
     with pytest.raises(ConfigError, match="nonexistent"):
         load_config("nonexistent")

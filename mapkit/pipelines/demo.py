@@ -144,9 +144,10 @@ class Demo:
         synth_overrides: dict | None = None,
         lidar_maps: bool = True,
         sixdof: bool = False,
+        synth_config: Path | None = None,
     ):
         self.out, self.preset, self.seed, self.workers = Path(out), preset, seed, workers
-        self.lidar_maps, self.sixdof = lidar_maps, sixdof
+        self.lidar_maps, self.sixdof, self.synth_config = lidar_maps, sixdof, synth_config
         self.record_rate_hz, self.synth_overrides = record_rate_hz, synth_overrides
         self.train_cnn, self.progress, self.log = train_cnn, progress, log
         self.town = self.out / "town"
@@ -244,7 +245,7 @@ def _synth(d: Demo) -> None:
         overrides = dict(d.synth_overrides or {})
         if d.record_rate_hz is not None:
             overrides = deep_merge(overrides, {"camera": {"record_rate_hz": float(d.record_rate_hz)}})
-        synthesize(preset=d.preset, out=d.town, seed=d.seed, overrides=overrides or None)
+        synthesize(preset=d.preset, out=d.town, config=d.synth_config, seed=d.seed, overrides=overrides or None)
         d.roles = town_sessions(d.town)
         rows = ["| session | role | condition | camera Hz (recorded / images) |", "|---|---|---|---|"]
         rows += [
@@ -742,6 +743,7 @@ def run_demo(
     synth_overrides: dict | None = None,
     lidar_maps: bool = True,
     sixdof: bool = False,
+    synth_config: str | Path | None = None,
 ) -> dict:
     """Run the whole chain into ``out``; returns the metrics (also in ``out/metrics.json``), with
     the paths of the report and the bundle. ``log`` takes the stage lines ("[demo] build: ok in
@@ -749,15 +751,27 @@ def run_demo(
 
     ``record_rate_hz``: the town's cameras record video at this rate and the maps are made from
     every image, as the semi-dense paper's DSO maps are (Sec. 3); image databases and queries keep
-    the preset's rates (:func:`demo_build_config`). ``synth_overrides``: merged over the town's
-    preset, as a ``mapkit synth --config`` file would be. ``lidar_maps`` (on by default): each session's LiDAR
+    the preset's rates (:func:`demo_build_config`). ``synth_config``: a YAML file over the town's preset, as
+    ``mapkit synth --config`` takes it (``configs/synth/demo-snowy.yaml`` adds a snowy test drive);
+    ``synth_overrides``: a mapping merged over both. ``lidar_maps`` (on by default): each session's LiDAR
     map too (the report shows them beside the semi-dense maps, align registers on them, place recognition scores
     them beside the semi-dense maps and the reference model's depth check uses them; triplets and the structure
     indexes read the semi-dense maps). ``sixdof``: the reference model of the training drives, the 6-DoF
     localization of the test drives on it and the localization benchmark export (the ``sixdof`` stage)."""
 
     d = Demo(
-        Path(out), preset, seed, workers, train_cnn, progress, log, record_rate_hz, synth_overrides, lidar_maps, sixdof
+        Path(out),
+        preset,
+        seed,
+        workers,
+        train_cnn,
+        progress,
+        log,
+        record_rate_hz,
+        synth_overrides,
+        lidar_maps,
+        sixdof,
+        None if synth_config is None else Path(synth_config),
     )
     d.out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
