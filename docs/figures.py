@@ -16,6 +16,7 @@ docs (``compare``).
                                                         #  --no-lidar-maps` runs
     python3 docs/figures.py collect main-job RUN...     # runs of the README's main job (the demo preset)
     python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job with --sixdof
+    python3 docs/figures.py collect demo-snowy-6dof RUN... # ... and --synth-config configs/synth/demo-snowy.yaml
     python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
     python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
     python3 docs/figures.py collect references FILE     # what bench/reference_checks.py wrote
@@ -594,10 +595,11 @@ SIXDOF_ESTIMATES = (("6dof", "6-DoF"), ("filter", "MCVL filter"), ("retrieval", 
 SIXDOF_BANDS = (("0.25m_2deg", "(0.25 m, 2°)"), ("0.5m_5deg", "(0.5 m, 5°)"), ("5m_10deg", "(5 m, 10°)"))
 
 
-def render_sixdof() -> str:
-    """The main job's 6-DoF stage: per test drive, the share of queries in each band and the median errors for the
-    6-DoF localizer, MCVL's filter and retrieval alone on the same queries; the reference model's size."""
-    rec = record("main-job-6dof")
+def render_sixdof(name: str = "main-job-6dof") -> str:
+    """The main job's 6-DoF stage (record ``name``): per test drive, the share of queries in each band and the median
+    errors for the 6-DoF localizer, MCVL's filter and retrieval alone on the same queries; the reference model's
+    size."""
+    rec = record(name)
     runs = [r for r in rec["runs"] if r.get("sixdof")]
     if not runs:
         return "No run of the record holds the 6-DoF stage."
@@ -1185,6 +1187,7 @@ RENDERERS: dict[str, Callable[[], str]] = {
     "first-run": render_first_run,
     "main-job-stages": lambda: _stages("main-job"),
     "main-job-sixdof": render_sixdof,
+    "demo-snowy-sixdof": lambda: render_sixdof("demo-snowy-6dof"),
     "main-job-places-by-source": render_places_by_source,
     "align-sources": render_align_sources,
     "lidar-dynamic": render_lidar_dynamic,
