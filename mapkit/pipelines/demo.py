@@ -81,15 +81,15 @@ EXPECTED_SECONDS: dict[str, dict[str, int]] = {
         "view": 3,
     },
     "demo": {
-        "synth": 109,
-        "build": 135,
-        "align": 58,
-        "triplets": 20,
+        "synth": 118,
+        "build": 143,
+        "align": 62,
+        "triplets": 25,
         "index_vlad": 15,
-        "index_structure": 33,
+        "index_structure": 28,
         "localize": 10,
         "sixdof": 92,  # with --sixdof: its stage in the seed-7 main job (`pipelines/main.py --sixdof`)
-        "places": 63,
+        "places": 47,
         "view": 6,
     },
     "places": {
