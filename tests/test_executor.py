@@ -221,6 +221,52 @@ def test_a_kept_pool_serves_every_map_with_its_own_shared_state_until_closed(tmp
     assert not any(_alive(p) for p in fresh)
 
 
+_PARENT = """
+import json, os, sys, time
+sys.path.insert(0, sys.argv[1])
+from mapkit.core.executor import ProcessExecutor
+
+
+def busy(seconds):
+    print(json.dumps(os.getpid()), flush=True)  # the worker's pid, as soon as it starts on its item
+    time.sleep(seconds)
+    return os.getpid()
+
+
+if __name__ == "__main__":
+    for _ in ProcessExecutor(2, keep_pool=sys.argv[2] == "kept").map(busy, [60.0, 60.0]):
+        pass
+"""
+
+
+@pytest.mark.parametrize("pool", ["per-map", "kept"])
+def test_workers_end_when_their_parent_is_killed(tmp_path, pool):
+    """A run killed outright (no pool shutdown reaches its workers) leaves no worker finishing its task and writing
+    into the stopped run: each worker ends itself within seconds of its parent."""
+    import time
+
+    script = tmp_path / "parent.py"
+    script.write_text(_PARENT)
+    root = str(Path(__file__).resolve().parents[1])
+    parent = subprocess.Popen(
+        [sys.executable, str(script), root, pool], stdout=subprocess.PIPE, text=True, cwd=tmp_path
+    )
+    try:
+        workers = [int(parent.stdout.readline()) for _ in range(2)]  # both busy for a minute
+        assert all(_alive(p) for p in workers)
+        parent.kill()
+        parent.wait(timeout=30)
+        deadline = time.monotonic() + 15
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(_alive(p) for p in workers)
+    finally:
+        parent.kill()
+        for p in workers if "workers" in locals() else []:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(p, signal.SIGKILL)
+
+
 def test_every_worker_starts_with_one_blas_thread(monkeypatch):
     """Each spawned worker, also those the pool starts as work arrives, has one BLAS/OpenMP thread by its
     environment; the caller's environment is left as it was."""

@@ -361,9 +361,27 @@ class _ChunkedExecutor(Executor):
 _WORKER_SHARED: dict[str, Any] = {}
 
 
+def exit_with_parent(poll_s: float = 0.5) -> None:
+    """End this worker process as soon as its parent is gone (killed: no pool shutdown reaches the workers), instead
+    of letting it finish its task and write into a run that was stopped. A daemon thread compares the parent's pid
+    every ``poll_s`` seconds."""
+    import threading
+    import time
+
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="mapkit-parent-watch", daemon=True).start()
+
+
 def _process_init(shared_blob: bytes | None = None) -> None:
     import cv2
 
+    exit_with_parent()
     cv2.setNumThreads(1)
     _WORKER_SHARED.clear()
     if shared_blob is not None:

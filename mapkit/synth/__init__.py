@@ -367,8 +367,11 @@ _WORKER: dict = {}
 
 
 def _worker_init(cfg_json: str, trajectory: str | None, progress: bool | None, nthreads: int) -> None:
+    from mapkit.core.executor import exit_with_parent
     from mapkit.synth.sessions import plan_sessions, read_external_trajectory
     from mapkit.synth.world import build_town
+
+    exit_with_parent()
 
     cfg = SynthConfig.model_validate_json(cfg_json)
     ext = read_external_trajectory(Path(trajectory)) if trajectory else None
