@@ -10,7 +10,7 @@ patch description) goes through :meth:`Executor.map`::
   chunked, so a caller that reduces them in that order gets bit-identical output from all of them.
   Any randomness in ``fn`` must come from the item (a per-item seed), never from worker state.
 - ``shared`` is read-only state that every call needs (a vocabulary, the point clouds of a map).
-  It is shipped **once per worker**: as the pool initializer's argument for processes, with one
+  It is shipped **once per worker**: through a temporary file each process reads once, with one
   ``ray.put`` per ``map`` for Ray (each worker process deserialises it once and keeps it). With
   ``shared`` given, ``fn(shared, item)`` is called; without, ``fn(item)``.
 - The first failing item in input order stops the map: the results before it are yielded, then a
@@ -378,23 +378,17 @@ def exit_with_parent(poll_s: float = 0.5) -> None:
     threading.Thread(target=watch, name="mapkit-parent-watch", daemon=True).start()
 
 
-def _process_init(shared_blob: bytes | None = None) -> None:
+def _process_init() -> None:
     import cv2
 
     exit_with_parent()
     cv2.setNumThreads(1)
     _WORKER_SHARED.clear()
-    if shared_blob is not None:
-        _WORKER_SHARED["value"] = pickle.loads(shared_blob)
 
 
-def _process_chunk(fn: Callable, items: list) -> list:
-    return _run_items(fn, items, _WORKER_SHARED["value"], remote=True)
-
-
-def _kept_pool_chunk(fn: Callable, items: list, token: str | None, path: str | None) -> list:
-    """A chunk in a pool kept across maps: each map's ``shared`` is read from its file once per worker (by its
-    token) and replaces the previous map's."""
+def _process_chunk(fn: Callable, items: list, token: str | None, path: str | None) -> list:
+    """A chunk of a map in a worker: the map's ``shared`` is read from its file once per worker (by the map's token)
+    and replaces the previous map's (a kept pool's workers serve map after map)."""
     if token is None:
         return _run_items(fn, items, _NO_SHARED, remote=True)
     if _WORKER_SHARED.get("token") != token:
@@ -436,12 +430,11 @@ class ProcessExecutor(_ChunkedExecutor):
     """A pool of ``workers`` spawned processes, one BLAS/OpenMP/OpenCV thread each.
 
     Spawned, not forked: a fork of a process that holds OpenMP, open3d or faiss threads can
-    deadlock. By default the pool lives for one ``map`` (its initializer ships ``shared``): nothing
-    outlives the call. With ``keep_pool``, the executor's owner (:func:`use_executor`,
+    deadlock. Each map's ``shared`` travels through a temporary file, read once per worker (which
+    keeps it until its next map). By default the pool lives for one ``map``: nothing outlives the
+    call. With ``keep_pool``, the executor's owner (:func:`use_executor`,
     :func:`set_default_executor`, the CLI) keeps one pool for every map until :meth:`close`: a worker
-    spawns and imports once per run instead of once per map (about a second each), and each map's
-    ``shared`` travels through a temporary file, read once per worker (which keeps it until its next map or
-    :meth:`close`). It is a
+    spawns and imports once per run instead of once per map (about a second each). It is a
     ``concurrent.futures.ProcessPoolExecutor``: a map abandoned half-way kills its workers (a kept
     pool is then started afresh by the next map), and that pool notices dead workers, where
     ``multiprocessing.Pool.terminate`` waits forever for a queue lock that a worker killed in the
@@ -461,31 +454,27 @@ class ProcessExecutor(_ChunkedExecutor):
     def workers(self) -> int:
         return self._workers
 
-    def _new_pool(self, n: int, initargs: tuple):
+    def _start(self, fn, shared, n_chunks):
         from concurrent.futures import ProcessPoolExecutor
 
-        return ProcessPoolExecutor(n, mp_context=_OneThreadSpawnContext(), initializer=_process_init, initargs=initargs)
-
-    def _start(self, fn, shared, n_chunks):
-        if not self.keep_pool:
-            n = self._workers if n_chunks is None else max(1, min(self._workers, n_chunks))
-            return self._new_pool(n, (pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL),)), None, None
-        if self._pool is None:
-            self._pool = self._new_pool(self._workers, ())
+        pool = self._pool
+        if pool is None:
+            n = self._workers if n_chunks is None or self.keep_pool else max(1, min(self._workers, n_chunks))
+            pool = ProcessPoolExecutor(n, mp_context=_OneThreadSpawnContext(), initializer=_process_init)
+            if self.keep_pool:
+                self._pool = pool
         if shared is _NO_SHARED:
-            return self._pool, None, None
+            return pool, None, None
         import tempfile
 
         fd, path = tempfile.mkstemp(prefix="mapkit-shared-", suffix=".pkl")
         with os.fdopen(fd, "wb") as f:
             pickle.dump(shared, f, protocol=pickle.HIGHEST_PROTOCOL)
-        return self._pool, uuid.uuid4().hex, path
+        return pool, uuid.uuid4().hex, path
 
     def _submit(self, state, fn, chunk, shared):
         pool, token, path = state
-        if not self.keep_pool:
-            return pool.submit(_process_chunk, fn, chunk)
-        return pool.submit(_kept_pool_chunk, fn, chunk, token, path)
+        return pool.submit(_process_chunk, fn, chunk, token, path)
 
     def _result(self, state, head):
         return head.handle.result()
