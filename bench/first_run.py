@@ -5,7 +5,7 @@
 Clones this checkout's HEAD into a temporary folder with ``../shared`` beside it (as CI does), then times
 the README's commands there, one after the other, each as a whole process:
 
-1. ``bash scripts/setup.sh`` with a new environment folder and an empty pip cache (nothing installed
+1. ``bash scripts/setup.sh`` with a new environment folder and empty pip and uv caches (nothing installed
    before; the package registry reachable);
 2. ``.venv/bin/python pipelines/main.py --out runs/main`` (the main job on the demo preset);
 3. ``.venv/bin/python -m pytest -q`` (the test command).
@@ -50,7 +50,12 @@ def main(argv: list[str] | None = None) -> int:
     shared = ROOT.parent / "shared"
     if shared.is_dir():
         (tmp / "shared").symlink_to(shared.resolve())
-    env = {**os.environ, "MAPKIT_VENV": str(tmp / "venv"), "PIP_CACHE_DIR": str(tmp / "pip-cache")}
+    env = {
+        **os.environ,
+        "MAPKIT_VENV": str(tmp / "venv"),
+        "PIP_CACHE_DIR": str(tmp / "pip-cache"),
+        "UV_CACHE_DIR": str(tmp / "uv-cache"),
+    }
     result: dict = {"measured": dt.date.today().isoformat()}
     steps = [("setup_s", "bash scripts/setup.sh"), ("main_job_s", ".venv/bin/python pipelines/main.py --out runs/main")]
     if not a.skip_tests:

@@ -819,7 +819,7 @@ def _stages(name: str) -> str:
 def render_first_run() -> str:
     rec = record("first-run")
     rows = [
-        ["set-up (`bash scripts/setup.sh`, empty pip cache)", _minutes(rec["setup_s"])],
+        ["set-up (`bash scripts/setup.sh`, empty package caches)", _minutes(rec["setup_s"])],
         ["main job (`.venv/bin/python pipelines/main.py --out runs/main`)", _minutes(rec["main_job_s"])],
         ["tests (`.venv/bin/python -m pytest -q`)", _minutes(rec["tests_s"])],
     ]
