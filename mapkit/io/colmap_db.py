@@ -11,6 +11,7 @@ float32 (x, y and the affine shape), ``descriptors`` rows of uint8, ``two_view_g
 from __future__ import annotations
 
 import sqlite3
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -20,15 +21,19 @@ from mapkit.core.errors import InputError
 
 class ColmapDatabase:
     """Read-only access to a COLMAP database file; a missing, damaged or foreign file is one
-    :class:`~mapkit.core.errors.InputError` naming it (field ``database``)."""
+    :class:`~mapkit.core.errors.InputError` naming it (field ``database``). Any thread may read through one
+    instance: its reads take turns on the one connection."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
         if not self.path.is_file():  # sqlite would create an empty database
             raise InputError(self.path, "no such file: the reference model's features are missing", field="database")
         self._con: sqlite3.Connection | None = None
+        self._lock = threading.Lock()
         try:
-            self._con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro&immutable=1", uri=True)
+            self._con = sqlite3.connect(
+                f"{self.path.resolve().as_uri()}?mode=ro&immutable=1", uri=True, check_same_thread=False
+            )
             self._names = {int(i): str(n) for i, n in self._con.execute("SELECT image_id, name FROM images")}
             self._con.execute("SELECT image_id, rows, cols, data FROM keypoints LIMIT 1").fetchall()
             self._con.execute("SELECT image_id, rows, cols, data FROM descriptors LIMIT 1").fetchall()
@@ -54,7 +59,10 @@ class ColmapDatabase:
 
     def _rows(self, table: str, image_id: int, dtype: type, cols: int | None = None) -> np.ndarray:
         assert self._con is not None, "the database is closed"
-        row = self._con.execute(f"SELECT rows, cols, data FROM {table} WHERE image_id = ?", (int(image_id),)).fetchone()
+        with self._lock:
+            row = self._con.execute(
+                f"SELECT rows, cols, data FROM {table} WHERE image_id = ?", (int(image_id),)
+            ).fetchone()
         if row is None:
             return np.zeros((0, cols or 0), dtype)
         rows, ncols, data = int(row[0]), int(row[1]), row[2] or b""
@@ -78,10 +86,12 @@ class ColmapDatabase:
         if table not in ("keypoints", "descriptors"):
             raise ValueError(table)
         assert self._con is not None, "the database is closed"
-        row = self._con.execute(f"SELECT rows FROM {table} WHERE image_id = ?", (int(image_id),)).fetchone()
+        with self._lock:
+            row = self._con.execute(f"SELECT rows FROM {table} WHERE image_id = ?", (int(image_id),)).fetchone()
         return 0 if row is None else int(row[0])
 
     def num_verified_pairs(self) -> int:
         """Image pairs with at least one inlier match after geometric verification."""
         assert self._con is not None, "the database is closed"
-        return int(self._con.execute("SELECT COUNT(*) FROM two_view_geometries WHERE rows > 0").fetchone()[0])
+        with self._lock:
+            return int(self._con.execute("SELECT COUNT(*) FROM two_view_geometries WHERE rows > 0").fetchone()[0])

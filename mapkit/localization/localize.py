@@ -51,7 +51,13 @@ from mapkit.io import open_log
 from mapkit.io.trajectory import write_benchmark_poses, write_tum
 from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclConfig, MonteCarloLocalizer
 from mapkit.localization.reference_model import DEFAULT_FOLDER as MODEL_FOLDER
-from mapkit.localization.sixdof import SixDofConfig, SixDofLocalizer, SixDofResult, extract_with_shares
+from mapkit.localization.sixdof import (
+    SixDofConfig,
+    SixDofLocalizer,
+    SixDofResult,
+    extract_with_shares,
+    map_queries,
+)
 from mapkit.retrieval.index_vlad import VladIndex
 from mapkit.retrieval.measurement import PoseHypotheses, mean_shift_measurement
 
@@ -401,11 +407,10 @@ def refine_sixdof(
         raise ValueError(f"{n} queries in the run, {len(images)} images, {len(cameras)} cameras, {len(names)} names")
     db_names = database_model_names(index, loc)
     priors = [T if np.all(np.isfinite(T)) else None for T in run.poses("filter")]
-    results = []
     shared = extract_with_shares(loc, images, progress)  # once for every attempt
     features = [f for f, _ in shared]
-    bar = progress_bar(n, progress, "6-DoF", "query")
-    for t in range(n):
+
+    def register(t: int) -> SixDofResult:
         prior = priors[t]
         retrieved = [name for i in run.ids[t] if i >= 0 and (name := db_names[i]) is not None]
         r = loc.localize(images[t], cameras[t], retrieved, prior, names[t], features[t])
@@ -417,9 +422,10 @@ def refine_sixdof(
                 again.seconds += r.seconds
                 again.reason = f"retrieved images: {r.reason}; images near the filter's pose: {again.reason}"
                 r = again
-        results.append(r)
-        bar.update(1)
-    bar.close()
+        return r
+
+    # each query on its own (its features, its prior): loc.cfg.num_threads at a time
+    results = map_queries(register, n, loc.cfg.num_threads, progress_bar(n, progress, "6-DoF", "query"))
     if odometry is not None and loc.cfg.sequence_max_m is not None:
         results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
     if odometry is not None and loc.cfg.guided_radii_px:

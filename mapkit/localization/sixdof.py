@@ -27,8 +27,10 @@ import logging
 import os
 import struct
 import tempfile
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -136,7 +138,13 @@ class SixDofConfig(MapkitConfig):
         "each feature pick any look-alike (the next window of a facade); a pose to within a metre leaves it the "
         "few within reach.",
     )
-    num_threads: int = Field(2, ge=1, description="Threads of feature extraction (pycolmap's -1 takes every core).")
+    num_threads: int = Field(
+        2,
+        ge=1,
+        description="Threads of feature extraction (pycolmap's -1 takes every core) and of registering queries, each "
+        "query on one thread (its matching and COLMAP's RANSAC leave Python's lock). The poses do not depend on it: "
+        "a query's registration uses its own features and prior only, and RANSAC its own seed.",
+    )
     seed: int = Field(0, ge=0, description="Seed of RANSAC: the same query gives the same pose.")
 
 
@@ -273,6 +281,7 @@ class SixDofLocalizer:
         stored = db.image_names
         self._images: dict[str, _DatabaseImage] = {}
         self._descriptors: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._cache_lock = threading.Lock()
         for image_id, im in self.rec.images.items():
             if stored.get(image_id) != im.name:
                 self.close()
@@ -350,12 +359,12 @@ class SixDofLocalizer:
 
     def _database_features(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(descriptors (M, 128) uint8, point3D ids (M,)) of a database image, read once."""
-        if name not in self._descriptors:
-            assert self._db is not None, "the localizer is closed"
-            im = self._images[name]
-            desc = self._db.descriptors(im.image_id)
-            self._descriptors[name] = (desc, im.point3D_ids)
-        return self._descriptors[name]
+        with self._cache_lock:  # registering threads share the cache; each image is read once
+            if name not in self._descriptors:
+                assert self._db is not None, "the localizer is closed"
+                im = self._images[name]
+                self._descriptors[name] = (self._db.descriptors(im.image_id), im.point3D_ids)
+            return self._descriptors[name]
 
     def extract(self, image: np.ndarray | str | Path) -> tuple[np.ndarray, np.ndarray]:
         """(keypoints (N, 2) in COLMAP's pixel convention, descriptors (N, 128) uint8) of a query image."""
@@ -711,6 +720,17 @@ def guided_matches(
     return np.stack([q[best], pid[best]], axis=1).astype(np.int64)
 
 
+def map_queries(register: Callable[[int], SixDofResult], n: int, num_threads: int, bar) -> list[SixDofResult]:
+    """``register(k)`` of every query k < n on ``num_threads`` threads, in query order, ticking ``bar``."""
+    results = []
+    with ThreadPoolExecutor(max_workers=max(1, num_threads)) as pool:
+        for r in pool.map(register, range(n)):
+            results.append(r)
+            bar.update(1)
+    bar.close()
+    return results
+
+
 def extract_with_shares(
     loc: SixDofLocalizer, images: Sequence[np.ndarray | str | Path], progress: bool | None
 ) -> list[tuple[tuple[np.ndarray, np.ndarray], float]]:
@@ -720,6 +740,28 @@ def extract_with_shares(
     features = loc.extract_many(images, bool(progress))
     share = (time.perf_counter() - t0) / max(len(images), 1)
     return [(f, share) for f in features]
+
+
+def register_queries(
+    loc: SixDofLocalizer,
+    queries: Sequence[SixDofQuery],
+    candidates_per_query: Sequence[Sequence[str] | None],
+    progress: bool | None,
+) -> list[SixDofResult]:
+    """Every query registered by ``loc`` from its candidates (None: the images near its fallback pose), their
+    features extracted first in one batch, then ``loc.cfg.num_threads`` queries registered at a time."""
+    features = extract_with_shares(loc, [q.image for q in queries], progress)
+
+    def register(k: int) -> SixDofResult:
+        q, cands, (f, share) = queries[k], candidates_per_query[k], features[k]
+        if cands is None:
+            cands = [] if q.fallback_world_from_cam is None else loc.candidates_near(q.fallback_world_from_cam)
+        r = loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name, f)
+        r.seconds += share
+        return r
+
+    bar = progress_bar(len(queries), progress, "6-DoF", "image")
+    return map_queries(register, len(queries), loc.cfg.num_threads, bar)
 
 
 def localize_images(
@@ -734,17 +776,8 @@ def localize_images(
     cfg = load_config(SixDofConfig, config)
     if len(candidates_per_query) != len(queries):
         raise InputError(None, f"{len(queries)} queries but {len(candidates_per_query)} candidate lists")
-    results = []
     with SixDofLocalizer(model_folder, cfg) as loc:
-        features = extract_with_shares(loc, [q.image for q in queries], progress)
-        bar = progress_bar(len(queries), progress, "6-DoF", "image")
-        for q, cands, f in zip(queries, candidates_per_query, features, strict=True):
-            if cands is None:
-                cands = [] if q.fallback_world_from_cam is None else loc.candidates_near(q.fallback_world_from_cam)
-            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name, f[0]))
-            results[-1].seconds += f[1]
-            bar.update()
-        bar.close()
+        results = register_queries(loc, queries, candidates_per_query, progress)
     n = sum(r.accepted for r in results)
     log.info("6-DoF: %d of %d queries registered", n, len(results))
     return results
@@ -775,14 +808,7 @@ def localize_benchmark(
             fallback = loc.world_from_cam(cands[0]) if retrieval_fallback and cands else None
             queries.append(SixDofQuery(name, folder / IMAGES / name, camera, fallback))
             candidates.append(cands)
-        results = []
-        features = extract_with_shares(loc, [q.image for q in queries], progress)
-        bar = progress_bar(len(queries), progress, "6-DoF", "image")
-        for q, cands, f in zip(queries, candidates, features, strict=True):
-            results.append(loc.localize(q.image, q.camera, cands, q.fallback_world_from_cam, q.name, f[0]))
-            results[-1].seconds += f[1]
-            bar.update()
-        bar.close()
+        results = register_queries(loc, queries, candidates, progress)
     posed = [r for r in results if r.cam_from_world is not None]
     write_benchmark_poses(poses_file, [r.name for r in posed], np.array([r.cam_from_world for r in posed]))
     write_json(
