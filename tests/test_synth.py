@@ -278,8 +278,10 @@ def test_new_road_weight_spreads_planned_routes_over_more_streets():
 # --- determinism ------------------------------------------------------------------------------------
 
 
-def test_tiny_is_deterministic(tiny, tmp_path):
-    again = synthesize(preset="tiny", out=tmp_path / "again", overrides=SHORT, progress=False)
+def test_tiny_is_deterministic_whatever_the_worker_count(tiny, tmp_path):
+    """The same town again, its sessions rendered by two worker processes instead of one: the same files (the
+    worker count is not in the manifest's hash)."""
+    again = synthesize(preset="tiny", out=tmp_path / "again", overrides={**SHORT, "workers": 2}, progress=False)
     for f in ("world/mesh.ply", "world/roads.json", "world/manifest.json"):
         assert (tiny / f).read_bytes() == (again / f).read_bytes(), f
     for s in load_world(tiny).sessions:

@@ -158,6 +158,17 @@ def _world_hash(cfg: SynthConfig, trajectory_digest: str | None) -> str:
     )
 
 
+def _town_identity(cfg: SynthConfig, trajectory_digest: str | None) -> dict:
+    """What the town's outputs depend on (its marker's and manifest's hash is of this): the resolved config but its
+    worker count, which only says how many processes render the same files, the external trajectory's digest and
+    the log layout."""
+    return {
+        "config": cfg.model_dump(mode="json", exclude={"workers"}),
+        "trajectory": trajectory_digest,
+        "log": SESSION_LOG_LAYOUT,
+    }
+
+
 def _session_identity(cfg: SynthConfig, world_hash: str, index: int, session) -> dict:
     """What a session's render depends on (its marker's hash is of this, the town's and the sessions' versions)."""
     return {
@@ -197,7 +208,7 @@ def synthesize(
     cfg, external, digest = _config_and_trajectory(preset, config, seed, overrides, trajectory)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    town_identity = {"config": cfg, "trajectory": digest, "log": SESSION_LOG_LAYOUT}
+    town_identity = _town_identity(cfg, digest)
     full_hash = stage_hash("town", TOWN_STAGE_VERSION, town_identity)
     w_hash = _world_hash(cfg, digest)
     timing: dict[str, float] = {}
