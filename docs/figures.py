@@ -367,7 +367,7 @@ def _minutes(seconds: float | None) -> str:
     if seconds is None:
         return "n/a"
     m, s = divmod(int(round(seconds)), 60)
-    return f"{m} min {s:02d} s"
+    return f"{m} min {s:02d} s" if m else f"{s} s"
 
 
 # --------------------------------------------------------------------------- figures of the places runs
