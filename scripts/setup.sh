@@ -67,9 +67,7 @@ if [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ] \
   # uv resolves and installs the same packages as pip from the same index, several times faster (it
   # downloads and unpacks in parallel); it ignores pip's configuration, so where it is missing or fails
   # (a private index set in pip.conf, say) pip does the install
-  if pip_install uv && "$VPY" -m uv pip install --quiet --python "$VPY" -e ".[test,learning,distributed,viewer,docs]"; then
-    :
-  else
+  if ! { pip_install uv && "$VPY" -m uv pip install --quiet --python "$VPY" -e ".[test,learning,distributed,viewer,docs]"; }; then
     say "uv could not install the packages; installing with pip"
     pip_install -e ".[test,learning,distributed,viewer,docs]"
   fi
