@@ -46,6 +46,9 @@ from functools import partial
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from mapkit.core import blas  # noqa: E402  (standard library only: this script needs no environment)
+
 RESULTS = ROOT / "docs" / "results"
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[a-z0-9-]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.DOTALL)
@@ -201,7 +204,8 @@ def _cond(pair: dict, role: str) -> str:
 
 
 def machine() -> str:
-    """This machine, as records state it: cores, memory, CPU model, OS."""
+    """This machine, as records state it: cores, memory, CPU model, OS, Python and the OpenBLAS kernel mapkit runs
+    there (mapkit.core.blas: the bits of every matrix product)."""
     cpu = ""
     try:
         cpu = next(
@@ -215,9 +219,10 @@ def machine() -> str:
         mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
     except (ValueError, OSError, AttributeError):
         mem = float("nan")
+    kernel = os.environ.get("OPENBLAS_CORETYPE") or blas.kernel_for(blas.cpu_flags())
     return (
         f"{os.cpu_count()} cores, {mem:.0f} GB, {cpu}, {platform.system()} {platform.release()}, Python "
-        f"{platform.python_version()}"
+        f"{platform.python_version()}" + (f", OpenBLAS kernel {kernel}" if kernel else "")
     )
 
 

@@ -8,4 +8,8 @@ and ``deploy``, then ``evaluation``, ``report`` and ``pipelines``; ``mapkit.cli`
 arguments. Imports point down that list only (docs/architecture.md).
 """
 
+from mapkit.core.blas import pin_openblas_kernel
+
+pin_openblas_kernel()  # before numpy, faiss or OpenCV load their OpenBLAS: one kernel for all (mapkit.core.blas)
+
 __version__ = "0.1.0"

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import mapkit  # noqa: F401  (imported first: it names OpenBLAS's kernel before numpy loads; mapkit.core.blas)
+
+# isort: split
 import os
 import shutil
 from pathlib import Path

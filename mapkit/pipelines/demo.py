@@ -38,6 +38,7 @@ from pathlib import Path
 import yaml
 
 from mapkit import __version__
+from mapkit.core.blas import openblas_kernels
 from mapkit.core.config import deep_merge, load_config
 from mapkit.core.errors import MapkitError
 from mapkit.core.executor import default_executor, use_executor
@@ -810,6 +811,7 @@ def _docs_line(d: Demo) -> str:
 def _finish(d: Demo, seconds: float) -> dict:
     d.timings["seconds_total"] = round(seconds, 1)
     d.metrics["report"] = str(d.out / "report.html")
+    d.metrics["openblas"] = openblas_kernels()  # the kernel each OpenBLAS ran: the bits of every product
     rows = [f"| stage | status | seconds | cores busy (of {os.cpu_count()}) |", "|---|---|---|---|"]
     rows += [
         f"| {n} | {s['status']}{' (' + s['reason'] + ')' if s.get('reason') else ''} | {t.get('seconds', '')} "
