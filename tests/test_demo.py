@@ -533,3 +533,20 @@ def test_the_demo_commands_hand_their_synth_config_to_the_town(tmp_path, monkeyp
     with pytest.raises(RuntimeError):
         _synth(d)
     assert captured["config"] == overlay and captured["preset"] == "demo"
+
+
+def test_a_town_that_fails_skips_every_stage_after_it_and_says_why(tmp_path, monkeypatch):
+    """A failed synth is one failed stage: the build and everything after it are skipped for want of it, not
+    reported failed on a town that is not there."""
+    from mapkit.core.errors import InputError
+    from mapkit.pipelines.demo import run_demo
+
+    def broken(**kw):
+        raise InputError(kw.get("config"), "the town's preset cannot be read")
+
+    monkeypatch.setattr("mapkit.pipelines.demo.synthesize", broken)
+    stages = run_demo(tmp_path / "run", preset="tiny", workers=1, log=lambda s: None)["stages"]
+    assert stages["synth"]["status"] == "failed"
+    assert "cannot be read" in stages["synth"]["error"]
+    assert stages["build"] == {"status": "skipped", "reason": "needs the synth stage(s), which did not finish"}
+    assert {s["status"] for n, s in stages.items() if n != "synth"} == {"skipped"}

@@ -276,6 +276,7 @@ def _condition(s: dict) -> str:
 
 def _build(d: Demo) -> None:
     with d.stage("build", "Session maps (mapkit build)") as sec:
+        d.need("synth")
         logs = session_logs(d.town)
         config = demo_build_config(d.out, d.roles, d.lidar_maps)
         build(logs, d.ws.root, config=config, progress=d.progress)
