@@ -33,12 +33,15 @@ from pathlib import Path
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"  # before numpy and faiss: one core
 
-import faiss  # noqa: E402 (after the thread count is pinned)
-import numpy as np  # noqa: E402 (after the thread count is pinned)
-
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+import mapkit  # noqa: E402, F401 (before faiss: the OpenBLAS kernel mapkit runs, mapkit.core.blas)
+
+# isort: split
+import faiss  # noqa: E402 (after the thread count is pinned)
+import numpy as np  # noqa: E402 (after the thread count is pinned)
 
 from bench.common import report, self_peak_rss_mb  # noqa: E402 (after sys.path points at this checkout)
 
