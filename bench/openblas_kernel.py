@@ -31,7 +31,6 @@ import hashlib, json, sys, time
 if sys.argv[1] == "mapkit":
     import mapkit  # names the kernel before the libraries load
 import numpy as np, faiss, cv2  # noqa: F401  (faiss and OpenCV load their own OpenBLAS)
-import mapkit
 from mapkit.core.blas import openblas_kernels
 from mapkit.retrieval.vlad import VladAccumulator, kmeans
 
@@ -68,16 +67,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--descriptors", type=int, default=200_000, help="k-means samples (the vocabulary's cap)")
     ap.add_argument("--assign", type=int, default=1_000_000, help="descriptors assigned to words")
     a = ap.parse_args(argv)
-    runs: dict[str, list[dict]] = {"libraries alone": [], "mapkit": []}
+    labels = {"baseline": "libraries alone", "mapkit": "mapkit"}
+    runs: dict[str, list[dict]] = {mode: [] for mode in labels}
     for _ in range(a.repeat):
         for mode in runs:
-            runs[mode].append(run("baseline" if mode != "mapkit" else "mapkit", a.descriptors, a.assign))
+            runs[mode].append(run(mode, a.descriptors, a.assign))
     rows = []
     for mode, rs in runs.items():
         rows.append(
             {
                 "kernels": ", ".join(f"{k} {v}" for k, v in sorted(rs[0]["kernels"].items())),
-                "mode": mode,
+                "mode": labels[mode],
                 "kmeans_s": statistics.median(r["kmeans_s"] for r in rs),
                 "assign_s": statistics.median(r["assign_s"] for r in rs),
                 "same_bits_every_run": len({(r["centroids"], r["words"]) for r in rs}) == 1,

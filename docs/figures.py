@@ -219,7 +219,7 @@ def machine() -> str:
         mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
     except (ValueError, OSError, AttributeError):
         mem = float("nan")
-    kernel = os.environ.get("OPENBLAS_CORETYPE") or blas.kernel_for(blas.cpu_flags())
+    kernel = blas.pin_openblas_kernel()  # the kernel in force (importing mapkit named it already)
     return (
         f"{os.cpu_count()} cores, {mem:.0f} GB, {cpu}, {platform.system()} {platform.release()}, Python "
         f"{platform.python_version()}" + (f", OpenBLAS kernel {kernel}" if kernel else "")

@@ -68,24 +68,41 @@ def pin_openblas_kernel(
     return kernel
 
 
+def loaded_openblas() -> list[ctypes.CDLL]:
+    """Every OpenBLAS library loaded in this process (numpy's, scipy's, faiss's and OpenCV's wheels bundle their
+    own), found in ``/proc/self/maps``; empty on a non-Linux OS."""
+    paths = set()
+    try:
+        with open("/proc/self/maps") as f:
+            for line in f:
+                path = line.rsplit(None, 1)[-1]
+                if "openblas" in path.lower() and (path.endswith(".so") or ".so." in path):
+                    paths.add(path)
+    except OSError:
+        return []
+    libs = []
+    for p in sorted(paths):
+        try:
+            libs.append(ctypes.CDLL(p))
+        except OSError:
+            continue
+    return libs
+
+
+def symbol(lib: ctypes.CDLL, names: Iterable[str]):
+    """The first of ``names`` that ``lib`` exports (OpenBLAS builds prefix and suffix their symbols), or None."""
+    return next((getattr(lib, n) for n in names if hasattr(lib, n)), None)
+
+
 def openblas_kernels() -> dict[str, str]:
     """The kernel each OpenBLAS loaded in this process runs, by the package that bundles it
     (``{"numpy": "SkylakeX", "faiss_cpu": "SkylakeX", ...}``); empty where none is loaded or on a non-Linux OS."""
     out: dict[str, str] = {}
-    try:
-        with open("/proc/self/maps") as f:
-            paths = sorted({ln.rsplit(None, 1)[-1] for ln in f if "openblas" in ln.lower() and ".so" in ln})
-    except OSError:
-        return out
-    for p in paths:
-        try:
-            lib = ctypes.CDLL(p)
-        except OSError:
-            continue
-        fn = next((getattr(lib, n) for n in _CORENAME if hasattr(lib, n)), None)
+    for lib in loaded_openblas():
+        fn = symbol(lib, _CORENAME)
         if fn is None:
             continue
         fn.restype = ctypes.c_char_p
-        name = Path(p).parent.name.removesuffix(".libs") or Path(p).name
-        out[name] = (fn() or b"").decode(errors="replace")
+        path = Path(lib._name)
+        out[path.parent.name.removesuffix(".libs") or path.name] = (fn() or b"").decode(errors="replace")
     return out

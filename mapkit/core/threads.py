@@ -8,9 +8,10 @@ threadpoolctl does, and restores it afterwards. Elsewhere (MKL, Accelerate) it d
 
 from __future__ import annotations
 
-import ctypes
 from collections.abc import Iterator
 from contextlib import contextmanager
+
+from mapkit.core.blas import loaded_openblas, symbol
 
 _SETTERS = (
     "scipy_openblas_set_num_threads64_",
@@ -26,38 +27,11 @@ _GETTERS = (
 )
 
 
-def _openblas_libs() -> list[ctypes.CDLL]:
-    paths = set()
-    try:
-        with open("/proc/self/maps") as f:
-            for line in f:
-                path = line.rsplit(None, 1)[-1]
-                if "openblas" in path.lower() and path.endswith(".so") or ".so." in path and "openblas" in path.lower():
-                    paths.add(path)
-    except OSError:
-        return []
-    libs = []
-    for p in sorted(paths):
-        try:
-            libs.append(ctypes.CDLL(p))
-        except OSError:
-            continue
-    return libs
-
-
-def _fn(lib: ctypes.CDLL, names: tuple[str, ...]):
-    for n in names:
-        f = getattr(lib, n, None)
-        if f is not None:
-            return f
-    return None
-
-
 @contextmanager
 def single_thread_blas() -> Iterator[None]:
     saved = []
-    for lib in _openblas_libs():
-        get, put = _fn(lib, _GETTERS), _fn(lib, _SETTERS)
+    for lib in loaded_openblas():
+        get, put = symbol(lib, _GETTERS), symbol(lib, _SETTERS)
         if get is None or put is None:
             continue
         try:
