@@ -5,8 +5,8 @@ when it loads. The copies bundled with faiss and OpenCV are older than numpy's a
 newest CPUs: on a Sapphire Rapids Xeon they fall back to their generic SSE3 kernel (``Prescott``)
 while numpy's picks AVX-512 (``SkylakeX``). A product summed by another kernel differs in its last
 bits, and where a result breaks ties on them (the k-means assignments of the VLAD vocabulary) the
-figures move: the demo's VLAD index, and every retrieval and localization figure after it, came out
-different on two Xeons with the same code.
+figures move: the demo's VLAD index, and every retrieval and localization figure after it, differ
+between two Xeons running the same code.
 
 So before any of them loads, :func:`pin_openblas_kernel` names the kernel for all of them: the
 widest of ``SkylakeX`` (AVX-512), ``Haswell`` (AVX2 and FMA) and ``Sandybridge`` (AVX) that this CPU
