@@ -144,6 +144,49 @@ def test_guided_matching_adds_points_that_fit_the_poses(kitti_model, kitti_clip,
     assert guided["reprojection_error_median_px"] < 1.0
 
 
+def test_model_matches_are_colmaps_brute_force_matches(kitti_model, tmp_path):
+    """The model's matches (mapkit's exact products) and verified geometries are the rows COLMAP's own brute-force
+    matcher writes for the same pairs, in a copy of the database with the matches cleared."""
+    import shutil
+    import sqlite3
+
+    from mapkit.localization.reference_model import quiet_colmap, sift_matching_options
+
+    out, _, _ = kitti_model
+    copy = tmp_path / "database.db"
+    shutil.copy(out / "database.db", copy)
+    con = sqlite3.connect(copy)
+    con.execute("DELETE FROM matches")
+    con.execute("DELETE FROM two_view_geometries")
+    con.commit()
+    con.close()
+    cfg = ReferenceModelConfig(pair_neighbours=3)
+    matching, verification = sift_matching_options(cfg, 1, cfg.seed)
+    matching.sift.cpu_brute_force_matcher = True
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(out / "pairs.txt")
+    with quiet_colmap():
+        pycolmap.match_image_pairs(
+            copy,
+            matching_options=matching,
+            pairing_options=pairing,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+
+    def rows(db, table):
+        con = sqlite3.connect(db)
+        try:
+            return con.execute(f"SELECT * FROM {table} ORDER BY pair_id").fetchall()
+        finally:
+            con.close()
+
+    for table in ("matches", "two_view_geometries"):
+        ours, theirs = rows(out / "database.db", table), rows(copy, table)
+        assert len(theirs) == len((out / "pairs.txt").read_text().splitlines()) > 10
+        assert ours == theirs, table
+
+
 def test_binary_and_text_models_agree(kitti_model):
     out, _, _ = kitti_model
     binary = pycolmap.Reconstruction(str(out / "sfm"))

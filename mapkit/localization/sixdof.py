@@ -54,6 +54,7 @@ from mapkit.io.benchmark import (
 )
 from mapkit.io.colmap_db import ColmapDatabase
 from mapkit.io.trajectory import write_benchmark_poses
+from mapkit.localization.descriptor_matching import DESCRIPTOR_SCALE, nearest_two
 from mapkit.localization.reference_model import (
     ReferenceModelConfig,
     colmap_camera,
@@ -64,11 +65,6 @@ from mapkit.localization.reference_model import (
 )
 
 log = logging.getLogger(__name__)
-
-#: COLMAP stores RootSIFT descriptors as unit vectors scaled by 512 and rounded to uint8
-_DESCRIPTOR_SCALE = 512.0
-#: query rows matched at a time: the similarity block stays near 32 MB for 8192 database features
-_MATCH_CHUNK = 1024
 
 
 class SixDofConfig(MapkitConfig):
@@ -617,32 +613,14 @@ def mutual_ratio_matches(
     """Indices (i in a, j in b) of mutual nearest neighbours between two sets of COLMAP SIFT descriptors (uint8,
     unit vectors times 512) whose angle is at most ``max_distance`` (rad) and below ``max_ratio`` times the angle
     to a's second nearest neighbour in b (Lowe's ratio test on angles, as COLMAP's matcher)."""
-    a = np.asarray(desc_a, np.float32) / _DESCRIPTOR_SCALE
-    b = np.asarray(desc_b, np.float32) / _DESCRIPTOR_SCALE
-    if len(a) == 0 or len(b) < 2:
+    if len(desc_a) == 0 or len(desc_b) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    best_j = np.empty(len(a), np.int64)
-    best, second = np.empty(len(a), np.float32), np.empty(len(a), np.float32)
-    col_best = np.full(len(b), -np.inf, np.float32)
-    col_arg = np.zeros(len(b), np.int64)
-    bt = np.ascontiguousarray(b.T)
-    cols = np.arange(len(b))
-    for s in range(0, len(a), _MATCH_CHUNK):
-        sim = a[s : s + _MATCH_CHUNK] @ bt
-        arg = np.argmax(sim, axis=0)  # b's nearest in this block, before a's best are masked below
-        val = sim[arg, cols]
-        better = val > col_best
-        col_best[better] = val[better]
-        col_arg[better] = arg[better] + s
-        rows = np.arange(len(sim))
-        j = np.argmax(sim, axis=1)
-        best_j[s : s + len(sim)] = j
-        best[s : s + len(sim)] = sim[rows, j]
-        sim[rows, j] = -np.inf
-        second[s : s + len(sim)] = np.max(sim, axis=1)
+    rows, cols = nearest_two(desc_a, desc_b)  # exact integer dot products: scaled to cosines exactly below
+    scale = np.float32(1.0 / DESCRIPTOR_SCALE**2)
+    best, second, best_j, col_arg = rows.best * scale, rows.second * scale, rows.arg, cols.arg
     d1 = np.arccos(np.clip(best, -1.0, 1.0))
     d2 = np.arccos(np.clip(second, -1.0, 1.0))
-    i = np.arange(len(a))
+    i = np.arange(len(desc_a))
     ok = (d1 <= max_distance) & (d1 < max_ratio * d2) & (col_arg[best_j] == i)
     return i[ok], best_j[ok]
 
@@ -696,7 +674,7 @@ def guided_matches(
     q = flat[np.repeat(begin[slot[inv[obs]]], counts) + within]
     a = np.asarray(obs_desc)[o].astype(np.float32)  # gathered as uint8: a quarter of the bytes
     b = np.asarray(desc)[q].astype(np.float32)
-    sim = np.einsum("ij,ij->i", a, b) / np.float32(_DESCRIPTOR_SCALE**2)  # cosines; o runs in blocks
+    sim = np.einsum("ij,ij->i", a, b) / np.float32(DESCRIPTOR_SCALE**2)  # cosines; o runs in blocks
     starts = np.r_[0, np.cumsum(counts[counts > 0])[:-1]]
     group = np.repeat(np.arange(len(starts)), counts[counts > 0])
     top = np.maximum.reduceat(sim, starts)
