@@ -61,12 +61,14 @@ def test_matches_are_colmaps_brute_force_matches(max_ratio, cross_check):
 def test_nearest_two_are_the_two_largest_dot_products_of_each_row_and_column():
     a, b = _descriptor_sets(seed=5)
     dots = a.astype(np.int64) @ b.T.astype(np.int64)  # exact, the slow way
-    rows, cols = nearest_two(a, b)
+    (rows, col_arg), (cols, row_arg) = nearest_two(a, b), nearest_two(b, a)
     for side, d in ((rows, dots), (cols, dots.T)):
         top2 = np.sort(d, axis=1)[:, -2:]
         np.testing.assert_array_equal(side.arg, np.argmax(d, axis=1))  # the first of equals
         np.testing.assert_array_equal(side.best, top2[:, 1])
         np.testing.assert_array_equal(side.second, top2[:, 0])
+    np.testing.assert_array_equal(col_arg, cols.arg)  # across blocks of rows, the first of equals too
+    np.testing.assert_array_equal(row_arg, rows.arg)
 
 
 def test_empty_and_single_descriptor_sets():

@@ -24,52 +24,42 @@ _CHUNK = 1024
 class NearestTwo:
     """Per descriptor of one set, its nearest neighbour in the other set and the two largest dot products."""
 
-    arg: np.ndarray  #: index of the nearest neighbour (the first of equals)
+    arg: np.ndarray  #: index of the nearest neighbour (the first of equals; -1 in an empty set)
     best: np.ndarray  #: its dot product (float32, an exact integer)
     second: np.ndarray  #: the second largest dot product (equal to ``best`` where two tie; 0 with one neighbour)
 
 
-def nearest_two(desc_a: np.ndarray, desc_b: np.ndarray) -> tuple[NearestTwo, NearestTwo]:
-    """Each row of ``desc_a`` (N, 128 bytes) against the rows of ``desc_b`` (M, 128), and each row of ``desc_b``
-    against those of ``desc_a``: their nearest neighbours by dot product, computed in blocks of rows."""
+def nearest_two(desc_a: np.ndarray, desc_b: np.ndarray, columns: bool = True) -> tuple[NearestTwo, np.ndarray]:
+    """Each row of ``desc_a`` (N, 128 bytes) against the rows of ``desc_b`` (M, 128): its nearest neighbour by dot
+    product and the two largest dot products; and each row of ``desc_b``'s nearest row of ``desc_a`` (M,; the
+    first of equals), from the same products, computed in blocks of rows. ``nearest_two(desc_b, desc_a)`` gives
+    the second largest the other way round: the same exact products, transposed. ``columns=False`` leaves the
+    second result at -1 (a quarter of the time saved where it is not needed)."""
     a = np.asarray(desc_a, np.float32)
-    b = np.asarray(desc_b, np.float32)
-    n, m = len(a), len(b)
-    if n == 0 or m == 0:  # no neighbour: index -1, dot products 0
-        none = [NearestTwo(np.full(k, -1, np.int64), np.zeros(k, np.float32), np.zeros(k, np.float32)) for k in (n, m)]
-        return none[0], none[1]
-    row_arg = np.empty(n, np.int64)
-    row_best, row_second = np.empty(n, np.float32), np.empty(n, np.float32)
-    col_arg = np.zeros(m, np.int64)
-    col_best, col_second = np.full(m, -np.inf, np.float32), np.full(m, -np.inf, np.float32)
-    bt = np.ascontiguousarray(b.T)
+    n, m = len(a), len(desc_b)
+    arg = np.full(n, -1, np.int64)
+    best, second = np.zeros(n, np.float32), np.zeros(n, np.float32)
+    col_arg, col_best = np.full(m, -1, np.int64), np.full(m, -np.inf, np.float32)
+    if n == 0 or m == 0:
+        return NearestTwo(arg, best, second), col_arg
+    bt = np.ascontiguousarray(np.asarray(desc_b, np.float32).T)
     cols = np.arange(m)
     for s in range(0, n, _CHUNK):
         sim = a[s : s + _CHUNK] @ bt
+        if columns:
+            c = np.argmax(sim, axis=0)  # b's nearest in this block, before a's best are masked below
+            top = sim[c, cols]
+            better = top > col_best  # an earlier block wins a tie
+            col_best[better] = top[better]
+            col_arg[better] = c[better] + s
         rows = np.arange(len(sim))
-        # columns: this block's best two, merged with the blocks before (an earlier row wins a tie)
-        arg = np.argmax(sim, axis=0)
-        top = sim[arg, cols]
-        if len(sim) > 1:
-            runner = np.partition(sim, len(sim) - 2, axis=0)[len(sim) - 2]
-        else:
-            runner = np.full(m, -np.inf, np.float32)
-        better = top > col_best
-        col_second = np.maximum(np.maximum(col_second, runner), np.minimum(col_best, top))
-        col_best = np.maximum(col_best, top)
-        col_arg[better] = arg[better] + s
-        # rows: the best, then the largest of the rest
         j = np.argmax(sim, axis=1)
-        row_arg[s : s + len(sim)] = j
-        row_best[s : s + len(sim)] = sim[rows, j]
+        arg[s : s + len(sim)] = j
+        best[s : s + len(sim)] = sim[rows, j]
         if m > 1:
             sim[rows, j] = -np.inf
-            row_second[s : s + len(sim)] = np.max(sim, axis=1)
-        else:
-            row_second[s : s + len(sim)] = 0.0
-    if n == 1:
-        col_second = np.zeros(m, np.float32)
-    return NearestTwo(row_arg, row_best, row_second), NearestTwo(col_arg, col_best, col_second)
+            second[s : s + len(sim)] = np.max(sim, axis=1)
+    return NearestTwo(arg, best, second), col_arg
 
 
 def descriptor_angle(dot: np.ndarray) -> np.ndarray:
@@ -96,7 +86,7 @@ def sift_matches(
     pairs that are each other's match."""
     if len(desc_1) == 0 or len(desc_2) == 0:
         return np.zeros((0, 2), np.uint32)
-    one, two = nearest_two(desc_1, desc_2)
+    (one, _), (two, _) = nearest_two(desc_1, desc_2, columns=False), nearest_two(desc_2, desc_1, columns=False)
     ok = _passes(one, max_ratio, max_distance)
     if cross_check:
         back = _passes(two, max_ratio, max_distance)

@@ -615,9 +615,9 @@ def mutual_ratio_matches(
     to a's second nearest neighbour in b (Lowe's ratio test on angles, as COLMAP's matcher)."""
     if len(desc_a) == 0 or len(desc_b) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    rows, cols = nearest_two(desc_a, desc_b)  # exact integer dot products: scaled to cosines exactly below
-    scale = np.float32(1.0 / DESCRIPTOR_SCALE**2)
-    best, second, best_j, col_arg = rows.best * scale, rows.second * scale, rows.arg, cols.arg
+    rows, col_arg = nearest_two(desc_a, desc_b)  # exact integer dot products
+    scale = np.float32(1.0 / DESCRIPTOR_SCALE**2)  # a power of two: the cosines are exact too
+    best, second, best_j = rows.best * scale, rows.second * scale, rows.arg
     d1 = np.arccos(np.clip(best, -1.0, 1.0))
     d2 = np.arccos(np.clip(second, -1.0, 1.0))
     i = np.arange(len(desc_a))
