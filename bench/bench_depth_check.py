@@ -1,6 +1,6 @@
 """Time of the reference model's depth check against projecting every map point into every image.
 
-On a workspace with a reference model (``mapkit model``; the main job makes one), per map
+On a workspace with a reference model (``mapkit model``; the main job with ``--sixdof`` makes one), per map
 source of the model's sessions (semi-dense points, LiDAR voxel centroids):
 
 * mapkit: :func:`mapkit.localization.reference_model.depth_agreement` as the model stage runs it (its

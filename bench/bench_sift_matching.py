@@ -1,6 +1,6 @@
 """Time of the reference model's matching step: mapkit's exact matcher against COLMAP's brute-force matcher.
 
-On a workspace with a reference model (``mapkit model``; the main job makes one), its
+On a workspace with a reference model (``mapkit model``; the main job with ``--sixdof`` makes one), its
 database's SIFT features and its ``pairs.txt``, in copies of the database with the matches cleared:
 
 * mapkit: :func:`mapkit.localization.reference_model.write_exact_matches` (matrix products of the

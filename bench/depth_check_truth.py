@@ -17,7 +17,7 @@ and the point's condition as configured: per map that has normals, the fraction 
 check's median, and how far the triangulated points it compares lie from the truth.
 
 So it says which side of a disagreement the check reports is the model's and which the map's. Run on the main job's
-workspace (or the tiny town's, where the check's spread was chosen); ``--model M --true-poses``
+workspace with ``--sixdof`` (or the tiny town's, where the check's spread was chosen); ``--model M --true-poses``
 measures a model built on the true poses (``mapkit model --truth``) instead, whose maps' rows mean nothing (the maps
 lie on the build's poses)::
 
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.true_poses:
         model_from_truth = np.eye(4)
     elif not fit_file.is_file():
-        print(f"no {fit_file}: run the main job (its 6-DoF stage: mapkit eval localize --refine 6dof)", file=sys.stderr)
+        print(f"no {fit_file}: run the main job with --sixdof (mapkit eval localize --refine 6dof)", file=sys.stderr)
         return 2
     else:
         model_from_truth = np.array(json.loads(fit_file.read_text())["model_from_truth"]["matrix"])

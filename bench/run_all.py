@@ -10,7 +10,7 @@ small-run flags of ``QUICK_ARGS`` below (their own options: fewer patches, repea
 benchmark in neither runs in full. A benchmark with a positional ``workspace`` argument gets
 ``--workspace`` (an aligned workspace, default runs/main/workspace: the main job's) and is skipped when it is absent,
 or when it lacks the file the benchmark names in a module-level ``WORKSPACE_NEEDS`` (a path inside the workspace: a
-reference model, which the main job builds unless told ``--no-sixdof``).
+reference model, which only the main job with ``--sixdof`` builds).
 
 The table, one row per benchmark:
 

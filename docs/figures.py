@@ -15,7 +15,7 @@ docs (``compare``).
     python3 docs/figures.py collect places RUN...       # `mapkit demo --preset places --seed S --train-cnn
                                                         #  --no-lidar-maps` runs
     python3 docs/figures.py collect main-job RUN...     # runs of the README's main job (the demo preset)
-    python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job on seeds 7, 8, 9
+    python3 docs/figures.py collect main-job-6dof RUN... # runs of the main job with --sixdof
     python3 docs/figures.py collect demo-snowy-6dof RUN... # ... and --synth-config configs/synth/demo-snowy.yaml
     python3 docs/figures.py collect tiny RUN...         # runs of `pipelines/main.py --preset tiny`
     python3 docs/figures.py collect first-run FILE      # what bench/first_run.py wrote (set-up, main job, tests)
@@ -1078,7 +1078,7 @@ def render_outside_localizer_towns() -> str:
             rows,
         )
         + f"\n\nThe {OUTSIDE_CONDITION} drive's share within (0.5 m, 5 deg) and, in brackets, its median error; one "
-        f"run of `{rec['command']}` per town on the main job's workspace (`--seed S`), measured "
+        f"run of `{rec['command']}` per town on the main job's workspace (`--sixdof --seed S`), measured "
         f"{rec['measured']} on {rec['machine']}."
     )
 

@@ -9,9 +9,9 @@ The recipe is :func:`mapkit.pipelines.demo.run_demo`; this script is its stand-a
 4. ``mapkit triplets``: the triplet patch dataset, with the true offsets of its positives
 5. ``mapkit train`` (only with ``--train-cnn``): the 3D CNN patch descriptor
 6. ``mapkit index vlad`` and ``mapkit index structure``: the deployable indexes
-7. ``mapkit eval localize``: the Monte Carlo localizer; ``mapkit model``, ``mapkit eval localize --refine 6dof``
-   and ``mapkit export benchmark``: the reference model, 6-DoF localization and the localization benchmark
-   (``--no-sixdof`` leaves these three out)
+7. ``mapkit eval localize``: the Monte Carlo localizer; with ``--sixdof``, ``mapkit model``, ``mapkit eval
+   localize --refine 6dof`` and ``mapkit export benchmark``: the reference model, 6-DoF localization and the
+   localization benchmark
 8. ``mapkit eval places``: place recognition
 9. ``mapkit index export``: the verified deployment bundle; ``report.html``: everything above
 
@@ -49,10 +49,7 @@ def main(argv: list[str] | None = None) -> int:
         help="build each session's LiDAR map beside its semi-dense map (default; --no-lidar-maps leaves them out)",
     )
     ap.add_argument(
-        "--sixdof",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="the reference model, 6-DoF localization and the benchmark export (default; --no-sixdof leaves them out)",
+        "--sixdof", action="store_true", help="also the reference model, 6-DoF localization and the benchmark export"
     )
     ap.add_argument(
         "--synth-config",

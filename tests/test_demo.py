@@ -37,9 +37,9 @@ def _differing_files(a: Path, b: Path) -> list[str]:
 def tiny_demo(tmp_path_factory):
     base = tmp_path_factory.mktemp("demo")
     out = base / "run"
-    run_demo(out, preset="tiny", workers=2, log=lambda s: None)
+    run_demo(out, preset="tiny", workers=2, log=lambda s: None, sixdof=True)
     out.rename(base / "first")
-    metrics = run_demo(out, preset="tiny", workers=2, log=lambda s: None)
+    metrics = run_demo(out, preset="tiny", workers=2, log=lambda s: None, sixdof=True)
     return out, metrics
 
 
@@ -533,29 +533,6 @@ def test_the_demo_commands_hand_their_synth_config_to_the_town(tmp_path, monkeyp
     with pytest.raises(RuntimeError):
         _synth(d)
     assert captured["config"] == overlay and captured["preset"] == "demo"
-
-
-def test_the_demo_commands_run_the_sixdof_stage_unless_told_not_to(tmp_path, monkeypatch):
-    """`mapkit demo` and pipelines/main.py ask run_demo for the 6-DoF stage by default, and not with --no-sixdof."""
-    import importlib.util
-
-    seen: list = []
-
-    def fake_run_demo(out, *args, **kw):
-        seen.append(kw["sixdof"])
-        Path(out).mkdir(parents=True, exist_ok=True)
-        (Path(out) / "timings.md").write_text("")
-        return {"stages": {}, "report": str(Path(out) / "report.html")}
-
-    monkeypatch.setattr("mapkit.pipelines.demo.run_demo", fake_run_demo)
-    spec = importlib.util.spec_from_file_location("main_job", Path(__file__).parents[1] / "pipelines" / "main.py")
-    job = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(job)
-    assert main(["demo", "-o", str(tmp_path / "a")]) == 0
-    assert main(["demo", "-o", str(tmp_path / "b"), "--no-sixdof"]) == 0
-    assert job.main(["--out", str(tmp_path / "c")]) == 0
-    assert job.main(["--out", str(tmp_path / "d"), "--no-sixdof"]) == 0
-    assert seen == [True, False, True, False]
 
 
 def test_a_town_that_fails_skips_every_stage_after_it_and_says_why(tmp_path, monkeypatch):
