@@ -3,9 +3,9 @@
 On a workspace with a reference model (``mapkit model``; the main job with ``--sixdof`` makes one), its
 database's SIFT features and its ``pairs.txt``, in copies of the database with the matches cleared:
 
-* mapkit: :func:`mapkit.localization.reference_model.write_exact_matches` (matrix products of the
-  descriptors, ``num_threads`` pairs at a time) and then ``pycolmap.match_image_pairs``, which finds the
-  matches there and only verifies and guides them, as the model stage runs it;
+* mapkit: :func:`mapkit.localization.reference_model.match_and_verify` as the model stage runs it: the
+  matches by matrix products of the descriptors (``write_exact_matches``, ``num_threads`` pairs at a time),
+  then ``pycolmap.match_image_pairs``, which finds them there and only verifies and guides them;
 * baseline: ``pycolmap.match_image_pairs`` with COLMAP's brute-force CPU matcher (``cpu_brute_force_matcher``),
   which the model asked for before, on the same threads;
 * COLMAP's default approximate index for reference (not exact: two runs can differ).
@@ -87,9 +87,9 @@ def main(argv: list[str] | None = None) -> int:
             )
 
     def mapkit(db: Path) -> None:
-        matching, _ = rm.sift_matching_options(cfg, cfg.num_threads, cfg.seed)
-        rm.write_exact_matches(db, pairs, matching.sift, cfg.num_threads)
-        colmap(db, exact=True)
+        matching, verification = rm.sift_matching_options(cfg, cfg.num_threads, cfg.seed)
+        with rm.quiet_colmap():
+            rm.match_and_verify(db, folder / "pairs.txt", matching, verification)
 
     runs = {
         "mapkit (exact products, then COLMAP's verification)": mapkit,

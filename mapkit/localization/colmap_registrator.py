@@ -43,6 +43,7 @@ from mapkit.io.benchmark import (
 from mapkit.io.trajectory import write_benchmark_poses
 from mapkit.localization.reference_model import (
     extract_sift,
+    match_and_verify,
     quiet_colmap,
     sift_extraction_options,
     sift_matching_options,
@@ -152,17 +153,9 @@ def register_benchmark(
         _add_queries(partial, cameras, {im.name for im in rec.images.values()}, not cfg.refine_intrinsics)
         extraction = sift_extraction_options(features, cfg.num_threads)
         matching, verification = sift_matching_options(features, cfg.num_threads, cfg.seed)
-        pairing = pycolmap.ImportedPairingOptions()
-        pairing.match_list_path = str(pairs_txt)
         with quiet_colmap():
             extract_sift(partial, folder / IMAGES, list(cameras), extraction)
-            pycolmap.match_image_pairs(
-                partial,
-                matching_options=matching,
-                pairing_options=pairing,
-                verification_options=verification,
-                device=pycolmap.Device.cpu,
-            )
+            match_and_verify(partial, pairs_txt, matching, verification)
             t_matched = time.perf_counter()
             results = _register(partial, rec, list(cameras), cfg, progress)
     except BaseException:

@@ -435,8 +435,6 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
     _write_database(rec, db_path)
     extraction = sift_extraction_options(cfg, cfg.num_threads)
     matching, verification = sift_matching_options(cfg, cfg.num_threads, cfg.seed)
-    pairing = pycolmap.ImportedPairingOptions()
-    pairing.match_list_path = str(folder / "pairs.txt")
     tri = pycolmap.IncrementalPipelineOptions()
     tri.num_threads = cfg.num_threads
     tri.random_seed = cfg.seed
@@ -454,23 +452,35 @@ def _run_colmap(rec, root: Path, names: list[str], pairs: np.ndarray, folder: Pa
         extract_sift(db_path, root, names, extraction)
         _check_database(db_path, rec)
         t1 = time.perf_counter()
-        if len(pairs) and cfg.exact_matching:
-            # COLMAP's brute-force matches, by matrix products; COLMAP then only verifies (and guides) them
-            write_exact_matches(db_path, [(names[i], names[j]) for i, j in pairs], matching.sift, cfg.num_threads)
         if len(pairs):
-            pycolmap.match_image_pairs(
-                db_path,
-                matching_options=matching,
-                pairing_options=pairing,
-                verification_options=verification,
-                device=pycolmap.Device.cpu,
-            )
+            match_and_verify(db_path, folder / "pairs.txt", matching, verification)
         t2 = time.perf_counter()
         model = pycolmap.triangulate_points(rec, db_path, root, folder / "sfm", clear_points=True, options=tri)
         drop_near_points(model, cfg.min_depth_m)
         compact_database(db_path)
         write_timings(folder, extraction_s=t1 - t0, matching_s=t2 - t1, triangulation_s=time.perf_counter() - t2)
     return model
+
+
+def match_and_verify(db_path: Path, pairs_txt: Path, matching, verification) -> None:
+    """The image pairs listed in ``pairs_txt`` (two names a line) matched, verified and (where ``matching`` asks)
+    matched again along their geometry by ``pycolmap.match_image_pairs`` in the database ``db_path``, with
+    :func:`sift_matching_options`' options; where they ask for COLMAP's brute-force matches, mapkit computes them
+    first (:func:`write_exact_matches`) and COLMAP verifies and guides those."""
+    import pycolmap
+
+    if matching.sift.cpu_brute_force_matcher:
+        pairs = [(a, b) for a, b in (line.split() for line in pairs_txt.read_text().splitlines() if line.strip())]
+        write_exact_matches(db_path, pairs, matching.sift, matching.num_threads)
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = str(pairs_txt)
+    pycolmap.match_image_pairs(
+        db_path,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+        device=pycolmap.Device.cpu,
+    )
 
 
 def write_exact_matches(db_path: Path, pairs: Sequence[tuple[str, str]], options, num_threads: int = 1) -> None:
