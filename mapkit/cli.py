@@ -574,7 +574,7 @@ def demo(
         False,
         "--sixdof",
         help="Also build the reference model, localize the test drives in 6-DoF on it and export the localization "
-        "benchmark (about 1.5 more minutes on the demo town).",
+        "benchmark (about 2 more minutes on the demo town).",
     ),
     synth_config: Path | None = typer.Option(
         None,
