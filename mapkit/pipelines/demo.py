@@ -709,7 +709,8 @@ def _train_cnn(d: Demo) -> None:
 
 
 #: Files of a run that are records of the run itself, not results: they differ between two runs of the
-#: same inputs. Every other file of a run is the same to the byte on the same machine.
+#: same inputs. Every other file of a run is the same to the byte on the same machine (the reference model's nearly
+#: always: COLMAP's SIFT has once given one image other keypoint orientations, docs/concepts.md).
 RUN_RECORDS = {
     "timings.json": "wall-clock figures of the stage that wrote the folder",
     "timings.md": "the run's stage times",
