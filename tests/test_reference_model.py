@@ -187,6 +187,33 @@ def test_model_matches_are_colmaps_brute_force_matches(kitti_model, tmp_path):
         assert ours == theirs, table
 
 
+def test_exact_matches_skip_a_pair_naming_an_image_the_database_lacks(kitti_model, tmp_path, caplog):
+    """A pairs list naming an image the database does not hold: that pair is skipped with a warning naming the
+    image (as COLMAP's matcher skips it), the others are matched."""
+    import shutil
+    import sqlite3
+
+    from mapkit.localization.reference_model import sift_matching_options, write_exact_matches
+
+    out, _, _ = kitti_model
+    copy = tmp_path / "database.db"
+    shutil.copy(out / "database.db", copy)
+    con = sqlite3.connect(copy)
+    con.execute("DELETE FROM matches")
+    con.commit()
+    con.close()
+    pairs = [tuple(line.split()) for line in (out / "pairs.txt").read_text().splitlines()][:3]
+    matching, _ = sift_matching_options(ReferenceModelConfig(), 1, 0)
+    with caplog.at_level("WARNING", logger="mapkit"):
+        write_exact_matches(copy, [*pairs, (pairs[0][0], "no/such/image.png")], matching.sift)
+    assert "no/such/image.png" in caplog.text and "1 image pairs" in caplog.text
+    con = sqlite3.connect(copy)
+    try:
+        assert con.execute("SELECT COUNT(*) FROM matches").fetchone()[0] == len(pairs)
+    finally:
+        con.close()
+
+
 def test_binary_and_text_models_agree(kitti_model):
     out, _, _ = kitti_model
     binary = pycolmap.Reconstruction(str(out / "sfm"))

@@ -489,7 +489,8 @@ def write_exact_matches(db_path: Path, pairs: Sequence[tuple[str, str]], options
     :func:`~mapkit.localization.descriptor_matching.sift_matches` (the same matches in the same order), before
     ``pycolmap.match_image_pairs``: COLMAP's matcher takes the pairs whose matches it finds there straight to
     geometric verification and guided matching. ``num_threads`` pairs are matched at a time, in blocks of pairs
-    whose images' descriptors are read once."""
+    whose images' descriptors are read once. A pair naming an image the database does not hold is skipped with a
+    warning, as COLMAP's matcher skips it."""
     import pycolmap
 
     def match(ab: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
@@ -498,7 +499,15 @@ def write_exact_matches(db_path: Path, pairs: Sequence[tuple[str, str]], options
     db = pycolmap.Database.open(str(db_path))
     try:
         ids = {im.name: im.image_id for im in db.read_all_images()}
-        id_pairs = [(ids[a], ids[b]) for a, b in pairs]
+        unknown = [n for p in pairs for n in p if n not in ids]
+        if unknown:
+            log.warning(
+                "%s: %d image pairs name images it does not hold (first: %s): skipped",
+                db_path,
+                sum(a not in ids or b not in ids for a, b in pairs),
+                unknown[0],
+            )
+        id_pairs = [(ids[a], ids[b]) for a, b in pairs if a in ids and b in ids]
         with single_thread_blas(), ThreadPoolExecutor(max(1, num_threads)) as pool:
             for s in range(0, len(id_pairs), _MATCH_BLOCK):
                 block = id_pairs[s : s + _MATCH_BLOCK]
