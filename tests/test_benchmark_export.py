@@ -20,7 +20,7 @@ from test_reference_model import FAST, _kitti, _workspace
 from mapkit.core.errors import InputError
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad, yaw_rotation
-from mapkit.deploy.benchmark import BenchmarkExportConfig, export_benchmark
+from mapkit.deploy.benchmark import BenchmarkExportConfig, export_benchmark, retrieval_recall
 from mapkit.evaluation.benchmark import evaluate_benchmark, score_benchmark
 from mapkit.io.benchmark import QUERIES, colmap_camera_params, read_pairs, read_queries_with_intrinsics
 from mapkit.io.trajectory import read_benchmark_poses, write_benchmark_poses, write_tum
@@ -120,7 +120,46 @@ def test_export_holds_the_model_queries_and_their_true_poses(exported):
     }
     readme = (out / "README.md").read_text()
     assert "local ENU frame" in readme and f"{FRAME.lat0_deg:.9f}" in readme and "RMSE" in readme
+    # every query lies between database frames a metre or two apart: its first retrieved image shows its place
+    assert m["retrieval"]["recall"]["sessions"] == {
+        "query": {"queries": len(QUERY_FRAMES), "recall_at": {"1": 1.0, "4": 1.0}}
+    }
+    assert f"| query | {len(QUERY_FRAMES)} | 100.0 % | 100.0 % |" in readme
     assert (out / "config.yaml").is_file() and (out / "database.db").is_file()
+
+
+def test_retrieval_recall_counts_the_first_database_image_at_the_querys_place():
+    """Cameras on a street looking east (+x), one facing west: a retrieved image counts where it is within the
+    radius and looks within the angle, from the rank where the first such image comes."""
+
+    def cam(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+        # optical frame: z forward along the yaw, x right, y down
+        fwd = np.array([np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg)), 0.0])
+        right = np.cross(fwd, [0.0, 0.0, 1.0])
+        R = np.stack([right, np.cross(fwd, right), fwd], axis=1)
+        return make_pose(R, [x, 0.0, 0.0])
+
+    db = {"d0": cam(0), "d8": cam(8), "d25": cam(25), "d0west": cam(0, 180), "d3turned": cam(3, 40)}
+    queries = {"a": cam(0.5), "b": cam(-0.5), "c": cam(30), "n": cam(100), "lone": cam(0)}
+    pairs = [
+        ("a", "d0"),  # rank 1 at the place
+        ("b", "d25"),
+        ("b", "d0west"),  # same spot, looking the other way: not the place
+        ("b", "d3turned"),  # 40 deg off a 30 deg bound: not the place
+        ("b", "d8"),  # 8.5 m: at rank 4
+        ("c", "d25"),  # 5 m: rank 1
+        ("n", "d25"),  # 75 m away: never
+    ]  # "lone" has no pairs at all: a miss
+    sessions = {"a": "s", "b": "s", "c": "t", "n": "t", "lone": "t"}
+    r = retrieval_recall(pairs, queries, db, sessions, k=4, radius_m=10.0, max_angle_deg=30.0)
+    assert r["sessions"]["s"] == {"queries": 2, "recall_at": {"1": 0.5, "4": 1.0}}
+    assert r["sessions"]["t"] == {"queries": 3, "recall_at": {"1": pytest.approx(1 / 3), "4": pytest.approx(1 / 3)}}
+    # b's first image of its place is the fourth: not within three
+    assert retrieval_recall(pairs, queries, db, sessions, 3, 10.0, 30.0)["sessions"]["s"]["recall_at"]["3"] == 0.5
+    # a tighter radius drops b's 8.5 m neighbour and c's 5 m one
+    r = retrieval_recall(pairs, queries, db, sessions, k=50, radius_m=4.0, max_angle_deg=30.0)
+    assert r["sessions"]["s"]["recall_at"] == {"1": 0.5, "5": 0.5, "10": 0.5, "20": 0.5, "50": 0.5}
+    assert r["sessions"]["t"]["recall_at"]["50"] == 0.0
 
 
 def test_evaluator_scores_known_answers(exported, tmp_path):

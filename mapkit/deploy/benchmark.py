@@ -86,6 +86,18 @@ class BenchmarkExportConfig(MapkitConfig):
     min_fit_images: int = Field(
         3, ge=3, description="Database images with truth needed to fit the model's frame to the truth's."
     )
+    recall_radius_m: float = Field(
+        10.0,
+        gt=0,
+        description="Retrieval recall (metrics.json): a retrieved database image shows the query's place when its "
+        "camera lies within this distance of the query's true camera ...",
+    )
+    recall_max_angle_deg: float = Field(
+        30.0,
+        gt=0,
+        le=180,
+        description="... and its optical axis within this angle of the query's (a forward camera's view overlaps).",
+    )
 
 
 @dataclass
@@ -386,6 +398,19 @@ def export_benchmark(
         write_benchmark_poses(folder / GROUND_TRUTH, names, np.array([invert_pose(T) for T in gt]))
         sources = [q.source if q.source is not None else folder / IMAGES / q.name for q in kept]
         pairs, pair_stats = _retrieval_pairs(index_dir, sources, names, db_names, root, ws, cfg, progress, cache_dir)
+        db_T = {
+            n: invert_pose(np.vstack([rec.images[i].cam_from_world().matrix(), [0, 0, 0, 1]]))
+            for i, n in db_names.items()
+        }
+        pair_stats["recall"] = retrieval_recall(
+            pairs,
+            {q.name: T for q, T in zip(kept, gt, strict=True)},
+            db_T,
+            {q.name: q.session for q in kept},
+            cfg.retrieval_k,
+            cfg.recall_radius_m,
+            cfg.recall_max_angle_deg,
+        )
         write_pairs(folder / PAIRS, pairs)
         conditions = {q.name: _condition(q.session, town.get(q.session, {})) for q in kept}
         write_json(folder / CONDITIONS, conditions)
@@ -485,6 +510,49 @@ def _retrieval_pairs(
     return pairs, stats
 
 
+#: the depths at which retrieval recall is reported (those up to the export's k, and k itself)
+RECALL_AT = (1, 5, 10, 20, 50)
+
+
+def retrieval_recall(
+    pairs: list[tuple[str, str]],
+    query_T: Mapping[str, np.ndarray],
+    db_T: Mapping[str, np.ndarray],
+    session_of: Mapping[str, str],
+    k: int,
+    radius_m: float,
+    max_angle_deg: float,
+) -> dict:
+    """Per query session, the share of its queries with at least one database image among their first n pairs
+    (in the pairs' order, the retrieval's rank) that shows the query's place: camera within ``radius_m`` of the
+    query's true camera and optical axis within ``max_angle_deg`` of its (poses world_from_cam, one frame);
+    n in :data:`RECALL_AT` up to ``k``, and ``k``."""
+    ranked: dict[str, list[str]] = {}
+    for q, d in pairs:
+        ranked.setdefault(q, []).append(d)
+    depths = sorted({n for n in RECALL_AT if n <= k} | {k})
+    cos_max = np.cos(np.radians(max_angle_deg))
+    first: dict[str, int | None] = {}  # rank (1-based) of each query's first database image at its place
+    for q, T in query_T.items():
+        ds = ranked.get(q, [])
+        if not ds:
+            first[q] = None
+            continue
+        D = np.array([db_T[d] for d in ds])
+        near = np.linalg.norm(D[:, :3, 3] - T[:3, 3], axis=1) <= radius_m
+        facing = D[:, :3, 2] @ T[:3, 2] >= cos_max  # optical axes (z) within the angle
+        hit = np.flatnonzero(near & facing)
+        first[q] = int(hit[0]) + 1 if len(hit) else None
+    out: dict = {"radius_m": radius_m, "max_angle_deg": max_angle_deg, "sessions": {}}
+    for session in sorted(set(session_of.values())):
+        ranks = [first[q] for q in query_T if session_of[q] == session]
+        out["sessions"][session] = {
+            "queries": len(ranks),
+            "recall_at": {str(n): round(sum(r is not None and r <= n for r in ranks) / len(ranks), 6) for n in depths},
+        }
+    return out
+
+
 def _condition(session: str, entry: dict) -> dict:
     """A query's condition: the town manifest's label, weather and time of day where it has them."""
     out: dict = {"session": session, "condition": entry.get("condition") or entry.get("weather")}
@@ -492,6 +560,27 @@ def _condition(session: str, entry: dict) -> dict:
         if key in entry:
             out[key] = entry[key]
     return out
+
+
+def _recall_table(recall: dict) -> str:
+    """The README's table of retrieval recall per query session."""
+    sessions = recall["sessions"]
+    depths = list(next(iter(sessions.values()))["recall_at"]) if sessions else []
+    rows = [
+        f"| {s} | {v['queries']} | " + " | ".join(f"{100 * v['recall_at'][n]:.1f} %" for n in depths) + " |"
+        for s, v in sessions.items()
+    ]
+    return (
+        "Per query session, the share of queries with at least one database image of their place (camera within "
+        f"{recall['radius_m']:g} m of the query's true camera, optical axis within {recall['max_angle_deg']:g} deg) "
+        "among their first n retrieval pairs:\n\n"
+        + "| session | queries | "
+        + " | ".join(f"n = {n}" for n in depths)
+        + " |\n|---|---|"
+        + "---|" * len(depths)
+        + "\n"
+        + "\n".join(rows)
+    )
 
 
 def _readme(metrics: dict, ws: Workspace, queries: list[str], logs: dict[str, Path], cfg) -> str:
@@ -549,6 +638,10 @@ Source: {t["source"]}. The rigid transform from the truth's frame to the model's
 {t["fit_images"]} database images alone (camera centres and axes) and applied to the queries' truth;
 its residual over the database images: RMSE {t["residual_rmse_m"]:.4f} m, max {t["residual_max_m"]:.4f} m,
 rotation median {t["residual_rotation_median_deg"]:.4f} deg, max {t["residual_rotation_max_deg"]:.4f} deg.
+
+## Retrieval
+
+{_recall_table(metrics["retrieval"]["recall"])}
 
 ## Scoring
 
