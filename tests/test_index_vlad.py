@@ -14,6 +14,7 @@ import pytest
 from test_dsift import textured_image
 from test_vlad import shifted_and_brighter
 
+from mapkit.core.blas import openblas_kernels
 from mapkit.core.errors import InputError, InputWarning
 from mapkit.core.geodesy import LocalFrame
 from mapkit.core.geometry import make_pose, yaw_rotation
@@ -161,6 +162,8 @@ def test_manifest_records_sessions_frame_and_every_file(built):
     assert "test-c" not in m["sessions"]
     assert m["frame"]["utm_crs_epsg"] == FRAME.utm_epsg
     assert m["index"] == {"kind": "flat", "faiss": "IndexFlatL2", "dim": 12, "metric": "squared L2", "ntotal": 16}
+    # the kernel numpy's OpenBLAS ran (mapkit names it on import): the vocabulary's last bits depend on it
+    assert "numpy" in m["openblas"] and m["openblas"] == openblas_kernels()
     listed = set(m["files"])
     on_disk = {p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()} - {"manifest.json", "timings.json"}
     assert listed == on_disk  # every file but the manifest and the run record (timings.json) is checksummed

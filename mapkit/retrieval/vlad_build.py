@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from mapkit import __version__
+from mapkit.core.blas import openblas_kernels
 from mapkit.core.bundle import MANIFEST, building, copy_file, is_finished, read_manifest, write_manifest
 from mapkit.core.config import dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError, InputWarning
@@ -526,6 +527,9 @@ def _manifest(
         },
         "index": index_info,
         "entries": entries,
+        # the kernel each OpenBLAS ran: k-means breaks ties on the last bits of its products, so another kernel
+        # learns another vocabulary from the same images (mapkit.core.blas)
+        "openblas": openblas_kernels(),
     }
 
 
