@@ -196,7 +196,9 @@ def run_hloc(bench: Path, work: Path, src: Path, python: str, ransac_px: dict[st
     work.mkdir(parents=True, exist_ok=True)
     runner = work / "run_hloc.py"
     runner.write_text(HLOC_RUNNER)
-    subprocess.run([python, str(runner), json.dumps(args)], env=_hloc_env(src), cwd=work, check=True)
+    # the runner works in ``work``: paths relative to here would not resolve there
+    python = os.path.abspath(python) if os.sep in python else python  # not resolve(): a venv's python is a link
+    subprocess.run([python, str(runner.resolve()), json.dumps(args)], env=_hloc_env(src), cwd=work, check=True)
     return json.loads((work / "hloc.json").read_text())
 
 
