@@ -60,8 +60,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("workspace", type=Path)
     ap.add_argument("--model", type=Path, default=None, help="the model's folder (default WS/reference_model)")
     args = ap.parse_args(argv)
-    import pycolmap
-
     from mapkit.core.config import load_config
     from mapkit.localization import reference_model as rm
 
@@ -71,20 +69,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     cfg = load_config(rm.ReferenceModelConfig, folder / "config.yaml")
     pairs = [tuple(line.split()) for line in (folder / "pairs.txt").read_text().splitlines() if line.strip()]
-    pairing = pycolmap.ImportedPairingOptions()
-    pairing.match_list_path = str(folder / "pairs.txt")
 
     def colmap(db: Path, exact: bool) -> None:
         matching, verification = rm.sift_matching_options(cfg, cfg.num_threads, cfg.seed)
         matching.sift.cpu_brute_force_matcher = exact
         with rm.quiet_colmap():
-            pycolmap.match_image_pairs(
-                db,
-                matching_options=matching,
-                pairing_options=pairing,
-                verification_options=verification,
-                device=pycolmap.Device.cpu,
-            )
+            rm.colmap_match_pairs(db, folder / "pairs.txt", matching, verification)
 
     def mapkit(db: Path) -> None:
         matching, verification = rm.sift_matching_options(cfg, cfg.num_threads, cfg.seed)

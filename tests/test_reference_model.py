@@ -150,7 +150,7 @@ def test_model_matches_are_colmaps_brute_force_matches(kitti_model, tmp_path):
     import shutil
     import sqlite3
 
-    from mapkit.localization.reference_model import quiet_colmap, sift_matching_options
+    from mapkit.localization.reference_model import colmap_match_pairs, quiet_colmap, sift_matching_options
 
     out, _, _ = kitti_model
     copy = tmp_path / "database.db"
@@ -163,16 +163,8 @@ def test_model_matches_are_colmaps_brute_force_matches(kitti_model, tmp_path):
     cfg = ReferenceModelConfig(pair_neighbours=3)
     matching, verification = sift_matching_options(cfg, 1, cfg.seed)
     matching.sift.cpu_brute_force_matcher = True
-    pairing = pycolmap.ImportedPairingOptions()
-    pairing.match_list_path = str(out / "pairs.txt")
     with quiet_colmap():
-        pycolmap.match_image_pairs(
-            copy,
-            matching_options=matching,
-            pairing_options=pairing,
-            verification_options=verification,
-            device=pycolmap.Device.cpu,
-        )
+        colmap_match_pairs(copy, out / "pairs.txt", matching, verification)
 
     def rows(db, table):
         con = sqlite3.connect(db)

@@ -467,11 +467,17 @@ def match_and_verify(db_path: Path, pairs_txt: Path, matching, verification) -> 
     matched again along their geometry by ``pycolmap.match_image_pairs`` in the database ``db_path``, with
     :func:`sift_matching_options`' options; where they ask for COLMAP's brute-force matches, mapkit computes them
     first (:func:`write_exact_matches`) and COLMAP verifies and guides those."""
-    import pycolmap
-
     if matching.sift.cpu_brute_force_matcher:
         pairs = [(a, b) for a, b in (line.split() for line in pairs_txt.read_text().splitlines() if line.strip())]
         write_exact_matches(db_path, pairs, matching.sift, matching.num_threads)
+    colmap_match_pairs(db_path, pairs_txt, matching, verification)
+
+
+def colmap_match_pairs(db_path: Path, pairs_txt: Path, matching, verification) -> None:
+    """COLMAP alone on the pairs listed in ``pairs_txt``: ``pycolmap.match_image_pairs`` on the CPU, matching the
+    pairs without stored matches, then verifying and (where ``matching`` asks) guiding them all."""
+    import pycolmap
+
     pairing = pycolmap.ImportedPairingOptions()
     pairing.match_list_path = str(pairs_txt)
     pycolmap.match_image_pairs(
