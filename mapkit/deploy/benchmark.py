@@ -335,6 +335,10 @@ def export_benchmark(
     # truth of the database images, and the model's frame fitted to it
     poses = _town_truth(truth, ws) if truth is not None else None
     source = "synthetic town (true camera poses)" if truth is not None else "the sessions' recorded poses (imagedb)"
+    # each database image's world_from_cam in the model: the truth's fit and the retrieval recall
+    db_T = {
+        n: invert_pose(np.vstack([rec.images[i].cam_from_world().matrix(), [0, 0, 0, 1]])) for i, n in db_names.items()
+    }
     model_T, truth_T = [], []
     for i in sorted(db_names):
         hit = by_path.get((root / db_names[i]).resolve())
@@ -347,7 +351,7 @@ def export_benchmark(
             if not ok[0]:
                 continue
             T_true = T[0]
-        model_T.append(invert_pose(np.vstack([rec.images[i].cam_from_world().matrix(), [0, 0, 0, 1]])))
+        model_T.append(db_T[db_names[i]])
         truth_T.append(T_true)
     fit = fit_truth(
         np.array(model_T).reshape(-1, 4, 4),
@@ -400,10 +404,6 @@ def export_benchmark(
         write_benchmark_poses(folder / GROUND_TRUTH, names, np.array([invert_pose(T) for T in gt]))
         sources = [q.source if q.source is not None else folder / IMAGES / q.name for q in kept]
         pairs, pair_stats = _retrieval_pairs(index_dir, sources, names, db_names, root, ws, cfg, progress, cache_dir)
-        db_T = {
-            n: invert_pose(np.vstack([rec.images[i].cam_from_world().matrix(), [0, 0, 0, 1]]))
-            for i, n in db_names.items()
-        }
         pair_stats["recall"] = retrieval_recall(
             pairs,
             {q.name: T for q, T in zip(kept, gt, strict=True)},
