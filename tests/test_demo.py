@@ -121,6 +121,7 @@ def test_tiny_main_job_runs_every_stage_with_non_empty_outputs(tiny_demo):
     for session, r in m["sixdof"].items():
         assert r["6dof"]["queries"] == r["filter"]["queries"] > 0, session
         assert r["6dof"]["recall"]["5m_10deg"] >= r["filter"]["recall"]["5m_10deg"], (session, r)
+        assert r["sequence"]["queries"] == r["6dof"]["queries"], session  # the drive's pose graph scored too
     bench = pycolmap.Reconstruction(str(out / "benchmark" / "sfm"))
     assert bench.num_points3D() > 0 and (out / "benchmark" / "queries_with_intrinsics.txt").stat().st_size > 0
     assert m["places"] and all(len(v) >= 3 for v in m["places"].values()), m["places"]

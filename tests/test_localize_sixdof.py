@@ -219,10 +219,17 @@ def test_eval_localize_scores_the_sixdof_poses_beside_the_filter(kitti_ws, tmp_p
     assert session["queries"] == s["6dof"]["queries"] == s["filter"]["queries"] == s["retrieval"]["queries"] == 5
     assert s["6dof"]["recall"][band_key(0.25, 2.0)] >= 0.8 and s["accepted_share"] >= 0.8
     assert s["6dof"]["median_translation_m"] * 10 <= s["filter"]["median_translation_m"], s
+    # the registrations joined by the query session's odometry: every query placed, as close as the registrations
+    assert s["sequence"]["queries"] == 5 and s["sequence"]["recall"][band_key(0.25, 2.0)] == 1.0, s["sequence"]
     md = (out / "eval_localize.md").read_text()
     assert "| query | 5 | 6-DoF |" in md and "| query | 5 | MCVL |" in md and "| query | 5 | retrieval |" in md
+    assert "| query | 5 | 6-DoF + odometry |" in md
     names, _ = read_benchmark_poses(out / "query" / "sixdof_poses.txt")
     assert names == [f"sessions/query/imagedb/images/cam0/{100_000_000 * f}.png" for f in EVAL_QUERIES]
+    seq_names, seq_poses = read_benchmark_poses(out / "query" / "sequence_poses.txt")
+    stamps, seq_tum = read_tum(out / "query" / "sequence_tum.txt")
+    assert seq_names == names and len(stamps) == 5
+    np.testing.assert_allclose(np.array([invert_pose(T) for T in seq_poses]), seq_tum, atol=1e-6)
 
     both = ReferenceModelConfig(**FAST, allow_unaligned=True)  # the two sessions' KITTI poses share one frame
     wrong = build_reference_model(ws, ["kitti", "query"], out=tmp_path / "all", config=both)

@@ -190,6 +190,12 @@ def _evaluate(
     return results
 
 
+def sequence_estimates(found) -> np.ndarray:
+    """(n, 4, 4) the pose graph's ``world_from_camera`` of each query (:class:`SixDofResult`), NaN where it has none."""
+    nan = np.full((4, 4), np.nan)
+    return np.array([nan if x.sequence_world_from_cam is None else x.sequence_world_from_cam for x in found])
+
+
 def _model_frame_truth(ws: Workspace, truth: Path, ws_frame: LocalFrame, loc: SixDofLocalizer) -> dict:
     """The rigid transform that takes the town's true camera poses into the reference model's frame, fitted on the
     model's database images alone (their known poses against their truth, as ``mapkit export benchmark`` fits it):
@@ -288,6 +294,11 @@ def _localize_session(
         entry["sixdof"] = {
             "accepted_share": summary["accepted_share"],
             "6dof": asdict(pose_band_scores(gt_model, est)),
+            **(
+                {"sequence": asdict(pose_band_scores(gt_model, sequence_estimates(found)))}
+                if any(x.sequence_world_from_cam is not None for x in found)
+                else {}
+            ),
             "filter": asdict(pose_band_scores(gt_model, r.poses("filter"))),
             "retrieval": asdict(pose_band_scores(gt_model, r.poses("retrieval"))),
         }
@@ -329,11 +340,12 @@ def format_localization(results: dict) -> str:
 
 
 #: the estimates of the 6-DoF table, in its row order
-SIXDOF_ROWS = (("6dof", "6-DoF"), ("filter", "MCVL"), ("retrieval", "retrieval"))
+SIXDOF_ROWS = (("6dof", "6-DoF"), ("sequence", "6-DoF + odometry"), ("filter", "MCVL"), ("retrieval", "retrieval"))
 
 
 def format_sixdof(results: dict) -> str:
-    """Per test sequence, on the same queries: the share of the 6-DoF poses, the filter's and retrieval's
+    """Per test sequence, on the same queries: the share of the 6-DoF poses (each image's own registration, and the
+    pose graph's that joins them by the odometry where the run made one), the filter's and retrieval's
     within each band of the visual localization benchmark and their median errors; the share of queries the
     registration accepted (its times are in the run's ``timings.json``)."""
     head = " | ".join(f"{a:g} m, {b:g} deg" for a, b in THRESHOLDS)
@@ -347,7 +359,9 @@ def format_sixdof(results: dict) -> str:
         if s is None:
             continue
         for key, label in SIXDOF_ROWS:
-            e = s[key]
+            e = s.get(key)
+            if e is None:
+                continue  # a run without the pose graph has no sequence row
             shares = " | ".join(f"{100 * e['recall'][band_key(a, b)]:.1f} %" for a, b in THRESHOLDS)
             extra = f"{100 * (s['accepted_share'] or 0):.1f} %" if key == "6dof" else ""
             lines.append(

@@ -66,7 +66,7 @@ logger = logging.getLogger(__name__)
 Row4 = tuple[float, float, float, float]
 
 #: the files a 6-DoF refinement writes beside the filter's (removed by a run without one)
-SIXDOF_FILES = ("sixdof_tum.txt", "sixdof_poses.txt", "sixdof.json")
+SIXDOF_FILES = ("sixdof_tum.txt", "sixdof_poses.txt", "sixdof.json", "sequence_tum.txt", "sequence_poses.txt")
 
 
 def _row4(row: np.ndarray, last: float) -> Row4:
@@ -432,8 +432,36 @@ def refine_sixdof(
         results = follow_neighbours(loc, results, images, cameras, names, priors, odometry, features)
         if loc.cfg.sequence_max_m is not None:
             results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
+    if odometry is not None and loc.cfg.smoothing != "off":
+        results = with_sequence_poses(results, odometry, priors, loc.cfg)
     logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
     return results
+
+
+def with_sequence_poses(
+    results: Sequence[SixDofResult],
+    odometry: Sequence[np.ndarray | None],
+    fallback: Sequence[np.ndarray | None],
+    cfg: SixDofConfig,
+) -> list[SixDofResult]:
+    """``results`` with each query's ``sequence_world_from_cam``: the pose graph of the accepted registrations and the
+    odometry (:func:`mapkit.localization.sequence.smooth_sequence`, ``cfg.smoothing``), started from ``fallback``."""
+    from mapkit.localization.sequence import smooth_sequence
+
+    if cfg.smoothing == "off":
+        return list(results)
+    poses = smooth_sequence(
+        [r.world_from_cam if r.accepted else None for r in results],
+        odometry,
+        fallback,
+        mode=cfg.smoothing,
+        prior_sigma_m=cfg.smoothing_sigma_m,
+        prior_sigma_deg=cfg.smoothing_sigma_deg,
+        odometry_sigma_m=cfg.odometry_sigma_m,
+        odometry_sigma_fraction=cfg.odometry_sigma_fraction,
+        odometry_sigma_deg=cfg.odometry_sigma_deg,
+    )
+    return [replace(r, sequence_world_from_cam=T) for r, T in zip(results, poses, strict=True)]
 
 
 def odometry_steps(world_from_cam: Sequence[np.ndarray | None]) -> list[np.ndarray | None]:
@@ -542,14 +570,25 @@ def check_sequence(
 def write_sixdof(out: Path, stamps_ns: np.ndarray, results: Sequence[SixDofResult], loc: SixDofLocalizer) -> dict:
     """The 6-DoF poses of a run into ``out``: ``sixdof_tum.txt`` (``world_from_camera``, TUM, as the filter's),
     ``sixdof_poses.txt`` (``cam_from_world`` in the benchmark format, named as the queries) and ``sixdof.json``
-    (each query's outcome). A query without a pose is left out of both pose files. Returns the summary: queries
-    and the accepted share. The seconds each query took are a run record (:func:`sixdof_timings`), not written
-    here: the same inputs give these files to the byte."""
-    posed = [k for k, r in enumerate(results) if r.world_from_cam is not None]
-    world_from_cam = np.array([results[k].world_from_cam for k in posed], np.float64).reshape(-1, 4, 4)
-    cam_from_world = np.array([results[k].cam_from_world for k in posed], np.float64).reshape(-1, 4, 4)
-    write_tum(out / "sixdof_tum.txt", np.asarray(stamps_ns, np.int64)[posed], world_from_cam)
-    write_benchmark_poses(out / "sixdof_poses.txt", [results[k].name for k in posed], cam_from_world)
+    (each query's outcome). A query without a pose is left out of both pose files. Where the run joined the poses
+    by the odometry (``SixDofConfig.smoothing``), ``sequence_tum.txt`` and ``sequence_poses.txt`` hold the pose
+    graph's poses the same way. Returns the summary: queries and the accepted share. The seconds each query took
+    are a run record (:func:`sixdof_timings`), not written here: the same inputs give these files to the byte."""
+    stamps_ns = np.asarray(stamps_ns, np.int64)
+    sequence = [r.sequence_world_from_cam for r in results]
+    for prefix, poses in (
+        ("sixdof", [(r.world_from_cam, r.cam_from_world) for r in results]),
+        ("sequence", [(T, None if T is None else invert_pose(T)) for T in sequence]),
+    ):
+        posed = [k for k, (T, _) in enumerate(poses) if T is not None]
+        if prefix == "sequence" and not posed:
+            for name in ("sequence_tum.txt", "sequence_poses.txt"):
+                (out / name).unlink(missing_ok=True)
+            continue
+        world_from_cam = np.array([poses[k][0] for k in posed], np.float64).reshape(-1, 4, 4)
+        cam_from_world = np.array([poses[k][1] for k in posed], np.float64).reshape(-1, 4, 4)
+        write_tum(out / f"{prefix}_tum.txt", stamps_ns[posed], world_from_cam)
+        write_benchmark_poses(out / f"{prefix}_poses.txt", [results[k].name for k in posed], cam_from_world)
     accepted = sum(r.accepted for r in results)
     summary: dict[str, Any] = {
         "model": str(loc.folder),

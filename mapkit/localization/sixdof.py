@@ -33,6 +33,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -134,6 +135,33 @@ class SixDofConfig(MapkitConfig):
         "each feature pick any look-alike (the next window of a facade); a pose to within a metre leaves it the "
         "few within reach.",
     )
+    smoothing: Literal["causal", "batch", "off"] = Field(
+        "causal",
+        description="In a sequence with odometry: the poses of a pose graph of the registrations and the odometry "
+        "(mapkit.localization.sequence), beside each image's own registration. causal: each query's pose from it "
+        "and the queries before it, as online; batch: from the whole drive; off: none.",
+    )
+    smoothing_sigma_m: float = Field(
+        0.125,
+        gt=0,
+        description="A registration's prior in the pose graph: this std per position axis (m). mapkit choice: half "
+        "the benchmarks' finest band (0.25 m, 2 deg), so that an accepted pose lies within it at two sigma.",
+    )
+    smoothing_sigma_deg: float = Field(1.0, gt=0, description="... and this std per rotation axis (deg), as above.")
+    odometry_sigma_m: float = Field(
+        0.01,
+        gt=0,
+        description="The odometry's std per step and position axis: this (m) plus odometry_sigma_fraction of the "
+        "step. mapkit choice, about three times what the demo town's training drives (never scored) measure: "
+        "0.006-0.011 m rms per 0.5 s step of 4-5 m between their image poses and the truth.",
+    )
+    odometry_sigma_fraction: float = Field(0.005, ge=0, description="See odometry_sigma_m.")
+    odometry_sigma_deg: float = Field(
+        0.05,
+        gt=0,
+        description="The odometry's std per step and rotation axis (deg). mapkit choice, about four times the training "
+        "drives' 0.013 deg rms per step (as odometry_sigma_m).",
+    )
     num_threads: int = Field(
         2,
         ge=1,
@@ -169,6 +197,7 @@ class SixDofResult:
     matches: int
     candidates: list[str] = field(default_factory=list)
     seconds: float = 0.0  # with the query's share of a batch's feature extraction
+    sequence_world_from_cam: np.ndarray | None = None  # the pose graph's pose (SixDofConfig.smoothing), if any
 
 
 # --- the model on disk -----------------------------------------------------------------------------------

@@ -1,0 +1,121 @@
+"""The pose graph that joins a drive's 6-DoF registrations by its odometry (mapkit.localization.sequence), on a
+known drive: a camera along a street that turns, registrations scattered about its true poses, two consecutive
+ones at a look-alike place 270 m away, a stretch without any, and odometry from the true motion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad
+from mapkit.localization.sequence import smooth_sequence
+from mapkit.localization.sixdof import SixDofConfig
+
+#: queries 2 m apart, a quarter turn in the middle
+N = 80
+#: the 6-DoF localizer's defaults
+_CFG = SixDofConfig()
+SIGMAS = dict(
+    prior_sigma_m=_CFG.smoothing_sigma_m,
+    prior_sigma_deg=_CFG.smoothing_sigma_deg,
+    odometry_sigma_m=_CFG.odometry_sigma_m,
+    odometry_sigma_fraction=_CFG.odometry_sigma_fraction,
+    odometry_sigma_deg=_CFG.odometry_sigma_deg,
+)
+#: the look-alike place: the two queries registered there, and the stretch with no registration
+WRONG, MISSING = (40, 41), range(55, 63)
+
+
+def _drive() -> np.ndarray:
+    """(N, 4, 4) true world_from_camera: forward along x, then a quarter turn to the left over 20 queries."""
+    heading = np.clip((np.arange(N) - 30) / 20, 0, 1) * np.pi / 2
+    xy = np.zeros((N, 2))
+    for t in range(1, N):
+        xy[t] = xy[t - 1] + 2.0 * np.array([np.cos(heading[t]), np.sin(heading[t])])
+    base_from_cam = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)  # optical z forward, x right, y down
+    return np.array(
+        [
+            make_pose(Rotation.from_euler("z", h).as_matrix() @ base_from_cam, np.array([x, y, 1.5]))
+            for h, (x, y) in zip(heading, xy, strict=True)
+        ]
+    )
+
+
+def _noisy(T: np.ndarray, rng: np.random.Generator, sigma_m: float, sigma_deg: float) -> np.ndarray:
+    R = Rotation.from_rotvec(np.radians(sigma_deg) * rng.standard_normal(3)).as_matrix()
+    return make_pose(T[:3, :3] @ R, T[:3, 3] + sigma_m * rng.standard_normal(3))
+
+
+def _case(seed: int = 3):
+    """(truth, registered, odometry, fallback) of the drive."""
+    rng = np.random.default_rng(seed)
+    truth = _drive()
+    registered: list[np.ndarray | None] = [_noisy(T, rng, 0.1, 0.5) for T in truth]
+    registered[0] = None  # the drive starts before its first registration
+    for t in WRONG:
+        registered[t] = make_pose(Rotation.from_euler("z", 0.7).as_matrix() @ truth[t][:3, :3], truth[t][:3, 3] + 270)
+    for t in MISSING:
+        registered[t] = None
+    odometry = [None] + [invert_pose(a) @ b for a, b in zip(truth[:-1], truth[1:], strict=True)]
+    fallback = [make_pose(T[:3, :3], T[:3, 3] + [3.0, -2.0, 0.0]) for T in truth]  # the filter, metres off
+    return truth, registered, odometry, fallback
+
+
+def _errors(estimates, truth) -> tuple[np.ndarray, np.ndarray]:
+    m = np.array([np.linalg.norm(E[:3, 3] - T[:3, 3]) for E, T in zip(estimates, truth, strict=True)])
+    deg = np.degrees([rotation_angle_rad(E[:3, :3].T @ T[:3, :3]) for E, T in zip(estimates, truth, strict=True)])
+    return m, deg
+
+
+@pytest.mark.parametrize("mode", ["causal", "batch"])
+def test_odometry_carries_the_registrations_accuracy_across_outliers_and_gaps(mode):
+    """Every query from the fifth on ends within the benchmarks' finest band (0.25 m, 2 deg) of its true pose, the
+    two registrations 270 m away and the stretch without any included (with the whole drive, every query from the
+    second within (0.1 m, 1 deg)), and the median position error is below half the registrations' own."""
+    truth, registered, odometry, fallback = _case()
+    out = smooth_sequence(registered, odometry, fallback, mode=mode, **SIGMAS)
+    # the first query has only the filter's pose (the next test); online, the next few have little to average
+    first = 5 if mode == "causal" else 1
+    m, deg = _errors(out[first:], truth[first:])
+    good = [t for t in range(1, N) if t not in WRONG and t not in MISSING]
+    raw, _ = _errors([registered[t] for t in good], truth[good])
+    limit_m, limit_deg = (0.25, 2.0) if mode == "causal" else (0.1, 1.0)
+    assert m.max() < limit_m and deg.max() < limit_deg, (m.argmax() + first, m.max(), deg.max())
+    assert np.median(m) < 0.5 * np.median(raw), (np.median(m), np.median(raw))
+
+
+def test_causal_poses_depend_only_on_the_queries_before_them():
+    """Online, query t's pose is fixed once it is added: changing every registration after it leaves poses 0..t
+    as they were; the first query, before any registration, is the fallback's; the batch reading moves it."""
+    truth, registered, odometry, fallback = _case()
+    out = smooth_sequence(registered, odometry, fallback, mode="causal", **SIGMAS)
+    later = registered[:30] + [None if T is None else make_pose(T[:3, :3], T[:3, 3] + 1.0) for T in registered[30:]]
+    again = smooth_sequence(later, odometry, fallback, mode="causal", **SIGMAS)
+    np.testing.assert_allclose(np.array(again[:30]), np.array(out[:30]), atol=1e-9)
+    assert np.linalg.norm(again[40][:3, 3] - out[40][:3, 3]) > 0.3  # and it does move the later ones
+    np.testing.assert_allclose(out[0], fallback[0], atol=1e-6)
+    batch = smooth_sequence(registered, odometry, fallback, mode="batch", **SIGMAS)
+    assert np.linalg.norm(batch[0][:3, 3] - truth[0][:3, 3]) < 0.1  # the whole drive places its first query too
+
+
+def test_a_query_nothing_places_has_no_pose_and_a_gap_starts_again_from_the_fallback():
+    """Without odometry into it, a registration or a fallback, a query gets None; the query after a gap in the
+    odometry without a registration starts from its fallback pose, 3.6 m off, and the registrations after it bring
+    the stretch back within 0.25 m of the truth."""
+    truth, registered, odometry, fallback = _case()
+    registered[10], fallback[10], odometry[10], odometry[11] = None, None, None, None
+    registered[11] = None
+    out = smooth_sequence(registered, odometry, fallback, mode="causal", **SIGMAS)
+    assert out[10] is None
+    np.testing.assert_allclose(out[11], fallback[11], atol=1e-6)
+    m, _ = _errors(out[12:30], truth[12:30])
+    assert m.max() < 0.25, m
+
+
+def test_lengths_and_mode_are_checked():
+    truth, registered, odometry, fallback = _case()
+    with pytest.raises(ValueError, match="80 registered poses, 79 odometry steps"):
+        smooth_sequence(registered, odometry[:-1], fallback, **SIGMAS)
+    with pytest.raises(ValueError, match="choose causal or batch"):
+        smooth_sequence(registered, odometry, fallback, mode="off", **SIGMAS)  # type: ignore[arg-type]
