@@ -9,20 +9,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad
+from mapkit.localization.localize import sequence_noise
 from mapkit.localization.sequence import smooth_sequence
 from mapkit.localization.sixdof import SixDofConfig
 
 #: queries 2 m apart, a quarter turn in the middle
 N = 80
 #: the 6-DoF localizer's defaults
-_CFG = SixDofConfig()
-SIGMAS = dict(
-    prior_sigma_m=_CFG.smoothing_sigma_m,
-    prior_sigma_deg=_CFG.smoothing_sigma_deg,
-    odometry_sigma_m=_CFG.odometry_sigma_m,
-    odometry_sigma_fraction=_CFG.odometry_sigma_fraction,
-    odometry_sigma_deg=_CFG.odometry_sigma_deg,
-)
+NOISE = sequence_noise(SixDofConfig())
 #: the look-alike place: the two queries registered there, and the stretch with no registration
 WRONG, MISSING = (40, 41), range(55, 63)
 
@@ -74,7 +68,7 @@ def test_odometry_carries_the_registrations_accuracy_across_outliers_and_gaps(mo
     two registrations 270 m away and the stretch without any included (with the whole drive, every query from the
     second within (0.1 m, 1 deg)), and the median position error is below half the registrations' own."""
     truth, registered, odometry, fallback = _case()
-    out = smooth_sequence(registered, odometry, fallback, mode=mode, **SIGMAS)
+    out = smooth_sequence(registered, odometry, fallback, NOISE, mode)
     # the first query has only the filter's pose (the next test); online, the next few have little to average
     first = 5 if mode == "causal" else 1
     m, deg = _errors(out[first:], truth[first:])
@@ -89,13 +83,14 @@ def test_causal_poses_depend_only_on_the_queries_before_them():
     """Online, query t's pose is fixed once it is added: changing every registration after it leaves poses 0..t
     as they were; the first query, before any registration, is the fallback's; the batch reading moves it."""
     truth, registered, odometry, fallback = _case()
-    out = smooth_sequence(registered, odometry, fallback, mode="causal", **SIGMAS)
+    out = smooth_sequence(registered, odometry, fallback, NOISE, "causal")
     later = registered[:30] + [None if T is None else make_pose(T[:3, :3], T[:3, 3] + 1.0) for T in registered[30:]]
-    again = smooth_sequence(later, odometry, fallback, mode="causal", **SIGMAS)
+    again = smooth_sequence(later, odometry, fallback, NOISE, "causal")
     np.testing.assert_allclose(np.array(again[:30]), np.array(out[:30]), atol=1e-9)
-    assert np.linalg.norm(again[40][:3, 3] - out[40][:3, 3]) > 0.3  # and it does move the later ones
+    # and it does move the later ones, once the moved registrations outnumber the earlier ones
+    assert np.linalg.norm(again[79][:3, 3] - out[79][:3, 3]) > 0.5
     np.testing.assert_allclose(out[0], fallback[0], atol=1e-6)
-    batch = smooth_sequence(registered, odometry, fallback, mode="batch", **SIGMAS)
+    batch = smooth_sequence(registered, odometry, fallback, NOISE, "batch")
     assert np.linalg.norm(batch[0][:3, 3] - truth[0][:3, 3]) < 0.1  # the whole drive places its first query too
 
 
@@ -106,7 +101,7 @@ def test_a_query_nothing_places_has_no_pose_and_a_gap_starts_again_from_the_fall
     truth, registered, odometry, fallback = _case()
     registered[10], fallback[10], odometry[10], odometry[11] = None, None, None, None
     registered[11] = None
-    out = smooth_sequence(registered, odometry, fallback, mode="causal", **SIGMAS)
+    out = smooth_sequence(registered, odometry, fallback, NOISE, "causal")
     assert out[10] is None
     np.testing.assert_allclose(out[11], fallback[11], atol=1e-6)
     m, _ = _errors(out[12:30], truth[12:30])
@@ -116,6 +111,40 @@ def test_a_query_nothing_places_has_no_pose_and_a_gap_starts_again_from_the_fall
 def test_lengths_and_mode_are_checked():
     truth, registered, odometry, fallback = _case()
     with pytest.raises(ValueError, match="80 registered poses, 79 odometry steps"):
-        smooth_sequence(registered, odometry[:-1], fallback, **SIGMAS)
+        smooth_sequence(registered, odometry[:-1], fallback, NOISE)
     with pytest.raises(ValueError, match="choose causal or batch"):
-        smooth_sequence(registered, odometry, fallback, mode="off", **SIGMAS)  # type: ignore[arg-type]
+        smooth_sequence(registered, odometry, fallback, NOISE, "off")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("mode", ["causal", "batch"])
+def test_one_wrong_registration_does_not_capture_the_track(mode):
+    """The drive starts with the filter 40 m off and turned 20 deg; the first registration is 4 m off, and every
+    one after it is right. The track does not stay with the wrong one (a robust kernel started there would take the
+    right ones for outliers): from the second right registration on, every query lies within (0.25 m, 2 deg), and
+    until then each keeps its own registration or the filter's pose."""
+    truth, registered, odometry, _ = _case()
+    turn = Rotation.from_euler("z", 20, degrees=True).as_matrix()
+    fallback = [make_pose(turn @ T[:3, :3], T[:3, 3] + [40.0, 0.0, 0.0]) for T in truth]
+    registered = [None] * 5 + [make_pose(turn[:3, :3].T @ truth[5][:3, :3], truth[5][:3, 3] + 4.0)] + [None] * 4
+    registered += [_noisy(T, np.random.default_rng(t), 0.1, 0.5) for t, T in enumerate(truth[10:], 10)]
+    out = smooth_sequence(registered, odometry, fallback, NOISE, mode)
+    m, deg = _errors(out[11:], truth[11:])
+    assert m.max() < 0.25 and deg.max() < 2.0, (m.argmax() + 11, m.max(), deg.max())
+    if mode == "causal":
+        np.testing.assert_allclose(np.array(out[:5]), np.array(fallback[:5]))
+        np.testing.assert_allclose(out[5], registered[5])
+
+
+@pytest.mark.parametrize("mode", ["causal", "batch"])
+def test_a_run_of_agreeing_wrong_registrations_is_outvoted(mode):
+    """The first six registrations agree with each other at a place 20 m off; the right ones from query 10 on
+    outnumber them from query 16. Online, every query from there lies within (0.25 m, 2 deg); with the whole drive,
+    every query does, the first six placed by the odometry from the right ones."""
+    truth, registered, odometry, fallback = _case()
+    registered = list(registered)
+    for t in range(1, 10):
+        registered[t] = make_pose(truth[t][:3, :3], truth[t][:3, 3] + [20.0, 3.0, 0.0]) if t <= 6 else None
+    out = smooth_sequence(registered, odometry, fallback, NOISE, mode)
+    first = 16 if mode == "causal" else 1
+    m, deg = _errors(out[first:], truth[first:])
+    assert m.max() < 0.25 and deg.max() < 2.0, (m.argmax() + first, m.max(), deg.max())

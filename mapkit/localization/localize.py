@@ -438,6 +438,22 @@ def refine_sixdof(
     return results
 
 
+def sequence_noise(cfg: SixDofConfig):
+    """The pose graph's noise (:class:`mapkit.localization.sequence.SequenceNoise`) of a 6-DoF configuration: its
+    agreement band is the neighbour check's (``sequence_max_m``, ``sequence_max_deg``; (0.5 m, 5 deg) when off)."""
+    from mapkit.localization.sequence import SequenceNoise
+
+    return SequenceNoise(
+        prior_m=cfg.smoothing_sigma_m,
+        prior_deg=cfg.smoothing_sigma_deg,
+        odometry_m=cfg.odometry_sigma_m,
+        odometry_fraction=cfg.odometry_sigma_fraction,
+        odometry_deg=cfg.odometry_sigma_deg,
+        agree_m=cfg.sequence_max_m if cfg.sequence_max_m is not None else 0.5,
+        agree_deg=cfg.sequence_max_deg,
+    )
+
+
 def with_sequence_poses(
     results: Sequence[SixDofResult],
     odometry: Sequence[np.ndarray | None],
@@ -450,17 +466,8 @@ def with_sequence_poses(
 
     if cfg.smoothing == "off":
         return list(results)
-    poses = smooth_sequence(
-        [r.world_from_cam if r.accepted else None for r in results],
-        odometry,
-        fallback,
-        mode=cfg.smoothing,
-        prior_sigma_m=cfg.smoothing_sigma_m,
-        prior_sigma_deg=cfg.smoothing_sigma_deg,
-        odometry_sigma_m=cfg.odometry_sigma_m,
-        odometry_sigma_fraction=cfg.odometry_sigma_fraction,
-        odometry_sigma_deg=cfg.odometry_sigma_deg,
-    )
+    registered = [r.world_from_cam if r.accepted else None for r in results]
+    poses = smooth_sequence(registered, odometry, fallback, sequence_noise(cfg), cfg.smoothing)
     return [replace(r, sequence_world_from_cam=T) for r, T in zip(results, poses, strict=True)]
 
 

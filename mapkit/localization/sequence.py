@@ -1,18 +1,23 @@
 """A drive's 6-DoF poses joined by its odometry: a pose graph over the query sequence (gtsam).
 
-Each query is a ``Pose3`` variable (``world_from_camera``). An accepted 6-DoF registration is a prior on its
-query, under a Cauchy kernel so that a registration far from what its neighbours and the odometry say loses its
-pull instead of bending the track; the odometry between consecutive queries is a between factor whose noise grows
-with the distance driven. A query without a registration is placed by the odometry from its neighbours; the first
-query of a stretch the odometry does not link to anything earlier starts from the fallback pose (the filter's),
-under a weak prior that only fixes the gauge until a registration arrives.
+A stretch is a run of queries the odometry links (``odometry[t]`` known from each to the next). Within a stretch
+every accepted 6-DoF registration, moved by the odometry, says where every other query is; two registrations agree
+where one moved to the other lies within (``agree_m``, ``agree_deg``) of it, widened by three standard deviations
+of the odometry between them. The registrations that agree with the most others are the stretch's consensus
+(RANSAC over the registrations: a pair at a look-alike place hundreds of metres away, or a run of them where the
+drive starts, is outvoted once the right ones outnumber it).
 
-Two ways to read the graph:
+The consensus registrations are priors on their queries, under a Cauchy kernel; the odometry steps are between
+factors whose noise grows with the distance driven; Levenberg-Marquardt solves the stretch's graph, started from
+the best-supported registration moved by the odometry. A query without a registration is placed by the odometry.
+Until two registrations of a stretch agree, each query keeps its own registration, or the fallback pose (the
+filter's) where it has none.
 
-* ``causal`` (the default): each query's pose is the estimate right after it was added (iSAM2), from it and the
-  queries before it, as a vehicle localizing online has it;
-* ``batch``: every pose from the whole drive (Levenberg-Marquardt over the full graph), as an offline
-  re-localization of a recorded drive would use it.
+Two ways to read it:
+
+* ``causal`` (the default): each query's pose from it and the queries before it, as a vehicle localizing online
+  has it;
+* ``batch``: every pose of a stretch from the whole stretch, as an offline re-localization of a recorded drive.
 
 A single image's registration is off wherever its matched points constrain the camera poorly (most of them far
 away, or on one facade); along a drive those stretches are short, and odometry to the well-constrained views on
@@ -22,102 +27,147 @@ either side carries their accuracy across.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
-Smoothing = Literal["causal", "batch", "off"]
+from mapkit.core.geometry import invert_pose, rotation_angle_rad
 
 #: the Cauchy kernel's scale (in sigmas): 95 % efficiency on Gaussian residuals (Holland and Welsch, 1977)
 CAUCHY_K = 2.3849
-#: the weak prior that fixes a stretch's first pose to the fallback until a registration arrives (m, deg)
-GAUGE_SIGMA = (10.0, 10.0)
+
+
+@dataclass(frozen=True)
+class SequenceNoise:
+    """A registration's prior std per position axis (m) and rotation axis (deg); an odometry step's std per axis:
+    ``odometry_m + odometry_fraction * step length`` (m) and ``odometry_deg``; two registrations agree within
+    ``agree_m`` and ``agree_deg`` plus three stds of the odometry between them."""
+
+    prior_m: float
+    prior_deg: float
+    odometry_m: float
+    odometry_fraction: float
+    odometry_deg: float
+    agree_m: float = 0.5
+    agree_deg: float = 5.0
 
 
 def smooth_sequence(
     registered: Sequence[np.ndarray | None],
     odometry: Sequence[np.ndarray | None],
     fallback: Sequence[np.ndarray | None],
-    *,
+    noise: SequenceNoise,
     mode: Literal["causal", "batch"] = "causal",
-    prior_sigma_m: float,
-    prior_sigma_deg: float,
-    odometry_sigma_m: float,
-    odometry_sigma_fraction: float,
-    odometry_sigma_deg: float,
 ) -> list[np.ndarray | None]:
-    """Each query's ``world_from_camera`` from the pose graph of the sequence (see the module), None for a query
-    nothing places (no registration, no fallback and no odometry to a placed neighbour).
+    """Each query's ``world_from_camera`` (see the module); where its stretch has no two agreeing registrations
+    (yet), its registration or else its fallback (None where it has neither).
 
     ``registered[t]``: query t's accepted 6-DoF pose (None where it has none); ``odometry[t]``: camera t-1 from
-    camera t (``cam_prev_from_cam``, None for the first query and across gaps); ``fallback[t]``: the pose a stretch
-    starts from. Prior noise: ``prior_sigma_m`` per axis of the position, ``prior_sigma_deg`` per rotation axis;
-    odometry noise per step: ``odometry_sigma_m + odometry_sigma_fraction * step length`` per axis and
-    ``odometry_sigma_deg`` per rotation axis."""
-    import gtsam
-
+    camera t (``cam_prev_from_cam``, None for the first query and across gaps); ``fallback[t]``: the pose kept where
+    the graph gives none."""
     n = len(registered)
     if len(odometry) != n or len(fallback) != n:
         raise ValueError(f"{n} registered poses, {len(odometry)} odometry steps, {len(fallback)} fallback poses")
     if mode not in ("causal", "batch"):
         raise ValueError(f"smoothing mode {mode!r}: choose causal or batch")
-
-    def sigmas(m: float, deg: float) -> np.ndarray:
-        return np.r_[np.full(3, np.radians(deg)), np.full(3, m)]  # gtsam's Pose3 tangent: rotation, then translation
-
-    prior_noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_K),
-        gtsam.noiseModel.Diagonal.Sigmas(sigmas(prior_sigma_m, prior_sigma_deg)),
-    )
-    gauge_noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas(*GAUGE_SIGMA))
-
-    out: list[np.ndarray | None] = [None] * n
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    isam = gtsam.ISAM2() if mode == "causal" else None
-    last: np.ndarray | None = None  # the previous query's pose as placed so far (None: it is not in the graph)
-    anchored = False  # whether a registration holds the stretch the previous query is on
-    for t in range(n):
-        # the odometry's prediction of this query from the previous one, where both are linked
-        predicted = None if t == 0 or odometry[t] is None or last is None else last @ np.asarray(odometry[t], float)
-        pose = registered[t]
-        anchored = anchored and predicted is not None
-        # on a stretch that a registration holds, the odometry's prediction is the starting point: started at a
-        # wrong registration, the optimizer would stay there (its prior's residual is zero, and the kernel then
-        # trusts it); on a stretch only the weak fallback holds, the first registration is, else the kernel would
-        # take it for an outlier of the fallback's metres-off place
-        if predicted is not None and (anchored or pose is None):
-            guess = predicted
-        elif pose is not None:
-            guess = np.asarray(pose, np.float64)
-        elif fallback[t] is not None:
-            guess = np.asarray(fallback[t], np.float64)
-        else:
-            last = None
-            continue
-        anchored = anchored or pose is not None
-        values.insert(t, gtsam.Pose3(guess))
-        if pose is not None:
-            graph.add(gtsam.PriorFactorPose3(t, gtsam.Pose3(np.asarray(pose, np.float64)), prior_noise))
-        if predicted is not None:
-            step = np.asarray(odometry[t], np.float64)
-            length = float(np.linalg.norm(step[:3, 3]))
-            noise = gtsam.noiseModel.Diagonal.Sigmas(
-                sigmas(odometry_sigma_m + odometry_sigma_fraction * length, odometry_sigma_deg)
-            )
-            graph.add(gtsam.BetweenFactorPose3(t - 1, t, gtsam.Pose3(step), noise))
-        else:  # a stretch's first query: its guess fixes the gauge, weakly
-            graph.add(gtsam.PriorFactorPose3(t, gtsam.Pose3(guess), gauge_noise))
-        if isam is not None:
-            isam.update(graph, values)
-            graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-            last = isam.calculateEstimatePose3(t).matrix()
-            out[t] = last
-        else:
-            last = guess
-    if isam is None and values.size():
-        params = gtsam.LevenbergMarquardtParams()
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        for t in range(n):
-            if result.exists(t):
-                out[t] = result.atPose3(t).matrix()
+    out: list[np.ndarray | None] = [
+        np.asarray(registered[t] if registered[t] is not None else fallback[t], np.float64)
+        if registered[t] is not None or fallback[t] is not None
+        else None
+        for t in range(n)
+    ]
+    starts = [t for t in range(n) if t == 0 or odometry[t] is None] + [n]
+    for a, b in zip(starts[:-1], starts[1:], strict=True):
+        _Stretch(registered, odometry, a, b, noise).solve(out, mode)
     return out
+
+
+class _Stretch:
+    """Queries ``a`` to ``b - 1``, linked by the odometry."""
+
+    def __init__(self, registered, odometry, a: int, b: int, noise: SequenceNoise):
+        self.a, self.b, self.noise = a, b, noise
+        self.steps = [np.asarray(odometry[t], np.float64) for t in range(a + 1, b)]
+        rel, var_m = [np.eye(4)], [0.0]  # each query in the frame of the first; the odometry's variance to it
+        for step in self.steps:
+            rel.append(rel[-1] @ step)
+            var_m.append(var_m[-1] + self._step_sigma_m(step) ** 2)
+        self.rel, self.var_m = rel, np.array(var_m)
+        self.regs = [t for t in range(a, b) if registered[t] is not None]
+        self.pose = {t: np.asarray(registered[t], np.float64) for t in self.regs}
+        # the stretch's first query as each registration places it
+        self.origin = {t: self.pose[t] @ invert_pose(rel[t - a]) for t in self.regs}
+        self.agree = self._agreement()
+
+    def _step_sigma_m(self, step: np.ndarray) -> float:
+        return self.noise.odometry_m + self.noise.odometry_fraction * float(np.linalg.norm(step[:3, 3]))
+
+    def _agreement(self) -> np.ndarray:
+        """(R, R) bool: registration i moved by the odometry to registration j's query lies within the gate of it."""
+        r, a, nz = self.regs, self.a, self.noise
+        A = np.eye(len(r), dtype=bool)
+        for i in range(len(r)):
+            for j in range(i + 1, len(r)):
+                moved = self.origin[r[i]] @ self.rel[r[j] - a]
+                here = self.pose[r[j]]
+                sd_m = np.sqrt(abs(self.var_m[r[j] - a] - self.var_m[r[i] - a]))
+                sd_deg = nz.odometry_deg * np.sqrt(r[j] - r[i])
+                ok = (
+                    float(np.linalg.norm(moved[:3, 3] - here[:3, 3])) <= nz.agree_m + 3 * sd_m
+                    and float(np.degrees(rotation_angle_rad(moved[:3, :3].T @ here[:3, :3])))
+                    <= nz.agree_deg + 3 * sd_deg
+                )
+                A[i, j] = A[j, i] = ok
+        return A
+
+    def _consensus(self, upto: int) -> list[int] | None:
+        """The registrations of queries <= ``upto`` that agree with the best-supported one (it first), or None
+        when no two agree. Ties go to the later registration."""
+        m = sum(t <= upto for t in self.regs)
+        if m < 2:
+            return None
+        support = self.agree[:m, :m].sum(axis=1)
+        best = int(np.flatnonzero(support == support.max())[-1])
+        if support[best] < 2:
+            return None
+        return [self.regs[best]] + [self.regs[k] for k in np.flatnonzero(self.agree[best, :m]) if k != best]
+
+    def _graph_poses(self, inliers: list[int], first: int, last: int) -> dict[int, np.ndarray]:
+        """The graph's poses of queries ``first`` to ``last`` with ``inliers`` (the best first) as priors."""
+        import gtsam
+
+        nz = self.noise
+
+        def sigmas(m: float, deg: float) -> np.ndarray:
+            return np.r_[np.full(3, np.radians(deg)), np.full(3, m)]  # gtsam's Pose3 tangent: rotation, translation
+
+        prior_noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_K),
+            gtsam.noiseModel.Diagonal.Sigmas(sigmas(nz.prior_m, nz.prior_deg)),
+        )
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        origin = self.origin[inliers[0]]
+        for t in range(first, last + 1):
+            values.insert(t, gtsam.Pose3(origin @ self.rel[t - self.a]))
+            if t > first:
+                step = self.steps[t - self.a - 1]
+                noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas(self._step_sigma_m(step), nz.odometry_deg))
+                graph.add(gtsam.BetweenFactorPose3(t - 1, t, gtsam.Pose3(step), noise))
+        for t in inliers:
+            if first <= t <= last:
+                graph.add(gtsam.PriorFactorPose3(t, gtsam.Pose3(self.pose[t]), prior_noise))
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
+        return {t: result.atPose3(t).matrix() for t in range(first, last + 1)}
+
+    def solve(self, out: list[np.ndarray | None], mode: str) -> None:
+        if mode == "batch":
+            inliers = self._consensus(self.b - 1)
+            if inliers is not None:
+                for t, T in self._graph_poses(inliers, self.a, self.b - 1).items():
+                    out[t] = T
+            return
+        for t in range(self.a, self.b):
+            inliers = self._consensus(t)
+            if inliers is not None:  # from the first consensus registration: before it, only odometry would place
+                out[t] = self._graph_poses(inliers, min(inliers), t)[t]
