@@ -51,6 +51,7 @@ from mapkit.io import open_log
 from mapkit.io.trajectory import write_benchmark_poses, write_tum
 from mapkit.localization.mcl import FORWARD_CAMERA_ROTATION, CameraMount, MclConfig, MonteCarloLocalizer
 from mapkit.localization.reference_model import DEFAULT_FOLDER as MODEL_FOLDER
+from mapkit.localization.sequence import SequenceNoise, smooth_sequence
 from mapkit.localization.sixdof import (
     SixDofConfig,
     SixDofLocalizer,
@@ -438,11 +439,9 @@ def refine_sixdof(
     return results
 
 
-def sequence_noise(cfg: SixDofConfig):
+def sequence_noise(cfg: SixDofConfig) -> SequenceNoise:
     """The pose graph's noise (:class:`mapkit.localization.sequence.SequenceNoise`) of a 6-DoF configuration: its
     agreement band is the neighbour check's (``sequence_max_m``, ``sequence_max_deg``; (0.5 m, 5 deg) when off)."""
-    from mapkit.localization.sequence import SequenceNoise
-
     return SequenceNoise(
         prior_m=cfg.smoothing_sigma_m,
         prior_deg=cfg.smoothing_sigma_deg,
@@ -451,6 +450,7 @@ def sequence_noise(cfg: SixDofConfig):
         odometry_deg=cfg.odometry_sigma_deg,
         agree_m=cfg.sequence_max_m if cfg.sequence_max_m is not None else 0.5,
         agree_deg=cfg.sequence_max_deg,
+        window_m=cfg.smoothing_window_m,
     )
 
 
@@ -462,8 +462,6 @@ def with_sequence_poses(
 ) -> list[SixDofResult]:
     """``results`` with each query's ``sequence_world_from_cam``: the pose graph of the accepted registrations and the
     odometry (:func:`mapkit.localization.sequence.smooth_sequence`, ``cfg.smoothing``), started from ``fallback``."""
-    from mapkit.localization.sequence import smooth_sequence
-
     if cfg.smoothing == "off":
         return list(results)
     registered = [r.world_from_cam if r.accepted else None for r in results]

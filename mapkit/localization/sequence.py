@@ -42,7 +42,8 @@ CAUCHY_K = 2.3849
 class SequenceNoise:
     """A registration's prior std per position axis (m) and rotation axis (deg); an odometry step's std per axis:
     ``odometry_m + odometry_fraction * step length`` (m) and ``odometry_deg``; two registrations agree within
-    ``agree_m`` and ``agree_deg`` plus three stds of the odometry between them."""
+    ``agree_m`` and ``agree_deg`` plus three stds of the odometry between them; a query's pose is solved from the
+    queries within ``window_m`` of driving of it."""
 
     prior_m: float
     prior_deg: float
@@ -51,6 +52,7 @@ class SequenceNoise:
     odometry_deg: float
     agree_m: float = 0.5
     agree_deg: float = 5.0
+    window_m: float = 200.0
 
 
 def smooth_sequence(
@@ -90,10 +92,12 @@ class _Stretch:
         self.a, self.b, self.noise = a, b, noise
         self.steps = [np.asarray(odometry[t], np.float64) for t in range(a + 1, b)]
         rel, var_m = [np.eye(4)], [0.0]  # each query in the frame of the first; the odometry's variance to it
+        driven = [0.0]  # metres driven from the first
         for step in self.steps:
             rel.append(rel[-1] @ step)
             var_m.append(var_m[-1] + self._step_sigma_m(step) ** 2)
-        self.rel, self.var_m = rel, np.array(var_m)
+            driven.append(driven[-1] + float(np.linalg.norm(step[:3, 3])))
+        self.rel, self.var_m, self.driven = rel, np.array(var_m), np.array(driven)
         self.regs = [t for t in range(a, b) if registered[t] is not None]
         self.pose = {t: np.asarray(registered[t], np.float64) for t in self.regs}
         # the stretch's first query as each registration places it
@@ -121,17 +125,25 @@ class _Stretch:
                 A[i, j] = A[j, i] = ok
         return A
 
-    def _consensus(self, upto: int) -> list[int] | None:
-        """The registrations of queries <= ``upto`` that agree with the best-supported one (it first), or None
-        when no two agree. Ties go to the later registration."""
-        m = sum(t <= upto for t in self.regs)
-        if m < 2:
+    def _consensus(self, first: int, last: int) -> list[int] | None:
+        """The registrations of queries ``first`` to ``last`` that agree with the best-supported one among them (it
+        first), or None when no two agree. Ties go to the later registration."""
+        idx = [k for k, t in enumerate(self.regs) if first <= t <= last]
+        if len(idx) < 2:
             return None
-        support = self.agree[:m, :m].sum(axis=1)
+        agree = self.agree[np.ix_(idx, idx)]
+        support = agree.sum(axis=1)
         best = int(np.flatnonzero(support == support.max())[-1])
         if support[best] < 2:
             return None
-        return [self.regs[best]] + [self.regs[k] for k in np.flatnonzero(self.agree[best, :m]) if k != best]
+        return [self.regs[idx[best]]] + [self.regs[idx[k]] for k in np.flatnonzero(agree[best]) if k != best]
+
+    def _window(self, t: int, before: float, after: float) -> tuple[int, int]:
+        """The first and last query of the stretch within ``before`` metres of driving before t and ``after``
+        after it."""
+        d = self.driven - self.driven[t - self.a]
+        inside = np.flatnonzero((d >= -before) & (d <= after))
+        return self.a + int(inside[0]), self.a + int(inside[-1])
 
     def _graph_poses(self, inliers: list[int], first: int, last: int) -> dict[int, np.ndarray]:
         """The graph's poses of queries ``first`` to ``last`` with ``inliers`` (the best first) as priors."""
@@ -161,13 +173,17 @@ class _Stretch:
         return {t: result.atPose3(t).matrix() for t in range(first, last + 1)}
 
     def solve(self, out: list[np.ndarray | None], mode: str) -> None:
-        if mode == "batch":
-            inliers = self._consensus(self.b - 1)
-            if inliers is not None:
-                for t, T in self._graph_poses(inliers, self.a, self.b - 1).items():
-                    out[t] = T
-            return
+        """Each query's pose from the graph of its window: the ``window_m`` before it (causal), or half of it on
+        either side (batch). A window's consensus holds where the odometry's drift across it stays within the
+        agreement band, which a window of a few hundred metres keeps (bench/odometry_noise.py), and the cost per
+        query stays bounded on long drives."""
+        w = self.noise.window_m
+        before, after = (w, 0.0) if mode == "causal" else (w / 2, w / 2)
         for t in range(self.a, self.b):
-            inliers = self._consensus(t)
-            if inliers is not None:  # from the first consensus registration: before it, only odometry would place
-                out[t] = self._graph_poses(inliers, min(inliers), t)[t]
+            first, last = self._window(t, before, after)
+            inliers = self._consensus(first, last)
+            if inliers is not None:
+                # from the first consensus registration (causal; before it, only the odometry would place), or
+                # the whole window
+                lo = min(inliers) if mode == "causal" else first
+                out[t] = self._graph_poses(inliers, lo, last)[t]
