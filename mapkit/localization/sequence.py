@@ -108,11 +108,14 @@ class _Stretch:
         return self.noise.odometry_m + self.noise.odometry_fraction * float(np.linalg.norm(step[:3, 3]))
 
     def _agreement(self) -> np.ndarray:
-        """(R, R) bool: registration i moved by the odometry to registration j's query lies within the gate of it."""
+        """(R, R) bool: registration i moved by the odometry to registration j's query lies within the gate of it.
+        Pairs farther apart than the window are never in one window together: left False, uncompared."""
         r, a, nz = self.regs, self.a, self.noise
         A = np.eye(len(r), dtype=bool)
         for i in range(len(r)):
             for j in range(i + 1, len(r)):
+                if self.driven[r[j] - a] - self.driven[r[i] - a] > nz.window_m:
+                    break
                 moved = self.origin[r[i]] @ self.rel[r[j] - a]
                 here = self.pose[r[j]]
                 sd_m = np.sqrt(abs(self.var_m[r[j] - a] - self.var_m[r[i] - a]))
