@@ -139,7 +139,7 @@ class SixDofConfig(MapkitConfig):
         "causal",
         description="In a sequence with odometry: the poses of a pose graph of the registrations and the odometry "
         "(mapkit.localization.sequence), beside each image's own registration. causal: each query's pose from it "
-        "and the queries before it, as online; batch: from the whole drive; off: none.",
+        "and the queries before it, as online; batch: from the queries on either side too; off: none.",
     )
     smoothing_sigma_m: float = Field(
         0.125,
