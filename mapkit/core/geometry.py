@@ -30,6 +30,12 @@ def rotation_angle_rad(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).magnitude()
 
 
+def pose_difference(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """(metres between the positions, degrees between the rotations) of two 4x4 poses."""
+    m = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+    return m, float(np.degrees(rotation_angle_rad(a[:3, :3].T @ b[:3, :3])))
+
+
 def yaw_rotation(yaw_rad: float | np.ndarray) -> np.ndarray:
     """Rotation(s) about +z by ``yaw_rad``."""
     c, s = np.cos(yaw_rad), np.sin(yaw_rad)

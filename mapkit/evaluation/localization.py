@@ -190,10 +190,10 @@ def _evaluate(
     return results
 
 
-def sequence_estimates(found) -> np.ndarray:
-    """(n, 4, 4) the pose graph's ``world_from_camera`` of each query (:class:`SixDofResult`), NaN where it has none."""
+def stacked_poses(poses: list[np.ndarray | None]) -> np.ndarray:
+    """(n, 4, 4) the given poses, NaN where one is None (a query without an estimate fails every band)."""
     nan = np.full((4, 4), np.nan)
-    return np.array([nan if x.sequence_world_from_cam is None else x.sequence_world_from_cam for x in found])
+    return np.array([nan if T is None else T for T in poses])
 
 
 def _model_frame_truth(ws: Workspace, truth: Path, ws_frame: LocalFrame, loc: SixDofLocalizer) -> dict:
@@ -289,14 +289,16 @@ def _localize_session(
         names = [p for p, good in zip(imgs.workspace_paths, ok, strict=True) if good]
         found = refine_sixdof(loc, index, r, paths, cameras, names, progress, odometry=steps)
         summary = write_sixdof(out / name, imgs.table["stamp_ns"][ok], found, loc)
-        est = np.array([np.full((4, 4), np.nan) if x.world_from_cam is None else x.world_from_cam for x in found])
+        est = stacked_poses([x.world_from_cam for x in found])
+        sequence = [x.sequence_world_from_cam for x in found]
         gt_model = gt if model_fit is None else model_fit["transform"] @ gt
         entry["sixdof"] = {
             "accepted_share": summary["accepted_share"],
             "6dof": asdict(pose_band_scores(gt_model, est)),
+            # the pose graph's, where the run made one
             **(
-                {"sequence": asdict(pose_band_scores(gt_model, sequence_estimates(found)))}
-                if any(x.sequence_world_from_cam is not None for x in found)
+                {"sequence": asdict(pose_band_scores(gt_model, stacked_poses(sequence)))}
+                if any(T is not None for T in sequence)
                 else {}
             ),
             "filter": asdict(pose_band_scores(gt_model, r.poses("filter"))),

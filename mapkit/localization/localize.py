@@ -43,7 +43,7 @@ from pydantic import Field, field_validator
 
 from mapkit.core.config import MapkitConfig, dump_config, load_config
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.core.geometry import invert_pose, rotation_angle_rad
+from mapkit.core.geometry import invert_pose, pose_difference
 from mapkit.core.runio import atomic_path, atomic_write_text, progress_bar, sha256_file, write_json, write_timings
 from mapkit.core.types import CameraInfo, StreamKind
 from mapkit.core.writers import writes_workspace
@@ -433,7 +433,7 @@ def refine_sixdof(
         results = follow_neighbours(loc, results, images, cameras, names, priors, odometry, features)
         if loc.cfg.sequence_max_m is not None:
             results = check_sequence(results, odometry, priors, loc.cfg.sequence_max_m, loc.cfg.sequence_max_deg)
-    if odometry is not None and loc.cfg.smoothing != "off":
+    if odometry is not None:
         results = with_sequence_poses(results, odometry, priors, loc.cfg)
     logger.info("6-DoF: %d of %d queries registered", sum(r.accepted for r in results), n)
     return results
@@ -550,9 +550,7 @@ def check_sequence(
             P = moved_by_odometry(np.asarray(results[k].world_from_cam), odometry, t, k)
             if P is None:
                 continue
-            W = np.asarray(r.world_from_cam)
-            dm = float(np.linalg.norm(P[:3, 3] - W[:3, 3]))
-            ddeg = float(np.degrees(rotation_angle_rad(P[:3, :3].T @ W[:3, :3])))
+            dm, ddeg = pose_difference(P, np.asarray(r.world_from_cam))
             verdicts.append((dm <= max_m and ddeg <= max_deg, dm, ddeg))
         if not verdicts or any(ok for ok, _, _ in verdicts):
             out.append(r)

@@ -32,7 +32,7 @@ from typing import Literal
 
 import numpy as np
 
-from mapkit.core.geometry import invert_pose, rotation_angle_rad
+from mapkit.core.geometry import invert_pose, pose_difference
 
 #: the Cauchy kernel's scale (in sigmas): 95 % efficiency on Gaussian residuals (Holland and Welsch, 1977)
 CAUCHY_K = 2.3849
@@ -73,12 +73,10 @@ def smooth_sequence(
         raise ValueError(f"{n} registered poses, {len(odometry)} odometry steps, {len(fallback)} fallback poses")
     if mode not in ("causal", "batch"):
         raise ValueError(f"smoothing mode {mode!r}: choose causal or batch")
-    out: list[np.ndarray | None] = [
-        np.asarray(registered[t] if registered[t] is not None else fallback[t], np.float64)
-        if registered[t] is not None or fallback[t] is not None
-        else None
-        for t in range(n)
-    ]
+    out: list[np.ndarray | None] = []
+    for reg, kept in zip(registered, fallback, strict=True):
+        pose = reg if reg is not None else kept
+        out.append(None if pose is None else np.asarray(pose, np.float64))
     starts = [t for t in range(n) if t == 0 or odometry[t] is None] + [n]
     for a, b in zip(starts[:-1], starts[1:], strict=True):
         _Stretch(registered, odometry, a, b, noise).solve(out, mode)
@@ -116,16 +114,10 @@ class _Stretch:
             for j in range(i + 1, len(r)):
                 if self.driven[r[j] - a] - self.driven[r[i] - a] > nz.window_m:
                     break
-                moved = self.origin[r[i]] @ self.rel[r[j] - a]
-                here = self.pose[r[j]]
+                dm, ddeg = pose_difference(self.origin[r[i]] @ self.rel[r[j] - a], self.pose[r[j]])
                 sd_m = np.sqrt(abs(self.var_m[r[j] - a] - self.var_m[r[i] - a]))
                 sd_deg = nz.odometry_deg * np.sqrt(r[j] - r[i])
-                ok = (
-                    float(np.linalg.norm(moved[:3, 3] - here[:3, 3])) <= nz.agree_m + 3 * sd_m
-                    and float(np.degrees(rotation_angle_rad(moved[:3, :3].T @ here[:3, :3])))
-                    <= nz.agree_deg + 3 * sd_deg
-                )
-                A[i, j] = A[j, i] = ok
+                A[i, j] = A[j, i] = dm <= nz.agree_m + 3 * sd_m and ddeg <= nz.agree_deg + 3 * sd_deg
         return A
 
     def _consensus(self, first: int, last: int) -> list[int] | None:
