@@ -157,6 +157,9 @@ def test_sixdof_poses_are_ten_times_closer_than_the_filter(kitti_ws, tmp_path, c
     assert 0 < timings["sixdof_median_s_per_query"] <= timings["sixdof_max_s_per_query"]
     assert "seconds" not in record["per_query"][0] and "median_s_per_query" not in record
     assert all(q["inliers"] >= record["config"]["min_inliers"] for q in accepted)
+    # each registration's position std (camera axes), from its covariance: a few centimetres on KITTI's streets
+    stds = np.array([q["position_std_m"] for q in accepted])
+    assert stds.shape == (len(accepted), 3) and np.all((stds > 0) & (stds < 0.5)), stds
 
     scores = pose_band_scores(gt, sixdof)
     assert scores.recall[band_key(0.25, 2.0)] == pytest.approx(np.mean(within))
@@ -178,7 +181,7 @@ def test_a_query_that_does_not_register_keeps_the_filters_pose(kitti_ws, kitti_c
     record = json.loads((out / "sixdof.json").read_text())
     assert record["accepted"] == 0 and len(record["per_query"]) == 5 and len(extracted) == 5
     for q in record["per_query"]:
-        assert not q["accepted"] and q["inliers"] == 0 and q["matches"] > 30
+        assert not q["accepted"] and q["inliers"] == 0 and q["matches"] > 30 and q["position_std_m"] is None
         assert q["reason"].startswith("retrieved images: ") and "; images near the filter's pose: " in q["reason"]
         assert q["reason"].endswith("2D-3D matches, fewer than min_inliers 100000"), q["reason"]
     stamps, sixdof = read_tum(out / "sixdof_tum.txt")

@@ -168,3 +168,34 @@ def test_a_long_drive_with_drifting_odometry_stays_on_its_registrations():
     assert m.max() < 0.25 and deg.max() < 2.0, (m.argmax() + 5, m.max(), deg.max())
     whole = smooth_sequence(registered, odometry, fallback, replace(NOISE, window_m=1e6), "causal")
     assert _errors(whole[5:], truth[5:])[0].max() > 0.5
+
+
+def test_a_registration_that_says_it_is_loose_yields_to_the_odometry():
+    """Queries 30-49 register from points far ahead: up to 0.6 m off along the view, and their covariance says so
+    (0.5 m std along the optical axis). Given the covariances, the odometry from the sharp registrations on either
+    side carries their accuracy across; without them the graph follows the loose ones."""
+    rng = np.random.default_rng(11)
+    truth = _drive()
+    odometry = [None] + [invert_pose(a) @ b for a, b in zip(truth[:-1], truth[1:], strict=True)]
+    sharp = np.diag(np.r_[np.full(3, np.radians(0.05)), 0.01, 0.01, 0.01] ** 2)
+    loose = np.diag(np.r_[np.full(3, np.radians(0.05)), 0.02, 0.02, 0.5] ** 2)
+    registered, covariances = [], []
+    for t, T in enumerate(truth):
+        off = 0.6 * np.sin(np.pi * (t - 29) / 21) if 30 <= t < 50 else 0.0  # along the camera's z
+        along = T[:3, :3] @ np.array([0.0, 0.0, off])
+        registered.append(make_pose(T[:3, :3], T[:3, 3] + along + 0.01 * rng.standard_normal(3)))
+        covariances.append(loose if off else sharp)
+    fallback = [None] * N
+    for mode in ("causal", "batch"):
+        given = smooth_sequence(registered, odometry, fallback, NOISE, mode, covariances)
+        alone = smooth_sequence(registered, odometry, fallback, NOISE, mode)
+        err_given = np.array([np.linalg.norm(P[:3, 3] - T[:3, 3]) for P, T in zip(given, truth, strict=True)])
+        err_alone = np.array([np.linalg.norm(P[:3, 3] - T[:3, 3]) for P, T in zip(alone, truth, strict=True)])
+        assert err_given[30:50].max() < 0.15, (mode, err_given[30:50].max())
+        assert err_alone[30:50].max() > 0.25, (mode, err_alone[30:50].max())  # outside the finest band
+
+
+def test_covariances_must_match_the_queries():
+    truth, registered, odometry, fallback = _case()
+    with pytest.raises(ValueError, match="covariances"):
+        smooth_sequence(registered, odometry, fallback, NOISE, "causal", [None] * (N - 1))

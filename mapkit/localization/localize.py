@@ -465,7 +465,8 @@ def with_sequence_poses(
     if cfg.smoothing == "off":
         return list(results)
     registered = [r.world_from_cam if r.accepted else None for r in results]
-    poses = smooth_sequence(registered, odometry, fallback, sequence_noise(cfg), cfg.smoothing)
+    covariances = [r.covariance if r.accepted else None for r in results]
+    poses = smooth_sequence(registered, odometry, fallback, sequence_noise(cfg), cfg.smoothing, covariances)
     return [replace(r, sequence_world_from_cam=T) for r, T in zip(results, poses, strict=True)]
 
 
@@ -608,11 +609,19 @@ def write_sixdof(out: Path, stamps_ns: np.ndarray, results: Sequence[SixDofResul
             "inliers": r.inliers,
             "matches": r.matches,
             "candidates": r.candidates,
+            "position_std_m": _position_std(r),
         }
         for r, stamp in zip(results, np.asarray(stamps_ns, np.int64), strict=True)
     ]
     write_json(out / "sixdof.json", {**summary, "config": loc.cfg.model_dump(mode="json"), "per_query": per_query})
     return summary
+
+
+def _position_std(r: SixDofResult) -> list[float] | None:
+    """An accepted registration's position std (m) along the camera's x (right), y (down) and z (the view)."""
+    if not r.accepted or r.covariance is None:
+        return None
+    return [round(float(v), 4) for v in np.sqrt(np.diag(r.covariance)[3:])]
 
 
 def sixdof_timings(results: Sequence[SixDofResult]) -> dict[str, float | None]:

@@ -7,7 +7,9 @@ of the odometry between them. The registrations that agree with the most others 
 (RANSAC over the registrations: a pair at a look-alike place hundreds of metres away, or a run of them where the
 drive starts, is outvoted once the right ones outnumber it).
 
-The consensus registrations are priors on their queries, under a Cauchy kernel; the odometry steps are between
+The consensus registrations are priors on their queries, under a Cauchy kernel, each with the configured noise
+(the model's own error) plus the registration's covariance where it has one (how well its points fix the
+camera: most of them far away fix it poorly along the view); the odometry steps are between
 factors whose noise grows with the distance driven; Levenberg-Marquardt solves the stretch's graph, started from
 the best-supported registration moved by the odometry. A query without a registration is placed by the odometry.
 Until two registrations of a stretch agree, each query keeps its own registration, or the fallback pose (the
@@ -61,16 +63,21 @@ def smooth_sequence(
     fallback: Sequence[np.ndarray | None],
     noise: SequenceNoise,
     mode: Literal["causal", "batch"] = "causal",
+    covariances: Sequence[np.ndarray | None] | None = None,
 ) -> list[np.ndarray | None]:
     """Each query's ``world_from_camera`` (see the module); where its stretch has no two agreeing registrations
     (yet), its registration or else its fallback (None where it has neither).
 
     ``registered[t]``: query t's accepted 6-DoF pose (None where it has none); ``odometry[t]``: camera t-1 from
     camera t (``cam_prev_from_cam``, None for the first query and across gaps); ``fallback[t]``: the pose kept where
-    the graph gives none."""
+    the graph gives none; ``covariances[t]``: the registration's covariance (6, 6) in gtsam's Pose3 convention
+    (rotation, translation; ``mapkit.localization.sixdof.world_from_cam_covariance``), added to the prior's noise
+    (None: the configured noise alone)."""
     n = len(registered)
     if len(odometry) != n or len(fallback) != n:
         raise ValueError(f"{n} registered poses, {len(odometry)} odometry steps, {len(fallback)} fallback poses")
+    if covariances is not None and len(covariances) != n:
+        raise ValueError(f"{n} registered poses, {len(covariances)} covariances")
     if mode not in ("causal", "batch"):
         raise ValueError(f"smoothing mode {mode!r}: choose causal or batch")
     out: list[np.ndarray | None] = []
@@ -79,14 +86,19 @@ def smooth_sequence(
         out.append(None if pose is None else np.asarray(pose, np.float64))
     starts = [t for t in range(n) if t == 0 or odometry[t] is None] + [n]
     for a, b in zip(starts[:-1], starts[1:], strict=True):
-        _Stretch(registered, odometry, a, b, noise).solve(out, mode)
+        _Stretch(registered, odometry, a, b, noise, covariances).solve(out, mode)
     return out
+
+
+def _sigmas(m: float, deg: float) -> np.ndarray:
+    """Stds in gtsam's Pose3 tangent order: rotation (from degrees), translation."""
+    return np.r_[np.full(3, np.radians(deg)), np.full(3, m)]
 
 
 class _Stretch:
     """Queries ``a`` to ``b - 1``, linked by the odometry."""
 
-    def __init__(self, registered, odometry, a: int, b: int, noise: SequenceNoise):
+    def __init__(self, registered, odometry, a: int, b: int, noise: SequenceNoise, covariances=None):
         self.a, self.b, self.noise = a, b, noise
         self.steps = [np.asarray(odometry[t], np.float64) for t in range(a + 1, b)]
         rel, var_m = [np.eye(4)], [0.0]  # each query in the frame of the first; the odometry's variance to it
@@ -98,6 +110,11 @@ class _Stretch:
         self.rel, self.var_m, self.driven = rel, np.array(var_m), np.array(driven)
         self.regs = [t for t in range(a, b) if registered[t] is not None]
         self.pose = {t: np.asarray(registered[t], np.float64) for t in self.regs}
+        base = np.diag(_sigmas(noise.prior_m, noise.prior_deg) ** 2)
+        self.prior_cov = {
+            t: base if covariances is None or covariances[t] is None else base + np.asarray(covariances[t], np.float64)
+            for t in self.regs
+        }
         # the stretch's first query as each registration places it
         self.origin = {t: self.pose[t] @ invert_pose(rel[t - a]) for t in self.regs}
         self.agree = self._agreement()
@@ -145,24 +162,20 @@ class _Stretch:
         import gtsam
 
         nz = self.noise
-
-        def sigmas(m: float, deg: float) -> np.ndarray:
-            return np.r_[np.full(3, np.radians(deg)), np.full(3, m)]  # gtsam's Pose3 tangent: rotation, translation
-
-        prior_noise = gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_K),
-            gtsam.noiseModel.Diagonal.Sigmas(sigmas(nz.prior_m, nz.prior_deg)),
-        )
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         origin = self.origin[inliers[0]]
         for t in range(first, last + 1):
             values.insert(t, gtsam.Pose3(origin @ self.rel[t - self.a]))
             if t > first:
                 step = self.steps[t - self.a - 1]
-                noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas(self._step_sigma_m(step), nz.odometry_deg))
+                noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(self._step_sigma_m(step), nz.odometry_deg))
                 graph.add(gtsam.BetweenFactorPose3(t - 1, t, gtsam.Pose3(step), noise))
         for t in inliers:
             if first <= t <= last:
+                prior_noise = gtsam.noiseModel.Robust.Create(
+                    gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_K),
+                    gtsam.noiseModel.Gaussian.Covariance(self.prior_cov[t]),
+                )
                 graph.add(gtsam.PriorFactorPose3(t, gtsam.Pose3(self.pose[t]), prior_noise))
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
         return {t: result.atPose3(t).matrix() for t in range(first, last + 1)}

@@ -40,7 +40,7 @@ from pydantic import Field
 
 from mapkit.core.config import MapkitConfig, load_config
 from mapkit.core.errors import ConfigError, InputError
-from mapkit.core.geometry import invert_pose, rotation_angle_rad
+from mapkit.core.geometry import invert_pose, rotation_angle_rad, skew
 from mapkit.core.runio import progress_bar, write_json
 from mapkit.core.types import CameraInfo
 from mapkit.core.writers import writes_workspace
@@ -206,6 +206,9 @@ class SixDofResult:
     candidates: list[str] = field(default_factory=list)
     seconds: float = 0.0  # with the query's share of a batch's feature extraction
     sequence_world_from_cam: np.ndarray | None = None  # the pose graph's pose (SixDofConfig.smoothing), if any
+    # the registration's covariance (6, 6) in gtsam's Pose3 convention (see world_from_cam_covariance); None
+    # where the query has no registration of its own
+    covariance: np.ndarray | None = None
 
 
 # --- the model on disk -----------------------------------------------------------------------------------
@@ -483,7 +486,9 @@ class SixDofLocalizer:
             raise InputError(self.folder / "sfm", f"{label}: candidate {unknown[0]!r} is not an image of the model")
         used = list(dict.fromkeys(candidates))[: self.cfg.max_candidates]
 
-        def result(accepted: bool, reason: str, inliers: int, matches: int, T: np.ndarray | None) -> SixDofResult:
+        def result(
+            accepted: bool, reason: str, inliers: int, matches: int, T: np.ndarray | None, cov: np.ndarray | None = None
+        ) -> SixDofResult:
             world_from_cam = None if T is None else invert_pose(T)
             if T is None and fallback_world_from_cam is not None:
                 world_from_cam = np.array(fallback_world_from_cam, np.float64)  # kept as given
@@ -498,6 +503,7 @@ class SixDofLocalizer:
                 matches,
                 used,
                 time.perf_counter() - t0,
+                covariance=cov,
             )
 
         guided_starts = [invert_pose(np.asarray(g, np.float64)) for g in guides]
@@ -517,10 +523,10 @@ class SixDofLocalizer:
             keep = pids[dj] >= 0
             pairs.append(np.stack([qi[keep], pids[dj[keep]]], axis=1))
         pair = np.unique(np.concatenate(pairs or [np.zeros((0, 2), np.int64)]).reshape(-1, 2), axis=0)
-        n_matches, T, inliers, how = len(pair), None, 0, ""
+        n_matches, T, inliers, how, cov = len(pair), None, 0, "", None
         if n_matches >= self.cfg.min_inliers:
             points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
-            T, inliers, _ = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
+            T, inliers, _, cov = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
         starts = [
             ("a neighbour's pose moved by the odometry" if k < len(guides) else "the fallback pose", S)
             for k, S in enumerate(guided_starts)
@@ -530,7 +536,7 @@ class SixDofLocalizer:
         for what, start in starts:
             guided = self._guided(xy, desc, cam, start)
             if guided is not None and guided[1] > inliers:
-                T, inliers, n_matches, near = guided
+                T, inliers, n_matches, near, cov = guided
                 used = list(dict.fromkeys([*used, *near]))
                 how = f", matched guided from {what}"
         if T is None:
@@ -545,11 +551,12 @@ class SixDofLocalizer:
         far = self._off_candidates(T, used)
         if far:
             return result(False, f"{found}, but {far}", inliers, n_matches, None)
-        return result(True, found, inliers, n_matches, T)
+        return result(True, found, inliers, n_matches, T, cov)
 
     def _guided(self, xy: np.ndarray, desc: np.ndarray, cam: CameraInfo, start: np.ndarray):
         """RANSAC on prior-guided matches from ``start`` (cam_from_world), once per radius of ``guided_radii_px``:
-        (cam_from_world, inliers, matches, the images whose points were matched), or None when no pose follows."""
+        (cam_from_world, inliers, matches, the images whose points were matched, the pose's covariance), or None
+        when no pose follows."""
         near = self.candidates_near(invert_pose(start))
         if not near:
             return None
@@ -563,10 +570,10 @@ class SixDofLocalizer:
             if len(pair) < self.cfg.min_inliers:
                 break
             points3D = np.array([self._xyz[int(p)] for p in pair[:, 1]], np.float64)
-            T_next, inliers, mask = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
+            T_next, inliers, mask, cov = self._absolute_pose(xy[pair[:, 0]], points3D, cam)
             if T_next is None:
                 break
-            T, out, kept = T_next, (T_next, inliers, len(pair), near), points3D[mask]
+            T, out, kept = T_next, (T_next, inliers, len(pair), near, cov), points3D[mask]
         if out is None:
             return None
         reach = self.cfg.guided_radii_px[0]
@@ -606,18 +613,38 @@ class SixDofLocalizer:
         return ""
 
     def _absolute_pose(self, points2D: np.ndarray, points3D: np.ndarray, camera: CameraInfo):
-        """(cam_from_world (4, 4), inliers, inlier mask), or (None, 0, None) when RANSAC finds no pose."""
+        """(cam_from_world (4, 4), inliers, inlier mask, covariance (:func:`world_from_cam_covariance`)), or (None, 0,
+        None, None) when RANSAC finds no pose."""
         import pycolmap
 
         options = pycolmap.AbsolutePoseEstimationOptions()
         options.ransac.max_error = self.cfg.ransac_max_error_px
         options.ransac.random_seed = self.cfg.seed
-        out = pycolmap.estimate_and_refine_absolute_pose(points2D, points3D, colmap_camera(camera, 1), options)
+        out = pycolmap.estimate_and_refine_absolute_pose(
+            points2D, points3D, colmap_camera(camera, 1), options, return_covariance=True
+        )
         if out is None:
-            return None, 0, None
+            return None, 0, None, None
         T = np.eye(4)
         T[:3] = out["cam_from_world"].matrix()
-        return T, int(out["num_inliers"]), np.asarray(out["inlier_mask"], bool)
+        cov = world_from_cam_covariance(T, np.asarray(out["covariance"], np.float64))
+        return T, int(out["num_inliers"]), np.asarray(out["inlier_mask"], bool), cov
+
+
+def world_from_cam_covariance(cam_from_world: np.ndarray, colmap_covariance: np.ndarray) -> np.ndarray:
+    """The covariance (6, 6) of a registered camera's ``world_from_cam`` in gtsam's Pose3 convention (a perturbation
+    on the right, in the camera's axes: rotation (rad), then translation (m)), from the covariance COLMAP's
+    absolute pose refinement gives of ``cam_from_world`` (keypoints of one pixel's std): its rotation block is of
+    the quaternion's tangent (Ceres' quaternion manifold, ``q <- exp(d) q``: half the rotation vector ``a = 2 d``
+    applied on the left), its translation block of ``t`` itself. With ``cam_from_world = (R, t)`` moved to
+    ``(exp(a) R, t + b)``, the camera's pose moves by ``(-a, -b - [t]x a)``."""
+    t = np.asarray(cam_from_world, np.float64)[:3, 3]
+    J = np.zeros((6, 6))
+    J[:3, :3] = -2.0 * np.eye(3)
+    J[3:, :3] = -2.0 * skew(t)
+    J[3:, 3:] = -np.eye(3)
+    C = np.asarray(colmap_covariance, np.float64).reshape(6, 6)
+    return J @ C @ J.T
 
 
 def _drift_px(points3D: np.ndarray, cam_from_world_a: np.ndarray, cam_from_world_b: np.ndarray, camera) -> float:
