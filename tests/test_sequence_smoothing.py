@@ -11,9 +11,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapkit.core.geometry import invert_pose, make_pose, rotation_angle_rad
-from mapkit.localization.localize import sequence_noise
+from mapkit.localization.localize import sequence_noise, with_sequence_poses
 from mapkit.localization.sequence import smooth_sequence
-from mapkit.localization.sixdof import SixDofConfig
+from mapkit.localization.sixdof import SixDofConfig, SixDofResult
 
 #: queries 2 m apart, a quarter turn in the middle
 N = 80
@@ -170,10 +170,9 @@ def test_a_long_drive_with_drifting_odometry_stays_on_its_registrations():
     assert _errors(whole[5:], truth[5:])[0].max() > 0.5
 
 
-def test_a_registration_that_says_it_is_loose_yields_to_the_odometry():
-    """Queries 30-49 register from points far ahead: up to 0.6 m off along the view, and their covariance says so
-    (0.5 m std along the optical axis). Given the covariances, the odometry from the sharp registrations on either
-    side carries their accuracy across; without them the graph follows the loose ones."""
+def _loose_case():
+    """(truth, registered, odometry, covariances): queries 30-49 register from points far ahead, up to 0.6 m off
+    along the view, and their covariance says so (0.5 m std along the optical axis); the rest within 1 cm."""
     rng = np.random.default_rng(11)
     truth = _drive()
     odometry = [None] + [invert_pose(a) @ b for a, b in zip(truth[:-1], truth[1:], strict=True)]
@@ -185,14 +184,53 @@ def test_a_registration_that_says_it_is_loose_yields_to_the_odometry():
         along = T[:3, :3] @ np.array([0.0, 0.0, off])
         registered.append(make_pose(T[:3, :3], T[:3, 3] + along + 0.01 * rng.standard_normal(3)))
         covariances.append(loose if off else sharp)
+    return truth, registered, odometry, covariances
+
+
+def _position_errors(poses, truth) -> np.ndarray:
+    return np.array([np.linalg.norm(P[:3, 3] - T[:3, 3]) for P, T in zip(poses, truth, strict=True)])
+
+
+def test_a_registration_that_says_it_is_loose_yields_to_the_odometry():
+    """Given the covariances, the odometry from the sharp registrations on either side of the loose ones carries
+    their accuracy across; without them the graph follows the loose ones."""
+    truth, registered, odometry, covariances = _loose_case()
     fallback = [None] * N
     for mode in ("causal", "batch"):
-        given = smooth_sequence(registered, odometry, fallback, NOISE, mode, covariances)
-        alone = smooth_sequence(registered, odometry, fallback, NOISE, mode)
-        err_given = np.array([np.linalg.norm(P[:3, 3] - T[:3, 3]) for P, T in zip(given, truth, strict=True)])
-        err_alone = np.array([np.linalg.norm(P[:3, 3] - T[:3, 3]) for P, T in zip(alone, truth, strict=True)])
-        assert err_given[30:50].max() < 0.15, (mode, err_given[30:50].max())
-        assert err_alone[30:50].max() > 0.25, (mode, err_alone[30:50].max())  # outside the finest band
+        given = _position_errors(smooth_sequence(registered, odometry, fallback, NOISE, mode, covariances), truth)
+        alone = _position_errors(smooth_sequence(registered, odometry, fallback, NOISE, mode), truth)
+        assert given[30:50].max() < 0.15, (mode, given[30:50].max())
+        assert alone[30:50].max() > 0.25, (mode, alone[30:50].max())  # outside the finest band
+
+
+def test_the_localizer_passes_its_registrations_covariances_unless_told_not_to():
+    """``with_sequence_poses`` (the 6-DoF localizer's pose graph) gives the accepted registrations' covariances to
+    the graph; ``smoothing_covariance: false`` leaves them out; a rejected registration's covariance never counts."""
+    truth, registered, odometry, covariances = _loose_case()
+    results = [
+        SixDofResult(f"q{t}", invert_pose(T), T, True, "", 50, 60, covariance=C)
+        for t, (T, C) in enumerate(zip(registered, covariances, strict=True))
+    ]
+    fallback = [None] * N
+    on = with_sequence_poses(results, odometry, fallback, SixDofConfig())
+    off = with_sequence_poses(results, odometry, fallback, SixDofConfig(smoothing_covariance=False))
+    assert _position_errors([r.sequence_world_from_cam for r in on], truth)[30:50].max() < 0.15
+    expected = smooth_sequence(registered, odometry, fallback, NOISE, "causal")
+    for r, T in zip(off, expected, strict=True):
+        np.testing.assert_allclose(r.sequence_world_from_cam, T)
+    # a rejected query keeps its covariance in the result, but the graph neither takes its pose nor its covariance
+    rejected = [replace(r, accepted=False) if t == 40 else r for t, r in enumerate(results)]
+    got = with_sequence_poses(rejected, odometry, fallback, SixDofConfig())
+    dropped = smooth_sequence(
+        [None if t == 40 else T for t, T in enumerate(registered)],
+        odometry,
+        fallback,
+        NOISE,
+        "causal",
+        [None if t == 40 else C for t, C in enumerate(covariances)],
+    )
+    for r, T in zip(got, dropped, strict=True):
+        np.testing.assert_allclose(r.sequence_world_from_cam, T)
 
 
 def test_covariances_must_match_the_queries():

@@ -465,7 +465,7 @@ def with_sequence_poses(
     if cfg.smoothing == "off":
         return list(results)
     registered = [r.world_from_cam if r.accepted else None for r in results]
-    covariances = [r.covariance if r.accepted else None for r in results]
+    covariances = [r.covariance if r.accepted else None for r in results] if cfg.smoothing_covariance else None
     poses = smooth_sequence(registered, odometry, fallback, sequence_noise(cfg), cfg.smoothing, covariances)
     return [replace(r, sequence_world_from_cam=T) for r, T in zip(results, poses, strict=True)]
 

@@ -148,6 +148,12 @@ class SixDofConfig(MapkitConfig):
         "the benchmarks' finest band (0.25 m, 2 deg), so that an accepted pose lies within it at two sigma.",
     )
     smoothing_sigma_deg: float = Field(1.0, gt=0, description="... and this std per rotation axis (deg), as above.")
+    smoothing_covariance: bool = Field(
+        True,
+        description="Add each registration's own covariance (COLMAP's pose refinement, for a pixel of keypoint noise) "
+        "to its prior's noise above: a pose its points fix poorly (most of them far ahead) counts for less along the "
+        "view. false: the configured noise alone.",
+    )
     smoothing_window_m: float = Field(
         200.0,
         gt=0,
