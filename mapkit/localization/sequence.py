@@ -95,6 +95,19 @@ def _sigmas(m: float, deg: float) -> np.ndarray:
     return np.r_[np.full(3, np.radians(deg)), np.full(3, m)]
 
 
+def _prior_noise(noise: SequenceNoise, covariance: np.ndarray | None):
+    """A registration's prior noise: the configured stds plus its own covariance (if any), under the Cauchy kernel.
+    Made once per registration: every window that holds it shares it."""
+    import gtsam
+
+    cov = np.diag(_sigmas(noise.prior_m, noise.prior_deg) ** 2)
+    if covariance is not None:
+        cov = cov + np.asarray(covariance, np.float64)
+    return gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_K), gtsam.noiseModel.Gaussian.Covariance(cov)
+    )
+
+
 class _Stretch:
     """Queries ``a`` to ``b - 1``, linked by the odometry."""
 
@@ -110,11 +123,7 @@ class _Stretch:
         self.rel, self.var_m, self.driven = rel, np.array(var_m), np.array(driven)
         self.regs = [t for t in range(a, b) if registered[t] is not None]
         self.pose = {t: np.asarray(registered[t], np.float64) for t in self.regs}
-        base = np.diag(_sigmas(noise.prior_m, noise.prior_deg) ** 2)
-        self.prior_cov = {
-            t: base if covariances is None or covariances[t] is None else base + np.asarray(covariances[t], np.float64)
-            for t in self.regs
-        }
+        self.prior_noise = {t: _prior_noise(noise, None if covariances is None else covariances[t]) for t in self.regs}
         # the stretch's first query as each registration places it
         self.origin = {t: self.pose[t] @ invert_pose(rel[t - a]) for t in self.regs}
         self.agree = self._agreement()
@@ -172,11 +181,7 @@ class _Stretch:
                 graph.add(gtsam.BetweenFactorPose3(t - 1, t, gtsam.Pose3(step), noise))
         for t in inliers:
             if first <= t <= last:
-                prior_noise = gtsam.noiseModel.Robust.Create(
-                    gtsam.noiseModel.mEstimator.Cauchy.Create(CAUCHY_K),
-                    gtsam.noiseModel.Gaussian.Covariance(self.prior_cov[t]),
-                )
-                graph.add(gtsam.PriorFactorPose3(t, gtsam.Pose3(self.pose[t]), prior_noise))
+                graph.add(gtsam.PriorFactorPose3(t, gtsam.Pose3(self.pose[t]), self.prior_noise[t]))
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
         return {t: result.atPose3(t).matrix() for t in range(first, last + 1)}
 
