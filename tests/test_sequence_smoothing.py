@@ -187,18 +187,14 @@ def _loose_case():
     return truth, registered, odometry, covariances
 
 
-def _position_errors(poses, truth) -> np.ndarray:
-    return np.array([np.linalg.norm(P[:3, 3] - T[:3, 3]) for P, T in zip(poses, truth, strict=True)])
-
-
 def test_a_registration_that_says_it_is_loose_yields_to_the_odometry():
     """Given the covariances, the odometry from the sharp registrations on either side of the loose ones carries
     their accuracy across; without them the graph follows the loose ones."""
     truth, registered, odometry, covariances = _loose_case()
     fallback = [None] * N
     for mode in ("causal", "batch"):
-        given = _position_errors(smooth_sequence(registered, odometry, fallback, NOISE, mode, covariances), truth)
-        alone = _position_errors(smooth_sequence(registered, odometry, fallback, NOISE, mode), truth)
+        given = _errors(smooth_sequence(registered, odometry, fallback, NOISE, mode, covariances), truth)[0]
+        alone = _errors(smooth_sequence(registered, odometry, fallback, NOISE, mode), truth)[0]
         assert given[30:50].max() < 0.15, (mode, given[30:50].max())
         assert alone[30:50].max() > 0.25, (mode, alone[30:50].max())  # outside the finest band
 
@@ -214,7 +210,7 @@ def test_the_localizer_passes_its_registrations_covariances_unless_told_not_to()
     fallback = [None] * N
     on = with_sequence_poses(results, odometry, fallback, SixDofConfig())
     off = with_sequence_poses(results, odometry, fallback, SixDofConfig(smoothing_covariance=False))
-    assert _position_errors([r.sequence_world_from_cam for r in on], truth)[30:50].max() < 0.15
+    assert _errors([r.sequence_world_from_cam for r in on], truth)[0][30:50].max() < 0.15
     expected = smooth_sequence(registered, odometry, fallback, NOISE, "causal")
     for r, T in zip(off, expected, strict=True):
         np.testing.assert_allclose(r.sequence_world_from_cam, T)
